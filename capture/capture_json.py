@@ -1,0 +1,264 @@
+"""The capture folder: ``capture.json`` beside ``images/`` (and optional ``masks/``).
+
+``capture.json`` is a nerfstudio ``transforms.json``: intrinsics at the top level or per frame
+(``fl_x, fl_y, cx, cy, w, h, camera_model`` and OpenCV distortion ``k1 k2 k3 k4 p1 p2``),
+``frames[*].file_path`` relative to the folder and ``frames[*].transform_matrix`` camera-to-world
+in OpenGL axes. texstream adds optional per-frame fields (DESIGN.md):
+
+- ``light``: ``{"type": "point", "position": [x,y,z], "intensity": [r,g,b]}`` or
+  ``{"type": "directional", "direction": [x,y,z], "intensity": [r,g,b]}``
+- ``exposure``: linear scale, pixel = exposure * radiance (default 1)
+- ``mask_path``: mask image, nonzero = object (default none)
+- ``saturation``: pixel value at or above which a sample is clipped (default none)
+
+Unknown keys are kept and written back, so nerfstudio's own fields survive a round trip.
+Conventions are in :mod:`texstream.capture.conventions`. This module imports only numpy.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from texstream.pipelines.errors import InputError
+from texstream.pipelines.stage import read_json, write_json_atomic
+
+from .conventions import c2w_gl_to_w2c_cv, camera_center, is_rotation, w2c_cv_to_c2w_gl
+
+CAPTURE_FILE = "capture.json"
+_INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
+_DIST_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+CAMERA_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV", "SIMPLE_RADIAL", "RADIAL", "OPENCV_FISHEYE")
+
+
+@dataclasses.dataclass
+class Intrinsics:
+    """Pinhole intrinsics in the capture pixel convention (pixel centres at +0.5)."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    camera_model: str = "PINHOLE"
+    distortion: dict[str, float] = dataclasses.field(default_factory=dict)
+
+    @property
+    def is_pinhole(self) -> bool:
+        return all(abs(v) == 0.0 for v in self.distortion.values())
+
+    def matrix(self) -> np.ndarray:
+        """3x3 K in the capture convention."""
+        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
+
+    def to_json(self) -> dict:
+        d = {"camera_model": self.camera_model, "fl_x": self.fx, "fl_y": self.fy, "cx": self.cx,
+             "cy": self.cy, "w": int(self.width), "h": int(self.height)}
+        d.update({k: float(v) for k, v in self.distortion.items()})
+        return d
+
+
+@dataclasses.dataclass
+class Light:
+    """A point or directional light (see conventions)."""
+
+    type: str
+    intensity: np.ndarray
+    position: np.ndarray | None = None
+    direction: np.ndarray | None = None
+
+    @staticmethod
+    def point(position, intensity) -> "Light":
+        return Light("point", _vec3(intensity), position=_vec3(position))
+
+    @staticmethod
+    def directional(direction, intensity) -> "Light":
+        d = _vec3(direction)
+        return Light("directional", _vec3(intensity), direction=d / np.linalg.norm(d))
+
+    def to_json(self) -> dict:
+        d: dict[str, Any] = {"type": self.type, "intensity": [float(x) for x in self.intensity]}
+        if self.type == "point":
+            d["position"] = [float(x) for x in self.position]
+        else:
+            d["direction"] = [float(x) for x in self.direction]
+        return d
+
+
+@dataclasses.dataclass
+class Frame:
+    """One photo: its file, pose (world-to-camera R, t in OpenCV axes), intrinsics and light."""
+
+    file_path: str
+    R: np.ndarray
+    t: np.ndarray
+    intrinsics: Intrinsics
+    light: Light | None = None
+    exposure: float = 1.0
+    mask_path: str | None = None
+    saturation: float | None = None
+    extra: dict = dataclasses.field(default_factory=dict)
+
+    @property
+    def center(self) -> np.ndarray:
+        return camera_center(self.R, self.t)
+
+    @property
+    def name(self) -> str:
+        return Path(self.file_path).stem
+
+
+@dataclasses.dataclass
+class Capture:
+    """A posed capture: frames plus the folder they live in."""
+
+    root: Path
+    frames: list[Frame]
+    extra: dict = dataclasses.field(default_factory=dict)
+
+    def image_path(self, frame: Frame) -> Path:
+        return self.root / frame.file_path
+
+    def mask_path(self, frame: Frame) -> Path | None:
+        return None if frame.mask_path is None else self.root / frame.mask_path
+
+    @property
+    def has_lights(self) -> bool:
+        return bool(self.frames) and all(f.light is not None for f in self.frames)
+
+
+def _vec3(v) -> np.ndarray:
+    a = np.asarray(v, dtype=np.float64).reshape(-1)
+    if a.shape != (3,) or not np.all(np.isfinite(a)):
+        raise ValueError(f"expected 3 finite numbers, got {v!r}")
+    return a
+
+
+def _intrinsics_from(d: dict, fallback: Intrinsics | None, where: str, path: Path) -> Intrinsics:
+    present = [k for k in _INTRINSIC_KEYS if k in d]
+    if not present and fallback is not None:
+        return fallback
+    base = fallback.to_json() if fallback is not None else {}
+    merged = {**base, **{k: d[k] for k in (*_INTRINSIC_KEYS, *_DIST_KEYS, "camera_model") if k in d}}
+    missing = [k for k in _INTRINSIC_KEYS if k not in merged]
+    if missing:
+        raise InputError(f"{where} lacks intrinsics field(s) {missing}", path,
+                         "give fl_x, fl_y, cx, cy, w, h at the top level or in every frame")
+    try:
+        intr = Intrinsics(width=int(merged["w"]), height=int(merged["h"]), fx=float(merged["fl_x"]),
+                          fy=float(merged["fl_y"]), cx=float(merged["cx"]), cy=float(merged["cy"]),
+                          camera_model=str(merged.get("camera_model", "OPENCV" if any(k in merged for k in _DIST_KEYS) else "PINHOLE")),
+                          distortion={k: float(merged[k]) for k in _DIST_KEYS if k in merged})
+    except (TypeError, ValueError) as e:
+        raise InputError(f"{where} has a non-numeric intrinsics value ({e})", path, "write numbers") from None
+    if intr.width <= 0 or intr.height <= 0 or not (intr.fx > 0 and intr.fy > 0):
+        raise InputError(f"{where} has non-positive w/h/fl_x/fl_y", path, "check the intrinsics")
+    return intr
+
+
+def _light_from(d: Any, where: str, path: Path) -> Light:
+    try:
+        kind = d["type"]
+        if kind == "point":
+            return Light.point(d["position"], d["intensity"])
+        if kind == "directional":
+            return Light.directional(d["direction"], d["intensity"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise InputError(f"{where} has a malformed light ({e!r})", path,
+                         'use {"type": "point", "position": [..], "intensity": [r,g,b]}') from None
+    raise InputError(f"{where} light type {kind!r} is not 'point' or 'directional'", path,
+                     "use a point or directional light")
+
+
+def read_capture(folder: str | os.PathLike) -> Capture:
+    """Read ``capture.json`` (or a nerfstudio ``transforms.json``) from a folder or file path.
+
+    Raises:
+        InputError: missing file or field, non-rigid transform, bad light; the message names the file.
+    """
+    p = Path(folder)
+    if p.is_dir():
+        path = p / CAPTURE_FILE
+        if not path.exists() and (p / "transforms.json").exists():
+            path = p / "transforms.json"
+    else:
+        path = p
+    data = read_json(path, what="capture file")
+    if not isinstance(data, dict) or not isinstance(data.get("frames"), list):
+        raise InputError("has no 'frames' list", path, "write a nerfstudio transforms.json with frames")
+    if not data["frames"]:
+        raise InputError("has an empty 'frames' list", path, "add at least one frame")
+    top = None
+    if any(k in data for k in _INTRINSIC_KEYS):
+        top = _intrinsics_from(data, None, "top level", path)
+    frames = []
+    for i, fd in enumerate(data["frames"]):
+        where = f"frames[{i}]"
+        if not isinstance(fd, dict) or "file_path" not in fd:
+            raise InputError(f"{where} lacks 'file_path'", path, "give each frame its image path")
+        if "transform_matrix" not in fd:
+            raise InputError(f"{where} lacks 'transform_matrix'", path, "give each frame a 4x4 camera-to-world matrix")
+        try:
+            m = np.asarray(fd["transform_matrix"], dtype=np.float64)
+        except (TypeError, ValueError):
+            m = np.zeros(0)
+        if m.shape not in ((4, 4), (3, 4)) or not np.all(np.isfinite(m)):
+            raise InputError(f"{where} transform_matrix is not a finite 4x4 matrix", path, "write a 4x4 camera-to-world matrix")
+        if not is_rotation(m[:3, :3], tol=1e-3):
+            raise InputError(f"{where} transform_matrix is not a rigid transform (rotation part not orthonormal with det +1)",
+                             path, "remove scale/shear from the camera-to-world matrix")
+        r, t = c2w_gl_to_w2c_cv(m)
+        intr = _intrinsics_from(fd, top, where, path)
+        light = _light_from(fd["light"], where, path) if fd.get("light") is not None else None
+        exposure = float(fd.get("exposure", 1.0))
+        if not (np.isfinite(exposure) and exposure > 0):
+            raise InputError(f"{where} exposure {exposure} is not positive", path, "use a positive linear scale")
+        sat = fd.get("saturation")
+        known = {"file_path", "transform_matrix", "light", "exposure", "mask_path", "saturation",
+                 *_INTRINSIC_KEYS, *_DIST_KEYS, "camera_model"}
+        frames.append(Frame(file_path=str(fd["file_path"]), R=r, t=t, intrinsics=intr, light=light,
+                            exposure=exposure, mask_path=fd.get("mask_path"),
+                            saturation=None if sat is None else float(sat),
+                            extra={k: v for k, v in fd.items() if k not in known}))
+    extra = {k: v for k, v in data.items() if k != "frames" and k not in (*_INTRINSIC_KEYS, *_DIST_KEYS, "camera_model")}
+    return Capture(root=path.parent, frames=frames, extra=extra)
+
+
+def capture_to_json(capture: Capture) -> dict:
+    """The JSON document for a capture; shared intrinsics go to the top level (nerfstudio style)."""
+    intr0 = capture.frames[0].intrinsics.to_json() if capture.frames else {}
+    shared = all(f.intrinsics.to_json() == intr0 for f in capture.frames)
+    doc: dict[str, Any] = dict(capture.extra)
+    if shared:
+        doc.update(intr0)
+    frames = []
+    for f in capture.frames:
+        fd: dict[str, Any] = {"file_path": f.file_path,
+                              "transform_matrix": w2c_cv_to_c2w_gl(f.R, f.t).tolist()}
+        if not shared:
+            fd.update(f.intrinsics.to_json())
+        if f.light is not None:
+            fd["light"] = f.light.to_json()
+        if f.exposure != 1.0:
+            fd["exposure"] = float(f.exposure)
+        if f.mask_path is not None:
+            fd["mask_path"] = f.mask_path
+        if f.saturation is not None:
+            fd["saturation"] = float(f.saturation)
+        fd.update(f.extra)
+        frames.append(fd)
+    doc["frames"] = frames
+    return doc
+
+
+def write_capture(capture: Capture, folder: str | os.PathLike | None = None) -> Path:
+    """Write ``capture.json`` atomically into ``folder`` (default: ``capture.root``)."""
+    root = Path(folder) if folder is not None else capture.root
+    path = root / CAPTURE_FILE
+    write_json_atomic(path, capture_to_json(capture))
+    return path
