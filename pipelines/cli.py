@@ -1,0 +1,134 @@
+"""The ``texstream`` console script: one command, thin subcommands over stage functions.
+
+Each subcommand lives in ``texstream.pipelines.cmd_<name>`` and defines
+``add_arguments(parser)`` and ``run(args) -> int``; it is imported only when used, so
+``texstream --help`` is instant and a stage's heavy dependencies load only for that stage.
+User errors (:class:`TexstreamError`) are caught here, once, and printed as one line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import importlib
+import os
+import sys
+import typing
+from typing import Any, Sequence
+
+from .errors import TexstreamError
+
+# name -> (module, one-line help). The order is the pipeline's order.
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "run": ("texstream.pipelines.cmd_run", "end-to-end: photos (or a built-in synthetic set) to a fitted model"),
+    "ingest": ("texstream.pipelines.cmd_ingest", "read a raw photo folder into a capture folder"),
+    "calibrate": ("texstream.pipelines.cmd_calibrate", "camera intrinsics from chessboard / ChArUco photos"),
+    "register": ("texstream.pipelines.cmd_register", "recover camera poses with COLMAP (pycolmap)"),
+    "import": ("texstream.pipelines.cmd_import", "convert Middlebury / COLMAP / nerfstudio cameras to a capture folder"),
+    "synth": ("texstream.pipelines.cmd_synth", "render a synthetic capture set with ground truth"),
+    "mesh": ("texstream.pipelines.cmd_mesh", "make, clean and simplify the mesh"),
+    "atlas": ("texstream.pipelines.cmd_atlas", "UV atlas and texel bake for fitting"),
+    "fit": ("texstream.pipelines.cmd_fit", "fit an appearance model to a posed capture (Warp)"),
+    "eval": ("texstream.pipelines.cmd_eval", "PSNR / APE of a fitted model on a capture"),
+    "preview": ("texstream.pipelines.cmd_preview", "contact sheet of a capture folder"),
+}
+
+
+def _field_type(t: Any) -> Any:
+    origin = typing.get_origin(t)
+    if origin is typing.Union or str(origin) == "<class 'types.UnionType'>":
+        args = [a for a in typing.get_args(t) if a is not type(None)]
+        return _field_type(args[0]) if args else str
+    return t
+
+
+def add_config_arguments(parser: argparse.ArgumentParser, cls: type, prefix: str = "") -> None:
+    """Add one ``--option`` per field of a dataclass config (help from the field's metadata)."""
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        meta = f.metadata or {}
+        if not meta.get("cli", True):
+            continue
+        t = _field_type(hints[f.name])
+        name = "--" + (prefix + f.name).replace("_", "-")
+        default = f.default if f.default is not dataclasses.MISSING else (
+            f.default_factory() if f.default_factory is not dataclasses.MISSING else None)
+        if dataclasses.is_dataclass(t):
+            add_config_arguments(parser, t, prefix=prefix + f.name + ".")
+            continue
+        help_text = meta.get("help", "")
+        kw: dict[str, Any] = {"dest": (prefix + f.name).replace(".", "__"), "default": argparse.SUPPRESS}
+        if meta.get("choices"):
+            kw["choices"] = list(meta["choices"])
+        if t is bool:
+            parser.add_argument(name, action=argparse.BooleanOptionalAction,
+                                help=f"{help_text} (default: {default})", **kw)
+            continue
+        if typing.get_origin(t) in (tuple, list):
+            args = typing.get_args(t)
+            kw["type"] = args[0] if args and args[0] is not Ellipsis else float
+            kw["nargs"] = "+"
+        elif t in (int, float, str):
+            kw["type"] = t
+        else:
+            kw["type"] = str
+        parser.add_argument(name, help=f"{help_text} (default: {default})", **kw)
+
+
+def config_from_args(cls: type, args: argparse.Namespace, prefix: str = "", **overrides: Any) -> Any:
+    """Build a dataclass config from parsed arguments (fields not given keep their defaults)."""
+    hints = typing.get_type_hints(cls)
+    kwargs: dict[str, Any] = {}
+    for f in dataclasses.fields(cls):
+        t = _field_type(hints[f.name])
+        if dataclasses.is_dataclass(t):
+            sub = config_from_args(t, args, prefix=prefix + f.name + ".")
+            kwargs[f.name] = sub
+            continue
+        dest = (prefix + f.name).replace(".", "__")
+        if hasattr(args, dest):
+            v = getattr(args, dest)
+            if typing.get_origin(t) is tuple and isinstance(v, list):
+                v = tuple(v)
+            kwargs[f.name] = v
+    kwargs.update(overrides)
+    return cls(**kwargs)
+
+
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="texstream",
+        description="Photos to textured appearance models by image-streaming nonlinear optimization.")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks for errors")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (module, help_text) in SUBCOMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        if name == only:
+            importlib.import_module(module).add_arguments(p)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    command = next((a for a in argv if not a.startswith("-")), None)
+    debug = "--debug" in argv or os.environ.get("TEXSTREAM_DEBUG") == "1"
+    try:
+        parser = build_parser(only=command if command in SUBCOMMANDS else None)
+        args = parser.parse_args(argv)
+        if args.command is None:
+            parser.print_help()
+            return 2
+        module = importlib.import_module(SUBCOMMANDS[args.command][0])
+        return int(module.run(args) or 0)
+    except TexstreamError as e:
+        if debug:
+            raise
+        print(f"texstream {command}: error: {e.one_line()}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("texstream: interrupted; no output was left half-written", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,59 @@
+#!/usr/bin/env python3
+"""Set-up and run texstream from a clean clone with only Python (3.11 or 3.12) and pip.
+
+    python3 scripts/dev.py demo   # make .venv, install, run the main job on the built-in synthetic set
+    python3 scripts/dev.py test   # make .venv if needed, install, run the test suite
+
+Standard library only. The venv is reused; it is reinstalled when pyproject.toml changes.
+Extra arguments after the verb go to ``texstream run`` or ``pytest``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import subprocess
+import sys
+import venv
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+VENV = Path(os.environ.get("TEXSTREAM_VENV", ROOT / ".venv"))
+BIN = VENV / ("Scripts" if os.name == "nt" else "bin")
+PY = BIN / "python"
+
+
+def ensure_env() -> None:
+    if sys.version_info[:2] not in ((3, 11), (3, 12)):
+        sys.exit(f"texstream needs Python 3.11 or 3.12, this is {sys.version.split()[0]}; "
+                 "run this script with python3.11 or python3.12")
+    if not PY.exists():
+        print(f"[dev] creating virtual environment {VENV}", flush=True)
+        venv.EnvBuilder(with_pip=True).create(VENV)
+    stamp = VENV / ".texstream-installed"
+    want = hashlib.sha256((ROOT / "pyproject.toml").read_bytes()).hexdigest()
+    if not stamp.exists() or stamp.read_text().strip() != want:
+        print("[dev] installing texstream and its dependencies (first run takes a few minutes)", flush=True)
+        subprocess.check_call([str(PY), "-m", "pip", "install", "-q", "--upgrade", "pip"])
+        subprocess.check_call([str(PY), "-m", "pip", "install", "-q", "-e", f"{ROOT}[test]"])
+        stamp.write_text(want)
+
+
+def main() -> int:
+    verb = sys.argv[1] if len(sys.argv) > 1 else "help"
+    extra = sys.argv[2:]
+    if verb not in ("demo", "test"):
+        print(__doc__)
+        return 2
+    ensure_env()
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    if verb == "demo":
+        cmd = [str(BIN / "texstream"), "run", *(extra or ["--out", str(ROOT / "out" / "demo")])]
+    else:
+        cmd = [str(PY), "-m", "pytest", "-q", "-rs", *(extra or [])]
+    print("[dev] " + " ".join(cmd), flush=True)
+    return subprocess.call(cmd, cwd=ROOT, env=env)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

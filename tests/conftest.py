@@ -1,0 +1,49 @@
+"""Shared fixtures: devices (cpu always, cuda when present), data folder, tolerance reasons."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _devices() -> list:
+    import warp as wp
+
+    wp.config.quiet = True
+    wp.init()
+    devs = ["cpu"]
+    if wp.get_cuda_device_count() > 0:
+        devs.append("cuda:0")
+    return devs
+
+
+DEVICES = _devices()
+
+
+@pytest.fixture(params=DEVICES)
+def device(request) -> str:
+    """Every device-parametrised test runs on the CPU, and on CUDA when a GPU is present."""
+    return request.param
+
+
+def cuda_device_or_skip() -> str:
+    if "cuda:0" not in DEVICES:
+        pytest.skip("no CUDA device on this machine (CI has none; run on the GPU machine)")
+    return "cuda:0"
+
+
+@pytest.fixture(scope="session")
+def data_dir() -> Path:
+    """Third-party data (../shared/data by default, or $TEXSTREAM_DATA)."""
+    return Path(os.environ.get("TEXSTREAM_DATA", ROOT.parent / "shared" / "data")).resolve()
+
+
+def need_data(data_dir: Path, sub: str) -> Path:
+    p = data_dir / sub
+    if not p.exists():
+        pytest.skip(f"{p} absent: set TEXSTREAM_DATA to the folder holding {sub}/ (see ../shared/data/README.md)")
+    return p
