@@ -1,0 +1,147 @@
+"""Appearance models: named plugins with a documented parameter table.
+
+A model's per-texel parameters are one flat vector; the fit state is a (n_texels, n_params)
+array whose columns follow the layout below. Names follow STYLE.md lesson 7
+("lafortune.rho_d.r", "lafortune.lobe0.n"), so optimizers, checkpoints, logs and freezing all
+use one mapping.
+
+Lafortune (seed Eq. 2.12, ch. 8), per texel: diffuse rho_d (RGB) plus K lobes; each lobe has a
+specular albedo rho_s (RGB), coefficients C and an exponent n shared by the three channels.
+- isotropic (the seed's choice): lobe columns [rho_s.r, rho_s.g, rho_s.b, c_xy, c_z, n]
+- anisotropic ("general"):       lobe columns [rho_s.r, rho_s.g, rho_s.b, c_x, c_y, c_z, n]
+K = 0 is the diffuse-only model.
+
+Scale gauge. Scaling every C of a lobe by k and rho_s by k^-n changes nothing, so the lobe has
+one redundant degree of freedom. texstream fixes it by normalisation: c_xy (or c_x) is held at
+-1 (frozen: lower bound == upper bound), which keeps the lobe forward-reflective (seed 8.1) and
+makes s = -(u_x v_x + u_y v_y) + c_z u_z v_z; with c_z = 1 this is the Phong cosine between the
+mirrored light and the view. c_z then controls the off-specular shape and rho_s the lobe's
+height, both identifiable. Freeing c_xy requires a penalty (see fit/penalties.py).
+
+Units: rho_d, rho_s are BRDF values (1/sr; see capture/conventions.py), C and n are unitless.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from texstream.pipelines.errors import ConfigError
+
+MODEL_KINDS = ("lafortune", "diffuse")
+MAX_LOBES = 3
+
+
+@dataclasses.dataclass(frozen=True)
+class ParamSpec:
+    """One column of the parameter table."""
+
+    name: str
+    unit: str
+    lower: float
+    upper: float
+    default: float
+    doc: str
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelLayout:
+    """Parameter layout of a per-texel reflectance model.
+
+    Attributes:
+        kind: "lafortune" or "diffuse" (diffuse is Lafortune with no lobes).
+        n_lobes: number of specular lobes K (0..MAX_LOBES).
+        anisotropic: general C_x, C_y, C_z instead of the isotropic C_xy, C_z.
+    """
+
+    kind: str = "lafortune"
+    n_lobes: int = 1
+    anisotropic: bool = False
+
+    def __post_init__(self) -> None:
+        if self.kind not in MODEL_KINDS:
+            raise ConfigError(f"unknown model kind {self.kind!r}", fix=f"use one of {MODEL_KINDS}")
+        if self.kind == "diffuse" and self.n_lobes != 0:
+            object.__setattr__(self, "n_lobes", 0)
+        if not 0 <= self.n_lobes <= MAX_LOBES:
+            raise ConfigError(f"n_lobes={self.n_lobes} out of range", fix=f"use 0..{MAX_LOBES}")
+
+    @property
+    def lobe_stride(self) -> int:
+        return 7 if self.anisotropic else 6
+
+    @property
+    def n_params(self) -> int:
+        return 3 + self.n_lobes * self.lobe_stride
+
+    def lobe_offset(self, j: int) -> int:
+        return 3 + j * self.lobe_stride
+
+    def specs(self) -> list[ParamSpec]:
+        out = [ParamSpec(f"{self.kind}.rho_d.{c}", "1/sr", 0.0, 10.0, 0.1,
+                         "diffuse BRDF value (albedo / pi); seed bounds reflectance samples to [0, 10]")
+               for c in "rgb"]
+        for j in range(self.n_lobes):
+            p = f"{self.kind}.lobe{j}"
+            out += [ParamSpec(f"{p}.rho_s.{c}", "1/sr", 0.0, 1.0e5, 1.0,
+                              "specular albedo; large for sharp lobes, since max(s,0)^n peaks at 1")
+                    for c in "rgb"]
+            if self.anisotropic:
+                out += [ParamSpec(f"{p}.c_x", "", -1.0, -1.0, -1.0, "scale gauge: held at -1 (frozen)"),
+                        ParamSpec(f"{p}.c_y", "", -10.0, 0.0, -1.0, "tangent-y coefficient (<= 0: forward)")]
+            else:
+                out += [ParamSpec(f"{p}.c_xy", "", -1.0, -1.0, -1.0, "scale gauge: held at -1 (frozen)")]
+            out += [ParamSpec(f"{p}.c_z", "", 0.0, 10.0, 1.0, "normal coefficient (>= 0, seed 8.1)"),
+                    ParamSpec(f"{p}.n", "", 1.0, 1.0e4, 10.0, "exponent; >= 1 keeps the objective C1")]
+        return out
+
+    @property
+    def names(self) -> list[str]:
+        return [s.name for s in self.specs()]
+
+    def lower(self) -> np.ndarray:
+        return np.array([s.lower for s in self.specs()], dtype=np.float64)
+
+    def upper(self) -> np.ndarray:
+        return np.array([s.upper for s in self.specs()], dtype=np.float64)
+
+    def defaults(self) -> np.ndarray:
+        return np.array([s.default for s in self.specs()], dtype=np.float64)
+
+    def frozen(self) -> np.ndarray:
+        """Columns that never move (lower == upper)."""
+        return self.lower() == self.upper()
+
+    def index(self, name: str) -> int:
+        """Column of a named parameter; the kind prefix may be omitted ("lobe0.n")."""
+        names = self.names
+        for i, n in enumerate(names):
+            if n == name or n.split(".", 1)[1] == name:
+                return i
+        raise ConfigError(f"model has no parameter {name!r}", fix=f"use one of {names}")
+
+    def pack(self, rho_d, lobes=()) -> np.ndarray:
+        """Parameter vector(s) from rho_d (..., 3) and per lobe dicts {rho_s, c (2 or 3), n}."""
+        rho_d = np.asarray(rho_d, dtype=np.float64)
+        lead = rho_d.shape[:-1]
+        out = np.zeros((*lead, self.n_params))
+        out[..., 0:3] = rho_d
+        for j, lobe in enumerate(lobes):
+            o = self.lobe_offset(j)
+            out[..., o:o + 3] = np.asarray(lobe["rho_s"], dtype=np.float64)
+            c = np.asarray(lobe.get("c", (-1.0, 1.0) if not self.anisotropic else (-1.0, -1.0, 1.0)), dtype=np.float64)
+            nc = 3 if self.anisotropic else 2
+            out[..., o + 3:o + 3 + nc] = c
+            out[..., o + 3 + nc] = np.asarray(lobe["n"], dtype=np.float64)
+        return out
+
+    def to_json(self) -> dict:
+        return {"kind": self.kind, "n_lobes": self.n_lobes, "anisotropic": self.anisotropic,
+                "n_params": self.n_params, "names": self.names,
+                "units": [s.unit for s in self.specs()],
+                "lower": self.lower().tolist(), "upper": self.upper().tolist()}
+
+    @staticmethod
+    def from_json(d: dict) -> "ModelLayout":
+        return ModelLayout(kind=d["kind"], n_lobes=int(d["n_lobes"]), anisotropic=bool(d["anisotropic"]))
