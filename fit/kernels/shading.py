@@ -113,3 +113,24 @@ def surface_frame(points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.in
     t = wp.normalize(t)
     b = wp.cross(n, t)
     return pos, uv, n, t, b
+
+
+@wp.func
+def lafortune_brdf(params: wp.array2d(dtype=Any), row: int, n_lobes: int, aniso: int, u: Any, v: Any, one: Any):
+    """BRDF (RGB, 1/sr) of texel ``row`` for local light direction ``u`` and view direction ``v``.
+
+    Column layout as in :class:`texstream.fit.models.ModelLayout`: rho_d RGB, then per lobe
+    rho_s RGB, C (c_xy, c_z or c_x, c_y, c_z) and n. ``one`` is the scalar 1 of the compute
+    type (float32 or float64): parameters stored in any float type are cast to it.
+    """
+    out = type(u)(type(one)(params[row, 0]), type(one)(params[row, 1]), type(one)(params[row, 2]))
+    stride = 6 + aniso
+    for j in range(n_lobes):
+        o = 3 + j * stride
+        c = type(u)(type(one)(params[row, o + 3]), type(one)(params[row, o + 3]), type(one)(params[row, o + 4]))
+        if aniso != 0:
+            c = type(u)(type(one)(params[row, o + 3]), type(one)(params[row, o + 4]), type(one)(params[row, o + 5]))
+        n = type(one)(params[row, o + stride - 1])
+        lobe = lafortune_lobe(c, n, u, v)
+        out = out + lobe * type(u)(type(one)(params[row, o]), type(one)(params[row, o + 1]), type(one)(params[row, o + 2]))
+    return out
