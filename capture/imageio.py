@@ -316,13 +316,15 @@ def write_image(path: str | os.PathLike, img: np.ndarray, *, bits: int | None = 
     .tif       8 (8, 16, 32)   8: sRGB-encoded; 16: linear; 32: float, linear
     ========== =============== ===========================================================
 
-    Integer formats clip to [0, 1] and round to the nearest code. Alpha (the 4th channel, or the
-    2nd of a 2-channel image) is never sRGB-encoded. The file is written to a temporary name in
+    Integer formats clip to [0, 1] and round to the nearest code. A uint8 array written with 8
+    bits (or uint16 with 16 bits) is taken as already-encoded codes and stored unchanged. Alpha
+    (the 4th channel, or the 2nd of a 2-channel image) is never sRGB-encoded. The file is written to a temporary name in
     the same folder and renamed into place.
 
     Args:
         path: output file; its folder is created if needed.
-        img: (H, W), (H, W, 1), (H, W, 2), (H, W, 3) or (H, W, 4) finite linear values.
+        img: (H, W), (H, W, 1), (H, W, 2), (H, W, 3) or (H, W, 4) finite linear values (or
+            stored codes, see above).
         bits: bit depth (see the table); None = the format's default.
 
     Returns:
@@ -348,7 +350,9 @@ def write_image(path: str | os.PathLike, img: np.ndarray, *, bits: int | None = 
     if a.ndim != 3 or a.shape[2] not in (1, 2, 3, 4) or a.shape[0] == 0 or a.shape[1] == 0:
         raise ConfigError(f"image array has shape {np.asarray(img).shape}", path,
                           "pass (H, W) or (H, W, C) with C in 1..4")
-    a = a.astype(np.float32, copy=False)
+    codes = (bits == 8 and a.dtype == np.uint8) or (bits == 16 and a.dtype == np.uint16 and fmt_name != "openexr")
+    if not codes:
+        a = a.astype(np.float32, copy=False)
     if fmt_name in ("hdr", "jpeg"):
         if a.shape[2] in (2, 4):
             a = a[:, :, :-1]
@@ -357,7 +361,11 @@ def write_image(path: str | os.PathLike, img: np.ndarray, *, bits: int | None = 
     c = a.shape[2]
     has_alpha = c in (2, 4)
 
-    if bits == 8:
+    if codes:
+        data = a
+        oformat = "uint8" if bits == 8 else "uint16"
+        cspace = "srgb_rec709_scene" if bits == 8 else "lin_rec709_scene"
+    elif bits == 8:
         enc = a.copy()
         colour = slice(0, c - 1) if has_alpha else slice(0, c)
         enc[:, :, colour] = linear_to_srgb(np.clip(a[:, :, colour], 0.0, 1.0))
