@@ -1,0 +1,122 @@
+"""Ray-traced rendering of a textured Lafortune (or diffuse) mesh: one module-level Warp kernel.
+
+Per pixel: a primary ray through the pixel centre (capture convention, centre of pixel (i, j) at
+(i + 0.5, j + 0.5)), the closest hit on a ``wp.Mesh`` (BVH), the surface frame at the hit
+(:func:`surface_frame`, the same one the texel bake uses), a shadow ray toward the light, and
+the radiance
+
+    L = f_r(u, v) * E * cos(theta_i)
+
+with f_r the Lafortune BRDF of :func:`lafortune_brdf` (shared with the fit) looked up bilinearly
+in the texel grid: the BRDF is evaluated at the four texels around the hit's continuous texel
+coordinates and the four values are blended with the bilinear weights. At a texel centre this is
+exactly the BRDF the fit models at that texel. E comes from :func:`incident_light`; L is zero
+where the light is behind the shading normal or the shadow ray is blocked.
+
+Everything is float32 (the renderer makes ground truth at photo precision, not fit precision).
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from .shading import bilinear_taps, incident_light, lafortune_brdf, surface_frame, texel_coords, to_local
+
+
+@wp.struct
+class PinholeCamera:
+    """World-to-camera pose (OpenCV axes, x_cam = R x_world + t) and pinhole intrinsics (pixels,
+    capture convention: pixel centres at +0.5)."""
+
+    R: wp.mat33
+    t: wp.vec3
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+
+@wp.struct
+class RenderLight:
+    """kind: LIGHT_POINT (0) or LIGHT_DIRECTIONAL (1); pos_or_dir: position (point) or travel
+    direction (directional); intensity: RGB (see conventions)."""
+
+    kind: int
+    pos_or_dir: wp.vec3
+    intensity: wp.vec3
+
+
+@wp.func
+def shade_texel_grid(params: wp.array2d(dtype=wp.float32), tex_w: int, tex_h: int, n_lobes: int, aniso: int,
+                     uv: wp.vec2, u_local: wp.vec3, v_local: wp.vec3):
+    """Bilinear blend of the BRDF (RGB, 1/sr) of the four texels around ``uv``."""
+    x, y = texel_coords(uv, tex_w, tex_h)
+    x0, y0, fx, fy = bilinear_taps(x, y, tex_w, tex_h)
+    one = wp.float32(1.0)
+    r00 = y0 * tex_w + x0
+    f00 = lafortune_brdf(params, r00, n_lobes, aniso, u_local, v_local, one)
+    f10 = lafortune_brdf(params, r00 + 1, n_lobes, aniso, u_local, v_local, one)
+    f01 = lafortune_brdf(params, r00 + tex_w, n_lobes, aniso, u_local, v_local, one)
+    f11 = lafortune_brdf(params, r00 + tex_w + 1, n_lobes, aniso, u_local, v_local, one)
+    return ((1.0 - fx) * (1.0 - fy)) * f00 + (fx * (1.0 - fy)) * f10 + ((1.0 - fx) * fy) * f01 + (fx * fy) * f11
+
+
+@wp.kernel(enable_backward=False)
+def render_kernel(mesh_id: wp.uint64,
+                  points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
+                  normals: wp.array(dtype=wp.vec3), uvs: wp.array(dtype=wp.vec2),
+                  params: wp.array2d(dtype=wp.float32), tex_w: int, tex_h: int, n_lobes: int, aniso: int,
+                  cam: PinholeCamera, light: RenderLight, shadow_eps: float, shadows: int,
+                  radiance: wp.array2d(dtype=wp.vec3), mask: wp.array2d(dtype=wp.uint8),
+                  depth: wp.array2d(dtype=wp.float32), face_id: wp.array2d(dtype=wp.int32)):
+    """Render one image; launch with dim = (height, width).
+
+    Outputs per pixel (row j, column i): linear radiance (RGB, no exposure), mask (1 on the
+    object), depth (camera z of the hit, i.e. the OpenCV Z coordinate, 0 off the object) and the
+    hit face (-1 off the object).
+
+    Shadow rays start at the hit moved by ``shadow_eps`` (world units) along the geometric face
+    normal, on the light's side of the face, so a ray cannot re-hit its own triangle (acne);
+    the renderer sets it to 1e-4 x the mesh's bounding-box diagonal. They end ``shadow_eps``
+    short of a point light.
+    """
+    j, i = wp.tid()
+    # primary ray: camera-space direction through the pixel centre, then to world
+    d_cam = wp.vec3((float(i) + 0.5 - cam.cx) / cam.fx, (float(j) + 0.5 - cam.cy) / cam.fy, 1.0)
+    rt = wp.transpose(cam.R)
+    origin = -(rt @ cam.t)
+    inv_len = 1.0 / wp.length(d_cam)
+    d = wp.normalize(rt @ d_cam)
+
+    radiance[j, i] = wp.vec3(0.0)
+    mask[j, i] = wp.uint8(0)
+    depth[j, i] = 0.0
+    face_id[j, i] = -1
+
+    hit = wp.mesh_query_ray(mesh_id, origin, d, 1.0e30)
+    if not hit.result:
+        return
+    mask[j, i] = wp.uint8(1)
+    depth[j, i] = hit.t * inv_len  # distance along the unit ray times cos to the optical axis = Z
+    face_id[j, i] = hit.face
+
+    pos, uv, n, tg, bt = surface_frame(points, indices, normals, uvs, hit.face, hit.u, hit.v)
+    l, e, dist = incident_light(light.kind, light.pos_or_dir, light.intensity, pos)
+    cos_i = wp.dot(n, l)
+    if cos_i <= 0.0:
+        return  # light behind the shading normal
+
+    if shadows != 0:
+        ng = hit.normal
+        if wp.dot(ng, l) < 0.0:
+            ng = -ng
+        start = pos + shadow_eps * ng
+        if wp.mesh_query_ray_anyhit(mesh_id, start, l, dist - shadow_eps):
+            return  # cast shadow
+
+    u_local = to_local(l, tg, bt, n)
+    v_local = to_local(-d, tg, bt, n)
+    f = shade_texel_grid(params, tex_w, tex_h, n_lobes, aniso, uv, u_local, v_local)
+    radiance[j, i] = wp.cw_mul(f, e) * cos_i

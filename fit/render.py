@@ -1,0 +1,164 @@
+"""The synthetic renderer: a textured mesh with per-texel Lafortune parameters, ray traced with Warp.
+
+:class:`Renderer` uploads the mesh (BVH), the parameter grid and the layout once per
+(mesh, parameter grid, layout, device) and then renders any number of views with
+:meth:`Renderer.render` / :meth:`Renderer.render_frame`. The per-pixel radiance is the shared
+shading of :mod:`texstream.fit.kernels.shading`, so renderer and fit cannot disagree (see
+:mod:`texstream.fit.kernels.render`).
+
+Imports only numpy and warp (plus numpy-only texstream spine modules).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import warp as wp
+
+from texstream.capture.capture_json import Frame, Light
+from texstream.fit.kernels.render import PinholeCamera, RenderLight, render_kernel
+from texstream.fit.kernels.shading import LIGHT_DIRECTIONAL, LIGHT_POINT
+from texstream.fit.models import ModelLayout
+from texstream.geometry.mesh import SurfaceMesh
+from texstream.pipelines.errors import ConfigError, InputError
+
+# Shadow-ray offset relative to the mesh's bounding-box diagonal: large enough to clear float32
+# round-off of the hit position (~1e-7 x the scene size) with margin, small enough that contact
+# shadows are not lost (a 1e-4 gap is sub-texel for any texture under ~5000 texels across).
+SHADOW_EPS_REL = 1.0e-4
+
+
+@dataclasses.dataclass
+class RenderResult:
+    """One rendered view.
+
+    Attributes:
+        radiance: (H, W, 3) float32 linear radiance (no exposure applied), 0 off the object.
+        mask: (H, W) bool, True where a primary ray hit the mesh.
+        depth: (H, W) float32 camera-space Z (OpenCV axes, world units) of the hit, 0 off the object.
+        face: (H, W) int32 index of the hit face, -1 off the object.
+    """
+
+    radiance: np.ndarray
+    mask: np.ndarray
+    depth: np.ndarray
+    face: np.ndarray
+
+
+class Renderer:
+    """Ray-traced renderer of one textured mesh on one device.
+
+    Args:
+        mesh: a :class:`SurfaceMesh` with per-vertex ``uvs`` (and ``normals``; computed when absent).
+        params: parameter grid (H, W, P) float (numpy, cast to float32) or a Warp array2d
+            (H * W, P) float32 already on ``device``; row = y * W + x with row 0 at the top of the
+            texture (capture/conventions.py). Padding texels must already hold copies of their
+            chart neighbours (TexelBake.fill_padding) so bilinear lookups do not bleed.
+        layout: the parameter column layout (P must equal ``layout.n_params``).
+        device: Warp device, "cpu" or "cuda:N".
+        tex_size: (W, H) of the texel grid; required only when ``params`` is a Warp array.
+        shadows: trace shadow rays (cast shadows); off gives local shading only.
+    """
+
+    def __init__(self, mesh: SurfaceMesh, params, layout: ModelLayout, device: str = "cpu",
+                 tex_size: tuple[int, int] | None = None, shadows: bool = True):
+        if mesh.uvs is None:
+            raise InputError("the mesh has no UVs", fix="build an atlas first (texstream atlas) or use a procedural mesh")
+        if mesh.n_faces == 0:
+            raise InputError("the mesh has no faces", fix="check the mesh file")
+        self.device = wp.get_device(device)
+        self.layout = layout
+        self.shadows = bool(shadows)
+        if isinstance(params, wp.array):
+            if tex_size is None:
+                raise ConfigError("tex_size=(W, H) is required when params is a Warp array")
+            self.tex_w, self.tex_h = int(tex_size[0]), int(tex_size[1])
+            if params.ndim != 2 or params.shape != (self.tex_w * self.tex_h, layout.n_params) or params.dtype != wp.float32:
+                raise ConfigError(f"params array is {params.shape} {params.dtype}, expected "
+                                  f"({self.tex_w * self.tex_h}, {layout.n_params}) float32")
+            self.params = params
+        else:
+            p = np.asarray(params)
+            if p.ndim != 3 or p.shape[2] != layout.n_params:
+                raise ConfigError(f"params grid has shape {p.shape}, expected (H, W, {layout.n_params})")
+            if not np.all(np.isfinite(p)):
+                raise InputError("params grid holds NaN or Inf", fix="fill every texel (fill_padding)")
+            self.tex_h, self.tex_w = int(p.shape[0]), int(p.shape[1])
+            self.params = wp.array(np.ascontiguousarray(p.reshape(-1, layout.n_params), dtype=np.float32),
+                                   dtype=wp.float32, device=self.device)
+        if self.tex_w < 2 or self.tex_h < 2:
+            raise ConfigError(f"texel grid {self.tex_w}x{self.tex_h} is too small for bilinear lookup",
+                              fix="use at least 2x2 texels")
+
+        v = np.asarray(mesh.vertices, dtype=np.float32)
+        self.points = wp.array(v, dtype=wp.vec3, device=self.device)
+        self.indices = wp.array(np.asarray(mesh.faces, dtype=np.int32).reshape(-1), dtype=wp.int32, device=self.device)
+        self.normals = wp.array(np.asarray(mesh.vertex_normals(), dtype=np.float32), dtype=wp.vec3, device=self.device)
+        self.uvs = wp.array(np.asarray(mesh.uvs, dtype=np.float32), dtype=wp.vec2, device=self.device)
+        self.mesh = wp.Mesh(points=self.points, indices=self.indices)
+        self.shadow_eps = float(SHADOW_EPS_REL * max(mesh.bbox_diagonal(), 1e-12))
+        self._size: tuple[int, int] | None = None
+
+    def _outputs(self, width: int, height: int) -> None:
+        if self._size == (width, height):
+            return
+        shape = (height, width)
+        self._radiance = wp.empty(shape, dtype=wp.vec3, device=self.device)
+        self._mask = wp.empty(shape, dtype=wp.uint8, device=self.device)
+        self._depth = wp.empty(shape, dtype=wp.float32, device=self.device)
+        self._face = wp.empty(shape, dtype=wp.int32, device=self.device)
+        self._size = (width, height)
+
+    def render(self, R, t, fx: float, fy: float, cx: float, cy: float, width: int, height: int,
+               light: Light) -> RenderResult:
+        """Render one view.
+
+        Args:
+            R: (3, 3) world-to-camera rotation, OpenCV axes.
+            t: (3,) world-to-camera translation.
+            fx, fy, cx, cy: pinhole intrinsics in pixels (capture convention, centres at +0.5).
+            width, height: image size in pixels.
+            light: a point or directional :class:`Light`.
+
+        Returns:
+            A :class:`RenderResult` of numpy arrays.
+        """
+        if light is None:
+            raise InputError("the frame has no light", fix="give every frame a point or directional light")
+        width, height = int(width), int(height)
+        self._outputs(width, height)
+        cam = PinholeCamera()
+        cam.R = wp.mat33(*np.asarray(R, dtype=np.float32).reshape(-1))
+        cam.t = wp.vec3(*np.asarray(t, dtype=np.float32).reshape(3))
+        cam.fx, cam.fy, cam.cx, cam.cy = float(fx), float(fy), float(cx), float(cy)
+        cam.width, cam.height = width, height
+        lt = RenderLight()
+        if light.type == "point":
+            lt.kind = int(LIGHT_POINT)
+            lt.pos_or_dir = wp.vec3(*np.asarray(light.position, dtype=np.float32))
+        elif light.type == "directional":
+            lt.kind = int(LIGHT_DIRECTIONAL)
+            lt.pos_or_dir = wp.vec3(*np.asarray(light.direction, dtype=np.float32))
+        else:
+            raise InputError(f"light type {light.type!r} is not 'point' or 'directional'")
+        lt.intensity = wp.vec3(*np.asarray(light.intensity, dtype=np.float32))
+        wp.launch(render_kernel, dim=(height, width), device=self.device,
+                  inputs=[self.mesh.id, self.points, self.indices, self.normals, self.uvs,
+                          self.params, self.tex_w, self.tex_h, self.layout.n_lobes, int(self.layout.anisotropic),
+                          cam, lt, self.shadow_eps, int(self.shadows)],
+                  outputs=[self._radiance, self._mask, self._depth, self._face])
+        return RenderResult(radiance=self._radiance.numpy().reshape(height, width, 3).astype(np.float32, copy=True),
+                            mask=self._mask.numpy().astype(bool),
+                            depth=self._depth.numpy().copy(),
+                            face=self._face.numpy().copy())
+
+    def render_frame(self, frame: Frame) -> RenderResult:
+        """Render the view of a capture :class:`Frame` (pose, pinhole intrinsics, light).
+
+        Lens distortion is not rendered: the frame must be a pinhole camera.
+        """
+        k = frame.intrinsics
+        if not k.is_pinhole:
+            raise InputError(f"frame {frame.file_path} has lens distortion", fix="render pinhole frames only")
+        return self.render(frame.R, frame.t, k.fx, k.fy, k.cx, k.cy, k.width, k.height, frame.light)
