@@ -361,6 +361,9 @@ def write_image(path: str | os.PathLike, img: np.ndarray, *, bits: int | None = 
     c = a.shape[2]
     has_alpha = c in (2, 4)
 
+    if not codes and bits in (8, 16) and fmt_name != "openexr" and np.isnan(a).any():
+        raise ConfigError("image array holds NaN, which an integer format cannot store", path,
+                          "write EXR/HDR/float TIFF, or replace the NaNs first")
     if codes:
         data = a
         oformat = "uint8" if bits == 8 else "uint16"
