@@ -79,6 +79,8 @@ class Light:
     @staticmethod
     def directional(direction, intensity) -> "Light":
         d = _vec3(direction)
+        if not np.linalg.norm(d) > 0:
+            raise ValueError(f"direction {direction!r} has zero length")
         return Light("directional", _vec3(intensity), direction=d / np.linalg.norm(d))
 
     def to_json(self) -> dict:
@@ -139,6 +141,16 @@ def _vec3(v) -> np.ndarray:
     return a
 
 
+def _number(v: Any) -> float:
+    """float(v), or NaN when v is not a number (so callers report it as bad input)."""
+    if isinstance(v, bool):
+        return float("nan")
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return float("nan")
+
+
 def _intrinsics_from(d: dict, fallback: Intrinsics | None, where: str, path: Path) -> Intrinsics:
     present = [k for k in _INTRINSIC_KEYS if k in d]
     if not present and fallback is not None:
@@ -156,6 +168,8 @@ def _intrinsics_from(d: dict, fallback: Intrinsics | None, where: str, path: Pat
                           distortion={k: float(merged[k]) for k in _DIST_KEYS if k in merged})
     except (TypeError, ValueError) as e:
         raise InputError(f"{where} has a non-numeric intrinsics value ({e})", path, "write numbers") from None
+    if not all(np.isfinite([intr.fx, intr.fy, intr.cx, intr.cy, *intr.distortion.values()])):
+        raise InputError(f"{where} has a non-finite intrinsics value", path, "check the intrinsics")
     if intr.width <= 0 or intr.height <= 0 or not (intr.fx > 0 and intr.fy > 0):
         raise InputError(f"{where} has non-positive w/h/fl_x/fl_y", path, "check the intrinsics")
     return intr
@@ -209,16 +223,23 @@ def read_capture(folder: str | os.PathLike) -> Capture:
             m = np.zeros(0)
         if m.shape not in ((4, 4), (3, 4)) or not np.all(np.isfinite(m)):
             raise InputError(f"{where} transform_matrix is not a finite 4x4 matrix", path, "write a 4x4 camera-to-world matrix")
+        if m.shape == (4, 4) and not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
+            raise InputError(f"{where} transform_matrix last row is {m[3].tolist()}, not [0, 0, 0, 1]", path,
+                             "write a rigid 4x4 camera-to-world matrix")
         if not is_rotation(m[:3, :3], tol=1e-3):
             raise InputError(f"{where} transform_matrix is not a rigid transform (rotation part not orthonormal with det +1)",
                              path, "remove scale/shear from the camera-to-world matrix")
         r, t = c2w_gl_to_w2c_cv(m)
         intr = _intrinsics_from(fd, top, where, path)
         light = _light_from(fd["light"], where, path) if fd.get("light") is not None else None
-        exposure = float(fd.get("exposure", 1.0))
+        exposure = _number(fd.get("exposure", 1.0))
         if not (np.isfinite(exposure) and exposure > 0):
-            raise InputError(f"{where} exposure {exposure} is not positive", path, "use a positive linear scale")
+            raise InputError(f"{where} exposure {fd.get('exposure')!r} is not a positive number", path,
+                             "use a positive linear scale")
         sat = fd.get("saturation")
+        if sat is not None and not np.isfinite(_number(sat)):
+            raise InputError(f"{where} saturation {sat!r} is not a number", path,
+                             "give the pixel value at which the camera clips, or leave it out")
         known = {"file_path", "transform_matrix", "light", "exposure", "mask_path", "saturation",
                  *_INTRINSIC_KEYS, *_DIST_KEYS, "camera_model"}
         frames.append(Frame(file_path=str(fd["file_path"]), R=r, t=t, intrinsics=intr, light=light,
