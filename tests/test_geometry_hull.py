@@ -1,0 +1,60 @@
+"""Visual hull (Warp carving + marching cubes) of synthetic captures against the true surface.
+
+Masks come from ray-cast depth maps of the known mesh (a mask only needs coverage).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from texstream.geometry.clean import CleanConfig, clean_mesh, hausdorff_distance
+from texstream.geometry.hull import HullConfig, orbit_frames, visual_hull
+from texstream.geometry.visibility import depth_maps
+from texstream.pipelines.errors import StageError
+from conftest import need_data
+from test_geometry_clean import icosphere, load_obj
+
+
+def _masks(mesh, frames, device):
+    return [np.isfinite(d) for d in depth_maps(mesh, frames, device)]
+
+
+def test_sphere_hull_within_1pct(device):
+    sphere = icosphere(4)
+    frames = orbit_frames([0, 0, 0], 4.0, n_azimuth=8, elevations_deg=(-35, 0, 35), width=160, height=160)
+    hull = visual_hull(frames, _masks(sphere, frames, device), HullConfig(), device)
+    h = hausdorff_distance(hull, sphere)
+    # the issue's bound: mean distance within 1% of the bbox diagonal (measured ~0.08%: 26 views leave
+    # small cone facets; the grid step is 1.2% of the diagonal, marching cubes interpolates below it)
+    assert h["mean_fraction"] < 0.01
+    # The visual hull contains the object: no hull vertex is well inside the sphere.
+    r = np.linalg.norm(hull.vertices, axis=1)
+    assert r.min() > 1 - 0.01
+
+
+@pytest.mark.slow
+def test_bunny_hull_within_1pct(data_dir):
+    bunny = load_obj(need_data(data_dir, "stanford_bunny") / "stanford-bunny.obj")
+    bunny, _ = clean_mesh(bunny, CleanConfig(target_faces=20000, hausdorff=False, max_hole_edges=1000))
+    lo, hi = bunny.bbox()
+    frames = orbit_frames((lo + hi) / 2, 1.6 * bunny.bbox_diagonal(), n_azimuth=8, elevations_deg=(-35, 0, 35),
+                          width=160, height=160, up=(0, 1, 0))
+    t0 = time.perf_counter()
+    hull = visual_hull(frames, _masks(bunny, frames, "cpu"), HullConfig(), "cpu")
+    h = hausdorff_distance(hull, bunny)
+    print(f"bunny hull {time.perf_counter() - t0:.2f} s, mean {100 * h['mean_fraction']:.3f}% of diagonal")
+    # issue bound 1% (measured ~0.4%: concavities between the ears and under the body stay filled)
+    assert h["mean_fraction"] < 0.01
+
+
+def test_misaligned_masks_say_what_to_do(device):
+    sphere = icosphere(2)
+    frames = orbit_frames([0, 0, 0], 4.0, n_azimuth=4, elevations_deg=(0,), width=64, height=64, poles=False)
+    masks = _masks(sphere, frames, device)
+    masks = [np.roll(m, 30 * (i % 2) - 15, axis=1) for i, m in enumerate(masks)]  # silhouettes shifted apart
+    masks[0][:] = False
+    with pytest.raises(StageError, match="--from sfm"):
+        visual_hull(frames, masks, HullConfig(resolution=32), device)
