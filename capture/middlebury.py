@@ -213,9 +213,9 @@ def import_middlebury(src_dir: str | Path, out_dir: str | Path,
     with atomic_output_dir(out, overwrite=config.overwrite) as tmp:
         (tmp / "images").mkdir()
         for (img, rel), frame in zip(images, frames):
+            px, _ = _read_raw(img)  # decode every image once, so a corrupt one fails here
             shutil.copyfile(img, tmp / rel)  # keep the PNG bytes as they are
             if config.masks:
-                px, _ = _read_raw(img)
                 if px.dtype != np.uint8:
                     raise InputError("mask thresholding expects 8-bit images", img, "pass --no-masks")
                 hull = None
