@@ -117,7 +117,8 @@ def _open(path: Path):
     spec = inp.spec()
     if spec.width <= 0 or spec.height <= 0 or spec.nchannels <= 0:
         inp.close()
-        raise InputError(f"image has zero size ({spec.width}x{spec.height}x{spec.nchannels})", path, _READ_FIX)
+        raise InputError(f"image has zero size ({spec.width}x{spec.height}x{spec.nchannels})", path,
+                         _READ_FIX)
     return inp
 
 
@@ -138,7 +139,8 @@ def _read_raw(path: Path) -> tuple[np.ndarray, object]:
         px = inp.read_image(0, 0, 0, spec.nchannels, fmt)
         if px is None or inp.has_error:
             msg = inp.geterror().strip().splitlines()
-            raise InputError(f"image is corrupt or truncated ({msg[0] if msg else 'read failed'})", path, _READ_FIX)
+            raise InputError(f"image is corrupt or truncated ({msg[0] if msg else 'read failed'})", path,
+                             _READ_FIX)
         px = np.asarray(px)
         if px.ndim == 2:
             px = px[:, :, None]
@@ -318,8 +320,8 @@ def write_image(path: str | os.PathLike, img: np.ndarray, *, bits: int | None = 
 
     Integer formats clip to [0, 1] and round to the nearest code. A uint8 array written with 8
     bits (or uint16 with 16 bits) is taken as already-encoded codes and stored unchanged. Alpha
-    (the 4th channel, or the 2nd of a 2-channel image) is never sRGB-encoded. The file is written to a temporary name in
-    the same folder and renamed into place.
+    (the 4th channel, or the 2nd of a 2-channel image) is never sRGB-encoded. The file is written
+    to a temporary name in the same folder and renamed into place.
 
     Args:
         path: output file; its folder is created if needed.
@@ -350,7 +352,8 @@ def write_image(path: str | os.PathLike, img: np.ndarray, *, bits: int | None = 
     if a.ndim != 3 or a.shape[2] not in (1, 2, 3, 4) or a.shape[0] == 0 or a.shape[1] == 0:
         raise ConfigError(f"image array has shape {np.asarray(img).shape}", path,
                           "pass (H, W) or (H, W, C) with C in 1..4")
-    codes = (bits == 8 and a.dtype == np.uint8) or (bits == 16 and a.dtype == np.uint16 and fmt_name != "openexr")
+    codes = (bits == 8 and a.dtype == np.uint8) or (
+        bits == 16 and a.dtype == np.uint16 and fmt_name != "openexr")
     if not codes:
         a = a.astype(np.float32, copy=False)
     if fmt_name in ("hdr", "jpeg"):

@@ -45,8 +45,10 @@ class MiddleburyImportConfig:
 
     par_file: str | None = option(None, help="camera file inside SRC (default: the only *_par.txt there)")
     masks: bool = option(True, help="write object masks by thresholding the black background")
-    mask_threshold: int = option(40, help="8-bit code above which a pixel's brightest channel counts as object")
-    mask_clip_to_bbox: bool = option(True, help="keep mask pixels only inside the projected README bounding box")
+    mask_threshold: int = option(
+        40, help="8-bit code above which a pixel's brightest channel counts as object")
+    mask_clip_to_bbox: bool = option(
+        True, help="keep mask pixels only inside the projected README bounding box")
     mask_margin: int = option(4, help="pixels the projected bounding box is grown by before clipping masks")
     overwrite: bool = option(True, help="replace an existing output folder")
 
@@ -56,7 +58,8 @@ def _find_par_file(src: Path, config: MiddleburyImportConfig) -> Path:
         p = Path(config.par_file)
         p = p if p.is_absolute() else src / p
         if not p.is_file():
-            raise InputError("camera file not found", p, "pass --par-file naming a *_par.txt in the source folder")
+            raise InputError("camera file not found", p,
+                             "pass --par-file naming a *_par.txt in the source folder")
         return p
     found = sorted(src.glob("*_par.txt"))
     if not found:
@@ -105,8 +108,8 @@ def parse_par_file(path: str | Path) -> list[tuple[str, np.ndarray, np.ndarray, 
         if not conventions.is_rotation(r, tol=1e-4):
             raise InputError(f"line {i} ({row[0]}): R is not a rotation", path, "repair the file")
         if abs(k[0, 1]) > 1e-9 * abs(k[0, 0]) or not np.allclose(k[2], [0, 0, 1]) or abs(k[1, 0]) > 0:
-            raise InputError(f"line {i} ({row[0]}): K has skew or is not upper triangular with K[2] = [0 0 1]",
-                             path, "texstream's pinhole model has no skew; undistort/resample the images first")
+            raise InputError(f"line {i} ({row[0]}): K has skew or is not [[fx 0 cx] [0 fy cy] [0 0 1]]",
+                             path, "texstream's pinhole model has no skew; resample the images first")
         out.append((row[0], k, r, t))
     return out
 
@@ -132,10 +135,12 @@ def parse_readme_bbox(readme: str | Path) -> tuple[np.ndarray, np.ndarray] | Non
 
 def bbox_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """The 8 corners (8, 3) of an axis-aligned box."""
-    return np.array([[(lo, hi)[b][k] for k, b in enumerate(bits)] for bits in itertools.product((0, 1), repeat=3)])
+    return np.array([[(lo, hi)[b][k] for k, b in enumerate(bits)]
+                     for bits in itertools.product((0, 1), repeat=3)])
 
 
-def threshold_mask(rgb8: np.ndarray, threshold: int, hull: np.ndarray | None = None, margin: int = 0) -> np.ndarray:
+def threshold_mask(rgb8: np.ndarray, threshold: int, hull: np.ndarray | None = None,
+                   margin: int = 0) -> np.ndarray:
     """Object mask (H, W) bool from an 8-bit image on a dark background (see the module doc).
 
     Args:
@@ -194,7 +199,8 @@ def import_middlebury(src_dir: str | Path, out_dir: str | Path,
     for name, k, r, t in cams:
         img = src / name
         if not img.is_file():
-            raise InputError(f"image {name} listed in {par.name} is missing", img, "restore the image or remove its line")
+            raise InputError(f"image {name} listed in {par.name} is missing", img,
+                             "restore the image or remove its line")
         w, h, _ = image_size(img)
         cx, cy = conventions.opencv_principal_point_to_capture(k[0, 2], k[1, 2])
         intr = Intrinsics(width=w, height=h, fx=float(k[0, 0]), fy=float(k[1, 1]), cx=float(cx), cy=float(cy))

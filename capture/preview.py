@@ -69,7 +69,8 @@ def write_contact_sheet(capture_dir: str | os.PathLike, out_png: str | os.PathLi
     if max_images < 1 or thumb < 8:
         raise ConfigError(f"max_images={max_images}, thumb={thumb}", fix="use max_images >= 1 and thumb >= 8")
     if exposure != "auto" and not (isinstance(exposure, (int, float)) and exposure > 0):
-        raise ConfigError(f"exposure {exposure!r} is neither 'auto' nor a positive number", fix="pass auto or e.g. 2.0")
+        raise ConfigError(f"exposure {exposure!r} is neither 'auto' nor a positive number",
+                          fix="pass auto or e.g. 2.0")
     out_png = Path(out_png)
     if out_png.suffix.lower() != ".png":
         raise ConfigError("contact sheet must be a .png", out_png, "name the output *.png")

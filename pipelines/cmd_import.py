@@ -33,7 +33,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from texstream.pipelines.cli import add_config_arguments
 
     parser.add_argument("format", choices=FORMATS, help="source format")
-    parser.add_argument("src", help="source folder (Middlebury set, COLMAP project/sparse model, nerfstudio folder)")
+    parser.add_argument("src", help="source folder (Middlebury set, COLMAP project or sparse model, "
+                                    "nerfstudio folder)")
     parser.add_argument("-o", "--out", required=True, help="capture folder to write")
     # The formats' configs may share option names (e.g. --overwrite): one option serves all.
     parser.conflict_handler = "resolve"

@@ -89,3 +89,34 @@ def test_cli_import_errors(tmp_path, capsys):
         err = capsys.readouterr().err
         assert err.startswith("texstream import: error:") and "Traceback" not in err
         assert not (tmp_path / fmt).exists()
+
+
+def test_cli_import_dispatches_to_colmap_io(tmp_path, monkeypatch, capsys):
+    """colmap/nerfstudio go to texstream.calib.colmap_io with their own config (a stand-in module here)."""
+    import dataclasses
+    import sys
+    import types
+
+    from texstream.pipelines.stage import StageResult, option
+
+    @dataclasses.dataclass
+    class ColmapImportConfig:
+        overwrite: bool = option(True, help="replace an existing output folder")
+        min_track: int = option(2, help="points seen by fewer images are dropped")
+
+    calls = []
+
+    def import_colmap(src, out, config):
+        calls.append((src, out, config))
+        return StageResult(output=out, summary={"frames": 7})
+
+    fake = types.ModuleType("texstream.calib.colmap_io")
+    fake.ColmapImportConfig, fake.import_colmap = ColmapImportConfig, import_colmap
+    monkeypatch.setitem(sys.modules, "texstream.calib.colmap_io", fake)
+    assert main(["import", "colmap", "src_dir", "-o", str(tmp_path / "o"), "--min-track", "3",
+                 "--no-overwrite"]) == 0
+    assert calls == [("src_dir", str(tmp_path / "o"), ColmapImportConfig(overwrite=False, min_track=3))]
+    assert "frames 7" in capsys.readouterr().out
+    # the fake has no nerfstudio importer: a clear one-line error
+    assert main(["import", "nerfstudio", "x", "-o", str(tmp_path / "n")]) == 1
+    assert "not available yet" in capsys.readouterr().err
