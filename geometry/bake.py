@@ -15,6 +15,13 @@ Rasterisation rules (kernel ``_claim_texels``)
     at least one of them, never by neither. Each covered texel is owned by the lowest face id
     that covers it (``wp.atomic_min``), so ownership is unique and deterministic on every device.
 
+Orphan faces
+    A sliver UV triangle may contain no texel centre. With ``claim_orphans`` (default) such a face
+    takes the texel nearest its UV centroid when no face owns that texel; the texel's barycentrics
+    are then clamped onto the face (its position is the nearest-in-UV point of the face), so the
+    face still gets a parameter (a face with degenerate UVs gets its 3D centroid). Faces left
+    without a texel (two orphans on one texel) are listed in ``TexelBake.faces_without_texels``.
+
 The frame at each texel comes from :func:`texstream.fit.kernels.shading.surface_frame`, the same
 function the renderer and the fit use.
 """
@@ -105,6 +112,16 @@ def _bake_frames(tx: wp.array(dtype=wp.float64), ty: wp.array(dtype=wp.float64),
     i1 = faces[f * 3 + 1]
     i2 = faces[f * 3 + 2]
     area = _orient(tx[i0], ty[i0], tx[i1], ty[i1], tx[i2], ty[i2])
+    if area == wp.float64(0.0):
+        # degenerate UV triangle (an orphan claim): use its centroid
+        third = 1.0 / 3.0
+        pos, uv, n, t, b = surface_frame(points, faces, normals, uvs, f, third, third)
+        bary[k] = wp.vec3(third, third, third)
+        position[k] = pos
+        normal[k] = n
+        tangent[k] = t
+        bitangent[k] = b
+        return
     # b_i = (area of the sub-triangle opposite vertex i) / area, Warp's mesh_query_ray convention.
     b0 = wp.max(_edge(tx, ty, i1, i2, px, py) / area, wp.float64(0.0))
     b1 = wp.max(_edge(tx, ty, i2, i0, px, py) / area, wp.float64(0.0))
@@ -244,19 +261,52 @@ def _texel_vertex_coords(mesh: SurfaceMesh, width: int, height: int) -> tuple[np
     return uv[:, 0] * width - 0.5, (1.0 - uv[:, 1]) * height - 0.5
 
 
-def claim_texels(mesh: SurfaceMesh, width: int, height: int, device: str = "cpu") -> np.ndarray:
+def claim_texels(mesh: SurfaceMesh, width: int, height: int, device: str = "cpu",
+                 claim_orphans: bool = True) -> np.ndarray:
     """(H, W) int32 owning face of every texel (-1 = uncovered); see the module doc for the rule."""
     _check_bake_input(mesh, width, height)
+    tx, ty = _texel_vertex_coords(mesh, width, height)
+    faces = np.ascontiguousarray(mesh.faces, dtype=np.int32)
     with wp.ScopedDevice(device):
-        tx, ty = _texel_vertex_coords(mesh, width, height)
         d_tx = wp.array(tx, dtype=wp.float64)
         d_ty = wp.array(ty, dtype=wp.float64)
-        d_faces = wp.array(np.ascontiguousarray(mesh.faces, dtype=np.int32).reshape(-1), dtype=wp.int32)
+        d_faces = wp.array(faces.reshape(-1), dtype=wp.int32)
         owner = wp.full(width * height, _NO_OWNER, dtype=wp.int32)
         wp.launch(_claim_texels, dim=mesh.n_faces, inputs=[d_tx, d_ty, d_faces, width, height, owner])
         face = owner.numpy()
     face[face == _NO_OWNER] = -1
+    if claim_orphans:
+        _claim_orphans(face, tx, ty, faces, width, height)
     return face.reshape(height, width)
+
+
+_ORPHAN_OFFSETS = ((0, 0), (1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, 1), (1, -1), (-1, -1))
+
+
+def _claim_orphans(face: np.ndarray, tx: np.ndarray, ty: np.ndarray, faces: np.ndarray,
+                   width: int, height: int) -> None:
+    """Give faces that own no texel a texel near their UV centroid (in place, ``face`` is (H*W,)).
+
+    Tries the nearest texel, then its 8 neighbours. A free texel is taken; an owned one only if
+    its owner keeps at least one texel after all take-overs of the round.
+    """
+    px, py = tx[faces], ty[faces]
+    cx, cy = px.mean(1), py.mean(1)
+    for dx, dy in _ORPHAN_OFFSETS:
+        counts = np.bincount(face[face >= 0], minlength=len(faces))
+        cand = np.flatnonzero(counts == 0)
+        if cand.size == 0:
+            return
+        x = np.clip(np.floor(cx[cand] + 0.5).astype(np.int64) + dx, 0, width - 1)
+        y = np.clip(np.floor(cy[cand] + 0.5).astype(np.int64) + dy, 0, height - 1)
+        k = y * width + x
+        k_u, first = np.unique(k, return_index=True)  # one orphan per texel (lowest id: cand is sorted)
+        o = face[k_u]
+        ok = o < 0
+        owned = np.flatnonzero(~ok)
+        lost = np.bincount(o[owned], minlength=len(faces))
+        ok[owned] = counts[o[owned]] - lost[o[owned]] >= 1
+        face[k_u[ok]] = cand[first[ok]]
 
 
 def _check_bake_input(mesh: SurfaceMesh, width: int, height: int) -> None:
@@ -287,7 +337,8 @@ def padding_sources(covered: np.ndarray, padding: int) -> np.ndarray:
     return src
 
 
-def bake_texels(mesh: SurfaceMesh, width: int, height: int, device: str = "cpu", padding: int = 2) -> TexelBake:
+def bake_texels(mesh: SurfaceMesh, width: int, height: int, device: str = "cpu", padding: int = 2,
+                claim_orphans: bool = True) -> TexelBake:
     """Bake the surface location space of a UV-mapped mesh into a ``width x height`` atlas.
 
     Args:
@@ -297,21 +348,19 @@ def bake_texels(mesh: SurfaceMesh, width: int, height: int, device: str = "cpu",
         height: atlas height in texels.
         device: Warp device ("cpu", "cuda:0", ...).
         padding: how many texels around the charts get a ``fill_source``.
+        claim_orphans: give faces whose UV triangle contains no texel centre the free texel
+            nearest their UV centroid (module doc).
 
     Returns:
         The :class:`TexelBake`.
     """
-    _check_bake_input(mesh, width, height)
+    face = claim_texels(mesh, width, height, device=device, claim_orphans=claim_orphans).reshape(-1)
     n_tex = width * height
     with wp.ScopedDevice(device):
         tx, ty = _texel_vertex_coords(mesh, width, height)
         d_tx = wp.array(tx, dtype=wp.float64)
         d_ty = wp.array(ty, dtype=wp.float64)
         d_faces = wp.array(np.ascontiguousarray(mesh.faces, dtype=np.int32).reshape(-1), dtype=wp.int32)
-        owner = wp.full(n_tex, _NO_OWNER, dtype=wp.int32)
-        wp.launch(_claim_texels, dim=mesh.n_faces, inputs=[d_tx, d_ty, d_faces, width, height, owner])
-        face = owner.numpy()
-        face[face == _NO_OWNER] = -1
         owner = wp.array(face, dtype=wp.int32)
         points = wp.array(np.asarray(mesh.vertices, dtype=np.float32), dtype=wp.vec3)
         normals = wp.array(np.asarray(mesh.vertex_normals(), dtype=np.float32), dtype=wp.vec3)

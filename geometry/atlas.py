@@ -1,0 +1,389 @@
+"""UV atlas for fitting: xatlas charts, packed to a texel budget, in texstream's UV convention.
+
+:func:`build_atlas` returns the mesh split along chart seams with per-vertex UVs (``source_vertex``
+maps each split vertex back to the input vertex) and an :class:`AtlasInfo`.
+
+How it works
+    1. Charting (xatlas ``add_mesh`` + ``generate``): xatlas segments the surface into charts and
+       flattens each one. Its packing in this pass is thrown away; only the charts and their
+       flattening (rescaled to scene units) are kept.
+    2. Per-face importance (``face_weights``, optional): xatlas has no per-face density, so each
+       chart is scaled by sqrt(w_c) before packing, where w_c is the area-weighted mean weight of
+       the chart's faces. A chart's texel count is then proportional to w_c times its area. The
+       weight is constant over a chart; limit ``max_chart_area`` to let it vary more finely.
+    3. Packing (xatlas ``add_uv_mesh`` + ``generate``, one UV island per chart): with
+       ``texels_per_unit`` given, the charts are packed at that density (an error if the atlas would
+       exceed ``resolution``); otherwise the density is searched so that the larger atlas side
+       comes as close to ``resolution`` as possible without exceeding it. Repacking is cheap
+       (tens of ms), charting is not, which is why the two passes are separate.
+
+UV convention
+    xatlas returns UVs normalised by the atlas size with v pointing down the image (row y of its
+    chart image is v * height). texstream's UVs have v up (capture/conventions.py), so
+    v = 1 - v_xatlas; texel centres then sit at u = (x + 0.5) / W, v = 1 - (y + 0.5) / H, exactly
+    where xatlas rasterised the charts (tests/test_geometry_atlas.py checks against xatlas' image).
+
+A mesh that already has usable UVs (inside [0, 1], not degenerate, not overlapping) keeps them when
+``keep_existing_uvs`` is set: the design's "a mesh with good UVs: no atlas".
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from texstream.pipelines.errors import ConfigError, InputError
+from texstream.pipelines.stage import option
+
+from .mesh import SurfaceMesh
+from .mesh_io import validate_mesh
+
+
+@dataclasses.dataclass
+class AtlasConfig:
+    """How the texture atlas is made (xatlas charting and packing)."""
+
+    resolution: int = option(1024, help="largest atlas side in texels; with texels_per_unit 0 the "
+                                        "density is chosen to fill this size")
+    texels_per_unit: float = option(0.0, help="texel density in texels per scene unit (at face weight 1); "
+                                              "0 derives it from resolution")
+    padding: int = option(2, help="empty texels between charts (also the padding fill radius of the bake)")
+    bilinear: bool = option(True, help="reserve a one-texel border around charts so bilinear lookups "
+                                       "inside a chart never read another chart")
+    max_chart_area: float = option(0.0, help="largest chart surface area in scene units^2 (0: no limit); "
+                                             "smaller charts let face weights vary more finely")
+    max_boundary_length: float = option(0.0, help="largest chart boundary length in scene units (0: no limit)")
+    max_cost: float = option(2.0, help="xatlas chart growth cost threshold: lower gives more, flatter charts "
+                                       "with less stretch")
+    max_iterations: int = option(1, help="xatlas chart growing iterations (more: better charts, slower)")
+    normal_deviation_weight: float = option(2.0, help="xatlas cost weight of normal deviation from the chart's "
+                                                      "average normal")
+    roundness_weight: float = option(0.01, help="xatlas cost weight favouring round charts")
+    straightness_weight: float = option(6.0, help="xatlas cost weight favouring straight chart boundaries")
+    normal_seam_weight: float = option(4.0, help="xatlas cost weight keeping hard normal edges on chart "
+                                                 "boundaries")
+    texture_seam_weight: float = option(0.5, help="xatlas cost weight keeping existing UV seams on chart "
+                                                  "boundaries")
+    rotate_charts: bool = option(True, help="let the packer rotate charts for a tighter fit")
+    brute_force: bool = option(False, help="slower, tighter packing (xatlas bruteForce)")
+    block_align: bool = option(False, help="align charts to 4x4 texel blocks (for block-compressed textures)")
+    keep_existing_uvs: bool = option(True, help="use the mesh's own UVs when they are usable (in [0, 1], "
+                                                "not degenerate, not overlapping) instead of a new atlas")
+
+
+@dataclasses.dataclass
+class AtlasInfo:
+    """What :func:`build_atlas` made.
+
+    Attributes:
+        width: atlas width in texels.
+        height: atlas height in texels.
+        n_charts: number of charts (UV islands).
+        utilization: fraction of the atlas covered by charts (xatlas' measure; for kept UVs the
+            fraction of texel centres on the surface).
+        faces_without_texels: number of faces whose UV triangle owns no texel centre (see the bake).
+        source: "xatlas" (new atlas) or "input" (the mesh's own UVs were kept).
+        texels_per_unit: texel density used, texels per scene unit at face weight 1 (for kept UVs,
+            the mean density sqrt(W H uv_area / surface_area)).
+        n_covered: texels whose centre lies on the surface.
+        reason: why the mesh's UVs were kept or replaced.
+    """
+
+    width: int
+    height: int
+    n_charts: int
+    utilization: float
+    faces_without_texels: int
+    source: str = "xatlas"
+    texels_per_unit: float = 0.0
+    n_covered: int = 0
+    reason: str = ""
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def from_xatlas_uv(uv: np.ndarray) -> np.ndarray:
+    """xatlas' normalised UVs (v down the image) -> texstream UVs (v up), float64."""
+    uv = np.asarray(uv, dtype=np.float64)
+    return np.stack([uv[:, 0], 1.0 - uv[:, 1]], axis=1)
+
+
+def build_atlas(mesh: SurfaceMesh, config: AtlasConfig,
+                face_weights: np.ndarray | None = None) -> tuple[SurfaceMesh, AtlasInfo]:
+    """Give a mesh a UV atlas for texel fitting.
+
+    Args:
+        mesh: the triangle mesh (scene units).
+        config: charting and packing options.
+        face_weights: (F,) non-negative relative importance per face; a chart's texel count scales
+            with the area-weighted mean weight of its faces (module doc). None: uniform.
+
+    Returns:
+        (mesh with per-vertex ``uvs`` in [0, 1]^2 (v up), split at chart seams, ``source_vertex``
+        indexing the input's vertices (or the input's own ``source_vertex`` when it has one), and
+        ``normals`` carried over when the input had them; :class:`AtlasInfo`).
+
+    Raises:
+        InputError: the mesh is invalid, or ``face_weights`` has the wrong shape or bad values.
+        ConfigError: bad options, or ``texels_per_unit`` needs an atlas larger than ``resolution``.
+    """
+    validate_mesh(mesh)
+    _check_config(config)
+    weights = _check_weights(face_weights, mesh.n_faces)
+    reason = ""
+    if mesh.uvs is not None:
+        if not config.keep_existing_uvs:
+            reason = "mesh UVs replaced: keep_existing_uvs is off"
+        else:
+            usable, why = _uvs_usable(mesh, config)
+            if usable:
+                return _keep_uvs(mesh, config, weights)
+            reason = f"mesh UVs replaced: {why}"
+    out, info = _xatlas_atlas(mesh, config, weights)
+    info.reason = reason or "mesh had no UVs"
+    return out, info
+
+
+# ----------------------------------------------------------------------------------------------
+
+
+def _check_config(c: AtlasConfig) -> None:
+    if int(c.resolution) < 8:
+        raise ConfigError(f"resolution must be at least 8 texels, got {c.resolution}", fix="pass --resolution 1024")
+    if not (c.texels_per_unit >= 0 and math.isfinite(c.texels_per_unit)):
+        raise ConfigError(f"texels_per_unit must be >= 0, got {c.texels_per_unit}",
+                          fix="pass 0 to derive it from --resolution")
+    if int(c.padding) < 0:
+        raise ConfigError(f"padding must be >= 0, got {c.padding}", fix="pass --padding 2")
+
+
+def _check_weights(w: np.ndarray | None, n_faces: int) -> np.ndarray | None:
+    if w is None:
+        return None
+    w = np.asarray(w, dtype=np.float64)
+    if w.shape != (n_faces,):
+        raise InputError(f"face_weights must have shape ({n_faces},), got {w.shape}", None,
+                         "pass one weight per face")
+    if not np.all(np.isfinite(w)) or w.min() < 0 or w.max() <= 0:
+        raise InputError("face_weights must be finite, >= 0 and not all zero", None,
+                         "clip the weights to [0, inf) (e.g. np.clip(w, 0, None))")
+    return w
+
+
+def _uv_areas(uvs: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    p = np.asarray(uvs, dtype=np.float64)[faces]
+    a, b = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    return 0.5 * (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])
+
+
+def _uvs_usable(mesh: SurfaceMesh, config: AtlasConfig) -> tuple[bool, str]:
+    """Whether the mesh's own UVs can serve as the fitting atlas, and why not."""
+    from .bake import claim_texels
+
+    uv = np.asarray(mesh.uvs, dtype=np.float64)
+    if uv.min() < -1e-6 or uv.max() > 1 + 1e-6:
+        return False, "UVs leave [0, 1] (tiled or wrapped textures)"
+    a_uv = np.abs(_uv_areas(uv, mesh.faces))
+    a3 = mesh.face_areas()
+    degenerate = (a_uv <= 1e-14) & (a3 > 1e-12 * max(a3.max(), 1e-30))
+    if degenerate.mean() > 0.01:
+        return False, f"{100 * degenerate.mean():.1f}% of faces have degenerate UVs"
+    side = _kept_side(mesh, config)
+    owner = claim_texels(mesh, side, side)
+    covered = float(np.count_nonzero(owner >= 0))
+    # Overlapping islands (mirrored or stacked UVs) share texels: the summed UV area then clearly
+    # exceeds the covered area. The slack allows for edge texels lost to rasterisation.
+    summed = float(a_uv.sum()) * side * side
+    if summed > 1.1 * covered + 4.0 * math.sqrt(max(summed, 1.0)) + 16.0:
+        return False, f"UV islands overlap (summed UV area {summed:.0f} texels, covered {covered:.0f})"
+    return True, "mesh UVs kept: inside [0, 1], not degenerate, not overlapping"
+
+
+def _kept_side(mesh: SurfaceMesh, config: AtlasConfig) -> int:
+    if config.texels_per_unit <= 0:
+        return int(config.resolution)
+    a_uv = float(np.abs(_uv_areas(mesh.uvs, mesh.faces)).sum())
+    a3 = float(mesh.face_areas().sum())
+    side = int(math.ceil(config.texels_per_unit * math.sqrt(a3 / max(a_uv, 1e-30))))
+    if side > config.resolution:
+        raise ConfigError(f"texels_per_unit {config.texels_per_unit:g} needs a {side}x{side} atlas for the "
+                          f"mesh's UVs, larger than resolution {config.resolution}",
+                          fix="lower --texels-per-unit or raise --resolution")
+    return max(side, 8)
+
+
+def _keep_uvs(mesh: SurfaceMesh, config: AtlasConfig,
+              weights: np.ndarray | None) -> tuple[SurfaceMesh, AtlasInfo]:
+    from .bake import claim_texels
+
+    side = _kept_side(mesh, config)
+    owner = claim_texels(mesh, side, side)
+    owned = np.zeros(mesh.n_faces, dtype=bool)
+    owned[owner[owner >= 0]] = True
+    n_cov = int(np.count_nonzero(owner >= 0))
+    a_uv = float(np.abs(_uv_areas(mesh.uvs, mesh.faces)).sum())
+    tpu = side * math.sqrt(a_uv / max(float(mesh.face_areas().sum()), 1e-30))
+    reason = "mesh UVs kept: inside [0, 1], not degenerate, not overlapping"
+    if weights is not None:
+        reason += " (face_weights ignored: they only shape new atlases; set keep_existing_uvs off to use them)"
+    out = mesh if mesh.source_vertex is not None else dataclasses.replace(
+        mesh, source_vertex=np.arange(mesh.n_vertices, dtype=np.int32))
+    info = AtlasInfo(width=side, height=side, n_charts=_count_islands(out), utilization=n_cov / side ** 2,
+                     faces_without_texels=int((~owned).sum()), source="input", texels_per_unit=tpu,
+                     n_covered=n_cov, reason=reason)
+    return out, info
+
+
+def _count_islands(mesh: SurfaceMesh) -> int:
+    """Connected components of faces through shared (split) vertices: the UV islands.
+
+    Union-find by hooking roots to the smaller root and pointer jumping, vectorised.
+    """
+    f = np.asarray(mesh.faces, dtype=np.int64)
+    a = np.concatenate([f[:, 0], f[:, 1]])
+    b = np.concatenate([f[:, 1], f[:, 2]])
+    parent = np.arange(mesh.n_vertices)
+    while True:
+        ra, rb = parent[a], parent[b]
+        if np.array_equal(ra, rb):
+            break
+        np.minimum.at(parent, np.maximum(ra, rb), np.minimum(ra, rb))
+        while True:
+            pp = parent[parent]
+            if np.array_equal(pp, parent):
+                break
+            parent = pp
+    return int(len(np.unique(parent[np.unique(f)])))
+
+
+def _chart_options(config: AtlasConfig):
+    import xatlas
+
+    co = xatlas.ChartOptions()
+    co.max_chart_area = float(config.max_chart_area)
+    co.max_boundary_length = float(config.max_boundary_length)
+    co.max_cost = float(config.max_cost)
+    co.max_iterations = int(config.max_iterations)
+    co.normal_deviation_weight = float(config.normal_deviation_weight)
+    co.roundness_weight = float(config.roundness_weight)
+    co.straightness_weight = float(config.straightness_weight)
+    co.normal_seam_weight = float(config.normal_seam_weight)
+    co.texture_seam_weight = float(config.texture_seam_weight)
+    return co
+
+
+def _pack_options(config: AtlasConfig, texels_per_unit: float):
+    import xatlas
+
+    po = xatlas.PackOptions()
+    po.padding = int(config.padding)
+    po.bilinear = bool(config.bilinear)
+    po.rotate_charts = bool(config.rotate_charts)
+    po.bruteForce = bool(config.brute_force)
+    po.blockAlign = bool(config.block_align)
+    po.texels_per_unit = float(texels_per_unit)
+    po.resolution = 0  # one atlas whose size follows from the density (we control the size)
+    return po
+
+
+def _pack(uv_world: np.ndarray, faces: np.ndarray, chart: np.ndarray, config: AtlasConfig, tpu: float):
+    import xatlas
+
+    atlas = xatlas.Atlas()
+    atlas.add_uv_mesh(uv_world.astype(np.float32), faces.astype(np.uint32),
+                      chart.astype(np.uint32).reshape(-1, 1))
+    atlas.generate(xatlas.ChartOptions(), _pack_options(config, tpu))
+    return atlas
+
+
+def _xatlas_atlas(mesh: SurfaceMesh, config: AtlasConfig,
+                  weights: np.ndarray | None) -> tuple[SurfaceMesh, AtlasInfo]:
+    import xatlas
+
+    from .bake import claim_texels
+
+    faces_in = np.asarray(mesh.faces, dtype=np.uint32)
+    area3 = mesh.face_areas()
+    total = float(area3.sum())
+    if total <= 0:
+        raise InputError("all faces have zero area", None, "clean the mesh (texstream mesh) before atlasing")
+
+    # Pass 1: charts. The packing density here only sets the resolution of xatlas' chart
+    # flattening bookkeeping; ~512 texels across is plenty and fast.
+    chart_atlas = xatlas.Atlas()
+    normals = None if mesh.normals is None else np.asarray(mesh.normals, dtype=np.float32)
+    try:
+        chart_atlas.add_mesh(np.asarray(mesh.vertices, dtype=np.float32), faces_in, normals=normals)
+    except RuntimeError as e:
+        raise InputError(f"xatlas rejected the mesh ({e})", None, "clean the mesh (texstream mesh) first") from None
+    tpu_a = 512.0 / math.sqrt(total)
+    chart_atlas.generate(_chart_options(config), _pack_options(config, tpu_a))
+    vm_a, idx_a, uv_a = chart_atlas.get_mesh(0)
+    n_charts = chart_atlas.get_mesh_chart_count(0)
+    chart = np.full(len(idx_a), n_charts, dtype=np.int64)  # faces xatlas ignored (zero area): own group
+    for c in range(n_charts):
+        chart[np.asarray(chart_atlas.get_mesh_chart(0, c).faces, dtype=np.int64)] = c
+    uv_world = np.asarray(uv_a, np.float64) * [chart_atlas.width, chart_atlas.height] / chart_atlas.texels_per_unit
+
+    # Per-chart importance scale (split vertices belong to exactly one chart).
+    if weights is not None:
+        cw = np.bincount(chart, weights=weights * area3, minlength=n_charts + 1)
+        ca = np.bincount(chart, weights=area3, minlength=n_charts + 1)
+        wc = np.divide(cw, ca, out=np.ones_like(cw), where=ca > 0)
+        # Zero-weight charts still get a sliver of texels (1/100 of the largest linear scale) so
+        # every face keeps a parameter.
+        scale = np.sqrt(np.maximum(wc, 1e-4 * wc.max()))
+        vscale = np.ones(len(uv_world))
+        vscale[idx_a.reshape(-1)] = np.repeat(scale[chart], 3)
+        uv_world = uv_world * vscale[:, None]
+
+    # Pass 2: pack at the requested density, or search the density that fills `resolution`.
+    res = int(config.resolution)
+    if config.texels_per_unit > 0:
+        tpu = float(config.texels_per_unit)
+        atlas = _pack(uv_world, idx_a, chart, config, tpu)
+        if max(atlas.width, atlas.height) > res:
+            raise ConfigError(f"texels_per_unit {tpu:g} needs a {atlas.width}x{atlas.height} atlas, larger "
+                              f"than resolution {res}", fix="lower --texels-per-unit or raise --resolution")
+    else:
+        atlas, tpu = _fit_density(uv_world, idx_a, chart, config, res)
+    vm_b, idx_b, uv_b = atlas.get_mesh(0)
+    src = np.asarray(vm_a, np.int64)[np.asarray(vm_b, np.int64)]
+    out = SurfaceMesh(
+        vertices=np.asarray(mesh.vertices, np.float64)[src],
+        faces=np.asarray(idx_b, dtype=np.int32),
+        normals=None if mesh.normals is None else np.asarray(mesh.normals, np.float64)[src],
+        uvs=from_xatlas_uv(uv_b),
+        source_vertex=(src if mesh.source_vertex is None else np.asarray(mesh.source_vertex)[src]).astype(np.int32),
+    )
+    w, h = int(atlas.width), int(atlas.height)
+    owner = claim_texels(out, w, h)
+    owned = np.zeros(out.n_faces, dtype=bool)
+    owned[owner[owner >= 0]] = True
+    info = AtlasInfo(width=w, height=h, n_charts=int(n_charts), utilization=float(atlas.utilization),
+                     faces_without_texels=int((~owned).sum()), source="xatlas", texels_per_unit=float(tpu),
+                     n_covered=int(np.count_nonzero(owner >= 0)))
+    return out, info
+
+
+def _fit_density(uv_world: np.ndarray, faces: np.ndarray, chart: np.ndarray, config: AtlasConfig,
+                 res: int, max_tries: int = 8):
+    """Largest density whose packed atlas fits in res x res (secant-like search on the side length)."""
+    area = float(np.abs(_uv_areas(uv_world, faces)).sum())
+    tpu = res * math.sqrt(0.6 / max(area, 1e-30))  # ~60% packing efficiency as a first guess
+    best = None
+    for _ in range(max_tries):
+        atlas = _pack(uv_world, faces, chart, config, tpu)
+        side = max(atlas.width, atlas.height)
+        if side <= res and (best is None or tpu > best[1]):
+            best = (atlas, tpu)
+            if side >= 0.97 * res:
+                break
+        # Side grows ~linearly with density; aim slightly under so the next try likely fits.
+        tpu *= (res / side) * (0.99 if side > res else 0.995)
+    if best is None:
+        raise ConfigError(f"could not pack the charts into {res}x{res} texels", fix="raise --resolution")
+    return best
