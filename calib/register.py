@@ -1,0 +1,415 @@
+"""Camera registration with pycolmap (``texstream register CAPTURE``).
+
+Pipeline (what COLMAP's automatic reconstructor does, with capture-folder plumbing around it):
+
+1. photos: the frames of ``CAPTURE/capture.json`` (ingest output) or the images of a plain folder;
+   masks from the frames' ``mask_path`` or ``masks/NAME.png``, passed to feature extraction so no
+   features land on the background;
+2. SIFT extraction, one COLMAP camera per image size (two cameras mixed in one folder become two
+   camera models), with calibrated intrinsics (``--intrinsics``, fixed unless
+   ``--refine-intrinsics``) or COLMAP's own focal guess;
+3. exhaustive matching (sequential or vocabulary tree for large or video-like sets);
+4. incremental mapping; the largest model is kept and unregistered photos are reported;
+5. optional Sim3 alignment to known camera centres (``--align-to capture.json``);
+6. undistortion of registered photos and masks to pinhole, conversion to ``capture.json``.
+
+Outputs (atomically): ``capture.json``, ``images/``, ``masks/``, ``sparse/0``, ``points3D.ply``,
+``registration_report.json``, ``register_config.json``. On failure a partial report is written to
+``OUT.failed_report.json`` and the error says how many photos registered.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from texstream.capture.capture_json import CAPTURE_FILE, Capture, Frame, Intrinsics, read_capture, write_capture
+from texstream.pipelines.errors import ConfigError, InputError, StageError
+from texstream.pipelines.stage import StageResult, atomic_output_dir, option, read_json, save_config, write_json_atomic
+
+from .colmap_io import intrinsics_to_colmap, opencv_distortion, reconstruction_frames
+from .files import list_images, write_failure_report
+
+REPORT_FILE = "registration_report.json"
+
+
+@dataclasses.dataclass
+class RegisterConfig:
+    """Options of the registration stage."""
+
+    matcher: str = option("auto", help="auto (exhaustive up to 150 photos, else sequential), exhaustive, "
+                          "sequential (ordered photos / video), vocab_tree (large sets; needs --vocab-tree)",
+                          choices=("auto", "exhaustive", "sequential", "vocab_tree"))
+    vocab_tree: str | None = option(None, help="COLMAP vocabulary tree file for --matcher vocab_tree")
+    sequential_overlap: int = option(10, help="neighbours matched per photo by the sequential matcher")
+    max_num_features: int = option(8192, help="SIFT features kept per photo")
+    max_image_size: int = option(3200, help="photos are downscaled to this longest side for features")
+    camera_model: str = option("SIMPLE_RADIAL", help="COLMAP camera model estimated when no intrinsics are given",
+                               choices=("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"))
+    intrinsics: str | None = option(None, help="intrinsics.json from 'texstream calibrate' (matched by image size)")
+    refine_intrinsics: bool = option(False, help="let bundle adjustment refine given intrinsics")
+    use_masks: bool = option(True, help="pass masks to feature extraction (no features on the background)")
+    min_model_size: int = option(3, help="smallest model (registered photos) kept by the mapper")
+    align_to: str | None = option(None, help="capture.json / transforms.json with known camera centres: "
+                                  "Sim3-align the model to them (matched by image file name)")
+    align_max_error: float = option(0.02, help="RANSAC inlier threshold of the alignment, as a fraction of the "
+                                    "extent of the known centres")
+    undistort: bool = option(True, help="undistort registered photos and masks to pinhole cameras")
+    num_threads: int = option(-1, help="CPU threads for COLMAP (-1: all)")
+    seed: int = option(0, help="random seed of COLMAP's RANSAC and mapper (reproducible runs)")
+    overwrite: bool = option(True, help="replace an existing output folder")
+
+
+@dataclasses.dataclass
+class _Photo:
+    name: str            # name inside the COLMAP image folder (unique)
+    path: Path           # source file
+    width: int
+    height: int
+    mask: Path | None
+    frame: Frame | None  # ingest frame (exposure, light, saturation...) when the input is a capture
+
+
+def _image_size(path: Path) -> tuple[int, int] | None:
+    try:
+        from texstream.capture.imageio import image_size
+
+        w, h, _ = image_size(path)
+        return int(w), int(h)
+    except Exception:  # noqa: BLE001 - unreadable/corrupt: reported by the caller
+        return None
+
+
+def _collect_photos(capture: Path, cfg: RegisterConfig) -> tuple[list[_Photo], list[dict], Capture | None]:
+    dropped: list[dict] = []
+    cap = None
+    if (capture / CAPTURE_FILE).is_file() or (capture / "transforms.json").is_file():
+        cap = read_capture(capture)
+        items = [(cap.image_path(f), cap.mask_path(f), f) for f in cap.frames]
+    else:
+        files = list_images(capture, what="capture folder")
+        mdir = capture / "masks"
+        items = []
+        for f in files:
+            m = next((c for c in (mdir / (f.stem + ".png"), mdir / (f.name + ".png")) if c.is_file()), None)
+            items.append((f, m, None))
+    photos, seen = [], set()
+    for path, mask, frame in items:
+        if not path.is_file():
+            dropped.append({"image": str(path.name), "reason": "missing file"})
+            continue
+        size = _image_size(path)
+        if size is None:
+            dropped.append({"image": path.name, "reason": "unreadable or corrupt"})
+            continue
+        name = path.name
+        if name in seen:
+            dropped.append({"image": name, "reason": "duplicate file name"})
+            continue
+        seen.add(name)
+        if mask is not None and not mask.is_file():
+            mask = None
+        photos.append(_Photo(name, path, size[0], size[1], mask if cfg.use_masks else None, frame))
+    return photos, dropped, cap
+
+
+def _is_8bit_colmap_readable(path: Path) -> bool:
+    if path.suffix.lower() not in (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff"):
+        return False
+    try:
+        import OpenImageIO as oiio
+
+        inp = oiio.ImageInput.open(str(path))
+        if inp is None:
+            return False
+        ok = inp.spec().format == oiio.UINT8
+        inp.close()
+        return ok
+    except Exception:  # noqa: BLE001
+        return False
+
+
+def _stage_images(photos: list[_Photo], work: Path) -> tuple[Path, Path | None]:
+    """Image and mask folders COLMAP reads: 8-bit files linked as they are, others as 8-bit sRGB proxies."""
+    from texstream.capture.imageio import linear_to_srgb, read_image, read_mask, write_image
+
+    img_dir = work / "images"
+    img_dir.mkdir(parents=True)
+    mask_dir = None
+    for p in photos:
+        dst = img_dir / p.name
+        if _is_8bit_colmap_readable(p.path):
+            try:
+                os.symlink(p.path.resolve(), dst)
+            except OSError:
+                shutil.copy2(p.path, dst)
+        else:
+            # HDR / 16-bit / float: SIFT wants 8-bit; tone-map by the 99th percentile, then sRGB.
+            # Keep the original name so the model and the capture agree; the proxy is a PNG inside.
+            img = read_image(p.path, channels=3)
+            scale = float(np.percentile(img, 99.0)) or 1.0
+            code = (np.clip(linear_to_srgb(np.clip(img / scale, 0, 1)), 0, 1) * 255 + 0.5).astype(np.uint8)
+            tmp_png = work / "proxy.png"
+            write_image(tmp_png, code, bits=8)
+            os.replace(tmp_png, dst)
+        if p.mask is not None:
+            if mask_dir is None:
+                mask_dir = work / "masks"
+                mask_dir.mkdir()
+            m = read_mask(p.mask, (p.height, p.width))
+            write_image(mask_dir / (p.name + ".png"), (m > 0).astype(np.uint8) * 255, bits=8)
+    return img_dir, mask_dir
+
+
+def _camera_groups(photos: list[_Photo], cfg: RegisterConfig) -> list[tuple[list[_Photo], str, str]]:
+    """Group photos into COLMAP cameras by image size: (photos, model, params string or '')."""
+    from .intrinsics import intrinsics_for_size, load_intrinsics
+
+    cams = load_intrinsics(cfg.intrinsics) if cfg.intrinsics else None
+    groups: dict[tuple[int, int], list[_Photo]] = {}
+    for p in photos:
+        groups.setdefault((p.width, p.height), []).append(p)
+    out = []
+    for (w, h), ps in sorted(groups.items(), key=lambda kv: -len(kv[1])):
+        if cams is not None:
+            model, params = intrinsics_to_colmap(intrinsics_for_size(cams, w, h, cfg.intrinsics))
+            out.append((ps, model, ",".join(f"{x:.10g}" for x in params)))
+        else:
+            out.append((ps, cfg.camera_model, ""))
+    return out
+
+
+def _run_colmap(photos: list[_Photo], img_dir: Path, mask_dir: Path | None, work: Path, cfg: RegisterConfig,
+                timings: dict) -> dict[int, Any]:
+    import pycolmap
+
+    db = work / "database.db"
+    t0 = time.perf_counter()
+    eo = pycolmap.FeatureExtractionOptions()
+    eo.sift.max_num_features = cfg.max_num_features
+    eo.max_image_size = cfg.max_image_size
+    eo.num_threads = cfg.num_threads
+    for ps, model, params in _camera_groups(photos, cfg):
+        ro = pycolmap.ImageReaderOptions()
+        ro.camera_model = model
+        if params:
+            ro.camera_params = params
+        if mask_dir is not None:
+            ro.mask_path = str(mask_dir)
+        # One camera per size group: SINGLE within a call, a new camera per call.
+        pycolmap.extract_features(db, img_dir, image_names=[p.name for p in ps], camera_mode=pycolmap.CameraMode.SINGLE,
+                                  reader_options=ro, extraction_options=eo, device=pycolmap.Device.cpu)
+    timings["extract_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    mo = pycolmap.FeatureMatchingOptions()
+    mo.num_threads = cfg.num_threads
+    vo = pycolmap.TwoViewGeometryOptions()
+    vo.ransac.random_seed = cfg.seed
+    matcher = cfg.matcher
+    if matcher == "auto":
+        matcher = "exhaustive" if len(photos) <= 150 else "sequential"
+    if matcher == "exhaustive":
+        pycolmap.match_exhaustive(db, matching_options=mo, verification_options=vo, device=pycolmap.Device.cpu)
+    elif matcher == "sequential":
+        po = pycolmap.SequentialPairingOptions()
+        po.overlap = cfg.sequential_overlap
+        pycolmap.match_sequential(db, matching_options=mo, pairing_options=po, verification_options=vo,
+                                  device=pycolmap.Device.cpu)
+    else:
+        if not cfg.vocab_tree or not Path(cfg.vocab_tree).is_file():
+            raise ConfigError("--matcher vocab_tree needs --vocab-tree FILE (a COLMAP vocabulary tree)",
+                              cfg.vocab_tree, "download one from colmap.github.io or use --matcher sequential")
+        po = pycolmap.VocabTreePairingOptions()
+        po.vocab_tree_path = cfg.vocab_tree
+        pycolmap.match_vocabtree(db, matching_options=mo, pairing_options=po, verification_options=vo,
+                                 device=pycolmap.Device.cpu)
+    timings["match_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    op = pycolmap.IncrementalPipelineOptions()
+    op.num_threads = cfg.num_threads
+    op.random_seed = cfg.seed
+    op.min_model_size = cfg.min_model_size
+    if cfg.intrinsics and not cfg.refine_intrinsics:
+        op.ba_refine_focal_length = False
+        op.ba_refine_principal_point = False
+        op.ba_refine_extra_params = False
+        op.mapper.abs_pose_refine_focal_length = False
+        op.mapper.abs_pose_refine_extra_params = False
+    recs = pycolmap.incremental_mapping(db, img_dir, work / "sparse", options=op)
+    timings["map_s"] = time.perf_counter() - t0
+    return recs
+
+
+def _known_centres(path: str) -> dict[str, np.ndarray]:
+    cap = read_capture(path)
+    return {Path(f.file_path).name: f.center for f in cap.frames}
+
+
+def align_to_centres(rec: Any, centres: dict[str, np.ndarray], max_error_frac: float, seed: int = 0) -> dict:
+    """Sim3-align a reconstruction in place to known camera centres (pycolmap, RANSAC).
+
+    Args:
+        rec: pycolmap.Reconstruction (modified in place).
+        centres: image name -> known world position (3,).
+        max_error_frac: inlier threshold as a fraction of the known centres' extent.
+
+    Returns:
+        dict with ``scale``, ``common`` (images used) and ``rmse`` (centre error after alignment, world units).
+    """
+    import pycolmap
+
+    names = [im.name for im in rec.images.values() if im.has_pose and im.name in centres]
+    if len(names) < 3:
+        raise StageError(f"only {len(names)} registered photo(s) have known centres; Sim3 alignment needs 3",
+                         fix="check that --align-to names the same image files")
+    locs = np.stack([centres[n] for n in names])
+    extent = float(np.linalg.norm(locs.max(0) - locs.min(0))) or 1.0
+    ro = pycolmap.RANSACOptions()
+    ro.max_error = max_error_frac * extent
+    ro.random_seed = seed
+    sim = pycolmap.align_reconstruction_to_locations(rec, names, locs, 3, ro)
+    if sim is None:
+        raise StageError("Sim3 alignment to the known camera centres failed (too few consistent centres)",
+                         fix="check --align-to, or raise --align-max-error")
+    rec.transform(sim)
+    got = np.stack([rec.find_image_with_name(n).projection_center() for n in names])
+    rmse = float(np.sqrt(np.mean(np.sum((got - locs) ** 2, 1))))
+    return {"scale": float(sim.scale), "common": len(names), "rmse": rmse, "extent": extent}
+
+
+def _undistort(src: Path, dst: Path, intr: Intrinsics, nearest: bool = False) -> None:
+    """Undistort one image file to the same pinhole K, keeping its format and bit depth (OpenImageIO + cv2)."""
+    import cv2
+    import OpenImageIO as oiio
+
+    buf = oiio.ImageBuf(str(src))
+    spec = buf.spec()
+    px = buf.get_pixels(spec.format if spec.format != oiio.UNKNOWN else oiio.FLOAT)
+    if px is None or px.size == 0:
+        raise InputError("cannot read image for undistortion", src, "replace the file")
+    k, d = opencv_distortion(intr)
+    size = (intr.width, intr.height)
+    if intr.camera_model == "OPENCV_FISHEYE":
+        m1, m2 = cv2.fisheye.initUndistortRectifyMap(k, d, np.eye(3), k, size, cv2.CV_32FC1)
+    else:
+        m1, m2 = cv2.initUndistortRectifyMap(k, d, None, k, size, cv2.CV_32FC1)
+    interp = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
+    chans = [cv2.remap(np.ascontiguousarray(px[..., c]), m1, m2, interp, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+             for c in range(px.shape[2])]
+    out = np.stack(chans, -1)
+    ospec = oiio.ImageSpec(spec)
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    o = oiio.ImageOutput.create(str(dst))
+    if o is None or not o.open(str(dst), ospec):
+        raise StageError(f"cannot write undistorted image ({oiio.geterror()})", dst)
+    o.write_image(out)
+    o.close()
+
+
+def register(capture: str | os.PathLike, out: str | os.PathLike, config: RegisterConfig | None = None) -> StageResult:
+    """Register the photos of a capture folder (or plain photo folder) with pycolmap.
+
+    Args:
+        capture: ingest output (``capture.json`` + images) or a folder of photos (masks in ``masks/``).
+        out: posed capture folder to write (see the module doc).
+        config: options.
+
+    Returns:
+        StageResult; summary has ``registered``, ``unregistered`` (names), ``dropped``, ``models``
+        (sizes of all models found), ``mean_reprojection_error`` (px), ``alignment``, timings.
+
+    Raises:
+        InputError: missing/empty folder, bad intrinsics file. StageError: fewer than two photos,
+        or no model (photos with no overlap); a partial report is written to ``OUT.failed_report.json``.
+    """
+    import pycolmap
+
+    cfg = config or RegisterConfig()
+    capture, out = Path(capture), Path(out)
+    if out.exists() and not cfg.overwrite:
+        raise InputError("output folder already exists", out, "remove it or pass --overwrite")
+    photos, dropped, cap = _collect_photos(capture, cfg)
+    report: dict[str, Any] = {"input": str(capture), "photos": len(photos) + len(dropped), "dropped": dropped,
+                              "camera_sizes": sorted({f"{p.width}x{p.height}" for p in photos})}
+    if len(photos) < 2:
+        report["registered"], report["unregistered"] = [], [p.name for p in photos]
+        path = write_failure_report(out, report)
+        raise StageError(f"registration needs at least 2 readable photos, got {len(photos)} "
+                         f"({len(dropped)} dropped); partial report {path}", capture,
+                         "add overlapping photos of the object (20+ from all sides is typical)")
+    centres = _known_centres(cfg.align_to) if cfg.align_to else None
+    timings: dict[str, float] = {}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix=".register.", dir=out.parent if out.parent.exists() else None) as w:
+        work = Path(w)
+        img_dir, mask_dir = _stage_images(photos, work)
+        recs = _run_colmap(photos, img_dir, mask_dir, work, cfg, timings)
+        sizes = sorted((r.num_reg_images() for r in recs.values()), reverse=True)
+        report["models"] = sizes
+        if not recs:
+            report["registered"], report["unregistered"] = [], [p.name for p in photos]
+            path = write_failure_report(out, report)
+            raise StageError(f"no model: none of the {len(photos)} photos could be registered "
+                             f"(too little overlap or texture); partial report {path}", capture,
+                             "take overlapping photos (60%+ overlap between neighbours) of a textured object")
+        rec = max(recs.values(), key=lambda r: r.num_reg_images())
+        report["mean_reprojection_error"] = float(rec.compute_mean_reprojection_error())
+        if centres is not None:
+            report["alignment"] = align_to_centres(rec, centres, cfg.align_max_error, cfg.seed)
+        posed = {name: (r, t, intr) for name, r, t, intr in reconstruction_frames(rec)}
+        report["registered"] = sorted(posed)
+        report["unregistered"] = [p.name for p in photos if p.name not in posed]
+        with atomic_output_dir(out) as tmp:
+            t0 = time.perf_counter()
+            frames = []
+            for p in photos:
+                if p.name not in posed:
+                    continue
+                r, t, intr = posed[p.name]
+                dst_rel = Path("images") / p.name
+                mask_rel = None
+                distorted = bool(intr.distortion) and any(abs(v) > 0 for v in intr.distortion.values())
+                if cfg.undistort and distorted:
+                    _undistort(p.path, tmp / dst_rel, intr)
+                    if p.mask is not None:
+                        mask_rel = Path("masks") / (Path(p.name).stem + ".png")
+                        _undistort(mask_dir / (p.name + ".png"), tmp / mask_rel, intr, nearest=True)
+                    intr = dataclasses.replace(intr, camera_model="PINHOLE", distortion={})
+                else:
+                    (tmp / dst_rel).parent.mkdir(parents=True, exist_ok=True)
+                    shutil.copy2(p.path, tmp / dst_rel)
+                    if p.mask is not None:
+                        mask_rel = Path("masks") / (Path(p.name).stem + p.mask.suffix)
+                        (tmp / mask_rel).parent.mkdir(parents=True, exist_ok=True)
+                        shutil.copy2(p.mask, tmp / mask_rel)
+                base = p.frame
+                frames.append(Frame(file_path=str(dst_rel), R=r, t=t, intrinsics=intr,
+                                    light=base.light if base else None, exposure=base.exposure if base else 1.0,
+                                    mask_path=None if mask_rel is None else str(mask_rel),
+                                    saturation=base.saturation if base else None,
+                                    extra=dict(base.extra) if base else {}))
+            timings["undistort_s"] = time.perf_counter() - t0
+            extra = dict(cap.extra) if cap is not None else {}
+            extra.pop("posed", None)
+            extra["registration"] = {"registered": len(frames), "unregistered": report["unregistered"],
+                                     "aligned": centres is not None}
+            write_capture(Capture(root=tmp, frames=frames, extra=extra), tmp)
+            (tmp / "sparse" / "0").mkdir(parents=True)
+            rec.write(str(tmp / "sparse" / "0"))
+            if rec.num_points3D() > 0:
+                rec.export_PLY(str(tmp / "points3D.ply"))
+            report["timings"] = timings
+            report["points3D"] = int(rec.num_points3D())
+            write_json_atomic(tmp / REPORT_FILE, report)
+            save_config(cfg, tmp / "register_config.json")
+    summary = {k: report[k] for k in ("registered", "unregistered", "dropped", "models", "mean_reprojection_error",
+                                      "points3D", "timings")}
+    summary["alignment"] = report.get("alignment")
+    return StageResult(output=out, summary=summary)

@@ -1,0 +1,38 @@
+"""``texstream register CAPTURE -o POSED``: camera poses with COLMAP (pycolmap)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from texstream.pipelines.cli import add_config_arguments, config_from_args
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from texstream.calib.register import RegisterConfig
+
+    parser.add_argument("capture", help="capture folder from 'texstream ingest', or a folder of photos")
+    parser.add_argument("-o", "--out", default=None, help="posed capture folder to write (default: CAPTURE_posed)")
+    add_config_arguments(parser, RegisterConfig)
+
+
+def run(args: argparse.Namespace) -> int:
+    from texstream.calib.register import RegisterConfig, register
+
+    cfg = config_from_args(RegisterConfig, args)
+    cap = Path(args.capture)
+    out = Path(args.out) if args.out else cap.parent / f"{cap.name}_posed"
+    res = register(cap, out, cfg)
+    s = res.summary
+    n_reg, n_un = len(s["registered"]), len(s["unregistered"])
+    print(f"registered {n_reg} of {n_reg + n_un} photo(s) (models: {s['models']}); "
+          f"{s['points3D']} points, mean reprojection error {s['mean_reprojection_error']:.3f} px")
+    for name in s["unregistered"]:
+        print(f"  unregistered: {name}")
+    for d in s["dropped"]:
+        print(f"  dropped: {d['image']} ({d['reason']})")
+    if s.get("alignment"):
+        a = s["alignment"]
+        print(f"aligned to {a['common']} known centres: scale {a['scale']:.4g}, centre RMSE {a['rmse']:.4g}")
+    print(f"wrote {out}")
+    return 0
