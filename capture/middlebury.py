@@ -44,7 +44,7 @@ class MiddleburyImportConfig:
     """Options for :func:`import_middlebury`."""
 
     par_file: str | None = option(None, help="camera file inside SRC (default: the only *_par.txt there)")
-    masks: bool = option(True, help="write object masks by thresholding the black background")
+    make_masks: bool = option(True, help="write object masks by thresholding the black background")
     mask_threshold: int = option(
         40, help="8-bit code above which a pixel's brightest channel counts as object")
     mask_clip_to_bbox: bool = option(
@@ -174,7 +174,7 @@ def import_middlebury(src_dir: str | Path, out_dir: str | Path,
     """Convert a Middlebury set folder into a capture folder.
 
     Writes ``out_dir/capture.json``, ``images/`` (the PNGs copied byte for byte), ``masks/`` (when
-    ``config.masks``) and ``import_config.json``, atomically: on any error ``out_dir`` is untouched.
+    ``config.make_masks``) and ``import_config.json``, atomically: on any error ``out_dir`` is untouched.
     The lamp of the Middlebury gantry is not calibrated, so frames carry no ``light``; the capture
     says ``"lighting": "fixed unknown lamp"``.
 
@@ -221,9 +221,9 @@ def import_middlebury(src_dir: str | Path, out_dir: str | Path,
         for (img, rel), frame in zip(images, frames):
             px, _ = _read_raw(img)  # decode every image once, so a corrupt one fails here
             shutil.copyfile(img, tmp / rel)  # keep the PNG bytes as they are
-            if config.masks:
+            if config.make_masks:
                 if px.dtype != np.uint8:
-                    raise InputError("mask thresholding expects 8-bit images", img, "pass --no-masks")
+                    raise InputError("mask thresholding expects 8-bit images", img, "pass --no-make-masks")
                 hull = None
                 if bbox is not None and config.mask_clip_to_bbox:
                     uv, z = conventions.project(bbox_corners(*bbox), frame.R, frame.t, frame.intrinsics.fx,

@@ -102,7 +102,7 @@ def test_temple_masks_cut_background(temple_capture):
 def test_no_masks_option_and_round_trip(tmp_path, data_dir):
     src = need_data(data_dir, TEMPLE)
     out = tmp_path / "nomask"
-    import_middlebury(src, out, MiddleburyImportConfig(masks=False))
+    import_middlebury(src, out, MiddleburyImportConfig(make_masks=False))
     cap = read_capture(out)
     assert all(f.mask_path is None for f in cap.frames) and not (out / "masks").exists()
 

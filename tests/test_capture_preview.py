@@ -71,7 +71,7 @@ def test_cli_preview(tmp_path, capsys):
 def test_cli_import_middlebury(tmp_path, data_dir, capsys):
     src = need_data(data_dir, "middlebury_temple_sparse")
     out = tmp_path / "temple"
-    assert main(["import", "middlebury", str(src), "-o", str(out), "--no-masks"]) == 0
+    assert main(["import", "middlebury", str(src), "-o", str(out), "--no-make-masks"]) == 0
     assert "frames 16" in capsys.readouterr().out
     assert (out / "capture.json").exists() and not (out / "masks").exists()
 
@@ -120,3 +120,29 @@ def test_cli_import_dispatches_to_colmap_io(tmp_path, monkeypatch, capsys):
     # the fake has no nerfstudio importer: a clear one-line error
     assert main(["import", "nerfstudio", "x", "-o", str(tmp_path / "n")]) == 1
     assert "not available yet" in capsys.readouterr().err
+
+
+def test_import_formats_share_option_names_only_with_equal_types():
+    """`texstream import` offers every format's options in one parser: a shared name must mean one type."""
+    import dataclasses
+    import typing
+
+    from texstream.capture.middlebury import MiddleburyImportConfig
+
+    classes = [MiddleburyImportConfig]
+    try:
+        from texstream.calib import colmap_io
+    except ModuleNotFoundError:
+        colmap_io = None
+    for name in ("ColmapImportConfig", "NerfstudioImportConfig"):
+        if colmap_io is not None and hasattr(colmap_io, name):
+            classes.append(getattr(colmap_io, name))
+    seen: dict[str, tuple[object, str]] = {}
+    for cls in classes:
+        hints = typing.get_type_hints(cls)
+        for f in dataclasses.fields(cls):
+            if f.name in seen:
+                assert seen[f.name][0] == hints[f.name], (
+                    f"--{f.name} is {seen[f.name][0]} in {seen[f.name][1]} but {hints[f.name]} in {cls.__name__}")
+            else:
+                seen[f.name] = (hints[f.name], cls.__name__)
