@@ -30,7 +30,7 @@ import numpy as np
 from texstream.pipelines.errors import ConfigError
 
 MODEL_KINDS = ("lafortune", "diffuse")
-MAX_LOBES = 3
+MAX_LOBES = 2  # MAX_PARAMS = 3 + 2*7 = 17 bounds the kernels' fixed-size per-texel vectors
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,0 +1,197 @@
+"""The fit loop: initial guess, iterations of an optimizer, trace and stopping.
+
+Everything inside an iteration is kernel launches on one device. Per iteration the host only
+waits for the device to finish (for honest wall times) and, every ``sync_every`` iterations,
+reads the small trace buffer to test the stopping rules.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+
+import numpy as np
+import warp as wp
+
+from texstream.pipelines.errors import ConfigError
+from texstream.pipelines.stage import option
+
+from .kernels import optim_kernels as K
+from .kernels import stream
+from .models import ModelLayout
+from .optim.base import FitState
+from .optim.cg import ConjugateGradient
+from .optim.lbfgs import LBFGS
+from .optim.linesearch import LineSearchConfig, line_search
+from .optim.lm import LevenbergMarquardt
+from .optim.steepest import SteepestDescent
+from .penalties import PenaltyConfig, Penalties
+from .problem import StreamConfig, StreamProblem
+
+OPTIMIZERS = ("sd", "cg", "lbfgs", "lm")
+
+
+@dataclasses.dataclass
+class FitConfig:
+    """What to fit and how (saved as fit_config.json beside the model)."""
+
+    model: str = option("lafortune", "appearance model", choices=("lafortune", "diffuse"))
+    lobes: int = option(1, "specular lobes K (0..2)")
+    anisotropic: bool = option(False, "general C_x, C_y, C_z lobes instead of isotropic C_xy, C_z")
+    optimizer: str = option("lm", "sd, cg, lbfgs or lm (per-texel Levenberg-Marquardt)", choices=OPTIMIZERS)
+    cg_variant: str = option("pr", "conjugate gradient beta: pr (Polak-Ribiere+) or fr (Fletcher-Reeves)", choices=("pr", "fr"))
+    cg_restart_every: int = option(0, "steepest-descent restart every m CG iterations (0 = never)")
+    lbfgs_history: int = option(5, "L-BFGS history pairs m")
+    lm_lambda0: float = option(1e-3, "initial Levenberg-Marquardt damping")
+    max_iterations: int = option(100, "iteration cap")
+    time_budget_s: float = option(0.0, "stop after this many seconds (0 = no limit)")
+    rel_tol: float = option(1e-7, "stop when the objective's relative decrease over sync_every iterations is below this")
+    sync_every: int = option(5, "iterations between reads of the trace buffer (stopping tests)")
+    diffuse_free_iterations: int = option(-1, "seed's schedule: diffuse free for the first k iterations then fixed (-1 = always free)")
+    init: str = option("percentile", "initial guess: percentile (McAllister low percentile diffuse) or defaults",
+                       choices=("percentile", "defaults"))
+    init_rank: int = option(1, "which smallest reflectance sample (0..3) estimates the diffuse part")
+    psnr_peak: float = option(1.0, "peak pixel value for the trace's PSNR")
+    linesearch: LineSearchConfig = option(default_factory=LineSearchConfig, help="line search")
+    penalties: PenaltyConfig = option(default_factory=PenaltyConfig, help="penalties")
+    stream: StreamConfig = option(default_factory=StreamConfig, help="streaming and numerics")
+
+    def layout(self) -> ModelLayout:
+        return ModelLayout(kind=self.model, n_lobes=0 if self.model == "diffuse" else self.lobes,
+                           anisotropic=self.anisotropic)
+
+
+@dataclasses.dataclass
+class FitResult:
+    """Fitted parameters per texel, per-texel sample counts, and the trace."""
+
+    params: np.ndarray
+    samples: np.ndarray
+    trace: list[dict]
+    layout: ModelLayout
+    passes: int
+
+    @property
+    def seen(self) -> np.ndarray:
+        return self.samples > 0
+
+
+def make_optimizer(cfg: FitConfig):
+    if cfg.optimizer == "sd":
+        return SteepestDescent()
+    if cfg.optimizer == "cg":
+        return ConjugateGradient(cfg.cg_variant, cfg.cg_restart_every)
+    if cfg.optimizer == "lbfgs":
+        return LBFGS(cfg.lbfgs_history)
+    if cfg.optimizer == "lm":
+        return LevenbergMarquardt(cfg.lm_lambda0)
+    raise ConfigError(f"optimizer {cfg.optimizer!r} unknown", fix=f"use one of {OPTIMIZERS}")
+
+
+def initial_guess(problem: StreamProblem, cfg: FitConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Parameters to start from and the per-texel sample counts (one streaming pass)."""
+    lay = problem.layout
+    n = problem.n
+    dev = problem.device
+    low = wp.zeros(n, dtype=wp.vec3, device=dev)
+    high = wp.zeros(n, dtype=wp.vec3, device=dev)
+    count = wp.zeros(n, dtype=wp.int32, device=dev)
+    for images, depth, shadow, infos, b, e in problem.photos.windows():
+        wp.launch(stream.initial_guess_kernel, dim=n, device=dev,
+                  inputs=[problem.pos, problem.nrm, problem.tan, problem.bit, images, depth, shadow, infos, b, e,
+                          problem.opt, int(cfg.init_rank)], outputs=[low, high, count])
+    lo = low.numpy().astype(np.float64)
+    hi = high.numpy().astype(np.float64)
+    cnt = count.numpy()
+    p = np.tile(lay.defaults(), (n, 1))
+    if cfg.init == "percentile":
+        seen = cnt > 0
+        p[seen, 0:3] = np.clip(lo[seen], 0.0, 10.0)
+        for j in range(lay.n_lobes):
+            o = lay.lobe_offset(j)
+            # lobe peak value is rho_s (max(s,0)^n <= 1 at c_z = 1): start at the excess of the brightest sample
+            excess = np.clip(hi[seen] - lo[seen], 0.05, None) / (j + 1)
+            p[seen, o:o + 3] = excess
+    return p, cnt
+
+
+def run_fit(problem: StreamProblem, cfg: FitConfig, p0: np.ndarray | None = None,
+            progress=None) -> FitResult:
+    """Fit the problem's model; returns parameters, sample counts and the per-iteration trace."""
+    lay = problem.layout
+    n = problem.n
+    dev = problem.device
+    t_start = time.perf_counter()
+    guess, counts = initial_guess(problem, cfg)
+    if p0 is not None:
+        guess = np.asarray(p0, dtype=np.float64)
+    free = ~lay.frozen()
+    state = FitState.create(problem, guess, free)
+    state.valid = wp.array((counts > 0).astype(np.int32), dtype=wp.int32, device=dev)
+    penalties = Penalties(problem, cfg.penalties)
+    opt = make_optimizer(cfg)
+    if cfg.linesearch.kind not in ("backtracking", "hessian", "quadratic"):
+        raise ConfigError(f"line search {cfg.linesearch.kind!r} unknown", fix="use backtracking, hessian or quadratic")
+    # trace buffer: objective, |g|^2, samples, SSE, sum|r|, sum|y|, accepted, valid texels
+    n_chunks = max(1, min(1024, n))
+    chunk = math.ceil(n / n_chunks)
+    partial = wp.zeros((n_chunks, 8), dtype=wp.float64, device=dev)
+    trace_buf = wp.zeros((cfg.max_iterations + 1, 8), dtype=wp.float64, device=dev)
+    times = []
+
+    def record(row: int) -> None:
+        wp.launch(K.chunk_sums_kernel, dim=n_chunks, device=dev,
+                  inputs=[state.f, state.g, state.stats, state.accepted, state.valid, n, chunk], outputs=[partial])
+        wp.launch(K.final_sums_kernel, dim=1, device=dev, inputs=[partial, n_chunks, row], outputs=[trace_buf])
+        wp.synchronize_device(dev)
+        times.append(time.perf_counter() - t_start)
+
+    if isinstance(opt, LevenbergMarquardt):
+        opt.start(state)
+    else:
+        problem.evaluate(state.storage, state.f, state.g, state.stats)
+        penalties.add(state, state.p, state.f, state.g)
+    state.accepted.zero_()
+    record(0)
+    schedule_switched = False
+    last_obj = None
+    it_done = 0
+    for it in range(1, cfg.max_iterations + 1):
+        state.iteration = it
+        if cfg.diffuse_free_iterations >= 0 and not schedule_switched and it > cfg.diffuse_free_iterations:
+            f2 = free.copy()
+            f2[0:3] = False
+            state.set_free(f2)
+            opt.reset_memory(state)
+            schedule_switched = True
+        wp.copy(state.p_old, state.p)
+        wp.copy(state.g_old, state.g)
+        if isinstance(opt, LevenbergMarquardt):
+            opt.step(state)
+        else:
+            opt.direction(state)
+            line_search(state, cfg.linesearch, penalties, first=(it == 1))
+            opt.after_step(state)
+        record(it)
+        it_done = it
+        if progress is not None:
+            progress(it)
+        if it % max(cfg.sync_every, 1) == 0 or it == cfg.max_iterations:
+            obj = float(trace_buf.numpy()[it, 0])
+            if last_obj is not None and abs(last_obj - obj) <= cfg.rel_tol * max(abs(obj), 1e-300):
+                break
+            last_obj = obj
+            if cfg.time_budget_s > 0 and times[-1] >= cfg.time_budget_s:
+                break
+    tb = trace_buf.numpy()[:it_done + 1]
+    trace = []
+    for k in range(it_done + 1):
+        obj, g2, ns, sse, sabs, sy, acc, nvalid = tb[k]
+        mse = sse / max(ns * 3.0, 1.0)
+        trace.append({"iteration": k, "time_s": times[k], "objective": obj, "grad_norm": math.sqrt(max(g2, 0.0)),
+                      "samples": int(round(ns)),
+                      "psnr_db": 10.0 * math.log10(cfg.psnr_peak ** 2 / mse) if mse > 0 else float("inf"),
+                      "ape_percent": 100.0 * sabs / sy if sy > 0 else 0.0,
+                      "accepted_fraction": acc / nvalid if nvalid > 0 else 0.0})
+    return FitResult(params=state.params_numpy(), samples=counts, trace=trace, layout=lay, passes=problem.passes)

@@ -1,0 +1,113 @@
+"""Lafortune model value, Jacobian and second directional derivative, per texel sample.
+
+Generic over float32/float64: ``p`` and ``d`` are fixed-length parameter vectors of the compute
+type (:data:`MAX_PARAMS` long; columns past the layout's ``n_params`` are ignored and stay zero),
+``u``/``v`` are the local light/view directions and ``one`` is the scalar 1 of that type.
+
+For channel c, m_c = rho_d,c + sum_j rho_s,j,c L_j with L_j = max(s_j, 0)^n_j and
+s_j = C_j . w, w = (u_x v_x, u_y v_y, u_z v_z) (isotropic: C = (c_xy, c_xy, c_z)).
+    dm_c/drho_d,c = 1
+    dm_c/drho_s,j,c = L_j
+    dm_c/dC_j,k = rho_s,j,c n_j s_j^(n_j-1) w_k          (isotropic c_xy: w_x + w_y)
+    dm_c/dn_j = rho_s,j,c L_j ln s_j
+Second directional derivative along d (da = d rho_s, ds = dC . w, dn):
+    L' = L (n ds/s + dn ln s)
+    L'' = L (n ds/s + dn ln s)^2 + L (2 dn ds/s - n ds^2/s^2)
+    d^T (Hess m_c) d = sum_j 2 da_c L' + rho_s,c L''
+For s <= 0 the lobe and all its derivatives are 0 (n >= 1 makes the objective C1 there).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import warp as wp
+
+MAX_PARAMS = 17
+vec_p = wp.types.vector(length=MAX_PARAMS, dtype=wp.float32)
+vec_pd = wp.types.vector(length=MAX_PARAMS, dtype=wp.float64)
+mat_p = wp.types.matrix(shape=(MAX_PARAMS, MAX_PARAMS), dtype=wp.float32)
+mat_pd = wp.types.matrix(shape=(MAX_PARAMS, MAX_PARAMS), dtype=wp.float64)
+
+
+@wp.func
+def lobe_weights(u: Any, v: Any):
+    return type(u)(u[0] * v[0], u[1] * v[1], u[2] * v[2])
+
+
+@wp.func
+def lobe_base(p: Any, o: int, aniso: int, w: Any):
+    """s = C . w for the lobe whose columns start at ``o``."""
+    if aniso != 0:
+        return p[o + 3] * w[0] + p[o + 4] * w[1] + p[o + 5] * w[2]
+    return p[o + 3] * (w[0] + w[1]) + p[o + 4] * w[2]
+
+
+@wp.func
+def lafortune_eval(p: Any, n_lobes: int, aniso: int, u: Any, v: Any, one: Any):
+    """Model value m (RGB) and the Jacobian rows dm_r/dp, dm_g/dp, dm_b/dp."""
+    zero = one - one
+    jr = p * zero
+    jg = p * zero
+    jb = p * zero
+    m = type(u)(p[0], p[1], p[2])
+    jr[0] = one
+    jg[1] = one
+    jb[2] = one
+    stride = 6 + aniso
+    w = lobe_weights(u, v)
+    for j in range(n_lobes):
+        o = 3 + j * stride
+        s = lobe_base(p, o, aniso, w)
+        if s > zero:
+            n = p[o + stride - 1]
+            ls = wp.log(s)
+            lobe = wp.exp(n * ls)
+            dlds = n * lobe / s
+            m = m + type(u)(p[o], p[o + 1], p[o + 2]) * lobe
+            jr[o] = lobe
+            jg[o + 1] = lobe
+            jb[o + 2] = lobe
+            if aniso != 0:
+                for k in range(3):
+                    jr[o + 3 + k] = p[o] * dlds * w[k]
+                    jg[o + 3 + k] = p[o + 1] * dlds * w[k]
+                    jb[o + 3 + k] = p[o + 2] * dlds * w[k]
+            else:
+                wxy = w[0] + w[1]
+                jr[o + 3] = p[o] * dlds * wxy
+                jg[o + 3] = p[o + 1] * dlds * wxy
+                jb[o + 3] = p[o + 2] * dlds * wxy
+                jr[o + 4] = p[o] * dlds * w[2]
+                jg[o + 4] = p[o + 1] * dlds * w[2]
+                jb[o + 4] = p[o + 2] * dlds * w[2]
+            dn = lobe * ls
+            jr[o + stride - 1] = p[o] * dn
+            jg[o + stride - 1] = p[o + 1] * dn
+            jb[o + stride - 1] = p[o + 2] * dn
+    return m, jr, jg, jb
+
+
+@wp.func
+def lafortune_dhd(p: Any, d: Any, n_lobes: int, aniso: int, u: Any, v: Any, one: Any):
+    """d^T (Hess m_c) d for c = r, g, b (the part the Gauss-Newton approximation drops)."""
+    zero = one - one
+    out = type(u)(zero, zero, zero)
+    stride = 6 + aniso
+    w = lobe_weights(u, v)
+    for j in range(n_lobes):
+        o = 3 + j * stride
+        s = lobe_base(p, o, aniso, w)
+        if s > zero:
+            n = p[o + stride - 1]
+            dnj = d[o + stride - 1]
+            ds = lobe_base(d, o, aniso, w)
+            ls = wp.log(s)
+            lobe = wp.exp(n * ls)
+            q = n * ds / s + dnj * ls
+            l1 = lobe * q
+            l2 = lobe * q * q + lobe * ((one + one) * dnj * ds / s - n * ds * ds / (s * s))
+            da = type(u)(d[o], d[o + 1], d[o + 2])
+            a = type(u)(p[o], p[o + 1], p[o + 2])
+            out = out + (one + one) * l1 * da + l2 * a
+    return out

@@ -1,0 +1,371 @@
+"""Per-texel optimizer kernels: trial points, acceptance (Alg. 11), directions (Alg. 10),
+L-BFGS two-loop recursion, damped Gauss-Newton solves, penalties and deterministic reductions.
+
+State is batched: one thread per texel works on its own fixed-length parameter vectors
+(``vec_p``/``vec_pd``), so there is never a Python loop over texels. Column masks (``free``)
+keep frozen parameters (the Lafortune scale gauge) fixed.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import warp as wp
+
+
+@wp.func
+def masked(v: Any, free: Any):
+    return wp.cw_mul(v, free)
+
+
+@wp.kernel
+def trial_kernel(p: wp.array(dtype=Any), d: wp.array(dtype=Any), alpha: wp.array(dtype=Any),
+                 lower: Any, upper: Any, free: Any, active: wp.array(dtype=wp.int32), n_params: int,
+                 trial: wp.array(dtype=Any), storage: wp.array2d(dtype=Any)):
+    """trial = clamp(p + alpha d) (projected step onto the hard bounds), also written in the
+    storage precision; the trial vector holds exactly what the storage holds."""
+    i = wp.tid()
+    t = p[i]
+    if active[i] != 0:
+        t = wp.max(wp.min(p[i] + alpha[i] * masked(d[i], free), upper), lower)
+    for k in range(n_params):
+        storage[i, k] = type(storage[i, k])(t[k])
+        t[k] = type(t[k])(storage[i, k])
+    trial[i] = t
+
+
+@wp.kernel
+def accept_kernel(p: wp.array(dtype=Any), f: wp.array(dtype=Any), g: wp.array(dtype=Any),
+                  d: wp.array(dtype=Any), trial: wp.array(dtype=Any), f_trial: wp.array(dtype=Any),
+                  g_trial: wp.array(dtype=Any), alpha: wp.array(dtype=Any), active: wp.array(dtype=wp.int32),
+                  sigma1: Any, sigma2: Any, use_wolfe: int, shrink: Any, quadratic: int, free: Any,
+                  stats: wp.array(dtype=wp.vec4d), stats_trial: wp.array(dtype=wp.vec4d),
+                  accepted: wp.array(dtype=wp.int32)):
+    """Armijo (3.11), optionally curvature (3.12), per texel; accepted texels take the trial
+    point, objective and gradient by conditional assignment (Alg. 11) and leave the line search.
+    Rejected texels get a smaller alpha: backtracking (alpha *= shrink) or the two-sided quadratic
+    minimiser (3.15) when it lies in (0.1 alpha, alpha) (Alg. 3)."""
+    i = wp.tid()
+    if active[i] == 0:
+        return
+    step = trial[i] - p[i]
+    slope = wp.dot(g[i], masked(step, free))
+    ft = f_trial[i]
+    ok = ft <= f[i] + sigma1 * slope and ft == ft  # ft == ft rejects NaN
+    if ok and use_wolfe != 0:
+        ok = wp.dot(g_trial[i], masked(d[i], free)) >= sigma2 * wp.dot(g[i], masked(d[i], free))
+    if wp.length_sq(step) == type(ft)(0.0):
+        ok = True  # the projection pinned every free parameter: nothing left to search
+    if ok:
+        p[i] = trial[i]
+        f[i] = ft
+        g[i] = g_trial[i]
+        stats[i] = stats_trial[i]
+        accepted[i] = 1
+        active[i] = 0
+    else:
+        a = alpha[i]
+        new_a = a * shrink
+        if quadratic != 0:
+            phi0d = wp.dot(g[i], masked(d[i], free))
+            den = type(a)(2.0) * (ft - phi0d * a - f[i])
+            if den > type(a)(0.0) and ft == ft:
+                amin = -phi0d * a * a / den
+                if amin > type(a)(0.1) * a and amin < a:
+                    new_a = amin
+        alpha[i] = new_a
+
+
+@wp.kernel
+def steepest_direction_kernel(g: wp.array(dtype=Any), free: Any, d: wp.array(dtype=Any)):
+    i = wp.tid()
+    d[i] = -masked(g[i], free)
+
+
+@wp.kernel
+def cg_direction_kernel(g: wp.array(dtype=Any), g_prev: wp.array(dtype=Any), d_prev: wp.array(dtype=Any),
+                        restart: wp.array(dtype=wp.int32), polak_ribiere: int, eps: Any, free: Any,
+                        d: wp.array(dtype=Any)):
+    """Nonlinear CG (3.3) with Fletcher-Reeves (3.4) or Polak-Ribiere+ (3.5, beta >= 0 restart),
+    restart on request, and the descent-direction safeguard of Alg. 10."""
+    i = wp.tid()
+    gi = masked(g[i], free)
+    gp = masked(g_prev[i], free)
+    den = wp.dot(gp, gp)
+    zero = den - den
+    beta = zero
+    if restart[i] == 0 and den > zero:
+        if polak_ribiere != 0:
+            beta = wp.max(wp.dot(gi, gi - gp) / den, zero)
+        else:
+            beta = wp.dot(gi, gi) / den
+    di = -gi + beta * masked(d_prev[i], free)
+    ng = wp.length(gi)
+    nd = wp.length(di)
+    if not (wp.dot(gi, di) < -eps * ng * nd):
+        di = -gi
+    d[i] = di
+    restart[i] = 0
+
+
+@wp.kernel
+def lbfgs_direction_kernel(g: wp.array(dtype=Any), s_hist: wp.array2d(dtype=Any), y_hist: wp.array2d(dtype=Any),
+                           rho: wp.array2d(dtype=Any), count: wp.array(dtype=wp.int32), head: wp.array(dtype=wp.int32),
+                           m: int, eps: Any, free: Any, alpha_buf: wp.array2d(dtype=Any), d: wp.array(dtype=Any)):
+    """L-BFGS two-loop recursion (Nocedal & Wright Alg. 7.4), per texel, with
+    H0 = gamma_k I, gamma_k = s^T y / y^T y of the newest pair. (The seed's Alg. 1 has the
+    second loop's update written as d <- d + s (eta - beta); N&W's r <- r + s (alpha - beta) is used.)"""
+    i = wp.tid()
+    q = masked(g[i], free)
+    n = count[i]
+    zero = rho[0, i] - rho[0, i]
+    for j in range(n):
+        slot = (head[i] - 1 - j + m) % m
+        a = rho[slot, i] * wp.dot(s_hist[slot, i], q)
+        alpha_buf[slot, i] = a
+        q = q - a * y_hist[slot, i]
+    gamma = zero + type(zero)(1.0)
+    if n > 0:
+        newest = (head[i] - 1 + m) % m
+        yy = wp.dot(y_hist[newest, i], y_hist[newest, i])
+        if yy > zero:
+            gamma = wp.dot(s_hist[newest, i], y_hist[newest, i]) / yy
+    r = gamma * q
+    for j in range(n):
+        slot = (head[i] - n + j + m) % m
+        b = rho[slot, i] * wp.dot(y_hist[slot, i], r)
+        r = r + (alpha_buf[slot, i] - b) * s_hist[slot, i]
+    di = -masked(r, free)
+    gi = masked(g[i], free)
+    if not (wp.dot(gi, di) < -eps * wp.length(gi) * wp.length(di)):
+        di = -gi
+        count[i] = 0
+    d[i] = di
+
+
+@wp.kernel
+def lbfgs_update_kernel(p_old: wp.array(dtype=Any), g_old: wp.array(dtype=Any), p: wp.array(dtype=Any),
+                        g: wp.array(dtype=Any), accepted: wp.array(dtype=wp.int32), m: int, free: Any,
+                        s_hist: wp.array2d(dtype=Any), y_hist: wp.array2d(dtype=Any), rho: wp.array2d(dtype=Any),
+                        count: wp.array(dtype=wp.int32), head: wp.array(dtype=wp.int32)):
+    """Store s = p_{k+1} - p_k, y = g_{k+1} - g_k when the texel moved and y^T s > 0 (keeps H positive definite)."""
+    i = wp.tid()
+    if accepted[i] == 0:
+        return
+    s = masked(p[i] - p_old[i], free)
+    y = masked(g[i] - g_old[i], free)
+    ys = wp.dot(y, s)
+    zero = ys - ys
+    if ys > type(ys)(1.0e-12) * wp.length(y) * wp.length(s) and ys > zero:
+        h = head[i]
+        s_hist[h, i] = s
+        y_hist[h, i] = y
+        rho[h, i] = type(ys)(1.0) / ys
+        head[i] = (h + 1) % m
+        count[i] = wp.min(count[i] + 1, m)
+
+
+@wp.kernel
+def hessian_alpha_kernel(g: wp.array(dtype=Any), d: wp.array(dtype=Any), dhd: wp.array(dtype=Any),
+                         fallback: wp.array(dtype=Any), free: Any, alpha: wp.array(dtype=Any)):
+    """One-sided quadratic step (3.13) alpha = -g.d / d^T H d, guarded: a non-positive or
+    non-finite denominator falls back to the backtracking start."""
+    i = wp.tid()
+    num = -wp.dot(masked(g[i], free), masked(d[i], free))
+    den = dhd[i]
+    zero = den - den
+    a = fallback[i]
+    if den > zero and num > zero:
+        q = num / den
+        if q == q and q < type(q)(1.0e30):
+            a = q
+    alpha[i] = a
+
+
+@wp.kernel
+def initial_alpha_kernel(g: wp.array(dtype=Any), d: wp.array(dtype=Any), prev_alpha: wp.array(dtype=Any),
+                         prev_slope: wp.array(dtype=Any), first: int, alpha0: Any, free: Any,
+                         alpha: wp.array(dtype=Any), slope: wp.array(dtype=Any)):
+    """Backtracking start: alpha0 on the first iteration (or after a restart), else
+    N&W (3.60): alpha = alpha_prev * (g_prev.d_prev) / (g.d), capped at 1e6 * alpha0."""
+    i = wp.tid()
+    sl = wp.dot(masked(g[i], free), masked(d[i], free))
+    a = alpha0
+    if first == 0 and sl < sl - sl and prev_slope[i] < sl - sl:
+        a = wp.min(prev_alpha[i] * prev_slope[i] / sl * type(sl)(1.01), alpha0 * type(sl)(1.0e6))
+    if not (a > sl - sl):
+        a = alpha0
+    alpha[i] = a
+    slope[i] = sl
+
+
+@wp.kernel
+def lm_solve_kernel(jtj: wp.array(dtype=Any), jtr: wp.array(dtype=Any), lam: wp.array(dtype=Any),
+                    n_params: int, free: Any, like: Any, step: wp.array(dtype=Any), pred: wp.array(dtype=Any)):
+    """Solve (J^T J + lambda diag(J^T J) + tiny I) delta = -J^T r per texel by Cholesky;
+    frozen rows are identity. pred = predicted decrease -(g.delta + 0.5 delta^T JtJ delta)."""
+    i = wp.tid()
+    a = jtj[i]
+    b = -masked(jtr[i], free)
+    zero = lam[i] - lam[i]
+    one = zero + type(zero)(1.0)
+    for k in range(n_params):
+        dk = a[k, k]
+        if free[k] == zero:
+            for j in range(n_params):
+                a[k, j] = zero
+                a[j, k] = zero
+            a[k, k] = one
+            b[k] = zero
+        else:
+            a[k, k] = dk + lam[i] * dk + type(zero)(1.0e-9) * (one + dk)
+    # in-place Cholesky: a = L L^T (lower triangle)
+    ok = int(1)
+    for k in range(n_params):
+        s = a[k, k]
+        for j in range(k):
+            s = s - a[k, j] * a[k, j]
+        if s <= zero:
+            ok = 0
+            s = one
+        lkk = wp.sqrt(s)
+        a[k, k] = lkk
+        for r in range(k + 1, n_params):
+            t = a[r, k]
+            for j in range(k):
+                t = t - a[r, j] * a[k, j]
+            a[r, k] = t / lkk
+    x = like * zero
+    for k in range(n_params):
+        t = b[k]
+        for j in range(k):
+            t = t - a[k, j] * x[j]
+        x[k] = t / a[k, k]
+    for kk in range(n_params):
+        k = n_params - 1 - kk
+        t = x[k]
+        for j in range(k + 1, n_params):
+            t = t - a[j, k] * x[j]
+        x[k] = t / a[k, k]
+    if ok == 0:
+        x = b * (one / (one + lam[i]))
+    step[i] = x
+    gx = wp.dot(masked(jtr[i], free), x)
+    pred[i] = -(gx + type(zero)(0.5) * wp.dot(x, jtj[i] * x))
+
+
+@wp.kernel
+def lm_accept_kernel(p: wp.array(dtype=Any), f: wp.array(dtype=Any), g: wp.array(dtype=Any),
+                     jtj: wp.array(dtype=Any), trial: wp.array(dtype=Any), f_trial: wp.array(dtype=Any),
+                     g_trial: wp.array(dtype=Any), jtj_trial: wp.array(dtype=Any), pred: wp.array(dtype=Any),
+                     lam: wp.array(dtype=Any), active: wp.array(dtype=wp.int32), stats: wp.array(dtype=wp.vec4d),
+                     stats_trial: wp.array(dtype=wp.vec4d), accepted: wp.array(dtype=wp.int32)):
+    """Gain-ratio test: accept when the actual decrease is positive and a fair share of the
+    predicted one; then lambda /= 3, else lambda *= 4 and keep the point (Alg. 11 style)."""
+    i = wp.tid()
+    if active[i] == 0:
+        return
+    ft = f_trial[i]
+    zero = ft - ft
+    actual = f[i] - ft
+    ok = ft == ft and actual >= zero and (actual >= type(ft)(1.0e-3) * pred[i] or actual == zero)
+    if ok:
+        p[i] = trial[i]
+        f[i] = ft
+        g[i] = g_trial[i]
+        jtj[i] = jtj_trial[i]
+        stats[i] = stats_trial[i]
+        accepted[i] = 1
+        lam[i] = wp.max(lam[i] / type(ft)(3.0), type(ft)(1.0e-9))
+    else:
+        accepted[i] = 0
+        lam[i] = wp.min(lam[i] * type(ft)(4.0), type(ft)(1.0e12))
+
+
+@wp.kernel
+def bounds_penalty_kernel(p: wp.array(dtype=Any), d: wp.array(dtype=Any), lower: Any, upper: Any,
+                          mu: Any, free: Any, want_dhd: int, n_params: int, f: wp.array(dtype=Any),
+                          g: wp.array(dtype=Any), dhd: wp.array(dtype=Any)):
+    """Quadratic bounds penalty (3.19): mu sum max(l - p, 0)^2 + max(p - u, 0)^2, its gradient
+    2 mu (max(p - u, 0) - max(l - p, 0)) and d^T H d = 2 mu sum_{violated} d_k^2
+    (the text's Eqs. 4.8-4.11 carry sign slips; these are the derivatives of 3.19)."""
+    i = wp.tid()
+    pi = p[i]
+    zero = mu - mu
+    two = type(mu)(2.0)
+    pen = zero
+    gr = pi * zero
+    h = zero
+    for k in range(n_params):
+        if free[k] != zero:
+            lo = wp.max(lower[k] - pi[k], zero)
+            hi = wp.max(pi[k] - upper[k], zero)
+            pen = pen + lo * lo + hi * hi
+            gr[k] = two * (hi - lo)
+            if want_dhd != 0 and (lo > zero or hi > zero):
+                h = h + two * d[i][k] * d[i][k]
+    f[i] = f[i] + mu * pen
+    g[i] = g[i] + mu * gr
+    if want_dhd != 0:
+        dhd[i] = dhd[i] + mu * h
+
+
+@wp.kernel
+def laplacian_kernel(x: wp.array(dtype=Any), neighbors: wp.array(dtype=wp.vec4i), out: wp.array(dtype=Any)):
+    """(L x)_i with the masked 5-point stencil of Alg. 7: centre weight = number of valid neighbours."""
+    i = wp.tid()
+    nb = neighbors[i]
+    acc = x[i] * (x[i][0] - x[i][0])
+    w = int(0)
+    for k in range(4):
+        j = nb[k]
+        if j >= 0:
+            acc = acc - x[j]
+            w = w + 1
+    out[i] = acc + type(x[i][0])(float(w)) * x[i]
+
+
+@wp.kernel
+def laplacian_penalty_kernel(lp: wp.array(dtype=Any), llp: wp.array(dtype=Any), ld: wp.array(dtype=Any),
+                             weights: Any, lam: Any, want_dhd: int, f: wp.array(dtype=Any),
+                             g: wp.array(dtype=Any), dhd: wp.array(dtype=Any)):
+    """P = lam (Lp)^T W (Lp) (4.12) split per texel; grad 2 lam L^T W L p (4.13; L is symmetric);
+    d^T H d = 2 lam (Ld)^T W (Ld) (4.14). ``weights`` selects which columns are regularised."""
+    i = wp.tid()
+    a = wp.cw_mul(lp[i], weights)
+    two = type(lam)(2.0)
+    f[i] = f[i] + lam * wp.dot(a, lp[i])
+    g[i] = g[i] + two * lam * wp.cw_mul(llp[i], weights)
+    if want_dhd != 0:
+        b = wp.cw_mul(ld[i], weights)
+        dhd[i] = dhd[i] + two * lam * wp.dot(b, ld[i])
+
+
+@wp.kernel
+def chunk_sums_kernel(f: wp.array(dtype=Any), g: wp.array(dtype=Any), st: wp.array(dtype=wp.vec4d),
+                      accepted: wp.array(dtype=wp.int32), valid: wp.array(dtype=wp.int32), n: int, chunk: int,
+                      out: wp.array2d(dtype=wp.float64)):
+    """Deterministic first reduction level: thread c sums texels [c*chunk, (c+1)*chunk) in order.
+    Columns: objective, |grad|^2, samples, SSE, sum|r|, sum|y|, accepted, valid texels."""
+    c = wp.tid()
+    acc = wp.vector(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), wp.float64(0.0),
+                    wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    for i in range(c * chunk, wp.min((c + 1) * chunk, n)):
+        if valid[i] != 0:
+            s = st[i]
+            gi = g[i]
+            acc = acc + wp.vector(wp.float64(f[i]), wp.float64(wp.dot(gi, gi)), s[0], s[1], s[2], s[3],
+                                  wp.float64(accepted[i]), wp.float64(1.0))
+    for k in range(8):
+        out[c, k] = acc[k]
+
+
+@wp.kernel
+def final_sums_kernel(partial: wp.array2d(dtype=wp.float64), n_chunks: int, row: int,
+                      trace: wp.array2d(dtype=wp.float64)):
+    """Second reduction level (one thread, fixed order) into row ``row`` of the trace buffer."""
+    for k in range(8):
+        s = wp.float64(0.0)
+        for c in range(n_chunks):
+            s = s + partial[c, k]
+        trace[row, k] = s

@@ -1,0 +1,371 @@
+"""The image-streaming distribution step and per-texel accumulation (seed ch. 4-5, 8).
+
+One launch covers a range of photos: thread (g, i) takes texel i and loops over photo group g,
+projecting the texel, testing visibility against the photo's depth map and the light's shadow
+map, filtering the photo bilinearly, rejecting grazing / masked / clipped / out-of-frame /
+occluded samples, and accumulating the objective, gradient and curvature terms in registers.
+Each thread writes its partial sums once; :func:`reduce_partials_kernel` adds the groups in a
+fixed order, so results are deterministic (no float atomics). Nothing per (texel, photo) is stored.
+
+Residuals (per colour channel c, radiance-space weight w_c = exposure * E_c * cos(theta_i)):
+    radiance space   : r_c = w_c m_c - y_c
+    reflectance space: r_c = m_c - y_c / w_c       (the seed's choice; needs cos(theta_i) >= 0.1)
+Both are r_c = s_c (m_c - y_c / w_c) with s_c = w_c or 1, so J_r = s_c J_m and
+d^T H_r d = s_c d^T H_m d.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import warp as wp
+
+from .lafortune_grad import lafortune_dhd, lafortune_eval
+from .shading import incident_light, to_local
+
+
+@wp.struct
+class ImageInfo:
+    """Per-photo camera, light and photometric constants (float32, world units)."""
+
+    rot: wp.mat33
+    trans: wp.vec3
+    center: wp.vec3
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    exposure: float
+    saturation: float
+    light_kind: int
+    light_vec: wp.vec3
+    light_intensity: wp.vec3
+    has_shadow: int
+    sh_rot: wp.mat33
+    sh_trans: wp.vec3
+    sh_fx: float
+    sh_fy: float
+    sh_cx: float
+    sh_cy: float
+    sh_ortho: int
+    sh_size: int
+
+
+@wp.struct
+class SampleOptions:
+    """Rejection thresholds and what to accumulate (see FitConfig for the meaning)."""
+
+    cos_light_min: float
+    cos_view_min: float
+    depth_tol: float
+    shadow_tol: float
+    reflectance_space: int
+    want_grad: int
+    want_dhd: int
+    full_hessian: int
+    kahan: int
+
+
+@wp.func
+def depth_consistent(depth: wp.array3d(dtype=wp.float32), k: int, x0: int, y0: int, z: float, tol: float):
+    """All four bilinear taps see this surface (masked or empty pixels hold 0 and fail)."""
+    ok = True
+    for dy in range(2):
+        for dx in range(2):
+            dz = depth[k, y0 + dy, x0 + dx]
+            if wp.abs(dz - z) > tol * z:
+                ok = False
+    return ok
+
+
+@wp.func
+def lit(shadow: wp.array3d(dtype=wp.float32), k: int, info: ImageInfo, p: wp.vec3, tol: float):
+    """Point ``p`` is lit when no shadow-map tap around its projection is closer to the light."""
+    if info.has_shadow == 0:
+        return True
+    pl = info.sh_rot @ p + info.sh_trans
+    if pl[2] <= 0.0:
+        return False
+    sx = 0.0
+    sy = 0.0
+    if info.sh_ortho != 0:
+        sx = info.sh_fx * pl[0] + info.sh_cx - 0.5
+        sy = info.sh_fy * pl[1] + info.sh_cy - 0.5
+    else:
+        sx = info.sh_fx * pl[0] / pl[2] + info.sh_cx - 0.5
+        sy = info.sh_fy * pl[1] / pl[2] + info.sh_cy - 0.5
+    if sx < 0.0 or sy < 0.0 or sx >= float(info.sh_size - 1) or sy >= float(info.sh_size - 1):
+        return True  # outside the map: nothing of the object lies between
+    x0 = int(sx)
+    y0 = int(sy)
+    ok = True
+    for dy in range(2):
+        for dx in range(2):
+            if shadow[k, y0 + dy, x0 + dx] < pl[2] * (1.0 - tol):
+                ok = False
+    return ok
+
+
+@wp.func
+def observe(images: wp.array3d(dtype=Any), depth: wp.array3d(dtype=wp.float32),
+            shadow: wp.array3d(dtype=wp.float32), info: ImageInfo, k: int,
+            p: wp.vec3, nrm: wp.vec3, tan: wp.vec3, bit: wp.vec3, opt: SampleOptions):
+    """The distribution step for one (texel, photo): (ok, radiance y, weight w, local u, local v)."""
+    zero3 = wp.vec3(0.0)
+    pc = info.rot @ p + info.trans
+    if pc[2] <= 0.0:
+        return False, zero3, zero3, zero3, zero3
+    xs = info.fx * pc[0] / pc[2] + info.cx - 0.5
+    ys = info.fy * pc[1] / pc[2] + info.cy - 0.5
+    if xs < 0.0 or ys < 0.0 or xs >= float(info.width - 1) or ys >= float(info.height - 1):
+        return False, zero3, zero3, zero3, zero3
+    vdir = wp.normalize(info.center - p)
+    if wp.dot(vdir, nrm) < opt.cos_view_min:
+        return False, zero3, zero3, zero3, zero3
+    wi, e_int, dist = incident_light(info.light_kind, info.light_vec, info.light_intensity, p)
+    cos_i = wp.dot(wi, nrm)
+    if cos_i < opt.cos_light_min:
+        return False, zero3, zero3, zero3, zero3
+    x0 = int(xs)
+    y0 = int(ys)
+    if not depth_consistent(depth, k, x0, y0, pc[2], opt.depth_tol):
+        return False, zero3, zero3, zero3, zero3
+    if not lit(shadow, k, info, p, opt.shadow_tol):
+        return False, zero3, zero3, zero3, zero3
+    fx = xs - float(x0)
+    fy = ys - float(y0)
+    c00 = wp.vec3(images[k, y0, x0])
+    c01 = wp.vec3(images[k, y0, x0 + 1])
+    c10 = wp.vec3(images[k, y0 + 1, x0])
+    c11 = wp.vec3(images[k, y0 + 1, x0 + 1])
+    tapmax = wp.max(wp.max(c00, c01), wp.max(c10, c11))
+    if wp.max(tapmax[0], wp.max(tapmax[1], tapmax[2])) >= info.saturation:
+        return False, zero3, zero3, zero3, zero3
+    y = (1.0 - fy) * ((1.0 - fx) * c00 + fx * c01) + fy * ((1.0 - fx) * c10 + fx * c11)
+    w = info.exposure * cos_i * e_int
+    return True, y, w, to_local(wi, tan, bit, nrm), to_local(vdir, tan, bit, nrm)
+
+
+@wp.func
+def to_compute3(a: wp.vec3, one: Any):
+    return wp.vector(type(one)(a[0]), type(one)(a[1]), type(one)(a[2]))
+
+
+@wp.func
+def load_params(params: wp.array2d(dtype=Any), i: int, n_params: int, like: Any, one: Any):
+    out = like * (one - one)
+    for k in range(n_params):
+        out[k] = type(one)(params[i, k])
+    return out
+
+
+@wp.kernel
+def accumulate_kernel(
+    pos: wp.array(dtype=wp.vec3), nrm: wp.array(dtype=wp.vec3), tan: wp.array(dtype=wp.vec3),
+    bit: wp.array(dtype=wp.vec3), params: wp.array2d(dtype=Any), direction: wp.array2d(dtype=Any),
+    active: wp.array(dtype=wp.int32), n_params: int, n_lobes: int, aniso: int,
+    images: wp.array3d(dtype=Any), depth: wp.array3d(dtype=wp.float32),
+    shadow: wp.array3d(dtype=wp.float32), infos: wp.array(dtype=ImageInfo),
+    img_begin: int, img_end: int, per_group: int, opt: SampleOptions, like: Any, one: Any,
+    out_f: wp.array2d(dtype=Any), out_g: wp.array2d(dtype=Any), out_dhd: wp.array2d(dtype=Any),
+    out_stats: wp.array2d(dtype=wp.vec4d)):
+    """Partial objective, gradient and d^T H d of texel i over photo group g (see module doc).
+
+    out_stats holds (samples, sum r_radiance^2, sum |r_radiance|, sum |y|) for the trace.
+    """
+    g, i = wp.tid()
+    zero = one - one
+    f = zero
+    fc = zero
+    grad = like * zero
+    gc = like * zero
+    dhd = zero
+    st = wp.vec4d(0.0)
+    if active[i] != 0:
+        pv = load_params(params, i, n_params, like, one)
+        dv = like * zero
+        if opt.want_dhd != 0:
+            dv = load_params(direction, i, n_params, like, one)
+        k0 = img_begin + g * per_group
+        k1 = wp.min(k0 + per_group, img_end)
+        for k in range(k0, k1):
+            info = infos[k]
+            ok, y, w, u, v = observe(images, depth, shadow, info, k, pos[i], nrm[i], tan[i], bit[i], opt)
+            if ok:
+                m, jr, jg, jb = lafortune_eval(pv, n_lobes, aniso, to_compute3(u, one), to_compute3(v, one), one)
+                yc = to_compute3(y, one)
+                wc = to_compute3(w, one)
+                hm = type(yc)(zero, zero, zero)
+                if opt.want_dhd != 0 and opt.full_hessian != 0:
+                    hm = lafortune_dhd(pv, dv, n_lobes, aniso, to_compute3(u, one), to_compute3(v, one), one)
+                for c in range(3):
+                    s = one
+                    r = m[c] - yc[c] / wc[c]
+                    if opt.reflectance_space == 0:
+                        s = wc[c]
+                        r = wc[c] * m[c] - yc[c]
+                    jc = jr
+                    if c == 1:
+                        jc = jg
+                    if c == 2:
+                        jc = jb
+                    term = type(one)(0.5) * r * r
+                    if opt.kahan != 0:
+                        yk = term - fc
+                        tk = f + yk
+                        fc = (tk - f) - yk
+                        f = tk
+                    else:
+                        f = f + term
+                    if opt.want_grad != 0:
+                        gterm = (r * s) * jc
+                        if opt.kahan != 0:
+                            ygk = gterm - gc
+                            tgk = grad + ygk
+                            gc = (tgk - grad) - ygk
+                            grad = tgk
+                        else:
+                            grad = grad + gterm
+                    if opt.want_dhd != 0:
+                        jd = s * wp.dot(jc, dv)
+                        dhd = dhd + jd * jd
+                        if opt.full_hessian != 0:
+                            dhd = dhd + r * s * hm[c]
+                    rr = wp.float64(w[c]) * wp.float64(m[c]) - wp.float64(y[c])
+                    st = st + wp.vec4d(wp.float64(1.0 / 3.0), rr * rr, wp.abs(rr), wp.abs(wp.float64(y[c])))
+    out_f[g, i] = f
+    out_g[g, i] = grad
+    out_dhd[g, i] = dhd
+    out_stats[g, i] = st
+
+
+@wp.kernel
+def accumulate_lm_kernel(
+    pos: wp.array(dtype=wp.vec3), nrm: wp.array(dtype=wp.vec3), tan: wp.array(dtype=wp.vec3),
+    bit: wp.array(dtype=wp.vec3), params: wp.array2d(dtype=Any),
+    active: wp.array(dtype=wp.int32), n_params: int, n_lobes: int, aniso: int,
+    images: wp.array3d(dtype=Any), depth: wp.array3d(dtype=wp.float32),
+    shadow: wp.array3d(dtype=wp.float32), infos: wp.array(dtype=ImageInfo),
+    img_begin: int, img_end: int, per_group: int, opt: SampleOptions, like: Any, like_m: Any, one: Any,
+    out_f: wp.array2d(dtype=Any), out_g: wp.array2d(dtype=Any), out_jtj: wp.array2d(dtype=Any),
+    out_stats: wp.array2d(dtype=wp.vec4d)):
+    """Partial objective, J^T r and J^T J of texel i over photo group g (Gauss-Newton / LM)."""
+    g, i = wp.tid()
+    zero = one - one
+    f = zero
+    grad = like * zero
+    jtj = like_m * zero
+    st = wp.vec4d(0.0)
+    if active[i] != 0:
+        pv = load_params(params, i, n_params, like, one)
+        k0 = img_begin + g * per_group
+        k1 = wp.min(k0 + per_group, img_end)
+        for k in range(k0, k1):
+            info = infos[k]
+            ok, y, w, u, v = observe(images, depth, shadow, info, k, pos[i], nrm[i], tan[i], bit[i], opt)
+            if ok:
+                m, jr, jg, jb = lafortune_eval(pv, n_lobes, aniso, to_compute3(u, one), to_compute3(v, one), one)
+                yc = to_compute3(y, one)
+                wc = to_compute3(w, one)
+                for c in range(3):
+                    s = one
+                    r = m[c] - yc[c] / wc[c]
+                    if opt.reflectance_space == 0:
+                        s = wc[c]
+                        r = wc[c] * m[c] - yc[c]
+                    jc = jr
+                    if c == 1:
+                        jc = jg
+                    if c == 2:
+                        jc = jb
+                    f = f + type(one)(0.5) * r * r
+                    sj = s * jc
+                    grad = grad + r * sj
+                    jtj = jtj + wp.outer(sj, sj)
+                    rr = wp.float64(w[c]) * wp.float64(m[c]) - wp.float64(y[c])
+                    st = st + wp.vec4d(wp.float64(1.0 / 3.0), rr * rr, wp.abs(rr), wp.abs(wp.float64(y[c])))
+    out_f[g, i] = f
+    out_g[g, i] = grad
+    out_jtj[g, i] = jtj
+    out_stats[g, i] = st
+
+
+@wp.kernel
+def reduce_partials_kernel(pf: wp.array2d(dtype=Any), pg: wp.array2d(dtype=Any), ph: wp.array2d(dtype=Any),
+                           pst: wp.array2d(dtype=wp.vec4d), n_groups: int, accumulate: int,
+                           f: wp.array(dtype=Any), g: wp.array(dtype=Any), h: wp.array(dtype=Any),
+                           st: wp.array(dtype=wp.vec4d)):
+    """Sum the photo groups of each texel in a fixed order; ``accumulate`` adds to the outputs
+    (used when photos stream through in several chunks)."""
+    i = wp.tid()
+    a = pf[0, i]
+    b = pg[0, i]
+    c = ph[0, i]
+    s = pst[0, i]
+    for k in range(1, n_groups):
+        a = a + pf[k, i]
+        b = b + pg[k, i]
+        c = c + ph[k, i]
+        s = s + pst[k, i]
+    if accumulate != 0:
+        a = a + f[i]
+        b = b + g[i]
+        c = c + h[i]
+        s = s + st[i]
+    f[i] = a
+    g[i] = b
+    h[i] = c
+    st[i] = s
+
+
+@wp.kernel
+def initial_guess_kernel(pos: wp.array(dtype=wp.vec3), nrm: wp.array(dtype=wp.vec3), tan: wp.array(dtype=wp.vec3),
+                         bit: wp.array(dtype=wp.vec3), images: wp.array3d(dtype=Any),
+                         depth: wp.array3d(dtype=wp.float32), shadow: wp.array3d(dtype=wp.float32),
+                         infos: wp.array(dtype=ImageInfo), img_begin: int, img_end: int, opt: SampleOptions,
+                         rank: int, low: wp.array(dtype=wp.vec3), high: wp.array(dtype=wp.vec3),
+                         count: wp.array(dtype=wp.int32)):
+    """Per texel: the ``rank``-th smallest observed reflectance y / (exposure E cos) per channel
+    (a low percentile, McAllister's diffuse estimate used by the seed), the largest, and the
+    number of samples. Windows accumulate (call with the outputs pre-filled)."""
+    i = wp.tid()
+    lo = wp.mat44(0.0)  # rows: channel, columns: the 4 smallest so far, ascending
+    for c in range(3):
+        for j in range(4):
+            lo[c, j] = 1.0e30
+    # resume from previous windows: low[i] holds the rank-th value only, so windows restart the
+    # small-value list (documented: with streamed windows the estimate is per-window min-merged)
+    hi = high[i]
+    n = count[i]
+    for k in range(img_begin, img_end):
+        ok, y, w, u, v = observe(images, depth, shadow, infos[k], k, pos[i], nrm[i], tan[i], bit[i], opt)
+        if ok:
+            n = n + 1
+            for c in range(3):
+                val = y[c] / w[c]
+                hi[c] = wp.max(hi[c], val)
+                if val < lo[c, 3]:
+                    lo[c, 3] = val
+                    for jj in range(3):
+                        j = 2 - jj
+                        if lo[c, j + 1] < lo[c, j]:
+                            t = lo[c, j]
+                            lo[c, j] = lo[c, j + 1]
+                            lo[c, j + 1] = t
+    r = wp.clamp(rank, 0, 3)
+    est = low[i]
+    for c in range(3):
+        pick = lo[c, 0]
+        for j in range(4):
+            if j <= r and lo[c, j] < 1.0e29:
+                pick = lo[c, j]
+        if pick < 1.0e29:
+            if count[i] > 0:
+                est[c] = wp.min(est[c], pick)
+            else:
+                est[c] = pick
+    low[i] = est
+    high[i] = hi
+    count[i] = n

@@ -1,0 +1,49 @@
+"""Depth maps for visibility, computed once per photo at load time and kept beside the image.
+
+Why depth maps rather than BVH ray casts in the fit's inner loop: the fit visits every
+(texel, photo) pair every pass, so a per-sample ray cast (two traversals: camera and light)
+would cost far more than the sample's arithmetic. A depth map costs one ray per pixel once,
+and the per-sample test becomes a few texture reads, as in the seed's GPU implementation.
+Camera depth maps hold z in the camera frame (0 where masked or no surface); shadow maps are
+the same thing rendered from the light (a perspective camera at a point light aimed at the
+object, or an orthographic one along a directional light).
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+
+@wp.kernel
+def depth_map_kernel(mesh: wp.uint64, rot: wp.mat33, trans: wp.vec3, fx: float, fy: float, cx: float,
+                     cy: float, ortho: int, width: int, height: int, no_hit: float,
+                     depth: wp.array2d(dtype=wp.float32)):
+    """z (camera frame, along the optical axis) of the first surface seen through each pixel centre.
+
+    For ``ortho`` cameras fx, fy are pixels per world unit.
+    """
+    y, x = wp.tid()
+    px = float(x) + 0.5
+    py = float(y) + 0.5
+    rt = wp.transpose(rot)
+    center = -(rt @ trans)
+    d_cam = wp.vec3((px - cx) / fx, (py - cy) / fy, 1.0)
+    origin = center
+    direction = wp.normalize(rt @ d_cam)
+    if ortho != 0:
+        origin = center + rt @ wp.vec3(d_cam[0], d_cam[1], 0.0)
+        direction = rt @ wp.vec3(0.0, 0.0, 1.0)
+    q = wp.mesh_query_ray(mesh, origin, direction, 1.0e20)
+    z = no_hit
+    if q.result:
+        hit = origin + q.t * direction
+        z = (rot @ hit + trans)[2]
+    depth[y, x] = z
+
+
+@wp.kernel
+def apply_mask_kernel(mask: wp.array2d(dtype=wp.uint8), depth: wp.array2d(dtype=wp.float32)):
+    """Masked-out pixels get depth 0 so the fit's visibility test rejects them."""
+    y, x = wp.tid()
+    if mask[y, x] == wp.uint8(0):
+        depth[y, x] = 0.0

@@ -1,0 +1,96 @@
+"""Batched per-texel optimizer state and the protocol every optimizer follows.
+
+Each texel is an independent small problem (the seed's texel-sized patches), coupled only by the
+optional Laplacian penalty. All state lives on the device as (N,) arrays of fixed-length
+parameter vectors; optimizers launch kernels over texels and never loop over them in Python.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Protocol
+
+import numpy as np
+import warp as wp
+
+from ..kernels.lafortune_grad import MAX_PARAMS
+from ..problem import StreamProblem
+
+
+@dataclasses.dataclass
+class FitState:
+    """Device state of a fit: iterate, objective, gradient, direction and line-search scratch."""
+
+    problem: StreamProblem
+    p: wp.array
+    f: wp.array
+    g: wp.array
+    stats: wp.array
+    d: wp.array
+    alpha: wp.array
+    prev_alpha: wp.array
+    slope: wp.array
+    prev_slope: wp.array
+    dhd: wp.array
+    trial: wp.array
+    f_trial: wp.array
+    g_trial: wp.array
+    stats_trial: wp.array
+    storage: wp.array
+    active: wp.array
+    accepted: wp.array
+    valid: wp.array
+    p_old: wp.array
+    g_old: wp.array
+    free: object
+    lower: object
+    upper: object
+    iteration: int = 0
+
+    @staticmethod
+    def create(problem: StreamProblem, p0: np.ndarray, free_mask: np.ndarray) -> "FitState":
+        pr = problem
+        lay = pr.layout
+        vec = pr.vec
+        lo = np.full(MAX_PARAMS, 0.0)
+        hi = np.full(MAX_PARAMS, 0.0)
+        lo[:lay.n_params] = lay.lower()
+        hi[:lay.n_params] = lay.upper()
+        fr = np.zeros(MAX_PARAMS)
+        fr[:lay.n_params] = free_mask.astype(float)
+        n = pr.n
+        dev = pr.device
+        p0 = np.clip(p0, lay.lower(), lay.upper())
+        st = FitState(
+            problem=pr, p=pr.new_vec(p0), f=pr.new_scalar(), g=pr.new_vec(),
+            stats=wp.zeros(n, dtype=wp.vec4d, device=dev), d=pr.new_vec(), alpha=pr.new_scalar(1.0),
+            prev_alpha=pr.new_scalar(1.0), slope=pr.new_scalar(), prev_slope=pr.new_scalar(),
+            dhd=pr.new_scalar(), trial=pr.new_vec(p0), f_trial=pr.new_scalar(), g_trial=pr.new_vec(),
+            stats_trial=wp.zeros(n, dtype=wp.vec4d, device=dev), storage=pr.new_storage(p0),
+            active=wp.zeros(n, dtype=wp.int32, device=dev), accepted=wp.zeros(n, dtype=wp.int32, device=dev),
+            valid=wp.ones(n, dtype=wp.int32, device=dev), p_old=pr.new_vec(p0), g_old=pr.new_vec(),
+            free=vec(*fr), lower=vec(*lo), upper=vec(*hi))
+        return st
+
+    def set_free(self, free_mask: np.ndarray) -> None:
+        fr = np.zeros(MAX_PARAMS)
+        fr[:self.problem.layout.n_params] = free_mask.astype(float)
+        self.free = self.problem.vec(*fr)
+
+    def params_numpy(self) -> np.ndarray:
+        return self.p.numpy()[:, :self.problem.layout.n_params].astype(np.float64)
+
+
+class Optimizer(Protocol):
+    """One iteration of a fit method: direction + line search (or a damped Gauss-Newton step)."""
+
+    name: str
+
+    def start(self, state: FitState) -> None:
+        """Evaluate the objective at the starting point and set up method memory."""
+
+    def step(self, state: FitState) -> None:
+        """Advance every texel by at most one accepted step (per-texel acceptance, Alg. 11)."""
+
+    def reset_memory(self, state: FitState) -> None:
+        """Forget curvature/direction memory (after the free-parameter set changes)."""

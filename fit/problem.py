@@ -1,0 +1,385 @@
+"""Host side of the streaming fit: texels, photos on the device, and the evaluation passes.
+
+A :class:`StreamProblem` owns every device buffer the passes need, allocated once. Each pass
+(:meth:`StreamProblem.evaluate` or :meth:`StreamProblem.evaluate_lm`) streams all photos through
+:mod:`texstream.fit.kernels.stream` and leaves per-texel objective, gradient and curvature on the
+device. Imports only numpy and warp (plus numpy-only spine modules).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import warp as wp
+
+from texstream.capture.conventions import look_at_w2c
+from texstream.pipelines.errors import ConfigError, InputError
+
+from .kernels import stream
+from .kernels.lafortune_grad import MAX_PARAMS, mat_p, mat_pd, vec_p, vec_pd
+from .kernels.visibility import apply_mask_kernel, depth_map_kernel
+from .models import ModelLayout
+
+PRECISIONS = {"fp16": wp.float16, "fp32": wp.float32, "fp64": wp.float64}
+
+
+@dataclasses.dataclass
+class TexelSet:
+    """The texels being fitted (compact: covered atlas texels only) and their grid neighbours.
+
+    Attributes:
+        position, normal, tangent, bitangent: (N, 3) float32 surface location space.
+        grid_index: (N,) int64 flat index y * width + x of each texel in the atlas.
+        neighbors: (N, 4) int32 compact indices of the +x, -x, +y, -y neighbours (-1: none),
+            the masked stencil of the Laplacian (Alg. 7).
+        width, height: atlas size.
+    """
+
+    position: np.ndarray
+    normal: np.ndarray
+    tangent: np.ndarray
+    bitangent: np.ndarray
+    grid_index: np.ndarray
+    neighbors: np.ndarray
+    width: int
+    height: int
+
+    @property
+    def n(self) -> int:
+        return int(self.position.shape[0])
+
+    @staticmethod
+    def from_grid(covered: np.ndarray, position: np.ndarray, normal: np.ndarray, tangent: np.ndarray,
+                  bitangent: np.ndarray) -> "TexelSet":
+        """Build from (H, W) coverage and (H, W, 3) frames (e.g. a TexelBake or an image grid)."""
+        h, w = covered.shape
+        flat = np.flatnonzero(covered.reshape(-1))
+        compact = -np.ones(h * w, dtype=np.int64)
+        compact[flat] = np.arange(flat.size)
+        ys, xs = np.divmod(flat, w)
+        nb = -np.ones((flat.size, 4), dtype=np.int32)
+        for k, (dx, dy) in enumerate(((1, 0), (-1, 0), (0, 1), (0, -1))):
+            xx, yy = xs + dx, ys + dy
+            inside = (xx >= 0) & (xx < w) & (yy >= 0) & (yy < h)
+            nb[inside, k] = compact[yy[inside] * w + xx[inside]]
+        def take(a):
+            return np.ascontiguousarray(a.reshape(-1, 3)[flat], dtype=np.float32)
+        return TexelSet(take(position), take(normal), take(tangent), take(bitangent), flat, nb, w, h)
+
+
+@dataclasses.dataclass
+class PhotoFrame:
+    """One photo as the fit needs it: pose (world-to-camera, OpenCV axes), intrinsics, light."""
+
+    R: np.ndarray
+    t: np.ndarray
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    light_kind: str
+    light_vec: np.ndarray
+    light_intensity: np.ndarray
+    exposure: float = 1.0
+    saturation: float = math.inf
+
+    @staticmethod
+    def from_capture_frame(frame) -> "PhotoFrame":
+        """From a :class:`texstream.capture.capture_json.Frame` (must have a light and no distortion)."""
+        intr = frame.intrinsics
+        if frame.light is None:
+            raise InputError(f"frame {frame.file_path} has no light", fix="add per-frame 'light' fields, or fit a radiance model")
+        if not intr.is_pinhole:
+            raise InputError(f"frame {frame.file_path} has lens distortion", fix="undistort the photos first (texstream register undistorts)")
+        lv = frame.light.position if frame.light.type == "point" else frame.light.direction
+        return PhotoFrame(frame.R, frame.t, intr.fx, intr.fy, intr.cx, intr.cy, intr.width, intr.height,
+                          frame.light.type, np.asarray(lv, float), np.asarray(frame.light.intensity, float),
+                          float(frame.exposure), math.inf if frame.saturation is None else float(frame.saturation))
+
+
+@dataclasses.dataclass
+class StreamConfig:
+    """Numerical and streaming options of the evaluation passes."""
+
+    accumulate: str = "fp32"
+    """accumulator / compute precision: fp32 or fp64"""
+    storage: str = "fp32"
+    """parameter storage precision: fp16, fp32 or fp64"""
+    image_precision: str = "fp32"
+    """photo storage on the device: fp32 or fp16 (halves the streamed bytes)"""
+    kahan: bool = False
+    """Kahan-compensated summation of objective and gradient over photos (seed Alg. 14)"""
+    residual_space: str = "radiance"
+    """radiance (fit pixel values) or reflectance (divide out E cos, the seed's choice)"""
+    cos_light_min: float = 0.1
+    """reject samples lit more grazingly than this cosine (the seed used 0.1)"""
+    cos_view_min: float = 0.05
+    """reject samples seen more grazingly than this cosine"""
+    depth_tol: float = 0.01
+    """relative depth tolerance of the visibility test (fraction of camera distance)"""
+    shadow_tol: float = 0.01
+    """relative depth tolerance of the shadow test"""
+    shadow_map_size: int = 512
+    """shadow map resolution per photo (0 disables cast-shadow rejection)"""
+    groups: int = 0
+    """photo groups per pass (parallelism over photos; 0 = automatic)"""
+    photos_per_window: int = 0
+    """photos resident on the device at once (0 = all; else streamed from host in windows)"""
+
+
+def _vec_types(acc: str):
+    if acc == "fp64":
+        return wp.float64, vec_pd, mat_pd
+    if acc == "fp32":
+        return wp.float32, vec_p, mat_p
+    raise ConfigError(f"accumulate precision {acc!r} unknown", fix="use fp32 or fp64")
+
+
+class PhotoSet:
+    """Photos, depth maps and shadow maps on the device (or in pinned host memory when streamed)."""
+
+    def __init__(self, frames: list[PhotoFrame], images: list[np.ndarray], mesh_points: np.ndarray,
+                 mesh_faces: np.ndarray, masks: list[np.ndarray | None] | None = None,
+                 config: StreamConfig | None = None, device: str = "cpu"):
+        cfg = config or StreamConfig()
+        self.device = device
+        self.n = len(frames)
+        if self.n == 0 or len(images) != self.n:
+            raise InputError("no photos to fit", fix="give a capture with at least one photo")
+        self.hmax = max(int(im.shape[0]) for im in images)
+        self.wmax = max(int(im.shape[1]) for im in images)
+        img_dtype = wp.vec3h if cfg.image_precision == "fp16" else wp.vec3
+        np_dtype = np.float16 if cfg.image_precision == "fp16" else np.float32
+        stack = np.zeros((self.n, self.hmax, self.wmax, 3), dtype=np_dtype)
+        for k, im in enumerate(images):
+            stack[k, :im.shape[0], :im.shape[1]] = im[..., :3]
+        self.mesh = wp.Mesh(points=wp.array(np.asarray(mesh_points, np.float32), dtype=wp.vec3, device=device),
+                            indices=wp.array(np.asarray(mesh_faces, np.int32).reshape(-1), dtype=wp.int32, device=device))
+        lo, hi = mesh_points.min(axis=0), mesh_points.max(axis=0)
+        self.center = 0.5 * (lo + hi)
+        self.radius = 0.5 * float(np.linalg.norm(hi - lo))
+        depth = np.zeros((self.n, self.hmax, self.wmax), np.float32)
+        ssize = int(cfg.shadow_map_size)
+        shadow = np.full((self.n, max(ssize, 2), max(ssize, 2)), np.inf, np.float32)
+        infos = []
+        dbuf = wp.zeros((self.hmax, self.wmax), dtype=wp.float32, device=device)
+        sbuf = wp.zeros((max(ssize, 2), max(ssize, 2)), dtype=wp.float32, device=device)
+        for k, fr in enumerate(frames):
+            info = stream.ImageInfo()
+            info.rot = wp.mat33(*np.asarray(fr.R, np.float32).reshape(-1))
+            info.trans = wp.vec3(*np.asarray(fr.t, np.float32))
+            info.center = wp.vec3(*(-np.asarray(fr.R).T @ np.asarray(fr.t)).astype(np.float32))
+            info.fx, info.fy, info.cx, info.cy = float(fr.fx), float(fr.fy), float(fr.cx), float(fr.cy)
+            info.width, info.height = int(fr.width), int(fr.height)
+            info.exposure = float(fr.exposure)
+            info.saturation = float(min(fr.saturation, 3.0e38))
+            info.light_kind = 0 if fr.light_kind == "point" else 1
+            info.light_vec = wp.vec3(*np.asarray(fr.light_vec, np.float32))
+            info.light_intensity = wp.vec3(*np.asarray(fr.light_intensity, np.float32))
+            dbuf.zero_()
+            wp.launch(depth_map_kernel, dim=(fr.height, fr.width), device=device,
+                      inputs=[self.mesh.id, info.rot, info.trans, info.fx, info.fy, info.cx, info.cy, 0,
+                              fr.width, fr.height, 0.0, dbuf])
+            if masks is not None and masks[k] is not None:
+                mk = wp.array(np.ascontiguousarray(masks[k].astype(np.uint8)), dtype=wp.uint8, device=device)
+                wp.launch(apply_mask_kernel, dim=(fr.height, fr.width), inputs=[mk, dbuf], device=device)
+            depth[k, :fr.height, :fr.width] = dbuf.numpy()[:fr.height, :fr.width]
+            info.has_shadow = 0
+            if ssize > 0:
+                ok = self._shadow_camera(info, fr, ssize)
+                if ok:
+                    sbuf.fill_(np.inf)
+                    wp.launch(depth_map_kernel, dim=(ssize, ssize), device=device,
+                              inputs=[self.mesh.id, info.sh_rot, info.sh_trans, info.sh_fx, info.sh_fy, info.sh_cx,
+                                      info.sh_cy, info.sh_ortho, ssize, ssize, float(np.inf), sbuf])
+                    shadow[k] = sbuf.numpy()
+            infos.append(info)
+        self.window = self.n if cfg.photos_per_window <= 0 else min(self.n, int(cfg.photos_per_window))
+        self.streamed = self.window < self.n
+        self.infos = wp.array(infos, dtype=stream.ImageInfo, device=device)
+        if self.streamed:
+            pinned = device != "cpu"
+            self.host_images = wp.array(stack, dtype=img_dtype, device="cpu", pinned=pinned)
+            self.host_depth = wp.array(depth, dtype=wp.float32, device="cpu", pinned=pinned)
+            self.host_shadow = wp.array(shadow, dtype=wp.float32, device="cpu", pinned=pinned)
+            self.images = wp.zeros((self.window, self.hmax, self.wmax), dtype=img_dtype, device=device)
+            self.depth = wp.zeros((self.window, self.hmax, self.wmax), dtype=wp.float32, device=device)
+            self.shadow = wp.zeros((self.window, *shadow.shape[1:]), dtype=wp.float32, device=device)
+            self.infos_window = wp.zeros(self.window, dtype=stream.ImageInfo, device=device)
+        else:
+            self.images = wp.array(stack, dtype=img_dtype, device=device)
+            self.depth = wp.array(depth, dtype=wp.float32, device=device)
+            self.shadow = wp.array(shadow, dtype=wp.float32, device=device)
+        self.image_bytes = int(stack.nbytes)
+
+    def _shadow_camera(self, info, fr: PhotoFrame, size: int) -> bool:
+        """Aim a shadow-map camera from the light at the object's bounding sphere."""
+        r = max(self.radius, 1e-9)
+        if fr.light_kind == "point":
+            lp = np.asarray(fr.light_vec, float)
+            dist = float(np.linalg.norm(lp - self.center))
+            if dist <= 1.05 * r:
+                return False  # light inside the object's bounds: no single frustum covers it
+            rot, trans = look_at_w2c(lp, self.center)
+            half = math.asin(min(r / dist, 0.999)) * 1.05
+            f = 0.5 * size / math.tan(half)
+            ortho = 0
+        else:
+            d = np.asarray(fr.light_vec, float)
+            d = d / np.linalg.norm(d)
+            rot, trans = look_at_w2c(self.center - 3.0 * r * d, self.center)
+            f = size / (2.2 * r)
+            ortho = 1
+        info.has_shadow = 1
+        info.sh_rot = wp.mat33(*np.asarray(rot, np.float32).reshape(-1))
+        info.sh_trans = wp.vec3(*np.asarray(trans, np.float32))
+        info.sh_fx = info.sh_fy = float(f)
+        info.sh_cx = info.sh_cy = 0.5 * size
+        info.sh_ortho = ortho
+        info.sh_size = size
+        return True
+
+    def windows(self):
+        """Yield (images, depth, shadow, infos, begin, end) device views, uploading windows when streamed."""
+        if not self.streamed:
+            yield self.images, self.depth, self.shadow, self.infos, 0, self.n
+            return
+        for b in range(0, self.n, self.window):
+            e = min(b + self.window, self.n)
+            c = e - b
+            wp.copy(self.images, self.host_images, 0, b * self.hmax * self.wmax, c * self.hmax * self.wmax)
+            wp.copy(self.depth, self.host_depth, 0, b * self.hmax * self.wmax, c * self.hmax * self.wmax)
+            ss = self.shadow.shape[1] * self.shadow.shape[2]
+            wp.copy(self.shadow, self.host_shadow, 0, b * ss, c * ss)
+            wp.copy(self.infos_window, self.infos, 0, b, c)
+            yield self.images, self.depth, self.shadow, self.infos_window, 0, c
+
+
+class StreamProblem:
+    """Per-texel objective/gradient/curvature passes over a PhotoSet (buffers allocated once)."""
+
+    def __init__(self, texels: TexelSet, photos: PhotoSet, layout: ModelLayout,
+                 config: StreamConfig | None = None, device: str = "cpu"):
+        self.cfg = cfg = config or StreamConfig()
+        self.texels, self.photos, self.layout, self.device = texels, photos, layout, device
+        if layout.n_params > MAX_PARAMS:
+            raise ConfigError(f"model has {layout.n_params} parameters, kernels hold {MAX_PARAMS}", fix="use fewer lobes")
+        if cfg.storage not in PRECISIONS:
+            raise ConfigError(f"storage precision {cfg.storage!r} unknown", fix="use fp16, fp32 or fp64")
+        self.scalar, self.vec, self.mat = _vec_types(cfg.accumulate)
+        self.storage_dtype = PRECISIONS[cfg.storage]
+        n = texels.n
+        self.n = n
+        self.one = self.scalar(1.0)
+        self.like = self.vec()
+        self.like_m = self.mat()
+        dev = device
+        self.pos = wp.array(texels.position, dtype=wp.vec3, device=dev)
+        self.nrm = wp.array(texels.normal, dtype=wp.vec3, device=dev)
+        self.tan = wp.array(texels.tangent, dtype=wp.vec3, device=dev)
+        self.bit = wp.array(texels.bitangent, dtype=wp.vec3, device=dev)
+        self.neighbors = wp.array(texels.neighbors, dtype=wp.vec4i, device=dev)
+        groups = cfg.groups
+        if groups <= 0:
+            groups = 1 if dev == "cpu" else max(1, min(photos.window, math.ceil(262144 / max(n, 1))))
+        self.groups = groups
+        self.per_group = math.ceil(photos.window / groups)
+        self.pf = wp.zeros((groups, n), dtype=self.scalar, device=dev)
+        self.pg = wp.zeros((groups, n), dtype=self.vec, device=dev)
+        self.ph = wp.zeros((groups, n), dtype=self.scalar, device=dev)
+        self.pst = wp.zeros((groups, n), dtype=wp.vec4d, device=dev)
+        self.pm = None
+        self.all_active = wp.ones(n, dtype=wp.int32, device=dev)
+        self.no_direction = wp.zeros((1, 1), dtype=self.storage_dtype, device=dev)
+        self.opt = stream.SampleOptions()
+        self.opt.cos_light_min = float(cfg.cos_light_min)
+        self.opt.cos_view_min = float(cfg.cos_view_min)
+        self.opt.depth_tol = float(cfg.depth_tol)
+        self.opt.shadow_tol = float(cfg.shadow_tol)
+        if cfg.residual_space not in ("radiance", "reflectance"):
+            raise ConfigError(f"residual_space {cfg.residual_space!r} unknown", fix="use radiance or reflectance")
+        self.opt.reflectance_space = 1 if cfg.residual_space == "reflectance" else 0
+        self.opt.kahan = 1 if cfg.kahan else 0
+        self.passes = 0
+
+    def new_storage(self, values: np.ndarray | None = None) -> wp.array:
+        """A (N, n_params) parameter array in the storage precision."""
+        a = np.zeros((self.n, self.layout.n_params)) if values is None else np.asarray(values)
+        return wp.array(np.ascontiguousarray(a), dtype=self.storage_dtype, device=self.device)
+
+    def new_vec(self, values: np.ndarray | None = None) -> wp.array:
+        """A (N,) array of fixed-length parameter vectors in the compute precision."""
+        if values is None:
+            return wp.zeros(self.n, dtype=self.vec, device=self.device)
+        full = np.zeros((self.n, MAX_PARAMS))
+        full[:, :values.shape[1]] = values
+        return wp.array(full, dtype=self.vec, device=self.device)
+
+    def new_scalar(self, fill: float = 0.0) -> wp.array:
+        a = wp.zeros(self.n, dtype=self.scalar, device=self.device)
+        if fill:
+            a.fill_(fill)
+        return a
+
+    def evaluate(self, params: wp.array, f: wp.array, g: wp.array, stats: wp.array, *,
+                 direction: wp.array | None = None, dhd: wp.array | None = None,
+                 active: wp.array | None = None, full_hessian: bool = False) -> None:
+        """One streaming pass: f, g (and d^T H d along ``direction`` into ``dhd``) per texel.
+
+        ``params`` and ``direction`` are (N, n_params) arrays; texels whose ``active`` flag is 0
+        are skipped (their outputs are zero).
+        """
+        opt = self.opt
+        opt.want_grad = 1
+        opt.want_dhd = 1 if direction is not None else 0
+        opt.full_hessian = 1 if full_hessian else 0
+        act = self.all_active if active is None else active
+        dirn = direction if direction is not None else self.no_direction
+        if dirn.dtype != params.dtype:
+            raise ConfigError("direction and parameters must share a dtype")
+        h_out = dhd if dhd is not None else self.ph_scratch()
+        lay = self.layout
+        first = True
+        for images, depth, shadow, infos, b, e in self.photos.windows():
+            wp.launch(stream.accumulate_kernel, dim=(self.groups, self.n), device=self.device,
+                      inputs=[self.pos, self.nrm, self.tan, self.bit, params, dirn, act, lay.n_params, lay.n_lobes,
+                              int(lay.anisotropic), images, depth, shadow, infos, b, e, math.ceil((e - b) / self.groups),
+                              opt, self.like, self.one],
+                      outputs=[self.pf, self.pg, self.ph, self.pst])
+            wp.launch(stream.reduce_partials_kernel, dim=self.n, device=self.device,
+                      inputs=[self.pf, self.pg, self.ph, self.pst, self.groups, 0 if first else 1],
+                      outputs=[f, g, h_out, stats])
+            first = False
+        self.passes += 1
+
+    def ph_scratch(self) -> wp.array:
+        if not hasattr(self, "_h_scratch"):
+            self._h_scratch = self.new_scalar()
+        return self._h_scratch
+
+    def evaluate_lm(self, params: wp.array, f: wp.array, g: wp.array, jtj: wp.array, stats: wp.array, *,
+                    active: wp.array | None = None) -> None:
+        """One streaming pass accumulating f, J^T r and J^T J per texel (Gauss-Newton / LM)."""
+        if self.pm is None:
+            self.pm = wp.zeros((self.groups, self.n), dtype=self.mat, device=self.device)
+        opt = self.opt
+        opt.want_grad = 1
+        opt.want_dhd = 0
+        act = self.all_active if active is None else active
+        lay = self.layout
+        first = True
+        for images, depth, shadow, infos, b, e in self.photos.windows():
+            wp.launch(stream.accumulate_lm_kernel, dim=(self.groups, self.n), device=self.device,
+                      inputs=[self.pos, self.nrm, self.tan, self.bit, params, act, lay.n_params, lay.n_lobes,
+                              int(lay.anisotropic), images, depth, shadow, infos, b, e, math.ceil((e - b) / self.groups),
+                              opt, self.like, self.like_m, self.one],
+                      outputs=[self.pf, self.pg, self.pm, self.pst])
+            wp.launch(stream.reduce_partials_kernel, dim=self.n, device=self.device,
+                      inputs=[self.pf, self.pg, self.pm, self.pst, self.groups, 0 if first else 1],
+                      outputs=[f, g, jtj, stats])
+            first = False
+        self.passes += 1
