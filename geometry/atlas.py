@@ -387,3 +387,88 @@ def _fit_density(uv_world: np.ndarray, faces: np.ndarray, chart: np.ndarray, con
     if best is None:
         raise ConfigError(f"could not pack the charts into {res}x{res} texels", fix="raise --resolution")
     return best
+
+
+# ----------------------------------------------------------------------------------------------
+# stage
+
+
+def _fingerprint(path, face_weights: np.ndarray | None) -> dict:
+    import hashlib
+    from pathlib import Path
+
+    h = hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    fp = {"mesh": str(Path(path).resolve()), "mesh_sha256": h}
+    if face_weights is not None:
+        fp["face_weights_sha256"] = hashlib.sha256(
+            np.ascontiguousarray(face_weights, dtype=np.float64).tobytes()).hexdigest()
+    return fp
+
+
+def atlas_stage(mesh_path, out, config: AtlasConfig | None = None, face_weights: np.ndarray | None = None,
+                device: str = "cpu", force: bool = False):
+    """The atlas stage: mesh file -> folder with the UV-mapped mesh and the texel bake.
+
+    Writes (atomically, all or nothing) into ``out``:
+        ``mesh.obj``          the mesh with UVs (split at chart seams; welded ``v`` records),
+        ``bake.npz``          the :class:`~texstream.geometry.bake.TexelBake`,
+        ``atlas_config.json`` the resolved :class:`AtlasConfig`,
+        ``atlas_info.json``   :class:`AtlasInfo` plus bake statistics and the input fingerprint,
+        ``charts.png``        preview: normals as colours on the atlas, black outside charts.
+
+    Skipped (``StageResult.skipped``) when ``out`` already holds the output of the same mesh file,
+    weights and config, unless ``force``.
+
+    Args:
+        mesh_path: OBJ/PLY/STL/GLB/glTF mesh.
+        out: output folder.
+        config: atlas options (defaults when None).
+        face_weights: optional (F,) per-face importance (see :func:`build_atlas`).
+        device: Warp device for the bake.
+        force: recompute even when an up-to-date output exists.
+
+    Returns:
+        StageResult whose summary is the atlas info.
+    """
+    from pathlib import Path
+
+    from texstream.pipelines.stage import (StageResult, atomic_output_dir, config_to_dict, read_json,
+                                           save_config, write_json_atomic)
+
+    from .bake import bake_texels
+    from .mesh_io import load_mesh, save_mesh
+
+    config = config or AtlasConfig()
+    out = Path(out)
+    mesh = load_mesh(mesh_path)
+    fp = _fingerprint(mesh_path, face_weights)
+    if not force and (out / "atlas_info.json").is_file() and (out / "atlas_config.json").is_file() \
+            and (out / "bake.npz").is_file() and (out / "mesh.obj").is_file():
+        try:
+            same = (read_json(out / "atlas_config.json") == config_to_dict(config)
+                    and read_json(out / "atlas_info.json").get("input") == fp)
+        except Exception:  # an unreadable old output is simply rebuilt
+            same = False
+        if same:
+            return StageResult(output=out, summary=read_json(out / "atlas_info.json"), skipped=True,
+                               reason="output exists for the same mesh and config")
+    atlas_mesh, info = build_atlas(mesh, config, face_weights)
+    bake = bake_texels(atlas_mesh, info.width, info.height, device=device, padding=config.padding)
+    summary = {**info.to_dict(), "n_faces": atlas_mesh.n_faces, "n_vertices": atlas_mesh.n_vertices,
+               "bake_faces_without_texels": bake.faces_without_texels.tolist()[:100],
+               "bake_coverage": bake.coverage, "input": fp}
+    with atomic_output_dir(out) as tmp:
+        save_mesh(tmp / "mesh.obj", atlas_mesh)
+        bake.save(tmp / "bake.npz")
+        save_config(config, tmp / "atlas_config.json")
+        write_json_atomic(tmp / "atlas_info.json", summary)
+        _write_preview(tmp / "charts.png", bake)
+    return StageResult(output=out, summary=summary)
+
+
+def _write_preview(path, bake) -> None:
+    """Normals as colours (already display codes, so written unencoded as 8-bit)."""
+    from texstream.capture.imageio import write_image
+
+    img = np.clip(np.rint(bake.normal_preview() * 255.0), 0, 255).astype(np.uint8)
+    write_image(path, img, bits=8)

@@ -1,0 +1,32 @@
+"""``texstream atlas MESH -o OUT``: UV atlas (xatlas) and texel bake for fitting."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from texstream.geometry.atlas import AtlasConfig
+    from texstream.pipelines.cli import add_config_arguments
+
+    parser.add_argument("mesh", help="input mesh (OBJ, PLY, STL, GLB or glTF)")
+    parser.add_argument("-o", "--out", required=True, help="output folder")
+    parser.add_argument("--device", default="cpu", help="Warp device for the bake (cpu, cuda:0, ...)")
+    parser.add_argument("--force", action="store_true", help="recompute even if OUT is up to date")
+    add_config_arguments(parser, AtlasConfig)
+
+
+def run(args: argparse.Namespace) -> int:
+    from texstream.geometry.atlas import AtlasConfig, atlas_stage
+    from texstream.pipelines.cli import config_from_args
+
+    config = config_from_args(AtlasConfig, args)
+    res = atlas_stage(args.mesh, args.out, config, device=args.device, force=args.force)
+    s = res.summary
+    if res.skipped:
+        print(f"atlas: skipped, {res.reason} ({res.output})")
+        return 0
+    print(f"atlas: {s['width']}x{s['height']} texels, {s['n_charts']} charts ({s['source']}: {s['reason']}), "
+          f"utilization {100 * s['utilization']:.1f}%, {s['n_covered']} covered texels, "
+          f"{s['faces_without_texels']} faces without texels -> {res.output}")
+    return 0
