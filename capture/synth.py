@@ -83,10 +83,10 @@ class SynthConfig:
     scale: float = option(1.0, help="shrink the scene: photos x s, image sides and texture sides x sqrt(s)")
     device: str = option("cpu", help="Warp device for baking and rendering: cpu or cuda:N")
     seed: int = option(0, help="random seed for noise and per-photo exposure")
-    noise: float | None = option(None, help="Gaussian camera noise sigma in linear units (default: the scene's)")
+    noise: float | None = option(None, help="Gaussian camera noise sigma in linear units (None: the scene's)")
     bits: int | None = option(None, help="photo bit depth: 8 (sRGB PNG), 16 (linear PNG), 32 (float EXR); "
-                                         "default: the scene's", choices=(8, 16, 32))
-    exposure: float | None = option(None, help="one linear exposure for every photo (default: the scene's)")
+                                         "None: the scene's", choices=(8, 16, 32))
+    exposure: float | None = option(None, help="one linear exposure for every photo (None: the scene's)")
     saturation: float | None = option(None, help="float photos: clip at this value (integer photos clip at 1)")
     photos: int = option(0, help="photo count after scaling (0: the scene's count x scale)")
     image_size: int = option(0, help="image width and height in pixels after scaling (0: the scene's x sqrt(scale))")
