@@ -1,0 +1,219 @@
+"""The mesh stage: make the mesh from what the capture has, then clean and simplify it.
+
+Sources (``MeshConfig.source``):
+    ``scan``: a given mesh file (OBJ/PLY/STL/GLB), moved into the capture frame by ``matrix``, or
+        aligned to the capture's SfM points (coarse Sim3 + ICP) when it has them.
+    ``sfm``: screened Poisson of the SfM points (``points3D.ply`` beside ``capture.json``), trimmed
+        by density and by the masks, intersected with the visual hull when masks exist.
+    ``hull``: visual hull of the masks.
+    ``auto``: a given mesh if one is named; otherwise Poisson (+ hull) when the capture has SfM
+        points, the hull when it only has masks. The choice and its reason go into the report.
+
+Outputs (atomically) in the output folder: ``mesh.ply``, ``mesh_report.json`` (source, reason,
+cleanup report, alignment), ``mesh_config.json``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from texstream.pipelines.errors import ConfigError, InputError
+from texstream.pipelines.stage import StageResult, atomic_output_dir, option, save_config, write_json_atomic
+
+from .mesh import SurfaceMesh
+
+POINTS_FILE = "points3D.ply"
+
+
+@dataclasses.dataclass
+class MeshConfig:
+    """Options of ``texstream mesh``."""
+
+    source: str = option("auto", help="where the mesh comes from: auto, scan (needs --mesh), sfm, hull",
+                         choices=("auto", "scan", "sfm", "hull"))
+    mesh: str = option("", help="given mesh file (OBJ/PLY/STL/GLB); implies source scan")
+    faces: int = option(20000, help="decimate to this many faces (0: keep)")
+    matrix: str = option("", help="4x4 world matrix (JSON or whitespace text) taking the given mesh into the "
+                                  "capture frame; empty: align to the SfM points when the capture has them")
+    align: bool = option(True, help="align a given mesh to the capture's SfM points by Sim3 + ICP")
+    remesh: bool = option(False, help="isotropic remeshing after decimation")
+    max_hole_edges: int = option(30, help="close holes bounded by at most this many edges")
+    poisson_depth: int = option(8, help="screened Poisson octree depth")
+    hull_resolution: int = option(128, help="visual hull grid nodes along the longest side")
+    intersect_hull: bool = option(True, help="intersect the Poisson surface with the visual hull when masks exist")
+    device: str = option("cpu", help="Warp device for hull carving and depth maps (cpu, cuda:0)")
+
+
+def _has_masks(capture) -> bool:
+    return capture is not None and all(f.mask_path for f in capture.frames)
+
+
+def choose_source(config: MeshConfig, capture) -> tuple[str, str]:
+    """(source, reason) from the config and what the capture holds."""
+    has_points = capture is not None and (capture.root / POINTS_FILE).is_file()
+    has_masks = _has_masks(capture)
+    if config.mesh:
+        if config.source not in ("auto", "scan"):
+            raise ConfigError(f"--mesh given with --source {config.source}", fix="use one of them")
+        return "scan", f"a mesh was given ({config.mesh})"
+    if config.source == "scan":
+        raise ConfigError("source scan needs a mesh file", fix="pass --from path/to/scan.obj")
+    if capture is None:
+        raise ConfigError("without a capture only a given mesh can be cleaned",
+                          fix="pass a CAPTURE folder, or --from path/to/scan.obj")
+    if config.source == "sfm" or (config.source == "auto" and has_points):
+        if not has_points:
+            raise InputError(f"no SfM points ({POINTS_FILE}) in the capture", capture.root,
+                             "run 'texstream register' first" + (", or use --from hull (the capture has masks)"
+                                                                 if has_masks else ", or give --from scan.obj"))
+        why = "the capture has SfM points"
+        if has_masks and config.intersect_hull:
+            why += " and masks (Poisson intersected with the visual hull)"
+        return "sfm", why
+    if config.source == "hull" or (config.source == "auto" and has_masks):
+        if not has_masks:
+            raise InputError("not every frame has a mask_path: a visual hull needs masks", capture.root,
+                             "add masks, or use --from sfm (after 'texstream register') or --from scan.obj")
+        return "hull", "the capture has masks but no SfM points"
+    raise InputError("the capture has neither SfM points nor masks to make a mesh from", capture.root,
+                     "run 'texstream register' (SfM points), add masks (visual hull), or pass --from scan.obj")
+
+
+def _read_matrix(path: str) -> np.ndarray:
+    p = Path(path)
+    if not p.is_file():
+        raise InputError("matrix file not found", p, "give a 4x4 matrix as JSON or text")
+    try:
+        txt = p.read_text()
+        import json
+
+        m = np.asarray(json.loads(txt), np.float64) if txt.lstrip().startswith("[") else np.loadtxt(p)
+    except (ValueError, OSError) as e:
+        raise InputError(f"cannot read a 4x4 matrix ({e})", p, "write 16 numbers, row by row") from None
+    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        raise InputError(f"matrix has shape {m.shape}, expected 4x4 finite", p, "write 16 numbers, row by row")
+    return m
+
+
+def check_in_view(mesh: SurfaceMesh, capture, path=None) -> float:
+    """Fraction of cameras whose image holds the mesh's bbox centre in front of them.
+
+    Raises:
+        InputError: fewer than half the cameras see it (a mesh far from the cameras: misaligned).
+    """
+    lo, hi = mesh.bbox()
+    c = 0.5 * (lo + hi)
+    seen = 0
+    for f in capture.frames:
+        pc = np.asarray(f.R) @ c + np.asarray(f.t).reshape(3)
+        if pc[2] <= 0:
+            continue
+        u = f.intrinsics.fx * pc[0] / pc[2] + f.intrinsics.cx
+        v = f.intrinsics.fy * pc[1] / pc[2] + f.intrinsics.cy
+        seen += int(0 <= u < f.intrinsics.width and 0 <= v < f.intrinsics.height)
+    frac = seen / max(1, len(capture.frames))
+    if frac < 0.5:
+        raise InputError(f"the mesh is not where the cameras look (its centre is in view of {seen} of "
+                         f"{len(capture.frames)} cameras): it is in another frame or misaligned", path,
+                         "pass --matrix with the mesh-to-capture transform, or register the capture so the mesh "
+                         "can be aligned to its SfM points; fallbacks: --from sfm or --from hull")
+    return frac
+
+
+def make_mesh(capture_dir: str | os.PathLike | None, out: str | os.PathLike,
+              config: MeshConfig | None = None) -> StageResult:
+    """Run the mesh stage (module doc). Returns a StageResult whose summary is the report."""
+    from texstream.capture.capture_json import read_capture
+
+    from .clean import CleanConfig, clean_mesh
+
+    cfg = config or MeshConfig()
+    if cfg.faces < 0:
+        raise ConfigError(f"--faces {cfg.faces} is negative", fix="give a face count, or 0 to keep all")
+    t0 = time.perf_counter()
+    capture = read_capture(capture_dir) if capture_dir is not None else None
+    source, reason = choose_source(cfg, capture)
+    report: dict = {"source": source, "reason": reason}
+    masks = None
+    if capture is not None and _has_masks(capture) and source in ("sfm", "hull"):
+        from .hull import load_masks
+
+        masks = load_masks(capture)
+    if source == "scan":
+        from .mesh_io import load_mesh
+
+        mesh = load_mesh(cfg.mesh)
+        mesh = SurfaceMesh(mesh.vertices, mesh.faces)
+        if capture is not None:
+            mesh, report["alignment"] = _place_scan(mesh, capture, cfg)
+            check_in_view(mesh, capture, cfg.mesh)
+    elif source == "sfm":
+        mesh = _from_sfm(capture, cfg, masks, report)
+    else:
+        from .hull import HullConfig, visual_hull
+
+        mesh = visual_hull(capture.frames, masks, HullConfig(resolution=cfg.hull_resolution), cfg.device)
+    cleaned, clean_rep = clean_mesh(mesh, CleanConfig(target_faces=cfg.faces, remesh=cfg.remesh,
+                                                      max_hole_edges=cfg.max_hole_edges),
+                                    path=cfg.mesh or capture_dir)
+    report["clean"] = clean_rep.to_json()
+    report["summary"] = clean_rep.summary()
+    report["seconds"] = round(time.perf_counter() - t0, 3)
+    from .mesh_io import save_mesh
+
+    with atomic_output_dir(out) as tmp:
+        save_mesh(tmp / "mesh.ply", cleaned)
+        write_json_atomic(tmp / "mesh_report.json", report)
+        save_config(cfg, tmp / "mesh_config.json")
+    return StageResult(output=Path(out), summary=report)
+
+
+def _place_scan(mesh: SurfaceMesh, capture, cfg: MeshConfig) -> tuple[SurfaceMesh, dict]:
+    from .align import align_to_points, transform_mesh
+
+    if cfg.matrix:
+        m = _read_matrix(cfg.matrix)
+        return transform_mesh(mesh, m), {"method": "matrix", "matrix": m.tolist()}
+    pts_path = capture.root / POINTS_FILE
+    if cfg.align and pts_path.is_file():
+        from .reconstruct import read_points
+
+        pts, _ = read_points(pts_path)
+        if len(pts) >= 20:
+            al = align_to_points(mesh, pts)
+            return transform_mesh(mesh, al.matrix), {"method": "sim3+icp", "matrix": al.matrix.tolist(),
+                                                     "rms": al.rms, "rms_fraction": al.rms_fraction}
+    return mesh, {"method": "none (mesh assumed in the capture frame)"}
+
+
+def _from_sfm(capture, cfg: MeshConfig, masks, report: dict) -> SurfaceMesh:
+    from .reconstruct import PoissonConfig, poisson_reconstruct, read_points, trim_by_masks
+
+    pts_path = capture.root / POINTS_FILE
+    pts, nrm = read_points(pts_path)
+    centres = np.array([f.center for f in capture.frames])
+    try:
+        mesh = poisson_reconstruct(pts, nrm, centres, PoissonConfig(depth=cfg.poisson_depth), pts_path)
+    except InputError:
+        if masks is None or cfg.source == "sfm":
+            raise
+        from .hull import HullConfig, visual_hull
+
+        report["source"] = "hull"
+        report["reason"] = f"too few SfM points ({len(pts)}) for Poisson; the capture has masks, so the visual hull"
+        return visual_hull(capture.frames, masks, HullConfig(resolution=cfg.hull_resolution), cfg.device)
+    report["points"] = int(len(pts))
+    if masks is not None:
+        if cfg.intersect_hull:
+            from .hull import HullConfig, visual_hull
+
+            lo, hi = mesh.bbox()
+            return visual_hull(capture.frames, masks, HullConfig(resolution=cfg.hull_resolution), cfg.device,
+                               bounds=(lo, hi), intersect=mesh)
+        mesh = trim_by_masks(mesh, capture.frames, masks, cfg.device)
+    return mesh

@@ -1,0 +1,39 @@
+"""``texstream mesh [CAPTURE] -o OUT [--from scan.obj | sfm | hull] [--faces N]``: make, clean, simplify the mesh.
+
+Without a capture it only cleans and simplifies the given mesh. The stage is
+:func:`texstream.geometry.make_mesh.make_mesh`; this module parses and prints.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from texstream.geometry.make_mesh import MeshConfig
+    from texstream.pipelines.cli import add_config_arguments
+
+    parser.add_argument("capture", nargs="?", default=None, help="capture folder (optional with --from MESH)")
+    parser.add_argument("-o", "--out", required=True, help="output folder (mesh.ply, mesh_report.json)")
+    parser.add_argument("--from", dest="from_", default="auto", metavar="SOURCE",
+                        help="a mesh file (OBJ/PLY/STL/GLB), 'sfm' (Poisson of the SfM points), 'hull' "
+                             "(visual hull of the masks) or 'auto' (choose from what the capture has)")
+    add_config_arguments(parser, MeshConfig)
+
+
+def run(args: argparse.Namespace) -> int:
+    from texstream.geometry.make_mesh import MeshConfig, make_mesh
+    from texstream.pipelines.cli import config_from_args
+
+    overrides = {}
+    if args.from_ in ("auto", "sfm", "hull"):
+        if args.from_ != "auto":
+            overrides["source"] = args.from_
+    else:
+        overrides["mesh"] = args.from_
+    cfg = config_from_args(MeshConfig, args, **overrides)
+    res = make_mesh(args.capture, args.out, cfg)
+    s = res.summary
+    print(f"mesh from {s['source']} ({s['reason']}): {s['summary']}; wrote {res.output / 'mesh.ply'} "
+          f"in {s['seconds']:.1f} s")
+    return 0
