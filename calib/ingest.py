@@ -1,0 +1,318 @@
+"""Raw photo folder -> capture folder (``texstream ingest PHOTOS -o CAPTURE``).
+
+Scans PHOTOS (sorted by name), reads every photo with OpenImageIO (through
+:mod:`texstream.capture.imageio`), reads EXIF (focal length, 35 mm equivalent, exposure time, ISO,
+aperture, orientation, camera), applies the orientation, drops unreadable files and byte-identical
+duplicates, groups exposure brackets of one view and merges them to linear HDR (Debevec or
+Robertson response for 8-bit, weighted linear merge for 16-bit / float), normalises exposure across
+photos from EXIF (``exposure`` = relative t * ISO / N^2, median photo = 1), picks up masks by name
+(``masks/NAME.png``, ``masks/NAME.EXT.png``) or from an alpha channel, and records each photo's
+saturation level.
+
+Output: ``CAPTURE/images`` (8-bit photos copied as they are so COLMAP still sees their EXIF;
+rotated or merged photos rewritten: 8-bit PNG or float EXR), ``masks/``, ``capture.json`` with
+identity poses and ``"posed": false`` (``texstream register`` poses it), ``ingest_report.json``
+(found / used / dropped and why), ``ingest_config.json``. Intrinsics come from ``--intrinsics``
+(calibrated, fixed in registration), EXIF (a prior) or COLMAP's default guess.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import os
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from texstream.capture.capture_json import Capture, Frame, Intrinsics, Light, write_capture
+from texstream.pipelines.errors import InputError, StageError, TexstreamError
+from texstream.pipelines.stage import StageResult, atomic_output_dir, option, save_config, write_json_atomic
+
+from .files import list_images, write_failure_report
+from .hdr import HDR_METHODS, calibrate_response, group_brackets, merge_brackets_8bit, merge_brackets_linear
+
+REPORT_FILE = "ingest_report.json"
+
+
+@dataclasses.dataclass
+class IngestConfig:
+    """Options of the ingest stage."""
+
+    masks: str | None = option(None, help="mask folder (default: PHOTOS/masks); masks are named NAME.png or NAME.EXT.png, "
+                               "nonzero = object")
+    alpha_masks: bool = option(True, help="use a photo's alpha channel as its mask when it has one and no mask file")
+    bracket_size: int = option(0, help="photos per exposure bracket: 0 = auto (consecutive photos with different "
+                               "exposure times), 1 = no brackets")
+    hdr_method: str = option("debevec", help="response calibration and merge for 8-bit brackets", choices=HDR_METHODS)
+    normalize_exposure: bool = option(True, help="set each frame's exposure from EXIF (t * ISO / N^2, median = 1)")
+    intrinsics: str | None = option(None, help="intrinsics.json from 'texstream calibrate' (fixed during registration)")
+    single_camera: bool = option(False, help="drop photos whose size differs from the most common one "
+                                 "(default: keep them as a second camera)")
+    lights: str | None = option(None, help="lights file (JSON): per-photo or default point/directional lights")
+    colocated_light: float | None = option(None, help="light fixed to the camera (flash) with this intensity: "
+                                           "its position is derived from each camera pose at registration")
+    overwrite: bool = option(True, help="replace an existing output folder")
+
+
+def _exif(path: Path) -> dict[str, Any]:
+    """EXIF fields texstream uses, from the file header (OpenImageIO); missing ones are absent."""
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        oiio.geterror()
+        return {}
+    try:
+        spec = inp.spec()
+        out: dict[str, Any] = {}
+        for key, name in (("Exif:FocalLength", "focal_mm"), ("Exif:FocalLengthIn35mmFilm", "focal_35mm"),
+                          ("ExposureTime", "exposure_time"), ("Exif:ExposureTime", "exposure_time"),
+                          ("Exif:PhotographicSensitivity", "iso"), ("Exif:ISOSpeedRatings", "iso"),
+                          ("FNumber", "f_number"), ("Exif:FNumber", "f_number"), ("Orientation", "orientation"),
+                          ("Make", "make"), ("Model", "model"),
+                          ("Exif:FocalPlaneXResolution", "focal_plane_xres"),
+                          ("Exif:FocalPlaneResolutionUnit", "focal_plane_unit")):
+            v = spec.getattribute(key)
+            if v is not None and name not in out:
+                out[name] = v if isinstance(v, str) else float(np.ravel(v)[0])
+        return out
+    finally:
+        inp.close()
+
+
+def apply_orientation(img: np.ndarray, orientation: int) -> np.ndarray:
+    """Rotate/flip an (H, W, C) image so it displays upright, per the EXIF Orientation tag (1-8)."""
+    o = int(orientation or 1)
+    ops = {1: lambda a: a, 2: lambda a: a[:, ::-1], 3: lambda a: a[::-1, ::-1], 4: lambda a: a[::-1],
+           5: lambda a: a.swapaxes(0, 1), 6: lambda a: np.rot90(a, -1), 7: lambda a: a.swapaxes(0, 1)[::-1, ::-1],
+           8: lambda a: np.rot90(a, 1)}
+    return np.ascontiguousarray(ops.get(o, ops[1])(img))
+
+
+def _focal_px(exif: dict, w: int, h: int) -> float | None:
+    """Focal length in pixels from EXIF: 35 mm equivalent, else focal plane resolution."""
+    if exif.get("focal_35mm"):
+        return float(exif["focal_35mm"]) / 36.0 * max(w, h)
+    unit = {2: 25.4, 3: 10.0, 4: 1.0}.get(int(exif.get("focal_plane_unit", 0) or 0))
+    if exif.get("focal_mm") and exif.get("focal_plane_xres") and unit:
+        # Pixels per mm on the sensor (for the original resolution; may be off for resized copies).
+        return float(exif["focal_mm"]) * float(exif["focal_plane_xres"]) / unit
+    return None
+
+
+def _find_mask(mask_dir: Path, photo: Path) -> Path | None:
+    for c in (mask_dir / (photo.stem + ".png"), mask_dir / (photo.name + ".png"), mask_dir / photo.name):
+        if c.is_file():
+            return c
+    return None
+
+
+def load_lights_file(path: str | os.PathLike) -> tuple[Light | None, dict[str, Light]]:
+    """Read a lights file: ``{"default": LIGHT, "frames": {"NAME": LIGHT, ...}}`` (names without extension ok).
+
+    LIGHT is ``{"type": "point", "position": [x,y,z], "intensity": [r,g,b]}`` or
+    ``{"type": "directional", "direction": [...], "intensity": [...]}`` (world frame, conventions).
+    """
+    from texstream.capture.capture_json import _light_from
+    from texstream.pipelines.stage import read_json
+
+    p = Path(path)
+    data = read_json(p, what="lights file")
+    if not isinstance(data, dict) or not ("default" in data or "frames" in data):
+        raise InputError("lights file needs a 'default' light and/or a 'frames' mapping", p,
+                         'write {"default": {"type": "point", "position": [..], "intensity": [..]}}')
+    default = _light_from(data["default"], "default", p) if data.get("default") else None
+    frames = {str(k): _light_from(v, f"frames[{k!r}]", p) for k, v in (data.get("frames") or {}).items()}
+    return default, frames
+
+
+def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConfig | None = None) -> StageResult:
+    """Read a raw photo folder into a capture folder (see the module doc).
+
+    Args:
+        photos: folder of photos (optionally with ``masks/``).
+        out: capture folder to write atomically.
+        config: options.
+
+    Returns:
+        StageResult; summary has ``found``, ``frames``, ``brackets`` (merged groups), ``dropped``
+        (list of {image, reason}), ``masks``, ``intrinsics_source``.
+
+    Raises:
+        InputError: missing/empty folder, bad intrinsics or lights file. StageError: no usable photo
+        (partial report at ``OUT.failed_report.json``).
+    """
+    from texstream.capture.imageio import read_alpha, read_image, read_mask, srgb_to_linear, write_image
+
+    cfg = config or IngestConfig()
+    photos, out = Path(photos), Path(out)
+    if out.exists() and not cfg.overwrite:
+        raise InputError("output folder already exists", out, "remove it or pass --overwrite")
+    files = list_images(photos)
+    mask_dir = Path(cfg.masks) if cfg.masks else photos / "masks"
+    dropped: list[dict] = []
+    infos: list[dict] = []
+    hashes: dict[str, str] = {}
+    for f in files:
+        digest = hashlib.sha1(f.read_bytes()).hexdigest()
+        if digest in hashes:
+            dropped.append({"image": f.name, "reason": f"duplicate of {hashes[digest]}"})
+            continue
+        try:
+            img = read_image(f, channels=3, linear=False)
+        except TexstreamError as e:
+            dropped.append({"image": f.name, "reason": f"unreadable ({e.message})"})
+            continue
+        hashes[digest] = f.name
+        import OpenImageIO as oiio
+
+        inp = oiio.ImageInput.open(str(f))
+        spec = inp.spec()
+        fmt = spec.format
+        inp.close()
+        eight_bit = fmt == oiio.UINT8
+        sixteen_bit = fmt == oiio.UINT16
+        exif = _exif(f)
+        infos.append({"path": f, "exif": exif, "eight_bit": eight_bit, "sixteen_bit": sixteen_bit, "img": img,
+                      "size": (img.shape[1], img.shape[0]) if int(exif.get("orientation", 1) or 1) < 5
+                      else (img.shape[0], img.shape[1])})
+    report: dict[str, Any] = {"input": str(photos), "found": len(files), "dropped": dropped}
+    if not infos:
+        report["frames"] = []
+        path = write_failure_report(out, report)
+        raise StageError(f"no usable photo among {len(files)} file(s) ({len(dropped)} dropped); partial report {path}",
+                         photos, "check that the files are images OpenImageIO can read")
+    sizes = [i["size"] for i in infos]
+    common = max(set(sizes), key=sizes.count)
+    if cfg.single_camera:
+        keep = []
+        for i in infos:
+            if i["size"] != common:
+                dropped.append({"image": i["path"].name, "reason": f"wrong size {i['size'][0]}x{i['size'][1]} "
+                                f"(most photos are {common[0]}x{common[1]}; --single-camera)"})
+            else:
+                keep.append(i)
+        infos = keep
+    times = [i["exif"].get("exposure_time") for i in infos]
+    groups = group_brackets(times, [i["size"] for i in infos], cfg.bracket_size)
+    cams = None
+    if cfg.intrinsics:
+        from .intrinsics import intrinsics_for_size, load_intrinsics
+
+        cams = load_intrinsics(cfg.intrinsics)
+    default_light, frame_lights = load_lights_file(cfg.lights) if cfg.lights else (None, {})
+    frames: list[Frame] = []
+    sources = set()
+    with atomic_output_dir(out) as tmp:
+        (tmp / "images").mkdir()
+        entries = []
+        for g in groups:
+            members = [infos[i] for i in g]
+            lead = members[len(members) // 2]  # the middle exposure names the view
+            name = lead["path"].stem
+            orient = int(lead["exif"].get("orientation", 1) or 1)
+            w, h = lead["size"]
+            sat = None
+            if len(members) > 1:
+                if any(m["exif"].get("exposure_time") is None for m in members):
+                    raise InputError("bracket without exposure times", lead["path"], "set --bracket-size 1")
+                t = [float(m["exif"]["exposure_time"]) for m in members]
+                if all(m["eight_bit"] for m in members):
+                    codes = [np.clip(np.round(m["img"] * 255), 0, 255).astype(np.uint8) for m in members]
+                    resp = calibrate_response(codes, t, cfg.hdr_method)
+                    hdr = merge_brackets_8bit(codes, t, resp, cfg.hdr_method)
+                else:
+                    lin = [srgb_to_linear(m["img"]) if m["eight_bit"] else m["img"] for m in members]
+                    hdr = merge_brackets_linear(lin, t)
+                # Radiance per second: scale so the middle exposure's level is kept (pixel ~ original).
+                t_mid = float(lead["exif"]["exposure_time"])
+                img = apply_orientation(hdr * t_mid, orient)
+                rel = Path("images") / (name + ".exr")
+                write_image(tmp / rel, img, bits=32)
+                kind = "hdr"
+            else:
+                img_code = lead["img"]
+                if orient != 1 or lead["path"].suffix.lower() not in (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr"):
+                    rot = apply_orientation(img_code, orient)
+                    if lead["eight_bit"]:
+                        rel = Path("images") / (name + ".png")
+                        write_image(tmp / rel, np.clip(np.round(rot * 255), 0, 255).astype(np.uint8), bits=8)
+                    else:
+                        rel = Path("images") / (name + ".exr")
+                        write_image(tmp / rel, rot, bits=32)
+                else:
+                    rel = Path("images") / lead["path"].name
+                    shutil.copy2(lead["path"], tmp / rel)
+                # Saturation in linear units of the stored image: the top code (clipped sensor).
+                if lead["eight_bit"]:
+                    sat = float(srgb_to_linear(np.float32(254.5 / 255)))
+                elif lead["sixteen_bit"]:
+                    sat = 65534.5 / 65535
+                kind = "photo"
+            mask_rel = None
+            mp = _find_mask(mask_dir, lead["path"]) if mask_dir.is_dir() else None
+            if mp is not None:
+                try:
+                    m = read_mask(mp)
+                    m = m.reshape(m.shape[0], m.shape[1])
+                    if m.shape != (h, w):
+                        # A mask drawn on the file's stored pixels: orient it like the photo.
+                        m = apply_orientation(m[..., None], orient)[..., 0]
+                    if m.shape != (h, w):
+                        raise InputError(f"mask is {m.shape[1]}x{m.shape[0]}, photo is {w}x{h}", mp, "resize the mask")
+                    mask_rel = Path("masks") / (name + ".png")
+                    (tmp / "masks").mkdir(exist_ok=True)
+                    write_image(tmp / mask_rel, (m > 0).astype(np.uint8) * 255, bits=8)
+                except TexstreamError as e:
+                    dropped.append({"image": mp.name, "reason": f"mask not used: {e.message}"})
+            elif cfg.alpha_masks:
+                a = read_alpha(lead["path"])
+                if a is not None:
+                    a = apply_orientation(a.reshape(a.shape[0], a.shape[1], 1), orient)[..., 0]
+                    mask_rel = Path("masks") / (name + ".png")
+                    (tmp / "masks").mkdir(exist_ok=True)
+                    write_image(tmp / mask_rel, (a > 0.5).astype(np.uint8) * 255, bits=8)
+            if cams is not None:
+                intr = intrinsics_for_size(cams, w, h, cfg.intrinsics)
+                sources.add("calibrated")
+            else:
+                f_px = _focal_px(lead["exif"], w, h)
+                sources.add("exif" if f_px else "guess")
+                # COLMAP's default guess when EXIF has no focal length: 1.2 x the longest side.
+                f_px = f_px or 1.2 * max(w, h)
+                intr = Intrinsics(width=w, height=h, fx=f_px, fy=f_px, cx=w / 2, cy=h / 2)
+            ex = lead["exif"]
+            gain = None
+            if ex.get("exposure_time"):
+                # Sensor exposure ~ t * ISO / N^2 (N = 1 and ISO 100 when unknown: only ratios matter).
+                gain = float(ex["exposure_time"]) * float(ex.get("iso", 100.0)) / 100.0 / float(ex.get("f_number", 1.0)) ** 2
+            light = frame_lights.get(name) or frame_lights.get(lead["path"].name) or default_light
+            extra = {"source_images": [m["path"].name for m in members]}
+            if ex:
+                extra["exif"] = {k: v for k, v in ex.items() if k in ("exposure_time", "iso", "f_number", "focal_mm",
+                                                                        "focal_35mm", "orientation", "make", "model")}
+            entries.append((Frame(file_path=str(rel), R=np.eye(3), t=np.zeros(3), intrinsics=intr, light=light,
+                                  mask_path=None if mask_rel is None else str(mask_rel), saturation=sat, extra=extra),
+                            gain))
+        gains = [g for _, g in entries if g]
+        ref = float(np.median(gains)) if gains and cfg.normalize_exposure else None
+        for fr, g in entries:
+            if ref and g:
+                fr.exposure = g / ref
+            frames.append(fr)
+        extra_top: dict[str, Any] = {"posed": False, "intrinsics_source": "+".join(sorted(sources))}
+        if cfg.colocated_light is not None:
+            extra_top["colocated_light"] = {"intensity": [float(cfg.colocated_light)] * 3, "offset": [0.0, 0.0, 0.0]}
+        write_capture(Capture(root=tmp, frames=frames, extra=extra_top), tmp)
+        report["frames"] = [f.file_path for f in frames]
+        report["brackets"] = [[infos[i]["path"].name for i in g] for g in groups if len(g) > 1]
+        report["camera_sizes"] = sorted({f"{f.intrinsics.width}x{f.intrinsics.height}" for f in frames})
+        write_json_atomic(tmp / REPORT_FILE, report)
+        save_config(cfg, tmp / "ingest_config.json")
+    summary = {"found": len(files), "frames": len(frames), "brackets": len(report["brackets"]), "dropped": dropped,
+               "masks": sum(1 for f in frames if f.mask_path), "intrinsics_source": extra_top["intrinsics_source"],
+               "camera_sizes": report["camera_sizes"]}
+    return StageResult(output=out, summary=summary)
