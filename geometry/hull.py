@@ -247,12 +247,12 @@ def visual_hull(frames: Sequence, masks: Sequence[np.ndarray], config: HullConfi
 
 
 def load_masks(capture) -> list[np.ndarray]:
-    """Read every frame's mask (nonzero = object) with OpenImageIO.
+    """Read every frame's mask (True = object) with :func:`texstream.capture.imageio.read_mask`.
 
     Raises:
-        InputError: a frame has no mask_path or the file cannot be read.
+        InputError: a frame has no mask_path, or its mask is unreadable or not the photo's size.
     """
-    import OpenImageIO as oiio
+    from texstream.capture.imageio import read_mask
 
     masks = []
     for f in capture.frames:
@@ -260,14 +260,7 @@ def load_masks(capture) -> list[np.ndarray]:
         if p is None:
             raise InputError(f"frame {f.file_path} has no mask_path", capture.root / "capture.json",
                              "give every frame a mask, or use --from sfm")
-        buf = oiio.ImageBuf(str(p))
-        if buf.has_error:
-            raise InputError(f"cannot read mask ({buf.geterror()})", p, "re-export the mask as PNG")
-        a = buf.get_pixels(oiio.FLOAT)
-        if a is None:
-            raise InputError("cannot read mask pixels", p, "re-export the mask as PNG")
-        a = np.asarray(a).reshape(buf.spec().height, buf.spec().width, -1)
-        masks.append(a[..., 0] > 0.5 if a.shape[2] < 4 else a[..., 3] > 0.5)
+        masks.append(read_mask(p, (f.intrinsics.height, f.intrinsics.width)))
     return masks
 
 
