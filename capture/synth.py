@@ -29,7 +29,8 @@ A *scene* is a small declarative JSON file (built-ins in ``capture/scenes/``: ``
 ``cameras``
     ``{"layout": "fibonacci" | "ring", "count": N, "distance": d, "fov_deg": f, "width": w,
     "height": h, "target": [x, y, z], "min_elevation_deg": e0, "max_elevation_deg": e1,
-    "rings": [elevations in degrees] (ring layout)}``. Cameras look at ``target`` with world +z up.
+    "rings": [elevations in degrees] (ring layout), "azimuth_offset_deg": a}``. Cameras look at
+    ``target`` with world +z up; the offset turns them all about the vertical axis through it.
 ``light``
     ``{"type": "point" | "directional", "mode": "fixed" | "camera" | "orbit", "intensity": [r,g,b]
     or a number, ...}``. fixed: ``position`` (point) or ``direction`` (directional, the direction
@@ -89,6 +90,8 @@ class SynthConfig:
     exposure: float | None = option(None, help="one linear exposure for every photo (None: the scene's)")
     saturation: float | None = option(None, help="float photos: clip at this value (integer photos clip at 1)")
     photos: int = option(0, help="photo count after scaling (0: the scene's count x scale)")
+    azimuth_offset: float = option(0.0, help="turn every camera this many degrees about the target's vertical "
+                                             "axis (e.g. held-out views between the training views)")
     image_size: int = option(0, help="image width and height in pixels after scaling (0: the scene's x sqrt(scale))")
     save_clean: bool = option(False, help="also write the noise-free float renders to ground_truth/clean/ "
                                           "(for the noise-floor PSNR)")
@@ -342,6 +345,10 @@ def camera_poses(cams: dict, count: int) -> list[tuple[np.ndarray, np.ndarray]]:
             az = 2 * math.pi * (np.arange(n) + 0.5 * (k % 2)) / max(n, 1)
             dirs += [[math.cos(el) * math.cos(a), math.cos(el) * math.sin(a), math.sin(el)] for a in az]
         dirs = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
+    off = math.radians(float(cams.get("azimuth_offset_deg", 0.0)))
+    if off:
+        rz = np.array([[math.cos(off), -math.sin(off), 0.0], [math.sin(off), math.cos(off), 0.0], [0.0, 0.0, 1.0]])
+        dirs = dirs @ rz.T
     return [look_at_w2c(target + dist * d, target, up=(0.0, 0.0, 1.0)) for d in dirs]
 
 
@@ -474,6 +481,8 @@ def resolve_scene(scene, config: SynthConfig) -> dict:
     else:
         cams["width"] = max(16, int(round(cams["width"] * f)))
         cams["height"] = max(16, int(round(cams["height"] * f)))
+    if config.azimuth_offset:
+        cams["azimuth_offset_deg"] = float(cams.get("azimuth_offset_deg", 0.0)) + float(config.azimuth_offset)
     sc["cameras"] = cams
     sc["photo"] = _photo_settings(sc, config)
     sc["scale"] = config.scale

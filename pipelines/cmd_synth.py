@@ -22,7 +22,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import warp as wp
+
     from texstream.capture.synth import SynthConfig, synthesize
+
+    wp.config.log_level = wp.LOG_WARNING  # the progress bar and the summary are the output (1.19: not `quiet`)
 
     config = config_from_args(SynthConfig, args, scene=args.scene)
     res = synthesize(args.scene, args.out, config)

@@ -166,3 +166,15 @@ def test_bunny_scene(data_dir):
     res = render_scene("bunny", SynthConfig(photos=2, image_size=48, scale=0.05, progress=False))
     assert res.mesh.n_faces <= 5200 and res.bake.n_covered > 100
     assert all(m.any() for m in res.masks)
+
+
+def test_azimuth_offset_gives_distinct_held_out_views():
+    a = synth.resolve_scene("sphere", SynthConfig(scale=0.05))
+    b = synth.resolve_scene("sphere", SynthConfig(scale=0.05, azimuth_offset=7.0))
+    pa = synth.camera_poses(a["cameras"], 4)
+    pb = synth.camera_poses(b["cameras"], 4)
+    ca, cb = (np.array([-r.T @ t for r, t in p]) for p in (pa, pb))
+    # same elevations and distances, azimuths turned by 7 degrees
+    np.testing.assert_allclose(ca[:, 2], cb[:, 2], atol=1e-12)
+    ang = np.degrees(np.arctan2(cb[:, 1], cb[:, 0]) - np.arctan2(ca[:, 1], ca[:, 0]))
+    np.testing.assert_allclose((ang + 180) % 360 - 180, 7.0, atol=1e-9)
