@@ -49,6 +49,16 @@ class MeshConfig:
     device: str = option("cpu", help="Warp device for hull carving and depth maps (cpu, cuda:0)")
 
 
+def _capture_bounds(capture):
+    """The capture's object bounding box ``{"min", "max"}`` (e.g. from the Middlebury README), or None."""
+    bb = capture.extra.get("bounding_box") if capture is not None else None
+    try:
+        lo, hi = np.asarray(bb["min"], np.float64), np.asarray(bb["max"], np.float64)
+    except (TypeError, KeyError, ValueError):
+        return None
+    return (lo, hi) if lo.shape == (3,) and hi.shape == (3,) and np.all(hi > lo) else None
+
+
 def _has_masks(capture) -> bool:
     return capture is not None and all(f.mask_path for f in capture.frames)
 
@@ -157,7 +167,8 @@ def make_mesh(capture_dir: str | os.PathLike | None, out: str | os.PathLike,
     else:
         from .hull import HullConfig, visual_hull
 
-        mesh = visual_hull(capture.frames, masks, HullConfig(resolution=cfg.hull_resolution), cfg.device)
+        mesh = visual_hull(capture.frames, masks, HullConfig(resolution=cfg.hull_resolution), cfg.device,
+                           bounds=_capture_bounds(capture))
     cleaned, clean_rep = clean_mesh(mesh, CleanConfig(target_faces=cfg.faces, remesh=cfg.remesh,
                                                       max_hole_edges=cfg.max_hole_edges),
                                     path=cfg.mesh or capture_dir)
@@ -206,7 +217,8 @@ def _from_sfm(capture, cfg: MeshConfig, masks, report: dict) -> SurfaceMesh:
 
         report["source"] = "hull"
         report["reason"] = f"too few SfM points ({len(pts)}) for Poisson; the capture has masks, so the visual hull"
-        return visual_hull(capture.frames, masks, HullConfig(resolution=cfg.hull_resolution), cfg.device)
+        return visual_hull(capture.frames, masks, HullConfig(resolution=cfg.hull_resolution), cfg.device,
+                           bounds=_capture_bounds(capture))
     report["points"] = int(len(pts))
     if masks is not None:
         if cfg.intersect_hull:

@@ -58,3 +58,24 @@ def test_misaligned_masks_say_what_to_do(device):
     masks[0][:] = False
     with pytest.raises(StageError, match="--from sfm"):
         visual_hull(frames, masks, HullConfig(resolution=32), device)
+
+
+@pytest.mark.slow
+def test_temple_hull_fills_the_readme_bbox(data_dir, tmp_path):
+    """Real photos: Middlebury temple imported with threshold masks, hull via the mesh stage."""
+    from texstream.geometry.make_mesh import MeshConfig, make_mesh
+    from texstream.geometry.mesh_io import load_mesh
+    from texstream.pipelines.cli import main
+
+    src = need_data(data_dir, "middlebury_temple_sparse")
+    assert main(["import", "middlebury", str(src), "-o", str(tmp_path / "cap"), "--make-masks"]) == 0
+    res = make_mesh(tmp_path / "cap", tmp_path / "mesh", MeshConfig(faces=20000))
+    assert res.summary["source"] == "hull"
+    m = load_mesh(tmp_path / "mesh" / "mesh.ply")
+    lo, hi = np.array([-0.073568, 0.021728, -0.012445]), np.array([0.028855, 0.181892, 0.062736])
+    diag = np.linalg.norm(hi - lo)
+    mlo, mhi = m.bbox()
+    # inside the README's tight box up to the hull's margin of error (16 ring views leave the base
+    # under-constrained: measured 1 cm of 20 cm below the box) and covering at least 90% of each side
+    assert np.all(mlo > lo - 0.06 * diag) and np.all(mhi < hi + 0.06 * diag)
+    assert np.all((np.minimum(mhi, hi) - np.maximum(mlo, lo)) > 0.9 * (hi - lo))
