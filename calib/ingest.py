@@ -27,11 +27,12 @@ from typing import Any
 
 import numpy as np
 
-from texstream.capture.capture_json import Capture, Frame, Intrinsics, Light, write_capture
+from texstream.capture.capture_json import Capture, Frame, Intrinsics, write_capture
 from texstream.pipelines.errors import InputError, StageError, TexstreamError
 from texstream.pipelines.stage import StageResult, atomic_output_dir, option, save_config, write_json_atomic
 
 from .files import list_images, write_failure_report
+from .lights import load_lights_file
 from .hdr import HDR_METHODS, calibrate_response, group_brackets, merge_brackets_8bit, merge_brackets_linear
 
 REPORT_FILE = "ingest_report.json"
@@ -108,25 +109,6 @@ def _find_mask(mask_dir: Path, photo: Path) -> Path | None:
         if c.is_file():
             return c
     return None
-
-
-def load_lights_file(path: str | os.PathLike) -> tuple[Light | None, dict[str, Light]]:
-    """Read a lights file: ``{"default": LIGHT, "frames": {"NAME": LIGHT, ...}}`` (names without extension ok).
-
-    LIGHT is ``{"type": "point", "position": [x,y,z], "intensity": [r,g,b]}`` or
-    ``{"type": "directional", "direction": [...], "intensity": [...]}`` (world frame, conventions).
-    """
-    from texstream.capture.capture_json import _light_from
-    from texstream.pipelines.stage import read_json
-
-    p = Path(path)
-    data = read_json(p, what="lights file")
-    if not isinstance(data, dict) or not ("default" in data or "frames" in data):
-        raise InputError("lights file needs a 'default' light and/or a 'frames' mapping", p,
-                         'write {"default": {"type": "point", "position": [..], "intensity": [..]}}')
-    default = _light_from(data["default"], "default", p) if data.get("default") else None
-    frames = {str(k): _light_from(v, f"frames[{k!r}]", p) for k, v in (data.get("frames") or {}).items()}
-    return default, frames
 
 
 def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConfig | None = None) -> StageResult:

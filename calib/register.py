@@ -36,6 +36,7 @@ from texstream.pipelines.stage import StageResult, atomic_output_dir, option, re
 
 from .colmap_io import intrinsics_to_colmap, opencv_distortion, reconstruction_frames
 from .files import list_images, write_failure_report
+from .lights import colocated_light
 
 REPORT_FILE = "registration_report.json"
 
@@ -61,6 +62,11 @@ class RegisterConfig:
                                   "Sim3-align the model to them (matched by image file name)")
     align_max_error: float = option(0.02, help="RANSAC inlier threshold of the alignment, as a fraction of the "
                                     "extent of the known centres")
+    colocated_light: float | None = option(None, help="light fixed to the camera (flash) with this intensity: "
+                                           "each frame gets a point light at its camera centre")
+    photometric: str = option("export", help="per-photo exposure / white-balance gains from shared SfM points: off, "
+                              "export (frame 'photometric_gain'), apply (also multiply frame exposure)",
+                              choices=("off", "export", "apply"))
     undistort: bool = option(True, help="undistort registered photos and masks to pinhole cameras")
     num_threads: int = option(-1, help="CPU threads for COLMAP (-1: all)")
     seed: int = option(0, help="random seed of COLMAP's RANSAC and mapper (reproducible runs)")
@@ -168,8 +174,12 @@ def _stage_images(photos: list[_Photo], work: Path) -> tuple[Path, Path | None]:
     return img_dir, mask_dir
 
 
-def _camera_groups(photos: list[_Photo], cfg: RegisterConfig) -> list[tuple[list[_Photo], str, str]]:
-    """Group photos into COLMAP cameras by image size: (photos, model, params string or '')."""
+def _camera_groups(photos: list[_Photo], cfg: RegisterConfig, source: str) -> list[tuple[list[_Photo], str, str]]:
+    """Group photos into COLMAP cameras by image size: (photos, model, params string or '').
+
+    ``source`` is the capture's ``intrinsics_source`` (ingest): ``calibrated`` frames' intrinsics are
+    used as given; ``exif`` focal lengths seed COLMAP's estimate of ``cfg.camera_model``.
+    """
     from .intrinsics import intrinsics_for_size, load_intrinsics
 
     cams = load_intrinsics(cfg.intrinsics) if cfg.intrinsics else None
@@ -181,13 +191,22 @@ def _camera_groups(photos: list[_Photo], cfg: RegisterConfig) -> list[tuple[list
         if cams is not None:
             model, params = intrinsics_to_colmap(intrinsics_for_size(cams, w, h, cfg.intrinsics))
             out.append((ps, model, ",".join(f"{x:.10g}" for x in params)))
+        elif source == "calibrated" and ps[0].frame is not None:
+            model, params = intrinsics_to_colmap(ps[0].frame.intrinsics)
+            out.append((ps, model, ",".join(f"{x:.10g}" for x in params)))
+        elif source == "exif" and ps[0].frame is not None:
+            i0 = ps[0].frame.intrinsics
+            n_extra = {"SIMPLE_PINHOLE": 0, "PINHOLE": 0, "SIMPLE_RADIAL": 1, "RADIAL": 2, "OPENCV": 4}[cfg.camera_model]
+            f = [i0.fx] if cfg.camera_model.startswith("SIMPLE") or cfg.camera_model == "RADIAL" else [i0.fx, i0.fy]
+            params = f + [i0.cx, i0.cy] + [0.0] * n_extra
+            out.append((ps, cfg.camera_model, ",".join(f"{x:.10g}" for x in params)))
         else:
             out.append((ps, cfg.camera_model, ""))
     return out
 
 
 def _run_colmap(photos: list[_Photo], img_dir: Path, mask_dir: Path | None, work: Path, cfg: RegisterConfig,
-                timings: dict) -> dict[int, Any]:
+                timings: dict, source: str) -> dict[int, Any]:
     import pycolmap
 
     db = work / "database.db"
@@ -196,7 +215,7 @@ def _run_colmap(photos: list[_Photo], img_dir: Path, mask_dir: Path | None, work
     eo.sift.max_num_features = cfg.max_num_features
     eo.max_image_size = cfg.max_image_size
     eo.num_threads = cfg.num_threads
-    for ps, model, params in _camera_groups(photos, cfg):
+    for ps, model, params in _camera_groups(photos, cfg, source):
         ro = pycolmap.ImageReaderOptions()
         ro.camera_model = model
         if params:
@@ -236,7 +255,7 @@ def _run_colmap(photos: list[_Photo], img_dir: Path, mask_dir: Path | None, work
     op.num_threads = cfg.num_threads
     op.random_seed = cfg.seed
     op.min_model_size = cfg.min_model_size
-    if cfg.intrinsics and not cfg.refine_intrinsics:
+    if (cfg.intrinsics or source == "calibrated") and not cfg.refine_intrinsics:
         op.ba_refine_focal_length = False
         op.ba_refine_principal_point = False
         op.ba_refine_extra_params = False
@@ -282,6 +301,33 @@ def align_to_centres(rec: Any, centres: dict[str, np.ndarray], max_error_frac: f
     got = np.stack([rec.find_image_with_name(n).projection_center() for n in names])
     rmse = float(np.sqrt(np.mean(np.sum((got - locs) ** 2, 1))))
     return {"scale": float(sim.scale), "common": len(names), "rmse": rmse, "extent": extent}
+
+
+def _photometric_gains(rec: Any, photos: list[_Photo], mask_dir: Path | None, report: dict) -> dict[str, np.ndarray]:
+    """Per-photo RGB gains from the model's shared points (see :mod:`.photometric`); {} when too few."""
+    from texstream.capture.imageio import read_image, read_mask
+
+    from .photometric import estimate_gains, observations_from_model
+
+    t0 = time.perf_counter()
+    images, masks, sat = {}, {}, {}
+    for p in photos:
+        im = rec.find_image_with_name(p.name)
+        if im is None or not im.has_pose:
+            continue
+        # Divide by the ingest exposure so the gains are what remains after EXIF normalisation.
+        images[p.name] = read_image(p.path, channels=3) / (p.frame.exposure if p.frame else 1.0)
+        if p.mask is not None:
+            masks[p.name] = read_mask(p.mask).reshape(p.height, p.width) > 0
+        s = p.frame.saturation if p.frame and p.frame.saturation else (0.99 if _is_8bit_colmap_readable(p.path) else None)
+        sat[p.name] = None if s is None else s / (p.frame.exposure if p.frame else 1.0)
+    ii, pp, vals, names = observations_from_model(rec, images, masks, sat)
+    if len(ii) == 0:
+        return {}
+    gains, used = estimate_gains(ii, pp, vals, len(names))
+    report["photometric"] = {"observations": int(len(ii)), "seconds": time.perf_counter() - t0,
+                             "gains": {n: [float(x) for x in g] for n, g, u in zip(names, gains, used) if u > 0}}
+    return {n: g for n, g, u in zip(names, gains, used) if u >= 20}  # 20: enough points for a median
 
 
 def _undistort(src: Path, dst: Path, intr: Intrinsics, nearest: bool = False) -> None:
@@ -350,7 +396,8 @@ def register(capture: str | os.PathLike, out: str | os.PathLike, config: Registe
     with tempfile.TemporaryDirectory(prefix=".register.", dir=out.parent if out.parent.exists() else None) as w:
         work = Path(w)
         img_dir, mask_dir = _stage_images(photos, work)
-        recs = _run_colmap(photos, img_dir, mask_dir, work, cfg, timings)
+        source = str(cap.extra.get("intrinsics_source", "")) if cap is not None else ""
+        recs = _run_colmap(photos, img_dir, mask_dir, work, cfg, timings, source)
         sizes = sorted((r.num_reg_images() for r in recs.values()), reverse=True)
         report["models"] = sizes
         if not recs:
@@ -364,6 +411,12 @@ def register(capture: str | os.PathLike, out: str | os.PathLike, config: Registe
         if centres is not None:
             report["alignment"] = align_to_centres(rec, centres, cfg.align_max_error, cfg.seed)
         posed = {name: (r, t, intr) for name, r, t, intr in reconstruction_frames(rec)}
+        gains = _photometric_gains(rec, photos, mask_dir, report) if cfg.photometric != "off" else {}
+        coloc = cfg.colocated_light
+        offset = [0.0, 0.0, 0.0]
+        if coloc is None and cap is not None and isinstance(cap.extra.get("colocated_light"), dict):
+            coloc = cap.extra["colocated_light"].get("intensity")
+            offset = cap.extra["colocated_light"].get("offset", offset)
         report["registered"] = sorted(posed)
         report["unregistered"] = [p.name for p in photos if p.name not in posed]
         with atomic_output_dir(out) as tmp:
@@ -390,14 +443,23 @@ def register(capture: str | os.PathLike, out: str | os.PathLike, config: Registe
                         (tmp / mask_rel).parent.mkdir(parents=True, exist_ok=True)
                         shutil.copy2(p.mask, tmp / mask_rel)
                 base = p.frame
-                frames.append(Frame(file_path=str(dst_rel), R=r, t=t, intrinsics=intr,
-                                    light=base.light if base else None, exposure=base.exposure if base else 1.0,
+                light = base.light if base else None
+                if coloc is not None:
+                    light = colocated_light(r, t, coloc, offset)
+                extra = dict(base.extra) if base else {}
+                exposure = base.exposure if base else 1.0
+                if p.name in gains:
+                    g = gains[p.name]
+                    extra["photometric_gain"] = [float(x) for x in g]
+                    if cfg.photometric == "apply":
+                        exposure *= float(np.mean(g))
+                frames.append(Frame(file_path=str(dst_rel), R=r, t=t, intrinsics=intr, light=light, exposure=exposure,
                                     mask_path=None if mask_rel is None else str(mask_rel),
-                                    saturation=base.saturation if base else None,
-                                    extra=dict(base.extra) if base else {}))
+                                    saturation=base.saturation if base else None, extra=extra))
             timings["undistort_s"] = time.perf_counter() - t0
             extra = dict(cap.extra) if cap is not None else {}
             extra.pop("posed", None)
+            extra.pop("colocated_light", None)
             extra["registration"] = {"registered": len(frames), "unregistered": report["unregistered"],
                                      "aligned": centres is not None}
             write_capture(Capture(root=tmp, frames=frames, extra=extra), tmp)

@@ -66,11 +66,14 @@ def test_temple_registration_with_calibrated_intrinsics(data_dir, tmp_path):
     (tmp_path / "K.json").write_text(json.dumps(TEMPLE_K))
     t0 = time.time()
     cfg = RegisterConfig(max_num_features=4000, intrinsics=str(tmp_path / "K.json"),
-                         align_to=str(cap / "capture.json"), num_threads=2)
+                         align_to=str(cap / "capture.json"), num_threads=2, colocated_light=2.0)
     res = register(cap, tmp_path / "posed", cfg)
     cen, rot = _check_temple(res, tmp_path / "posed", cap)
     got = read_capture(tmp_path / "posed")
     assert got.frames[0].intrinsics.fx == pytest.approx(1520.4)  # fixed intrinsics stay fixed
+    for f in got.frames:  # co-located light at each camera centre; photometric gains exported
+        np.testing.assert_allclose(f.light.position, f.center, atol=1e-9)
+        assert len(f.extra["photometric_gain"]) == 3 and f.exposure == 1.0
     print(f"temple (K fixed): {len(res.summary['registered'])}/16, centre max {cen.max():.4f} of diameter, "
           f"rotation max {rot.max():.3f} deg, {time.time() - t0:.1f} s")
 
