@@ -54,12 +54,13 @@ class AtlasConfig:
                                        "inside a chart never read another chart")
     max_chart_area: float = option(0.0, help="largest chart surface area in scene units^2 (0: no limit); "
                                              "smaller charts let face weights vary more finely")
-    max_boundary_length: float = option(0.0, help="largest chart boundary length in scene units (0: no limit)")
+    max_boundary_length: float = option(0.0, help="largest chart boundary length in scene units "
+                                                  "(0: no limit)")
     max_cost: float = option(2.0, help="xatlas chart growth cost threshold: lower gives more, flatter charts "
                                        "with less stretch")
     max_iterations: int = option(1, help="xatlas chart growing iterations (more: better charts, slower)")
-    normal_deviation_weight: float = option(2.0, help="xatlas cost weight of normal deviation from the chart's "
-                                                      "average normal")
+    normal_deviation_weight: float = option(2.0, help="xatlas cost weight of normal deviation from "
+                                                      "the chart's average normal")
     roundness_weight: float = option(0.01, help="xatlas cost weight favouring round charts")
     straightness_weight: float = option(6.0, help="xatlas cost weight favouring straight chart boundaries")
     normal_seam_weight: float = option(4.0, help="xatlas cost weight keeping hard normal edges on chart "
@@ -88,6 +89,9 @@ class AtlasInfo:
         texels_per_unit: texel density used, texels per scene unit at face weight 1 (for kept UVs,
             the mean density sqrt(W H uv_area / surface_area)).
         n_covered: texels whose centre lies on the surface.
+        orphan_faces: faces whose UV triangle contains no texel centre; each was given the
+            nearest texel (see :mod:`texstream.geometry.bake`), those that could not be are
+            counted in ``faces_without_texels``.
         reason: why the mesh's UVs were kept or replaced.
     """
 
@@ -99,6 +103,7 @@ class AtlasInfo:
     source: str = "xatlas"
     texels_per_unit: float = 0.0
     n_covered: int = 0
+    orphan_faces: int = 0
     reason: str = ""
 
     def to_dict(self) -> dict:
@@ -152,7 +157,8 @@ def build_atlas(mesh: SurfaceMesh, config: AtlasConfig,
 
 def _check_config(c: AtlasConfig) -> None:
     if int(c.resolution) < 8:
-        raise ConfigError(f"resolution must be at least 8 texels, got {c.resolution}", fix="pass --resolution 1024")
+        raise ConfigError(f"resolution must be at least 8 texels, got {c.resolution}",
+                          fix="pass --resolution 1024")
     if not (c.texels_per_unit >= 0 and math.isfinite(c.texels_per_unit)):
         raise ConfigError(f"texels_per_unit must be >= 0, got {c.texels_per_unit}",
                           fix="pass 0 to derive it from --resolution")
@@ -217,24 +223,33 @@ def _kept_side(mesh: SurfaceMesh, config: AtlasConfig) -> int:
 
 def _keep_uvs(mesh: SurfaceMesh, config: AtlasConfig,
               weights: np.ndarray | None) -> tuple[SurfaceMesh, AtlasInfo]:
-    from .bake import claim_texels
-
     side = _kept_side(mesh, config)
-    owner = claim_texels(mesh, side, side)
-    owned = np.zeros(mesh.n_faces, dtype=bool)
-    owned[owner[owner >= 0]] = True
-    n_cov = int(np.count_nonzero(owner >= 0))
+    n_cov, n_orphan, n_without = _coverage(mesh, side, side)
     a_uv = float(np.abs(_uv_areas(mesh.uvs, mesh.faces)).sum())
     tpu = side * math.sqrt(a_uv / max(float(mesh.face_areas().sum()), 1e-30))
     reason = "mesh UVs kept: inside [0, 1], not degenerate, not overlapping"
     if weights is not None:
-        reason += " (face_weights ignored: they only shape new atlases; set keep_existing_uvs off to use them)"
+        reason += (" (face_weights ignored: they only shape new atlases;"
+                   " set keep_existing_uvs off to use them)")
     out = mesh if mesh.source_vertex is not None else dataclasses.replace(
         mesh, source_vertex=np.arange(mesh.n_vertices, dtype=np.int32))
     info = AtlasInfo(width=side, height=side, n_charts=_count_islands(out), utilization=n_cov / side ** 2,
-                     faces_without_texels=int((~owned).sum()), source="input", texels_per_unit=tpu,
-                     n_covered=n_cov, reason=reason)
+                     faces_without_texels=n_without, source="input", texels_per_unit=tpu,
+                     n_covered=n_cov, orphan_faces=n_orphan, reason=reason)
     return out, info
+
+
+def _coverage(mesh: SurfaceMesh, width: int, height: int) -> tuple[int, int, int]:
+    """(covered texels, faces with no texel centre inside, faces still without a texel after
+    the orphan rule), as the bake will find them."""
+    from .bake import _claim_orphans, _texel_vertex_coords, claim_texels
+
+    face = claim_texels(mesh, width, height, claim_orphans=False).reshape(-1)
+    n_orphan = mesh.n_faces - len(np.unique(face[face >= 0]))
+    tx, ty = _texel_vertex_coords(mesh, width, height)
+    _claim_orphans(face, tx, ty, np.asarray(mesh.faces), width, height)
+    n_without = mesh.n_faces - len(np.unique(face[face >= 0]))
+    return int(np.count_nonzero(face >= 0)), int(n_orphan), int(n_without)
 
 
 def _count_islands(mesh: SurfaceMesh) -> int:
@@ -303,8 +318,6 @@ def _xatlas_atlas(mesh: SurfaceMesh, config: AtlasConfig,
                   weights: np.ndarray | None) -> tuple[SurfaceMesh, AtlasInfo]:
     import xatlas
 
-    from .bake import claim_texels
-
     faces_in = np.asarray(mesh.faces, dtype=np.uint32)
     area3 = mesh.face_areas()
     total = float(area3.sum())
@@ -318,7 +331,8 @@ def _xatlas_atlas(mesh: SurfaceMesh, config: AtlasConfig,
     try:
         chart_atlas.add_mesh(np.asarray(mesh.vertices, dtype=np.float32), faces_in, normals=normals)
     except RuntimeError as e:
-        raise InputError(f"xatlas rejected the mesh ({e})", None, "clean the mesh (texstream mesh) first") from None
+        raise InputError(f"xatlas rejected the mesh ({e})", None,
+                         "clean the mesh (texstream mesh) first") from None
     tpu_a = 512.0 / math.sqrt(total)
     chart_atlas.generate(_chart_options(config), _pack_options(config, tpu_a))
     vm_a, idx_a, uv_a = chart_atlas.get_mesh(0)
@@ -326,7 +340,9 @@ def _xatlas_atlas(mesh: SurfaceMesh, config: AtlasConfig,
     chart = np.full(len(idx_a), n_charts, dtype=np.int64)  # faces xatlas ignored (zero area): own group
     for c in range(n_charts):
         chart[np.asarray(chart_atlas.get_mesh_chart(0, c).faces, dtype=np.int64)] = c
-    uv_world = np.asarray(uv_a, np.float64) * [chart_atlas.width, chart_atlas.height] / chart_atlas.texels_per_unit
+    # normalised UVs -> texels -> scene units (the flattening at unit density)
+    uv_world = (np.asarray(uv_a, np.float64) * [chart_atlas.width, chart_atlas.height]
+                / chart_atlas.texels_per_unit)
 
     # Per-chart importance scale (split vertices belong to exactly one chart).
     if weights is not None:
@@ -357,15 +373,14 @@ def _xatlas_atlas(mesh: SurfaceMesh, config: AtlasConfig,
         faces=np.asarray(idx_b, dtype=np.int32),
         normals=None if mesh.normals is None else np.asarray(mesh.normals, np.float64)[src],
         uvs=from_xatlas_uv(uv_b),
-        source_vertex=(src if mesh.source_vertex is None else np.asarray(mesh.source_vertex)[src]).astype(np.int32),
+        source_vertex=(src if mesh.source_vertex is None
+                       else np.asarray(mesh.source_vertex)[src]).astype(np.int32),
     )
     w, h = int(atlas.width), int(atlas.height)
-    owner = claim_texels(out, w, h)
-    owned = np.zeros(out.n_faces, dtype=bool)
-    owned[owner[owner >= 0]] = True
+    n_cov, n_orphan, n_without = _coverage(out, w, h)
     info = AtlasInfo(width=w, height=h, n_charts=int(n_charts), utilization=float(atlas.utilization),
-                     faces_without_texels=int((~owned).sum()), source="xatlas", texels_per_unit=float(tpu),
-                     n_covered=int(np.count_nonzero(owner >= 0)))
+                     faces_without_texels=n_without, source="xatlas", texels_per_unit=float(tpu),
+                     n_covered=n_cov, orphan_faces=n_orphan)
     return out, info
 
 

@@ -41,6 +41,7 @@ from texstream.fit.kernels.shading import surface_frame
 from texstream.pipelines.errors import InputError
 
 from .mesh import SurfaceMesh
+from .mesh_io import _chmod_like_open
 
 _NO_OWNER = 2147483647  # int32 max: "unclaimed" for atomic_min
 
@@ -231,6 +232,7 @@ class TexelBake:
                 np.savez_compressed(fh, width=np.int64(self.width), height=np.int64(self.height),
                                     padding=np.int64(self.padding),
                                     **{k: getattr(self, k) for k in self._ARRAYS})
+            _chmod_like_open(tmp)
             os.replace(tmp, p)
         except BaseException:
             with contextlib.suppress(FileNotFoundError):
@@ -250,8 +252,8 @@ class TexelBake:
         except (OSError, KeyError, ValueError) as e:
             raise InputError(f"not a texel bake ({e})", p, "re-run `texstream atlas` to rebuild it") from None
         if bake.face.shape != (bake.height, bake.width):
-            raise InputError(f"bake arrays have shape {bake.face.shape}, expected {(bake.height, bake.width)}",
-                             p, "re-run `texstream atlas` to rebuild it")
+            raise InputError(f"bake arrays have shape {bake.face.shape}, "
+                             f"expected {(bake.height, bake.width)}", p, "re-run `texstream atlas` to rebuild it")
         return bake
 
 

@@ -126,11 +126,19 @@ def _write_atomic(p: Path, data: bytes) -> None:
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
+        _chmod_like_open(tmp)
         os.replace(tmp, p)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+
+
+def _chmod_like_open(path: str) -> None:
+    """mkstemp creates files 0600; give the result the mode a plain open() would (0666 & ~umask)."""
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(path, 0o666 & ~umask)
 
 
 def _unweld(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -341,7 +349,8 @@ def _ply_bytes(mesh: SurfaceMesh) -> bytes:
 # ----------------------------------------------------------------------------------------------
 # glTF 2.0 (numpy)
 
-_GLTF_DTYPES = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}
+_GLTF_DTYPES = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32,
+                5126: np.float32}
 _GLTF_NCOMP = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT4": 16}
 
 

@@ -59,6 +59,13 @@ def inside_count(mesh: SurfaceMesh, w: int, h: int, eps: float) -> np.ndarray:
     return np.bincount((y * w + x)[ins], minlength=w * h)
 
 
+def texel_areas(out: SurfaceMesh, info) -> np.ndarray:
+    """(F,) UV triangle areas in texels^2."""
+    p = out.uvs[out.faces] * [info.width, info.height]
+    a, b = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    return 0.5 * np.abs(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])
+
+
 @pytest.fixture(scope="module")
 def sphere_atlas():
     mesh = icosphere(2)  # 320 faces
@@ -114,8 +121,7 @@ def test_uv_convention_matches_xatlas_chart_image():
 def test_texels_per_unit_density_and_limit():
     mesh = icosphere(2)
     out, info = build_atlas(mesh, AtlasConfig(resolution=512, texels_per_unit=40.0))
-    a_uv = np.abs(np.cross(*(np.diff(out.uvs[out.faces], axis=1) * [info.width, info.height]).transpose(1, 0, 2)))
-    ratio = 0.5 * a_uv / mesh.face_areas()  # texels per unit area
+    ratio = texel_areas(out, info) / mesh.face_areas()  # texels per unit area (faces keep their order)
     # xatlas flattening stretches charts a little (conformal-ish maps of a curved sphere): 25%
     assert abs(np.median(ratio) / 40.0 ** 2 - 1) < 0.25
     with pytest.raises(ConfigError, match="texels_per_unit"):
@@ -127,8 +133,7 @@ def test_face_weights_scale_texel_density():
     up = mesh.vertices[mesh.faces].mean(1)[:, 2] > 0
     w = np.where(up, 4.0, 1.0)
     out, info = build_atlas(mesh, AtlasConfig(resolution=256, max_chart_area=0.5), face_weights=w)
-    a_uv = 0.5 * np.abs(np.cross(*np.diff(out.uvs[out.faces] * [info.width, info.height], axis=1).transpose(1, 0, 2)))
-    dens = a_uv / mesh.face_areas()  # faces keep their order
+    dens = texel_areas(out, info) / mesh.face_areas()  # faces keep their order
     r = np.median(dens[up]) / np.median(dens[~up])
     # per-chart averaging blurs the weight near the equator, and flattening stretch varies: 4 +- 1.5
     assert 2.5 < r < 5.5, r
@@ -146,7 +151,8 @@ def test_keep_usable_uvs_and_replace_overlapping():
     assert info.source == "xatlas" and "keep_existing_uvs" in info.reason
     # two quads mapped onto the same UV square: overlapping, so a new atlas is made
     v2 = np.concatenate([v, v + [0, 0, 2]])
-    stacked = SurfaceMesh(v2, np.concatenate([f, f + 4]), uvs=np.concatenate([v[:, :2], v[:, :2]]) * 0.8 + 0.1)
+    uv2 = np.concatenate([v[:, :2], v[:, :2]]) * 0.8 + 0.1
+    stacked = SurfaceMesh(v2, np.concatenate([f, f + 4]), uvs=uv2)
     out, info = build_atlas(stacked, AtlasConfig(resolution=64))
     assert info.source == "xatlas" and "overlap" in info.reason
     assert info.faces_without_texels == 0

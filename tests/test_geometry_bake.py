@@ -59,7 +59,8 @@ def test_sphere_frames_lie_on_their_faces(device, sphere):
     np.testing.assert_allclose(bary.sum(1), 1, atol=1e-6)
     p = mesh.vertices[mesh.faces[f]]  # (N, 3, 3)
     pos = b.position[c].astype(np.float64)
-    np.testing.assert_allclose(np.einsum("ni,nij->nj", bary, p), pos, atol=1e-6)  # float32 of unit-size values
+    # float32 rounding of unit-size values
+    np.testing.assert_allclose(np.einsum("ni,nij->nj", bary, p), pos, atol=1e-6)
     n_face = mesh.face_normals()[f]
     # distance of the texel's point to its face's plane: float32 positions on a unit sphere
     assert np.abs(np.einsum("ij,ij->i", pos - p[:, 0], n_face)).max() < 1e-6
