@@ -1,0 +1,244 @@
+"""The fit and eval stages over folders (``texstream fit`` / ``texstream eval``).
+
+fit: a posed capture with lights + a mesh with UVs (or an atlas folder with ``mesh.obj`` and
+``bake.npz``, e.g. ``texstream atlas`` output or a synthetic set's ``ground_truth/``) -> a model
+folder: mesh.obj, bake.npz, parameter maps (EXR), seen.png (texels no photo saw keep their
+default values and are flagged here), model.json, trace.json, error_vs_time.png, renders/ (fitted
+render beside each of a few photos) and fit_config.json.
+
+Unlike the rest of fit/, this module imports OpenImageIO (through capture.imageio) and
+matplotlib inside its functions: it is a stage, not the GPU-side core.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from texstream.pipelines.errors import InputError
+from texstream.pipelines.stage import StageResult, atomic_output_dir, option, read_json, save_config, write_json_atomic
+
+from .fitter import FitConfig, FitResult, run_fit
+from .models import ModelLayout
+
+
+@dataclasses.dataclass
+class FitStageConfig:
+    """Options of ``texstream fit`` around the numerical FitConfig."""
+
+    device: str = option("cpu", "Warp device: cpu or cuda:N")
+    texture_size: int = option(256, "atlas side in texels when the mesh has UVs but no bake")
+    holdout_every: int = option(0, "hold out every k-th photo from the fit for evaluation (0 = none)")
+    renders: int = option(4, "photos rendered beside the fitted model in renders/")
+    fit: FitConfig = option(default_factory=FitConfig, help="the fit")
+
+
+def load_geometry(mesh_path: str | Path, texture_size: int, device: str):
+    """(mesh with UVs, TexelBake) from an atlas folder, or a mesh file baked at ``texture_size``."""
+    from texstream.geometry.bake import TexelBake, bake_texels
+    from texstream.geometry.mesh_io import load_mesh
+
+    p = Path(mesh_path)
+    if p.is_dir():
+        mfile = next((p / n for n in ("mesh.obj", "mesh.ply") if (p / n).exists()), None)
+        if mfile is None:
+            raise InputError("folder has no mesh.obj", p, "pass an atlas folder (texstream atlas) or a mesh file")
+        mesh = load_mesh(mfile)
+        if (p / "bake.npz").exists():
+            return mesh.with_normals(), TexelBake.load(p / "bake.npz")
+    else:
+        mesh = load_mesh(p)
+    if mesh.uvs is None:
+        from texstream.geometry.atlas import AtlasConfig, build_atlas
+
+        mesh, _ = build_atlas(mesh, AtlasConfig(resolution=texture_size))
+    mesh = mesh.with_normals()
+    return mesh, bake_texels(mesh, texture_size, texture_size, device=device)
+
+
+def load_photos(capture, frames, device: str | None = None):
+    """Images (linear, H x W x 3) and masks of the given frames."""
+    from texstream.capture.imageio import read_image, read_mask
+
+    images, masks = [], []
+    for f in frames:
+        images.append(read_image(capture.image_path(f), channels=3))
+        mp = capture.mask_path(f)
+        masks.append(read_mask(mp, images[-1].shape[:2]) if mp is not None and mp.exists() else None)
+    return images, masks
+
+
+def build_problem(mesh, bake, frames, images, masks, cfg: FitConfig, device: str):
+    from .problem import PhotoFrame, PhotoSet, StreamProblem, TexelSet
+
+    texels = TexelSet.from_grid(bake.covered, bake.position, bake.normal, bake.tangent, bake.bitangent)
+    if texels.n == 0:
+        raise InputError("the atlas has no covered texels", fix="rebuild the atlas with a larger resolution")
+    photo_frames = [PhotoFrame.from_capture_frame(f) for f in frames]
+    photos = PhotoSet(photo_frames, images, mesh.vertices, mesh.faces, masks=masks, config=cfg.stream, device=device)
+    return StreamProblem(texels, photos, cfg.layout(), cfg.stream, device=device)
+
+
+def params_to_grid(result: FitResult, problem, bake) -> np.ndarray:
+    """Compact per-texel parameters -> (H, W, P) grid with padding filled (no bilinear bleeding)."""
+    lay = result.layout
+    grid = np.tile(lay.defaults().astype(np.float32), (bake.height * bake.width, 1))
+    grid[problem.texels.grid_index] = result.params
+    return bake.fill_padding(grid.reshape(bake.height, bake.width, -1))
+
+
+def plot_trace(trace: list[dict], path: Path, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
+    t = [r["time_s"] for r in trace]
+    ax[0].semilogy(t, [max(r["objective"], 1e-300) for r in trace], "o-", ms=3)
+    ax[0].set_xlabel("wall time (s)")
+    ax[0].set_ylabel("objective")
+    ax[1].plot(t, [r["psnr_db"] for r in trace], "o-", ms=3)
+    ax[1].set_xlabel("wall time (s)")
+    ax[1].set_ylabel("sample PSNR (dB)")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def image_metrics(render: np.ndarray, photo: np.ndarray, mask: np.ndarray, peak: float = 1.0) -> dict:
+    """PSNR (dB, against ``peak``) and APE (%) over foreground pixels."""
+    m = mask.astype(bool)
+    if not m.any():
+        return {"psnr_db": float("nan"), "ape_percent": float("nan"), "pixels": 0}
+    d = (render[m] - photo[m]).astype(np.float64)
+    mse = float(np.mean(d * d))
+    ape = 100.0 * float(np.abs(d).sum() / max(np.abs(photo[m]).sum(), 1e-300))
+    return {"psnr_db": 10 * math.log10(peak * peak / mse) if mse > 0 else float("inf"), "ape_percent": ape,
+            "pixels": int(m.sum())}
+
+
+def render_model(mesh, grid: np.ndarray, layout: ModelLayout, frame, device: str):
+    from .render import Renderer
+
+    rend = Renderer(mesh, grid, layout, device=device)
+    res = rend.render_frame(frame)
+    return res.radiance * np.float32(frame.exposure), res.mask
+
+
+def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Path,
+              config: FitStageConfig | None = None, progress: bool = True) -> StageResult:
+    """Fit the appearance model of ``config.fit`` to a capture; write the model folder atomically."""
+    from texstream.capture.capture_json import read_capture
+    from texstream.capture.imageio import write_image
+    from texstream.capture.synth import write_param_maps
+    from texstream.geometry.mesh_io import save_mesh
+
+    cfg = config or FitStageConfig()
+    capture = read_capture(capture_dir)
+    if not capture.has_lights:
+        raise InputError("capture has frames without a light", Path(capture_dir) / "capture.json",
+                         "add per-frame lights (texstream ingest --lights) to fit a reflectance model")
+    frames = capture.frames
+    held = []
+    if cfg.holdout_every > 0:
+        held = [f for i, f in enumerate(frames) if i % cfg.holdout_every == cfg.holdout_every - 1]
+        frames = [f for i, f in enumerate(frames) if i % cfg.holdout_every != cfg.holdout_every - 1]
+    t0 = time.perf_counter()
+    mesh, bake = load_geometry(mesh_path, cfg.texture_size, cfg.device)
+    images, masks = load_photos(capture, frames)
+    problem = build_problem(mesh, bake, frames, images, masks, cfg.fit, cfg.device)
+    t_setup = time.perf_counter() - t0
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=cfg.fit.max_iterations, desc=f"fit {cfg.fit.optimizer}", unit="it")
+    result = run_fit(problem, cfg.fit, progress=(lambda it: bar.update(1)) if bar else None)
+    if bar:
+        bar.close()
+    grid = params_to_grid(result, problem, bake)
+    lay = result.layout
+    with atomic_output_dir(out_dir) as tmp:
+        save_mesh(tmp / "mesh.obj", mesh)
+        bake.save(tmp / "bake.npz")
+        files = write_param_maps(tmp, grid, lay)
+        seen = np.zeros(bake.height * bake.width, np.float32)
+        seen[problem.texels.grid_index] = (result.samples > 0).astype(np.float32)
+        write_image(tmp / "seen.png", seen.reshape(bake.height, bake.width, 1).repeat(3, axis=2), bits=8)
+        write_json_atomic(tmp / "trace.json", result.trace)
+        plot_trace(result.trace, tmp / "error_vs_time.png", f"{lay.kind} fit, {cfg.fit.optimizer}, {cfg.device}")
+        evals = []
+        (tmp / "renders").mkdir()
+        show = (held or frames)[: max(cfg.renders, 0)]
+        shown_images, _ = load_photos(capture, show) if show else ([], [])
+        for f, photo in zip(show, shown_images):
+            rend, rmask = render_model(mesh, grid, lay, f, cfg.device)
+            m = rmask.astype(bool)
+            if capture.mask_path(f) is not None and capture.mask_path(f).exists():
+                from texstream.capture.imageio import read_mask
+
+                m &= read_mask(capture.mask_path(f), rmask.shape)
+            evals.append({"frame": f.file_path, "held_out": f in held, **image_metrics(rend, photo, m)})
+            write_image(tmp / "renders" / f"{f.name}_fit_vs_photo.png",
+                        np.clip(np.concatenate([rend, photo], axis=1), 0, 1), bits=8)
+        last = result.trace[-1]
+        model = {"kind": lay.kind, "layout": lay.to_json(), "maps": files, "mesh": "mesh.obj", "bake": "bake.npz",
+                 "atlas": {"width": bake.width, "height": bake.height, "texels": int(problem.n),
+                           "unseen_texels": int((result.samples == 0).sum())},
+                 "photos": {"fitted": len(frames), "held_out": len(held)},
+                 "final": {k: last[k] for k in ("iteration", "time_s", "objective", "psnr_db", "ape_percent")},
+                 "setup_s": t_setup, "passes": result.passes, "device": cfg.device, "render_eval": evals,
+                 "units": "BRDF values in 1/sr (capture/conventions.py)"}
+        write_json_atomic(tmp / "model.json", model)
+        save_config(cfg, tmp / "fit_config.json")
+    return StageResult(Path(out_dir), {"psnr_db": last["psnr_db"], "iterations": last["iteration"],
+                                       "time_s": last["time_s"], "texels": problem.n, "photos": len(frames),
+                                       "render_eval": evals})
+
+
+def load_model(model_dir: str | Path):
+    """(mesh, parameter grid (H, W, P), layout, model.json) of a model folder."""
+    d = Path(model_dir)
+    man = read_json(d / "model.json", what="model manifest")
+    from texstream.capture.imageio import read_image
+    from texstream.geometry.mesh_io import load_mesh
+
+    lay = ModelLayout.from_json(man["layout"])
+    maps = [read_image(d / "rho_d.exr", channels=3)]
+    for j in range(lay.n_lobes):
+        maps.append(read_image(d / f"lobe{j}_rho_s.exr", channels=3))
+        maps.append(read_image(d / f"lobe{j}_shape.exr", channels=lay.lobe_stride - 3))
+    grid = np.concatenate(maps, axis=-1).astype(np.float32)
+    return load_mesh(d / "mesh.obj").with_normals(), grid, lay, man
+
+
+def eval_stage(model_dir: str | Path, capture_dir: str | Path, device: str = "cpu",
+               out_json: str | Path | None = None) -> StageResult:
+    """Render the model for every frame of a capture; PSNR / APE on foreground pixels."""
+    from texstream.capture.capture_json import read_capture
+    from texstream.capture.imageio import read_image, read_mask
+
+    mesh, grid, lay, _ = load_model(model_dir)
+    capture = read_capture(capture_dir)
+    rows = []
+    for f in capture.frames:
+        photo = read_image(capture.image_path(f), channels=3)
+        rend, rmask = render_model(mesh, grid, lay, f, device)
+        m = rmask.astype(bool)
+        mp = capture.mask_path(f)
+        if mp is not None and mp.exists():
+            m &= read_mask(mp, rmask.shape)
+        rows.append({"frame": f.file_path, **image_metrics(rend, photo, m)})
+    mse_all = [10 ** (-r["psnr_db"] / 10) for r in rows if r["pixels"]]
+    summary = {"frames": len(rows), "mean_psnr_db": float(np.mean([r["psnr_db"] for r in rows if r["pixels"]])),
+               "psnr_of_mean_mse_db": float(-10 * np.log10(np.mean(mse_all))) if mse_all else float("nan"),
+               "mean_ape_percent": float(np.mean([r["ape_percent"] for r in rows if r["pixels"]])), "per_frame": rows}
+    out = Path(out_json) if out_json else Path(model_dir) / f"eval_{Path(capture_dir).resolve().name}.json"
+    write_json_atomic(out, summary)
+    return StageResult(out, {k: v for k, v in summary.items() if k != "per_frame"})
