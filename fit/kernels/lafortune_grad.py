@@ -62,8 +62,15 @@ def lafortune_eval(p: Any, n_lobes: int, aniso: int, u: Any, v: Any, one: Any):
         if s > zero:
             n = p[o + stride - 1]
             ls = wp.log(s)
-            lobe = wp.exp(n * ls)
+            # cap the lobe at e^30 (~1e13; its square stays finite in fp32): reachable only when
+            # C pushes s above 1 with a huge exponent, where the model is meaningless anyway
+            nls = n * ls
+            capped = nls > type(one)(30.0)
+            lobe = wp.exp(wp.min(nls, type(one)(30.0)))
             dlds = n * lobe / s
+            if capped:
+                dlds = zero
+                ls = zero  # d lobe / dn = lobe ln s becomes 0 on the flat cap
             m = m + type(u)(p[o], p[o + 1], p[o + 2]) * lobe
             jr[o] = lobe
             jg[o + 1] = lobe
@@ -103,6 +110,8 @@ def lafortune_dhd(p: Any, d: Any, n_lobes: int, aniso: int, u: Any, v: Any, one:
             dnj = d[o + stride - 1]
             ds = lobe_base(d, o, aniso, w)
             ls = wp.log(s)
+            if n * ls > type(one)(30.0):
+                continue  # flat cap: no curvature
             lobe = wp.exp(n * ls)
             q = n * ds / s + dnj * ls
             l1 = lobe * q

@@ -51,7 +51,8 @@ def lafortune_lobe(c: Any, n: Any, u: Any, v: Any):
     s = lafortune_base(c, u, v)
     if s <= type(n)(0.0):
         return type(n)(0.0)
-    return wp.exp(n * wp.log(s))
+    # capped at e^30 like the fit's model (fit/kernels/lafortune_grad.py) so they agree everywhere
+    return wp.exp(wp.min(n * wp.log(s), type(n)(30.0)))
 
 
 @wp.func
