@@ -17,10 +17,12 @@ Rasterisation rules (kernel ``_claim_texels``)
 
 Orphan faces
     A sliver UV triangle may contain no texel centre. With ``claim_orphans`` (default) such a face
-    takes the texel nearest its UV centroid when no face owns that texel; the texel's barycentrics
-    are then clamped onto the face (its position is the nearest-in-UV point of the face), so the
-    face still gets a parameter (a face with degenerate UVs gets its 3D centroid). Faces left
-    without a texel (two orphans on one texel) are listed in ``TexelBake.faces_without_texels``.
+    takes the texel nearest its UV centroid, or failing that one within 2 texels, nearest first:
+    a free texel, or one whose owner keeps another texel (the fit then has one sample fewer
+    there). The texel's barycentrics are clamped onto the face (negative ones set to 0 and the
+    rest renormalised), so its position is a point of the face (a face with degenerate UVs gets
+    its centroid). Faces still without a texel (every candidate taken) are listed in
+    ``TexelBake.faces_without_texels``.
 
 The frame at each texel comes from :func:`texstream.fit.kernels.shading.surface_frame`, the same
 function the renderer and the fit use.
@@ -282,14 +284,16 @@ def claim_texels(mesh: SurfaceMesh, width: int, height: int, device: str = "cpu"
     return face.reshape(height, width)
 
 
-_ORPHAN_OFFSETS = ((0, 0), (1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, 1), (1, -1), (-1, -1))
+# texel offsets from an orphan's nearest texel, nearest first (ties in a fixed order)
+_ORPHAN_OFFSETS = tuple(sorted(((dx, dy) for dy in range(-2, 3) for dx in range(-2, 3)),
+                               key=lambda o: (o[0] ** 2 + o[1] ** 2, o[1], o[0])))
 
 
 def _claim_orphans(face: np.ndarray, tx: np.ndarray, ty: np.ndarray, faces: np.ndarray,
                    width: int, height: int) -> None:
     """Give faces that own no texel a texel near their UV centroid (in place, ``face`` is (H*W,)).
 
-    Tries the nearest texel, then its 8 neighbours. A free texel is taken; an owned one only if
+    Tries the nearest texel, then the others within 2 texels, nearest first. A free texel is taken; an owned one only if
     its owner keeps at least one texel after all take-overs of the round.
     """
     px, py = tx[faces], ty[faces]
