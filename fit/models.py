@@ -92,7 +92,7 @@ class ModelLayout:
                         ParamSpec(f"{p}.c_y", "", -10.0, 0.0, -1.0, "tangent-y coefficient (<= 0: forward)")]
             else:
                 out += [ParamSpec(f"{p}.c_xy", "", -1.0, -1.0, -1.0, "scale gauge: held at -1 (frozen)")]
-            out += [ParamSpec(f"{p}.c_z", "", 0.0, 10.0, 1.0, "normal coefficient (>= 0, seed 8.1)"),
+            out += [ParamSpec(f"{p}.c_z", "", 0.0, 1.0, 1.0, "normal coefficient in [0, 1]: keeps s <= 1, so the lobe peaks at rho_s and cannot blow up in unobserved directions"),
                     ParamSpec(f"{p}.n", "", 1.0, 1.0e4, 10.0, "exponent; >= 1 keeps the objective C1")]
         return out
 
