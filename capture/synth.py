@@ -599,6 +599,18 @@ def write_param_maps(folder: Path, params: np.ndarray, layout) -> dict[str, str]
     return files
 
 
+def read_param_maps(folder: str | os.PathLike, layout) -> np.ndarray:
+    """(H, W, P) float32 parameter grid from the EXR maps :func:`write_param_maps` wrote."""
+    from .imageio import read_image
+
+    g = Path(folder)
+    maps = [read_image(g / "rho_d.exr", channels=3)]
+    for j in range(layout.n_lobes):
+        maps.append(read_image(g / f"lobe{j}_rho_s.exr", channels=3))
+        maps.append(read_image(g / f"lobe{j}_shape.exr", channels=layout.lobe_stride - 3))
+    return np.concatenate(maps, axis=-1).astype(np.float32)
+
+
 def load_ground_truth(folder: str | os.PathLike):
     """Read a synthetic set's ground truth back.
 
@@ -613,20 +625,13 @@ def load_ground_truth(folder: str | os.PathLike):
     from texstream.geometry.mesh_io import load_mesh
     from texstream.pipelines.stage import read_json
 
-    from .imageio import read_image
-
     g = Path(folder)
     if (g / GROUND_TRUTH).is_dir():
         g = g / GROUND_TRUTH
     man = read_json(g / "manifest.json", what="ground-truth manifest")
     layout = ModelLayout.from_json(man["layout"])
     bake = TexelBake.load(g / "bake.npz")
-    maps = [read_image(g / "rho_d.exr", channels=3)]
-    for j in range(layout.n_lobes):
-        maps.append(read_image(g / f"lobe{j}_rho_s.exr", channels=3))
-        maps.append(read_image(g / f"lobe{j}_shape.exr", channels=layout.lobe_stride - 3))
-    params = np.concatenate(maps, axis=-1).astype(np.float32)
-    return load_mesh(g / "mesh.obj"), params, layout, bake, man
+    return load_mesh(g / "mesh.obj"), read_param_maps(g, layout), layout, bake, man
 
 
 def _write_previews(out: Path, params: np.ndarray, layout, bake) -> None:

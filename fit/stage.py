@@ -204,17 +204,13 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
 
 def load_model(model_dir: str | Path):
     """(mesh, parameter grid (H, W, P), layout, model.json) of a model folder."""
-    d = Path(model_dir)
-    man = read_json(d / "model.json", what="model manifest")
-    from texstream.capture.imageio import read_image
+    from texstream.capture.synth import read_param_maps
     from texstream.geometry.mesh_io import load_mesh
 
+    d = Path(model_dir)
+    man = read_json(d / "model.json", what="model manifest")
     lay = ModelLayout.from_json(man["layout"])
-    maps = [read_image(d / "rho_d.exr", channels=3)]
-    for j in range(lay.n_lobes):
-        maps.append(read_image(d / f"lobe{j}_rho_s.exr", channels=3))
-        maps.append(read_image(d / f"lobe{j}_shape.exr", channels=lay.lobe_stride - 3))
-    grid = np.concatenate(maps, axis=-1).astype(np.float32)
+    grid = read_param_maps(d, lay)
     return load_mesh(d / "mesh.obj").with_normals(), grid, lay, man
 
 

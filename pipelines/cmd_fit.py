@@ -13,7 +13,6 @@ import argparse
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from texstream.fit.fitter import FitConfig
-    from texstream.fit.stage import FitStageConfig
     from texstream.pipelines.cli import add_config_arguments
 
     parser.add_argument("capture", help="capture folder (capture.json with per-frame lights)")
@@ -25,8 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--holdout-every", dest="holdout_every", type=int, default=0,
                         help="hold out every k-th photo for evaluation (default: 0 = none)")
     parser.add_argument("--renders", type=int, default=4, help="photos rendered beside the fit (default: 4)")
-    add_config_arguments(parser, FitConfig)
-    del FitStageConfig  # its fields are the four options above plus FitConfig
+    add_config_arguments(parser, FitConfig)  # with the four above: the fields of FitStageConfig
 
 
 def run(args: argparse.Namespace) -> int:

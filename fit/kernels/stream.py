@@ -161,6 +161,29 @@ def load_params(params: wp.array2d(dtype=Any), i: int, n_params: int, like: Any,
     return out
 
 
+@wp.func
+def channel_residual(m: Any, yc: Any, wc: Any, jr: Any, jg: Any, jb: Any, c: int, reflectance_space: int, one: Any):
+    """Residual r_c, its scale s_c (see the module doc) and the model's Jacobian row of channel c."""
+    s = one
+    r = m[c] - yc[c] / wc[c]
+    if reflectance_space == 0:
+        s = wc[c]
+        r = wc[c] * m[c] - yc[c]
+    jc = jr
+    if c == 1:
+        jc = jg
+    if c == 2:
+        jc = jb
+    return r, s, jc
+
+
+@wp.func
+def trace_stats(w: wp.vec3, m: Any, y: wp.vec3, c: int):
+    """(1/3 sample, r^2, |r|, |y|) of channel c in radiance space, in fp64, for the trace."""
+    rr = wp.float64(w[c]) * wp.float64(m[c]) - wp.float64(y[c])
+    return wp.vec4d(wp.float64(1.0 / 3.0), rr * rr, wp.abs(rr), wp.abs(wp.float64(y[c])))
+
+
 @wp.kernel
 def accumulate_kernel(
     pos: wp.array(dtype=wp.vec3), nrm: wp.array(dtype=wp.vec3), tan: wp.array(dtype=wp.vec3),
@@ -201,16 +224,7 @@ def accumulate_kernel(
                 if opt.want_dhd != 0 and opt.full_hessian != 0:
                     hm = lafortune_dhd(pv, dv, n_lobes, aniso, to_compute3(u, one), to_compute3(v, one), one)
                 for c in range(3):
-                    s = one
-                    r = m[c] - yc[c] / wc[c]
-                    if opt.reflectance_space == 0:
-                        s = wc[c]
-                        r = wc[c] * m[c] - yc[c]
-                    jc = jr
-                    if c == 1:
-                        jc = jg
-                    if c == 2:
-                        jc = jb
+                    r, s, jc = channel_residual(m, yc, wc, jr, jg, jb, c, opt.reflectance_space, one)
                     term = type(one)(0.5) * r * r
                     if opt.kahan != 0:
                         yk = term - fc
@@ -233,8 +247,7 @@ def accumulate_kernel(
                         dhd = dhd + jd * jd
                         if opt.full_hessian != 0:
                             dhd = dhd + r * s * hm[c]
-                    rr = wp.float64(w[c]) * wp.float64(m[c]) - wp.float64(y[c])
-                    st = st + wp.vec4d(wp.float64(1.0 / 3.0), rr * rr, wp.abs(rr), wp.abs(wp.float64(y[c])))
+                    st = st + trace_stats(w, m, y, c)
     out_f[g, i] = f
     out_g[g, i] = grad
     out_dhd[g, i] = dhd
@@ -270,22 +283,12 @@ def accumulate_lm_kernel(
                 yc = to_compute3(y, one)
                 wc = to_compute3(w, one)
                 for c in range(3):
-                    s = one
-                    r = m[c] - yc[c] / wc[c]
-                    if opt.reflectance_space == 0:
-                        s = wc[c]
-                        r = wc[c] * m[c] - yc[c]
-                    jc = jr
-                    if c == 1:
-                        jc = jg
-                    if c == 2:
-                        jc = jb
+                    r, s, jc = channel_residual(m, yc, wc, jr, jg, jb, c, opt.reflectance_space, one)
                     f = f + type(one)(0.5) * r * r
                     sj = s * jc
                     grad = grad + r * sj
                     jtj = jtj + wp.outer(sj, sj)
-                    rr = wp.float64(w[c]) * wp.float64(m[c]) - wp.float64(y[c])
-                    st = st + wp.vec4d(wp.float64(1.0 / 3.0), rr * rr, wp.abs(rr), wp.abs(wp.float64(y[c])))
+                    st = st + trace_stats(w, m, y, c)
     out_f[g, i] = f
     out_g[g, i] = grad
     out_jtj[g, i] = jtj
