@@ -142,9 +142,14 @@ def _vec_types(acc: str):
 class PhotoSet:
     """Photos, depth maps and shadow maps on the device (or in pinned host memory when streamed)."""
 
-    def __init__(self, frames: list[PhotoFrame], images: list[np.ndarray], mesh_points: np.ndarray,
-                 mesh_faces: np.ndarray, masks: list[np.ndarray | None] | None = None,
+    def __init__(self, frames: list[PhotoFrame], images: list[np.ndarray], mesh_points: np.ndarray | None,
+                 mesh_faces: np.ndarray | None, masks: list[np.ndarray | None] | None = None,
                  config: StreamConfig | None = None, device: str = "cpu"):
+        """``mesh_points=None`` (no geometry: single-view fits, fit/photometric_stereo.py) builds no
+        depth or shadow maps: each photo's depth map holds its mask (1 = sample, 0 = masked) and
+        ``ImageInfo.depth_is_mask`` tells the kernels to test only that."""
+        if mesh_points is None:
+            return self._init_without_mesh(frames, images, masks, config, device)
         cfg = config or StreamConfig()
         self.device = device
         self.n = len(frames)
@@ -214,6 +219,47 @@ class PhotoSet:
             self.images = wp.array(stack, dtype=img_dtype, device=device)
             self.depth = wp.array(depth, dtype=wp.float32, device=device)
             self.shadow = wp.array(shadow, dtype=wp.float32, device=device)
+        self.image_bytes = int(stack.nbytes)
+
+    def _init_without_mesh(self, frames, images, masks, config, device) -> None:
+        """Photos and masks only (see __init__); never streamed in windows (one view is small)."""
+        cfg = config or StreamConfig()
+        self.device = device
+        self.n = len(frames)
+        if self.n == 0 or len(images) != self.n:
+            raise InputError("no photos to fit", fix="give a capture with at least one photo")
+        self.hmax = max(int(im.shape[0]) for im in images)
+        self.wmax = max(int(im.shape[1]) for im in images)
+        img_dtype = wp.vec3h if cfg.image_precision == "fp16" else wp.vec3
+        np_dtype = np.float16 if cfg.image_precision == "fp16" else np.float32
+        stack = np.zeros((self.n, self.hmax, self.wmax, 3), dtype=np_dtype)
+        depth = np.zeros((self.n, self.hmax, self.wmax), np.float32)
+        infos = []
+        for k, (fr, im) in enumerate(zip(frames, images)):
+            stack[k, :im.shape[0], :im.shape[1]] = im[..., :3]
+            mk = masks[k] if masks is not None and masks[k] is not None else np.ones(im.shape[:2], bool)
+            depth[k, :im.shape[0], :im.shape[1]] = np.asarray(mk, bool)
+            info = stream.ImageInfo()
+            info.rot = wp.mat33(*np.asarray(fr.R, np.float32).reshape(-1))
+            info.trans = wp.vec3(*np.asarray(fr.t, np.float32))
+            info.center = wp.vec3(*(-np.asarray(fr.R).T @ np.asarray(fr.t)).astype(np.float32))
+            info.fx, info.fy, info.cx, info.cy = float(fr.fx), float(fr.fy), float(fr.cx), float(fr.cy)
+            info.width, info.height = int(fr.width), int(fr.height)
+            info.exposure = float(fr.exposure)
+            info.saturation = float(min(fr.saturation, 3.0e38))
+            info.light_kind = 0 if fr.light_kind == "point" else 1
+            info.light_vec = wp.vec3(*np.asarray(fr.light_vec, np.float32))
+            info.light_intensity = wp.vec3(*np.asarray(fr.light_intensity, np.float32))
+            info.has_shadow = 0  # no geometry, no cast shadows: mask them in the photo's mask
+            info.depth_is_mask = 1
+            infos.append(info)
+        self.mesh = None
+        self.window = self.n
+        self.streamed = False
+        self.infos = wp.array(infos, dtype=stream.ImageInfo, device=device)
+        self.images = wp.array(stack, dtype=img_dtype, device=device)
+        self.depth = wp.array(depth, dtype=wp.float32, device=device)
+        self.shadow = wp.full((self.n, 2, 2), np.inf, dtype=wp.float32, device=device)
         self.image_bytes = int(stack.nbytes)
 
     def _shadow_camera(self, info, fr: PhotoFrame, size: int) -> bool:

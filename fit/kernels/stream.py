@@ -51,6 +51,10 @@ class ImageInfo:
     sh_cy: float
     sh_ortho: int
     sh_size: int
+    depth_is_mask: int
+    """1: the photo has no geometry (single-view fits, fit/photometric_stereo.py); its depth map
+    holds 1 where the photo may be sampled and 0 where masked, and the depth test becomes a mask
+    test at the nearest pixel. 0 (the default of a zeroed struct): the depth test above."""
 
 
 @wp.struct
@@ -78,6 +82,15 @@ def depth_consistent(depth: wp.array3d(dtype=wp.float32), k: int, x0: int, y0: i
             if wp.abs(dz - z) > tol * z:
                 ok = False
     return ok
+
+
+@wp.func
+def unmasked(depth: wp.array3d(dtype=wp.float32), k: int, xs: float, ys: float):
+    """Mask-only visibility (``ImageInfo.depth_is_mask``): the pixel nearest (xs, ys) is not masked.
+
+    Nearest, not all four taps: single-view texels sit on pixel centres, where float rounding may
+    pick a neighbour as the first bilinear tap with a weight of ~1e-6."""
+    return depth[k, int(ys + 0.5), int(xs + 0.5)] > 0.0
 
 
 @wp.func
@@ -130,7 +143,10 @@ def observe(images: wp.array3d(dtype=Any), depth: wp.array3d(dtype=wp.float32),
         return False, zero3, zero3, zero3, zero3
     x0 = int(xs)
     y0 = int(ys)
-    if not depth_consistent(depth, k, x0, y0, pc[2], opt.depth_tol):
+    if info.depth_is_mask != 0:
+        if not unmasked(depth, k, xs, ys):
+            return False, zero3, zero3, zero3, zero3
+    elif not depth_consistent(depth, k, x0, y0, pc[2], opt.depth_tol):
         return False, zero3, zero3, zero3, zero3
     if not lit(shadow, k, info, p, opt.shadow_tol):
         return False, zero3, zero3, zero3, zero3
