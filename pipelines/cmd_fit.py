@@ -4,6 +4,12 @@ MESH is an atlas folder (``texstream atlas`` output or a synthetic set's ``groun
 mesh file (baked at ``--texture-size``; given an xatlas atlas if it has no UVs). Example:
 
     texstream fit out/sphere --mesh out/sphere/ground_truth -o out/sphere_model --optimizer lm
+
+Single view, many lights (photometric-stereo style; fit/photometric_stereo.py): ``--normals``
+instead of ``--mesh`` fits every pixel of one camera's photos as a texel, geometry from a normal
+map (PNG RGB-encoded, or float EXR / NPY), no mesh or atlas:
+
+    texstream fit out/bust --normals out/bust/normals.exr -o out/bust_model --model diffuse
 """
 
 from __future__ import annotations
@@ -16,7 +22,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from texstream.pipelines.cli import add_config_arguments
 
     parser.add_argument("capture", help="capture folder (capture.json with per-frame lights)")
-    parser.add_argument("--mesh", required=True, help="atlas folder (mesh.obj + bake.npz) or mesh file")
+    parser.add_argument("--mesh", help="atlas folder (mesh.obj + bake.npz) or mesh file (multi-view fits)")
+    parser.add_argument("--normals", help="normal map (.png RGB-encoded, .exr, .npy) of a single-view capture: "
+                        "fit per pixel, no mesh (give --mesh or --normals)")
+    parser.add_argument("--normal-space", dest="normal_space", default="opengl",
+                        choices=("opengl", "opencv", "world"),
+                        help="frame of --normals: opengl camera axes (x right, y up, z to the viewer), opencv "
+                             "camera axes or world (default: opengl)")
+    parser.add_argument("--depth", type=float, default=1.0,
+                        help="with --normals: nominal camera depth of the texels when the capture has no depth map "
+                             "(irrelevant for directional lights; default: 1.0)")
     parser.add_argument("-o", "--out", required=True, help="model folder to write (replaced if it exists)")
     parser.add_argument("--device", default="cpu", help="Warp device: cpu or cuda:N (default: cpu)")
     parser.add_argument("--texture-size", dest="texture_size", type=int, default=256,
@@ -33,15 +48,35 @@ def run(args: argparse.Namespace) -> int:
     from texstream.fit.fitter import FitConfig
     from texstream.fit.stage import FitStageConfig, fit_stage
     from texstream.pipelines.cli import config_from_args
+    from texstream.pipelines.errors import InputError
 
     wp.config.log_level = wp.LOG_WARNING
     fit_cfg = config_from_args(FitConfig, args)
+    if (args.mesh is None) == (getattr(args, "normals", None) is None):
+        raise InputError("give exactly one of --mesh (multi-view capture) and --normals (single view)",
+                         args.capture, "add --mesh ATLAS_OR_MESH or --normals NORMAL_MAP")
+    if args.normals is not None:
+        return _run_single_view(args, fit_cfg)
     cfg = FitStageConfig(fit=fit_cfg, **{k: getattr(args, k) for k in ("device", "texture_size", "holdout_every", "renders")
                                          if hasattr(args, k)})
     res = fit_stage(args.capture, args.mesh, args.out, cfg)
     s = res.summary
     print(f"wrote {res.output}: {s['texels']} texels from {s['photos']} photos, {s['iterations']} iterations in "
           f"{s['time_s']:.1f} s, sample PSNR {s['psnr_db']:.2f} dB")
+    for e in s["render_eval"]:
+        print(f"  {e['frame']}{' (held out)' if e['held_out'] else ''}: render PSNR {e['psnr_db']:.2f} dB, APE {e['ape_percent']:.2f}%")
+    return 0
+
+
+def _run_single_view(args: argparse.Namespace, fit_cfg) -> int:
+    from texstream.fit.photometric_stereo import SingleViewConfig, fit_single_view_stage
+
+    cfg = SingleViewConfig(fit=fit_cfg, **{k: getattr(args, k) for k in ("device", "holdout_every", "renders",
+                                                                          "normal_space", "depth")})
+    res = fit_single_view_stage(args.capture, args.normals, args.out, cfg)
+    s = res.summary
+    print(f"wrote {res.output}: {s['texels']} pixel texels ({s['unseen_texels']} unseen) from {s['photos']} photos, "
+          f"{s['iterations']} iterations in {s['time_s']:.1f} s, sample PSNR {s['psnr_db']:.2f} dB")
     for e in s["render_eval"]:
         print(f"  {e['frame']}{' (held out)' if e['held_out'] else ''}: render PSNR {e['psnr_db']:.2f} dB, APE {e['ape_percent']:.2f}%")
     return 0

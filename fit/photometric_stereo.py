@@ -1,0 +1,377 @@
+"""Single-view, many-light fits (photometric-stereo style): the image grid is the texel grid.
+
+One camera, one photo per known light, and the geometry as a per-pixel normal map instead of a
+mesh: no SfM, no mesh, no atlas. Each pixel inside the object mask is a texel of the SAME
+streaming fit as ``texstream fit --mesh`` (fit/kernels/stream.py, fit/fitter.py):
+
+- position: the point on the pixel-centre ray at depth z (camera z, OpenCV axes) given by a
+  depth map (``depth.npy`` / ``depth.exr`` beside capture.json) or a nominal ``depth``. With
+  directional lights only the view direction matters, and that is the ray's direction whatever
+  z is; point lights need real depths (a depth map, or the right nominal depth).
+- normal: from the normal map, in the space ``normal_space`` names (see SingleViewConfig).
+- tangent: the camera's x axis made orthogonal to the normal; bitangent = normal x tangent.
+  Isotropic lobes (the default) depend only on u.v and u_z v_z, which no rotation of the tangent
+  frame about the normal changes; anisotropic lobes are then aligned with the image's x axis.
+- visibility: no depth test (there is no geometry to test against; ``PhotoSet`` without a mesh
+  sets ``ImageInfo.depth_is_mask``), only each photo's mask; cast shadows are not detected, so
+  mask shadowed pixels per photo (``mask_path`` in capture.json) when the object has any.
+
+Since a texel projects exactly onto its pixel centre, the kernels' bilinear filter returns the
+pixel's value (up to float rounding, ~1e-6 of a neighbour). The image's outermost rows and
+columns are not texels: the kernels' out-of-frame test rejects the last row / column, and
+rounding can put the first at -1e-7.
+
+Folder layout::
+
+    CAPTURE/capture.json    frames share one camera (same pose and intrinsics), each with a light
+    CAPTURE/images/...      the photos (linear, as in any capture folder)
+    normals.(png|exr|npy)   normal map, same size as the photos (path given separately)
+    CAPTURE/mask.png        optional object mask (else: pixels with a valid normal)
+    CAPTURE/depth.(npy|exr) optional depth map (camera z, world units)
+
+Model folder: parameter maps (EXR, image resolution), seen.png, normals.exr (world-space
+normals of the texels), model.json, trace.json, error_vs_time.png, renders/ and
+fit_config.json. Like fit/stage.py, this module imports OpenImageIO and matplotlib
+inside its functions (it is a stage).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+from texstream.pipelines.errors import InputError
+from texstream.pipelines.stage import StageResult, atomic_output_dir, option, save_config, write_json_atomic
+
+from .fitter import FitConfig, run_fit
+from .kernels import stream
+from .kernels.shading import incident_light, lafortune_brdf, to_local
+from .models import ModelLayout
+
+NORMAL_SPACES = ("opengl", "opencv", "world")
+FLOAT_NORMAL_SUFFIXES = (".exr", ".hdr", ".pfm", ".npy")
+
+
+@dataclasses.dataclass
+class SingleViewConfig:
+    """Options of the single-view fit (``texstream fit CAPTURE --normals N -o MODEL``)."""
+
+    device: str = option("cpu", "Warp device: cpu or cuda:N")
+    normal_space: str = option("opengl", "frame of the normal map: opengl (camera space, x right, y up, z towards "
+                               "the viewer: DiLiGenT, most normal-map files), opencv (camera space, x right, y down, "
+                               "z into the scene) or world (capture.json's world frame)", choices=NORMAL_SPACES)
+    depth: float = option(1.0, "nominal camera depth (z, world units) of every texel when the capture has no depth map; "
+                          "irrelevant for directional lights")
+    holdout_every: int = option(0, "hold out every k-th photo from the fit for evaluation (0 = none)")
+    renders: int = option(4, "photos rendered beside the fitted model in renders/")
+    fit: FitConfig = option(default_factory=FitConfig, help="the fit")
+
+
+@dataclasses.dataclass
+class SingleViewGeometry:
+    """Per-pixel surface of a single-view capture (all arrays (H, W, ...), world frame).
+
+    Attributes:
+        covered: (H, W) bool, pixels that are texels (mask, valid normal, not on the image border).
+        position, normal, tangent, bitangent: (H, W, 3) float32.
+    """
+
+    covered: np.ndarray
+    position: np.ndarray
+    normal: np.ndarray
+    tangent: np.ndarray
+    bitangent: np.ndarray
+
+
+# --------------------------------------------------------------------------- inputs
+
+
+def read_normal_map(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """Read a normal map; returns unit normals (H, W, 3) float32 and validity (H, W) bool.
+
+    ``.npy`` (H, W, 3), ``.exr`` / ``.hdr`` / ``.pfm`` hold signed components as they are; other
+    formats (PNG, 8/16-bit TIFF, JPEG) are RGB-encoded, n = 2 c - 1 with c in [0, 1] (no sRGB
+    decoding). A pixel is valid when its vector is finite with length in [0.5, 1.5] (zero and
+    black backgrounds are not; quantised 8-bit normals are within 1% of unit length).
+    """
+    p = Path(path)
+    if not p.exists():
+        raise InputError("normal map not found", p, "pass --normals with a .png, .exr or .npy normal map")
+    if p.suffix.lower() == ".npy":
+        try:
+            n = np.load(p, allow_pickle=False)
+        except (OSError, ValueError) as e:
+            raise InputError(f"normal map is not a readable .npy array ({e})", p, "save it with numpy.save") from None
+        if n.ndim != 3 or n.shape[2] < 3 or n.dtype.kind not in "fiu":
+            raise InputError(f"normal map has shape {n.shape} dtype {n.dtype}, expected (H, W, 3) floats", p,
+                             "save an (H, W, 3) float array of unit normals")
+        n = n[..., :3].astype(np.float32)
+    else:
+        from texstream.capture.imageio import read_image
+
+        encoded = p.suffix.lower() not in FLOAT_NORMAL_SUFFIXES
+        n = read_image(p, channels=3, linear=not encoded)
+        if encoded:
+            n = 2.0 * n - 1.0
+    with np.errstate(invalid="ignore"):
+        length = np.linalg.norm(n, axis=2)
+        valid = np.isfinite(length) & (length >= 0.5) & (length <= 1.5)
+    out = np.zeros_like(n, dtype=np.float32)
+    out[valid] = n[valid] / length[valid, None]
+    if not valid.any():
+        raise InputError("normal map has no valid normal (length 0.5..1.5)", p,
+                         "encode normals as RGB = (n + 1) / 2, or store signed floats in .exr / .npy")
+    return out, valid
+
+
+def _read_plane(path: Path, shape: tuple[int, int], what: str) -> np.ndarray:
+    """An (H, W) float32 plane (depth map) from .npy or an image file, checked against ``shape``."""
+    if path.suffix.lower() == ".npy":
+        try:
+            a = np.load(path, allow_pickle=False).astype(np.float32)
+        except (OSError, ValueError) as e:
+            raise InputError(f"{what} is not a readable .npy array ({e})", path, "save it with numpy.save") from None
+        if a.ndim == 3:
+            a = a[..., 0]
+    else:
+        from texstream.capture.imageio import read_image
+
+        a = read_image(path, channels=1, linear=False)[..., 0]
+    if a.shape != tuple(shape):
+        raise InputError(f"{what} is {a.shape[1]}x{a.shape[0]} but the normal map is {shape[1]}x{shape[0]}", path,
+                         f"make the {what} the same size as the normal map")
+    return a
+
+
+def shared_camera(frames, where: Path):
+    """The one camera (R, t, Intrinsics) all frames share; InputError if they differ or have no light."""
+    f0 = frames[0]
+    for f in frames:
+        if f.light is None:
+            raise InputError(f"frame {f.file_path} has no light", where, "give every frame a directional (or point) light")
+        same = (np.allclose(f.R, f0.R, atol=1e-6) and np.allclose(f.t, f0.t, atol=1e-6 * max(1.0, np.abs(f0.t).max()))
+                and f.intrinsics.to_json() == f0.intrinsics.to_json())
+        if not same:
+            raise InputError(f"frame {f.file_path} has another camera pose or intrinsics than {f0.file_path}", where,
+                             "a single-view capture has one camera; fit multi-view captures with --mesh")
+    if not f0.intrinsics.is_pinhole:
+        raise InputError("the camera has lens distortion", where, "undistort the photos and the normal map first")
+    return f0.R, f0.t, f0.intrinsics
+
+
+def single_view_geometry(normals: np.ndarray, valid: np.ndarray, R: np.ndarray, t: np.ndarray, intr,
+                         normal_space: str = "opengl", depth: np.ndarray | float = 1.0,
+                         mask: np.ndarray | None = None) -> SingleViewGeometry:
+    """Texel positions and frames of every pixel (see the module doc).
+
+    Args:
+        normals: (H, W, 3) unit normals in ``normal_space``.
+        valid: (H, W) bool, pixels with a normal.
+        R, t: world-to-camera rotation (3, 3) and translation (3,), OpenCV axes.
+        intr: :class:`texstream.capture.capture_json.Intrinsics` (pixel centres at +0.5).
+        normal_space: "opengl", "opencv" (camera frames) or "world".
+        depth: camera z per pixel (H, W) or one number (world units); pixels with z <= 0 are dropped.
+        mask: optional (H, W) bool object mask.
+    """
+    h, w = valid.shape
+    R = np.asarray(R, np.float64)
+    t = np.asarray(t, np.float64).reshape(3)
+    n = normals.reshape(-1, 3).astype(np.float64)
+    if normal_space == "opengl":
+        n = n * np.array([1.0, -1.0, -1.0])  # GL camera axes -> CV camera axes
+    if normal_space in ("opengl", "opencv"):
+        n = n @ R  # camera -> world: R^T n, row vectors
+    elif normal_space != "world":
+        raise InputError(f"normal space {normal_space!r} unknown", fix=f"use one of {NORMAL_SPACES}")
+    z = np.broadcast_to(np.asarray(depth, np.float64), (h, w))
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    pc = np.stack([(xs + 0.5 - intr.cx) / intr.fx * z, (ys + 0.5 - intr.cy) / intr.fy * z, z], axis=-1)
+    pos = (pc.reshape(-1, 3) - t) @ R  # R^T (p_c - t)
+    a = np.broadcast_to(R[0], n.shape).copy()  # camera x axis in world
+    near = np.abs(n @ R[0]) > 0.9
+    a[near] = R[1]
+    tan = a - n * np.sum(n * a, axis=1, keepdims=True)
+    tan /= np.maximum(np.linalg.norm(tan, axis=1, keepdims=True), 1e-30)
+    bit = np.cross(n, tan)
+    covered = valid & np.isfinite(z) & (z > 0)
+    if mask is not None:
+        covered &= mask
+    covered[0, :] = covered[-1, :] = False  # image border: see the module doc
+    covered[:, 0] = covered[:, -1] = False
+
+    def grid(a):
+        return a.reshape(h, w, 3).astype(np.float32)
+
+    return SingleViewGeometry(covered, grid(pos), grid(n), grid(tan), grid(bit))
+
+
+def load_single_view(capture_dir: str | Path, normals_path: str | Path, cfg: SingleViewConfig):
+    """(capture, fitted frames, held-out frames, geometry, images, masks) of a single-view capture."""
+    from texstream.capture.capture_json import read_capture
+    from texstream.capture.imageio import read_image, read_mask
+
+    capture = read_capture(capture_dir)
+    where = capture.root / "capture.json"
+    R, t, intr = shared_camera(capture.frames, where)
+    normals, valid = read_normal_map(normals_path)
+    shape = normals.shape[:2]
+    if shape != (intr.height, intr.width):
+        raise InputError(f"normal map is {shape[1]}x{shape[0]} but the camera is {intr.width}x{intr.height}",
+                         normals_path, "give a normal map of the photos' size")
+    mask = None
+    if (capture.root / "mask.png").exists():
+        mask = read_mask(capture.root / "mask.png", shape)
+    depth: np.ndarray | float = float(cfg.depth)
+    dfile = next((capture.root / n for n in ("depth.npy", "depth.exr") if (capture.root / n).exists()), None)
+    if dfile is not None:
+        depth = _read_plane(dfile, shape, "depth map")
+    elif not cfg.depth > 0:
+        raise InputError(f"nominal depth {cfg.depth} is not positive", fix="pass a positive --depth")
+    geo = single_view_geometry(normals, valid, R, t, intr, cfg.normal_space, depth, mask)
+    if not geo.covered.any():
+        raise InputError("no pixel has both a valid normal and the object mask", normals_path,
+                         "check that mask.png and the normal map cover the same object")
+    frames = capture.frames
+    held = []
+    if cfg.holdout_every > 0:
+        k = cfg.holdout_every
+        held = [f for i, f in enumerate(frames) if i % k == k - 1]
+        frames = [f for i, f in enumerate(frames) if i % k != k - 1]
+    images, masks = [], []
+    for f in frames:
+        im = read_image(capture.image_path(f), channels=3)
+        if im.shape[:2] != shape:
+            raise InputError(f"photo is {im.shape[1]}x{im.shape[0]} but the normal map is {shape[1]}x{shape[0]}",
+                             capture.image_path(f), "give photos and normal map of one size")
+        images.append(im)
+        mp = capture.mask_path(f)
+        masks.append(read_mask(mp, shape) if mp is not None and mp.exists() else None)
+    return capture, frames, held, geo, images, masks
+
+
+def build_single_view_problem(geo: SingleViewGeometry, frames, images, masks, cfg: FitConfig, device: str):
+    """A :class:`StreamProblem` over the covered pixels, photos without geometry (no depth test)."""
+    from .problem import PhotoFrame, PhotoSet, StreamProblem, TexelSet
+
+    texels = TexelSet.from_grid(geo.covered, geo.position, geo.normal, geo.tangent, geo.bitangent)
+    photo_frames = [PhotoFrame.from_capture_frame(f) for f in frames]
+    photos = PhotoSet(photo_frames, images, None, None, masks=masks, config=cfg.stream, device=device)
+    return StreamProblem(texels, photos, cfg.layout(), cfg.stream, device=device)
+
+
+# --------------------------------------------------------------------------- rendering the fit
+
+
+@wp.kernel
+def render_texels_kernel(pos: wp.array(dtype=wp.vec3), nrm: wp.array(dtype=wp.vec3), tan: wp.array(dtype=wp.vec3),
+                         bit: wp.array(dtype=wp.vec3), params: wp.array2d(dtype=wp.float32), n_lobes: int, aniso: int,
+                         info: stream.ImageInfo, out: wp.array(dtype=wp.vec3)):
+    """Pixel value exposure * E * cos(theta_i) * f_r of each texel under one photo's light and camera
+    (0 when lit or seen from behind), the model the fit's residuals use."""
+    i = wp.tid()
+    p = pos[i]
+    n = nrm[i]
+    wi, e_int, dist = incident_light(info.light_kind, info.light_vec, info.light_intensity, p)
+    vdir = wp.normalize(info.center - p)
+    cos_i = wp.dot(wi, n)
+    val = wp.vec3(0.0)
+    if cos_i > 0.0 and wp.dot(vdir, n) > 0.0:
+        f = lafortune_brdf(params, i, n_lobes, aniso, to_local(wi, tan[i], bit[i], n), to_local(vdir, tan[i], bit[i], n), 1.0)
+        val = info.exposure * cos_i * wp.cw_mul(f, e_int)
+    out[i] = val
+
+
+def render_single_view(problem, params: np.ndarray, layout: ModelLayout, frame) -> np.ndarray:
+    """Render fitted per-texel ``params`` (N, P) for a capture frame; returns (H, W, 3) float32."""
+    from .problem import PhotoFrame
+
+    fr = PhotoFrame.from_capture_frame(frame)
+    info = stream.ImageInfo()
+    info.center = wp.vec3(*(-np.asarray(fr.R).T @ np.asarray(fr.t)).astype(np.float32))
+    info.exposure = float(fr.exposure)
+    info.light_kind = 0 if fr.light_kind == "point" else 1
+    info.light_vec = wp.vec3(*np.asarray(fr.light_vec, np.float32))
+    info.light_intensity = wp.vec3(*np.asarray(fr.light_intensity, np.float32))
+    dev = problem.device
+    out = wp.zeros(problem.n, dtype=wp.vec3, device=dev)
+    prm = wp.array(np.ascontiguousarray(params, np.float32), dtype=wp.float32, device=dev)
+    wp.launch(render_texels_kernel, dim=problem.n, device=dev,
+              inputs=[problem.pos, problem.nrm, problem.tan, problem.bit, prm, layout.n_lobes,
+                      int(layout.anisotropic), info], outputs=[out])
+    tx = problem.texels
+    img = np.zeros((tx.height * tx.width, 3), np.float32)
+    img[tx.grid_index] = out.numpy()
+    return img.reshape(tx.height, tx.width, 3)
+
+
+# --------------------------------------------------------------------------- the stage
+
+
+def fit_single_view_stage(capture_dir: str | Path, normals_path: str | Path, out_dir: str | Path,
+                          config: SingleViewConfig | None = None, progress: bool = True) -> StageResult:
+    """Fit ``config.fit``'s model per pixel of a single-view capture; write the model folder atomically."""
+    from texstream.capture.imageio import read_image, read_mask, write_image
+    from texstream.capture.synth import write_param_maps
+
+    from .stage import image_metrics, plot_trace
+
+    cfg = config or SingleViewConfig()
+    if cfg.normal_space not in NORMAL_SPACES:
+        raise InputError(f"normal space {cfg.normal_space!r} unknown", fix=f"use one of {NORMAL_SPACES}")
+    t0 = time.perf_counter()
+    capture, frames, held, geo, images, masks = load_single_view(capture_dir, normals_path, cfg)
+    problem = build_single_view_problem(geo, frames, images, masks, cfg.fit, cfg.device)
+    t_setup = time.perf_counter() - t0
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=cfg.fit.max_iterations, desc=f"fit {cfg.fit.optimizer}", unit="it")
+    result = run_fit(problem, cfg.fit, progress=(lambda it: bar.update(1)) if bar else None)
+    if bar:
+        bar.close()
+    lay = result.layout
+    h, w = geo.covered.shape
+    grid = np.tile(lay.defaults().astype(np.float32), (h * w, 1))
+    grid[problem.texels.grid_index] = result.params
+    grid = grid.reshape(h, w, -1)
+    with atomic_output_dir(out_dir) as tmp:
+        files = write_param_maps(tmp, grid, lay)
+        seen = np.zeros(h * w, np.float32)
+        seen[problem.texels.grid_index] = (result.samples > 0).astype(np.float32)
+        write_image(tmp / "seen.png", seen.reshape(h, w, 1).repeat(3, axis=2), bits=8)
+        write_image(tmp / "normals.exr", np.where(geo.covered[..., None], geo.normal, 0.0).astype(np.float32))
+        write_json_atomic(tmp / "trace.json", result.trace)
+        plot_trace(result.trace, tmp / "error_vs_time.png", f"single-view {lay.kind} fit, {cfg.fit.optimizer}, {cfg.device}")
+        (tmp / "renders").mkdir()
+        evals = []
+        show = (held or frames)[: max(cfg.renders, 0)]
+        for f in show:
+            photo = read_image(capture.image_path(f), channels=3)
+            rend = render_single_view(problem, result.params, lay, f)
+            m = seen.reshape(h, w) > 0  # texels no photo saw keep defaults: flagged, not scored
+            mp = capture.mask_path(f)
+            if mp is not None and mp.exists():
+                m &= read_mask(mp, m.shape)
+            evals.append({"frame": f.file_path, "held_out": f in held, **image_metrics(rend, photo, m)})
+            write_image(tmp / "renders" / f"{f.name}_fit_vs_photo.png",
+                        np.clip(np.concatenate([rend, photo], axis=1), 0, 1), bits=8)
+        last = result.trace[-1]
+        model = {"kind": lay.kind, "layout": lay.to_json(), "maps": files,
+                 "geometry": {"type": "normal_map", "normals": "normals.exr", "normal_space_in": cfg.normal_space,
+                              "normals_out": "world", "source": str(Path(normals_path))},
+                 "image": {"width": w, "height": h, "texels": int(problem.n),
+                           "unseen_texels": int((result.samples == 0).sum())},
+                 "photos": {"fitted": len(frames), "held_out": len(held)},
+                 "final": {k: last[k] for k in ("iteration", "time_s", "objective", "psnr_db", "ape_percent")},
+                 "setup_s": t_setup, "passes": result.passes, "device": cfg.device, "render_eval": evals,
+                 "units": "BRDF values in 1/sr (capture/conventions.py)"}
+        write_json_atomic(tmp / "model.json", model)
+        save_config(cfg, tmp / "fit_config.json")
+    return StageResult(Path(out_dir), {"psnr_db": last["psnr_db"], "iterations": last["iteration"],
+                                       "time_s": last["time_s"], "texels": problem.n, "photos": len(frames),
+                                       "unseen_texels": int((result.samples == 0).sum()), "render_eval": evals})

@@ -1,0 +1,181 @@
+"""Single-view, many-light fits (fit/photometric_stereo.py): image grid = texel grid, no mesh.
+
+Ground truth: a hemisphere's normal map seen by one pinhole camera under 16 directional lights,
+rendered analytically in numpy with the Lafortune convention of fit/kernels/shading.py
+(pixel = exposure * E * cos(theta_i) * (rho_d + rho_s * max(s, 0)^n), s = c_xy (u_x v_x + u_y v_y)
++ c_z u_z v_z in the local frame) and written as a capture folder of float EXR photos.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from texstream.capture.capture_json import Capture, Frame, Intrinsics, Light, write_capture
+from texstream.fit.fitter import FitConfig
+from texstream.fit.photometric_stereo import SingleViewConfig, fit_single_view_stage, read_normal_map
+from texstream.pipelines.errors import InputError
+
+SIZE = 40  # image side: ~900 texels inside the hemisphere, a few seconds per fit on one CPU core
+N_LIGHTS = 16
+E = 2.0  # light intensity (irradiance at normal incidence)
+
+
+def scene(specular: bool):
+    """World = OpenCV camera frame (R = I, t = 0). Returns intrinsics, normals (H, W, 3) in OpenGL camera
+    axes (the file convention), object mask, per-pixel params (H, W, 9), light directions, images."""
+    f = 200.0  # ~11 degree field of view: nearly orthographic, as photometric-stereo rigs are
+    intr = Intrinsics(SIZE, SIZE, f, f, SIZE / 2, SIZE / 2)
+    ys, xs = np.mgrid[0:SIZE, 0:SIZE] + 0.5
+    a = (xs - SIZE / 2) / (0.45 * SIZE)
+    b = (ys - SIZE / 2) / (0.45 * SIZE)
+    r2 = a * a + b * b
+    inside = r2 < 0.97
+    # unit sphere normal facing the camera (camera looks down +z in OpenCV axes)
+    n_cv = np.stack([a, b, -np.sqrt(np.clip(1 - r2, 0, None))], -1)
+    n_cv[~inside] = 0.0
+    n_gl = n_cv * np.array([1.0, -1.0, -1.0])
+    # view direction: from the pixel's point towards the camera centre = minus the ray direction
+    ray = np.stack([(xs - intr.cx) / f, (ys - intr.cy) / f, np.ones_like(xs)], -1)
+    v = -ray / np.linalg.norm(ray, axis=-1, keepdims=True)
+    rho_d = np.stack([0.10 + 0.05 * (a + 1), 0.20 - 0.04 * (b + 1), 0.15 + 0.02 * np.sin(3 * a)], -1)
+    rho_s = np.where(specular, 1.5, 0.0) * np.ones((SIZE, SIZE, 3)) * np.array([1.0, 0.9, 0.8])
+    cz, nexp = 0.8, 12.0
+    params = np.concatenate([rho_d, rho_s, np.full((SIZE, SIZE, 1), -1.0), np.full((SIZE, SIZE, 1), cz),
+                             np.full((SIZE, SIZE, 1), nexp)], -1)
+    rng = np.random.default_rng(3)
+    theta = np.deg2rad(rng.uniform(10, 55, N_LIGHTS))
+    phi = np.linspace(0, 2 * np.pi, N_LIGHTS, endpoint=False) + rng.uniform(0, 0.3, N_LIGHTS)
+    to_light = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), -np.cos(theta)], -1)
+    images = []
+    nn = np.where(inside[..., None], n_cv, [0.0, 0.0, -1.0])
+    for l in to_light:
+        cos_i = nn @ l
+        # isotropic base: c_xy (u.v - u_z v_z) + c_z u_z v_z with u_z = n.l, v_z = n.v (frame-free)
+        uz, vz, uv = cos_i, np.sum(nn * v, -1), v @ l
+        s = -(uv - uz * vz) + cz * uz * vz
+        lobe = np.where(s > 0, np.exp(np.minimum(nexp * np.log(np.maximum(s, 1e-30)), 30.0)), 0.0)
+        brdf = rho_d + rho_s * lobe[..., None]
+        img = E * np.clip(cos_i, 0, None)[..., None] * brdf
+        images.append(np.where(inside[..., None], img, 0.0).astype(np.float32))
+    return intr, n_gl.astype(np.float32), inside, params, -to_light, images
+
+
+def write_set(folder, specular: bool, normals_ext: str = ".npy", shadow: bool = False):
+    from texstream.capture.imageio import write_image
+
+    intr, n_gl, inside, params, directions, images = scene(specular)
+    (folder / "images").mkdir(parents=True)
+    frames = []
+    for i, (d, im) in enumerate(zip(directions, images)):
+        mask_path = None
+        if shadow and i % 2 == 0:
+            # a cast shadow the normal map cannot predict: dark block in half the photos, masked out
+            im = im.copy()
+            im[8:24, 10:30] *= 0.2
+            m = np.ones(im.shape, np.float32)
+            m[8:24, 10:30] = 0.0
+            mask_path = f"masks/{i:02d}.png"
+            (folder / "masks").mkdir(exist_ok=True)
+            write_image(folder / mask_path, m, bits=8)
+        write_image(folder / "images" / f"{i:02d}.exr", im)
+        frames.append(Frame(f"images/{i:02d}.exr", np.eye(3), np.zeros(3), intr, light=Light.directional(d, [E] * 3),
+                            mask_path=mask_path))
+    write_capture(Capture(folder, frames))
+    normals = folder / f"normals{normals_ext}"
+    if normals_ext == ".npy":
+        np.save(normals, n_gl)
+    elif normals_ext == ".png":
+        write_image(normals, np.where(inside[..., None], 0.5 * (n_gl + 1), 0.0), bits=16)
+    else:
+        write_image(normals, n_gl)
+    return normals, inside, params
+
+
+def read_maps(model):
+    from texstream.capture.synth import read_param_maps
+    from texstream.fit.models import ModelLayout
+
+    man = json.loads((model / "model.json").read_text())
+    return read_param_maps(model, ModelLayout.from_json(man["layout"])), man
+
+
+def test_diffuse_single_view_recovers_albedo(tmp_path, device):
+    normals, inside, gt = write_set(tmp_path / "cap", specular=False)
+    cfg = SingleViewConfig(device=device, renders=2, fit=FitConfig(model="diffuse", optimizer="lm", max_iterations=10))
+    res = fit_single_view_stage(tmp_path / "cap", normals, tmp_path / "model", cfg, progress=False)
+    model = tmp_path / "model"
+    for name in ("model.json", "trace.json", "fit_config.json", "seen.png", "normals.exr", "error_vs_time.png"):
+        assert (model / name).exists(), name
+    grid, man = read_maps(model)
+    assert grid.shape[:2] == (SIZE, SIZE)
+    from texstream.capture.imageio import read_image
+
+    seen = read_image(model / "seen.png", channels=1)[..., 0] > 0.5
+    assert seen.sum() > 0.8 * inside[1:-1, 1:-1].sum()  # all but grazing silhouette texels
+    rel = np.abs(grid[seen, :3] - gt[seen, :3]) / gt[seen, :3]
+    # noise-free float photos, texels on pixel centres (bilinear weight of a neighbour ~1e-6) and
+    # a linear model: the issue's 1% bound holds for every texel, not only the median
+    assert rel.max() < 0.01, rel.max()
+    assert res.summary["psnr_db"] > 60.0  # fp32 accumulation of exact renders
+    assert all(e["psnr_db"] > 50.0 for e in res.summary["render_eval"])
+
+
+def test_lafortune_single_view_fits_the_photos(tmp_path, device):
+    normals, inside, gt = write_set(tmp_path / "cap", specular=True, normals_ext=".exr")
+    cfg = SingleViewConfig(device=device, renders=4, holdout_every=8,
+                           fit=FitConfig(model="lafortune", optimizer="lm", max_iterations=60))
+    res = fit_single_view_stage(tmp_path / "cap", normals, tmp_path / "model", cfg, progress=False)
+    # the per-texel lobe is fitted from 14 samples of which only a few see the highlight; noise-free
+    # data with the generating model: the fit reproduces the photos to well above 8-bit precision (48 dB)
+    assert res.summary["psnr_db"] > 40.0, res.summary
+    grid, _ = read_maps(tmp_path / "model")
+    from texstream.capture.imageio import read_image
+
+    seen = read_image(tmp_path / "model" / "seen.png", channels=1)[..., 0] > 0.5
+    rel = np.abs(grid[seen, :3] - gt[seen, :3]) / gt[seen, :3]
+    # diffuse albedo is separable from the lobe on samples far from the highlight: median within 1%
+    assert np.median(rel) < 0.01, np.median(rel)
+
+
+def test_per_photo_masks_drop_cast_shadows(tmp_path, device):
+    normals, inside, gt = write_set(tmp_path / "cap", specular=False, shadow=True)
+    cfg = SingleViewConfig(device=device, renders=0, fit=FitConfig(model="diffuse", optimizer="lm", max_iterations=10))
+    fit_single_view_stage(tmp_path / "cap", normals, tmp_path / "model", cfg, progress=False)
+    grid, _ = read_maps(tmp_path / "model")
+    from texstream.capture.imageio import read_image
+
+    seen = read_image(tmp_path / "model" / "seen.png", channels=1)[..., 0] > 0.5
+    rel = np.abs(grid[seen, :3] - gt[seen, :3]) / gt[seen, :3]
+    # the shadowed samples never enter the fit (mask test replaces the depth test), so the albedo
+    # is as exact as without shadows; unmasked, the 0.2x samples bias the block's texels by up to 45% (measured)
+    assert rel.max() < 0.01, rel.max()
+
+
+def test_png_normal_map_decodes_rgb(tmp_path):
+    normals, inside, _ = write_set(tmp_path / "cap", specular=False, normals_ext=".png")
+    n, valid = read_normal_map(normals)
+    n_true = scene(False)[1]
+    assert np.array_equal(valid, inside)  # black background decodes to (-1,-1,-1): length 1.73, invalid
+    # 16-bit quantisation of [0, 1]: components within 2 / 65535 before renormalising
+    assert np.abs(n[valid] - n_true[valid]).max() < 1e-4
+
+
+def test_bad_inputs_are_one_line_input_errors(tmp_path, capsys):
+    from texstream.pipelines.cli import main
+
+    normals, _, _ = write_set(tmp_path / "cap", specular=False)
+    with pytest.raises(InputError, match="normal map not found"):
+        fit_single_view_stage(tmp_path / "cap", tmp_path / "nope.npy", tmp_path / "m", progress=False)
+    np.save(tmp_path / "small.npy", np.zeros((SIZE // 2, SIZE, 3), np.float32) + [0, 0, 1])
+    with pytest.raises(InputError, match="normal map is 40x20 but the camera is 40x40"):
+        fit_single_view_stage(tmp_path / "cap", tmp_path / "small.npy", tmp_path / "m", progress=False)
+    assert not (tmp_path / "m").exists()  # nothing half-written
+    rc = main(["fit", str(tmp_path / "cap"), "--normals", str(tmp_path / "small.npy"), "-o", str(tmp_path / "m")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 1 and len(err.splitlines()) == 1 and "small.npy" in err and "Fix:" in err
+    rc = main(["fit", str(tmp_path / "cap"), "-o", str(tmp_path / "m")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 1 and len(err.splitlines()) == 1 and "--normals" in err
