@@ -23,9 +23,11 @@ N_LIGHTS = 16
 E = 2.0  # light intensity (irradiance at normal incidence)
 
 
-def scene(specular: bool):
+def scene(specular: bool, point: bool = False):
     """World = OpenCV camera frame (R = I, t = 0). Returns intrinsics, normals (H, W, 3) in OpenGL camera
-    axes (the file convention), object mask, per-pixel params (H, W, 9), light directions, images."""
+    axes (the file convention), object mask, per-pixel params (H, W, 9), lights, images, camera depth (H, W).
+
+    ``point``: point lights 2.5 units from the object instead of directional ones (needs the depth)."""
     f = 200.0  # ~11 degree field of view: nearly orthographic, as photometric-stereo rigs are
     intr = Intrinsics(SIZE, SIZE, f, f, SIZE / 2, SIZE / 2)
     ys, xs = np.mgrid[0:SIZE, 0:SIZE] + 0.5
@@ -49,27 +51,42 @@ def scene(specular: bool):
     theta = np.deg2rad(rng.uniform(10, 55, N_LIGHTS))
     phi = np.linspace(0, 2 * np.pi, N_LIGHTS, endpoint=False) + rng.uniform(0, 0.3, N_LIGHTS)
     to_light = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), -np.cos(theta)], -1)
-    images = []
+    images, lights = [], []
     nn = np.where(inside[..., None], n_cv, [0.0, 0.0, -1.0])
-    for l in to_light:
-        cos_i = nn @ l
+    depth = 3.0 - 0.4 * np.sqrt(np.clip(1 - r2, 0, None))  # a bump towards the camera, 3 units away
+    p = ray * depth[..., None]
+    for dl in to_light:
+        if point:
+            pos = np.array([0.0, 0.0, 3.0]) + 2.5 * dl
+            d = pos - p
+            r2l = np.sum(d * d, -1)
+            l = d / np.sqrt(r2l)[..., None]
+            irr = E * 6.25 / r2l  # inverse square, E at the object's centre
+            lights.append(Light.point(pos, [E * 6.25] * 3))
+        else:
+            irr = np.full((SIZE, SIZE), E)
+            l = np.broadcast_to(dl, (SIZE, SIZE, 3))
+            lights.append(Light.directional(-dl, [E] * 3))  # 'direction' is where the light travels
+        cos_i = np.sum(nn * l, -1)
         # isotropic base: c_xy (u.v - u_z v_z) + c_z u_z v_z with u_z = n.l, v_z = n.v (frame-free)
-        uz, vz, uv = cos_i, np.sum(nn * v, -1), v @ l
+        uz, vz, uv = cos_i, np.sum(nn * v, -1), np.sum(v * l, -1)
         s = -(uv - uz * vz) + cz * uz * vz
         lobe = np.where(s > 0, np.exp(np.minimum(nexp * np.log(np.maximum(s, 1e-30)), 30.0)), 0.0)
         brdf = rho_d + rho_s * lobe[..., None]
-        img = E * np.clip(cos_i, 0, None)[..., None] * brdf
+        img = (irr * np.clip(cos_i, 0, None))[..., None] * brdf
         images.append(np.where(inside[..., None], img, 0.0).astype(np.float32))
-    return intr, n_gl.astype(np.float32), inside, params, -to_light, images
+    return intr, n_gl.astype(np.float32), inside, params, lights, images, depth
 
 
-def write_set(folder, specular: bool, normals_ext: str = ".npy", shadow: bool = False):
+def write_set(folder, specular: bool, normals_ext: str = ".npy", shadow: bool = False, point: bool = False):
     from texstream.capture.imageio import write_image
 
-    intr, n_gl, inside, params, directions, images = scene(specular)
+    intr, n_gl, inside, params, lights, images, depth = scene(specular, point)
     (folder / "images").mkdir(parents=True)
+    if point:
+        np.save(folder / "depth.npy", depth.astype(np.float32))
     frames = []
-    for i, (d, im) in enumerate(zip(directions, images)):
+    for i, (light, im) in enumerate(zip(lights, images)):
         mask_path = None
         if shadow and i % 2 == 0:
             # a cast shadow the normal map cannot predict: dark block in half the photos, masked out
@@ -81,8 +98,7 @@ def write_set(folder, specular: bool, normals_ext: str = ".npy", shadow: bool = 
             (folder / "masks").mkdir(exist_ok=True)
             write_image(folder / mask_path, m, bits=8)
         write_image(folder / "images" / f"{i:02d}.exr", im)
-        frames.append(Frame(f"images/{i:02d}.exr", np.eye(3), np.zeros(3), intr, light=Light.directional(d, [E] * 3),
-                            mask_path=mask_path))
+        frames.append(Frame(f"images/{i:02d}.exr", np.eye(3), np.zeros(3), intr, light=light, mask_path=mask_path))
     write_capture(Capture(folder, frames))
     normals = folder / f"normals{normals_ext}"
     if normals_ext == ".npy":
@@ -154,6 +170,20 @@ def test_per_photo_masks_drop_cast_shadows(tmp_path, device):
     assert rel.max() < 0.01, rel.max()
 
 
+def test_point_lights_use_the_depth_map(tmp_path, device):
+    normals, inside, gt = write_set(tmp_path / "cap", specular=False, point=True)
+    cfg = SingleViewConfig(device=device, renders=0, fit=FitConfig(model="diffuse", optimizer="lm", max_iterations=10))
+    fit_single_view_stage(tmp_path / "cap", normals, tmp_path / "model", cfg, progress=False)
+    grid, _ = read_maps(tmp_path / "model")
+    from texstream.capture.imageio import read_image
+
+    seen = read_image(tmp_path / "model" / "seen.png", channels=1)[..., 0] > 0.5
+    rel = np.abs(grid[seen, :3] - gt[seen, :3]) / gt[seen, :3]
+    # depth.npy puts each texel where the renders had it: the light direction and 1/r^2 are exact,
+    # so the 1% bound holds per texel as with directional lights
+    assert rel.max() < 0.01, rel.max()
+
+
 def test_png_normal_map_decodes_rgb(tmp_path):
     normals, inside, _ = write_set(tmp_path / "cap", specular=False, normals_ext=".png")
     n, valid = read_normal_map(normals)
@@ -179,3 +209,32 @@ def test_bad_inputs_are_one_line_input_errors(tmp_path, capsys):
     rc = main(["fit", str(tmp_path / "cap"), "-o", str(tmp_path / "m")])
     err = capsys.readouterr().err.strip()
     assert rc == 1 and len(err.splitlines()) == 1 and "--normals" in err
+
+
+def test_normal_spaces_and_texel_positions_agree():
+    from texstream.capture.conventions import look_at_w2c, project
+    from texstream.fit.photometric_stereo import single_view_geometry
+
+    intr, n_gl, inside, _, _, _, depth = scene(False)
+    R, t = look_at_w2c(np.array([1.0, -2.0, 0.5]), np.zeros(3))  # a camera that is not the world frame
+    n_cv = n_gl * np.array([1.0, -1.0, -1.0], np.float32)
+    n_world = (n_cv.reshape(-1, 3) @ R).reshape(n_cv.shape)
+    geos = [single_view_geometry(nm, inside, R, t, intr, space, depth)
+            for nm, space in ((n_gl, "opengl"), (n_cv, "opencv"), (n_world, "world"))]
+    c = geos[0].covered
+    for g in geos[1:]:
+        assert np.array_equal(g.covered, c)
+        # the same normals in three frames: equal after conversion up to float32 rounding
+        assert np.abs(g.normal[c] - geos[0].normal[c]).max() < 1e-5
+    g = geos[0]
+    # texels face the camera, frames are orthonormal and right-handed (t x b = n)
+    centre = -R.T @ t
+    assert np.all(np.sum(g.normal[c] * (centre - g.position[c]), -1) > 0)
+    assert np.abs(np.sum(g.tangent[c] * g.normal[c], -1)).max() < 1e-5
+    assert np.abs(np.cross(g.tangent[c], g.bitangent[c]) - g.normal[c]).max() < 1e-5
+    # each texel projects onto its pixel centre (capture convention: centres at +0.5) at its depth
+    uv, z = project(g.position[c], R, t, intr.fx, intr.fy, intr.cx, intr.cy)
+    ys, xs = np.nonzero(c)
+    # float32 positions 3 units away: ~1e-6 relative, i.e. 1e-4 px at f = 200
+    assert np.abs(uv - np.stack([xs + 0.5, ys + 0.5], -1)).max() < 1e-3
+    assert np.abs(z - depth[c]).max() < 1e-5
