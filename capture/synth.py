@@ -21,6 +21,12 @@ A *scene* is a small declarative JSON file (built-ins in ``capture/scenes/``: ``
     (capture/conventions.py). ``gradient`` varies the material smoothly: rho_d and rho_s are scaled
     by 1 + a (2 s - 1) and n by 1 + b (2 s - 1), s in [0, 1] the texel's coordinate along the axis
     (fraction of the mesh's bounding box, or the texel's u / v). Missing lobes have rho_s = 0.
+    Optional ``"noise": {"amount": a, "cells": c | [cu, cv], "octaves": k, "seed": s, "sharpness": h}``
+    multiplies rho_d (only) by max(0, 1 + a * N(u, v)): N is value noise in [-1, 1] over the texel's
+    UV, c x c cells at the coarsest of k octaves (each octave twice as fine, half as strong),
+    periodic in u (no edge at a surface of revolution's seam); h > 0 sharpens it to
+    tanh(h N) / tanh(h) (blotches with crisp edges). A high-frequency albedo texture gives SIFT
+    features for registration tests (calib/register.py).
 ``assignment``
     which material each texel gets: ``{"rule": "uniform", "material": NAME}``,
     ``{"rule": "bands", "axis": "z", "bands": [[upper_s, NAME], ..., [1.0, NAME]]}`` (the first band
@@ -263,6 +269,37 @@ def _axis_coord(axis: str, bake, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     raise ConfigError(f"unknown axis {axis!r}", fix="use x, y, z, u or v")
 
 
+def value_noise(u: np.ndarray, v: np.ndarray, cells, octaves: int = 3, seed: int = 0) -> np.ndarray:
+    """Multi-octave value noise in [-1, 1] at UV points (periodic in u; smoothstep interpolation).
+
+    Args:
+        u, v: (N,) coordinates in [0, 1].
+        cells: int or (cu, cv), grid cells of the coarsest octave.
+        octaves: octave count; octave o has 2**o times the cells and half the previous amplitude.
+        seed: random seed of the lattice values.
+
+    Returns:
+        (N,) float64 noise values.
+    """
+    cu0, cv0 = (cells, cells) if isinstance(cells, (int, float)) else cells
+    rng = np.random.default_rng([int(seed), 11])
+    total, norm = np.zeros(np.shape(u)), 0.0
+    for o in range(max(1, int(octaves))):
+        cu, cv = max(1, int(cu0) << o), max(1, int(cv0) << o)
+        lat = rng.uniform(-1.0, 1.0, size=(cv + 1, cu))
+        x, y = np.clip(u, 0.0, 1.0) * cu, np.clip(v, 0.0, 1.0) * cv
+        i0, j0 = np.minimum(np.floor(x).astype(int), cu), np.minimum(np.floor(y).astype(int), cv - 1)
+        fx, fy = x - i0, y - j0
+        fx, fy = fx * fx * (3 - 2 * fx), fy * fy * (3 - 2 * fy)  # smoothstep: no visible lattice creases
+        ia, ib = i0 % cu, (i0 + 1) % cu  # periodic in u
+        val = ((lat[j0, ia] * (1 - fx) + lat[j0, ib] * fx) * (1 - fy)
+               + (lat[j0 + 1, ia] * (1 - fx) + lat[j0 + 1, ib] * fx) * fy)
+        amp = 0.5 ** o
+        total += amp * val
+        norm += amp
+    return total / norm
+
+
 def material_params(scene: dict, layout, mesh, bake) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """Per-texel parameters from the scene's materials and assignment rule.
 
@@ -309,6 +346,15 @@ def material_params(scene: dict, layout, mesh, bake) -> tuple[np.ndarray, np.nda
             f_rho = 1.0 + float(g.get("amount", 0.0)) * (2 * s - 1)
             f_n = 1.0 + float(g.get("n_amount", 0.0)) * (2 * s - 1)
         out[sel, 0:3] = np.asarray(mat["rho_d"], dtype=np.float64)[None] * f_rho[:, None]
+        if mat.get("noise"):
+            nz = mat["noise"]
+            su, sv = _axis_coord("u", bake, lo, hi)[sel], _axis_coord("v", bake, lo, hi)[sel]
+            val = value_noise(su, sv, nz.get("cells", 16), int(nz.get("octaves", 3)), int(nz.get("seed", 0)))
+            k = float(nz.get("sharpness", 0.0))
+            if k > 0:  # tanh contrast: blotches with sharp edges (corners and blobs at many scales)
+                val = np.tanh(k * val) / math.tanh(k)
+            f_tex = np.maximum(0.0, 1.0 + float(nz.get("amount", 0.5)) * val)
+            out[sel, 0:3] *= f_tex[:, None]
         lobes = mat.get("lobes", [])
         if len(lobes) > layout.n_lobes:
             raise ConfigError(f"material {name!r} has {len(lobes)} lobes, the model {layout.n_lobes}",
