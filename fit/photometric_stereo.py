@@ -64,8 +64,8 @@ class SingleViewConfig:
     normal_space: str = option("opengl", "frame of the normal map: opengl (camera space, x right, y up, z towards "
                                "the viewer: DiLiGenT, most normal-map files), opencv (camera space, x right, y down, "
                                "z into the scene) or world (capture.json's world frame)", choices=NORMAL_SPACES)
-    depth: float = option(1.0, "nominal camera depth (z, world units) of every texel when the capture has no depth map; "
-                          "irrelevant for directional lights")
+    depth: float = option(1.0, "nominal camera depth (z, world units) of every texel when the capture has no "
+                          "depth map; irrelevant for directional lights")
     holdout_every: int = option(0, "hold out every k-th photo from the fit for evaluation (0 = none)")
     renders: int = option(4, "photos rendered beside the fitted model in renders/")
     fit: FitConfig = option(default_factory=FitConfig, help="the fit")
@@ -209,12 +209,25 @@ def single_view_geometry(normals: np.ndarray, valid: np.ndarray, R: np.ndarray, 
     return SingleViewGeometry(covered, grid(pos), grid(n), grid(tan), grid(bit))
 
 
-def load_single_view(capture_dir: str | Path, normals_path: str | Path, cfg: SingleViewConfig):
+def find_normal_map(capture_dir: str | Path) -> Path:
+    """``normals.exr``, ``normals.npy`` or ``normals.png`` beside capture.json (first found)."""
+    root = Path(capture_dir)
+    root = root if root.is_dir() else root.parent
+    for name in ("normals.exr", "normals.npy", "normals.png"):
+        if (root / name).exists():
+            return root / name
+    raise InputError("no normal map (normals.exr, normals.npy or normals.png) beside capture.json", root,
+                     "put the normal map there or pass its path (--normals)")
+
+
+def load_single_view(capture_dir: str | Path, normals_path: str | Path | None, cfg: SingleViewConfig):
     """(capture, fitted frames, held-out frames, geometry, images, masks) of a single-view capture."""
     from texstream.capture.capture_json import read_capture
     from texstream.capture.imageio import read_image, read_mask
 
     capture = read_capture(capture_dir)
+    if normals_path is None:
+        normals_path = find_normal_map(capture.root)
     where = capture.root / "capture.json"
     R, t, intr = shared_camera(capture.frames, where)
     normals, valid = read_normal_map(normals_path)
@@ -280,7 +293,9 @@ def render_texels_kernel(pos: wp.array(dtype=wp.vec3), nrm: wp.array(dtype=wp.ve
     cos_i = wp.dot(wi, n)
     val = wp.vec3(0.0)
     if cos_i > 0.0 and wp.dot(vdir, n) > 0.0:
-        f = lafortune_brdf(params, i, n_lobes, aniso, to_local(wi, tan[i], bit[i], n), to_local(vdir, tan[i], bit[i], n), 1.0)
+        u = to_local(wi, tan[i], bit[i], n)
+        v = to_local(vdir, tan[i], bit[i], n)
+        f = lafortune_brdf(params, i, n_lobes, aniso, u, v, 1.0)
         val = info.exposure * cos_i * wp.cw_mul(f, e_int)
     out[i] = val
 
@@ -311,9 +326,16 @@ def render_single_view(problem, params: np.ndarray, layout: ModelLayout, frame) 
 # --------------------------------------------------------------------------- the stage
 
 
-def fit_single_view_stage(capture_dir: str | Path, normals_path: str | Path, out_dir: str | Path,
+def fit_single_view_stage(capture_dir: str | Path, normals_path: str | Path | None, out_dir: str | Path,
                           config: SingleViewConfig | None = None, progress: bool = True) -> StageResult:
-    """Fit ``config.fit``'s model per pixel of a single-view capture; write the model folder atomically."""
+    """Fit ``config.fit``'s model per pixel of a single-view capture; write the model folder atomically.
+
+    Args:
+        capture_dir: folder with capture.json (one camera, a light per frame), see the module doc.
+        normals_path: the normal map; None: normals.(exr|npy|png) beside capture.json.
+        out_dir: model folder to write (replaced only when the fit succeeds).
+        config: options; progress: show a progress bar.
+    """
     from texstream.capture.imageio import read_image, read_mask, write_image
     from texstream.capture.synth import write_param_maps
 
@@ -324,6 +346,7 @@ def fit_single_view_stage(capture_dir: str | Path, normals_path: str | Path, out
         raise InputError(f"normal space {cfg.normal_space!r} unknown", fix=f"use one of {NORMAL_SPACES}")
     t0 = time.perf_counter()
     capture, frames, held, geo, images, masks = load_single_view(capture_dir, normals_path, cfg)
+    geo_source = normals_path if normals_path is not None else find_normal_map(capture.root)
     problem = build_single_view_problem(geo, frames, images, masks, cfg.fit, cfg.device)
     t_setup = time.perf_counter() - t0
     bar = None
@@ -352,6 +375,9 @@ def fit_single_view_stage(capture_dir: str | Path, normals_path: str | Path, out
         show = (held or frames)[: max(cfg.renders, 0)]
         for f in show:
             photo = read_image(capture.image_path(f), channels=3)
+            if photo.shape[:2] != (h, w):
+                raise InputError(f"photo is {photo.shape[1]}x{photo.shape[0]} but the normal map is {w}x{h}",
+                                 capture.image_path(f), "give photos and normal map of one size")
             rend = render_single_view(problem, result.params, lay, f)
             m = seen.reshape(h, w) > 0  # texels no photo saw keep defaults: flagged, not scored
             mp = capture.mask_path(f)
@@ -363,7 +389,7 @@ def fit_single_view_stage(capture_dir: str | Path, normals_path: str | Path, out
         last = result.trace[-1]
         model = {"kind": lay.kind, "layout": lay.to_json(), "maps": files,
                  "geometry": {"type": "normal_map", "normals": "normals.exr", "normal_space_in": cfg.normal_space,
-                              "normals_out": "world", "source": str(Path(normals_path))},
+                              "normals_out": "world", "source": str(geo_source)},
                  "image": {"width": w, "height": h, "texels": int(problem.n),
                            "unseen_texels": int((result.samples == 0).sum())},
                  "photos": {"fitted": len(frames), "held_out": len(held)},

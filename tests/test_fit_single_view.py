@@ -121,7 +121,8 @@ def read_maps(model):
 def test_diffuse_single_view_recovers_albedo(tmp_path, device):
     normals, inside, gt = write_set(tmp_path / "cap", specular=False)
     cfg = SingleViewConfig(device=device, renders=2, fit=FitConfig(model="diffuse", optimizer="lm", max_iterations=10))
-    res = fit_single_view_stage(tmp_path / "cap", normals, tmp_path / "model", cfg, progress=False)
+    # normals_path None: the stage finds cap/normals.npy beside capture.json
+    res = fit_single_view_stage(tmp_path / "cap", None, tmp_path / "model", cfg, progress=False)
     model = tmp_path / "model"
     for name in ("model.json", "trace.json", "fit_config.json", "seen.png", "normals.exr", "error_vs_time.png"):
         assert (model / name).exists(), name
@@ -197,6 +198,9 @@ def test_bad_inputs_are_one_line_input_errors(tmp_path, capsys):
     from texstream.pipelines.cli import main
 
     normals, _, _ = write_set(tmp_path / "cap", specular=False)
+    normals.unlink()
+    with pytest.raises(InputError, match="no normal map"):
+        fit_single_view_stage(tmp_path / "cap", None, tmp_path / "m", progress=False)
     with pytest.raises(InputError, match="normal map not found"):
         fit_single_view_stage(tmp_path / "cap", tmp_path / "nope.npy", tmp_path / "m", progress=False)
     np.save(tmp_path / "small.npy", np.zeros((SIZE // 2, SIZE, 3), np.float32) + [0, 0, 1])
@@ -209,6 +213,12 @@ def test_bad_inputs_are_one_line_input_errors(tmp_path, capsys):
     rc = main(["fit", str(tmp_path / "cap"), "-o", str(tmp_path / "m")])
     err = capsys.readouterr().err.strip()
     assert rc == 1 and len(err.splitlines()) == 1 and "--normals" in err
+    doc = json.loads((tmp_path / "cap" / "capture.json").read_text())
+    doc["frames"][3]["transform_matrix"][0][3] = 0.5  # a second camera position
+    (tmp_path / "cap" / "capture.json").write_text(json.dumps(doc))
+    np.save(tmp_path / "n.npy", scene(False)[1])
+    with pytest.raises(InputError, match="another camera pose"):
+        fit_single_view_stage(tmp_path / "cap", tmp_path / "n.npy", tmp_path / "m", progress=False)
 
 
 def test_normal_spaces_and_texel_positions_agree():
