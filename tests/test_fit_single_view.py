@@ -147,7 +147,7 @@ def test_lafortune_single_view_fits_the_photos(tmp_path, device):
     res = fit_single_view_stage(tmp_path / "cap", normals, tmp_path / "model", cfg, progress=False)
     # the per-texel lobe is fitted from 14 samples of which only a few see the highlight; noise-free
     # data with the generating model: the fit reproduces the photos to well above 8-bit precision (48 dB)
-    assert res.summary["psnr_db"] > 40.0, res.summary
+    assert res.summary["psnr_db"] > 60.0, res.summary  # 83 dB measured (fp32 accumulation)
     grid, _ = read_maps(tmp_path / "model")
     from texstream.capture.imageio import read_image
 
