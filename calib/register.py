@@ -10,7 +10,10 @@ Pipeline (what COLMAP's automatic reconstructor does, with capture-folder plumbi
    ``--refine-intrinsics``) or COLMAP's own focal guess;
 3. exhaustive matching (sequential or vocabulary tree for large or video-like sets);
 4. incremental mapping; the largest model is kept and unregistered photos are reported;
-5. optional Sim3 alignment to known camera centres (``--align-to capture.json``);
+5. optional Sim3 alignment to known camera centres (``--align-to capture.json``, pycolmap RANSAC) or
+   into a given mesh's frame (``--align-mesh MESH``: the similarity of
+   :func:`texstream.geometry.align.align_to_points` (PCA start, trimmed scaled ICP of the mesh onto
+   the SfM points), inverted, so cameras and points land on the mesh);
 6. undistortion of registered photos and masks to pinhole, conversion to ``capture.json``.
 
 Outputs (atomically): ``capture.json``, ``images/``, ``masks/``, ``sparse/0``, ``points3D.ply``,
@@ -60,6 +63,10 @@ class RegisterConfig:
     min_model_size: int = option(3, help="smallest model (registered photos) kept by the mapper")
     align_to: str | None = option(None, help="capture.json / transforms.json with known camera centres: "
                                   "Sim3-align the model to them (matched by image file name)")
+    align_mesh: str | None = option(None, help="mesh file (OBJ / PLY / ...) whose frame and scale the capture is brought "
+                                    "into: scaled ICP of the SfM points onto the mesh (not with --align-to)")
+    align_mesh_max_rms: float = option(0.01, help="largest accepted RMS distance of the SfM points to the aligned mesh, "
+                                       "as a fraction of the points' bounding-box diagonal")
     align_max_error: float = option(0.02, help="RANSAC inlier threshold of the alignment, as a fraction of the "
                                     "extent of the known centres")
     colocated_light: float | None = option(None, help="light fixed to the camera (flash) with this intensity: "
@@ -300,7 +307,63 @@ def align_to_centres(rec: Any, centres: dict[str, np.ndarray], max_error_frac: f
     rec.transform(sim)
     got = np.stack([rec.find_image_with_name(n).projection_center() for n in names])
     rmse = float(np.sqrt(np.mean(np.sum((got - locs) ** 2, 1))))
-    return {"scale": float(sim.scale), "common": len(names), "rmse": rmse, "extent": extent}
+    return {"kind": "centres", "scale": float(sim.scale), "common": len(names), "rmse": rmse, "extent": extent}
+
+
+def mesh_frame_transform(mesh: Any, points: np.ndarray, seed: int = 0) -> tuple[float, np.ndarray, np.ndarray, dict]:
+    """The similarity taking SfM-frame points into a given mesh's frame: x_mesh = s R x + t.
+
+    :func:`texstream.geometry.align.align_to_points` finds the mesh -> points similarity (PCA
+    start over the proper axis sign choices, trimmed scaled ICP); this is its inverse. A mesh with
+    a symmetry (sphere, surface of revolution) leaves the rotation about it undetermined.
+
+    Args:
+        mesh: the given SurfaceMesh (its frame is the target frame).
+        points: (N, 3) SfM points, N >= 10.
+        seed: unused by the deterministic ICP; kept for a uniform signature with the RANSAC aligner.
+
+    Returns:
+        (s, R (3, 3), t (3,), info) with info ``rms_fraction`` (trimmed RMS point-to-mesh-sample
+        distance over the points' bbox diagonal), ``rms`` (mesh units) and ``iterations``.
+    """
+    from texstream.geometry.align import align_to_points
+
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(pts) < 10:
+        raise StageError(f"only {len(pts)} SfM point(s) to align to the mesh; at least 10 are needed",
+                         fix="register more photos, or use --align-to with known camera centres")
+    al = align_to_points(mesh, pts)
+    s = 1.0 / al.scale
+    r = al.R.T
+    t = -s * (r @ al.t)
+    return s, r, t, {"rms_fraction": float(al.rms_fraction), "rms": float(al.rms * s), "iterations": int(al.iterations)}
+
+
+def align_to_mesh(rec: Any, mesh: Any, max_rms_frac: float) -> dict:
+    """Bring a reconstruction in place into a mesh's frame (scaled ICP of its points onto the mesh).
+
+    Args:
+        rec: pycolmap.Reconstruction (modified in place).
+        mesh: SurfaceMesh in the target frame.
+        max_rms_frac: accepted trimmed RMS point-to-mesh distance as a fraction of the points' extent.
+
+    Returns:
+        dict with ``scale``, ``rms`` (mesh units), ``rms_fraction``, ``points`` (points used).
+
+    Raises:
+        StageError: too few points, or the fit's residual above ``max_rms_frac`` (wrong mesh / object).
+    """
+    import pycolmap
+
+    pts = np.array([p.xyz for p in rec.points3D.values()], dtype=np.float64).reshape(-1, 3)
+    s, r, t, info = mesh_frame_transform(mesh, pts)
+    if not info["rms_fraction"] <= max_rms_frac:
+        raise StageError(f"the SfM points do not fit the mesh (RMS {info['rms_fraction']:.3g} of their extent, "
+                         f"accepted {max_rms_frac:g})",
+                         fix="check that --align-mesh is this object's mesh, or raise --align-mesh-max-rms")
+    rec.transform(pycolmap.Sim3d(s, pycolmap.Rotation3d(r), t))
+    return {"scale": float(s), "rms": info["rms"], "rms_fraction": info["rms_fraction"], "points": int(len(pts)),
+            "kind": "mesh"}
 
 
 def _photometric_gains(rec: Any, photos: list[_Photo], mask_dir: Path | None, report: dict) -> dict[str, np.ndarray]:
@@ -390,7 +453,16 @@ def register(capture: str | os.PathLike, out: str | os.PathLike, config: Registe
         raise StageError(f"registration needs at least 2 readable photos, got {len(photos)} "
                          f"({len(dropped)} dropped); partial report {path}", capture,
                          "add overlapping photos of the object (20+ from all sides is typical)")
+    if cfg.align_to and cfg.align_mesh:
+        raise ConfigError("give either --align-to (known camera centres) or --align-mesh (a mesh frame), not both",
+                          cfg.align_mesh, "drop one of the two options")
     centres = _known_centres(cfg.align_to) if cfg.align_to else None
+    align_mesh = None
+    if cfg.align_mesh:
+        from texstream.geometry.mesh_io import load_mesh, validate_mesh
+
+        align_mesh = load_mesh(cfg.align_mesh)
+        validate_mesh(align_mesh, cfg.align_mesh)
     timings: dict[str, float] = {}
     out.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix=".register.", dir=out.parent if out.parent.exists() else None) as w:
@@ -410,6 +482,8 @@ def register(capture: str | os.PathLike, out: str | os.PathLike, config: Registe
         report["mean_reprojection_error"] = float(rec.compute_mean_reprojection_error())
         if centres is not None:
             report["alignment"] = align_to_centres(rec, centres, cfg.align_max_error, cfg.seed)
+        elif align_mesh is not None:
+            report["alignment"] = align_to_mesh(rec, align_mesh, cfg.align_mesh_max_rms)
         posed = {name: (r, t, intr) for name, r, t, intr in reconstruction_frames(rec)}
         gains = _photometric_gains(rec, photos, mask_dir, report) if cfg.photometric != "off" else {}
         coloc = cfg.colocated_light
@@ -461,7 +535,9 @@ def register(capture: str | os.PathLike, out: str | os.PathLike, config: Registe
             extra.pop("posed", None)
             extra.pop("colocated_light", None)
             extra["registration"] = {"registered": len(frames), "unregistered": report["unregistered"],
-                                     "aligned": centres is not None}
+                                     "aligned": centres is not None or align_mesh is not None,
+                                     "aligned_to": "centres" if centres is not None else
+                                     ("mesh" if align_mesh is not None else None)}
             write_capture(Capture(root=tmp, frames=frames, extra=extra), tmp)
             (tmp / "sparse" / "0").mkdir(parents=True)
             rec.write(str(tmp / "sparse" / "0"))

@@ -33,6 +33,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"  dropped: {d['image']} ({d['reason']})")
     if s.get("alignment"):
         a = s["alignment"]
-        print(f"aligned to {a['common']} known centres: scale {a['scale']:.4g}, centre RMSE {a['rmse']:.4g}")
+        if a.get("kind") == "mesh":
+            print(f"aligned to the mesh frame: scale {a['scale']:.4g}, point RMS {a['rms']:.4g} "
+                  f"({100 * a['rms_fraction']:.2f}% of the extent)")
+        else:
+            print(f"aligned to {a['common']} known centres: scale {a['scale']:.4g}, centre RMSE {a['rmse']:.4g}")
     print(f"wrote {out}")
     return 0

@@ -66,3 +66,112 @@ def test_textured_synthetic_capture_recovers_known_poses(sphere_capture, tmp_pat
     assert got.frames[0].intrinsics.fx == pytest.approx(truth.frames[0].intrinsics.fx)  # K fixed
     print(f"textured sphere: 24/24, centre max {cen.max():.4f} / median {np.median(cen):.4f} of diameter, "
           f"rotation max {rot.max():.3f} / median {np.median(rot):.3f} deg, register {time.time() - t0:.1f} s")
+
+
+# ------------------------------------------------------------------------------ alignment to a mesh frame
+
+
+def _lumpy_mesh():
+    """An icosphere pushed into an asymmetric potato (no symmetry the PCA start could confuse)."""
+    from texstream.capture.procedural import icosphere
+    from texstream.geometry.mesh import SurfaceMesh
+
+    m = icosphere(1.0, 3)
+    v = m.vertices
+    v = v * np.array([1.6, 1.0, 0.7]) * (1 + 0.25 * v[:, :1] + 0.15 * v[:, 1:2] ** 2 - 0.2 * v[:, 2:3] ** 3)
+    return SurfaceMesh(vertices=v, faces=m.faces)
+
+
+def _rotation(seed):
+    q, _ = np.linalg.qr(np.random.default_rng(seed).normal(size=(3, 3)))
+    return q * np.sign(np.linalg.det(q))
+
+
+def test_mesh_frame_transform_brings_sfm_points_and_cameras_onto_the_mesh():
+    from texstream.calib.register import mesh_frame_transform
+    from texstream.geometry.align import sample_mesh
+
+    mesh = _lumpy_mesh()
+    diag = mesh.bbox_diagonal()
+    rng = np.random.default_rng(4)
+    # Ground-truth mesh -> SfM similarity (COLMAP's arbitrary gauge): scale 0.37, a random rotation, an offset.
+    sg, rg, tg = 0.37, _rotation(7), np.array([2.0, -1.0, 0.5])
+    to_sfm = lambda x: sg * x @ rg.T + tg  # noqa: E731
+    pts = to_sfm(sample_mesh(mesh, 3000, seed=1) + rng.normal(0, 0.002 * diag, (3000, 3)))
+    lo, hi = pts.min(0), pts.max(0)
+    pts = np.vstack([pts, rng.uniform(lo, hi, (150, 3))])  # 5% SfM outliers
+    centres = 3.0 * np.stack([np.cos(np.arange(12) * 0.5), np.sin(np.arange(12) * 0.5), np.full(12, 0.4)], 1)
+    s, r, t, info = mesh_frame_transform(mesh, pts)
+    back = s * to_sfm(centres) @ r.T + t
+    v_back = s * to_sfm(mesh.vertices) @ r.T + t
+    # Measured: vertices 0.2% of the diagonal, cameras 0.8% of the ring diameter, rotation 0.3 deg (the
+    # trimmed ICP stops within a few tenths of a degree). Bounds: 1% of the diagonal for the surface,
+    # the done-when's 2% of the ring diameter (6 units) for camera centres, 1 degree for the rotation.
+    assert np.abs(v_back - mesh.vertices).max() < 0.01 * diag
+    assert np.linalg.norm(back - centres, axis=1).max() < 0.02 * 6.0
+    assert s * sg == pytest.approx(1.0, rel=0.005)  # scale from 3,000 points: 0.5%
+    assert np.degrees(np.arccos(np.clip((np.trace(r @ rg) - 1) / 2, -1, 1))) < 1.0
+    assert info["rms_fraction"] < 0.01  # measured 0.4%: the 0.2% noise plus the sampling of the mesh
+
+
+def test_align_to_mesh_rejects_the_wrong_mesh():
+    from texstream.calib.register import align_to_mesh
+    from texstream.pipelines.errors import StageError
+
+    class _Pt:
+        def __init__(self, xyz):
+            self.xyz = xyz
+
+    class _Rec:  # the two members align_to_mesh touches on a pycolmap.Reconstruction
+        points3D = {i: _Pt(p) for i, p in enumerate(np.random.default_rng(0).uniform(-1, 1, (500, 3)) * [3, 3, 0.01])}
+
+        def transform(self, sim):
+            raise AssertionError("a rejected alignment must not move the model")
+
+    with pytest.raises(StageError, match="do not fit the mesh") as e:
+        # A flat sheet of points is not the potato: RMS 1.9% of the extent against 0.4% for a true fit.
+        align_to_mesh(_Rec(), _lumpy_mesh(), 0.01)
+    assert "\n" not in str(e.value)
+
+
+def test_register_cli_aligns_the_capture_to_the_mesh_frame(sphere_capture, tmp_path, capsys):
+    """``texstream register --align-mesh``: the synthetic sphere's own mesh fixes scale and centre (its
+    rotational symmetry leaves the orientation free, so the check is what a sphere determines)."""
+    import pycolmap
+
+    from texstream.pipelines.cli import main
+
+    cap, k_file = sphere_capture
+    out = tmp_path / "posed"
+    rc = main(["register", str(cap), "-o", str(out), "--intrinsics", str(k_file), "--align-mesh",
+               str(cap / "ground_truth" / "mesh.obj"), "--num-threads", "2", "--max-num-features", "2000",
+               "--photometric", "off"])
+    assert rc == 0
+    assert "aligned to the mesh frame" in capsys.readouterr().out
+    got = read_capture(out)
+    dist = np.array([np.linalg.norm(f.center) for f in got.frames])
+    # Cameras were 3.2 units from the sphere's centre; 2% is the done-when's centre tolerance.
+    assert np.abs(dist / 3.2 - 1).max() < 0.02, dist
+    fwd = np.stack([f.R[2] for f in got.frames])  # optical axis in world (third row of world-to-camera R)
+    to_centre = -np.stack([f.center for f in got.frames]) / dist[:, None]
+    ang = np.degrees(np.arccos(np.clip((fwd * to_centre).sum(1), -1, 1)))
+    assert ang.max() < 2.0, ang  # every camera looked at the sphere's centre: 2 degrees as for rotations
+    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    radii = np.linalg.norm(np.array([p.xyz for p in rec.points3D.values()]), axis=1)
+    # Points on the unit sphere (a 96x48 polygon: chords sag by 0.05%); 2% allows SfM noise at 256 px.
+    assert np.median(np.abs(radii - 1)) < 0.02
+    assert json.loads((out / "capture.json").read_text())["registration"]["aligned_to"] == "mesh"
+
+
+def test_register_alignment_bad_options(sphere_capture, tmp_path, capsys):
+    from texstream.pipelines.cli import main
+
+    cap, _ = sphere_capture
+    rc = main(["register", str(cap), "-o", str(tmp_path / "o"), "--align-mesh", str(tmp_path / "nope.obj")])
+    err = capsys.readouterr().err
+    assert rc == 1 and "mesh file not found" in err and "nope.obj" in err and err.count("\n") == 1
+    rc = main(["register", str(cap), "-o", str(tmp_path / "o"), "--align-mesh", str(cap / "ground_truth" / "mesh.obj"),
+               "--align-to", str(cap / "capture.json")])
+    err = capsys.readouterr().err
+    assert rc == 1 and "not both" in err and err.count("\n") == 1
+    assert not (tmp_path / "o").exists()
