@@ -279,12 +279,12 @@ def build_single_view_problem(geo: SingleViewGeometry, frames, images, masks, cf
 # --------------------------------------------------------------------------- rendering the fit
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def render_texels_kernel(pos: wp.array(dtype=wp.vec3), nrm: wp.array(dtype=wp.vec3), tan: wp.array(dtype=wp.vec3),
                          bit: wp.array(dtype=wp.vec3), params: wp.array2d(dtype=wp.float32), n_lobes: int, aniso: int,
                          info: stream.ImageInfo, out: wp.array(dtype=wp.vec3)):
     """Pixel value exposure * E * cos(theta_i) * f_r of each texel under one photo's light and camera
-    (0 when lit or seen from behind), the model the fit's residuals use."""
+    (0 when lit or seen from behind the surface), the model the fit's residuals use."""
     i = wp.tid()
     p = pos[i]
     n = nrm[i]
