@@ -5,7 +5,7 @@ nearest camera that looks at them. Poisson closes every surface, so the result i
 whose vertices have low Poisson density (few samples nearby: the invented parts) are removed, and
 faces that project outside the object mask of any camera that sees them are removed too.
 
-pymeshlab is imported inside the functions.
+pymeshlab and scipy are imported inside the functions; warp at module level (a distance kernel).
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ import os
 from typing import Sequence
 
 import numpy as np
+import warp as wp
 
 from texstream.pipelines.errors import InputError, StageError
 from texstream.pipelines.stage import option
@@ -27,6 +28,9 @@ class PoissonConfig:
     """Screened Poisson options."""
 
     depth: int = option(8, help="octree depth (resolution 2^depth over the points' bounding cube)")
+    scale: float = option(2.0, help="bounding cube size over the points' extent (room for the surface to close "
+                                    "where the points stop: at 1.1 the temple's unseen base ran into the cube "
+                                    "wall and stayed open)")
     point_weight: float = option(4.0, help="screening weight: how closely the surface interpolates the points")
     samples_per_node: float = option(1.5, help="minimum points per octree node (higher: smoother, for noisy points)")
     normal_neighbours: int = option(12, help="neighbours for PCA normals when the points have none")
@@ -56,13 +60,17 @@ def read_points(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]
     return p, n
 
 
-def estimate_normals(points: np.ndarray, camera_centers: np.ndarray | None, k: int = 12) -> np.ndarray:
+def estimate_normals(points: np.ndarray, camera_centers: np.ndarray | None, k: int = 12,
+                     view_dirs: np.ndarray | None = None) -> np.ndarray:
     """PCA normals of a point cloud, oriented towards the nearest camera (outwards for SfM points).
 
     Args:
         points: (N, 3).
         camera_centers: (C, 3) camera centres, or None to orient away from the centroid.
         k: neighbours.
+        view_dirs: (N, 3) directions from each point towards the cameras that observed it (e.g.
+            the mean over its SfM track); when given they orient the normals instead of the
+            nearest camera (which can lie behind a thin part of the object).
 
     Returns:
         (N, 3) unit normals.
@@ -76,7 +84,9 @@ def estimate_normals(points: np.ndarray, camera_centers: np.ndarray | None, k: i
     cov = np.einsum("nki,nkj->nij", nb, nb)
     _, vecs = np.linalg.eigh(cov)
     n = vecs[:, :, 0]  # smallest-eigenvalue direction
-    if camera_centers is not None and len(camera_centers):
+    if view_dirs is not None:
+        to_cam = np.asarray(view_dirs, np.float64).reshape(-1, 3)
+    elif camera_centers is not None and len(camera_centers):
         cc = np.asarray(camera_centers, np.float64)
         _, ci = cKDTree(cc).query(p)
         to_cam = cc[ci] - p
@@ -121,7 +131,8 @@ def poisson_reconstruct(points: np.ndarray, normals: np.ndarray | None = None,
         n = np.asarray(normals, np.float64).reshape(-1, 3)[p_ok]
     ms = ml.MeshSet()
     ms.add_mesh(ml.Mesh(vertex_matrix=p, v_normals_matrix=n))
-    ms.generate_surface_reconstruction_screened_poisson(depth=int(cfg.depth), pointweight=float(cfg.point_weight),
+    ms.generate_surface_reconstruction_screened_poisson(depth=int(cfg.depth), scale=float(cfg.scale),
+                                                        pointweight=float(cfg.point_weight),
                                                         samplespernode=float(cfg.samples_per_node),
                                                         threads=int(cfg.threads), preclean=True)
     m = ms.current_mesh()
@@ -172,3 +183,35 @@ def _compact(mesh: SurfaceMesh) -> SurfaceMesh:
     used[mesh.faces.reshape(-1)] = True
     remap = np.cumsum(used) - 1
     return SurfaceMesh(mesh.vertices[used], remap[mesh.faces].astype(np.int32))
+
+
+@wp.kernel(enable_backward=False)
+def _point_distance_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), max_dist: float,
+                           out: wp.array(dtype=wp.float32)):
+    i = wp.tid()
+    q = wp.mesh_query_point_no_sign(mesh, points[i], max_dist)
+    if q.result:
+        out[i] = wp.length(wp.mesh_eval_position(mesh, q.face, q.u, q.v) - points[i])
+    else:
+        out[i] = max_dist
+
+
+def point_surface_distance(points: np.ndarray, mesh: SurfaceMesh, device: str = "cpu") -> np.ndarray:
+    """Distance from each point to the nearest point of a triangle mesh (BVH query in Warp).
+
+    Args:
+        points: (N, 3) world points.
+        mesh: the surface.
+        device: Warp device.
+
+    Returns:
+        (N,) distances in world units (capped at 10x the mesh's bounding-box diagonal).
+    """
+    p = np.asarray(points, np.float32).reshape(-1, 3)
+    wm = wp.Mesh(points=wp.array(np.asarray(mesh.vertices, np.float32), dtype=wp.vec3, device=device),
+                 indices=wp.array(np.asarray(mesh.faces, np.int32).reshape(-1), dtype=wp.int32, device=device))
+    out = wp.empty(len(p), dtype=wp.float32, device=device)
+    far = 10.0 * max(mesh.bbox_diagonal(), float(np.ptp(p, axis=0).max()) if len(p) else 0.0, 1e-12)
+    wp.launch(_point_distance_kernel, dim=len(p), inputs=[wm.id, wp.array(p, dtype=wp.vec3, device=device), far],
+              outputs=[out], device=device)
+    return out.numpy().astype(np.float64)

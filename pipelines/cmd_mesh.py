@@ -34,6 +34,10 @@ def run(args: argparse.Namespace) -> int:
     cfg = config_from_args(MeshConfig, args, **overrides)
     res = make_mesh(args.capture, args.out, cfg)
     s = res.summary
+    if "triangulation" in s:
+        t = s["triangulation"]
+        print(f"triangulated {t['points']} SfM points from the known cameras in {t['seconds']['total']:.1f} s "
+              f"(median reprojection error {t['median_reprojection_error_px']:.2f} px)")
     print(f"mesh from {s['source']} ({s['reason']}): {s['summary']}; wrote {res.output / 'mesh.ply'} "
           f"in {s['seconds']:.1f} s")
     return 0

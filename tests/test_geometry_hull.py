@@ -69,7 +69,7 @@ def test_temple_hull_fills_the_readme_bbox(data_dir, tmp_path):
 
     src = need_data(data_dir, "middlebury_temple_sparse")
     assert main(["import", "middlebury", str(src), "-o", str(tmp_path / "cap"), "--make-masks"]) == 0
-    res = make_mesh(tmp_path / "cap", tmp_path / "mesh", MeshConfig(faces=20000))
+    res = make_mesh(tmp_path / "cap", tmp_path / "mesh", MeshConfig(source="hull", faces=20000))
     assert res.summary["source"] == "hull"
     m = load_mesh(tmp_path / "mesh" / "mesh.ply")
     lo, hi = np.array([-0.073568, 0.021728, -0.012445]), np.array([0.028855, 0.181892, 0.062736])
