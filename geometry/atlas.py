@@ -427,6 +427,8 @@ def atlas_stage(mesh_path, out, config: AtlasConfig | None = None, face_weights:
     Writes (atomically, all or nothing) into ``out``:
         ``mesh.obj``          the mesh with UVs (split at chart seams; welded ``v`` records),
         ``bake.npz``          the :class:`~texstream.geometry.bake.TexelBake`,
+        ``seams.npz``         the :class:`~texstream.geometry.seams.Seams` (texels tied across chart
+                              seams; ``average_across_seams`` removes cracks from fitted maps),
         ``atlas_config.json`` the resolved :class:`AtlasConfig`,
         ``atlas_info.json``   :class:`AtlasInfo` plus bake statistics and the input fingerprint,
         ``charts.png``        preview: normals as colours on the atlas, black outside charts.
@@ -458,7 +460,7 @@ def atlas_stage(mesh_path, out, config: AtlasConfig | None = None, face_weights:
     mesh = load_mesh(mesh_path)
     fp = _fingerprint(mesh_path, face_weights)
     if not force and (out / "atlas_info.json").is_file() and (out / "atlas_config.json").is_file() \
-            and (out / "bake.npz").is_file() and (out / "mesh.obj").is_file():
+            and (out / "bake.npz").is_file() and (out / "mesh.obj").is_file() and (out / "seams.npz").is_file():
         try:
             same = (read_json(out / "atlas_config.json") == config_to_dict(config)
                     and read_json(out / "atlas_info.json").get("input") == fp)
@@ -469,12 +471,17 @@ def atlas_stage(mesh_path, out, config: AtlasConfig | None = None, face_weights:
                                reason="output exists for the same mesh and config")
     atlas_mesh, info = build_atlas(mesh, config, face_weights)
     bake = bake_texels(atlas_mesh, info.width, info.height, device=device, padding=config.padding)
+    from .seams import SEAMS_FILE, find_seams
+
+    seams = find_seams(atlas_mesh, info.width, info.height, bake.fill_source)
     summary = {**info.to_dict(), "n_faces": atlas_mesh.n_faces, "n_vertices": atlas_mesh.n_vertices,
+               "seam_edges": seams.n_edges, "seam_samples": seams.n_samples,
                "bake_faces_without_texels": bake.faces_without_texels.tolist()[:100],
                "bake_coverage": bake.coverage, "input": fp}
     with atomic_output_dir(out) as tmp:
         save_mesh(tmp / "mesh.obj", atlas_mesh)
         bake.save(tmp / "bake.npz")
+        seams.save(tmp / SEAMS_FILE)
         save_config(config, tmp / "atlas_config.json")
         write_json_atomic(tmp / "atlas_info.json", summary)
         _write_preview(tmp / "charts.png", bake)

@@ -1,0 +1,324 @@
+"""Atlas seams: the texels on both sides of a chart seam, tied so that rendering shows no crack.
+
+A seam edge is a mesh edge whose two faces lie in different charts (or at different places of the
+same chart): its two copies have different UVs. The renderer textures a surface point by a
+bilinear lookup at the point's UV (:func:`texstream.fit.kernels.shading.bilinear_taps`; padding
+texels hold the value of their ``fill_source``), so a point on a seam edge reads four texels on
+side A and four on side B, and the model has a crack there unless the two lookups agree.
+
+Correspondences (:func:`find_seams`)
+    Along a seam edge, the lookup on one side is a piecewise quadratic function of the edge
+    parameter t (bilinear in texel coordinates, which are linear in t), with breakpoints where the
+    edge's UV image crosses a texel-centre line. Between consecutive breakpoints of both sides
+    the two lookups are quadratics, so they are equal there exactly when they are equal at the
+    segment's ends and its midpoint. :func:`find_seams` samples exactly those points; each sample
+    is one row of a sparse linear constraint ``sum_k w_a[k] x[idx_a[k]] - sum_k w_b[k] x[idx_b[k]]
+    = 0`` on texel values. The indices name the texels the renderer reads, covered texels (the
+    fit's parameters) and padding texels (the gutter around charts) alike. For two texels facing
+    each other exactly, a row reads x_i = x_j: the per-texel-pair correspondence.
+
+Averaging (:func:`average_across_seams`)
+    The smallest weighted change of the texel values (least squares, per channel) that satisfies
+    every constraint: with D the per-texel cost (1 for covered texels, ``padding_cost`` for
+    padding texels), x = x0 - D^-1 C^T (C D^-1 C^T + eps I)^-1 C x0; for a row x_i = x_j between
+    two covered texels that is their average. Padding texels are cheap to change: they hold no
+    fitted data, and letting the gutter absorb most of the difference keeps the fitted texels
+    nearly as they were (tying only covered texels forces values near-constant along seams:
+    on an atlased icosphere a smooth map changed by up to its full range that way). Only texels
+    some seam lookup reads change. Apply it after ``TexelBake.fill_padding`` (it starts by
+    refilling the padding from the fill sources, then overrides the gutter texels it needs).
+
+Files: :meth:`Seams.save` writes ``seams.npz`` (the atlas stage writes it beside ``bake.npz``).
+numpy at module level; scipy inside functions.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from texstream.pipelines.errors import InputError
+
+from .mesh import SurfaceMesh
+
+SEAMS_FILE = "seams.npz"
+
+
+@dataclasses.dataclass
+class Seams:
+    """Seam sample points and the bilinear stencils that read them on both sides.
+
+    Attributes:
+        width, height: atlas size in texels.
+        idx_a: (K, 4) int32 flat texel indices ``y * W + x`` read on side A.
+        w_a: (K, 4) float64 bilinear weights on side A (each row sums to 1).
+        idx_b, w_b: the same on side B.
+        position: (K, 3) float64 world position of each sample (on the seam edge).
+        uv_a, uv_b: (K, 2) float64 UV of the sample on each side.
+        edge: (K,) int32 seam edge id of each sample (see ``edge_faces``).
+        edge_faces: (E, 2) int32 the two faces (A, B) of each seam edge.
+        fill_source: (H * W,) int32 the bake's fill source (covered texels are their own source).
+    """
+
+    width: int
+    height: int
+    idx_a: np.ndarray
+    w_a: np.ndarray
+    idx_b: np.ndarray
+    w_b: np.ndarray
+    position: np.ndarray
+    uv_a: np.ndarray
+    uv_b: np.ndarray
+    edge: np.ndarray
+    edge_faces: np.ndarray
+    fill_source: np.ndarray
+
+    _ARRAYS = ("idx_a", "w_a", "idx_b", "w_b", "position", "uv_a", "uv_b", "edge", "edge_faces", "fill_source")
+
+    @property
+    def n_samples(self) -> int:
+        return int(len(self.idx_a))
+
+    @property
+    def n_edges(self) -> int:
+        return int(len(self.edge_faces))
+
+    def texels(self) -> np.ndarray:
+        """Sorted unique flat indices of the texels that seam lookups read."""
+        return np.unique(np.concatenate([self.idx_a.ravel(), self.idx_b.ravel()]))
+
+    def pairs(self, min_weight: float = 0.999) -> np.ndarray:
+        """(M, 2) texel pairs (i, j) that a seam sample ties one to one (weight >= ``min_weight`` on a
+        single texel on each side): the simple correspondences, for inspection and soft constraints."""
+        ia = np.argmax(self.w_a, axis=1)
+        ib = np.argmax(self.w_b, axis=1)
+        r = np.arange(self.n_samples)
+        ok = (self.w_a[r, ia] >= min_weight) & (self.w_b[r, ib] >= min_weight)
+        p = np.stack([self.idx_a[r, ia], self.idx_b[r, ib]], axis=1)[ok]
+        p = p[p[:, 0] != p[:, 1]]
+        return np.unique(np.sort(p, axis=1), axis=0).astype(np.int32)
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write ``seams.npz`` (compressed) atomically."""
+        from .mesh_io import _chmod_like_open
+
+        p = Path(path)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                np.savez_compressed(fh, width=np.int64(self.width), height=np.int64(self.height),
+                                    **{k: getattr(self, k) for k in self._ARRAYS})
+            _chmod_like_open(tmp)
+            os.replace(tmp, p)
+        except BaseException:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)
+            raise
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "Seams":
+        """Read a file written by :meth:`save`."""
+        p = Path(path)
+        if not p.is_file():
+            raise InputError("seams file not found", p, "re-run `texstream atlas` to make it")
+        try:
+            with np.load(p) as z:
+                return cls(width=int(z["width"]), height=int(z["height"]), **{k: z[k] for k in cls._ARRAYS})
+        except (OSError, KeyError, ValueError) as e:
+            raise InputError(f"not a seams file ({e})", p, "re-run `texstream atlas` to rebuild it") from None
+
+
+def seam_edges(mesh: SurfaceMesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Seam edges of a mesh split at UV seams.
+
+    Edges are matched through ``source_vertex`` (or, when absent, through equal positions).
+
+    Returns:
+        (faces (E, 2) int32 [face A, face B], verts_a (E, 2) int32 atlas vertices of the edge in face
+        A, verts_b (E, 2) int32 the matching atlas vertices in face B, in the same welded order).
+    """
+    f = np.asarray(mesh.faces, np.int64)
+    if mesh.source_vertex is not None:
+        key = np.asarray(mesh.source_vertex, np.int64)
+    else:
+        _, key = np.unique(np.asarray(mesh.vertices), axis=0, return_inverse=True)
+        key = key.reshape(-1).astype(np.int64)
+    a = f.reshape(-1)
+    b = f[:, [1, 2, 0]].reshape(-1)
+    face = np.repeat(np.arange(len(f)), 3)
+    ka, kb = key[a], key[b]
+    lo, hi = np.minimum(ka, kb), np.maximum(ka, kb)
+    # atlas vertices in welded order (lo, hi)
+    va = np.where(ka <= kb, a, b)
+    vb = np.where(ka <= kb, b, a)
+    order = np.lexsort((face, hi, lo))
+    lo, hi, va, vb, face = lo[order], hi[order], va[order], vb[order], face[order]
+    same = (lo[1:] == lo[:-1]) & (hi[1:] == hi[:-1])
+    # pairs of consecutive half-edges on one welded edge (a non-manifold edge gives its first pair)
+    first = np.flatnonzero(same & np.concatenate([[True], ~same[:-1]]))
+    second = first + 1
+    uv = np.asarray(mesh.uvs, np.float64)
+    differ = np.any(uv[va[first]] != uv[va[second]], axis=1) | np.any(uv[vb[first]] != uv[vb[second]], axis=1)
+    first, second = first[differ], second[differ]
+    faces = np.stack([face[first], face[second]], axis=1).astype(np.int32)
+    return (faces, np.stack([va[first], vb[first]], axis=1).astype(np.int32),
+            np.stack([va[second], vb[second]], axis=1).astype(np.int32))
+
+
+def _crossings(x0: np.ndarray, x1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Edge parameters t in (0, 1) where x0 + t (x1 - x0) is an integer: (owner index, t)."""
+    lo, hi = np.minimum(x0, x1), np.maximum(x0, x1)
+    k0 = np.floor(lo) + 1
+    n = np.maximum(np.ceil(hi) - k0, 0).astype(np.int64)  # integers strictly inside (lo, hi)
+    owner = np.repeat(np.arange(len(x0)), n)
+    start = np.repeat(np.cumsum(n) - n, n)
+    k = np.repeat(k0, n) + (np.arange(n.sum()) - start)
+    d = (x1 - x0)[owner]
+    return owner, (k - x0[owner]) / d
+
+
+def bilinear_stencil(uv: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """The renderer's bilinear lookup as (N, 4) flat texel indices and weights.
+
+    Mirrors :func:`texstream.fit.kernels.shading.texel_coords` and ``bilinear_taps``: texel
+    centres at integers, coordinates clamped to the atlas, taps (x0, y0), (x0+1, y0), (x0, y0+1),
+    (x0+1, y0+1).
+    """
+    x = np.clip(uv[:, 0] * width - 0.5, 0.0, width - 1)
+    y = np.clip((1.0 - uv[:, 1]) * height - 0.5, 0.0, height - 1)
+    x0 = np.clip(np.floor(x).astype(np.int64), 0, width - 2)
+    y0 = np.clip(np.floor(y).astype(np.int64), 0, height - 2)
+    fx, fy = x - x0, y - y0
+    idx = np.stack([y0 * width + x0, y0 * width + x0 + 1, (y0 + 1) * width + x0, (y0 + 1) * width + x0 + 1], axis=1)
+    w = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=1)
+    return idx, w
+
+
+def find_seams(mesh: SurfaceMesh, width: int, height: int, fill_source: np.ndarray) -> Seams:
+    """Seam samples and stencils of an atlased mesh (module doc).
+
+    Args:
+        mesh: mesh with ``uvs`` split at seams (as :func:`.atlas.build_atlas` returns it).
+        width, height: atlas size in texels.
+        fill_source: (H, W) or (H*W,) the bake's fill source (:attr:`.bake.TexelBake.fill_source`).
+
+    Returns:
+        :class:`Seams` (no samples when the atlas has no seams).
+    """
+    if mesh.uvs is None:
+        raise InputError("the mesh has no UVs: seams need an atlas", fix="run `texstream atlas` first")
+    fs = np.asarray(fill_source, np.int64).reshape(-1)
+    if fs.shape[0] != width * height:
+        raise InputError(f"fill_source has {fs.shape[0]} texels, the atlas {width}x{height}",
+                         fix="use the bake made with this atlas")
+    faces, va, vb = seam_edges(mesh)
+    uv = np.asarray(mesh.uvs, np.float64)
+    pos = np.asarray(mesh.vertices, np.float64)
+    ne = len(faces)
+
+    def texel_xy(vi):  # (E, 2) vertex ids -> continuous texel coords of both ends
+        return uv[vi, 0] * width - 0.5, (1.0 - uv[vi, 1]) * height - 0.5
+
+    ts_owner = [np.arange(ne), np.arange(ne)]
+    ts = [np.zeros(ne), np.ones(ne)]
+    for vi in (va, vb):
+        x, y = texel_xy(vi)
+        for c in (x, y):
+            o, t = _crossings(c[:, 0], c[:, 1])
+            ts_owner.append(o)
+            ts.append(t)
+    owner = np.concatenate(ts_owner)
+    t = np.clip(np.concatenate(ts), 0.0, 1.0)
+    order = np.lexsort((t, owner))
+    owner, t = owner[order], t[order]
+    keep = np.concatenate([np.ones(min(len(t), 1), bool), (owner[1:] != owner[:-1]) | (t[1:] - t[:-1] > 1e-12)])
+    owner, t = owner[keep], t[keep]
+    # segment midpoints between consecutive breakpoints of one edge
+    inner = owner[1:] == owner[:-1]
+    mid_owner = owner[1:][inner]
+    mid_t = 0.5 * (t[1:][inner] + t[:-1][inner])
+    owner = np.concatenate([owner, mid_owner])
+    t = np.concatenate([t, mid_t])
+    order = np.lexsort((t, owner))
+    owner, t = owner[order], t[order]
+
+    def lerp(arr, vi):
+        return (1 - t)[:, None] * arr[vi[owner, 0]] + t[:, None] * arr[vi[owner, 1]]
+
+    uv_a, uv_b = lerp(uv, va), lerp(uv, vb)
+    ia, wa = bilinear_stencil(uv_a, width, height)
+    ib, wb = bilinear_stencil(uv_b, width, height)
+    return Seams(width=int(width), height=int(height), idx_a=ia.astype(np.int32), w_a=wa, idx_b=ib.astype(np.int32),
+                 w_b=wb, position=lerp(pos, va), uv_a=uv_a, uv_b=uv_b, edge=owner.astype(np.int32),
+                 edge_faces=faces, fill_source=fs.astype(np.int32))
+
+
+def _flat(grid: np.ndarray, width: int, height: int) -> tuple[np.ndarray, tuple]:
+    g = np.asarray(grid)
+    hw = width * height
+    if g.shape[:2] == (height, width):
+        return g.reshape(hw, -1), g.shape
+    if g.shape[0] == hw:
+        return g.reshape(hw, -1), g.shape
+    raise ValueError(f"grid must be (H, W[, P]) or (H*W[, P]) with H, W = {height}, {width}; got {g.shape}")
+
+
+def seam_gaps(grid: np.ndarray, seams: Seams) -> np.ndarray:
+    """(K, P) difference of the two sides' bilinear lookups at every seam sample (0: no crack)."""
+    flat, _ = _flat(grid, seams.width, seams.height)
+    flat = flat.astype(np.float64)
+    va = np.einsum("kt,ktp->kp", seams.w_a, flat[seams.idx_a])
+    vb = np.einsum("kt,ktp->kp", seams.w_b, flat[seams.idx_b])
+    return va - vb
+
+
+def average_across_seams(grid: np.ndarray, seams: Seams, padding_cost: float = 1e-3,
+                         eps: float = 1e-9) -> np.ndarray:
+    """The smallest change of ``grid`` after which both sides of every seam render alike (module doc).
+
+    Args:
+        grid: (H, W, P), (H, W), (H*W, P) or (H*W,) texel values (a model's parameter maps).
+        seams: from :func:`find_seams` / ``seams.npz``.
+        padding_cost: cost of changing a padding texel relative to a covered one (> 0).
+        eps: Tikhonov term relative to the constraint scale. Redundant samples make the system
+            singular, and nearly redundant ones ill-conditioned: smaller eps closes the gaps more
+            exactly but changes fitted texels more (atlased icosphere, random values in [0, 1]:
+            eps 1e-9 leaves gaps below 2e-4, under an 8-bit code value).
+
+    Returns:
+        A new array of the same shape and dtype: padding refilled from the fill sources, then the
+        texels seam lookups read adjusted; all other texels unchanged.
+    """
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
+    flat, shape = _flat(grid, seams.width, seams.height)
+    out = flat.astype(np.float64).copy()
+    fs = seams.fill_source
+    ok = fs >= 0
+    out[ok] = out[fs[ok]]
+    if seams.n_samples:
+        cols = seams.texels()
+        k = seams.n_samples
+        rows = np.repeat(np.arange(k), 4)
+        ca = np.searchsorted(cols, seams.idx_a.reshape(-1))
+        cb = np.searchsorted(cols, seams.idx_b.reshape(-1))
+        c = sp.coo_matrix((np.concatenate([seams.w_a.reshape(-1), -seams.w_b.reshape(-1)]),
+                           (np.concatenate([rows, rows]), np.concatenate([ca, cb]))), shape=(k, len(cols))).tocsr()
+        c.sum_duplicates()
+        c.eliminate_zeros()
+        x0 = out[cols]
+        inv_cost = np.where(fs[cols] == cols, 1.0, 1.0 / float(padding_cost))
+        cd = c @ sp.diags(inv_cost)
+        m = (cd @ c.T).tocsc()
+        scale = float(m.diagonal().mean()) or 1.0
+        lu = splu((m + eps * scale * sp.identity(k, format="csc")).tocsc())
+        lam = lu.solve(np.asarray(c @ x0))
+        out[cols] = x0 - np.asarray(cd.T @ lam)
+    return out.astype(np.asarray(grid).dtype, copy=False).reshape(shape)

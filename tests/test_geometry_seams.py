@@ -1,0 +1,160 @@
+"""Atlas seams: edge pairs, per-sample stencils, and no crack after averaging.
+
+The crack is measured the way the renderer textures a point: a Warp kernel calls the shared
+``texel_coords`` / ``bilinear_taps`` funcs at the UV of the same 3D point on both sides of a seam.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+
+from texstream.capture.procedural import icosphere, uv_sphere
+from texstream.fit.kernels.shading import bilinear_taps, texel_coords
+from texstream.geometry.atlas import AtlasConfig, atlas_stage, build_atlas
+from texstream.geometry.bake import bake_texels
+from texstream.geometry.seams import SEAMS_FILE, Seams, average_across_seams, find_seams, seam_edges, seam_gaps
+from texstream.pipelines.errors import InputError
+
+
+@wp.kernel(enable_backward=False)
+def _lookup(grid: wp.array2d(dtype=wp.float32), uv: wp.array(dtype=wp.vec2), width: int, height: int,
+            out: wp.array(dtype=wp.float32)):
+    i = wp.tid()
+    x, y = texel_coords(uv[i], width, height)
+    x0, y0, fx, fy = bilinear_taps(x, y, width, height)
+    out[i] = (1.0 - fy) * ((1.0 - fx) * grid[y0, x0] + fx * grid[y0, x0 + 1]) + \
+        fy * ((1.0 - fx) * grid[y0 + 1, x0] + fx * grid[y0 + 1, x0 + 1])
+
+
+def render_lookup(grid2d: np.ndarray, uv: np.ndarray, device: str) -> np.ndarray:
+    h, w = grid2d.shape
+    out = wp.zeros(len(uv), dtype=wp.float32, device=device)
+    wp.launch(_lookup, dim=len(uv), inputs=[wp.array(np.ascontiguousarray(grid2d, np.float32), dtype=wp.float32,
+                                                      device=device),
+                                             wp.array(uv.astype(np.float32), dtype=wp.vec2, device=device), w, h],
+              outputs=[out], device=device)
+    return out.numpy()
+
+
+def random_seam_points(mesh, n: int, seed: int = 1):
+    """UVs on both sides and 3D positions of n random points on seam edges."""
+    rng = np.random.default_rng(seed)
+    _, va, vb = seam_edges(mesh)
+    e = rng.integers(0, len(va), n)
+    t = rng.random(n)[:, None]
+
+    def lerp(arr, v):
+        return (1 - t) * arr[v[e, 0]] + t * arr[v[e, 1]]
+
+    return lerp(mesh.uvs, va), lerp(mesh.uvs, vb), lerp(mesh.vertices, va), lerp(mesh.vertices, vb)
+
+
+@pytest.fixture(scope="module")
+def atlased():
+    mesh, info = build_atlas(icosphere(1.0, 3), AtlasConfig(resolution=128, padding=2))
+    bake = bake_texels(mesh, info.width, info.height, padding=2)
+    return mesh, bake, find_seams(mesh, info.width, info.height, bake.fill_source)
+
+
+def test_seam_edges_are_the_split_edges(atlased):
+    mesh, _, seams = atlased
+    faces, va, vb = seam_edges(mesh)
+    assert len(faces) > 0 and seams.n_edges == len(faces)
+    # the two copies of a seam edge: same welded vertices, same 3D points, different UVs
+    np.testing.assert_array_equal(mesh.source_vertex[va], mesh.source_vertex[vb])
+    np.testing.assert_array_equal(mesh.vertices[va], mesh.vertices[vb])
+    assert np.all(np.any(mesh.uvs[va] != mesh.uvs[vb], axis=(1, 2)))
+    # every welded edge appears at most once, and the faces differ
+    key = np.sort(mesh.source_vertex[va], axis=1)
+    assert len(np.unique(key, axis=0)) == len(key) and np.all(faces[:, 0] != faces[:, 1])
+    # each face of a pair holds its edge's vertices
+    for side, v in ((0, va), (1, vb)):
+        f = mesh.faces[faces[:, side]]
+        assert np.all((f == v[:, :1]).any(axis=1) & (f == v[:, 1:]).any(axis=1))
+    # stencils are bilinear weights (rows sum to 1) and sample positions lie on the unit sphere's chords
+    np.testing.assert_allclose(seams.w_a.sum(axis=1), 1, atol=1e-12)
+    np.testing.assert_allclose(seams.w_b.sum(axis=1), 1, atol=1e-12)
+    assert np.all(np.linalg.norm(seams.position, axis=1) <= 1 + 1e-12)
+
+
+def test_averaging_removes_the_crack(device, atlased):
+    mesh, bake, seams = atlased
+    rng = np.random.default_rng(0)
+    grid = bake.fill_padding(rng.random((bake.height, bake.width)).astype(np.float32))
+    uva, uvb, pa, pb = random_seam_points(mesh, 4000)
+    np.testing.assert_array_equal(pa, pb)  # the same 3D points
+    before = np.abs(render_lookup(grid, uva, device) - render_lookup(grid, uvb, device))
+    assert before.max() > 0.3  # random texels: the two sides disagree
+    out = average_across_seams(grid, seams)
+    assert out.shape == grid.shape and out.dtype == grid.dtype
+    after = np.abs(render_lookup(out, uva, device) - render_lookup(out, uvb, device))
+    # points not used as constraint samples; residual from the eps regularisation (measured 2e-4),
+    # bound: a quarter of an 8-bit code value on values in [0, 1]
+    assert after.max() < 1e-3, after.max()
+    # only texels some seam lookup reads change (padding refill aside: the input was already filled)
+    changed = np.flatnonzero((out != grid).reshape(-1))
+    assert np.isin(changed, seams.texels()).all()
+    assert np.abs(seam_gaps(out, seams)).max() < 1e-3
+
+
+def test_smooth_map_changes_little(atlased):
+    """A map that is a smooth function of position (here the position itself) needs only small
+    changes: the gutter (padding texels) absorbs most of the seam mismatch."""
+    _, bake, seams = atlased
+    grid = bake.fill_padding(bake.position.copy())
+    gap0 = np.abs(seam_gaps(grid, seams)).max()
+    out = average_across_seams(grid, seams)
+    assert np.abs(seam_gaps(out, seams)).max() < 1e-3  # as above
+    change = np.abs(out - grid).max(axis=2)[bake.covered]
+    # measured: max 1.3x the largest gap before (chart corners), 90% of the changed fitted texels
+    # by less than 0.37x; bounds 2x and 0.5x
+    assert change.max() < 2 * gap0 and np.percentile(change[change > 0], 90) < 0.5 * gap0
+
+
+def test_uv_sphere_seam_pairs_texels_one_to_one(device):
+    """The procedural UV sphere's seams: longitude 0 = 1 (the atlas's left and right edges, texel rows
+    line up so samples tie texel pairs) and the split pole vertices (one UV per pole triangle)."""
+    m = uv_sphere(1.0, n_segments=16, n_rings=8)
+    w, h = 32, 18
+    bake = bake_texels(m, w, h, padding=1)
+    seams = find_seams(m, w, h, bake.fill_source)
+    assert seams.n_edges > 0
+    # a sample is on the longitude seam (u = 0 on one side, u = 1 on the other) or on a pole edge
+    u = np.sort(np.stack([seams.uv_a[:, 0], seams.uv_b[:, 0]], axis=1), axis=1)
+    lon = (u[:, 0] == 0) & (u[:, 1] == 1)
+    pole_v = np.minimum(seams.uv_a[:, 1], 1 - seams.uv_a[:, 1])
+    assert lon.sum() > 0 and np.all(lon | (pole_v < 1.5 / 9))  # 9 latitude bands: the polar ones
+    pairs = seams.pairs()
+    lon_pairs = pairs[(pairs[:, 0] % w == 0) & (pairs[:, 1] % w == w - 1)]
+    assert len(lon_pairs) >= h - 4  # one per texel row, rows at the poles aside
+    grid = np.random.default_rng(2).random((h, w, 2)).astype(np.float32)
+    out = average_across_seams(bake.fill_padding(grid), seams)
+    assert np.abs(seam_gaps(out, seams)).max() < 1e-3
+    uva, uvb, _, _ = random_seam_points(m, 500)
+    for c in range(2):
+        d = render_lookup(out[..., c], uva, device) - render_lookup(out[..., c], uvb, device)
+        assert np.abs(d).max() < 1e-3  # as above: a quarter of an 8-bit code value
+
+
+def test_no_seams_is_a_no_op():
+    from test_geometry_bake import uv_plane
+
+    m = uv_plane()
+    bake = bake_texels(m, 16, 8)
+    seams = find_seams(m, 16, 8, bake.fill_source)
+    assert seams.n_samples == 0
+    g = np.random.default_rng(0).random((8, 16, 3))
+    np.testing.assert_array_equal(average_across_seams(g, seams), g)
+
+
+def test_atlas_stage_writes_seams(tmp_path, atlased):
+    from texstream.geometry.mesh_io import save_mesh
+
+    save_mesh(tmp_path / "ico.ply", icosphere(1.0, 2))
+    res = atlas_stage(tmp_path / "ico.ply", tmp_path / "atlas", AtlasConfig(resolution=64))
+    s = Seams.load(tmp_path / "atlas" / SEAMS_FILE)
+    assert s.width == res.summary["width"] and s.n_samples > 0 and res.summary["seam_edges"] == s.n_edges
+    with pytest.raises(InputError, match="atlas"):
+        Seams.load(tmp_path / "missing.npz")
