@@ -78,6 +78,9 @@ class FitResult:
 
 
 def make_optimizer(cfg: FitConfig):
+    if cfg.penalties.smooth_weight > 0 and cfg.optimizer != "lm":
+        raise ConfigError(f"penalties.smooth_weight is implemented for lm, not {cfg.optimizer}",
+                          fix="use --optimizer lm, or --penalties.laplacian_weight with sd, cg and lbfgs")
     if cfg.optimizer == "sd":
         return SteepestDescent()
     if cfg.optimizer == "cg":
@@ -85,7 +88,7 @@ def make_optimizer(cfg: FitConfig):
     if cfg.optimizer == "lbfgs":
         return LBFGS(cfg.lbfgs_history)
     if cfg.optimizer == "lm":
-        return LevenbergMarquardt(cfg.lm_lambda0)
+        return LevenbergMarquardt(cfg.lm_lambda0, cfg.penalties)
     raise ConfigError(f"optimizer {cfg.optimizer!r} unknown", fix=f"use one of {OPTIMIZERS}")
 
 

@@ -14,20 +14,44 @@ import dataclasses
 import numpy as np
 import warp as wp
 
+from texstream.pipelines.stage import option
+
 from .kernels import optim_kernels as K
 from .kernels.lafortune_grad import MAX_PARAMS
 
 
 @dataclasses.dataclass
 class PenaltyConfig:
-    """Penalty weights."""
+    """Penalty weights (saved with the fit config)."""
 
-    bounds_weight: float = 0.0
-    """mu of the quadratic bounds penalty (3.19); 0 = hard bounds by projection only"""
-    laplacian_weight: float = 0.0
-    """lambda of the Laplacian penalty (4.12); 0 = off"""
-    laplacian_params: str = "all"
-    """which parameters are regularised: all, diffuse or specular"""
+    bounds_weight: float = option(0.0, "mu of the quadratic bounds penalty (3.19); 0 = hard bounds by projection only")
+    laplacian_weight: float = option(0.0, "lambda of the Laplacian penalty (4.12) for sd, cg and lbfgs; 0 = off")
+    laplacian_params: str = option("all", "which parameters the Laplacian regularises",
+                                   choices=("all", "diffuse", "specular"))
+    smooth_weight: float = option(0.0, "lm only: weight of the edge-aware membrane smoothness between neighbouring "
+                                       "texels, sum over neighbour pairs of e_ij sum_k w_k (p_ik - p_jk)^2, in the "
+                                       "objective's units; 0 = off (texels independent)")
+    smooth_params: str = option("shape", "which parameters the smoothness term couples: shape (the lobes' C and "
+                                         "n), specular (also rho_s), diffuse or all",
+                                choices=("shape", "specular", "diffuse", "all"))
+    smooth_edge_sigma: float = option(0.1, "edge stopping: e_ij = exp(-(d_ij / sigma)^2), d_ij the relative "
+                                           "difference of the initial diffuse albedos; 0 = no edge stopping")
+    smooth_exponent_scale: float = option(50.0, "the exponent n enters the smoothness as n / this (its typical "
+                                                "spread), so it weighs like an albedo")
+
+    def parameter_weights(self, layout, which: str) -> np.ndarray:
+        """(MAX_PARAMS,) column weights of a penalty for ``which`` parameters of ``layout``."""
+        w = np.zeros(MAX_PARAMS)
+        if which in ("diffuse", "all"):
+            w[:3] = 1.0
+        if which in ("specular", "all", "shape"):
+            w[3:layout.n_params] = 1.0
+            for j in range(layout.n_lobes):
+                if which == "shape":
+                    w[layout.lobe_offset(j):layout.lobe_offset(j) + 3] = 0.0
+            for j in range(layout.n_lobes):
+                w[layout.lobe_offset(j) + layout.lobe_stride - 1] /= max(self.smooth_exponent_scale, 1e-12) ** 2
+        return w
 
 
 class Penalties:
@@ -37,13 +61,7 @@ class Penalties:
         self.problem = problem
         self.cfg = config
         lay = problem.layout
-        w = np.zeros(MAX_PARAMS)
-        if config.laplacian_params == "diffuse":
-            w[:3] = 1.0
-        elif config.laplacian_params == "specular":
-            w[3:lay.n_params] = 1.0
-        else:
-            w[:lay.n_params] = 1.0
+        w = config.parameter_weights(lay, config.laplacian_params)
         self.weights = problem.vec(*w)
         if config.laplacian_weight > 0:
             self.lp = problem.new_vec()

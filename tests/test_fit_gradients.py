@@ -125,3 +125,43 @@ def test_extreme_exponents_and_grazing_lights_stay_finite(device):
     p[:, 7] = 10.0
     f, g, _, _ = evaluate(prob, p)
     assert np.all(np.isfinite(f)) and np.all(np.isfinite(g))
+
+
+def test_smoothness_gradient_and_block_hessian_match_finite_differences(device):
+    """The membrane term of LM (fit/optim/lm.py): the texel's half share summed over texels is the
+    global penalty; its gradient and diagonal block Hessian must be the penalty's derivatives."""
+    from texstream.fit.kernels import optim_kernels as K
+    from texstream.fit.optim.lm import edge_weights
+    from texstream.fit.penalties import PenaltyConfig
+
+    layout = ModelLayout()
+    prob, rng = plane_problem(device, layout, n_photos=1, grid=6, seed=4)
+    cfg = PenaltyConfig(smooth_weight=0.3, smooth_params="all", smooth_exponent_scale=20.0)
+    w = cfg.parameter_weights(layout, cfg.smooth_params)
+    p = random_params(layout, prob.n, rng)
+    ew = wp.array(edge_weights(p[:, :3], prob.texels.neighbors, 0.5), dtype=wp.vec4, device=device)
+    n = prob.n
+
+    def penalty(q, scale, derivatives=False):
+        qa = prob.new_vec(q)
+        f, g = prob.new_scalar(), prob.new_vec()
+        h = wp.zeros(n, dtype=prob.mat, device=device)
+        wp.launch(K.smooth_local_kernel, dim=n, device=device,
+                  inputs=[qa, qa, prob.neighbors, ew, prob.vec(*w), prob.scalar(0.3), prob.scalar(scale),
+                          prob.new_scalar(), prob.new_vec(), wp.zeros(n, dtype=prob.mat, device=device),
+                          layout.n_params, 1 if derivatives else 0], outputs=[f, g, h])
+        return f.numpy(), g.numpy()[:, :layout.n_params], h.numpy()
+
+    f_half, g, hess = penalty(p, 0.5, True)
+    total = f_half.sum()
+    # the global penalty is quadratic: central differences are exact up to fp64 rounding (1e-8 rel.)
+    for i in (0, 7, n - 1):
+        for k in np.flatnonzero(~layout.frozen()):
+            step = 1e-3
+            pp, pm = p.copy(), p.copy()
+            pp[i, k] += step
+            pm[i, k] -= step
+            fp, fm = penalty(pp, 0.5)[0].sum(), penalty(pm, 0.5)[0].sum()
+            np.testing.assert_allclose((fp - fm) / (2 * step), g[i, k], rtol=1e-7, atol=1e-10 * abs(total))
+            np.testing.assert_allclose((fp - 2 * total + fm) / step ** 2, hess[i, k, k], rtol=1e-5, atol=1e-8)
+    assert np.all(np.isfinite(f_half)) and total > 0

@@ -257,21 +257,24 @@ def lm_solve_kernel(jtj: wp.array(dtype=Any), jtr: wp.array(dtype=Any), lam: wp.
 @wp.kernel
 def lm_accept_kernel(p: wp.array(dtype=Any), f: wp.array(dtype=Any), g: wp.array(dtype=Any),
                      jtj: wp.array(dtype=Any), trial: wp.array(dtype=Any), f_trial: wp.array(dtype=Any),
-                     g_trial: wp.array(dtype=Any), jtj_trial: wp.array(dtype=Any), pred: wp.array(dtype=Any),
+                     g_trial: wp.array(dtype=Any), jtj_trial: wp.array(dtype=Any), f_cmp: wp.array(dtype=Any),
+                     f_trial_cmp: wp.array(dtype=Any), pred: wp.array(dtype=Any),
                      lam: wp.array(dtype=Any), active: wp.array(dtype=wp.int32), stats: wp.array(dtype=wp.vec4d),
                      stats_trial: wp.array(dtype=wp.vec4d), accepted: wp.array(dtype=wp.int32)):
-    """Gain-ratio test: accept when the actual decrease is positive and a fair share of the
-    predicted one; then lambda /= 3, else lambda *= 4 and keep the point (Alg. 11 style)."""
+    """Gain-ratio test on the texel's objective (``f_cmp`` now, ``f_trial_cmp`` at the trial; the
+    data term plus the smoothness with the neighbours held): accept when the actual decrease is
+    positive and a fair share of the predicted one, then lambda /= 3 and the trial's data terms
+    (f, g, J^T J, stats) are adopted; else lambda *= 4 and the point is kept (Alg. 11 style)."""
     i = wp.tid()
     if active[i] == 0:
         return
-    ft = f_trial[i]
+    ft = f_trial_cmp[i]
     zero = ft - ft
-    actual = f[i] - ft
+    actual = f_cmp[i] - ft
     ok = ft == ft and actual >= zero and (actual >= type(ft)(1.0e-3) * pred[i] or actual == zero)
     if ok:
         p[i] = trial[i]
-        f[i] = ft
+        f[i] = f_trial[i]
         g[i] = g_trial[i]
         jtj[i] = jtj_trial[i]
         stats[i] = stats_trial[i]
@@ -280,6 +283,57 @@ def lm_accept_kernel(p: wp.array(dtype=Any), f: wp.array(dtype=Any), g: wp.array
     else:
         accepted[i] = 0
         lam[i] = wp.min(lam[i] * type(ft)(4.0), type(ft)(1.0e12))
+
+
+@wp.kernel
+def smooth_local_kernel(p: wp.array(dtype=Any), p_nb: wp.array(dtype=Any), neighbors: wp.array(dtype=wp.vec4i),
+                        edge_w: wp.array(dtype=wp.vec4), weights: Any, lam: Any, f_scale: Any,
+                        f_in: wp.array(dtype=Any), g_in: wp.array(dtype=Any), h_in: wp.array(dtype=Any),
+                        n_params: int, want_derivatives: int, f_out: wp.array(dtype=Any),
+                        g_out: wp.array(dtype=Any), h_out: wp.array(dtype=Any)):
+    """Texel i's share of the membrane smoothness with its neighbours held at ``p_nb``:
+    S_i = lam sum_j e_ij sum_k w_k (p_ik - p_jk)^2 over the masked 4-neighbourhood.
+
+    f_out = f_in + f_scale S_i (f_scale 1: the local objective of a block-Jacobi / red-black step;
+    1/2: the texel's share of the global penalty, each pair being counted from both ends).
+    g_out = g_in + dS_i/dp_i (= the global penalty's gradient) and h_out = h_in + its (diagonal)
+    Hessian 2 lam deg_i diag(w), exact for the block; the coupling blocks are left out, which is
+    why LM updates texels in red-black order (neighbours never move together)."""
+    i = wp.tid()
+    pi = p[i]
+    zero = lam - lam
+    pen = zero
+    gr = pi * zero
+    deg = zero
+    nb = neighbors[i]
+    ew = edge_w[i]
+    for k in range(4):
+        j = nb[k]
+        if j >= 0:
+            e = type(lam)(ew[k])
+            diff = pi - p_nb[j]
+            wd = wp.cw_mul(diff, weights)
+            pen = pen + e * wp.dot(wd, diff)
+            gr = gr + e * wd
+            deg = deg + e
+    two = type(lam)(2.0)
+    f_out[i] = f_in[i] + f_scale * lam * pen
+    if want_derivatives != 0:
+        g_out[i] = g_in[i] + two * lam * gr
+        h = h_in[i]
+        for k in range(n_params):
+            h[k, k] = h[k, k] + two * lam * deg * weights[k]
+        h_out[i] = h
+
+
+@wp.kernel
+def parity_active_kernel(valid: wp.array(dtype=wp.int32), parity: wp.array(dtype=wp.int32), which: int,
+                         active: wp.array(dtype=wp.int32)):
+    """Red-black ordering on the texel grid: only texels of one colour move in a step."""
+    i = wp.tid()
+    active[i] = 0
+    if valid[i] != 0 and parity[i] == which:
+        active[i] = 1
 
 
 @wp.kernel

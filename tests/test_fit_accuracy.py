@@ -1,0 +1,75 @@
+"""Fit accuracy against ground truth on synthetic captures (issue 3's targets), CPU and CUDA.
+
+The capture is the sphere scene made dense in photos (480 views) and small in texels (800), so a
+fair share of texels sees its highlight in five or more photos; held-out views sit between the
+training views (cameras turned 7 degrees about the vertical axis).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from texstream.capture.synth import SynthConfig, render_scene
+from texstream.fit.fitter import FitConfig, run_fit
+from texstream.fit.penalties import PenaltyConfig
+from texstream.fit.stage import build_problem, image_metrics, params_to_grid, render_model
+
+SPHERE = dict(scale=0.1, photos=480, image_size=96, progress=False)
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    train = render_scene("sphere", SynthConfig(**SPHERE))
+    held = render_scene("sphere", SynthConfig(**{**SPHERE, "photos": 8}, azimuth_offset=7.0))
+    return train, held
+
+
+def highlight_counts(scene, texels, params, layout, min_fraction=0.1) -> np.ndarray:
+    """Per texel, the photos in which its true lobe is at >= ``min_fraction`` of its peak
+    (lit and seen at cos > 0.1; the sphere is convex, so nothing else occludes)."""
+    o = layout.lobe_offset(0)
+    pos = texels.position.astype(np.float64)
+    nrm = texels.normal.astype(np.float64)
+    count = np.zeros(len(pos), int)
+    for fr in scene.frames:
+        v = fr.center - pos
+        v /= np.linalg.norm(v, axis=1, keepdims=True)
+        ld = fr.light.position - pos
+        ld /= np.linalg.norm(ld, axis=1, keepdims=True)
+        cv, cl = (v * nrm).sum(1), (ld * nrm).sum(1)
+        mirror = 2 * cl[:, None] * nrm - ld
+        lobe = np.clip((mirror * v).sum(1), 0, 1) ** params[:, o + 5]
+        count += (cv > 0.1) & (cl > 0.1) & (lobe >= min_fraction)
+    return count
+
+
+def test_sphere_fit_meets_the_accuracy_targets(sphere, device):
+    train, held = sphere
+    cfg = FitConfig(optimizer="lm", max_iterations=200, sync_every=1000,
+                    penalties=PenaltyConfig(smooth_weight=1e-3, smooth_params="shape"))
+    prob = build_problem(train.mesh, train.bake, train.frames, train.images, train.masks, cfg, device)
+    res = run_fit(prob, cfg)
+    grid = params_to_grid(res, prob, train.bake)
+    mse = []
+    for fr, photo, mask in zip(held.frames, held.images, held.masks):
+        render, rmask = render_model(train.mesh, grid, res.layout, fr, device)
+        mse.append(10 ** (-image_metrics(render, photo, rmask.astype(bool) & mask)["psnr_db"] / 10))
+    held_psnr = -10 * np.log10(np.mean(mse))
+    # issue target 45 dB on noise-free float photos (measured 61.7 dB on the CPU)
+    assert held_psnr >= 45.0, held_psnr
+    gt = train.params.reshape(-1, train.params.shape[-1])[prob.texels.grid_index]
+    seen = res.samples > 0
+    rel = np.abs(res.params - gt) / np.maximum(np.abs(gt), 1e-9)
+    # diffuse albedo: target 1% (measured median 0.03%, p90 0.08%)
+    assert np.percentile(rel[seen, 0:3], 90) < 0.01
+    hi = seen & (highlight_counts(train, prob.texels, gt, res.layout) >= 5)
+    assert hi.sum() >= 50  # 120 of 800 texels here
+    o = res.layout.lobe_offset(0)
+    # specular albedo 3% and exponent 5% (issue targets), as medians over the highlight texels:
+    # measured 1.2% and 1.2%. Single texels scatter more (rho_s p90 12%): with five highlight
+    # samples rho_s trades against c_z (scaling c_z by k scales the peak by k^n), which the
+    # photos barely see (held-out radiance stays at 60 dB); the closing note reports the spread.
+    assert np.median(rel[hi, o:o + 3]) < 0.03
+    assert np.median(rel[hi, o + 5]) < 0.05
+    assert np.all(np.isfinite(res.params))
