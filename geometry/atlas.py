@@ -398,7 +398,7 @@ def _xatlas_atlas(mesh: SurfaceMesh, config: AtlasConfig,
 
 
 def _split_by_weight(chart: np.ndarray, idx: np.ndarray, uv: np.ndarray, vmap: np.ndarray, weights: np.ndarray,
-                     area: np.ndarray, band: float):
+                     area: np.ndarray, band: float, smooth: int = 1):
     """Split charts into connected pieces of faces whose weights lie in one band of ``band`` octaves.
 
     Vertices shared by two pieces are duplicated (each piece gets its own scale before packing).
@@ -414,14 +414,15 @@ def _split_by_weight(chart: np.ndarray, idx: np.ndarray, uv: np.ndarray, vmap: n
     from scipy.sparse.csgraph import connected_components
 
     nf = len(chart)
-    # Band of each face from its weight, smoothed once over faces sharing a vertex (area-weighted,
-    # in log space) so isolated faces do not become one-face charts.
-    lw = np.log2(np.maximum(weights, 1e-12))
+    # Band of each face from its weight, smoothed ``smooth`` times over faces sharing a vertex
+    # (area-weighted, in log space) so isolated faces do not become one-face charts.
+    lw_s = np.log2(np.maximum(weights, 1e-12))
     nv = len(uv)
-    acc = np.bincount(idx.reshape(-1), weights=np.repeat(lw * area, 3), minlength=nv)
     wsum = np.bincount(idx.reshape(-1), weights=np.repeat(area, 3), minlength=nv)
-    vlog = np.divide(acc, wsum, out=np.zeros(nv), where=wsum > 0)
-    lw_s = 0.5 * lw + 0.5 * vlog[idx].mean(axis=1)
+    for _ in range(int(smooth)):
+        acc = np.bincount(idx.reshape(-1), weights=np.repeat(lw_s * area, 3), minlength=nv)
+        vlog = np.divide(acc, wsum, out=np.zeros(nv), where=wsum > 0)
+        lw_s = 0.5 * lw_s + 0.5 * vlog[idx].mean(axis=1)
     key = chart.astype(np.int64) * 100000 + np.floor(lw_s / band).astype(np.int64)
     _, key = np.unique(key, return_inverse=True)
     # faces + (vertex, key) nodes; a face joins the node of each corner: components = pieces
@@ -476,7 +477,7 @@ def _fingerprint(path, face_weights: np.ndarray | None) -> dict:
 
 
 def atlas_stage(mesh_path, out, config: AtlasConfig | None = None, face_weights: np.ndarray | None = None,
-                device: str = "cpu", force: bool = False):
+                device: str = "cpu", force: bool = False, capture=None):
     """The atlas stage: mesh file -> folder with the UV-mapped mesh and the texel bake.
 
     Writes (atomically, all or nothing) into ``out``:
@@ -498,6 +499,9 @@ def atlas_stage(mesh_path, out, config: AtlasConfig | None = None, face_weights:
         face_weights: optional (F,) per-face importance (see :func:`build_atlas`).
         device: Warp device for the bake.
         force: recompute even when an up-to-date output exists.
+        capture: capture folder whose photos set the texel density (faces seen larger get more
+            texels: :func:`.density.density_face_weights`); ignored when ``face_weights`` is given.
+            The summary then reports the texel size in the photos (``texel_size_px``).
 
     Returns:
         StageResult whose summary is the atlas info.
@@ -513,6 +517,17 @@ def atlas_stage(mesh_path, out, config: AtlasConfig | None = None, face_weights:
     config = config or AtlasConfig()
     out = Path(out)
     mesh = load_mesh(mesh_path)
+    frames = depths = None
+    if capture is not None:
+        from texstream.capture.capture_json import read_capture
+
+        from .density import density_face_weights
+        from .visibility import depth_maps
+
+        frames = read_capture(capture).frames
+        depths = depth_maps(mesh, frames, device)
+        if face_weights is None:
+            face_weights = density_face_weights(mesh, frames, device, depths)
     fp = _fingerprint(mesh_path, face_weights)
     if not force and (out / "atlas_info.json").is_file() and (out / "atlas_config.json").is_file() \
             and (out / "bake.npz").is_file() and (out / "mesh.obj").is_file() and (out / "seams.npz").is_file():
@@ -531,8 +546,13 @@ def atlas_stage(mesh_path, out, config: AtlasConfig | None = None, face_weights:
     seams = find_seams(atlas_mesh, info.width, info.height, bake.fill_source)
     summary = {**info.to_dict(), "n_faces": atlas_mesh.n_faces, "n_vertices": atlas_mesh.n_vertices,
                "seam_edges": seams.n_edges, "seam_samples": seams.n_samples,
+               "density": "photos" if capture is not None else ("weights" if face_weights is not None else "uniform"),
                "bake_faces_without_texels": bake.faces_without_texels.tolist()[:100],
                "bake_coverage": bake.coverage, "input": fp}
+    if frames is not None:
+        from .density import texel_size_spread
+
+        summary["texel_size_px"] = texel_size_spread(atlas_mesh, info.width, info.height, frames, device, depths)
     with atomic_output_dir(out) as tmp:
         save_mesh(tmp / "mesh.obj", atlas_mesh)
         bake.save(tmp / "bake.npz")

@@ -64,3 +64,18 @@ def test_density_atlas_evens_out_texel_size(device):
     # p90/p10 1.45); bounds leave room for xatlas' packing and flattening to change between versions
     assert s_band["log2_std"] < 0.5 and s_band["p90_over_p10"] < 2.0
     assert band.faces_without_texels == 0  # down-weighted slivers still get a texel (orphan claim)
+
+
+def test_atlas_stage_takes_density_from_a_capture(tmp_path):
+    from texstream.capture.capture_json import Capture, write_capture
+    from texstream.geometry.atlas import AtlasConfig, atlas_stage
+    from texstream.geometry.mesh_io import save_mesh
+
+    sphere = icosphere(2)
+    save_mesh(tmp_path / "s.ply", sphere)
+    frames = orbit_frames([1.8, 0, 0], 2.6, n_azimuth=6, elevations_deg=(0,), width=64, height=64)
+    write_capture(Capture(root=tmp_path / "cap", frames=[f for f in frames if np.linalg.norm(f.center) > 1.3]))
+    res = atlas_stage(tmp_path / "s.ply", tmp_path / "atlas", AtlasConfig(resolution=128), capture=tmp_path / "cap")
+    s = res.summary
+    assert s["density"] == "photos" and "face_weights_sha256" in s["input"]
+    assert s["texel_size_px"]["faces_seen"] > 0 and s["texel_size_px"]["p90_over_p10"] >= 1
