@@ -261,7 +261,9 @@ def _from_sfm(capture, cfg: MeshConfig, masks, report: dict) -> tuple[SurfaceMes
     centres = np.array([f.center for f in capture.frames])
     intersect = masks is not None and cfg.intersect_hull
     # intersected with the hull, Poisson stays closed (no density trim): the hull cuts the invented parts
-    pcfg = PoissonConfig(depth=cfg.poisson_depth, density_quantile=0.0 if intersect else PoissonConfig().density_quantile)
+    pcfg = PoissonConfig(depth=cfg.poisson_depth)
+    if intersect:
+        pcfg.density_quantile = 0.0
     try:
         mesh = poisson_reconstruct(pts, nrm, centres, pcfg, pts_path)
     except InputError:
