@@ -60,6 +60,8 @@ def summarise(results: dict, sd_key: str = "sd") -> None:
     best = max(max(r["psnr_db"] for r in run["trace"]) for run in runs.values())
     results["best_psnr_db"] = best
     sd_obj = runs[sd_key]["trace"][-1]["objective"] if sd_key in runs else None
+    if not runs:
+        return
     for name, run in runs.items():
         tr = run["trace"]
         hit = next((r for r in tr if r["psnr_db"] >= best - 0.1), None)
@@ -158,8 +160,8 @@ def main() -> None:
         print(opt, f"{t_fit:.2f}s", res.passes, "passes", f"{1000 * pass_s:.1f} ms/pass",
               f"psnr {res.trace[-1]['psnr_db']:.2f}", flush=True)
         del prob
-    summarise(results)
-    (out / "fit_error_vs_time.json").write_text(json.dumps(results, indent=1))
+        summarise(results)  # written after every run: a run cut short by a time limit keeps the others
+        (out / "fit_error_vs_time.json").write_text(json.dumps(results, indent=1))
     plot(results, out)
     print(json.dumps({k: v for k, v in results.items() if k != "runs"}, indent=1))
     for name, r in results["runs"].items():
