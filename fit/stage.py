@@ -163,6 +163,17 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     if bar:
         bar.close()
     grid = params_to_grid(result, problem, bake)
+    seams_info = None
+    seams_file = Path(mesh_path) / "seams.npz" if Path(mesh_path).is_dir() else None
+    if seams_file is not None and seams_file.is_file():
+        # texels on both sides of a chart seam agree after this, so bilinear lookups meet (no cracks)
+        from texstream.geometry.seams import Seams, average_across_seams, seam_gaps
+
+        seams = Seams.load(seams_file)
+        before = float(np.abs(seam_gaps(grid, seams)).max()) if seams.n_samples else 0.0
+        grid = average_across_seams(grid, seams).astype(np.float32)
+        after = float(np.abs(seam_gaps(grid, seams)).max()) if seams.n_samples else 0.0
+        seams_info = {"samples": int(seams.n_samples), "max_gap_before": before, "max_gap_after": after}
     lay = result.layout
     with atomic_output_dir(out_dir) as tmp:
         save_mesh(tmp / "mesh.obj", mesh)
@@ -193,7 +204,7 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
                            "unseen_texels": int((result.samples == 0).sum())},
                  "photos": {"fitted": len(frames), "held_out": len(held)},
                  "final": {k: last[k] for k in ("iteration", "time_s", "objective", "psnr_db", "ape_percent")},
-                 "setup_s": t_setup, "passes": result.passes, "device": cfg.device, "render_eval": evals,
+                 "seams": seams_info, "setup_s": t_setup, "passes": result.passes, "device": cfg.device, "render_eval": evals,
                  "units": "BRDF values in 1/sr (capture/conventions.py)"}
         write_json_atomic(tmp / "model.json", model)
         save_config(cfg, tmp / "fit_config.json")

@@ -15,13 +15,16 @@ def _devices() -> list:
 
     wp.config.quiet = True
     wp.init()
-    devs = ["cpu"]
+    # the GPU machine's warp ships without the CPU compiler: there only CUDA is tested
+    devs = ["cpu"] if wp.is_cpu_available() else []
     if wp.get_cuda_device_count() > 0:
         devs.append("cuda:0")
     return devs
 
 
 DEVICES = _devices()
+# where module fixtures render their synthetic scenes (numpy results, shared by every device)
+SCENE_DEVICE = DEVICES[0]
 
 
 @pytest.fixture(params=DEVICES)

@@ -15,7 +15,9 @@ from texstream.fit.fitter import FitConfig, run_fit
 from texstream.fit.penalties import PenaltyConfig
 from texstream.fit.stage import build_problem, image_metrics, params_to_grid, render_model
 
-SPHERE = dict(scale=0.1, photos=480, image_size=96, progress=False)
+from conftest import SCENE_DEVICE
+
+SPHERE = dict(scale=0.1, photos=480, image_size=96, progress=False, device=SCENE_DEVICE)
 
 
 @pytest.fixture(scope="module")

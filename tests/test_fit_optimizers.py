@@ -11,11 +11,13 @@ from texstream.fit.optim.linesearch import LineSearchConfig
 from texstream.fit.penalties import PenaltyConfig
 from texstream.fit.stage import build_problem
 
+from conftest import SCENE_DEVICE
+
 
 @pytest.fixture(scope="module")
 def flat_scene():
     # 24 float photos of 48x48 of the checker sample, 32x32 texels: small enough for CI
-    return render_scene("flat_sample", SynthConfig(scale=0.3, photos=24, image_size=48, progress=False))
+    return render_scene("flat_sample", SynthConfig(scale=0.3, photos=24, image_size=48, progress=False, device=SCENE_DEVICE))
 
 
 def fit(scene, device, **kw):

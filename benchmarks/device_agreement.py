@@ -1,0 +1,76 @@
+"""CPU-vs-CUDA agreement of the fit across two machines (the GPU machine's warp has no CPU compiler).
+
+    python benchmarks/device_agreement.py --device cpu --out out/agree_cpu.npz        # dev box
+    python benchmarks/device_agreement.py --device cuda:0 --out $OUT/agree_cuda.npz   # GPU machine
+    python benchmarks/device_agreement.py --compare out/agree_cpu.npz agree_cuda.npz --out out/agree.json
+
+The cases are those of tests/test_fit_devices.py (which runs both devices in one process where
+both exist): the flat sample, 24 photos, six iterations of LM (with smoothness) and CG.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+CASES = {"lm_fp64": ("lm", "fp64"), "cg_fp64": ("cg", "fp64"), "lm_fp32": ("lm", "fp32")}
+
+
+def run(device: str, out: Path) -> None:
+    import warp as wp
+
+    wp.config.log_level = wp.LOG_WARNING
+    from texstream.capture.synth import SynthConfig, render_scene
+    from texstream.fit.fitter import FitConfig, run_fit
+    from texstream.fit.penalties import PenaltyConfig
+    from texstream.fit.problem import StreamConfig
+    from texstream.fit.stage import build_problem
+
+    sc = render_scene("flat_sample", SynthConfig(scale=0.3, photos=24, image_size=48, progress=False, device=device))
+    arrays = {}
+    for name, (opt, acc) in CASES.items():
+        cfg = FitConfig(optimizer=opt, max_iterations=6, sync_every=100,
+                        stream=StreamConfig(accumulate=acc, storage="fp64" if acc == "fp64" else "fp32"),
+                        penalties=PenaltyConfig(smooth_weight=1e-3 if opt == "lm" else 0.0))
+        prob = build_problem(sc.mesh, sc.bake, sc.frames, sc.images, sc.masks, cfg, device)
+        res = run_fit(prob, cfg)
+        arrays[f"{name}_params"] = res.params
+        arrays[f"{name}_samples"] = res.samples
+        arrays[f"{name}_objective"] = np.array([r["objective"] for r in res.trace])
+    # the photos themselves, to separate rendering differences from fitting differences
+    arrays["photos"] = np.stack(sc.images)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(out, **arrays)
+
+
+def compare(a_path: Path, b_path: Path) -> dict:
+    a, b = np.load(a_path), np.load(b_path)
+    rep = {"photos_max_abs_diff": float(np.abs(a["photos"] - b["photos"]).max())}
+    for name in CASES:
+        pa, pb = a[f"{name}_params"], b[f"{name}_params"]
+        rep[name] = {"samples_equal": bool(np.array_equal(a[f"{name}_samples"], b[f"{name}_samples"])),
+                     "params_max_rel_diff": float(np.max(np.abs(pa - pb) / np.maximum(np.abs(pa), 1e-3))),
+                     "objective_max_rel_diff": float(np.max(np.abs(a[f"{name}_objective"] - b[f"{name}_objective"])
+                                                            / np.abs(a[f"{name}_objective"])))}
+    return rep
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--out", default="out/agree_cpu.npz")
+    ap.add_argument("--compare", nargs=2, default=None)
+    a = ap.parse_args()
+    if a.compare:
+        rep = compare(Path(a.compare[0]), Path(a.compare[1]))
+        Path(a.out).write_text(json.dumps(rep, indent=1))
+        print(json.dumps(rep, indent=1))
+    else:
+        run(a.device, Path(a.out))
+
+
+if __name__ == "__main__":
+    main()
