@@ -18,6 +18,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default="cpu", help="Warp device (default: cpu)")
     parser.add_argument("--optimizer", default="lm", choices=("sd", "cg", "lbfgs", "lm"), help="fit method (default: lm)")
     parser.add_argument("--iterations", type=int, default=30, help="iteration cap (default: 30)")
+    parser.add_argument("--smooth", type=float, default=0.0,
+                        help="LM lobe-shape smoothness between neighbouring texels (default: 0 = independent texels)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -25,6 +27,7 @@ def run(args: argparse.Namespace) -> int:
 
     from texstream.capture.synth import SynthConfig, synthesize
     from texstream.fit.fitter import FitConfig
+    from texstream.fit.penalties import PenaltyConfig
     from texstream.fit.stage import FitStageConfig, fit_stage
 
     wp.config.log_level = wp.LOG_WARNING
@@ -36,7 +39,8 @@ def run(args: argparse.Namespace) -> int:
           f"previews in {cap}/previews", flush=True)
     print(f"[2/2] fit ({args.optimizer}) -> {out / 'model'}", flush=True)
     cfg = FitStageConfig(device=args.device, holdout_every=8,
-                         fit=FitConfig(optimizer=args.optimizer, max_iterations=args.iterations))
+                         fit=FitConfig(optimizer=args.optimizer, max_iterations=args.iterations,
+                                       penalties=PenaltyConfig(smooth_weight=args.smooth if args.optimizer == "lm" else 0.0)))
     res = fit_stage(cap, cap / "ground_truth", out / "model", cfg)
     r = res.summary
     print(f"done: {r['iterations']} iterations in {r['time_s']:.1f} s, sample PSNR {r['psnr_db']:.2f} dB; "
