@@ -47,7 +47,7 @@ import warp as wp
 from texstream.pipelines.errors import InputError
 from texstream.pipelines.stage import StageResult, atomic_output_dir, option, save_config, write_json_atomic
 
-from .fitter import FitConfig, run_fit
+from .fitter import FitConfig
 from .kernels import stream
 from .kernels.shading import incident_light, lafortune_brdf, to_local
 from .models import ModelLayout
@@ -349,14 +349,9 @@ def fit_single_view_stage(capture_dir: str | Path, normals_path: str | Path | No
     geo_source = normals_path if normals_path is not None else find_normal_map(capture.root)
     problem = build_single_view_problem(geo, frames, images, masks, cfg.fit, cfg.device)
     t_setup = time.perf_counter() - t0
-    bar = None
-    if progress:
-        from tqdm import tqdm
+    from .stage import run_fit_with_progress
 
-        bar = tqdm(total=cfg.fit.max_iterations, desc=f"fit {cfg.fit.optimizer}", unit="it")
-    result = run_fit(problem, cfg.fit, progress=(lambda it: bar.update(1)) if bar else None)
-    if bar:
-        bar.close()
+    result = run_fit_with_progress(problem, cfg.fit, progress)
     lay = result.layout
     h, w = geo.covered.shape
     grid = np.tile(lay.defaults().astype(np.float32), (h * w, 1))

@@ -139,6 +139,22 @@ def _vec_types(acc: str):
     raise ConfigError(f"accumulate precision {acc!r} unknown", fix="use fp32 or fp64")
 
 
+def image_info(fr: PhotoFrame) -> stream.ImageInfo:
+    """The kernels' per-photo camera, light and photometric constants of one frame."""
+    info = stream.ImageInfo()
+    info.rot = wp.mat33(*np.asarray(fr.R, np.float32).reshape(-1))
+    info.trans = wp.vec3(*np.asarray(fr.t, np.float32))
+    info.center = wp.vec3(*(-np.asarray(fr.R).T @ np.asarray(fr.t)).astype(np.float32))
+    info.fx, info.fy, info.cx, info.cy = float(fr.fx), float(fr.fy), float(fr.cx), float(fr.cy)
+    info.width, info.height = int(fr.width), int(fr.height)
+    info.exposure = float(fr.exposure)
+    info.saturation = float(min(fr.saturation, 3.0e38))
+    info.light_kind = 0 if fr.light_kind == "point" else 1
+    info.light_vec = wp.vec3(*np.asarray(fr.light_vec, np.float32))
+    info.light_intensity = wp.vec3(*np.asarray(fr.light_intensity, np.float32))
+    return info
+
+
 class PhotoSet:
     """Photos, depth maps and shadow maps on the device (or in pinned host memory when streamed)."""
 
@@ -174,17 +190,7 @@ class PhotoSet:
         dbuf = wp.zeros((self.hmax, self.wmax), dtype=wp.float32, device=device)
         sbuf = wp.zeros((max(ssize, 2), max(ssize, 2)), dtype=wp.float32, device=device)
         for k, fr in enumerate(frames):
-            info = stream.ImageInfo()
-            info.rot = wp.mat33(*np.asarray(fr.R, np.float32).reshape(-1))
-            info.trans = wp.vec3(*np.asarray(fr.t, np.float32))
-            info.center = wp.vec3(*(-np.asarray(fr.R).T @ np.asarray(fr.t)).astype(np.float32))
-            info.fx, info.fy, info.cx, info.cy = float(fr.fx), float(fr.fy), float(fr.cx), float(fr.cy)
-            info.width, info.height = int(fr.width), int(fr.height)
-            info.exposure = float(fr.exposure)
-            info.saturation = float(min(fr.saturation, 3.0e38))
-            info.light_kind = 0 if fr.light_kind == "point" else 1
-            info.light_vec = wp.vec3(*np.asarray(fr.light_vec, np.float32))
-            info.light_intensity = wp.vec3(*np.asarray(fr.light_intensity, np.float32))
+            info = image_info(fr)
             dbuf.zero_()
             wp.launch(depth_map_kernel, dim=(fr.height, fr.width), device=device,
                       inputs=[self.mesh.id, info.rot, info.trans, info.fx, info.fy, info.cx, info.cy, 0,
@@ -239,17 +245,7 @@ class PhotoSet:
             stack[k, :im.shape[0], :im.shape[1]] = im[..., :3]
             mk = masks[k] if masks is not None and masks[k] is not None else np.ones(im.shape[:2], bool)
             depth[k, :im.shape[0], :im.shape[1]] = np.asarray(mk, bool)
-            info = stream.ImageInfo()
-            info.rot = wp.mat33(*np.asarray(fr.R, np.float32).reshape(-1))
-            info.trans = wp.vec3(*np.asarray(fr.t, np.float32))
-            info.center = wp.vec3(*(-np.asarray(fr.R).T @ np.asarray(fr.t)).astype(np.float32))
-            info.fx, info.fy, info.cx, info.cy = float(fr.fx), float(fr.fy), float(fr.cx), float(fr.cy)
-            info.width, info.height = int(fr.width), int(fr.height)
-            info.exposure = float(fr.exposure)
-            info.saturation = float(min(fr.saturation, 3.0e38))
-            info.light_kind = 0 if fr.light_kind == "point" else 1
-            info.light_vec = wp.vec3(*np.asarray(fr.light_vec, np.float32))
-            info.light_intensity = wp.vec3(*np.asarray(fr.light_intensity, np.float32))
+            info = image_info(fr)
             info.has_shadow = 0  # no geometry, no cast shadows: mask them in the photo's mask
             info.depth_is_mask = 1
             infos.append(info)

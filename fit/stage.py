@@ -131,6 +131,16 @@ def render_model(mesh, grid: np.ndarray, layout: ModelLayout, frame, device: str
     return res.radiance * np.float32(frame.exposure), res.mask
 
 
+def run_fit_with_progress(problem, fit: FitConfig, progress: bool) -> FitResult:
+    """run_fit with a tqdm bar over iterations when ``progress``."""
+    if not progress:
+        return run_fit(problem, fit)
+    from tqdm import tqdm
+
+    with tqdm(total=fit.max_iterations, desc=f"fit {fit.optimizer}", unit="it") as bar:
+        return run_fit(problem, fit, progress=lambda it: bar.update(1))
+
+
 def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Path,
               config: FitStageConfig | None = None, progress: bool = True) -> StageResult:
     """Fit the appearance model of ``config.fit`` to a capture; write the model folder atomically."""
@@ -154,14 +164,7 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     images, masks = load_photos(capture, frames)
     problem = build_problem(mesh, bake, frames, images, masks, cfg.fit, cfg.device)
     t_setup = time.perf_counter() - t0
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=cfg.fit.max_iterations, desc=f"fit {cfg.fit.optimizer}", unit="it")
-    result = run_fit(problem, cfg.fit, progress=(lambda it: bar.update(1)) if bar else None)
-    if bar:
-        bar.close()
+    result = run_fit_with_progress(problem, cfg.fit, progress)
     grid = params_to_grid(result, problem, bake)
     seams_info = None
     seams_file = Path(mesh_path) / "seams.npz" if Path(mesh_path).is_dir() else None
