@@ -83,6 +83,23 @@ def build_problem(mesh, bake, frames, images, masks, cfg: FitConfig, device: str
     return StreamProblem(texels, photos, cfg.layout(), cfg.stream, device=device)
 
 
+def load_seams(mesh_path: str | Path, bake):
+    """The atlas folder's ``seams.npz`` (None without one), checked against the bake's atlas size."""
+    p = Path(mesh_path)
+    if not p.is_dir() or not (p / "seams.npz").is_file():
+        return None
+    from texstream.geometry.seams import Seams
+
+    seams = Seams.load(p / "seams.npz")
+    n = bake.height * bake.width
+    idx = np.concatenate([seams.idx_a.ravel(), seams.idx_b.ravel()])
+    if (seams.width, seams.height) != (bake.width, bake.height) or seams.fill_source.shape != (n,) \
+            or (idx.size and (idx.min() < 0 or idx.max() >= n)):
+        raise InputError(f"seams are for a {seams.width}x{seams.height} atlas, the bake is {bake.width}x{bake.height}",
+                         p / "seams.npz", "re-run `texstream atlas` to rebuild the atlas folder")
+    return seams
+
+
 def params_to_grid(result: FitResult, problem, bake) -> np.ndarray:
     """Compact per-texel parameters -> (H, W, P) grid with padding filled (no bilinear bleeding)."""
     lay = result.layout
@@ -161,18 +178,17 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
         frames = [f for i, f in enumerate(frames) if i % cfg.holdout_every != cfg.holdout_every - 1]
     t0 = time.perf_counter()
     mesh, bake = load_geometry(mesh_path, cfg.texture_size, cfg.device)
+    seams = load_seams(mesh_path, bake)  # checked before the fit: bad input fails fast
     images, masks = load_photos(capture, frames)
     problem = build_problem(mesh, bake, frames, images, masks, cfg.fit, cfg.device)
     t_setup = time.perf_counter() - t0
     result = run_fit_with_progress(problem, cfg.fit, progress)
     grid = params_to_grid(result, problem, bake)
     seams_info = None
-    seams_file = Path(mesh_path) / "seams.npz" if Path(mesh_path).is_dir() else None
-    if seams_file is not None and seams_file.is_file():
+    if seams is not None:
         # texels on both sides of a chart seam agree after this, so bilinear lookups meet (no cracks)
-        from texstream.geometry.seams import Seams, average_across_seams, seam_gaps
+        from texstream.geometry.seams import average_across_seams, seam_gaps
 
-        seams = Seams.load(seams_file)
         before = float(np.abs(seam_gaps(grid, seams)).max()) if seams.n_samples else 0.0
         grid = average_across_seams(grid, seams).astype(np.float32)
         after = float(np.abs(seam_gaps(grid, seams)).max()) if seams.n_samples else 0.0

@@ -1,0 +1,155 @@
+"""The fit stage end to end on an atlas folder with seams.npz (``texstream fit CAPTURE --mesh ATLAS``).
+
+A tiny synthetic sphere capture (``synthesize``) and an atlas folder made from its mesh by the
+atlas stage (the UV sphere keeps its own UVs: seams at the longitude wrap and the split poles,
+``geometry/seams.py``) go through ``fit_stage``. The fitted, seam-averaged parameter maps are read
+back from the model folder's EXR files and checked across every seam sample. Bad seams files give
+one-line InputErrors naming the file, before any fitting, and leave no output.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from texstream.fit.fitter import FitConfig
+from texstream.fit.models import ModelLayout
+from texstream.fit.stage import FitStageConfig, fit_stage
+from texstream.geometry.seams import SEAMS_FILE, Seams, seam_gaps
+from texstream.pipelines.errors import InputError
+
+pytest.importorskip("OpenImageIO")  # the stage reads and writes EXR / PNG files
+
+# the stage's default Warp device is cpu; the GPU machine's warp has no CPU compiler
+from conftest import SCENE_DEVICE  # noqa: E402
+
+
+def stage_config(**fit) -> FitStageConfig:
+    return FitStageConfig(device=SCENE_DEVICE, renders=1,
+                          fit=FitConfig(optimizer="lm", max_iterations=5, sync_every=100, **fit))
+
+
+@pytest.fixture(scope="module")
+def capture_and_atlas(tmp_path_factory):
+    from texstream.capture.synth import SynthConfig, synthesize
+    from texstream.geometry.atlas import AtlasConfig, atlas_stage
+
+    root = tmp_path_factory.mktemp("seams")
+    synthesize("sphere", root / "cap", SynthConfig(scale=0.05, photos=16, image_size=48, progress=False,
+                                                   preview=False, device=SCENE_DEVICE))
+    res = atlas_stage(root / "cap" / "ground_truth" / "mesh.obj", root / "atlas", AtlasConfig(resolution=32),
+                      device=SCENE_DEVICE)
+    assert res.summary["seam_samples"] > 0
+    return root
+
+
+@pytest.fixture(scope="module")
+def fitted(capture_and_atlas):
+    root = capture_and_atlas
+    res = fit_stage(root / "cap", root / "atlas", root / "model", stage_config(), progress=False)
+    return root, res
+
+
+def test_fit_stage_writes_the_model_folder(fitted):
+    root, res = fitted
+    model = root / "model"
+    man = json.loads((model / "model.json").read_text())
+    for name in ("mesh.obj", "bake.npz", "trace.json", "fit_config.json", "seen.png", "error_vs_time.png"):
+        assert (model / name).is_file(), name
+    assert sorted(man["maps"].values()) == ["lobe0_rho_s.exr", "lobe0_shape.exr", "rho_d.exr"]
+    for f in man["maps"].values():
+        assert (model / f).is_file(), f
+    assert len(list((model / "renders").glob("*.png"))) == 1
+    trace = json.loads((model / "trace.json").read_text())
+    assert [r["iteration"] for r in trace] == list(range(len(trace))) and len(trace) == 6
+    assert all(np.isfinite(r["objective"]) for r in trace) and trace[-1]["objective"] < trace[0]["objective"]
+    seams = Seams.load(root / "atlas" / SEAMS_FILE)
+    assert man["seams"]["samples"] == seams.n_samples > 0
+    assert res.summary["iterations"] == 5
+
+
+def test_fitted_maps_agree_across_seams(fitted):
+    root, _ = fitted
+    from texstream.capture.synth import read_param_maps
+
+    model = root / "model"
+    man = json.loads((model / "model.json").read_text())
+    layout = ModelLayout.from_json(man["layout"])
+    grid = read_param_maps(model, layout).astype(np.float64)  # (H, W, P) as the renderer reads it
+    seams = Seams.load(root / "atlas" / SEAMS_FILE)
+    assert grid.shape[:2] == (seams.height, seams.width)
+    # per-parameter scale: the largest magnitude in the map (n reaches ~40, rho_d ~0.2)
+    scale = np.maximum(np.abs(grid.reshape(-1, grid.shape[-1])).max(axis=0), 1e-6)
+    # 1e-4 of each parameter's scale: average_across_seams leaves gaps from its eps regularisation
+    # (< 2e-4 on values in [0, 1] on an atlased icosphere, tests/test_geometry_seams.py) and the
+    # EXR maps hold float32 (1e-7); measured here 3e-7 of the scale at most (n: 1.9e-6 of ~40)
+    tol = 1e-4 * scale
+    gaps = np.abs(seam_gaps(grid, seams))
+    assert np.all(gaps <= tol), (gaps.max(axis=0), tol)
+    # the per-texel correspondences (one texel facing one texel): equal values
+    pairs = seams.pairs()
+    assert len(pairs) > 0
+    flat = grid.reshape(-1, grid.shape[-1])
+    assert np.all(np.abs(flat[pairs[:, 0]] - flat[pairs[:, 1]]) <= tol)
+    # and the averaging had work to do: independent per-texel fits disagree across the seams by far
+    # more than that before it (measured: n by 7, i.e. 18% of its scale)
+    before = man["seams"]["max_gap_before"]
+    after = man["seams"]["max_gap_after"]
+    assert before > 1e3 * after and before > 100 * tol.max(), (before, after)
+
+
+def copy_atlas(root, name: str):
+    dst = root / name
+    shutil.rmtree(dst, ignore_errors=True)
+    shutil.copytree(root / "atlas", dst)
+    return dst
+
+
+def no_fitting(*a, **k):
+    raise AssertionError("the fit ran although its input was bad")
+
+
+def test_corrupt_seams_file_is_one_line_input_error(capture_and_atlas, monkeypatch):
+    root = capture_and_atlas
+    atlas = copy_atlas(root, "atlas_corrupt")
+    (atlas / SEAMS_FILE).write_bytes(b"not an npz file")
+    monkeypatch.setattr("texstream.fit.stage.run_fit_with_progress", no_fitting)
+    out = root / "model_corrupt"
+    with pytest.raises(InputError) as e:
+        fit_stage(root / "cap", atlas, out, stage_config(), progress=False)
+    msg = e.value.one_line()
+    assert SEAMS_FILE in msg and "\n" not in msg and "texstream atlas" in msg
+    assert not out.exists()
+
+
+def test_seams_of_another_atlas_is_an_input_error(capture_and_atlas, monkeypatch):
+    """A stale seams.npz (left from an atlas of another size) must not crash the averaging."""
+    root = capture_and_atlas
+    atlas = copy_atlas(root, "atlas_stale")
+    s = Seams.load(atlas / SEAMS_FILE)
+    dataclasses.replace(s, width=2 * s.width, height=2 * s.height).save(atlas / SEAMS_FILE)
+    monkeypatch.setattr("texstream.fit.stage.run_fit_with_progress", no_fitting)
+    out = root / "model_stale"
+    with pytest.raises(InputError) as e:
+        fit_stage(root / "cap", atlas, out, stage_config(), progress=False)
+    msg = e.value.one_line()
+    assert SEAMS_FILE in msg and "\n" not in msg
+    assert not out.exists()
+
+
+def test_cli_prints_one_line_for_a_corrupt_seams_file(capture_and_atlas, capsys, monkeypatch):
+    from texstream.pipelines.cli import main
+
+    root = capture_and_atlas
+    atlas = copy_atlas(root, "atlas_corrupt_cli")
+    (atlas / SEAMS_FILE).write_bytes(b"\x00" * 16)
+    monkeypatch.setattr("texstream.fit.stage.run_fit_with_progress", no_fitting)
+    rc = main(["fit", str(root / "cap"), "--mesh", str(atlas), "-o", str(root / "model_cli"),
+               "--device", SCENE_DEVICE])
+    err = capsys.readouterr().err.strip()
+    assert rc == 1 and len(err.splitlines()) == 1 and SEAMS_FILE in err, err
+    assert not (root / "model_cli").exists()
