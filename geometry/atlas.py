@@ -76,6 +76,10 @@ class AtlasConfig:
     block_align: bool = option(False, help="align charts to 4x4 texel blocks (for block-compressed textures)")
     density_bands: float = option(0.5, help="with face weights: split charts where the weight changes by more "
                                              "than this many octaves (0: one weight per xatlas chart)")
+    density_smoothing: int = option(1, help="with density bands: smoothing steps of the log face weights over "
+                                            "neighbouring faces before banding (noisy weights shatter charts)")
+    min_piece_texels: float = option(64.0, help="with density bands: pieces smaller than about this many texels "
+                                                "are merged into a neighbouring piece of their chart")
     keep_existing_uvs: bool = option(True, help="use the mesh's own UVs when they are usable (in [0, 1], "
                                                 "not degenerate, not overlapping) instead of a new atlas")
 
@@ -245,17 +249,19 @@ def _keep_uvs(mesh: SurfaceMesh, config: AtlasConfig,
     return out, info
 
 
-def _coverage(mesh: SurfaceMesh, width: int, height: int) -> tuple[int, int, int]:
+def _coverage(mesh: SurfaceMesh, width: int, height: int, return_owned: bool = False):
     """(covered texels, faces with no texel centre inside, faces still without a texel after
-    the orphan rule), as the bake will find them."""
+    the orphan rule), as the bake will find them; with ``return_owned`` also (F,) texels per face."""
     from .bake import _claim_orphans, _texel_vertex_coords, claim_texels
 
     face = claim_texels(mesh, width, height, claim_orphans=False).reshape(-1)
     n_orphan = mesh.n_faces - len(np.unique(face[face >= 0]))
     tx, ty = _texel_vertex_coords(mesh, width, height)
     _claim_orphans(face, tx, ty, np.asarray(mesh.faces), width, height)
-    n_without = mesh.n_faces - len(np.unique(face[face >= 0]))
-    return int(np.count_nonzero(face >= 0)), int(n_orphan), int(n_without)
+    owned = np.bincount(face[face >= 0], minlength=mesh.n_faces)
+    n_without = int(np.count_nonzero(owned == 0))
+    res = (int(np.count_nonzero(face >= 0)), int(n_orphan), n_without)
+    return (*res, owned) if return_owned else res
 
 
 def _count_islands(mesh: SurfaceMesh) -> int:
@@ -280,12 +286,13 @@ def _count_islands(mesh: SurfaceMesh) -> int:
     return int(len(np.unique(parent[np.unique(f)])))
 
 
-def _chart_options(config: AtlasConfig):
+def _chart_options(config: AtlasConfig, unit_scale: float = 1.0):
+    """xatlas chart options; ``unit_scale`` multiplies scene lengths (the mesh was scaled by it)."""
     import xatlas
 
     co = xatlas.ChartOptions()
-    co.max_chart_area = float(config.max_chart_area)
-    co.max_boundary_length = float(config.max_boundary_length)
+    co.max_chart_area = float(config.max_chart_area) * unit_scale ** 2
+    co.max_boundary_length = float(config.max_boundary_length) * unit_scale
     co.max_cost = float(config.max_cost)
     co.max_iterations = int(config.max_iterations)
     co.normal_deviation_weight = float(config.normal_deviation_weight)
@@ -313,10 +320,12 @@ def _pack_options(config: AtlasConfig, texels_per_unit: float):
 def _pack(uv_world: np.ndarray, faces: np.ndarray, chart: np.ndarray, config: AtlasConfig, tpu: float):
     import xatlas
 
+    # xatlas welds UV vertices closer than an absolute epsilon (~1e-4), which folds small faces
+    # of a scene in metres; in texel units nothing that far apart matters.
     atlas = xatlas.Atlas()
-    atlas.add_uv_mesh(uv_world.astype(np.float32), faces.astype(np.uint32),
+    atlas.add_uv_mesh((uv_world * tpu).astype(np.float32), faces.astype(np.uint32),
                       chart.astype(np.uint32).reshape(-1, 1))
-    atlas.generate(xatlas.ChartOptions(), _pack_options(config, tpu))
+    atlas.generate(xatlas.ChartOptions(), _pack_options(config, 1.0))
     return atlas
 
 
@@ -330,58 +339,163 @@ def _xatlas_atlas(mesh: SurfaceMesh, config: AtlasConfig,
     if total <= 0:
         raise InputError("all faces have zero area", None, "clean the mesh (texstream mesh) before atlasing")
 
-    # Pass 1: charts. The packing density here only sets the resolution of xatlas' chart
-    # flattening bookkeeping; ~512 texels across is plenty and fast.
+    # Pass 1: charts. xatlas drops faces whose area is below float32 epsilon in absolute units
+    # (a 20 cm object in metres loses its small faces), so it charts a copy scaled to a
+    # bounding-box diagonal of 100; chart limits are scaled alike and UVs scaled back.
+    lo, hi = mesh.bbox()
+    s_norm = _XATLAS_DIAGONAL / max(float(np.linalg.norm(hi - lo)), 1e-30)
+    verts_n = (np.asarray(mesh.vertices, np.float64) - 0.5 * (lo + hi)) * s_norm
     chart_atlas = xatlas.Atlas()
     normals = None if mesh.normals is None else np.asarray(mesh.normals, dtype=np.float32)
     try:
-        chart_atlas.add_mesh(np.asarray(mesh.vertices, dtype=np.float32), faces_in, normals=normals)
+        chart_atlas.add_mesh(verts_n.astype(np.float32), faces_in, normals=normals)
     except RuntimeError as e:
         raise InputError(f"xatlas rejected the mesh ({e})", None,
                          "clean the mesh (texstream mesh) first") from None
-    tpu_a = 512.0 / math.sqrt(total)
-    chart_atlas.generate(_chart_options(config), _pack_options(config, tpu_a))
+    # The packing density here only sets the resolution of xatlas' chart flattening
+    # bookkeeping; ~512 texels across is plenty and fast.
+    tpu_a = 512.0 / math.sqrt(total * s_norm ** 2)
+    chart_atlas.generate(_chart_options(config, s_norm), _pack_options(config, tpu_a))
     vm_a, idx_a, uv_a = chart_atlas.get_mesh(0)
     n_charts = chart_atlas.get_mesh_chart_count(0)
-    chart = np.full(len(idx_a), n_charts, dtype=np.int64)  # faces xatlas ignored (zero area): own group
+    chart = np.full(len(idx_a), -1, dtype=np.int64)
     for c in range(n_charts):
         chart[np.asarray(chart_atlas.get_mesh_chart(0, c).faces, dtype=np.int64)] = c
     # normalised UVs -> texels -> scene units (the flattening at unit density)
     uv_world = (np.asarray(uv_a, np.float64) * [chart_atlas.width, chart_atlas.height]
-                / chart_atlas.texels_per_unit)
-
+                / (chart_atlas.texels_per_unit * s_norm))
     vm_a = np.asarray(vm_a, np.int64)
     idx_a = np.asarray(idx_a, np.int64)
-    if weights is not None and config.density_bands > 0:
-        # Split charts where the face weight changes by more than a band (module doc, step 2)
-        chart, idx_a, uv_world, vm_a = _split_by_weight(chart, idx_a, uv_world, vm_a, weights, area3,
-                                                        config.density_bands)
-        n_charts = int(chart.max()) + 1 if len(chart) else 0
-    # Per-chart importance scale (split vertices belong to exactly one chart).
+    # Faces xatlas still ignored (zero area): one chart each, laid flat here.
+    chart, idx_a, uv_world, vm_a = _flat_face_charts(mesh, np.flatnonzero(chart < 0), chart, idx_a, uv_world, vm_a)
+    n_charts = int(chart.max()) + 1
+
+    # Per-face target: texels per unit area in proportion to the weight. The flattening is not
+    # area-preserving (xatlas' charts are near-conformal), so a face of a chart scaled by s gets
+    # s^2 * stretch texels per unit area at unit density; the scale a face asks for is
+    # sqrt(w / stretch).
     if weights is not None:
-        cw = np.bincount(chart, weights=weights * area3, minlength=n_charts + 1)
-        ca = np.bincount(chart, weights=area3, minlength=n_charts + 1)
-        wc = np.divide(cw, ca, out=np.ones_like(cw), where=ca > 0)
+        # (slivers can come out of the flattening with almost no area: the correction is clipped
+        # to two octaves either way)
+        stretch = np.abs(_uv_areas(uv_world, idx_a)) / np.maximum(area3, 1e-300)
+        ok = (area3 > 0) & (stretch > 0)
+        want = weights / np.clip(np.where(ok, stretch, 1.0), 0.25, 4.0)
+        if config.density_bands > 0:
+            # Split charts where the wanted scale changes by more than a band (module doc, step 2)
+            # area of one texel at unit weight: from the density asked for, or ~60% packing
+            # efficiency of the resolution
+            wa = float((want * area3).sum())
+            texel_area = (1.0 / config.texels_per_unit ** 2 if config.texels_per_unit > 0
+                          else wa / (0.6 * config.resolution ** 2))
+            chart, idx_a, uv_world, vm_a = _split_by_weight(
+                chart, idx_a, uv_world, vm_a, want, area3, config.density_bands,
+                smooth=config.density_smoothing, min_size=config.min_piece_texels * texel_area)
+            n_charts = int(chart.max()) + 1
+        # Per-chart scale^2: the area-weighted geometric mean of the wanted scale^2 (the least-
+        # squares fit in log size), so that texel size errors inside a chart are balanced.
+        lw = np.log(np.maximum(want, 1e-300))
+        ca = np.bincount(chart, weights=area3, minlength=n_charts)
+        cl = np.bincount(chart, weights=lw * area3, minlength=n_charts)
+        wc = np.exp(np.divide(cl, ca, out=np.zeros_like(cl), where=ca > 0))
         # Zero-weight charts still get a sliver of texels (1/100 of the largest linear scale) so
         # every face keeps a parameter.
         scale = np.sqrt(np.maximum(wc, 1e-4 * wc.max()))
-        vscale = np.ones(len(uv_world))
-        vscale[idx_a.reshape(-1)] = np.repeat(scale[chart], 3)
-        uv_world = uv_world * vscale[:, None]
+        uv_world = _scale_charts(uv_world, idx_a, chart, scale)
 
-    # Pass 2: pack at the requested density, or search the density that fills `resolution`.
+    # Pass 2: pack (with weights, shrinking charts the packer enlarged, see _undo_snapping);
+    # then every face must own a texel: faces left without one (slivers, pole fans, faces
+    # crowded in a texel) get a chart of their own of at least 2 texels and the charts are
+    # packed again.
     res = int(config.resolution)
+    face_scale = np.sqrt(np.maximum(np.abs(_uv_areas(uv_world, idx_a)), 0.0) / np.maximum(area3, 1e-300))
+    atlas, tpu = _pack_to_config(uv_world, idx_a, chart, config, res)
+    if weights is not None:
+        atlas, tpu, uv_world = _undo_snapping(atlas, tpu, uv_world, idx_a, chart, config, res)
+    for round_ in range(_MIN_TEXEL_ROUNDS + 1):
+        if round_ > 0:
+            # Repack at one fixed density a little under the first one (room for the new charts):
+            # a chart packed at the same density rasterises the same, so the faces that had a
+            # texel keep it and the rounds converge.
+            if round_ == 1:
+                tpu_fixed = tpu * (1.0 if config.texels_per_unit > 0 else 0.97)
+            while True:
+                atlas = _pack(uv_world, idx_a, chart, config, tpu_fixed)
+                if max(atlas.width, atlas.height) <= res:
+                    break
+                if config.texels_per_unit > 0:
+                    raise ConfigError(f"texels_per_unit {tpu_fixed:g} leaves no room to give every face a "
+                                      f"texel within resolution {res}",
+                                      fix="lower --texels-per-unit or raise --resolution")
+                tpu_fixed *= 0.97
+            tpu = tpu_fixed
+        out = _atlas_mesh(mesh, atlas, vm_a)
+        w, h = int(atlas.width), int(atlas.height)
+        n_cov, n_orphan, n_without, owned = _coverage(out, w, h, return_owned=True)
+        if n_without == 0 or round_ == _MIN_TEXEL_ROUNDS:
+            break
+        sel = np.flatnonzero(owned == 0)
+        chart, idx_a, uv_world, vm_a = _flat_face_charts(mesh, sel, chart, idx_a, uv_world, vm_a,
+                                                         face_scale[sel], 2.0 / (0.97 * tpu) ** 2)
+    n_charts = int(chart.max()) + 1
+    info = AtlasInfo(width=w, height=h, n_charts=int(n_charts), utilization=float(atlas.utilization),
+                     faces_without_texels=n_without, source="xatlas", texels_per_unit=float(tpu),
+                     n_covered=n_cov, orphan_faces=n_orphan)
+    return out, info
+
+
+# bounding-box diagonal of the copy xatlas charts (_xatlas_atlas); rounds of enlarging charts
+# whose faces own no texel
+_XATLAS_DIAGONAL = 100.0
+_MIN_TEXEL_ROUNDS = 4
+
+
+def _undo_snapping(atlas, tpu: float, uv_world: np.ndarray, idx: np.ndarray, chart: np.ndarray,
+                   config: AtlasConfig, res: int, rounds: int = 2, max_shrink: float = 0.25):
+    """Shrink charts that xatlas' packer enlarged, and pack again.
+
+    The packer snaps charts to whole texels and to at least about one texel (a chart 1.2 texels
+    across comes out 2 across: 2.8x the texels), which for the small pieces of a density atlas
+    undoes their scale. Each round divides every chart's linear size by the square root of its
+    packed-to-asked area ratio (never below ``max_shrink`` of its asked size).
+
+    Returns:
+        (atlas, tpu, uv_world) of the last packing.
+    """
+    n = int(chart.max()) + 1
+    asked = np.bincount(chart, weights=np.abs(_uv_areas(uv_world, idx)), minlength=n)
+    cum = np.ones(n)
+    for _ in range(rounds):
+        _, idx_b, uv_b = atlas.get_mesh(0)
+        got = np.bincount(chart, weights=np.abs(_uv_areas(np.asarray(uv_b, np.float64), np.asarray(idx_b, np.int64))),
+                          minlength=n) * (atlas.width * atlas.height)
+        now = asked * cum ** 2 * tpu ** 2
+        ratio = np.divide(got, now, out=np.ones(n), where=now > 0)
+        step = np.clip(1.0 / np.sqrt(np.maximum(ratio, 1e-12)), max_shrink / cum, 1.0)
+        if np.all(step > 0.98):
+            break
+        cum = cum * step
+        uv_world = _scale_charts(uv_world, idx, chart, step)
+        atlas, tpu = _pack_to_config(uv_world, idx, chart, config, res)
+    return atlas, tpu, uv_world
+
+
+def _pack_to_config(uv_world: np.ndarray, idx: np.ndarray, chart: np.ndarray, config: AtlasConfig, res: int):
+    """Pack at ``texels_per_unit`` (error if it exceeds ``res``) or search the density filling ``res``."""
     if config.texels_per_unit > 0:
         tpu = float(config.texels_per_unit)
-        atlas = _pack(uv_world, idx_a, chart, config, tpu)
+        atlas = _pack(uv_world, idx, chart, config, tpu)
         if max(atlas.width, atlas.height) > res:
             raise ConfigError(f"texels_per_unit {tpu:g} needs a {atlas.width}x{atlas.height} atlas, larger "
                               f"than resolution {res}", fix="lower --texels-per-unit or raise --resolution")
-    else:
-        atlas, tpu = _fit_density(uv_world, idx_a, chart, config, res)
+        return atlas, tpu
+    return _fit_density(uv_world, idx, chart, config, res)
+
+
+def _atlas_mesh(mesh: SurfaceMesh, atlas, vm_a: np.ndarray) -> SurfaceMesh:
+    """The packed atlas as a SurfaceMesh (split vertices mapped back to the input's)."""
     vm_b, idx_b, uv_b = atlas.get_mesh(0)
     src = vm_a[np.asarray(vm_b, np.int64)]
-    out = SurfaceMesh(
+    return SurfaceMesh(
         vertices=np.asarray(mesh.vertices, np.float64)[src],
         faces=np.asarray(idx_b, dtype=np.int32),
         normals=None if mesh.normals is None else np.asarray(mesh.normals, np.float64)[src],
@@ -389,55 +503,151 @@ def _xatlas_atlas(mesh: SurfaceMesh, config: AtlasConfig,
         source_vertex=(src if mesh.source_vertex is None
                        else np.asarray(mesh.source_vertex)[src]).astype(np.int32),
     )
-    w, h = int(atlas.width), int(atlas.height)
-    n_cov, n_orphan, n_without = _coverage(out, w, h)
-    info = AtlasInfo(width=w, height=h, n_charts=int(n_charts), utilization=float(atlas.utilization),
-                     faces_without_texels=n_without, source="xatlas", texels_per_unit=float(tpu),
-                     n_covered=n_cov, orphan_faces=n_orphan)
-    return out, info
+
+
+def _scale_charts(uv: np.ndarray, idx: np.ndarray, chart: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """Scale each chart's UVs by ``scale[chart]`` (split vertices belong to exactly one chart)."""
+    vscale = np.ones(len(uv))
+    vscale[idx.reshape(-1)] = np.repeat(scale[chart], 3)
+    return uv * vscale[:, None]
+
+
+def _flat_face_charts(mesh: SurfaceMesh, sel: np.ndarray, chart: np.ndarray, idx: np.ndarray, uv: np.ndarray,
+                      vmap: np.ndarray, scale: np.ndarray | float = 1.0, min_area: float = 0.0):
+    """Give each face in ``sel`` a chart of its own: the triangle laid flat without distortion,
+    scaled by ``scale`` and enlarged to a UV area of at least ``min_area``.
+
+    Degenerate triangles get a small non-zero height so that they still own a texel after packing.
+    The face's old vertices stay (possibly unused; the packer drops unreferenced ones).
+
+    Returns:
+        (chart (F,), idx (F, 3), uv (V', 2), vmap (V',)).
+    """
+    sel = np.asarray(sel, np.int64)
+    if sel.size == 0:
+        return chart, idx, uv, vmap
+    n_charts = int(chart.max()) + 1
+    f = np.asarray(mesh.faces, np.int64)[sel]
+    p = np.asarray(mesh.vertices, np.float64)[f]
+    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    l1 = np.linalg.norm(e1, axis=1)
+    typical = math.sqrt(float(mesh.face_areas().mean()))
+    ln = np.maximum(l1, 1e-3 * typical)
+    x = np.divide(e1, l1[:, None], out=np.zeros_like(e1), where=l1[:, None] > 0)
+    u2 = np.einsum("ij,ij->i", e2, x)
+    v2 = np.maximum(np.linalg.norm(np.cross(e1, e2), axis=1) / ln, 1e-3 * typical)
+    tri = np.zeros((sel.size, 3, 2))
+    tri[:, 1, 0] = ln
+    tri[:, 2] = np.stack([u2, v2], 1)
+    k = np.broadcast_to(np.asarray(scale, np.float64), (sel.size,))
+    k = np.maximum(k, np.sqrt(min_area / (0.5 * ln * v2)))
+    tri *= k[:, None, None]
+    chart = chart.copy()
+    idx = idx.copy()
+    chart[sel] = n_charts + np.arange(sel.size)
+    idx[sel] = len(uv) + np.arange(3 * sel.size).reshape(-1, 3)
+    return chart, idx, np.concatenate([uv, tri.reshape(-1, 2)]), np.concatenate([vmap, f.reshape(-1)])
 
 
 def _split_by_weight(chart: np.ndarray, idx: np.ndarray, uv: np.ndarray, vmap: np.ndarray, weights: np.ndarray,
-                     area: np.ndarray, band: float, smooth: int = 1):
+                     area: np.ndarray, band: float, smooth: int = 3, min_size: float = 0.0):
     """Split charts into connected pieces of faces whose weights lie in one band of ``band`` octaves.
 
-    Vertices shared by two pieces are duplicated (each piece gets its own scale before packing).
+    The log2 weights are first smoothed ``smooth`` times over faces sharing an edge of the chart
+    (area-weighted Jacobi steps) so noisy weights do not shatter charts, and pieces whose area is
+    below ``min_size`` (weight times area: the area of that many texels at unit weight) are merged
+    into their largest neighbour in the same chart. Vertices shared by two pieces are duplicated
+    (each piece gets its own scale before packing).
 
     Args:
         chart: (F,) chart id per face; idx: (F, 3) vertex ids; uv: (V, 2) flattened charts;
-        vmap: (V,) input vertex of each vertex; weights, area: (F,); band: octaves per band.
+        vmap: (V,) input vertex of each vertex; weights, area: (F,); band: octaves per band;
+        smooth: smoothing iterations; min_size: smallest piece (sum of weight * area, scene units^2).
 
     Returns:
         (chart (F,), idx (F, 3), uv (V', 2), vmap (V',)) with the new pieces.
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     nf = len(chart)
-    # Band of each face from its weight, smoothed ``smooth`` times over faces sharing a vertex
-    # (area-weighted, in log space) so isolated faces do not become one-face charts.
-    lw_s = np.log2(np.maximum(weights, 1e-12))
-    nv = len(uv)
-    wsum = np.bincount(idx.reshape(-1), weights=np.repeat(area, 3), minlength=nv)
-    for _ in range(int(smooth)):
-        acc = np.bincount(idx.reshape(-1), weights=np.repeat(lw_s * area, 3), minlength=nv)
-        vlog = np.divide(acc, wsum, out=np.zeros(nv), where=wsum > 0)
-        lw_s = 0.5 * lw_s + 0.5 * vlog[idx].mean(axis=1)
+    fa, fb = _face_adjacency(idx)
+    lw = np.log2(np.maximum(weights, 1e-12))
+    lw_s = _smooth_faces(lw, area, fa, fb, smooth)
     key = chart.astype(np.int64) * 100000 + np.floor(lw_s / band).astype(np.int64)
     _, key = np.unique(key, return_inverse=True)
-    # faces + (vertex, key) nodes; a face joins the node of each corner: components = pieces
-    corner_node = idx.reshape(-1) * (key.max() + 1) + np.repeat(key, 3)
-    _, corner_node = np.unique(corner_node, return_inverse=True)
-    n_nodes = nf + int(corner_node.max()) + 1
-    rows = np.repeat(np.arange(nf), 3)
-    g = coo_matrix((np.ones(3 * nf), (rows, nf + corner_node)), shape=(n_nodes, n_nodes))
-    _, comp = connected_components(g, directed=False)
-    _, piece = np.unique(comp[:nf], return_inverse=True)
+    piece = _components(key, fa, fb, nf)
+    if min_size > 0:
+        piece = _merge_small_pieces(piece, area * np.exp2(lw), lw_s, fa, fb, min_size, band)
+    _, piece = np.unique(piece, return_inverse=True)
     # one vertex per (vertex, piece)
     vp = idx.reshape(-1) * (piece.max() + 1) + np.repeat(piece, 3)
     uniq, new_idx = np.unique(vp, return_inverse=True)
     old_v = uniq // (piece.max() + 1)
     return piece.astype(np.int64), new_idx.reshape(-1, 3), uv[old_v], vmap[old_v]
+
+
+def _face_adjacency(idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs (a, b) of faces sharing an edge (vertex ids as given: split seams separate charts)."""
+    f = np.asarray(idx, np.int64)
+    e = np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], 1).reshape(-1, 2)
+    e.sort(axis=1)
+    face = np.repeat(np.arange(len(f)), 3)
+    order = np.lexsort((e[:, 1], e[:, 0]))
+    e, face = e[order], face[order]
+    same = np.all(e[1:] == e[:-1], axis=1)
+    return face[:-1][same], face[1:][same]
+
+
+def _smooth_faces(x: np.ndarray, area: np.ndarray, fa: np.ndarray, fb: np.ndarray, n: int) -> np.ndarray:
+    """``n`` Jacobi steps x <- (x + area-weighted mean of the edge neighbours) / 2."""
+    nf = len(x)
+    wsum = np.bincount(fa, weights=area[fb], minlength=nf) + np.bincount(fb, weights=area[fa], minlength=nf)
+    for _ in range(int(n)):
+        acc = np.bincount(fa, weights=(area * x)[fb], minlength=nf) + np.bincount(fb, weights=(area * x)[fa],
+                                                                                minlength=nf)
+        x = np.where(wsum > 0, 0.5 * x + 0.5 * np.divide(acc, wsum, out=np.zeros(nf), where=wsum > 0), x)
+    return x
+
+
+def _components(key: np.ndarray, fa: np.ndarray, fb: np.ndarray, nf: int) -> np.ndarray:
+    """Connected components of faces joined by shared edges whose two faces have the same key."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    keep = key[fa] == key[fb]
+    g = coo_matrix((np.ones(int(keep.sum())), (fa[keep], fb[keep])), shape=(nf, nf))
+    _, comp = connected_components(g, directed=False)
+    return comp.astype(np.int64)
+
+
+def _merge_small_pieces(piece: np.ndarray, size: np.ndarray, value: np.ndarray, fa: np.ndarray, fb: np.ndarray,
+                        min_size: float, max_diff: float, max_rounds: int = 10) -> np.ndarray:
+    """Merge pieces whose summed ``size`` is below ``min_size`` into the edge neighbour whose
+    ``size``-weighted mean ``value`` is closest, if it differs by at most ``max_diff``.
+
+    A piece only merges into a larger one (ties: the higher id), so merges never form cycles; one
+    step per round (a merged piece's new mean decides the next round).
+    """
+    piece = piece.copy()
+    for _ in range(max_rounds):
+        n = int(piece.max()) + 1
+        psize = np.bincount(piece, weights=size, minlength=n)
+        pval = np.bincount(piece, weights=size * value, minlength=n) / np.maximum(psize, 1e-300)
+        pa, pb = piece[fa], piece[fb]
+        d = pa != pb
+        a = np.concatenate([pa[d], pb[d]])
+        b = np.concatenate([pb[d], pa[d]])
+        diff = np.abs(pval[b] - pval[a])
+        ok = (psize[a] < min_size) & (diff <= max_diff) & (
+            (psize[b] > psize[a]) | ((psize[b] == psize[a]) & (b > a)))
+        a, b, diff = a[ok], b[ok], diff[ok]
+        if a.size == 0:
+            break
+        # per small piece, the neighbour closest in value (last after sorting by -distance)
+        order = np.lexsort((b, -diff, a))
+        last = np.r_[a[order][1:] != a[order][:-1], True]
+        target = np.arange(n)
+        target[a[order][last]] = b[order][last]
+        piece = target[piece]
+    return piece
 
 
 def _fit_density(uv_world: np.ndarray, faces: np.ndarray, chart: np.ndarray, config: AtlasConfig,
