@@ -95,7 +95,8 @@ def load_seams(mesh_path: str | Path, bake):
     idx = np.concatenate([seams.idx_a.ravel(), seams.idx_b.ravel()])
     if (seams.width, seams.height) != (bake.width, bake.height) or seams.fill_source.shape != (n,) \
             or (idx.size and (idx.min() < 0 or idx.max() >= n)):
-        raise InputError(f"seams are for a {seams.width}x{seams.height} atlas, the bake is {bake.width}x{bake.height}",
+        raise InputError(f"seams are for a {seams.width}x{seams.height} atlas, "
+                         f"the bake is {bake.width}x{bake.height}",
                          p / "seams.npz", "re-run `texstream atlas` to rebuild the atlas folder")
     return seams
 

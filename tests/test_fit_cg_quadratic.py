@@ -78,7 +78,8 @@ def gradients(prob, p: np.ndarray, free: np.ndarray) -> tuple[np.ndarray, np.nda
     return f.numpy().copy(), g.numpy().reshape(prob.n, -1)[:, :prob.layout.n_params][:, free].copy()
 
 
-def run_iterations(prob, cfg: FitConfig, p0: np.ndarray, free: np.ndarray, valid: np.ndarray, iterations: int):
+def run_iterations(prob, cfg: FitConfig, p0: np.ndarray, free: np.ndarray, valid: np.ndarray,
+                   iterations: int):
     """The loop of fitter.run_fit with a custom free mask (the lobe shape frozen); returns per
     iteration the per-texel free-gradient norms (iterations + 1, N), the exactness of each line
     search |g_new . d| / (|g| |d|) (iterations, N; 0 for an exact one) and the accepted flags
@@ -145,8 +146,8 @@ def test_cg_terminates_in_n_free_steps_on_a_quadratic(quad_scene, device):
     kappa = np.where(ev[:, 0] > 0, ev[:, -1] / np.maximum(ev[:, 0], 1e-300), np.inf)
     ls = LineSearchConfig(kind="hessian")
     results = {}
-    for name, kw in (("fr", dict(optimizer="cg", cg_variant="fr")), ("pr", dict(optimizer="cg", cg_variant="pr")),
-                     ("sd", dict(optimizer="sd"))):
+    for name, kw in (("fr", dict(optimizer="cg", cg_variant="fr")),
+                     ("pr", dict(optimizer="cg", cg_variant="pr")), ("sd", dict(optimizer="sd"))):
         # cg_restart_every = 0: no periodic steepest-descent restarts inside the n_free steps
         cfg = FitConfig(**kw, cg_restart_every=0, linesearch=ls, stream=StreamConfig(**STREAM))
         results[name] = run_iterations(prob, cfg, p0, free, seen, N_FREE)
