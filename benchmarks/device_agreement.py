@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-CASES = {"lm_fp64": ("lm", "fp64"), "cg_fp64": ("cg", "fp64"), "lm_fp32": ("lm", "fp32")}
+CASES = {"lm_fp64": ("lm", "fp64"), "cg_fp64": ("cg", "fp64"), "lm_fp32": ("lm", "fp32"), "cg_fp32": ("cg", "fp32")}
 
 
 def run(device: str, out: Path, cases: list[str]) -> None:

@@ -45,12 +45,11 @@ def measured_bandwidth(device: str, nbytes: int = 1 << 30, reps: int = 10) -> fl
 
 
 def unique_bytes_per_pass(prob, optimizer: str) -> int:
-    from texstream.fit.kernels.lafortune_grad import MAX_PARAMS
-
     ph = prob.photos
     per_photo = ph.image_bytes + ph.depth.capacity + ph.shadow.capacity
     word = 8 if prob.cfg.accumulate == "fp64" else 4
-    partial = word * (1 + MAX_PARAMS + (MAX_PARAMS * MAX_PARAMS if optimizer == "lm" else 1)) + 32
+    npar = prob.layout.n_params  # per-texel vectors are sized to the layout
+    partial = word * (1 + npar + (npar * npar if optimizer == "lm" else 1)) + 32
     state = prob.n * (word * prob.layout.n_params + 2 * prob.groups * partial + partial)
     return int(per_photo + state)
 

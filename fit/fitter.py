@@ -52,6 +52,9 @@ class FitConfig:
     init: str = option("percentile", "initial guess: percentile (McAllister low percentile diffuse) or defaults",
                        choices=("percentile", "defaults"))
     init_rank: int = option(1, "which smallest reflectance sample (0..3) estimates the diffuse part")
+    lobe_albedo_max: float = option(1.0, "energy bound: each lobe's rho_s <= this * (n + 2) / (2 pi), the largest "
+                                          "albedo a normalised lobe may have (stops one highlight sample from "
+                                          "producing a broad, enormously bright lobe); 0 = off")
     psnr_peak: float = option(1.0, "peak pixel value for the trace's PSNR")
     linesearch: LineSearchConfig = option(default_factory=LineSearchConfig, help="line search")
     penalties: PenaltyConfig = option(default_factory=PenaltyConfig, help="penalties")
@@ -130,7 +133,7 @@ def run_fit(problem: StreamProblem, cfg: FitConfig, p0: np.ndarray | None = None
     if p0 is not None:
         guess = np.asarray(p0, dtype=np.float64)
     free = ~lay.frozen()
-    state = FitState.create(problem, guess, free)
+    state = FitState.create(problem, guess, free, lobe_albedo_max=cfg.lobe_albedo_max)
     state.valid = wp.array((counts > 0).astype(np.int32), dtype=wp.int32, device=dev)
     penalties = Penalties(problem, cfg.penalties)
     opt = make_optimizer(cfg)

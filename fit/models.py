@@ -30,7 +30,27 @@ import numpy as np
 from texstream.pipelines.errors import ConfigError
 
 MODEL_KINDS = ("lafortune", "diffuse")
-MAX_LOBES = 2  # MAX_PARAMS = 3 + 2*7 = 17 bounds the kernels' fixed-size per-texel vectors
+MAX_LOBES = 2  # per-texel vectors are sized to the layout (at most 3 + 2*7 = 17 parameters)
+
+
+def energy_bound_numpy(params: np.ndarray, layout: "ModelLayout", albedo_max: float) -> np.ndarray:
+    """Cap each lobe's rho_s,c at ``albedo_max * (n + 2) / (2 pi)``.
+
+    A normalised Phong lobe max(s, 0)^n with s the cosine to the mirror direction reflects
+    2 pi / (n + 2) of the light at normal incidence, so rho_s above (n + 2) / (2 pi) creates
+    energy. With sparse photos a texel can otherwise explain one highlight sample with a
+    broad, enormously bright lobe that ruins unseen views; the cap rules that out while leaving
+    every physical material (rho_s <= 1 albedo) reachable. ``albedo_max`` <= 0 disables it.
+    (The kernels apply the same rule in ``optim_kernels.energy_bound``.)
+    """
+    out = np.array(params, dtype=np.float64, copy=True)
+    if albedo_max <= 0:
+        return out
+    for j in range(layout.n_lobes):
+        o = layout.lobe_offset(j)
+        cap = albedo_max * (out[..., o + layout.lobe_stride - 1] + 2.0) / (2.0 * np.pi)
+        out[..., o:o + 3] = np.minimum(out[..., o:o + 3], cap[..., None])
+    return out
 
 
 @dataclasses.dataclass(frozen=True)

@@ -17,7 +17,6 @@ import warp as wp
 from texstream.pipelines.stage import option
 
 from .kernels import optim_kernels as K
-from .kernels.lafortune_grad import MAX_PARAMS
 
 
 @dataclasses.dataclass
@@ -40,8 +39,8 @@ class PenaltyConfig:
                                                 "spread), so it weighs like an albedo")
 
     def parameter_weights(self, layout, which: str) -> np.ndarray:
-        """(MAX_PARAMS,) column weights of a penalty for ``which`` parameters of ``layout``."""
-        w = np.zeros(MAX_PARAMS)
+        """(n_params,) column weights of a penalty for ``which`` parameters of ``layout``."""
+        w = np.zeros(layout.n_params)
         if which in ("diffuse", "all"):
             w[:3] = 1.0
         if which in ("specular", "all", "shape"):

@@ -18,7 +18,7 @@ from texstream.capture.conventions import look_at_w2c
 from texstream.pipelines.errors import ConfigError, InputError
 
 from .kernels import stream
-from .kernels.lafortune_grad import MAX_PARAMS, mat_p, mat_pd, vec_p, vec_pd
+from .kernels.lafortune_grad import param_types
 from .kernels.visibility import apply_mask_kernel, depth_map_kernel
 from .models import ModelLayout
 
@@ -131,12 +131,12 @@ class StreamConfig:
     """photos resident on the device at once (0 = all; else streamed from host in windows)"""
 
 
-def _vec_types(acc: str):
-    if acc == "fp64":
-        return wp.float64, vec_pd, mat_pd
-    if acc == "fp32":
-        return wp.float32, vec_p, mat_p
-    raise ConfigError(f"accumulate precision {acc!r} unknown", fix="use fp32 or fp64")
+def _vec_types(acc: str, n_params: int):
+    """(scalar, parameter vector, parameter matrix) types of the accumulate precision."""
+    scalars = {"fp64": wp.float64, "fp32": wp.float32}
+    if acc not in scalars:
+        raise ConfigError(f"accumulate precision {acc!r} unknown", fix="use fp32 or fp64")
+    return (scalars[acc], *param_types(n_params, scalars[acc]))
 
 
 def image_info(fr: PhotoFrame) -> stream.ImageInfo:
@@ -308,11 +308,9 @@ class StreamProblem:
                  config: StreamConfig | None = None, device: str = "cpu"):
         self.cfg = cfg = config or StreamConfig()
         self.texels, self.photos, self.layout, self.device = texels, photos, layout, device
-        if layout.n_params > MAX_PARAMS:
-            raise ConfigError(f"model has {layout.n_params} parameters, kernels hold {MAX_PARAMS}", fix="use fewer lobes")
         if cfg.storage not in PRECISIONS:
             raise ConfigError(f"storage precision {cfg.storage!r} unknown", fix="use fp16, fp32 or fp64")
-        self.scalar, self.vec, self.mat = _vec_types(cfg.accumulate)
+        self.scalar, self.vec, self.mat = _vec_types(cfg.accumulate, layout.n_params)
         self.storage_dtype = PRECISIONS[cfg.storage]
         n = texels.n
         self.n = n
@@ -354,12 +352,10 @@ class StreamProblem:
         return wp.array(np.ascontiguousarray(a), dtype=self.storage_dtype, device=self.device)
 
     def new_vec(self, values: np.ndarray | None = None) -> wp.array:
-        """A (N,) array of fixed-length parameter vectors in the compute precision."""
+        """A (N,) array of n_params-long parameter vectors in the compute precision."""
         if values is None:
             return wp.zeros(self.n, dtype=self.vec, device=self.device)
-        full = np.zeros((self.n, MAX_PARAMS))
-        full[:, :values.shape[1]] = values
-        return wp.array(full, dtype=self.vec, device=self.device)
+        return wp.array(np.ascontiguousarray(values, dtype=np.float64), dtype=self.vec, device=self.device)
 
     def new_scalar(self, fill: float = 0.0) -> wp.array:
         a = wp.zeros(self.n, dtype=self.scalar, device=self.device)

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from texstream.capture.synth import SynthConfig, render_scene
+from texstream.fit.accuracy import highlight_counts
 from texstream.fit.fitter import FitConfig, run_fit
 from texstream.fit.penalties import PenaltyConfig
 from texstream.fit.stage import build_problem, image_metrics, params_to_grid, render_model
@@ -25,25 +26,6 @@ def sphere():
     train = render_scene("sphere", SynthConfig(**SPHERE))
     held = render_scene("sphere", SynthConfig(**{**SPHERE, "photos": 8}, azimuth_offset=7.0))
     return train, held
-
-
-def highlight_counts(scene, texels, params, layout, min_fraction=0.1) -> np.ndarray:
-    """Per texel, the photos in which its true lobe is at >= ``min_fraction`` of its peak
-    (lit and seen at cos > 0.1; the sphere is convex, so nothing else occludes)."""
-    o = layout.lobe_offset(0)
-    pos = texels.position.astype(np.float64)
-    nrm = texels.normal.astype(np.float64)
-    count = np.zeros(len(pos), int)
-    for fr in scene.frames:
-        v = fr.center - pos
-        v /= np.linalg.norm(v, axis=1, keepdims=True)
-        ld = fr.light.position - pos
-        ld /= np.linalg.norm(ld, axis=1, keepdims=True)
-        cv, cl = (v * nrm).sum(1), (ld * nrm).sum(1)
-        mirror = 2 * cl[:, None] * nrm - ld
-        lobe = np.clip((mirror * v).sum(1), 0, 1) ** params[:, o + 5]
-        count += (cv > 0.1) & (cl > 0.1) & (lobe >= min_fraction)
-    return count
 
 
 def test_sphere_fit_meets_the_accuracy_targets(sphere, device):
@@ -65,7 +47,8 @@ def test_sphere_fit_meets_the_accuracy_targets(sphere, device):
     rel = np.abs(res.params - gt) / np.maximum(np.abs(gt), 1e-9)
     # diffuse albedo: target 1% (measured median 0.03%, p90 0.08%)
     assert np.percentile(rel[seen, 0:3], 90) < 0.01
-    hi = seen & (highlight_counts(train, prob.texels, gt, res.layout) >= 5)
+    hi = seen & (highlight_counts(train.frames, prob.texels.position, prob.texels.normal, gt,
+                                   res.layout.lobe_offset(0)) >= 5)
     assert hi.sum() >= 50  # 120 of 800 texels here
     o = res.layout.lobe_offset(0)
     # specular albedo 3% and exponent 5% (issue targets), as medians over the highlight texels:

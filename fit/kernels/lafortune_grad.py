@@ -1,7 +1,7 @@
 """Lafortune model value, Jacobian and second directional derivative, per texel sample.
 
 Generic over float32/float64: ``p`` and ``d`` are fixed-length parameter vectors of the compute
-type (:data:`MAX_PARAMS` long; columns past the layout's ``n_params`` are ignored and stay zero),
+type, exactly the layout's ``n_params`` long (:func:`param_types`),
 ``u``/``v`` are the local light/view directions and ``one`` is the scalar 1 of that type.
 
 For channel c, m_c = rho_d,c + sum_j rho_s,j,c L_j with L_j = max(s_j, 0)^n_j and
@@ -23,11 +23,21 @@ from typing import Any
 
 import warp as wp
 
-MAX_PARAMS = 17
-vec_p = wp.types.vector(length=MAX_PARAMS, dtype=wp.float32)
-vec_pd = wp.types.vector(length=MAX_PARAMS, dtype=wp.float64)
-mat_p = wp.types.matrix(shape=(MAX_PARAMS, MAX_PARAMS), dtype=wp.float32)
-mat_pd = wp.types.matrix(shape=(MAX_PARAMS, MAX_PARAMS), dtype=wp.float64)
+_PARAM_TYPES: dict = {}
+
+
+def param_types(n_params: int, scalar) -> tuple:
+    """(vector, matrix) Warp types of one texel's parameters: ``n_params`` long, ``scalar`` entries.
+
+    Sized to the model layout rather than to the largest model, because a per-thread J^T J of
+    17x17 floats spills registers on a GPU while one lobe's 9x9 stays in them; each size compiles
+    its own kernel overloads (the kernels are generic over these types).
+    """
+    key = (int(n_params), scalar)
+    if key not in _PARAM_TYPES:
+        _PARAM_TYPES[key] = (wp.types.vector(length=int(n_params), dtype=scalar),
+                             wp.types.matrix(shape=(int(n_params), int(n_params)), dtype=scalar))
+    return _PARAM_TYPES[key]
 
 
 @wp.func

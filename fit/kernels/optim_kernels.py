@@ -2,7 +2,7 @@
 L-BFGS two-loop recursion, damped Gauss-Newton solves, penalties and deterministic reductions.
 
 State is batched: one thread per texel works on its own fixed-length parameter vectors
-(``vec_p``/``vec_pd``), so there is never a Python loop over texels. Column masks (``free``)
+(sized to the layout, ``lafortune_grad.param_types``), so there is never a Python loop over texels. Column masks (``free``)
 keep frozen parameters (the Lafortune scale gauge) fixed.
 """
 
@@ -18,16 +18,33 @@ def masked(v: Any, free: Any):
     return wp.cw_mul(v, free)
 
 
+@wp.func
+def energy_bound(t: Any, n_lobes: int, lobe_stride: int, albedo_max: float):
+    """Cap each lobe's rho_s,c at albedo_max (n + 2) / (2 pi) (see models.energy_bound_numpy)."""
+    out = t
+    if albedo_max > 0.0:
+        for j in range(n_lobes):
+            o = 3 + j * lobe_stride
+            cap = type(t[0])(albedo_max) * (t[o + lobe_stride - 1] + type(t[0])(2.0)) / type(t[0])(2.0 * wp.pi)
+            for c in range(3):
+                out[o + c] = wp.min(out[o + c], cap)
+    return out
+
+
 @wp.kernel
 def trial_kernel(p: wp.array(dtype=Any), d: wp.array(dtype=Any), alpha: wp.array(dtype=Any),
                  lower: Any, upper: Any, free: Any, active: wp.array(dtype=wp.int32), n_params: int,
+                 n_lobes: int, lobe_stride: int, albedo_max: float,
                  trial: wp.array(dtype=Any), storage: wp.array2d(dtype=Any)):
-    """trial = clamp(p + alpha d) (projected step onto the hard bounds), also written in the
-    storage precision; the trial vector holds exactly what the storage holds."""
+    """trial = project(p + alpha d): clamped to the hard bounds, then each lobe's rho_s capped by
+    the energy bound (a feasible point, not the Euclidean projection; acceptance still compares
+    objectives, so steps stay monotone). Also written in the storage precision; the trial vector
+    holds exactly what the storage holds. Inactive texels copy ``p`` unchanged."""
     i = wp.tid()
     t = p[i]
     if active[i] != 0:
         t = wp.max(wp.min(p[i] + alpha[i] * masked(d[i], free), upper), lower)
+        t = energy_bound(t, n_lobes, lobe_stride, albedo_max)
     for k in range(n_params):
         storage[i, k] = type(storage[i, k])(t[k])
         t[k] = type(t[k])(storage[i, k])

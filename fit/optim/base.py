@@ -13,7 +13,8 @@ from typing import Protocol
 import numpy as np
 import warp as wp
 
-from ..kernels.lafortune_grad import MAX_PARAMS
+from ..kernels import optim_kernels as K
+from ..models import energy_bound_numpy
 from ..problem import StreamProblem
 
 
@@ -45,22 +46,21 @@ class FitState:
     free: object
     lower: object
     upper: object
+    lobe_albedo_max: float = 0.0
     iteration: int = 0
 
     @staticmethod
-    def create(problem: StreamProblem, p0: np.ndarray, free_mask: np.ndarray) -> "FitState":
+    def create(problem: StreamProblem, p0: np.ndarray, free_mask: np.ndarray,
+               lobe_albedo_max: float = 0.0) -> "FitState":
+        """State at ``p0`` (N, n_params), projected onto the bounds and the lobe energy bound."""
         pr = problem
         lay = pr.layout
         vec = pr.vec
-        lo = np.full(MAX_PARAMS, 0.0)
-        hi = np.full(MAX_PARAMS, 0.0)
-        lo[:lay.n_params] = lay.lower()
-        hi[:lay.n_params] = lay.upper()
-        fr = np.zeros(MAX_PARAMS)
-        fr[:lay.n_params] = free_mask.astype(float)
+        lo, hi = lay.lower(), lay.upper()
+        fr = free_mask.astype(float)
         n = pr.n
         dev = pr.device
-        p0 = np.clip(p0, lay.lower(), lay.upper())
+        p0 = energy_bound_numpy(np.clip(p0, lay.lower(), lay.upper()), lay, lobe_albedo_max)
         st = FitState(
             problem=pr, p=pr.new_vec(p0), f=pr.new_scalar(), g=pr.new_vec(),
             stats=wp.zeros(n, dtype=wp.vec4d, device=dev), d=pr.new_vec(), alpha=pr.new_scalar(1.0),
@@ -69,16 +69,23 @@ class FitState:
             stats_trial=wp.zeros(n, dtype=wp.vec4d, device=dev), storage=pr.new_storage(p0),
             active=wp.zeros(n, dtype=wp.int32, device=dev), accepted=wp.zeros(n, dtype=wp.int32, device=dev),
             valid=wp.ones(n, dtype=wp.int32, device=dev), p_old=pr.new_vec(p0), g_old=pr.new_vec(),
-            free=vec(*fr), lower=vec(*lo), upper=vec(*hi))
+            free=vec(*fr), lower=vec(*lo), upper=vec(*hi), lobe_albedo_max=float(lobe_albedo_max))
         return st
 
+    def launch_trial(self, p: wp.array, d: wp.array, alpha: wp.array, active: wp.array,
+                     trial: wp.array, storage: wp.array) -> None:
+        """trial = project(p + alpha d) on active texels (bounds, energy bound), also into ``storage``."""
+        pr = self.problem
+        lay = pr.layout
+        wp.launch(K.trial_kernel, dim=pr.n, device=pr.device,
+                  inputs=[p, d, alpha, self.lower, self.upper, self.free, active, lay.n_params, lay.n_lobes,
+                          lay.lobe_stride, float(self.lobe_albedo_max)], outputs=[trial, storage])
+
     def set_free(self, free_mask: np.ndarray) -> None:
-        fr = np.zeros(MAX_PARAMS)
-        fr[:self.problem.layout.n_params] = free_mask.astype(float)
-        self.free = self.problem.vec(*fr)
+        self.free = self.problem.vec(*free_mask.astype(float))
 
     def params_numpy(self) -> np.ndarray:
-        return self.p.numpy()[:, :self.problem.layout.n_params].astype(np.float64)
+        return self.p.numpy().astype(np.float64)
 
 
 class Optimizer(Protocol):

@@ -66,12 +66,8 @@ def line_search(state: FitState, cfg: LineSearchConfig, penalties: Penalties, fi
     if cfg.kind == "hessian":
         # d^T H d needs d in the storage dtype for the streaming pass
         # the direction and the current point in the storage dtype (inactive texels copy p as is)
-        wp.launch(K.trial_kernel, dim=n, device=dev,
-                  inputs=[state.d, state.d, state.alpha, state.lower, state.upper, state.free, _zeros_i(state),
-                          pr.layout.n_params], outputs=[state.g_trial, _dir_storage(state)])
-        wp.launch(K.trial_kernel, dim=n, device=dev,
-                  inputs=[state.p, state.d, state.alpha, state.lower, state.upper, state.free, _zeros_i(state),
-                          pr.layout.n_params], outputs=[state.trial, state.storage])
+        state.launch_trial(state.d, state.d, state.alpha, _zeros_i(state), state.g_trial, _dir_storage(state))
+        state.launch_trial(state.p, state.d, state.alpha, _zeros_i(state), state.trial, state.storage)
         pr.evaluate(state.storage, state.f_trial, state.g_trial, state.stats_trial, direction=_dir_storage(state),
                     dhd=state.dhd, full_hessian=cfg.full_hessian)
         penalties.add_dhd(state, state.p, state.d, state.dhd)
@@ -84,9 +80,7 @@ def line_search(state: FitState, cfg: LineSearchConfig, penalties: Penalties, fi
         _global_search(state, cfg, penalties)
     else:
         for _ in range(cfg.max_trials):
-            wp.launch(K.trial_kernel, dim=n, device=dev,
-                      inputs=[state.p, state.d, state.alpha, state.lower, state.upper, state.free, state.active,
-                              pr.layout.n_params], outputs=[state.trial, state.storage])
+            state.launch_trial(state.p, state.d, state.alpha, state.active, state.trial, state.storage)
             evaluate_trial(state, penalties, state.active)
             wp.launch(K.accept_kernel, dim=n, device=dev,
                       inputs=[state.p, state.f, state.g, state.d, state.trial, state.f_trial, state.g_trial, state.alpha,
@@ -106,9 +100,7 @@ def _global_search(state: FitState, cfg: LineSearchConfig, penalties: Penalties)
     sl = float(state.slope.numpy().sum())
     for _ in range(cfg.max_trials):
         state.alpha.fill_(a)
-        wp.launch(K.trial_kernel, dim=n, device=pr.device,
-                  inputs=[state.p, state.d, state.alpha, state.lower, state.upper, state.free, state.valid,
-                          pr.layout.n_params], outputs=[state.trial, state.storage])
+        state.launch_trial(state.p, state.d, state.alpha, state.valid, state.trial, state.storage)
         evaluate_trial(state, penalties, state.valid)
         ft = float(state.f_trial.numpy().sum())
         if np.isfinite(ft) and ft <= f0 + cfg.sigma1 * a * sl:

@@ -103,9 +103,7 @@ class LevenbergMarquardt:
         wp.launch(K.lm_solve_kernel, dim=n, device=pr.device,
                   inputs=[system, state.g, self.lam, pr.layout.n_params, state.free, pr.like],
                   outputs=[state.d, self.pred])
-        wp.launch(K.trial_kernel, dim=n, device=pr.device,
-                  inputs=[state.p, state.d, self.one, state.lower, state.upper, state.free, state.active,
-                          pr.layout.n_params], outputs=[state.trial, state.storage])
+        state.launch_trial(state.p, state.d, self.one, state.active, state.trial, state.storage)
         if self.smooth:
             pr.evaluate_lm(state.storage, self.f_data_trial, self.g_data_trial, self.jtj_trial, state.stats_trial,
                            active=state.active)
