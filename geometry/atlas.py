@@ -6,20 +6,34 @@ maps each split vertex back to the input vertex) and an :class:`AtlasInfo`.
 How it works
     1. Charting (xatlas ``add_mesh`` + ``generate``): xatlas segments the surface into charts and
        flattens each one. Its packing in this pass is thrown away; only the charts and their
-       flattening (rescaled to scene units) are kept.
-    2. Per-face importance (``face_weights``, optional): xatlas has no per-face density, so each
-       chart is scaled by sqrt(w_c) before packing, where w_c is the area-weighted mean weight of
-       the chart's faces. A chart's texel count is then proportional to w_c times its area. The
-       weight is constant over a chart. With ``density_bands`` > 0 (default 0.5 octave), charts are
-       first split into connected pieces whose (once-smoothed) log2 weights fall in one band, so
-       the weight follows the faces within a chart instead of averaging over it (on the icosphere
-       test with cameras crowding one side: texel-size p90/p10 7.9 uniform, 3.5 per chart, and
-       see tests/test_geometry_density.py for the banded figure).
-    3. Packing (xatlas ``add_uv_mesh`` + ``generate``, one UV island per chart): with
-       ``texels_per_unit`` given, the charts are packed at that density (an error if the atlas would
-       exceed ``resolution``); otherwise the density is searched so that the larger atlas side
-       comes as close to ``resolution`` as possible without exceeding it. Repacking is cheap
-       (tens of ms), charting is not, which is why the two passes are separate.
+       flattening (rescaled to scene units) are kept. xatlas ignores faces whose area is below
+       float32 epsilon in absolute units (small faces of an object measured in metres), so it
+       charts a copy scaled to a bounding-box diagonal of 100; faces it still ignores get a chart
+       of their own.
+    2. Per-face importance (``face_weights``, optional; :func:`_density_charts`): xatlas has no
+       per-face density, so charts are scaled before packing. A face asks for the linear scale
+       sqrt(w / stretch), stretch being its flattened-to-surface area ratio (xatlas' charts are
+       near-conformal, not area-preserving), and at least ``min_face_texels`` texels. With
+       ``density_bands`` > 0 (default 0.5 octave) charts are split into connected pieces whose
+       (smoothed) log2 asks fall in one band, pieces under ``min_piece_texels`` merge into a
+       neighbour less than a band away, and each piece is scaled by the area-weighted geometric
+       mean of its faces' asks. After packing, charts that xatlas' packer enlarged (it snaps
+       charts to whole texels, at least about one) are shrunk by the ratio and packed again.
+       Figures (texel size in the photos, p90/p10; tests/test_geometry_density.py): icosphere
+       with cameras crowding one side 7.9 uniform, 1.5 banded; ornament capture 1.13 uniform,
+       1.07 banded (one camera distance: little to gain), with close-up cameras added 2.9
+       uniform, 1.09 banded.
+    3. Packing (xatlas ``add_uv_mesh`` + ``generate``, one UV island per chart, in texel units:
+       xatlas welds UV vertices closer than ~1e-4): with ``texels_per_unit`` given, the charts
+       are packed at that density (an error if the atlas would exceed ``resolution``); otherwise
+       the density is searched so that the larger atlas side comes as close to ``resolution`` as
+       possible without exceeding it. Repacking is cheap (tens of ms), charting is not, which is
+       why the two passes are separate.
+    4. Every face gets a texel: faces owning no texel centre after the bake's orphan rule
+       (slivers, pole fans, faces crowded into one texel) are laid flat in a chart of their own
+       of at least 2 texels and the atlas is packed again (a few rounds, at one density a little
+       under the first). ``faces_without_texels`` counts any left (only when the atlas is far too
+       small for the face count).
 
 UV convention
     xatlas returns UVs normalised by the atlas size with v pointing down the image (row y of its
@@ -78,6 +92,8 @@ class AtlasConfig:
                                              "than this many octaves (0: one weight per xatlas chart)")
     density_smoothing: int = option(1, help="with density bands: smoothing steps of the log face weights over "
                                             "neighbouring faces before banding (noisy weights shatter charts)")
+    min_face_texels: float = option(1.0, help="with face weights: raise the weight of faces that would get fewer "
+                                              "texels than this (faces still without one get a chart of their own)")
     min_piece_texels: float = option(64.0, help="with density bands: pieces smaller than about this many texels "
                                                 "are merged into a neighbouring piece of their chart")
     keep_existing_uvs: bool = option(True, help="use the mesh's own UVs when they are usable (in [0, 1], "
@@ -370,72 +386,60 @@ def _xatlas_atlas(mesh: SurfaceMesh, config: AtlasConfig,
     chart, idx_a, uv_world, vm_a = _flat_face_charts(mesh, np.flatnonzero(chart < 0), chart, idx_a, uv_world, vm_a)
     n_charts = int(chart.max()) + 1
 
-    # Per-face target: texels per unit area in proportion to the weight. The flattening is not
-    # area-preserving (xatlas' charts are near-conformal), so a face of a chart scaled by s gets
-    # s^2 * stretch texels per unit area at unit density; the scale a face asks for is
-    # sqrt(w / stretch).
-    if weights is not None:
-        # (slivers can come out of the flattening with almost no area: the correction is clipped
-        # to two octaves either way)
-        stretch = np.abs(_uv_areas(uv_world, idx_a)) / np.maximum(area3, 1e-300)
-        ok = (area3 > 0) & (stretch > 0)
-        want = weights / np.clip(np.where(ok, stretch, 1.0), 0.25, 4.0)
-        if config.density_bands > 0:
-            # Split charts where the wanted scale changes by more than a band (module doc, step 2)
-            # area of one texel at unit weight: from the density asked for, or ~60% packing
-            # efficiency of the resolution
-            wa = float((want * area3).sum())
-            texel_area = (1.0 / config.texels_per_unit ** 2 if config.texels_per_unit > 0
-                          else wa / (0.6 * config.resolution ** 2))
-            chart, idx_a, uv_world, vm_a = _split_by_weight(
-                chart, idx_a, uv_world, vm_a, want, area3, config.density_bands,
-                smooth=config.density_smoothing, min_size=config.min_piece_texels * texel_area)
-            n_charts = int(chart.max()) + 1
-        # Per-chart scale^2: the area-weighted geometric mean of the wanted scale^2 (the least-
-        # squares fit in log size), so that texel size errors inside a chart are balanced.
-        lw = np.log(np.maximum(want, 1e-300))
-        ca = np.bincount(chart, weights=area3, minlength=n_charts)
-        cl = np.bincount(chart, weights=lw * area3, minlength=n_charts)
-        wc = np.exp(np.divide(cl, ca, out=np.zeros_like(cl), where=ca > 0))
-        # Zero-weight charts still get a sliver of texels (1/100 of the largest linear scale) so
-        # every face keeps a parameter.
-        scale = np.sqrt(np.maximum(wc, 1e-4 * wc.max()))
-        uv_world = _scale_charts(uv_world, idx_a, chart, scale)
-
-    # Pass 2: pack (with weights, shrinking charts the packer enlarged, see _undo_snapping);
-    # then every face must own a texel: faces left without one (slivers, pole fans, faces
-    # crowded in a texel) get a chart of their own of at least 2 texels and the charts are
-    # packed again.
+    # Pass 2: with weights, charts are split into density bands and scaled (_density_charts);
+    # then packed (shrinking charts the packer enlarged, see _undo_snapping). Should the pieces be
+    # too many to pack at all (very noisy weights in a small atlas), small pieces are merged
+    # regardless of their weight and the packing is tried again.
     res = int(config.resolution)
-    face_scale = np.sqrt(np.maximum(np.abs(_uv_areas(uv_world, idx_a)), 0.0) / np.maximum(area3, 1e-300))
-    atlas, tpu = _pack_to_config(uv_world, idx_a, chart, config, res)
+    base = (chart, idx_a, uv_world, vm_a)
+    for merge_any in ((0.0, 0.125, 1.0) if weights is not None and config.density_bands > 0 else (0.0,)):
+        if weights is not None:
+            chart, idx_a, uv_world, vm_a = _density_charts(*base, weights, area3, config, merge_any)
+        try:
+            atlas, tpu = _pack_to_config(uv_world, idx_a, chart, config, res)
+            break
+        except ConfigError:
+            if merge_any == 1.0 or weights is None or config.density_bands <= 0 or config.texels_per_unit > 0:
+                raise
     if weights is not None:
         atlas, tpu, uv_world = _undo_snapping(atlas, tpu, uv_world, idx_a, chart, config, res)
-    for round_ in range(_MIN_TEXEL_ROUNDS + 1):
-        if round_ > 0:
-            # Repack at one fixed density a little under the first one (room for the new charts):
-            # a chart packed at the same density rasterises the same, so the faces that had a
-            # texel keep it and the rounds converge.
-            if round_ == 1:
-                tpu_fixed = tpu * (1.0 if config.texels_per_unit > 0 else 0.97)
-            while True:
-                atlas = _pack(uv_world, idx_a, chart, config, tpu_fixed)
-                if max(atlas.width, atlas.height) <= res:
-                    break
-                if config.texels_per_unit > 0:
-                    raise ConfigError(f"texels_per_unit {tpu_fixed:g} leaves no room to give every face a "
-                                      f"texel within resolution {res}",
-                                      fix="lower --texels-per-unit or raise --resolution")
-                tpu_fixed *= 0.97
-            tpu = tpu_fixed
-        out = _atlas_mesh(mesh, atlas, vm_a)
-        w, h = int(atlas.width), int(atlas.height)
-        n_cov, n_orphan, n_without, owned = _coverage(out, w, h, return_owned=True)
-        if n_without == 0 or round_ == _MIN_TEXEL_ROUNDS:
+    face_scale = np.sqrt(np.maximum(np.abs(_uv_areas(uv_world, idx_a)), 0.0) / np.maximum(area3, 1e-300))
+    out = _atlas_mesh(mesh, atlas, vm_a)
+    w, h = int(atlas.width), int(atlas.height)
+    n_cov, n_orphan, n_without, owned = _coverage(out, w, h, return_owned=True)
+    # Every face must own a texel: faces left without one (slivers, pole fans, faces crowded in a
+    # texel) get a chart of their own of at least 2 texels and the charts are packed again, at
+    # one fixed density a little under the first one (room for the new charts): a chart packed
+    # at the same density mostly rasterises the same, so the rounds converge. Rounds stop when
+    # the density would have to drop below half the first one (the atlas is too small for the
+    # face count; faces_without_texels then says how many are left).
+    # With texels_per_unit given, the density stays and rounds stop when the atlas would exceed
+    # the resolution.
+    tpu_first = tpu
+    tpu_fixed = tpu * (1.0 if config.texels_per_unit > 0 else 0.95)
+    for _ in range(_MIN_TEXEL_ROUNDS):
+        if n_without == 0:
             break
         sel = np.flatnonzero(owned == 0)
-        chart, idx_a, uv_world, vm_a = _flat_face_charts(mesh, sel, chart, idx_a, uv_world, vm_a,
-                                                         face_scale[sel], 2.0 / (0.97 * tpu) ** 2)
+        c2, i2, u2, v2 = _flat_face_charts(mesh, sel, chart, idx_a, uv_world, vm_a, face_scale[sel],
+                                           2.0 / tpu_fixed ** 2)
+        fits = False
+        while tpu_fixed >= 0.5 * tpu_first:
+            atlas2 = _pack(u2, i2, c2, config, tpu_fixed)
+            fits = max(atlas2.width, atlas2.height) <= res
+            if fits or config.texels_per_unit > 0:
+                break
+            tpu_fixed *= 0.97
+        if not fits:
+            break
+        out2 = _atlas_mesh(mesh, atlas2, v2)
+        cov2 = _coverage(out2, int(atlas2.width), int(atlas2.height), return_owned=True)
+        if cov2[2] >= n_without:
+            break
+        chart, idx_a, uv_world, vm_a, atlas, out = c2, i2, u2, v2, atlas2, out2
+        n_cov, n_orphan, n_without, owned = cov2
+        w, h = int(atlas.width), int(atlas.height)
+        tpu = tpu_fixed
     n_charts = int(chart.max()) + 1
     info = AtlasInfo(width=w, height=h, n_charts=int(n_charts), utilization=float(atlas.utilization),
                      faces_without_texels=n_without, source="xatlas", texels_per_unit=float(tpu),
@@ -446,7 +450,57 @@ def _xatlas_atlas(mesh: SurfaceMesh, config: AtlasConfig,
 # bounding-box diagonal of the copy xatlas charts (_xatlas_atlas); rounds of enlarging charts
 # whose faces own no texel
 _XATLAS_DIAGONAL = 100.0
-_MIN_TEXEL_ROUNDS = 4
+_MIN_TEXEL_ROUNDS = 8
+
+
+def _density_charts(chart: np.ndarray, idx: np.ndarray, uv: np.ndarray, vmap: np.ndarray, weights: np.ndarray,
+                    area3: np.ndarray, config: AtlasConfig, merge_any: float = 0.0):
+    """Charts split into density bands and scaled so that texels per face follow the weights.
+
+    Per-face target: texels per unit area in proportion to the weight. The flattening is not
+    area-preserving (xatlas' charts are near-conformal), so a face of a chart scaled by s gets
+    s^2 * stretch texels per unit area at unit density; the scale a face asks for is
+    sqrt(w / stretch) (slivers can come out of the flattening with almost no area: the correction
+    is clipped to two octaves either way). No face is asked to hold fewer than
+    ``min_face_texels``. Each piece then gets the area-weighted geometric mean of its faces' asks
+    (the least-squares fit in log texel size).
+
+    Args:
+        chart, idx, uv, vmap: xatlas' charts (chart id per face, (F, 3) vertex ids, (V, 2)
+            flattening in scene units, input vertex per vertex).
+        weights, area3: (F,) face weights and surface areas.
+        config: atlas options (density_bands, density_smoothing, min_face_texels, min_piece_texels,
+            resolution, texels_per_unit).
+        merge_any: pieces below this fraction of ``min_piece_texels`` merge into a neighbour of
+            any weight (0: only into neighbours less than a band away).
+
+    Returns:
+        (chart, idx, uv, vmap) of the scaled pieces.
+    """
+    stretch = np.abs(_uv_areas(uv, idx)) / np.maximum(area3, 1e-300)
+    ok = (area3 > 0) & (stretch > 0)
+    want = weights / np.clip(np.where(ok, stretch, 1.0), 0.25, 4.0)
+    # area of one texel at unit weight: from the density asked for, or ~60% packing efficiency
+    if config.texels_per_unit > 0:
+        texel_area = 1.0 / config.texels_per_unit ** 2
+    else:
+        texel_area = float((want * area3).sum()) / (0.6 * config.resolution ** 2)
+    want = np.maximum(want, config.min_face_texels * texel_area / np.maximum(area3, 1e-300))
+    if config.density_bands > 0:
+        # split charts where the wanted scale changes by more than a band (module doc, step 2)
+        chart, idx, uv, vmap = _split_by_weight(chart, idx, uv, vmap, want, area3, config.density_bands,
+                                                smooth=config.density_smoothing,
+                                                min_size=config.min_piece_texels * texel_area,
+                                                merge_any=merge_any)
+    n = int(chart.max()) + 1
+    lw = np.log(np.maximum(want, 1e-300))
+    ca = np.bincount(chart, weights=area3, minlength=n)
+    cl = np.bincount(chart, weights=lw * area3, minlength=n)
+    wc = np.exp(np.divide(cl, ca, out=np.zeros_like(cl), where=ca > 0))
+    # Zero-weight charts still get a sliver of texels (1/100 of the largest linear scale) so
+    # every face keeps a parameter.
+    scale = np.sqrt(np.maximum(wc, 1e-4 * wc.max()))
+    return chart, idx, _scale_charts(uv, idx, chart, scale), vmap
 
 
 def _undo_snapping(atlas, tpu: float, uv_world: np.ndarray, idx: np.ndarray, chart: np.ndarray,
@@ -550,7 +604,8 @@ def _flat_face_charts(mesh: SurfaceMesh, sel: np.ndarray, chart: np.ndarray, idx
 
 
 def _split_by_weight(chart: np.ndarray, idx: np.ndarray, uv: np.ndarray, vmap: np.ndarray, weights: np.ndarray,
-                     area: np.ndarray, band: float, smooth: int = 3, min_size: float = 0.0):
+                     area: np.ndarray, band: float, smooth: int = 1, min_size: float = 0.0,
+                     merge_any: float = 0.0):
     """Split charts into connected pieces of faces whose weights lie in one band of ``band`` octaves.
 
     The log2 weights are first smoothed ``smooth`` times over faces sharing an edge of the chart
@@ -562,7 +617,8 @@ def _split_by_weight(chart: np.ndarray, idx: np.ndarray, uv: np.ndarray, vmap: n
     Args:
         chart: (F,) chart id per face; idx: (F, 3) vertex ids; uv: (V, 2) flattened charts;
         vmap: (V,) input vertex of each vertex; weights, area: (F,); band: octaves per band;
-        smooth: smoothing iterations; min_size: smallest piece (sum of weight * area, scene units^2).
+        smooth: smoothing iterations; min_size: smallest piece (sum of weight * area, scene units^2);
+        merge_any: fraction of ``min_size`` below which a piece merges at any weight difference.
 
     Returns:
         (chart (F,), idx (F, 3), uv (V', 2), vmap (V',)) with the new pieces.
@@ -575,7 +631,13 @@ def _split_by_weight(chart: np.ndarray, idx: np.ndarray, uv: np.ndarray, vmap: n
     _, key = np.unique(key, return_inverse=True)
     piece = _components(key, fa, fb, nf)
     if min_size > 0:
+        # pieces under min_size join a neighbour less than a band away; with merge_any, pieces under
+        # that fraction of it join the nearest in weight at any distance (the packer's border
+        # around a tiny chart costs more than it holds: noisy weights make more charts than a
+        # small atlas can hold)
         piece = _merge_small_pieces(piece, area * np.exp2(lw), lw_s, fa, fb, min_size, band)
+        if merge_any > 0:
+            piece = _merge_small_pieces(piece, area * np.exp2(lw), lw_s, fa, fb, merge_any * min_size, np.inf)
     _, piece = np.unique(piece, return_inverse=True)
     # one vertex per (vertex, piece)
     vp = idx.reshape(-1) * (piece.max() + 1) + np.repeat(piece, 3)
@@ -651,22 +713,36 @@ def _merge_small_pieces(piece: np.ndarray, size: np.ndarray, value: np.ndarray, 
 
 
 def _fit_density(uv_world: np.ndarray, faces: np.ndarray, chart: np.ndarray, config: AtlasConfig,
-                 res: int, max_tries: int = 8):
-    """Largest density whose packed atlas fits in res x res (secant-like search on the side length)."""
+                 res: int, max_tries: int = 12):
+    """Largest density whose packed atlas fits in res x res.
+
+    The side grows about linearly with the density (less so with many small charts, whose
+    borders do not scale), so each try aims at ``res`` along that line, kept inside the bracket
+    of densities known to fit and known not to.
+    """
     area = float(np.abs(_uv_areas(uv_world, faces)).sum())
     tpu = res * math.sqrt(0.6 / max(area, 1e-30))  # ~60% packing efficiency as a first guess
     best = None
+    lo, hi = 0.0, math.inf
     for _ in range(max_tries):
         atlas = _pack(uv_world, faces, chart, config, tpu)
         side = max(atlas.width, atlas.height)
-        if side <= res and (best is None or tpu > best[1]):
-            best = (atlas, tpu)
+        if side <= res:
+            lo = tpu
+            if best is None or tpu > best[1]:
+                best = (atlas, tpu)
             if side >= 0.97 * res:
                 break
-        # Side grows ~linearly with density; aim slightly under so the next try likely fits.
-        tpu *= (res / side) * (0.99 if side > res else 0.995)
+        else:
+            hi = tpu
+        # aim slightly under res so the next try likely fits
+        nxt = tpu * (res / max(side, 1)) * (0.99 if side > res else 0.995)
+        if not lo < nxt < hi:
+            nxt = 0.5 * hi if lo == 0 else (math.sqrt(lo * hi) if math.isfinite(hi) else 1.5 * lo)
+        tpu = nxt
     if best is None:
-        raise ConfigError(f"could not pack the charts into {res}x{res} texels", fix="raise --resolution")
+        raise ConfigError(f"could not pack the {int(chart.max()) + 1} charts into {res}x{res} texels",
+                          fix="raise --resolution (or, with face weights, raise --min-piece-texels)")
     return best
 
 
