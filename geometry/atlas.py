@@ -410,12 +410,14 @@ def _xatlas_atlas(mesh: SurfaceMesh, config: AtlasConfig,
     # Every face must own a texel: faces left without one (slivers, pole fans, faces crowded in a
     # texel) get a chart of their own of at least 2 texels and the charts are packed again, at
     # one fixed density a little under the first one (room for the new charts): a chart packed
-    # at the same density mostly rasterises the same, so the rounds converge. Rounds stop when
+    # at the same density mostly rasterises the same, so after the first repack the rounds
+    # converge. Rounds stop when
     # the density would have to drop below half the first one (the atlas is too small for the
     # face count; faces_without_texels then says how many are left).
     # With texels_per_unit given, the density stays and rounds stop when the atlas would exceed
     # the resolution.
     tpu_first = tpu
+    best = (n_without, out, atlas, tpu, n_cov, n_orphan, int(chart.max()) + 1)
     tpu_fixed = tpu * (1.0 if config.texels_per_unit > 0 else 0.95)
     for _ in range(_MIN_TEXEL_ROUNDS):
         if n_without == 0:
@@ -432,15 +434,16 @@ def _xatlas_atlas(mesh: SurfaceMesh, config: AtlasConfig,
             tpu_fixed *= 0.97
         if not fits:
             break
-        out2 = _atlas_mesh(mesh, atlas2, v2)
-        cov2 = _coverage(out2, int(atlas2.width), int(atlas2.height), return_owned=True)
-        if cov2[2] >= n_without:
-            break
-        chart, idx_a, uv_world, vm_a, atlas, out = c2, i2, u2, v2, atlas2, out2
-        n_cov, n_orphan, n_without, owned = cov2
+        chart, idx_a, uv_world, vm_a, atlas = c2, i2, u2, v2, atlas2
+        out = _atlas_mesh(mesh, atlas, vm_a)
         w, h = int(atlas.width), int(atlas.height)
+        n_cov, n_orphan, n_without, owned = _coverage(out, w, h, return_owned=True)
         tpu = tpu_fixed
-    n_charts = int(chart.max()) + 1
+        if n_without < best[0]:
+            best = (n_without, out, atlas, tpu, n_cov, n_orphan, int(chart.max()) + 1)
+    # the round with the fewest faces without a texel (the first density change can cost a few)
+    n_without, out, atlas, tpu, n_cov, n_orphan, n_charts = best
+    w, h = int(atlas.width), int(atlas.height)
     info = AtlasInfo(width=w, height=h, n_charts=int(n_charts), utilization=float(atlas.utilization),
                      faces_without_texels=n_without, source="xatlas", texels_per_unit=float(tpu),
                      n_covered=n_cov, orphan_faces=n_orphan)
