@@ -77,3 +77,28 @@ def test_mesh_is_closed_inside_the_box_and_covers_the_points(temple):
     # 20k faces; the hull alone, which cannot enter the recesses, has 67%)
     d = point_surface_distance(temple["points"], m)
     assert np.mean(d < 0.01 * DIAG) > 0.9
+
+
+def test_density_atlas_gives_every_face_texels_and_evens_texel_size(temple, device):
+    from texstream.geometry.atlas import AtlasConfig, build_atlas
+    from texstream.geometry.density import density_face_weights, texel_size_spread
+    from texstream.geometry.visibility import depth_maps
+
+    m, frames = temple["mesh"], temple["capture"].frames
+    depths = depth_maps(m, frames, device)
+    w = density_face_weights(m, frames, device, depths)
+    uni_mesh, uni = build_atlas(m, AtlasConfig())
+    den_mesh, den = build_atlas(m, AtlasConfig(), face_weights=w)
+    s_uni = texel_size_spread(uni_mesh, uni.width, uni.height, frames, device)
+    s_den = texel_size_spread(den_mesh, den.width, den.height, frames, device)
+    print(f"temple atlas, uniform: {uni.n_charts} charts, {uni.n_covered} texels, {s_uni}\n"
+          f" density: {den.n_charts} charts, {den.n_covered} texels, {s_den}")
+    # The Poisson mesh in metres has faces below float32 epsilon and UV vertices closer than xatlas'
+    # weld distance, and the 16 ring views give noisy per-face weights (1% below 1/30 of the median):
+    # before, 105 faces (uniform) and 405 (density) had no texel; now none.
+    assert uni.faces_without_texels == 0 and den.faces_without_texels == 0
+    # 16 views on one ring: faces seen from above or obliquely get few pixels, so a uniform atlas's
+    # texel size varies widely (measured p90/p10 2.20, log2 std 0.74 octave); the density atlas
+    # evens it (measured 1.24, 0.30 octave)
+    assert s_uni["p90_over_p10"] > 1.6
+    assert s_den["p90_over_p10"] < 1.5 and s_den["log2_std"] < 0.6 * s_uni["log2_std"]
