@@ -4,6 +4,9 @@
     python benchmarks/device_agreement.py --device cuda:0 --out $OUT/agree_cuda.npz   # GPU machine
     python benchmarks/device_agreement.py --compare out/agree_cpu.npz agree_cuda.npz --out out/agree.json
 
+``--photos-from out/agree_cpu.npz`` on the GPU machine fits the CPU's photos, so the comparison
+shows the fit's own device differences (the renderers differ by ~5e-6 in fp32).
+
 The cases are those of tests/test_fit_devices.py (which runs both devices in one process where
 both exist): the flat sample, 24 photos, six iterations of LM (with smoothness) and CG.
 """
@@ -19,7 +22,7 @@ import numpy as np
 CASES = {"lm_fp64": ("lm", "fp64"), "cg_fp64": ("cg", "fp64"), "lm_fp32": ("lm", "fp32"), "cg_fp32": ("cg", "fp32")}
 
 
-def run(device: str, out: Path, cases: list[str]) -> None:
+def run(device: str, out: Path, cases: list[str], photos_from: Path | None = None) -> None:
     import warp as wp
 
     wp.config.log_level = wp.LOG_WARNING
@@ -30,6 +33,9 @@ def run(device: str, out: Path, cases: list[str]) -> None:
     from texstream.fit.stage import build_problem
 
     sc = render_scene("flat_sample", SynthConfig(scale=0.3, photos=24, image_size=48, progress=False, device=device))
+    if photos_from is not None:
+        # fit the other machine's photos: separates fitting differences from rendering ones
+        sc.images = [np.asarray(p, np.float32) for p in np.load(photos_from)["photos"]]
     arrays = {}
     for name in cases:
         opt, acc = CASES[name]
@@ -66,6 +72,7 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--out", default="out/agree_cpu.npz")
     ap.add_argument("--compare", nargs=2, default=None)
+    ap.add_argument("--photos-from", default=None, help="fit the photos stored in this npz (another run's output)")
     ap.add_argument("--cases", default=",".join(CASES), help="comma-separated subset of " + ", ".join(CASES))
     a = ap.parse_args()
     if a.compare:
@@ -73,7 +80,7 @@ def main() -> None:
         Path(a.out).write_text(json.dumps(rep, indent=1))
         print(json.dumps(rep, indent=1))
     else:
-        run(a.device, Path(a.out), a.cases.split(","))
+        run(a.device, Path(a.out), a.cases.split(","), Path(a.photos_from) if a.photos_from else None)
 
 
 if __name__ == "__main__":

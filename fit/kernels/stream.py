@@ -73,13 +73,17 @@ class SampleOptions:
 
 
 @wp.func
-def depth_consistent(depth: wp.array3d(dtype=wp.float32), k: int, x0: int, y0: int, z: float, tol: float):
-    """All four bilinear taps see this surface (masked or empty pixels hold 0 and fail)."""
+def depth_consistent(depth: wp.array3d(dtype=wp.float32), k: int, x0: int, y0: int, z: float, tol: float,
+                     slack: float):
+    """All four bilinear taps see this surface (masked or empty pixels hold 0 and fail).
+
+    A tap may differ from the texel's depth by ``tol * z`` plus ``slack``, the depth change a tilted
+    surface shows across the bilinear footprint (see :func:`observe`)."""
     ok = True
     for dy in range(2):
         for dx in range(2):
             dz = depth[k, y0 + dy, x0 + dx]
-            if wp.abs(dz - z) > tol * z:
+            if wp.abs(dz - z) > tol * z + slack:
                 ok = False
     return ok
 
@@ -135,7 +139,8 @@ def observe(images: wp.array3d(dtype=Any), depth: wp.array3d(dtype=wp.float32),
     if xs < 0.0 or ys < 0.0 or xs >= float(info.width - 1) or ys >= float(info.height - 1):
         return False, zero3, zero3, zero3, zero3
     vdir = wp.normalize(info.center - p)
-    if wp.dot(vdir, nrm) < opt.cos_view_min:
+    cos_v = wp.dot(vdir, nrm)
+    if cos_v < opt.cos_view_min:
         return False, zero3, zero3, zero3, zero3
     wi, e_int, dist = incident_light(info.light_kind, info.light_vec, info.light_intensity, p)
     cos_i = wp.dot(wi, nrm)
@@ -146,8 +151,14 @@ def observe(images: wp.array3d(dtype=Any), depth: wp.array3d(dtype=wp.float32),
     if info.depth_is_mask != 0:
         if not unmasked(depth, k, xs, ys):
             return False, zero3, zero3, zero3, zero3
-    elif not depth_consistent(depth, k, x0, y0, pc[2], opt.depth_tol):
-        return False, zero3, zero3, zero3, zero3
+    else:
+        # a tap up to ~1.5 px away on a surface tilted by theta lies (z / fx) tan(theta) deeper per
+        # pixel; without this slack small photos reject every sample tilted past ~30 degrees.
+        # tan is capped at 4 (76 degrees) so silhouettes still reject the background.
+        tan_v = wp.sqrt(wp.max(1.0 - cos_v * cos_v, 0.0)) / cos_v
+        slack = 1.5 * pc[2] / info.fx * wp.min(tan_v, 4.0)
+        if not depth_consistent(depth, k, x0, y0, pc[2], opt.depth_tol, slack):
+            return False, zero3, zero3, zero3, zero3
     if not lit(shadow, k, info, p, opt.shadow_tol):
         return False, zero3, zero3, zero3, zero3
     fx = xs - float(x0)
