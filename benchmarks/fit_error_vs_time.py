@@ -109,6 +109,8 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=60)
     ap.add_argument("--sd-iterations", type=int, default=0, help="iterations for sd (0 = --iterations)")
     ap.add_argument("--image-precision", default="fp32", choices=("fp32", "fp16"))
+    ap.add_argument("--precondition", default=None, choices=("none", "jacobi"),
+                    help="sd/cg/lbfgs preconditioner (default: FitConfig's)")
     ap.add_argument("--bandwidth-probe", action="store_true")
     ap.add_argument("--out", default="out/bench")
     ap.add_argument("--plot-only", default=None, help="replot an existing JSON")
@@ -131,6 +133,7 @@ def main() -> None:
     sc = render_scene(a.scene, SynthConfig(scale=a.scale, device=a.device, progress=False))
     t_render = time.perf_counter() - t0
     results = {"scene": a.scene, "scale": a.scale, "device": a.device, "photos": len(sc.images),
+               "precondition": a.precondition or FitConfig().precondition,
                "image_size": list(sc.images[0].shape[:2]), "texels": int(sc.bake.covered.sum()),
                "image_precision": a.image_precision, "render_s": t_render, "machine": platform.node(), "runs": {}}
     if a.device.startswith("cuda"):
@@ -141,10 +144,13 @@ def main() -> None:
         iters = a.sd_iterations if (opt == "sd" and a.sd_iterations > 0) else a.iterations
         cfg = FitConfig(optimizer=opt, max_iterations=iters, sync_every=100000,
                         stream=StreamConfig(image_precision=a.image_precision))
+        if a.precondition is not None:
+            cfg.precondition = a.precondition
         t0 = time.perf_counter()
         prob = build_problem(sc.mesh, sc.bake, sc.frames, sc.images, sc.masks, cfg, a.device)
         t_setup = time.perf_counter() - t0
-        run_fit(prob, FitConfig(optimizer=opt, max_iterations=1, stream=cfg.stream))  # compile / warm up
+        run_fit(prob, FitConfig(optimizer=opt, max_iterations=1, stream=cfg.stream,
+                                precondition=cfg.precondition))  # compile / warm up
         prob.passes = 0
         res = run_fit(prob, cfg)
         t_fit = res.trace[-1]["time_s"]

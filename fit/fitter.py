@@ -43,6 +43,13 @@ class FitConfig:
     cg_variant: str = option("pr", "conjugate gradient beta: pr (Polak-Ribiere+) or fr (Fletcher-Reeves)", choices=("pr", "fr"))
     cg_restart_every: int = option(0, "steepest-descent restart every m CG iterations (0 = never)")
     lbfgs_history: int = option(5, "L-BFGS history pairs m")
+    precondition: str = option("jacobi", "sd, cg and lbfgs: jacobi scales the gradient by the inverse Gauss-Newton "
+                                         "diagonal diag(J^T J) of each texel (accumulated in the gradient pass; "
+                                         "CG holds it between restarts, L-BFGS uses it as H0), none = raw gradient",
+                               choices=("none", "jacobi"))
+    precondition_floor: float = option(1e-10, "Jacobi preconditioner M = D + this * mean(D over free columns): "
+                                              "guards columns no sample constrains; keep it tiny, the exponent's "
+                                              "D is ~1e-7 of the albedos'")
     lm_lambda0: float = option(1e-3, "initial Levenberg-Marquardt damping")
     max_iterations: int = option(100, "iteration cap")
     time_budget_s: float = option(0.0, "stop after this many seconds (0 = no limit)")
@@ -84,12 +91,15 @@ def make_optimizer(cfg: FitConfig):
     if cfg.penalties.smooth_weight > 0 and cfg.optimizer != "lm":
         raise ConfigError(f"penalties.smooth_weight is implemented for lm, not {cfg.optimizer}",
                           fix="use --optimizer lm, or --penalties.laplacian_weight with sd, cg and lbfgs")
+    if cfg.precondition not in ("none", "jacobi"):
+        raise ConfigError(f"precondition {cfg.precondition!r} unknown", fix="use none or jacobi")
+    pc = dict(precondition=cfg.precondition == "jacobi", precondition_floor=cfg.precondition_floor)
     if cfg.optimizer == "sd":
-        return SteepestDescent()
+        return SteepestDescent(**pc)
     if cfg.optimizer == "cg":
-        return ConjugateGradient(cfg.cg_variant, cfg.cg_restart_every)
+        return ConjugateGradient(cfg.cg_variant, cfg.cg_restart_every, **pc)
     if cfg.optimizer == "lbfgs":
-        return LBFGS(cfg.lbfgs_history)
+        return LBFGS(cfg.lbfgs_history, **pc)
     if cfg.optimizer == "lm":
         return LevenbergMarquardt(cfg.lm_lambda0, cfg.penalties)
     raise ConfigError(f"optimizer {cfg.optimizer!r} unknown", fix=f"use one of {OPTIMIZERS}")
@@ -156,7 +166,8 @@ def run_fit(problem: StreamProblem, cfg: FitConfig, p0: np.ndarray | None = None
     if isinstance(opt, LevenbergMarquardt):
         opt.start(state)
     else:
-        problem.evaluate(state.storage, state.f, state.g, state.stats)
+        state.want_diag = bool(getattr(opt, "precondition", False))
+        problem.evaluate(state.storage, state.f, state.g, state.stats, diag=state.diag_out())
         penalties.add(state, state.p, state.f, state.g)
     state.accepted.zero_()
     record(0)

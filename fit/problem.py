@@ -333,6 +333,8 @@ class StreamProblem:
         self.ph = wp.zeros((groups, n), dtype=self.scalar, device=dev)
         self.pst = wp.zeros((groups, n), dtype=wp.vec4d, device=dev)
         self.pm = None
+        self.pdiag = None  # per-group Gauss-Newton diagonals, allocated on first request
+        self.no_diag = wp.zeros((1, 1), dtype=self.vec, device=dev)
         self.all_active = wp.ones(n, dtype=wp.int32, device=dev)
         self.no_direction = wp.zeros((1, 1), dtype=self.storage_dtype, device=dev)
         self.opt = stream.SampleOptions()
@@ -344,6 +346,7 @@ class StreamProblem:
             raise ConfigError(f"residual_space {cfg.residual_space!r} unknown", fix="use radiance or reflectance")
         self.opt.reflectance_space = 1 if cfg.residual_space == "reflectance" else 0
         self.opt.kahan = 1 if cfg.kahan else 0
+        self.opt.want_diag = 0
         self.passes = 0
 
     def new_storage(self, values: np.ndarray | None = None) -> wp.array:
@@ -365,16 +368,22 @@ class StreamProblem:
 
     def evaluate(self, params: wp.array, f: wp.array, g: wp.array, stats: wp.array, *,
                  direction: wp.array | None = None, dhd: wp.array | None = None,
-                 active: wp.array | None = None, full_hessian: bool = False) -> None:
+                 active: wp.array | None = None, full_hessian: bool = False,
+                 diag: wp.array | None = None) -> None:
         """One streaming pass: f, g (and d^T H d along ``direction`` into ``dhd``) per texel.
 
         ``params`` and ``direction`` are (N, n_params) arrays; texels whose ``active`` flag is 0
-        are skipped (their outputs are zero).
+        are skipped (their outputs are zero). ``diag`` (an (N,) parameter-vector array, optional)
+        receives the Gauss-Newton diagonal diag(J^T J) of the data term (Jacobi preconditioner).
         """
         opt = self.opt
         opt.want_grad = 1
         opt.want_dhd = 1 if direction is not None else 0
         opt.full_hessian = 1 if full_hessian else 0
+        opt.want_diag = 1 if diag is not None else 0
+        if diag is not None and self.pdiag is None:
+            self.pdiag = wp.zeros((self.groups, self.n), dtype=self.vec, device=self.device)
+        pdiag = self.pdiag if diag is not None else self.no_diag
         act = self.all_active if active is None else active
         dirn = direction if direction is not None else self.no_direction
         if dirn.dtype != params.dtype:
@@ -387,11 +396,15 @@ class StreamProblem:
                       inputs=[self.pos, self.nrm, self.tan, self.bit, params, dirn, act, lay.n_params, lay.n_lobes,
                               int(lay.anisotropic), images, depth, shadow, infos, b, e, math.ceil((e - b) / self.groups),
                               opt, self.like, self.one],
-                      outputs=[self.pf, self.pg, self.ph, self.pst])
+                      outputs=[self.pf, self.pg, self.ph, self.pst, pdiag])
             wp.launch(stream.reduce_partials_kernel, dim=self.n, device=self.device,
                       inputs=[self.pf, self.pg, self.ph, self.pst, self.groups, 0 if first else 1],
                       outputs=[f, g, h_out, stats])
+            if diag is not None:
+                wp.launch(stream.reduce_vec_partials_kernel, dim=self.n, device=self.device,
+                          inputs=[self.pdiag, self.groups, 0 if first else 1], outputs=[diag])
             first = False
+        opt.want_diag = 0
         self.passes += 1
 
     def ph_scratch(self) -> wp.array:

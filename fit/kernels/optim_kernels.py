@@ -57,11 +57,13 @@ def accept_kernel(p: wp.array(dtype=Any), f: wp.array(dtype=Any), g: wp.array(dt
                   g_trial: wp.array(dtype=Any), alpha: wp.array(dtype=Any), active: wp.array(dtype=wp.int32),
                   sigma1: Any, sigma2: Any, use_wolfe: int, shrink: Any, quadratic: int, free: Any,
                   stats: wp.array(dtype=wp.vec4d), stats_trial: wp.array(dtype=wp.vec4d),
-                  accepted: wp.array(dtype=wp.int32)):
+                  accepted: wp.array(dtype=wp.int32), want_diag: int, diag: wp.array(dtype=Any),
+                  diag_trial: wp.array(dtype=Any)):
     """Armijo (3.11), optionally curvature (3.12), per texel; accepted texels take the trial
     point, objective and gradient by conditional assignment (Alg. 11) and leave the line search.
     Rejected texels get a smaller alpha: backtracking (alpha *= shrink) or the two-sided quadratic
-    minimiser (3.15) when it lies in (0.1 alpha, alpha) (Alg. 3)."""
+    minimiser (3.15) when it lies in (0.1 alpha, alpha) (Alg. 3). With ``want_diag`` the
+    trial's Gauss-Newton diagonal is adopted too (the Jacobi preconditioner at the new point)."""
     i = wp.tid()
     if active[i] == 0:
         return
@@ -78,6 +80,8 @@ def accept_kernel(p: wp.array(dtype=Any), f: wp.array(dtype=Any), g: wp.array(dt
         f[i] = ft
         g[i] = g_trial[i]
         stats[i] = stats_trial[i]
+        if want_diag != 0:
+            diag[i] = diag_trial[i]
         accepted[i] = 1
         active[i] = 0
     else:
@@ -93,34 +97,96 @@ def accept_kernel(p: wp.array(dtype=Any), f: wp.array(dtype=Any), g: wp.array(dt
         alpha[i] = new_a
 
 
+@wp.func
+def jacobi_inverse(diag: Any, free: Any, n_params: int, rel_floor: Any):
+    """M^-1 of the Jacobi preconditioner M = D + floor on the free columns, 0 on frozen ones.
+
+    D is the Gauss-Newton diagonal diag(J^T J) of the texel; floor = rel_floor * mean of D over
+    the free columns + the smallest normal-ish value, so a column the photos do not constrain
+    (D_k = 0, hence g_k = 0 from the data term) cannot divide by zero. The floor is relative and
+    tiny (default 1e-10) because a genuinely weak column (the exponent n ~ 1e3 has D_n ~ 1e-7 of
+    the albedos' D) is exactly the one the preconditioner must scale up. An all-zero D (never
+    accumulated) gives M = I, the unpreconditioned method."""
+    zero = rel_floor - rel_floor
+    cnt = wp.dot(free, free)
+    total = wp.dot(diag, free)
+    mean = zero
+    if cnt > zero:
+        mean = total / cnt
+    if not (mean > zero):
+        return free  # no diagonal yet (not accumulated, or a texel no sample constrains): M = I
+    floor = rel_floor * mean + type(rel_floor)(1.0e-30)
+    out = diag * zero
+    for k in range(n_params):
+        if free[k] != zero:
+            dk = diag[k]
+            if not (dk >= zero):  # NaN or negative (cannot happen for sums of squares): ignore
+                dk = zero
+            out[k] = type(rel_floor)(1.0) / (dk + floor)
+    return out
+
+
 @wp.kernel
-def steepest_direction_kernel(g: wp.array(dtype=Any), free: Any, d: wp.array(dtype=Any)):
+def steepest_direction_kernel(g: wp.array(dtype=Any), free: Any, precondition: int, diag: wp.array(dtype=Any),
+                              n_params: int, rel_floor: Any, d: wp.array(dtype=Any)):
+    """d = -g, or the scaled gradient d = -M^-1 g with M from the current point's diagonal."""
     i = wp.tid()
-    d[i] = -masked(g[i], free)
+    if precondition != 0:
+        d[i] = -wp.cw_mul(jacobi_inverse(diag[i], free, n_params, rel_floor), masked(g[i], free))
+    else:
+        d[i] = -masked(g[i], free)
 
 
 @wp.kernel
 def cg_direction_kernel(g: wp.array(dtype=Any), g_prev: wp.array(dtype=Any), d_prev: wp.array(dtype=Any),
                         restart: wp.array(dtype=wp.int32), polak_ribiere: int, eps: Any, free: Any,
-                        d: wp.array(dtype=Any)):
+                        precondition: int, diag: wp.array(dtype=Any), minv: wp.array(dtype=Any),
+                        n_params: int, rel_floor: Any, d: wp.array(dtype=Any)):
     """Nonlinear CG (3.3) with Fletcher-Reeves (3.4) or Polak-Ribiere+ (3.5, beta >= 0 restart),
-    restart on request, and the descent-direction safeguard of Alg. 10."""
+    restart on request, and the descent-direction safeguard of Alg. 10.
+
+    Preconditioned (N&W 5.2, Shewchuk's preconditioned PR), z = M^-1 g:
+        d = -z + beta d_prev, beta_PR+ = max(0, z.(g - g_prev) / z_prev.g_prev),
+        beta_FR = z.g / z_prev.g_prev.
+    M (``minv`` = M^-1, per texel) is held fixed between restarts, as the CG recurrences assume,
+    and refreshed from the current point's Gauss-Newton diagonal ``diag`` whenever the texel
+    restarts: on request (first iteration, rejected step, periodic restart), when PR+ clips beta
+    to 0, or when the descent safeguard fires. At those points d = -z carries no conjugacy to
+    break, so changing the metric is free. Unpreconditioned, M = I (z = g) exactly.
+    """
     i = wp.tid()
     gi = masked(g[i], free)
     gp = masked(g_prev[i], free)
-    den = wp.dot(gp, gp)
+    mi = free
+    if precondition != 0:
+        mi = minv[i]
+    refresh = restart[i] != 0
+    zi = wp.cw_mul(mi, gi)
+    den = wp.dot(wp.cw_mul(mi, gp), gp)
     zero = den - den
     beta = zero
-    if restart[i] == 0 and den > zero:
+    if not refresh and den > zero:
         if polak_ribiere != 0:
-            beta = wp.max(wp.dot(gi, gi - gp) / den, zero)
+            beta = wp.dot(zi, gi - gp) / den
+            if not (beta > zero):
+                beta = zero
+                refresh = True
         else:
-            beta = wp.dot(gi, gi) / den
-    di = -gi + beta * masked(d_prev[i], free)
+            beta = wp.dot(zi, gi) / den
+    if precondition != 0 and refresh:
+        mi = jacobi_inverse(diag[i], free, n_params, rel_floor)
+        zi = wp.cw_mul(mi, gi)
+    di = -zi + beta * masked(d_prev[i], free)
     ng = wp.length(gi)
-    nd = wp.length(di)
-    if not (wp.dot(gi, di) < -eps * ng * nd):
-        di = -gi
+    if not (wp.dot(gi, di) < -eps * ng * wp.length(di)):
+        if precondition != 0 and not refresh:
+            mi = jacobi_inverse(diag[i], free, n_params, rel_floor)
+            zi = wp.cw_mul(mi, gi)
+        di = -zi
+        if not (wp.dot(gi, di) < -eps * ng * wp.length(di)):
+            di = -gi  # M^-1 so badly conditioned that -z is nearly orthogonal to g
+    if precondition != 0:
+        minv[i] = mi
     d[i] = di
     restart[i] = 0
 
@@ -128,10 +194,17 @@ def cg_direction_kernel(g: wp.array(dtype=Any), g_prev: wp.array(dtype=Any), d_p
 @wp.kernel
 def lbfgs_direction_kernel(g: wp.array(dtype=Any), s_hist: wp.array2d(dtype=Any), y_hist: wp.array2d(dtype=Any),
                            rho: wp.array2d(dtype=Any), count: wp.array(dtype=wp.int32), head: wp.array(dtype=wp.int32),
-                           m: int, eps: Any, free: Any, alpha_buf: wp.array2d(dtype=Any), d: wp.array(dtype=Any)):
+                           m: int, eps: Any, free: Any, precondition: int, diag: wp.array(dtype=Any),
+                           n_params: int, rel_floor: Any, alpha_buf: wp.array2d(dtype=Any), d: wp.array(dtype=Any)):
     """L-BFGS two-loop recursion (Nocedal & Wright Alg. 7.4), per texel, with
     H0 = gamma_k I, gamma_k = s^T y / y^T y of the newest pair. (The seed's Alg. 1 has the
-    second loop's update written as d <- d + s (eta - beta); N&W's r <- r + s (alpha - beta) is used.)"""
+    second loop's update written as d <- d + s (eta - beta); N&W's r <- r + s (alpha - beta) is used.)
+
+    Preconditioned: H0 = M^-1 = (D + floor)^-1 with D the Gauss-Newton diagonal at the current
+    point (unscaled: D already carries the Hessian's units, so the first step of a texel is a
+    diagonal Gauss-Newton step of natural length 1 and gamma_k's isotropic rescaling, which would
+    undo the per-column scaling's magnitude, is not applied). N&W allow H0 to change every
+    iteration, so M is refreshed each iteration from the accepted point's pass."""
     i = wp.tid()
     q = masked(g[i], free)
     n = count[i]
@@ -141,13 +214,19 @@ def lbfgs_direction_kernel(g: wp.array(dtype=Any), s_hist: wp.array2d(dtype=Any)
         a = rho[slot, i] * wp.dot(s_hist[slot, i], q)
         alpha_buf[slot, i] = a
         q = q - a * y_hist[slot, i]
-    gamma = zero + type(zero)(1.0)
-    if n > 0:
-        newest = (head[i] - 1 + m) % m
-        yy = wp.dot(y_hist[newest, i], y_hist[newest, i])
-        if yy > zero:
-            gamma = wp.dot(s_hist[newest, i], y_hist[newest, i]) / yy
-    r = gamma * q
+    r = q
+    h0 = free
+    if precondition != 0:
+        h0 = jacobi_inverse(diag[i], free, n_params, rel_floor)
+        r = wp.cw_mul(h0, q)
+    else:
+        gamma = zero + type(zero)(1.0)
+        if n > 0:
+            newest = (head[i] - 1 + m) % m
+            yy = wp.dot(y_hist[newest, i], y_hist[newest, i])
+            if yy > zero:
+                gamma = wp.dot(s_hist[newest, i], y_hist[newest, i]) / yy
+        r = gamma * q
     for j in range(n):
         slot = (head[i] - n + j + m) % m
         b = rho[slot, i] * wp.dot(y_hist[slot, i], r)
@@ -155,8 +234,10 @@ def lbfgs_direction_kernel(g: wp.array(dtype=Any), s_hist: wp.array2d(dtype=Any)
     di = -masked(r, free)
     gi = masked(g[i], free)
     if not (wp.dot(gi, di) < -eps * wp.length(gi) * wp.length(di)):
-        di = -gi
+        di = -wp.cw_mul(h0, gi)
         count[i] = 0
+        if not (wp.dot(gi, di) < -eps * wp.length(gi) * wp.length(di)):
+            di = -gi
     d[i] = di
 
 

@@ -70,6 +70,10 @@ class SampleOptions:
     want_dhd: int
     full_hessian: int
     kahan: int
+    want_diag: int
+    """1: also accumulate the Gauss-Newton diagonal D_k = sum (s_c J_c,k)^2 into ``out_diag``
+    (the Jacobi preconditioner of CG / L-BFGS); 0 (the default of a zeroed struct): ``out_diag``
+    is not touched, so passes that do not need it pay nothing but a branch."""
 
 
 @wp.func
@@ -220,10 +224,12 @@ def accumulate_kernel(
     shadow: wp.array3d(dtype=wp.float32), infos: wp.array(dtype=ImageInfo),
     img_begin: int, img_end: int, per_group: int, opt: SampleOptions, like: Any, one: Any,
     out_f: wp.array2d(dtype=Any), out_g: wp.array2d(dtype=Any), out_dhd: wp.array2d(dtype=Any),
-    out_stats: wp.array2d(dtype=wp.vec4d)):
+    out_stats: wp.array2d(dtype=wp.vec4d), out_diag: wp.array2d(dtype=Any)):
     """Partial objective, gradient and d^T H d of texel i over photo group g (see module doc).
 
     out_stats holds (samples, sum r_radiance^2, sum |r_radiance|, sum |y|) for the trace.
+    out_diag (written only when ``opt.want_diag``) holds the Gauss-Newton diagonal
+    sum over samples and channels of (s_c dm_c/dp_k)^2, i.e. diag(J_r^T J_r).
     """
     g, i = wp.tid()
     zero = one - one
@@ -232,6 +238,7 @@ def accumulate_kernel(
     grad = like * zero
     gc = like * zero
     dhd = zero
+    diag = like * zero
     st = wp.vec4d(0.0)
     if active[i] != 0:
         pv = load_params(params, i, n_params, like, one)
@@ -269,6 +276,9 @@ def accumulate_kernel(
                             grad = tgk
                         else:
                             grad = grad + gterm
+                    if opt.want_diag != 0:
+                        sj = s * jc
+                        diag = diag + wp.cw_mul(sj, sj)
                     if opt.want_dhd != 0:
                         jd = s * wp.dot(jc, dv)
                         dhd = dhd + jd * jd
@@ -279,6 +289,8 @@ def accumulate_kernel(
     out_g[g, i] = grad
     out_dhd[g, i] = dhd
     out_stats[g, i] = st
+    if opt.want_diag != 0:
+        out_diag[g, i] = diag
 
 
 @wp.kernel
@@ -348,6 +360,19 @@ def reduce_partials_kernel(pf: wp.array2d(dtype=Any), pg: wp.array2d(dtype=Any),
     g[i] = b
     h[i] = c
     st[i] = s
+
+
+@wp.kernel
+def reduce_vec_partials_kernel(pv: wp.array2d(dtype=Any), n_groups: int, accumulate: int, v: wp.array(dtype=Any)):
+    """Sum one per-group vector output (the Gauss-Newton diagonal) over groups in a fixed order,
+    like :func:`reduce_partials_kernel`; a separate launch so passes without it read nothing."""
+    i = wp.tid()
+    a = pv[0, i]
+    for k in range(1, n_groups):
+        a = a + pv[k, i]
+    if accumulate != 0:
+        a = a + v[i]
+    v[i] = a
 
 
 @wp.kernel

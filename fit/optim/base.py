@@ -48,6 +48,12 @@ class FitState:
     upper: object
     lobe_albedo_max: float = 0.0
     iteration: int = 0
+    diag: wp.array | None = None
+    """(N,) Gauss-Newton diagonal diag(J^T J) at ``p`` (valid while ``want_diag``)"""
+    diag_trial: wp.array | None = None
+    """the same at ``trial``; adopted with the trial point on acceptance"""
+    want_diag: bool = False
+    """accumulate the diagonal in every gradient pass (the optimizer preconditions with it)"""
 
     @staticmethod
     def create(problem: StreamProblem, p0: np.ndarray, free_mask: np.ndarray,
@@ -69,8 +75,15 @@ class FitState:
             stats_trial=wp.zeros(n, dtype=wp.vec4d, device=dev), storage=pr.new_storage(p0),
             active=wp.zeros(n, dtype=wp.int32, device=dev), accepted=wp.zeros(n, dtype=wp.int32, device=dev),
             valid=wp.ones(n, dtype=wp.int32, device=dev), p_old=pr.new_vec(p0), g_old=pr.new_vec(),
-            free=vec(*fr), lower=vec(*lo), upper=vec(*hi), lobe_albedo_max=float(lobe_albedo_max))
+            free=vec(*fr), lower=vec(*lo), upper=vec(*hi), lobe_albedo_max=float(lobe_albedo_max),
+            diag=pr.new_vec(), diag_trial=pr.new_vec())
         return st
+
+    def diag_out(self, trial: bool = False) -> wp.array | None:
+        """The diagonal output of a gradient pass at ``p`` (or at the trial), None when not wanted."""
+        if not self.want_diag:
+            return None
+        return self.diag_trial if trial else self.diag
 
     def launch_trial(self, p: wp.array, d: wp.array, alpha: wp.array, active: wp.array,
                      trial: wp.array, storage: wp.array) -> None:

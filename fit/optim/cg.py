@@ -1,6 +1,12 @@
 """Nonlinear conjugate gradient (seed 3.3.2, 4.5.1): Fletcher-Reeves or Polak-Ribiere with
 restart (beta = max(beta_PR, 0)), the descent safeguard of Alg. 10, and an optional steepest
-descent restart every ``restart_every`` iterations."""
+descent restart every ``restart_every`` iterations.
+
+``precondition=True``: Jacobi-preconditioned CG (N&W 5.2; z = M^-1 g with M the Gauss-Newton
+diagonal + a tiny floor, see optim_kernels.cg_direction_kernel). M is held per texel between
+restarts (CG's recurrences assume a fixed metric) and refreshed from the current point's
+diagonal whenever the texel restarts (rejected step, PR+ clip, safeguard, periodic restart).
+"""
 
 from __future__ import annotations
 
@@ -13,7 +19,11 @@ from .base import FitState
 class ConjugateGradient:
     name = "cg"
 
-    def __init__(self, variant: str = "pr", restart_every: int = 0, eps: float = 1e-6):
+    def __init__(self, variant: str = "pr", restart_every: int = 0, eps: float = 1e-6,
+                 precondition: bool = False, precondition_floor: float = 1e-10):
+        self.precondition = precondition
+        self.floor = precondition_floor
+        self.minv = None
         self.variant = variant
         self.restart_every = restart_every
         self.eps = eps
@@ -27,6 +37,9 @@ class ConjugateGradient:
             self.g_prev = pr.new_vec()
             self.d_prev = pr.new_vec()
             self.restart = wp.ones(pr.n, dtype=wp.int32, device=pr.device)
+            self.minv = pr.new_vec()
+        if self.precondition:
+            state.want_diag = True
 
     def reset_memory(self, state: FitState) -> None:
         self._alloc(state)
@@ -39,7 +52,8 @@ class ConjugateGradient:
             self.restart.fill_(1)
         wp.launch(K.cg_direction_kernel, dim=pr.n, device=pr.device,
                   inputs=[state.g, self.g_prev, self.d_prev, self.restart, int(self.variant == "pr"),
-                          pr.scalar(self.eps), state.free], outputs=[state.d])
+                          pr.scalar(self.eps), state.free, int(self.precondition), state.diag, self.minv,
+                          pr.layout.n_params, pr.scalar(self.floor)], outputs=[state.d])
 
     def after_step(self, state: FitState) -> None:
         # texels that did not move keep their gradient: beta then compares g with itself

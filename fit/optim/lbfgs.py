@@ -1,6 +1,10 @@
 """Limited-memory BFGS (seed 3.3.4) with the two-loop recursion of Nocedal & Wright (Alg. 7.4),
 m history pairs per texel in ring buffers, H0 = gamma_k I (3.9, 3.10), and pairs with
-y^T s <= 0 skipped so the implied inverse Hessian stays positive definite."""
+y^T s <= 0 skipped so the implied inverse Hessian stays positive definite.
+
+``precondition=True``: H0 = M^-1, the inverse of the Gauss-Newton diagonal (+ a tiny floor) at
+the current point, refreshed every iteration (N&W allow H0_k to vary), instead of gamma_k I.
+"""
 
 from __future__ import annotations
 
@@ -13,12 +17,17 @@ from .base import FitState
 class LBFGS:
     name = "lbfgs"
 
-    def __init__(self, history: int = 5, eps: float = 1e-8):
+    def __init__(self, history: int = 5, eps: float = 1e-8, precondition: bool = False,
+                 precondition_floor: float = 1e-10):
+        self.precondition = precondition
+        self.floor = precondition_floor
         self.m = history
         self.eps = eps
         self.buffers = None
 
     def _alloc(self, state: FitState) -> None:
+        if self.precondition:
+            state.want_diag = True
         if self.buffers is None:
             pr = state.problem
             shape = (self.m, pr.n)
@@ -40,7 +49,8 @@ class LBFGS:
         pr = state.problem
         wp.launch(K.lbfgs_direction_kernel, dim=pr.n, device=pr.device,
                   inputs=[state.g, self.s_hist, self.y_hist, self.rho, self.count, self.head, self.m,
-                          pr.scalar(self.eps), state.free, self.alpha_buf], outputs=[state.d])
+                          pr.scalar(self.eps), state.free, int(self.precondition), state.diag,
+                          pr.layout.n_params, pr.scalar(self.floor), self.alpha_buf], outputs=[state.d])
 
     def after_step(self, state: FitState) -> None:
         pr = state.problem

@@ -5,7 +5,8 @@
   extra pass (4.3.3); checked by Armijo, backtracking if it fails.
 - ``quadratic``: two-sided quadratic interpolation (3.15, Alg. 3).
 Every trial computes objective and gradient together (Alg. 9), so the Wolfe curvature test
-(3.12) is available at no extra pass. Acceptance is per texel by conditional assignment
+(3.12) is available at no extra pass; with a preconditioned optimizer (``state.want_diag``) the
+trial pass also accumulates the Gauss-Newton diagonal, adopted with the accepted point. Acceptance is per texel by conditional assignment
 (Alg. 11), or ``global``: one alpha for all texels, accepted on the summed objective.
 """
 
@@ -50,7 +51,8 @@ class LineSearchConfig:
 def evaluate_trial(state: FitState, penalties: Penalties, active: wp.array) -> None:
     """Objective and gradient at state.trial (already in state.storage), penalties included."""
     pr = state.problem
-    pr.evaluate(state.storage, state.f_trial, state.g_trial, state.stats_trial, active=active)
+    pr.evaluate(state.storage, state.f_trial, state.g_trial, state.stats_trial, active=active,
+                diag=state.diag_out(trial=True))
     penalties.add(state, state.trial, state.f_trial, state.g_trial)
 
 
@@ -86,7 +88,7 @@ def line_search(state: FitState, cfg: LineSearchConfig, penalties: Penalties, fi
                       inputs=[state.p, state.f, state.g, state.d, state.trial, state.f_trial, state.g_trial, state.alpha,
                               state.active, s(cfg.sigma1), s(cfg.sigma2), int(cfg.wolfe), s(cfg.shrink),
                               int(cfg.kind == "quadratic"), state.free, state.stats, state.stats_trial,
-                              state.accepted])
+                              state.accepted, int(state.want_diag), state.diag, state.diag_trial])
     wp.copy(state.prev_alpha, state.alpha)
     wp.copy(state.prev_slope, state.slope)
 
@@ -108,6 +110,8 @@ def _global_search(state: FitState, cfg: LineSearchConfig, penalties: Penalties)
             wp.copy(state.f, state.f_trial)
             wp.copy(state.g, state.g_trial)
             wp.copy(state.stats, state.stats_trial)
+            if state.want_diag:
+                wp.copy(state.diag, state.diag_trial)
             wp.copy(state.accepted, state.valid)
             return
         a *= cfg.shrink

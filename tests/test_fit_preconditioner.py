@@ -1,0 +1,87 @@
+"""Jacobi (Gauss-Newton diagonal) preconditioning of SD, CG and L-BFGS (fit/optim, optim_kernels)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+
+from texstream.capture.synth import SynthConfig, render_scene
+from texstream.fit.fitter import FitConfig, run_fit
+from texstream.fit.models import ModelLayout
+from texstream.fit.optim.linesearch import LineSearchConfig
+from texstream.fit.stage import build_problem
+
+from conftest import SCENE_DEVICE
+from test_fit_gradients import plane_problem, random_params
+
+
+@pytest.fixture(scope="module")
+def flat_scene():
+    # the scene of test_fit_optimizers.py: 24 float photos of 48x48, 32x32 texels
+    return render_scene("flat_sample", SynthConfig(scale=0.3, photos=24, image_size=48, progress=False,
+                                                   device=SCENE_DEVICE))
+
+
+def fit(scene, device, **kw):
+    cfg = FitConfig(**kw)
+    prob = build_problem(scene.mesh, scene.bake, scene.frames, scene.images, scene.masks, cfg, device)
+    return run_fit(prob, cfg)
+
+
+def test_diagonal_matches_explicit_jacobian(device):
+    layout = ModelLayout()
+    prob, rng = plane_problem(device, layout, seed=5)
+    p = random_params(layout, prob.n, rng)
+    n = prob.n
+    npar = layout.n_params
+    storage = prob.new_storage(p)
+    f, g, diag = prob.new_scalar(), prob.new_vec(), prob.new_vec()
+    st = wp.zeros(n, dtype=wp.vec4d, device=device)
+    prob.evaluate(storage, f, g, st, diag=diag)
+    d_k = diag.numpy().reshape(n, -1)[:, :npar]
+    assert st[:, 0].sum() > 0 if False else st.numpy()[:, 0].sum() > 0
+    # explicit J: the LM pass accumulates sum (s J)(s J)^T from the same Jacobian rows; fp64 sums of
+    # the same terms in the same order, so 1e-12 relative is rounding only
+    jtj = wp.zeros(n, dtype=prob.mat, device=device)
+    prob.evaluate_lm(storage, prob.new_scalar(), prob.new_vec(), jtj, wp.zeros(n, dtype=wp.vec4d, device=device))
+    jd = np.diagonal(jtj.numpy().reshape(n, npar, npar), axis1=1, axis2=2)
+    np.testing.assert_allclose(d_k, jd, rtol=1e-12, atol=1e-14 * jd.max())
+    # finite differences: D_k = e_k^T J^T J e_k is the Gauss-Newton second derivative along e_k;
+    # the full second difference of f along e_k adds sum r d^2 r / dp_k^2, which the full-Hessian
+    # d^T H d pass supplies, so D_k = FD2_k - (full_k - GN_k), GN_k being the pass's own d^T H d
+    free = ~layout.frozen()
+    f0 = f.numpy()
+    for k in np.flatnonzero(free):
+        e = np.zeros_like(p)
+        e[:, k] = 1.0
+        h = 1e-4 * max(1.0, np.abs(p[:, k]).max())
+
+        def obj(q):
+            ff = prob.new_scalar()
+            prob.evaluate(prob.new_storage(q), ff, prob.new_vec(), wp.zeros(n, dtype=wp.vec4d, device=device))
+            return ff.numpy()
+
+        def dhd(full):
+            hh = prob.new_scalar()
+            prob.evaluate(storage, prob.new_scalar(), prob.new_vec(), wp.zeros(n, dtype=wp.vec4d, device=device),
+                          direction=prob.new_storage(e), dhd=hh, full_hessian=full)
+            return hh.numpy()
+
+        fd2 = (obj(p + h * e) - 2 * f0 + obj(p - h * e)) / h ** 2
+        gn, full = dhd(False), dhd(True)
+        np.testing.assert_allclose(gn, d_k[:, k], rtol=1e-12, atol=1e-14 * jd.max())
+        # second differences in fp64 with h = 1e-4 |p|: O(h^2) truncation + eps f / h^2 ~ 1e-8 f
+        scale = np.abs(fd2).max() + np.abs(full).max()
+        np.testing.assert_allclose(fd2 - (full - gn), d_k[:, k], rtol=1e-5, atol=1e-6 * scale)
+
+
+@pytest.mark.parametrize("optimizer,ls", [("sd", "backtracking"), ("cg", "hessian"), ("cg", "quadratic"),
+                                          ("lbfgs", "quadratic"), ("lbfgs", "hessian")])
+def test_preconditioned_objective_never_increases(flat_scene, device, optimizer, ls):
+    res = fit(flat_scene, device, optimizer=optimizer, precondition="jacobi", max_iterations=8, sync_every=100,
+              linesearch=LineSearchConfig(kind=ls))
+    obj = np.array([r["objective"] for r in res.trace])
+    # per-texel Armijo acceptance: non-increasing up to float32 summation order (1e-6 relative)
+    assert np.all(np.diff(obj) <= 1e-6 * obj[:-1]), obj
+    assert obj[-1] < obj[0]
