@@ -40,7 +40,7 @@ def test_diagonal_matches_explicit_jacobian(device):
     st = wp.zeros(n, dtype=wp.vec4d, device=device)
     prob.evaluate(storage, f, g, st, diag=diag)
     d_k = diag.numpy().reshape(n, -1)[:, :npar]
-    assert st[:, 0].sum() > 0 if False else st.numpy()[:, 0].sum() > 0
+    assert st.numpy()[:, 0].sum() > 0  # the random views do see the texels
     # explicit J: the LM pass accumulates sum (s J)(s J)^T from the same Jacobian rows; fp64 sums of
     # the same terms in the same order, so 1e-12 relative is rounding only
     jtj = wp.zeros(n, dtype=prob.mat, device=device)
@@ -85,3 +85,15 @@ def test_preconditioned_objective_never_increases(flat_scene, device, optimizer,
     # per-texel Armijo acceptance: non-increasing up to float32 summation order (1e-6 relative)
     assert np.all(np.diff(obj) <= 1e-6 * obj[:-1]), obj
     assert obj[-1] < obj[0]
+
+
+@pytest.mark.parametrize("optimizer", ["cg", "lbfgs"])
+def test_preconditioning_reaches_a_lower_objective(flat_scene, device, optimizer):
+    # the flat sample is badly scaled per texel (albedos ~0.1..1, exponent ~10..100, c_z near 1):
+    # measured on cpu after 10 iterations, objective none -> jacobi: cg 31.7 -> 3.11, lbfgs 29.7 -> 3.01
+    # (a factor ~10); asking for a factor 2 leaves room for other devices' rounding and code changes
+    objs = {}
+    for pc in ("none", "jacobi"):
+        res = fit(flat_scene, device, optimizer=optimizer, precondition=pc, max_iterations=10, sync_every=100)
+        objs[pc] = res.trace[-1]["objective"]
+    assert objs["jacobi"] < 0.5 * objs["none"], objs
