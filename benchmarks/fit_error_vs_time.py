@@ -44,12 +44,13 @@ def measured_bandwidth(device: str, nbytes: int = 1 << 30, reps: int = 10) -> fl
     return 2 * nbytes * reps / (time.perf_counter() - t0)
 
 
-def unique_bytes_per_pass(prob, optimizer: str) -> int:
+def unique_bytes_per_pass(prob, optimizer: str, diag: bool = False) -> int:
     ph = prob.photos
     per_photo = ph.image_bytes + ph.depth.capacity + ph.shadow.capacity
     word = 8 if prob.cfg.accumulate == "fp64" else 4
     npar = prob.layout.n_params  # per-texel vectors are sized to the layout
-    partial = word * (1 + npar + (npar * npar if optimizer == "lm" else 1)) + 32
+    # + the Gauss-Newton diagonal (n_params words) of preconditioned sd / cg / lbfgs passes
+    partial = word * (1 + npar + (npar * npar if optimizer == "lm" else 1) + (npar if diag else 0)) + 32
     state = prob.n * (word * prob.layout.n_params + 2 * prob.groups * partial + partial)
     return int(per_photo + state)
 
@@ -154,7 +155,7 @@ def main() -> None:
         prob.passes = 0
         res = run_fit(prob, cfg)
         t_fit = res.trace[-1]["time_s"]
-        ub = unique_bytes_per_pass(prob, opt)
+        ub = unique_bytes_per_pass(prob, opt, diag=opt != "lm" and cfg.precondition == "jacobi")
         pass_s = t_fit / max(res.passes, 1)
         run = {"setup_s": t_setup, "fit_s": t_fit, "iterations": res.trace[-1]["iteration"], "passes": res.passes,
                "pass_ms": 1000 * pass_s, "unique_bytes_per_pass": ub, "unique_GBps": ub / pass_s / 1e9,

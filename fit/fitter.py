@@ -47,6 +47,9 @@ class FitConfig:
                                          "diagonal diag(J^T J) of each texel (accumulated in the gradient pass; "
                                          "CG holds it between restarts, L-BFGS uses it as H0), none = raw gradient",
                                choices=("none", "jacobi"))
+    precondition_refresh: str = option("restart", "cg with jacobi: take M from the current point at each texel's "
+                                                  "restart (CG theory: a fixed metric between restarts) or every "
+                                                  "iteration", choices=("restart", "iteration"))
     precondition_floor: float = option(1e-10, "Jacobi preconditioner M = D + this * mean(D over free columns): "
                                               "guards columns no sample constrains; keep it tiny, the exponent's "
                                               "D is ~1e-7 of the albedos'")
@@ -97,7 +100,11 @@ def make_optimizer(cfg: FitConfig):
     if cfg.optimizer == "sd":
         return SteepestDescent(**pc)
     if cfg.optimizer == "cg":
-        return ConjugateGradient(cfg.cg_variant, cfg.cg_restart_every, **pc)
+        if cfg.precondition_refresh not in ("restart", "iteration"):
+            raise ConfigError(f"precondition_refresh {cfg.precondition_refresh!r} unknown",
+                              fix="use restart or iteration")
+        return ConjugateGradient(cfg.cg_variant, cfg.cg_restart_every, **pc,
+                                 refresh_always=cfg.precondition_refresh == "iteration")
     if cfg.optimizer == "lbfgs":
         return LBFGS(cfg.lbfgs_history, **pc)
     if cfg.optimizer == "lm":

@@ -20,8 +20,9 @@ class ConjugateGradient:
     name = "cg"
 
     def __init__(self, variant: str = "pr", restart_every: int = 0, eps: float = 1e-6,
-                 precondition: bool = False, precondition_floor: float = 1e-10):
+                 precondition: bool = False, precondition_floor: float = 1e-10, refresh_always: bool = False):
         self.precondition = precondition
+        self.refresh_always = refresh_always  # M from every iteration's point (see the kernel)
         self.floor = precondition_floor
         self.minv = None
         self.variant = variant
@@ -53,7 +54,7 @@ class ConjugateGradient:
         wp.launch(K.cg_direction_kernel, dim=pr.n, device=pr.device,
                   inputs=[state.g, self.g_prev, self.d_prev, self.restart, int(self.variant == "pr"),
                           pr.scalar(self.eps), state.free, int(self.precondition), state.diag, self.minv,
-                          pr.layout.n_params, pr.scalar(self.floor)], outputs=[state.d])
+                          pr.layout.n_params, pr.scalar(self.floor), int(self.refresh_always)], outputs=[state.d])
 
     def after_step(self, state: FitState) -> None:
         # texels that did not move keep their gradient: beta then compares g with itself

@@ -2,8 +2,11 @@
 m history pairs per texel in ring buffers, H0 = gamma_k I (3.9, 3.10), and pairs with
 y^T s <= 0 skipped so the implied inverse Hessian stays positive definite.
 
-``precondition=True``: H0 = M^-1, the inverse of the Gauss-Newton diagonal (+ a tiny floor) at
-the current point, refreshed every iteration (N&W allow H0_k to vary), instead of gamma_k I.
+``precondition=True``: H0 = gamma_k M^-1 instead of gamma_k I, M the Gauss-Newton diagonal
+(+ a tiny floor) at the current point, refreshed every iteration (N&W allow H0_k to vary), and
+gamma_k = s^T y / y^T M^-1 y of the newest pair (N&W 7.20 in the M-metric; 1 before any pair).
+Measured on the CPU ornament (60 iterations, final objective): x0.02 0.5945 (gamma M^-1) vs
+0.5941 (M^-1 alone), x0.05 2.138 vs 2.182, unpreconditioned 0.7185 and 4.162.
 """
 
 from __future__ import annotations
@@ -18,8 +21,9 @@ class LBFGS:
     name = "lbfgs"
 
     def __init__(self, history: int = 5, eps: float = 1e-8, precondition: bool = False,
-                 precondition_floor: float = 1e-10):
+                 precondition_floor: float = 1e-10, gamma_scaled: bool = True):
         self.precondition = precondition
+        self.gamma_scaled = gamma_scaled  # H0 = gamma_k M^-1 (default), else M^-1 unscaled
         self.floor = precondition_floor
         self.m = history
         self.eps = eps
@@ -50,7 +54,8 @@ class LBFGS:
         wp.launch(K.lbfgs_direction_kernel, dim=pr.n, device=pr.device,
                   inputs=[state.g, self.s_hist, self.y_hist, self.rho, self.count, self.head, self.m,
                           pr.scalar(self.eps), state.free, int(self.precondition), state.diag,
-                          pr.layout.n_params, pr.scalar(self.floor), self.alpha_buf], outputs=[state.d])
+                          pr.layout.n_params, pr.scalar(self.floor), int(self.gamma_scaled), self.alpha_buf],
+                  outputs=[state.d])
 
     def after_step(self, state: FitState) -> None:
         pr = state.problem
