@@ -49,7 +49,7 @@ def main() -> None:
     from texstream.fit.fitter import FitConfig, run_fit
     from texstream.fit.optim.base import FitState
     from texstream.fit.penalties import PenaltyConfig
-    from texstream.fit.stage import build_problem, image_metrics, params_to_grid, render_model
+    from texstream.fit.stage import build_problem, heldout_psnr, params_to_grid
 
     base = dict(scale=a.scale, photos=a.photos, image_size=a.image_size, progress=False, device=a.device)
     t0 = time.perf_counter()
@@ -63,11 +63,7 @@ def main() -> None:
     res = run_fit(prob, cfg)
     fit_s = time.perf_counter() - t0
     grid = params_to_grid(res, prob, train.bake)
-    views = []
-    for fr, photo, mask in zip(held.frames, held.images, held.masks):
-        render, rmask = render_model(train.mesh, grid, res.layout, fr, a.device)
-        views.append(image_metrics(render, photo, rmask.astype(bool) & mask)["psnr_db"])
-    pooled = float(-10 * np.log10(np.mean([10 ** (-v / 10) for v in views])))
+    views, pooled = heldout_psnr(train.mesh, grid, res.layout, held.frames, held.images, held.masks, a.device)
 
     gt = train.params.reshape(-1, train.params.shape[-1])[prob.texels.grid_index]
     objective = {}

@@ -15,7 +15,6 @@ import platform
 import time
 from pathlib import Path
 
-import numpy as np
 
 
 def main() -> None:
@@ -33,7 +32,7 @@ def main() -> None:
     from texstream.capture.synth import SynthConfig, render_scene
     from texstream.fit.fitter import FitConfig, run_fit
     from texstream.fit.penalties import PenaltyConfig
-    from texstream.fit.stage import build_problem, image_metrics, params_to_grid, render_model
+    from texstream.fit.stage import build_problem, heldout_psnr, params_to_grid
 
     train = render_scene(a.scene, SynthConfig(scale=a.scale, device=a.device, progress=False))
     held = render_scene(a.scene, SynthConfig(scale=a.scale, device=a.device, progress=False, photos=8,
@@ -48,11 +47,7 @@ def main() -> None:
         res = run_fit(prob, cfg)
         t = time.perf_counter() - t0
         grid = params_to_grid(res, prob, train.bake)
-        psnr = []
-        for fr, photo, mask in zip(held.frames, held.images, held.masks):
-            img, m = render_model(train.mesh, grid, res.layout, fr, a.device)
-            psnr.append(image_metrics(img, photo, m.astype(bool) & mask)["psnr_db"])
-        pooled = float(-10 * np.log10(np.mean(10 ** (-np.array(psnr) / 10))))
+        psnr, pooled = heldout_psnr(train.mesh, grid, res.layout, held.frames, held.images, held.masks, a.device)
         out["runs"][f"smooth_{w:g}"] = {"fit_s": t, "train_psnr_db": res.trace[-1]["psnr_db"],
                                         "heldout_psnr_db": psnr, "heldout_pooled_psnr_db": pooled}
         print(f"smooth {w:g}: train {res.trace[-1]['psnr_db']:.1f} dB, held-out pooled {pooled:.1f} dB, {t:.1f} s",

@@ -167,17 +167,7 @@ class PhotoSet:
         if mesh_points is None:
             return self._init_without_mesh(frames, images, masks, config, device)
         cfg = config or StreamConfig()
-        self.device = device
-        self.n = len(frames)
-        if self.n == 0 or len(images) != self.n:
-            raise InputError("no photos to fit", fix="give a capture with at least one photo")
-        self.hmax = max(int(im.shape[0]) for im in images)
-        self.wmax = max(int(im.shape[1]) for im in images)
-        img_dtype = wp.vec3h if cfg.image_precision == "fp16" else wp.vec3
-        np_dtype = np.float16 if cfg.image_precision == "fp16" else np.float32
-        stack = np.zeros((self.n, self.hmax, self.wmax, 3), dtype=np_dtype)
-        for k, im in enumerate(images):
-            stack[k, :im.shape[0], :im.shape[1]] = im[..., :3]
+        stack, img_dtype = self._stack_photos(frames, images, cfg, device)
         self.mesh = wp.Mesh(points=wp.array(np.asarray(mesh_points, np.float32), dtype=wp.vec3, device=device),
                             indices=wp.array(np.asarray(mesh_faces, np.int32).reshape(-1), dtype=wp.int32, device=device))
         lo, hi = mesh_points.min(axis=0), mesh_points.max(axis=0)
@@ -227,22 +217,28 @@ class PhotoSet:
             self.shadow = wp.array(shadow, dtype=wp.float32, device=device)
         self.image_bytes = int(stack.nbytes)
 
-    def _init_without_mesh(self, frames, images, masks, config, device) -> None:
-        """Photos and masks only (see __init__); never streamed in windows (one view is small)."""
-        cfg = config or StreamConfig()
+    def _stack_photos(self, frames, images, cfg: StreamConfig, device: str):
+        """Photos padded into one (n, hmax, wmax, 3) host stack in the image precision, and the
+        Warp element type; sets ``device``, ``n``, ``hmax``, ``wmax``."""
         self.device = device
         self.n = len(frames)
         if self.n == 0 or len(images) != self.n:
             raise InputError("no photos to fit", fix="give a capture with at least one photo")
         self.hmax = max(int(im.shape[0]) for im in images)
         self.wmax = max(int(im.shape[1]) for im in images)
-        img_dtype = wp.vec3h if cfg.image_precision == "fp16" else wp.vec3
-        np_dtype = np.float16 if cfg.image_precision == "fp16" else np.float32
-        stack = np.zeros((self.n, self.hmax, self.wmax, 3), dtype=np_dtype)
+        fp16 = cfg.image_precision == "fp16"
+        stack = np.zeros((self.n, self.hmax, self.wmax, 3), dtype=np.float16 if fp16 else np.float32)
+        for k, im in enumerate(images):
+            stack[k, :im.shape[0], :im.shape[1]] = im[..., :3]
+        return stack, (wp.vec3h if fp16 else wp.vec3)
+
+    def _init_without_mesh(self, frames, images, masks, config, device) -> None:
+        """Photos and masks only (see __init__); never streamed in windows (one view is small)."""
+        cfg = config or StreamConfig()
+        stack, img_dtype = self._stack_photos(frames, images, cfg, device)
         depth = np.zeros((self.n, self.hmax, self.wmax), np.float32)
         infos = []
         for k, (fr, im) in enumerate(zip(frames, images)):
-            stack[k, :im.shape[0], :im.shape[1]] = im[..., :3]
             mk = masks[k] if masks is not None and masks[k] is not None else np.ones(im.shape[:2], bool)
             depth[k, :im.shape[0], :im.shape[1]] = np.asarray(mk, bool)
             info = image_info(fr)

@@ -149,6 +149,17 @@ def render_model(mesh, grid: np.ndarray, layout: ModelLayout, frame, device: str
     return res.radiance * np.float32(frame.exposure), res.mask
 
 
+def heldout_psnr(mesh, grid: np.ndarray, layout: ModelLayout, frames, photos, masks, device: str) -> tuple[list, float]:
+    """Per-view PSNR of the model's renders against ``photos`` (foreground: photo mask and render
+    coverage) and the PSNR of the views' pooled mean squared error."""
+    views = []
+    for fr, photo, mask in zip(frames, photos, masks):
+        render, rmask = render_model(mesh, grid, layout, fr, device)
+        views.append(image_metrics(render, photo, rmask.astype(bool) & mask)["psnr_db"])
+    pooled = float(-10 * np.log10(np.mean([10 ** (-v / 10) for v in views])))
+    return views, pooled
+
+
 def run_fit_with_progress(problem, fit: FitConfig, progress: bool) -> FitResult:
     """run_fit with a tqdm bar over iterations when ``progress``."""
     if not progress:
