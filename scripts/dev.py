@@ -35,7 +35,12 @@ def ensure_env() -> None:
     if not stamp.exists() or stamp.read_text().strip() != want:
         print("[dev] installing texstream and its dependencies (first run takes a few minutes)", flush=True)
         subprocess.check_call([str(PY), "-m", "pip", "install", "-q", "--upgrade", "pip"])
-        subprocess.check_call([str(PY), "-m", "pip", "install", "-q", "-e", f"{ROOT}[test]"])
+        # no -q here: pip prints a line per package it collects (and a download bar on a terminal), so a
+        # first run of several minutes shows progress; its version-check and script-location notices stay off
+        print(f"[dev] pip install -e {ROOT}[test]", flush=True)
+        subprocess.check_call([str(PY), "-m", "pip", "install", "--disable-pip-version-check",
+                               "--no-warn-script-location", "-e", f"{ROOT}[test]"])
+        print("[dev] installed", flush=True)
         stamp.write_text(want)
 
 
