@@ -52,7 +52,8 @@ A *scene* is a small declarative JSON file (built-ins in ``capture/scenes/``: ``
     clip at 1, which is their ``saturation`` in capture.json.
 
 ``--scale s`` (:class:`SynthConfig`) shrinks a scene: photo count x s, image sides x sqrt(s),
-texture sides (or atlas resolution) x sqrt(s), so texel count x s; the mesh is unchanged. A
+texture sides (or atlas resolution, kept at least 64 texels so the charts still pack) x sqrt(s),
+so texel count x s; the mesh is unchanged. A
 pixel's value is ``exposure * radiance + noise``, then clipped / quantised (see ``photo``).
 
 :func:`render_scene` renders in memory (no OpenImageIO needed; no xatlas / pymeshlab for
@@ -195,12 +196,20 @@ def _rotation(deg) -> np.ndarray:
     return mz @ my @ mx
 
 
+# Smallest atlas side a scaled scene asks xatlas for: a few dozen charts (the bunny's 36) no longer
+# pack into ~36x36 texels, the bunny's 256 at --scale 0.02. A scene asking for less keeps its own.
+MIN_ATLAS_RESOLUTION = 64
+
+
 def _scaled_texture(scene: dict, scale: float) -> dict:
     t = dict(scene["texture"])
     f = math.sqrt(scale)
-    for k in ("width", "height", "resolution"):
+    for k in ("width", "height"):
         if k in t:
             t[k] = max(8, int(round(t[k] * f)))
+    if "resolution" in t:
+        full = int(t["resolution"])
+        t["resolution"] = max(8, min(full, MIN_ATLAS_RESOLUTION), int(round(full * f)))
     return t
 
 
@@ -247,7 +256,13 @@ def build_mesh(scene: dict, scale: float = 1.0):
 
         cfg = AtlasConfig(**{**m.get("atlas", {}), "resolution": int(tex.get("resolution", 512)),
                              "padding": int(tex.get("padding", 2))})
-        mesh, ainfo = build_atlas(mesh, cfg)
+        try:
+            mesh, ainfo = build_atlas(mesh, cfg)
+        except ConfigError as e:
+            # the atlas' own fix names `texstream atlas` options; synth sets them from the scene and --scale
+            raise ConfigError(f"scene {scene.get('name', '')!r} at scale {scale:g}: {e.message}",
+                              None if "procedural" in m else info.get("source"),
+                              "raise --scale, or the texture's resolution in a scene JSON") from None
         tex["width"], tex["height"] = ainfo.width, ainfo.height
         info["atlas"] = ainfo.to_dict()
     if mesh.normals is None:

@@ -161,11 +161,45 @@ def test_bad_scene_errors_and_no_half_written_output(tmp_path, monkeypatch):
     assert not [p for p in Path(tmp_path).iterdir() if p.name.startswith(".out")]
 
 
-def test_bunny_scene(data_dir):
+def test_bunny_scene(data_dir, tmp_path, capsys):
+    """`texstream synth bunny --scale 0.02` (once: 'could not pack the 36 charts into 36x36 texels')."""
+    from texstream.capture.imageio import read_mask
+    from texstream.pipelines.cli import main
+
     need_data(data_dir, "stanford_bunny")
-    res = render_scene("bunny", SynthConfig(photos=2, image_size=48, scale=0.05, progress=False))
-    assert res.mesh.n_faces <= 5200 and res.bake.n_covered > 100
-    assert all(m.any() for m in res.masks)
+    out = tmp_path / "bunny"
+    rc = main(["synth", "bunny", "-o", str(out), "--scale", "0.02", "--photos", "2", "--image-size", "48",
+               "--no-progress", "--no-preview"])
+    assert rc == 0, capsys.readouterr().err
+    mesh, params, layout, bake, man = synth.load_ground_truth(out)
+    # 256 x sqrt(0.02) = 36 texels is raised to the 64-texel floor; xatlas packs into at most that
+    assert 0.9 * synth.MIN_ATLAS_RESOLUTION <= max(bake.width, bake.height) <= synth.MIN_ATLAS_RESOLUTION
+    assert mesh.n_faces <= 5200 and bake.n_covered > 1000
+    assert len(read_capture(out).frames) == 2
+    masks = [read_mask(p) for p in sorted((out / "masks").iterdir())]
+    assert len(masks) == 2 and all(m.any() for m in masks)  # the bunny is in view in both photos
+
+
+def test_scaled_atlas_resolution_floor_and_pack_failure_message(monkeypatch):
+    atlas_scene = {"texture": {"resolution": 256, "padding": 2}}
+    assert synth._scaled_texture(atlas_scene, 0.02)["resolution"] == synth.MIN_ATLAS_RESOLUTION  # not 36
+    assert synth._scaled_texture(atlas_scene, 0.25)["resolution"] == 128  # above the floor: x sqrt(s)
+    assert synth._scaled_texture({"texture": {"resolution": 32}}, 0.02)["resolution"] == 32  # never raised
+    assert synth._scaled_texture({"texture": {"width": 128, "height": 64}}, 0.02)["width"] == 18  # UV meshes: x sqrt(s)
+    # a pack failure names an option synth has (the atlas' own message says --resolution)
+    from texstream.geometry import atlas
+
+    def no_room(mesh, cfg, *a, **k):
+        raise ConfigError(f"could not pack the 9 charts into {cfg.resolution}x{cfg.resolution} texels",
+                          fix="raise --resolution")
+
+    monkeypatch.setattr(atlas, "build_atlas", no_room)
+    sc = synth.load_scene("sphere")
+    sc["texture"] = {"resolution": 256, "padding": 2}
+    with pytest.raises(ConfigError) as e:
+        synth.build_mesh(sc, 0.02)
+    line = e.value.one_line()
+    assert "64x64" in line and "--scale" in line and "--resolution" not in line and "\n" not in line
 
 
 def test_azimuth_offset_gives_distinct_held_out_views():
