@@ -3,7 +3,8 @@
 Each subcommand lives in ``texstream.pipelines.cmd_<name>`` and defines
 ``add_arguments(parser)`` and ``run(args) -> int``; it is imported only when used, so
 ``texstream --help`` is instant and a stage's heavy dependencies load only for that stage.
-User errors (:class:`TexstreamError`) are caught here, once, and printed as one line.
+User errors (:class:`TexstreamError`) are caught here, once, and printed as one line; ``--debug``
+(before or after the subcommand) or ``TEXSTREAM_DEBUG=1`` lets them through with their traceback.
 """
 
 from __future__ import annotations
@@ -101,9 +102,14 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
         prog="texstream",
         description="Photos to textured appearance models by image-streaming nonlinear optimization.")
     parser.add_argument("--debug", action="store_true", help="show tracebacks for errors")
+    # --debug also after the subcommand (`texstream synth ... --debug`); SUPPRESS keeps a subparser
+    # that did not see it from resetting the top-level value to False
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                        help="show tracebacks for errors")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (module, help_text) in SUBCOMMANDS.items():
-        p = sub.add_parser(name, help=help_text, description=help_text)
+        p = sub.add_parser(name, help=help_text, description=help_text, parents=[common])
         if name == only:
             importlib.import_module(module).add_arguments(p)
     return parser
