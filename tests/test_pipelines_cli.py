@@ -1,0 +1,94 @@
+"""The console script's error contract: one stderr line naming the file, exit code 1, no output
+folder left behind; ``--debug`` (before or after the subcommand) lets the exception through."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from texstream.capture.capture_json import read_capture
+from texstream.capture.imageio import read_image, write_image
+from texstream.capture.synth import SynthConfig, synthesize
+from texstream.pipelines.cli import main
+from texstream.pipelines.errors import InputError
+
+
+@pytest.fixture(autouse=True)
+def _no_debug_env(monkeypatch):
+    monkeypatch.delenv("TEXSTREAM_DEBUG", raising=False)
+
+
+@pytest.fixture
+def nan_capture(tmp_path):
+    """A 2-photo synthetic sphere (32-bit EXR photos) whose second photo holds one NaN pixel."""
+    cap = synthesize("sphere", tmp_path / "cap", SynthConfig(scale=0.02, progress=False, preview=False)).output
+    frames = read_capture(cap).frames
+    assert len(frames) == 2 and frames[1].file_path.endswith(".exr")
+    bad = read_capture(cap).image_path(frames[1])
+    img = read_image(bad)
+    img[3, 5] = np.nan
+    write_image(bad, img, bits=32)
+    return cap, bad
+
+
+def _leftovers(folder, name):
+    """The output and any temporary sibling (`.name.*.partial`) of an atomic output folder."""
+    return sorted(p.name for p in folder.iterdir() if p.name == name or p.name.startswith(f".{name}."))
+
+
+def test_nan_photo_fails_the_fit_stage_in_one_line(nan_capture, tmp_path, capsys):
+    cap, bad = nan_capture
+    model = tmp_path / "model"
+    rc = main(["fit", str(cap), "--mesh", str(cap / "ground_truth"), "-o", str(model), "--max-iterations", "1"])
+    err = capsys.readouterr().err
+    assert rc == 1
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in err, err
+    assert str(bad) in lines[0] and "NaN" in lines[0] and "Fix:" in lines[0]
+    assert _leftovers(tmp_path, "model") == []
+
+
+@pytest.mark.parametrize("where", ["before", "after"])
+def test_debug_lets_the_exception_through(nan_capture, tmp_path, capsys, where):
+    cap, bad = nan_capture
+    args = ["fit", str(cap), "--mesh", str(cap / "ground_truth"), "-o", str(tmp_path / "model")]
+    argv = ["--debug", *args] if where == "before" else [*args, "--debug"]
+    with pytest.raises(InputError, match="NaN") as e:
+        main(argv)
+    assert e.value.path == str(bad)
+    assert "error:" not in capsys.readouterr().err  # no one-line summary: Python prints the traceback
+    assert _leftovers(tmp_path, "model") == []
+
+
+def test_debug_is_accepted_after_any_subcommand(tmp_path, capsys):
+    # no subcommand rejects --debug (argparse used to: "unrecognized arguments: --debug")
+    from texstream.pipelines.cli import SUBCOMMANDS, build_parser
+
+    for name in SUBCOMMANDS:
+        p = build_parser(only=name)
+        with pytest.raises(SystemExit) as e:
+            p.parse_args([name, "--debug", "--help"])
+        assert e.value.code == 0, name
+    capsys.readouterr()
+    # bad input: one line and rc 1 by default; --debug in either position raises
+    out = tmp_path / "o"
+    assert main(["synth", "no_such_scene", "-o", str(out)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no_such_scene" in err[0]
+    for argv in (["--debug", "synth", "no_such_scene", "-o", str(out)],
+                 ["synth", "no_such_scene", "-o", str(out), "--debug"]):
+        with pytest.raises(InputError, match="no_such_scene"):
+            main(argv)
+    assert not out.exists()
+
+
+def test_debug_shows_the_traceback_from_the_console_script(tmp_path):
+    cmd = [sys.executable, "-m", "texstream.pipelines.cli", "synth", "no_such_scene", "-o", str(tmp_path / "o")]
+    plain = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    assert plain.returncode == 1 and len(plain.stderr.strip().splitlines()) == 1
+    debug = subprocess.run([*cmd, "--debug"], capture_output=True, text=True, timeout=60)
+    assert debug.returncode == 1  # Python's own exit code for an uncaught exception
+    assert "Traceback" in debug.stderr and "InputError: unknown scene 'no_such_scene'" in debug.stderr
