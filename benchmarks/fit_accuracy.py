@@ -38,6 +38,7 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=100)
     ap.add_argument("--smooth", type=float, default=0.0)
     ap.add_argument("--holdout-turn", type=float, default=3.0)
+    ap.add_argument("--photo-sampling", default="point", help="point or bilinear (StreamConfig.photo_sampling)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--out", default="out/accuracy")
     a = ap.parse_args()
@@ -49,6 +50,7 @@ def main() -> None:
     from texstream.fit.fitter import FitConfig, run_fit
     from texstream.fit.optim.base import FitState
     from texstream.fit.penalties import PenaltyConfig
+    from texstream.fit.problem import StreamConfig
     from texstream.fit.stage import build_problem, heldout_psnr, params_to_grid
 
     base = dict(scale=a.scale, photos=a.photos, image_size=a.image_size, progress=False, device=a.device)
@@ -57,7 +59,8 @@ def main() -> None:
     held = render_scene(a.scene, SynthConfig(**{**base, "photos": 8}, azimuth_offset=a.holdout_turn))
     render_s = time.perf_counter() - t0
     cfg = FitConfig(optimizer="lm", max_iterations=a.iterations, sync_every=1000,
-                    penalties=PenaltyConfig(smooth_weight=a.smooth))
+                    penalties=PenaltyConfig(smooth_weight=a.smooth),
+                    stream=StreamConfig(photo_sampling=a.photo_sampling))
     prob = build_problem(train.mesh, train.bake, train.frames, train.images, train.masks, cfg, a.device)
     t0 = time.perf_counter()
     res = run_fit(prob, cfg)
@@ -77,7 +80,7 @@ def main() -> None:
     interior = interior_texels(material, prob.texels.neighbors)
     lay = res.layout
     report = {"scene": a.scene, "scale": a.scale, "photos": a.photos, "image_size": a.image_size,
-              "texels": int(prob.n), "iterations": a.iterations, "smooth": a.smooth, "device": a.device,
+              "texels": int(prob.n), "iterations": a.iterations, "smooth": a.smooth, "photo_sampling": a.photo_sampling, "device": a.device,
               "machine": platform.node(), "render_s": render_s, "fit_s": fit_s,
               "heldout_psnr_db": {"pooled": pooled, "per_view": views},
               "train_objective": objective, "texel_sets": {}}

@@ -50,7 +50,9 @@ def unique_bytes_per_pass(prob, optimizer: str, diag: bool = False) -> int:
     npar = prob.layout.n_params  # per-texel vectors are sized to the layout
     # + the Gauss-Newton diagonal (n_params words) of preconditioned sd / cg / lbfgs passes
     partial = word * (1 + npar + (npar * npar if optimizer == "lm" else 1) + (npar if diag else 0)) + 32
-    state = prob.n * (word * prob.layout.n_params + 2 * prob.groups * partial + partial)
+    # texel frames (pos, nrm, tan, bit; + face normal and normal Jacobian for point/filtered sampling)
+    frames = 4 * (12 + (12 if prob.cfg.photo_sampling != "bilinear" else 0))
+    state = prob.n * (word * prob.layout.n_params + 2 * prob.groups * partial + partial + frames)
     return int(per_photo + state)
 
 
@@ -111,6 +113,7 @@ def main() -> None:
     ap.add_argument("--image-precision", default="fp32", choices=("fp32", "fp16"))
     ap.add_argument("--precondition", default=None, choices=("none", "jacobi"),
                     help="sd/cg/lbfgs preconditioner (default: FitConfig's)")
+    ap.add_argument("--photo-sampling", default="filtered", choices=("filtered", "point", "bilinear"))
     ap.add_argument("--bandwidth-probe", action="store_true")
     ap.add_argument("--out", default="out/bench")
     ap.add_argument("--plot-only", default=None, help="replot an existing JSON")
@@ -135,7 +138,7 @@ def main() -> None:
     results = {"scene": a.scene, "scale": a.scale, "device": a.device, "photos": len(sc.images),
                "precondition": a.precondition or FitConfig().precondition,
                "image_size": list(sc.images[0].shape[:2]), "texels": int(sc.bake.covered.sum()),
-               "image_precision": a.image_precision, "render_s": t_render, "machine": platform.node(), "runs": {}}
+               "image_precision": a.image_precision, "photo_sampling": a.photo_sampling, "render_s": t_render, "machine": platform.node(), "runs": {}}
     if a.device.startswith("cuda"):
         results["gpu"] = wp.get_device(a.device).name
     if a.bandwidth_probe:
@@ -143,7 +146,7 @@ def main() -> None:
     for opt in a.optimizers.split(","):
         iters = a.sd_iterations if (opt == "sd" and a.sd_iterations > 0) else a.iterations
         cfg = FitConfig(optimizer=opt, max_iterations=iters, sync_every=100000,
-                        stream=StreamConfig(image_precision=a.image_precision))
+                        stream=StreamConfig(image_precision=a.image_precision, photo_sampling=a.photo_sampling))
         if a.precondition is not None:
             cfg.precondition = a.precondition
         t0 = time.perf_counter()

@@ -122,7 +122,7 @@ def initial_guess(problem: StreamProblem, cfg: FitConfig) -> tuple[np.ndarray, n
     count = wp.zeros(n, dtype=wp.int32, device=dev)
     for images, depth, shadow, infos, b, e in problem.photos.windows():
         wp.launch(stream.initial_guess_kernel, dim=n, device=dev,
-                  inputs=[problem.pos, problem.nrm, problem.tan, problem.bit, images, depth, shadow, infos, b, e,
+                  inputs=[problem.tex, images, depth, shadow, infos, b, e,
                           problem.opt, int(cfg.init_rank)], outputs=[low, high, count])
     lo = low.numpy().astype(np.float64)
     hi = high.numpy().astype(np.float64)

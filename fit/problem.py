@@ -35,6 +35,10 @@ class TexelSet:
         neighbors: (N, 4) int32 compact indices of the +x, -x, +y, -y neighbours (-1: none),
             the masked stencil of the Laplacian (Alg. 7).
         width, height: atlas size.
+        face_normal: (N, 3) float32 unit normal of each texel's face (None: the shading normal).
+        normal_jacobian: (N, 3, 3) float32 derivative of the shading normal along the face, over
+            the interpolated normal's length (:func:`surface_derivatives`; None: zero, a flat texel).
+            Both serve point sampling (``StreamConfig.photo_sampling``).
     """
 
     position: np.ndarray
@@ -45,6 +49,8 @@ class TexelSet:
     neighbors: np.ndarray
     width: int
     height: int
+    face_normal: np.ndarray | None = None
+    normal_jacobian: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -52,8 +58,10 @@ class TexelSet:
 
     @staticmethod
     def from_grid(covered: np.ndarray, position: np.ndarray, normal: np.ndarray, tangent: np.ndarray,
-                  bitangent: np.ndarray) -> "TexelSet":
-        """Build from (H, W) coverage and (H, W, 3) frames (e.g. a TexelBake or an image grid)."""
+                  bitangent: np.ndarray, face_normal: np.ndarray | None = None,
+                  normal_jacobian: np.ndarray | None = None) -> "TexelSet":
+        """Build from (H, W) coverage and (H, W, 3) frames (e.g. a TexelBake or an image grid);
+        optional (H, W, 3) face normals and (H, W, 3, 3) normal Jacobians (see the attributes)."""
         h, w = covered.shape
         flat = np.flatnonzero(covered.reshape(-1))
         compact = -np.ones(h * w, dtype=np.int64)
@@ -64,9 +72,53 @@ class TexelSet:
             xx, yy = xs + dx, ys + dy
             inside = (xx >= 0) & (xx < w) & (yy >= 0) & (yy < h)
             nb[inside, k] = compact[yy[inside] * w + xx[inside]]
-        def take(a):
-            return np.ascontiguousarray(a.reshape(-1, 3)[flat], dtype=np.float32)
-        return TexelSet(take(position), take(normal), take(tangent), take(bitangent), flat, nb, w, h)
+        def take(a, width=3):
+            return None if a is None else np.ascontiguousarray(a.reshape(-1, width)[flat], dtype=np.float32)
+        jac = take(normal_jacobian, 9)
+        return TexelSet(take(position), take(normal), take(tangent), take(bitangent), flat, nb, w, h,
+                        take(face_normal), None if jac is None else jac.reshape(-1, 3, 3))
+
+
+def surface_derivatives(points: np.ndarray, faces: np.ndarray, normals: np.ndarray, face: np.ndarray,
+                        bary: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per texel, the unit normal of its face and the Jacobian of its shading normal along the face.
+
+    The shading normal interpolates vertex normals, N(p) = sum_j b_j(p) n_j, which is affine in p
+    on a face: N(p + dp) = N(p) + G dp with G = [n1 - n0, n2 - n0] E^+ (E = [p1 - p0, p2 - p0],
+    E^+ its pseudo-inverse, so in-plane offsets map to barycentric changes). Returned divided by
+    |N(p)|, so normalize(n + G' dp) is the renderer's unit shading normal at p + dp
+    (:func:`texstream.fit.kernels.shading.surface_frame`).
+
+    Args:
+        points, faces, normals: the mesh (V, 3), (F, 3) and the (V, 3) vertex normals the texel bake used.
+        face: (...,) owning face per texel, -1 for none (zeros returned there).
+        bary: (..., 3) barycentrics (b0, b1, b2) of the texel centre in its face.
+    Returns:
+        face_normal (..., 3) and normal_jacobian (..., 3, 3), float32.
+    """
+    shape = face.shape
+    f = face.reshape(-1)
+    ok = f >= 0
+    tri = faces[np.maximum(f, 0)]
+    p = points.astype(np.float64)[tri]                      # (N, 3 vertices, 3)
+    nv = normals.astype(np.float64)[tri]
+    e = np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]], axis=2)   # (N, 3, 2)
+    dn = np.stack([nv[:, 1] - nv[:, 0], nv[:, 2] - nv[:, 0]], axis=2)
+    gram = np.einsum("nki,nkj->nij", e, e)
+    det = gram[:, 0, 0] * gram[:, 1, 1] - gram[:, 0, 1] * gram[:, 1, 0]
+    good = ok & (det > 1e-30 * np.maximum(gram[:, 0, 0] * gram[:, 1, 1], 1e-300))
+    inv = np.zeros_like(gram)
+    inv[good] = np.linalg.inv(gram[good])
+    jac = np.einsum("nkj,nji,nli->nkl", dn, inv, e)          # dn (3x2) @ inv (2x2) @ e^T (2x3)
+    b = bary.reshape(-1, 3).astype(np.float64)
+    interp = np.einsum("nj,njk->nk", b, nv)
+    length = np.linalg.norm(interp, axis=1)
+    jac /= np.maximum(length, 1e-12)[:, None, None]
+    jac[~good] = 0.0
+    fn = np.cross(e[:, :, 0], e[:, :, 1])
+    fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
+    fn[~good] = interp[~good] / np.maximum(length[~good], 1e-12)[:, None]
+    return fn.reshape(*shape, 3).astype(np.float32), jac.reshape(*shape, 3, 3).astype(np.float32)
 
 
 @dataclasses.dataclass
@@ -125,6 +177,12 @@ class StreamConfig:
     """relative depth tolerance of the shadow test"""
     shadow_map_size: int = 512
     """shadow map resolution per photo (0 disables cast-shadow rejection)"""
+    photo_sampling: str = "filtered"
+    """how a texel samples a photo (fit/kernels/stream.py ``observe``): ``filtered`` (the photo's
+    bilinear filter applied to the model too, evaluated at each tap's surface point: highlights a
+    few pixels wide are not blurred; 4 model evaluations per sample), ``point`` (the nearest
+    pixel, the model at the surface point it sees) or ``bilinear`` (the seed's filter at the texel
+    centre's projection, the model at the centre)"""
     groups: int = 0
     """photo groups per pass (parallelism over photos; 0 = automatic)"""
     photos_per_window: int = 0
@@ -318,6 +376,12 @@ class StreamProblem:
         self.nrm = wp.array(texels.normal, dtype=wp.vec3, device=dev)
         self.tan = wp.array(texels.tangent, dtype=wp.vec3, device=dev)
         self.bit = wp.array(texels.bitangent, dtype=wp.vec3, device=dev)
+        face_nrm = texels.normal if texels.face_normal is None else texels.face_normal
+        jac = np.zeros((n, 3, 3), np.float32) if texels.normal_jacobian is None else texels.normal_jacobian
+        self.tex = stream.TexelFrames()
+        self.tex.pos, self.tex.nrm, self.tex.tan, self.tex.bit = self.pos, self.nrm, self.tan, self.bit
+        self.tex.face_nrm = wp.array(np.ascontiguousarray(face_nrm, np.float32), dtype=wp.vec3, device=dev)
+        self.tex.dn_dp = wp.array(np.ascontiguousarray(jac, np.float32), dtype=wp.mat33, device=dev)
         self.neighbors = wp.array(texels.neighbors, dtype=wp.vec4i, device=dev)
         groups = cfg.groups
         if groups <= 0:
@@ -342,6 +406,10 @@ class StreamProblem:
             raise ConfigError(f"residual_space {cfg.residual_space!r} unknown", fix="use radiance or reflectance")
         self.opt.reflectance_space = 1 if cfg.residual_space == "reflectance" else 0
         self.opt.kahan = 1 if cfg.kahan else 0
+        modes = {"bilinear": 0, "point": 1, "filtered": 2}  # stream.SAMPLING_*
+        if cfg.photo_sampling not in modes:
+            raise ConfigError(f"photo_sampling {cfg.photo_sampling!r} unknown", fix="use filtered, point or bilinear")
+        self.opt.sampling = modes[cfg.photo_sampling]
         self.opt.want_diag = 0
         self.passes = 0
 
@@ -389,7 +457,7 @@ class StreamProblem:
         first = True
         for images, depth, shadow, infos, b, e in self.photos.windows():
             wp.launch(stream.accumulate_kernel, dim=(self.groups, self.n), device=self.device,
-                      inputs=[self.pos, self.nrm, self.tan, self.bit, params, dirn, act, lay.n_params, lay.n_lobes,
+                      inputs=[self.tex, params, dirn, act, lay.n_params, lay.n_lobes,
                               int(lay.anisotropic), images, depth, shadow, infos, b, e, math.ceil((e - b) / self.groups),
                               opt, self.like, self.one],
                       outputs=[self.pf, self.pg, self.ph, self.pst, pdiag])
@@ -421,7 +489,7 @@ class StreamProblem:
         first = True
         for images, depth, shadow, infos, b, e in self.photos.windows():
             wp.launch(stream.accumulate_lm_kernel, dim=(self.groups, self.n), device=self.device,
-                      inputs=[self.pos, self.nrm, self.tan, self.bit, params, act, lay.n_params, lay.n_lobes,
+                      inputs=[self.tex, params, act, lay.n_params, lay.n_lobes,
                               int(lay.anisotropic), images, depth, shadow, infos, b, e, math.ceil((e - b) / self.groups),
                               opt, self.like, self.like_m, self.one],
                       outputs=[self.pf, self.pg, self.pm, self.pst])

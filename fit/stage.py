@@ -73,9 +73,12 @@ def load_photos(capture, frames, device: str | None = None):
 
 
 def build_problem(mesh, bake, frames, images, masks, cfg: FitConfig, device: str):
-    from .problem import PhotoFrame, PhotoSet, StreamProblem, TexelSet
+    from .problem import PhotoFrame, PhotoSet, StreamProblem, TexelSet, surface_derivatives
 
-    texels = TexelSet.from_grid(bake.covered, bake.position, bake.normal, bake.tangent, bake.bitangent)
+    face_normal, normal_jacobian = surface_derivatives(mesh.vertices, mesh.faces, mesh.vertex_normals(),
+                                                       bake.face, bake.bary)
+    texels = TexelSet.from_grid(bake.covered, bake.position, bake.normal, bake.tangent, bake.bitangent,
+                                face_normal, normal_jacobian)
     if texels.n == 0:
         raise InputError("the atlas has no covered texels", fix="rebuild the atlas with a larger resolution")
     photo_frames = [PhotoFrame.from_capture_frame(f) for f in frames]

@@ -2,7 +2,8 @@
 
 One launch covers a range of photos: thread (g, i) takes texel i and loops over photo group g,
 projecting the texel, testing visibility against the photo's depth map and the light's shadow
-map, filtering the photo bilinearly, rejecting grazing / masked / clipped / out-of-frame /
+map, sampling the photo (:func:`observe`: the nearest pixel with the model evaluated at the
+surface point it sees, or the seed's bilinear filter), rejecting grazing / masked / clipped / out-of-frame /
 occluded samples, and accumulating the objective, gradient and curvature terms in registers.
 Each thread writes its partial sums once; :func:`reduce_partials_kernel` adds the groups in a
 fixed order, so results are deterministic (no float atomics). Nothing per (texel, photo) is stored.
@@ -58,6 +59,24 @@ class ImageInfo:
 
 
 @wp.struct
+class TexelFrames:
+    """The texels' surface location space (compact texel index), one struct so kernels take it whole.
+
+    ``face_nrm`` (unit normal of the texel's face) and ``dn_dp`` (derivative of the shading normal
+    along the face, divided by the interpolated normal's length, so that
+    ``normalize(nrm + dn_dp @ dp)`` is the renderer's shading normal at ``pos + dp``) serve the
+    point sampling of :func:`observe`; zero ``dn_dp`` and ``face_nrm = nrm`` describe a flat texel.
+    """
+
+    pos: wp.array(dtype=wp.vec3)
+    nrm: wp.array(dtype=wp.vec3)
+    tan: wp.array(dtype=wp.vec3)
+    bit: wp.array(dtype=wp.vec3)
+    face_nrm: wp.array(dtype=wp.vec3)
+    dn_dp: wp.array(dtype=wp.mat33)
+
+
+@wp.struct
 class SampleOptions:
     """Rejection thresholds and what to accumulate (see FitConfig for the meaning)."""
 
@@ -70,6 +89,9 @@ class SampleOptions:
     want_dhd: int
     full_hessian: int
     kahan: int
+    sampling: int
+    """SAMPLING_BILINEAR (0), SAMPLING_POINT (1) or SAMPLING_FILTERED (2): how a texel samples a
+    photo (see :func:`observe`)."""
     want_diag: int
     """1: also accumulate the Gauss-Newton diagonal D_k = sum (s_c J_c,k)^2 into ``out_diag``
     (the Jacobi preconditioner of CG / L-BFGS); 0 (the default of a zeroed struct): ``out_diag``
@@ -130,53 +152,175 @@ def lit(shadow: wp.array3d(dtype=wp.float32), k: int, info: ImageInfo, p: wp.vec
 
 
 @wp.func
+def depth_tap_ok(depth: wp.array3d(dtype=wp.float32), k: int, x: int, y: int, z: float, tol: float, slack: float):
+    """One depth-map tap sees this surface (masked or empty pixels hold 0 and fail)."""
+    return wp.abs(depth[k, y, x] - z) <= tol * z + slack
+
+
+SAMPLING_BILINEAR = wp.constant(0)
+SAMPLING_POINT = wp.constant(1)
+SAMPLING_FILTERED = wp.constant(2)
+
+
+@wp.func
+def pixel_point(info: ImageInfo, tex: TexelFrames, i: int, x: int, y: int):
+    """Where pixel (x, y)'s centre ray meets texel i's face plane: (point, shading normal, tangent,
+    bitangent). The normal is the interpolated vertex normal there (``dn_dp``), as the renderer's
+    :func:`surface_frame` gives it; a ray nearly parallel to the plane keeps the texel's frame."""
+    p = tex.pos[i]
+    ray = wp.transpose(info.rot) @ wp.vec3((float(x) + 0.5 - info.cx) / info.fx, (float(y) + 0.5 - info.cy) / info.fy, 1.0)
+    ng = tex.face_nrm[i]
+    den = wp.dot(ray, ng)
+    if wp.abs(den) <= 1.0e-3 * wp.length(ray):
+        return p, tex.nrm[i], tex.tan[i], tex.bit[i]
+    q = info.center + ray * (wp.dot(p - info.center, ng) / den)
+    nrm = wp.normalize(tex.nrm[i] + tex.dn_dp[i] @ (q - p))
+    tan = wp.normalize(tex.tan[i] - nrm * wp.dot(nrm, tex.tan[i]))
+    return q, nrm, tan, wp.cross(nrm, tan)
+
+
+@wp.func
 def observe(images: wp.array3d(dtype=Any), depth: wp.array3d(dtype=wp.float32),
             shadow: wp.array3d(dtype=wp.float32), info: ImageInfo, k: int,
-            p: wp.vec3, nrm: wp.vec3, tan: wp.vec3, bit: wp.vec3, opt: SampleOptions):
-    """The distribution step for one (texel, photo): (ok, radiance y, weight w, local u, local v)."""
+            tex: TexelFrames, i: int, opt: SampleOptions):
+    """The distribution step for one (texel i, photo k).
+
+    Returns (ok, radiance y, weight w, local light u, local view v, xs, ys): the photo's value,
+    exposure * E * cos(theta_i) and the local directions at the texel centre (at the pixel's
+    surface point for point sampling), and the centre's continuous pixel coordinates (pixel
+    centres at integers), which :func:`sample_model` needs for filtered sampling.
+
+    How the photo is sampled (``opt.sampling``):
+
+    * bilinear: the seed's filter, the photo interpolated at the texel centre's projection, the
+      model evaluated at the centre. Exact for radiance linear across the 2x2 taps; a highlight a
+      few pixels wide is blurred, which a narrow lobe then fits as a broader, dimmer one.
+    * point: the pixel nearest the projection, the model evaluated at the surface point that
+      pixel's centre sees. No blur, but the sample point wanders up to half a pixel from the
+      texel centre, which adds scatter where parameters change across a texel a pixel or two wide.
+    * filtered: the same bilinear filter applied to the photo and to the model, evaluated at each
+      tap's surface point (:func:`sample_model`): exact for any radiance the texel's parameters
+      describe across the taps, 4 model evaluations per sample.
+    """
     zero3 = wp.vec3(0.0)
+    p = tex.pos[i]
+    nrm = tex.nrm[i]
+    tan = tex.tan[i]
+    bit = tex.bit[i]
     pc = info.rot @ p + info.trans
     if pc[2] <= 0.0:
-        return False, zero3, zero3, zero3, zero3
+        return False, zero3, zero3, zero3, zero3, 0.0, 0.0
     xs = info.fx * pc[0] / pc[2] + info.cx - 0.5
     ys = info.fy * pc[1] / pc[2] + info.cy - 0.5
     if xs < 0.0 or ys < 0.0 or xs >= float(info.width - 1) or ys >= float(info.height - 1):
-        return False, zero3, zero3, zero3, zero3
+        return False, zero3, zero3, zero3, zero3, 0.0, 0.0
     vdir = wp.normalize(info.center - p)
     cos_v = wp.dot(vdir, nrm)
     if cos_v < opt.cos_view_min:
-        return False, zero3, zero3, zero3, zero3
+        return False, zero3, zero3, zero3, zero3, 0.0, 0.0
+    point = opt.sampling == SAMPLING_POINT and info.depth_is_mask == 0
+    x0 = int(xs)
+    y0 = int(ys)
+    if point:
+        x0 = int(xs + 0.5)
+        y0 = int(ys + 0.5)
+        p, nrm, tan, bit = pixel_point(info, tex, i, x0, y0)
+        pc = info.rot @ p + info.trans
+        vdir = wp.normalize(info.center - p)
+        cos_v = wp.dot(vdir, nrm)
+        if cos_v < opt.cos_view_min:
+            return False, zero3, zero3, zero3, zero3, 0.0, 0.0
     wi, e_int, dist = incident_light(info.light_kind, info.light_vec, info.light_intensity, p)
     cos_i = wp.dot(wi, nrm)
     if cos_i < opt.cos_light_min:
-        return False, zero3, zero3, zero3, zero3
-    x0 = int(xs)
-    y0 = int(ys)
+        return False, zero3, zero3, zero3, zero3, 0.0, 0.0
     if info.depth_is_mask != 0:
         if not unmasked(depth, k, xs, ys):
-            return False, zero3, zero3, zero3, zero3
+            return False, zero3, zero3, zero3, zero3, 0.0, 0.0
     else:
-        # a tap up to ~1.5 px away on a surface tilted by theta lies (z / fx) tan(theta) deeper per
-        # pixel; without this slack small photos reject every sample tilted past ~30 degrees.
-        # tan is capped at 4 (76 degrees) so silhouettes still reject the background.
-        tan_v = wp.sqrt(wp.max(1.0 - cos_v * cos_v, 0.0)) / cos_v
-        slack = 1.5 * pc[2] / info.fx * wp.min(tan_v, 4.0)
-        if not depth_consistent(depth, k, x0, y0, pc[2], opt.depth_tol, slack):
-            return False, zero3, zero3, zero3, zero3
+        # a tap up to ~1.5 px away (0.5 px for a point sample's own pixel) on a surface tilted by
+        # theta lies (z / fx) tan(theta) deeper per pixel; without this slack small photos reject
+        # every sample tilted past ~30 degrees. tan is capped at 4 (76 degrees) so silhouettes
+        # still reject the background.
+        tan_v = wp.min(wp.sqrt(wp.max(1.0 - cos_v * cos_v, 0.0)) / cos_v, 4.0)
+        if point:
+            if not depth_tap_ok(depth, k, x0, y0, pc[2], opt.depth_tol, 0.5 * pc[2] / info.fx * tan_v):
+                return False, zero3, zero3, zero3, zero3, 0.0, 0.0
+        else:
+            if not depth_consistent(depth, k, x0, y0, pc[2], opt.depth_tol, 1.5 * pc[2] / info.fx * tan_v):
+                return False, zero3, zero3, zero3, zero3, 0.0, 0.0
     if not lit(shadow, k, info, p, opt.shadow_tol):
-        return False, zero3, zero3, zero3, zero3
+        return False, zero3, zero3, zero3, zero3, 0.0, 0.0
+    y = wp.vec3(0.0)
+    if point:
+        y = wp.vec3(images[k, y0, x0])
+        if wp.max(y[0], wp.max(y[1], y[2])) >= info.saturation:
+            return False, zero3, zero3, zero3, zero3, 0.0, 0.0
+    else:
+        fx = xs - float(x0)
+        fy = ys - float(y0)
+        c00 = wp.vec3(images[k, y0, x0])
+        c01 = wp.vec3(images[k, y0, x0 + 1])
+        c10 = wp.vec3(images[k, y0 + 1, x0])
+        c11 = wp.vec3(images[k, y0 + 1, x0 + 1])
+        tapmax = wp.max(wp.max(c00, c01), wp.max(c10, c11))
+        if wp.max(tapmax[0], wp.max(tapmax[1], tapmax[2])) >= info.saturation:
+            return False, zero3, zero3, zero3, zero3, 0.0, 0.0
+        y = (1.0 - fy) * ((1.0 - fx) * c00 + fx * c01) + fy * ((1.0 - fx) * c10 + fx * c11)
+    w = info.exposure * cos_i * e_int
+    return True, y, w, to_local(wi, tan, bit, nrm), to_local(vdir, tan, bit, nrm), xs, ys
+
+
+@wp.func
+def sample_model(pv: Any, dv: Any, n_lobes: int, aniso: int, want_hm: int, info: ImageInfo, tex: TexelFrames,
+                 i: int, xs: float, ys: float, w: wp.vec3, u: wp.vec3, v: wp.vec3, opt: SampleOptions, one: Any):
+    """The model side of one sample: (weight W, model M, dM/dp per channel, d^T (Hess M) d).
+
+    The residual is W M - y (radiance space). Bilinear and point sampling: W = w and M the
+    texel's BRDF at (u, v). Filtered sampling: the photo's bilinear filter applied to the model,
+    W = sum_t b_t w_t and M = sum_t b_t w_t m_t / W over the four taps t (bilinear weights b_t,
+    each tap's own surface point, light and view), so W M is the filtered radiance; M's
+    derivatives are the same weighted means, since W does not depend on the parameters.
+    """
+    uc = to_compute3(u, one)
+    vc = to_compute3(v, one)
+    zero = one - one
+    if opt.sampling != SAMPLING_FILTERED or info.depth_is_mask != 0:
+        m, jr, jg, jb = lafortune_eval(pv, n_lobes, aniso, uc, vc, one)
+        hm = type(uc)(zero, zero, zero)
+        if want_hm != 0:
+            hm = lafortune_dhd(pv, dv, n_lobes, aniso, uc, vc, one)
+        return to_compute3(w, one), m, jr, jg, jb, hm
+    x0 = int(xs)
+    y0 = int(ys)
     fx = xs - float(x0)
     fy = ys - float(y0)
-    c00 = wp.vec3(images[k, y0, x0])
-    c01 = wp.vec3(images[k, y0, x0 + 1])
-    c10 = wp.vec3(images[k, y0 + 1, x0])
-    c11 = wp.vec3(images[k, y0 + 1, x0 + 1])
-    tapmax = wp.max(wp.max(c00, c01), wp.max(c10, c11))
-    if wp.max(tapmax[0], wp.max(tapmax[1], tapmax[2])) >= info.saturation:
-        return False, zero3, zero3, zero3, zero3
-    y = (1.0 - fy) * ((1.0 - fx) * c00 + fx * c01) + fy * ((1.0 - fx) * c10 + fx * c11)
-    w = info.exposure * cos_i * e_int
-    return True, y, w, to_local(wi, tan, bit, nrm), to_local(vdir, tan, bit, nrm)
+    wsum = type(uc)(zero, zero, zero)
+    msum = type(uc)(zero, zero, zero)
+    hsum = type(uc)(zero, zero, zero)
+    jr = pv * zero
+    jg = pv * zero
+    jb = pv * zero
+    for t in range(4):
+        dx = t % 2
+        dy = t // 2
+        b = (fx * float(dx) + (1.0 - fx) * float(1 - dx)) * (fy * float(dy) + (1.0 - fy) * float(1 - dy))
+        p, nrm, tan, bit = pixel_point(info, tex, i, x0 + dx, y0 + dy)
+        wi, e_int, dist = incident_light(info.light_kind, info.light_vec, info.light_intensity, p)
+        wt = to_compute3((b * info.exposure * wp.max(wp.dot(wi, nrm), 0.0)) * e_int, one)
+        ut = to_compute3(to_local(wi, tan, bit, nrm), one)
+        vt = to_compute3(to_local(wp.normalize(info.center - p), tan, bit, nrm), one)
+        mt, jrt, jgt, jbt = lafortune_eval(pv, n_lobes, aniso, ut, vt, one)
+        wsum = wsum + wt
+        msum = msum + wp.cw_mul(wt, mt)
+        jr = jr + wt[0] * jrt
+        jg = jg + wt[1] * jgt
+        jb = jb + wt[2] * jbt
+        if want_hm != 0:
+            hsum = hsum + wp.cw_mul(wt, lafortune_dhd(pv, dv, n_lobes, aniso, ut, vt, one))
+    tiny = type(one)(1.0e-30)  # a colour channel the light does not emit: M = 0 there, not NaN
+    inv = type(uc)(one / wp.max(wsum[0], tiny), one / wp.max(wsum[1], tiny), one / wp.max(wsum[2], tiny))
+    return wsum, wp.cw_mul(msum, inv), jr * inv[0], jg * inv[1], jb * inv[2], wp.cw_mul(hsum, inv)
 
 
 @wp.func
@@ -209,7 +353,7 @@ def channel_residual(m: Any, yc: Any, wc: Any, jr: Any, jg: Any, jb: Any, c: int
 
 
 @wp.func
-def trace_stats(w: wp.vec3, m: Any, y: wp.vec3, c: int):
+def trace_stats(w: Any, m: Any, y: wp.vec3, c: int):
     """(1/3 sample, r^2, |r|, |y|) of channel c in radiance space, in fp64, for the trace."""
     rr = wp.float64(w[c]) * wp.float64(m[c]) - wp.float64(y[c])
     return wp.vec4d(wp.float64(1.0 / 3.0), rr * rr, wp.abs(rr), wp.abs(wp.float64(y[c])))
@@ -217,8 +361,7 @@ def trace_stats(w: wp.vec3, m: Any, y: wp.vec3, c: int):
 
 @wp.kernel
 def accumulate_kernel(
-    pos: wp.array(dtype=wp.vec3), nrm: wp.array(dtype=wp.vec3), tan: wp.array(dtype=wp.vec3),
-    bit: wp.array(dtype=wp.vec3), params: wp.array2d(dtype=Any), direction: wp.array2d(dtype=Any),
+    tex: TexelFrames, params: wp.array2d(dtype=Any), direction: wp.array2d(dtype=Any),
     active: wp.array(dtype=wp.int32), n_params: int, n_lobes: int, aniso: int,
     images: wp.array3d(dtype=Any), depth: wp.array3d(dtype=wp.float32),
     shadow: wp.array3d(dtype=wp.float32), infos: wp.array(dtype=ImageInfo),
@@ -249,14 +392,12 @@ def accumulate_kernel(
         k1 = wp.min(k0 + per_group, img_end)
         for k in range(k0, k1):
             info = infos[k]
-            ok, y, w, u, v = observe(images, depth, shadow, info, k, pos[i], nrm[i], tan[i], bit[i], opt)
+            ok, y, w, u, v, xs, ys = observe(images, depth, shadow, info, k, tex, i, opt)
             if ok:
-                m, jr, jg, jb = lafortune_eval(pv, n_lobes, aniso, to_compute3(u, one), to_compute3(v, one), one)
+                want_hm = opt.want_dhd * opt.full_hessian
+                wc, m, jr, jg, jb, hm = sample_model(pv, dv, n_lobes, aniso, want_hm, info, tex, i, xs, ys, w, u, v,
+                                                     opt, one)
                 yc = to_compute3(y, one)
-                wc = to_compute3(w, one)
-                hm = type(yc)(zero, zero, zero)
-                if opt.want_dhd != 0 and opt.full_hessian != 0:
-                    hm = lafortune_dhd(pv, dv, n_lobes, aniso, to_compute3(u, one), to_compute3(v, one), one)
                 for c in range(3):
                     r, s, jc = channel_residual(m, yc, wc, jr, jg, jb, c, opt.reflectance_space, one)
                     term = type(one)(0.5) * r * r
@@ -284,7 +425,7 @@ def accumulate_kernel(
                         dhd = dhd + jd * jd
                         if opt.full_hessian != 0:
                             dhd = dhd + r * s * hm[c]
-                    st = st + trace_stats(w, m, y, c)
+                    st = st + trace_stats(wc, m, y, c)
     out_f[g, i] = f
     out_g[g, i] = grad
     out_dhd[g, i] = dhd
@@ -295,8 +436,7 @@ def accumulate_kernel(
 
 @wp.kernel
 def accumulate_lm_kernel(
-    pos: wp.array(dtype=wp.vec3), nrm: wp.array(dtype=wp.vec3), tan: wp.array(dtype=wp.vec3),
-    bit: wp.array(dtype=wp.vec3), params: wp.array2d(dtype=Any),
+    tex: TexelFrames, params: wp.array2d(dtype=Any),
     active: wp.array(dtype=wp.int32), n_params: int, n_lobes: int, aniso: int,
     images: wp.array3d(dtype=Any), depth: wp.array3d(dtype=wp.float32),
     shadow: wp.array3d(dtype=wp.float32), infos: wp.array(dtype=ImageInfo),
@@ -316,18 +456,17 @@ def accumulate_lm_kernel(
         k1 = wp.min(k0 + per_group, img_end)
         for k in range(k0, k1):
             info = infos[k]
-            ok, y, w, u, v = observe(images, depth, shadow, info, k, pos[i], nrm[i], tan[i], bit[i], opt)
+            ok, y, w, u, v, xs, ys = observe(images, depth, shadow, info, k, tex, i, opt)
             if ok:
-                m, jr, jg, jb = lafortune_eval(pv, n_lobes, aniso, to_compute3(u, one), to_compute3(v, one), one)
+                wc, m, jr, jg, jb, hm = sample_model(pv, pv, n_lobes, aniso, 0, info, tex, i, xs, ys, w, u, v, opt, one)
                 yc = to_compute3(y, one)
-                wc = to_compute3(w, one)
                 for c in range(3):
                     r, s, jc = channel_residual(m, yc, wc, jr, jg, jb, c, opt.reflectance_space, one)
                     f = f + type(one)(0.5) * r * r
                     sj = s * jc
                     grad = grad + r * sj
                     jtj = jtj + wp.outer(sj, sj)
-                    st = st + trace_stats(w, m, y, c)
+                    st = st + trace_stats(wc, m, y, c)
     out_f[g, i] = f
     out_g[g, i] = grad
     out_jtj[g, i] = jtj
@@ -376,8 +515,7 @@ def reduce_vec_partials_kernel(pv: wp.array2d(dtype=Any), n_groups: int, accumul
 
 
 @wp.kernel
-def initial_guess_kernel(pos: wp.array(dtype=wp.vec3), nrm: wp.array(dtype=wp.vec3), tan: wp.array(dtype=wp.vec3),
-                         bit: wp.array(dtype=wp.vec3), images: wp.array3d(dtype=Any),
+def initial_guess_kernel(tex: TexelFrames, images: wp.array3d(dtype=Any),
                          depth: wp.array3d(dtype=wp.float32), shadow: wp.array3d(dtype=wp.float32),
                          infos: wp.array(dtype=ImageInfo), img_begin: int, img_end: int, opt: SampleOptions,
                          rank: int, low: wp.array(dtype=wp.vec3), high: wp.array(dtype=wp.vec3),
@@ -395,7 +533,7 @@ def initial_guess_kernel(pos: wp.array(dtype=wp.vec3), nrm: wp.array(dtype=wp.ve
     hi = high[i]
     n = count[i]
     for k in range(img_begin, img_end):
-        ok, y, w, u, v = observe(images, depth, shadow, infos[k], k, pos[i], nrm[i], tan[i], bit[i], opt)
+        ok, y, w, u, v, xs, ys = observe(images, depth, shadow, infos[k], k, tex, i, opt)
         if ok:
             n = n + 1
             for c in range(3):
