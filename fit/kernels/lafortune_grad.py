@@ -54,16 +54,14 @@ def lobe_base(p: Any, o: int, aniso: int, w: Any):
 
 
 @wp.func
-def lafortune_eval(p: Any, n_lobes: int, aniso: int, u: Any, v: Any, one: Any):
-    """Model value m (RGB) and the Jacobian rows dm_r/dp, dm_g/dp, dm_b/dp."""
+def lobe_features(p: Any, n_lobes: int, aniso: int, u: Any, v: Any, one: Any):
+    """What the model and its Jacobian need from the directions, per lobe j at column offset o:
+    f[o] = L_j, f[o + 3 + k] = dL_j/dC_j,k (isotropic: d/dc_xy, d/dc_z), f[o + stride - 1] = dL_j/dn_j;
+    other entries 0. m and J are linear in f (:func:`model_from_features`), so a weighted mean of
+    features over several directions gives the weighted mean model and Jacobian exactly (the
+    filtered photo sampling of fit/kernels/stream.py)."""
     zero = one - one
-    jr = p * zero
-    jg = p * zero
-    jb = p * zero
-    m = type(u)(p[0], p[1], p[2])
-    jr[0] = one
-    jg[1] = one
-    jb[2] = one
+    f = p * zero
     stride = 6 + aniso
     w = lobe_weights(u, v)
     for j in range(n_lobes):
@@ -81,28 +79,47 @@ def lafortune_eval(p: Any, n_lobes: int, aniso: int, u: Any, v: Any, one: Any):
             if capped:
                 dlds = zero
                 ls = zero  # d lobe / dn = lobe ln s becomes 0 on the flat cap
-            m = m + type(u)(p[o], p[o + 1], p[o + 2]) * lobe
-            jr[o] = lobe
-            jg[o + 1] = lobe
-            jb[o + 2] = lobe
+            f[o] = lobe
             if aniso != 0:
                 for k in range(3):
-                    jr[o + 3 + k] = p[o] * dlds * w[k]
-                    jg[o + 3 + k] = p[o + 1] * dlds * w[k]
-                    jb[o + 3 + k] = p[o + 2] * dlds * w[k]
+                    f[o + 3 + k] = dlds * w[k]
             else:
-                wxy = w[0] + w[1]
-                jr[o + 3] = p[o] * dlds * wxy
-                jg[o + 3] = p[o + 1] * dlds * wxy
-                jb[o + 3] = p[o + 2] * dlds * wxy
-                jr[o + 4] = p[o] * dlds * w[2]
-                jg[o + 4] = p[o + 1] * dlds * w[2]
-                jb[o + 4] = p[o + 2] * dlds * w[2]
-            dn = lobe * ls
-            jr[o + stride - 1] = p[o] * dn
-            jg[o + stride - 1] = p[o + 1] * dn
-            jb[o + stride - 1] = p[o + 2] * dn
+                f[o + 3] = dlds * (w[0] + w[1])
+                f[o + 4] = dlds * w[2]
+            f[o + stride - 1] = lobe * ls
+    return f
+
+
+@wp.func
+def model_from_features(p: Any, f: Any, n_lobes: int, aniso: int, one: Any):
+    """Model value m (RGB) and the Jacobian rows dm_r/dp, dm_g/dp, dm_b/dp from lobe features."""
+    zero = one - one
+    jr = p * zero
+    jg = p * zero
+    jb = p * zero
+    m = wp.vector(p[0], p[1], p[2])
+    jr[0] = one
+    jg[1] = one
+    jb[2] = one
+    stride = 6 + aniso
+    for j in range(n_lobes):
+        o = 3 + j * stride
+        lobe = f[o]
+        m = m + wp.vector(p[o], p[o + 1], p[o + 2]) * lobe
+        jr[o] = lobe
+        jg[o + 1] = lobe
+        jb[o + 2] = lobe
+        for k in range(3, stride):
+            jr[o + k] = p[o] * f[o + k]
+            jg[o + k] = p[o + 1] * f[o + k]
+            jb[o + k] = p[o + 2] * f[o + k]
     return m, jr, jg, jb
+
+
+@wp.func
+def lafortune_eval(p: Any, n_lobes: int, aniso: int, u: Any, v: Any, one: Any):
+    """Model value m (RGB) and the Jacobian rows dm_r/dp, dm_g/dp, dm_b/dp."""
+    return model_from_features(p, lobe_features(p, n_lobes, aniso, u, v, one), n_lobes, aniso, one)
 
 
 @wp.func

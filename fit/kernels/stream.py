@@ -21,7 +21,7 @@ from typing import Any
 
 import warp as wp
 
-from .lafortune_grad import lafortune_dhd, lafortune_eval
+from .lafortune_grad import lafortune_dhd, lafortune_eval, lobe_features, model_from_features
 from .shading import incident_light, to_local
 
 
@@ -279,8 +279,10 @@ def sample_model(pv: Any, dv: Any, n_lobes: int, aniso: int, want_hm: int, info:
     The residual is W M - y (radiance space). Bilinear and point sampling: W = w and M the
     texel's BRDF at (u, v). Filtered sampling: the photo's bilinear filter applied to the model,
     W = sum_t b_t w_t and M = sum_t b_t w_t m_t / W over the four taps t (bilinear weights b_t,
-    each tap's own surface point, light and view), so W M is the filtered radiance; M's
-    derivatives are the same weighted means, since W does not depend on the parameters.
+    each tap's own surface point, light and view), so W M is the filtered radiance. w_t is the
+    light's RGB intensity times a scalar a_t (exposure, cosine, falloff), so M = sum_t omega_t m_t
+    with omega_t = b_t a_t / sum b a the same for every channel: the taps' lobe features are
+    averaged (:func:`lobe_features`) and M and its Jacobian assembled once, exactly.
     """
     uc = to_compute3(u, one)
     vc = to_compute3(v, one)
@@ -295,32 +297,26 @@ def sample_model(pv: Any, dv: Any, n_lobes: int, aniso: int, want_hm: int, info:
     y0 = int(ys)
     fx = xs - float(x0)
     fy = ys - float(y0)
-    wsum = type(uc)(zero, zero, zero)
-    msum = type(uc)(zero, zero, zero)
+    asum = float(0.0)
+    feat = pv * zero
     hsum = type(uc)(zero, zero, zero)
-    jr = pv * zero
-    jg = pv * zero
-    jb = pv * zero
     for t in range(4):
         dx = t % 2
         dy = t // 2
         b = (fx * float(dx) + (1.0 - fx) * float(1 - dx)) * (fy * float(dy) + (1.0 - fy) * float(1 - dy))
         p, nrm, tan, bit = pixel_point(info, tex, i, x0 + dx, y0 + dy)
-        wi, e_int, dist = incident_light(info.light_kind, info.light_vec, info.light_intensity, p)
-        wt = to_compute3((b * info.exposure * wp.max(wp.dot(wi, nrm), 0.0)) * e_int, one)
+        wi, falloff, dist = incident_light(info.light_kind, info.light_vec, wp.vec3(1.0), p)
+        a = b * info.exposure * wp.max(wp.dot(wi, nrm), 0.0) * falloff[0]
         ut = to_compute3(to_local(wi, tan, bit, nrm), one)
         vt = to_compute3(to_local(wp.normalize(info.center - p), tan, bit, nrm), one)
-        mt, jrt, jgt, jbt = lafortune_eval(pv, n_lobes, aniso, ut, vt, one)
-        wsum = wsum + wt
-        msum = msum + wp.cw_mul(wt, mt)
-        jr = jr + wt[0] * jrt
-        jg = jg + wt[1] * jgt
-        jb = jb + wt[2] * jbt
+        ac = type(one)(a)
+        feat = feat + ac * lobe_features(pv, n_lobes, aniso, ut, vt, one)
         if want_hm != 0:
-            hsum = hsum + wp.cw_mul(wt, lafortune_dhd(pv, dv, n_lobes, aniso, ut, vt, one))
-    tiny = type(one)(1.0e-30)  # a colour channel the light does not emit: M = 0 there, not NaN
-    inv = type(uc)(one / wp.max(wsum[0], tiny), one / wp.max(wsum[1], tiny), one / wp.max(wsum[2], tiny))
-    return wsum, wp.cw_mul(msum, inv), jr * inv[0], jg * inv[1], jb * inv[2], wp.cw_mul(hsum, inv)
+            hsum = hsum + ac * lafortune_dhd(pv, dv, n_lobes, aniso, ut, vt, one)
+        asum = asum + a
+    inv = one / type(one)(wp.max(asum, 1.0e-30))  # every tap unlit: M = the diffuse part, W = 0
+    m, jr, jg, jb = model_from_features(pv, feat * inv, n_lobes, aniso, one)
+    return to_compute3(info.light_intensity * asum, one), m, jr, jg, jb, hsum * inv
 
 
 @wp.func
