@@ -45,6 +45,10 @@ from texstream.pipelines.errors import InputError
 from .mesh import SurfaceMesh
 from .mesh_io import _chmod_like_open
 
+# nothing here is differentiated: skipping Warp's adjoint code generation roughly halves
+# compile time
+wp.set_module_options({"enable_backward": False})
+
 _NO_OWNER = 2147483647  # int32 max: "unclaimed" for atomic_min
 
 

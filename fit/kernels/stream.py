@@ -24,6 +24,10 @@ import warp as wp
 from .lafortune_grad import lafortune_dhd, lafortune_eval, lobe_features, model_from_features
 from .shading import incident_light, to_local
 
+# no kernel here is differentiated (the fit writes its own derivatives): skipping Warp's adjoint
+# code generation roughly halves compile time
+wp.set_module_options({"enable_backward": False})
+
 
 @wp.struct
 class ImageInfo:
@@ -300,7 +304,10 @@ def sample_model(pv: Any, dv: Any, n_lobes: int, aniso: int, want_hm: int, info:
     asum = float(0.0)
     feat = pv * zero
     hsum = type(uc)(zero, zero, zero)
-    for t in range(4):
+    # a run-time trip count (4 here): Warp unrolls loops over literal ranges, and four inlined
+    # copies of the tap (lobe features, optionally d^T H d) made the CPU kernels compile 30% slower
+    n_taps = opt.sampling + 2
+    for t in range(n_taps):
         dx = t % 2
         dy = t // 2
         b = (fx * float(dx) + (1.0 - fx) * float(1 - dx)) * (fy * float(dy) + (1.0 - fy) * float(1 - dy))

@@ -15,6 +15,10 @@ import warp as wp
 from ..kernels import optim_kernels as K
 from .base import FitState
 
+# no kernel here is differentiated (the fit writes its own derivatives): skipping Warp's adjoint
+# code generation roughly halves compile time
+wp.set_module_options({"enable_backward": False})
+
 
 class ConjugateGradient:
     name = "cg"
