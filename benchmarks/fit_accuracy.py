@@ -38,7 +38,8 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=100)
     ap.add_argument("--smooth", type=float, default=0.0)
     ap.add_argument("--holdout-turn", type=float, default=3.0)
-    ap.add_argument("--photo-sampling", default="point", help="point or bilinear (StreamConfig.photo_sampling)")
+    ap.add_argument("--photo-sampling", default="filtered", choices=("filtered", "point", "bilinear"),
+                    help="StreamConfig.photo_sampling")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--out", default="out/accuracy")
     a = ap.parse_args()
