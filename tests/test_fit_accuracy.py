@@ -1,8 +1,10 @@
 """Fit accuracy against ground truth on synthetic captures (issue 3's targets), CPU and CUDA.
 
-The capture is the sphere scene made dense in photos (480 views) and small in texels (800), so a
-fair share of texels sees its highlight in five or more photos; held-out views sit between the
-training views (cameras turned 7 degrees about the vertical axis).
+The sphere scene is made dense in photos (480 views) and small in texels (800), so a fair share of
+texels sees its highlight in five or more photos; held-out views sit between the training views
+(cameras turned 7 degrees about the vertical axis). The small ornament (scale 0.01: 968 texels,
+its full 1,760 photos at 160x160) has three materials, narrow lobes (n = 60, 200) and material edges.
+Both use the default filtered photo sampling (fit/kernels/stream.py ``observe``).
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ import numpy as np
 import pytest
 
 from texstream.capture.synth import SynthConfig, render_scene
-from texstream.fit.accuracy import highlight_counts
+from texstream.fit.accuracy import highlight_counts, interior_texels, relative_errors
 from texstream.fit.fitter import FitConfig, run_fit
 from texstream.fit.penalties import PenaltyConfig
 from texstream.fit.stage import build_problem, heldout_psnr, params_to_grid
@@ -36,21 +38,56 @@ def test_sphere_fit_meets_the_accuracy_targets(sphere, device):
     res = run_fit(prob, cfg)
     grid = params_to_grid(res, prob, train.bake)
     _, held_psnr = heldout_psnr(train.mesh, grid, res.layout, held.frames, held.images, held.masks, device)
-    # issue target 45 dB on noise-free float photos (measured 61.7 dB on the CPU)
+    # issue target 45 dB on noise-free float photos (measured 77.4 dB on the CPU)
     assert held_psnr >= 45.0, held_psnr
     gt = train.params.reshape(-1, train.params.shape[-1])[prob.texels.grid_index]
     seen = res.samples > 0
     rel = np.abs(res.params - gt) / np.maximum(np.abs(gt), 1e-9)
-    # diffuse albedo: target 1% (measured median 0.03%, p90 0.08%)
+    # diffuse albedo: target 1% (measured median 0.08%, p90 0.17%)
     assert np.percentile(rel[seen, 0:3], 90) < 0.01
     hi = seen & (highlight_counts(train.frames, prob.texels.position, prob.texels.normal, gt,
                                    res.layout.lobe_offset(0)) >= 5)
     assert hi.sum() >= 50  # 120 of 800 texels here
     o = res.layout.lobe_offset(0)
     # specular albedo 3% and exponent 5% (issue targets), as medians over the highlight texels:
-    # measured 1.2% and 1.2%. Single texels scatter more (rho_s p90 12%): with five highlight
+    # measured 0.06% and 0.04%. Single texels scatter more (rho_s p90 13%): with five highlight
     # samples rho_s trades against c_z (scaling c_z by k scales the peak by k^n), which the
-    # photos barely see (held-out radiance stays at 60 dB); the closing note reports the spread.
+    # photos barely see (held-out radiance stays at 77 dB); the README reports the spread.
+    assert np.median(rel[hi, o:o + 3]) < 0.03
+    assert np.median(rel[hi, o + 5]) < 0.05
+    assert np.all(np.isfinite(res.params))
+
+
+ORNAMENT = dict(scale=0.01, photos=1760, image_size=160, progress=False, device=SCENE_DEVICE)
+
+
+def test_small_ornament_fit_meets_the_accuracy_targets(device):
+    # the full 1,760 photos: with 880 the held-out views fall to 38 dB and only 81 texels see their
+    # highlight 5 times (the lobes are narrow); ~75 s on the 2-core CPU, most of it rendering and LM
+    train = render_scene("ornament", SynthConfig(**ORNAMENT))
+    held = render_scene("ornament", SynthConfig(**{**ORNAMENT, "photos": 8}, azimuth_offset=3.0))
+    cfg = FitConfig(optimizer="lm", max_iterations=40, sync_every=1000)
+    prob = build_problem(train.mesh, train.bake, train.frames, train.images, train.masks, cfg, device)
+    res = run_fit(prob, cfg)
+    grid = params_to_grid(res, prob, train.bake)
+    _, held_psnr = heldout_psnr(train.mesh, grid, res.layout, held.frames, held.images, held.masks, device)
+    # issue target 45 dB (measured 52.3 dB after 60 iterations, benchmarks/fit_accuracy.py)
+    assert held_psnr >= 45.0, held_psnr
+    gt = train.params.reshape(-1, train.params.shape[-1])[prob.texels.grid_index]
+    seen = res.samples > 0
+    rel = relative_errors(res.params, gt)
+    material = train.material_id.reshape(-1)[prob.texels.grid_index]
+    interior = seen & interior_texels(material, prob.texels.neighbors)
+    # diffuse 1% on texels inside a material (measured median 0.08%, p90 0.25%); texels on a material
+    # edge fit photos that blend two BRDFs (the renderer's bilinear texture lookup) and miss (p90 15%)
+    assert np.percentile(rel[interior, 0:3], 90) < 0.01
+    o = res.layout.lobe_offset(0)
+    # white texels have no lobe (rho_s = 0): no relative error to speak of
+    hi = seen & (highlight_counts(train.frames, prob.texels.position, prob.texels.normal, gt, o) >= 5) \
+        & (gt[:, o:o + 3].max(axis=1) > 0)
+    assert hi.sum() >= 200  # 326 of 968 texels
+    # specular albedo 3% and exponent 5% as medians over highlight texels (measured 2.6% and 0.68%;
+    # with the seed's bilinear sampling 5.6% and 1.3%); tails in the README
     assert np.median(rel[hi, o:o + 3]) < 0.03
     assert np.median(rel[hi, o + 5]) < 0.05
     assert np.all(np.isfinite(res.params))
