@@ -43,7 +43,8 @@ def test_auto_is_poisson_with_hull_and_says_why(temple):
     assert s["source"] == "sfm"
     assert "known cameras" in s["reason"] and "visual hull" in s["reason"]
     tri = s["triangulation"]
-    # measured 4214 points (SIFT peak threshold 0.002, two-view tracks kept); the Poisson minimum is 200
+    # measured 4215 points (SIFT peak threshold 0.002, two-view tracks kept; 4200-4224 over RANSAC
+    # seeds 0-7), median error 0.20 px; the Poisson minimum is 200
     assert tri["points"] > 2000 and tri["median_reprojection_error_px"] < 0.5
 
 
@@ -57,7 +58,8 @@ def test_triangulated_points_lie_in_the_readme_box_with_outward_normals(temple):
     axis_pt = 0.5 * (LO + HI)
     radial = p - axis_pt
     radial[:, 1] = 0  # y is the temple's vertical axis (the ring of cameras goes round it)
-    # most points are on the outer walls and columns; recesses and the roof make the rest (measured 0.83)
+    # most points are on the outer walls and columns; recesses and the roof make the rest (measured
+    # 0.818-0.820 over RANSAC seeds 0-7)
     assert np.mean(np.einsum("ij,ij->i", n, radial) > 0) > 0.7
 
 
@@ -98,7 +100,16 @@ def test_density_atlas_gives_every_face_texels_and_evens_texel_size(temple, devi
     # before, 105 faces (uniform) and 405 (density) had no texel; now none.
     assert uni.faces_without_texels == 0 and den.faces_without_texels == 0
     # 16 views on one ring: faces seen from above or obliquely get few pixels, so a uniform atlas's
-    # texel size varies widely (measured p90/p10 2.20, log2 std 0.74 octave); the density atlas
-    # evens it (measured 1.24, 0.30 octave)
-    assert s_uni["p90_over_p10"] > 1.6
-    assert s_den["p90_over_p10"] < 1.5 and s_den["log2_std"] < 0.6 * s_uni["log2_std"]
+    # texel size varies widely; the density atlas evens it. The mesh is reproducible (one SIFT
+    # extraction thread, triangulate.py): uniform p90/p10 2.16, log2 std 0.69 octave; density 1.25,
+    # 0.38. Figures vary with the mesh, so the bounds hold for each of 12 equally valid meshes (RANSAC
+    # seeds 0-7, and 6 runs of the former multi-threaded extraction, which gave 4 distinct meshes):
+    # uniform p90/p10 2.16-2.30, density 1.23-1.28, their ratio 0.55-0.58.
+    assert s_uni["p90_over_p10"] > 1.8
+    assert s_den["p90_over_p10"] < 1.45 and s_den["p90_over_p10"] < 0.7 * s_uni["p90_over_p10"]
+    # The log2 std is not a quantile: 0.8-1.9% of the area is seen only at grazing angles (clipped to
+    # the lowest density weight, 1/64, yet 2-7.5 octaves below the median texel size in either atlas),
+    # and how much of it a mesh has moves the std of both: density over uniform measured 0.36-0.71
+    # over the same 12 meshes (0.54 for the reproducible one; 0.71 on seed 3, whose grazing area is
+    # 1.9% against 0.8% on seed 0). It still has to be clearly below the uniform atlas's.
+    assert s_den["log2_std"] < 0.85 * s_uni["log2_std"]
