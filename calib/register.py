@@ -75,7 +75,10 @@ class RegisterConfig:
                               "export (frame 'photometric_gain'), apply (also multiply frame exposure)",
                               choices=("off", "export", "apply"))
     undistort: bool = option(True, help="undistort registered photos and masks to pinhole cameras")
-    num_threads: int = option(-1, help="CPU threads for COLMAP (-1: all)")
+    num_threads: int = option(-1, help="CPU threads for COLMAP matching and mapping (-1: all)")
+    extraction_threads: int = option(1, help="CPU threads for SIFT extraction; more is faster on many cores "
+                                             "but not reproducible (COLMAP numbers the images in the order "
+                                             "they finish, and matching and mapping depend on that order)")
     seed: int = option(0, help="random seed of COLMAP's RANSAC and mapper (reproducible runs)")
     overwrite: bool = option(True, help="replace an existing output folder")
 
@@ -221,7 +224,7 @@ def _run_colmap(photos: list[_Photo], img_dir: Path, mask_dir: Path | None, work
     eo = pycolmap.FeatureExtractionOptions()
     eo.sift.max_num_features = cfg.max_num_features
     eo.max_image_size = cfg.max_image_size
-    eo.num_threads = cfg.num_threads
+    eo.num_threads = cfg.extraction_threads  # reproducible image ids (geometry/triangulate.py says why)
     for ps, model, params in _camera_groups(photos, cfg, source):
         ro = pycolmap.ImageReaderOptions()
         ro.camera_model = model
