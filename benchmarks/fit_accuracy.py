@@ -94,6 +94,17 @@ def main() -> None:
             entry["highlight_texels"] = int(hi.sum())
             entry["rho_s"] = quantiles(rel[hi, o:o + 3].ravel())
             entry["n"] = quantiles(rel[hi, o + lay.lobe_stride - 1])
+            # the rho_s tail against the lobe's c_z (last C column): the peak scales as c_z^n, so a
+            # small c_z drift with a large n moves rho_s a lot (the README's finding)
+            err = rel[hi, o:o + 3].max(axis=1)
+            dcz = np.abs(res.params[hi, o + lay.lobe_stride - 2] - gt[hi, o + lay.lobe_stride - 2])
+            tail = err > 0.1
+            entry["rho_s_tail"] = {
+                "texels_over_10pct": int(tail.sum()),
+                "median_abs_dcz_tail": float(np.median(dcz[tail])) if tail.any() else None,
+                "median_abs_dcz_rest": float(np.median(dcz[~tail])) if (~tail).any() else None,
+                "corr_log_err_log_dcz": float(np.corrcoef(np.log(err + 1e-9), np.log(dcz + 1e-9))[0, 1])
+                if hi.sum() > 2 else None}
         report["texel_sets"][label] = entry
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
