@@ -48,11 +48,11 @@ def main() -> None:
     wp.config.log_level = wp.LOG_WARNING
     from texstream.capture.synth import SynthConfig, render_scene
     from texstream.fit.accuracy import highlight_counts, interior_texels, relative_errors
-    from texstream.fit.fitter import FitConfig, run_fit
+    from texstream.fit.fitter import FitConfig
     from texstream.fit.optim.base import FitState
     from texstream.fit.penalties import PenaltyConfig
     from texstream.fit.problem import StreamConfig
-    from texstream.fit.stage import build_problem, heldout_psnr, params_to_grid
+    from texstream.fit.stage import fit_synthetic
 
     base = dict(scale=a.scale, photos=a.photos, image_size=a.image_size, progress=False, device=a.device)
     t0 = time.perf_counter()
@@ -62,12 +62,8 @@ def main() -> None:
     cfg = FitConfig(optimizer="lm", max_iterations=a.iterations, sync_every=1000,
                     penalties=PenaltyConfig(smooth_weight=a.smooth),
                     stream=StreamConfig(photo_sampling=a.photo_sampling))
-    prob = build_problem(train.mesh, train.bake, train.frames, train.images, train.masks, cfg, a.device)
-    t0 = time.perf_counter()
-    res = run_fit(prob, cfg)
-    fit_s = time.perf_counter() - t0
-    grid = params_to_grid(res, prob, train.bake)
-    views, pooled = heldout_psnr(train.mesh, grid, res.layout, held.frames, held.images, held.masks, a.device)
+    fit = fit_synthetic(train, held, cfg, a.device)
+    res, prob, fit_s, views, pooled = fit.result, fit.problem, fit.fit_s, fit.heldout_views_db, fit.heldout_pooled_db
 
     gt = train.params.reshape(-1, train.params.shape[-1])[prob.texels.grid_index]
     objective = {}

@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import time
 from pathlib import Path
 
 
@@ -30,9 +29,9 @@ def main() -> None:
 
     wp.config.log_level = wp.LOG_WARNING
     from texstream.capture.synth import SynthConfig, render_scene
-    from texstream.fit.fitter import FitConfig, run_fit
+    from texstream.fit.fitter import FitConfig
     from texstream.fit.penalties import PenaltyConfig
-    from texstream.fit.stage import build_problem, heldout_psnr, params_to_grid
+    from texstream.fit.stage import fit_synthetic
 
     train = render_scene(a.scene, SynthConfig(scale=a.scale, device=a.device, progress=False))
     held = render_scene(a.scene, SynthConfig(scale=a.scale, device=a.device, progress=False, photos=8,
@@ -42,12 +41,8 @@ def main() -> None:
     for w in (0.0, a.smooth):
         cfg = FitConfig(optimizer="lm", max_iterations=a.iterations, sync_every=100000,
                         penalties=PenaltyConfig(smooth_weight=w))
-        prob = build_problem(train.mesh, train.bake, train.frames, train.images, train.masks, cfg, a.device)
-        t0 = time.perf_counter()
-        res = run_fit(prob, cfg)
-        t = time.perf_counter() - t0
-        grid = params_to_grid(res, prob, train.bake)
-        psnr, pooled = heldout_psnr(train.mesh, grid, res.layout, held.frames, held.images, held.masks, a.device)
+        fit = fit_synthetic(train, held, cfg, a.device)
+        res, t, psnr, pooled = fit.result, fit.fit_s, fit.heldout_views_db, fit.heldout_pooled_db
         out["runs"][f"smooth_{w:g}"] = {"fit_s": t, "train_psnr_db": res.trace[-1]["psnr_db"],
                                         "heldout_psnr_db": psnr, "heldout_pooled_psnr_db": pooled}
         print(f"smooth {w:g}: train {res.trace[-1]['psnr_db']:.1f} dB, held-out pooled {pooled:.1f} dB, {t:.1f} s",

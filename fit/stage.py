@@ -163,6 +163,32 @@ def heldout_psnr(mesh, grid: np.ndarray, layout: ModelLayout, frames, photos, ma
     return views, pooled
 
 
+@dataclasses.dataclass
+class SyntheticFit:
+    """A fit of a rendered synthetic set scored on held-out renders (:func:`fit_synthetic`)."""
+
+    result: FitResult
+    problem: object
+    grid: np.ndarray
+    """(H, W, P) fitted parameter maps, padding filled"""
+    fit_s: float
+    """wall time of run_fit alone (no problem set-up)"""
+    heldout_views_db: list
+    heldout_pooled_db: float
+
+
+def fit_synthetic(train, held, cfg: FitConfig, device: str) -> SyntheticFit:
+    """Fit ``train`` (a rendered scene: mesh, bake, frames, images, masks) and score the fitted model
+    on ``held``'s views; shared by the accuracy tests and the held-out benchmarks."""
+    prob = build_problem(train.mesh, train.bake, train.frames, train.images, train.masks, cfg, device)
+    t0 = time.perf_counter()
+    res = run_fit(prob, cfg)
+    fit_s = time.perf_counter() - t0
+    grid = params_to_grid(res, prob, train.bake)
+    views, pooled = heldout_psnr(train.mesh, grid, res.layout, held.frames, held.images, held.masks, device)
+    return SyntheticFit(res, prob, grid, fit_s, views, pooled)
+
+
 def run_fit_with_progress(problem, fit: FitConfig, progress: bool) -> FitResult:
     """run_fit with a tqdm bar over iterations when ``progress``."""
     if not progress:

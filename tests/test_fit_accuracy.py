@@ -14,9 +14,9 @@ import pytest
 
 from texstream.capture.synth import SynthConfig, render_scene
 from texstream.fit.accuracy import highlight_counts, interior_texels, relative_errors
-from texstream.fit.fitter import FitConfig, run_fit
+from texstream.fit.fitter import FitConfig
 from texstream.fit.penalties import PenaltyConfig
-from texstream.fit.stage import build_problem, heldout_psnr, params_to_grid
+from texstream.fit.stage import fit_synthetic
 
 from conftest import SCENE_DEVICE
 
@@ -33,10 +33,8 @@ def sphere():
 def fit_and_score(train, held, cfg, device):
     """LM fit of ``train``; (result, problem, pooled held-out PSNR, true params of the fitted texels,
     seen texels, relative errors, highlight texels: lobe seen at >= 10% of its peak in 5+ photos)."""
-    prob = build_problem(train.mesh, train.bake, train.frames, train.images, train.masks, cfg, device)
-    res = run_fit(prob, cfg)
-    grid = params_to_grid(res, prob, train.bake)
-    _, held_psnr = heldout_psnr(train.mesh, grid, res.layout, held.frames, held.images, held.masks, device)
+    fit = fit_synthetic(train, held, cfg, device)
+    res, prob, held_psnr = fit.result, fit.problem, fit.heldout_pooled_db
     gt = train.params.reshape(-1, train.params.shape[-1])[prob.texels.grid_index]
     seen = res.samples > 0
     o = res.layout.lobe_offset(0)
