@@ -383,17 +383,7 @@ class StreamProblem:
         self.tex.face_nrm = wp.array(np.ascontiguousarray(face_nrm, np.float32), dtype=wp.vec3, device=dev)
         self.tex.dn_dp = wp.array(np.ascontiguousarray(jac, np.float32), dtype=wp.mat33, device=dev)
         self.neighbors = wp.array(texels.neighbors, dtype=wp.vec4i, device=dev)
-        groups = cfg.groups
-        if groups <= 0:
-            groups = 1 if dev == "cpu" else max(1, min(photos.window, math.ceil(262144 / max(n, 1))))
-        self.groups = groups
-        self.per_group = math.ceil(photos.window / groups)
-        self.pf = wp.zeros((groups, n), dtype=self.scalar, device=dev)
-        self.pg = wp.zeros((groups, n), dtype=self.vec, device=dev)
-        self.ph = wp.zeros((groups, n), dtype=self.scalar, device=dev)
-        self.pst = wp.zeros((groups, n), dtype=wp.vec4d, device=dev)
-        self.pm = None
-        self.pdiag = None  # per-group Gauss-Newton diagonals, allocated on first request
+        self.set_groups(cfg.groups)
         self.no_diag = wp.zeros((1, 1), dtype=self.vec, device=dev)
         self.all_active = wp.ones(n, dtype=wp.int32, device=dev)
         self.no_direction = wp.zeros((1, 1), dtype=self.storage_dtype, device=dev)
@@ -412,6 +402,21 @@ class StreamProblem:
         self.opt.sampling = modes[cfg.photo_sampling]
         self.opt.want_diag = 0
         self.passes = 0
+
+    def set_groups(self, groups: int) -> None:
+        """Split each pass's photos into ``groups`` groups, one thread per (group, texel); 0 picks
+        one group on the CPU and enough for ~262k GPU threads. Reallocates the per-group partials."""
+        n, dev = self.n, self.device
+        if groups <= 0:
+            groups = 1 if dev == "cpu" else max(1, min(self.photos.window, math.ceil(262144 / max(n, 1))))
+        self.groups = groups
+        self.per_group = math.ceil(self.photos.window / groups)
+        self.pf = wp.zeros((groups, n), dtype=self.scalar, device=dev)
+        self.pg = wp.zeros((groups, n), dtype=self.vec, device=dev)
+        self.ph = wp.zeros((groups, n), dtype=self.scalar, device=dev)
+        self.pst = wp.zeros((groups, n), dtype=wp.vec4d, device=dev)
+        self.pm = None  # per-group J^T J (LM), allocated on first request
+        self.pdiag = None  # per-group Gauss-Newton diagonals, allocated on first request
 
     def new_storage(self, values: np.ndarray | None = None) -> wp.array:
         """A (N, n_params) parameter array in the storage precision."""
