@@ -73,7 +73,7 @@ def kernel_resources() -> list[dict]:
         return []
     found = []
     for path in sorted(Path(wp.config.kernel_cache_dir).rglob("*")):
-        if "stream" not in path.parent.name or path.suffix not in (".ptx", ".cubin"):
+        if ("stream" not in path.parent.name and "accumulate" not in path.parent.name) or path.suffix not in (".ptx", ".cubin"):
             continue
         text = path.read_bytes()
         names = sorted(set(re.findall(rb"(accumulate\w*?_cuda_kernel_forward)", text)))
@@ -88,6 +88,18 @@ def kernel_resources() -> list[dict]:
     return found
 
 
+def register_capped(kernel, max_registers: int):
+    """The same streaming kernel compiled with at most ``max_registers`` per thread (CUDA
+    ``__maxnreg__``; 0 = the kernel as shipped): fewer registers let more threads stay resident
+    per SM, at the price of spills to local memory."""
+    import warp as wp
+
+    if max_registers <= 0:
+        return kernel
+    return wp.kernel(kernel.func, name=f"{kernel.func.__name__}_maxreg{max_registers}", cuda_max_registers=max_registers,
+                     enable_backward=False, module="unique")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--scene", default="ornament")
@@ -97,6 +109,8 @@ def main() -> None:
     ap.add_argument("--samplings", default="filtered,bilinear")
     ap.add_argument("--kinds", default="grad,lm")
     ap.add_argument("--groups", default="0,8,16,32", help="photo groups to try (0 = the automatic choice)")
+    ap.add_argument("--max-registers", default="0",
+                    help="register caps per thread to try, e.g. 0,128,96 (0 = as shipped; CUDA only)")
     ap.add_argument("--passes", type=int, default=5)
     ap.add_argument("--bandwidth-probe", action="store_true")
     ap.add_argument("--out", default="out/pass_profile")
@@ -108,6 +122,7 @@ def main() -> None:
 
     from texstream.capture.synth import SynthConfig, render_scene
     from texstream.fit.fitter import FitConfig
+    from texstream.fit.kernels import stream
     from texstream.fit.problem import StreamConfig
     from texstream.fit.stage import build_problem
     from texstream.pipelines.stage import write_json_atomic
@@ -126,23 +141,29 @@ def main() -> None:
             cfg = FitConfig(model=model, stream=StreamConfig(photo_sampling=sampling))
             prob = build_problem(sc.mesh, sc.bake, sc.frames, sc.images, sc.masks, cfg, a.device)
             rep["texels"] = prob.n
-            for groups in [int(x) for x in a.groups.split(",")]:
-                prob.set_groups(groups)
-                for kind in a.kinds.split(","):
-                    t0 = time.perf_counter()
-                    sec, samples = time_passes(prob, kind, a.passes)
-                    ub = unique_bytes_per_pass(prob, "lm" if kind == "lm" else "sd", diag=kind != "lm")
-                    run = {"model": model, "sampling": sampling, "kind": kind, "groups": prob.groups,
-                           "ms_per_pass": 1000 * sec, "samples_per_pass": samples,
-                           "ns_per_sample": 1e9 * sec / max(samples, 1.0), "unique_bytes_per_pass": ub,
-                           "unique_GBps": ub / sec / 1e9, "wall_s_incl_compile": time.perf_counter() - t0}
-                    if "measured_bandwidth_GBps" in rep:
-                        run["bandwidth_fraction"] = run["unique_GBps"] / rep["measured_bandwidth_GBps"]
-                    rep["runs"].append(run)
-                    print(model, sampling, kind, f"groups {prob.groups}", f"{run['ms_per_pass']:.2f} ms/pass",
-                          f"{run['ns_per_sample']:.3f} ns/sample", f"{run.get('bandwidth_fraction', 0):.3f} of bw",
-                          flush=True)
-                    write_json_atomic(out / "pass_profile.json", rep, indent=1)
+            shipped = stream.accumulate_kernel, stream.accumulate_lm_kernel
+            for max_regs in [int(x) for x in a.max_registers.split(",")]:
+                # problem passes launch stream.<kernel> by attribute, so swapping it swaps the kernel
+                stream.accumulate_kernel = register_capped(shipped[0], max_regs)
+                stream.accumulate_lm_kernel = register_capped(shipped[1], max_regs)
+                for groups in [int(x) for x in a.groups.split(",")]:
+                    prob.set_groups(groups)
+                    for kind in a.kinds.split(","):
+                        t0 = time.perf_counter()
+                        sec, samples = time_passes(prob, kind, a.passes)
+                        ub = unique_bytes_per_pass(prob, "lm" if kind == "lm" else "sd", diag=kind != "lm")
+                        run = {"model": model, "sampling": sampling, "kind": kind, "groups": prob.groups,
+                               "max_registers": max_regs, "ms_per_pass": 1000 * sec, "samples_per_pass": samples,
+                               "ns_per_sample": 1e9 * sec / max(samples, 1.0), "unique_bytes_per_pass": ub,
+                               "unique_GBps": ub / sec / 1e9, "wall_s_incl_compile": time.perf_counter() - t0}
+                        if "measured_bandwidth_GBps" in rep:
+                            run["bandwidth_fraction"] = run["unique_GBps"] / rep["measured_bandwidth_GBps"]
+                        rep["runs"].append(run)
+                        print(model, sampling, kind, f"groups {prob.groups}", f"maxreg {max_regs}",
+                              f"{run['ms_per_pass']:.2f} ms/pass", f"{run['ns_per_sample']:.3f} ns/sample",
+                              f"{run.get('bandwidth_fraction', 0):.3f} of bw", flush=True)
+                        write_json_atomic(out / "pass_profile.json", rep, indent=1)
+            stream.accumulate_kernel, stream.accumulate_lm_kernel = shipped
             del prob
     if a.device.startswith("cuda"):
         rep["kernel_resources"] = kernel_resources()
