@@ -199,12 +199,26 @@ def cg_direction_kernel(g: wp.array(dtype=Any), g_prev: wp.array(dtype=Any), d_p
     restart[i] = 0
 
 
+@wp.func
+def unbound(p: Any, g: Any, lower: Any, upper: Any, free: Any, n_params: int):
+    """The free mask less the binding bounds: columns at a bound whose gradient pushes outward
+    (at the upper bound with g < 0, at the lower with g > 0). A step along them is clamped away
+    by the projection, so a direction that relies on them (L-BFGS mixes columns through its pairs)
+    can lose descent once projected; Bertsekas' projected quasi-Newton drops them the same way."""
+    out = free
+    zero = g[0] - g[0]
+    for k in range(n_params):
+        if (p[k] >= upper[k] and g[k] < zero) or (p[k] <= lower[k] and g[k] > zero):
+            out[k] = zero
+    return out
+
+
 @wp.kernel
 def lbfgs_direction_kernel(g: wp.array(dtype=Any), s_hist: wp.array2d(dtype=Any), y_hist: wp.array2d(dtype=Any),
                            rho: wp.array2d(dtype=Any), count: wp.array(dtype=wp.int32), head: wp.array(dtype=wp.int32),
                            m: int, eps: Any, free: Any, precondition: int, diag: wp.array(dtype=Any),
                            n_params: int, rel_floor: Any, gamma_scaled: int, alpha_buf: wp.array2d(dtype=Any),
-                           d: wp.array(dtype=Any)):
+                           p: wp.array(dtype=Any), lower: Any, upper: Any, d: wp.array(dtype=Any)):
     """L-BFGS two-loop recursion (Nocedal & Wright Alg. 7.4), per texel, with
     H0 = gamma_k I, gamma_k = s^T y / y^T y of the newest pair. (The seed's Alg. 1 has the
     second loop's update written as d <- d + s (eta - beta); N&W's r <- r + s (alpha - beta) is used.)
@@ -213,8 +227,12 @@ def lbfgs_direction_kernel(g: wp.array(dtype=Any), s_hist: wp.array2d(dtype=Any)
     current point, gamma_k = s^T y / y^T M^-1 y of the newest pair (``gamma_scaled``; 1 before
     any pair: D already carries the Hessian's units, so the first step is a diagonal Gauss-Newton
     step of natural length 1), or H0 = M^-1 unscaled. N&W allow H0 to change every iteration, so
-    M is refreshed each iteration from the accepted point's pass."""
+    M is refreshed each iteration from the accepted point's pass.
+
+    Bounds: the recursion runs on the columns that are free and not held by a binding bound
+    (:func:`unbound`), so the projected trial point keeps the direction's descent."""
     i = wp.tid()
+    free = unbound(p[i], g[i], lower, upper, free, n_params)
     q = masked(g[i], free)
     n = count[i]
     zero = rho[0, i] - rho[0, i]
@@ -262,9 +280,14 @@ def lbfgs_update_kernel(p_old: wp.array(dtype=Any), g_old: wp.array(dtype=Any), 
                         g: wp.array(dtype=Any), accepted: wp.array(dtype=wp.int32), m: int, free: Any,
                         s_hist: wp.array2d(dtype=Any), y_hist: wp.array2d(dtype=Any), rho: wp.array2d(dtype=Any),
                         count: wp.array(dtype=wp.int32), head: wp.array(dtype=wp.int32)):
-    """Store s = p_{k+1} - p_k, y = g_{k+1} - g_k when the texel moved and y^T s > 0 (keeps H positive definite)."""
+    """Store s = p_{k+1} - p_k, y = g_{k+1} - g_k when the texel moved and y^T s > 0 (keeps H positive definite).
+
+    A texel whose line search accepted no trial forgets its pairs (as CG restarts on a rejected
+    step): otherwise the next iteration rebuilds the same rejected direction and the texel stalls
+    (seen on the full ornament: preconditioned L-BFGS froze 20% of texels' progress)."""
     i = wp.tid()
     if accepted[i] == 0:
+        count[i] = 0
         return
     s = masked(p[i] - p_old[i], free)
     y = masked(g[i] - g_old[i], free)

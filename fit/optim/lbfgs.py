@@ -54,7 +54,8 @@ class LBFGS:
         wp.launch(K.lbfgs_direction_kernel, dim=pr.n, device=pr.device,
                   inputs=[state.g, self.s_hist, self.y_hist, self.rho, self.count, self.head, self.m,
                           pr.scalar(self.eps), state.free, int(self.precondition), state.diag,
-                          pr.layout.n_params, pr.scalar(self.floor), int(self.gamma_scaled), self.alpha_buf],
+                          pr.layout.n_params, pr.scalar(self.floor), int(self.gamma_scaled), self.alpha_buf,
+                          state.p, state.lower, state.upper],
                   outputs=[state.d])
 
     def after_step(self, state: FitState) -> None:
