@@ -46,6 +46,19 @@ def interior_texels(material: np.ndarray, neighbors: np.ndarray) -> np.ndarray:
     return same.all(axis=1)
 
 
+def lobe_normal_peak(params: np.ndarray, lobe_offset: int, lobe_stride: int) -> np.ndarray:
+    """(N, 3) a lobe's BRDF peak at normal incidence, rho_s * c_z^n (the lobe base at u = v = the
+    normal is c_z, for isotropic and general lobes alike).
+
+    What a capture whose light rides beside the camera measures: its highlights all sit near one
+    incidence angle, so the photos fix the lobe's height there, while rho_s and c_z separately
+    trade along c_z^n (fit_accuracy.py reports both)."""
+    p = params.astype(np.float64)
+    cz = np.clip(p[:, lobe_offset + lobe_stride - 2], 0.0, None)
+    n = p[:, lobe_offset + lobe_stride - 1]
+    return p[:, lobe_offset:lobe_offset + 3] * (cz ** n)[:, None]
+
+
 def relative_errors(fitted: np.ndarray, truth: np.ndarray, floor: float = 1e-9) -> np.ndarray:
     """|fitted - truth| / |truth| per entry (truth below ``floor`` counts as ``floor``)."""
     return np.abs(fitted - truth) / np.maximum(np.abs(truth), floor)

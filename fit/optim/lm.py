@@ -101,7 +101,8 @@ class LevenbergMarquardt:
             wp.copy(state.active, state.valid)
             system = self.jtj
         wp.launch(K.lm_solve_kernel, dim=n, device=pr.device,
-                  inputs=[system, state.g, self.lam, pr.layout.n_params, state.free, pr.like],
+                  inputs=[system, state.g, self.lam, pr.layout.n_params, state.free, pr.like, state.p, state.lower,
+                          state.upper],
                   outputs=[state.d, self.pred])
         state.launch_trial(state.p, state.d, self.one, state.active, state.trial, state.storage)
         if self.smooth:
