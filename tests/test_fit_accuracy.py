@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from texstream.capture.synth import SynthConfig, render_scene
-from texstream.fit.accuracy import highlight_counts, interior_texels, relative_errors
+from texstream.fit.accuracy import highlight_counts, interior_texels, lobe_normal_peak, relative_errors
 from texstream.fit.fitter import FitConfig
 from texstream.fit.penalties import PenaltyConfig
 from texstream.fit.stage import fit_synthetic
@@ -83,8 +83,15 @@ def test_small_ornament_fit_meets_the_accuracy_targets(device):
     assert np.percentile(rel[interior, 0:3], 90) < 0.01
     o = res.layout.lobe_offset(0)
     assert hi.sum() >= 200  # 326 of 968 texels
-    # specular albedo 3% and exponent 5% as medians over highlight texels (measured 2.6% and 0.68%;
-    # with the seed's bilinear sampling 5.6% and 1.3%); tails in the README
+    # specular albedo 3% and exponent 5% as medians over highlight texels (measured 1.5% and 0.70% after
+    # 60 iterations; with the seed's bilinear sampling 5.6% and 1.3%); tails in the README
     assert np.median(rel[hi, o:o + 3]) < 0.03
     assert np.median(rel[hi, o + 5]) < 0.05
+    # per texel, what this capture determines: its light rides beside the camera, so every highlight
+    # is seen near one incidence angle and fixes the lobe's height there, rho_s c_z^n, while rho_s and
+    # c_z alone trade along c_z^n (rho_s p90 17%; with an orbiting light 5.5%, README). The height is
+    # within 3% on 90% of highlight texels (p90 2.7% after 60 iterations); 5% leaves room for 40
+    stride = res.layout.lobe_stride
+    peak = relative_errors(lobe_normal_peak(res.params[hi], o, stride), lobe_normal_peak(gt[hi], o, stride))
+    assert np.percentile(peak, 90) < 0.05, np.percentile(peak, 90)
     assert np.all(np.isfinite(res.params))
