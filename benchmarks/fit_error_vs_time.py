@@ -16,7 +16,10 @@ shadow map once, and read/write the per-texel state: parameters, and per photo g
 objective, gradient (and J^T J for LM, or d^T H d) plus trace statistics, which the reduction reads
 back. ``unique_bytes_per_pass`` is that sum: a lower bound of the traffic (texels that share pixels
 re-read them, mostly from cache). ``--bandwidth-probe`` times a device-to-device copy of 1 GiB for
-the GPU's measured bandwidth; ``bandwidth_fraction`` = unique bytes / pass time / measured.
+the GPU's measured bandwidth; ``bandwidth_fraction`` = unique bytes / pass time / measured. The sum
+also counts each photo's background, which no texel reads, so it overstates the bytes a pass must
+move; Nsight Compute measured 2.3% of DRAM peak on the filtered gradient pass, most reads served by
+L1/L2 (benchmarks/pass_profile.py explains the pass time: benchmarks/results/h200_filtered/README.md).
 """
 
 from __future__ import annotations
