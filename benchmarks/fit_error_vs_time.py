@@ -117,6 +117,7 @@ def main() -> None:
     ap.add_argument("--precondition", default=None, choices=("none", "jacobi"),
                     help="sd/cg/lbfgs preconditioner (default: FitConfig's)")
     ap.add_argument("--photo-sampling", default="filtered", choices=("filtered", "point", "bilinear"))
+    ap.add_argument("--lobe-albedo-max", type=float, default=None, help="FitConfig.lobe_albedo_max (0 = no energy bound)")
     ap.add_argument("--bandwidth-probe", action="store_true")
     ap.add_argument("--out", default="out/bench")
     ap.add_argument("--plot-only", default=None, help="replot an existing JSON")
@@ -140,6 +141,7 @@ def main() -> None:
     t_render = time.perf_counter() - t0
     results = {"scene": a.scene, "scale": a.scale, "device": a.device, "photos": len(sc.images),
                "precondition": a.precondition or FitConfig().precondition,
+               "lobe_albedo_max": FitConfig().lobe_albedo_max if a.lobe_albedo_max is None else a.lobe_albedo_max,
                "image_size": list(sc.images[0].shape[:2]), "texels": int(sc.bake.covered.sum()),
                "image_precision": a.image_precision, "photo_sampling": a.photo_sampling, "render_s": t_render, "machine": platform.node(), "runs": {}}
     if a.device.startswith("cuda"):
@@ -152,11 +154,13 @@ def main() -> None:
                         stream=StreamConfig(image_precision=a.image_precision, photo_sampling=a.photo_sampling))
         if a.precondition is not None:
             cfg.precondition = a.precondition
+        if a.lobe_albedo_max is not None:
+            cfg.lobe_albedo_max = a.lobe_albedo_max
         t0 = time.perf_counter()
         prob = build_problem(sc.mesh, sc.bake, sc.frames, sc.images, sc.masks, cfg, a.device)
         t_setup = time.perf_counter() - t0
-        run_fit(prob, FitConfig(optimizer=opt, max_iterations=1, stream=cfg.stream,
-                                precondition=cfg.precondition))  # compile / warm up
+        run_fit(prob, FitConfig(optimizer=opt, max_iterations=1, stream=cfg.stream, precondition=cfg.precondition,
+                                lobe_albedo_max=cfg.lobe_albedo_max))  # compile / warm up
         prob.passes = 0
         res = run_fit(prob, cfg)
         t_fit = res.trace[-1]["time_s"]
