@@ -49,18 +49,18 @@ def test_sphere_fit_meets_the_accuracy_targets(sphere, device):
     cfg = FitConfig(optimizer="lm", max_iterations=200, sync_every=1000,
                     penalties=PenaltyConfig(smooth_weight=1e-3, smooth_params="shape"))
     res, prob, held_psnr, gt, seen, rel, hi = fit_and_score(train, held, cfg, device)
-    # issue target 45 dB on noise-free float photos (measured 77.4 dB on the CPU)
+    # issue target 45 dB on noise-free float photos (measured 77.5 dB on the CPU, commit c438de4)
     assert held_psnr >= 45.0, held_psnr
     # diffuse albedo: target 1% (measured median 0.08%, p90 0.17%)
     assert np.percentile(rel[seen, 0:3], 90) < 0.01
     assert hi.sum() >= 50  # 120 of 800 texels here
     o = res.layout.lobe_offset(0)
-    # specular albedo 3% and exponent 5% (issue targets), as medians over the highlight texels:
-    # measured 0.06% and 0.04%. Single texels scatter more (rho_s p90 13%): with five highlight
-    # samples rho_s trades against c_z (scaling c_z by k scales the peak by k^n), which the
-    # photos barely see (held-out radiance stays at 77 dB); the README reports the spread.
+    # specular albedo 3% and exponent 5% (issue targets): medians measured 0.03% and 0.04%
     assert np.median(rel[hi, o:o + 3]) < 0.03
     assert np.median(rel[hi, o + 5]) < 0.05
+    # per texel: rho_s p90 2.9% on the CPU (90% of highlight texels within 3%); 5% leaves room for the
+    # CUDA run, where float rounding tips a few texels' accept/reject decisions the other way (README)
+    assert np.percentile(rel[hi, o:o + 3], 90) < 0.05
     assert np.all(np.isfinite(res.params))
 
 
@@ -74,7 +74,7 @@ def test_small_ornament_fit_meets_the_accuracy_targets(device):
     held = render_scene("ornament", SynthConfig(**{**ORNAMENT, "photos": 8}, azimuth_offset=3.0))
     cfg = FitConfig(optimizer="lm", max_iterations=40, sync_every=1000)
     res, prob, held_psnr, gt, seen, rel, hi = fit_and_score(train, held, cfg, device)
-    # issue target 45 dB (measured 52.3 dB after 60 iterations, benchmarks/fit_accuracy.py)
+    # issue target 45 dB (measured 52.4 dB after 60 iterations, benchmarks/fit_accuracy.py)
     assert held_psnr >= 45.0, held_psnr
     material = train.material_id.reshape(-1)[prob.texels.grid_index]
     interior = seen & interior_texels(material, prob.texels.neighbors)
