@@ -13,7 +13,10 @@ this script explains a pass that moves them slower than the memory allows by tak
 * pass ``grad`` (objective + gradient + Gauss-Newton diagonal: SD / CG / L-BFGS) vs ``lm``
   (objective + J^T r + J^T J: a 9x9 per-thread accumulator for one lobe);
 * ``--groups``: photo groups per pass, i.e. threads per texel (StreamProblem.set_groups): more
-  groups give the GPU more threads to hide memory latency with, and more partial sums to reduce.
+  groups give the GPU more threads to hide memory latency with, and more partial sums to reduce;
+* ``--max-registers``: the streaming kernels recompiled with a register cap per thread (more
+  resident threads, more spills); on CUDA the JSON also lists each compiled streaming kernel's
+  registers and local memory (``kernel_resources``).
 
 Per configuration: ms per pass (median of ``--passes`` timed passes after a warm-up pass), accepted
 samples per pass, ns per accepted sample, and the pass's unique bytes over its time as a fraction of
