@@ -118,6 +118,8 @@ def main() -> None:
                     help="sd/cg/lbfgs preconditioner (default: FitConfig's)")
     ap.add_argument("--photo-sampling", default="filtered", choices=("filtered", "point", "bilinear"))
     ap.add_argument("--lobe-albedo-max", type=float, default=None, help="FitConfig.lobe_albedo_max (0 = no energy bound)")
+    ap.add_argument("--accumulate", default="fp32", choices=("fp32", "fp64"), help="StreamConfig.accumulate")
+    ap.add_argument("--storage", default="fp32", choices=("fp16", "fp32", "fp64"), help="StreamConfig.storage")
     ap.add_argument("--bandwidth-probe", action="store_true")
     ap.add_argument("--out", default="out/bench")
     ap.add_argument("--plot-only", default=None, help="replot an existing JSON")
@@ -143,7 +145,7 @@ def main() -> None:
                "precondition": a.precondition or FitConfig().precondition,
                "lobe_albedo_max": FitConfig().lobe_albedo_max if a.lobe_albedo_max is None else a.lobe_albedo_max,
                "image_size": list(sc.images[0].shape[:2]), "texels": int(sc.bake.covered.sum()),
-               "image_precision": a.image_precision, "photo_sampling": a.photo_sampling, "render_s": t_render, "machine": platform.node(), "runs": {}}
+               "image_precision": a.image_precision, "accumulate": a.accumulate, "storage": a.storage, "photo_sampling": a.photo_sampling, "render_s": t_render, "machine": platform.node(), "runs": {}}
     if a.device.startswith("cuda"):
         results["gpu"] = wp.get_device(a.device).name
     if a.bandwidth_probe:
@@ -151,7 +153,8 @@ def main() -> None:
     for opt in a.optimizers.split(","):
         iters = a.sd_iterations if (opt == "sd" and a.sd_iterations > 0) else a.iterations
         cfg = FitConfig(optimizer=opt, max_iterations=iters, sync_every=100000,
-                        stream=StreamConfig(image_precision=a.image_precision, photo_sampling=a.photo_sampling))
+                        stream=StreamConfig(image_precision=a.image_precision, photo_sampling=a.photo_sampling,
+                                            accumulate=a.accumulate, storage=a.storage))
         if a.precondition is not None:
             cfg.precondition = a.precondition
         if a.lobe_albedo_max is not None:
