@@ -120,6 +120,7 @@ def main() -> None:
     ap.add_argument("--lobe-albedo-max", type=float, default=None, help="FitConfig.lobe_albedo_max (0 = no energy bound)")
     ap.add_argument("--accumulate", default="fp32", choices=("fp32", "fp64"), help="StreamConfig.accumulate")
     ap.add_argument("--storage", default="fp32", choices=("fp16", "fp32", "fp64"), help="StreamConfig.storage")
+    ap.add_argument("--block-dim", type=int, default=None, help="StreamConfig.cuda_block_dim (CUDA threads per block)")
     ap.add_argument("--bandwidth-probe", action="store_true")
     ap.add_argument("--out", default="out/bench")
     ap.add_argument("--plot-only", default=None, help="replot an existing JSON")
@@ -145,7 +146,8 @@ def main() -> None:
                "precondition": a.precondition or FitConfig().precondition,
                "lobe_albedo_max": FitConfig().lobe_albedo_max if a.lobe_albedo_max is None else a.lobe_albedo_max,
                "image_size": list(sc.images[0].shape[:2]), "texels": int(sc.bake.covered.sum()),
-               "image_precision": a.image_precision, "accumulate": a.accumulate, "storage": a.storage, "photo_sampling": a.photo_sampling, "render_s": t_render, "machine": platform.node(), "runs": {}}
+               "image_precision": a.image_precision, "accumulate": a.accumulate, "storage": a.storage, "photo_sampling": a.photo_sampling,
+               "block_dim": a.block_dim or StreamConfig().cuda_block_dim, "render_s": t_render, "machine": platform.node(), "runs": {}}
     if a.device.startswith("cuda"):
         results["gpu"] = wp.get_device(a.device).name
     if a.bandwidth_probe:
@@ -155,6 +157,8 @@ def main() -> None:
         cfg = FitConfig(optimizer=opt, max_iterations=iters, sync_every=100000,
                         stream=StreamConfig(image_precision=a.image_precision, photo_sampling=a.photo_sampling,
                                             accumulate=a.accumulate, storage=a.storage))
+        if a.block_dim is not None:
+            cfg.stream.cuda_block_dim = a.block_dim
         if a.precondition is not None:
             cfg.precondition = a.precondition
         if a.lobe_albedo_max is not None:
@@ -169,7 +173,7 @@ def main() -> None:
         t_fit = res.trace[-1]["time_s"]
         ub = unique_bytes_per_pass(prob, opt, diag=opt != "lm" and cfg.precondition == "jacobi")
         pass_s = t_fit / max(res.passes, 1)
-        run = {"setup_s": t_setup, "fit_s": t_fit, "iterations": res.trace[-1]["iteration"], "passes": res.passes,
+        run = {"block_dim": prob.block_dim, "max_registers": prob.max_registers, "setup_s": t_setup, "fit_s": t_fit, "iterations": res.trace[-1]["iteration"], "passes": res.passes,
                "pass_ms": 1000 * pass_s, "unique_bytes_per_pass": ub, "unique_GBps": ub / pass_s / 1e9,
                "trace": res.trace}
         if "measured_bandwidth_GBps" in results:

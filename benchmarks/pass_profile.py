@@ -10,13 +10,16 @@ this script explains a pass that moves them slower than the memory allows by tak
   with and without the lobe (log, exp, the lobe's Jacobian columns);
 * sampling ``bilinear`` vs ``filtered``: one model evaluation at the texel centre vs four, each at
   its tap's surface point (a ray-plane intersection, the extrapolated normal, the light, the frame);
-* pass ``grad`` (objective + gradient + Gauss-Newton diagonal: SD / CG / L-BFGS) vs ``lm``
-  (objective + J^T r + J^T J: a 9x9 per-thread accumulator for one lobe);
+* pass ``grad`` (objective + gradient + Gauss-Newton diagonal: SD / CG / L-BFGS), ``plain``
+  (objective + gradient: line-search trials), ``dhd`` (+ Gauss-Newton d^T H d: the Hessian step)
+  vs ``lm`` (objective + J^T r + J^T J: 33 running sums for one isotropic lobe);
 * ``--groups``: photo groups per pass, i.e. threads per texel (StreamProblem.set_groups): more
   groups give the GPU more threads to hide memory latency with, and more partial sums to reduce;
 * ``--max-registers``: the streaming kernels recompiled with a register cap per thread (more
-  resident threads, more spills); on CUDA the JSON also lists each compiled streaming kernel's
-  registers and local memory (``kernel_resources``).
+  resident threads, more spills) and ``--block-dims``: threads per block (an SM holds whole
+  blocks, so at ~170-210 registers per thread 128-thread blocks fit 12 warps where 256-thread
+  blocks fit 8); on CUDA the JSON also lists each compiled streaming kernel's registers and local
+  memory (``kernel_resources``; benchmarks/kernel_resources.py reports the same without a GPU).
 
 Per configuration: ms per pass (median of ``--passes`` timed passes after a warm-up pass), accepted
 samples per pass, ns per accepted sample, and the pass's unique bytes over its time as a fraction of
@@ -26,6 +29,7 @@ samples per pass, ns per accepted sample, and the pass's unique bytes over its t
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import platform
 import statistics
@@ -47,8 +51,12 @@ def time_passes(prob, kind: str, passes: int) -> tuple[float, float]:
     def one_pass():
         if kind == "lm":
             prob.evaluate_lm(p, f, g, jtj, st)
-        else:
+        elif kind == "grad":
             prob.evaluate(p, f, g, st, diag=extra)
+        elif kind == "dhd":
+            prob.evaluate(p, f, g, st, direction=p, dhd=prob.new_scalar())
+        else:
+            prob.evaluate(p, f, g, st)
 
     one_pass()  # compile / warm up
     wp.synchronize_device(prob.device)
@@ -91,18 +99,6 @@ def kernel_resources() -> list[dict]:
     return found
 
 
-def register_capped(kernel, max_registers: int):
-    """The same streaming kernel compiled with at most ``max_registers`` per thread (CUDA
-    ``__maxnreg__``; 0 = the kernel as shipped): fewer registers let more threads stay resident
-    per SM, at the price of spills to local memory."""
-    import warp as wp
-
-    if max_registers <= 0:
-        return kernel
-    return wp.kernel(kernel.func, name=f"{kernel.func.__name__}_maxreg{max_registers}", cuda_max_registers=max_registers,
-                     enable_backward=False, module="unique")
-
-
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--scene", default="ornament")
@@ -112,8 +108,9 @@ def main() -> None:
     ap.add_argument("--samplings", default="filtered,bilinear")
     ap.add_argument("--kinds", default="grad,lm")
     ap.add_argument("--groups", default="0,8,16,32", help="photo groups to try (0 = the automatic choice)")
-    ap.add_argument("--max-registers", default="0",
-                    help="register caps per thread to try, e.g. 0,128,96 (0 = as shipped; CUDA only)")
+    ap.add_argument("--max-registers", default="-1",
+                    help="register caps per thread to try, e.g. 0,168,128 (0 = none, -1 = StreamConfig's; CUDA only)")
+    ap.add_argument("--block-dims", default="0", help="CUDA threads per block to try, e.g. 256,128,64 (0 = StreamConfig's)")
     ap.add_argument("--passes", type=int, default=5)
     ap.add_argument("--bandwidth-probe", action="store_true")
     ap.add_argument("--out", default="out/pass_profile")
@@ -125,7 +122,6 @@ def main() -> None:
 
     from texstream.capture.synth import SynthConfig, render_scene
     from texstream.fit.fitter import FitConfig
-    from texstream.fit.kernels import stream
     from texstream.fit.problem import StreamConfig
     from texstream.fit.stage import build_problem
     from texstream.pipelines.stage import write_json_atomic
@@ -144,29 +140,30 @@ def main() -> None:
             cfg = FitConfig(model=model, stream=StreamConfig(photo_sampling=sampling))
             prob = build_problem(sc.mesh, sc.bake, sc.frames, sc.images, sc.masks, cfg, a.device)
             rep["texels"] = prob.n
-            shipped = stream.accumulate_kernel, stream.accumulate_lm_kernel
-            for max_regs in [int(x) for x in a.max_registers.split(",")]:
-                # problem passes launch stream.<kernel> by attribute, so swapping it swaps the kernel
-                stream.accumulate_kernel = register_capped(shipped[0], max_regs)
-                stream.accumulate_lm_kernel = register_capped(shipped[1], max_regs)
+            defaults = prob.max_registers, prob.block_dim
+            for max_regs, block_dim in itertools.product([int(x) for x in a.max_registers.split(",")],
+                                                          [int(x) for x in a.block_dims.split(",")]):
+                prob.max_registers = max_regs if max_regs >= 0 else defaults[0]
+                prob.block_dim = block_dim or defaults[1]
+                max_regs, block_dim = prob.max_registers, prob.block_dim
                 for groups in [int(x) for x in a.groups.split(",")]:
                     prob.set_groups(groups)
                     for kind in a.kinds.split(","):
                         t0 = time.perf_counter()
                         sec, samples = time_passes(prob, kind, a.passes)
-                        ub = unique_bytes_per_pass(prob, "lm" if kind == "lm" else "sd", diag=kind != "lm")
+                        ub = unique_bytes_per_pass(prob, "lm" if kind == "lm" else "sd", diag=kind == "grad")
                         run = {"model": model, "sampling": sampling, "kind": kind, "groups": prob.groups,
-                               "max_registers": max_regs, "ms_per_pass": 1000 * sec, "samples_per_pass": samples,
-                               "ns_per_sample": 1e9 * sec / max(samples, 1.0), "unique_bytes_per_pass": ub,
-                               "unique_GBps": ub / sec / 1e9, "wall_s_incl_compile": time.perf_counter() - t0}
+                               "max_registers": max_regs, "block_dim": block_dim, "ms_per_pass": 1000 * sec,
+                               "samples_per_pass": samples, "ns_per_sample": 1e9 * sec / max(samples, 1.0),
+                               "unique_bytes_per_pass": ub, "unique_GBps": ub / sec / 1e9,
+                               "wall_s_incl_compile": time.perf_counter() - t0}
                         if "measured_bandwidth_GBps" in rep:
                             run["bandwidth_fraction"] = run["unique_GBps"] / rep["measured_bandwidth_GBps"]
                         rep["runs"].append(run)
-                        print(model, sampling, kind, f"groups {prob.groups}", f"maxreg {max_regs}",
+                        print(model, sampling, kind, f"groups {prob.groups}", f"maxreg {max_regs}", f"block {block_dim}",
                               f"{run['ms_per_pass']:.2f} ms/pass", f"{run['ns_per_sample']:.3f} ns/sample",
                               f"{run.get('bandwidth_fraction', 0):.3f} of bw", flush=True)
                         write_json_atomic(out / "pass_profile.json", rep, indent=1)
-            stream.accumulate_kernel, stream.accumulate_lm_kernel = shipped
             del prob
     if a.device.startswith("cuda"):
         rep["kernel_resources"] = kernel_resources()

@@ -187,6 +187,18 @@ class StreamConfig:
     """photo groups per pass (parallelism over photos; 0 = automatic)"""
     photos_per_window: int = 0
     """photos resident on the device at once (0 = all; else streamed from host in windows)"""
+    cuda_block_dim: int = 128
+    """threads per CUDA block of the accumulation kernels. An SM keeps whole blocks resident: at
+    168 registers per thread it holds three 128-thread blocks (12 warps) but one 256-thread block
+    (8 warps). Measured on an H100 (benchmarks/results/h100_kernels): Lafortune passes 17.2 ms
+    with 256, 12.7 ms with 128 (and the cap below). Ignored on the CPU"""
+    cuda_max_registers: int = -1
+    """registers per CUDA thread the accumulation kernels may use; 0: as many as the compiler
+    likes (175-208 for one isotropic lobe, which fits two 128-thread blocks per SM); -1: 168 for
+    layouts of at most 9 parameters (one isotropic lobe, diffuse), which costs the LM pass 40
+    bytes of spills and lets three blocks in (H100: 17.7 -> 13.0 ms per LM pass), and no cap for
+    larger ones (two anisotropic lobes would spill 520 bytes per LM thread at 168; not timed).
+    See benchmarks/kernel_resources.py and benchmarks/pass_profile.py. Ignored on the CPU"""
 
 
 def _vec_types(acc: str, n_params: int):
@@ -395,12 +407,19 @@ class StreamProblem:
         if cfg.residual_space not in ("radiance", "reflectance"):
             raise ConfigError(f"residual_space {cfg.residual_space!r} unknown", fix="use radiance or reflectance")
         self.opt.reflectance_space = 1 if cfg.residual_space == "reflectance" else 0
-        self.opt.kahan = 1 if cfg.kahan else 0
         modes = {"bilinear": 0, "point": 1, "filtered": 2}  # stream.SAMPLING_*
         if cfg.photo_sampling not in modes:
             raise ConfigError(f"photo_sampling {cfg.photo_sampling!r} unknown", fix="use filtered, point or bilinear")
         self.opt.sampling = modes[cfg.photo_sampling]
-        self.opt.want_diag = 0
+        if cfg.cuda_max_registers not in (-1, 0) and not 24 <= cfg.cuda_max_registers <= 255:
+            raise ConfigError(f"cuda_max_registers {cfg.cuda_max_registers} invalid",
+                              fix="use -1 (automatic), 0 (no cap) or 24 to 255")
+        self.max_registers = cfg.cuda_max_registers
+        if self.max_registers < 0:
+            self.max_registers = 168 if layout.n_params <= 9 else 0
+        if cfg.cuda_block_dim < 32 or cfg.cuda_block_dim > 1024 or cfg.cuda_block_dim % 32:
+            raise ConfigError(f"cuda_block_dim {cfg.cuda_block_dim} invalid", fix="use a multiple of 32 from 32 to 1024")
+        self.block_dim = cfg.cuda_block_dim
         self.passes = 0
 
     def set_groups(self, groups: int) -> None:
@@ -445,11 +464,9 @@ class StreamProblem:
         are skipped (their outputs are zero). ``diag`` (an (N,) parameter-vector array, optional)
         receives the Gauss-Newton diagonal diag(J^T J) of the data term (Jacobi preconditioner).
         """
-        opt = self.opt
-        opt.want_grad = 1
-        opt.want_dhd = 1 if direction is not None else 0
-        opt.full_hessian = 1 if full_hessian else 0
-        opt.want_diag = 1 if diag is not None else 0
+        lay = self.layout
+        kernel = stream.accumulate_kernel(lay.n_lobes, int(lay.anisotropic), self.cfg.kahan, diag is not None,
+                                          direction is not None, full_hessian, self.max_registers)
         if diag is not None and self.pdiag is None:
             self.pdiag = wp.zeros((self.groups, self.n), dtype=self.vec, device=self.device)
         pdiag = self.pdiag if diag is not None else self.no_diag
@@ -458,13 +475,11 @@ class StreamProblem:
         if dirn.dtype != params.dtype:
             raise ConfigError("direction and parameters must share a dtype")
         h_out = dhd if dhd is not None else self.ph_scratch()
-        lay = self.layout
         first = True
         for images, depth, shadow, infos, b, e in self.photos.windows():
-            wp.launch(stream.accumulate_kernel, dim=(self.groups, self.n), device=self.device,
-                      inputs=[self.tex, params, dirn, act, lay.n_params, lay.n_lobes,
-                              int(lay.anisotropic), images, depth, shadow, infos, b, e, math.ceil((e - b) / self.groups),
-                              opt, self.like, self.one],
+            wp.launch(kernel, dim=(self.groups, self.n), device=self.device, block_dim=self.block_dim,
+                      inputs=[self.tex, params, dirn, act, images, depth, shadow, infos, b, e,
+                              math.ceil((e - b) / self.groups), self.opt, self.like, self.one],
                       outputs=[self.pf, self.pg, self.ph, self.pst, pdiag])
             wp.launch(stream.reduce_partials_kernel, dim=self.n, device=self.device,
                       inputs=[self.pf, self.pg, self.ph, self.pst, self.groups, 0 if first else 1],
@@ -473,7 +488,6 @@ class StreamProblem:
                 wp.launch(stream.reduce_vec_partials_kernel, dim=self.n, device=self.device,
                           inputs=[self.pdiag, self.groups, 0 if first else 1], outputs=[diag])
             first = False
-        opt.want_diag = 0
         self.passes += 1
 
     def ph_scratch(self) -> wp.array:
@@ -486,17 +500,14 @@ class StreamProblem:
         """One streaming pass accumulating f, J^T r and J^T J per texel (Gauss-Newton / LM)."""
         if self.pm is None:
             self.pm = wp.zeros((self.groups, self.n), dtype=self.mat, device=self.device)
-        opt = self.opt
-        opt.want_grad = 1
-        opt.want_dhd = 0
-        act = self.all_active if active is None else active
         lay = self.layout
+        kernel = stream.accumulate_lm_kernel(lay.n_lobes, int(lay.anisotropic), self.max_registers)
+        act = self.all_active if active is None else active
         first = True
         for images, depth, shadow, infos, b, e in self.photos.windows():
-            wp.launch(stream.accumulate_lm_kernel, dim=(self.groups, self.n), device=self.device,
-                      inputs=[self.tex, params, act, lay.n_params, lay.n_lobes,
-                              int(lay.anisotropic), images, depth, shadow, infos, b, e, math.ceil((e - b) / self.groups),
-                              opt, self.like, self.like_m, self.one],
+            wp.launch(kernel, dim=(self.groups, self.n), device=self.device, block_dim=self.block_dim,
+                      inputs=[self.tex, params, act, images, depth, shadow, infos, b, e,
+                              math.ceil((e - b) / self.groups), self.opt, self.like, self.like_m, self.one],
                       outputs=[self.pf, self.pg, self.pm, self.pst])
             wp.launch(stream.reduce_partials_kernel, dim=self.n, device=self.device,
                       inputs=[self.pf, self.pg, self.pm, self.pst, self.groups, 0 if first else 1],

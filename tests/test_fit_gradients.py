@@ -119,6 +119,31 @@ def test_dhd_matches_second_difference(device, full, sampling):
         np.testing.assert_allclose(full_dhd, hd, rtol=1e-5, atol=1e-7 * np.abs(hd).max())
 
 
+@pytest.mark.parametrize("layout", [ModelLayout(), ModelLayout(n_lobes=2, anisotropic=True)], ids=["iso", "aniso_2lobes"])
+@pytest.mark.parametrize("sampling", ["filtered", "bilinear"])
+def test_lm_pass_matches_the_gradient_pass(device, layout, sampling):
+    """The LM pass's J^T r is the gradient pass's gradient and d^T (J^T J) d its Gauss-Newton
+    d^T H d for every d: random directions reach every entry of J^T J, which the LM kernel sums
+    over each Jacobian row's structural non-zeros only (off-diagonal and cross-lobe blocks included)."""
+    prob, rng = plane_problem(device, layout, seed=3, sampling=sampling)
+    p = random_params(layout, prob.n, rng)
+    n, npar = prob.n, layout.n_params
+    f_lm, g_lm = prob.new_scalar(), prob.new_vec()
+    jtj = wp.zeros(n, dtype=prob.mat, device=device)
+    prob.evaluate_lm(prob.new_storage(p), f_lm, g_lm, jtj, wp.zeros(n, dtype=wp.vec4d, device=device))
+    f0, g0, _, st = evaluate(prob, p)
+    assert st[:, 0].sum() > 0
+    jj = jtj.numpy().reshape(n, npar, npar)
+    # fp64 sums of the same terms, in another order for J^T J: rounding only (1e-10 relative)
+    np.testing.assert_allclose(f_lm.numpy(), f0, rtol=1e-12)
+    np.testing.assert_allclose(g_lm.numpy().reshape(n, -1)[:, :npar], g0, rtol=1e-12, atol=1e-14 * np.abs(g0).max())
+    np.testing.assert_array_equal(jj, jj.transpose(0, 2, 1))
+    for _ in range(3):
+        d = rng.normal(size=p.shape)
+        gn = evaluate(prob, p, direction=d)[2]
+        np.testing.assert_allclose(np.einsum("ni,nij,nj->n", d, jj, d), gn, rtol=1e-10, atol=1e-12 * gn.max())
+
+
 def test_fp32_matches_fp64(device):
     layout = ModelLayout()
     p64, rng = plane_problem(device, layout, acc="fp64", seed=2)

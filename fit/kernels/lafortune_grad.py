@@ -19,7 +19,8 @@ For s <= 0 the lobe and all its derivatives are 0 (n >= 1 makes the objective C1
 
 from __future__ import annotations
 
-from typing import Any
+import functools
+from typing import Any, NamedTuple
 
 import warp as wp
 
@@ -45,105 +46,136 @@ def lobe_weights(u: Any, v: Any):
     return type(u)(u[0] * v[0], u[1] * v[1], u[2] * v[2])
 
 
-@wp.func
-def lobe_base(p: Any, o: int, aniso: int, w: Any):
-    """s = C . w for the lobe whose columns start at ``o``."""
-    if aniso != 0:
-        return p[o + 3] * w[0] + p[o + 4] * w[1] + p[o + 5] * w[2]
-    return p[o + 3] * (w[0] + w[1]) + p[o + 4] * w[2]
+class LafortuneFuncs(NamedTuple):
+    """The model functions of one layout (:func:`lafortune_funcs`)."""
 
-
-@wp.func
-def lobe_features(p: Any, n_lobes: int, aniso: int, u: Any, v: Any, one: Any):
-    """What the model and its Jacobian need from the directions, per lobe j at column offset o:
-    f[o] = L_j, f[o + 3 + k] = dL_j/dC_j,k (isotropic: d/dc_xy, d/dc_z), f[o + stride - 1] = dL_j/dn_j;
-    other entries 0. m and J are linear in f (:func:`model_from_features`), so a weighted mean of
+    features: Any
+    """``features(p, u, v, one)``: per lobe j at column offset o, f[o] = L_j, f[o + 3 + k] =
+    dL_j/dC_j,k (isotropic: d/dc_xy, d/dc_z), f[o + stride - 1] = dL_j/dn_j; other entries 0.
+    m and J are linear in f (:func:`model_value`, ``jacobian_row``), so a weighted mean of
     features over several directions gives the weighted mean model and Jacobian exactly (the
     filtered photo sampling of fit/kernels/stream.py)."""
-    zero = one - one
-    f = p * zero
+    dhd: Any
+    """``dhd(p, d, u, v, one)``: d^T (Hess m_c) d for c = r, g, b (the part the Gauss-Newton
+    approximation drops)."""
+    model_value: Any
+    """``model_value(p, f, c)``: m_c from the features."""
+    jacobian_row: Any
+    """``jacobian_row(p, f, c)``: dm_c/dp, an n_params vector (zero outside channel c's columns
+    and the lobes' shape columns)."""
+    row_entry: Any
+    """``row_entry(p, f, c, t)``: (column, value) of the t-th structurally non-zero entry of
+    dm_c/dp, t < ``row_nonzeros``: t = 0 rho_d,c; 1..K rho_s,j,c; then the lobes' C and n."""
+    row_nonzeros: int
+
+
+@functools.cache
+def lafortune_funcs(n_lobes: int, anisotropic: int) -> LafortuneFuncs:
+    """The model functions specialised to one layout (K = ``n_lobes``, isotropic or not).
+
+    Every loop over lobes and columns has a compile-time trip count, so Warp unrolls it and
+    every vector index is a literal: the parameter, feature and Jacobian vectors stay in
+    registers instead of the thread's local memory, where run-time indices put them (Nsight
+    Compute and ``benchmarks/kernel_resources.py`` show 336-472 bytes of local memory per GPU
+    thread with run-time loops). One layout compiles its own functions and kernels.
+    """
+    n_lobes = int(n_lobes)
+    aniso = int(anisotropic)
     stride = 6 + aniso
-    w = lobe_weights(u, v)
-    for j in range(n_lobes):
-        o = 3 + j * stride
-        s = lobe_base(p, o, aniso, w)
-        if s > zero:
-            n = p[o + stride - 1]
-            ls = wp.log(s)
-            # cap the lobe at e^30 (~1e13; its square stays finite in fp32): reachable only when
-            # C pushes s above 1 with a huge exponent, where the model is meaningless anyway
-            nls = n * ls
-            capped = nls > type(one)(30.0)
-            lobe = wp.exp(wp.min(nls, type(one)(30.0)))
-            dlds = n * lobe / s
-            if capped:
-                dlds = zero
-                ls = zero  # d lobe / dn = lobe ln s becomes 0 on the flat cap
-            f[o] = lobe
-            if aniso != 0:
-                for k in range(3):
-                    f[o + 3 + k] = dlds * w[k]
-            else:
-                f[o + 3] = dlds * (w[0] + w[1])
-                f[o + 4] = dlds * w[2]
-            f[o + stride - 1] = lobe * ls
-    return f
+    n_shape = stride - 3  # C columns and n
+    row_nonzeros = 1 + n_lobes + n_lobes * n_shape
 
+    @wp.func
+    def lobe_base(p: Any, o: int, w: Any):
+        """s = C . w for the lobe whose columns start at ``o``."""
+        if wp.static(aniso != 0):
+            return p[o + 3] * w[0] + p[o + 4] * w[1] + p[o + 5] * w[2]
+        return p[o + 3] * (w[0] + w[1]) + p[o + 4] * w[2]
 
-@wp.func
-def model_from_features(p: Any, f: Any, n_lobes: int, aniso: int, one: Any):
-    """Model value m (RGB) and the Jacobian rows dm_r/dp, dm_g/dp, dm_b/dp from lobe features."""
-    zero = one - one
-    jr = p * zero
-    jg = p * zero
-    jb = p * zero
-    m = wp.vector(p[0], p[1], p[2])
-    jr[0] = one
-    jg[1] = one
-    jb[2] = one
-    stride = 6 + aniso
-    for j in range(n_lobes):
-        o = 3 + j * stride
-        lobe = f[o]
-        m = m + wp.vector(p[o], p[o + 1], p[o + 2]) * lobe
-        jr[o] = lobe
-        jg[o + 1] = lobe
-        jb[o + 2] = lobe
-        for k in range(3, stride):
-            jr[o + k] = p[o] * f[o + k]
-            jg[o + k] = p[o + 1] * f[o + k]
-            jb[o + k] = p[o + 2] * f[o + k]
-    return m, jr, jg, jb
+    @wp.func
+    def features(p: Any, u: Any, v: Any, one: Any):
+        zero = one - one
+        f = p * zero
+        w = lobe_weights(u, v)
+        for j in range(wp.static(n_lobes)):
+            o = 3 + j * wp.static(stride)
+            s = lobe_base(p, o, w)
+            if s > zero:
+                n = p[o + wp.static(stride - 1)]
+                ls = wp.log(s)
+                # cap the lobe at e^30 (~1e13; its square stays finite in fp32): reachable only when
+                # C pushes s above 1 with a huge exponent, where the model is meaningless anyway
+                nls = n * ls
+                capped = nls > type(one)(30.0)
+                lobe = wp.exp(wp.min(nls, type(one)(30.0)))
+                dlds = n * lobe / s
+                if capped:
+                    dlds = zero
+                    ls = zero  # d lobe / dn = lobe ln s becomes 0 on the flat cap
+                f[o] = lobe
+                if wp.static(aniso != 0):
+                    f[o + 3] = dlds * w[0]
+                    f[o + 4] = dlds * w[1]
+                    f[o + 5] = dlds * w[2]
+                else:
+                    f[o + 3] = dlds * (w[0] + w[1])
+                    f[o + 4] = dlds * w[2]
+                f[o + wp.static(stride - 1)] = lobe * ls
+        return f
 
+    @wp.func
+    def model_value(p: Any, f: Any, c: int):
+        m = p[c]
+        for j in range(wp.static(n_lobes)):
+            o = 3 + j * wp.static(stride)
+            m = m + p[o + c] * f[o]
+        return m
 
-@wp.func
-def lafortune_eval(p: Any, n_lobes: int, aniso: int, u: Any, v: Any, one: Any):
-    """Model value m (RGB) and the Jacobian rows dm_r/dp, dm_g/dp, dm_b/dp."""
-    return model_from_features(p, lobe_features(p, n_lobes, aniso, u, v, one), n_lobes, aniso, one)
+    @wp.func
+    def jacobian_row(p: Any, f: Any, c: int):
+        zero = p[0] - p[0]
+        jc = p * zero
+        jc[c] = zero + type(zero)(1.0)
+        for j in range(wp.static(n_lobes)):
+            o = 3 + j * wp.static(stride)
+            jc[o + c] = f[o]
+            for k in range(wp.static(n_shape)):
+                jc[o + 3 + k] = p[o + c] * f[o + 3 + k]
+        return jc
 
+    @wp.func
+    def row_entry(p: Any, f: Any, c: int, t: int):
+        if t == 0:
+            return c, p[0] - p[0] + type(p[0])(1.0)
+        if t <= wp.static(n_lobes):
+            o = 3 + (t - 1) * wp.static(stride)
+            return o + c, f[o]
+        j = (t - 1 - wp.static(n_lobes)) // wp.static(n_shape)
+        k = (t - 1 - wp.static(n_lobes)) % wp.static(n_shape)
+        o = 3 + j * wp.static(stride)
+        return o + 3 + k, p[o + c] * f[o + 3 + k]
 
-@wp.func
-def lafortune_dhd(p: Any, d: Any, n_lobes: int, aniso: int, u: Any, v: Any, one: Any):
-    """d^T (Hess m_c) d for c = r, g, b (the part the Gauss-Newton approximation drops)."""
-    zero = one - one
-    out = type(u)(zero, zero, zero)
-    stride = 6 + aniso
-    w = lobe_weights(u, v)
-    for j in range(n_lobes):
-        o = 3 + j * stride
-        s = lobe_base(p, o, aniso, w)
-        if s > zero:
-            n = p[o + stride - 1]
-            dnj = d[o + stride - 1]
-            ds = lobe_base(d, o, aniso, w)
-            ls = wp.log(s)
-            if n * ls > type(one)(30.0):
-                continue  # flat cap: no curvature
-            lobe = wp.exp(n * ls)
-            q = n * ds / s + dnj * ls
-            l1 = lobe * q
-            l2 = lobe * q * q + lobe * ((one + one) * dnj * ds / s - n * ds * ds / (s * s))
-            da = type(u)(d[o], d[o + 1], d[o + 2])
-            a = type(u)(p[o], p[o + 1], p[o + 2])
-            out = out + (one + one) * l1 * da + l2 * a
-    return out
+    @wp.func
+    def dhd(p: Any, d: Any, u: Any, v: Any, one: Any):
+        zero = one - one
+        out = type(u)(zero, zero, zero)
+        w = lobe_weights(u, v)
+        for j in range(wp.static(n_lobes)):
+            o = 3 + j * wp.static(stride)
+            s = lobe_base(p, o, w)
+            if s > zero:
+                n = p[o + wp.static(stride - 1)]
+                dnj = d[o + wp.static(stride - 1)]
+                ds = lobe_base(d, o, w)
+                ls = wp.log(s)
+                if n * ls <= type(one)(30.0):  # above: the flat cap, no curvature
+                    lobe = wp.exp(n * ls)
+                    q = n * ds / s + dnj * ls
+                    l1 = lobe * q
+                    l2 = lobe * q * q + lobe * ((one + one) * dnj * ds / s - n * ds * ds / (s * s))
+                    da = type(u)(d[o], d[o + 1], d[o + 2])
+                    a = type(u)(p[o], p[o + 1], p[o + 2])
+                    out = out + (one + one) * l1 * da + l2 * a
+        return out
+
+    return LafortuneFuncs(features, dhd, model_value, jacobian_row, row_entry, row_nonzeros)

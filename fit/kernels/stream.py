@@ -17,11 +17,12 @@ d^T H_r d = s_c d^T H_m d.
 
 from __future__ import annotations
 
-from typing import Any
+import functools
+from typing import Any, NamedTuple
 
 import warp as wp
 
-from .lafortune_grad import lafortune_dhd, lafortune_eval, lobe_features, model_from_features
+from .lafortune_grad import lafortune_funcs
 from .shading import incident_light, to_local
 
 # no kernel here is differentiated (the fit writes its own derivatives): skipping Warp's adjoint
@@ -89,17 +90,9 @@ class SampleOptions:
     depth_tol: float
     shadow_tol: float
     reflectance_space: int
-    want_grad: int
-    want_dhd: int
-    full_hessian: int
-    kahan: int
     sampling: int
     """SAMPLING_BILINEAR (0), SAMPLING_POINT (1) or SAMPLING_FILTERED (2): how a texel samples a
     photo (see :func:`observe`)."""
-    want_diag: int
-    """1: also accumulate the Gauss-Newton diagonal D_k = sum (s_c J_c,k)^2 into ``out_diag``
-    (the Jacobi preconditioner of CG / L-BFGS); 0 (the default of a zeroed struct): ``out_diag``
-    is not touched, so passes that do not need it pay nothing but a branch."""
 
 
 @wp.func
@@ -128,22 +121,22 @@ def unmasked(depth: wp.array3d(dtype=wp.float32), k: int, xs: float, ys: float):
 
 
 @wp.func
-def lit(shadow: wp.array3d(dtype=wp.float32), k: int, info: ImageInfo, p: wp.vec3, tol: float):
+def lit(shadow: wp.array3d(dtype=wp.float32), k: int, infos: wp.array(dtype=ImageInfo), p: wp.vec3, tol: float):
     """Point ``p`` is lit when no shadow-map tap around its projection is closer to the light."""
-    if info.has_shadow == 0:
+    if infos[k].has_shadow == 0:
         return True
-    pl = info.sh_rot @ p + info.sh_trans
+    pl = infos[k].sh_rot @ p + infos[k].sh_trans
     if pl[2] <= 0.0:
         return False
     sx = 0.0
     sy = 0.0
-    if info.sh_ortho != 0:
-        sx = info.sh_fx * pl[0] + info.sh_cx - 0.5
-        sy = info.sh_fy * pl[1] + info.sh_cy - 0.5
+    if infos[k].sh_ortho != 0:
+        sx = infos[k].sh_fx * pl[0] + infos[k].sh_cx - 0.5
+        sy = infos[k].sh_fy * pl[1] + infos[k].sh_cy - 0.5
     else:
-        sx = info.sh_fx * pl[0] / pl[2] + info.sh_cx - 0.5
-        sy = info.sh_fy * pl[1] / pl[2] + info.sh_cy - 0.5
-    if sx < 0.0 or sy < 0.0 or sx >= float(info.sh_size - 1) or sy >= float(info.sh_size - 1):
+        sx = infos[k].sh_fx * pl[0] / pl[2] + infos[k].sh_cx - 0.5
+        sy = infos[k].sh_fy * pl[1] / pl[2] + infos[k].sh_cy - 0.5
+    if sx < 0.0 or sy < 0.0 or sx >= float(infos[k].sh_size - 1) or sy >= float(infos[k].sh_size - 1):
         return True  # outside the map: nothing of the object lies between
     x0 = int(sx)
     y0 = int(sy)
@@ -167,17 +160,17 @@ SAMPLING_FILTERED = wp.constant(2)
 
 
 @wp.func
-def pixel_point(info: ImageInfo, tex: TexelFrames, i: int, x: int, y: int):
+def pixel_point(infos: wp.array(dtype=ImageInfo), k: int, tex: TexelFrames, i: int, x: int, y: int):
     """Where pixel (x, y)'s centre ray meets texel i's face plane: (point, shading normal, tangent,
     bitangent). The normal is the interpolated vertex normal there (``dn_dp``), as the renderer's
     :func:`surface_frame` gives it; a ray nearly parallel to the plane keeps the texel's frame."""
     p = tex.pos[i]
-    ray = wp.transpose(info.rot) @ wp.vec3((float(x) + 0.5 - info.cx) / info.fx, (float(y) + 0.5 - info.cy) / info.fy, 1.0)
+    ray = wp.transpose(infos[k].rot) @ wp.vec3((float(x) + 0.5 - infos[k].cx) / infos[k].fx, (float(y) + 0.5 - infos[k].cy) / infos[k].fy, 1.0)
     ng = tex.face_nrm[i]
     den = wp.dot(ray, ng)
     if wp.abs(den) <= 1.0e-3 * wp.length(ray):
         return p, tex.nrm[i], tex.tan[i], tex.bit[i]
-    q = info.center + ray * (wp.dot(p - info.center, ng) / den)
+    q = infos[k].center + ray * (wp.dot(p - infos[k].center, ng) / den)
     nrm = wp.normalize(tex.nrm[i] + tex.dn_dp[i] @ (q - p))
     tan = wp.normalize(tex.tan[i] - nrm * wp.dot(nrm, tex.tan[i]))
     return q, nrm, tan, wp.cross(nrm, tan)
@@ -185,7 +178,7 @@ def pixel_point(info: ImageInfo, tex: TexelFrames, i: int, x: int, y: int):
 
 @wp.func
 def observe(images: wp.array3d(dtype=Any), depth: wp.array3d(dtype=wp.float32),
-            shadow: wp.array3d(dtype=wp.float32), info: ImageInfo, k: int,
+            shadow: wp.array3d(dtype=wp.float32), infos: wp.array(dtype=ImageInfo), k: int,
             tex: TexelFrames, i: int, opt: SampleOptions):
     """The distribution step for one (texel i, photo k).
 
@@ -211,34 +204,34 @@ def observe(images: wp.array3d(dtype=Any), depth: wp.array3d(dtype=wp.float32),
     nrm = tex.nrm[i]
     tan = tex.tan[i]
     bit = tex.bit[i]
-    pc = info.rot @ p + info.trans
+    pc = infos[k].rot @ p + infos[k].trans
     if pc[2] <= 0.0:
         return False, zero3, zero3, zero3, zero3, 0.0, 0.0
-    xs = info.fx * pc[0] / pc[2] + info.cx - 0.5
-    ys = info.fy * pc[1] / pc[2] + info.cy - 0.5
-    if xs < 0.0 or ys < 0.0 or xs >= float(info.width - 1) or ys >= float(info.height - 1):
+    xs = infos[k].fx * pc[0] / pc[2] + infos[k].cx - 0.5
+    ys = infos[k].fy * pc[1] / pc[2] + infos[k].cy - 0.5
+    if xs < 0.0 or ys < 0.0 or xs >= float(infos[k].width - 1) or ys >= float(infos[k].height - 1):
         return False, zero3, zero3, zero3, zero3, 0.0, 0.0
-    vdir = wp.normalize(info.center - p)
+    vdir = wp.normalize(infos[k].center - p)
     cos_v = wp.dot(vdir, nrm)
     if cos_v < opt.cos_view_min:
         return False, zero3, zero3, zero3, zero3, 0.0, 0.0
-    point = opt.sampling == SAMPLING_POINT and info.depth_is_mask == 0
+    point = opt.sampling == SAMPLING_POINT and infos[k].depth_is_mask == 0
     x0 = int(xs)
     y0 = int(ys)
     if point:
         x0 = int(xs + 0.5)
         y0 = int(ys + 0.5)
-        p, nrm, tan, bit = pixel_point(info, tex, i, x0, y0)
-        pc = info.rot @ p + info.trans
-        vdir = wp.normalize(info.center - p)
+        p, nrm, tan, bit = pixel_point(infos, k, tex, i, x0, y0)
+        pc = infos[k].rot @ p + infos[k].trans
+        vdir = wp.normalize(infos[k].center - p)
         cos_v = wp.dot(vdir, nrm)
         if cos_v < opt.cos_view_min:
             return False, zero3, zero3, zero3, zero3, 0.0, 0.0
-    wi, e_int, dist = incident_light(info.light_kind, info.light_vec, info.light_intensity, p)
+    wi, e_int, dist = incident_light(infos[k].light_kind, infos[k].light_vec, infos[k].light_intensity, p)
     cos_i = wp.dot(wi, nrm)
     if cos_i < opt.cos_light_min:
         return False, zero3, zero3, zero3, zero3, 0.0, 0.0
-    if info.depth_is_mask != 0:
+    if infos[k].depth_is_mask != 0:
         if not unmasked(depth, k, xs, ys):
             return False, zero3, zero3, zero3, zero3, 0.0, 0.0
     else:
@@ -248,17 +241,17 @@ def observe(images: wp.array3d(dtype=Any), depth: wp.array3d(dtype=wp.float32),
         # still reject the background.
         tan_v = wp.min(wp.sqrt(wp.max(1.0 - cos_v * cos_v, 0.0)) / cos_v, 4.0)
         if point:
-            if not depth_tap_ok(depth, k, x0, y0, pc[2], opt.depth_tol, 0.5 * pc[2] / info.fx * tan_v):
+            if not depth_tap_ok(depth, k, x0, y0, pc[2], opt.depth_tol, 0.5 * pc[2] / infos[k].fx * tan_v):
                 return False, zero3, zero3, zero3, zero3, 0.0, 0.0
         else:
-            if not depth_consistent(depth, k, x0, y0, pc[2], opt.depth_tol, 1.5 * pc[2] / info.fx * tan_v):
+            if not depth_consistent(depth, k, x0, y0, pc[2], opt.depth_tol, 1.5 * pc[2] / infos[k].fx * tan_v):
                 return False, zero3, zero3, zero3, zero3, 0.0, 0.0
-    if not lit(shadow, k, info, p, opt.shadow_tol):
+    if not lit(shadow, k, infos, p, opt.shadow_tol):
         return False, zero3, zero3, zero3, zero3, 0.0, 0.0
     y = wp.vec3(0.0)
     if point:
         y = wp.vec3(images[k, y0, x0])
-        if wp.max(y[0], wp.max(y[1], y[2])) >= info.saturation:
+        if wp.max(y[0], wp.max(y[1], y[2])) >= infos[k].saturation:
             return False, zero3, zero3, zero3, zero3, 0.0, 0.0
     else:
         fx = xs - float(x0)
@@ -268,62 +261,11 @@ def observe(images: wp.array3d(dtype=Any), depth: wp.array3d(dtype=wp.float32),
         c10 = wp.vec3(images[k, y0 + 1, x0])
         c11 = wp.vec3(images[k, y0 + 1, x0 + 1])
         tapmax = wp.max(wp.max(c00, c01), wp.max(c10, c11))
-        if wp.max(tapmax[0], wp.max(tapmax[1], tapmax[2])) >= info.saturation:
+        if wp.max(tapmax[0], wp.max(tapmax[1], tapmax[2])) >= infos[k].saturation:
             return False, zero3, zero3, zero3, zero3, 0.0, 0.0
         y = (1.0 - fy) * ((1.0 - fx) * c00 + fx * c01) + fy * ((1.0 - fx) * c10 + fx * c11)
-    w = info.exposure * cos_i * e_int
+    w = infos[k].exposure * cos_i * e_int
     return True, y, w, to_local(wi, tan, bit, nrm), to_local(vdir, tan, bit, nrm), xs, ys
-
-
-@wp.func
-def sample_model(pv: Any, dv: Any, n_lobes: int, aniso: int, want_hm: int, info: ImageInfo, tex: TexelFrames,
-                 i: int, xs: float, ys: float, w: wp.vec3, u: wp.vec3, v: wp.vec3, opt: SampleOptions, one: Any):
-    """The model side of one sample: (weight W, model M, dM/dp per channel, d^T (Hess M) d).
-
-    The residual is W M - y (radiance space). Bilinear and point sampling: W = w and M the
-    texel's BRDF at (u, v). Filtered sampling: the photo's bilinear filter applied to the model,
-    W = sum_t b_t w_t and M = sum_t b_t w_t m_t / W over the four taps t (bilinear weights b_t,
-    each tap's own surface point, light and view), so W M is the filtered radiance. w_t is the
-    light's RGB intensity times a scalar a_t (exposure, cosine, falloff), so M = sum_t omega_t m_t
-    with omega_t = b_t a_t / sum b a the same for every channel: the taps' lobe features are
-    averaged (:func:`lobe_features`) and M and its Jacobian assembled once, exactly.
-    """
-    uc = to_compute3(u, one)
-    vc = to_compute3(v, one)
-    zero = one - one
-    if opt.sampling != SAMPLING_FILTERED or info.depth_is_mask != 0:
-        m, jr, jg, jb = lafortune_eval(pv, n_lobes, aniso, uc, vc, one)
-        hm = type(uc)(zero, zero, zero)
-        if want_hm != 0:
-            hm = lafortune_dhd(pv, dv, n_lobes, aniso, uc, vc, one)
-        return to_compute3(w, one), m, jr, jg, jb, hm
-    x0 = int(xs)
-    y0 = int(ys)
-    fx = xs - float(x0)
-    fy = ys - float(y0)
-    asum = float(0.0)
-    feat = pv * zero
-    hsum = type(uc)(zero, zero, zero)
-    # a run-time trip count (4 here): Warp unrolls loops over literal ranges, and four inlined
-    # copies of the tap (lobe features, optionally d^T H d) made the CPU kernels compile 30% slower
-    n_taps = opt.sampling + 2
-    for t in range(n_taps):
-        dx = t % 2
-        dy = t // 2
-        b = (fx * float(dx) + (1.0 - fx) * float(1 - dx)) * (fy * float(dy) + (1.0 - fy) * float(1 - dy))
-        p, nrm, tan, bit = pixel_point(info, tex, i, x0 + dx, y0 + dy)
-        wi, falloff, dist = incident_light(info.light_kind, info.light_vec, wp.vec3(1.0), p)
-        a = b * info.exposure * wp.max(wp.dot(wi, nrm), 0.0) * falloff[0]
-        ut = to_compute3(to_local(wi, tan, bit, nrm), one)
-        vt = to_compute3(to_local(wp.normalize(info.center - p), tan, bit, nrm), one)
-        ac = type(one)(a)
-        feat = feat + ac * lobe_features(pv, n_lobes, aniso, ut, vt, one)
-        if want_hm != 0:
-            hsum = hsum + ac * lafortune_dhd(pv, dv, n_lobes, aniso, ut, vt, one)
-        asum = asum + a
-    inv = one / type(one)(wp.max(asum, 1.0e-30))  # every tap unlit: M = the diffuse part, W = 0
-    m, jr, jg, jb = model_from_features(pv, feat * inv, n_lobes, aniso, one)
-    return to_compute3(info.light_intensity * asum, one), m, jr, jg, jb, hsum * inv
 
 
 @wp.func
@@ -332,148 +274,262 @@ def to_compute3(a: wp.vec3, one: Any):
 
 
 @wp.func
-def load_params(params: wp.array2d(dtype=Any), i: int, n_params: int, like: Any, one: Any):
-    out = like * (one - one)
-    for k in range(n_params):
-        out[k] = type(one)(params[i, k])
-    return out
-
-
-@wp.func
-def channel_residual(m: Any, yc: Any, wc: Any, jr: Any, jg: Any, jb: Any, c: int, reflectance_space: int, one: Any):
-    """Residual r_c, its scale s_c (see the module doc) and the model's Jacobian row of channel c."""
-    s = one
-    r = m[c] - yc[c] / wc[c]
-    if reflectance_space == 0:
-        s = wc[c]
-        r = wc[c] * m[c] - yc[c]
-    jc = jr
-    if c == 1:
-        jc = jg
-    if c == 2:
-        jc = jb
-    return r, s, jc
-
-
-@wp.func
-def trace_stats(w: Any, m: Any, y: wp.vec3, c: int):
-    """(1/3 sample, r^2, |r|, |y|) of channel c in radiance space, in fp64, for the trace."""
-    rr = wp.float64(w[c]) * wp.float64(m[c]) - wp.float64(y[c])
+def trace_stats(wm: Any, y: wp.vec3, c: int):
+    """(1/3 sample, r^2, |r|, |y|) of channel c in radiance space, in fp64, for the trace
+    (``wm`` = W_c m_c, the model's radiance)."""
+    rr = wp.float64(wm) - wp.float64(y[c])
     return wp.vec4d(wp.float64(1.0 / 3.0), rr * rr, wp.abs(rr), wp.abs(wp.float64(y[c])))
 
 
-@wp.kernel
-def accumulate_kernel(
-    tex: TexelFrames, params: wp.array2d(dtype=Any), direction: wp.array2d(dtype=Any),
-    active: wp.array(dtype=wp.int32), n_params: int, n_lobes: int, aniso: int,
-    images: wp.array3d(dtype=Any), depth: wp.array3d(dtype=wp.float32),
-    shadow: wp.array3d(dtype=wp.float32), infos: wp.array(dtype=ImageInfo),
-    img_begin: int, img_end: int, per_group: int, opt: SampleOptions, like: Any, one: Any,
-    out_f: wp.array2d(dtype=Any), out_g: wp.array2d(dtype=Any), out_dhd: wp.array2d(dtype=Any),
-    out_stats: wp.array2d(dtype=wp.vec4d), out_diag: wp.array2d(dtype=Any)):
-    """Partial objective, gradient and d^T H d of texel i over photo group g (see module doc).
+class LayoutFuncs(NamedTuple):
+    """The per-sample functions of one model layout (:func:`layout_funcs`)."""
 
-    out_stats holds (samples, sum r_radiance^2, sum |r_radiance|, sum |y|) for the trace.
-    out_diag (written only when ``opt.want_diag``) holds the Gauss-Newton diagonal
-    sum over samples and channels of (s_c dm_c/dp_k)^2, i.e. diag(J_r^T J_r).
+    lf: Any
+    load_params: Any
+    sample_model: Any
+    channel_residual: Any
+    n_params: int
+
+
+@functools.cache
+def layout_funcs(n_lobes: int, anisotropic: int) -> LayoutFuncs:
+    """The sample functions the accumulation kernels share, specialised to one model layout
+    (loops over lobes and columns with compile-time trip counts, see ``lafortune_funcs``)."""
+    lf = lafortune_funcs(n_lobes, anisotropic)
+    n_params = 3 + int(n_lobes) * (6 + int(anisotropic))
+
+    @wp.func
+    def load_params(params: wp.array2d(dtype=Any), i: int, like: Any, one: Any):
+        out = like * (one - one)
+        for k in range(wp.static(n_params)):
+            out[k] = type(one)(params[i, k])
+        return out
+
+    @wp.func
+    def sample_model(pv: Any, dv: Any, infos: wp.array(dtype=ImageInfo), k: int, tex: TexelFrames, i: int, xs: float,
+                     ys: float, w: wp.vec3, u: wp.vec3, v: wp.vec3, opt: SampleOptions, want_hm: int, one: Any):
+        """The model side of one sample: (weight W, lobe features f, d^T (Hess M) d).
+
+        The residual is W M - y (radiance space), M the model of the features f
+        (``lafortune_funcs``). Bilinear and point sampling: W = w and f the texel's features at
+        (u, v). Filtered sampling: the photo's bilinear filter applied to the model, W = sum_t
+        b_t w_t and M = sum_t b_t w_t m_t / W over the four taps t (bilinear weights b_t, each
+        tap's own surface point, light and view), so W M is the filtered radiance. w_t is the
+        light's RGB intensity times a scalar a_t (exposure, cosine, falloff), so M = sum_t
+        omega_t m_t with omega_t = b_t a_t / sum b a the same for every channel: the taps'
+        features are averaged, and M and its Jacobian follow from the mean exactly.
+        """
+        uc = to_compute3(u, one)
+        vc = to_compute3(v, one)
+        zero = one - one
+        if opt.sampling != SAMPLING_FILTERED or infos[k].depth_is_mask != 0:
+            hm = type(uc)(zero, zero, zero)
+            if want_hm != 0:
+                hm = lf.dhd(pv, dv, uc, vc, one)
+            return to_compute3(w, one), lf.features(pv, uc, vc, one), hm
+        x0 = int(xs)
+        y0 = int(ys)
+        fx = xs - float(x0)
+        fy = ys - float(y0)
+        asum = float(0.0)
+        feat = pv * zero
+        hsum = type(uc)(zero, zero, zero)
+        # a run-time trip count (4 here): Warp unrolls loops over literal ranges, and four inlined
+        # copies of the tap (lobe features, optionally d^T H d) made the CPU kernels compile 30% slower
+        n_taps = opt.sampling + 2
+        for t in range(n_taps):
+            dx = t % 2
+            dy = t // 2
+            b = (fx * float(dx) + (1.0 - fx) * float(1 - dx)) * (fy * float(dy) + (1.0 - fy) * float(1 - dy))
+            p, nrm, tan, bit = pixel_point(infos, k, tex, i, x0 + dx, y0 + dy)
+            wi, falloff, dist = incident_light(infos[k].light_kind, infos[k].light_vec, wp.vec3(1.0), p)
+            a = b * infos[k].exposure * wp.max(wp.dot(wi, nrm), 0.0) * falloff[0]
+            ut = to_compute3(to_local(wi, tan, bit, nrm), one)
+            vt = to_compute3(to_local(wp.normalize(infos[k].center - p), tan, bit, nrm), one)
+            ac = type(one)(a)
+            feat = feat + ac * lf.features(pv, ut, vt, one)
+            if want_hm != 0:
+                hsum = hsum + ac * lf.dhd(pv, dv, ut, vt, one)
+            asum = asum + a
+        inv = one / type(one)(wp.max(asum, 1.0e-30))  # every tap unlit: M = the diffuse part, W = 0
+        return to_compute3(infos[k].light_intensity * asum, one), feat * inv, hsum * inv
+
+    @wp.func
+    def channel_residual(pv: Any, feat: Any, yc: Any, wc: Any, c: int, reflectance_space: int, one: Any):
+        """Model m_c, residual r_c and its scale s_c (see the module doc) of channel c."""
+        m = lf.model_value(pv, feat, c)
+        s = one
+        r = m - yc[c] / wc[c]
+        if reflectance_space == 0:
+            s = wc[c]
+            r = wc[c] * m - yc[c]
+        return m, r, s
+
+    return LayoutFuncs(lf, load_params, sample_model, channel_residual, n_params)
+
+
+@functools.cache
+def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, dhd: bool, full_hessian: bool,
+                      max_registers: int = 0):
+    """The objective / gradient pass of one model layout and pass kind.
+
+    What a pass accumulates beside f and the gradient is fixed when the kernel compiles rather
+    than tested per sample, so a pass carries no registers for what it does not compute:
+    ``kahan`` (compensated sums), ``diag`` (the Gauss-Newton diagonal), ``dhd`` (d^T H d along
+    ``direction``) and ``full_hessian`` (its r d^T (Hess r) d term). The Jacobian rows are built
+    with literal indices (``LafortuneFuncs.jacobian_row``), so they stay in registers.
+    ``max_registers`` caps registers per CUDA thread (0: none). Each kernel lives in a module of
+    its own, so compiling one does not recompile the others.
     """
-    g, i = wp.tid()
-    zero = one - one
-    f = zero
-    fc = zero
-    grad = like * zero
-    gc = like * zero
-    dhd = zero
-    diag = like * zero
-    st = wp.vec4d(0.0)
-    if active[i] != 0:
-        pv = load_params(params, i, n_params, like, one)
-        dv = like * zero
-        if opt.want_dhd != 0:
-            dv = load_params(direction, i, n_params, like, one)
-        k0 = img_begin + g * per_group
-        k1 = wp.min(k0 + per_group, img_end)
-        for k in range(k0, k1):
-            info = infos[k]
-            ok, y, w, u, v, xs, ys = observe(images, depth, shadow, info, k, tex, i, opt)
-            if ok:
-                want_hm = opt.want_dhd * opt.full_hessian
-                wc, m, jr, jg, jb, hm = sample_model(pv, dv, n_lobes, aniso, want_hm, info, tex, i, xs, ys, w, u, v,
-                                                     opt, one)
-                yc = to_compute3(y, one)
-                for c in range(3):
-                    r, s, jc = channel_residual(m, yc, wc, jr, jg, jb, c, opt.reflectance_space, one)
-                    term = type(one)(0.5) * r * r
-                    if opt.kahan != 0:
-                        yk = term - fc
-                        tk = f + yk
-                        fc = (tk - f) - yk
-                        f = tk
-                    else:
-                        f = f + term
-                    if opt.want_grad != 0:
+    fn = layout_funcs(n_lobes, anisotropic)
+    lf, load_params, sample_model, channel_residual = fn.lf, fn.load_params, fn.sample_model, fn.channel_residual
+    use_kahan, want_diag, want_dhd, want_full = bool(kahan), bool(diag), bool(dhd), bool(dhd and full_hessian)
+
+    def accumulate(
+        tex: TexelFrames, params: wp.array2d(dtype=Any), direction: wp.array2d(dtype=Any),
+        active: wp.array(dtype=wp.int32),
+        images: wp.array3d(dtype=Any), depth: wp.array3d(dtype=wp.float32),
+        shadow: wp.array3d(dtype=wp.float32), infos: wp.array(dtype=ImageInfo),
+        img_begin: int, img_end: int, per_group: int, opt: SampleOptions, like: Any, one: Any,
+        out_f: wp.array2d(dtype=Any), out_g: wp.array2d(dtype=Any), out_dhd: wp.array2d(dtype=Any),
+        out_stats: wp.array2d(dtype=wp.vec4d), out_diag: wp.array2d(dtype=Any)):
+        """Partial objective, gradient and d^T H d of texel i over photo group g (see module doc).
+
+        out_stats holds (samples, sum r_radiance^2, sum |r_radiance|, sum |y|) for the trace.
+        out_diag (written only by ``diag`` kernels) holds the Gauss-Newton diagonal
+        sum over samples and channels of (s_c dm_c/dp_k)^2, i.e. diag(J_r^T J_r).
+        """
+        g, i = wp.tid()
+        zero = one - one
+        f = zero
+        fc = zero
+        grad = like * zero
+        gc = like * zero
+        dhd = zero
+        diag = like * zero
+        st = wp.vec4d(0.0)
+        if active[i] != 0:
+            pv = load_params(params, i, like, one)
+            dv = like * zero
+            if wp.static(want_dhd):
+                dv = load_params(direction, i, like, one)
+            k0 = img_begin + g * per_group
+            k1 = wp.min(k0 + per_group, img_end)
+            for k in range(k0, k1):
+                ok, y, w, u, v, xs, ys = observe(images, depth, shadow, infos, k, tex, i, opt)
+                if ok:
+                    wc, feat, hm = sample_model(pv, dv, infos, k, tex, i, xs, ys, w, u, v, opt,
+                                                wp.static(int(want_full)), one)
+                    yc = to_compute3(y, one)
+                    for c in range(3):
+                        m, r, s = channel_residual(pv, feat, yc, wc, c, opt.reflectance_space, one)
+                        term = type(one)(0.5) * r * r
+                        if wp.static(use_kahan):
+                            yk = term - fc
+                            tk = f + yk
+                            fc = (tk - f) - yk
+                            f = tk
+                        else:
+                            f = f + term
+                        jc = lf.jacobian_row(pv, feat, c)
                         gterm = (r * s) * jc
-                        if opt.kahan != 0:
+                        if wp.static(use_kahan):
                             ygk = gterm - gc
                             tgk = grad + ygk
                             gc = (tgk - grad) - ygk
                             grad = tgk
                         else:
                             grad = grad + gterm
-                    if opt.want_diag != 0:
-                        sj = s * jc
-                        diag = diag + wp.cw_mul(sj, sj)
-                    if opt.want_dhd != 0:
-                        jd = s * wp.dot(jc, dv)
-                        dhd = dhd + jd * jd
-                        if opt.full_hessian != 0:
-                            dhd = dhd + r * s * hm[c]
-                    st = st + trace_stats(wc, m, y, c)
-    out_f[g, i] = f
-    out_g[g, i] = grad
-    out_dhd[g, i] = dhd
-    out_stats[g, i] = st
-    if opt.want_diag != 0:
-        out_diag[g, i] = diag
+                        if wp.static(want_diag):
+                            sj = s * jc
+                            diag = diag + wp.cw_mul(sj, sj)
+                        if wp.static(want_dhd):
+                            jd = s * wp.dot(jc, dv)
+                            dhd = dhd + jd * jd
+                            if wp.static(want_full):
+                                dhd = dhd + r * s * hm[c]
+                        st = st + trace_stats(wc[c] * m, y, c)
+        out_f[g, i] = f
+        out_g[g, i] = grad
+        out_dhd[g, i] = dhd
+        out_stats[g, i] = st
+        if wp.static(want_diag):
+            out_diag[g, i] = diag
+
+    name = "_".join(["accumulate", f"{int(n_lobes)}lobes", "aniso" if anisotropic else "iso"]
+                    + [flag for flag, on in (("kahan", use_kahan), ("diag", want_diag), ("dhd", want_dhd), ("full", want_full)) if on])
+    if max_registers:
+        name += f"_maxreg{max_registers}"
+    return wp.kernel(accumulate, name=name, enable_backward=False, module="unique",
+                     cuda_max_registers=max_registers or None)
 
 
-@wp.kernel
-def accumulate_lm_kernel(
-    tex: TexelFrames, params: wp.array2d(dtype=Any),
-    active: wp.array(dtype=wp.int32), n_params: int, n_lobes: int, aniso: int,
-    images: wp.array3d(dtype=Any), depth: wp.array3d(dtype=wp.float32),
-    shadow: wp.array3d(dtype=wp.float32), infos: wp.array(dtype=ImageInfo),
-    img_begin: int, img_end: int, per_group: int, opt: SampleOptions, like: Any, like_m: Any, one: Any,
-    out_f: wp.array2d(dtype=Any), out_g: wp.array2d(dtype=Any), out_jtj: wp.array2d(dtype=Any),
-    out_stats: wp.array2d(dtype=wp.vec4d)):
-    """Partial objective, J^T r and J^T J of texel i over photo group g (Gauss-Newton / LM)."""
-    g, i = wp.tid()
-    zero = one - one
-    f = zero
-    grad = like * zero
-    jtj = like_m * zero
-    st = wp.vec4d(0.0)
-    if active[i] != 0:
-        pv = load_params(params, i, n_params, like, one)
-        k0 = img_begin + g * per_group
-        k1 = wp.min(k0 + per_group, img_end)
-        for k in range(k0, k1):
-            info = infos[k]
-            ok, y, w, u, v, xs, ys = observe(images, depth, shadow, info, k, tex, i, opt)
-            if ok:
-                wc, m, jr, jg, jb, hm = sample_model(pv, pv, n_lobes, aniso, 0, info, tex, i, xs, ys, w, u, v, opt, one)
-                yc = to_compute3(y, one)
-                for c in range(3):
-                    r, s, jc = channel_residual(m, yc, wc, jr, jg, jb, c, opt.reflectance_space, one)
-                    f = f + type(one)(0.5) * r * r
-                    sj = s * jc
-                    grad = grad + r * sj
-                    jtj = jtj + wp.outer(sj, sj)
-                    st = st + trace_stats(wc, m, y, c)
-    out_f[g, i] = f
-    out_g[g, i] = grad
-    out_jtj[g, i] = jtj
-    out_stats[g, i] = st
+@functools.cache
+def accumulate_lm_kernel(n_lobes: int, anisotropic: int, max_registers: int = 0):
+    """The Gauss-Newton / LM pass of one model layout: f, J^T r and J^T J per (photo group, texel).
+
+    J^T J is summed over the structurally non-zero entries of each channel's Jacobian row only
+    (``LafortuneFuncs.row_entry``; 33 of the 81 entries of one isotropic lobe) into its upper
+    triangle and mirrored once at the end, so the sums stay in registers on a GPU.
+    """
+    fn = layout_funcs(n_lobes, anisotropic)
+    lf, load_params, sample_model, channel_residual = fn.lf, fn.load_params, fn.sample_model, fn.channel_residual
+    n_params = fn.n_params
+    row_nonzeros = lf.row_nonzeros
+
+    def accumulate_lm(
+        tex: TexelFrames, params: wp.array2d(dtype=Any),
+        active: wp.array(dtype=wp.int32),
+        images: wp.array3d(dtype=Any), depth: wp.array3d(dtype=wp.float32),
+        shadow: wp.array3d(dtype=wp.float32), infos: wp.array(dtype=ImageInfo),
+        img_begin: int, img_end: int, per_group: int, opt: SampleOptions, like: Any, like_m: Any, one: Any,
+        out_f: wp.array2d(dtype=Any), out_g: wp.array2d(dtype=Any), out_jtj: wp.array2d(dtype=Any),
+        out_stats: wp.array2d(dtype=wp.vec4d)):
+        """Partial objective, J^T r and J^T J of texel i over photo group g (Gauss-Newton / LM).
+
+        J^T J is summed over the structurally non-zero entries of each channel's Jacobian row
+        into its upper triangle, then mirrored once (``LafortuneFuncs.row_entry``)."""
+        g, i = wp.tid()
+        zero = one - one
+        f = zero
+        grad = like * zero
+        upper = like_m * zero
+        st = wp.vec4d(0.0)
+        if active[i] != 0:
+            pv = load_params(params, i, like, one)
+            k0 = img_begin + g * per_group
+            k1 = wp.min(k0 + per_group, img_end)
+            for k in range(k0, k1):
+                ok, y, w, u, v, xs, ys = observe(images, depth, shadow, infos, k, tex, i, opt)
+                if ok:
+                    wc, feat, hm = sample_model(pv, pv, infos, k, tex, i, xs, ys, w, u, v, opt, 0, one)
+                    yc = to_compute3(y, one)
+                    for c in range(3):
+                        m, r, s = channel_residual(pv, feat, yc, wc, c, opt.reflectance_space, one)
+                        f = f + type(one)(0.5) * r * r
+                        rs = r * s
+                        s2 = s * s
+                        for ta in range(wp.static(row_nonzeros)):
+                            ca, va = lf.row_entry(pv, feat, c, ta)
+                            grad[ca] = grad[ca] + rs * va
+                            for tb in range(wp.static(row_nonzeros)):
+                                if tb >= ta:
+                                    cb, vb = lf.row_entry(pv, feat, c, tb)
+                                    upper[wp.min(ca, cb), wp.max(ca, cb)] = upper[wp.min(ca, cb), wp.max(ca, cb)] + s2 * va * vb
+                        st = st + trace_stats(wc[c] * m, y, c)
+        jtj = upper + wp.transpose(upper)
+        for k in range(wp.static(n_params)):
+            jtj[k, k] = upper[k, k]
+        out_f[g, i] = f
+        out_g[g, i] = grad
+        out_jtj[g, i] = jtj
+        out_stats[g, i] = st
+
+    name = "_".join(["accumulate_lm", f"{int(n_lobes)}lobes", "aniso" if anisotropic else "iso"])
+    if max_registers:
+        name += f"_maxreg{max_registers}"
+    return wp.kernel(accumulate_lm, name=name, enable_backward=False, module="unique",
+                     cuda_max_registers=max_registers or None)
 
 
 @wp.kernel
@@ -536,7 +592,7 @@ def initial_guess_kernel(tex: TexelFrames, images: wp.array3d(dtype=Any),
     hi = high[i]
     n = count[i]
     for k in range(img_begin, img_end):
-        ok, y, w, u, v, xs, ys = observe(images, depth, shadow, infos[k], k, tex, i, opt)
+        ok, y, w, u, v, xs, ys = observe(images, depth, shadow, infos, k, tex, i, opt)
         if ok:
             n = n + 1
             for c in range(3):
