@@ -206,3 +206,13 @@ def test_smoothness_gradient_and_block_hessian_match_finite_differences(device):
             np.testing.assert_allclose((fp - fm) / (2 * step), g[i, k], rtol=1e-7, atol=1e-10 * abs(total))
             np.testing.assert_allclose((fp - 2 * total + fm) / step ** 2, hess[i, k, k], rtol=1e-5, atol=1e-8)
     assert np.all(np.isfinite(f_half)) and total > 0
+
+
+@pytest.mark.parametrize("bad", [{"cuda_block_dim": 100}, {"cuda_block_dim": 2048}, {"cuda_max_registers": 8}],
+                         ids=["block_not_warp_multiple", "block_too_large", "register_cap_too_small"])
+def test_bad_cuda_launch_options_are_config_errors(device, bad):
+    from texstream.pipelines.errors import ConfigError
+
+    prob, _ = plane_problem(device, ModelLayout(), n_photos=1, grid=2)
+    with pytest.raises(ConfigError):
+        StreamProblem(prob.texels, prob.photos, prob.layout, StreamConfig(**bad), device=device)

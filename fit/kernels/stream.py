@@ -8,6 +8,12 @@ occluded samples, and accumulating the objective, gradient and curvature terms i
 Each thread writes its partial sums once; :func:`reduce_partials_kernel` adds the groups in a
 fixed order, so results are deterministic (no float atomics). Nothing per (texel, photo) is stored.
 
+Keeping a GPU thread's state in registers decides the speed (benchmarks/results/h100_kernels): the
+accumulation kernels are compiled per model layout and pass kind (:func:`accumulate_kernel`,
+:func:`accumulate_lm_kernel`) so that no vector is indexed at run time, and the functions read a
+photo's constants as ``infos[k].field`` where they use them, because a local copy of the whole
+``ImageInfo`` (about 50 words) is loaded at once and stays live through the sample.
+
 Residuals (per colour channel c, radiance-space weight w_c = exposure * E_c * cos(theta_i)):
     radiance space   : r_c = w_c m_c - y_c
     reflectance space: r_c = m_c - y_c / w_c       (the seed's choice; needs cos(theta_i) >= 0.1)
