@@ -280,6 +280,14 @@ def to_compute3(a: wp.vec3, one: Any):
 
 
 @wp.func
+def kahan_add(total: Any, comp: Any, term: Any):
+    """Kahan-compensated ``total + term`` (seed Alg. 14), scalar or vector: (total, compensation)."""
+    y = term - comp
+    t = total + y
+    return t, (t - total) - y
+
+
+@wp.func
 def trace_stats(wm: Any, y: wp.vec3, c: int):
     """(1/3 sample, r^2, |r|, |y|) of channel c in radiance space, in fp64, for the trace
     (``wm`` = W_c m_c, the model's radiance)."""
@@ -431,19 +439,13 @@ def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, d
                         m, r, s = channel_residual(pv, feat, yc, wc, c, opt.reflectance_space, one)
                         term = type(one)(0.5) * r * r
                         if wp.static(use_kahan):
-                            yk = term - fc
-                            tk = f + yk
-                            fc = (tk - f) - yk
-                            f = tk
+                            f, fc = kahan_add(f, fc, term)
                         else:
                             f = f + term
                         jc = lf.jacobian_row(pv, feat, c)
                         gterm = (r * s) * jc
                         if wp.static(use_kahan):
-                            ygk = gterm - gc
-                            tgk = grad + ygk
-                            gc = (tgk - grad) - ygk
-                            grad = tgk
+                            grad, gc = kahan_add(grad, gc, gterm)
                         else:
                             grad = grad + gterm
                         if wp.static(want_diag):
