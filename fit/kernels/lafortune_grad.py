@@ -132,18 +132,6 @@ def lafortune_funcs(n_lobes: int, anisotropic: int) -> LafortuneFuncs:
         return m
 
     @wp.func
-    def jacobian_row(p: Any, f: Any, c: int):
-        zero = p[0] - p[0]
-        jc = p * zero
-        jc[c] = zero + type(zero)(1.0)
-        for j in range(wp.static(n_lobes)):
-            o = 3 + j * wp.static(stride)
-            jc[o + c] = f[o]
-            for k in range(wp.static(n_shape)):
-                jc[o + 3 + k] = p[o + c] * f[o + 3 + k]
-        return jc
-
-    @wp.func
     def row_entry(p: Any, f: Any, c: int, t: int):
         if t == 0:
             return c, p[0] - p[0] + type(p[0])(1.0)
@@ -154,6 +142,14 @@ def lafortune_funcs(n_lobes: int, anisotropic: int) -> LafortuneFuncs:
         k = (t - 1 - wp.static(n_lobes)) % wp.static(n_shape)
         o = 3 + j * wp.static(stride)
         return o + 3 + k, p[o + c] * f[o + 3 + k]
+
+    @wp.func
+    def jacobian_row(p: Any, f: Any, c: int):
+        jc = p * (p[0] - p[0])
+        for t in range(wp.static(row_nonzeros)):
+            col, val = row_entry(p, f, c, t)
+            jc[col] = val
+        return jc
 
     @wp.func
     def dhd(p: Any, d: Any, u: Any, v: Any, one: Any):
