@@ -45,7 +45,7 @@ def time_passes(prob, kind: str, passes: int) -> tuple[float, float]:
     lay = prob.layout
     p = prob.new_storage(np.broadcast_to(lay.defaults(), (prob.n, lay.n_params)))
     f, g, st = prob.new_scalar(), prob.new_vec(), wp.zeros(prob.n, dtype=wp.vec4d, device=prob.device)
-    extra = prob.new_vec()
+    extra, dhd = prob.new_vec(), prob.new_scalar()
     jtj = wp.zeros(prob.n, dtype=prob.mat, device=prob.device) if kind == "lm" else None
 
     def one_pass():
@@ -54,7 +54,7 @@ def time_passes(prob, kind: str, passes: int) -> tuple[float, float]:
         elif kind == "grad":
             prob.evaluate(p, f, g, st, diag=extra)
         elif kind == "dhd":
-            prob.evaluate(p, f, g, st, direction=p, dhd=prob.new_scalar())
+            prob.evaluate(p, f, g, st, direction=p, dhd=dhd)
         else:
             prob.evaluate(p, f, g, st)
 
