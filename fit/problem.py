@@ -465,8 +465,10 @@ class StreamProblem:
         receives the Gauss-Newton diagonal diag(J^T J) of the data term (Jacobi preconditioner).
         """
         lay = self.layout
-        kernel = stream.accumulate_kernel(lay.n_lobes, int(lay.anisotropic), self.cfg.kahan, diag is not None,
-                                          direction is not None, full_hessian, self.max_registers)
+        # arguments normalised so one pass kind maps to one cached (compiled) kernel
+        kernel = stream.accumulate_kernel(lay.n_lobes, int(lay.anisotropic), bool(self.cfg.kahan), diag is not None,
+                                          direction is not None, bool(full_hessian and direction is not None),
+                                          self.max_registers)
         if diag is not None and self.pdiag is None:
             self.pdiag = wp.zeros((self.groups, self.n), dtype=self.vec, device=self.device)
         pdiag = self.pdiag if diag is not None else self.no_diag
