@@ -39,6 +39,11 @@ class FitConfig:
     model: str = option("lafortune", "appearance model", choices=("lafortune", "diffuse"))
     lobes: int = option(1, "specular lobes K (0..2)")
     anisotropic: bool = option(False, "general C_x, C_y, C_z lobes instead of isotropic C_xy, C_z")
+    lobe_shape: str = option("auto", "free fits each lobe's c_z, phong holds it at 1; auto picks phong when every "
+                                     "photo's light-view angle lies within lobe_shape_spread_deg of the others "
+                                     "(a light beside the camera: c_z and rho_s cannot be told apart, fit/models.py)",
+                             choices=("auto", "free", "phong"))
+    lobe_shape_spread_deg: float = option(10.0, "auto lobe shape: the spread of light-view angles below which c_z is held")
     optimizer: str = option("lm", "sd, cg, lbfgs or lm (per-texel Levenberg-Marquardt)", choices=OPTIMIZERS)
     cg_variant: str = option("pr", "conjugate gradient beta: pr (Polak-Ribiere+) or fr (Fletcher-Reeves)", choices=("pr", "fr"))
     cg_restart_every: int = option(0, "steepest-descent restart every m CG iterations (0 = never)")
@@ -70,9 +75,45 @@ class FitConfig:
     penalties: PenaltyConfig = option(default_factory=PenaltyConfig, help="penalties")
     stream: StreamConfig = option(default_factory=StreamConfig, help="streaming and numerics")
 
-    def layout(self) -> ModelLayout:
+    def layout(self, frames=None, centre=None) -> ModelLayout:
+        """The model layout; ``lobe_shape`` "auto" is decided from the photos' ``frames``
+        (:class:`PhotoFrame`) seen from ``centre`` (:func:`choose_lobe_shape`)."""
+        shape = self.lobe_shape
+        if shape == "auto":
+            if frames is None:
+                raise ConfigError("lobe_shape auto needs the photos to decide", fix="pass frames, or set free or phong")
+            shape = choose_lobe_shape(frames, centre, self.lobe_shape_spread_deg)
         return ModelLayout(kind=self.model, n_lobes=0 if self.model == "diffuse" else self.lobes,
-                           anisotropic=self.anisotropic)
+                           anisotropic=self.anisotropic, lobe_shape=shape)
+
+
+def light_view_angles(frames, centre) -> np.ndarray:
+    """Angle (degrees) between the directions from ``centre`` to each photo's camera and light."""
+    centre = np.asarray(centre, dtype=np.float64)
+    out = np.empty(len(frames))
+    for k, f in enumerate(frames):
+        to_cam = -np.asarray(f.R, np.float64).T @ np.asarray(f.t, np.float64) - centre
+        if f.light_kind == "point":
+            to_light = np.asarray(f.light_vec, np.float64) - centre
+        else:  # a directional light's vector points the way the light travels (shading.incident_light)
+            to_light = -np.asarray(f.light_vec, np.float64)
+        cos = to_cam @ to_light / max(np.linalg.norm(to_cam) * np.linalg.norm(to_light), 1e-30)
+        out[k] = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return out
+
+
+def choose_lobe_shape(frames, centre, spread_deg: float) -> str:
+    """"phong" when the light-view angles of all photos lie within ``spread_deg`` of each other, else "free".
+
+    Every highlight is then seen at about one half-angle theta_h, where the lobe's height is
+    rho_s (sin^2 theta_h + c_z cos^2 theta_h)^n: the photos fix that height, not rho_s and c_z apart
+    (fit/models.py), and a free c_z lets rho_s wander by factors along it. Holding c_z at 1 keeps
+    every prediction at the captured geometry and makes rho_s the height.
+    """
+    angles = light_view_angles(frames, centre)
+    if angles.size == 0 or float(angles.max() - angles.min()) >= spread_deg:
+        return "free"
+    return "phong"
 
 
 @dataclasses.dataclass

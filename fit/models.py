@@ -18,6 +18,13 @@ makes s = -(u_x v_x + u_y v_y) + c_z u_z v_z; with c_z = 1 this is the Phong cos
 mirrored light and the view. c_z then controls the off-specular shape and rho_s the lobe's
 height, both identifiable. Freeing c_xy requires a penalty (see fit/penalties.py).
 
+Lobe shape (``ModelLayout.lobe_shape``). c_z is identifiable only when the photos see highlights at
+several incidence angles: at the mirror direction s = sin^2(theta_h) + c_z cos^2(theta_h), so photos
+whose light rides beside the camera (one half-angle theta_h for every highlight) fix the lobe's
+height rho_s s^n there but not rho_s and c_z apart (n = 200: a 0.4% drift of c_z scales rho_s 2.2x).
+"free" fits c_z in [0, 1]; "phong" holds it at 1 (the Phong lobe about the mirror direction), which
+makes rho_s that height. The fit chooses per capture (fit/fitter.py ``choose_lobe_shape``).
+
 Units: rho_d, rho_s are BRDF values (1/sr; see capture/conventions.py), C and n are unitless.
 """
 
@@ -30,6 +37,7 @@ import numpy as np
 from texstream.pipelines.errors import ConfigError
 
 MODEL_KINDS = ("lafortune", "diffuse")
+LOBE_SHAPES = ("free", "phong")
 MAX_LOBES = 2  # per-texel vectors are sized to the layout (at most 3 + 2*7 = 17 parameters)
 
 
@@ -73,11 +81,13 @@ class ModelLayout:
         kind: "lafortune" or "diffuse" (diffuse is Lafortune with no lobes).
         n_lobes: number of specular lobes K (0..MAX_LOBES).
         anisotropic: general C_x, C_y, C_z instead of the isotropic C_xy, C_z.
+        lobe_shape: "free" (c_z fitted) or "phong" (c_z held at 1; see the module doc).
     """
 
     kind: str = "lafortune"
     n_lobes: int = 1
     anisotropic: bool = False
+    lobe_shape: str = "free"
 
     def __post_init__(self) -> None:
         if self.kind not in MODEL_KINDS:
@@ -86,6 +96,8 @@ class ModelLayout:
             object.__setattr__(self, "n_lobes", 0)
         if not 0 <= self.n_lobes <= MAX_LOBES:
             raise ConfigError(f"n_lobes={self.n_lobes} out of range", fix=f"use 0..{MAX_LOBES}")
+        if self.lobe_shape not in LOBE_SHAPES:
+            raise ConfigError(f"unknown lobe shape {self.lobe_shape!r}", fix=f"use one of {LOBE_SHAPES}")
 
     @property
     def lobe_stride(self) -> int:
@@ -112,8 +124,11 @@ class ModelLayout:
                         ParamSpec(f"{p}.c_y", "", -10.0, 0.0, -1.0, "tangent-y coefficient (<= 0: forward)")]
             else:
                 out += [ParamSpec(f"{p}.c_xy", "", -1.0, -1.0, -1.0, "scale gauge: held at -1 (frozen)")]
-            out += [ParamSpec(f"{p}.c_z", "", 0.0, 1.0, 1.0, "normal coefficient in [0, 1]: keeps s <= 1, so the lobe peaks at rho_s and cannot blow up in unobserved directions"),
-                    ParamSpec(f"{p}.n", "", 1.0, 1.0e4, 10.0, "exponent; >= 1 keeps the objective C1")]
+            if self.lobe_shape == "phong":
+                out += [ParamSpec(f"{p}.c_z", "", 1.0, 1.0, 1.0, "held at 1 (Phong lobe): the capture does not tell c_z from rho_s")]
+            else:
+                out += [ParamSpec(f"{p}.c_z", "", 0.0, 1.0, 1.0, "normal coefficient in [0, 1]: keeps s <= 1, so the lobe peaks at rho_s and cannot blow up in unobserved directions")]
+            out += [ParamSpec(f"{p}.n", "", 1.0, 1.0e4, 10.0, "exponent; >= 1 keeps the objective C1")]
         return out
 
     @property
@@ -157,11 +172,13 @@ class ModelLayout:
         return out
 
     def to_json(self) -> dict:
-        return {"kind": self.kind, "n_lobes": self.n_lobes, "anisotropic": self.anisotropic,
+        return {"kind": self.kind, "n_lobes": self.n_lobes, "anisotropic": self.anisotropic, "lobe_shape": self.lobe_shape,
                 "n_params": self.n_params, "names": self.names,
                 "units": [s.unit for s in self.specs()],
                 "lower": self.lower().tolist(), "upper": self.upper().tolist()}
 
     @staticmethod
     def from_json(d: dict) -> "ModelLayout":
-        return ModelLayout(kind=d["kind"], n_lobes=int(d["n_lobes"]), anisotropic=bool(d["anisotropic"]))
+        # model folders written before lobe_shape existed fitted c_z freely
+        return ModelLayout(kind=d["kind"], n_lobes=int(d["n_lobes"]), anisotropic=bool(d["anisotropic"]),
+                           lobe_shape=d.get("lobe_shape", "free"))

@@ -273,7 +273,8 @@ def build_single_view_problem(geo: SingleViewGeometry, frames, images, masks, cf
     texels = TexelSet.from_grid(geo.covered, geo.position, geo.normal, geo.tangent, geo.bitangent)
     photo_frames = [PhotoFrame.from_capture_frame(f) for f in frames]
     photos = PhotoSet(photo_frames, images, None, None, masks=masks, config=cfg.stream, device=device)
-    return StreamProblem(texels, photos, cfg.layout(), cfg.stream, device=device)
+    layout = cfg.layout(photo_frames, texels.position.mean(axis=0))
+    return StreamProblem(texels, photos, layout, cfg.stream, device=device)
 
 
 # --------------------------------------------------------------------------- rendering the fit

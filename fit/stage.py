@@ -22,7 +22,7 @@ import numpy as np
 from texstream.pipelines.errors import InputError
 from texstream.pipelines.stage import StageResult, atomic_output_dir, option, read_json, save_config, write_json_atomic
 
-from .fitter import FitConfig, FitResult, run_fit
+from .fitter import FitConfig, FitResult, light_view_angles, run_fit
 from .models import ModelLayout
 
 
@@ -83,7 +83,17 @@ def build_problem(mesh, bake, frames, images, masks, cfg: FitConfig, device: str
         raise InputError("the atlas has no covered texels", fix="rebuild the atlas with a larger resolution")
     photo_frames = [PhotoFrame.from_capture_frame(f) for f in frames]
     photos = PhotoSet(photo_frames, images, mesh.vertices, mesh.faces, masks=masks, config=cfg.stream, device=device)
-    return StreamProblem(texels, photos, cfg.layout(), cfg.stream, device=device)
+    layout = cfg.layout(photo_frames, texels.position.mean(axis=0))
+    return StreamProblem(texels, photos, layout, cfg.stream, device=device)
+
+
+def lobe_shape_report(cfg: FitConfig, layout, frames, positions: np.ndarray) -> dict:
+    """What model.json records of the lobe-shape choice (fit/models.py "Lobe shape")."""
+    from .problem import PhotoFrame
+
+    angles = light_view_angles([PhotoFrame.from_capture_frame(f) for f in frames], positions.mean(axis=0))
+    return {"requested": cfg.lobe_shape, "fitted": layout.lobe_shape,
+            "light_view_angle_deg": [float(angles.min()), float(angles.max())] if angles.size else None}
 
 
 def load_seams(mesh_path: str | Path, bake):
@@ -264,6 +274,7 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
                            "unseen_texels": int((result.samples == 0).sum())},
                  "photos": {"fitted": len(frames), "held_out": len(held)},
                  "final": {k: last[k] for k in ("iteration", "time_s", "objective", "psnr_db", "ape_percent")},
+                 "lobe_shape": lobe_shape_report(cfg.fit, lay, frames, problem.texels.position),
                  "seams": seams_info, "setup_s": t_setup, "passes": result.passes, "device": cfg.device, "render_eval": evals,
                  "units": "BRDF values in 1/sr (capture/conventions.py)"}
         write_json_atomic(tmp / "model.json", model)

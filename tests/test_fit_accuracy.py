@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from texstream.capture.synth import SynthConfig, render_scene
-from texstream.fit.accuracy import highlight_counts, interior_texels, lobe_normal_peak, relative_errors
+from texstream.fit.accuracy import highlight_counts, interior_texels, relative_errors
 from texstream.fit.fitter import FitConfig
 from texstream.fit.penalties import PenaltyConfig
 from texstream.fit.stage import fit_synthetic
@@ -58,9 +58,12 @@ def test_sphere_fit_meets_the_accuracy_targets(sphere, device):
     # specular albedo 3% and exponent 5% (issue targets): medians measured 0.03% and 0.04%
     assert np.median(rel[hi, o:o + 3]) < 0.03
     assert np.median(rel[hi, o + 5]) < 0.05
-    # per texel: rho_s p90 2.9% on the CPU (90% of highlight texels within 3%); 5% leaves room for the
-    # CUDA run, where float rounding tips a few texels' accept/reject decisions the other way (README)
-    assert np.percentile(rel[hi, o:o + 3], 90) < 0.05
+    # per texel, the issue's bounds on every highlight texel: the light rides beside the camera, so
+    # lobe_shape "auto" holds c_z at 1 (fit/models.py "Lobe shape"; with c_z free 8% of these texels
+    # missed 3%, p90 2.9%). Measured on the CPU: worst texels diffuse 0.6%, rho_s 0.3%, n 0.2%
+    assert res.layout.lobe_shape == "phong"
+    worst = rel[hi, 0:3].max(), rel[hi, o:o + 3].max(), rel[hi, o + 5].max()
+    assert worst[0] <= 0.01 and worst[1] <= 0.03 and worst[2] <= 0.05, worst
     assert np.all(np.isfinite(res.params))
 
 
@@ -87,11 +90,13 @@ def test_small_ornament_fit_meets_the_accuracy_targets(device):
     # 60 iterations; with the seed's bilinear sampling 5.6% and 1.3%); tails in the README
     assert np.median(rel[hi, o:o + 3]) < 0.03
     assert np.median(rel[hi, o + 5]) < 0.05
-    # per texel, what this capture determines: its light rides beside the camera, so every highlight
-    # is seen near one incidence angle and fixes the lobe's height there, rho_s c_z^n, while rho_s and
-    # c_z alone trade along c_z^n (rho_s p90 17%; with an orbiting light 5.5%, README). The height is
-    # within 3% on 90% of highlight texels (p90 2.7% after 60 iterations); 5% leaves room for 40
-    stride = res.layout.lobe_stride
-    peak = relative_errors(lobe_normal_peak(res.params[hi], o, stride), lobe_normal_peak(gt[hi], o, stride))
-    assert np.percentile(peak, 90) < 0.05, np.percentile(peak, 90)
+    # per texel: the light rides beside the camera, so every highlight is seen near one incidence
+    # angle, which fixes the lobe's height there but not rho_s and c_z apart; lobe_shape "auto" sees
+    # that and holds c_z at 1 (fit/models.py "Lobe shape"). Measured after 60 iterations: 92.6% of
+    # highlight texels within 3%, p90 2.6% (with c_z free: 76%, p90 16%); the misses sit mostly at
+    # material edges. 85% and 5% leave room for 40 iterations and the CUDA run's float differences
+    assert res.layout.lobe_shape == "phong"
+    err = rel[hi, o:o + 3].max(axis=1)
+    assert np.mean(err <= 0.03) >= 0.85, np.mean(err <= 0.03)
+    assert np.percentile(rel[hi, o:o + 3], 90) < 0.05, np.percentile(rel[hi, o:o + 3], 90)
     assert np.all(np.isfinite(res.params))
