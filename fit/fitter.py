@@ -79,7 +79,9 @@ class FitConfig:
         """The model layout; ``lobe_shape`` "auto" is decided from the photos' ``frames``
         (:class:`PhotoFrame`) seen from ``centre`` (:func:`choose_lobe_shape`)."""
         shape = self.lobe_shape
-        if shape == "auto":
+        if self.model == "diffuse":
+            shape = "free"  # no lobe: nothing to hold
+        elif shape == "auto":
             if frames is None:
                 raise ConfigError("lobe_shape auto needs the photos to decide", fix="pass frames, or set free or phong")
             shape = choose_lobe_shape(frames, centre, self.lobe_shape_spread_deg)

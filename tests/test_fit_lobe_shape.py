@@ -70,6 +70,7 @@ def test_explicit_shapes_and_model_json():
     assert FitConfig(lobe_shape="phong").layout().lobe_shape == "phong"
     with pytest.raises(ConfigError):
         FitConfig().layout()  # auto without photos to decide from
+    assert FitConfig(model="diffuse").layout().lobe_shape == "free"  # no lobe, nothing to decide
     with pytest.raises(ConfigError):
         ModelLayout(lobe_shape="round")
     lay = ModelLayout(n_lobes=2, anisotropic=True, lobe_shape="phong")

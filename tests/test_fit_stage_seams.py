@@ -70,6 +70,10 @@ def test_fit_stage_writes_the_model_folder(fitted):
     seams = Seams.load(root / "atlas" / SEAMS_FILE)
     assert man["seams"]["samples"] == seams.n_samples > 0
     assert res.summary["iterations"] == 5
+    # the sphere's light rides beside the camera: "auto" held c_z at 1 and says why (fit/models.py)
+    assert man["lobe_shape"]["requested"] == "auto" and man["lobe_shape"]["fitted"] == man["layout"]["lobe_shape"] == "phong"
+    lo, hi = man["lobe_shape"]["light_view_angle_deg"]
+    assert 0.0 < lo <= hi < lo + 10.0
 
 
 def test_fitted_maps_agree_across_seams(fitted):
