@@ -180,15 +180,6 @@ def ray_surface(ray: wp.vec3, cam: wp.vec3, p: wp.vec3, face_nrm: wp.vec3, plane
 
 
 @wp.func
-def pixel_surface(infos: wp.array(dtype=ImageInfo), k: int, tex: TexelFrames, i: int, x: int, y: int):
-    """:func:`ray_surface` of pixel (x, y)'s centre ray and texel i."""
-    p = tex.pos[i]
-    ray = wp.transpose(infos[k].rot) @ wp.vec3((float(x) + 0.5 - infos[k].cx) / infos[k].fx, (float(y) + 0.5 - infos[k].cy) / infos[k].fy, 1.0)
-    ng = tex.face_nrm[i]
-    return ray_surface(ray, infos[k].center, p, ng, wp.dot(p - infos[k].center, ng), tex.nrm[i], tex.dn_dp[i])
-
-
-@wp.func
 def tangent_frame(nrm: wp.vec3, tex: TexelFrames, i: int):
     """(tangent, bitangent) about the shading normal ``nrm``: the texel's tangent made orthogonal."""
     tan = wp.normalize(tex.tan[i] - nrm * wp.dot(nrm, tex.tan[i]))
@@ -197,8 +188,12 @@ def tangent_frame(nrm: wp.vec3, tex: TexelFrames, i: int):
 
 @wp.func
 def pixel_point(infos: wp.array(dtype=ImageInfo), k: int, tex: TexelFrames, i: int, x: int, y: int):
-    """:func:`pixel_surface` with the tangent frame there: (point, normal, tangent, bitangent)."""
-    q, nrm = pixel_surface(infos, k, tex, i, x, y)
+    """Where pixel (x, y)'s centre ray meets texel i (:func:`ray_surface`), with the tangent frame
+    there: (point, normal, tangent, bitangent)."""
+    p = tex.pos[i]
+    ray = wp.transpose(infos[k].rot) @ wp.vec3((float(x) + 0.5 - infos[k].cx) / infos[k].fx, (float(y) + 0.5 - infos[k].cy) / infos[k].fy, 1.0)
+    ng = tex.face_nrm[i]
+    q, nrm = ray_surface(ray, infos[k].center, p, ng, wp.dot(p - infos[k].center, ng), tex.nrm[i], tex.dn_dp[i])
     tan, bit = tangent_frame(nrm, tex, i)
     return q, nrm, tan, bit
 
