@@ -59,7 +59,7 @@ def main() -> None:
     from texstream.fit.optim.base import FitState
     from texstream.fit.penalties import PenaltyConfig
     from texstream.fit.problem import StreamConfig
-    from texstream.fit.stage import fit_synthetic
+    from texstream.fit.stage import fit_synthetic, lobe_shape_report
 
     base = dict(scale=a.scale, photos=a.photos, image_size=a.image_size, progress=False, device=a.device)
     t0 = time.perf_counter()
@@ -85,7 +85,7 @@ def main() -> None:
     lay = res.layout
     report = {"scene": a.scene, "scale": a.scale, "photos": a.photos, "image_size": a.image_size,
               "texels": int(prob.n), "iterations": a.iterations, "smooth": a.smooth, "photo_sampling": a.photo_sampling, "device": a.device,
-              "lobe_shape": {"requested": a.lobe_shape, "fitted": res.layout.lobe_shape},
+              "lobe_shape": lobe_shape_report(cfg, res.layout, train.frames, prob.texels.position),
               "machine": platform.node(), "render_s": render_s, "fit_s": fit_s,
               # a held-out view the light leaves black renders black too: its PSNR is infinite (null here)
               "heldout_psnr_db": {"pooled": finite_or_none(pooled), "per_view": [finite_or_none(v) for v in views]},
