@@ -59,6 +59,9 @@ class FitConfig:
                                               "guards columns no sample constrains; keep it tiny, the exponent's "
                                               "D is ~1e-7 of the albedos'")
     lm_lambda0: float = option(1e-3, "initial Levenberg-Marquardt damping")
+    lookup_refresh_every: int = option(0, "stream.model_lookup bilinear: hold the neighbours at the current "
+                                          "parameters again every k iterations (each refresh costs a pass and "
+                                          "restarts CG / L-BFGS memory); 0 = 1 for lm, 10 for the others")
     max_iterations: int = option(100, "iteration cap")
     time_budget_s: float = option(0.0, "stop after this many seconds (0 = no limit)")
     rel_tol: float = option(1e-7, "stop when the objective's relative decrease over sync_every iterations is below this")
@@ -213,12 +216,24 @@ def run_fit(problem: StreamProblem, cfg: FitConfig, p0: np.ndarray | None = None
         wp.synchronize_device(dev)
         times.append(time.perf_counter() - t_start)
 
-    if isinstance(opt, LevenbergMarquardt):
-        opt.start(state)
-    else:
+    if not isinstance(opt, LevenbergMarquardt):
         state.want_diag = bool(getattr(opt, "precondition", False))
-        problem.evaluate(state.storage, state.f, state.g, state.stats, diag=state.diag_out())
-        penalties.add(state, state.p, state.f, state.g)
+
+    def evaluate_current() -> None:
+        """f, g (and LM's J^T J) at the current parameters, as each optimizer starts from them."""
+        if isinstance(opt, LevenbergMarquardt):
+            opt.start(state)
+        else:
+            problem.evaluate(state.storage, state.f, state.g, state.stats, diag=state.diag_out())
+            penalties.add(state, state.p, state.f, state.g)
+
+    # the renderer's texture lookup holds the neighbours fixed between refreshes, so each texel's
+    # objective stays its own (per-texel steps and acceptance) and changes only at a refresh
+    refresh_every = cfg.lookup_refresh_every or (1 if isinstance(opt, LevenbergMarquardt) else 10)
+    if refresh_every < 0:
+        raise ConfigError(f"lookup_refresh_every {cfg.lookup_refresh_every} invalid", fix="use 0 (automatic) or k >= 1")
+    problem.refresh_lookup(state.storage)
+    evaluate_current()
     state.accepted.zero_()
     record(0)
     schedule_switched = False
@@ -232,6 +247,12 @@ def run_fit(problem: StreamProblem, cfg: FitConfig, p0: np.ndarray | None = None
             state.set_free(f2)
             opt.reset_memory(state)
             schedule_switched = True
+        if problem.lookup and it > 1 and (it - 1) % refresh_every == 0:
+            state.store_current()
+            problem.refresh_lookup(state.storage)
+            evaluate_current()
+            if not isinstance(opt, LevenbergMarquardt):  # LM keeps its damping: it has no memory of the old objective
+                opt.reset_memory(state)
         wp.copy(state.p_old, state.p)
         wp.copy(state.g_old, state.g)
         if isinstance(opt, LevenbergMarquardt):

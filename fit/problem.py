@@ -39,6 +39,11 @@ class TexelSet:
         normal_jacobian: (N, 3, 3) float32 derivative of the shading normal along the face, over
             the interpolated normal's length (:func:`surface_derivatives`; None: zero, a flat texel).
             Both serve point sampling (``StreamConfig.photo_sampling``).
+        coordinate_gradients: (N, 2, 3) float32 gradients of the texel coordinates along each
+            texel's face (:func:`texel_coordinate_gradients`; None: no atlas, e.g. single-view fits).
+        grid_source: (H * W,) int64 per atlas texel, the compact texel whose value the renderer
+            reads there (itself, or the texel its padding copies), -1 for none (the defaults).
+            Both serve the renderer's texture lookup (``StreamConfig.model_lookup``).
     """
 
     position: np.ndarray
@@ -51,6 +56,8 @@ class TexelSet:
     height: int
     face_normal: np.ndarray | None = None
     normal_jacobian: np.ndarray | None = None
+    coordinate_gradients: np.ndarray | None = None
+    grid_source: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -59,9 +66,12 @@ class TexelSet:
     @staticmethod
     def from_grid(covered: np.ndarray, position: np.ndarray, normal: np.ndarray, tangent: np.ndarray,
                   bitangent: np.ndarray, face_normal: np.ndarray | None = None,
-                  normal_jacobian: np.ndarray | None = None) -> "TexelSet":
+                  normal_jacobian: np.ndarray | None = None, coordinate_gradients: np.ndarray | None = None,
+                  fill_source: np.ndarray | None = None) -> "TexelSet":
         """Build from (H, W) coverage and (H, W, 3) frames (e.g. a TexelBake or an image grid);
-        optional (H, W, 3) face normals and (H, W, 3, 3) normal Jacobians (see the attributes)."""
+        optional (H, W, 3) face normals, (H, W, 3, 3) normal Jacobians, (H, W, 2, 3) texel
+        coordinate gradients and the bake's (H, W) padding sources (``TexelBake.fill_source``;
+        see the attributes)."""
         h, w = covered.shape
         flat = np.flatnonzero(covered.reshape(-1))
         compact = -np.ones(h * w, dtype=np.int64)
@@ -75,8 +85,15 @@ class TexelSet:
         def take(a, width=3):
             return None if a is None else np.ascontiguousarray(a.reshape(-1, width)[flat], dtype=np.float32)
         jac = take(normal_jacobian, 9)
+        grads = take(coordinate_gradients, 6)
+        source = None
+        if grads is not None:
+            # the renderer reads a padding texel's copy of its fill source (TexelBake.fill_padding)
+            src = np.arange(h * w) if fill_source is None else np.asarray(fill_source).reshape(-1)
+            source = np.where(src >= 0, compact[np.maximum(src, 0)], -1)
         return TexelSet(take(position), take(normal), take(tangent), take(bitangent), flat, nb, w, h,
-                        take(face_normal), None if jac is None else jac.reshape(-1, 3, 3))
+                        take(face_normal), None if jac is None else jac.reshape(-1, 3, 3),
+                        None if grads is None else grads.reshape(-1, 2, 3), source)
 
 
 def surface_derivatives(points: np.ndarray, faces: np.ndarray, normals: np.ndarray, face: np.ndarray,
@@ -97,18 +114,9 @@ def surface_derivatives(points: np.ndarray, faces: np.ndarray, normals: np.ndarr
         face_normal (..., 3) and normal_jacobian (..., 3, 3), float32.
     """
     shape = face.shape
-    f = face.reshape(-1)
-    ok = f >= 0
-    tri = faces[np.maximum(f, 0)]
-    p = points.astype(np.float64)[tri]                      # (N, 3 vertices, 3)
+    tri, e, inv, good = _face_pseudo_inverse(points, faces, face)
     nv = normals.astype(np.float64)[tri]
-    e = np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]], axis=2)   # (N, 3, 2)
     dn = np.stack([nv[:, 1] - nv[:, 0], nv[:, 2] - nv[:, 0]], axis=2)
-    gram = np.einsum("nki,nkj->nij", e, e)
-    det = gram[:, 0, 0] * gram[:, 1, 1] - gram[:, 0, 1] * gram[:, 1, 0]
-    good = ok & (det > 1e-30 * np.maximum(gram[:, 0, 0] * gram[:, 1, 1], 1e-300))
-    inv = np.zeros_like(gram)
-    inv[good] = np.linalg.inv(gram[good])
     jac = np.einsum("nkj,nji,nli->nkl", dn, inv, e)          # dn (3x2) @ inv (2x2) @ e^T (2x3)
     b = bary.reshape(-1, 3).astype(np.float64)
     interp = np.einsum("nj,njk->nk", b, nv)
@@ -119,6 +127,41 @@ def surface_derivatives(points: np.ndarray, faces: np.ndarray, normals: np.ndarr
     fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
     fn[~good] = interp[~good] / np.maximum(length[~good], 1e-12)[:, None]
     return fn.reshape(*shape, 3).astype(np.float32), jac.reshape(*shape, 3, 3).astype(np.float32)
+
+
+def _face_pseudo_inverse(points: np.ndarray, faces: np.ndarray, face: np.ndarray):
+    """Per texel (flattened ``face``): the face's vertex ids (N, 3), edges E = [p1 - p0, p2 - p0]
+    (N, 3, 2), (E^T E)^-1 (N, 2, 2; zero where the face is missing or degenerate) and that mask,
+    so that (E^T E)^-1 E^T dp is the barycentric change (b1, b2) of an in-plane offset dp."""
+    f = face.reshape(-1)
+    tri = faces[np.maximum(f, 0)]
+    p = points.astype(np.float64)[tri]                      # (N, 3 vertices, 3)
+    e = np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]], axis=2)   # (N, 3, 2)
+    gram = np.einsum("nki,nkj->nij", e, e)
+    det = gram[:, 0, 0] * gram[:, 1, 1] - gram[:, 0, 1] * gram[:, 1, 0]
+    good = (f >= 0) & (det > 1e-30 * np.maximum(gram[:, 0, 0] * gram[:, 1, 1], 1e-300))
+    inv = np.zeros_like(gram)
+    inv[good] = np.linalg.inv(gram[good])
+    return tri, e, inv, good
+
+
+def texel_coordinate_gradients(points: np.ndarray, faces: np.ndarray, uvs: np.ndarray, face: np.ndarray,
+                               width: int, height: int) -> np.ndarray:
+    """Per texel, the gradients along its face of the continuous texel coordinates (x, y) =
+    (u W - 1/2, (1 - v) H - 1/2) (:func:`texstream.fit.kernels.shading.texel_coords`).
+
+    UVs are affine on a face, so (x, y)(p + dp) = (x, y)(p) + T E^+ dp with T the face's texel
+    coordinate edges [t1 - t0, t2 - t0]: what the renderer's texture lookup reads at a point near
+    the texel (``StreamConfig.model_lookup``). Returns (..., 2, 3) float32, zero where the face
+    is missing or degenerate.
+    """
+    shape = face.shape
+    tri, e, inv, good = _face_pseudo_inverse(points, faces, face)
+    t = np.asarray(uvs, np.float64)[tri] * np.array([width, -height], np.float64)   # (N, 3 vertices, 2)
+    te = np.stack([t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]], axis=2)                   # (N, 2, 2)
+    grad = np.einsum("nkj,nji,nli->nkl", te, inv, e)                                # T (2x2) inv (2x2) E^T (2x3)
+    grad[~good] = 0.0
+    return grad.reshape(*shape, 2, 3).astype(np.float32)
 
 
 @dataclasses.dataclass
@@ -183,6 +226,15 @@ class StreamConfig:
     few pixels wide are not blurred; 4 model evaluations per sample), ``point`` (the nearest
     pixel, the model at the surface point it sees) or ``bilinear`` (the seed's filter at the texel
     centre's projection, the model at the centre)"""
+    model_lookup: str = "texel"
+    """what BRDF a sample's model sees at a point near its texel: ``texel`` (the seed's: the texel's
+    own everywhere) or ``bilinear`` (the renderer's texture lookup, fit/kernels/render.py: the
+    bilinear blend of the four texels around the point, the neighbours held at their values of
+    the last refresh, ``FitConfig.lookup_refresh_every``). ``bilinear`` makes the fit consistent
+    with what it is scored and rendered by where parameters change from texel to texel (material
+    edges): noise-free photos rendered from a model are reproduced exactly by that model. It needs
+    filtered photo sampling and an atlas (not single-view fits) and costs a neighbour lookup per
+    tap"""
     groups: int = 0
     """photo groups per pass (parallelism over photos; 0 = automatic)"""
     photos_per_window: int = 0
@@ -394,6 +446,7 @@ class StreamProblem:
         self.tex.pos, self.tex.nrm, self.tex.tan, self.tex.bit = self.pos, self.nrm, self.tan, self.bit
         self.tex.face_nrm = wp.array(np.ascontiguousarray(face_nrm, np.float32), dtype=wp.vec3, device=dev)
         self.tex.dn_dp = wp.array(np.ascontiguousarray(jac, np.float32), dtype=wp.mat33, device=dev)
+        self._init_lookup(texels, layout, cfg, dev)
         self.neighbors = wp.array(texels.neighbors, dtype=wp.vec4i, device=dev)
         self.set_groups(cfg.groups)
         self.no_diag = wp.zeros((1, 1), dtype=self.vec, device=dev)
@@ -421,6 +474,44 @@ class StreamProblem:
             raise ConfigError(f"cuda_block_dim {cfg.cuda_block_dim} invalid", fix="use a multiple of 32 from 32 to 1024")
         self.block_dim = cfg.cuda_block_dim
         self.passes = 0
+
+    def _init_lookup(self, texels: TexelSet, layout: ModelLayout, cfg: StreamConfig, dev: str) -> None:
+        """The renderer's texture lookup (``StreamConfig.model_lookup``): texel coordinates and
+        their gradients, the atlas's read map and the held parameters (placeholders when off)."""
+        if cfg.model_lookup not in ("texel", "bilinear"):
+            raise ConfigError(f"model_lookup {cfg.model_lookup!r} unknown", fix="use texel or bilinear")
+        self.lookup = cfg.model_lookup == "bilinear"
+        tex, n = self.tex, texels.n
+        tex.grid_width, tex.grid_height = int(texels.width), int(texels.height)
+        tex.n_lobes, tex.anisotropic = int(layout.n_lobes), int(layout.anisotropic)
+        if not self.lookup:
+            tex.centre_xy = wp.zeros(1, dtype=wp.vec2, device=dev)
+            tex.dx_dp = tex.dy_dp = wp.zeros(1, dtype=wp.vec3, device=dev)
+            tex.grid_source = wp.zeros(1, dtype=wp.int32, device=dev)
+            tex.lookup_params = wp.zeros((1, layout.n_params), dtype=wp.float32, device=dev)
+            return
+        if cfg.photo_sampling != "filtered":
+            raise ConfigError(f"model_lookup bilinear needs filtered photo sampling, not {cfg.photo_sampling!r}",
+                              fix="set photo_sampling to filtered or model_lookup to texel")
+        if texels.coordinate_gradients is None or texels.grid_source is None or min(texels.width, texels.height) < 2:
+            raise ConfigError("model_lookup bilinear needs an atlas (texel coordinate gradients and padding "
+                              "sources; single-view fits have none)", fix="set model_lookup to texel")
+        ys, xs = np.divmod(np.asarray(texels.grid_index, np.int64), texels.width)
+        tex.centre_xy = wp.array(np.stack([xs, ys], 1).astype(np.float32), dtype=wp.vec2, device=dev)
+        grads = np.ascontiguousarray(texels.coordinate_gradients, np.float32)
+        tex.dx_dp = wp.array(np.ascontiguousarray(grads[:, 0]), dtype=wp.vec3, device=dev)
+        tex.dy_dp = wp.array(np.ascontiguousarray(grads[:, 1]), dtype=wp.vec3, device=dev)
+        source = np.asarray(texels.grid_source, np.int64)
+        tex.grid_source = wp.array(np.where(source >= 0, source, n).astype(np.int32), dtype=wp.int32, device=dev)
+        held = np.tile(layout.defaults().astype(np.float32), (n + 1, 1))  # row n: the defaults
+        tex.lookup_params = wp.array(held, dtype=wp.float32, device=dev)
+
+    def refresh_lookup(self, params: wp.array) -> None:
+        """Hold the neighbours of the renderer's lookup at ``params`` (N, n_params, storage
+        precision) until the next call; on the device, no host round trip. No-op when off."""
+        if self.lookup:
+            wp.launch(stream.hold_lookup_params_kernel, dim=(self.n, self.layout.n_params), device=self.device,
+                      inputs=[params], outputs=[self.tex.lookup_params])
 
     def set_groups(self, groups: int) -> None:
         """Split each pass's photos into ``groups`` groups, one thread per (group, texel); 0 picks
@@ -468,7 +559,7 @@ class StreamProblem:
         # arguments normalised so one pass kind maps to one cached (compiled) kernel
         kernel = stream.accumulate_kernel(lay.n_lobes, int(lay.anisotropic), bool(self.cfg.kahan), diag is not None,
                                           direction is not None, bool(full_hessian and direction is not None),
-                                          self.max_registers)
+                                          self.max_registers, self.lookup)
         if diag is not None and self.pdiag is None:
             self.pdiag = wp.zeros((self.groups, self.n), dtype=self.vec, device=self.device)
         pdiag = self.pdiag if diag is not None else self.no_diag
@@ -503,7 +594,7 @@ class StreamProblem:
         if self.pm is None:
             self.pm = wp.zeros((self.groups, self.n), dtype=self.mat, device=self.device)
         lay = self.layout
-        kernel = stream.accumulate_lm_kernel(lay.n_lobes, int(lay.anisotropic), self.max_registers)
+        kernel = stream.accumulate_lm_kernel(lay.n_lobes, int(lay.anisotropic), self.max_registers, self.lookup)
         act = self.all_active if active is None else active
         first = True
         for images, depth, shadow, infos, b, e in self.photos.windows():

@@ -73,12 +73,16 @@ def load_photos(capture, frames, device: str | None = None):
 
 
 def build_problem(mesh, bake, frames, images, masks, cfg: FitConfig, device: str):
-    from .problem import PhotoFrame, PhotoSet, StreamProblem, TexelSet, surface_derivatives
+    from .problem import PhotoFrame, PhotoSet, StreamProblem, TexelSet, surface_derivatives, texel_coordinate_gradients
 
     face_normal, normal_jacobian = surface_derivatives(mesh.vertices, mesh.faces, mesh.vertex_normals(),
                                                        bake.face, bake.bary)
+    coordinate_gradients = None
+    if mesh.uvs is not None:
+        coordinate_gradients = texel_coordinate_gradients(mesh.vertices, mesh.faces, mesh.uvs, bake.face,
+                                                          bake.width, bake.height)
     texels = TexelSet.from_grid(bake.covered, bake.position, bake.normal, bake.tangent, bake.bitangent,
-                                face_normal, normal_jacobian)
+                                face_normal, normal_jacobian, coordinate_gradients, bake.fill_source)
     if texels.n == 0:
         raise InputError("the atlas has no covered texels", fix="rebuild the atlas with a larger resolution")
     photo_frames = [PhotoFrame.from_capture_frame(f) for f in frames]

@@ -15,10 +15,12 @@ SAMPLINGS = ["filtered", "point", "bilinear"]
 
 
 def plane_problem(device, layout, n_photos=6, grid=5, seed=0, acc="fp64", kind="point", storage=None,
-                  sampling="filtered"):
+                  sampling="filtered", lookup="texel"):
     """Texels on the plane z = 0 seen by random cameras under random lights; random photo values
     (the derivative checks need no consistent data). The shading normal bends across each texel
-    (a random normal Jacobian) so point and filtered sampling see a different frame at every tap."""
+    (a random normal Jacobian) so point and filtered sampling see a different frame at every tap.
+    The texel grid maps linearly onto the plane (texel coordinate gradients for ``lookup``
+    bilinear: a filtered tap lands ~0.15 texel from its centre, so neighbours weigh in)."""
     rng = np.random.default_rng(seed)
     pts = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], float)
     faces = np.array([[0, 1, 2], [0, 2, 3]])
@@ -27,9 +29,11 @@ def plane_problem(device, layout, n_photos=6, grid=5, seed=0, acc="fp64", kind="
     e = np.eye(3)
     jac = np.zeros((grid, grid, 3, 3))
     jac[..., :, :2] = rng.normal(scale=0.3, size=(grid, grid, 3, 2))  # d n / d (x, y) on the plane
+    coord = np.zeros((grid, grid, 2, 3))
+    coord[..., 0, 0] = coord[..., 1, 1] = grid / 1.6  # texel x follows the plane's x, texel y its y
     tex = TexelSet.from_grid(np.ones((grid, grid), bool), pos, np.broadcast_to(e[2], pos.shape),
                              np.broadcast_to(e[0], pos.shape), np.broadcast_to(e[1], pos.shape),
-                             np.broadcast_to(e[2], pos.shape), jac)
+                             np.broadcast_to(e[2], pos.shape), jac, coord)
     frames, imgs = [], []
     for _ in range(n_photos):
         ang, el = rng.uniform(0, 2 * np.pi), rng.uniform(0.4, 1.3)
@@ -42,7 +46,7 @@ def plane_problem(device, layout, n_photos=6, grid=5, seed=0, acc="fp64", kind="
         frames.append(PhotoFrame(r, t, 60.0, 60.0, 32.0, 32.0, 64, 64, kind, lv, np.array([5.0, 4.0, 3.0])))
         imgs.append(rng.uniform(0, 1, (64, 64, 3)).astype(np.float32))
     cfg = StreamConfig(accumulate=acc, storage=storage or ("fp64" if acc == "fp64" else "fp32"), shadow_map_size=64,
-                       photo_sampling=sampling)
+                       photo_sampling=sampling, model_lookup=lookup)
     photos = PhotoSet(frames, imgs, pts, faces, config=cfg, device=device)
     return StreamProblem(tex, photos, layout, cfg, device=device), rng
 

@@ -29,7 +29,7 @@ from typing import Any, NamedTuple
 import warp as wp
 
 from .lafortune_grad import lafortune_funcs
-from .shading import incident_light, to_local
+from .shading import bilinear_taps, incident_light, lafortune_brdf, to_local
 
 # no kernel here is differentiated (the fit writes its own derivatives): skipping Warp's adjoint
 # code generation roughly halves compile time
@@ -85,6 +85,24 @@ class TexelFrames:
     bit: wp.array(dtype=wp.vec3)
     face_nrm: wp.array(dtype=wp.vec3)
     dn_dp: wp.array(dtype=wp.mat33)
+    # the renderer's texture lookup (``StreamConfig.model_lookup`` "bilinear", :func:`tap_brdf_lookup`);
+    # one-element placeholders otherwise
+    centre_xy: wp.array(dtype=wp.vec2)
+    """continuous texel coordinates of the texel's surface point (its grid position)"""
+    dx_dp: wp.array(dtype=wp.vec3)
+    """gradient of the texel x coordinate along the texel's face (0 off the face's plane)"""
+    dy_dp: wp.array(dtype=wp.vec3)
+    """gradient of the texel y coordinate along the texel's face"""
+    grid_source: wp.array(dtype=wp.int32)
+    """per atlas texel (y * width + x), the row of ``lookup_params`` the renderer reads there: the
+    compact texel it is or whose value its padding copies, else the defaults row (the last)"""
+    lookup_params: wp.array2d(dtype=wp.float32)
+    """(N + 1, P) the parameters the neighbours are held at (:meth:`StreamProblem.refresh_lookup`),
+    float32 as the renderer reads them; row N holds the layout's defaults"""
+    grid_width: int
+    grid_height: int
+    n_lobes: int
+    anisotropic: int
 
 
 @wp.struct
@@ -177,6 +195,35 @@ def ray_surface(ray: wp.vec3, cam: wp.vec3, p: wp.vec3, face_nrm: wp.vec3, plane
         return p, nrm
     q = cam + ray * (plane / den)
     return q, wp.normalize(nrm + dn_dp @ (q - p))
+
+
+@wp.func
+def tap_brdf_lookup(tex: TexelFrames, i: int, q: wp.vec3, p0: wp.vec3, u: wp.vec3, v: wp.vec3):
+    """The renderer's texture lookup at surface point ``q`` of texel i's face (``StreamConfig.model_lookup``
+    "bilinear"): the BRDF there is the bilinear blend of the four atlas texels around q's texel
+    coordinates (fit/kernels/render.py ``shade_texel_grid``). Returns (w_own, b): the weight of
+    texel i's own BRDF (it may sit at several corners through padding copies) and the blend of the
+    other corners' BRDFs at local directions (u, v), read from ``tex.lookup_params`` (held fixed).
+
+    q's texel coordinates extend the face's UV map linearly (``dx_dp``, ``dy_dp``), exact while q
+    stays on the texel's face and a first-order guess beyond it."""
+    d = q - p0
+    xy = tex.centre_xy[i]
+    x0, y0, fx, fy = bilinear_taps(xy[0] + wp.dot(tex.dx_dp[i], d), xy[1] + wp.dot(tex.dy_dp[i], d),
+                                   tex.grid_width, tex.grid_height)
+    own = float(0.0)
+    other = wp.vec3(0.0)
+    one = float(1.0)
+    for corner in range(4):
+        cx = corner % 2
+        cy = corner // 2
+        b = (fx * float(cx) + (1.0 - fx) * float(1 - cx)) * (fy * float(cy) + (1.0 - fy) * float(1 - cy))
+        row = tex.grid_source[(y0 + cy) * tex.grid_width + x0 + cx]
+        if row == i:
+            own = own + b
+        elif b > 0.0:
+            other = other + b * lafortune_brdf(tex.lookup_params, row, tex.n_lobes, tex.anisotropic, u, v, one)
+    return own, other
 
 
 @wp.func
@@ -325,10 +372,13 @@ class LayoutFuncs(NamedTuple):
 
 
 @functools.cache
-def layout_funcs(n_lobes: int, anisotropic: int) -> LayoutFuncs:
+def layout_funcs(n_lobes: int, anisotropic: int, lookup: bool = False) -> LayoutFuncs:
     """The sample functions the accumulation kernels share, specialised to one model layout
-    (loops over lobes and columns with compile-time trip counts, see ``lafortune_funcs``)."""
+    (loops over lobes and columns with compile-time trip counts, see ``lafortune_funcs``) and to
+    the model's texture lookup (``lookup``: the renderer's bilinear blend with the neighbours, see
+    ``sample_model``)."""
     lf = lafortune_funcs(n_lobes, anisotropic)
+    blend = bool(lookup)
     n_params = 3 + int(n_lobes) * (6 + int(anisotropic))
 
     @wp.func
@@ -355,16 +405,22 @@ def layout_funcs(n_lobes: int, anisotropic: int) -> LayoutFuncs:
     @wp.func
     def sample_model(pv: Any, dv: Any, infos: wp.array(dtype=ImageInfo), k: int, tex: TexelFrames, i: int, xs: float,
                      ys: float, w: wp.vec3, u: wp.vec3, v: wp.vec3, opt: SampleOptions, want_hm: int, one: Any):
-        """The model side of one sample: (weight W, lobe features f, d^T (Hess M) d).
+        """The model side of one sample: (usable, weight W, lobe features f, d^T (Hess M) d, offset N).
 
-        The residual is W M - y (radiance space), M the model of the features f
-        (``lafortune_funcs``). Bilinear and point sampling: W = w and f the texel's features at
-        (u, v). Filtered sampling: the photo's bilinear filter applied to the model, W = sum_t
+        The residual is W M + N - y (radiance space), M the model of the features f
+        (``lafortune_funcs``). Bilinear and point sampling: W = w, f the texel's features at
+        (u, v) and N = 0. Filtered sampling: the photo's bilinear filter applied to the model, W = sum_t
         b_t w_t and M = sum_t b_t w_t m_t / W over the four taps t (bilinear weights b_t, each
         tap's own surface point, light and view), so W M is the filtered radiance. w_t is the
         light's RGB intensity times a scalar a_t (exposure, cosine, falloff), so M = sum_t
         omega_t m_t with omega_t = b_t a_t / sum b a the same for every channel: the taps'
         features are averaged, and M and its Jacobian follow from the mean exactly.
+
+        With the renderer's lookup (``lookup``, filtered sampling only) a tap's BRDF is
+        o_t m_t + n_t, o_t the texel's own bilinear weight there and n_t its neighbours' blended
+        BRDFs at their held values (:func:`tap_brdf_lookup`): the taps' features are averaged
+        with weights b_t a_t o_t into W M, and N = L sum_t b_t a_t n_t is a constant of the
+        texel's parameters. A sample whose taps all miss the texel (o_t = 0) is not usable.
         """
         uc = to_compute3(u, one)
         vc = to_compute3(v, one)
@@ -373,12 +429,13 @@ def layout_funcs(n_lobes: int, anisotropic: int) -> LayoutFuncs:
             hm = type(uc)(zero, zero, zero)
             if want_hm != 0:
                 hm = lf.dhd(pv, dv, uc, vc, one)
-            return to_compute3(w, one), lf.features(pv, uc, vc, one), hm
+            return True, to_compute3(w, one), lf.features(pv, uc, vc, one), hm, wp.vec3(0.0)
         x0 = int(xs)
         y0 = int(ys)
         fx = xs - float(x0)
         fy = ys - float(y0)
         asum = float(0.0)
+        nsum = wp.vec3(0.0)
         feat = pv * zero
         hsum = type(uc)(zero, zero, zero)
         # a run-time trip count (4 here): Warp unrolls loops over literal ranges, and four inlined
@@ -411,13 +468,21 @@ def layout_funcs(n_lobes: int, anisotropic: int) -> LayoutFuncs:
             ul, vl = lobe_directions(wi, wp.normalize(cam - p), nrm, tex, i)
             ut = to_compute3(ul, one)
             vt = to_compute3(vl, one)
+            if wp.static(blend):
+                own, other = tap_brdf_lookup(tex, i, p, p0, ul, vl)
+                nsum = nsum + a * other
+                a = a * own
             ac = type(one)(a)
             feat = feat + ac * lf.features(pv, ut, vt, one)
             if want_hm != 0:
                 hsum = hsum + ac * lf.dhd(pv, dv, ut, vt, one)
             asum = asum + a
-        inv = one / type(one)(wp.max(asum, 1.0e-30))  # every tap unlit: M = the diffuse part, W = 0
-        return to_compute3(infos[k].light_intensity * asum, one), feat * inv, hsum * inv
+        # every tap unlit (or, with the lookup, off the texel): W = 0, not usable
+        inv = one / type(one)(wp.max(asum, 1.0e-30))
+        offset = wp.vec3(0.0)
+        if wp.static(blend):
+            offset = wp.cw_mul(infos[k].light_intensity, nsum)
+        return asum > 0.0, to_compute3(infos[k].light_intensity * asum, one), feat * inv, hsum * inv, offset
 
     @wp.func
     def channel_residual(pv: Any, feat: Any, yc: Any, wc: Any, c: int, reflectance_space: int, one: Any):
@@ -435,7 +500,7 @@ def layout_funcs(n_lobes: int, anisotropic: int) -> LayoutFuncs:
 
 @functools.cache
 def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, dhd: bool, full_hessian: bool,
-                      max_registers: int = 0):
+                      max_registers: int = 0, lookup: bool = False):
     """The objective / gradient pass of one model layout and pass kind.
 
     What a pass accumulates beside f and the gradient is fixed when the kernel compiles rather
@@ -443,10 +508,11 @@ def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, d
     ``kahan`` (compensated sums), ``diag`` (the Gauss-Newton diagonal), ``dhd`` (d^T H d along
     ``direction``) and ``full_hessian`` (its r d^T (Hess r) d term). The Jacobian rows are built
     with literal indices (``LafortuneFuncs.jacobian_row``), so they stay in registers.
-    ``max_registers`` caps registers per CUDA thread (0: none). Each kernel lives in a module of
-    its own, so compiling one does not recompile the others.
+    ``max_registers`` caps registers per CUDA thread (0: none); ``lookup`` selects the renderer's
+    texture lookup (``layout_funcs``). Each kernel lives in a module of its own, so compiling one
+    does not recompile the others.
     """
-    fn = layout_funcs(n_lobes, anisotropic)
+    fn = layout_funcs(n_lobes, anisotropic, lookup)
     lf, load_params, sample_model, channel_residual = fn.lf, fn.load_params, fn.sample_model, fn.channel_residual
     use_kahan, want_diag, want_dhd, want_full = bool(kahan), bool(diag), bool(dhd), bool(dhd and full_hessian)
 
@@ -482,9 +548,17 @@ def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, d
             k1 = wp.min(k0 + per_group, img_end)
             for k in range(k0, k1):
                 ok, y, w, u, v, xs, ys = observe(images, depth, shadow, infos, k, tex, i, opt)
+                use = False
+                wc = to_compute3(w, one)
+                feat = pv * zero
+                hm = wc * zero
+                offset = wp.vec3(0.0)
                 if ok:
-                    wc, feat, hm = sample_model(pv, dv, infos, k, tex, i, xs, ys, w, u, v, opt,
-                                                wp.static(int(want_full)), one)
+                    use, wc, feat, hm, offset = sample_model(pv, dv, infos, k, tex, i, xs, ys, w, u, v, opt,
+                                                             wp.static(int(want_full)), one)
+                if use:
+                    if wp.static(lookup):
+                        y = y - offset  # the neighbours' held share of the photo (sample_model)
                     yc = to_compute3(y, one)
                     for c in range(3):
                         m, r, s = channel_residual(pv, feat, yc, wc, c, opt.reflectance_space, one)
@@ -507,7 +581,12 @@ def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, d
                             dhd = dhd + jd * jd
                             if wp.static(want_full):
                                 dhd = dhd + r * s * hm[c]
-                        st = st + trace_stats(wc[c] * m, y, c)
+                        wm = wc[c] * m
+                        if wp.static(lookup):
+                            wm = wm + type(one)(offset[c])
+                            st = st + trace_stats(wm, y + offset, c)
+                        else:
+                            st = st + trace_stats(wm, y, c)
         out_f[g, i] = f
         out_g[g, i] = grad
         out_dhd[g, i] = dhd
@@ -516,7 +595,8 @@ def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, d
             out_diag[g, i] = diag
 
     name = "_".join(["accumulate", f"{int(n_lobes)}lobes", "aniso" if anisotropic else "iso"]
-                    + [flag for flag, on in (("kahan", use_kahan), ("diag", want_diag), ("dhd", want_dhd), ("full", want_full)) if on])
+                    + [flag for flag, on in (("kahan", use_kahan), ("diag", want_diag), ("dhd", want_dhd),
+                                             ("full", want_full), ("lookup", bool(lookup))) if on])
     if max_registers:
         name += f"_maxreg{max_registers}"
     return wp.kernel(accumulate, name=name, enable_backward=False, module="unique",
@@ -524,14 +604,14 @@ def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, d
 
 
 @functools.cache
-def accumulate_lm_kernel(n_lobes: int, anisotropic: int, max_registers: int = 0):
+def accumulate_lm_kernel(n_lobes: int, anisotropic: int, max_registers: int = 0, lookup: bool = False):
     """The Gauss-Newton / LM pass of one model layout: f, J^T r and J^T J per (photo group, texel).
 
     J^T J is summed over the structurally non-zero entries of each channel's Jacobian row only
     (``LafortuneFuncs.row_entry``; 33 of the 81 entries of one isotropic lobe) into its upper
     triangle and mirrored once at the end, so the sums stay in registers on a GPU.
     """
-    fn = layout_funcs(n_lobes, anisotropic)
+    fn = layout_funcs(n_lobes, anisotropic, lookup)
     lf, load_params, sample_model, channel_residual = fn.lf, fn.load_params, fn.sample_model, fn.channel_residual
     n_params = fn.n_params
     row_nonzeros = lf.row_nonzeros
@@ -560,8 +640,15 @@ def accumulate_lm_kernel(n_lobes: int, anisotropic: int, max_registers: int = 0)
             k1 = wp.min(k0 + per_group, img_end)
             for k in range(k0, k1):
                 ok, y, w, u, v, xs, ys = observe(images, depth, shadow, infos, k, tex, i, opt)
+                use = False
+                wc = to_compute3(w, one)
+                feat = pv * zero
+                offset = wp.vec3(0.0)
                 if ok:
-                    wc, feat, hm = sample_model(pv, pv, infos, k, tex, i, xs, ys, w, u, v, opt, 0, one)
+                    use, wc, feat, hm, offset = sample_model(pv, pv, infos, k, tex, i, xs, ys, w, u, v, opt, 0, one)
+                if use:
+                    if wp.static(lookup):
+                        y = y - offset  # the neighbours' held share of the photo (sample_model)
                     yc = to_compute3(y, one)
                     for c in range(3):
                         m, r, s = channel_residual(pv, feat, yc, wc, c, opt.reflectance_space, one)
@@ -575,7 +662,12 @@ def accumulate_lm_kernel(n_lobes: int, anisotropic: int, max_registers: int = 0)
                                 if tb >= ta:
                                     cb, vb = lf.row_entry(pv, feat, c, tb)
                                     upper[wp.min(ca, cb), wp.max(ca, cb)] = upper[wp.min(ca, cb), wp.max(ca, cb)] + s2 * va * vb
-                        st = st + trace_stats(wc[c] * m, y, c)
+                        wm = wc[c] * m
+                        if wp.static(lookup):
+                            wm = wm + type(one)(offset[c])
+                            st = st + trace_stats(wm, y + offset, c)
+                        else:
+                            st = st + trace_stats(wm, y, c)
         jtj = upper + wp.transpose(upper)
         for k in range(wp.static(n_params)):
             jtj[k, k] = upper[k, k]
@@ -584,11 +676,20 @@ def accumulate_lm_kernel(n_lobes: int, anisotropic: int, max_registers: int = 0)
         out_jtj[g, i] = jtj
         out_stats[g, i] = st
 
-    name = "_".join(["accumulate_lm", f"{int(n_lobes)}lobes", "aniso" if anisotropic else "iso"])
+    name = "_".join(["accumulate_lm", f"{int(n_lobes)}lobes", "aniso" if anisotropic else "iso"]
+                    + (["lookup"] if lookup else []))
     if max_registers:
         name += f"_maxreg{max_registers}"
     return wp.kernel(accumulate_lm, name=name, enable_backward=False, module="unique",
                      cuda_max_registers=max_registers or None)
+
+
+@wp.kernel
+def hold_lookup_params_kernel(params: wp.array2d(dtype=Any), held: wp.array2d(dtype=wp.float32)):
+    """``held[i, k] = params[i, k]`` in float32: the values the renderer's lookup reads for texel
+    i's neighbours until the next refresh (rows past the parameters, the defaults, untouched)."""
+    i, k = wp.tid()
+    held[i, k] = wp.float32(params[i, k])
 
 
 @wp.kernel

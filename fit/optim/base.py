@@ -94,6 +94,14 @@ class FitState:
                   inputs=[p, d, alpha, self.lower, self.upper, self.free, active, lay.n_params, lay.n_lobes,
                           lay.lobe_stride, float(self.lobe_albedo_max)], outputs=[trial, storage])
 
+    def store_current(self) -> None:
+        """Write the current parameters ``p`` into ``storage`` (which holds the last trial point
+        after a step), e.g. to evaluate the objective at ``p`` again."""
+        pr = self.problem
+        if not hasattr(self, "_no_step"):
+            self._no_step = pr.new_scalar()
+        self.launch_trial(self.p, self.d, self._no_step, pr.all_active, self.trial, self.storage)
+
     def set_free(self, free_mask: np.ndarray) -> None:
         self.free = self.problem.vec(*free_mask.astype(float))
 
