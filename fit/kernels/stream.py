@@ -354,10 +354,10 @@ def kahan_add(total: Any, comp: Any, term: Any):
 
 
 @wp.func
-def trace_stats(wm: Any, y: wp.vec3, c: int):
+def trace_stats(wm: Any, fitted: Any, y: wp.vec3, c: int):
     """(1/3 sample, r^2, |r|, |y|) of channel c in radiance space, in fp64, for the trace
-    (``wm`` = W_c m_c, the model's radiance)."""
-    rr = wp.float64(wm) - wp.float64(y[c])
+    (``wm`` = W_c m_c, the model's radiance, ``fitted`` what it fits, ``y`` the photo's value)."""
+    rr = wp.float64(wm) - wp.float64(fitted[c])
     return wp.vec4d(wp.float64(1.0 / 3.0), rr * rr, wp.abs(rr), wp.abs(wp.float64(y[c])))
 
 
@@ -366,7 +366,7 @@ class LayoutFuncs(NamedTuple):
 
     lf: Any
     load_params: Any
-    sample_model: Any
+    sample: Any
     channel_residual: Any
     n_params: int
 
@@ -485,6 +485,27 @@ def layout_funcs(n_lobes: int, anisotropic: int, lookup: bool = False) -> Layout
         return asum > 0.0, to_compute3(infos[k].light_intensity * asum, one), feat * inv, hsum * inv, offset
 
     @wp.func
+    def sample(pv: Any, dv: Any, images: wp.array3d(dtype=Any), depth: wp.array3d(dtype=wp.float32),
+               shadow: wp.array3d(dtype=wp.float32), infos: wp.array(dtype=ImageInfo), k: int, tex: TexelFrames,
+               i: int, opt: SampleOptions, want_hm: int, one: Any):
+        """One (texel i, photo k) sample, :func:`observe` then :func:`sample_model`: (usable, W, f,
+        d^T (Hess M) d, the radiance W M fits, the photo's radiance y). With the lookup the model
+        fits y minus the neighbours' held share N; else y itself."""
+        ok, y, w, u, v, xs, ys = observe(images, depth, shadow, infos, k, tex, i, opt)
+        zero = one - one
+        use = False
+        wc = to_compute3(w, one)
+        feat = pv * zero
+        hm = wc * zero
+        offset = wp.vec3(0.0)
+        if ok:
+            use, wc, feat, hm, offset = sample_model(pv, dv, infos, k, tex, i, xs, ys, w, u, v, opt, want_hm, one)
+        fitted = y
+        if wp.static(blend):
+            fitted = y - offset
+        return use, wc, feat, hm, to_compute3(fitted, one), y
+
+    @wp.func
     def channel_residual(pv: Any, feat: Any, yc: Any, wc: Any, c: int, reflectance_space: int, one: Any):
         """Model m_c, residual r_c and its scale s_c (see the module doc) of channel c."""
         m = lf.model_value(pv, feat, c)
@@ -495,7 +516,7 @@ def layout_funcs(n_lobes: int, anisotropic: int, lookup: bool = False) -> Layout
             r = wc[c] * m - yc[c]
         return m, r, s
 
-    return LayoutFuncs(lf, load_params, sample_model, channel_residual, n_params)
+    return LayoutFuncs(lf, load_params, sample, channel_residual, n_params)
 
 
 @functools.cache
@@ -513,7 +534,7 @@ def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, d
     does not recompile the others.
     """
     fn = layout_funcs(n_lobes, anisotropic, lookup)
-    lf, load_params, sample_model, channel_residual = fn.lf, fn.load_params, fn.sample_model, fn.channel_residual
+    lf, load_params, sample, channel_residual = fn.lf, fn.load_params, fn.sample, fn.channel_residual
     use_kahan, want_diag, want_dhd, want_full = bool(kahan), bool(diag), bool(dhd), bool(dhd and full_hessian)
 
     def accumulate(
@@ -547,19 +568,9 @@ def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, d
             k0 = img_begin + g * per_group
             k1 = wp.min(k0 + per_group, img_end)
             for k in range(k0, k1):
-                ok, y, w, u, v, xs, ys = observe(images, depth, shadow, infos, k, tex, i, opt)
-                use = False
-                wc = to_compute3(w, one)
-                feat = pv * zero
-                hm = wc * zero
-                offset = wp.vec3(0.0)
-                if ok:
-                    use, wc, feat, hm, offset = sample_model(pv, dv, infos, k, tex, i, xs, ys, w, u, v, opt,
-                                                             wp.static(int(want_full)), one)
+                use, wc, feat, hm, yc, y = sample(pv, dv, images, depth, shadow, infos, k, tex, i, opt,
+                                                  wp.static(int(want_full)), one)
                 if use:
-                    if wp.static(lookup):
-                        y = y - offset  # the neighbours' held share of the photo (sample_model)
-                    yc = to_compute3(y, one)
                     for c in range(3):
                         m, r, s = channel_residual(pv, feat, yc, wc, c, opt.reflectance_space, one)
                         term = type(one)(0.5) * r * r
@@ -581,12 +592,7 @@ def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, d
                             dhd = dhd + jd * jd
                             if wp.static(want_full):
                                 dhd = dhd + r * s * hm[c]
-                        wm = wc[c] * m
-                        if wp.static(lookup):
-                            wm = wm + type(one)(offset[c])
-                            st = st + trace_stats(wm, y + offset, c)
-                        else:
-                            st = st + trace_stats(wm, y, c)
+                        st = st + trace_stats(wc[c] * m, yc, y, c)
         out_f[g, i] = f
         out_g[g, i] = grad
         out_dhd[g, i] = dhd
@@ -612,7 +618,7 @@ def accumulate_lm_kernel(n_lobes: int, anisotropic: int, max_registers: int = 0,
     triangle and mirrored once at the end, so the sums stay in registers on a GPU.
     """
     fn = layout_funcs(n_lobes, anisotropic, lookup)
-    lf, load_params, sample_model, channel_residual = fn.lf, fn.load_params, fn.sample_model, fn.channel_residual
+    lf, load_params, sample, channel_residual = fn.lf, fn.load_params, fn.sample, fn.channel_residual
     n_params = fn.n_params
     row_nonzeros = lf.row_nonzeros
 
@@ -639,17 +645,8 @@ def accumulate_lm_kernel(n_lobes: int, anisotropic: int, max_registers: int = 0,
             k0 = img_begin + g * per_group
             k1 = wp.min(k0 + per_group, img_end)
             for k in range(k0, k1):
-                ok, y, w, u, v, xs, ys = observe(images, depth, shadow, infos, k, tex, i, opt)
-                use = False
-                wc = to_compute3(w, one)
-                feat = pv * zero
-                offset = wp.vec3(0.0)
-                if ok:
-                    use, wc, feat, hm, offset = sample_model(pv, pv, infos, k, tex, i, xs, ys, w, u, v, opt, 0, one)
+                use, wc, feat, hm, yc, y = sample(pv, pv, images, depth, shadow, infos, k, tex, i, opt, 0, one)
                 if use:
-                    if wp.static(lookup):
-                        y = y - offset  # the neighbours' held share of the photo (sample_model)
-                    yc = to_compute3(y, one)
                     for c in range(3):
                         m, r, s = channel_residual(pv, feat, yc, wc, c, opt.reflectance_space, one)
                         f = f + type(one)(0.5) * r * r
@@ -662,12 +659,7 @@ def accumulate_lm_kernel(n_lobes: int, anisotropic: int, max_registers: int = 0,
                                 if tb >= ta:
                                     cb, vb = lf.row_entry(pv, feat, c, tb)
                                     upper[wp.min(ca, cb), wp.max(ca, cb)] = upper[wp.min(ca, cb), wp.max(ca, cb)] + s2 * va * vb
-                        wm = wc[c] * m
-                        if wp.static(lookup):
-                            wm = wm + type(one)(offset[c])
-                            st = st + trace_stats(wm, y + offset, c)
-                        else:
-                            st = st + trace_stats(wm, y, c)
+                        st = st + trace_stats(wc[c] * m, yc, y, c)
         jtj = upper + wp.transpose(upper)
         for k in range(wp.static(n_params)):
             jtj[k, k] = upper[k, k]
