@@ -47,6 +47,8 @@ def main() -> None:
                     help="StreamConfig.photo_sampling")
     ap.add_argument("--model-lookup", default="texel", choices=("texel", "bilinear"),
                     help="StreamConfig.model_lookup: bilinear blends the neighbours' BRDFs at each tap as the renderer does")
+    ap.add_argument("--tap-geometry", default="plane", choices=("plane", "mesh"),
+                    help="StreamConfig.tap_geometry: mesh traces each filtered tap to the mesh as the renderer does")
     ap.add_argument("--lobe-shape", default="auto", choices=("auto", "free", "phong"),
                     help="FitConfig.lobe_shape: auto holds c_z at 1 when the light rides beside the camera")
     ap.add_argument("--device", default="cpu")
@@ -70,7 +72,8 @@ def main() -> None:
     render_s = time.perf_counter() - t0
     cfg = FitConfig(optimizer="lm", max_iterations=a.iterations, sync_every=1000, lobe_shape=a.lobe_shape,
                     penalties=PenaltyConfig(smooth_weight=a.smooth),
-                    stream=StreamConfig(photo_sampling=a.photo_sampling, model_lookup=a.model_lookup))
+                    stream=StreamConfig(photo_sampling=a.photo_sampling, model_lookup=a.model_lookup,
+                                        tap_geometry=a.tap_geometry))
     fit = fit_synthetic(train, held, cfg, a.device)
     res, prob, fit_s, views, pooled = fit.result, fit.problem, fit.fit_s, fit.heldout_views_db, fit.heldout_pooled_db
 
@@ -88,7 +91,7 @@ def main() -> None:
     lay = res.layout
     report = {"scene": a.scene, "scale": a.scale, "photos": a.photos, "image_size": a.image_size,
               "texels": int(prob.n), "iterations": a.iterations, "smooth": a.smooth, "photo_sampling": a.photo_sampling,
-              "model_lookup": a.model_lookup, "device": a.device,
+              "model_lookup": a.model_lookup, "tap_geometry": a.tap_geometry, "device": a.device,
               "lobe_shape": lobe_shape_report(cfg, res.layout, train.frames, prob.texels.position),
               "machine": platform.node(), "render_s": render_s, "fit_s": fit_s,
               # a held-out view the light leaves black renders black too: its PSNR is infinite (null here)

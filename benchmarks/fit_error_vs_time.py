@@ -117,6 +117,8 @@ def main() -> None:
     ap.add_argument("--precondition", default=None, choices=("none", "jacobi"),
                     help="sd/cg/lbfgs preconditioner (default: FitConfig's)")
     ap.add_argument("--photo-sampling", default="filtered", choices=("filtered", "point", "bilinear"))
+    ap.add_argument("--model-lookup", default="texel", choices=("texel", "bilinear"), help="StreamConfig.model_lookup")
+    ap.add_argument("--tap-geometry", default="plane", choices=("plane", "mesh"), help="StreamConfig.tap_geometry")
     ap.add_argument("--lobe-albedo-max", type=float, default=None, help="FitConfig.lobe_albedo_max (0 = no energy bound)")
     ap.add_argument("--accumulate", default="fp32", choices=("fp32", "fp64"), help="StreamConfig.accumulate")
     ap.add_argument("--storage", default="fp32", choices=("fp16", "fp32", "fp64"), help="StreamConfig.storage")
@@ -147,6 +149,7 @@ def main() -> None:
                "lobe_albedo_max": FitConfig().lobe_albedo_max if a.lobe_albedo_max is None else a.lobe_albedo_max,
                "image_size": list(sc.images[0].shape[:2]), "texels": int(sc.bake.covered.sum()),
                "image_precision": a.image_precision, "accumulate": a.accumulate, "storage": a.storage, "photo_sampling": a.photo_sampling,
+               "model_lookup": a.model_lookup, "tap_geometry": a.tap_geometry,
                "block_dim": a.block_dim or StreamConfig().cuda_block_dim, "render_s": t_render, "machine": platform.node(), "runs": {}}
     if a.device.startswith("cuda"):
         results["gpu"] = wp.get_device(a.device).name
@@ -156,7 +159,8 @@ def main() -> None:
         iters = a.sd_iterations if (opt == "sd" and a.sd_iterations > 0) else a.iterations
         cfg = FitConfig(optimizer=opt, max_iterations=iters, sync_every=100000,
                         stream=StreamConfig(image_precision=a.image_precision, photo_sampling=a.photo_sampling,
-                                            accumulate=a.accumulate, storage=a.storage))
+                                            accumulate=a.accumulate, storage=a.storage, model_lookup=a.model_lookup,
+                                            tap_geometry=a.tap_geometry))
         if a.block_dim is not None:
             cfg.stream.cuda_block_dim = a.block_dim
         if a.precondition is not None:

@@ -107,6 +107,7 @@ def main() -> None:
     ap.add_argument("--models", default="lafortune,diffuse")
     ap.add_argument("--samplings", default="filtered,bilinear")
     ap.add_argument("--lookups", default="texel", help="StreamConfig.model_lookup values to try (texel, bilinear)")
+    ap.add_argument("--taps", default="plane", help="StreamConfig.tap_geometry values to try (plane, mesh)")
     ap.add_argument("--kinds", default="grad,lm")
     ap.add_argument("--groups", default="0,8,16,32", help="photo groups to try (0 = the automatic choice)")
     ap.add_argument("--max-registers", default="-1",
@@ -138,10 +139,10 @@ def main() -> None:
     if a.bandwidth_probe:
         rep["measured_bandwidth_GBps"] = measured_bandwidth(a.device) / 1e9
     for model in a.models.split(","):
-        for sampling, lookup in itertools.product(a.samplings.split(","), a.lookups.split(",")):
-            if lookup != "texel" and sampling != "filtered":
-                continue  # the lookup needs filtered sampling
-            cfg = FitConfig(model=model, stream=StreamConfig(photo_sampling=sampling, model_lookup=lookup))
+        for sampling, lookup, taps in itertools.product(a.samplings.split(","), a.lookups.split(","), a.taps.split(",")):
+            if (lookup != "texel" or taps != "plane") and sampling != "filtered":
+                continue  # the lookup and traced taps need filtered sampling
+            cfg = FitConfig(model=model, stream=StreamConfig(photo_sampling=sampling, model_lookup=lookup, tap_geometry=taps))
             prob = build_problem(sc.mesh, sc.bake, sc.frames, sc.images, sc.masks, cfg, a.device)
             prob.refresh_lookup(prob.new_storage(np.tile(prob.layout.defaults(), (prob.n, 1))))
             rep["texels"] = prob.n
@@ -157,7 +158,7 @@ def main() -> None:
                         t0 = time.perf_counter()
                         sec, samples = time_passes(prob, kind, a.passes)
                         ub = unique_bytes_per_pass(prob, "lm" if kind == "lm" else "sd", diag=kind == "grad")
-                        run = {"model": model, "sampling": sampling, "lookup": lookup, "kind": kind, "groups": prob.groups,
+                        run = {"model": model, "sampling": sampling, "lookup": lookup, "taps": taps, "kind": kind, "groups": prob.groups,
                                "max_registers": max_regs, "block_dim": block_dim, "ms_per_pass": 1000 * sec,
                                "samples_per_pass": samples, "ns_per_sample": 1e9 * sec / max(samples, 1.0),
                                "unique_bytes_per_pass": ub, "unique_GBps": ub / sec / 1e9,
@@ -165,7 +166,7 @@ def main() -> None:
                         if "measured_bandwidth_GBps" in rep:
                             run["bandwidth_fraction"] = run["unique_GBps"] / rep["measured_bandwidth_GBps"]
                         rep["runs"].append(run)
-                        print(model, sampling, lookup, kind, f"groups {prob.groups}", f"maxreg {max_regs}", f"block {block_dim}",
+                        print(model, sampling, lookup, taps, kind, f"groups {prob.groups}", f"maxreg {max_regs}", f"block {block_dim}",
                               f"{run['ms_per_pass']:.2f} ms/pass", f"{run['ns_per_sample']:.3f} ns/sample",
                               f"{run.get('bandwidth_fraction', 0):.3f} of bw", flush=True)
                         write_json_atomic(out / "pass_profile.json", rep, indent=1)

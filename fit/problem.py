@@ -19,6 +19,7 @@ from texstream.pipelines.errors import ConfigError, InputError
 
 from .kernels import stream
 from .kernels.lafortune_grad import param_types
+from .kernels.shading import SHADOW_EPS_REL
 from .kernels.visibility import apply_mask_kernel, depth_map_kernel
 from .models import ModelLayout
 
@@ -235,6 +236,13 @@ class StreamConfig:
     edges): noise-free photos rendered from a model are reproduced exactly by that model. It needs
     filtered photo sampling and an atlas (not single-view fits) and costs a neighbour lookup per
     tap"""
+    tap_geometry: str = "plane"
+    """where filtered sampling evaluates the model at a tap (fit/kernels/stream.py ``sample_model``):
+    ``plane`` (the texel's face plane, the shading normal and texel coordinates extended to first
+    order from the texel; no mesh access per tap) or ``mesh`` (each tap's pixel ray traced to the
+    mesh's BVH: the surface point, interpolated normal, tangent, UV and cast shadow the renderer
+    sees there, also where the tap leaves the texel's face). ``mesh`` needs filtered photo
+    sampling and a mesh with normals and UVs, and costs a ray query (and a shadow ray) per tap"""
     groups: int = 0
     """photo groups per pass (parallelism over photos; 0 = automatic)"""
     photos_per_window: int = 0
@@ -282,19 +290,26 @@ class PhotoSet:
 
     def __init__(self, frames: list[PhotoFrame], images: list[np.ndarray], mesh_points: np.ndarray | None,
                  mesh_faces: np.ndarray | None, masks: list[np.ndarray | None] | None = None,
-                 config: StreamConfig | None = None, device: str = "cpu"):
+                 config: StreamConfig | None = None, device: str = "cpu", mesh_normals: np.ndarray | None = None,
+                 mesh_uvs: np.ndarray | None = None):
         """``mesh_points=None`` (no geometry: single-view fits, fit/photometric_stereo.py) builds no
         depth or shadow maps: each photo's depth map holds its mask (1 = sample, 0 = masked) and
-        ``ImageInfo.depth_is_mask`` tells the kernels to test only that."""
+        ``ImageInfo.depth_is_mask`` tells the kernels to test only that. Per-vertex
+        ``mesh_normals`` and ``mesh_uvs`` serve traced taps (``StreamConfig.tap_geometry``)."""
+        self.mesh_normals = self.mesh_uvs = None
         if mesh_points is None:
             return self._init_without_mesh(frames, images, masks, config, device)
         cfg = config or StreamConfig()
         stack, img_dtype = self._stack_photos(frames, images, cfg, device)
         self.mesh = wp.Mesh(points=wp.array(np.asarray(mesh_points, np.float32), dtype=wp.vec3, device=device),
                             indices=wp.array(np.asarray(mesh_faces, np.int32).reshape(-1), dtype=wp.int32, device=device))
+        if mesh_normals is not None and mesh_uvs is not None:
+            self.mesh_normals = wp.array(np.asarray(mesh_normals, np.float32), dtype=wp.vec3, device=device)
+            self.mesh_uvs = wp.array(np.asarray(mesh_uvs, np.float32), dtype=wp.vec2, device=device)
         lo, hi = mesh_points.min(axis=0), mesh_points.max(axis=0)
         self.center = 0.5 * (lo + hi)
         self.radius = 0.5 * float(np.linalg.norm(hi - lo))
+        self.shadow_eps = SHADOW_EPS_REL * max(2.0 * self.radius, 1e-12)  # the renderer's (fit/render.py)
         depth = np.zeros((self.n, self.hmax, self.wmax), np.float32)
         ssize = int(cfg.shadow_map_size)
         shadow = np.full((self.n, max(ssize, 2), max(ssize, 2)), np.inf, np.float32)
@@ -447,6 +462,7 @@ class StreamProblem:
         self.tex.face_nrm = wp.array(np.ascontiguousarray(face_nrm, np.float32), dtype=wp.vec3, device=dev)
         self.tex.dn_dp = wp.array(np.ascontiguousarray(jac, np.float32), dtype=wp.mat33, device=dev)
         self._init_lookup(texels, layout, cfg, dev)
+        self._init_taps(photos, cfg, dev)
         self.neighbors = wp.array(texels.neighbors, dtype=wp.vec4i, device=dev)
         self.set_groups(cfg.groups)
         self.no_diag = wp.zeros((1, 1), dtype=self.vec, device=dev)
@@ -506,6 +522,31 @@ class StreamProblem:
         held = np.tile(layout.defaults().astype(np.float32), (n + 1, 1))  # row n: the defaults
         tex.lookup_params = wp.array(held, dtype=wp.float32, device=dev)
 
+    def _init_taps(self, photos: PhotoSet, cfg: StreamConfig, dev: str) -> None:
+        """The filtered taps' geometry (``StreamConfig.tap_geometry``): the mesh they are traced to
+        (placeholders for the face plane)."""
+        if cfg.tap_geometry not in ("plane", "mesh"):
+            raise ConfigError(f"tap_geometry {cfg.tap_geometry!r} unknown", fix="use plane or mesh")
+        self.traced = cfg.tap_geometry == "mesh"
+        tex = self.tex
+        if not self.traced:
+            tex.mesh = wp.uint64(0)
+            tex.mesh_points = tex.mesh_normals = wp.zeros(1, dtype=wp.vec3, device=dev)
+            tex.mesh_indices = wp.zeros(1, dtype=wp.int32, device=dev)
+            tex.mesh_uvs = wp.zeros(1, dtype=wp.vec2, device=dev)
+            tex.shadow_eps = 0.0
+            return
+        if cfg.photo_sampling != "filtered":
+            raise ConfigError(f"tap_geometry mesh needs filtered photo sampling, not {cfg.photo_sampling!r}",
+                              fix="set photo_sampling to filtered or tap_geometry to plane")
+        if photos.mesh_normals is None or photos.mesh_uvs is None:
+            raise ConfigError("tap_geometry mesh needs a mesh with normals and UVs (single-view fits have none)",
+                              fix="set tap_geometry to plane")
+        tex.mesh = photos.mesh.id
+        tex.mesh_points, tex.mesh_indices = photos.mesh.points, photos.mesh.indices
+        tex.mesh_normals, tex.mesh_uvs = photos.mesh_normals, photos.mesh_uvs
+        tex.shadow_eps = float(photos.shadow_eps)
+
     def refresh_lookup(self, params: wp.array) -> None:
         """Hold the neighbours of the renderer's lookup at ``params`` (N, n_params, storage
         precision) until the next call; on the device, no host round trip. No-op when off."""
@@ -559,7 +600,7 @@ class StreamProblem:
         # arguments normalised so one pass kind maps to one cached (compiled) kernel
         kernel = stream.accumulate_kernel(lay.n_lobes, int(lay.anisotropic), bool(self.cfg.kahan), diag is not None,
                                           direction is not None, bool(full_hessian and direction is not None),
-                                          self.max_registers, self.lookup)
+                                          self.max_registers, self.lookup, self.traced)
         if diag is not None and self.pdiag is None:
             self.pdiag = wp.zeros((self.groups, self.n), dtype=self.vec, device=self.device)
         pdiag = self.pdiag if diag is not None else self.no_diag
@@ -594,7 +635,8 @@ class StreamProblem:
         if self.pm is None:
             self.pm = wp.zeros((self.groups, self.n), dtype=self.mat, device=self.device)
         lay = self.layout
-        kernel = stream.accumulate_lm_kernel(lay.n_lobes, int(lay.anisotropic), self.max_registers, self.lookup)
+        kernel = stream.accumulate_lm_kernel(lay.n_lobes, int(lay.anisotropic), self.max_registers, self.lookup,
+                                             self.traced)
         act = self.all_active if active is None else active
         first = True
         for images, depth, shadow, infos, b, e in self.photos.windows():

@@ -18,15 +18,10 @@ import warp as wp
 
 from texstream.capture.capture_json import Frame, Light
 from texstream.fit.kernels.render import PinholeCamera, RenderLight, render_kernel
-from texstream.fit.kernels.shading import LIGHT_DIRECTIONAL, LIGHT_POINT
+from texstream.fit.kernels.shading import LIGHT_DIRECTIONAL, LIGHT_POINT, SHADOW_EPS_REL
 from texstream.fit.models import ModelLayout
 from texstream.geometry.mesh import SurfaceMesh
 from texstream.pipelines.errors import ConfigError, InputError
-
-# Shadow-ray offset relative to the mesh's bounding-box diagonal: large enough to clear float32
-# round-off of the hit position (~1e-7 x the scene size) with margin, small enough that contact
-# shadows are not lost (a 1e-4 gap is sub-texel for any texture under ~5000 texels across).
-SHADOW_EPS_REL = 1.0e-4
 
 
 @dataclasses.dataclass

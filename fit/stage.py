@@ -86,7 +86,8 @@ def build_problem(mesh, bake, frames, images, masks, cfg: FitConfig, device: str
     if texels.n == 0:
         raise InputError("the atlas has no covered texels", fix="rebuild the atlas with a larger resolution")
     photo_frames = [PhotoFrame.from_capture_frame(f) for f in frames]
-    photos = PhotoSet(photo_frames, images, mesh.vertices, mesh.faces, masks=masks, config=cfg.stream, device=device)
+    photos = PhotoSet(photo_frames, images, mesh.vertices, mesh.faces, masks=masks, config=cfg.stream, device=device,
+                      mesh_normals=mesh.vertex_normals(), mesh_uvs=mesh.uvs)
     layout = cfg.layout(photo_frames, texels.position.mean(axis=0))
     return StreamProblem(texels, photos, layout, cfg.stream, device=device)
 

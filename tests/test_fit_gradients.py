@@ -15,12 +15,14 @@ SAMPLINGS = ["filtered", "point", "bilinear"]
 
 
 def plane_problem(device, layout, n_photos=6, grid=5, seed=0, acc="fp64", kind="point", storage=None,
-                  sampling="filtered", lookup="texel"):
+                  sampling="filtered", lookup="texel", taps="plane"):
     """Texels on the plane z = 0 seen by random cameras under random lights; random photo values
     (the derivative checks need no consistent data). The shading normal bends across each texel
     (a random normal Jacobian) so point and filtered sampling see a different frame at every tap.
     The texel grid maps linearly onto the plane (texel coordinate gradients for ``lookup``
-    bilinear: a filtered tap lands ~0.15 texel from its centre, so neighbours weigh in)."""
+    bilinear: a filtered tap lands ~0.15 texel from its centre, so neighbours weigh in), and so
+    do the mesh's UVs, whose tilted vertex normals give traced taps (``taps`` mesh) their own
+    frame at every hit."""
     rng = np.random.default_rng(seed)
     pts = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], float)
     faces = np.array([[0, 1, 2], [0, 2, 3]])
@@ -46,8 +48,14 @@ def plane_problem(device, layout, n_photos=6, grid=5, seed=0, acc="fp64", kind="
         frames.append(PhotoFrame(r, t, 60.0, 60.0, 32.0, 32.0, 64, 64, kind, lv, np.array([5.0, 4.0, 3.0])))
         imgs.append(rng.uniform(0, 1, (64, 64, 3)).astype(np.float32))
     cfg = StreamConfig(accumulate=acc, storage=storage or ("fp64" if acc == "fp64" else "fp32"), shadow_map_size=64,
-                       photo_sampling=sampling, model_lookup=lookup)
-    photos = PhotoSet(frames, imgs, pts, faces, config=cfg, device=device)
+                       photo_sampling=sampling, model_lookup=lookup, tap_geometry=taps)
+    # texel (x, y) = ((X + 0.8) W / 1.6 - 1/2, (Y + 0.8) H / 1.6 - 1/2) = (u W - 1/2, (1 - v) H - 1/2)
+    uvs = np.stack([(pts[:, 0] + 0.8) / 1.6, 1.0 - (pts[:, 1] + 0.8) / 1.6], 1)
+    # an rng of its own, so the other tests' random streams stay as they were
+    tilt = np.random.default_rng(seed + 1000).normal(scale=0.3, size=(4, 3))
+    vertex_normals = e[2] + tilt * np.array([1.0, 1.0, 0.0])
+    vertex_normals /= np.linalg.norm(vertex_normals, axis=1, keepdims=True)
+    photos = PhotoSet(frames, imgs, pts, faces, config=cfg, device=device, mesh_normals=vertex_normals, mesh_uvs=uvs)
     return StreamProblem(tex, photos, layout, cfg, device=device), rng
 
 

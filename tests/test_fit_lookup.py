@@ -28,25 +28,39 @@ from conftest import SCENE_DEVICE
 from test_fit_gradients import assert_gradient_matches_finite_differences, evaluate, plane_problem, random_params
 
 
-def held_problem(device, layout, seed):
+def held_problem(device, layout, seed, taps="plane"):
     """A plane problem with the lookup on, parameters p and neighbours held at other values."""
-    prob, rng = plane_problem(device, layout, seed=seed, lookup="bilinear")
+    prob, rng = plane_problem(device, layout, seed=seed, lookup="bilinear", taps=taps)
     p = random_params(layout, prob.n, rng)
     held = random_params(layout, prob.n, rng)
     prob.refresh_lookup(prob.new_storage(held))
     return prob, rng, p, held
 
 
-@pytest.mark.parametrize("layout", [ModelLayout(), ModelLayout(n_lobes=2, anisotropic=True)], ids=["iso", "aniso_2lobes"])
-def test_lookup_gradient_matches_finite_differences(device, layout):
-    prob, rng, p, _ = held_problem(device, layout, seed=5)
+TAPS = ["plane", "mesh"]
+LAYOUTS = [ModelLayout(), ModelLayout(n_lobes=2, anisotropic=True)]
+
+
+@pytest.mark.parametrize("taps", TAPS)
+@pytest.mark.parametrize("layout", LAYOUTS, ids=["iso", "aniso_2lobes"])
+def test_lookup_gradient_matches_finite_differences(device, layout, taps):
+    prob, rng, p, _ = held_problem(device, layout, seed=5, taps=taps)
     # the texels' own parameters vary, the held neighbours do not: per-texel derivatives
     assert_gradient_matches_finite_differences(prob, layout, p)
 
 
-def test_lookup_dhd_matches_second_difference(device):
+@pytest.mark.parametrize("layout", LAYOUTS, ids=["iso", "aniso_2lobes"])
+def test_traced_taps_gradient_matches_finite_differences(device, layout):
+    """Traced taps with the texel's own BRDF at every tap (no lookup): the anisotropic lobes read
+    the hit's tangent frame (the face's UV tangent), not the texel's."""
+    prob, rng = plane_problem(device, layout, seed=9, taps="mesh")
+    assert_gradient_matches_finite_differences(prob, layout, random_params(layout, prob.n, rng))
+
+
+@pytest.mark.parametrize("taps", TAPS)
+def test_lookup_dhd_matches_second_difference(device, taps):
     layout = ModelLayout()
-    prob, rng, p, _ = held_problem(device, layout, seed=6)
+    prob, rng, p, _ = held_problem(device, layout, seed=6, taps=taps)
     d = rng.normal(size=p.shape) * np.array([0.01, 0.01, 0.01, 0.05, 0.05, 0.05, 0.0, 0.02, 0.5])
     f0, _, dhd, _ = evaluate(prob, p, direction=d, full=True)
     h = 3e-4
@@ -56,9 +70,10 @@ def test_lookup_dhd_matches_second_difference(device):
     assert np.all(np.abs(dhd - second) <= bound), np.max(np.abs(dhd - second) / bound)
 
 
-def test_lookup_lm_pass_matches_the_gradient_pass(device):
+@pytest.mark.parametrize("taps", TAPS)
+def test_lookup_lm_pass_matches_the_gradient_pass(device, taps):
     layout = ModelLayout()
-    prob, _, p, _ = held_problem(device, layout, seed=7)
+    prob, _, p, _ = held_problem(device, layout, seed=7, taps=taps)
     n = prob.n
     f_lm, g_lm = prob.new_scalar(), prob.new_vec()
     jtj = wp.zeros(n, dtype=prob.mat, device=device)
@@ -103,6 +118,14 @@ def test_lookup_config_errors(device):
     bare = dataclasses.replace(prob.texels, coordinate_gradients=None, grid_source=None)
     with pytest.raises(ConfigError, match="needs an atlas"):
         StreamProblem(bare, prob.photos, layout, StreamConfig(model_lookup="bilinear"), device=device)
+    # traced taps: filtered sampling and a mesh with normals and UVs
+    with pytest.raises(ConfigError, match="tap_geometry 'ray' unknown"):
+        plane_problem(device, layout, taps="ray")
+    with pytest.raises(ConfigError, match="tap_geometry mesh needs filtered"):
+        plane_problem(device, layout, sampling="point", taps="mesh")
+    prob.photos.mesh_uvs = None
+    with pytest.raises(ConfigError, match="needs a mesh with normals and UVs"):
+        StreamProblem(prob.texels, prob.photos, layout, StreamConfig(tap_geometry="mesh"), device=device)
 
 
 ORNAMENT = dict(scale=0.01, photos=200, image_size=128, progress=False, device=SCENE_DEVICE)
@@ -113,8 +136,8 @@ def ornament():
     return render_scene("ornament", SynthConfig(**ORNAMENT))
 
 
-def truth_objective(scene, lookup: str, device: str) -> float:
-    cfg = FitConfig(stream=StreamConfig(model_lookup=lookup))
+def truth_objective(scene, lookup: str, device: str, taps: str = "plane") -> float:
+    cfg = FitConfig(stream=StreamConfig(model_lookup=lookup, tap_geometry=taps))
     prob = build_problem(scene.mesh, scene.bake, scene.frames, scene.images, scene.masks, cfg, device)
     gt = scene.params.reshape(-1, scene.params.shape[-1])[prob.texels.grid_index]
     st = FitState.create(prob, gt, np.ones(gt.shape[1], bool))
@@ -126,12 +149,17 @@ def truth_objective(scene, lookup: str, device: str) -> float:
 def test_truth_explains_its_photos_with_the_lookup(ornament, device):
     """Noise-free ornament photos, three materials in bands: with the seed's per-texel model the
     true parameters leave residuals at every material edge (the renderer blended two BRDFs there);
-    with the lookup they fit their photos. Measured (CPU, 200 photos of 160x160): 0.54 -> 0.016;
-    what remains is the fit's first-order surface model (tap normals and texel coordinates
-    extended linearly beyond the texel's face on the ornament's coarse cap)."""
+    with the lookup they nearly fit their photos, and with traced taps exactly. Measured (CPU,
+    200 photos of 128x128): 0.83 -> 0.038 (plane taps: tap normals and texel coordinates extended
+    linearly beyond the texel's face on the ornament's coarse cap) -> 7e-9 (traced taps: float32
+    rounding of the photos and of the renderer's and the fit's arithmetic)."""
     texel = truth_objective(ornament, "texel", device)
     blended = truth_objective(ornament, "bilinear", device)
     assert blended < 0.1 * texel, (blended, texel)
+    # float32 photos carry ~1e-7 relative rounding per pixel, 1e-14 in a squared residual: 1e-6 of
+    # the texel model's objective leaves two decades above the measured 1e-8
+    traced = truth_objective(ornament, "bilinear", device, taps="mesh")
+    assert traced < 1e-6 * texel, (traced, texel)
 
 
 def test_lookup_fit_decreases_and_stays_finite(ornament, device):

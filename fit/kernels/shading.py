@@ -20,6 +20,12 @@ import warp as wp
 LIGHT_POINT = wp.constant(0)
 LIGHT_DIRECTIONAL = wp.constant(1)
 
+# Shadow-ray offset relative to the mesh's bounding-box diagonal (the renderer's, and the fit's
+# traced taps): large enough to clear float32 round-off of the hit position (~1e-7 x the scene
+# size) with margin, small enough that contact shadows are not lost (a 1e-4 gap is sub-texel for
+# any texture under ~5000 texels across).
+SHADOW_EPS_REL = 1.0e-4
+
 
 @wp.func
 def incident_light(kind: int, pos_or_dir: wp.vec3, intensity: wp.vec3, p: wp.vec3):

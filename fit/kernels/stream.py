@@ -29,7 +29,7 @@ from typing import Any, NamedTuple
 import warp as wp
 
 from .lafortune_grad import lafortune_funcs
-from .shading import bilinear_taps, incident_light, lafortune_brdf, to_local
+from .shading import bilinear_taps, incident_light, lafortune_brdf, surface_frame, texel_coords, to_local
 
 # no kernel here is differentiated (the fit writes its own derivatives): skipping Warp's adjoint
 # code generation roughly halves compile time
@@ -85,7 +85,7 @@ class TexelFrames:
     bit: wp.array(dtype=wp.vec3)
     face_nrm: wp.array(dtype=wp.vec3)
     dn_dp: wp.array(dtype=wp.mat33)
-    # the renderer's texture lookup (``StreamConfig.model_lookup`` "bilinear", :func:`tap_brdf_lookup`);
+    # the renderer's texture lookup (``StreamConfig.model_lookup`` "bilinear", :func:`texel_blend`);
     # one-element placeholders otherwise
     centre_xy: wp.array(dtype=wp.vec2)
     """continuous texel coordinates of the texel's surface point (its grid position)"""
@@ -103,6 +103,15 @@ class TexelFrames:
     grid_height: int
     n_lobes: int
     anisotropic: int
+    # the mesh the filtered taps are traced to (``StreamConfig.tap_geometry`` "mesh", :func:`traced_tap`);
+    # 0 and one-element placeholders otherwise
+    mesh: wp.uint64
+    mesh_points: wp.array(dtype=wp.vec3)
+    mesh_indices: wp.array(dtype=wp.int32)
+    mesh_normals: wp.array(dtype=wp.vec3)
+    mesh_uvs: wp.array(dtype=wp.vec2)
+    shadow_eps: float
+    """the renderer's shadow-ray offset (1e-4 of the mesh's bounding-box diagonal, fit/render.py)"""
 
 
 @wp.struct
@@ -198,19 +207,13 @@ def ray_surface(ray: wp.vec3, cam: wp.vec3, p: wp.vec3, face_nrm: wp.vec3, plane
 
 
 @wp.func
-def tap_brdf_lookup(tex: TexelFrames, i: int, q: wp.vec3, p0: wp.vec3, u: wp.vec3, v: wp.vec3):
-    """The renderer's texture lookup at surface point ``q`` of texel i's face (``StreamConfig.model_lookup``
-    "bilinear"): the BRDF there is the bilinear blend of the four atlas texels around q's texel
-    coordinates (fit/kernels/render.py ``shade_texel_grid``). Returns (w_own, b): the weight of
-    texel i's own BRDF (it may sit at several corners through padding copies) and the blend of the
-    other corners' BRDFs at local directions (u, v), read from ``tex.lookup_params`` (held fixed).
-
-    q's texel coordinates extend the face's UV map linearly (``dx_dp``, ``dy_dp``), exact while q
-    stays on the texel's face and a first-order guess beyond it."""
-    d = q - p0
-    xy = tex.centre_xy[i]
-    x0, y0, fx, fy = bilinear_taps(xy[0] + wp.dot(tex.dx_dp[i], d), xy[1] + wp.dot(tex.dy_dp[i], d),
-                                   tex.grid_width, tex.grid_height)
+def texel_blend(tex: TexelFrames, i: int, x: float, y: float, u: wp.vec3, v: wp.vec3):
+    """The renderer's texture lookup at continuous texel coordinates (x, y) (``StreamConfig.model_lookup``
+    "bilinear"): the BRDF there is the bilinear blend of the four atlas texels around (x, y)
+    (fit/kernels/render.py ``shade_texel_grid``). Returns (w_own, b): the weight of texel i's own
+    BRDF (it may sit at several corners through padding copies) and the blend of the other corners'
+    BRDFs at local directions (u, v), read from ``tex.lookup_params`` (held fixed)."""
+    x0, y0, fx, fy = bilinear_taps(x, y, tex.grid_width, tex.grid_height)
     own = float(0.0)
     other = wp.vec3(0.0)
     one = float(1.0)
@@ -224,6 +227,48 @@ def tap_brdf_lookup(tex: TexelFrames, i: int, q: wp.vec3, p0: wp.vec3, u: wp.vec
         elif b > 0.0:
             other = other + b * lafortune_brdf(tex.lookup_params, row, tex.n_lobes, tex.anisotropic, u, v, one)
     return own, other
+
+
+@wp.func
+def plane_texel_coords(tex: TexelFrames, i: int, q: wp.vec3):
+    """Texel coordinates of point ``q`` on texel i's face plane (``tap_geometry`` "plane"): the face's
+    UV map extended linearly (``dx_dp``, ``dy_dp``), exact while q stays on the texel's face and a
+    first-order guess beyond it (where ``tap_geometry`` "mesh" traces the tap instead)."""
+    d = q - tex.pos[i]
+    xy = tex.centre_xy[i]
+    return xy[0] + wp.dot(tex.dx_dp[i], d), xy[1] + wp.dot(tex.dy_dp[i], d)
+
+
+@wp.func
+def traced_tap(tex: TexelFrames, cam: wp.vec3, ray: wp.vec3, light_kind: int, light_vec: wp.vec3, shadows: int):
+    """What a filtered tap's pixel ray sees (``StreamConfig.tap_geometry`` "mesh"), exactly as the
+    renderer (fit/kernels/render.py) sees it: the closest hit on the mesh, the surface frame there
+    (:func:`surface_frame`: interpolated normal, the face's UV tangent) and, when the photo has a
+    shadow map (``shadows``), a shadow ray toward the light from the same offset start.
+
+    Returns (a, light direction, point, normal, tangent, bitangent, texel x, texel y) with
+    a = cos(theta_i) * falloff (the light's 1/r^2; 1 for directional lights), 0 where the ray
+    misses, the light is behind the normal or the shadow ray is blocked: the pixel the renderer
+    leaves dark."""
+    zero3 = wp.vec3(0.0)
+    hit = wp.mesh_query_ray(tex.mesh, cam, wp.normalize(ray), 1.0e30)
+    if not hit.result:
+        return float(0.0), zero3, cam, zero3, zero3, zero3, float(0.0), float(0.0)
+    p, uv, nrm, tg, bt = surface_frame(tex.mesh_points, tex.mesh_indices, tex.mesh_normals, tex.mesh_uvs,
+                                       hit.face, hit.u, hit.v)
+    wi, falloff, dist = incident_light(light_kind, light_vec, wp.vec3(1.0), p)
+    x, y = texel_coords(uv, tex.grid_width, tex.grid_height)
+    cos_i = wp.dot(wi, nrm)
+    a = float(0.0)
+    if cos_i > 0.0:
+        a = cos_i * falloff[0]
+        if shadows != 0:
+            ng = hit.normal
+            if wp.dot(ng, wi) < 0.0:
+                ng = -ng
+            if wp.mesh_query_ray_anyhit(tex.mesh, p + tex.shadow_eps * ng, wi, dist - tex.shadow_eps):
+                a = float(0.0)
+    return a, wi, p, nrm, tg, bt, x, y
 
 
 @wp.func
@@ -372,13 +417,15 @@ class LayoutFuncs(NamedTuple):
 
 
 @functools.cache
-def layout_funcs(n_lobes: int, anisotropic: int, lookup: bool = False) -> LayoutFuncs:
+def layout_funcs(n_lobes: int, anisotropic: int, lookup: bool = False, traced: bool = False) -> LayoutFuncs:
     """The sample functions the accumulation kernels share, specialised to one model layout
-    (loops over lobes and columns with compile-time trip counts, see ``lafortune_funcs``) and to
+    (loops over lobes and columns with compile-time trip counts, see ``lafortune_funcs``), to
     the model's texture lookup (``lookup``: the renderer's bilinear blend with the neighbours, see
-    ``sample_model``)."""
+    ``sample_model``) and to the filtered taps' geometry (``traced``: each tap's ray traced to the
+    mesh, :func:`traced_tap`; else the texel's face plane, :func:`ray_surface`)."""
     lf = lafortune_funcs(n_lobes, anisotropic)
     blend = bool(lookup)
+    trace = bool(traced)
     n_params = 3 + int(n_lobes) * (6 + int(anisotropic))
 
     @wp.func
@@ -389,18 +436,26 @@ def layout_funcs(n_lobes: int, anisotropic: int, lookup: bool = False) -> Layout
         return out
 
     @wp.func
-    def lobe_directions(wi: wp.vec3, vdir: wp.vec3, nrm: wp.vec3, tex: TexelFrames, i: int):
+    def frame_directions(wi: wp.vec3, vdir: wp.vec3, nrm: wp.vec3, tan: wp.vec3, bit: wp.vec3):
         """Light and view directions (u, v) as the lobes see them at a surface point with normal
         ``nrm``: the local frame's components for anisotropic lobes. An isotropic lobe depends on
         u_x v_x + u_y v_y = u . v - u_z v_z and u_z v_z only, which need no tangent frame, so
-        there (u . v - u_z v_z, 0, u_z) and (1, 0, v_z) stand in: the same lobe weights for
-        fewer registers and instructions per filtered tap."""
+        there (u . v - u_z v_z, 0, u_z) and (1, 0, v_z) stand in (``tan`` and ``bit`` unused): the
+        same lobe weights for fewer registers and instructions per filtered tap."""
         if wp.static(anisotropic != 0):
-            tan, bit = tangent_frame(nrm, tex, i)
             return to_local(wi, tan, bit, nrm), to_local(vdir, tan, bit, nrm)
         uz = wp.dot(wi, nrm)
         vz = wp.dot(vdir, nrm)
         return wp.vec3(wp.dot(wi, vdir) - uz * vz, 0.0, uz), wp.vec3(1.0, 0.0, vz)
+
+    @wp.func
+    def lobe_directions(wi: wp.vec3, vdir: wp.vec3, nrm: wp.vec3, tex: TexelFrames, i: int):
+        """:func:`frame_directions` in texel i's tangent frame turned to the normal ``nrm`` (built
+        only for anisotropic lobes)."""
+        if wp.static(anisotropic != 0):
+            tan, bit = tangent_frame(nrm, tex, i)
+            return frame_directions(wi, vdir, nrm, tan, bit)
+        return frame_directions(wi, vdir, nrm, nrm, nrm)
 
     @wp.func
     def sample_model(pv: Any, dv: Any, infos: wp.array(dtype=ImageInfo), k: int, tex: TexelFrames, i: int, xs: float,
@@ -418,9 +473,16 @@ def layout_funcs(n_lobes: int, anisotropic: int, lookup: bool = False) -> Layout
 
         With the renderer's lookup (``lookup``, filtered sampling only) a tap's BRDF is
         o_t m_t + n_t, o_t the texel's own bilinear weight there and n_t its neighbours' blended
-        BRDFs at their held values (:func:`tap_brdf_lookup`): the taps' features are averaged
+        BRDFs at their held values (:func:`texel_blend`): the taps' features are averaged
         with weights b_t a_t o_t into W M, and N = L sum_t b_t a_t n_t is a constant of the
         texel's parameters. A sample whose taps all miss the texel (o_t = 0) is not usable.
+
+        A tap's surface point, normal (and tangent) come from the texel's face plane
+        (:func:`ray_surface`, the interpolated normal extended to first order, texel coordinates
+        extended linearly: no mesh access) or, with ``traced``, from the tap's pixel ray traced to
+        the mesh (:func:`traced_tap`: the point, frame, UV and cast shadow the renderer sees, so a
+        tap that leaves the texel's face, e.g. on curved or coarse geometry, lands where the photo's
+        pixel looks).
         """
         uc = to_compute3(u, one)
         vc = to_compute3(v, one)
@@ -457,19 +519,32 @@ def layout_funcs(n_lobes: int, anisotropic: int, lookup: bool = False) -> Layout
         light_vec = infos[k].light_vec
         exposure = infos[k].exposure
         plane = wp.dot(p0 - cam, ng)
+        shadows = infos[k].has_shadow
         for t in range(n_taps):
             dx = t % 2
             dy = t // 2
             b = (fx * float(dx) + (1.0 - fx) * float(1 - dx)) * (fy * float(dy) + (1.0 - fy) * float(1 - dy))
             ray = rt @ wp.vec3((px0 + float(dx)) * ifx, (py0 + float(dy)) * ify, 1.0)
-            p, nrm = ray_surface(ray, cam, p0, ng, plane, n0, jn)
-            wi, falloff, dist = incident_light(light_kind, light_vec, wp.vec3(1.0), p)
-            a = b * exposure * wp.max(wp.dot(wi, nrm), 0.0) * falloff[0]
-            ul, vl = lobe_directions(wi, wp.normalize(cam - p), nrm, tex, i)
+            a = float(0.0)
+            ul = wp.vec3(0.0)
+            vl = wp.vec3(0.0)
+            tx = float(0.0)
+            ty = float(0.0)
+            if wp.static(trace):
+                at, wi, p, nrm, tg, bt, tx, ty = traced_tap(tex, cam, ray, light_kind, light_vec, shadows)
+                a = b * exposure * at
+                ul, vl = frame_directions(wi, wp.normalize(cam - p), nrm, tg, bt)
+            else:
+                p, nrm = ray_surface(ray, cam, p0, ng, plane, n0, jn)
+                wi, falloff, dist = incident_light(light_kind, light_vec, wp.vec3(1.0), p)
+                a = b * exposure * wp.max(wp.dot(wi, nrm), 0.0) * falloff[0]
+                ul, vl = lobe_directions(wi, wp.normalize(cam - p), nrm, tex, i)
+                if wp.static(blend):
+                    tx, ty = plane_texel_coords(tex, i, p)
             ut = to_compute3(ul, one)
             vt = to_compute3(vl, one)
             if wp.static(blend):
-                own, other = tap_brdf_lookup(tex, i, p, p0, ul, vl)
+                own, other = texel_blend(tex, i, tx, ty, ul, vl)
                 nsum = nsum + a * other
                 a = a * own
             ac = type(one)(a)
@@ -521,7 +596,7 @@ def layout_funcs(n_lobes: int, anisotropic: int, lookup: bool = False) -> Layout
 
 @functools.cache
 def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, dhd: bool, full_hessian: bool,
-                      max_registers: int = 0, lookup: bool = False):
+                      max_registers: int = 0, lookup: bool = False, traced: bool = False):
     """The objective / gradient pass of one model layout and pass kind.
 
     What a pass accumulates beside f and the gradient is fixed when the kernel compiles rather
@@ -530,10 +605,10 @@ def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, d
     ``direction``) and ``full_hessian`` (its r d^T (Hess r) d term). The Jacobian rows are built
     with literal indices (``LafortuneFuncs.jacobian_row``), so they stay in registers.
     ``max_registers`` caps registers per CUDA thread (0: none); ``lookup`` selects the renderer's
-    texture lookup (``layout_funcs``). Each kernel lives in a module of its own, so compiling one
+    texture lookup and ``traced`` the traced tap geometry (``layout_funcs``). Each kernel lives in a module of its own, so compiling one
     does not recompile the others.
     """
-    fn = layout_funcs(n_lobes, anisotropic, lookup)
+    fn = layout_funcs(n_lobes, anisotropic, lookup, traced)
     lf, load_params, sample, channel_residual = fn.lf, fn.load_params, fn.sample, fn.channel_residual
     use_kahan, want_diag, want_dhd, want_full = bool(kahan), bool(diag), bool(dhd), bool(dhd and full_hessian)
 
@@ -602,7 +677,8 @@ def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, d
 
     name = "_".join(["accumulate", f"{int(n_lobes)}lobes", "aniso" if anisotropic else "iso"]
                     + [flag for flag, on in (("kahan", use_kahan), ("diag", want_diag), ("dhd", want_dhd),
-                                             ("full", want_full), ("lookup", bool(lookup))) if on])
+                                             ("full", want_full), ("lookup", bool(lookup)),
+                                             ("traced", bool(traced))) if on])
     if max_registers:
         name += f"_maxreg{max_registers}"
     return wp.kernel(accumulate, name=name, enable_backward=False, module="unique",
@@ -610,14 +686,15 @@ def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, d
 
 
 @functools.cache
-def accumulate_lm_kernel(n_lobes: int, anisotropic: int, max_registers: int = 0, lookup: bool = False):
+def accumulate_lm_kernel(n_lobes: int, anisotropic: int, max_registers: int = 0, lookup: bool = False,
+                         traced: bool = False):
     """The Gauss-Newton / LM pass of one model layout: f, J^T r and J^T J per (photo group, texel).
 
     J^T J is summed over the structurally non-zero entries of each channel's Jacobian row only
     (``LafortuneFuncs.row_entry``; 33 of the 81 entries of one isotropic lobe) into its upper
     triangle and mirrored once at the end, so the sums stay in registers on a GPU.
     """
-    fn = layout_funcs(n_lobes, anisotropic, lookup)
+    fn = layout_funcs(n_lobes, anisotropic, lookup, traced)
     lf, load_params, sample, channel_residual = fn.lf, fn.load_params, fn.sample, fn.channel_residual
     n_params = fn.n_params
     row_nonzeros = lf.row_nonzeros
@@ -669,7 +746,7 @@ def accumulate_lm_kernel(n_lobes: int, anisotropic: int, max_registers: int = 0,
         out_stats[g, i] = st
 
     name = "_".join(["accumulate_lm", f"{int(n_lobes)}lobes", "aniso" if anisotropic else "iso"]
-                    + (["lookup"] if lookup else []))
+                    + (["lookup"] if lookup else []) + (["traced"] if traced else []))
     if max_registers:
         name += f"_maxreg{max_registers}"
     return wp.kernel(accumulate_lm, name=name, enable_backward=False, module="unique",
