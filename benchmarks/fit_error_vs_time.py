@@ -25,6 +25,7 @@ L1/L2 (benchmarks/pass_profile.py explains the pass time: benchmarks/results/h20
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import platform
 import time
@@ -119,6 +120,7 @@ def main() -> None:
     ap.add_argument("--photo-sampling", default="filtered", choices=("filtered", "point", "bilinear"))
     ap.add_argument("--model-lookup", default="texel", choices=("texel", "bilinear"), help="StreamConfig.model_lookup")
     ap.add_argument("--tap-geometry", default="plane", choices=("plane", "mesh"), help="StreamConfig.tap_geometry")
+    ap.add_argument("--lookup-relaxations", default="1", help="FitConfig.lookup_relaxation values to run (comma list)")
     ap.add_argument("--lobe-albedo-max", type=float, default=None, help="FitConfig.lobe_albedo_max (0 = no energy bound)")
     ap.add_argument("--accumulate", default="fp32", choices=("fp32", "fp64"), help="StreamConfig.accumulate")
     ap.add_argument("--storage", default="fp32", choices=("fp16", "fp32", "fp64"), help="StreamConfig.storage")
@@ -155,9 +157,11 @@ def main() -> None:
         results["gpu"] = wp.get_device(a.device).name
     if a.bandwidth_probe:
         results["measured_bandwidth_GBps"] = measured_bandwidth(a.device) / 1e9
-    for opt in a.optimizers.split(","):
+    relaxations = [float(x) for x in a.lookup_relaxations.split(",")]
+    for opt, relax in itertools.product(a.optimizers.split(","), relaxations):
+        name = opt if len(relaxations) == 1 else f"{opt}_relax{relax:g}"
         iters = a.sd_iterations if (opt == "sd" and a.sd_iterations > 0) else a.iterations
-        cfg = FitConfig(optimizer=opt, max_iterations=iters, sync_every=100000,
+        cfg = FitConfig(optimizer=opt, max_iterations=iters, sync_every=100000, lookup_relaxation=relax,
                         stream=StreamConfig(image_precision=a.image_precision, photo_sampling=a.photo_sampling,
                                             accumulate=a.accumulate, storage=a.storage, model_lookup=a.model_lookup,
                                             tap_geometry=a.tap_geometry))
@@ -182,8 +186,8 @@ def main() -> None:
                "trace": res.trace}
         if "measured_bandwidth_GBps" in results:
             run["bandwidth_fraction"] = run["unique_GBps"] / results["measured_bandwidth_GBps"]
-        results["runs"][opt] = run
-        print(opt, f"{t_fit:.2f}s", res.passes, "passes", f"{1000 * pass_s:.1f} ms/pass",
+        results["runs"][name] = run
+        print(name, f"{t_fit:.2f}s", res.passes, "passes", f"{1000 * pass_s:.1f} ms/pass",
               f"psnr {res.trace[-1]['psnr_db']:.2f}", flush=True)
         del prob
         summarise(results)  # written after every run: a run cut short by a time limit keeps the others

@@ -62,6 +62,10 @@ class FitConfig:
     lookup_refresh_every: int = option(0, "stream.model_lookup bilinear: hold the neighbours at the current "
                                           "parameters again every k iterations (each refresh costs a pass and "
                                           "restarts CG / L-BFGS memory); 0 = 1 for lm, 10 for the others")
+    lookup_relaxation: float = option(1.0, "stream.model_lookup bilinear: a refresh moves the held neighbours this "
+                                           "fraction of the way to the current parameters (damped Jacobi: texels a "
+                                           "pixel or less wide, whose taps read their neighbours as much as "
+                                           "themselves, oscillate at 1; see the README)")
     max_iterations: int = option(100, "iteration cap")
     time_budget_s: float = option(0.0, "stop after this many seconds (0 = no limit)")
     rel_tol: float = option(1e-7, "stop when the objective's relative decrease over sync_every iterations is below this")
@@ -232,6 +236,8 @@ def run_fit(problem: StreamProblem, cfg: FitConfig, p0: np.ndarray | None = None
     refresh_every = cfg.lookup_refresh_every or (1 if isinstance(opt, LevenbergMarquardt) else 10)
     if refresh_every < 0:
         raise ConfigError(f"lookup_refresh_every {cfg.lookup_refresh_every} invalid", fix="use 0 (automatic) or k >= 1")
+    if not 0.0 < cfg.lookup_relaxation <= 1.0:
+        raise ConfigError(f"lookup_relaxation {cfg.lookup_relaxation} invalid", fix="use a fraction in (0, 1]")
     problem.refresh_lookup(state.storage)
     evaluate_current()
     state.accepted.zero_()
@@ -249,7 +255,7 @@ def run_fit(problem: StreamProblem, cfg: FitConfig, p0: np.ndarray | None = None
             schedule_switched = True
         if problem.lookup and it > 1 and (it - 1) % refresh_every == 0:
             state.store_current()
-            problem.refresh_lookup(state.storage)
+            problem.refresh_lookup(state.storage, cfg.lookup_relaxation)
             evaluate_current()
             if not isinstance(opt, LevenbergMarquardt):  # LM keeps its damping: it has no memory of the old objective
                 opt.reset_memory(state)

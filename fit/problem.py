@@ -547,12 +547,13 @@ class StreamProblem:
         tex.mesh_normals, tex.mesh_uvs = photos.mesh_normals, photos.mesh_uvs
         tex.shadow_eps = float(photos.shadow_eps)
 
-    def refresh_lookup(self, params: wp.array) -> None:
+    def refresh_lookup(self, params: wp.array, relaxation: float = 1.0) -> None:
         """Hold the neighbours of the renderer's lookup at ``params`` (N, n_params, storage
-        precision) until the next call; on the device, no host round trip. No-op when off."""
+        precision) until the next call, or move the held values ``relaxation`` of the way there
+        (``FitConfig.lookup_relaxation``); on the device, no host round trip. No-op when off."""
         if self.lookup:
             wp.launch(stream.hold_lookup_params_kernel, dim=(self.n, self.layout.n_params), device=self.device,
-                      inputs=[params], outputs=[self.tex.lookup_params])
+                      inputs=[params, float(relaxation)], outputs=[self.tex.lookup_params])
 
     def set_groups(self, groups: int) -> None:
         """Split each pass's photos into ``groups`` groups, one thread per (group, texel); 0 picks

@@ -754,11 +754,13 @@ def accumulate_lm_kernel(n_lobes: int, anisotropic: int, max_registers: int = 0,
 
 
 @wp.kernel
-def hold_lookup_params_kernel(params: wp.array2d(dtype=Any), held: wp.array2d(dtype=wp.float32)):
-    """``held[i, k] = params[i, k]`` in float32: the values the renderer's lookup reads for texel
-    i's neighbours until the next refresh (rows past the parameters, the defaults, untouched)."""
+def hold_lookup_params_kernel(params: wp.array2d(dtype=Any), relaxation: float, held: wp.array2d(dtype=wp.float32)):
+    """``held[i, k] += relaxation * (params[i, k] - held[i, k])`` in float32 (1: ``held = params``):
+    the values the renderer's lookup reads for texel i's neighbours until the next refresh (rows
+    past the parameters, the defaults, untouched)."""
     i, k = wp.tid()
-    held[i, k] = wp.float32(params[i, k])
+    h = held[i, k]
+    held[i, k] = h + relaxation * (wp.float32(params[i, k]) - h)
 
 
 @wp.kernel
