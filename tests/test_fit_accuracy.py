@@ -16,6 +16,7 @@ from texstream.capture.synth import SynthConfig, render_scene
 from texstream.fit.accuracy import highlight_counts, interior_texels, relative_errors
 from texstream.fit.fitter import FitConfig
 from texstream.fit.penalties import PenaltyConfig
+from texstream.fit.problem import StreamConfig
 from texstream.fit.stage import fit_synthetic
 
 from conftest import SCENE_DEVICE
@@ -70,11 +71,19 @@ def test_sphere_fit_meets_the_accuracy_targets(sphere, device):
 ORNAMENT = dict(scale=0.01, photos=1760, image_size=160, progress=False, device=SCENE_DEVICE)
 
 
-def test_small_ornament_fit_meets_the_accuracy_targets(device):
+@pytest.fixture(scope="module")
+def ornament():
     # the full 1,760 photos: with 880 the held-out views fall to 38 dB and only 81 texels see their
-    # highlight 5 times (the lobes are narrow); ~110 s on the 2-core CPU, most of it rendering and LM
+    # highlight 5 times (the lobes are narrow); rendering takes ~25 s on the 2-core CPU
     train = render_scene("ornament", SynthConfig(**ORNAMENT))
     held = render_scene("ornament", SynthConfig(**{**ORNAMENT, "photos": 8}, azimuth_offset=3.0))
+    return train, held
+
+
+def test_small_ornament_fit_meets_the_accuracy_targets(ornament, device):
+    """The seed's per-texel model (the default): held-out PSNR and medians; its tails at material
+    edges are what the renderer's lookup below removes. ~85 s of LM on the 2-core CPU."""
+    train, held = ornament
     cfg = FitConfig(optimizer="lm", max_iterations=40, sync_every=1000)
     res, prob, held_psnr, gt, seen, rel, hi = fit_and_score(train, held, cfg, device)
     # issue target 45 dB (measured 52.4 dB after 60 iterations, benchmarks/fit_accuracy.py)
@@ -100,4 +109,28 @@ def test_small_ornament_fit_meets_the_accuracy_targets(device):
     err = rel[hi, o:o + 3].max(axis=1)
     assert np.mean(err <= 0.03) >= 0.85, np.mean(err <= 0.03)
     assert np.percentile(rel[hi, o:o + 3], 90) < 0.05, np.percentile(rel[hi, o:o + 3], 90)
+    assert np.all(np.isfinite(res.params))
+
+
+def test_small_ornament_fit_with_the_renderers_lookup_meets_every_bound(ornament, device):
+    """The renderer's model in the fit (``model_lookup`` bilinear, ``tap_geometry`` mesh): each
+    filtered tap is traced to the mesh and blends its neighbours' BRDFs as the renderer does, so
+    the truth explains its noise-free photos exactly (objective 6e-8) and the fit recovers it.
+    Measured on the CPU (benchmarks/fit_accuracy.py, 20 iterations as here, ~90 s of LM): held-out
+    96.8 dB; every one of the 326 highlight texels within the issue's bounds, p90 errors 0.016%
+    (rho_s) and 0.011% (n), diffuse p90 0.025% over all seen texels; after 60 iterations 126 dB.
+    The bounds are the issue's, per texel; CUDA's float differences move the errors by far less
+    than the margin."""
+    train, held = ornament
+    # 20 iterations: after 10 the worst texels still miss (rho_s 6%, diffuse 1.6%, measured)
+    cfg = FitConfig(optimizer="lm", max_iterations=20, sync_every=1000,
+                    stream=StreamConfig(model_lookup="bilinear", tap_geometry="mesh"))
+    res, prob, held_psnr, gt, seen, rel, hi = fit_and_score(train, held, cfg, device)
+    assert held_psnr >= 45.0, held_psnr
+    o = res.layout.lobe_offset(0)
+    assert hi.sum() >= 200  # 326 of 968 texels
+    worst = rel[hi, 0:3].max(), rel[hi, o:o + 3].max(), rel[hi, o + 5].max()
+    assert worst[0] <= 0.01 and worst[1] <= 0.03 and worst[2] <= 0.05, worst
+    # diffuse on every seen texel: p90 (a few texels seen in a handful of grazing photos miss 1%)
+    assert np.percentile(rel[seen, 0:3], 90) < 0.01, np.percentile(rel[seen, 0:3], 90)
     assert np.all(np.isfinite(res.params))
