@@ -605,8 +605,8 @@ def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, d
     ``direction``) and ``full_hessian`` (its r d^T (Hess r) d term). The Jacobian rows are built
     with literal indices (``LafortuneFuncs.jacobian_row``), so they stay in registers.
     ``max_registers`` caps registers per CUDA thread (0: none); ``lookup`` selects the renderer's
-    texture lookup and ``traced`` the traced tap geometry (``layout_funcs``). Each kernel lives in a module of its own, so compiling one
-    does not recompile the others.
+    texture lookup and ``traced`` the traced tap geometry (``layout_funcs``). Each kernel lives in
+    a module of its own, so compiling one does not recompile the others.
     """
     fn = layout_funcs(n_lobes, anisotropic, lookup, traced)
     lf, load_params, sample, channel_residual = fn.lf, fn.load_params, fn.sample, fn.channel_residual
