@@ -72,7 +72,10 @@ def load_photos(capture, frames, device: str | None = None):
     return images, masks
 
 
-def build_problem(mesh, bake, frames, images, masks, cfg: FitConfig, device: str):
+def build_problem(mesh, bake, frames, images, masks, cfg: FitConfig, device: str, photos=None):
+    """The StreamProblem of a fit: texels from the bake, photos on the device with their depth and
+    shadow maps (``photos``: a PhotoSet of these frames built before, e.g. by another problem's
+    call, reused as it is; building one is most of the set-up time)."""
     from .problem import PhotoFrame, PhotoSet, StreamProblem, TexelSet, surface_derivatives, texel_coordinate_gradients
 
     face_normal, normal_jacobian = surface_derivatives(mesh.vertices, mesh.faces, mesh.vertex_normals(),
@@ -86,8 +89,9 @@ def build_problem(mesh, bake, frames, images, masks, cfg: FitConfig, device: str
     if texels.n == 0:
         raise InputError("the atlas has no covered texels", fix="rebuild the atlas with a larger resolution")
     photo_frames = [PhotoFrame.from_capture_frame(f) for f in frames]
-    photos = PhotoSet(photo_frames, images, mesh.vertices, mesh.faces, masks=masks, config=cfg.stream, device=device,
-                      mesh_normals=mesh.vertex_normals(), mesh_uvs=mesh.uvs)
+    if photos is None:
+        photos = PhotoSet(photo_frames, images, mesh.vertices, mesh.faces, masks=masks, config=cfg.stream,
+                          device=device, mesh_normals=mesh.vertex_normals(), mesh_uvs=mesh.uvs)
     layout = cfg.layout(photo_frames, texels.position.mean(axis=0))
     return StreamProblem(texels, photos, layout, cfg.stream, device=device)
 
@@ -192,10 +196,11 @@ class SyntheticFit:
     heldout_pooled_db: float
 
 
-def fit_synthetic(train, held, cfg: FitConfig, device: str) -> SyntheticFit:
+def fit_synthetic(train, held, cfg: FitConfig, device: str, photos=None) -> SyntheticFit:
     """Fit ``train`` (a rendered scene: mesh, bake, frames, images, masks) and score the fitted model
-    on ``held``'s views; shared by the accuracy tests and the held-out benchmarks."""
-    prob = build_problem(train.mesh, train.bake, train.frames, train.images, train.masks, cfg, device)
+    on ``held``'s views; shared by the accuracy tests and the held-out benchmarks. ``photos``: a
+    PhotoSet of ``train`` to reuse (:func:`build_problem`)."""
+    prob = build_problem(train.mesh, train.bake, train.frames, train.images, train.masks, cfg, device, photos)
     t0 = time.perf_counter()
     res = run_fit(prob, cfg)
     fit_s = time.perf_counter() - t0

@@ -133,12 +133,21 @@ ORNAMENT = dict(scale=0.01, photos=200, image_size=128, progress=False, device=S
 
 @pytest.fixture(scope="module")
 def ornament():
-    return render_scene("ornament", SynthConfig(**ORNAMENT))
+    scene = render_scene("ornament", SynthConfig(**ORNAMENT))
+    scene.photos_on = {}  # device -> PhotoSet: the depth and shadow maps are built once per device
+    return scene
+
+
+def ornament_problem(scene, cfg: FitConfig, device: str):
+    prob = build_problem(scene.mesh, scene.bake, scene.frames, scene.images, scene.masks, cfg, device,
+                         scene.photos_on.get(device))
+    scene.photos_on[device] = prob.photos
+    return prob
 
 
 def truth_objective(scene, lookup: str, device: str, taps: str = "plane") -> float:
     cfg = FitConfig(stream=StreamConfig(model_lookup=lookup, tap_geometry=taps))
-    prob = build_problem(scene.mesh, scene.bake, scene.frames, scene.images, scene.masks, cfg, device)
+    prob = ornament_problem(scene, cfg, device)
     gt = scene.params.reshape(-1, scene.params.shape[-1])[prob.texels.grid_index]
     st = FitState.create(prob, gt, np.ones(gt.shape[1], bool))
     prob.refresh_lookup(st.storage)
@@ -165,7 +174,7 @@ def test_truth_explains_its_photos_with_the_lookup(ornament, device):
 def test_lookup_fit_decreases_and_stays_finite(ornament, device):
     """A short LM fit with the lookup: finite parameters, an objective that falls across refreshes."""
     cfg = FitConfig(optimizer="lm", max_iterations=6, sync_every=1000, stream=StreamConfig(model_lookup="bilinear"))
-    prob = build_problem(ornament.mesh, ornament.bake, ornament.frames, ornament.images, ornament.masks, cfg, device)
+    prob = ornament_problem(ornament, cfg, device)
     res = run_fit(prob, cfg)
     obj = [r["objective"] for r in res.trace]
     assert obj[-1] < 0.5 * obj[0], obj
