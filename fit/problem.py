@@ -220,7 +220,7 @@ class StreamConfig:
     shadow_tol: float = 0.01
     """relative depth tolerance of the shadow test"""
     shadow_map_size: int = 512
-    """shadow map resolution per photo (0 disables cast-shadow rejection)"""
+    """shadow map resolution per photo (0 disables cast-shadow rejection and traced taps' shadow rays)"""
     photo_sampling: str = "filtered"
     """how a texel samples a photo (fit/kernels/stream.py ``observe``): ``filtered`` (the photo's
     bilinear filter applied to the model too, evaluated at each tap's surface point: highlights a
@@ -535,6 +535,7 @@ class StreamProblem:
             tex.mesh_indices = wp.zeros(1, dtype=wp.int32, device=dev)
             tex.mesh_uvs = wp.zeros(1, dtype=wp.vec2, device=dev)
             tex.shadow_eps = 0.0
+            tex.shadow_rays = 0
             return
         if cfg.photo_sampling != "filtered":
             raise ConfigError(f"tap_geometry mesh needs filtered photo sampling, not {cfg.photo_sampling!r}",
@@ -546,6 +547,7 @@ class StreamProblem:
         tex.mesh_points, tex.mesh_indices = photos.mesh.points, photos.mesh.indices
         tex.mesh_normals, tex.mesh_uvs = photos.mesh_normals, photos.mesh_uvs
         tex.shadow_eps = float(photos.shadow_eps)
+        tex.shadow_rays = int(cfg.shadow_map_size > 0)
 
     def refresh_lookup(self, params: wp.array, relaxation: float = 1.0) -> None:
         """Hold the neighbours of the renderer's lookup at ``params`` (N, n_params, storage

@@ -112,6 +112,9 @@ class TexelFrames:
     mesh_uvs: wp.array(dtype=wp.vec2)
     shadow_eps: float
     """the renderer's shadow-ray offset (1e-4 of the mesh's bounding-box diagonal, fit/render.py)"""
+    shadow_rays: int
+    """1: traced taps cast shadow rays (``StreamConfig.shadow_map_size`` > 0, also for photos whose
+    light sits inside the object's bounds and so has no shadow map); 0: cast shadows ignored"""
 
 
 @wp.struct
@@ -243,8 +246,8 @@ def plane_texel_coords(tex: TexelFrames, i: int, q: wp.vec3):
 def traced_tap(tex: TexelFrames, cam: wp.vec3, ray: wp.vec3, light_kind: int, light_vec: wp.vec3, shadows: int):
     """What a filtered tap's pixel ray sees (``StreamConfig.tap_geometry`` "mesh"), exactly as the
     renderer (fit/kernels/render.py) sees it: the closest hit on the mesh, the surface frame there
-    (:func:`surface_frame`: interpolated normal, the face's UV tangent) and, when the photo has a
-    shadow map (``shadows``), a shadow ray toward the light from the same offset start.
+    (:func:`surface_frame`: interpolated normal, the face's UV tangent) and, with ``shadows``
+    (``TexelFrames.shadow_rays``), a shadow ray toward the light from the same offset start.
 
     Returns (a, light direction, point, normal, tangent, bitangent, texel x, texel y) with
     a = cos(theta_i) * falloff (the light's 1/r^2; 1 for directional lights), 0 where the ray
@@ -519,7 +522,7 @@ def layout_funcs(n_lobes: int, anisotropic: int, lookup: bool = False, traced: b
         light_vec = infos[k].light_vec
         exposure = infos[k].exposure
         plane = wp.dot(p0 - cam, ng)
-        shadows = infos[k].has_shadow
+        shadows = tex.shadow_rays
         for t in range(n_taps):
             dx = t % 2
             dy = t // 2
