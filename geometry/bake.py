@@ -30,10 +30,8 @@ function the renderer and the fit use.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -43,7 +41,7 @@ from texstream.fit.kernels.shading import surface_frame
 from texstream.pipelines.errors import InputError
 
 from .mesh import SurfaceMesh
-from .mesh_io import _chmod_like_open
+from .mesh_io import write_npz_atomic
 
 # nothing here is differentiated: skipping Warp's adjoint code generation roughly halves
 # compile time
@@ -230,20 +228,8 @@ class TexelBake:
 
     def save(self, path: str | os.PathLike) -> None:
         """Write the bake as a compressed ``.npz`` atomically."""
-        p = Path(path)
-        p.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                np.savez_compressed(fh, width=np.int64(self.width), height=np.int64(self.height),
-                                    padding=np.int64(self.padding),
-                                    **{k: getattr(self, k) for k in self._ARRAYS})
-            _chmod_like_open(tmp)
-            os.replace(tmp, p)
-        except BaseException:
-            with contextlib.suppress(FileNotFoundError):
-                os.unlink(tmp)
-            raise
+        write_npz_atomic(path, width=np.int64(self.width), height=np.int64(self.height), padding=np.int64(self.padding),
+                         **{k: getattr(self, k) for k in self._ARRAYS})
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "TexelBake":

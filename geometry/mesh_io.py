@@ -121,11 +121,22 @@ def validate_mesh(mesh: SurfaceMesh, path: str | os.PathLike | None = None) -> N
 
 
 def _write_atomic(p: Path, data: bytes) -> None:
+    write_atomic_with(p, lambda fh: fh.write(data))
+
+
+def write_npz_atomic(path: str | os.PathLike, **arrays) -> None:
+    """``np.savez_compressed(path, **arrays)`` written atomically (a temporary file, then a rename)."""
+    write_atomic_with(Path(path), lambda fh: np.savez_compressed(fh, **arrays))
+
+
+def write_atomic_with(p: Path, write) -> None:
+    """Call ``write(binary file)`` on a temporary file beside ``p`` and rename it to ``p``: readers
+    see the old file or the whole new one, never a half-written one (removed on any error)."""
     p.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
     try:
         with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
+            write(fh)
         _chmod_like_open(tmp)
         os.replace(tmp, p)
     except BaseException:

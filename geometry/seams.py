@@ -34,10 +34,8 @@ numpy at module level; scipy inside functions.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -105,21 +103,10 @@ class Seams:
 
     def save(self, path: str | os.PathLike) -> None:
         """Write ``seams.npz`` (compressed) atomically."""
-        from .mesh_io import _chmod_like_open
+        from .mesh_io import write_npz_atomic
 
-        p = Path(path)
-        p.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                np.savez_compressed(fh, width=np.int64(self.width), height=np.int64(self.height),
-                                    **{k: getattr(self, k) for k in self._ARRAYS})
-            _chmod_like_open(tmp)
-            os.replace(tmp, p)
-        except BaseException:
-            with contextlib.suppress(FileNotFoundError):
-                os.unlink(tmp)
-            raise
+        write_npz_atomic(path, width=np.int64(self.width), height=np.int64(self.height),
+                         **{k: getattr(self, k) for k in self._ARRAYS})
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Seams":

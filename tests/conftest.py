@@ -50,3 +50,20 @@ def need_data(data_dir: Path, sub: str) -> Path:
     if not p.exists():
         pytest.skip(f"{p} absent: set TEXSTREAM_DATA to the folder holding {sub}/ (see ../shared/data/README.md)")
     return p
+
+
+def pose_errors(got, truth):
+    """Per registered frame of capture ``got``: camera centre error as a fraction of ``truth``'s camera
+    ring diameter, and rotation error in degrees."""
+    import numpy as np
+
+    gt = {f.name: f for f in truth.frames}
+    c = np.stack([f.center for f in truth.frames])
+    diameter = 2 * np.mean(np.linalg.norm(c - c.mean(0), axis=1))
+    cen, rot = [], []
+    for f in got.frames:
+        g = gt[f.name]
+        cen.append(np.linalg.norm(f.center - g.center) / diameter)
+        d = f.R @ g.R.T
+        rot.append(np.degrees(np.arccos(np.clip((np.trace(d) - 1) / 2, -1, 1))))
+    return np.array(cen), np.array(rot)

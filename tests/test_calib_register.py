@@ -9,7 +9,7 @@ import time
 import numpy as np
 import pytest
 
-from conftest import need_data
+from conftest import need_data, pose_errors
 from texstream.calib.register import RegisterConfig, register
 from texstream.capture.capture_json import read_capture
 from texstream.pipelines.errors import StageError
@@ -29,27 +29,13 @@ def _temple_capture(data_dir, tmp_path):
     return tmp_path / "temple"
 
 
-def _pose_errors(got, truth):
-    """Centre errors as a fraction of the ring diameter, and rotation errors in degrees, per registered frame."""
-    gt = {f.name: f for f in truth.frames}
-    c = np.stack([f.center for f in truth.frames])
-    diameter = 2 * np.mean(np.linalg.norm(c - c.mean(0), axis=1))
-    cen, rot = [], []
-    for f in got.frames:
-        g = gt[f.name]
-        cen.append(np.linalg.norm(f.center - g.center) / diameter)
-        d = f.R @ g.R.T
-        rot.append(np.degrees(np.arccos(np.clip((np.trace(d) - 1) / 2, -1, 1))))
-    return np.array(cen), np.array(rot)
-
-
 def _check_temple(res, out, cap):
     s = res.summary
     # Done-when: at least 12 of the 16 ring photos register (the 22.5-degree ring is sparse).
     assert len(s["registered"]) >= 12, s
     assert len(s["registered"]) + len(s["unregistered"]) == 16
     got, truth = read_capture(out), read_capture(cap)
-    cen, rot = _pose_errors(got, truth)
+    cen, rot = pose_errors(got, truth)
     # Done-when: after Sim3 alignment centres within 2% of the ring diameter, rotations within 2 degrees.
     assert cen.max() < 0.02, cen
     assert rot.max() < 2.0, rot
@@ -119,7 +105,7 @@ def test_mixed_sizes_become_two_cameras_and_bad_files_are_dropped(data_dir, tmp_
     assert len(s["registered"]) >= 12
     got = read_capture(tmp_path / "posed")
     assert {(f.intrinsics.width, f.intrinsics.height) for f in got.frames} == {(640, 480), (800, 600)}
-    cen, rot = _pose_errors(got, read_capture(cap))
+    cen, rot = pose_errors(got, read_capture(cap))
     assert cen.max() < 0.02 and rot.max() < 2.0, (cen, rot)
 
 

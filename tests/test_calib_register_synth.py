@@ -12,22 +12,10 @@ import pytest
 from texstream.calib.register import RegisterConfig, register
 from texstream.capture.capture_json import read_capture
 
+from conftest import pose_errors
+
 pytest.importorskip("pycolmap")
 pytest.importorskip("OpenImageIO")
-
-
-def pose_errors(got, truth):
-    """Per registered frame: centre error as a fraction of the camera ring's diameter, rotation error (deg)."""
-    gt = {f.name: f for f in truth.frames}
-    c = np.stack([f.center for f in truth.frames])
-    diameter = 2 * np.mean(np.linalg.norm(c - c.mean(0), axis=1))
-    cen, rot = [], []
-    for f in got.frames:
-        g = gt[f.name]
-        cen.append(np.linalg.norm(f.center - g.center) / diameter)
-        d = f.R @ g.R.T
-        rot.append(np.degrees(np.arccos(np.clip((np.trace(d) - 1) / 2, -1, 1))))
-    return np.array(cen), np.array(rot)
 
 
 @pytest.fixture(scope="module")

@@ -151,38 +151,38 @@ def test_lafortune_single_view_fits_the_photos(tmp_path, device):
     # the per-texel lobe is fitted from 14 samples of which only a few see the highlight; noise-free
     # data with the generating model: the fit reproduces the photos to well above 8-bit precision (48 dB)
     assert res.summary["psnr_db"] > 60.0, res.summary  # 83 dB measured (fp32 accumulation)
-    grid, _ = read_maps(tmp_path / "model")
-    from texstream.capture.imageio import read_image
-
-    seen = read_image(tmp_path / "model" / "seen.png", channels=1)[..., 0] > 0.5
-    rel = np.abs(grid[seen, :3] - gt[seen, :3]) / gt[seen, :3]
+    rel = diffuse_errors(tmp_path / "model", gt)
     # diffuse albedo is separable from the lobe on samples far from the highlight: median within 1%
     assert np.median(rel) < 0.01, np.median(rel)
 
 
-def test_per_photo_masks_drop_cast_shadows(tmp_path, device):
-    normals, inside, gt = write_set(tmp_path / "cap", specular=False, shadow=True)
-    cfg = SingleViewConfig(device=device, renders=0, fit=FitConfig(model="diffuse", optimizer="lm", max_iterations=10))
-    fit_single_view_stage(tmp_path / "cap", normals, tmp_path / "model", cfg, progress=False)
-    grid, _ = read_maps(tmp_path / "model")
+def diffuse_errors(model_dir, gt):
+    """Relative diffuse-albedo errors of a written model on the texels its fit saw."""
     from texstream.capture.imageio import read_image
 
-    seen = read_image(tmp_path / "model" / "seen.png", channels=1)[..., 0] > 0.5
-    rel = np.abs(grid[seen, :3] - gt[seen, :3]) / gt[seen, :3]
+    grid, _ = read_maps(model_dir)
+    seen = read_image(model_dir / "seen.png", channels=1)[..., 0] > 0.5
+    return np.abs(grid[seen, :3] - gt[seen, :3]) / gt[seen, :3]
+
+
+def fit_diffuse_set(tmp_path, device, **set_options):
+    """Write a diffuse single-view set (``write_set`` options), fit it (LM, 10 iterations) and
+    return the diffuse errors on the seen texels."""
+    normals, inside, gt = write_set(tmp_path / "cap", specular=False, **set_options)
+    cfg = SingleViewConfig(device=device, renders=0, fit=FitConfig(model="diffuse", optimizer="lm", max_iterations=10))
+    fit_single_view_stage(tmp_path / "cap", normals, tmp_path / "model", cfg, progress=False)
+    return diffuse_errors(tmp_path / "model", gt)
+
+
+def test_per_photo_masks_drop_cast_shadows(tmp_path, device):
+    rel = fit_diffuse_set(tmp_path, device, shadow=True)
     # the shadowed samples never enter the fit (mask test replaces the depth test), so the albedo
     # is as exact as without shadows; unmasked, the 0.2x samples bias the block's texels by up to 45% (measured)
     assert rel.max() < 0.01, rel.max()
 
 
 def test_point_lights_use_the_depth_map(tmp_path, device):
-    normals, inside, gt = write_set(tmp_path / "cap", specular=False, point=True)
-    cfg = SingleViewConfig(device=device, renders=0, fit=FitConfig(model="diffuse", optimizer="lm", max_iterations=10))
-    fit_single_view_stage(tmp_path / "cap", normals, tmp_path / "model", cfg, progress=False)
-    grid, _ = read_maps(tmp_path / "model")
-    from texstream.capture.imageio import read_image
-
-    seen = read_image(tmp_path / "model" / "seen.png", channels=1)[..., 0] > 0.5
-    rel = np.abs(grid[seen, :3] - gt[seen, :3]) / gt[seen, :3]
+    rel = fit_diffuse_set(tmp_path, device, point=True)
     # depth.npy puts each texel where the renders had it: the light direction and 1/r^2 are exact,
     # so the 1% bound holds per texel as with directional lights
     assert rel.max() < 0.01, rel.max()
