@@ -78,8 +78,8 @@ def build_problem(mesh, bake, frames, images, masks, cfg: FitConfig, device: str
     call, reused as it is; building one is most of the set-up time)."""
     from .problem import PhotoFrame, PhotoSet, StreamProblem, TexelSet, surface_derivatives, texel_coordinate_gradients
 
-    face_normal, normal_jacobian = surface_derivatives(mesh.vertices, mesh.faces, mesh.vertex_normals(),
-                                                       bake.face, bake.bary)
+    normals = mesh.vertex_normals()  # computed anew on each call for a mesh without stored normals
+    face_normal, normal_jacobian = surface_derivatives(mesh.vertices, mesh.faces, normals, bake.face, bake.bary)
     coordinate_gradients = None
     if mesh.uvs is not None:
         coordinate_gradients = texel_coordinate_gradients(mesh.vertices, mesh.faces, mesh.uvs, bake.face,
@@ -91,7 +91,7 @@ def build_problem(mesh, bake, frames, images, masks, cfg: FitConfig, device: str
     photo_frames = [PhotoFrame.from_capture_frame(f) for f in frames]
     if photos is None:
         photos = PhotoSet(photo_frames, images, mesh.vertices, mesh.faces, masks=masks, config=cfg.stream,
-                          device=device, mesh_normals=mesh.vertex_normals(), mesh_uvs=mesh.uvs)
+                          device=device, mesh_normals=normals, mesh_uvs=mesh.uvs)
     layout = cfg.layout(photo_frames, texels.position.mean(axis=0))
     return StreamProblem(texels, photos, layout, cfg.stream, device=device)
 
