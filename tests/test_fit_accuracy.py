@@ -83,7 +83,8 @@ def ornament():
 @pytest.fixture(scope="module")
 def ornament_photos(ornament):
     """The training photos on each device with their depth and shadow maps, built once per device
-    and shared by the ornament tests (~90 s on the 2-core CPU, mostly 1,760 shadow maps)."""
+    and shared by the ornament tests (building it is most of their set-up: 1,760 shadow maps of
+    512x512 against 1,760 depth maps of 160x160 by ray count)."""
     built = {}
 
     def on(device):
@@ -97,7 +98,8 @@ def ornament_photos(ornament):
 
 def test_small_ornament_fit_meets_the_accuracy_targets(ornament, ornament_photos, device):
     """The seed's per-texel model (the default): held-out PSNR and medians; its tails at material
-    edges are what the renderer's lookup below removes. ~85 s of LM on the 2-core CPU."""
+    edges are what the renderer's lookup below removes. With the shared photo set's build, 103.5 s
+    on the 2-core CPU (``pytest --durations``)."""
     train, held = ornament
     cfg = FitConfig(optimizer="lm", max_iterations=40, sync_every=1000)
     res, prob, held_psnr, gt, seen, rel, hi = fit_and_score(train, held, cfg, device, ornament_photos(device))
@@ -131,7 +133,7 @@ def test_small_ornament_fit_with_the_renderers_lookup_meets_every_bound(ornament
     """The renderer's model in the fit (``model_lookup`` bilinear, ``tap_geometry`` mesh): each
     filtered tap is traced to the mesh and blends its neighbours' BRDFs as the renderer does, so
     the truth explains its noise-free photos exactly (objective 6e-8) and the fit recovers it.
-    Measured on the CPU (benchmarks/fit_accuracy.py, 20 iterations as here, ~90 s of LM): held-out
+    Measured on the CPU (benchmarks/fit_accuracy.py, 20 iterations as here, 86 s of LM): held-out
     96.8 dB; every one of the 326 highlight texels within the issue's bounds, p90 errors 0.016%
     (rho_s) and 0.011% (n), diffuse p90 0.025% over all seen texels; after 60 iterations 126 dB.
     The bounds are the issue's, per texel; CUDA's float differences move the errors by far less
