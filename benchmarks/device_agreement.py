@@ -84,7 +84,7 @@ def main() -> None:
     a = ap.parse_args()
     if a.compare:
         rep = compare(Path(a.compare[0]), Path(a.compare[1]))
-        from texstream.pipelines.stage import write_json_atomic
+        from texstream.core.outputs import write_json_atomic
 
         write_json_atomic(a.out, rep, indent=1)
         print(json.dumps(rep, indent=1))

@@ -129,7 +129,7 @@ def main() -> None:
         report["texel_sets"][label] = entry
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    from texstream.pipelines.stage import write_json_atomic
+    from texstream.core.outputs import write_json_atomic
 
     write_json_atomic(out / "fit_accuracy.json", report, indent=1)
     print(json.dumps(report, indent=1))

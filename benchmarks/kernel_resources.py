@@ -74,7 +74,7 @@ def main() -> None:
     from texstream.fit.fitter import FitConfig
     from texstream.fit.problem import StreamConfig
     from texstream.fit.stage import build_problem
-    from texstream.pipelines.stage import write_json_atomic
+    from texstream.core.outputs import write_json_atomic
 
     sc = render_scene("ornament", SynthConfig(scale=0.02, device="cpu", progress=False))
     for model in a.models.split(","):

@@ -60,7 +60,7 @@ def main() -> None:
     from texstream.capture.synth import SynthConfig, render_scene
     from texstream.fit.fitter import FitConfig, run_fit
     from texstream.fit.stage import build_problem
-    from texstream.pipelines.stage import write_json_atomic
+    from texstream.core.outputs import write_json_atomic
 
     sc = render_scene(a.scene, SynthConfig(scale=a.scale, device=a.device, progress=False))
     fits, prob = {}, None

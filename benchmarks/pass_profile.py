@@ -127,7 +127,7 @@ def main() -> None:
     from texstream.fit.fitter import FitConfig
     from texstream.fit.problem import StreamConfig
     from texstream.fit.stage import build_problem
-    from texstream.pipelines.stage import write_json_atomic
+    from texstream.core.outputs import write_json_atomic
 
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from texstream.pipelines.errors import ConfigError
+from texstream.core.errors import ConfigError
 
 _SPEC_HELP = "use chessboard:9x6[:SQUARE] or charuco:COLSxROWS:SQUARE:MARKER[:DICT_5X5_100]"
 

@@ -22,8 +22,9 @@ from typing import Any
 import numpy as np
 
 from texstream.capture.capture_json import Capture, Frame, Intrinsics, read_capture, write_capture
-from texstream.pipelines.errors import InputError
-from texstream.pipelines.stage import StageResult, atomic_output_dir, option, save_config
+from texstream.core.errors import InputError
+from texstream.core.config import option, save_config
+from texstream.core.outputs import StageResult, atomic_output_dir
 
 from .files import IMAGE_EXTS
 

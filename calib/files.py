@@ -6,8 +6,8 @@ import os
 from pathlib import Path
 from typing import Any
 
-from texstream.pipelines.errors import InputError
-from texstream.pipelines.stage import write_json_atomic
+from texstream.core.errors import InputError
+from texstream.core.outputs import write_json_atomic
 
 # Formats OpenImageIO / OpenCV read that cameras and tools produce.
 IMAGE_EXTS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr", ".hdr", ".bmp", ".webp", ".pfm")

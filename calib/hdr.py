@@ -13,7 +13,7 @@ from typing import Sequence
 
 import numpy as np
 
-from texstream.pipelines.errors import ConfigError
+from texstream.core.errors import ConfigError
 
 HDR_METHODS = ("debevec", "robertson")
 

@@ -28,8 +28,9 @@ from typing import Any
 import numpy as np
 
 from texstream.capture.capture_json import Capture, Frame, Intrinsics, write_capture
-from texstream.pipelines.errors import InputError, StageError, TexstreamError
-from texstream.pipelines.stage import StageResult, atomic_output_dir, option, save_config, write_json_atomic
+from texstream.core.errors import InputError, StageError, TexstreamError
+from texstream.core.config import option, save_config
+from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
 
 from .files import list_images, write_failure_report
 from .lights import load_lights_file

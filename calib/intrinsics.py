@@ -22,8 +22,9 @@ import numpy as np
 
 from texstream.capture.capture_json import Intrinsics
 from texstream.capture.conventions import opencv_principal_point_to_capture
-from texstream.pipelines.errors import ConfigError, InputError, StageError
-from texstream.pipelines.stage import StageResult, atomic_output_dir, option, read_json, save_config, write_json_atomic
+from texstream.core.errors import ConfigError, InputError, StageError
+from texstream.core.config import option, save_config
+from texstream.core.outputs import StageResult, atomic_output_dir, read_json, write_json_atomic
 
 from .boards import detect_board, load_gray8, parse_board
 from .files import list_images, write_failure_report

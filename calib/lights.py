@@ -33,8 +33,9 @@ from typing import Any
 import numpy as np
 
 from texstream.capture.capture_json import Frame, Intrinsics, Light
-from texstream.pipelines.errors import ConfigError, InputError, StageError
-from texstream.pipelines.stage import StageResult, option
+from texstream.core.errors import ConfigError, InputError, StageError
+from texstream.core.config import option
+from texstream.core.outputs import StageResult
 
 LIGHTS_FILE = "lights.json"
 REPORT_FILE = "lights_report.json"
@@ -43,7 +44,7 @@ REPORT_FILE = "lights_report.json"
 def load_lights_file(path: str | os.PathLike) -> tuple[Light | None, dict[str, Light]]:
     """Read a lights file (or a 'texstream lights' output folder): (default light or None, {frame name or stem: light})."""
     from texstream.capture.capture_json import _light_from
-    from texstream.pipelines.stage import read_json
+    from texstream.core.outputs import read_json
 
     p = Path(path)
     if p.is_dir():  # the output folder of 'texstream lights'
@@ -416,7 +417,8 @@ def estimate_lights(capture: str | os.PathLike, out: str | os.PathLike,
     """
     from texstream.capture.capture_json import read_capture
     from texstream.capture.imageio import read_image, read_mask
-    from texstream.pipelines.stage import atomic_output_dir, save_config, write_json_atomic
+    from texstream.core.config import save_config
+    from texstream.core.outputs import atomic_output_dir, write_json_atomic
 
     cfg = config or LightsConfig()
     capture = Path(capture)

@@ -34,8 +34,9 @@ from typing import Any
 import numpy as np
 
 from texstream.capture.capture_json import CAPTURE_FILE, Capture, Frame, Intrinsics, read_capture, write_capture
-from texstream.pipelines.errors import ConfigError, InputError, StageError
-from texstream.pipelines.stage import StageResult, atomic_output_dir, option, read_json, save_config, write_json_atomic
+from texstream.core.errors import ConfigError, InputError, StageError
+from texstream.core.config import option, save_config
+from texstream.core.outputs import StageResult, atomic_output_dir, read_json, write_json_atomic
 
 from .colmap_io import intrinsics_to_colmap, opencv_distortion, reconstruction_frames
 from .files import list_images, write_failure_report

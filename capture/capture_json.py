@@ -24,8 +24,8 @@ from typing import Any
 
 import numpy as np
 
-from texstream.pipelines.errors import InputError
-from texstream.pipelines.stage import read_json, write_json_atomic
+from texstream.core.errors import InputError
+from texstream.core.outputs import read_json, write_json_atomic
 
 from .conventions import c2w_gl_to_w2c_cv, camera_center, is_rotation, w2c_cv_to_c2w_gl
 

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from texstream.pipelines.errors import ConfigError, InputError
+from texstream.core.errors import ConfigError, InputError
 
 # IEC 61966-2-1 piecewise sRGB transfer function constants.
 _SRGB_DECODE_THRESHOLD = 0.04045

@@ -29,8 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
-from texstream.pipelines.errors import InputError
-from texstream.pipelines.stage import StageResult, atomic_output_dir, option, save_config
+from texstream.core.errors import InputError
+from texstream.core.config import option, save_config
+from texstream.core.outputs import StageResult, atomic_output_dir
 
 from . import conventions
 from .capture_json import Capture, Frame, Intrinsics, write_capture

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from texstream.pipelines.errors import ConfigError
+from texstream.core.errors import ConfigError
 
 from .capture_json import read_capture
 from .imageio import linear_to_srgb, read_image, read_mask, write_image

@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from texstream.geometry.mesh import SurfaceMesh
-from texstream.pipelines.errors import ConfigError
+from texstream.core.errors import ConfigError
 
 
 def revolve(r: np.ndarray, z: np.ndarray, n_segments: int, normals_rz: np.ndarray | None = None,

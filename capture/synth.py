@@ -71,8 +71,9 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from texstream.pipelines.errors import ConfigError, InputError
-from texstream.pipelines.stage import StageResult, atomic_output_dir, option, save_config, write_json_atomic
+from texstream.core.errors import ConfigError, InputError
+from texstream.core.config import option, save_config
+from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
 
 from . import procedural
 from .capture_json import Capture, Frame, Intrinsics, Light, write_capture
@@ -684,7 +685,7 @@ def load_ground_truth(folder: str | os.PathLike):
     from texstream.fit.models import ModelLayout
     from texstream.geometry.bake import TexelBake
     from texstream.geometry.mesh_io import load_mesh
-    from texstream.pipelines.stage import read_json
+    from texstream.core.outputs import read_json
 
     g = Path(folder)
     if (g / GROUND_TRUTH).is_dir():

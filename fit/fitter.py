@@ -14,8 +14,8 @@ import time
 import numpy as np
 import warp as wp
 
-from texstream.pipelines.errors import ConfigError
-from texstream.pipelines.stage import option
+from texstream.core.errors import ConfigError
+from texstream.core.config import option
 
 from .kernels import optim_kernels as K
 from .kernels import stream

@@ -34,7 +34,7 @@ import dataclasses
 
 import numpy as np
 
-from texstream.pipelines.errors import ConfigError
+from texstream.core.errors import ConfigError
 
 MODEL_KINDS = ("lafortune", "diffuse")
 LOBE_SHAPES = ("free", "phong")

@@ -14,7 +14,7 @@ import dataclasses
 import numpy as np
 import warp as wp
 
-from texstream.pipelines.stage import option
+from texstream.core.config import option
 
 from .kernels import optim_kernels as K
 

@@ -44,8 +44,9 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-from texstream.pipelines.errors import InputError
-from texstream.pipelines.stage import StageResult, atomic_output_dir, option, save_config, write_json_atomic
+from texstream.core.errors import InputError
+from texstream.core.config import option, save_config
+from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
 
 from .fitter import FitConfig
 from .kernels import stream

@@ -15,7 +15,7 @@ import numpy as np
 import warp as wp
 
 from texstream.capture.conventions import look_at_w2c
-from texstream.pipelines.errors import ConfigError, InputError
+from texstream.core.errors import ConfigError, InputError
 
 from .kernels import stream
 from .kernels.lafortune_grad import param_types

@@ -21,7 +21,7 @@ from texstream.fit.kernels.render import PinholeCamera, RenderLight, render_kern
 from texstream.fit.kernels.shading import LIGHT_DIRECTIONAL, LIGHT_POINT, SHADOW_EPS_REL
 from texstream.fit.models import ModelLayout
 from texstream.geometry.mesh import SurfaceMesh
-from texstream.pipelines.errors import ConfigError, InputError
+from texstream.core.errors import ConfigError, InputError
 
 
 @dataclasses.dataclass

@@ -19,8 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from texstream.pipelines.errors import InputError
-from texstream.pipelines.stage import StageResult, atomic_output_dir, option, read_json, save_config, write_json_atomic
+from texstream.core.errors import InputError
+from texstream.core.config import option, save_config
+from texstream.core.outputs import StageResult, atomic_output_dir, read_json, write_json_atomic
 
 from .fitter import FitConfig, FitResult, light_view_angles, run_fit
 from .models import ModelLayout

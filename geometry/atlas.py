@@ -52,8 +52,8 @@ import math
 
 import numpy as np
 
-from texstream.pipelines.errors import ConfigError, InputError
-from texstream.pipelines.stage import option
+from texstream.core.errors import ConfigError, InputError
+from texstream.core.config import option
 
 from .mesh import SurfaceMesh
 from .mesh_io import validate_mesh
@@ -797,8 +797,8 @@ def atlas_stage(mesh_path, out, config: AtlasConfig | None = None, face_weights:
     """
     from pathlib import Path
 
-    from texstream.pipelines.stage import (StageResult, atomic_output_dir, config_to_dict, read_json,
-                                           save_config, write_json_atomic)
+    from texstream.core.config import config_to_dict, save_config
+    from texstream.core.outputs import StageResult, atomic_output_dir, read_json, write_json_atomic
 
     from .bake import bake_texels
     from .mesh_io import load_mesh, save_mesh

@@ -38,7 +38,7 @@ import numpy as np
 import warp as wp
 
 from texstream.fit.kernels.shading import surface_frame
-from texstream.pipelines.errors import InputError
+from texstream.core.errors import InputError
 
 from .mesh import SurfaceMesh
 from .mesh_io import write_npz_atomic

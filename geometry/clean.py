@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from texstream.pipelines.errors import InputError
-from texstream.pipelines.stage import option
+from texstream.core.errors import InputError
+from texstream.core.config import option
 
 from .mesh import SurfaceMesh
 

@@ -23,8 +23,8 @@ from typing import Sequence
 import numpy as np
 import warp as wp
 
-from texstream.pipelines.errors import InputError, StageError
-from texstream.pipelines.stage import option
+from texstream.core.errors import InputError, StageError
+from texstream.core.config import option
 
 from .mesh import SurfaceMesh
 

@@ -34,8 +34,9 @@ from pathlib import Path
 
 import numpy as np
 
-from texstream.pipelines.errors import ConfigError, InputError
-from texstream.pipelines.stage import StageResult, atomic_output_dir, option, save_config, write_json_atomic
+from texstream.core.errors import ConfigError, InputError
+from texstream.core.config import option, save_config
+from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
 
 from .mesh import SurfaceMesh
 

@@ -17,7 +17,7 @@ Writing (atomic: temporary file beside the target, then ``os.replace``)
     * PLY (binary little endian) with x, y, z, nx, ny, nz, s, t.
     * GLB (one mesh, one primitive; v flipped back to glTF's convention).
 
-Every bad input raises :class:`~texstream.pipelines.errors.InputError` naming the file and the fix.
+Every bad input raises :class:`~texstream.core.errors.InputError` naming the file and the fix.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from texstream.pipelines.errors import InputError
+from texstream.core.errors import InputError
 
 from .mesh import SurfaceMesh
 

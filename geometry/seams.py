@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from texstream.pipelines.errors import InputError
+from texstream.core.errors import InputError
 
 from .mesh import SurfaceMesh
 

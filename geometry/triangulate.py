@@ -33,8 +33,8 @@ from typing import Sequence
 
 import numpy as np
 
-from texstream.pipelines.errors import InputError
-from texstream.pipelines.stage import option
+from texstream.core.errors import InputError
+from texstream.core.config import option
 
 _COLMAP_8BIT = (".png", ".jpg", ".jpeg")
 

@@ -17,7 +17,7 @@ import sys
 import typing
 from typing import Any, Sequence
 
-from .errors import TexstreamError
+from texstream.core.errors import TexstreamError
 
 # name -> (module, one-line help). The order is the pipeline's order.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {

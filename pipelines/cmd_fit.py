@@ -48,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
     from texstream.fit.fitter import FitConfig
     from texstream.fit.stage import FitStageConfig, fit_stage
     from texstream.pipelines.cli import config_from_args
-    from texstream.pipelines.errors import InputError
+    from texstream.core.errors import InputError
 
     wp.config.log_level = wp.LOG_WARNING
     fit_cfg = config_from_args(FitConfig, args)

@@ -11,7 +11,7 @@ import argparse
 import importlib
 from types import ModuleType
 
-from texstream.pipelines.errors import TexstreamError
+from texstream.core.errors import TexstreamError
 
 FORMATS = ("middlebury", "colmap", "nerfstudio")
 # format -> (function name, config class name) in texstream.calib.colmap_io

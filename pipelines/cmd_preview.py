@@ -20,7 +20,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from texstream.capture.preview import write_contact_sheet
-    from texstream.pipelines.errors import ConfigError
+    from texstream.core.errors import ConfigError
 
     exposure: float | str = args.exposure
     if exposure != "auto":

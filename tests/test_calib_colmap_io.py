@@ -11,7 +11,7 @@ from texstream.calib.colmap_io import (camera_to_intrinsics, import_colmap, impo
                                        intrinsics_to_colmap)
 from texstream.capture.capture_json import read_capture
 from texstream.capture.conventions import w2c_cv_to_c2w_gl
-from texstream.pipelines.errors import InputError
+from texstream.core.errors import InputError
 
 pytest.importorskip("pycolmap")
 cv2 = pytest.importorskip("cv2")

@@ -10,7 +10,7 @@ import pytest
 from texstream.calib.hdr import calibrate_response, group_brackets, merge_brackets_8bit, merge_brackets_linear
 from texstream.calib.ingest import IngestConfig, apply_orientation, ingest
 from texstream.capture.capture_json import read_capture
-from texstream.pipelines.errors import InputError, StageError
+from texstream.core.errors import InputError, StageError
 
 oiio = pytest.importorskip("OpenImageIO")
 cv2 = pytest.importorskip("cv2")

@@ -11,7 +11,7 @@ import pytest
 from conftest import need_data
 from texstream.calib.boards import parse_board
 from texstream.calib.intrinsics import CalibrateConfig, calibrate, intrinsics_for_size, load_intrinsics
-from texstream.pipelines.errors import ConfigError, InputError, StageError
+from texstream.core.errors import ConfigError, InputError, StageError
 
 cv2 = pytest.importorskip("cv2")
 

@@ -12,7 +12,7 @@ from texstream.calib.lights import (LightsConfig, estimate_lights, light_from_vi
                                     reflect_at_sphere, triangulate_rays)
 from texstream.capture.capture_json import Capture, Frame, Intrinsics, read_capture, write_capture
 from texstream.capture.conventions import look_at_w2c
-from texstream.pipelines.errors import ConfigError, InputError
+from texstream.core.errors import ConfigError, InputError
 
 pytest.importorskip("OpenImageIO")
 
@@ -198,7 +198,7 @@ def test_cli_writes_a_lights_file_that_ingest_accepts(tmp_path, capsys):
 
 
 def test_far_light_falls_back_to_directional_and_point_is_refused(tmp_path):
-    from texstream.pipelines.errors import StageError
+    from texstream.core.errors import StageError
 
     travel = np.array([0.3, 0.4, -0.8])
     cap = make_ball_capture(tmp_path / "cap", [BALL], ("directional", travel / np.linalg.norm(travel), 1.0),
@@ -212,7 +212,7 @@ def test_far_light_falls_back_to_directional_and_point_is_refused(tmp_path):
 
 def test_bad_inputs_give_one_line_errors(tmp_path, capsys):
     from texstream.pipelines.cli import main
-    from texstream.pipelines.errors import StageError
+    from texstream.core.errors import StageError
 
     cap = make_ball_capture(tmp_path / "dark", [BALL], None, [0, 90])  # no light: no highlight
     with pytest.raises(InputError, match="no highlight on ball 0") as e:

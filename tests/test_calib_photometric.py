@@ -10,7 +10,7 @@ import pytest
 from texstream.calib.lights import colocated_light, load_lights_file
 from texstream.calib.photometric import estimate_gains
 from texstream.capture.conventions import look_at_w2c
-from texstream.pipelines.errors import InputError
+from texstream.core.errors import InputError
 
 
 def test_gains_recovered_despite_outliers():

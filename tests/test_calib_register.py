@@ -12,7 +12,7 @@ import pytest
 from conftest import need_data, pose_errors
 from texstream.calib.register import RegisterConfig, register
 from texstream.capture.capture_json import read_capture
-from texstream.pipelines.errors import StageError
+from texstream.core.errors import StageError
 
 pytest.importorskip("pycolmap")
 cv2 = pytest.importorskip("cv2")
@@ -112,7 +112,7 @@ def test_mixed_sizes_become_two_cameras_and_bad_files_are_dropped(data_dir, tmp_
 def test_register_bad_inputs(tmp_path):
     empty = tmp_path / "empty"
     empty.mkdir()
-    from texstream.pipelines.errors import InputError
+    from texstream.core.errors import InputError
 
     with pytest.raises(InputError, match="no images"):
         register(empty, tmp_path / "o")

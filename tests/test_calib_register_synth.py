@@ -104,7 +104,7 @@ def test_mesh_frame_transform_brings_sfm_points_and_cameras_onto_the_mesh():
 
 def test_align_to_mesh_rejects_the_wrong_mesh():
     from texstream.calib.register import align_to_mesh
-    from texstream.pipelines.errors import StageError
+    from texstream.core.errors import StageError
 
     class _Pt:
         def __init__(self, xyz):

@@ -9,7 +9,7 @@ import pytest
 
 from texstream.capture.imageio import (image_size, linear_to_srgb, read_alpha, read_image, read_mask,
                                        srgb_to_linear, write_image)
-from texstream.pipelines.errors import ConfigError, InputError
+from texstream.core.errors import ConfigError, InputError
 
 
 def _smooth(h: int = 24, w: int = 32, c: int = 3) -> np.ndarray:

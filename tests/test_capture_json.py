@@ -12,7 +12,7 @@ import pytest
 
 from texstream.capture import conventions
 from texstream.capture.capture_json import Capture, Frame, Intrinsics, Light, read_capture, write_capture
-from texstream.pipelines.errors import InputError
+from texstream.core.errors import InputError
 
 # Poses go c2w -> (R, t) -> c2w through a transpose and a matrix product: float64 rounding only.
 POSE_ATOL = 1e-12

@@ -16,8 +16,8 @@ from texstream.capture.capture_json import read_capture
 from texstream.capture.imageio import read_mask, write_image
 from texstream.capture.middlebury import (MiddleburyImportConfig, bbox_corners, import_middlebury,
                                           parse_par_file, parse_readme_bbox)
-from texstream.pipelines.errors import InputError
-from texstream.pipelines.stage import load_config
+from texstream.core.errors import InputError
+from texstream.core.config import load_config
 
 TEMPLE = "middlebury_temple_sparse"
 

@@ -11,7 +11,7 @@ from texstream.capture.capture_json import Capture, Frame, Intrinsics, write_cap
 from texstream.capture.imageio import image_size, read_image, write_image
 from texstream.capture.preview import write_contact_sheet
 from texstream.pipelines.cli import main
-from texstream.pipelines.errors import InputError
+from texstream.core.errors import InputError
 
 
 def _capture(root, n=5, size=(40, 30), exposures=None):
@@ -97,7 +97,8 @@ def test_cli_import_dispatches_to_colmap_io(tmp_path, monkeypatch, capsys):
     import sys
     import types
 
-    from texstream.pipelines.stage import StageResult, option
+    from texstream.core.config import option
+    from texstream.core.outputs import StageResult
 
     @dataclasses.dataclass
     class ColmapImportConfig:

@@ -244,7 +244,7 @@ def test_smoothness_gradient_and_block_hessian_match_finite_differences(device):
 @pytest.mark.parametrize("bad", [{"cuda_block_dim": 100}, {"cuda_block_dim": 2048}, {"cuda_max_registers": 8}],
                          ids=["block_not_warp_multiple", "block_too_large", "register_cap_too_small"])
 def test_bad_cuda_launch_options_are_config_errors(device, bad):
-    from texstream.pipelines.errors import ConfigError
+    from texstream.core.errors import ConfigError
 
     prob, _ = plane_problem(device, ModelLayout(), n_photos=1, grid=2)
     with pytest.raises(ConfigError):

@@ -13,7 +13,7 @@ import pytest
 from texstream.fit.fitter import FitConfig, choose_lobe_shape, light_view_angles
 from texstream.fit.models import ModelLayout
 from texstream.fit.problem import PhotoFrame
-from texstream.pipelines.errors import ConfigError
+from texstream.core.errors import ConfigError
 
 
 def look_at(eye: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -22,7 +22,7 @@ from texstream.fit.models import ModelLayout
 from texstream.fit.optim.base import FitState
 from texstream.fit.problem import StreamConfig, StreamProblem
 from texstream.fit.stage import build_problem
-from texstream.pipelines.errors import ConfigError
+from texstream.core.errors import ConfigError
 
 from conftest import SCENE_DEVICE
 from test_fit_gradients import assert_gradient_matches_finite_differences, evaluate, plane_problem, random_params

@@ -19,7 +19,7 @@ pytest.importorskip("OpenImageIO", reason="single-view stage tests need OpenImag
 from texstream.capture.capture_json import Capture, Frame, Intrinsics, Light, write_capture
 from texstream.fit.fitter import FitConfig
 from texstream.fit.photometric_stereo import SingleViewConfig, fit_single_view_stage, read_normal_map
-from texstream.pipelines.errors import InputError
+from texstream.core.errors import InputError
 
 SIZE = 40  # image side: ~900 texels inside the hemisphere, a few seconds per fit on one CPU core
 N_LIGHTS = 16

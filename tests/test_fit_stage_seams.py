@@ -20,7 +20,7 @@ from texstream.fit.fitter import FitConfig
 from texstream.fit.models import ModelLayout
 from texstream.fit.stage import FitStageConfig, fit_stage
 from texstream.geometry.seams import SEAMS_FILE, Seams, seam_gaps
-from texstream.pipelines.errors import InputError
+from texstream.core.errors import InputError
 
 pytest.importorskip("OpenImageIO")  # the stage reads and writes EXR / PNG files
 

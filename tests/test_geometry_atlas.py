@@ -11,7 +11,7 @@ import pytest
 from texstream.geometry.atlas import AtlasConfig, atlas_stage, build_atlas, from_xatlas_uv
 from texstream.geometry.bake import bake_texels, claim_texels
 from texstream.geometry.mesh import SurfaceMesh
-from texstream.pipelines.errors import ConfigError, InputError
+from texstream.core.errors import ConfigError, InputError
 
 
 def icosphere(subdivisions: int = 2, radius: float = 1.0) -> SurfaceMesh:
@@ -228,6 +228,6 @@ def test_atlas_stage_and_cli(tmp_path, capsys):
 
 
 def cfg_from(d: dict) -> AtlasConfig:
-    from texstream.pipelines.stage import config_from_dict
+    from texstream.core.config import config_from_dict
 
     return config_from_dict(AtlasConfig, d)

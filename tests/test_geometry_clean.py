@@ -9,7 +9,7 @@ import pytest
 
 from texstream.geometry.clean import CleanConfig, clean_mesh, signed_volume, topology
 from texstream.geometry.mesh import SurfaceMesh
-from texstream.pipelines.errors import InputError
+from texstream.core.errors import InputError
 
 from conftest import need_data
 

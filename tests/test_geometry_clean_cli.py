@@ -12,7 +12,7 @@ from texstream.geometry.make_mesh import MeshConfig, make_mesh
 from texstream.geometry.mesh_io import load_mesh, save_mesh
 from texstream.geometry.visibility import depth_maps
 from texstream.pipelines.cli import main
-from texstream.pipelines.errors import InputError
+from texstream.core.errors import InputError
 from test_geometry_clean import icosphere
 from test_geometry_poisson import sample_surface
 
@@ -82,7 +82,7 @@ def test_inside_out_scan_is_fixed_and_reported(tmp_path):
     s = icosphere(3)
     save_mesh(tmp_path / "inv.ply", type(s)(s.vertices, s.faces[:, ::-1].copy()))
     assert main(["mesh", "-o", str(tmp_path / "out"), "--from", str(tmp_path / "inv.ply"), "--faces", "0"]) == 0
-    from texstream.pipelines.stage import read_json
+    from texstream.core.outputs import read_json
 
     rep = read_json(tmp_path / "out" / "mesh_report.json")
     assert rep["clean"]["flipped"] and rep["clean"]["after"]["signed_volume"] > 0

@@ -13,7 +13,7 @@ import pytest
 from texstream.geometry.clean import CleanConfig, clean_mesh, hausdorff_distance
 from texstream.geometry.hull import HullConfig, orbit_frames, visual_hull
 from texstream.geometry.visibility import depth_maps
-from texstream.pipelines.errors import StageError
+from texstream.core.errors import StageError
 from conftest import need_data
 from test_geometry_clean import icosphere, load_obj
 

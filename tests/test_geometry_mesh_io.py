@@ -7,7 +7,7 @@ import pytest
 
 from texstream.geometry.mesh import SurfaceMesh
 from texstream.geometry.mesh_io import load_mesh, save_mesh
-from texstream.pipelines.errors import InputError
+from texstream.core.errors import InputError
 
 # A unit cube's top as a quad plus a triangle sharing two corners but on another UV island
 # (a seam), written with a polygon, relative (negative) indices and normals.

@@ -9,7 +9,7 @@ from texstream.geometry.clean import hausdorff_distance, topology
 from texstream.geometry.hull import orbit_frames
 from texstream.geometry.reconstruct import PoissonConfig, estimate_normals, poisson_reconstruct, trim_by_masks
 from texstream.geometry.visibility import depth_maps
-from texstream.pipelines.errors import InputError
+from texstream.core.errors import InputError
 from test_geometry_clean import icosphere
 
 

@@ -15,7 +15,7 @@ from texstream.fit.kernels.shading import bilinear_taps, texel_coords
 from texstream.geometry.atlas import AtlasConfig, atlas_stage, build_atlas
 from texstream.geometry.bake import bake_texels
 from texstream.geometry.seams import SEAMS_FILE, Seams, average_across_seams, find_seams, seam_edges, seam_gaps
-from texstream.pipelines.errors import InputError
+from texstream.core.errors import InputError
 
 
 @wp.kernel(enable_backward=False)

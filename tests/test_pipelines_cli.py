@@ -13,7 +13,7 @@ from texstream.capture.capture_json import read_capture
 from texstream.capture.imageio import read_image, write_image
 from texstream.capture.synth import SynthConfig, synthesize
 from texstream.pipelines.cli import main
-from texstream.pipelines.errors import InputError
+from texstream.core.errors import InputError
 
 
 @pytest.fixture(autouse=True)

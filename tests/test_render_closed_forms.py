@@ -208,7 +208,7 @@ def test_texel_grid_lookup_convention(device):
 
 def test_bad_inputs():
     mesh = procedural.flat_sample(size=1.0, n=1)
-    from texstream.pipelines.errors import ConfigError, InputError
+    from texstream.core.errors import ConfigError, InputError
     with pytest.raises(ConfigError):
         Renderer(mesh, np.zeros((4, 4, 5)), LAMBERT)
     with pytest.raises(InputError):

@@ -13,7 +13,7 @@ from texstream.capture import synth
 from texstream.capture.capture_json import read_capture
 from texstream.capture.conventions import project
 from texstream.capture.synth import SynthConfig, render_scene, synthesize
-from texstream.pipelines.errors import ConfigError, InputError
+from texstream.core.errors import ConfigError, InputError
 
 TINY = dict(scale=0.02, progress=False, preview=False)
 

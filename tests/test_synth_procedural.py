@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from texstream.capture import procedural
-from texstream.pipelines.errors import ConfigError
+from texstream.core.errors import ConfigError
 
 
 def _uv_areas(m):
