@@ -45,8 +45,8 @@ import numpy as np
 import warp as wp
 
 from texstream.core.errors import InputError
-from texstream.core.config import option, save_config
-from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
+from texstream.core.config import option
+from texstream.core.outputs import StageResult, atomic_output_dir
 
 from .fitter import FitConfig
 from .kernels import stream
@@ -339,62 +339,58 @@ def fit_single_view_stage(capture_dir: str | Path, normals_path: str | Path | No
         config: options; progress: show a progress bar.
     """
     from texstream.capture.imageio import read_image, read_mask, write_image
-    from texstream.capture.synth import write_param_maps
 
-    from .stage import image_metrics, plot_trace
+    from .model_folder import check_model, pooled_psnr, render_comparisons, write_model_folder
+    from .stage import check_output_path, run_fit_with_progress
 
     cfg = config or SingleViewConfig()
     if cfg.normal_space not in NORMAL_SPACES:
         raise InputError(f"normal space {cfg.normal_space!r} unknown", fix=f"use one of {NORMAL_SPACES}")
+    check_output_path(out_dir)
     t0 = time.perf_counter()
     capture, frames, held, geo, images, masks = load_single_view(capture_dir, normals_path, cfg)
     geo_source = normals_path if normals_path is not None else find_normal_map(capture.root)
     problem = build_single_view_problem(geo, frames, images, masks, cfg.fit, cfg.device)
     t_setup = time.perf_counter() - t0
-    from .stage import run_fit_with_progress
-
     result = run_fit_with_progress(problem, cfg.fit, progress)
     lay = result.layout
     h, w = geo.covered.shape
     grid = np.tile(lay.defaults().astype(np.float32), (h * w, 1))
     grid[problem.texels.grid_index] = result.params
     grid = grid.reshape(h, w, -1)
+    check_model(grid, lay)  # before rendering it
+    seen = np.zeros(h * w, bool)
+    seen[problem.texels.grid_index] = result.samples > 0
+    seen = seen.reshape(h, w)
+    show = (held or frames)[: max(cfg.renders, 0)]
+    photos = [read_image(capture.image_path(f), channels=3) for f in show]
+    for f, photo in zip(show, photos):
+        if photo.shape[:2] != (h, w):
+            raise InputError(f"photo is {photo.shape[1]}x{photo.shape[0]} but the normal map is {w}x{h}",
+                             capture.image_path(f), "give photos and normal map of one size")
+
+    def render(f):
+        m = seen.copy()  # texels no photo saw keep defaults: flagged, not scored
+        mp = capture.mask_path(f)
+        if mp is not None and mp.exists():
+            m &= read_mask(mp, m.shape)
+        return render_single_view(problem, result.params, lay, f), m
+
     with atomic_output_dir(out_dir) as tmp:
-        files = write_param_maps(tmp, grid, lay)
-        seen = np.zeros(h * w, np.float32)
-        seen[problem.texels.grid_index] = (result.samples > 0).astype(np.float32)
-        write_image(tmp / "seen.png", seen.reshape(h, w, 1).repeat(3, axis=2), bits=8)
         write_image(tmp / "normals.exr", np.where(geo.covered[..., None], geo.normal, 0.0).astype(np.float32))
-        write_json_atomic(tmp / "trace.json", result.trace)
-        plot_trace(result.trace, tmp / "error_vs_time.png", f"single-view {lay.kind} fit, {cfg.fit.optimizer}, {cfg.device}")
-        (tmp / "renders").mkdir()
-        evals = []
-        show = (held or frames)[: max(cfg.renders, 0)]
-        for f in show:
-            photo = read_image(capture.image_path(f), channels=3)
-            if photo.shape[:2] != (h, w):
-                raise InputError(f"photo is {photo.shape[1]}x{photo.shape[0]} but the normal map is {w}x{h}",
-                                 capture.image_path(f), "give photos and normal map of one size")
-            rend = render_single_view(problem, result.params, lay, f)
-            m = seen.reshape(h, w) > 0  # texels no photo saw keep defaults: flagged, not scored
-            mp = capture.mask_path(f)
-            if mp is not None and mp.exists():
-                m &= read_mask(mp, m.shape)
-            evals.append({"frame": f.file_path, "held_out": f in held, **image_metrics(rend, photo, m)})
-            write_image(tmp / "renders" / f"{f.name}_fit_vs_photo.png",
-                        np.clip(np.concatenate([rend, photo], axis=1), 0, 1), bits=8)
+        evals = render_comparisons(tmp / "renders", show, photos, held, render)
         last = result.trace[-1]
-        model = {"kind": lay.kind, "layout": lay.to_json(), "maps": files,
-                 "geometry": {"type": "normal_map", "normals": "normals.exr", "normal_space_in": cfg.normal_space,
-                              "normals_out": "world", "source": str(geo_source)},
-                 "image": {"width": w, "height": h, "texels": int(problem.n),
-                           "unseen_texels": int((result.samples == 0).sum())},
-                 "photos": {"fitted": len(frames), "held_out": len(held)},
-                 "final": {k: last[k] for k in ("iteration", "time_s", "objective", "psnr_db", "ape_percent")},
-                 "setup_s": t_setup, "passes": result.passes, "device": cfg.device, "render_eval": evals,
-                 "units": "BRDF values in 1/sr (capture/conventions.py)"}
-        write_json_atomic(tmp / "model.json", model)
-        save_config(cfg, tmp / "fit_config.json")
+        manifest = {"geometry": {"type": "normal_map", "normals": "normals.exr", "normal_space_in": cfg.normal_space,
+                                 "normals_out": "world", "source": str(geo_source)},
+                    "image": {"width": w, "height": h, "texels": int(problem.n),
+                              "unseen_texels": int((result.samples == 0).sum())},
+                    "photos": {"fitted": len(frames), "held_out": len(held)},
+                    "final": {k: last[k] for k in ("iteration", "time_s", "objective", "psnr_db", "ape_percent")},
+                    "setup_s": t_setup, "passes": result.passes, "device": cfg.device, "render_eval": evals,
+                    "heldout": pooled_psnr([e for e in evals if e["held_out"]]),
+                    "units": "BRDF values in 1/sr (capture/conventions.py)"}
+        write_model_folder(tmp, grid, lay, seen, result.trace,
+                           f"single-view {lay.kind} fit, {cfg.fit.optimizer}, {cfg.device}", manifest, cfg)
     return StageResult(Path(out_dir), {"psnr_db": last["psnr_db"], "iterations": last["iteration"],
                                        "time_s": last["time_s"], "texels": problem.n, "photos": len(frames),
                                        "unseen_texels": int((result.samples == 0).sum()), "render_eval": evals})

@@ -13,18 +13,23 @@ matplotlib inside its functions: it is a stage, not the GPU-side core.
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 from pathlib import Path
 
 import numpy as np
 
-from texstream.core.errors import InputError
-from texstream.core.config import option, save_config
+from texstream.core.errors import InputError, StageError
+from texstream.core.config import option
 from texstream.core.outputs import StageResult, atomic_output_dir, read_json, write_json_atomic
 
 from .fitter import FitConfig, FitResult, light_view_angles, run_fit
+from .model_folder import image_metrics, plot_trace  # noqa: F401  (re-exported: tests and benchmarks use them here)
 from .models import ModelLayout
+
+
+UNITS = {"lafortune": "BRDF values in 1/sr (capture/conventions.py)",
+         "diffuse": "BRDF values in 1/sr (capture/conventions.py)",
+         "radiance": "exitant radiance in photo values per unit exposure"}
 
 
 @dataclasses.dataclass
@@ -35,6 +40,8 @@ class FitStageConfig:
     texture_size: int = option(256, "atlas side in texels when the mesh has UVs but no bake")
     holdout_every: int = option(0, "hold out every k-th photo from the fit for evaluation (0 = none)")
     renders: int = option(4, "photos rendered beside the fitted model in renders/")
+    min_seen_fraction: float = option(0.01, "fail before fitting when fewer than this fraction of the atlas's texels "
+                                            "is seen by any photo (the mesh faces away or is in another frame)")
     fit: FitConfig = option(default_factory=FitConfig, help="the fit")
 
 
@@ -132,38 +139,6 @@ def params_to_grid(result: FitResult, problem, bake) -> np.ndarray:
     return bake.fill_padding(grid.reshape(bake.height, bake.width, -1))
 
 
-def plot_trace(trace: list[dict], path: Path, title: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
-    t = [r["time_s"] for r in trace]
-    ax[0].semilogy(t, [max(r["objective"], 1e-300) for r in trace], "o-", ms=3)
-    ax[0].set_xlabel("wall time (s)")
-    ax[0].set_ylabel("objective")
-    ax[1].plot(t, [r["psnr_db"] for r in trace], "o-", ms=3)
-    ax[1].set_xlabel("wall time (s)")
-    ax[1].set_ylabel("sample PSNR (dB)")
-    fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
-def image_metrics(render: np.ndarray, photo: np.ndarray, mask: np.ndarray, peak: float = 1.0) -> dict:
-    """PSNR (dB, against ``peak``) and APE (%) over foreground pixels."""
-    m = mask.astype(bool)
-    if not m.any():
-        return {"psnr_db": float("nan"), "ape_percent": float("nan"), "pixels": 0}
-    d = (render[m] - photo[m]).astype(np.float64)
-    mse = float(np.mean(d * d))
-    ape = 100.0 * float(np.abs(d).sum() / max(np.abs(photo[m]).sum(), 1e-300))
-    return {"psnr_db": 10 * math.log10(peak * peak / mse) if mse > 0 else float("inf"), "ape_percent": ape,
-            "pixels": int(m.sum())}
-
-
 def render_model(mesh, grid: np.ndarray, layout: ModelLayout, frame, device: str):
     from .render import Renderer
 
@@ -220,79 +195,138 @@ def run_fit_with_progress(problem, fit: FitConfig, progress: bool) -> FitResult:
         return run_fit(problem, fit, progress=lambda it: bar.update(1))
 
 
+def split_holdout(frames: list, every: int) -> tuple[list, list]:
+    """(fitted, held out): every ``every``-th frame (the 8th, 16th, ... for 8) is held out; 0 = none."""
+    if every <= 0:
+        return list(frames), []
+    held = [f for i, f in enumerate(frames) if i % every == every - 1]
+    return [f for i, f in enumerate(frames) if i % every != every - 1], held
+
+
+def check_capture_lights(capture, model: str, capture_dir: str | Path) -> None:
+    """Reflectance models need a light per photo; the radiance model needs none."""
+    if model != "radiance" and not capture.has_lights:
+        raise InputError(f"the {model} model needs a light per photo and some frames have none",
+                         Path(capture_dir) / "capture.json",
+                         "fit the radiance model (--model radiance), or add per-frame lights (texstream ingest "
+                         "--lights, texstream lights, or a co-located flash)")
+
+
+def check_seen_texels(problem, cfg: FitStageConfig, capture_dir: str | Path) -> int:
+    """Count the texels some photo sees (one streaming pass) and fail before fitting when almost none
+    are: a mesh facing away from the cameras or in another frame than the capture's."""
+    from .fitter import initial_guess
+
+    _, counts = initial_guess(problem, cfg.fit)
+    seen = int((counts > 0).sum())
+    if seen < cfg.min_seen_fraction * problem.n:
+        raise StageError(f"only {seen:,} of {problem.n:,} texels ({100.0 * seen / max(problem.n, 1):.2f}%) are seen by "
+                         f"any photo (need {100 * cfg.min_seen_fraction:g}%)", Path(capture_dir) / "capture.json",
+                         "check that the mesh is in the capture's frame and faces the cameras (texstream mesh "
+                         "orients it), or lower --min-seen-fraction")
+    return seen
+
+
+@dataclasses.dataclass
+class FitInputs:
+    """What a mesh fit reads: the capture split into fitted and held-out frames, the geometry and photos."""
+
+    capture: object
+    frames: list
+    held: list
+    mesh: object
+    bake: object
+    seams: object
+    images: list
+    masks: list
+
+
+def load_fit_inputs(capture_dir: str | Path, mesh_path: str | Path, cfg: FitStageConfig) -> FitInputs:
+    """Read and check everything a fit needs, before any long work starts."""
+    from texstream.capture.capture_json import read_capture
+
+    capture = read_capture(capture_dir)
+    check_capture_lights(capture, cfg.fit.model, capture_dir)
+    frames, held = split_holdout(capture.frames, cfg.holdout_every)
+    if not frames:
+        raise InputError("no photo is left to fit after the hold-out split", Path(capture_dir) / "capture.json",
+                         "lower --holdout-every or add photos")
+    mesh, bake = load_geometry(mesh_path, cfg.texture_size, cfg.device)
+    seams = load_seams(mesh_path, bake)
+    images, masks = load_photos(capture, frames)
+    return FitInputs(capture, frames, held, mesh, bake, seams, images, masks)
+
+
+def average_seams_in_bounds(grid: np.ndarray, seams, layout: ModelLayout) -> tuple[np.ndarray, dict | None]:
+    """Tie the texels across chart seams (no cracks in bilinear lookups), keeping every value in its
+    bounds; returns the maps and what model.json records of the seams."""
+    if seams is None:
+        return grid, None
+    from texstream.geometry.seams import average_across_seams, seam_gaps
+
+    before = float(np.abs(seam_gaps(grid, seams)).max()) if seams.n_samples else 0.0
+    grid = average_across_seams(grid, seams, lower=layout.lower(), upper=layout.upper()).astype(np.float32)
+    after = float(np.abs(seam_gaps(grid, seams)).max()) if seams.n_samples else 0.0
+    return grid, {"samples": int(seams.n_samples), "max_gap_before": before, "max_gap_after": after}
+
+
 def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Path,
               config: FitStageConfig | None = None, progress: bool = True) -> StageResult:
     """Fit the appearance model of ``config.fit`` to a capture; write the model folder atomically."""
-    from texstream.capture.capture_json import read_capture
-    from texstream.capture.imageio import write_image
-    from texstream.capture.synth import write_param_maps
+    from texstream.capture.imageio import read_mask
     from texstream.geometry.mesh_io import save_mesh
 
+    from .model_folder import check_model, pooled_psnr, render_comparisons, write_model_folder
+
     cfg = config or FitStageConfig()
-    capture = read_capture(capture_dir)
-    if not capture.has_lights:
-        raise InputError("capture has frames without a light", Path(capture_dir) / "capture.json",
-                         "add per-frame lights (texstream ingest --lights) to fit a reflectance model")
-    frames = capture.frames
-    held = []
-    if cfg.holdout_every > 0:
-        held = [f for i, f in enumerate(frames) if i % cfg.holdout_every == cfg.holdout_every - 1]
-        frames = [f for i, f in enumerate(frames) if i % cfg.holdout_every != cfg.holdout_every - 1]
+    check_output_path(out_dir)
     t0 = time.perf_counter()
-    mesh, bake = load_geometry(mesh_path, cfg.texture_size, cfg.device)
-    seams = load_seams(mesh_path, bake)  # checked before the fit: bad input fails fast
-    images, masks = load_photos(capture, frames)
-    problem = build_problem(mesh, bake, frames, images, masks, cfg.fit, cfg.device)
+    inputs = load_fit_inputs(capture_dir, mesh_path, cfg)
+    capture, frames, held, mesh, bake = inputs.capture, inputs.frames, inputs.held, inputs.mesh, inputs.bake
+    problem = build_problem(mesh, bake, frames, inputs.images, inputs.masks, cfg.fit, cfg.device)
+    seen_before = check_seen_texels(problem, cfg, capture_dir)
     t_setup = time.perf_counter() - t0
     result = run_fit_with_progress(problem, cfg.fit, progress)
-    grid = params_to_grid(result, problem, bake)
-    seams_info = None
-    if seams is not None:
-        # texels on both sides of a chart seam agree after this, so bilinear lookups meet (no cracks)
-        from texstream.geometry.seams import average_across_seams, seam_gaps
-
-        before = float(np.abs(seam_gaps(grid, seams)).max()) if seams.n_samples else 0.0
-        grid = average_across_seams(grid, seams).astype(np.float32)
-        after = float(np.abs(seam_gaps(grid, seams)).max()) if seams.n_samples else 0.0
-        seams_info = {"samples": int(seams.n_samples), "max_gap_before": before, "max_gap_after": after}
     lay = result.layout
+    grid, seams_info = average_seams_in_bounds(params_to_grid(result, problem, bake), inputs.seams, lay)
+    check_model(grid, lay)  # before rendering it
+
+    def render(f):
+        image, coverage = render_model(mesh, grid, lay, f, cfg.device)
+        m = coverage.astype(bool)
+        if capture.mask_path(f) is not None and capture.mask_path(f).exists():
+            m &= read_mask(capture.mask_path(f), coverage.shape)
+        return image, m
+
     with atomic_output_dir(out_dir) as tmp:
         save_mesh(tmp / "mesh.obj", mesh)
         bake.save(tmp / "bake.npz")
-        files = write_param_maps(tmp, grid, lay)
-        seen = np.zeros(bake.height * bake.width, np.float32)
-        seen[problem.texels.grid_index] = (result.samples > 0).astype(np.float32)
-        write_image(tmp / "seen.png", seen.reshape(bake.height, bake.width, 1).repeat(3, axis=2), bits=8)
-        write_json_atomic(tmp / "trace.json", result.trace)
-        plot_trace(result.trace, tmp / "error_vs_time.png", f"{lay.kind} fit, {cfg.fit.optimizer}, {cfg.device}")
-        evals = []
-        (tmp / "renders").mkdir()
         show = (held or frames)[: max(cfg.renders, 0)]
-        shown_images, _ = load_photos(capture, show) if show else ([], [])
-        for f, photo in zip(show, shown_images):
-            rend, rmask = render_model(mesh, grid, lay, f, cfg.device)
-            m = rmask.astype(bool)
-            if capture.mask_path(f) is not None and capture.mask_path(f).exists():
-                from texstream.capture.imageio import read_mask
-
-                m &= read_mask(capture.mask_path(f), rmask.shape)
-            evals.append({"frame": f.file_path, "held_out": f in held, **image_metrics(rend, photo, m)})
-            write_image(tmp / "renders" / f"{f.name}_fit_vs_photo.png",
-                        np.clip(np.concatenate([rend, photo], axis=1), 0, 1), bits=8)
+        evals = render_comparisons(tmp / "renders", show, load_photos(capture, show)[0] if show else [], held, render)
+        seen = np.zeros(bake.height * bake.width, bool)
+        seen[problem.texels.grid_index] = result.samples > 0
         last = result.trace[-1]
-        model = {"kind": lay.kind, "layout": lay.to_json(), "maps": files, "mesh": "mesh.obj", "bake": "bake.npz",
-                 "atlas": {"width": bake.width, "height": bake.height, "texels": int(problem.n),
-                           "unseen_texels": int((result.samples == 0).sum())},
-                 "photos": {"fitted": len(frames), "held_out": len(held)},
-                 "final": {k: last[k] for k in ("iteration", "time_s", "objective", "psnr_db", "ape_percent")},
-                 "lobe_shape": lobe_shape_report(cfg.fit, lay, frames, problem.texels.position),
-                 "seams": seams_info, "setup_s": t_setup, "passes": result.passes, "device": cfg.device, "render_eval": evals,
-                 "units": "BRDF values in 1/sr (capture/conventions.py)"}
-        write_json_atomic(tmp / "model.json", model)
-        save_config(cfg, tmp / "fit_config.json")
+        manifest = {"mesh": "mesh.obj", "bake": "bake.npz",
+                    "atlas": {"width": bake.width, "height": bake.height, "texels": int(problem.n),
+                              "unseen_texels": int((result.samples == 0).sum()), "seen_before_fit": seen_before},
+                    "photos": {"fitted": len(frames), "held_out": len(held)},
+                    "final": {k: last[k] for k in ("iteration", "time_s", "objective", "psnr_db", "ape_percent")},
+                    "lobe_shape": lobe_shape_report(cfg.fit, lay, frames, problem.texels.position),
+                    "seams": seams_info, "setup_s": t_setup, "passes": result.passes, "device": cfg.device,
+                    "render_eval": evals, "heldout": pooled_psnr([e for e in evals if e["held_out"]]),
+                    "units": UNITS[lay.kind]}
+        write_model_folder(tmp, grid, lay, seen.reshape(bake.height, bake.width), result.trace,
+                           f"{lay.kind} fit, {cfg.fit.optimizer}, {cfg.device}", manifest, cfg)
     return StageResult(Path(out_dir), {"psnr_db": last["psnr_db"], "iterations": last["iteration"],
                                        "time_s": last["time_s"], "texels": problem.n, "photos": len(frames),
                                        "render_eval": evals})
+
+
+def check_output_path(out_dir: str | Path) -> None:
+    """Fail before any work when the output path cannot become a folder."""
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError("output path exists and is not a folder", out, "choose another -o path")
 
 
 def load_model(model_dir: str | Path):
@@ -308,25 +342,37 @@ def load_model(model_dir: str | Path):
 
 
 def eval_stage(model_dir: str | Path, capture_dir: str | Path, device: str = "cpu",
-               out_json: str | Path | None = None) -> StageResult:
-    """Render the model for every frame of a capture; PSNR / APE on foreground pixels."""
+               out_json: str | Path | None = None, holdout_every: int = 0) -> StageResult:
+    """Render the model for the frames of a capture (all, or the held-out ones of the fit's split with
+    ``holdout_every``); PSNR / APE on foreground pixels, pooled over the views and the worst view."""
     from texstream.capture.capture_json import read_capture
     from texstream.capture.imageio import read_image, read_mask
 
+    from .model_folder import check_render, pooled_psnr
+
     mesh, grid, lay, _ = load_model(model_dir)
     capture = read_capture(capture_dir)
+    frames = split_holdout(capture.frames, holdout_every)[1] if holdout_every > 0 else capture.frames
+    if not frames:
+        raise InputError(f"no frame is held out with --holdout-every {holdout_every}", Path(capture_dir) / "capture.json",
+                         "use a smaller --holdout-every, or 0 for every frame")
     rows = []
-    for f in capture.frames:
+    for f in frames:
         photo = read_image(capture.image_path(f), channels=3)
         rend, rmask = render_model(mesh, grid, lay, f, device)
+        check_render(rend, f.file_path)
         m = rmask.astype(bool)
         mp = capture.mask_path(f)
         if mp is not None and mp.exists():
             m &= read_mask(mp, rmask.shape)
         rows.append({"frame": f.file_path, **image_metrics(rend, photo, m)})
     mse_all = [10 ** (-r["psnr_db"] / 10) for r in rows if r["pixels"]]
-    summary = {"frames": len(rows), "mean_psnr_db": float(np.mean([r["psnr_db"] for r in rows if r["pixels"]])),
+    pooled = pooled_psnr(rows)
+    summary = {"frames": len(rows), "holdout_every": holdout_every,
+               "mean_psnr_db": float(np.mean([r["psnr_db"] for r in rows if r["pixels"]])),
                "psnr_of_mean_mse_db": float(-10 * np.log10(np.mean(mse_all))) if mse_all else float("nan"),
+               "pooled_psnr_db": pooled["pooled_psnr_db"], "worst_psnr_db": pooled["worst_psnr_db"],
+               "worst_view": pooled.get("worst_view"),
                "mean_ape_percent": float(np.mean([r["ape_percent"] for r in rows if r["pixels"]])), "per_frame": rows}
     out = Path(out_json) if out_json else Path(model_dir) / f"eval_{Path(capture_dir).resolve().name}.json"
     write_json_atomic(out, summary)

@@ -266,7 +266,8 @@ def seam_gaps(grid: np.ndarray, seams: Seams) -> np.ndarray:
 
 
 def average_across_seams(grid: np.ndarray, seams: Seams, padding_cost: float = 1e-3,
-                         eps: float = 1e-9) -> np.ndarray:
+                         eps: float = 1e-9, lower: np.ndarray | None = None,
+                         upper: np.ndarray | None = None, max_rounds: int = 8) -> np.ndarray:
     """The smallest change of ``grid`` after which both sides of every seam render alike (module doc).
 
     Args:
@@ -277,14 +278,16 @@ def average_across_seams(grid: np.ndarray, seams: Seams, padding_cost: float = 1
             singular, and nearly redundant ones ill-conditioned: smaller eps closes the gaps more
             exactly but changes fitted texels more (atlased icosphere, random values in [0, 1]:
             eps 1e-9 leaves gaps below 2e-4, under an 8-bit code value).
+        lower, upper: (P,) bounds of each channel (a model's parameter bounds), or None. The
+            unbounded solution moves cheap padding texels far (a gutter texel between a steep
+            fitted lobe and a flat one can land at n = -5,000), so with bounds a channel whose
+            solution leaves them is solved again with the offending texels held at their bound
+            (an active set; ``max_rounds`` rounds), and what is still outside is clipped.
 
     Returns:
         A new array of the same shape and dtype: padding refilled from the fill sources, then the
-        texels seam lookups read adjusted; all other texels unchanged.
+        texels seam lookups read adjusted; all other texels unchanged; inside the bounds when given.
     """
-    import scipy.sparse as sp
-    from scipy.sparse.linalg import splu
-
     flat, shape = _flat(grid, seams.width, seams.height)
     out = flat.astype(np.float64).copy()
     fs = seams.fill_source
@@ -292,20 +295,52 @@ def average_across_seams(grid: np.ndarray, seams: Seams, padding_cost: float = 1
     out[ok] = out[fs[ok]]
     if seams.n_samples:
         cols = seams.texels()
-        k = seams.n_samples
-        rows = np.repeat(np.arange(k), 4)
-        ca = np.searchsorted(cols, seams.idx_a.reshape(-1))
-        cb = np.searchsorted(cols, seams.idx_b.reshape(-1))
-        c = sp.coo_matrix((np.concatenate([seams.w_a.reshape(-1), -seams.w_b.reshape(-1)]),
-                           (np.concatenate([rows, rows]), np.concatenate([ca, cb]))), shape=(k, len(cols))).tocsr()
-        c.sum_duplicates()
-        c.eliminate_zeros()
+        c = _constraint_matrix(seams, cols)
+        base_inv_cost = np.where(fs[cols] == cols, 1.0, 1.0 / float(padding_cost))
         x0 = out[cols]
-        inv_cost = np.where(fs[cols] == cols, 1.0, 1.0 / float(padding_cost))
-        cd = c @ sp.diags(inv_cost)
-        m = (cd @ c.T).tocsc()
-        scale = float(m.diagonal().mean()) or 1.0
-        lu = splu((m + eps * scale * sp.identity(k, format="csc")).tocsc())
-        lam = lu.solve(np.asarray(c @ x0))
-        out[cols] = x0 - np.asarray(cd.T @ lam)
+        x = _seam_solve(c, base_inv_cost, x0, eps)
+        if lower is not None or upper is not None:
+            lo = np.broadcast_to(-np.inf if lower is None else np.asarray(lower, np.float64), (x.shape[1],))
+            hi = np.broadcast_to(np.inf if upper is None else np.asarray(upper, np.float64), (x.shape[1],))
+            for ch in range(x.shape[1]):
+                x0c = np.clip(x0[:, ch:ch + 1], lo[ch], hi[ch])  # fitted values are in bounds; keep them so
+                xc = x[:, ch:ch + 1]
+                held = np.zeros(len(cols), bool)
+                for _ in range(max_rounds):
+                    outside = ((xc[:, 0] < lo[ch]) | (xc[:, 0] > hi[ch])) & ~held
+                    if not outside.any():
+                        break
+                    held |= outside
+                    x0c[outside, 0] = np.where(xc[outside, 0] < lo[ch], lo[ch], hi[ch])
+                    xc = _seam_solve(c, np.where(held, 0.0, base_inv_cost), x0c, eps)
+                x[:, ch] = np.clip(xc[:, 0], lo[ch], hi[ch])
+        out[cols] = x
     return out.astype(np.asarray(grid).dtype, copy=False).reshape(shape)
+
+
+def _constraint_matrix(seams: Seams, cols: np.ndarray):
+    """Sparse (K, len(cols)) matrix of the seam rows over the texels they read (module doc)."""
+    import scipy.sparse as sp
+
+    k = seams.n_samples
+    rows = np.repeat(np.arange(k), 4)
+    ca = np.searchsorted(cols, seams.idx_a.reshape(-1))
+    cb = np.searchsorted(cols, seams.idx_b.reshape(-1))
+    c = sp.coo_matrix((np.concatenate([seams.w_a.reshape(-1), -seams.w_b.reshape(-1)]),
+                       (np.concatenate([rows, rows]), np.concatenate([ca, cb]))), shape=(k, len(cols))).tocsr()
+    c.sum_duplicates()
+    c.eliminate_zeros()
+    return c
+
+
+def _seam_solve(c, inv_cost: np.ndarray, x0: np.ndarray, eps: float) -> np.ndarray:
+    """x = x0 - D^-1 C^T (C D^-1 C^T + eps s I)^-1 C x0 (texels with inverse cost 0 do not move)."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
+    cd = c @ sp.diags(inv_cost)
+    m = (cd @ c.T).tocsc()
+    scale = float(m.diagonal().mean()) or 1.0
+    lu = splu((m + eps * scale * sp.identity(c.shape[0], format="csc")).tocsc())
+    lam = lu.solve(np.asarray(c @ x0))
+    return x0 - np.asarray(cd.T @ lam)

@@ -39,6 +39,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--holdout-every", dest="holdout_every", type=int, default=0,
                         help="hold out every k-th photo for evaluation (default: 0 = none)")
     parser.add_argument("--renders", type=int, default=4, help="photos rendered beside the fit (default: 4)")
+    parser.add_argument("--min-seen-fraction", dest="min_seen_fraction", type=float, default=0.01,
+                        help="fail before fitting when fewer than this fraction of texels is seen (default: 0.01)")
     add_config_arguments(parser, FitConfig)  # with the four above: the fields of FitStageConfig
 
 
@@ -57,7 +59,8 @@ def run(args: argparse.Namespace) -> int:
                          args.capture, "add --mesh ATLAS_OR_MESH or --normals NORMAL_MAP")
     if args.normals is not None:
         return _run_single_view(args, fit_cfg)
-    cfg = FitStageConfig(fit=fit_cfg, **{k: getattr(args, k) for k in ("device", "texture_size", "holdout_every", "renders")
+    cfg = FitStageConfig(fit=fit_cfg, **{k: getattr(args, k) for k in ("device", "texture_size", "holdout_every", "renders",
+                                                                  "min_seen_fraction")
                                          if hasattr(args, k)})
     res = fit_stage(args.capture, args.mesh, args.out, cfg)
     s = res.summary

@@ -157,3 +157,71 @@ def test_cli_prints_one_line_for_a_corrupt_seams_file(capture_and_atlas, capsys,
     err = capsys.readouterr().err.strip()
     assert rc == 1 and len(err.splitlines()) == 1 and SEAMS_FILE in err, err
     assert not (root / "model_cli").exists()
+
+
+def fake_fit(make_params):
+    """A stand-in for the fit returning ``make_params(n, layout)`` (the texels' parameters) with a
+    one-row trace: the stage's post-processing and checks see exactly those values."""
+    from texstream.fit.fitter import FitResult
+
+    def run(problem, fit, progress):
+        lay = problem.layout
+        trace = [{"iteration": 0, "time_s": 0.0, "objective": 1.0, "psnr_db": 30.0, "ape_percent": 1.0}]
+        return FitResult(params=make_params(problem.n, lay), samples=np.ones(problem.n, np.int64), trace=trace,
+                         layout=lay, passes=1)
+    return run
+
+
+def test_extreme_fitted_values_stay_in_bounds_through_the_seam_averaging(capture_and_atlas, monkeypatch):
+    """Neighbouring texels at opposite ends of every parameter's range (what real photos under a
+    guessed light produced): the written maps stay inside the bounds, every texel."""
+    from texstream.capture.synth import read_param_maps
+
+    root = capture_and_atlas
+
+    def extremes(n, lay):
+        pick = np.random.default_rng(5).random((n, lay.n_params)) < 0.5
+        return np.where(pick, lay.lower(), lay.upper())
+
+    monkeypatch.setattr("texstream.fit.stage.run_fit_with_progress", fake_fit(extremes))
+    fit_stage(root / "cap", root / "atlas", root / "model_extreme", stage_config(), progress=False)
+    man = json.loads((root / "model_extreme" / "model.json").read_text())
+    lay = ModelLayout.from_json(man["layout"])
+    grid = read_param_maps(root / "model_extreme", lay)
+    # float32 maps of the float64 bounds: a relative 1e-6 of slack
+    tol = 1e-6 * np.maximum(1.0, np.abs(lay.upper()))
+    assert np.all(grid >= lay.lower() - tol) and np.all(grid <= lay.upper() + tol)
+
+
+@pytest.mark.parametrize("bad_value", [-5000.0, np.nan])
+def test_a_model_out_of_bounds_or_not_finite_is_never_written(capture_and_atlas, monkeypatch, bad_value):
+    from texstream.core.errors import StageError
+
+    root = capture_and_atlas
+    seam_texels = set(Seams.load(root / "atlas" / SEAMS_FILE).texels().tolist())
+
+    def run(problem, fit, progress):
+        res = fake_fit(lambda n, lay: np.tile(lay.defaults(), (n, 1)))(problem, fit, progress)
+        # a texel no seam lookup reads: the seam averaging leaves it as the fit wrote it
+        i = next(k for k, g in enumerate(problem.texels.grid_index) if int(g) not in seam_texels)
+        res.params[i, problem.layout.index("lobe0.n")] = bad_value
+        return res
+
+    monkeypatch.setattr("texstream.fit.stage.run_fit_with_progress", run)
+    out = root / "model_bad"
+    with pytest.raises(StageError) as e:
+        fit_stage(root / "cap", root / "atlas", out, stage_config(), progress=False)
+    msg = e.value.one_line()
+    assert "texels" in msg and "lobe0.n" in msg and "nothing was written" in msg, msg
+    assert not out.exists() and not list(root.glob(".model_bad.*"))
+
+
+def test_a_capture_whose_texels_are_almost_unseen_fails_before_fitting(capture_and_atlas, monkeypatch):
+    from texstream.core.errors import StageError
+
+    root = capture_and_atlas
+    monkeypatch.setattr("texstream.fit.stage.run_fit_with_progress", no_fitting)
+    cfg = dataclasses.replace(stage_config(), min_seen_fraction=1.01)  # more than every texel: always too few
+    with pytest.raises(StageError, match="texels .* are seen by any photo") as e:
+        fit_stage(root / "cap", root / "atlas", root / "model_unseen", cfg, progress=False)
+    assert "capture.json" in e.value.one_line() and not (root / "model_unseen").exists()

@@ -1,0 +1,164 @@
+"""The model folder: one writer for every fit stage, and the checks a model passes before it is written.
+
+A model folder holds the parameter maps (EXR, :func:`texstream.capture.synth.write_param_maps`),
+``seen.png`` (texels no photo saw keep their defaults and are flagged here), ``trace.json`` and
+``error_vs_time.png`` (error against run time), ``renders/`` (fitted renders beside photos),
+``model.json`` (kind, parameter layout, figures) and the stage's resolved config. Stages add their
+geometry (a mesh and bake, or a normal map) beside these.
+
+Nothing out of bounds or non-finite is ever written: :func:`check_model` runs on the maps and on
+the renders before the folder is moved into place, and fails with the count and the cause.
+
+numpy at module level; OpenImageIO (through capture.imageio) and matplotlib inside functions.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from texstream.core.config import save_config
+from texstream.core.errors import StageError
+from texstream.core.outputs import write_json_atomic
+
+from .models import ModelLayout
+
+# relative slack on the bounds: float32 maps of float64 fits, and seam averaging's eps residual
+BOUND_SLACK = 1e-5
+
+
+def check_model(grid: np.ndarray, layout: ModelLayout, what: str = "model") -> None:
+    """Raise StageError unless every value of ``grid`` (..., P) is finite and inside its bounds."""
+    flat = np.asarray(grid, np.float64).reshape(-1, layout.n_params)
+    bad_finite = ~np.isfinite(flat)
+    if bad_finite.any():
+        cols = sorted({layout.names[c] for c in np.nonzero(bad_finite.any(axis=0))[0]})
+        raise StageError(f"{what} has {int(bad_finite.any(axis=1).sum())} texels with non-finite values "
+                         f"({', '.join(cols)}); nothing was written",
+                         fix="report this with the command that made it; --debug shows where it came from")
+    lo, hi = layout.lower(), layout.upper()
+    slack = BOUND_SLACK * np.maximum(1.0, np.maximum(np.abs(lo), np.abs(hi)))
+    below, above = flat < lo - slack, flat > hi + slack
+    if below.any() or above.any():
+        worst = []
+        for c in np.nonzero((below | above).any(axis=0))[0]:
+            worst.append(f"{layout.names[c]} in [{flat[:, c].min():.6g}, {flat[:, c].max():.6g}] "
+                         f"outside [{lo[c]:g}, {hi[c]:g}]")
+        raise StageError(f"{what} has {int((below | above).any(axis=1).sum())} texels outside the parameter bounds "
+                         f"({'; '.join(worst)}); nothing was written",
+                         fix="report this with the command that made it; --debug shows where it came from")
+
+
+def check_render(image: np.ndarray, frame_name: str) -> None:
+    """Raise StageError when a render of the model holds a non-finite or negative value."""
+    bad = ~np.isfinite(image) | (image < 0)
+    if bad.any():
+        raise StageError(f"the render of {frame_name} has {int(bad.any(axis=-1).sum())} pixels that are negative or "
+                         "not finite; nothing was written", fix="report this with the command that made it")
+
+
+def json_safe(value: Any) -> Any:
+    """``value`` with non-finite floats as None, recursively (JSON has no inf: a fit whose samples
+    it reproduces exactly records an infinite PSNR)."""
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, (float, np.floating)) and not math.isfinite(value):
+        return None
+    return value
+
+
+def plot_trace(trace: list[dict], path: Path, title: str) -> None:
+    """Objective and sample PSNR against wall time (the error-against-run-time plot)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
+    t = [r["time_s"] for r in trace]
+    ax[0].semilogy(t, [max(r["objective"], 1e-300) for r in trace], "o-", ms=3)
+    ax[0].set_xlabel("wall time (s)")
+    ax[0].set_ylabel("objective")
+    ax[1].plot(t, [r["psnr_db"] if math.isfinite(r["psnr_db"]) else float("nan") for r in trace], "o-", ms=3)
+    ax[1].set_xlabel("wall time (s)")
+    ax[1].set_ylabel("sample PSNR (dB)")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def image_metrics(render: np.ndarray, photo: np.ndarray, mask: np.ndarray, peak: float = 1.0) -> dict:
+    """PSNR (dB, against ``peak``) and APE (%) over foreground pixels."""
+    m = mask.astype(bool)
+    if not m.any():
+        return {"psnr_db": float("nan"), "ape_percent": float("nan"), "pixels": 0}
+    d = (render[m] - photo[m]).astype(np.float64)
+    mse = float(np.mean(d * d))
+    ape = 100.0 * float(np.abs(d).sum() / max(np.abs(photo[m]).sum(), 1e-300))
+    return {"psnr_db": 10 * math.log10(peak * peak / mse) if mse > 0 else float("inf"), "ape_percent": ape,
+            "pixels": int(m.sum())}
+
+
+def pooled_psnr(views: Sequence[dict], peak: float = 1.0) -> dict:
+    """Held-out error as users meet it: the PSNR of the pixel-weighted mean squared error over the
+    views, the worst view and the mean of the per-view PSNRs (which hides a broken view)."""
+    rows = [v for v in views if v.get("pixels")]
+    if not rows:
+        return {"views": 0, "pooled_psnr_db": None, "worst_psnr_db": None, "mean_psnr_db": None}
+    mse = [peak * peak * 10 ** (-v["psnr_db"] / 10) for v in rows]
+    w = np.array([v["pixels"] for v in rows], np.float64)
+    pooled = float(np.dot(mse, w) / w.sum())
+    worst = min(rows, key=lambda v: v["psnr_db"])
+    return {"views": len(rows), "pooled_psnr_db": 10 * math.log10(peak * peak / pooled) if pooled > 0 else float("inf"),
+            "worst_psnr_db": worst["psnr_db"], "worst_view": worst.get("frame"),
+            "mean_psnr_db": float(np.mean([v["psnr_db"] for v in rows]))}
+
+
+def render_comparisons(folder: Path, frames: Sequence, photos: Sequence[np.ndarray], held: Sequence,
+                       render: Callable[[Any], tuple[np.ndarray, np.ndarray]]) -> list[dict]:
+    """Render the model for each frame (``render(frame)`` -> (image, foreground mask)), check the
+    render, score it against the photo and write ``<frame>_fit_vs_photo.png`` into ``folder``."""
+    from texstream.capture.imageio import write_image
+
+    folder.mkdir(exist_ok=True)
+    rows = []
+    for f, photo in zip(frames, photos):
+        image, mask = render(f)
+        check_render(image, f.file_path)
+        rows.append({"frame": f.file_path, "held_out": f in held, **image_metrics(image, photo, mask)})
+        write_image(folder / f"{f.name}_fit_vs_photo.png", np.clip(np.concatenate([image, photo], axis=1), 0, 1), bits=8)
+    return rows
+
+
+def write_model_folder(folder: Path, grid: np.ndarray, layout: ModelLayout, seen: np.ndarray, trace: list[dict],
+                       title: str, manifest: dict, config: Any) -> dict[str, str]:
+    """Write the maps, seen.png, trace, error-against-time plot, model.json and the config into
+    ``folder`` (a stage's temporary output folder), after :func:`check_model`.
+
+    Args:
+        grid: (H, W, P) parameter maps (padding filled).
+        seen: (H, W) bool, texels some photo saw.
+        manifest: model.json's stage-specific fields; kind, layout and maps are added here.
+        config: the stage's resolved config, saved as fit_config.json.
+
+    Returns:
+        The map files by name (as model.json lists them).
+    """
+    from texstream.capture.imageio import write_image
+    from texstream.capture.synth import write_param_maps
+
+    check_model(grid, layout)
+    files = write_param_maps(folder, grid, layout)
+    write_image(folder / "seen.png", np.repeat(seen.astype(np.float32)[..., None], 3, axis=2), bits=8)
+    write_json_atomic(folder / "trace.json", json_safe(trace))
+    plot_trace(trace, folder / "error_vs_time.png", title)
+    write_json_atomic(folder / "model.json",
+                      json_safe({"kind": layout.kind, "layout": layout.to_json(), "maps": files, **manifest}))
+    save_config(config, folder / "fit_config.json")
+    return files
