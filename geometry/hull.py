@@ -39,6 +39,14 @@ class HullConfig:
                                                   "assumed whole in every photo); off: such views say nothing")
     margin: float = option(0.05, help="bounding box padding, fraction of its diagonal")
     clean: bool = option(True, help="clean the marching-cubes surface (weld, orient outwards)")
+    fill_holes: float = option(0.01, help="fill holes in each mask smaller than this fraction of its object area "
+                                          "before carving (0: off); a hole in one mask carves a tunnel through the "
+                                          "hull along that view (the Middlebury temple's threshold masks have holes "
+                                          "of up to 205 px in 70,000 px silhouettes; its real gaps between the "
+                                          "columns are 8,000 px, 11%)")
+    closing: int = option(1, help="morphological closing of the carved field with a ball of this radius in grid "
+                                  "cells before marching cubes (0: off): closes tunnels and gaps narrower than "
+                                  "about two cells that voxel carving and mask noise leave")
 
 
 @wp.kernel(enable_backward=False)
@@ -92,6 +100,38 @@ def _mesh_sdf_kernel(mesh: wp.uint64, lo: wp.vec3, step: wp.vec3, max_dist: floa
         field[x, y, z] = wp.min(field[x, y, z], -q.sign * d)
     else:
         field[x, y, z] = wp.min(field[x, y, z], -d)
+
+
+def fill_small_holes(mask: np.ndarray, max_fraction: float) -> np.ndarray:
+    """The mask with its holes (background regions not touching the image border) smaller than
+    ``max_fraction`` of its object area filled."""
+    from scipy.ndimage import label
+
+    m = np.asarray(mask).astype(bool)
+    if max_fraction <= 0 or not m.any():
+        return m
+    lab, n = label(~m)
+    if n == 0:
+        return m
+    sizes = np.bincount(lab.reshape(-1), minlength=n + 1)
+    small = sizes < max_fraction * float(m.sum())
+    small[0] = False
+    small[np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))] = False
+    return m | small[lab]
+
+
+def close_field(field: np.ndarray, radius: int) -> np.ndarray:
+    """Grey-scale morphological closing (max then min filter over a ball of ``radius`` cells) of a field
+    that is positive inside: the inside set gets closed, so tunnels and gaps narrower than about
+    ``2 * radius`` cells fill while the surface elsewhere stays where it was."""
+    from scipy.ndimage import grey_closing
+
+    if radius <= 0:
+        return field
+    r = int(radius)
+    g = np.mgrid[-r:r + 1, -r:r + 1, -r:r + 1]
+    ball = (g ** 2).sum(axis=0) <= r * r + r  # r = 1: the 3x3x3 cube minus its corners
+    return grey_closing(field, footprint=ball, mode="nearest")
 
 
 def mask_sdf(mask: np.ndarray) -> np.ndarray:
@@ -173,7 +213,7 @@ def _occupied_bounds(field: np.ndarray, lo: np.ndarray, step: np.ndarray) -> tup
 
 def visual_hull(frames: Sequence, masks: Sequence[np.ndarray], config: HullConfig | None = None,
                 device: str = "cpu", bounds: tuple[np.ndarray, np.ndarray] | None = None,
-                intersect: SurfaceMesh | None = None) -> SurfaceMesh:
+                intersect: SurfaceMesh | None = None, report: dict | None = None) -> SurfaceMesh:
     """Visual hull of object masks seen by posed pinhole cameras.
 
     Args:
@@ -183,6 +223,8 @@ def visual_hull(frames: Sequence, masks: Sequence[np.ndarray], config: HullConfi
         device: Warp device.
         bounds: (lo, hi) world box holding the object; estimated from the cameras when None.
         intersect: a closed mesh to intersect the hull with (e.g. the Poisson surface).
+        report: when given, receives the mask holes filled and the genus of the marching-cubes surface
+            without and with the closing (one more marching-cubes pass).
 
     Returns:
         The hull surface (outward faces when ``config.clean``).
@@ -201,7 +243,10 @@ def visual_hull(frames: Sequence, masks: Sequence[np.ndarray], config: HullConfi
             raise InputError(f"mask of {f.file_path} is {np.asarray(m).shape[:2]} but the image is "
                              f"{(f.intrinsics.height, f.intrinsics.width)}", f.mask_path,
                              "write masks at the image resolution")
-    sdfs = [mask_sdf(m) for m in masks]
+    filled = [fill_small_holes(m, cfg.fill_holes) for m in masks]
+    if report is not None:
+        report["mask_pixels_filled"] = int(sum(int(fm.sum() - np.count_nonzero(m)) for fm, m in zip(filled, masks)))
+    sdfs = [mask_sdf(m) for m in filled]
     if bounds is None:
         centre, dist = axes_convergence(frames)
         half = 0.75 * dist  # the object lies between the cameras; a cube reaching 3/4 of the way out
@@ -234,16 +279,31 @@ def visual_hull(frames: Sequence, masks: Sequence[np.ndarray], config: HullConfi
         raise StageError("the visual hull is empty (the masks and cameras disagree everywhere)",
                          fix="check the poses and masks, or use --from sfm or --from scan.obj")
     f = np.clip(f, -10 * step[0], 10 * step[0])  # clamp the 1e30 sentinels before interpolation
-    dims = f.shape
-    upper = lo + step * (np.array(dims) - 1)
-    verts, idx = wp.MarchingCubes.extract(wp.array(-f, dtype=wp.float32, device=device), 0.0,
-                                          lower=tuple(lo.astype(np.float32)), upper=tuple(upper.astype(np.float32)))
-    mesh = SurfaceMesh(verts.numpy().astype(np.float64), idx.numpy().reshape(-1, 3).astype(np.int32))
+    if report is not None and cfg.closing > 0:
+        from .scene import genus_by_component
+
+        report["genus_before_closing"] = genus_by_component(_extract(f, lo, step, device))["total"]
+    f = close_field(f, cfg.closing)
+    f[0, :, :] = f[-1, :, :] = f[:, 0, :] = f[:, -1, :] = f[:, :, 0] = f[:, :, -1] = -10 * step[0]
+    mesh = _extract(f, lo, step, device)
+    if report is not None:
+        from .scene import genus_by_component
+
+        report["closing_cells"] = int(cfg.closing)
+        report["genus"] = genus_by_component(mesh)["total"]
     if cfg.clean:
         from .clean import CleanConfig, clean_mesh
 
         mesh, _ = clean_mesh(mesh, CleanConfig(hausdorff=False, max_hole_edges=0))
     return mesh
+
+
+def _extract(f: np.ndarray, lo: np.ndarray, step: np.ndarray, device: str) -> SurfaceMesh:
+    """Marching cubes of the zero level set of a field that is positive inside."""
+    upper = lo + step * (np.array(f.shape) - 1)
+    verts, idx = wp.MarchingCubes.extract(wp.array(-f, dtype=wp.float32, device=device), 0.0,
+                                          lower=tuple(lo.astype(np.float32)), upper=tuple(upper.astype(np.float32)))
+    return SurfaceMesh(verts.numpy().astype(np.float64), idx.numpy().reshape(-1, 3).astype(np.int32))
 
 
 def load_masks(capture) -> list[np.ndarray]:

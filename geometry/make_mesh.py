@@ -63,6 +63,21 @@ class MeshConfig:
                                            "points3D.ply: auto (when it has masks and its photos), on, off",
                               choices=("auto", "on", "off"))
     device: str = option("cpu", help="Warp device for hull carving and depth maps (cpu, cuda:0)")
+    scene_kind: str = option("auto", help="SfM points of a scene (cameras inside the points' extent: crop Poisson to "
+                                          "it) or of an object (cameras around it: closed surface); auto decides "
+                                          "from where the cameras stand (geometry/scene.py)",
+                             choices=("auto", "scene", "object"))
+    crop_percentile: float = option(2.0, help="robust extent of the SfM points: this percentile to 100 minus it on "
+                                              "each axis (outliers do not stretch it)")
+    crop_margin: float = option(0.05, help="margin around the robust extent, fraction of its diagonal")
+    trim_spacing: float = option(4.0, help="scene: drop surface farther from every SfM point than this many times "
+                                           "the points' spacing (median 8th-neighbour distance) or one Poisson cell")
+    facing_rays: int = option(48, help="camera rays along the longer image side for the facing check")
+    max_back_faces: float = option(0.05, help="fail when more than this fraction of camera rays hit back faces after "
+                                              "orientation (a closed mesh seen from outside has none; open scene "
+                                              "surfaces and grazing rays along thin parts give a few)")
+    fill_holes: float = option(0.01, help="hull: fill mask holes smaller than this fraction of the object area")
+    closing: int = option(1, help="hull: morphological closing radius in grid cells (closes voxel-scale tunnels)")
 
 
 def _capture_bounds(capture):
@@ -204,13 +219,18 @@ def make_mesh(capture_dir: str | os.PathLike | None, out: str | os.PathLike,
     else:
         from .hull import HullConfig, visual_hull
 
-        mesh = visual_hull(capture.frames, masks, HullConfig(resolution=cfg.hull_resolution), cfg.device,
-                           bounds=_capture_bounds(capture))
+        mesh = visual_hull(capture.frames, masks, _hull_config(cfg), cfg.device, bounds=_capture_bounds(capture),
+                           report=report.setdefault("hull", {}))
     cleaned, clean_rep = clean_mesh(mesh, CleanConfig(target_faces=cfg.faces, remesh=cfg.remesh,
                                                       max_hole_edges=cfg.max_hole_edges),
                                     path=cfg.mesh or capture_dir)
     report["clean"] = clean_rep.to_json()
-    report["summary"] = clean_rep.summary()
+    if capture is not None:
+        cleaned = _check_against_cameras(cleaned, capture, cfg, report, cfg.mesh or capture_dir)
+    from .scene import genus_by_component
+
+    report["genus"] = genus_by_component(cleaned)
+    report["summary"] = clean_rep.summary() + _facing_summary(report)
     report["seconds"] = round(time.perf_counter() - t0, 3)
     from .mesh_io import save_mesh
 
@@ -223,6 +243,89 @@ def make_mesh(capture_dir: str | os.PathLike | None, out: str | os.PathLike,
         write_json_atomic(tmp / "mesh_report.json", report)
         save_config(cfg, tmp / "mesh_config.json")
     return StageResult(output=Path(out), summary=report)
+
+
+def _hull_config(cfg: MeshConfig):
+    from .hull import HullConfig
+
+    return HullConfig(resolution=cfg.hull_resolution, fill_holes=cfg.fill_holes, closing=cfg.closing)
+
+
+def _capture_kind(cfg: MeshConfig, pts: np.ndarray, centres: np.ndarray) -> dict:
+    """The scene / object decision (geometry/scene.py) with its reason, as JSON."""
+    from .scene import classify_capture
+
+    ck = classify_capture(pts, centres, cfg.crop_percentile, cfg.crop_margin).to_json()
+    if cfg.scene_kind != "auto":
+        ck["detected"] = ck["kind"]
+        ck["kind"] = cfg.scene_kind
+        ck["reason"] = f"--scene-kind {cfg.scene_kind} (detected {ck['detected']}: {ck['reason']})"
+    return ck
+
+
+def _crop_scene(mesh: SurfaceMesh, pts: np.ndarray, cfg: MeshConfig, pcfg, report: dict) -> SurfaceMesh:
+    """The Poisson surface of a scene cropped to the points' robust box and trimmed to where points are."""
+    from .scene import crop_to_box, point_spacing, robust_box, trim_far_from_points
+
+    lo, hi = robust_box(pts, cfg.crop_percentile, cfg.crop_margin)
+    inside = pts[np.all((pts >= lo) & (pts <= hi), axis=1)]
+    faces0 = mesh.n_faces
+    mesh = crop_to_box(mesh, lo, hi)
+    cropped = mesh.n_faces
+    # one Poisson cell: the surface's own resolution over the bounding cube of the points
+    cell = pcfg.scale * float(np.ptp(pts, axis=0).max()) / 2 ** pcfg.depth
+    spacing = point_spacing(inside)
+    dist = max(cfg.trim_spacing * spacing, cell)
+    mesh = trim_far_from_points(mesh, inside, dist)
+    report["scene_crop"] = {"box_lo": lo.tolist(), "box_hi": hi.tolist(), "poisson_faces": faces0,
+                            "after_box": cropped, "after_trim": mesh.n_faces, "point_spacing": spacing,
+                            "trim_distance": dist}
+    if mesh.n_faces == 0:
+        from texstream.core.errors import StageError
+
+        raise StageError("nothing of the Poisson surface lies near the SfM points inside their robust extent",
+                         fix="check the points (points3D.ply), or raise --trim-spacing")
+    return mesh
+
+
+def _check_against_cameras(mesh: SurfaceMesh, capture, cfg: MeshConfig, report: dict, path) -> SurfaceMesh:
+    """Orient components towards the cameras that see them; fix or reject a surface enclosing an object's cameras;
+    fail when camera rays still hit back faces (geometry/scene.py)."""
+    from texstream.core.errors import StageError
+
+    from .scene import camera_facing, cameras_enclosed, check_facing, orient_to_cameras
+
+    centres = np.array([f.center for f in capture.frames])
+    # objects (SfM points with cameras around them, or a hull) must not enclose a camera; scenes and scans may
+    kind = report.get("capture_kind", {}).get("kind", "object" if report["source"] == "hull" else "unknown")
+    enclosed = cameras_enclosed(mesh, centres)
+    report["cameras_enclosed"] = int(enclosed.sum())
+    if kind == "object" and enclosed.any():
+        raise StageError(f"the {report['source']} surface encloses {int(enclosed.sum())} of {len(centres)} cameras of "
+                         "an object capture", path,
+                         "check the poses and masks, or use --scene-kind scene (cropped to the SfM points)")
+    mesh, rep = orient_to_cameras(mesh, capture.frames, cfg.device, cfg.facing_rays)
+    report["facing"] = rep
+    check_facing(camera_facing(mesh, capture.frames, cfg.device, cfg.facing_rays) if rep["flipped_components"]
+                 else _facing_of(rep), cfg.max_back_faces, path)
+    return mesh
+
+
+def _facing_of(rep: dict):
+    from .scene import Facing
+
+    b = rep["after"]
+    return Facing(np.array([b["hits"] - b["back_hits"]]), np.array([b["back_hits"]]), b["rays"])
+
+
+def _facing_summary(report: dict) -> str:
+    f = report.get("facing")
+    if not f:
+        return ""
+    s = f", {100 * f['after']['back_fraction']:.2f}% of camera rays on back faces"
+    if f["flipped_components"]:
+        s += f" ({f['flipped_components']} component(s) flipped)"
+    return s
 
 
 def _place_scan(mesh: SurfaceMesh, capture, cfg: MeshConfig) -> tuple[SurfaceMesh, dict]:
@@ -260,10 +363,14 @@ def _from_sfm(capture, cfg: MeshConfig, masks, report: dict) -> tuple[SurfaceMes
         new_points = (pts, nrm)
         pts_path = capture.root / "capture.json"  # messages name what the points came from
     centres = np.array([f.center for f in capture.frames])
-    intersect = masks is not None and cfg.intersect_hull
-    # intersected with the hull, Poisson stays closed (no density trim): the hull cuts the invented parts
+    kind = _capture_kind(cfg, pts, centres)
+    report["capture_kind"] = kind
+    scene = kind["kind"] == "scene"
+    intersect = masks is not None and cfg.intersect_hull and not scene
+    # intersected with the hull, Poisson stays closed (no density trim): the hull cuts the invented parts;
+    # a scene is cropped and trimmed to its points instead
     pcfg = PoissonConfig(depth=cfg.poisson_depth)
-    if intersect:
+    if intersect or scene:
         pcfg.density_quantile = 0.0
     try:
         mesh = poisson_reconstruct(pts, nrm, centres, pcfg, pts_path)
@@ -274,9 +381,20 @@ def _from_sfm(capture, cfg: MeshConfig, masks, report: dict) -> tuple[SurfaceMes
 
         report["source"] = "hull"
         report["reason"] = f"too few SfM points ({len(pts)}) for Poisson; the capture has masks, so the visual hull"
-        return visual_hull(capture.frames, masks, HullConfig(resolution=cfg.hull_resolution), cfg.device,
-                           bounds=_capture_bounds(capture)), new_points
+        return visual_hull(capture.frames, masks, _hull_config(cfg), cfg.device, bounds=_capture_bounds(capture),
+                           report=report.setdefault("hull", {})), new_points
     report["points"] = int(len(pts))
+    if scene:
+        return _crop_scene(mesh, pts, cfg, pcfg, report), new_points
+    if not intersect:
+        from .scene import cameras_enclosed
+
+        enclosed = int(cameras_enclosed(mesh, centres).sum())
+        if enclosed:
+            # the closed Poisson surface balloons round the cameras: the fix is the scene treatment
+            report["capture_kind"]["fix"] = (f"the closed Poisson surface enclosed {enclosed} of {len(centres)} "
+                                             "cameras: cropped to the points' robust box and trimmed to the points")
+            mesh = _crop_scene(mesh, pts, cfg, pcfg, report)
     if masks is not None:
         if intersect:
             from .hull import HullConfig, visual_hull
@@ -287,7 +405,7 @@ def _from_sfm(capture, cfg: MeshConfig, masks, report: dict) -> tuple[SurfaceMes
                 # Poisson balloons where there are no points; the grid need not reach far past the object
                 grow = 0.1 * float(np.linalg.norm(box[1] - box[0]))
                 lo, hi = np.maximum(lo, box[0] - grow), np.minimum(hi, box[1] + grow)
-            return visual_hull(capture.frames, masks, HullConfig(resolution=cfg.hull_resolution), cfg.device,
-                               bounds=(lo, hi), intersect=mesh), new_points
+            return visual_hull(capture.frames, masks, _hull_config(cfg), cfg.device, bounds=(lo, hi),
+                               intersect=mesh, report=report.setdefault("hull", {})), new_points
         mesh = trim_by_masks(mesh, capture.frames, masks, cfg.device)
     return mesh, new_points
