@@ -7,7 +7,8 @@ duplicates, groups exposure brackets of one view and merges them to linear HDR (
 Robertson response for 8-bit, weighted linear merge for 16-bit / float), normalises exposure across
 photos from EXIF (``exposure`` = relative t * ISO / N^2, median photo = 1), picks up masks by name
 (``masks/NAME.png``, ``masks/NAME.EXT.png``) or from an alpha channel, and records each photo's
-saturation level.
+saturation level. Photos without a mask get automatic object masks (:mod:`.masks`) when their borders show a
+uniform background (``--auto-masks``; the decision and its reason are in the summary).
 
 Output: ``CAPTURE/images`` (8-bit photos copied as they are so COLMAP still sees their EXIF;
 rotated or merged photos rewritten: 8-bit PNG or float EXR), ``masks/``, ``capture.json`` with
@@ -34,6 +35,7 @@ from texstream.core.outputs import StageResult, atomic_output_dir, write_json_at
 
 from .files import list_images, write_failure_report
 from .lights import load_lights_file
+from .masks import MASK_MODES, MaskConfig
 from .hdr import HDR_METHODS, calibrate_response, group_brackets, merge_brackets_8bit, merge_brackets_linear
 
 REPORT_FILE = "ingest_report.json"
@@ -45,6 +47,11 @@ class IngestConfig:
 
     masks: str | None = option(None, help="mask folder (default: PHOTOS/masks); masks are named NAME.png or NAME.EXT.png, "
                                "nonzero = object")
+    auto_masks: str = option("auto", help="automatic object masks for photos without a mask file or alpha: auto "
+                             "(GrabCut masks only when the photos' borders show a uniform background, e.g. an "
+                             "object on black; the decision and its reason go to the summary), none, border "
+                             "(threshold against the border colour), grabcut (threshold refined by GrabCut)",
+                             choices=MASK_MODES)
     alpha_masks: bool = option(True, help="use a photo's alpha channel as its mask when it has one and no mask file")
     bracket_size: int = option(0, help="photos per exposure bracket: 0 = auto (consecutive photos with different "
                                "exposure times), 1 = no brackets")
@@ -110,6 +117,26 @@ def _find_mask(mask_dir: Path, photo: Path) -> Path | None:
         if c.is_file():
             return c
     return None
+
+
+def _auto_masks(entries: list, cfg: IngestConfig, tmp: Path) -> dict:
+    """Automatic masks (calib/masks.py) for the frames without one; sets their ``mask_path``."""
+    from texstream.capture.imageio import write_image
+
+    from .masks import masks_for_images
+
+    todo = [(fr, src) for fr, _, src in entries if fr.mask_path is None]
+    if not todo:
+        return {"mode": "none", "decision": "every frame has a mask file or alpha", "masks": 0}
+    masks, summary = masks_for_images([src[0] for _, src in todo], MaskConfig(mode=cfg.auto_masks),
+                                      eight_bit_codes=[src[1] for _, src in todo], names=[fr.name for fr, _ in todo])
+    for (fr, _), m in zip(todo, masks):
+        if m is None:
+            continue
+        rel = Path("masks") / (fr.name + ".png")
+        write_image(tmp / rel, np.where(m, np.uint8(255), np.uint8(0)), bits=8)
+        fr.mask_path = str(rel)
+    return summary
 
 
 def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConfig | None = None) -> StageResult:
@@ -236,6 +263,9 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
                     sat = 65534.5 / 65535
                 kind = "photo"
             mask_rel = None
+            # What automatic masks see: the stored photo, upright (8-bit: sRGB codes; else linear).
+            mask_src = (img if len(members) > 1 else apply_orientation(lead["img"], orient),
+                        len(members) == 1 and lead["eight_bit"])
             mp = _find_mask(mask_dir, lead["path"]) if mask_dir.is_dir() else None
             if mp is not None:
                 try:
@@ -279,10 +309,11 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
                                                                         "focal_35mm", "orientation", "make", "model")}
             entries.append((Frame(file_path=str(rel), R=np.eye(3), t=np.zeros(3), intrinsics=intr, light=light,
                                   mask_path=None if mask_rel is None else str(mask_rel), saturation=sat, extra=extra),
-                            gain))
-        gains = [g for _, g in entries if g]
+                            gain, mask_src))
+        auto = _auto_masks(entries, cfg, tmp)
+        gains = [g for _, g, _ in entries if g]
         ref = float(np.median(gains)) if gains and cfg.normalize_exposure else None
-        for fr, g in entries:
+        for fr, g, _ in entries:
             if ref and g:
                 fr.exposure = g / ref
             frames.append(fr)
@@ -293,9 +324,15 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
         report["frames"] = [f.file_path for f in frames]
         report["brackets"] = [[infos[i]["path"].name for i in g] for g in groups if len(g) > 1]
         report["camera_sizes"] = sorted({f"{f.intrinsics.width}x{f.intrinsics.height}" for f in frames})
+        report["auto_masks"] = auto
         write_json_atomic(tmp / REPORT_FILE, report)
         save_config(cfg, tmp / "ingest_config.json")
+        if auto.get("masks"):
+            from .masks import write_mask_preview
+
+            write_mask_preview(tmp)
     summary = {"found": len(files), "frames": len(frames), "brackets": len(report["brackets"]), "dropped": dropped,
                "masks": sum(1 for f in frames if f.mask_path), "intrinsics_source": extra_top["intrinsics_source"],
-               "camera_sizes": report["camera_sizes"]}
+               "camera_sizes": report["camera_sizes"],
+               "auto_masks": {k: auto.get(k) for k in ("mode", "decision", "masks")}}
     return StageResult(output=out, summary=summary)
