@@ -121,18 +121,21 @@ def pooled_psnr(views: Sequence[dict], peak: float = 1.0) -> dict:
 
 
 def render_comparisons(folder: Path, frames: Sequence, photos: Sequence[np.ndarray], held: Sequence,
-                       render: Callable[[Any], tuple[np.ndarray, np.ndarray]]) -> list[dict]:
+                       render: Callable[[Any], tuple[np.ndarray, np.ndarray]], images: int | None = None) -> list[dict]:
     """Render the model for each frame (``render(frame)`` -> (image, foreground mask)), check the
-    render, score it against the photo and write ``<frame>_fit_vs_photo.png`` into ``folder``."""
+    render, score it against the photo and write ``<frame>_fit_vs_photo.png`` into ``folder`` (for
+    the first ``images`` frames; None: all)."""
     from texstream.capture.imageio import write_image
 
     folder.mkdir(exist_ok=True)
     rows = []
-    for f, photo in zip(frames, photos):
+    for k, (f, photo) in enumerate(zip(frames, photos)):
         image, mask = render(f)
         check_render(image, f.file_path)
         rows.append({"frame": f.file_path, "held_out": f in held, **image_metrics(image, photo, mask)})
-        write_image(folder / f"{f.name}_fit_vs_photo.png", np.clip(np.concatenate([image, photo], axis=1), 0, 1), bits=8)
+        if images is None or k < images:
+            write_image(folder / f"{f.name}_fit_vs_photo.png", np.clip(np.concatenate([image, photo], axis=1), 0, 1),
+                        bits=8)
     return rows
 
 

@@ -301,8 +301,10 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     with atomic_output_dir(out_dir) as tmp:
         save_mesh(tmp / "mesh.obj", mesh)
         bake.save(tmp / "bake.npz")
-        show = (held or frames)[: max(cfg.renders, 0)]
-        evals = render_comparisons(tmp / "renders", show, load_photos(capture, show)[0] if show else [], held, render)
+        # every held-out view is scored (pooled and worst-view PSNR); the first `renders` are written as images
+        show = held if held else frames[: max(cfg.renders, 0)]
+        evals = render_comparisons(tmp / "renders", show, load_photos(capture, show)[0] if show else [], held, render,
+                                   images=max(cfg.renders, 0))
         seen = np.zeros(bake.height * bake.width, bool)
         seen[problem.texels.grid_index] = result.samples > 0
         last = result.trace[-1]

@@ -1,8 +1,10 @@
-"""``texstream run``: the main job. With no input it generates the built-in synthetic capture set
-(``--scene``, default the ornament at a small ``--scale``), writes previews, fits the per-texel
-Lafortune model with the streaming Warp backend and writes the model folder (maps, trace,
-error-against-time plot, fitted renders beside held-out photos). The photos-to-model path
-(ingest, register, mesh, atlas, fit) chains the same stage functions (later issue).
+"""``texstream run [PHOTOS] -o OUT``: the main job.
+
+With PHOTOS (a folder of photos, a capture folder, a nerfstudio ``transforms.json`` folder or a
+COLMAP model folder) it runs the end-to-end pipeline of :mod:`texstream.pipelines.run`: ingest,
+register, mesh, atlas, fit, export and report, leaving out what the scene does not need.
+With no input it renders the built-in synthetic capture set (``--scene``, default the ornament at
+a small ``--scale``) and runs the same pipeline on it with its true cameras and mesh.
 """
 
 from __future__ import annotations
@@ -12,41 +14,77 @@ from pathlib import Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", default="out/demo", help="output folder (default: out/demo)")
-    parser.add_argument("--scene", default="ornament", help="built-in synthetic scene (default: ornament)")
+    from texstream.pipelines.run import MODELS, STAGES
+
+    parser.add_argument("photos", nargs="?", default=None,
+                        help="photos, capture, transforms.json or COLMAP folder (default: the built-in synthetic set)")
+    parser.add_argument("-o", "--out", default="out/demo", help="output folder (default: out/demo)")
+    parser.add_argument("--config", default=None, help="run options as TOML (OUT/run_config.toml of an earlier run)")
+    parser.add_argument("--from", dest="from_stage", default=None, choices=STAGES, help="rerun from this stage on")
+    parser.add_argument("--model", default=None, choices=MODELS, help="appearance model (default: auto)")
+    parser.add_argument("--mesh-file", dest="mesh_file", default=None, help="use this mesh instead of one from the photos")
+    parser.add_argument("--device", default=None, help="Warp device (default: cpu)")
+    parser.add_argument("--iterations", type=int, default=None, help="fit iteration cap (default: 30)")
+    parser.add_argument("--optimizer", default=None, choices=("sd", "cg", "lbfgs", "lm"), help="fit method (default: lm)")
+    parser.add_argument("--scene", default="ornament", help="built-in synthetic scene without PHOTOS (default: ornament)")
     parser.add_argument("--scale", type=float, default=0.1,
-                        help="scene scale (default: 0.1: 176 photos of 136x136, 154 fitted and 22 held out; under a "
-                             "minute on 2 CPU cores after the one-off kernel compile)")
-    parser.add_argument("--device", default="cpu", help="Warp device (default: cpu)")
-    parser.add_argument("--optimizer", default="lm", choices=("sd", "cg", "lbfgs", "lm"), help="fit method (default: lm)")
-    parser.add_argument("--iterations", type=int, default=30, help="iteration cap (default: 30)")
-    parser.add_argument("--smooth", type=float, default=0.0,
-                        help="LM lobe-shape smoothness between neighbouring texels (default: 0 = independent texels)")
+                        help="synthetic scene scale (default: 0.1: 176 photos of 136x136, 154 fitted and 22 held out)")
+
+
+def _config(args: argparse.Namespace):
+    import dataclasses
+
+    from texstream.core.toml import read_toml
+    from texstream.pipelines.run import RunConfig, run_config_from_dict
+
+    cfg = run_config_from_dict(read_toml(args.config)) if args.config else RunConfig()
+    if args.config is None:
+        cfg.fit.fit = dataclasses.replace(cfg.fit.fit, max_iterations=30)
+    top = {k: getattr(args, k) for k in ("model", "device", "mesh_file") if getattr(args, k) is not None}
+    fit = {k: v for k, v in (("max_iterations", args.iterations), ("optimizer", args.optimizer)) if v is not None}
+    cfg = dataclasses.replace(cfg, **top)
+    if fit:
+        cfg.fit.fit = dataclasses.replace(cfg.fit.fit, **fit)
+    if cfg.fit.fit.max_iterations < 1:
+        from texstream.core.errors import ConfigError
+
+        raise ConfigError(f"--iterations {cfg.fit.fit.max_iterations} must be at least 1", fix="pass --iterations 30")
+    return cfg
 
 
 def run(args: argparse.Namespace) -> int:
     import warp as wp
 
-    from texstream.capture.synth import SynthConfig, synthesize
-    from texstream.fit.fitter import FitConfig
-    from texstream.fit.penalties import PenaltyConfig
-    from texstream.fit.stage import FitStageConfig, fit_stage
+    from texstream.pipelines.run import run_pipeline
 
     wp.config.log_level = wp.LOG_WARNING
+    wp.config.quiet = True
+    cfg = _config(args)
     out = Path(args.out)
-    cap = out / "capture"
-    print(f"[1/2] synthetic capture set '{args.scene}' at scale {args.scale} -> {cap}", flush=True)
-    s = synthesize(args.scene, cap, SynthConfig(scale=args.scale, device=args.device)).summary
-    print(f"      {s['photos']} photos {s['image_width']}x{s['image_height']}, {s['covered_texels']} texels; "
-          f"previews in {cap}/previews", flush=True)
-    print(f"[2/2] fit ({args.optimizer}) -> {out / 'model'}", flush=True)
-    cfg = FitStageConfig(device=args.device, holdout_every=8,
-                         fit=FitConfig(optimizer=args.optimizer, max_iterations=args.iterations,
-                                       penalties=PenaltyConfig(smooth_weight=args.smooth if args.optimizer == "lm" else 0.0)))
-    res = fit_stage(cap, cap / "ground_truth", out / "model", cfg)
-    r = res.summary
-    print(f"done: {r['iterations']} iterations in {r['time_s']:.1f} s, sample PSNR {r['psnr_db']:.2f} dB; "
-          f"model {out / 'model'} (error_vs_time.png, renders/)")
-    for e in r["render_eval"]:
-        print(f"  {e['frame']}{' (held out)' if e['held_out'] else ''}: render PSNR {e['psnr_db']:.2f} dB")
+    source = args.photos
+    if source is None:
+        from texstream.capture.synth import SynthConfig, synthesize
+
+        source = out / "capture"
+        print(f"[synth] built-in synthetic capture set '{args.scene}' at scale {args.scale} -> {source}", flush=True)
+        s = synthesize(args.scene, source, SynthConfig(scale=args.scale, device=cfg.device)).summary
+        print(f"        {s['photos']} photos {s['image_width']}x{s['image_height']}, {s['covered_texels']} texels",
+              flush=True)
+        if cfg.mesh_file is None:
+            import dataclasses
+
+            cfg = dataclasses.replace(cfg, mesh_file=str(source / "ground_truth"))
+    summary = run_pipeline(source, out, cfg, from_stage=args.from_stage, log=lambda m: print(m, flush=True))
+    h = summary["heldout"] or {}
+    print("\nsummary")
+    for st in summary["stages"]:
+        print(f"  {st['name']:<9} {st['status']:<8} {st['seconds']:6.1f} s  {st['reason']}")
+    if h.get("views"):
+        print(f"  held-out views: {h['views']}, pooled PSNR {h['pooled_psnr_db']:.2f} dB, worst view "
+              f"{h['worst_psnr_db']:.2f} dB ({h.get('worst_view')})")
+    print(f"  model ({summary['model']}): {out / 'model'}")
+    for name, path in (("glTF", out / "export" / "model.glb"), ("report", out / "report" / "index.html")):
+        if path.exists():
+            print(f"  {name}: {path}")
+    print(f"  total {summary['total_s']:.1f} s")
     return 0

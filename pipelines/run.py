@@ -1,0 +1,342 @@
+"""The end-to-end run: photos (or a posed capture) in, a fitted model, exports and a report out.
+
+``run_pipeline(source, out, config)`` chains the stage functions the subcommands call:
+
+    ingest -> register -> mesh -> atlas -> fit -> export -> report
+
+and leaves out what the scene does not need, deciding from the data and recording why:
+- cameras known (capture.json / transforms.json with poses, a COLMAP model): no registration;
+- a mesh given with UVs: no atlas (``mesh`` option);
+- lights known for every photo -> a reflectance model (Lafortune SBRDF); one fixed unknown
+  lighting -> the radiance model (``model`` "auto").
+
+Each stage writes its own folder under ``OUT`` with a stamp (``.texstream_stage.json``: a hash of
+the stage's inputs and config); a rerun whose stamp matches skips the stage, ``from_stage`` reruns
+from a stage on. The resolved config is written to ``OUT/run_config.toml`` and ``OUT/run.json``
+records every stage's decision, reason and time.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+from texstream.core.config import config_from_dict, config_to_dict, option
+from texstream.core.errors import ConfigError, InputError
+from texstream.core.outputs import write_json_atomic
+
+STAGES = ("ingest", "register", "mesh", "atlas", "fit", "export", "report")
+STAMP = ".texstream_stage.json"
+MODELS = ("auto", "lafortune", "diffuse", "radiance")
+
+
+def _fit_stage_config():
+    from texstream.fit.stage import FitStageConfig
+
+    return FitStageConfig(holdout_every=8)
+
+
+def _default(factory: str) -> Callable[[], Any]:
+    """A default_factory importing the stage's config class only when a RunConfig is made."""
+    def make():
+        module, name = factory.rsplit(".", 1)
+        import importlib
+
+        return getattr(importlib.import_module(module), name)()
+    return make
+
+
+@dataclasses.dataclass
+class RunConfig:
+    """Every option of ``texstream run``, one table per stage (``--config run.toml`` reads it back)."""
+
+    device: str = option("cpu", "Warp device for the mesh, atlas and fit: cpu or cuda:N")
+    model: str = option("auto", "appearance model: auto (lafortune when every photo has a known light, radiance "
+                                "when the lighting is fixed and unknown), lafortune, diffuse or radiance",
+                        choices=MODELS)
+    mesh_file: str | None = option(None, "a mesh of the object (OBJ/PLY) to use instead of one from the photos; "
+                                         "with usable UVs it also skips the atlas")
+    ingest: Any = option(default_factory=_default("texstream.calib.ingest.IngestConfig"), help="ingest")
+    register: Any = option(default_factory=_default("texstream.calib.register.RegisterConfig"), help="registration")
+    mesh: Any = option(default_factory=_default("texstream.geometry.make_mesh.MeshConfig"), help="mesh")
+    atlas: Any = option(default_factory=_default("texstream.geometry.atlas.AtlasConfig"), help="atlas")
+    fit: Any = option(default_factory=_fit_stage_config, help="fit (holdout_every 8: every 8th photo is held out)")
+
+
+SUBCONFIGS = {"ingest": "texstream.calib.ingest.IngestConfig", "register": "texstream.calib.register.RegisterConfig",
+              "mesh": "texstream.geometry.make_mesh.MeshConfig", "atlas": "texstream.geometry.atlas.AtlasConfig",
+              "fit": "texstream.fit.stage.FitStageConfig"}
+
+
+def run_config_from_dict(data: dict) -> RunConfig:
+    """A RunConfig from plain data (a TOML file); unknown fields are a ConfigError naming them."""
+    import importlib
+
+    names = {f.name for f in dataclasses.fields(RunConfig)}
+    unknown = sorted(set(data) - names - {"_type"})
+    if unknown:
+        raise ConfigError(f"unknown run option(s) {unknown}", fix=f"use only {sorted(names)}")
+    kwargs = {}
+    for k, v in data.items():
+        if k == "_type":
+            continue
+        if k in SUBCONFIGS:
+            if not isinstance(v, dict):
+                raise ConfigError(f"[{k}] must be a table, got {v!r}", fix=f"write it as a [{k}] section")
+            module, name = SUBCONFIGS[k].rsplit(".", 1)
+            kwargs[k] = config_from_dict(getattr(importlib.import_module(module), name), v)
+        else:
+            kwargs[k] = v
+    cfg = RunConfig(**kwargs)
+    if cfg.model not in MODELS:
+        raise ConfigError(f"model {cfg.model!r} unknown", fix=f"use one of {MODELS}")
+    return cfg
+
+
+@dataclasses.dataclass
+class StageRecord:
+    """What one stage did: ran or skipped, why, how long, and its summary."""
+
+    name: str
+    status: str
+    reason: str
+    seconds: float = 0.0
+    output: str | None = None
+    summary: dict = dataclasses.field(default_factory=dict)
+
+
+def _hash(*parts: Any) -> str:
+    h = hashlib.sha256()
+    for p in parts:
+        h.update(json.dumps(p, sort_keys=True, default=str).encode())
+    return h.hexdigest()[:16]
+
+
+def _files_hash(folder: Path) -> str:
+    """Names, sizes and modification times of a folder's files (cheap; changes when a photo does)."""
+    rows = sorted((str(p.relative_to(folder)), p.stat().st_size, p.stat().st_mtime_ns)
+                  for p in folder.rglob("*") if p.is_file() and not p.name.startswith("."))
+    return _hash(rows)
+
+
+def detect_source(source: Path) -> str:
+    """What kind of input a folder is: capture (capture.json or transforms.json), colmap or photos."""
+    if not source.exists():
+        raise InputError("input not found", source, "pass a folder of photos, a capture folder or a COLMAP model")
+    if source.is_file():
+        raise InputError("input is a file, not a folder", source, "pass the folder that holds the photos")
+    if (source / "capture.json").is_file() or (source / "transforms.json").is_file():
+        return "capture"
+    for d in (source, source / "sparse", source / "sparse" / "0"):
+        if any((d / f"cameras.{e}").is_file() for e in ("bin", "txt")):
+            return "colmap"
+    return "photos"
+
+
+class Pipeline:
+    """Runs the stages in order with stamps, skips and records (see the module doc)."""
+
+    def __init__(self, out: Path, from_stage: str | None, log: Callable[[str], None]):
+        self.out = out
+        self.from_index = STAGES.index(from_stage) if from_stage else len(STAGES)
+        self.records: list[StageRecord] = []
+        self.log = log
+
+    def skip(self, name: str, reason: str, output: Path | None = None) -> None:
+        self.records.append(StageRecord(name, "skipped", reason, output=str(output) if output else None))
+        self.log(f"[{name}] skipped: {reason}")
+
+    def run(self, name: str, folder: Path, key: Any, reason: str, work: Callable[[], Any]) -> StageRecord:
+        """Run ``work`` (a stage writing ``folder``) unless the folder's stamp matches ``key``."""
+        stamp = folder / STAMP
+        digest = _hash(name, key)
+        forced = STAGES.index(name) >= self.from_index
+        if not forced and stamp.is_file():
+            try:
+                old = json.loads(stamp.read_text())
+            except (OSError, json.JSONDecodeError):
+                old = {}
+            if old.get("hash") == digest:
+                rec = StageRecord(name, "skipped", "unchanged since the last run (same inputs and options)",
+                                  output=str(folder), summary=old.get("summary", {}))
+                self.records.append(rec)
+                self.log(f"[{name}] {rec.reason}")
+                return rec
+        self.log(f"[{name}] {reason}")
+        t0 = time.perf_counter()
+        res = work()
+        summary = getattr(res, "summary", None) or {}
+        rec = StageRecord(name, "ran", reason, time.perf_counter() - t0, str(folder), _summary_safe(summary))
+        write_json_atomic(stamp, {"hash": digest, "summary": rec.summary, "seconds": rec.seconds})
+        self.records.append(rec)
+        self.log(f"[{name}] done in {rec.seconds:.1f} s")
+        return rec
+
+    def stamp_of(self, name: str) -> str:
+        """The hash a stage ran with (the key of the stages after it)."""
+        for r in reversed(self.records):
+            if r.name == name and r.output:
+                try:
+                    return json.loads((Path(r.output) / STAMP).read_text())["hash"]
+                except (OSError, KeyError, json.JSONDecodeError):
+                    return "none"
+        return "none"
+
+
+def _summary_safe(summary: dict) -> dict:
+    from texstream.fit.model_folder import json_safe
+
+    return json.loads(json.dumps(json_safe(summary), default=str))
+
+
+def decide_model(capture, requested: str) -> tuple[str, str]:
+    """The model the scene needs, and why."""
+    if requested != "auto":
+        if requested != "radiance" and not capture.has_lights:
+            raise InputError(f"--model {requested} needs a light per photo and the capture has none",
+                             capture.root / "capture.json", "use --model radiance (or auto), or give the lights")
+        return requested, "requested"
+    if capture.has_lights:
+        return "lafortune", "every photo has a known light: reflectance model (Lafortune SBRDF)"
+    return "radiance", "no photo has a known light (one fixed, unknown lighting): view-independent radiance model"
+
+
+def run_pipeline(source: str | Path, out: str | Path, config: RunConfig | None = None,
+                 from_stage: str | None = None, log: Callable[[str], None] = print) -> dict:
+    """Photos (or a capture / COLMAP folder) -> OUT/{capture,posed,mesh,atlas,model,export,report}.
+
+    Returns the run summary written to ``OUT/run.json``.
+    """
+    from texstream.capture.capture_json import read_capture
+    from texstream.core.toml import dumps
+
+    cfg = config or RunConfig()
+    src, out = Path(source), Path(out)
+    if from_stage is not None and from_stage not in STAGES:
+        raise ConfigError(f"--from {from_stage!r} is not a stage", fix=f"use one of {STAGES}")
+    if out.exists() and not out.is_dir():
+        raise InputError("output path exists and is not a folder", out, "choose another -o path")
+    kind = detect_source(src)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "run_config.toml").write_text(dumps(config_to_dict(cfg), header="texstream run: the resolved options "
+                                                                           "(texstream run --config this file)"))
+    t_start = time.perf_counter()
+    pipe = Pipeline(out, from_stage, log)
+
+    # ingest: photos -> capture folder; a capture or COLMAP folder is read as it is
+    if kind == "photos":
+        from texstream.calib.ingest import ingest
+
+        cap_dir = out / "capture"
+        pipe.run("ingest", cap_dir, [_files_hash(src), config_to_dict(cfg.ingest)],
+                 f"photos in {src} -> capture folder (EXIF, masks, exposure)",
+                 lambda: ingest(src, cap_dir, cfg.ingest))
+    elif kind == "colmap":
+        from texstream.calib.colmap_io import import_colmap
+
+        cap_dir = out / "capture"
+        pipe.run("ingest", cap_dir, [_files_hash(src)], f"COLMAP model in {src} -> capture folder",
+                 lambda: import_colmap(src, cap_dir))
+    else:
+        cap_dir = src
+        pipe.skip("ingest", f"{src} is a capture folder already", src)
+
+    # register: skipped when every frame has a pose
+    capture = read_capture(cap_dir)
+    posed = capture.extra.get("posed", True) is not False and kind != "photos"  # ingest writes posed: false
+    if posed:
+        posed_dir = cap_dir
+        pipe.skip("register", "cameras known (every frame has a pose)", cap_dir)
+    else:
+        from texstream.calib.register import register
+
+        posed_dir = out / "posed"
+        pipe.run("register", posed_dir, [pipe.stamp_of("ingest"), _files_hash(cap_dir) if kind == "capture" else "",
+                                         config_to_dict(cfg.register)],
+                 "cameras unknown: structure from motion (pycolmap)", lambda: register(cap_dir, posed_dir, cfg.register))
+    capture = read_capture(posed_dir)
+
+    # mesh and atlas
+    mesh_dir, atlas_dir = out / "mesh", out / "atlas"
+    mesh_path = Path(cfg.mesh_file) if cfg.mesh_file else None
+    atlas_needed = True
+    if mesh_path is not None:
+        from texstream.geometry.mesh_io import load_mesh
+
+        if not mesh_path.exists():
+            raise InputError("mesh file not found", mesh_path, "check --mesh-file")
+        pipe.skip("mesh", f"mesh given ({mesh_path})", mesh_path)
+        if mesh_path.is_dir():  # an atlas folder (texstream atlas, a synthetic set's ground_truth/)
+            if not (mesh_path / "bake.npz").is_file():
+                raise InputError("folder has no bake.npz", mesh_path, "pass a mesh file or an atlas folder")
+            atlas_needed = False
+        else:
+            atlas_needed = load_mesh(mesh_path).uvs is None
+    else:
+        from texstream.geometry.make_mesh import make_mesh
+
+        pipe.run("mesh", mesh_dir, [pipe.stamp_of("register") if not posed else _files_hash(posed_dir),
+                                    pipe.stamp_of("ingest"), config_to_dict(cfg.mesh)],
+                 "mesh from the photos (SfM points and masks)", lambda: make_mesh(posed_dir, mesh_dir, cfg.mesh))
+        mesh_path = mesh_dir / "mesh.ply"
+    if atlas_needed:
+        from texstream.geometry.atlas import atlas_stage
+
+        pipe.run("atlas", atlas_dir, [pipe.stamp_of("mesh"), str(mesh_path), config_to_dict(cfg.atlas), cfg.device],
+                 "UV atlas (xatlas) and texel bake", lambda: atlas_stage(mesh_path, atlas_dir, cfg.atlas, device=cfg.device))
+        fit_geometry = atlas_dir
+    else:
+        pipe.skip("atlas", "the given mesh has UVs" if mesh_path.is_file() else "an atlas folder is given", mesh_path)
+        fit_geometry = mesh_path
+
+    # fit: the model the scene needs
+    from texstream.fit.stage import fit_stage
+
+    model_kind, why = decide_model(capture, cfg.model)
+    fit_cfg = dataclasses.replace(cfg.fit, device=cfg.device, fit=dataclasses.replace(cfg.fit.fit, model=model_kind))
+    model_dir = out / "model"
+    fit_rec = pipe.run("fit", model_dir, [pipe.stamp_of("atlas"), pipe.stamp_of("mesh"), pipe.stamp_of("register"),
+                                          _files_hash(posed_dir) if posed else "", config_to_dict(fit_cfg)],
+                       f"{model_kind} model: {why}", lambda: fit_stage(posed_dir, fit_geometry, model_dir, fit_cfg))
+
+    _export_and_report(pipe, out, model_dir, posed_dir)
+    summary = {"source": str(src), "source_kind": kind, "model": model_kind, "model_reason": why,
+               "total_s": time.perf_counter() - t_start,
+               "heldout": _heldout(model_dir), "stages": [dataclasses.asdict(r) for r in pipe.records],
+               "fit": fit_rec.summary}
+    write_json_atomic(out / "run.json", _summary_safe(summary))
+    return summary
+
+
+def _heldout(model_dir: Path) -> dict:
+    try:
+        return json.loads((model_dir / "model.json").read_text()).get("heldout", {})
+    except (OSError, json.JSONDecodeError):
+        return {}
+
+
+def _export_and_report(pipe: Pipeline, out: Path, model_dir: Path, capture_dir: Path) -> None:
+    """Exports (glTF binary, OBJ+MTL) and the HTML report, when those stages are installed."""
+    try:
+        from texstream.fit.export import export_stage
+    except ImportError:
+        pipe.skip("export", "the export module is not available")
+    else:
+        export_dir = out / "export"
+        pipe.run("export", export_dir, [pipe.stamp_of("fit")], "glTF binary and OBJ+MTL",
+                 lambda: export_stage(model_dir, export_dir))
+    try:
+        from texstream.pipelines.report import write_report
+    except ImportError:
+        pipe.skip("report", "the report module is not available")
+        return
+    t0 = time.perf_counter()
+    stages = [dataclasses.asdict(r) for r in pipe.records]
+    write_report(out, stages, model_dir, capture_dir)
+    pipe.records.append(StageRecord("report", "ran", "HTML report with the relightable viewer",
+                                    time.perf_counter() - t0, str(out / "report")))
+    pipe.log(f"[report] {out / 'report' / 'index.html'}")
