@@ -3,7 +3,8 @@
 Scans PHOTOS (sorted by name), reads every photo with OpenImageIO (through
 :mod:`texstream.capture.imageio`), reads EXIF (focal length, 35 mm equivalent, exposure time, ISO,
 aperture, orientation, camera), applies the orientation, drops unreadable files and byte-identical
-duplicates, groups exposure brackets of one view and merges them to linear HDR (Debevec or
+duplicates, groups exposure brackets of one view (only when EXIF says auto bracketing, or ``--brackets on``,
+and the photos align: one viewpoint; every decision and its reason go to the report) and merges them to linear HDR (Debevec or
 Robertson response for 8-bit, weighted linear merge for 16-bit / float), normalises exposure across
 photos from EXIF (``exposure`` = relative t * ISO / N^2, median photo = 1), picks up masks by name
 (``masks/NAME.png``, ``masks/NAME.EXT.png``) or from an alpha channel, and records each photo's
@@ -36,7 +37,8 @@ from texstream.core.outputs import StageResult, atomic_output_dir, write_json_at
 from .files import list_images, write_failure_report
 from .lights import load_lights_file
 from .masks import MASK_MODES, MaskConfig
-from .hdr import HDR_METHODS, calibrate_response, group_brackets, merge_brackets_8bit, merge_brackets_linear
+from .hdr import (BRACKET_MODES, HDR_METHODS, bracket_alignment, calibrate_response, group_brackets, is_exif_bracket,
+                  merge_brackets_8bit, merge_brackets_linear)
 
 REPORT_FILE = "ingest_report.json"
 
@@ -53,6 +55,12 @@ class IngestConfig:
                              "(threshold against the border colour), grabcut (threshold refined by GrabCut)",
                              choices=MASK_MODES)
     alpha_masks: bool = option(True, help="use a photo's alpha channel as its mask when it has one and no mask file")
+    brackets: str = option("auto", help="merge exposure brackets to HDR: auto (only photos whose EXIF says auto "
+                           "bracketing, ExposureMode 2), on (the user says the candidate groups are brackets), "
+                           "off; in every case only when the photos align (same viewpoint), else each photo "
+                           "stands alone with its exposure normalised", choices=BRACKET_MODES)
+    bracket_align_px: float = option(2.0, help="largest image-corner displacement (pixels, after exposure "
+                                     "normalisation and ECC alignment) for photos to count as one viewpoint")
     bracket_size: int = option(0, help="photos per exposure bracket: 0 = auto (consecutive photos with different "
                                "exposure times), 1 = no brackets")
     hdr_method: str = option("debevec", help="response calibration and merge for 8-bit brackets", choices=HDR_METHODS)
@@ -81,6 +89,7 @@ def _exif(path: Path) -> dict[str, Any]:
                           ("ExposureTime", "exposure_time"), ("Exif:ExposureTime", "exposure_time"),
                           ("Exif:PhotographicSensitivity", "iso"), ("Exif:ISOSpeedRatings", "iso"),
                           ("FNumber", "f_number"), ("Exif:FNumber", "f_number"), ("Orientation", "orientation"),
+                          ("Exif:ExposureMode", "exposure_mode"),
                           ("Make", "make"), ("Model", "model"),
                           ("Exif:FocalPlaneXResolution", "focal_plane_xres"),
                           ("Exif:FocalPlaneResolutionUnit", "focal_plane_unit")):
@@ -117,6 +126,39 @@ def _find_mask(mask_dir: Path, photo: Path) -> Path | None:
         if c.is_file():
             return c
     return None
+
+
+def _decide_brackets(candidates: list[list[int]], infos: list[dict], cfg: IngestConfig) -> tuple[list[list[int]], list[dict]]:
+    """Which candidate groups (same size, distinct exposure times) are merged: EXIF auto bracketing (or
+    ``brackets="on"``) and one viewpoint (:func:`.hdr.bracket_alignment`); the others become single
+    photos. Returns (groups, one decision {images, merged, reason} per candidate of 2+ photos)."""
+    from texstream.capture.imageio import srgb_to_linear
+
+    groups: list[list[int]] = []
+    decisions: list[dict] = []
+    for g in candidates:
+        if len(g) < 2:
+            groups.append(g)
+            continue
+        names = [infos[i]["path"].name for i in g]
+        modes = [infos[i]["exif"].get("exposure_mode") for i in g]
+        if cfg.brackets == "off":
+            merged, reason = False, "bracket merging off (--brackets off)"
+        elif cfg.brackets == "auto" and not is_exif_bracket(modes):
+            merged = False
+            reason = ("EXIF does not say exposure bracketing (ExposureMode "
+                      f"{sorted({'none' if m is None else int(m) for m in modes}, key=str)}, 2 = auto bracket): "
+                      "photos with different exposures taken separately (e.g. auto exposure); pass --brackets on "
+                      "if they are brackets")
+        else:
+            lin = [srgb_to_linear(infos[i]["img"]) if infos[i]["eight_bit"] else infos[i]["img"] for i in g]
+            al = bracket_alignment(lin, [float(infos[i]["exif"]["exposure_time"]) for i in g], cfg.bracket_align_px)
+            merged = al["aligned"]
+            why = "EXIF auto bracket" if cfg.brackets == "auto" else "--brackets on"
+            reason = f"{why}; {al['reason']}"
+        decisions.append({"images": names, "merged": merged, "reason": reason})
+        groups.extend([g] if merged else [[i] for i in sorted(g)])
+    return groups, decisions
 
 
 def _auto_masks(entries: list, cfg: IngestConfig, tmp: Path) -> dict:
@@ -207,7 +249,8 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
                 keep.append(i)
         infos = keep
     times = [i["exif"].get("exposure_time") for i in infos]
-    groups = group_brackets(times, [i["size"] for i in infos], cfg.bracket_size)
+    candidates = group_brackets(times, [i["size"] for i in infos], cfg.bracket_size)
+    groups, decisions = _decide_brackets(candidates, infos, cfg)
     cams = None
     if cfg.intrinsics:
         from .intrinsics import intrinsics_for_size, load_intrinsics
@@ -323,6 +366,7 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
         write_capture(Capture(root=tmp, frames=frames, extra=extra_top), tmp)
         report["frames"] = [f.file_path for f in frames]
         report["brackets"] = [[infos[i]["path"].name for i in g] for g in groups if len(g) > 1]
+        report["bracket_decisions"] = decisions
         report["camera_sizes"] = sorted({f"{f.intrinsics.width}x{f.intrinsics.height}" for f in frames})
         report["auto_masks"] = auto
         write_json_atomic(tmp / REPORT_FILE, report)
@@ -332,6 +376,7 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
 
             write_mask_preview(tmp)
     summary = {"found": len(files), "frames": len(frames), "brackets": len(report["brackets"]), "dropped": dropped,
+               "bracket_decisions": decisions,
                "masks": sum(1 for f in frames if f.mask_path), "intrinsics_source": extra_top["intrinsics_source"],
                "camera_sizes": report["camera_sizes"],
                "auto_masks": {k: auto.get(k) for k in ("mode", "decision", "masks")}}

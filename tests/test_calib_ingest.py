@@ -89,7 +89,8 @@ def test_ingest_folder(tmp_path):
     # A three-exposure bracket of one view (ISO 100, f/4) ...
     for i, t in enumerate([1 / 16, 1 / 4, 1.0]):
         code = np.clip(np.round(_response(rad * t) * 255), 0, 255).astype(np.uint8)
-        _write(src / f"a{i}.png", code, ExposureTime=t, FNumber=4.0, **{"Exif:PhotographicSensitivity": 100})
+        _write(src / f"a{i}.png", code, ExposureTime=t, FNumber=4.0,
+               **{"Exif:PhotographicSensitivity": 100, "Exif:ExposureMode": 2})
     # ... a single photo at ISO 400 rotated by EXIF, with a mask named like it ...
     code = np.clip(np.round(_response(rad * 0.25) * 255), 0, 255).astype(np.uint8)
     _write(src / "b.png", code, ExposureTime=0.25, FNumber=4.0, Orientation=6,
@@ -131,7 +132,65 @@ def test_ingest_folder(tmp_path):
     assert fr["e"].exposure == 1.0 and b.saturation == pytest.approx(1.0, abs=0.01)
     rep = json.loads((tmp_path / "cap" / "ingest_report.json").read_text())
     assert rep["brackets"] == [["a0.png", "a1.png", "a2.png"]]
+    dec = rep["bracket_decisions"]
+    assert len(dec) == 1 and dec[0]["merged"] and "EXIF auto bracket; photos align" in dec[0]["reason"]
     assert cap.extra["intrinsics_source"] == "exif+guess"
+
+
+def _textured(h=120, w=160, seed=0):
+    """A textured scene radiance (blurred noise over ~1.5 decades)."""
+    rng = np.random.default_rng(seed)
+    n = cv2.GaussianBlur(rng.uniform(0, 1, (h, w)).astype(np.float32), (0, 0), 2.0)
+    n = (n - n.min()) / np.ptp(n)
+    return (np.exp(3.5 * n - 2.5)[..., None] * np.array([1.0, 0.85, 0.7])).astype(np.float32)
+
+
+def test_handheld_auto_exposure_photos_are_not_merged(tmp_path):
+    """Handheld photos from different viewpoints (shifted crops) with auto exposure: never merged, each
+    stands alone with its EXIF exposure; even with --brackets on, the alignment check refuses them."""
+    src = tmp_path / "photos"
+    src.mkdir()
+    scene = _textured(160, 220)
+    for i, (t, dx) in enumerate([(1 / 60, 0), (1 / 30, 14), (1 / 125, 28)]):
+        code = np.clip(np.round(_response(scene[20:116, 10 + dx:138 + dx] * t * 30) * 255), 0, 255).astype(np.uint8)
+        _write(src / f"h{i}.jpg", code, ExposureTime=t, FNumber=2.8,
+               **{"Exif:PhotographicSensitivity": 100, "Exif:ExposureMode": 0})
+    res = ingest(src, tmp_path / "cap", IngestConfig(auto_masks="none"))
+    s = res.summary
+    assert s["frames"] == 3 and s["brackets"] == 0
+    (dec,) = s["bracket_decisions"]
+    assert not dec["merged"] and "EXIF does not say exposure bracketing" in dec["reason"]
+    cap = read_capture(tmp_path / "cap")
+    assert [f.name for f in cap.frames] == ["h0", "h1", "h2"]
+    assert all(cap.image_path(f).suffix == ".jpg" for f in cap.frames)  # originals, no EXR
+    e = {f.name: f.exposure for f in cap.frames}
+    assert e["h1"] / e["h0"] == pytest.approx(2.0, rel=0.01) and e["h0"] / e["h2"] == pytest.approx(125 / 60, rel=0.01)
+    # The user says they are brackets: the viewpoints still differ, so no ghosted merge.
+    s = ingest(src, tmp_path / "cap2", IngestConfig(brackets="on", auto_masks="none")).summary
+    (dec,) = s["bracket_decisions"]
+    assert s["brackets"] == 0 and s["frames"] == 3 and not dec["merged"]
+    assert "do not align" in dec["reason"]
+
+
+def test_true_bracket_with_exif_is_merged_and_misaligned_bracket_is_not(tmp_path):
+    from texstream.calib.hdr import bracket_alignment
+
+    scene = _textured()
+    times = [1 / 200, 1 / 50, 1 / 12.5]
+    src = tmp_path / "photos"
+    src.mkdir()
+    for i, t in enumerate(times):
+        code = np.clip(np.round(_response(scene * t * 20) * 255), 0, 255).astype(np.uint8)
+        _write(src / f"b{i}.jpg", code, ExposureTime=t, **{"Exif:ExposureMode": 2})
+    s = ingest(src, tmp_path / "cap", IngestConfig(auto_masks="none")).summary
+    assert s["brackets"] == 1 and s["frames"] == 1 and s["bracket_decisions"][0]["merged"]
+    # The same bracket with its middle photo shifted by 6 px (a hand moved): refused, reason recorded.
+    lin = [np.clip(scene * t * 20, 0, 1) for t in times]
+    lin[1] = np.roll(lin[1], 6, axis=1)
+    al = bracket_alignment(lin, times, tol_px=2.0)
+    assert not al["aligned"] and "do not align" in al["reason"], al
+    al = bracket_alignment([np.clip(scene * t * 20, 0, 1) for t in times], times)
+    assert al["aligned"] and al["max_shift_px"] < 0.5, al
 
 
 def test_ingest_bad_inputs(tmp_path):
