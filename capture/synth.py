@@ -647,9 +647,13 @@ def render_scene(scene, config: SynthConfig | None = None) -> RenderedScene:
 
 def write_param_maps(folder: Path, params: np.ndarray, layout) -> dict[str, str]:
     """Parameter maps as float EXR: rho_d.exr (RGB), per lobe lobe{j}_rho_s.exr (RGB) and
-    lobe{j}_shape.exr ([c_xy, c_z, n] or, anisotropic, RGBA [c_x, c_y, c_z, n])."""
+    lobe{j}_shape.exr ([c_xy, c_z, n] or, anisotropic, RGBA [c_x, c_y, c_z, n]); a radiance
+    layout (fit/models.py) writes radiance.exr (RGB L) only."""
     from .imageio import write_image
 
+    if getattr(layout, "is_radiance", False):
+        write_image(folder / "radiance.exr", params[..., 0:3], bits=32)
+        return {"radiance": "radiance.exr"}
     files = {"rho_d": "rho_d.exr"}
     write_image(folder / "rho_d.exr", params[..., 0:3], bits=32)
     for j in range(layout.n_lobes):
@@ -666,6 +670,8 @@ def read_param_maps(folder: str | os.PathLike, layout) -> np.ndarray:
     from .imageio import read_image
 
     g = Path(folder)
+    if getattr(layout, "is_radiance", False):
+        return read_image(g / "radiance.exr", channels=3).astype(np.float32)
     maps = [read_image(g / "rho_d.exr", channels=3)]
     for j in range(layout.n_lobes):
         maps.append(read_image(g / f"lobe{j}_rho_s.exr", channels=3))

@@ -27,7 +27,7 @@ from .optim.linesearch import LineSearchConfig, line_search
 from .optim.lm import LevenbergMarquardt
 from .optim.steepest import SteepestDescent
 from .penalties import PenaltyConfig, Penalties
-from .problem import StreamConfig, StreamProblem
+from .problem import StreamConfig, StreamProblem, no_light_error
 
 OPTIMIZERS = ("sd", "cg", "lbfgs", "lm")
 
@@ -36,7 +36,9 @@ OPTIMIZERS = ("sd", "cg", "lbfgs", "lm")
 class FitConfig:
     """What to fit and how (saved as fit_config.json beside the model)."""
 
-    model: str = option("lafortune", "appearance model", choices=("lafortune", "diffuse"))
+    model: str = option("lafortune", "appearance model: lafortune or diffuse (reflectance, need a known light per "
+                                     "photo) or radiance (view-independent radiance under the photos' one fixed, "
+                                     "unknown lighting; ignores lights)", choices=("lafortune", "diffuse", "radiance"))
     lobes: int = option(1, "specular lobes K (0..2)")
     anisotropic: bool = option(False, "general C_x, C_y, C_z lobes instead of isotropic C_xy, C_z")
     lobe_shape: str = option("auto", "free fits each lobe's c_z, phong holds it at 1; auto picks phong when every "
@@ -77,15 +79,42 @@ class FitConfig:
     lobe_albedo_max: float = option(1.0, "energy bound: each lobe's rho_s <= this * (n + 2) / (2 pi), the largest "
                                           "albedo a normalised lobe may have (stops one highlight sample from "
                                           "producing a broad, enormously bright lobe); 0 = off")
+    robust_loss: str = option("auto", "loss of each channel residual r: none (least squares, r^2 / 2), huber or "
+                                      "cauchy (robust, iteratively reweighted in the passes); auto: cauchy for the "
+                                      "radiance model (a highlight or other outlier seen in a few photos hardly "
+                                      "moves a texel's radiance), none for reflectance models",
+                              choices=("auto", "none", "huber", "cauchy"))
+    robust_scale: float = option(0.0, "the robust loss's scale k in residual units (photo values in radiance "
+                                       "space): residuals well below k are least squares, above it down-weighted; "
+                                       "0 = auto: robust_scale_fraction x the mean photo value the texels see "
+                                       "(read once before the iterations)")
+    robust_scale_fraction: float = option(0.1, "robust_scale 0: the scale as a fraction of the mean sampled photo "
+                                               "value (0.1: noise and shading a radiance model cannot express, a few "
+                                               "percent, stay least squares; a highlight twice the diffuse level "
+                                               "weighs ~1/100 under cauchy)")
     psnr_peak: float = option(1.0, "peak pixel value for the trace's PSNR")
     linesearch: LineSearchConfig = option(default_factory=LineSearchConfig, help="line search")
     penalties: PenaltyConfig = option(default_factory=PenaltyConfig, help="penalties")
     stream: StreamConfig = option(default_factory=StreamConfig, help="streaming and numerics")
 
+    def loss(self, layout: ModelLayout) -> str:
+        """The robust loss the fit uses for ``layout`` (``robust_loss`` with auto resolved)."""
+        if self.robust_loss == "auto":
+            return "cauchy" if layout.is_radiance else "none"
+        if self.robust_loss not in ("none", "huber", "cauchy"):
+            raise ConfigError(f"robust_loss {self.robust_loss!r} unknown", fix="use auto, none, huber or cauchy")
+        return self.robust_loss
+
     def layout(self, frames=None, centre=None) -> ModelLayout:
         """The model layout; ``lobe_shape`` "auto" is decided from the photos' ``frames``
         (:class:`PhotoFrame`) seen from ``centre`` (:func:`choose_lobe_shape`)."""
         shape = self.lobe_shape
+        if self.model == "radiance":
+            return ModelLayout(kind="radiance")
+        if frames is not None:
+            unlit = sum(getattr(f, "light_kind", None) == "none" for f in frames)
+            if unlit:
+                raise no_light_error(unlit, len(frames), self.model)
         if self.model == "diffuse":
             shape = "free"  # no lobe: nothing to hold
         elif shape == "auto":
@@ -134,6 +163,10 @@ class FitResult:
     trace: list[dict]
     layout: ModelLayout
     passes: int
+    robust_loss: str = "none"
+    """the data term's loss (``FitConfig.loss``)"""
+    robust_scale: float = 0.0
+    """its scale in residual units (resolved when ``FitConfig.robust_scale`` is 0)"""
 
     @property
     def seen(self) -> np.ndarray:
@@ -170,8 +203,9 @@ def initial_guess(problem: StreamProblem, cfg: FitConfig) -> tuple[np.ndarray, n
     low = wp.zeros(n, dtype=wp.vec3, device=dev)
     high = wp.zeros(n, dtype=wp.vec3, device=dev)
     count = wp.zeros(n, dtype=wp.int32, device=dev)
+    kernel = stream.initial_guess_kernel_for(lay.is_radiance)
     for images, depth, shadow, infos, b, e in problem.photos.windows():
-        wp.launch(stream.initial_guess_kernel, dim=n, device=dev,
+        wp.launch(kernel, dim=n, device=dev,
                   inputs=[problem.tex, images, depth, shadow, infos, b, e,
                           problem.opt, int(cfg.init_rank)], outputs=[low, high, count])
     lo = low.numpy().astype(np.float64)
@@ -180,7 +214,7 @@ def initial_guess(problem: StreamProblem, cfg: FitConfig) -> tuple[np.ndarray, n
     p = np.tile(lay.defaults(), (n, 1))
     if cfg.init == "percentile":
         seen = cnt > 0
-        p[seen, 0:3] = np.clip(lo[seen], 0.0, 10.0)
+        p[seen, 0:3] = np.clip(lo[seen], lay.lower()[0:3], lay.upper()[0:3])  # rho_d in [0, 10], L in [0, 1000]
         for j in range(lay.n_lobes):
             o = lay.lobe_offset(j)
             # lobe peak value is rho_s (max(s,0)^n <= 1 at c_z = 1): start at the excess of the brightest sample
@@ -239,6 +273,22 @@ def run_fit(problem: StreamProblem, cfg: FitConfig, p0: np.ndarray | None = None
     if not 0.0 < cfg.lookup_relaxation <= 1.0:
         raise ConfigError(f"lookup_relaxation {cfg.lookup_relaxation} invalid", fix="use a fraction in (0, 1]")
     problem.refresh_lookup(state.storage)
+    loss = cfg.loss(lay)
+    if loss != "none" and cfg.robust_scale <= 0:
+        # auto scale: one pass at the starting point reads the mean sampled photo value (before the
+        # loop: the iterations themselves never wait on the host)
+        if problem.cfg.residual_space != "radiance":
+            raise ConfigError("robust_scale auto is in photo values, for radiance-space residuals",
+                              fix="set robust_scale (reflectance units) or stream.residual_space radiance")
+        problem.set_robust_loss(loss, 1.0)  # provisional: the photo statistics do not depend on it
+        evaluate_current()
+        st = state.stats.numpy().sum(axis=0)
+        mean_y = st[3] / max(3.0 * st[0], 1e-300)
+        if not mean_y > 0:
+            mean_y = 1.0  # no samples, or black photos: any scale will do
+        problem.set_robust_loss(loss, cfg.robust_scale_fraction * mean_y)
+    else:
+        problem.set_robust_loss(loss, cfg.robust_scale)
     evaluate_current()
     state.accepted.zero_()
     record(0)
@@ -288,4 +338,5 @@ def run_fit(problem: StreamProblem, cfg: FitConfig, p0: np.ndarray | None = None
                       "psnr_db": 10.0 * math.log10(cfg.psnr_peak ** 2 / mse) if mse > 0 else float("inf"),
                       "ape_percent": 100.0 * sabs / sy if sy > 0 else 0.0,
                       "accepted_fraction": acc / nvalid if nvalid > 0 else 0.0})
-    return FitResult(params=state.params_numpy(), samples=counts, trace=trace, layout=lay, passes=problem.passes)
+    return FitResult(params=state.params_numpy(), samples=counts, trace=trace, layout=lay, passes=problem.passes,
+                     robust_loss=loss, robust_scale=problem.robust_scale)

@@ -26,6 +26,12 @@ height rho_s s^n there but not rho_s and c_z apart (n = 200: a 0.4% drift of c_z
 makes rho_s that height. The fit chooses per capture (fit/fitter.py ``choose_lobe_shape``).
 
 Units: rho_d, rho_s are BRDF values (1/sr; see capture/conventions.py), C and n are unitless.
+
+Radiance (kind "radiance"): a view-independent exitant radiance L (RGB) per texel, for photos
+under one fixed, unknown lighting (capture.json frames without a ``light``). A sample predicts
+``exposure * L``: no light, no cosine, no shadow test (fit/kernels/stream.py compiles the light-free
+path per layout). It shares the diffuse model's kernels (no lobes, m_c = p_c); only the weight
+W = exposure replaces exposure * E * cos(theta_i). L is in photo value / exposure units.
 """
 
 from __future__ import annotations
@@ -36,7 +42,8 @@ import numpy as np
 
 from texstream.core.errors import ConfigError
 
-MODEL_KINDS = ("lafortune", "diffuse")
+MODEL_KINDS = ("lafortune", "diffuse", "radiance")
+REFLECTANCE_KINDS = ("lafortune", "diffuse")  # need a known light per photo
 LOBE_SHAPES = ("free", "phong")
 MAX_LOBES = 2  # per-texel vectors are sized to the layout (at most 3 + 2*7 = 17 parameters)
 
@@ -78,7 +85,8 @@ class ModelLayout:
     """Parameter layout of a per-texel reflectance model.
 
     Attributes:
-        kind: "lafortune" or "diffuse" (diffuse is Lafortune with no lobes).
+        kind: "lafortune", "diffuse" (Lafortune with no lobes) or "radiance" (view-independent
+            exitant radiance, no light; see the module doc).
         n_lobes: number of specular lobes K (0..MAX_LOBES).
         anisotropic: general C_x, C_y, C_z instead of the isotropic C_xy, C_z.
         lobe_shape: "free" (c_z fitted) or "phong" (c_z held at 1; see the module doc).
@@ -92,12 +100,20 @@ class ModelLayout:
     def __post_init__(self) -> None:
         if self.kind not in MODEL_KINDS:
             raise ConfigError(f"unknown model kind {self.kind!r}", fix=f"use one of {MODEL_KINDS}")
-        if self.kind == "diffuse" and self.n_lobes != 0:
+        if self.kind in ("diffuse", "radiance") and self.n_lobes != 0:
             object.__setattr__(self, "n_lobes", 0)
+        if self.kind == "radiance":  # no lobes: nothing anisotropic, no lobe shape
+            object.__setattr__(self, "anisotropic", False)
+            object.__setattr__(self, "lobe_shape", "free")
         if not 0 <= self.n_lobes <= MAX_LOBES:
             raise ConfigError(f"n_lobes={self.n_lobes} out of range", fix=f"use 0..{MAX_LOBES}")
         if self.lobe_shape not in LOBE_SHAPES:
             raise ConfigError(f"unknown lobe shape {self.lobe_shape!r}", fix=f"use one of {LOBE_SHAPES}")
+
+    @property
+    def is_radiance(self) -> bool:
+        """The light-free radiance model (kernels skip the light, W = exposure)."""
+        return self.kind == "radiance"
 
     @property
     def lobe_stride(self) -> int:
@@ -111,6 +127,10 @@ class ModelLayout:
         return 3 + j * self.lobe_stride
 
     def specs(self) -> list[ParamSpec]:
+        if self.is_radiance:
+            return [ParamSpec(f"radiance.L.{c}", "photo value / exposure", 0.0, 1000.0, 0.5,
+                              "view-independent exitant radiance; a sample predicts exposure * L")
+                    for c in "rgb"]
         out = [ParamSpec(f"{self.kind}.rho_d.{c}", "1/sr", 0.0, 10.0, 0.1,
                          "diffuse BRDF value (albedo / pi); seed bounds reflectance samples to [0, 10]")
                for c in "rgb"]

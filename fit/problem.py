@@ -165,9 +165,23 @@ def texel_coordinate_gradients(points: np.ndarray, faces: np.ndarray, uvs: np.nd
     return grad.reshape(*shape, 2, 3).astype(np.float32)
 
 
+LIGHT_KINDS = {"point": 0, "directional": 1, "none": 2}  # fit/kernels/shading.py LIGHT_*
+
+
+def no_light_error(n_unlit: int, n_total: int, kind: str) -> InputError:
+    """The error for a reflectance model fitted to photos without a known light."""
+    return InputError(f"{n_unlit} of {n_total} photos have no light, and the {kind} model needs a known light "
+                      "per photo (capture.json frames' 'light')",
+                      fix="use --model radiance (view-independent radiance under the photos' fixed lighting), "
+                          "or add a point or directional 'light' to every frame of capture.json")
+
+
 @dataclasses.dataclass
 class PhotoFrame:
-    """One photo as the fit needs it: pose (world-to-camera, OpenCV axes), intrinsics, light."""
+    """One photo as the fit needs it: pose (world-to-camera, OpenCV axes), intrinsics, light.
+
+    ``light_kind`` is "point", "directional" or "none" (fixed, unknown lighting: only the radiance
+    model fits such photos; ``light_vec`` and ``light_intensity`` are then zero)."""
 
     R: np.ndarray
     t: np.ndarray
@@ -185,15 +199,20 @@ class PhotoFrame:
 
     @staticmethod
     def from_capture_frame(frame) -> "PhotoFrame":
-        """From a :class:`texstream.capture.capture_json.Frame` (must have a light and no distortion)."""
+        """From a :class:`texstream.capture.capture_json.Frame` (no distortion); a frame without a
+        light becomes light_kind "none" (the radiance model's; reflectance models refuse it in
+        :class:`StreamProblem`)."""
         intr = frame.intrinsics
-        if frame.light is None:
-            raise InputError(f"frame {frame.file_path} has no light", fix="add per-frame 'light' fields, or fit a radiance model")
         if not intr.is_pinhole:
             raise InputError(f"frame {frame.file_path} has lens distortion", fix="undistort the photos first (texstream register undistorts)")
-        lv = frame.light.position if frame.light.type == "point" else frame.light.direction
+        if frame.light is None:
+            kind, lv, li = "none", np.zeros(3), np.zeros(3)
+        else:
+            kind = frame.light.type
+            lv = np.asarray(frame.light.position if kind == "point" else frame.light.direction, float)
+            li = np.asarray(frame.light.intensity, float)
         return PhotoFrame(frame.R, frame.t, intr.fx, intr.fy, intr.cx, intr.cy, intr.width, intr.height,
-                          frame.light.type, np.asarray(lv, float), np.asarray(frame.light.intensity, float),
+                          kind, lv, li,
                           float(frame.exposure), math.inf if frame.saturation is None else float(frame.saturation))
 
 
@@ -279,7 +298,9 @@ def image_info(fr: PhotoFrame) -> stream.ImageInfo:
     info.width, info.height = int(fr.width), int(fr.height)
     info.exposure = float(fr.exposure)
     info.saturation = float(min(fr.saturation, 3.0e38))
-    info.light_kind = 0 if fr.light_kind == "point" else 1
+    if fr.light_kind not in LIGHT_KINDS:
+        raise InputError(f"light kind {fr.light_kind!r} unknown", fix=f"use one of {sorted(LIGHT_KINDS)}")
+    info.light_kind = LIGHT_KINDS[fr.light_kind]
     info.light_vec = wp.vec3(*np.asarray(fr.light_vec, np.float32))
     info.light_intensity = wp.vec3(*np.asarray(fr.light_intensity, np.float32))
     return info
@@ -297,6 +318,8 @@ class PhotoSet:
         ``ImageInfo.depth_is_mask`` tells the kernels to test only that. Per-vertex
         ``mesh_normals`` and ``mesh_uvs`` serve traced taps (``StreamConfig.tap_geometry``)."""
         self.mesh_normals = self.mesh_uvs = None
+        self.light_kinds = [fr.light_kind for fr in frames]
+        """per photo "point", "directional" or "none" (checked against the model by StreamProblem)"""
         if mesh_points is None:
             return self._init_without_mesh(frames, images, masks, config, device)
         cfg = config or StreamConfig()
@@ -394,6 +417,8 @@ class PhotoSet:
     def _shadow_camera(self, info, fr: PhotoFrame, size: int) -> bool:
         """Aim a shadow-map camera from the light at the object's bounding sphere."""
         r = max(self.radius, 1e-9)
+        if fr.light_kind == "none":
+            return False  # no light, no shadows (the radiance model tests none)
         if fr.light_kind == "point":
             lp = np.asarray(fr.light_vec, float)
             dist = float(np.linalg.norm(lp - self.center))
@@ -441,6 +466,13 @@ class StreamProblem:
                  config: StreamConfig | None = None, device: str = "cpu"):
         self.cfg = cfg = config or StreamConfig()
         self.texels, self.photos, self.layout, self.device = texels, photos, layout, device
+        kinds = list(getattr(photos, "light_kinds", []))
+        unlit = sum(k == "none" for k in kinds)
+        if unlit and not layout.is_radiance:
+            raise no_light_error(unlit, len(kinds), layout.kind)
+        self.radiance = layout.is_radiance
+        self.robust = stream.ROBUST_NONE
+        self.robust_scale = 0.0
         if cfg.storage not in PRECISIONS:
             raise ConfigError(f"storage precision {cfg.storage!r} unknown", fix="use fp16, fp32 or fp64")
         self.scalar, self.vec, self.mat = _vec_types(cfg.accumulate, layout.n_params)
@@ -480,6 +512,7 @@ class StreamProblem:
         if cfg.photo_sampling not in modes:
             raise ConfigError(f"photo_sampling {cfg.photo_sampling!r} unknown", fix="use filtered, point or bilinear")
         self.opt.sampling = modes[cfg.photo_sampling]
+        self.opt.robust_scale = 0.0
         if cfg.cuda_max_registers not in (-1, 0) and not 24 <= cfg.cuda_max_registers <= 255:
             raise ConfigError(f"cuda_max_registers {cfg.cuda_max_registers} invalid",
                               fix="use -1 (automatic), 0 (no cap) or 24 to 255")
@@ -490,6 +523,21 @@ class StreamProblem:
             raise ConfigError(f"cuda_block_dim {cfg.cuda_block_dim} invalid", fix="use a multiple of 32 from 32 to 1024")
         self.block_dim = cfg.cuda_block_dim
         self.passes = 0
+
+    def set_robust_loss(self, kind: str, scale: float = 1.0) -> None:
+        """The data term's loss per channel residual r: "none" (r^2 / 2, least squares), "huber" or
+        "cauchy" with scale ``scale`` > 0 in residual units (photo values in radiance space), applied
+        in the passes as iteratively reweighted least squares (fit/kernels/stream.py
+        ``accumulate_kernel``; each loss compiles its own passes). The fit sets it from
+        ``FitConfig.robust_loss``; a new problem starts with "none"."""
+        if kind not in stream.ROBUST_LOSSES:
+            raise ConfigError(f"robust loss {kind!r} unknown", fix=f"use one of {sorted(stream.ROBUST_LOSSES)}")
+        code = stream.ROBUST_LOSSES[kind]
+        if code != stream.ROBUST_NONE and not (math.isfinite(scale) and scale > 0):
+            raise ConfigError(f"robust loss scale {scale} invalid", fix="use a positive scale in residual units")
+        self.robust = code
+        self.robust_scale = float(scale) if code != stream.ROBUST_NONE else 0.0
+        self.opt.robust_scale = self.robust_scale
 
     def _init_lookup(self, texels: TexelSet, layout: ModelLayout, cfg: StreamConfig, dev: str) -> None:
         """The renderer's texture lookup (``StreamConfig.model_lookup``): texel coordinates and
@@ -603,7 +651,7 @@ class StreamProblem:
         # arguments normalised so one pass kind maps to one cached (compiled) kernel
         kernel = stream.accumulate_kernel(lay.n_lobes, int(lay.anisotropic), bool(self.cfg.kahan), diag is not None,
                                           direction is not None, bool(full_hessian and direction is not None),
-                                          self.max_registers, self.lookup, self.traced)
+                                          self.max_registers, self.lookup, self.traced, self.radiance, self.robust)
         if diag is not None and self.pdiag is None:
             self.pdiag = wp.zeros((self.groups, self.n), dtype=self.vec, device=self.device)
         pdiag = self.pdiag if diag is not None else self.no_diag
@@ -639,7 +687,7 @@ class StreamProblem:
             self.pm = wp.zeros((self.groups, self.n), dtype=self.mat, device=self.device)
         lay = self.layout
         kernel = stream.accumulate_lm_kernel(lay.n_lobes, int(lay.anisotropic), self.max_registers, self.lookup,
-                                             self.traced)
+                                             self.traced, self.radiance, self.robust)
         act = self.all_active if active is None else active
         first = True
         for images, depth, shadow, infos, b, e in self.photos.windows():

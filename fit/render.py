@@ -1,5 +1,8 @@
 """The synthetic renderer: a textured mesh with per-texel Lafortune parameters, ray traced with Warp.
 
+A radiance model (``ModelLayout`` kind "radiance") renders its per-texel radiance L, looked up
+the same way, with no light (frames with or without one; the light is ignored).
+
 :class:`Renderer` uploads the mesh (BVH), the parameter grid and the layout once per
 (mesh, parameter grid, layout, device) and then renders any number of views with
 :meth:`Renderer.render` / :meth:`Renderer.render_frame`. The per-pixel radiance is the shared
@@ -18,7 +21,7 @@ import warp as wp
 
 from texstream.capture.capture_json import Frame, Light
 from texstream.fit.kernels.render import PinholeCamera, RenderLight, render_kernel
-from texstream.fit.kernels.shading import LIGHT_DIRECTIONAL, LIGHT_POINT, SHADOW_EPS_REL
+from texstream.fit.kernels.shading import LIGHT_DIRECTIONAL, LIGHT_NONE, LIGHT_POINT, SHADOW_EPS_REL
 from texstream.fit.models import ModelLayout
 from texstream.geometry.mesh import SurfaceMesh
 from texstream.core.errors import ConfigError, InputError
@@ -29,7 +32,8 @@ class RenderResult:
     """One rendered view.
 
     Attributes:
-        radiance: (H, W, 3) float32 linear radiance (no exposure applied), 0 off the object.
+        radiance: (H, W, 3) float32 linear radiance (no exposure applied), 0 off the object
+            (a radiance model: its L, in photo value / exposure units).
         mask: (H, W) bool, True where a primary ray hit the mesh.
         depth: (H, W) float32 camera-space Z (OpenCV axes, world units) of the hit, 0 off the object.
         face: (H, W) int32 index of the hit face, -1 off the object.
@@ -114,13 +118,14 @@ class Renderer:
             t: (3,) world-to-camera translation.
             fx, fy, cx, cy: pinhole intrinsics in pixels (capture convention, centres at +0.5).
             width, height: image size in pixels.
-            light: a point or directional :class:`Light`.
+            light: a point or directional :class:`Light`; ignored (may be None) for a radiance model.
 
         Returns:
             A :class:`RenderResult` of numpy arrays.
         """
-        if light is None:
-            raise InputError("the frame has no light", fix="give every frame a point or directional light")
+        if light is None and not self.layout.is_radiance:
+            raise InputError(f"the frame has no light, which a {self.layout.kind} model needs to render",
+                             fix="give every frame a point or directional light, or render a radiance model")
         width, height = int(width), int(height)
         self._outputs(width, height)
         cam = PinholeCamera()
@@ -129,7 +134,9 @@ class Renderer:
         cam.fx, cam.fy, cam.cx, cam.cy = float(fx), float(fy), float(cx), float(cy)
         cam.width, cam.height = width, height
         lt = RenderLight()
-        if light.type == "point":
+        if self.layout.is_radiance:
+            lt.kind = int(LIGHT_NONE)  # L itself: no light, cosine or shadow ray
+        elif light.type == "point":
             lt.kind = int(LIGHT_POINT)
             lt.pos_or_dir = wp.vec3(*np.asarray(light.position, dtype=np.float32))
         elif light.type == "directional":
@@ -137,7 +144,8 @@ class Renderer:
             lt.pos_or_dir = wp.vec3(*np.asarray(light.direction, dtype=np.float32))
         else:
             raise InputError(f"light type {light.type!r} is not 'point' or 'directional'")
-        lt.intensity = wp.vec3(*np.asarray(light.intensity, dtype=np.float32))
+        if not self.layout.is_radiance:
+            lt.intensity = wp.vec3(*np.asarray(light.intensity, dtype=np.float32))
         wp.launch(render_kernel, dim=(height, width), device=self.device,
                   inputs=[self.mesh.id, self.points, self.indices, self.normals, self.uvs,
                           self.params, self.tex_w, self.tex_h, self.layout.n_lobes, int(self.layout.anisotropic),
@@ -149,7 +157,8 @@ class Renderer:
                             face=self._face.numpy().copy())
 
     def render_frame(self, frame: Frame) -> RenderResult:
-        """Render the view of a capture :class:`Frame` (pose, pinhole intrinsics, light).
+        """Render the view of a capture :class:`Frame` (pose, pinhole intrinsics, light; a radiance
+        model needs no light).
 
         Lens distortion is not rendered: the frame must be a pinhole camera.
         """

@@ -13,6 +13,9 @@ coordinates and the four values are blended with the bilinear weights. At a texe
 exactly the BRDF the fit models at that texel. E comes from :func:`incident_light`; L is zero
 where the light is behind the shading normal or the shadow ray is blocked.
 
+The radiance model (fit/models.py) renders with a ``LIGHT_NONE`` light: L is the texels' radiance
+columns looked up the same way (no light, cosine or shadow ray).
+
 Everything is float32 (the renderer makes ground truth at photo precision, not fit precision).
 """
 
@@ -20,7 +23,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from .shading import bilinear_taps, incident_light, lafortune_brdf, surface_frame, texel_coords, to_local
+from .shading import LIGHT_NONE, bilinear_taps, incident_light, lafortune_brdf, surface_frame, texel_coords, to_local
 
 
 @wp.struct
@@ -40,8 +43,9 @@ class PinholeCamera:
 
 @wp.struct
 class RenderLight:
-    """kind: LIGHT_POINT (0) or LIGHT_DIRECTIONAL (1); pos_or_dir: position (point) or travel
-    direction (directional); intensity: RGB (see conventions)."""
+    """kind: LIGHT_POINT (0), LIGHT_DIRECTIONAL (1) or LIGHT_NONE (2: the radiance model, whose
+    parameters are the radiance); pos_or_dir: position (point) or travel direction (directional);
+    intensity: RGB (see conventions)."""
 
     kind: int
     pos_or_dir: wp.vec3
@@ -103,6 +107,10 @@ def render_kernel(mesh_id: wp.uint64,
     face_id[j, i] = hit.face
 
     pos, uv, n, tg, bt = surface_frame(points, indices, normals, uvs, hit.face, hit.u, hit.v)
+    if light.kind == LIGHT_NONE:
+        # radiance model: n_lobes = 0, so the blended "BRDF" is the texels' radiance L itself
+        radiance[j, i] = shade_texel_grid(params, tex_w, tex_h, n_lobes, aniso, uv, n, n)
+        return
     l, e, dist = incident_light(light.kind, light.pos_or_dir, light.intensity, pos)
     cos_i = wp.dot(n, l)
     if cos_i <= 0.0:

@@ -19,6 +19,9 @@ import warp as wp
 
 LIGHT_POINT = wp.constant(0)
 LIGHT_DIRECTIONAL = wp.constant(1)
+LIGHT_NONE = wp.constant(2)
+"""No light (a photo under fixed, unknown lighting, capture.json frames without ``light``): only the
+radiance model (fit/models.py) fits or renders it, its model term being the radiance itself."""
 
 # Shadow-ray offset relative to the mesh's bounding-box diagonal (the renderer's, and the fit's
 # traced taps): large enough to clear float32 round-off of the hit position (~1e-7 x the scene

@@ -129,6 +129,9 @@ class SampleOptions:
     sampling: int
     """SAMPLING_BILINEAR (0), SAMPLING_POINT (1) or SAMPLING_FILTERED (2): how a texel samples a
     photo (see :func:`observe`)."""
+    robust_scale: float
+    """the robust loss's scale k in residual units (photo values in radiance space), read by the
+    passes compiled with a robust loss (:func:`accumulate_kernel` ``robust``); ignored otherwise"""
 
 
 @wp.func
@@ -275,6 +278,19 @@ def traced_tap(tex: TexelFrames, cam: wp.vec3, ray: wp.vec3, light_kind: int, li
 
 
 @wp.func
+def traced_texel(tex: TexelFrames, cam: wp.vec3, ray: wp.vec3):
+    """The radiance model's :func:`traced_tap`: whether the tap's pixel ray hits the mesh (1 or 0)
+    and the texel coordinates there; no light, so no cosine and no shadow ray."""
+    hit = wp.mesh_query_ray(tex.mesh, cam, wp.normalize(ray), 1.0e30)
+    if not hit.result:
+        return float(0.0), float(0.0), float(0.0)
+    p, uv, nrm, tg, bt = surface_frame(tex.mesh_points, tex.mesh_indices, tex.mesh_normals, tex.mesh_uvs,
+                                       hit.face, hit.u, hit.v)
+    x, y = texel_coords(uv, tex.grid_width, tex.grid_height)
+    return float(1.0), x, y
+
+
+@wp.func
 def tangent_frame(nrm: wp.vec3, tex: TexelFrames, i: int):
     """(tangent, bitangent) about the shading normal ``nrm``: the texel's tangent made orthogonal."""
     tan = wp.normalize(tex.tan[i] - nrm * wp.dot(nrm, tex.tan[i]))
@@ -293,99 +309,119 @@ def pixel_point(infos: wp.array(dtype=ImageInfo), k: int, tex: TexelFrames, i: i
     return q, nrm, tan, bit
 
 
-@wp.func
-def observe(images: wp.array3d(dtype=Any), depth: wp.array3d(dtype=wp.float32),
-            shadow: wp.array3d(dtype=wp.float32), infos: wp.array(dtype=ImageInfo), k: int,
-            tex: TexelFrames, i: int, opt: SampleOptions):
-    """The distribution step for one (texel i, photo k).
+@functools.cache
+def observe_func(radiance: bool = False):
+    """:func:`observe` specialised to the model's light handling when it compiles: reflectance
+    models (``radiance`` False) take each photo's light (the cosine and shadow tests, weight
+    exposure * E * cos(theta_i)); the radiance model (fit/models.py) ignores any light (no cosine or
+    shadow test, weight = exposure). Camera visibility, masks, saturation and grazing-view
+    rejection are the same for both. The reflectance path does the arithmetic it did before the option."""
+    no_light = bool(radiance)
 
-    Returns (ok, radiance y, weight w, local light u, local view v, xs, ys): the photo's value,
-    exposure * E * cos(theta_i) and the local directions at the texel centre (at the pixel's
-    surface point for point sampling; zero for filtered sampling, whose taps have their own),
-    and the centre's continuous pixel coordinates (pixel centres at integers), which
-    :func:`sample_model` needs for filtered sampling.
+    @wp.func
+    def observe(images: wp.array3d(dtype=Any), depth: wp.array3d(dtype=wp.float32),
+                shadow: wp.array3d(dtype=wp.float32), infos: wp.array(dtype=ImageInfo), k: int,
+                tex: TexelFrames, i: int, opt: SampleOptions):
+        """The distribution step for one (texel i, photo k).
 
-    How the photo is sampled (``opt.sampling``):
+        Returns (ok, radiance y, weight w, local light u, local view v, xs, ys): the photo's value,
+        exposure * E * cos(theta_i) (the radiance model: exposure, see :func:`observe_func`; u = 0)
+        and the local directions at the texel centre (at the pixel's
+        surface point for point sampling; zero for filtered sampling, whose taps have their own),
+        and the centre's continuous pixel coordinates (pixel centres at integers), which
+        :func:`sample_model` needs for filtered sampling.
 
-    * bilinear: the seed's filter, the photo interpolated at the texel centre's projection, the
-      model evaluated at the centre. Exact for radiance linear across the 2x2 taps; a highlight a
-      few pixels wide is blurred, which a narrow lobe then fits as a broader, dimmer one.
-    * point: the pixel nearest the projection, the model evaluated at the surface point that
-      pixel's centre sees. No blur, but the sample point wanders up to half a pixel from the
-      texel centre, which adds scatter where parameters change across a texel a pixel or two wide.
-    * filtered: the same bilinear filter applied to the photo and to the model, evaluated at each
-      tap's surface point (:func:`sample_model`): exact for any radiance the texel's parameters
-      describe across the taps, 4 model evaluations per sample.
-    """
-    zero3 = wp.vec3(0.0)
-    p = tex.pos[i]
-    nrm = tex.nrm[i]
-    tan = tex.tan[i]
-    bit = tex.bit[i]
-    pc = infos[k].rot @ p + infos[k].trans
-    if pc[2] <= 0.0:
-        return False, zero3, zero3, zero3, zero3, 0.0, 0.0
-    xs = infos[k].fx * pc[0] / pc[2] + infos[k].cx - 0.5
-    ys = infos[k].fy * pc[1] / pc[2] + infos[k].cy - 0.5
-    if xs < 0.0 or ys < 0.0 or xs >= float(infos[k].width - 1) or ys >= float(infos[k].height - 1):
-        return False, zero3, zero3, zero3, zero3, 0.0, 0.0
-    vdir = wp.normalize(infos[k].center - p)
-    cos_v = wp.dot(vdir, nrm)
-    if cos_v < opt.cos_view_min:
-        return False, zero3, zero3, zero3, zero3, 0.0, 0.0
-    point = opt.sampling == SAMPLING_POINT and infos[k].depth_is_mask == 0
-    x0 = int(xs)
-    y0 = int(ys)
-    if point:
-        x0 = int(xs + 0.5)
-        y0 = int(ys + 0.5)
-        p, nrm, tan, bit = pixel_point(infos, k, tex, i, x0, y0)
+        How the photo is sampled (``opt.sampling``):
+
+        * bilinear: the seed's filter, the photo interpolated at the texel centre's projection, the
+          model evaluated at the centre. Exact for radiance linear across the 2x2 taps; a highlight a
+          few pixels wide is blurred, which a narrow lobe then fits as a broader, dimmer one.
+        * point: the pixel nearest the projection, the model evaluated at the surface point that
+          pixel's centre sees. No blur, but the sample point wanders up to half a pixel from the
+          texel centre, which adds scatter where parameters change across a texel a pixel or two wide.
+        * filtered: the same bilinear filter applied to the photo and to the model, evaluated at each
+          tap's surface point (:func:`sample_model`): exact for any radiance the texel's parameters
+          describe across the taps, 4 model evaluations per sample.
+        """
+        zero3 = wp.vec3(0.0)
+        p = tex.pos[i]
+        nrm = tex.nrm[i]
+        tan = tex.tan[i]
+        bit = tex.bit[i]
         pc = infos[k].rot @ p + infos[k].trans
+        if pc[2] <= 0.0:
+            return False, zero3, zero3, zero3, zero3, 0.0, 0.0
+        xs = infos[k].fx * pc[0] / pc[2] + infos[k].cx - 0.5
+        ys = infos[k].fy * pc[1] / pc[2] + infos[k].cy - 0.5
+        if xs < 0.0 or ys < 0.0 or xs >= float(infos[k].width - 1) or ys >= float(infos[k].height - 1):
+            return False, zero3, zero3, zero3, zero3, 0.0, 0.0
         vdir = wp.normalize(infos[k].center - p)
         cos_v = wp.dot(vdir, nrm)
         if cos_v < opt.cos_view_min:
             return False, zero3, zero3, zero3, zero3, 0.0, 0.0
-    wi, e_int, dist = incident_light(infos[k].light_kind, infos[k].light_vec, infos[k].light_intensity, p)
-    cos_i = wp.dot(wi, nrm)
-    if cos_i < opt.cos_light_min:
-        return False, zero3, zero3, zero3, zero3, 0.0, 0.0
-    if infos[k].depth_is_mask != 0:
-        if not unmasked(depth, k, xs, ys):
-            return False, zero3, zero3, zero3, zero3, 0.0, 0.0
-    else:
-        # a tap up to ~1.5 px away (0.5 px for a point sample's own pixel) on a surface tilted by
-        # theta lies (z / fx) tan(theta) deeper per pixel; without this slack small photos reject
-        # every sample tilted past ~30 degrees. tan is capped at 4 (76 degrees) so silhouettes
-        # still reject the background.
-        tan_v = wp.min(wp.sqrt(wp.max(1.0 - cos_v * cos_v, 0.0)) / cos_v, 4.0)
+        point = opt.sampling == SAMPLING_POINT and infos[k].depth_is_mask == 0
+        x0 = int(xs)
+        y0 = int(ys)
         if point:
-            if not depth_tap_ok(depth, k, x0, y0, pc[2], opt.depth_tol, 0.5 * pc[2] / infos[k].fx * tan_v):
+            x0 = int(xs + 0.5)
+            y0 = int(ys + 0.5)
+            p, nrm, tan, bit = pixel_point(infos, k, tex, i, x0, y0)
+            pc = infos[k].rot @ p + infos[k].trans
+            vdir = wp.normalize(infos[k].center - p)
+            cos_v = wp.dot(vdir, nrm)
+            if cos_v < opt.cos_view_min:
+                return False, zero3, zero3, zero3, zero3, 0.0, 0.0
+        wi = zero3
+        e_int = wp.vec3(1.0)
+        cos_i = float(1.0)
+        if wp.static(not no_light):
+            wi, e_int, dist = incident_light(infos[k].light_kind, infos[k].light_vec, infos[k].light_intensity, p)
+            cos_i = wp.dot(wi, nrm)
+            if cos_i < opt.cos_light_min:
+                return False, zero3, zero3, zero3, zero3, 0.0, 0.0
+        if infos[k].depth_is_mask != 0:
+            if not unmasked(depth, k, xs, ys):
                 return False, zero3, zero3, zero3, zero3, 0.0, 0.0
         else:
-            if not depth_consistent(depth, k, x0, y0, pc[2], opt.depth_tol, 1.5 * pc[2] / infos[k].fx * tan_v):
+            # a tap up to ~1.5 px away (0.5 px for a point sample's own pixel) on a surface tilted by
+            # theta lies (z / fx) tan(theta) deeper per pixel; without this slack small photos reject
+            # every sample tilted past ~30 degrees. tan is capped at 4 (76 degrees) so silhouettes
+            # still reject the background.
+            tan_v = wp.min(wp.sqrt(wp.max(1.0 - cos_v * cos_v, 0.0)) / cos_v, 4.0)
+            if point:
+                if not depth_tap_ok(depth, k, x0, y0, pc[2], opt.depth_tol, 0.5 * pc[2] / infos[k].fx * tan_v):
+                    return False, zero3, zero3, zero3, zero3, 0.0, 0.0
+            else:
+                if not depth_consistent(depth, k, x0, y0, pc[2], opt.depth_tol, 1.5 * pc[2] / infos[k].fx * tan_v):
+                    return False, zero3, zero3, zero3, zero3, 0.0, 0.0
+        if wp.static(not no_light):
+            if not lit(shadow, k, infos, p, opt.shadow_tol):
                 return False, zero3, zero3, zero3, zero3, 0.0, 0.0
-    if not lit(shadow, k, infos, p, opt.shadow_tol):
-        return False, zero3, zero3, zero3, zero3, 0.0, 0.0
-    y = wp.vec3(0.0)
-    if point:
-        y = wp.vec3(images[k, y0, x0])
-        if wp.max(y[0], wp.max(y[1], y[2])) >= infos[k].saturation:
-            return False, zero3, zero3, zero3, zero3, 0.0, 0.0
-    else:
-        fx = xs - float(x0)
-        fy = ys - float(y0)
-        c00 = wp.vec3(images[k, y0, x0])
-        c01 = wp.vec3(images[k, y0, x0 + 1])
-        c10 = wp.vec3(images[k, y0 + 1, x0])
-        c11 = wp.vec3(images[k, y0 + 1, x0 + 1])
-        tapmax = wp.max(wp.max(c00, c01), wp.max(c10, c11))
-        if wp.max(tapmax[0], wp.max(tapmax[1], tapmax[2])) >= infos[k].saturation:
-            return False, zero3, zero3, zero3, zero3, 0.0, 0.0
-        y = (1.0 - fy) * ((1.0 - fx) * c00 + fx * c01) + fy * ((1.0 - fx) * c10 + fx * c11)
-    w = infos[k].exposure * cos_i * e_int
-    if opt.sampling == SAMPLING_FILTERED and infos[k].depth_is_mask == 0:
-        return True, y, w, zero3, zero3, xs, ys  # sample_model takes each tap's own directions
-    return True, y, w, to_local(wi, tan, bit, nrm), to_local(vdir, tan, bit, nrm), xs, ys
+        y = wp.vec3(0.0)
+        if point:
+            y = wp.vec3(images[k, y0, x0])
+            if wp.max(y[0], wp.max(y[1], y[2])) >= infos[k].saturation:
+                return False, zero3, zero3, zero3, zero3, 0.0, 0.0
+        else:
+            fx = xs - float(x0)
+            fy = ys - float(y0)
+            c00 = wp.vec3(images[k, y0, x0])
+            c01 = wp.vec3(images[k, y0, x0 + 1])
+            c10 = wp.vec3(images[k, y0 + 1, x0])
+            c11 = wp.vec3(images[k, y0 + 1, x0 + 1])
+            tapmax = wp.max(wp.max(c00, c01), wp.max(c10, c11))
+            if wp.max(tapmax[0], wp.max(tapmax[1], tapmax[2])) >= infos[k].saturation:
+                return False, zero3, zero3, zero3, zero3, 0.0, 0.0
+            y = (1.0 - fy) * ((1.0 - fx) * c00 + fx * c01) + fy * ((1.0 - fx) * c10 + fx * c11)
+        w = infos[k].exposure * cos_i * e_int
+        if opt.sampling == SAMPLING_FILTERED and infos[k].depth_is_mask == 0:
+            return True, y, w, zero3, zero3, xs, ys  # sample_model takes each tap's own directions
+        return True, y, w, to_local(wi, tan, bit, nrm), to_local(vdir, tan, bit, nrm), xs, ys
+
+    return observe
+
+
+observe = observe_func(False)
 
 
 @wp.func
@@ -409,6 +445,56 @@ def trace_stats(wm: Any, fitted: Any, y: wp.vec3, c: int):
     return wp.vec4d(wp.float64(1.0 / 3.0), rr * rr, wp.abs(rr), wp.abs(wp.float64(y[c])))
 
 
+ROBUST_NONE = 0
+ROBUST_HUBER = 1
+ROBUST_CAUCHY = 2
+ROBUST_LOSSES = {"none": ROBUST_NONE, "huber": ROBUST_HUBER, "cauchy": ROBUST_CAUCHY}
+"""Robust losses rho(r) of a channel residual r (``FitConfig.robust_loss``), compiled into the passes."""
+
+
+@wp.func
+def huber_loss(r: Any, k: Any):
+    """Huber's loss with scale k: rho = r^2 / 2 for |r| <= k, k (|r| - k / 2) beyond.
+
+    Returns (rho, rho' = psi, the IRLS weight psi / r, rho''). Convex; an outlier's influence
+    psi is capped at k."""
+    zero = r - r
+    one = zero + type(r)(1.0)
+    a = wp.abs(r)
+    if a <= k:
+        return type(r)(0.5) * r * r, r, one, one
+    psi = k
+    if r < zero:
+        psi = -k
+    return k * (a - type(r)(0.5) * k), psi, k / a, zero
+
+
+@wp.func
+def cauchy_loss(r: Any, k: Any):
+    """The Cauchy (Lorentzian) loss with scale k: rho = (k^2 / 2) ln(1 + (r / k)^2).
+
+    Returns (rho, psi = r / (1 + (r/k)^2), the IRLS weight 1 / (1 + (r/k)^2),
+    rho'' = (1 - (r/k)^2) / (1 + (r/k)^2)^2). Redescending: an outlier's influence falls as k^2 / r,
+    so a highlight many k above the rest pulls the fit by almost nothing; not convex (rho'' < 0
+    beyond |r| = k), hence the Gauss-Newton passes use the IRLS weight, which stays positive."""
+    one = type(r)(1.0)
+    t = r / k
+    t2 = t * t
+    q = one + t2
+    return type(r)(0.5) * k * k * wp.log(q), r / q, one / q, (one - t2) / (q * q)
+
+
+def _robust_func(robust: int):
+    """The wp.func of a robust loss kind (Huber stands in for ``ROBUST_NONE``, whose passes never call it)."""
+    if int(robust) not in ROBUST_LOSSES.values():
+        raise ValueError(f"unknown robust loss {robust!r}")
+    return cauchy_loss if int(robust) == ROBUST_CAUCHY else huber_loss
+
+
+def _robust_name(robust: int) -> str:
+    return {v: k for k, v in ROBUST_LOSSES.items()}[int(robust)]
+
+
 class LayoutFuncs(NamedTuple):
     """The per-sample functions of one model layout (:func:`layout_funcs`)."""
 
@@ -420,15 +506,19 @@ class LayoutFuncs(NamedTuple):
 
 
 @functools.cache
-def layout_funcs(n_lobes: int, anisotropic: int, lookup: bool = False, traced: bool = False) -> LayoutFuncs:
+def layout_funcs(n_lobes: int, anisotropic: int, lookup: bool = False, traced: bool = False,
+                 radiance: bool = False) -> LayoutFuncs:
     """The sample functions the accumulation kernels share, specialised to one model layout
     (loops over lobes and columns with compile-time trip counts, see ``lafortune_funcs``), to
     the model's texture lookup (``lookup``: the renderer's bilinear blend with the neighbours, see
-    ``sample_model``) and to the filtered taps' geometry (``traced``: each tap's ray traced to the
-    mesh, :func:`traced_tap`; else the texel's face plane, :func:`ray_surface`)."""
+    ``sample_model``), to the filtered taps' geometry (``traced``: each tap's ray traced to the
+    mesh, :func:`traced_tap`; else the texel's face plane, :func:`ray_surface`) and to the light
+    (``radiance``: the radiance model, no lobes, no light, W = exposure; :func:`observe_func`)."""
     lf = lafortune_funcs(n_lobes, anisotropic)
     blend = bool(lookup)
     trace = bool(traced)
+    no_light = bool(radiance)
+    observe_sample = observe_func(no_light)
     n_params = 3 + int(n_lobes) * (6 + int(anisotropic))
 
     @wp.func
@@ -533,7 +623,16 @@ def layout_funcs(n_lobes: int, anisotropic: int, lookup: bool = False, traced: b
             vl = wp.vec3(0.0)
             tx = float(0.0)
             ty = float(0.0)
-            if wp.static(trace):
+            if wp.static(no_light):
+                # the radiance model: W M = sum_t b_t exposure L_t, no light, cosine or shadow
+                a = b * exposure
+                if wp.static(trace):
+                    hit, tx, ty = traced_texel(tex, cam, ray)
+                    a = a * hit
+                elif wp.static(blend):
+                    p, nrm = ray_surface(ray, cam, p0, ng, plane, n0, jn)
+                    tx, ty = plane_texel_coords(tex, i, p)
+            elif wp.static(trace):
                 at, wi, p, nrm, tg, bt, tx, ty = traced_tap(tex, cam, ray, light_kind, light_vec, shadows)
                 a = b * exposure * at
                 ul, vl = frame_directions(wi, wp.normalize(cam - p), nrm, tg, bt)
@@ -558,6 +657,10 @@ def layout_funcs(n_lobes: int, anisotropic: int, lookup: bool = False, traced: b
         # every tap unlit (or, with the lookup, off the texel): W = 0, not usable
         inv = one / type(one)(wp.max(asum, 1.0e-30))
         offset = wp.vec3(0.0)
+        if wp.static(no_light):
+            if wp.static(blend):
+                offset = nsum
+            return asum > 0.0, to_compute3(wp.vec3(asum), one), feat * inv, hsum * inv, offset
         if wp.static(blend):
             offset = wp.cw_mul(infos[k].light_intensity, nsum)
         return asum > 0.0, to_compute3(infos[k].light_intensity * asum, one), feat * inv, hsum * inv, offset
@@ -569,7 +672,7 @@ def layout_funcs(n_lobes: int, anisotropic: int, lookup: bool = False, traced: b
         """One (texel i, photo k) sample, :func:`observe` then :func:`sample_model`: (usable, W, f,
         d^T (Hess M) d, the radiance W M fits, the photo's radiance y). With the lookup the model
         fits y minus the neighbours' held share N; else y itself."""
-        ok, y, w, u, v, xs, ys = observe(images, depth, shadow, infos, k, tex, i, opt)
+        ok, y, w, u, v, xs, ys = observe_sample(images, depth, shadow, infos, k, tex, i, opt)
         zero = one - one
         use = False
         wc = to_compute3(w, one)
@@ -599,7 +702,8 @@ def layout_funcs(n_lobes: int, anisotropic: int, lookup: bool = False, traced: b
 
 @functools.cache
 def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, dhd: bool, full_hessian: bool,
-                      max_registers: int = 0, lookup: bool = False, traced: bool = False):
+                      max_registers: int = 0, lookup: bool = False, traced: bool = False, radiance: bool = False,
+                      robust: int = ROBUST_NONE):
     """The objective / gradient pass of one model layout and pass kind.
 
     What a pass accumulates beside f and the gradient is fixed when the kernel compiles rather
@@ -608,12 +712,22 @@ def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, d
     ``direction``) and ``full_hessian`` (its r d^T (Hess r) d term). The Jacobian rows are built
     with literal indices (``LafortuneFuncs.jacobian_row``), so they stay in registers.
     ``max_registers`` caps registers per CUDA thread (0: none); ``lookup`` selects the renderer's
-    texture lookup and ``traced`` the traced tap geometry (``layout_funcs``). Each kernel lives in
-    a module of its own, so compiling one does not recompile the others.
+    texture lookup, ``traced`` the traced tap geometry and ``radiance`` the light-free radiance
+    model (``layout_funcs``). Each kernel lives in a module of its own, so compiling one does not
+    recompile the others.
+
+    ``robust`` (``ROBUST_LOSSES``) replaces each channel's r^2 / 2 by a robust loss rho(r) of scale
+    ``opt.robust_scale``, as iteratively reweighted least squares: objective rho(r), gradient
+    rho'(r) s J, Gauss-Newton curvature w(r) (s J d)^2 with the IRLS weight w = rho'(r) / r (also in
+    the Jacobi diagonal), and the full d^T H d rho''(r) (s J d)^2 + rho'(r) s d^T (Hess m) d, the
+    exact second derivative. The weights follow the current residuals in every pass (no host
+    round trip); ``ROBUST_NONE`` compiles the least-squares pass unchanged.
     """
-    fn = layout_funcs(n_lobes, anisotropic, lookup, traced)
+    fn = layout_funcs(n_lobes, anisotropic, lookup, traced, radiance)
     lf, load_params, sample, channel_residual = fn.lf, fn.load_params, fn.sample, fn.channel_residual
     use_kahan, want_diag, want_dhd, want_full = bool(kahan), bool(diag), bool(dhd), bool(dhd and full_hessian)
+    robust_on = int(robust) != ROBUST_NONE
+    robust_fn = _robust_func(robust)
 
     def accumulate(
         tex: TexelFrames, params: wp.array2d(dtype=Any), direction: wp.array2d(dtype=Any),
@@ -645,6 +759,7 @@ def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, d
                 dv = load_params(direction, i, like, one)
             k0 = img_begin + g * per_group
             k1 = wp.min(k0 + per_group, img_end)
+            scale = type(one)(opt.robust_scale)
             for k in range(k0, k1):
                 use, wc, feat, hm, yc, y = sample(pv, dv, images, depth, shadow, infos, k, tex, i, opt,
                                                   wp.static(int(want_full)), one)
@@ -652,24 +767,37 @@ def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, d
                     for c in range(3):
                         m, r, s = channel_residual(pv, feat, yc, wc, c, opt.reflectance_space, one)
                         term = type(one)(0.5) * r * r
+                        psi = r
+                        wgt = one
+                        curv = one
+                        if wp.static(robust_on):
+                            term, psi, wgt, curv = robust_fn(r, scale)
                         if wp.static(use_kahan):
                             f, fc = kahan_add(f, fc, term)
                         else:
                             f = f + term
                         jc = lf.jacobian_row(pv, feat, c)
-                        gterm = (r * s) * jc
+                        gterm = (psi * s) * jc
                         if wp.static(use_kahan):
                             grad, gc = kahan_add(grad, gc, gterm)
                         else:
                             grad = grad + gterm
                         if wp.static(want_diag):
                             sj = s * jc
-                            diag = diag + wp.cw_mul(sj, sj)
+                            if wp.static(robust_on):
+                                diag = diag + wgt * wp.cw_mul(sj, sj)
+                            else:
+                                diag = diag + wp.cw_mul(sj, sj)
                         if wp.static(want_dhd):
                             jd = s * wp.dot(jc, dv)
-                            dhd = dhd + jd * jd
-                            if wp.static(want_full):
-                                dhd = dhd + r * s * hm[c]
+                            if wp.static(not robust_on):
+                                dhd = dhd + jd * jd
+                                if wp.static(want_full):
+                                    dhd = dhd + r * s * hm[c]
+                            elif wp.static(want_full):
+                                dhd = dhd + curv * jd * jd + psi * s * hm[c]
+                            else:
+                                dhd = dhd + wgt * jd * jd
                         st = st + trace_stats(wc[c] * m, yc, y, c)
         out_f[g, i] = f
         out_g[g, i] = grad
@@ -681,7 +809,8 @@ def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, d
     name = "_".join(["accumulate", f"{int(n_lobes)}lobes", "aniso" if anisotropic else "iso"]
                     + [flag for flag, on in (("kahan", use_kahan), ("diag", want_diag), ("dhd", want_dhd),
                                              ("full", want_full), ("lookup", bool(lookup)),
-                                             ("traced", bool(traced))) if on])
+                                             ("traced", bool(traced)), ("radiance", bool(radiance))) if on]
+                    + ([_robust_name(robust)] if robust_on else []))
     if max_registers:
         name += f"_maxreg{max_registers}"
     return wp.kernel(accumulate, name=name, enable_backward=False, module="unique",
@@ -690,17 +819,23 @@ def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, d
 
 @functools.cache
 def accumulate_lm_kernel(n_lobes: int, anisotropic: int, max_registers: int = 0, lookup: bool = False,
-                         traced: bool = False):
+                         traced: bool = False, radiance: bool = False, robust: int = ROBUST_NONE):
     """The Gauss-Newton / LM pass of one model layout: f, J^T r and J^T J per (photo group, texel).
 
     J^T J is summed over the structurally non-zero entries of each channel's Jacobian row only
     (``LafortuneFuncs.row_entry``; 33 of the 81 entries of one isotropic lobe) into its upper
     triangle and mirrored once at the end, so the sums stay in registers on a GPU.
+
+    ``robust``: the robust loss as in :func:`accumulate_kernel`, f = sum rho(r), J^T psi(r) and
+    J^T W J with the IRLS weights W = psi(r) / r (iteratively reweighted least squares: every
+    pass reweights at its own point).
     """
-    fn = layout_funcs(n_lobes, anisotropic, lookup, traced)
+    fn = layout_funcs(n_lobes, anisotropic, lookup, traced, radiance)
     lf, load_params, sample, channel_residual = fn.lf, fn.load_params, fn.sample, fn.channel_residual
     n_params = fn.n_params
     row_nonzeros = lf.row_nonzeros
+    robust_on = int(robust) != ROBUST_NONE
+    robust_fn = _robust_func(robust)
 
     def accumulate_lm(
         tex: TexelFrames, params: wp.array2d(dtype=Any),
@@ -724,14 +859,20 @@ def accumulate_lm_kernel(n_lobes: int, anisotropic: int, max_registers: int = 0,
             pv = load_params(params, i, like, one)
             k0 = img_begin + g * per_group
             k1 = wp.min(k0 + per_group, img_end)
+            scale = type(one)(opt.robust_scale)
             for k in range(k0, k1):
                 use, wc, feat, hm, yc, y = sample(pv, pv, images, depth, shadow, infos, k, tex, i, opt, 0, one)
                 if use:
                     for c in range(3):
                         m, r, s = channel_residual(pv, feat, yc, wc, c, opt.reflectance_space, one)
-                        f = f + type(one)(0.5) * r * r
+                        term = type(one)(0.5) * r * r
                         rs = r * s
                         s2 = s * s
+                        if wp.static(robust_on):
+                            term, psi, wgt, curv = robust_fn(r, scale)
+                            rs = psi * s
+                            s2 = wgt * s2
+                        f = f + term
                         for ta in range(wp.static(row_nonzeros)):
                             ca, va = lf.row_entry(pv, feat, c, ta)
                             grad[ca] = grad[ca] + rs * va
@@ -749,7 +890,8 @@ def accumulate_lm_kernel(n_lobes: int, anisotropic: int, max_registers: int = 0,
         out_stats[g, i] = st
 
     name = "_".join(["accumulate_lm", f"{int(n_lobes)}lobes", "aniso" if anisotropic else "iso"]
-                    + (["lookup"] if lookup else []) + (["traced"] if traced else []))
+                    + (["lookup"] if lookup else []) + (["traced"] if traced else [])
+                    + (["radiance"] if radiance else []) + ([_robust_name(robust)] if robust_on else []))
     if max_registers:
         name += f"_maxreg{max_registers}"
     return wp.kernel(accumulate_lm, name=name, enable_backward=False, module="unique",
@@ -807,51 +949,63 @@ def reduce_vec_partials_kernel(pv: wp.array2d(dtype=Any), n_groups: int, accumul
     v[i] = a
 
 
-@wp.kernel
-def initial_guess_kernel(tex: TexelFrames, images: wp.array3d(dtype=Any),
-                         depth: wp.array3d(dtype=wp.float32), shadow: wp.array3d(dtype=wp.float32),
-                         infos: wp.array(dtype=ImageInfo), img_begin: int, img_end: int, opt: SampleOptions,
-                         rank: int, low: wp.array(dtype=wp.vec3), high: wp.array(dtype=wp.vec3),
-                         count: wp.array(dtype=wp.int32)):
-    """Per texel: the ``rank``-th smallest observed reflectance y / (exposure E cos) per channel
-    (a low percentile, McAllister's diffuse estimate used by the seed), the largest, and the
-    number of samples. Windows accumulate (call with the outputs pre-filled)."""
-    i = wp.tid()
-    lo = wp.mat44(0.0)  # rows: channel, columns: the 4 smallest so far, ascending
-    for c in range(3):
-        for j in range(4):
-            lo[c, j] = 1.0e30
-    # resume from previous windows: low[i] holds the rank-th value only, so windows restart the
-    # small-value list (documented: with streamed windows the estimate is per-window min-merged)
-    hi = high[i]
-    n = count[i]
-    for k in range(img_begin, img_end):
-        ok, y, w, u, v, xs, ys = observe(images, depth, shadow, infos, k, tex, i, opt)
-        if ok:
-            n = n + 1
-            for c in range(3):
-                val = y[c] / w[c]
-                hi[c] = wp.max(hi[c], val)
-                if val < lo[c, 3]:
-                    lo[c, 3] = val
-                    for jj in range(3):
-                        j = 2 - jj
-                        if lo[c, j + 1] < lo[c, j]:
-                            t = lo[c, j]
-                            lo[c, j] = lo[c, j + 1]
-                            lo[c, j + 1] = t
-    r = wp.clamp(rank, 0, 3)
-    est = low[i]
-    for c in range(3):
-        pick = lo[c, 0]
-        for j in range(4):
-            if j <= r and lo[c, j] < 1.0e29:
-                pick = lo[c, j]
-        if pick < 1.0e29:
-            if count[i] > 0:
-                est[c] = wp.min(est[c], pick)
-            else:
-                est[c] = pick
-    low[i] = est
-    high[i] = hi
-    count[i] = n
+@functools.cache
+def initial_guess_kernel_for(radiance: bool = False):
+    """The initial-guess kernel for reflectance models (``radiance`` False) or the radiance model
+    (:func:`observe_func`)."""
+    obs = observe_func(bool(radiance))
+
+    def initial_guess(tex: TexelFrames, images: wp.array3d(dtype=Any),
+                      depth: wp.array3d(dtype=wp.float32), shadow: wp.array3d(dtype=wp.float32),
+                      infos: wp.array(dtype=ImageInfo), img_begin: int, img_end: int, opt: SampleOptions,
+                      rank: int, low: wp.array(dtype=wp.vec3), high: wp.array(dtype=wp.vec3),
+                      count: wp.array(dtype=wp.int32)):
+        """Per texel: the ``rank``-th smallest observed reflectance y / (exposure E cos) per channel
+        (a low percentile, McAllister's diffuse estimate used by the seed; for the radiance model
+        y / exposure, a low percentile of the radiance, below any highlight), the largest, and the
+        number of samples. Windows accumulate (call with the outputs pre-filled)."""
+        i = wp.tid()
+        lo = wp.mat44(0.0)  # rows: channel, columns: the 4 smallest so far, ascending
+        for c in range(3):
+            for j in range(4):
+                lo[c, j] = 1.0e30
+        # resume from previous windows: low[i] holds the rank-th value only, so windows restart the
+        # small-value list (documented: with streamed windows the estimate is per-window min-merged)
+        hi = high[i]
+        n = count[i]
+        for k in range(img_begin, img_end):
+            ok, y, w, u, v, xs, ys = obs(images, depth, shadow, infos, k, tex, i, opt)
+            if ok:
+                n = n + 1
+                for c in range(3):
+                    val = y[c] / w[c]
+                    hi[c] = wp.max(hi[c], val)
+                    if val < lo[c, 3]:
+                        lo[c, 3] = val
+                        for jj in range(3):
+                            j = 2 - jj
+                            if lo[c, j + 1] < lo[c, j]:
+                                t = lo[c, j]
+                                lo[c, j] = lo[c, j + 1]
+                                lo[c, j + 1] = t
+        r = wp.clamp(rank, 0, 3)
+        est = low[i]
+        for c in range(3):
+            pick = lo[c, 0]
+            for j in range(4):
+                if j <= r and lo[c, j] < 1.0e29:
+                    pick = lo[c, j]
+            if pick < 1.0e29:
+                if count[i] > 0:
+                    est[c] = wp.min(est[c], pick)
+                else:
+                    est[c] = pick
+        low[i] = est
+        high[i] = hi
+        count[i] = n
+
+    return wp.kernel(initial_guess, name="initial_guess_radiance" if radiance else "initial_guess",
+                     enable_backward=False, module="unique")
+
+
+initial_guess_kernel = initial_guess_kernel_for(False)
