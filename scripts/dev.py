@@ -2,7 +2,7 @@
 """Set-up and run texstream from a clean clone with only Python (3.11 or 3.12) and pip.
 
     python3 scripts/dev.py demo   # make .venv, install, run the main job on the built-in synthetic set
-    python3 scripts/dev.py test   # make .venv if needed, install, run the test suite
+    python3 scripts/dev.py test   # make .venv if needed, install (and chromium), run the test suite
 
 Standard library only. The venv is reused; it is reinstalled when pyproject.toml changes.
 Extra arguments after the verb go to ``texstream run`` or ``pytest``.
@@ -44,6 +44,22 @@ def ensure_env() -> None:
         stamp.write_text(want)
 
 
+def ensure_browser() -> None:
+    """Headless Chromium for the report viewer's browser test (Debian's package; root installs it)."""
+    import shutil
+
+    if shutil.which("chromium") or shutil.which("chromium-browser") or not shutil.which("apt-get"):
+        return
+    if hasattr(os, "geteuid") and os.geteuid() != 0:
+        print("[dev] chromium is missing and this is not root: the viewer's browser test will skip "
+              "(sudo apt-get install chromium)", flush=True)
+        return
+    print("[dev] installing chromium (Debian package) for the report viewer's browser test", flush=True)
+    subprocess.call(["apt-get", "update", "-qq"])
+    subprocess.call(["apt-get", "install", "-y", "-qq", "--no-install-recommends", "chromium"],
+                    env=dict(os.environ, DEBIAN_FRONTEND="noninteractive"))
+
+
 def main() -> int:
     verb = sys.argv[1] if len(sys.argv) > 1 else "help"
     extra = sys.argv[2:]
@@ -55,7 +71,9 @@ def main() -> int:
     if verb == "demo":
         cmd = [str(BIN / "texstream"), "run", *(extra or ["--out", str(ROOT / "out" / "demo")])]
     else:
-        cmd = [str(PY), "-m", "pytest", "-q", "-rs", *(extra or [])]
+        ensure_browser()
+        # two workers: Warp's CPU launches use one core each (pytest-xdist)
+        cmd = [str(PY), "-m", "pytest", "-q", "-rs", *(extra or ["-n", "2"])]
     print("[dev] " + " ".join(cmd), flush=True)
     return subprocess.call(cmd, cwd=ROOT, env=env)
 

@@ -1,0 +1,107 @@
+"""``texstream run``: the end-to-end pipeline's decisions, stamps and config file, on a tiny
+synthetic capture with its true atlas (the stages before the fit are the subcommands' own tests)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import pytest
+
+from texstream.core.errors import ConfigError, InputError
+from texstream.pipelines.run import RunConfig, detect_source, run_config_from_dict, run_pipeline
+
+pytest.importorskip("OpenImageIO")
+
+from conftest import SCENE_DEVICE  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    from texstream.capture.synth import SynthConfig, synthesize
+
+    root = tmp_path_factory.mktemp("run")
+    synthesize("sphere", root / "cap", SynthConfig(scale=0.05, photos=16, image_size=40, progress=False,
+                                                   preview=False, device=SCENE_DEVICE))
+    return root / "cap"
+
+
+def tiny_config(**top) -> RunConfig:
+    cfg = RunConfig(device=SCENE_DEVICE, **top)
+    cfg.fit = dataclasses.replace(cfg.fit, renders=1, fit=dataclasses.replace(cfg.fit.fit, max_iterations=3))
+    return cfg
+
+
+def statuses(summary: dict) -> dict:
+    return {s["name"]: s["status"] for s in summary["stages"]}
+
+
+def test_known_cameras_and_atlas_skip_their_stages_and_a_rerun_skips_everything(capture, tmp_path):
+    out = tmp_path / "out"
+    cfg = tiny_config(mesh_file=str(capture / "ground_truth"))
+    first = run_pipeline(capture, out, cfg, log=lambda m: None)
+    st = statuses(first)
+    assert st["ingest"] == st["register"] == st["mesh"] == st["atlas"] == "skipped"
+    assert st["fit"] == "ran" and first["model"] == "lafortune"  # the sphere's photos have lights
+    reasons = {s["name"]: s["reason"] for s in first["stages"]}
+    assert "cameras known" in reasons["register"] and "light" in first["model_reason"]
+    # held-out error as users meet it: every 8th of 16 photos, pooled and worst view
+    assert first["heldout"]["views"] == 2 and first["heldout"]["pooled_psnr_db"] > 20
+    assert json.loads((out / "run.json").read_text())["model"] == "lafortune"
+    model_mtime = (out / "model" / "model.json").stat().st_mtime_ns
+    second = run_pipeline(capture, out, cfg, log=lambda m: None)
+    fit = next(s for s in second["stages"] if s["name"] == "fit")
+    assert fit["status"] == "skipped" and "unchanged" in fit["reason"]
+    assert (out / "model" / "model.json").stat().st_mtime_ns == model_mtime
+    third = run_pipeline(capture, out, cfg, from_stage="fit", log=lambda m: None)
+    assert statuses(third)["fit"] == "ran"
+    # a changed option reruns the fit
+    cfg2 = dataclasses.replace(cfg, fit=dataclasses.replace(cfg.fit, fit=dataclasses.replace(cfg.fit.fit, max_iterations=2)))
+    assert statuses(run_pipeline(capture, out, cfg2, log=lambda m: None))["fit"] == "ran"
+
+
+def test_unknown_lighting_chooses_the_radiance_model(capture, tmp_path):
+    import shutil
+
+    cap = tmp_path / "cap"
+    shutil.copytree(capture, cap)
+    data = json.loads((cap / "capture.json").read_text())
+    for f in data["frames"]:
+        f.pop("light", None)
+    data.pop("light", None)
+    (cap / "capture.json").write_text(json.dumps(data))
+    summary = run_pipeline(cap, tmp_path / "out", tiny_config(mesh_file=str(cap / "ground_truth")), log=lambda m: None)
+    assert summary["model"] == "radiance" and "unknown" in summary["model_reason"]
+    man = json.loads((tmp_path / "out" / "model" / "model.json").read_text())
+    assert man["kind"] == "radiance"
+    with pytest.raises(InputError, match="needs a light"):
+        run_pipeline(cap, tmp_path / "out2", tiny_config(mesh_file=str(cap / "ground_truth"), model="lafortune"),
+                     log=lambda m: None)
+
+
+def test_the_resolved_config_reads_back_and_unknown_fields_fail(capture, tmp_path):
+    from texstream.core.toml import read_toml
+
+    out = tmp_path / "out"
+    with pytest.raises(InputError):  # stops at the missing mesh, after writing the config
+        run_pipeline(capture, out, tiny_config(mesh_file=str(tmp_path / "missing.obj")), log=lambda m: None)
+    data = read_toml(out / "run_config.toml")
+    cfg = run_config_from_dict(data)
+    assert cfg.fit.fit.max_iterations == 3 and cfg.fit.holdout_every == 8 and cfg.device == SCENE_DEVICE
+    with pytest.raises(ConfigError, match="bogus"):
+        run_config_from_dict({**data, "bogus": 1})
+    with pytest.raises(ConfigError, match="colour"):
+        run_config_from_dict({**data, "fit": {**data["fit"], "colour": 1}})
+
+
+def test_bad_inputs_are_one_line_errors(tmp_path):
+    from texstream.pipelines.cli import main
+
+    assert detect_source(tmp_path) == "photos"
+    with pytest.raises(InputError, match="not found"):
+        detect_source(tmp_path / "nope")
+    (tmp_path / "file.txt").write_text("x")
+    with pytest.raises(InputError, match="output path exists"):
+        run_pipeline(tmp_path, tmp_path / "file.txt", tiny_config(), log=lambda m: None)
+    assert main(["run", str(tmp_path / "nope"), "-o", str(tmp_path / "o")]) == 1
+    assert main(["run", str(tmp_path), "-o", str(tmp_path / "o"), "--iterations", "-3"]) == 1
