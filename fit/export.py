@@ -60,8 +60,8 @@ roughness (glTF metallicRoughnessTexture G channel, OBJ Ns)
     lobe; matching the peak instead would add 45% to the reflected energy (environment-lit viewers
     show energy, so the export matches it).
 
-    Not representable in glTF and dropped: c_z < 1 (off-specular shape: the lobe keeps its height and width), the
-    anisotropic c_y (the lobe is exported as if isotropic), a second lobe's own width, and the
+    Not representable in glTF and dropped: c_z < 1 (off-specular shape: the lobe keeps its height
+    and width), the anisotropic c_y (the lobe is exported as if isotropic), a second lobe's own width, and the
     missing Fresnel rise (glTF's dielectric reflects more towards grazing, f90 = specularFactor = 1;
     it also darkens the diffuse layer by ``1 - max(F)``, i.e. by max(F0) along the normal).
 
@@ -76,7 +76,8 @@ Geometry
     origin is the top-left of the image: TEXCOORD_0 = (u, 1 - v); OBJ keeps v up. Texture images
     are written as stored (row 0 = top). The glTF scene turns the model's up axis to glTF's +y with
     a node rotation (``up_axis="z"``: -90 degrees about x; the vertex data stay in texstream's
-    world frame, readers apply the node); OBJ has no node, so its vertices are rotated. The float EXR maps are copied into ``maps/`` beside the export.
+    world frame, readers apply the node); OBJ has no node, so its vertices are rotated. The float
+    EXR maps are copied into ``maps/`` beside the export.
 
 Like the rest of ``texstream.fit`` this module imports only numpy (and texstream.core) at module
 level; pygltflib and OpenImageIO (through capture.imageio) are imported inside the functions.
@@ -115,8 +116,9 @@ class ExportConfig:
     formats: tuple[str, ...] = option(("glb", "obj"), "files to write: glb (glTF 2.0 binary, PBR metallic-"
                                       "roughness + KHR_materials_specular) and/or obj (OBJ + MTL + PNG)")
     name: str = option("model", "file stem: NAME.glb, NAME.obj, NAME.mtl, NAME_*.png")
-    up_axis: str = option("z", "the model's world up axis, turned to +y (glTF's up; OBJ importers assume it "
-                          "too): z for texstream's synthetic scenes, y to keep the coordinates", choices=UP_AXES)
+    up_axis: str = option("z", "the model's world up axis, turned to +y (glTF's up; OBJ importers assume "
+                          "it too): z for texstream's synthetic scenes, y to keep the coordinates",
+                          choices=UP_AXES)
     roughness: str = option("fitted", "Lafortune exponent n -> GGX alpha: fitted sqrt(0.72/(n+3)) or "
                             "blinn4 sqrt(2/(4n+2)) (docs/export.md)", choices=ROUGHNESS_CONVERSIONS)
     radiance_scale: float = option(1.0, "radiance models: multiply the radiance by this before clipping "
@@ -149,7 +151,8 @@ def ggx_alpha_from_exponent(n: np.ndarray, conversion: str = "fitted") -> np.nda
         return np.sqrt(0.72 / (n + 3.0))
     if conversion == "blinn4":
         return np.sqrt(2.0 / (4.0 * n + 2.0))
-    raise ConfigError(f"unknown roughness conversion {conversion!r}", fix=f"use one of {ROUGHNESS_CONVERSIONS}")
+    raise ConfigError(f"unknown roughness conversion {conversion!r}",
+                      fix=f"use one of {ROUGHNESS_CONVERSIONS}")
 
 
 def roughness_from_exponent(n: np.ndarray, conversion: str = "fitted") -> np.ndarray:
@@ -245,8 +248,8 @@ def _read_model(model_dir) -> _Model:
         mesh, grid, layout, man = stage.load_model(d)
     except InputError as e:
         if e.path and e.path.lower().endswith(".exr"):  # read_image's fix speaks of capture.json
-            raise InputError(f"parameter map: {e.message}", e.path,
-                             "restore the map, or re-run `texstream fit` to rewrite the model folder") from None
+            raise InputError(f"parameter map: {e.message}", e.path, "restore the map, or re-run "
+                             "`texstream fit` to rewrite the model folder") from None
         raise
     except ConfigError as e:
         raise InputError(f"model.json describes a model this texstream cannot read ({e.message})",
@@ -259,8 +262,8 @@ def _read_model(model_dir) -> _Model:
                          "export the mesh.obj the fit wrote (it carries the atlas UVs)")
     need = 3 if layout.kind == "radiance" else layout.n_params
     if grid.ndim != 3 or grid.shape[2] < need:
-        raise InputError(f"parameter maps hold {grid.shape[-1]} channels, the {layout.kind} layout needs {need}",
-                         d, "re-run `texstream fit` to rewrite the maps")
+        raise InputError(f"parameter maps hold {grid.shape[-1]} channels, the {layout.kind} layout "
+                         f"needs {need}", d, "re-run `texstream fit` to rewrite the maps")
     covered = np.ones(grid.shape[:2], bool)
     if (d / "bake.npz").is_file():
         try:
@@ -372,7 +375,8 @@ def _info(m: _Model, mat: _Material, cfg: ExportConfig) -> dict:
     info = {"kind": mat.kind, "vertices": m.mesh.n_vertices, "faces": m.mesh.n_faces, "texture": [w, h],
             "up_axis": cfg.up_axis, "base_colour_clipped_texels": mat.clipped}
     if mat.kind == "lafortune":
-        info.update({"specular_scale": mat.specular_scale, "specular_color_factor": mat.specular_scale / DIELECTRIC_F0,
+        info.update({"specular_scale": mat.specular_scale,
+                     "specular_color_factor": mat.specular_scale / DIELECTRIC_F0,
                      "roughness_conversion": cfg.roughness, "mtl_ns": mat.ns})
     if mat.kind == "radiance":
         info["radiance_scale"] = cfg.radiance_scale
@@ -386,7 +390,8 @@ def _check_config(cfg: ExportConfig) -> None:
     _up_rotation(cfg.up_axis)
     ggx_alpha_from_exponent(1.0, cfg.roughness)
     if not (math.isfinite(cfg.radiance_scale) and cfg.radiance_scale > 0):
-        raise ConfigError(f"radiance_scale must be > 0, got {cfg.radiance_scale}", fix="pass a positive scale")
+        raise ConfigError(f"radiance_scale must be > 0, got {cfg.radiance_scale}",
+                          fix="pass a positive scale")
     if not cfg.name or "/" in cfg.name or cfg.name.startswith("."):
         raise ConfigError(f"bad file stem {cfg.name!r}", fix="pass a plain file name without folders")
 
@@ -454,10 +459,12 @@ def _write_glb(m: _Model, mat: _Material, cfg: ExportConfig, out: Path) -> None:
     accessors = [
         G.Accessor(bufferView=view(pos.tobytes(), _ARRAY_BUFFER), componentType=_FLOAT, count=len(pos),
                    type="VEC3", min=pos.min(axis=0).tolist(), max=pos.max(axis=0).tolist()),
-        G.Accessor(bufferView=view(nrm.tobytes(), _ARRAY_BUFFER), componentType=_FLOAT, count=len(nrm), type="VEC3"),
-        G.Accessor(bufferView=view(tex.tobytes(), _ARRAY_BUFFER), componentType=_FLOAT, count=len(tex), type="VEC2"),
-        G.Accessor(bufferView=view(idx.tobytes(), _ELEMENT_ARRAY_BUFFER), componentType=_UINT, count=int(idx.size),
-                   type="SCALAR", min=[int(idx.min())], max=[int(idx.max())]),
+        G.Accessor(bufferView=view(nrm.tobytes(), _ARRAY_BUFFER), componentType=_FLOAT, count=len(nrm),
+                   type="VEC3"),
+        G.Accessor(bufferView=view(tex.tobytes(), _ARRAY_BUFFER), componentType=_FLOAT, count=len(tex),
+                   type="VEC2"),
+        G.Accessor(bufferView=view(idx.tobytes(), _ELEMENT_ARRAY_BUFFER), componentType=_UINT,
+                   count=int(idx.size), type="SCALAR", min=[int(idx.min())], max=[int(idx.max())]),
     ]
     images, textures = [], []
 
@@ -466,8 +473,8 @@ def _write_glb(m: _Model, mat: _Material, cfg: ExportConfig, out: Path) -> None:
         textures.append(G.Texture(sampler=0, source=len(images) - 1, name=name))
         return len(textures) - 1
 
-    extras = {"texstream": {"kind": mat.kind, "units": "base colour = albedo (pi * rho_d) or clipped radiance; "
-                                                      "see docs/export.md"}}
+    units = "base colour = albedo (pi * rho_d) or clipped radiance; see docs/export.md"
+    extras = {"texstream": {"kind": mat.kind, "units": units}}
     pbr = G.PbrMetallicRoughness(baseColorFactor=[1.0, 1.0, 1.0, 1.0],
                                  baseColorTexture=G.TextureInfo(index=texture("base_color", mat.base)),
                                  metallicFactor=0.0)
@@ -486,19 +493,23 @@ def _write_glb(m: _Model, mat: _Material, cfg: ExportConfig, out: Path) -> None:
         if mat.specular_scale > 0:
             spec["specularColorTexture"] = {"index": texture("specular_color", mat.specular)}
         extensions = {"KHR_materials_specular": spec}
-        extras["texstream"].update({"roughness_conversion": cfg.roughness, "specular_scale": mat.specular_scale})
+        extras["texstream"].update({"roughness_conversion": cfg.roughness,
+                                    "specular_scale": mat.specular_scale})
     material = G.Material(name=f"texstream_{mat.kind}", pbrMetallicRoughness=pbr, extensions=extensions,
                           extras=extras, doubleSided=False)
     up = _up_rotation(cfg.up_axis)
     node = G.Node(mesh=0, name=cfg.name)
     if not np.allclose(up, np.eye(3)):
         node.rotation = [-math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5)]  # -90 deg about x: +z up -> +y up
-    prim = G.Primitive(attributes=G.Attributes(POSITION=0, NORMAL=1, TEXCOORD_0=2), indices=3, material=0, mode=4)
+    prim = G.Primitive(attributes=G.Attributes(POSITION=0, NORMAL=1, TEXCOORD_0=2), indices=3, material=0,
+                       mode=4)
     gltf = G.GLTF2(asset=G.Asset(version="2.0", generator="texstream export"), scene=0,
-                   scenes=[G.Scene(nodes=[0])], nodes=[node], meshes=[G.Mesh(name=cfg.name, primitives=[prim])],
+                   scenes=[G.Scene(nodes=[0])], nodes=[node],
+                   meshes=[G.Mesh(name=cfg.name, primitives=[prim])],
                    accessors=accessors, bufferViews=views, buffers=[G.Buffer(byteLength=len(blob))],
                    images=images, textures=textures,
-                   samplers=[G.Sampler(magFilter=_LINEAR, minFilter=_LINEAR_MIPMAP_LINEAR, wrapS=_CLAMP, wrapT=_CLAMP)],
+                   samplers=[G.Sampler(magFilter=_LINEAR, minFilter=_LINEAR_MIPMAP_LINEAR, wrapS=_CLAMP,
+                                       wrapT=_CLAMP)],
                    materials=[material], extensionsUsed=sorted(extensions))
     gltf.set_binary_blob(bytes(blob))
     data = b"".join(gltf.save_to_bytes())
@@ -557,8 +568,9 @@ def _export_obj(m: _Model, cfg: ExportConfig, out: Path) -> dict:
     v = np.asarray(m.mesh.vertices, dtype=np.float64) @ up.T
     n = _unit_normals(m.mesh) @ up.T
     f = np.asarray(m.mesh.faces, dtype=np.int64) + 1
-    parts = [f"# texstream export: {m.mesh.n_vertices} vertices, {m.mesh.n_faces} faces, up axis "
-             f"{cfg.up_axis} -> +y\n", f"mtllib {stem}.mtl\n", f"o {stem}\n",
+    header = (f"# texstream export: {m.mesh.n_vertices} vertices, {m.mesh.n_faces} faces, "
+              f"up {cfg.up_axis} -> +y\n")
+    parts = [header, f"mtllib {stem}.mtl\n", f"o {stem}\n",
              _rows(v, "v", "%.9g"), _rows(np.asarray(m.mesh.uvs, np.float64), "vt", "%.9g"),
              _rows(n, "vn", "%.7g"), "usemtl texstream\n", _rows(np.repeat(f, 3, axis=1), "f", "%d/%d/%d")]
     obj = "".join(parts).encode()

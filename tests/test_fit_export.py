@@ -38,8 +38,10 @@ H = W = 8
 HALF_CODE = 0.5 / 255 + 1e-6  # nearest-code rounding (+ float32 encode)
 Z_UP_TO_Y_UP = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]])
 # quadrants (row block, column block): top-left, top-right, bottom-left, bottom-right of the image
-RHO_D = {(0, 0): (0.05, 0.10, 0.20), (0, 1): (0.30, 0.20, 0.10), (1, 0): (0.0, 0.01, 0.30), (1, 1): (0.35, 0.35, 0.35)}
-RHO_S = {(0, 0): (0.5, 0.5, 0.5), (0, 1): (3.0, 3.0, 3.0), (1, 0): (20.0, 20.0, 20.0), (1, 1): (0.3, 0.15, 0.06)}
+RHO_D = {(0, 0): (0.05, 0.10, 0.20), (0, 1): (0.30, 0.20, 0.10), (1, 0): (0.0, 0.01, 0.30),
+         (1, 1): (0.35, 0.35, 0.35)}
+RHO_S = {(0, 0): (0.5, 0.5, 0.5), (0, 1): (3.0, 3.0, 3.0), (1, 0): (20.0, 20.0, 20.0),
+         (1, 1): (0.3, 0.15, 0.06)}
 EXPONENT = {(0, 0): 10.0, (0, 1): 100.0, (1, 0): 1000.0, (1, 1): 1.0}
 UNCOVERED = (3, 3)  # off the surface: a wild value there must not set the specular scale
 
@@ -72,8 +74,8 @@ def make_model(folder, kind: str = "lafortune", n_lobes: int = 1, mesh: SurfaceM
 
 def expected_f0(grid, covered, n_lobes=1):
     lay = ModelLayout("lafortune", n_lobes)
-    f0 = sum(E.lobe_albedo(grid[..., lay.lobe_offset(j):lay.lobe_offset(j) + 3], grid[..., lay.lobe_offset(j) + 5])
-             for j in range(n_lobes))
+    offsets = [lay.lobe_offset(j) for j in range(n_lobes)]
+    f0 = sum(E.lobe_albedo(grid[..., o:o + 3], grid[..., o + 5]) for o in offsets)
     f0 = np.clip(f0, 0, 1)
     return f0, float(f0[covered].max())
 
@@ -85,7 +87,8 @@ def glb_images(path) -> tuple[object, dict]:
     images = {}
     for im in gl.images:
         bv = gl.bufferViews[im.bufferView]
-        images[im.name] = np.asarray(PIL_Image.open(io.BytesIO(blob[bv.byteOffset:bv.byteOffset + bv.byteLength])))
+        png = blob[bv.byteOffset:bv.byteOffset + bv.byteLength]
+        images[im.name] = np.asarray(PIL_Image.open(io.BytesIO(png)))
     return gl, images
 
 
@@ -128,7 +131,8 @@ def test_lobe_albedo_and_ggx_normalisation_agree_with_quadrature():
         quad = 2 * np.pi * np.sum(0.5 * (y[1:] + y[:-1]) * np.diff(th))
         assert E.lobe_albedo(np.ones(3), n)[0] == pytest.approx(quad, rel=1e-6)
     g = E.ggx_lobe_inplane(0.01, 0.0, th[:-1])
-    assert 2 * np.pi * np.sum(g * np.cos(th[:-1]) * np.sin(th[:-1]) * np.diff(th)) == pytest.approx(1.0, abs=2e-3)
+    albedo = 2 * np.pi * np.sum(g * np.cos(th[:-1]) * np.sin(th[:-1]) * np.diff(th))
+    assert albedo == pytest.approx(1.0, abs=2e-3)
     assert np.all(np.diff(E.roughness_from_exponent(np.array([1, 10, 100, 1e4]))) < 0)
     with pytest.raises(ConfigError):
         E.ggx_alpha_from_exponent(10.0, "beckmann?")
@@ -142,7 +146,8 @@ def test_glb_reads_back_with_pygltflib_and_trimesh(tmp_path):
     info = E.export_gltf(tmp_path / "model", tmp_path / "out" / "model.glb")
     assert (info["vertices"], info["faces"]) == (9, 8)
     f0, scale = expected_f0(grid, covered)
-    assert 0 < scale < 1 and info["specular_scale"] == pytest.approx(scale, rel=1e-6)  # the uncovered texel is ignored
+    assert 0 < scale < 1  # the uncovered texel (F0 clipped to 1) is left out
+    assert info["specular_scale"] == pytest.approx(scale, rel=1e-6)
     assert info["base_colour_clipped_texels"] == 16  # the bottom-right quadrant: pi * 0.35 > 1
 
     gl, images = glb_images(tmp_path / "out" / "model.glb")
@@ -162,7 +167,8 @@ def test_glb_reads_back_with_pygltflib_and_trimesh(tmp_path):
     assert (images["metallic_roughness"][..., 2] == 0).all()  # metalness
     documented = {10.0: 0.485, 100.0: 0.289, 1000.0: 0.164, 1.0: 0.651}
     for (by, bx), n in EXPONENT.items():
-        assert images["metallic_roughness"][by * 4 + 1, bx * 4 + 1, 1] / 255 == pytest.approx(documented[n], abs=0.003)
+        code = images["metallic_roughness"][by * 4 + 1, bx * 4 + 1, 1]
+        assert code / 255 == pytest.approx(documented[n], abs=0.003)
 
     scene = trimesh.load(tmp_path / "out" / "model.glb")
     tm = scene.to_geometry()  # node transform applied
@@ -178,15 +184,16 @@ def test_glb_reads_back_with_pygltflib_and_trimesh(tmp_path):
     got = trimesh.visual.color.uv_to_color(corners, mat_t.baseColorTexture)[:, :3]
     for c, q in zip(got, [(0, 0), (0, 1), (1, 0), (1, 1)]):
         assert_srgb_codes(c, np.pi * np.asarray(RHO_D[q]))
-    assert sorted(p.name for p in (tmp_path / "out" / "maps").iterdir()) == ["lobe0_rho_s.exr", "lobe0_shape.exr",
-                                                                             "rho_d.exr"]
+    maps = sorted(p.name for p in (tmp_path / "out" / "maps").iterdir())
+    assert maps == ["lobe0_rho_s.exr", "lobe0_shape.exr", "rho_d.exr"]
 
 
 def test_glb_of_two_lobes_sums_albedos_and_takes_the_dominant_width(tmp_path):
     _, covered, _ = make_model(tmp_path / "model", n_lobes=2)
     lay = ModelLayout("lafortune", 2)
-    grid = lay.pack(quadrant_map(RHO_D, 3), [{"rho_s": quadrant_map(RHO_S, 3), "n": quadrant_map(EXPONENT, 1)[..., 0]},
-                                             {"rho_s": np.full((H, W, 3), 0.17), "n": np.full((H, W), 5.0)}])
+    lobes = [{"rho_s": quadrant_map(RHO_S, 3), "n": quadrant_map(EXPONENT, 1)[..., 0]},
+             {"rho_s": np.full((H, W, 3), 0.17), "n": np.full((H, W), 5.0)}]
+    grid = lay.pack(quadrant_map(RHO_D, 3), lobes)
     write_param_maps(tmp_path / "model", grid.astype(np.float32), lay)
     E.export_gltf(tmp_path / "model", tmp_path / "m.glb", E.ExportConfig(copy_maps=False))
     _, images = glb_images(tmp_path / "m.glb")
@@ -226,12 +233,16 @@ def radiance_model(folder, monkeypatch):
         files = write_param_maps(folder, radiance.astype(np.float32), lay)
         layout_json = lay.to_json()
     else:
-        files, layout_json = {"radiance": "radiance.exr"}, {"kind": "radiance", "n_lobes": 0, "anisotropic": False}
+        files = {"radiance": "radiance.exr"}
+        layout_json = {"kind": "radiance", "n_lobes": 0, "anisotropic": False}
         stub = types.SimpleNamespace(kind="radiance", n_lobes=0, n_params=3)
         from texstream.fit import stage
 
-        monkeypatch.setattr(stage, "load_model", lambda d: (mesh.with_normals(), radiance.astype(np.float32), stub,
-                                                            json.loads((folder / "model.json").read_text())))
+        def load_model(d):
+            man = json.loads((d / "model.json").read_text())
+            return mesh.with_normals(), radiance.astype(np.float32), stub, man
+
+        monkeypatch.setattr(stage, "load_model", load_model)
     (folder / "model.json").write_text(json.dumps({"kind": "radiance", "layout": layout_json, "maps": files}))
     return radiance
 
@@ -244,7 +255,7 @@ def test_radiance_model_exports_an_unlit_material(tmp_path, monkeypatch):
     gl, images = glb_images(tmp_path / "r.glb")
     assert gl.extensionsUsed == ["KHR_materials_unlit"]
     mat = gl.materials[0]
-    assert mat.extensions == {"KHR_materials_unlit": {}}  # and no KHR_materials_specular (the spec forbids both)
+    assert mat.extensions == {"KHR_materials_unlit": {}}  # no KHR_materials_specular: the spec forbids both
     assert mat.pbrMetallicRoughness.metallicFactor == 0.0
     assert_srgb_codes(images["base_color"], 0.5 * radiance)
     E.export_gltf(tmp_path / "model", tmp_path / "r1.glb", E.ExportConfig(copy_maps=False))
@@ -287,10 +298,11 @@ def test_up_axis_y_keeps_coordinates(tmp_path):
     cfg = E.ExportConfig(up_axis="y", copy_maps=False)
     E.export_obj(tmp_path / "model", tmp_path / "obj", cfg)
     E.export_gltf(tmp_path / "model", tmp_path / "m.glb", cfg)
-    np.testing.assert_allclose(trimesh.load(tmp_path / "obj" / "model.obj", process=False).vertices, mesh.vertices,
-                               atol=1e-7)
+    obj = trimesh.load(tmp_path / "obj" / "model.obj", process=False)
+    np.testing.assert_allclose(obj.vertices, mesh.vertices, atol=1e-7)
     assert pygltflib.GLTF2.load(str(tmp_path / "m.glb")).nodes[0].rotation is None
-    np.testing.assert_allclose(trimesh.load(tmp_path / "m.glb").to_geometry().vertices, mesh.vertices, atol=1e-6)
+    glb = trimesh.load(tmp_path / "m.glb").to_geometry()
+    np.testing.assert_allclose(glb.vertices, mesh.vertices, atol=1e-6)
 
 
 # --------------------------------------------------------------------------- the stage and bad input
@@ -307,7 +319,8 @@ def test_export_stage_writes_the_folder_with_its_config(tmp_path):
                                                      "model_specular.png"]
     assert load_config(E.ExportConfig, out / "export_config.json") == cfg
     summary = json.loads((out / "export.json").read_text())
-    assert summary["files"] == {"glb": "model.glb", "obj": "model.obj"} and summary["roughness_conversion"] == "blinn4"
+    assert summary["files"] == {"glb": "model.glb", "obj": "model.obj"}
+    assert summary["roughness_conversion"] == "blinn4"
     assert summary["maps"] == ["maps/rho_d.exr", "maps/lobe0_rho_s.exr", "maps/lobe0_shape.exr"]
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary folder left
     # glb only, overwriting: the folder is replaced as a whole
@@ -325,8 +338,8 @@ def _no_uvs(folder):
     (lambda d: (d / "model.json").unlink(), "model.json"),
     (lambda d: (d / "model.json").write_text("{not json"), "model.json"),
     (lambda d: (d / "model.json").write_text('{"maps": {}}'), "model.json"),
-    (lambda d: (d / "model.json").write_text('{"layout": {"kind": "phong", "n_lobes": 1, "anisotropic": false}}'),
-     "model.json"),
+    (lambda d: (d / "model.json").write_text('{"layout": {"kind": "phong", "n_lobes": 1}}'), "model.json"),
+    (lambda d: (d / "model.json").write_text('{"layout": {"kind": "lafortune"}}'), "model.json"),
     (lambda d: (d / "lobe0_shape.exr").unlink(), "lobe0_shape.exr"),
     (lambda d: (d / "mesh.obj").unlink(), "mesh.obj"),
     (_no_uvs, "mesh.obj"),
