@@ -20,12 +20,37 @@ T = TypeVar("T")
 
 
 def option(default: Any = dataclasses.MISSING, help: str = "", *, choices: tuple | None = None,
-           default_factory: Any = dataclasses.MISSING, cli: bool = True) -> Any:
-    """A dataclass field with help text (and optional choices) used by the CLI and the docs."""
-    meta = {"help": help, "choices": choices, "cli": cli}
+           default_factory: Any = dataclasses.MISSING, cli: bool = True, min: float | None = None,
+           max: float | None = None) -> Any:
+    """A dataclass field with help text, optional choices and an optional range [min, max], used by
+    the CLI, the docs and :func:`check_config`."""
+    meta = {"help": help, "choices": choices, "cli": cli, "min": min, "max": max}
     if default_factory is not dataclasses.MISSING:
         return dataclasses.field(default_factory=default_factory, metadata=meta)
     return dataclasses.field(default=default, metadata=meta)
+
+
+def check_config(cfg: Any, prefix: str = "") -> None:
+    """Check every field of a (nested) config against its choices and range; a ConfigError names the
+    option (as the CLI spells it) and the allowed values. Stages call it before any long work, so a
+    bad value from a config file or a script fails as clearly as one from the command line."""
+    for f in dataclasses.fields(cfg):
+        v = getattr(cfg, f.name)
+        name = "--" + (prefix + f.name).replace("_", "-")
+        if dataclasses.is_dataclass(v):
+            check_config(v, prefix + f.name + ".")
+            continue
+        meta = f.metadata or {}
+        if meta.get("choices") and v not in meta["choices"] and not (v is None and f.default is None):
+            raise ConfigError(f"{name} {v!r} is not one of {list(meta['choices'])}",
+                              fix=f"use one of {', '.join(map(str, meta['choices']))}")
+        lo, hi = meta.get("min"), meta.get("max")
+        if (lo is not None or hi is not None) and v is not None:
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise ConfigError(f"{name} must be a number, got {v!r}", fix="give a number")
+            if (lo is not None and v < lo) or (hi is not None and v > hi) or v != v:
+                span = f"[{'-inf' if lo is None else lo}, {'inf' if hi is None else hi}]"
+                raise ConfigError(f"{name} {v} is out of range {span}", fix=f"give a value in {span}")
 
 
 def config_to_dict(cfg: Any) -> dict:

@@ -45,7 +45,7 @@ import numpy as np
 import warp as wp
 
 from texstream.core.errors import InputError
-from texstream.core.config import option
+from texstream.core.config import check_config, option
 from texstream.core.outputs import StageResult, atomic_output_dir
 
 from .fitter import FitConfig
@@ -344,6 +344,7 @@ def fit_single_view_stage(capture_dir: str | Path, normals_path: str | Path | No
     from .stage import check_output_path, run_fit_with_progress
 
     cfg = config or SingleViewConfig()
+    check_config(cfg)
     if cfg.normal_space not in NORMAL_SPACES:
         raise InputError(f"normal space {cfg.normal_space!r} unknown", fix=f"use one of {NORMAL_SPACES}")
     check_output_path(out_dir)

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from texstream.core.errors import InputError, StageError
-from texstream.core.config import option
+from texstream.core.config import check_config, option
 from texstream.core.outputs import StageResult, atomic_output_dir, read_json, write_json_atomic
 
 from .fitter import FitConfig, FitResult, light_view_angles, run_fit
@@ -37,11 +37,12 @@ class FitStageConfig:
     """Options of ``texstream fit`` around the numerical FitConfig."""
 
     device: str = option("cpu", "Warp device: cpu or cuda:N")
-    texture_size: int = option(256, "atlas side in texels when the mesh has UVs but no bake")
-    holdout_every: int = option(0, "hold out every k-th photo from the fit for evaluation (0 = none)")
-    renders: int = option(4, "photos rendered beside the fitted model in renders/")
+    texture_size: int = option(256, "atlas side in texels when the mesh has UVs but no bake", min=8, max=16384)
+    holdout_every: int = option(0, "hold out every k-th photo from the fit for evaluation (0 = none)", min=0)
+    renders: int = option(4, "photos rendered beside the fitted model in renders/", min=0)
     min_seen_fraction: float = option(0.01, "fail before fitting when fewer than this fraction of the atlas's texels "
-                                            "is seen by any photo (the mesh faces away or is in another frame)")
+                                            "is seen by any photo (the mesh faces away or is in another frame)",
+                                      min=0.0)
     fit: FitConfig = option(default_factory=FitConfig, help="the fit")
 
 
@@ -279,6 +280,7 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     from .model_folder import check_model, pooled_psnr, render_comparisons, write_model_folder
 
     cfg = config or FitStageConfig()
+    check_config(cfg)
     check_output_path(out_dir)
     t0 = time.perf_counter()
     inputs = load_fit_inputs(capture_dir, mesh_path, cfg)

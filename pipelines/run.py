@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-from texstream.core.config import config_from_dict, config_to_dict, option
+from texstream.core.config import check_config, config_from_dict, config_to_dict, option
 from texstream.core.errors import ConfigError, InputError
 from texstream.core.outputs import write_json_atomic
 
@@ -215,6 +215,7 @@ def run_pipeline(source: str | Path, out: str | Path, config: RunConfig | None =
     from texstream.core.toml import dumps
 
     cfg = config or RunConfig()
+    check_config(cfg)
     src, out = Path(source), Path(out)
     if from_stage is not None and from_stage not in STAGES:
         raise ConfigError(f"--from {from_stage!r} is not a stage", fix=f"use one of {STAGES}")
