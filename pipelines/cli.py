@@ -31,6 +31,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "mesh": ("texstream.pipelines.cmd_mesh", "make, clean and simplify the mesh"),
     "atlas": ("texstream.pipelines.cmd_atlas", "UV atlas and texel bake for fitting"),
     "fit": ("texstream.pipelines.cmd_fit", "fit an appearance model to a posed capture (Warp)"),
+    "export": ("texstream.pipelines.cmd_export", "glTF binary and OBJ+MTL of a fitted model, for viewers and DCC tools"),
     "eval": ("texstream.pipelines.cmd_eval", "PSNR / APE of a fitted model on a capture"),
     "preview": ("texstream.pipelines.cmd_preview", "contact sheet of a capture folder"),
 }
