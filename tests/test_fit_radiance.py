@@ -99,6 +99,26 @@ def test_full_dhd_matches_second_difference(device, loss):
     assert np.all(np.abs(dhd - second) <= bound), np.max(np.abs(dhd - second) / bound)
 
 
+def test_robust_loss_derivatives_of_a_lafortune_lobe(device):
+    """The robust loss lives in the general passes: with a Lafortune lobe (a non-linear model, so
+    the full d^T H d also carries rho'(r) s d^T (Hess m) d) its gradient and full d^T H d are the
+    finite differences of its objective."""
+    from test_fit_gradients import random_params
+
+    layout = ModelLayout()
+    prob, rng = plane_problem(device, layout, seed=8)
+    prob.set_robust_loss("cauchy", 0.5)
+    p = random_params(layout, prob.n, rng)
+    assert_gradient_matches_finite_differences(prob, layout, p)
+    d = rng.normal(size=p.shape) * np.array([0.01, 0.01, 0.01, 0.05, 0.05, 0.05, 0.0, 0.02, 0.5])
+    f0, _, dhd, _ = evaluate(prob, p, direction=d, full=True)
+    h = 3e-4
+    second = (evaluate(prob, p + h * d)[0] - 2 * f0 + evaluate(prob, p - h * d)[0]) / h ** 2
+    # test_fit_gradients' full-Hessian bound (O(h^2) truncation, second-difference rounding)
+    bound = 1e-6 * np.abs(second) + 1e-6 * np.abs(second).max() + 1e-7 * np.abs(f0)
+    assert np.all(np.abs(dhd - second) <= bound), np.max(np.abs(dhd - second) / bound)
+
+
 @pytest.mark.parametrize("loss", ["huber", "cauchy"])
 def test_robust_terms_are_the_loss_of_the_least_squares_residuals(device, loss):
     """One photo, so a texel has at most one sample per channel and the channels decouple: the

@@ -18,7 +18,11 @@ Residuals (per colour channel c, radiance-space weight w_c = exposure * E_c * co
     radiance space   : r_c = w_c m_c - y_c
     reflectance space: r_c = m_c - y_c / w_c       (the seed's choice; needs cos(theta_i) >= 0.1)
 Both are r_c = s_c (m_c - y_c / w_c) with s_c = w_c or 1, so J_r = s_c J_m and
-d^T H_r d = s_c d^T H_m d.
+d^T H_r d = s_c d^T H_m d. The radiance model (fit/models.py) has w_c = exposure: its passes are
+compiled without the light (:func:`observe_func`, ``layout_funcs(radiance=True)``).
+
+The data term is sum rho(r_c) with rho(r) = r^2 / 2 (least squares) or a robust loss (Huber, Cauchy;
+``accumulate_kernel``'s ``robust``), applied per sample as iteratively reweighted least squares.
 """
 
 from __future__ import annotations
@@ -576,6 +580,10 @@ def layout_funcs(n_lobes: int, anisotropic: int, lookup: bool = False, traced: b
         the mesh (:func:`traced_tap`: the point, frame, UV and cast shadow the renderer sees, so a
         tap that leaves the texel's face, e.g. on curved or coarse geometry, lands where the photo's
         pixel looks).
+
+        The radiance model (``radiance``) has no light: w_t = b_t exposure (times 1 or 0 for a
+        traced tap that hits the mesh or misses, :func:`traced_texel`), W = sum_t w_t and N the
+        neighbours' blended radiance sum_t w_t n_t.
         """
         uc = to_compute3(u, one)
         vc = to_compute3(v, one)
