@@ -60,6 +60,11 @@ class RegisterConfig:
                                choices=("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"))
     intrinsics: str | None = option(None, help="intrinsics.json from 'texstream calibrate' (matched by image size)")
     refine_intrinsics: bool = option(False, help="let bundle adjustment refine given intrinsics")
+    refine_principal_point: str = option("auto", help="refine the principal point in a final global bundle "
+                                         "adjustment when the intrinsics are estimated (COLMAP keeps it at the image "
+                                         "centre): auto (on when at least 8 photos and 500 points are registered), "
+                                         "on, off; a result more than a tenth of the image size off centre is rejected",
+                                         choices=("auto", "on", "off"))
     use_masks: bool = option(True, help="pass masks to feature extraction (no features on the background)")
     min_model_size: int = option(3, help="smallest model (registered photos) kept by the mapper")
     align_to: str | None = option(None, help="capture.json / transforms.json with known camera centres: "
@@ -277,6 +282,47 @@ def _run_colmap(photos: list[_Photo], img_dir: Path, mask_dir: Path | None, work
     return recs
 
 
+def _refine_principal_point(rec: Any, cfg: RegisterConfig, free: bool) -> tuple[Any, dict]:
+    """Final global bundle adjustment that also refines the principal point (and focal length and
+    distortion); returns (the reconstruction to keep, report entry with the decision and its reason)."""
+    import pycolmap
+
+    n_img, n_pts = rec.num_reg_images(), rec.num_points3D()
+    info: dict[str, Any] = {"mode": cfg.refine_principal_point}
+    if not free:
+        info.update(refined=False, reason="intrinsics are calibrated and fixed (pass --refine-intrinsics to free them)")
+        return rec, info
+    if cfg.refine_principal_point == "off":
+        info.update(refined=False, reason="off")
+        return rec, info
+    if cfg.refine_principal_point == "auto" and (n_img < 8 or n_pts < 500):
+        info.update(refined=False, reason=f"auto: {n_img} photo(s) and {n_pts} point(s) registered, fewer than 8 and "
+                    "500 needed to pin the principal point down")
+        return rec, info
+    before = {cid: (float(c.principal_point_x), float(c.principal_point_y)) for cid, c in rec.cameras.items()}
+    out = pycolmap.Reconstruction(rec)
+    bo = pycolmap.BundleAdjustmentOptions()
+    bo.refine_focal_length = True
+    bo.refine_principal_point = True
+    bo.refine_extra_params = True
+    err0 = float(rec.compute_mean_reprojection_error())
+    pycolmap.bundle_adjustment(out, bo)
+    cams = {}
+    for cid, c in out.cameras.items():
+        off = max(abs(c.principal_point_x - c.width / 2) / c.width, abs(c.principal_point_y - c.height / 2) / c.height)
+        cams[str(cid)] = {"before": [round(v, 3) for v in before[cid]],
+                          "after": [round(float(c.principal_point_x), 3), round(float(c.principal_point_y), 3)],
+                          "off_centre_fraction": round(float(off), 4)}
+        if not off <= 0.1:
+            info.update(refined=False, cameras=cams,
+                        reason=f"rejected: camera {cid}'s principal point went {100 * off:.0f}% of the image off centre")
+            return rec, info
+    info.update(refined=True, cameras=cams, reprojection_error_before=err0,
+                reprojection_error_after=float(out.compute_mean_reprojection_error()),
+                reason=f"{cfg.refine_principal_point}: {n_img} photos, {n_pts} points registered")
+    return out, info
+
+
 def _known_centres(path: str) -> dict[str, np.ndarray]:
     cap = read_capture(path)
     return {Path(f.file_path).name: f.center for f in cap.frames}
@@ -483,6 +529,8 @@ def register(capture: str | os.PathLike, out: str | os.PathLike, config: Registe
                              f"(too little overlap or texture); partial report {path}", capture,
                              "take overlapping photos (60%+ overlap between neighbours) of a textured object")
         rec = max(recs.values(), key=lambda r: r.num_reg_images())
+        fixed = bool(cfg.intrinsics or source == "calibrated") and not cfg.refine_intrinsics
+        rec, report["principal_point"] = _refine_principal_point(rec, cfg, not fixed)
         report["mean_reprojection_error"] = float(rec.compute_mean_reprojection_error())
         if centres is not None:
             report["alignment"] = align_to_centres(rec, centres, cfg.align_max_error, cfg.seed)
@@ -538,6 +586,14 @@ def register(capture: str | os.PathLike, out: str | os.PathLike, config: Registe
             extra = dict(cap.extra) if cap is not None else {}
             extra.pop("posed", None)
             extra.pop("colocated_light", None)
+            if not fixed:
+                # Bundle adjustment estimated the intrinsics: say so, and keep where they started.
+                extra["intrinsics_prior"] = extra.get("intrinsics_source") or ("guess" if cap is None else "unknown")
+                extra["intrinsics_source"] = "sfm"
+                extra["intrinsics_refined"] = ["focal_length", "distortion"] + (
+                    ["principal_point"] if report["principal_point"].get("refined") else [])
+            elif cfg.intrinsics:
+                extra["intrinsics_source"] = "calibrated"
             extra["registration"] = {"registered": len(frames), "unregistered": report["unregistered"],
                                      "aligned": centres is not None or align_mesh is not None,
                                      "aligned_to": "centres" if centres is not None else
@@ -554,4 +610,5 @@ def register(capture: str | os.PathLike, out: str | os.PathLike, config: Registe
     summary = {k: report[k] for k in ("registered", "unregistered", "dropped", "models", "mean_reprojection_error",
                                       "points3D", "timings")}
     summary["alignment"] = report.get("alignment")
+    summary["principal_point"] = report.get("principal_point")
     return StageResult(output=out, summary=summary)
