@@ -44,7 +44,7 @@ class HullConfig:
                                           "hull along that view (the Middlebury temple's threshold masks have holes "
                                           "of up to 205 px in 70,000 px silhouettes; its real gaps between the "
                                           "columns are 8,000 px, 11%)")
-    closing: int = option(1, help="morphological closing of the carved field with a ball of this radius in grid "
+    closing: int = option(0, help="morphological closing of the carved field with a ball of this radius in grid "
                                   "cells before marching cubes (0: off): closes tunnels and gaps narrower than "
                                   "about two cells that voxel carving and mask noise leave")
 

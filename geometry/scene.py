@@ -110,9 +110,9 @@ def _compact(mesh: SurfaceMesh, keep_faces: np.ndarray) -> SurfaceMesh:
 
 
 def crop_to_box(mesh: SurfaceMesh, lo: np.ndarray, hi: np.ndarray) -> SurfaceMesh:
-    """The faces whose centroid lies inside the box [lo, hi]."""
-    cen = mesh.vertices[mesh.faces].mean(axis=1)
-    return _compact(mesh, np.all((cen >= np.asarray(lo)) & (cen <= np.asarray(hi)), axis=1))
+    """The faces whose vertices all lie inside the box [lo, hi]."""
+    inside = np.all((mesh.vertices >= np.asarray(lo)) & (mesh.vertices <= np.asarray(hi)), axis=1)
+    return _compact(mesh, inside[mesh.faces].all(axis=1))
 
 
 def point_spacing(points: np.ndarray, k: int = 8) -> float:
@@ -137,6 +137,22 @@ def trim_far_from_points(mesh: SurfaceMesh, points: np.ndarray, max_distance: fl
     return _compact(mesh, near[mesh.faces].all(axis=1))
 
 
+@wp.func
+def _first_hit(mesh: wp.uint64, rot: wp.mat33, center: wp.vec3, k: wp.vec4, x: float, y: float, max_t: float):
+    d = wp.transpose(rot) * wp.normalize(wp.vec3((x - k[2]) / k[0], (y - k[3]) / k[1], 1.0))
+    q = wp.mesh_query_ray(mesh, center, d, max_t)
+    face = int(-1)
+    t = max_t
+    side = int(0)
+    if q.result:
+        face = q.face
+        t = q.t
+        side = 1
+        if wp.dot(wp.mesh_eval_face_normal(mesh, q.face), d) >= 0.0:
+            side = -1
+    return face, t, side
+
+
 @wp.kernel(enable_backward=False)
 def _facing_kernel(mesh: wp.uint64, rot: wp.mat33, center: wp.vec3, k: wp.vec4, nu: int, nv: int, w: float,
                    h: float, max_t: float, face: wp.array(dtype=wp.int32), side: wp.array(dtype=wp.int32)):
@@ -145,19 +161,9 @@ def _facing_kernel(mesh: wp.uint64, rot: wp.mat33, center: wp.vec3, k: wp.vec4, 
     i = tid - j * nu
     x = (float(i) + 0.5) * w / float(nu)
     y = (float(j) + 0.5) * h / float(nv)
-    d_cam = wp.normalize(wp.vec3((x - k[2]) / k[0], (y - k[3]) / k[1], 1.0))
-    d = wp.transpose(rot) * d_cam
-    q = wp.mesh_query_ray(mesh, center, d, max_t)
-    if q.result:
-        face[tid] = q.face
-        n = wp.mesh_eval_face_normal(mesh, q.face)
-        if wp.dot(n, d) < 0.0:
-            side[tid] = 1
-        else:
-            side[tid] = -1
-    else:
-        face[tid] = -1
-        side[tid] = 0
+    f0, t0, s0 = _first_hit(mesh, rot, center, k, x, y, max_t)
+    face[tid] = f0
+    side[tid] = s0
 
 
 @dataclasses.dataclass

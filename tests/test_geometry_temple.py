@@ -113,3 +113,24 @@ def test_density_atlas_gives_every_face_texels_and_evens_texel_size(temple, devi
     # over the same 12 meshes (0.54 for the reproducible one; 0.71 on seed 3, whose grazing area is
     # 1.9% against 0.8% on seed 0). It still has to be clearly below the uniform atlas's.
     assert s_den["log2_std"] < 0.85 * s_uni["log2_std"]
+
+
+def test_mesh_faces_the_cameras_with_few_handles(temple):
+    """Camera rays hit front faces; mask holes and voxel-scale tunnels are closed (geometry/scene.py, hull.py)."""
+    from texstream.geometry.scene import camera_facing, cameras_enclosed, genus_by_component
+
+    s, m, frames = temple["summary"], temple["mesh"], temple["capture"].frames
+    assert s["capture_kind"]["kind"] == "object" and s["capture_kind"]["cameras_in_box"] == 0.0
+    assert s["cameras_enclosed"] == 0 and not cameras_enclosed(m, np.array([f.center for f in frames])).any()
+    fac = camera_facing(m, frames, "cpu", 64)
+    print(f"temple: {fac.to_json()}, genus {genus_by_component(m)}, hull {s['hull']}")
+    # a closed outward surface seen from outside: measured 0 back hits of 10,900 (64 rays per image
+    # side); up to 1% allowed for faces that decimation folds over (tests/test_geometry_scene.py)
+    assert fac.hits > 5000 and fac.back_fraction < 0.01
+    assert s["facing"]["flipped_components"] == 0
+    # genus 133 before the hull filled mask holes under 1% of the silhouette (threshold-mask noise,
+    # 11,635 px in 16 views); measured 10 after filling. Closing the carved field by one cell
+    # (--closing 1) gives 3, stable at closing 2 and at fill 2% (the real gaps between the columns),
+    # but is off by default: with it this file's density-atlas test fails (p90/p10 1.71 > 1.45)
+    g = genus_by_component(m)
+    assert g["components"] == 1 and g["total"] <= 14
