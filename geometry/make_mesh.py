@@ -20,6 +20,16 @@ points there (96%) but invents surface where there are none (the temple's unseen
 down); the intersection keeps Poisson where points are and the silhouettes cut what it invents,
 and it is closed. Numbers: ``tests/test_geometry_temple.py`` on the 2-core CPU dev box.
 
+Scenes and objects (``scene_kind``, :mod:`.scene`): SfM points of a scene (cameras inside the points'
+robust extent, or over a flat cloud's footprint) are meshed by Poisson over the points inside that
+extent, cropped to it and trimmed to where points are: Poisson alone closed them into a balloon
+round the cameras, facing away from them. An object's closed Poisson surface that encloses a camera
+gets the same treatment. Every mesh made from a capture is then oriented per connected component
+towards the cameras whose rays hit it, and the stage fails (StageError) when more than
+``max_back_faces`` of the rays still hit back faces, or when an object's surface encloses a camera.
+The report holds the decision and its reason (``capture_kind``), ``facing``, ``cameras_enclosed``
+and ``genus`` per component (and the hull's genus before and after its closing).
+
 Outputs (atomically) in the output folder: ``mesh.ply``, ``mesh_report.json`` (source, reason,
 cleanup report, alignment, triangulation), ``mesh_config.json``, and ``points3D.ply`` (points with
 normals) when the points were triangulated here.
