@@ -21,10 +21,11 @@ T = TypeVar("T")
 
 def option(default: Any = dataclasses.MISSING, help: str = "", *, choices: tuple | None = None,
            default_factory: Any = dataclasses.MISSING, cli: bool = True, min: float | None = None,
-           max: float | None = None) -> Any:
+           max: float | None = None, flat: bool = False) -> Any:
     """A dataclass field with help text, optional choices and an optional range [min, max], used by
-    the CLI, the docs and :func:`check_config`."""
-    meta = {"help": help, "choices": choices, "cli": cli, "min": min, "max": max}
+    the CLI, the docs and :func:`check_config`. ``flat``: a nested config whose options the CLI
+    spells without this field's name (``--max-iterations``, not ``--fit.max-iterations``)."""
+    meta = {"help": help, "choices": choices, "cli": cli, "min": min, "max": max, "flat": flat}
     if default_factory is not dataclasses.MISSING:
         return dataclasses.field(default_factory=default_factory, metadata=meta)
     return dataclasses.field(default=default, metadata=meta)
@@ -38,7 +39,7 @@ def check_config(cfg: Any, prefix: str = "") -> None:
         v = getattr(cfg, f.name)
         name = "--" + (prefix + f.name).replace("_", "-")
         if dataclasses.is_dataclass(v):
-            check_config(v, prefix + f.name + ".")
+            check_config(v, prefix if (f.metadata or {}).get("flat") else prefix + f.name + ".")
             continue
         meta = f.metadata or {}
         if meta.get("choices") and v not in meta["choices"] and not (v is None and f.default is None):

@@ -39,7 +39,7 @@ class FitConfig:
     model: str = option("lafortune", "appearance model: lafortune or diffuse (reflectance, need a known light per "
                                      "photo) or radiance (view-independent radiance under the photos' one fixed, "
                                      "unknown lighting; ignores lights)", choices=("lafortune", "diffuse", "radiance"))
-    lobes: int = option(1, "specular lobes K (0..2)")
+    lobes: int = option(1, "specular lobes K (0..2)", min=0, max=2)
     anisotropic: bool = option(False, "general C_x, C_y, C_z lobes instead of isotropic C_xy, C_z")
     lobe_shape: str = option("auto", "free fits each lobe's c_z, phong holds it at 1; auto picks phong when every "
                                      "photo's light-view angle lies within lobe_shape_spread_deg of the others "
@@ -49,7 +49,7 @@ class FitConfig:
     optimizer: str = option("lm", "sd, cg, lbfgs or lm (per-texel Levenberg-Marquardt)", choices=OPTIMIZERS)
     cg_variant: str = option("pr", "conjugate gradient beta: pr (Polak-Ribiere+) or fr (Fletcher-Reeves)", choices=("pr", "fr"))
     cg_restart_every: int = option(0, "steepest-descent restart every m CG iterations (0 = never)")
-    lbfgs_history: int = option(5, "L-BFGS history pairs m")
+    lbfgs_history: int = option(5, "L-BFGS history pairs m", min=1)
     precondition: str = option("jacobi", "sd, cg and lbfgs: jacobi scales the gradient by the inverse Gauss-Newton "
                                          "diagonal diag(J^T J) of each texel (accumulated in the gradient pass; "
                                          "CG holds it between restarts, L-BFGS uses it as H0), none = raw gradient",
@@ -60,7 +60,7 @@ class FitConfig:
     precondition_floor: float = option(1e-10, "Jacobi preconditioner M = D + this * mean(D over free columns): "
                                               "guards columns no sample constrains; keep it tiny, the exponent's "
                                               "D is ~1e-7 of the albedos'")
-    lm_lambda0: float = option(1e-3, "initial Levenberg-Marquardt damping")
+    lm_lambda0: float = option(1e-3, "initial Levenberg-Marquardt damping", min=0.0)
     lookup_refresh_every: int = option(0, "stream.model_lookup bilinear: hold the neighbours at the current "
                                           "parameters again every k iterations (each refresh costs a pass and "
                                           "restarts CG / L-BFGS memory); 0 = 1 for lm, 10 for the others")
@@ -68,14 +68,14 @@ class FitConfig:
                                            "fraction of the way to the current parameters (damped Jacobi: texels a "
                                            "pixel or less wide, whose taps read their neighbours as much as "
                                            "themselves, oscillate at 1; see the README)")
-    max_iterations: int = option(100, "iteration cap")
-    time_budget_s: float = option(0.0, "stop after this many seconds (0 = no limit)")
+    max_iterations: int = option(100, "iteration cap", min=1)
+    time_budget_s: float = option(0.0, "stop after this many seconds (0 = no limit)", min=0.0)
     rel_tol: float = option(1e-7, "stop when the objective's relative decrease over sync_every iterations is below this")
-    sync_every: int = option(5, "iterations between reads of the trace buffer (stopping tests)")
+    sync_every: int = option(5, "iterations between reads of the trace buffer (stopping tests)", min=1)
     diffuse_free_iterations: int = option(-1, "seed's schedule: diffuse free for the first k iterations then fixed (-1 = always free)")
     init: str = option("percentile", "initial guess: percentile (McAllister low percentile diffuse) or defaults",
                        choices=("percentile", "defaults"))
-    init_rank: int = option(1, "which smallest reflectance sample (0..3) estimates the diffuse part")
+    init_rank: int = option(1, "which smallest reflectance sample (0..3) estimates the diffuse part", min=0, max=3)
     lobe_albedo_max: float = option(1.0, "energy bound: each lobe's rho_s <= this * (n + 2) / (2 pi), the largest "
                                           "albedo a normalised lobe may have (stops one highlight sample from "
                                           "producing a broad, enormously bright lobe); 0 = off")

@@ -69,7 +69,7 @@ class SingleViewConfig:
                           "depth map; irrelevant for directional lights")
     holdout_every: int = option(0, "hold out every k-th photo from the fit for evaluation (0 = none)")
     renders: int = option(4, "photos rendered beside the fitted model in renders/")
-    fit: FitConfig = option(default_factory=FitConfig, help="the fit")
+    fit: FitConfig = option(default_factory=FitConfig, help="the fit", flat=True)
 
 
 @dataclasses.dataclass

@@ -15,6 +15,7 @@ import numpy as np
 import warp as wp
 
 from texstream.capture.conventions import look_at_w2c
+from texstream.core.config import option
 from texstream.core.errors import ConfigError, InputError
 
 from .kernels import stream
@@ -220,65 +221,41 @@ class PhotoFrame:
 class StreamConfig:
     """Numerical and streaming options of the evaluation passes."""
 
-    accumulate: str = "fp32"
-    """accumulator / compute precision: fp32 or fp64"""
-    storage: str = "fp32"
-    """parameter storage precision: fp16, fp32 or fp64"""
-    image_precision: str = "fp32"
-    """photo storage on the device: fp32 or fp16 (halves the streamed bytes)"""
-    kahan: bool = False
-    """Kahan-compensated summation of objective and gradient over photos (seed Alg. 14)"""
-    residual_space: str = "radiance"
-    """radiance (fit pixel values) or reflectance (divide out E cos, the seed's choice)"""
-    cos_light_min: float = 0.1
-    """reject samples lit more grazingly than this cosine (the seed used 0.1)"""
-    cos_view_min: float = 0.05
-    """reject samples seen more grazingly than this cosine"""
-    depth_tol: float = 0.01
-    """relative depth tolerance of the visibility test (fraction of camera distance)"""
-    shadow_tol: float = 0.01
-    """relative depth tolerance of the shadow test"""
-    shadow_map_size: int = 512
-    """shadow map resolution per photo (0 disables cast-shadow rejection and traced taps' shadow rays)"""
-    photo_sampling: str = "filtered"
-    """how a texel samples a photo (fit/kernels/stream.py ``observe``): ``filtered`` (the photo's
-    bilinear filter applied to the model too, evaluated at each tap's surface point: highlights a
-    few pixels wide are not blurred; 4 model evaluations per sample), ``point`` (the nearest
-    pixel, the model at the surface point it sees) or ``bilinear`` (the seed's filter at the texel
-    centre's projection, the model at the centre)"""
-    model_lookup: str = "texel"
-    """what BRDF a sample's model sees at a point near its texel: ``texel`` (the seed's: the texel's
-    own everywhere) or ``bilinear`` (the renderer's texture lookup, fit/kernels/render.py: the
-    bilinear blend of the four texels around the point, the neighbours held at their values of
-    the last refresh, ``FitConfig.lookup_refresh_every``). ``bilinear`` makes the fit consistent
-    with what it is scored and rendered by where parameters change from texel to texel (material
-    edges): noise-free photos rendered from a model are reproduced exactly by that model. It needs
-    filtered photo sampling and an atlas (not single-view fits) and costs a neighbour lookup per
-    tap"""
-    tap_geometry: str = "plane"
-    """where filtered sampling evaluates the model at a tap (fit/kernels/stream.py ``sample_model``):
-    ``plane`` (the texel's face plane, the shading normal and texel coordinates extended to first
-    order from the texel; no mesh access per tap) or ``mesh`` (each tap's pixel ray traced to the
-    mesh's BVH: the surface point, interpolated normal, tangent, UV and cast shadow the renderer
-    sees there, also where the tap leaves the texel's face). ``mesh`` needs filtered photo
-    sampling and a mesh with normals and UVs, and costs a ray query (and a shadow ray) per tap"""
-    groups: int = 0
-    """photo groups per pass (parallelism over photos; 0 = automatic)"""
-    photos_per_window: int = 0
-    """photos resident on the device at once (0 = all; else streamed from host in windows)"""
-    cuda_block_dim: int = 128
-    """threads per CUDA block of the accumulation kernels. An SM keeps whole blocks resident: at
-    168 registers per thread it holds three 128-thread blocks (12 warps) but one 256-thread block
-    (8 warps). Measured on an H100 (benchmarks/results/h100_kernels): Lafortune passes 17.2 ms
-    with 256, 12.7 ms with 128 (and the cap below). Ignored on the CPU"""
-    cuda_max_registers: int = -1
-    """registers per CUDA thread the accumulation kernels may use; 0: as many as the compiler
-    likes (175-208 for one isotropic lobe, which fits two 128-thread blocks per SM); -1: 168 for
-    layouts of at most 9 parameters (one isotropic lobe, diffuse), which costs the LM pass 40
-    bytes of spills and lets three blocks in (H100: 17.7 -> 13.0 ms per LM pass), and no cap for
-    larger ones (two anisotropic lobes would spill 520 bytes per LM thread at 168; not timed).
-    See benchmarks/kernel_resources.py and benchmarks/pass_profile.py. Ignored on the CPU"""
-
+    accumulate: str = option("fp32", "accumulator and compute precision of the passes", choices=("fp32", "fp64"))
+    storage: str = option("fp32", "parameter storage precision", choices=("fp16", "fp32", "fp64"))
+    image_precision: str = option("fp32", "photo storage on the device (fp16 halves the streamed bytes)",
+                                  choices=("fp32", "fp16"))
+    kahan: bool = option(False, "Kahan-compensated sums of objective and gradient over photos (seed Alg. 14)")
+    residual_space: str = option("radiance", "fit pixel values (radiance) or divide out E cos (reflectance, the "
+                                             "seed's choice)", choices=("radiance", "reflectance"))
+    cos_light_min: float = option(0.1, "reject samples lit more grazingly than this cosine (the seed's 0.1)",
+                                  min=0.0, max=1.0)
+    cos_view_min: float = option(0.05, "reject samples seen more grazingly than this cosine", min=0.0, max=1.0)
+    depth_tol: float = option(0.01, "visibility test tolerance, as a fraction of the camera distance", min=0.0)
+    shadow_tol: float = option(0.01, "shadow test tolerance, as a fraction of the light distance", min=0.0)
+    shadow_map_size: int = option(512, "shadow map side per photo (0: no cast-shadow rejection, no traced shadow "
+                                       "rays)", min=0)
+    photo_sampling: str = option("filtered", "how a texel samples a photo: filtered (the photo's bilinear filter "
+                                             "applied to the model too, at each tap's surface point: highlights a "
+                                             "few pixels wide stay sharp; 4 model evaluations per sample), point "
+                                             "(nearest pixel) or bilinear (the seed's: the filter at the texel "
+                                             "centre's projection)", choices=("filtered", "point", "bilinear"))
+    model_lookup: str = option("texel", "the model a sample sees near its texel: texel (the texel's own, the "
+                                        "seed's) or bilinear (the renderer's texture lookup, neighbours held "
+                                        "between refreshes: exact at material edges; needs filtered sampling "
+                                        "and an atlas)", choices=("texel", "bilinear"))
+    tap_geometry: str = option("plane", "where filtered sampling evaluates a tap: plane (the texel's face plane "
+                                        "to first order) or mesh (the tap's pixel ray traced to the mesh, with "
+                                        "the renderer's normal, UV and shadow; a ray query per tap)",
+                               choices=("plane", "mesh"))
+    groups: int = option(0, "photo groups per pass, parallelism over photos (0: automatic)", min=0)
+    photos_per_window: int = option(0, "photos resident on the device at once (0: all; else streamed from host "
+                                       "memory in windows)", min=0)
+    cuda_block_dim: int = option(128, "threads per CUDA block of the accumulation kernels (128 fits three blocks "
+                                      "per SM at the register cap; docs/gpu-performance.md)", min=32, max=1024)
+    cuda_max_registers: int = option(-1, "registers per CUDA thread of the accumulation kernels: 0 uncapped, -1 "
+                                         "168 for layouts of at most 9 parameters (docs/gpu-performance.md)",
+                                     min=-1)
 
 def _vec_types(acc: str, n_params: int):
     """(scalar, parameter vector, parameter matrix) types of the accumulate precision."""

@@ -43,7 +43,7 @@ class FitStageConfig:
     min_seen_fraction: float = option(0.01, "fail before fitting when fewer than this fraction of the atlas's texels "
                                             "is seen by any photo (the mesh faces away or is in another frame)",
                                       min=0.0)
-    fit: FitConfig = option(default_factory=FitConfig, help="the fit")
+    fit: FitConfig = option(default_factory=FitConfig, help="the fit", flat=True)
 
 
 def load_geometry(mesh_path: str | Path, texture_size: int, device: str):
@@ -109,6 +109,8 @@ def lobe_shape_report(cfg: FitConfig, layout, frames, positions: np.ndarray) -> 
     """What model.json records of the lobe-shape choice (fit/models.py "Lobe shape")."""
     from .problem import PhotoFrame
 
+    if layout.n_lobes == 0:
+        return {"requested": cfg.lobe_shape, "fitted": None, "light_view_angle_deg": None}  # no lobe to shape
     angles = light_view_angles([PhotoFrame.from_capture_frame(f) for f in frames], positions.mean(axis=0))
     return {"requested": cfg.lobe_shape, "fitted": layout.lobe_shape,
             "light_view_angle_deg": [float(angles.min()), float(angles.max())] if angles.size else None}

@@ -46,3 +46,14 @@ def test_toml_round_trip(tmp_path):
     (tmp_path / "bad.toml").write_text("steps = [")
     with pytest.raises(ConfigError, match="bad.toml"):
         read_toml(tmp_path / "bad.toml")
+
+
+def test_fit_option_out_of_range_is_one_line_before_any_work(tmp_path, capsys):
+    """`texstream fit ... --max-iterations -3` used to end in a Warp traceback."""
+    from texstream.pipelines.cli import main
+
+    rc = main(["fit", str(tmp_path / "no_capture"), "--mesh", str(tmp_path / "no_mesh"), "-o", str(tmp_path / "m"),
+               "--max-iterations", "-3"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 1 and err.splitlines() == [err] and "--max-iterations -3 is out of range" in err
+    assert not (tmp_path / "m").exists()

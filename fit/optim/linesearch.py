@@ -17,6 +17,7 @@ import dataclasses
 import numpy as np
 import warp as wp
 
+from texstream.core.config import option
 from ..kernels import optim_kernels as K
 from ..penalties import Penalties
 from .base import FitState
@@ -28,25 +29,17 @@ LINE_SEARCHES = ("backtracking", "hessian", "quadratic")
 class LineSearchConfig:
     """Line search options."""
 
-    kind: str = "hessian"
-    """backtracking, hessian (one-sided quadratic with streamed d^T H d) or quadratic (two-sided, Alg. 3)"""
-    max_trials: int = 6
-    """trial steps per iteration (each is one streaming pass)"""
-    sigma1: float = 1e-4
-    """Armijo sufficient-decrease constant (3.11)"""
-    sigma2: float = 0.9
-    """Wolfe curvature constant (3.12); used only when wolfe is on"""
-    wolfe: bool = False
-    """also require the curvature condition (3.12)"""
-    shrink: float = 0.3
-    """backtracking factor"""
-    alpha0: float = 1.0
-    """first trial step on the first iteration"""
-    full_hessian: bool = False
-    """d^T H d with the r * d^T (Hess r) d term (else Gauss-Newton, always >= 0)"""
-    acceptance: str = "texel"
-    """texel (per-texel conditional assignment, Alg. 11) or global (one alpha for all texels)"""
-
+    kind: str = option("hessian", "backtracking, hessian (one-sided quadratic with the streamed d^T H d) or "
+                                  "quadratic (two-sided, seed Alg. 3)", choices=("backtracking", "hessian", "quadratic"))
+    max_trials: int = option(6, "trial steps per iteration (each is one streaming pass)", min=1)
+    sigma1: float = option(1e-4, "Armijo sufficient-decrease constant (seed 3.11)", min=0.0, max=1.0)
+    sigma2: float = option(0.9, "Wolfe curvature constant (seed 3.12), used with --linesearch.wolfe", min=0.0, max=1.0)
+    wolfe: bool = option(False, "also require the curvature condition (seed 3.12)")
+    shrink: float = option(0.3, "backtracking factor", min=0.0, max=1.0)
+    alpha0: float = option(1.0, "first trial step of the first iteration", min=0.0)
+    full_hessian: bool = option(False, "d^T H d with the r d^T (Hess r) d term (else Gauss-Newton, always >= 0)")
+    acceptance: str = option("texel", "texel (per-texel conditional assignment, seed Alg. 11) or global (one step "
+                                      "for all texels)", choices=("texel", "global"))
 
 def evaluate_trial(state: FitState, penalties: Penalties, active: wp.array) -> None:
     """Objective and gradient at state.trial (already in state.storage), penalties included."""
