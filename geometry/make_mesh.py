@@ -359,6 +359,19 @@ def _place_scan(mesh: SurfaceMesh, capture, cfg: MeshConfig) -> tuple[SurfaceMes
     return mesh, {"method": "none (mesh assumed in the capture frame)"}
 
 
+MIN_SFM_POINTS = 50  # fewer cannot say whether the capture is a scene or an object, nor support Poisson
+
+
+def _hull_instead(capture, cfg: MeshConfig, masks, report: dict, n_points: int) -> SurfaceMesh:
+    """The visual hull of the masks when the SfM points are too few (a textureless object)."""
+    from .hull import visual_hull
+
+    report["source"] = "hull"
+    report["reason"] = f"too few SfM points ({n_points}) for Poisson; the capture has masks, so the visual hull"
+    return visual_hull(capture.frames, masks, _hull_config(cfg), cfg.device, bounds=_capture_bounds(capture),
+                       report=report.setdefault("hull", {}))
+
+
 def _from_sfm(capture, cfg: MeshConfig, masks, report: dict) -> tuple[SurfaceMesh, tuple | None]:
     """Poisson (+ hull) from the capture's SfM points; returns (mesh, (points, normals) triangulated here or None)."""
     from .reconstruct import PoissonConfig, poisson_reconstruct, read_points, trim_by_masks
@@ -375,6 +388,8 @@ def _from_sfm(capture, cfg: MeshConfig, masks, report: dict) -> tuple[SurfaceMes
         report["triangulation"] = tp.report
         new_points = (pts, nrm)
         pts_path = capture.root / "capture.json"  # messages name what the points came from
+    if len(pts) < MIN_SFM_POINTS and masks is not None and cfg.source != "sfm":
+        return _hull_instead(capture, cfg, masks, report, len(pts)), new_points
     centres = np.array([f.center for f in capture.frames])
     kind = _capture_kind(cfg, pts, centres)
     report["capture_kind"] = kind
@@ -401,12 +416,7 @@ def _from_sfm(capture, cfg: MeshConfig, masks, report: dict) -> tuple[SurfaceMes
     except InputError:
         if masks is None or cfg.source == "sfm":
             raise
-        from .hull import HullConfig, visual_hull
-
-        report["source"] = "hull"
-        report["reason"] = f"too few SfM points ({len(pts)}) for Poisson; the capture has masks, so the visual hull"
-        return visual_hull(capture.frames, masks, _hull_config(cfg), cfg.device, bounds=_capture_bounds(capture),
-                           report=report.setdefault("hull", {})), new_points
+        return _hull_instead(capture, cfg, masks, report, len(pts)), new_points
     report["points"] = int(len(pts))
     if scene:
         return _crop_scene(mesh, pts, cfg, pcfg, report), new_points
