@@ -472,6 +472,14 @@ def _undistort(src: Path, dst: Path, intr: Intrinsics, nearest: bool = False) ->
     o.close()
 
 
+def _median_object_distance(rec, posed: dict) -> float:
+    """Median distance from the registered cameras to the median SfM point (scene units)."""
+    pts = np.array([p.xyz for p in rec.points3D.values()], dtype=np.float64).reshape(-1, 3)
+    centre = np.median(pts, axis=0) if len(pts) else np.zeros(3)
+    centres = [-np.asarray(r).T @ np.asarray(t) for r, t, _ in posed.values()]
+    return float(np.median([np.linalg.norm(c - centre) for c in centres])) if centres else 1.0
+
+
 def register(capture: str | os.PathLike, out: str | os.PathLike, config: RegisterConfig | None = None) -> StageResult:
     """Register the photos of a capture folder (or plain photo folder) with pycolmap.
 
@@ -543,6 +551,14 @@ def register(capture: str | os.PathLike, out: str | os.PathLike, config: Registe
         if coloc is None and cap is not None and isinstance(cap.extra.get("colocated_light"), dict):
             coloc = cap.extra["colocated_light"].get("intensity")
             offset = cap.extra["colocated_light"].get("offset", offset)
+        if coloc is not None and centres is None and align_mesh is None:
+            # an unaligned reconstruction has an arbitrary scale; a point light's irradiance falls as 1/r^2
+            # in it, so the flash intensity is taken as the irradiance at the median camera-to-object
+            # distance: the fitted albedos then do not depend on the scale SfM happened to pick
+            d = _median_object_distance(rec, posed)
+            coloc = (np.asarray(coloc, np.float64) * d * d).tolist() if np.ndim(coloc) else float(coloc) * d * d
+            report["colocated_light"] = {"median_object_distance": d, "intensity_scaled_by": d * d,
+                                         "why": "unaligned SfM scale: intensity means irradiance at the object"}
         report["registered"] = sorted(posed)
         report["unregistered"] = [p.name for p in photos if p.name not in posed]
         with atomic_output_dir(out) as tmp:

@@ -40,6 +40,9 @@ class FitStageConfig:
     texture_size: int = option(256, "atlas side in texels when the mesh has UVs but no bake", min=8, max=16384)
     holdout_every: int = option(0, "hold out every k-th photo from the fit for evaluation (0 = none)", min=0)
     renders: int = option(4, "photos rendered beside the fitted model in renders/", min=0)
+    unseen: str = option("nearest", "texels no photo saw: nearest (the value of the nearest seen texel on the "
+                                    "surface, as texture bakers fill; flagged in seen.png) or default (the "
+                                    "model's default values)", choices=("nearest", "default"))
     min_seen_fraction: float = option(0.01, "fail before fitting when fewer than this fraction of the atlas's texels "
                                             "is seen by any photo (the mesh faces away or is in another frame)",
                                       min=0.0)
@@ -260,6 +263,23 @@ def load_fit_inputs(capture_dir: str | Path, mesh_path: str | Path, cfg: FitStag
     return FitInputs(capture, frames, held, mesh, bake, seams, images, masks)
 
 
+def fill_unseen_texels(grid: np.ndarray, problem, bake, result: FitResult) -> tuple[np.ndarray, int]:
+    """Give texels no photo saw the parameters of the nearest seen texel in 3D (their defaults would
+    show as a foreign colour wherever a new view sees them, and bleed into seen neighbours through
+    the renderer's bilinear lookup). Returns the maps and the number of texels filled."""
+    from scipy.spatial import cKDTree
+
+    seen = result.samples > 0
+    if seen.all() or not seen.any():
+        return grid, 0
+    pos = problem.texels.position
+    _, nearest = cKDTree(pos[seen]).query(pos[~seen])
+    flat = grid.reshape(-1, grid.shape[-1]).copy()
+    idx = problem.texels.grid_index
+    flat[idx[~seen]] = flat[idx[seen][nearest]]
+    return bake.fill_padding(flat.reshape(grid.shape)), int((~seen).sum())
+
+
 def average_seams_in_bounds(grid: np.ndarray, seams, layout: ModelLayout) -> tuple[np.ndarray, dict | None]:
     """Tie the texels across chart seams (no cracks in bilinear lookups), keeping every value in its
     bounds; returns the maps and what model.json records of the seams."""
@@ -292,7 +312,10 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     t_setup = time.perf_counter() - t0
     result = run_fit_with_progress(problem, cfg.fit, progress)
     lay = result.layout
-    grid, seams_info = average_seams_in_bounds(params_to_grid(result, problem, bake), inputs.seams, lay)
+    grid, filled = params_to_grid(result, problem, bake), 0
+    if cfg.unseen == "nearest":
+        grid, filled = fill_unseen_texels(grid, problem, bake, result)
+    grid, seams_info = average_seams_in_bounds(grid, inputs.seams, lay)
     check_model(grid, lay)  # before rendering it
 
     def render(f):
@@ -314,7 +337,8 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
         last = result.trace[-1]
         manifest = {"mesh": "mesh.obj", "bake": "bake.npz",
                     "atlas": {"width": bake.width, "height": bake.height, "texels": int(problem.n),
-                              "unseen_texels": int((result.samples == 0).sum()), "seen_before_fit": seen_before},
+                              "unseen_texels": int((result.samples == 0).sum()), "seen_before_fit": seen_before,
+                              "unseen_filled_from_nearest": filled},
                     "photos": {"fitted": len(frames), "held_out": len(held)},
                     "final": {k: last[k] for k in ("iteration", "time_s", "objective", "psnr_db", "ape_percent")},
                     "lobe_shape": lobe_shape_report(cfg.fit, lay, frames, problem.texels.position),

@@ -205,3 +205,23 @@ def test_principal_point_refinement_and_intrinsics_source(sphere_capture, tmp_pa
             assert not pp["refined"] and (i.cx, i.cy) == (118, 118)
     print(f"median rotation error: pp fixed at the centre {rot['off']:.3f} deg, refined {rot['on']:.3f} deg")
     assert rot["on"] < 0.5 * rot["off"], rot
+
+
+def test_flash_intensity_does_not_depend_on_the_sfm_scale(sphere_capture, tmp_path):
+    """An unaligned reconstruction has an arbitrary scale, and a point light's irradiance falls as 1/r^2
+    in it: the flash intensity given is taken as the irradiance at the median camera-to-object distance,
+    so the albedos a fit finds do not depend on the scale SfM picked."""
+    cap, k_file = sphere_capture
+    cfg = RegisterConfig(max_num_features=2000, intrinsics=str(k_file), num_threads=2, photometric="off",
+                         colocated_light=2.0)
+    res = register(cap, tmp_path / "posed", cfg)
+    got = read_capture(tmp_path / "posed")
+    rep = res.summary.get("colocated_light") or json.loads((tmp_path / "posed" / "registration_report.json")
+                                                           .read_text())["colocated_light"]
+    d = rep["median_object_distance"]
+    centres = np.array([f.center for f in got.frames])
+    assert d == pytest.approx(np.median(np.linalg.norm(centres - np.median(centres, axis=0), axis=1)), rel=0.2)
+    for f in got.frames:
+        assert f.light is not None and np.allclose(f.light.intensity, 2.0 * d * d)
+        # irradiance at the object: the intensity over the distance squared is what was asked for
+        assert np.allclose(np.asarray(f.light.intensity) / d**2, 2.0)
