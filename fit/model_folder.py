@@ -52,6 +52,26 @@ def check_model(grid: np.ndarray, layout: ModelLayout, what: str = "model") -> N
                          fix="report this with the command that made it; --debug shows where it came from")
 
 
+def bound_report(params: np.ndarray, layout: ModelLayout, seen: np.ndarray, warn_fraction: float = 0.05) -> tuple[dict, list]:
+    """Share of seen texels sitting on each free parameter's bounds, and a warning line for every
+    parameter where more than ``warn_fraction`` of them do (an albedo pinned at its upper bound
+    usually means the light's intensity is in the wrong units, not a material)."""
+    p = np.asarray(params, np.float64)[np.asarray(seen, bool)]
+    lo, hi, names = layout.lower(), layout.upper(), layout.names
+    report, warnings = {}, []
+    if len(p) == 0:
+        return report, warnings
+    for c in np.nonzero(~layout.frozen())[0]:
+        span = max(hi[c] - lo[c], 1e-12)
+        at_lo = float(np.mean(p[:, c] <= lo[c] + 1e-6 * span))
+        at_hi = float(np.mean(p[:, c] >= hi[c] - 1e-6 * span))
+        report[names[c]] = {"at_lower": at_lo, "at_upper": at_hi}
+        if at_hi > warn_fraction:
+            hint = " (the lights' intensity may be in the wrong units)" if ".rho_d." in names[c] else ""
+            warnings.append(f"{100 * at_hi:.0f}% of seen texels have {names[c]} at its upper bound {hi[c]:g}{hint}")
+    return report, warnings
+
+
 def check_render(image: np.ndarray, frame_name: str) -> None:
     """Raise StageError when a render of the model holds a non-finite or negative value."""
     bad = ~np.isfinite(image) | (image < 0)

@@ -299,7 +299,7 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     from texstream.capture.imageio import read_mask
     from texstream.geometry.mesh_io import save_mesh
 
-    from .model_folder import check_model, pooled_psnr, render_comparisons, write_model_folder
+    from .model_folder import bound_report, check_model, pooled_psnr, render_comparisons, write_model_folder
 
     cfg = config or FitStageConfig()
     check_config(cfg)
@@ -335,7 +335,8 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
         seen = np.zeros(bake.height * bake.width, bool)
         seen[problem.texels.grid_index] = result.samples > 0
         last = result.trace[-1]
-        manifest = {"mesh": "mesh.obj", "bake": "bake.npz",
+        at_bounds, warnings = bound_report(result.params, lay, result.samples > 0)
+        manifest = {"mesh": "mesh.obj", "bake": "bake.npz", "warnings": warnings, "at_bounds": at_bounds,
                     "atlas": {"width": bake.width, "height": bake.height, "texels": int(problem.n),
                               "unseen_texels": int((result.samples == 0).sum()), "seen_before_fit": seen_before,
                               "unseen_filled_from_nearest": filled},
@@ -349,7 +350,8 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
                            f"{lay.kind} fit, {cfg.fit.optimizer}, {cfg.device}", manifest, cfg)
     return StageResult(Path(out_dir), {"psnr_db": last["psnr_db"], "iterations": last["iteration"],
                                        "time_s": last["time_s"], "texels": problem.n, "photos": len(frames),
-                                       "render_eval": evals})
+                                       "render_eval": evals, "warnings": warnings,
+                                       "heldout": manifest["heldout"]})
 
 
 def check_output_path(out_dir: str | Path) -> None:

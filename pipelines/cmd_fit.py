@@ -68,6 +68,11 @@ def run(args: argparse.Namespace) -> int:
           f"{s['time_s']:.1f} s, sample PSNR {s['psnr_db']:.2f} dB")
     for e in s["render_eval"]:
         print(f"  {e['frame']}{' (held out)' if e['held_out'] else ''}: render PSNR {e['psnr_db']:.2f} dB, APE {e['ape_percent']:.2f}%")
+    h = s.get("heldout") or {}
+    if h.get("views"):
+        print(f"  held out: {h['views']} views, pooled PSNR {h['pooled_psnr_db']:.2f} dB, worst {h['worst_psnr_db']:.2f} dB")
+    for w in s.get("warnings", []):
+        print(f"  warning: {w}")
     return 0
 
 

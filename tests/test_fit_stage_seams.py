@@ -225,3 +225,20 @@ def test_a_capture_whose_texels_are_almost_unseen_fails_before_fitting(capture_a
     with pytest.raises(StageError, match="texels .* are seen by any photo") as e:
         fit_stage(root / "cap", root / "atlas", root / "model_unseen", cfg, progress=False)
     assert "capture.json" in e.value.one_line() and not (root / "model_unseen").exists()
+
+
+def test_albedos_pinned_at_their_bound_are_reported(capture_and_atlas, monkeypatch):
+    """37% of texels at the albedo bound used to pass silently (a flash intensity in SfM units)."""
+    root = capture_and_atlas
+
+    def pinned(n, lay):
+        p = np.tile(lay.defaults(), (n, 1))
+        p[: n // 2, 0:3] = lay.upper()[0:3]
+        return p
+
+    monkeypatch.setattr("texstream.fit.stage.run_fit_with_progress", fake_fit(pinned))
+    res = fit_stage(root / "cap", root / "atlas", root / "model_pinned", stage_config(), progress=False)
+    warnings = res.summary["warnings"]
+    assert any("lafortune.rho_d.r at its upper bound" in w and "intensity" in w for w in warnings), warnings
+    man = json.loads((root / "model_pinned" / "model.json").read_text())
+    assert man["warnings"] == warnings and man["at_bounds"]["lafortune.rho_d.r"]["at_upper"] >= 0.49
