@@ -67,7 +67,7 @@ class FitConfig:
     lookup_relaxation: float = option(1.0, "stream.model_lookup bilinear: a refresh moves the held neighbours this "
                                            "fraction of the way to the current parameters (damped Jacobi: texels a "
                                            "pixel or less wide, whose taps read their neighbours as much as "
-                                           "themselves, oscillate at 1; see the README)")
+                                           "themselves, oscillate at 1: use 0.5; docs/accuracy.md)")
     max_iterations: int = option(100, "iteration cap", min=1)
     time_budget_s: float = option(0.0, "stop after this many seconds (0 = no limit)", min=0.0)
     rel_tol: float = option(1e-7, "stop when the objective's relative decrease over sync_every iterations is below this")

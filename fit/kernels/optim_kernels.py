@@ -157,8 +157,8 @@ def cg_direction_kernel(g: wp.array(dtype=Any), g_prev: wp.array(dtype=Any), d_p
     restarts: on request (first iteration, rejected step, periodic restart), when PR+ clips beta
     to 0, or when the descent safeguard fires. At those points d = -z carries no conjugacy to
     break, so changing the metric is free. ``refresh_always`` takes M from every iteration's point
-    instead (beta then mixes metrics; measured on the CPU ornament it is ~0.1-0.3 dB better in the
-    first 5 iterations and equal by 60). Unpreconditioned, M = I (z = g) exactly.
+    instead (beta then mixes metrics, which did not pay on the ornament: docs/accuracy.md).
+    Unpreconditioned, M = I (z = g) exactly.
     """
     i = wp.tid()
     gi = masked(g[i], free)

@@ -605,7 +605,6 @@ def layout_funcs(n_lobes: int, anisotropic: int, lookup: bool = False, traced: b
         # copies of the tap (lobe features, optionally d^T H d) made the CPU kernels compile 30% slower
         n_taps = opt.sampling + 2
         # the texel's geometry and the photo's constants are read once per sample, not per tap
-        # (3-4% faster per pass on the H100: benchmarks/results/h100_kernels/README.md)
         p0 = tex.pos[i]
         ng = tex.face_nrm[i]
         n0 = tex.nrm[i]
