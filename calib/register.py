@@ -472,6 +472,15 @@ def _undistort(src: Path, dst: Path, intr: Intrinsics, nearest: bool = False) ->
     o.close()
 
 
+def quiet_colmap_log() -> None:
+    """COLMAP's own log lines (thousands per registration) only with ``TEXSTREAM_COLMAP_LOG=1``; the stages
+    print what they found, and errors still come through."""
+    import pycolmap
+
+    if os.environ.get("TEXSTREAM_COLMAP_LOG") != "1":
+        pycolmap.logging.minloglevel = 2  # 0 info, 1 warning, 2 error
+
+
 def _median_object_distance(rec, posed: dict) -> float:
     """Median distance from the registered cameras to the median SfM point (scene units)."""
     pts = np.array([p.xyz for p in rec.points3D.values()], dtype=np.float64).reshape(-1, 3)
@@ -498,6 +507,7 @@ def register(capture: str | os.PathLike, out: str | os.PathLike, config: Registe
     """
     import pycolmap
 
+    quiet_colmap_log()
     cfg = config or RegisterConfig()
     capture, out = Path(capture), Path(out)
     if out.exists() and not cfg.overwrite:

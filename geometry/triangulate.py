@@ -143,6 +143,9 @@ def triangulate_capture(capture, config: TriangulateConfig | None = None,
     import pycolmap
 
     from texstream.calib.colmap_io import intrinsics_to_colmap
+    from texstream.calib.register import quiet_colmap_log
+
+    quiet_colmap_log()
 
     from .reconstruct import estimate_normals
 
