@@ -305,6 +305,7 @@ def _refine_principal_point(rec: Any, cfg: RegisterConfig, free: bool) -> tuple[
     bo.refine_focal_length = True
     bo.refine_principal_point = True
     bo.refine_extra_params = True
+    bo.print_summary = os.environ.get("TEXSTREAM_COLMAP_LOG") == "1"
     err0 = float(rec.compute_mean_reprojection_error())
     pycolmap.bundle_adjustment(out, bo)
     cams = {}
