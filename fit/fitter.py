@@ -223,18 +223,38 @@ def initial_guess(problem: StreamProblem, cfg: FitConfig) -> tuple[np.ndarray, n
     return p, cnt
 
 
+def resumable(cfg: FitConfig) -> bool:
+    """Whether a fit with ``cfg`` resumes from a checkpoint to the bit: LM without smoothness or the
+    renderer's lookup, whose whole state between iterations is the parameters and the damping."""
+    return (cfg.optimizer == "lm" and cfg.penalties.smooth_weight <= 0 and cfg.stream.model_lookup == "texel"
+            and cfg.diffuse_free_iterations < 0)
+
+
 def run_fit(problem: StreamProblem, cfg: FitConfig, p0: np.ndarray | None = None,
-            progress=None) -> FitResult:
-    """Fit the problem's model; returns parameters, sample counts and the per-iteration trace."""
+            progress=None, checkpoint=None, resume: dict | None = None) -> FitResult:
+    """Fit the problem's model; returns parameters, sample counts and the per-iteration trace.
+
+    ``checkpoint(state_dict)`` is called at every stopping-test sync (every ``sync_every``
+    iterations) with what ``resume`` takes to continue the fit from there; for :func:`resumable`
+    configs the resumed fit takes the same iterations to the same parameters, to the last bit, on
+    one device.
+    """
     lay = problem.layout
     n = problem.n
     dev = problem.device
     t_start = time.perf_counter()
+    if (checkpoint is not None or resume is not None) and not resumable(cfg):
+        raise ConfigError("only Levenberg-Marquardt fits without smoothness, lookup or diffuse schedule resume "
+                          "from a checkpoint", fix="drop the checkpoint, or use --optimizer lm")
     guess, counts = initial_guess(problem, cfg)
     if p0 is not None:
         guess = np.asarray(p0, dtype=np.float64)
     free = ~lay.frozen()
     state = FitState.create(problem, guess, free, lobe_albedo_max=cfg.lobe_albedo_max)
+    if resume is not None:
+        # exactly the checkpoint's parameters (create() re-projects them in float64), and their storage
+        state.p.assign(np.asarray(resume["p"]))
+        state.store_current()
     state.valid = wp.array((counts > 0).astype(np.int32), dtype=wp.int32, device=dev)
     penalties = Penalties(problem, cfg.penalties)
     opt = make_optimizer(cfg)
@@ -274,7 +294,9 @@ def run_fit(problem: StreamProblem, cfg: FitConfig, p0: np.ndarray | None = None
         raise ConfigError(f"lookup_relaxation {cfg.lookup_relaxation} invalid", fix="use a fraction in (0, 1]")
     problem.refresh_lookup(state.storage)
     loss = cfg.loss(lay)
-    if loss != "none" and cfg.robust_scale <= 0:
+    if resume is not None:
+        problem.set_robust_loss(loss, float(resume["robust_scale"]))
+    elif loss != "none" and cfg.robust_scale <= 0:
         # auto scale: one pass at the starting point reads the mean sampled photo value (before the
         # loop: the iterations themselves never wait on the host)
         if problem.cfg.residual_space != "radiance":
@@ -291,11 +313,20 @@ def run_fit(problem: StreamProblem, cfg: FitConfig, p0: np.ndarray | None = None
         problem.set_robust_loss(loss, cfg.robust_scale)
     evaluate_current()
     state.accepted.zero_()
-    record(0)
-    schedule_switched = False
+    first = 1
     last_obj = None
-    it_done = 0
-    for it in range(1, cfg.max_iterations + 1):
+    if resume is not None:
+        first = int(resume["iteration"]) + 1
+        opt.lam.assign(np.asarray(resume["lam"]))
+        trace_buf.assign(np.concatenate([np.asarray(resume["trace"]),
+                                         np.zeros((cfg.max_iterations + 1 - first, 8))]).astype(np.float64))
+        times.extend(float(t) for t in resume["times"])
+        last_obj = None if not np.isfinite(resume["last_obj"]) else float(resume["last_obj"])
+    else:
+        record(0)
+    schedule_switched = False
+    it_done = first - 1
+    for it in range(first, cfg.max_iterations + 1):
         state.iteration = it
         if cfg.diffuse_free_iterations >= 0 and not schedule_switched and it > cfg.diffuse_free_iterations:
             f2 = free.copy()
@@ -326,6 +357,10 @@ def run_fit(problem: StreamProblem, cfg: FitConfig, p0: np.ndarray | None = None
             if last_obj is not None and abs(last_obj - obj) <= cfg.rel_tol * max(abs(obj), 1e-300):
                 break
             last_obj = obj
+            if checkpoint is not None and it < cfg.max_iterations:
+                checkpoint({"iteration": it, "p": state.p.numpy(), "lam": opt.lam.numpy(),
+                            "trace": trace_buf.numpy()[:it + 1], "times": np.asarray(times),
+                            "last_obj": last_obj, "robust_scale": float(problem.robust_scale)})
             if cfg.time_budget_s > 0 and times[-1] >= cfg.time_budget_s:
                 break
     tb = trace_buf.numpy()[:it_done + 1]

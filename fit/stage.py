@@ -22,7 +22,7 @@ from texstream.core.errors import InputError, StageError
 from texstream.core.config import check_config, option
 from texstream.core.outputs import StageResult, atomic_output_dir, read_json, write_json_atomic
 
-from .fitter import FitConfig, FitResult, light_view_angles, run_fit
+from .fitter import FitConfig, FitResult, light_view_angles, resumable, run_fit
 from .model_folder import image_metrics, plot_trace  # noqa: F401  (re-exported: tests and benchmarks use them here)
 from .models import ModelLayout
 
@@ -43,6 +43,9 @@ class FitStageConfig:
     unseen: str = option("nearest", "texels no photo saw: nearest (the value of the nearest seen texel on the "
                                     "surface, as texture bakers fill; flagged in seen.png) or default (the "
                                     "model's default values)", choices=("nearest", "default"))
+    checkpoint: bool = option(True, "Levenberg-Marquardt fits keep a checkpoint beside the output (every sync_every "
+                                    "iterations); a rerun after Ctrl-C or a killed process resumes from it to the "
+                                    "same result as an uninterrupted fit")
     min_seen_fraction: float = option(0.01, "fail before fitting when fewer than this fraction of the atlas's texels "
                                             "is seen by any photo (the mesh faces away or is in another frame)",
                                       min=0.0)
@@ -191,14 +194,48 @@ def fit_synthetic(train, held, cfg: FitConfig, device: str, photos=None) -> Synt
     return SyntheticFit(res, prob, grid, fit_s, views, pooled)
 
 
-def run_fit_with_progress(problem, fit: FitConfig, progress: bool) -> FitResult:
-    """run_fit with a tqdm bar over iterations when ``progress``."""
+def run_fit_with_progress(problem, fit: FitConfig, progress: bool, **kw) -> FitResult:
+    """run_fit with a tqdm bar over iterations when ``progress`` (``kw``: checkpoint, resume)."""
     if not progress:
-        return run_fit(problem, fit)
+        return run_fit(problem, fit, **kw)
     from tqdm import tqdm
 
-    with tqdm(total=fit.max_iterations, desc=f"fit {fit.optimizer}", unit="it") as bar:
-        return run_fit(problem, fit, progress=lambda it: bar.update(1))
+    start = int(kw["resume"]["iteration"]) if kw.get("resume") else 0
+    with tqdm(total=fit.max_iterations, initial=start, desc=f"fit {fit.optimizer}", unit="it") as bar:
+        return run_fit(problem, fit, progress=lambda it: bar.update(1), **kw)
+
+
+class Checkpoint:
+    """The fit's checkpoint beside its output folder (``.NAME.checkpoint.npz``), tied to the inputs and
+    options by a key: a rerun with the same ones resumes from it, anything else starts afresh."""
+
+    def __init__(self, out_dir: str | Path, key: dict):
+        import hashlib
+        import json
+
+        out = Path(out_dir)
+        self.path = out.parent / f".{out.name}.checkpoint.npz"
+        self.key = hashlib.sha256(json.dumps(key, sort_keys=True, default=str).encode()).hexdigest()
+
+    def load(self) -> dict | None:
+        if not self.path.is_file():
+            return None
+        try:
+            with np.load(self.path, allow_pickle=False) as z:
+                data = {k: z[k] for k in z.files}
+        except (OSError, ValueError):
+            return None  # a damaged checkpoint is only a lost head start
+        if str(data.pop("key", "")) != self.key:
+            return None
+        return {k: (v.item() if v.ndim == 0 else v) for k, v in data.items()}
+
+    def save(self, state: dict) -> None:
+        from texstream.geometry.mesh_io import write_npz_atomic
+
+        write_npz_atomic(self.path, key=np.array(self.key), **{k: np.asarray(v) for k, v in state.items()})
+
+    def remove(self) -> None:
+        self.path.unlink(missing_ok=True)
 
 
 def split_holdout(frames: list, every: int) -> tuple[list, list]:
@@ -310,7 +347,17 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     problem = build_problem(mesh, bake, frames, inputs.images, inputs.masks, cfg.fit, cfg.device)
     seen_before = check_seen_texels(problem, cfg, capture_dir)
     t_setup = time.perf_counter() - t0
-    result = run_fit_with_progress(problem, cfg.fit, progress)
+    ckpt, resume = None, None
+    if cfg.checkpoint and resumable(cfg.fit):
+        from texstream.core.config import config_to_dict
+
+        ckpt = Checkpoint(out_dir, {"capture": str(Path(capture_dir).resolve()), "mesh": str(Path(mesh_path).resolve()),
+                                    "config": config_to_dict(cfg), "texels": problem.n,
+                                    "capture_mtime": (Path(capture_dir) / "capture.json").stat().st_mtime_ns
+                                    if (Path(capture_dir) / "capture.json").exists() else 0})
+        resume = ckpt.load()
+    result = run_fit_with_progress(problem, cfg.fit, progress, **({"checkpoint": ckpt.save, "resume": resume}
+                                                                  if ckpt else {}))
     lay = result.layout
     grid, filled = params_to_grid(result, problem, bake), 0
     if cfg.unseen == "nearest":
@@ -348,8 +395,11 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
                     "units": UNITS[lay.kind]}
         write_model_folder(tmp, grid, lay, seen.reshape(bake.height, bake.width), result.trace,
                            f"{lay.kind} fit, {cfg.fit.optimizer}, {cfg.device}", manifest, cfg)
+    if ckpt is not None:
+        ckpt.remove()
     return StageResult(Path(out_dir), {"psnr_db": last["psnr_db"], "iterations": last["iteration"],
                                        "time_s": last["time_s"], "texels": problem.n, "photos": len(frames),
+                                       "resumed_from": None if resume is None else int(resume["iteration"]),
                                        "render_eval": evals, "warnings": warnings,
                                        "heldout": manifest["heldout"]})
 

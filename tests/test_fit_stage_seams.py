@@ -164,7 +164,7 @@ def fake_fit(make_params):
     one-row trace: the stage's post-processing and checks see exactly those values."""
     from texstream.fit.fitter import FitResult
 
-    def run(problem, fit, progress):
+    def run(problem, fit, progress, **kw):
         lay = problem.layout
         trace = [{"iteration": 0, "time_s": 0.0, "objective": 1.0, "psnr_db": 30.0, "ape_percent": 1.0}]
         return FitResult(params=make_params(problem.n, lay), samples=np.ones(problem.n, np.int64), trace=trace,
@@ -200,7 +200,7 @@ def test_a_model_out_of_bounds_or_not_finite_is_never_written(capture_and_atlas,
     root = capture_and_atlas
     seam_texels = set(Seams.load(root / "atlas" / SEAMS_FILE).texels().tolist())
 
-    def run(problem, fit, progress):
+    def run(problem, fit, progress, **kw):
         res = fake_fit(lambda n, lay: np.tile(lay.defaults(), (n, 1)))(problem, fit, progress)
         # a texel no seam lookup reads: the seam averaging leaves it as the fit wrote it
         i = next(k for k, g in enumerate(problem.texels.grid_index) if int(g) not in seam_texels)

@@ -1,0 +1,81 @@
+"""A fit interrupted (Ctrl-C, a killed process) resumes from its checkpoint to the same result, to the
+last bit, as an uninterrupted fit on the same device (Levenberg-Marquardt, the default)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from texstream.fit.fitter import FitConfig
+from texstream.fit.stage import FitStageConfig, fit_stage
+
+pytest.importorskip("OpenImageIO")
+
+from conftest import SCENE_DEVICE  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    from texstream.capture.synth import SynthConfig, synthesize
+
+    root = tmp_path_factory.mktemp("resume")
+    synthesize("sphere", root / "cap", SynthConfig(scale=0.05, photos=12, image_size=40, progress=False,
+                                                   preview=False, device=SCENE_DEVICE))
+    return root / "cap"
+
+
+def config() -> FitStageConfig:
+    # sync every 2 iterations: checkpoints at 2, 4 and 6; rel_tol 0 so both fits run all 8
+    return FitStageConfig(device=SCENE_DEVICE, renders=1, fit=FitConfig(max_iterations=8, sync_every=2, rel_tol=0.0))
+
+
+def maps(model):
+    from texstream.capture.synth import read_param_maps
+    from texstream.fit.models import ModelLayout
+
+    lay = ModelLayout.from_json(json.loads((model / "model.json").read_text())["layout"])
+    return read_param_maps(model, lay)
+
+
+def test_an_interrupted_fit_resumes_to_the_uninterrupted_result(capture, tmp_path, monkeypatch):
+    import texstream.fit.stage as stage
+
+    gt = capture / "ground_truth"
+    whole = fit_stage(capture, gt, tmp_path / "whole", config(), progress=False)
+    assert whole.summary["resumed_from"] is None
+    real = stage.run_fit
+
+    def interrupted(problem, fit, progress=None, **kw):
+        def stop_at_5(it):
+            if it == 5:
+                raise KeyboardInterrupt
+        return real(problem, fit, progress=stop_at_5, **kw)
+
+    monkeypatch.setattr(stage, "run_fit", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        fit_stage(capture, gt, tmp_path / "resumed", config(), progress=False)
+    checkpoint = tmp_path / ".resumed.checkpoint.npz"
+    assert checkpoint.is_file() and not (tmp_path / "resumed").exists()
+    monkeypatch.setattr(stage, "run_fit", real)
+    again = fit_stage(capture, gt, tmp_path / "resumed", config(), progress=False)
+    assert again.summary["resumed_from"] == 4 and not checkpoint.exists()
+    np.testing.assert_array_equal(maps(tmp_path / "resumed"), maps(tmp_path / "whole"))
+    t_whole = json.loads((tmp_path / "whole" / "trace.json").read_text())
+    t_again = json.loads((tmp_path / "resumed" / "trace.json").read_text())
+    assert [r["objective"] for r in t_again] == [r["objective"] for r in t_whole] and len(t_whole) == 9
+
+
+def test_a_checkpoint_of_other_options_is_not_used(capture, tmp_path, monkeypatch):
+    import dataclasses
+
+    import texstream.fit.stage as stage
+
+    gt = capture / "ground_truth"
+    ck = stage.Checkpoint(tmp_path / "m", {"other": "options"})
+    ck.save({"iteration": 6, "p": np.zeros((1, 1)), "lam": np.zeros(1), "trace": np.zeros((7, 8)),
+             "times": np.zeros(7), "last_obj": 0.0, "robust_scale": 0.0})
+    cfg = dataclasses.replace(config(), fit=dataclasses.replace(config().fit, max_iterations=3))
+    res = fit_stage(capture, gt, tmp_path / "m", cfg, progress=False)
+    assert res.summary["resumed_from"] is None and res.summary["iterations"] == 3
