@@ -69,8 +69,9 @@ class IngestConfig:
     single_camera: bool = option(False, help="drop photos whose size differs from the most common one "
                                  "(default: keep them as a second camera)")
     lights: str | None = option(None, help="lights file (JSON): per-photo or default point/directional lights")
-    colocated_light: float | None = option(None, help="light fixed to the camera (flash) with this intensity: "
-                                           "its position is derived from each camera pose at registration")
+    colocated_light: float | None = option(None, help="light fixed to the camera (flash) with this intensity, a point "
+                                           "light at each camera centre; when SfM's scale is arbitrary (no "
+                                           "alignment) it is the irradiance at the median object distance")
     overwrite: bool = option(True, help="replace an existing output folder")
 
 

@@ -75,8 +75,9 @@ class RegisterConfig:
                                        "as a fraction of the points' bounding-box diagonal")
     align_max_error: float = option(0.02, help="RANSAC inlier threshold of the alignment, as a fraction of the "
                                     "extent of the known centres")
-    colocated_light: float | None = option(None, help="light fixed to the camera (flash) with this intensity: "
-                                           "each frame gets a point light at its camera centre")
+    colocated_light: float | None = option(None, help="light fixed to the camera (flash) with this intensity, a point "
+                                           "light at each camera centre; when SfM's scale is arbitrary (no "
+                                           "alignment) it is the irradiance at the median object distance")
     photometric: str = option("export", help="per-photo exposure / white-balance gains from shared SfM points: off, "
                               "export (frame 'photometric_gain'), apply (also multiply frame exposure)",
                               choices=("off", "export", "apply"))

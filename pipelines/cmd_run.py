@@ -23,6 +23,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--from", dest="from_stage", default=None, choices=STAGES, help="rerun from this stage on")
     parser.add_argument("--model", default=None, choices=MODELS, help="appearance model (default: auto)")
     parser.add_argument("--mesh-file", dest="mesh_file", default=None, help="use this mesh instead of one from the photos")
+    parser.add_argument("--colocated-light", dest="colocated_light", type=float, default=None,
+                        help="photos lit by a flash at the camera: its irradiance at the object (the albedos' scale)")
+    parser.add_argument("--lights", default=None, help="lights file (JSON) for the photos (texstream ingest --lights)")
     parser.add_argument("--device", default=None, help="Warp device (default: cpu)")
     parser.add_argument("--iterations", type=int, default=None, help="fit iteration cap (default: 30)")
     parser.add_argument("--optimizer", default=None, choices=("sd", "cg", "lbfgs", "lm"), help="fit method (default: lm)")
@@ -43,6 +46,9 @@ def _config(args: argparse.Namespace):
     top = {k: getattr(args, k) for k in ("model", "device", "mesh_file") if getattr(args, k) is not None}
     fit = {k: v for k, v in (("max_iterations", args.iterations), ("optimizer", args.optimizer)) if v is not None}
     cfg = dataclasses.replace(cfg, **top)
+    ingest = {k: getattr(args, k) for k in ("colocated_light", "lights") if getattr(args, k) is not None}
+    if ingest:
+        cfg.ingest = dataclasses.replace(cfg.ingest, **ingest)
     if fit:
         cfg.fit.fit = dataclasses.replace(cfg.fit.fit, **fit)
     if cfg.fit.fit.max_iterations < 1:
