@@ -21,6 +21,8 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
+import os
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -300,9 +302,23 @@ def run_pipeline(source: str | Path, out: str | Path, config: RunConfig | None =
     model_kind, why = decide_model(capture, cfg.model)
     fit_cfg = dataclasses.replace(cfg.fit, device=cfg.device, fit=dataclasses.replace(cfg.fit.fit, model=model_kind))
     model_dir = out / "model"
+    # known lights: a specular lobe only where it generalises, judged on the held-out photos
+    compare = cfg.model == "auto" and model_kind == "lafortune" and cfg.fit.holdout_every > 0
+    choice: dict = {}
+
+    def fit_work():
+        if not compare:
+            return fit_stage(posed_dir, fit_geometry, model_dir, fit_cfg)
+        return fit_with_selection(posed_dir, fit_geometry, out, fit_cfg, ("lafortune", "diffuse"), choice, pipe.log)
+
     fit_rec = pipe.run("fit", model_dir, [pipe.stamp_of("atlas"), pipe.stamp_of("mesh"), pipe.stamp_of("register"),
-                                          _files_hash(posed_dir) if posed else "", config_to_dict(fit_cfg)],
-                       f"{model_kind} model: {why}", lambda: fit_stage(posed_dir, fit_geometry, model_dir, fit_cfg))
+                                          _files_hash(posed_dir) if posed else "", config_to_dict(fit_cfg), compare],
+                       f"{model_kind} model: {why}" + ("; the diffuse model too, the better held-out one kept"
+                                                       if compare else ""), fit_work)
+    if compare:
+        chosen = fit_rec.summary.get("selection", {})
+        if chosen.get("chosen"):
+            model_kind, why = chosen["chosen"], f"{why}; {chosen['reason']}"
 
     _export_and_report(pipe, out, model_dir, posed_dir)
     summary = {"source": str(src), "source_kind": kind, "model": model_kind, "model_reason": why,
@@ -311,6 +327,35 @@ def run_pipeline(source: str | Path, out: str | Path, config: RunConfig | None =
                "fit": fit_rec.summary}
     write_json_atomic(out / "run.json", _summary_safe(summary))
     return summary
+
+
+def fit_with_selection(capture_dir: Path, geometry: Path, out: Path, fit_cfg, kinds: tuple, choice: dict,
+                       log: Callable[[str], None]):
+    """Fit each model kind of ``kinds`` into ``OUT/model_<kind>`` and keep the one with the best pooled
+    held-out PSNR as ``OUT/model`` (a lobe no held-out view supports only adds error there)."""
+    import shutil
+
+    from texstream.fit.stage import fit_stage
+
+    results = {}
+    for k in kinds:
+        cfg_k = dataclasses.replace(fit_cfg, fit=dataclasses.replace(fit_cfg.fit, model=k))
+        res = fit_stage(capture_dir, geometry, out / f"model_{k}", cfg_k)
+        results[k] = res
+        h = res.summary["heldout"]
+        log(f"[fit] {k}: held-out pooled PSNR {h['pooled_psnr_db']:.2f} dB, worst view {h['worst_psnr_db']:.2f} dB")
+    score = {k: r.summary["heldout"]["pooled_psnr_db"] or -math.inf for k, r in results.items()}
+    best = max(kinds, key=lambda k: score[k])
+    reason = (f"{best} kept: held-out pooled PSNR " + ", ".join(f"{k} {score[k]:.2f} dB" for k in kinds))
+    target = out / "model"
+    if target.exists():
+        shutil.rmtree(target)
+    os.replace(out / f"model_{best}", target)
+    res = results[best]
+    res.output = target
+    res.summary["selection"] = {"chosen": best, "reason": reason, "heldout_pooled_db": score}
+    choice.update(res.summary["selection"])
+    return res
 
 
 def _heldout(model_dir: Path) -> dict:
