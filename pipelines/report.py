@@ -23,6 +23,7 @@ import datetime
 import html
 import json
 import math
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -239,12 +240,11 @@ def plot_comparison(photo: np.ndarray, render: np.ndarray, mask: np.ndarray | No
     if mask is not None:
         err = np.where(mask, err, np.nan)
     vmax = float(np.nanpercentile(err, 99)) if np.any(np.isfinite(err)) else 1.0
-    fig, ax = plt.subplots(1, 3, figsize=(10, 3.3))
+    fig, ax = plt.subplots(1, 3, figsize=(8.4, 2.7))
     for a, img, name in ((ax[0], photo, "photo"), (ax[1], render, "fitted render")):
         a.imshow(linear_to_srgb(np.clip(img, 0, 1)), interpolation="nearest")
         a.set_title(name, fontsize=9)
-    cm = plt.get_cmap("magma").copy()
-    cm.set_bad("#3a5f7a")
+    cm = plt.get_cmap("magma").with_extremes(bad="#3a5f7a")
     im = ax[2].imshow(err, cmap=cm, vmin=0, vmax=max(vmax, 1e-6), interpolation="nearest")
     ax[2].set_title("|render - photo| (linear RMS; blue = background)", fontsize=9)
     fig.colorbar(im, ax=ax[2], fraction=0.046)
@@ -500,6 +500,7 @@ def write_report(out_dir: str | Path, stages: list[dict], model_dir: str | Path,
     out_dir = Path(out_dir)
     summary: dict[str, Any] = {}
     with atomic_output_dir(out_dir / "report") as tmp:
+        os.chmod(tmp, 0o755)  # mkdtemp makes it 0700; a report is for reading
         (tmp / "maps").mkdir()
         (tmp / "views").mkdir()
         sections = []

@@ -348,10 +348,10 @@
     c.style.width = Math.round(w) + 'px'; c.style.height = Math.round(h) + 'px';
   }
   function fitCanvasToPanel() {
-    // report mode: canvas at most 640 px wide, aspect of the camera's image
+    // report mode: canvas at most 560 px wide (controls beside it), aspect of the camera's image
     if (document.body.classList.contains('viewer-only')) return;
     var cam = V.state.cam, panel = document.getElementById('viewer-panel');
-    var w = Math.min(640, Math.max(240, (panel ? panel.clientWidth : 640) - 8));
+    var w = Math.min(560, Math.max(240, (panel ? panel.clientWidth : 560) - 300));
     sizeCanvas(w, Math.round(w * cam.height / cam.width));
   }
 
