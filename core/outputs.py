@@ -33,18 +33,31 @@ def read_json(path: str | os.PathLike, what: str = "JSON file") -> Any:
 
 def write_json_atomic(path: str | os.PathLike, data: Any, indent: int = 2) -> None:
     """Write JSON to a temporary file beside ``path`` and rename it into place."""
-    p = Path(path)
+    text = json.dumps(data, indent=indent, allow_nan=False, default=_json_default) + "\n"
+    write_atomic_with(Path(path), lambda fh: fh.write(text.encode()))
+
+
+def write_atomic_with(p: Path, write) -> None:
+    """Call ``write(binary file)`` on a temporary file beside ``p`` and rename it to ``p``: readers
+    see the old file or the whole new one, never a half-written one (removed on any error)."""
     p.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
     try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(data, fh, indent=indent, allow_nan=False, default=_json_default)
-            fh.write("\n")
+        with os.fdopen(fd, "wb") as fh:
+            write(fh)
+        _chmod_like_open(tmp)
         os.replace(tmp, p)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+
+
+def _chmod_like_open(path: str) -> None:
+    """mkstemp creates files 0600; give the result the mode a plain open() would (0666 & ~umask)."""
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(path, 0o666 & ~umask)
 
 
 def _json_default(o: Any) -> Any:

@@ -360,7 +360,7 @@ def _unit_normals(mesh) -> np.ndarray:
 
 
 def _copy_maps(m: _Model, folder: Path) -> list[str]:
-    from texstream.geometry.mesh_io import write_atomic_with
+    from texstream.core.outputs import write_atomic_with
 
     out = []
     for f in _map_files(m):
@@ -438,7 +438,7 @@ def _export_gltf(m: _Model, cfg: ExportConfig, out: Path) -> dict:
 def _write_glb(m: _Model, mat: _Material, cfg: ExportConfig, out: Path) -> None:
     import pygltflib as G
 
-    from texstream.geometry.mesh_io import write_atomic_with
+    from texstream.core.outputs import write_atomic_with
 
     mesh = m.mesh
     pos = np.ascontiguousarray(mesh.vertices, dtype="<f4")
@@ -540,7 +540,7 @@ def export_obj(model_dir, out_dir, config: ExportConfig | None = None) -> dict:
 
 def _export_obj(m: _Model, cfg: ExportConfig, out: Path) -> dict:
     from texstream.capture.imageio import write_image
-    from texstream.geometry.mesh_io import write_atomic_with
+    from texstream.core.outputs import write_atomic_with
 
     mat = _material(m, cfg)
     if out.exists() and not out.is_dir():

@@ -22,16 +22,15 @@ Every bad input raises :class:`~texstream.core.errors.InputError` naming the fil
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import struct
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from texstream.core.errors import InputError
+from texstream.core.outputs import write_atomic_with
 
 from .mesh import SurfaceMesh
 
@@ -127,29 +126,6 @@ def _write_atomic(p: Path, data: bytes) -> None:
 def write_npz_atomic(path: str | os.PathLike, **arrays) -> None:
     """``np.savez_compressed(path, **arrays)`` written atomically (a temporary file, then a rename)."""
     write_atomic_with(Path(path), lambda fh: np.savez_compressed(fh, **arrays))
-
-
-def write_atomic_with(p: Path, write) -> None:
-    """Call ``write(binary file)`` on a temporary file beside ``p`` and rename it to ``p``: readers
-    see the old file or the whole new one, never a half-written one (removed on any error)."""
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            write(fh)
-        _chmod_like_open(tmp)
-        os.replace(tmp, p)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
-
-
-def _chmod_like_open(path: str) -> None:
-    """mkstemp creates files 0600; give the result the mode a plain open() would (0666 & ~umask)."""
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(path, 0o666 & ~umask)
 
 
 def _unweld(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -67,3 +67,12 @@ def pose_errors(got, truth):
         d = f.R @ g.R.T
         rot.append(np.degrees(np.arccos(np.clip((np.trace(d) - 1) / 2, -1, 1))))
     return np.array(cen), np.array(rot)
+
+
+def tiny_sphere_capture(root: Path, photos: int, image_size: int = 40) -> Path:
+    """A small synthetic sphere capture (``root/cap``, with its ground-truth atlas) for stage tests."""
+    from texstream.capture.synth import SynthConfig, synthesize
+
+    synthesize("sphere", root / "cap", SynthConfig(scale=0.05, photos=photos, image_size=image_size, progress=False,
+                                                   preview=False, device=SCENE_DEVICE))
+    return root / "cap"

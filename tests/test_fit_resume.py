@@ -13,17 +13,12 @@ from texstream.fit.stage import FitStageConfig, fit_stage
 
 pytest.importorskip("OpenImageIO")
 
-from conftest import SCENE_DEVICE  # noqa: E402
+from conftest import SCENE_DEVICE, tiny_sphere_capture  # noqa: E402
 
 
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory):
-    from texstream.capture.synth import SynthConfig, synthesize
-
-    root = tmp_path_factory.mktemp("resume")
-    synthesize("sphere", root / "cap", SynthConfig(scale=0.05, photos=12, image_size=40, progress=False,
-                                                   preview=False, device=SCENE_DEVICE))
-    return root / "cap"
+    return tiny_sphere_capture(tmp_path_factory.mktemp("resume"), photos=12)
 
 
 def config() -> FitStageConfig:
