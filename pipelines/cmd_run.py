@@ -40,7 +40,15 @@ def _config(args: argparse.Namespace):
     from texstream.core.toml import read_toml
     from texstream.pipelines.run import RunConfig, run_config_from_dict
 
-    cfg = run_config_from_dict(read_toml(args.config)) if args.config else RunConfig()
+    if args.config:
+        from texstream.core.errors import ConfigError
+
+        try:
+            cfg = run_config_from_dict(read_toml(args.config))
+        except ConfigError as e:
+            raise ConfigError(e.message, e.path or args.config, e.fix) from None
+    else:
+        cfg = RunConfig()
     if args.config is None:
         cfg.fit.fit = dataclasses.replace(cfg.fit.fit, max_iterations=30)
     top = {k: getattr(args, k) for k in ("model", "device", "mesh_file") if getattr(args, k) is not None}

@@ -34,6 +34,7 @@ from texstream.core.outputs import write_json_atomic
 STAGES = ("ingest", "register", "mesh", "atlas", "fit", "export", "report")
 STAMP = ".texstream_stage.json"
 MODELS = ("auto", "lafortune", "diffuse", "radiance")
+MIN_PHOTOS = 3  # structure from motion needs two views to start and a third to check them
 
 
 def _fit_stage_config():
@@ -232,6 +233,12 @@ def run_pipeline(source: str | Path, out: str | Path, config: RunConfig | None =
 
     # ingest: photos -> capture folder; a capture or COLMAP folder is read as it is
     if kind == "photos":
+        from texstream.calib.files import IMAGE_EXTS
+
+        n_photos = sum(1 for f in src.iterdir() if f.is_file() and f.suffix.lower() in IMAGE_EXTS)
+        if n_photos < MIN_PHOTOS:
+            raise InputError(f"{n_photos} photo(s) found; registering cameras needs at least {MIN_PHOTOS}", src,
+                             "add overlapping photos of the object (20 or more from all sides is typical)")
         from texstream.calib.ingest import ingest
 
         cap_dir = out / "capture"

@@ -140,3 +140,21 @@ def test_turntable_object_under_unknown_lighting_to_a_valid_radiance_model(captu
     # view-independent model cannot reproduce it exactly; 20 dB rules out a broken fit (a constant
     # grey scores about 10 dB here)
     assert summary["heldout"]["worst_psnr_db"] > 20
+
+
+def test_too_few_photos_and_a_bad_config_file_fail_before_any_work(tmp_path, capsys):
+    import shutil
+
+    from texstream.pipelines.cli import main
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for k in range(2):
+        shutil.copy(__file__, photos / f"p{k}.png")  # never read: the count is checked first
+    assert main(["run", str(photos), "-o", str(tmp_path / "o")]) == 1
+    err = capsys.readouterr().err
+    assert "2 photo(s) found" in err and str(photos) in err and not (tmp_path / "o" / "capture").exists()
+    (tmp_path / "c.toml").write_text("bogus = 1\n")
+    assert main(["run", str(photos), "-o", str(tmp_path / "o"), "--config", str(tmp_path / "c.toml")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.splitlines() == [err] and "c.toml" in err and "bogus" in err
