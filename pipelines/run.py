@@ -265,9 +265,15 @@ def run_pipeline(source: str | Path, out: str | Path, config: RunConfig | None =
         from texstream.calib.register import register
 
         posed_dir = out / "posed"
+        reg_cfg, why_reg = cfg.register, "cameras unknown: structure from motion (pycolmap)"
+        fixed_light = not capture.has_lights and not capture.extra.get("colocated_light")
+        if fixed_light and reg_cfg.photometric == "export":
+            # one fixed lighting: an SfM point looks the same in every photo but for the photo's exposure and
+            # white balance, so the gains the registration measures are the photos' (not so under a flash)
+            reg_cfg = dataclasses.replace(reg_cfg, photometric="apply")
+            why_reg += "; fixed unknown lighting: per-photo exposure gains from the SfM points applied"
         pipe.run("register", posed_dir, [pipe.stamp_of("ingest"), _files_hash(cap_dir) if kind == "capture" else "",
-                                         config_to_dict(cfg.register)],
-                 "cameras unknown: structure from motion (pycolmap)", lambda: register(cap_dir, posed_dir, cfg.register))
+                                         config_to_dict(reg_cfg)], why_reg, lambda: register(cap_dir, posed_dir, reg_cfg))
     capture = read_capture(posed_dir)
 
     # mesh and atlas
