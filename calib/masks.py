@@ -324,7 +324,10 @@ def masks_for_images(images: Sequence[np.ndarray], cfg: MaskConfig | None = None
         summary["decision"] = f"mode {mode} requested"
     summary["mode"] = mode
     out: list[np.ndarray | None] = []
-    for i, img in enumerate(images):
+    from tqdm import tqdm
+
+    # a bar on a terminal only (disable=None): GrabCut takes most of a second per photo
+    for i, img in enumerate(tqdm(images, desc="masks", unit="photo", leave=False, disable=None)):
         pts = points[i] if points is not None else None
         m, info = compute_mask(img, cfg, mode, pts, codes[i])
         if m is not None and cfg.mode == "auto" and not info["uniform"]:
