@@ -101,4 +101,6 @@ def run(args: argparse.Namespace) -> int:
         if path.exists():
             print(f"  {name}: {path}")
     print(f"  total {summary['total_s']:.1f} s")
+    for w in summary.get("warnings", []):
+        print(f"  warning: {w}")
     return 0

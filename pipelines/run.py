@@ -334,12 +334,31 @@ def run_pipeline(source: str | Path, out: str | Path, config: RunConfig | None =
             model_kind, why = chosen["chosen"], f"{why}; {chosen['reason']}"
 
     _export_and_report(pipe, out, model_dir, posed_dir)
+    heldout = _heldout(model_dir)
     summary = {"source": str(src), "source_kind": kind, "model": model_kind, "model_reason": why,
                "total_s": time.perf_counter() - t_start,
-               "heldout": _heldout(model_dir), "stages": [dataclasses.asdict(r) for r in pipe.records],
-               "fit": fit_rec.summary}
+               "heldout": heldout, "stages": [dataclasses.asdict(r) for r in pipe.records],
+               "fit": fit_rec.summary, "warnings": run_warnings(pipe.records, heldout, fit_rec.summary)}
     write_json_atomic(out / "run.json", _summary_safe(summary))
     return summary
+
+
+def run_warnings(records: list[StageRecord], heldout: dict, fit_summary: dict) -> list[str]:
+    """What a user must know about a run that finished: too few photos registered, no held-out view to
+    judge the model by, parameters pinned at their bounds."""
+    out = []
+    reg = next((r for r in records if r.name == "register" and r.status == "ran"), None)
+    if reg is not None:
+        n_reg = len(reg.summary.get("registered") or [])
+        n_all = n_reg + len(reg.summary.get("unregistered") or [])
+        if n_all and n_reg < 0.5 * n_all:
+            out.append(f"only {n_reg} of {n_all} photos registered: the model sees part of the object; more "
+                       "overlapping photos (or a textured background) help structure from motion")
+    if not heldout.get("views"):
+        out.append("no held-out view: the held-out error is not measured (fewer photos than --holdout-every, "
+                   "or holdout_every 0)")
+    out += list(fit_summary.get("warnings") or [])
+    return out
 
 
 def fit_with_selection(capture_dir: Path, geometry: Path, out: Path, fit_cfg, kinds: tuple, choice: dict,

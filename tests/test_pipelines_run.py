@@ -158,3 +158,14 @@ def test_too_few_photos_and_a_bad_config_file_fail_before_any_work(tmp_path, cap
     assert main(["run", str(photos), "-o", str(tmp_path / "o"), "--config", str(tmp_path / "c.toml")]) == 1
     err = capsys.readouterr().err.strip()
     assert err.splitlines() == [err] and "c.toml" in err and "bogus" in err
+
+
+def test_run_warnings_say_what_a_finished_run_lacks():
+    from texstream.pipelines.run import StageRecord, run_warnings
+
+    reg = StageRecord("register", "ran", "", summary={"registered": ["a", "b"], "unregistered": ["c", "d", "e"]})
+    w = run_warnings([reg], {"views": 0}, {"warnings": ["9% of seen texels have x at its upper bound 10"]})
+    assert any("only 2 of 5 photos registered" in x for x in w) and any("no held-out view" in x for x in w)
+    assert w[-1].startswith("9% of seen texels")
+    every = StageRecord("register", "ran", "", summary={"registered": ["a"] * 9, "unregistered": []})
+    assert run_warnings([every], {"views": 2}, {}) == []
