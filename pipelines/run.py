@@ -29,7 +29,7 @@ from typing import Any, Callable
 
 from texstream.core.config import check_config, config_from_dict, config_to_dict, option
 from texstream.core.errors import ConfigError, InputError
-from texstream.core.outputs import write_json_atomic
+from texstream.core.outputs import write_atomic_with, write_json_atomic
 
 STAGES = ("ingest", "register", "mesh", "atlas", "fit", "export", "report")
 STAMP = ".texstream_stage.json"
@@ -225,9 +225,11 @@ def run_pipeline(source: str | Path, out: str | Path, config: RunConfig | None =
     if out.exists() and not out.is_dir():
         raise InputError("output path exists and is not a folder", out, "choose another -o path")
     kind = detect_source(src)
+    if cfg.mesh_file and not Path(cfg.mesh_file).exists():  # before any long work
+        raise InputError("mesh file not found", cfg.mesh_file, "check --mesh-file")
     out.mkdir(parents=True, exist_ok=True)
-    (out / "run_config.toml").write_text(dumps(config_to_dict(cfg), header="texstream run: the resolved options "
-                                                                           "(texstream run --config this file)"))
+    text = dumps(config_to_dict(cfg), header="texstream run: the resolved options (texstream run --config this file)")
+    write_atomic_with(out / "run_config.toml", lambda fh: fh.write(text.encode()))
     t_start = time.perf_counter()
     pipe = Pipeline(out, from_stage, log)
 

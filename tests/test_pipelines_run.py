@@ -82,10 +82,15 @@ def test_unknown_lighting_chooses_the_radiance_model(capture, tmp_path):
 def test_the_resolved_config_reads_back_and_unknown_fields_fail(capture, tmp_path):
     from texstream.core.toml import read_toml
 
+    from texstream.core.config import config_to_dict
+    from texstream.core.toml import dumps
+
     out = tmp_path / "out"
-    with pytest.raises(InputError):  # stops at the missing mesh, after writing the config
+    with pytest.raises(InputError, match="mesh file not found"):  # checked before any work or output
         run_pipeline(capture, out, tiny_config(mesh_file=str(tmp_path / "missing.obj")), log=lambda m: None)
-    data = read_toml(out / "run_config.toml")
+    assert not out.exists()
+    (tmp_path / "run_config.toml").write_text(dumps(config_to_dict(tiny_config())))  # as run_pipeline writes it
+    data = read_toml(tmp_path / "run_config.toml")
     cfg = run_config_from_dict(data)
     assert cfg.fit.fit.max_iterations == 3 and cfg.fit.holdout_every == 8 and cfg.device == SCENE_DEVICE
     with pytest.raises(ConfigError, match="bogus"):
