@@ -87,6 +87,17 @@ def test_gradient_matches_finite_differences(device, layout, n_range, sampling):
     assert_gradient_matches_finite_differences(prob, layout, random_params(layout, prob.n, rng, n_range))
 
 
+def assert_full_dhd_matches_second_difference(prob, p, rng):
+    """The full-Hessian d^T H d along a random direction (one lobe, isotropic) against second differences
+    of every texel's objective; bound: O(h^2) truncation and second-difference rounding."""
+    d = rng.normal(size=p.shape) * np.array([0.01, 0.01, 0.01, 0.05, 0.05, 0.05, 0.0, 0.02, 0.5])
+    f0, _, dhd, _ = evaluate(prob, p, direction=d, full=True)
+    h = 3e-4
+    second = (evaluate(prob, p + h * d)[0] - 2 * f0 + evaluate(prob, p - h * d)[0]) / h ** 2
+    bound = 1e-6 * np.abs(second) + 1e-6 * np.abs(second).max() + 1e-7 * np.abs(f0)
+    assert np.all(np.abs(dhd - second) <= bound), np.max(np.abs(dhd - second) / bound)
+
+
 def assert_gradient_matches_finite_differences(prob, layout, p):
     """Each free column's gradient against central differences of every texel's objective."""
     f0, g0, _, st = evaluate(prob, p)

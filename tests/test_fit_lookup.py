@@ -25,7 +25,8 @@ from texstream.fit.stage import build_problem
 from texstream.core.errors import ConfigError
 
 from conftest import SCENE_DEVICE
-from test_fit_gradients import assert_gradient_matches_finite_differences, evaluate, plane_problem, random_params
+from test_fit_gradients import (assert_full_dhd_matches_second_difference, assert_gradient_matches_finite_differences,
+                                evaluate, plane_problem, random_params)
 
 
 def held_problem(device, layout, seed, taps="plane"):
@@ -61,13 +62,7 @@ def test_traced_taps_gradient_matches_finite_differences(device, layout):
 def test_lookup_dhd_matches_second_difference(device, taps):
     layout = ModelLayout()
     prob, rng, p, _ = held_problem(device, layout, seed=6, taps=taps)
-    d = rng.normal(size=p.shape) * np.array([0.01, 0.01, 0.01, 0.05, 0.05, 0.05, 0.0, 0.02, 0.5])
-    f0, _, dhd, _ = evaluate(prob, p, direction=d, full=True)
-    h = 3e-4
-    second = (evaluate(prob, p + h * d)[0] - 2 * f0 + evaluate(prob, p - h * d)[0]) / h ** 2
-    # the bound of test_fit_gradients' full-Hessian check (truncation and second-difference rounding)
-    bound = 1e-6 * np.abs(second) + 1e-6 * np.abs(second).max() + 1e-7 * np.abs(f0)
-    assert np.all(np.abs(dhd - second) <= bound), np.max(np.abs(dhd - second) / bound)
+    assert_full_dhd_matches_second_difference(prob, p, rng)
 
 
 @pytest.mark.parametrize("taps", TAPS)

@@ -23,11 +23,12 @@ from texstream.capture.synth import SynthConfig, render_scene
 from texstream.core.errors import InputError
 from texstream.fit.fitter import FitConfig, run_fit
 from texstream.fit.models import ModelLayout
-from texstream.fit.problem import PhotoFrame, PhotoSet, StreamConfig, StreamProblem, TexelSet, surface_derivatives
+from texstream.fit.problem import PhotoFrame, PhotoSet, StreamProblem, TexelSet, surface_derivatives
 from texstream.fit.render import Renderer
 
 from conftest import SCENE_DEVICE
-from test_fit_gradients import SAMPLINGS, assert_gradient_matches_finite_differences, evaluate, plane_problem
+from test_fit_gradients import (SAMPLINGS, assert_full_dhd_matches_second_difference,
+                                assert_gradient_matches_finite_differences, evaluate, plane_problem)
 
 RADIANCE = ModelLayout(kind="radiance")
 LOSSES = ["none", "huber", "cauchy"]
@@ -110,13 +111,7 @@ def test_robust_loss_derivatives_of_a_lafortune_lobe(device):
     prob.set_robust_loss("cauchy", 0.5)
     p = random_params(layout, prob.n, rng)
     assert_gradient_matches_finite_differences(prob, layout, p)
-    d = rng.normal(size=p.shape) * np.array([0.01, 0.01, 0.01, 0.05, 0.05, 0.05, 0.0, 0.02, 0.5])
-    f0, _, dhd, _ = evaluate(prob, p, direction=d, full=True)
-    h = 3e-4
-    second = (evaluate(prob, p + h * d)[0] - 2 * f0 + evaluate(prob, p - h * d)[0]) / h ** 2
-    # test_fit_gradients' full-Hessian bound (O(h^2) truncation, second-difference rounding)
-    bound = 1e-6 * np.abs(second) + 1e-6 * np.abs(second).max() + 1e-7 * np.abs(f0)
-    assert np.all(np.abs(dhd - second) <= bound), np.max(np.abs(dhd - second) / bound)
+    assert_full_dhd_matches_second_difference(prob, p, rng)
 
 
 @pytest.mark.parametrize("loss", ["huber", "cauchy"])
