@@ -43,6 +43,10 @@ class FitStageConfig:
     unseen: str = option("nearest", "texels no photo saw: nearest (the value of the nearest seen texel on the "
                                     "surface, as texture bakers fill; flagged in seen.png) or default (the "
                                     "model's default values)", choices=("nearest", "default"))
+    lobe_support: float = option(0.02, "per texel, drop the specular lobes (rho_s = 0; flagged in lobes.png and "
+                                       "model.json) that lower the texel's error on the fitted photos by less than "
+                                       "this fraction: no photo saw their highlight, so in new views they only guess "
+                                       "it; 0 keeps every lobe", min=0.0, max=1.0)
     checkpoint: bool = option(True, "Levenberg-Marquardt fits keep a checkpoint beside the output (every sync_every "
                                     "iterations); a rerun after Ctrl-C or a killed process resumes from it to the "
                                     "same result as an uninterrupted fit")
@@ -317,6 +321,34 @@ def fill_unseen_texels(grid: np.ndarray, problem, bake, result: FitResult) -> tu
     return bake.fill_padding(flat.reshape(grid.shape)), int((~seen).sum())
 
 
+def per_texel_objective(problem, params: np.ndarray) -> np.ndarray:
+    """Each texel's objective on the fitted photos at ``params`` (N, P): one streaming pass."""
+    import warp as wp
+
+    f, g = problem.new_scalar(), problem.new_vec()
+    stats = wp.zeros(problem.n, dtype=wp.vec4d, device=problem.device)
+    problem.evaluate(problem.new_storage(params), f, g, stats)
+    return f.numpy().astype(np.float64)
+
+
+def drop_unsupported_lobes(problem, result: FitResult, fraction: float) -> tuple[np.ndarray, np.ndarray]:
+    """(params, dropped): the fitted parameters with rho_s = 0 on every seen texel whose lobes lower its
+    objective by less than ``fraction`` of the objective without them, and the (N,) mask of those texels.
+    Such a lobe explains nothing the photos show; a narrow one whose peak fell between the cameras would
+    still light up a new view at full height."""
+    lay = result.layout
+    dropped = np.zeros(problem.n, bool)
+    if lay.n_lobes == 0 or fraction <= 0:
+        return result.params, dropped
+    bare = result.params.copy()
+    for j in range(lay.n_lobes):
+        o = lay.lobe_offset(j)
+        bare[:, o:o + 3] = 0.0
+    with_lobes, without = per_texel_objective(problem, result.params), per_texel_objective(problem, bare)
+    dropped = (result.samples > 0) & (without - with_lobes <= fraction * np.maximum(without, 1e-30))
+    return np.where(dropped[:, None], bare, result.params), dropped
+
+
 def average_seams_in_bounds(grid: np.ndarray, seams, layout: ModelLayout) -> tuple[np.ndarray, dict | None]:
     """Tie the texels across chart seams (no cracks in bilinear lookups), keeping every value in its
     bounds; returns the maps and what model.json records of the seams."""
@@ -359,6 +391,8 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     result = run_fit_with_progress(problem, cfg.fit, progress, **({"checkpoint": ckpt.save, "resume": resume}
                                                                   if ckpt else {}))
     lay = result.layout
+    params, lobes_dropped = drop_unsupported_lobes(problem, result, cfg.lobe_support)
+    result = dataclasses.replace(result, params=params)
     grid, filled = params_to_grid(result, problem, bake), 0
     if cfg.unseen == "nearest":
         grid, filled = fill_unseen_texels(grid, problem, bake, result)
@@ -381,12 +415,20 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
                                    images=max(cfg.renders, 0))
         seen = np.zeros(bake.height * bake.width, bool)
         seen[problem.texels.grid_index] = result.samples > 0
+        if lay.n_lobes:
+            from texstream.capture.imageio import write_image
+
+            kept = np.zeros(bake.height * bake.width, np.float32)
+            kept[problem.texels.grid_index] = np.where(lobes_dropped, 0.5, (result.samples > 0).astype(np.float32))
+            # white: lobe kept, grey: lobe dropped (no photo saw its highlight), black: unseen or padding
+            write_image(tmp / "lobes.png", np.repeat(kept.reshape(bake.height, bake.width, 1), 3, axis=2), bits=8)
         last = result.trace[-1]
         at_bounds, warnings = bound_report(result.params, lay, result.samples > 0)
         manifest = {"mesh": "mesh.obj", "bake": "bake.npz", "warnings": warnings, "at_bounds": at_bounds,
                     "atlas": {"width": bake.width, "height": bake.height, "texels": int(problem.n),
                               "unseen_texels": int((result.samples == 0).sum()), "seen_before_fit": seen_before,
-                              "unseen_filled_from_nearest": filled},
+                              "unseen_filled_from_nearest": filled, "lobes_dropped": int(lobes_dropped.sum()),
+                              "lobe_support": cfg.lobe_support},
                     "photos": {"fitted": len(frames), "held_out": len(held)},
                     "final": {k: last[k] for k in ("iteration", "time_s", "objective", "psnr_db", "ape_percent")},
                     "lobe_shape": lobe_shape_report(cfg.fit, lay, frames, problem.texels.position),

@@ -242,3 +242,41 @@ def test_albedos_pinned_at_their_bound_are_reported(capture_and_atlas, monkeypat
     assert any("lafortune.rho_d.r at its upper bound" in w and "intensity" in w for w in warnings), warnings
     man = json.loads((root / "model_pinned" / "model.json").read_text())
     assert man["warnings"] == warnings and man["at_bounds"]["lafortune.rho_d.r"]["at_upper"] >= 0.49
+
+
+def test_lobes_no_photo_saw_are_dropped_and_the_seen_ones_kept(capture_and_atlas):
+    """At the true parameters of the sphere, a lobe whose highlight some photo shows lowers its texel's
+    error a lot and stays; a lobe made negligible (rho_s 1e-9) explains nothing and is dropped, as is a
+    true lobe whose highlight no photo caught."""
+    from texstream.capture.capture_json import read_capture
+    from texstream.capture.synth import load_ground_truth
+    from texstream.fit.fitter import FitResult
+    from texstream.fit.stage import build_problem, drop_unsupported_lobes, load_photos
+
+    root = capture_and_atlas
+    mesh, truth, lay, bake, _ = load_ground_truth(root / "cap" / "ground_truth")
+    frames = read_capture(root / "cap").frames
+    images, masks = load_photos(read_capture(root / "cap"), frames)
+    cfg = stage_config().fit
+    prob = build_problem(mesh.with_normals(), bake, frames, images, masks, cfg, SCENE_DEVICE)
+    params = truth.reshape(-1, lay.n_params)[prob.texels.grid_index].astype(np.float64)
+    rho_s = slice(lay.lobe_offset(0), lay.lobe_offset(0) + 3)
+    tiny = np.arange(prob.n) % 2 == 0
+    params[tiny, rho_s] = np.minimum(params[tiny, rho_s], 1e-9)
+    from texstream.fit.fitter import initial_guess
+
+    _, samples = initial_guess(prob, cfg)
+    res = FitResult(params=params, samples=samples, trace=[], layout=prob.layout, passes=0)
+    out, dropped = drop_unsupported_lobes(prob, res, 0.02)
+    seen = samples > 0
+    assert dropped[tiny & seen].all()  # a negligible lobe explains nothing
+    kept = seen & ~tiny & ~dropped
+    assert kept.sum() > 0.05 * (seen & ~tiny).sum()  # lobes whose highlight the photos show stay
+    assert np.all(out[dropped, rho_s] == 0) and np.array_equal(out[~dropped], params[~dropped])
+
+
+def test_the_model_flags_the_dropped_lobes(fitted):
+    root, _ = fitted
+    man = json.loads((root / "model" / "model.json").read_text())
+    assert man["atlas"]["lobe_support"] == 0.02 and 0 <= man["atlas"]["lobes_dropped"] <= man["atlas"]["texels"]
+    assert (root / "model" / "lobes.png").is_file()
