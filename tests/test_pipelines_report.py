@@ -18,6 +18,7 @@ import os
 import re
 import shutil
 import subprocess
+import tempfile
 import urllib.parse
 from pathlib import Path
 
@@ -53,12 +54,17 @@ def need_chromium() -> str:
     return b
 
 
-def chromium(args: list[str], url: str, profile: Path) -> subprocess.CompletedProcess:
-    """Headless Chromium with software WebGL2 (SwiftShader through ANGLE)."""
+def chromium(args: list[str], url: str, tmp: Path) -> subprocess.CompletedProcess:
+    """Headless Chromium with software WebGL2 (SwiftShader through ANGLE), in a fresh profile: a run
+    that shares a profile with a Chromium still shutting down hands its URL over and returns at once."""
+    profile = tempfile.mkdtemp(prefix="chromium-profile-", dir=tmp)
     cmd = [need_chromium(), "--headless", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
            "--hide-scrollbars", "--force-device-scale-factor=1", "--no-first-run", "--disable-extensions",
            f"--user-data-dir={profile}", *args, url]
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    try:
+        return subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    finally:
+        shutil.rmtree(profile, ignore_errors=True)
 
 
 def page_url(html: Path, view: dict | None = None, viewer_only: bool = False) -> str:
@@ -68,7 +74,7 @@ def page_url(html: Path, view: dict | None = None, viewer_only: bool = False) ->
 
 def viewer_status(html: Path, tmp: Path, view: dict | None = None, viewer_only: bool = False) -> dict:
     """The JSON the page writes into #viewer-status (read with --dump-dom)."""
-    r = chromium(["--dump-dom"], page_url(html, view, viewer_only), tmp / "profile")
+    r = chromium(["--dump-dom"], page_url(html, view, viewer_only), tmp)
     m = re.search(r'<pre id="viewer-status">([^<]*)</pre>', r.stdout)
     assert m, f"no #viewer-status in the DOM; chromium stderr tail: {r.stderr[-2000:]}"
     return json.loads(m.group(1).replace("&quot;", '"').replace("&amp;", "&"))
@@ -79,8 +85,9 @@ def screenshot(html: Path, view: dict, tmp: Path, name: str = "shot.png") -> np.
     import matplotlib.image as mpimg
 
     out = tmp / name
+    out.unlink(missing_ok=True)
     r = chromium([f"--screenshot={out}", f"--window-size={view['width']},{view['height']}"],
-                 page_url(html, view, viewer_only=True), tmp / "profile")
+                 page_url(html, view, viewer_only=True), tmp)
     assert out.is_file(), f"no screenshot; chromium stderr tail: {r.stderr[-2000:]}"
     img = mpimg.imread(out)[..., :3]
     return np.floor(img * 255 + 0.5).astype(np.uint8)[: view["height"], : view["width"]]
@@ -97,7 +104,7 @@ def psnr8(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
-    """A tiny synthetic sphere capture, a 3-iteration LM fit holding every 3rd photo out, the report."""
+    """A tiny synthetic sphere capture, a 5-iteration LM fit holding every 3rd photo out, the report."""
     from texstream.capture.synth import SynthConfig, synthesize
     from texstream.fit.fitter import FitConfig
     from texstream.fit.stage import FitStageConfig, fit_stage
@@ -106,7 +113,7 @@ def run(tmp_path_factory):
     root = tmp_path_factory.mktemp("report")
     cap, model = root / "capture", root / "model"
     synthesize("sphere", cap, SynthConfig(scale=0.05))
-    cfg = FitStageConfig(holdout_every=3, renders=2, fit=FitConfig(optimizer="lm", max_iterations=3))
+    cfg = FitStageConfig(holdout_every=3, renders=2, fit=FitConfig(optimizer="lm", max_iterations=5))
     res = fit_stage(cap, cap / "ground_truth", model, cfg, progress=False)
     stages = [{"name": "synth", "status": "ran", "reason": "no input photos: built-in sphere", "seconds": 1.0,
                "summary": {"photos": 6}},
@@ -115,6 +122,22 @@ def run(tmp_path_factory):
                "summary": {k: v for k, v in res.summary.items() if k != "render_eval"}}]
     rep = write_report(root, stages, model, cap)
     return {"root": root, "cap": cap, "model": model, "report": rep, "html": root / "report" / "index.html"}
+
+
+@pytest.fixture(scope="module")
+def truth(run):
+    """The synthetic set's ground truth as a model folder (sharp, visible highlights), and its report."""
+    from texstream.pipelines.report import write_report
+
+    gt, model = run["cap"] / "ground_truth", run["root"] / "truth_model"
+    model.mkdir()
+    man = json.loads((gt / "manifest.json").read_text())
+    for name in ["mesh.obj", *man["maps"].values()]:
+        shutil.copy(gt / name, model / name)
+    (model / "model.json").write_text(json.dumps({"kind": man["layout"]["kind"], "layout": man["layout"],
+                                                  "maps": man["maps"], "mesh": "mesh.obj"}))
+    write_report(run["root"] / "truth", [], model, run["cap"])
+    return {"model": model, "html": run["root"] / "truth" / "report" / "index.html"}
 
 
 # --------------------------------------------------------------------------- report contents
@@ -192,7 +215,9 @@ def _view_and_render(run, light_offset=(1.0, -3.0, 2.5), exposure=1.3):
     return view, _srgb8(res.radiance * np.float32(exposure)), res.mask
 
 
-def test_screenshot_matches_texstream_render(run, tmp_path):
+@pytest.mark.parametrize("which", ["fitted", "truth"])
+def test_screenshot_matches_texstream_render(which, run, truth, tmp_path):
+    run = run if which == "fitted" else truth
     view, ref, mask = _view_and_render(run)
     from scipy.ndimage import binary_erosion
 
@@ -214,9 +239,10 @@ def test_screenshot_matches_texstream_render(run, tmp_path):
     assert np.percentile(shot[~mask], 99) == 0
 
 
-def test_diffuse_and_specular_views_add_up(run, tmp_path):
+def test_diffuse_and_specular_views_add_up(truth, tmp_path):
     from texstream.capture.imageio import srgb_to_linear
 
+    run = truth
     view, ref, mask = _view_and_render(run, exposure=0.6)  # dim: no clipping, so the terms add
     lin = {}
     for mode in ("full", "diffuse", "specular"):
