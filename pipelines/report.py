@@ -129,7 +129,7 @@ def viewer_model_data(mesh, grid: np.ndarray, info: dict, frames: list[dict] | N
         "texture": {"width": int(w), "height": int(h), "layers": int(layers), "data": _b64(tex, "<f4")},
         "mesh": {"positions": _b64(v, "<f4"), "normals": _b64(mesh.vertex_normals(), "<f4"),
                  "uvs": _b64(mesh.uvs, "<f4"), "indices": _b64(mesh.faces, "<u4"),
-                 "n_vertices": int(len(v)), "n_faces": int(len(mesh.faces))},
+                 "n_vertices": len(v), "n_faces": len(mesh.faces)},
         "center": ((lo + hi) / 2).tolist(), "radius": float(max(np.linalg.norm(hi - lo) / 2, 1e-9)),
         "seen": None, "frames": frames or [], "default_frame": int(default_frame),
     }
@@ -519,11 +519,11 @@ def write_report(out_dir: str | Path, stages: list[dict], model_dir: str | Path,
                + (f", lobe shape {man.get('layout', {}).get('lobe_shape')}" if info["n_lobes"] else "")),
               ("texels", f"{atlas.get('texels', '?')} of {grid.shape[1]}x{grid.shape[0]}"
                + (f", {atlas['unseen_texels']} unseen" if "unseen_texels" in atlas else "")),
-              ("photos", f"{(man.get('photos') or {}).get('fitted', '?')} fitted, "
-                         f"{(man.get('photos') or {}).get('held_out', '?')} held out"),
+              ("photos", (f"{(man.get('photos') or {}).get('fitted', '?')} fitted, "
+                          f"{(man.get('photos') or {}).get('held_out', '?')} held out")),
               ("iterations", _fmt(fin.get("iteration"))), ("fit time", f"{_fmt(fin.get('time_s'))} s"),
               ("set-up time", f"{_fmt(man.get('setup_s'))} s"),
-              ("sample PSNR", f"{_fmt(fin.get('psnr_db'))} dB"), ("device", _e(man.get("device", "?")))]
+              ("sample PSNR", f"{_fmt(fin.get('psnr_db'))} dB"), ("device", man.get("device", "?"))]
         fit_html = ["<h2>Fit</h2><div>" + "".join(f"<span class='kpi'>{_e(k)}<b>{_e(v)}</b></span>" for k, v in kp)
                     + "</div>"]
         if trace:

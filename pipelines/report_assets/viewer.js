@@ -31,6 +31,7 @@
       s.mode = V.state.mode;
       s.frame = V.state.frame;
       s.canvas = [V.canvas.width, V.canvas.height];
+      if (V.selfTestMoved !== undefined) s.selftest_moved = V.selfTestMoved;
     }
     var el = document.getElementById('viewer-status');
     if (el) el.textContent = JSON.stringify(s);
@@ -522,6 +523,34 @@
     syncControls();
   }
 
+  // exercise the interaction handlers with synthetic events (the tests' #selftest): orbit, light drag,
+  // wheel, every control; any exception lands in V.errors through window.onerror or the catch below
+  function selfTest() {
+    var cv = V.canvas, before = JSON.stringify([V.state.cam.eye, V.state.light.pos]);
+    var pe = function (type, x, y, shift) {
+      var e = new PointerEvent(type, { clientX: x, clientY: y, shiftKey: !!shift, pointerId: 1, bubbles: true });
+      cv.dispatchEvent(e);
+    };
+    try {
+      pe('pointerdown', 10, 10); pe('pointermove', 40, 25); pe('pointerup', 40, 25);
+      pe('pointerdown', 10, 10, true); pe('pointermove', 30, 50, true); pe('pointerup', 30, 50, true);
+      cv.dispatchEvent(new WheelEvent('wheel', { deltaY: 120, bubbles: true, cancelable: true }));
+      var q = function (id) { return document.getElementById(id); };
+      [['ctl-laz', '45', 'input'], ['ctl-lel', '30', 'input'], ['ctl-exp', '1.5', 'input'],
+        ['ctl-mode', 'specular', 'change'], ['ctl-frame', '0', 'change']].forEach(function (c) {
+        var el = q(c[0]);
+        if (!el) return;
+        if (c[0] === 'ctl-frame' && !V.model.frames.length) return;
+        el.value = c[1];
+        el.dispatchEvent(new Event(c[2], { bubbles: true }));
+      });
+      V.selfTestMoved = JSON.stringify([V.state.cam.eye, V.state.light.pos]) !== before;
+    } catch (e) {
+      fail('selftest: ' + (e && e.message ? e.message : e));
+    }
+  }
+  V.selfTest = selfTest;
+
   // ------------------------------------------------------------------ start
   function parseHash() {
     var out = {};
@@ -543,6 +572,7 @@
       wire();
       V.ready = true;
       if (h.view) setView(JSON.parse(h.view)); else draw();
+      if (h.selftest) selfTest();
     } catch (e) {
       V.ready = false;
       fail('viewer: ' + (e && e.message ? e.message : e));
