@@ -4,7 +4,7 @@ The viewer test compares Chromium's screenshot of the fitted model with texstrea
 (fit/render.py, shadows off: the viewer draws no cast shadows) of the same camera and light, in
 8-bit sRGB over the render's coverage less its 1-pixel silhouette band (where a rasteriser and a ray
 caster may legitimately disagree on coverage; that band is bounded separately). Threshold: PSNR > 50 dB
-(docs/report.md: measured 64.7 dB (fitted model) and 62.9 dB (ground truth), every interior pixel within
+(docs/report.md: measured 64.17 dB (fitted model) and 62.86 dB (ground truth), every interior pixel within
 1 code; a 2% exposure error scores 49 dB, 5% 42 dB, a light moved by 10% of its distance 29 to 34 dB).
 
 Chromium (Debian package ``chromium``) runs with SwiftShader software GL; the tests skip only when
