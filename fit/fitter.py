@@ -231,13 +231,15 @@ def resumable(cfg: FitConfig) -> bool:
 
 
 def run_fit(problem: StreamProblem, cfg: FitConfig, p0: np.ndarray | None = None,
-            progress=None, checkpoint=None, resume: dict | None = None) -> FitResult:
+            progress=None, checkpoint=None, resume: dict | None = None,
+            start: tuple[np.ndarray, np.ndarray] | None = None) -> FitResult:
     """Fit the problem's model; returns parameters, sample counts and the per-iteration trace.
 
     ``checkpoint(state_dict)`` is called at every stopping-test sync (every ``sync_every``
     iterations) with what ``resume`` takes to continue the fit from there; for :func:`resumable`
     configs the resumed fit takes the same iterations to the same parameters, to the last bit, on
-    one device.
+    one device. ``start``: :func:`initial_guess`'s (parameters, sample counts) when the caller has
+    already streamed that pass.
     """
     lay = problem.layout
     n = problem.n
@@ -246,7 +248,7 @@ def run_fit(problem: StreamProblem, cfg: FitConfig, p0: np.ndarray | None = None
     if (checkpoint is not None or resume is not None) and not resumable(cfg):
         raise ConfigError("only Levenberg-Marquardt fits without smoothness, lookup or diffuse schedule resume "
                           "from a checkpoint", fix="drop the checkpoint, or use --optimizer lm")
-    guess, counts = initial_guess(problem, cfg)
+    guess, counts = start if start is not None else initial_guess(problem, cfg)
     if p0 is not None:
         guess = np.asarray(p0, dtype=np.float64)
     free = ~lay.frozen()

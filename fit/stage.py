@@ -259,19 +259,21 @@ def check_capture_lights(capture, model: str, capture_dir: str | Path) -> None:
                          "--lights, texstream lights, or a co-located flash)")
 
 
-def check_seen_texels(problem, cfg: FitStageConfig, capture_dir: str | Path) -> int:
-    """Count the texels some photo sees (one streaming pass) and fail before fitting when almost none
-    are: a mesh facing away from the cameras or in another frame than the capture's."""
+def check_seen_texels(problem, cfg: FitStageConfig, capture_dir: str | Path) -> tuple[int, tuple]:
+    """Count the texels some photo sees and fail before fitting when almost none are: a mesh facing away
+    from the cameras or in another frame than the capture's. The count comes from the fit's starting
+    pass (:func:`initial_guess`), returned for the fit to reuse."""
     from .fitter import initial_guess
 
-    _, counts = initial_guess(problem, cfg.fit)
+    start = initial_guess(problem, cfg.fit)
+    counts = start[1]
     seen = int((counts > 0).sum())
     if seen < cfg.min_seen_fraction * problem.n:
         raise StageError(f"only {seen:,} of {problem.n:,} texels ({100.0 * seen / max(problem.n, 1):.2f}%) are seen by "
                          f"any photo (need {100 * cfg.min_seen_fraction:g}%)", Path(capture_dir) / "capture.json",
                          "check that the mesh is in the capture's frame and faces the cameras (texstream mesh "
                          "orients it), or lower --min-seen-fraction")
-    return seen
+    return seen, start
 
 
 @dataclasses.dataclass
@@ -377,7 +379,7 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     inputs = load_fit_inputs(capture_dir, mesh_path, cfg)
     capture, frames, held, mesh, bake = inputs.capture, inputs.frames, inputs.held, inputs.mesh, inputs.bake
     problem = build_problem(mesh, bake, frames, inputs.images, inputs.masks, cfg.fit, cfg.device)
-    seen_before = check_seen_texels(problem, cfg, capture_dir)
+    seen_before, start = check_seen_texels(problem, cfg, capture_dir)
     t_setup = time.perf_counter() - t0
     ckpt, resume = None, None
     if cfg.checkpoint and resumable(cfg.fit):
@@ -388,8 +390,8 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
                                     "capture_mtime": (Path(capture_dir) / "capture.json").stat().st_mtime_ns
                                     if (Path(capture_dir) / "capture.json").exists() else 0})
         resume = ckpt.load()
-    result = run_fit_with_progress(problem, cfg.fit, progress, **({"checkpoint": ckpt.save, "resume": resume}
-                                                                  if ckpt else {}))
+    result = run_fit_with_progress(problem, cfg.fit, progress, start=start,
+                                   **({"checkpoint": ckpt.save, "resume": resume} if ckpt else {}))
     lay = result.layout
     params, lobes_dropped = drop_unsupported_lobes(problem, result, cfg.lobe_support)
     result = dataclasses.replace(result, params=params)
