@@ -645,15 +645,25 @@ def render_scene(scene, config: SynthConfig | None = None) -> RenderedScene:
 # ---------------------------------------------------------------------------------- ground truth
 
 
+VIEW_TERM_NAMES = ("vx", "vy", "vxx", "vxy", "vyy")  # fit/models.py VIEW_TERMS (capture/ imports no fit/)
+
+
 def write_param_maps(folder: Path, params: np.ndarray, layout) -> dict[str, str]:
     """Parameter maps as float EXR: rho_d.exr (RGB), per lobe lobe{j}_rho_s.exr (RGB) and
     lobe{j}_shape.exr ([c_xy, c_z, n] or, anisotropic, RGBA [c_x, c_y, c_z, n]); a radiance
-    layout (fit/models.py) writes radiance.exr (RGB L) only."""
+    layout (fit/models.py) writes radiance.exr (RGB L), and the view-dependent one also
+    view_{term}.exr (RGB coefficient of each view term, e.g. view_vx.exr)."""
     from .imageio import write_image
 
     if getattr(layout, "is_radiance", False):
         write_image(folder / "radiance.exr", params[..., 0:3], bits=32)
-        return {"radiance": "radiance.exr"}
+        files = {"radiance": "radiance.exr"}
+        for k in range(getattr(layout, "view_terms", 0)):
+            name = f"view_{VIEW_TERM_NAMES[k]}"
+            o = layout.view_offset(k)
+            write_image(folder / f"{name}.exr", params[..., o:o + 3], bits=32)
+            files[name] = f"{name}.exr"
+        return files
     files = {"rho_d": "rho_d.exr"}
     write_image(folder / "rho_d.exr", params[..., 0:3], bits=32)
     for j in range(layout.n_lobes):
@@ -671,7 +681,10 @@ def read_param_maps(folder: str | os.PathLike, layout) -> np.ndarray:
 
     g = Path(folder)
     if getattr(layout, "is_radiance", False):
-        return read_image(g / "radiance.exr", channels=3).astype(np.float32)
+        maps = [read_image(g / "radiance.exr", channels=3)]
+        maps += [read_image(g / f"view_{VIEW_TERM_NAMES[k]}.exr", channels=3)
+                 for k in range(getattr(layout, "view_terms", 0))]
+        return np.concatenate(maps, axis=-1).astype(np.float32)
     maps = [read_image(g / "rho_d.exr", channels=3)]
     for j in range(layout.n_lobes):
         maps.append(read_image(g / f"lobe{j}_rho_s.exr", channels=3))

@@ -66,7 +66,8 @@ roughness (glTF metallicRoughnessTexture G channel, OBJ Ns)
     it also darkens the diffuse layer by ``1 - max(F)``, i.e. by max(F0) along the normal).
 
 radiance models (``layout.kind == "radiance"``, grid columns 0:3: view-independent exitant
-radiance in photo units)
+radiance in photo units; ``"view_radiance"``: its radiance seen along the normal, columns 0:3, since
+neither glTF nor OBJ has a view-dependent colour; the view terms stay in the EXR maps)
     ``radiance * radiance_scale`` clipped to [0, 1], 8-bit sRGB, as the baseColor of an unlit
     material (``KHR_materials_unlit``, fallback metallic 0, roughness 0.9 as the extension suggests);
     OBJ: map_Kd with ``illum 0``.
@@ -302,7 +303,8 @@ class _Material:
 def _material(m: _Model, cfg: ExportConfig) -> _Material:
     g = m.grid.astype(np.float64)
     lay = m.layout
-    if lay.kind == "radiance":
+    if lay.kind in ("radiance", "view_radiance"):
+        # glTF and OBJ have no view-dependent colour: the radiance seen along the normal
         rad = g[..., 0:3] * float(cfg.radiance_scale)
         clipped = int((rad.max(axis=-1)[m.covered] > 1.0).sum())
         return _Material("radiance", np.clip(rad, 0.0, 1.0), None, 0.0, None, 1.0, clipped)

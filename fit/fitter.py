@@ -37,8 +37,13 @@ class FitConfig:
     """What to fit and how (saved as fit_config.json beside the model)."""
 
     model: str = option("lafortune", "appearance model: lafortune or diffuse (reflectance, need a known light per "
-                                     "photo) or radiance (view-independent radiance under the photos' one fixed, "
-                                     "unknown lighting; ignores lights)", choices=("lafortune", "diffuse", "radiance"))
+                                     "photo), radiance (view-independent radiance under the photos' one fixed, "
+                                     "unknown lighting; ignores lights) or view_radiance (that radiance as a "
+                                     "biquadratic of the view direction, fit/models.py)",
+                        choices=("lafortune", "diffuse", "radiance", "view_radiance"))
+    view_prior: float = option(0.5, "view_radiance: ridge prior pulling each texel's view terms to 0, in samples' "
+                                    "worth of squared residual per unit coefficient (a texel seen from few directions "
+                                    "stays view-independent); 0 = none", min=0.0)
     lobes: int = option(1, "specular lobes K (0..2)", min=0, max=2)
     anisotropic: bool = option(False, "general C_x, C_y, C_z lobes instead of isotropic C_xy, C_z")
     lobe_shape: str = option("auto", "free fits each lobe's c_z, phong holds it at 1; auto picks phong when every "
@@ -82,7 +87,8 @@ class FitConfig:
     robust_loss: str = option("auto", "loss of each channel residual r: none (least squares, r^2 / 2), huber or "
                                       "cauchy (robust, iteratively reweighted in the passes); auto: cauchy for the "
                                       "radiance model (a highlight or other outlier seen in a few photos hardly "
-                                      "moves a texel's radiance), none for reflectance models",
+                                      "moves a texel's radiance), none for the others (the view-dependent radiance "
+                                      "fits the photos' disagreement across directions)",
                               choices=("auto", "none", "huber", "cauchy"))
     robust_scale: float = option(0.0, "the robust loss's scale k in residual units (photo values in radiance "
                                        "space): residuals well below k are least squares, above it down-weighted; "
@@ -100,7 +106,9 @@ class FitConfig:
     def loss(self, layout: ModelLayout) -> str:
         """The robust loss the fit uses for ``layout`` (``robust_loss`` with auto resolved)."""
         if self.robust_loss == "auto":
-            return "cauchy" if layout.is_radiance else "none"
+            # the view-dependent radiance fits what cauchy would discount as outliers (the photos'
+            # disagreement across directions), so it stays least squares
+            return "cauchy" if layout.kind == "radiance" else "none"
         if self.robust_loss not in ("none", "huber", "cauchy"):
             raise ConfigError(f"robust_loss {self.robust_loss!r} unknown", fix="use auto, none, huber or cauchy")
         return self.robust_loss
@@ -109,8 +117,8 @@ class FitConfig:
         """The model layout; ``lobe_shape`` "auto" is decided from the photos' ``frames``
         (:class:`PhotoFrame`) seen from ``centre`` (:func:`choose_lobe_shape`)."""
         shape = self.lobe_shape
-        if self.model == "radiance":
-            return ModelLayout(kind="radiance")
+        if self.model in ("radiance", "view_radiance"):
+            return ModelLayout(kind=self.model)
         if frames is not None:
             unlit = sum(getattr(f, "light_kind", None) == "none" for f in frames)
             if unlit:
@@ -313,6 +321,7 @@ def run_fit(problem: StreamProblem, cfg: FitConfig, p0: np.ndarray | None = None
         problem.set_robust_loss(loss, cfg.robust_scale_fraction * mean_y)
     else:
         problem.set_robust_loss(loss, cfg.robust_scale)
+    problem.set_view_prior(cfg.view_prior)
     evaluate_current()
     state.accepted.zero_()
     first = 1

@@ -32,6 +32,16 @@ under one fixed, unknown lighting (capture.json frames without a ``light``). A s
 ``exposure * L``: no light, no cosine, no shadow test (fit/kernels/stream.py compiles the light-free
 path per layout). It shares the diffuse model's kernels (no lobes, m_c = p_c); only the weight
 W = exposure replaces exposure * E * cos(theta_i). L is in photo value / exposure units.
+
+View-dependent radiance (kind "view_radiance"): the radiance of a texel as a biquadratic polynomial
+of the local view direction v (tangent frame of the atlas: x along dp/du, z the shading normal),
+a polynomial texture map over view directions (Malzbender et al. 2001, there over light directions):
+    L_c(v) = L_c + sum_k a_k,c phi_k(v),  phi = (v_x, v_y, v_x^2, v_x v_y, v_y^2)
+so L_c is the radiance seen along the normal. It keeps what a fixed lighting and an approximate
+mesh make view-dependent (a sheen, the parallax of geometry the mesh misses) which a single radiance
+per texel averages away. The a_k are pulled towards 0 by a ridge prior (``FitConfig.view_prior``):
+a texel seen from few directions falls back to the view-independent L. Linear in its parameters, so
+Gauss-Newton is exact; same light-free weight W = exposure as "radiance".
 """
 
 from __future__ import annotations
@@ -42,7 +52,9 @@ import numpy as np
 
 from texstream.core.errors import ConfigError
 
-MODEL_KINDS = ("lafortune", "diffuse", "radiance")
+MODEL_KINDS = ("lafortune", "diffuse", "radiance", "view_radiance")
+RADIANCE_KINDS = ("radiance", "view_radiance")  # no light: fitted under one fixed, unknown lighting
+VIEW_TERMS = ("vx", "vy", "vxx", "vxy", "vyy")  # phi_k(v) of the view-dependent radiance, in this order
 REFLECTANCE_KINDS = ("lafortune", "diffuse")  # need a known light per photo
 LOBE_SHAPES = ("free", "phong")
 MAX_LOBES = 2  # per-texel vectors are sized to the layout (at most 3 + 2*7 = 17 parameters)
@@ -85,8 +97,9 @@ class ModelLayout:
     """Parameter layout of a per-texel reflectance model.
 
     Attributes:
-        kind: "lafortune", "diffuse" (Lafortune with no lobes) or "radiance" (view-independent
-            exitant radiance, no light; see the module doc).
+        kind: "lafortune", "diffuse" (Lafortune with no lobes), "radiance" (view-independent
+            exitant radiance, no light) or "view_radiance" (radiance as a biquadratic of the view
+            direction; see the module doc).
         n_lobes: number of specular lobes K (0..MAX_LOBES).
         anisotropic: general C_x, C_y, C_z instead of the isotropic C_xy, C_z.
         lobe_shape: "free" (c_z fitted) or "phong" (c_z held at 1; see the module doc).
@@ -100,9 +113,9 @@ class ModelLayout:
     def __post_init__(self) -> None:
         if self.kind not in MODEL_KINDS:
             raise ConfigError(f"unknown model kind {self.kind!r}", fix=f"use one of {MODEL_KINDS}")
-        if self.kind in ("diffuse", "radiance") and self.n_lobes != 0:
+        if self.kind in ("diffuse", *RADIANCE_KINDS) and self.n_lobes != 0:
             object.__setattr__(self, "n_lobes", 0)
-        if self.kind == "radiance":  # no lobes: nothing anisotropic, no lobe shape
+        if self.kind in RADIANCE_KINDS:  # no lobes: nothing anisotropic, no lobe shape
             object.__setattr__(self, "anisotropic", False)
             object.__setattr__(self, "lobe_shape", "free")
         if not 0 <= self.n_lobes <= MAX_LOBES:
@@ -112,8 +125,17 @@ class ModelLayout:
 
     @property
     def is_radiance(self) -> bool:
-        """The light-free radiance model (kernels skip the light, W = exposure)."""
-        return self.kind == "radiance"
+        """A light-free radiance model (kernels skip the light, W = exposure)."""
+        return self.kind in RADIANCE_KINDS
+
+    @property
+    def view_terms(self) -> int:
+        """Number of view-direction terms phi_k per channel (5 for "view_radiance", else 0)."""
+        return len(VIEW_TERMS) if self.kind == "view_radiance" else 0
+
+    def view_offset(self, k: int) -> int:
+        """First column (channel r) of view term k; channel c is at ``view_offset(k) + c``."""
+        return 3 + 3 * k
 
     @property
     def lobe_stride(self) -> int:
@@ -121,16 +143,21 @@ class ModelLayout:
 
     @property
     def n_params(self) -> int:
-        return 3 + self.n_lobes * self.lobe_stride
+        return 3 + self.n_lobes * self.lobe_stride + 3 * self.view_terms
 
     def lobe_offset(self, j: int) -> int:
         return 3 + j * self.lobe_stride
 
     def specs(self) -> list[ParamSpec]:
         if self.is_radiance:
-            return [ParamSpec(f"radiance.L.{c}", "photo value / exposure", 0.0, 1000.0, 0.5,
-                              "view-independent exitant radiance; a sample predicts exposure * L")
-                    for c in "rgb"]
+            out = [ParamSpec(f"{self.kind}.L.{c}", "photo value / exposure", 0.0, 1000.0, 0.5,
+                             "exitant radiance (seen along the normal for view_radiance); a sample "
+                             "predicts exposure * L") for c in "rgb"]
+            for k in VIEW_TERMS[:self.view_terms]:
+                out += [ParamSpec(f"{self.kind}.view.{k}.{c}", "photo value / exposure", -1000.0, 1000.0, 0.0,
+                                  f"coefficient of the view term {k} (local view direction components)")
+                        for c in "rgb"]
+            return out
         out = [ParamSpec(f"{self.kind}.rho_d.{c}", "1/sr", 0.0, 10.0, 0.1,
                          "diffuse BRDF value (albedo / pi); seed bounds reflectance samples to [0, 10]")
                for c in "rgb"]

@@ -18,6 +18,7 @@ from texstream.capture.conventions import look_at_w2c
 from texstream.core.config import option
 from texstream.core.errors import ConfigError, InputError
 
+from .kernels import optim_kernels as K
 from .kernels import stream
 from .kernels.lafortune_grad import param_types
 from .kernels.shading import SHADOW_EPS_REL
@@ -296,6 +297,7 @@ class PhotoSet:
         ``mesh_normals`` and ``mesh_uvs`` serve traced taps (``StreamConfig.tap_geometry``)."""
         self.mesh_normals = self.mesh_uvs = None
         self.light_kinds = [fr.light_kind for fr in frames]
+        self.exposures = [float(fr.exposure) for fr in frames]
         """per photo "point", "directional" or "none" (checked against the model by StreamProblem)"""
         if mesh_points is None:
             return self._init_without_mesh(frames, images, masks, config, device)
@@ -447,9 +449,11 @@ class StreamProblem:
         unlit = sum(k == "none" for k in kinds)
         if unlit and not layout.is_radiance:
             raise no_light_error(unlit, len(kinds), layout.kind)
-        self.radiance = layout.is_radiance
+        # the light-free passes: 1 the radiance model, 2 the view-dependent one (stream.layout_funcs)
+        self.radiance = 2 if layout.view_terms else int(layout.is_radiance)
         self.robust = stream.ROBUST_NONE
         self.robust_scale = 0.0
+        self.prior_lam = 0.0  # the view terms' ridge prior (set_view_prior)
         if cfg.storage not in PRECISIONS:
             raise ConfigError(f"storage precision {cfg.storage!r} unknown", fix="use fp16, fp32 or fp64")
         self.scalar, self.vec, self.mat = _vec_types(cfg.accumulate, layout.n_params)
@@ -516,6 +520,36 @@ class StreamProblem:
         self.robust_scale = float(scale) if code != stream.ROBUST_NONE else 0.0
         self.opt.robust_scale = self.robust_scale
 
+    def set_view_prior(self, weight: float) -> None:
+        """The view-dependent radiance's ridge prior: lam / 2 sum_k a_k^2 per texel over its view-term
+        coefficients (fit/models.py), with lam = ``weight`` x the photos' mean squared exposure so that
+        ``weight`` counts in samples of the radiance-space residual (a sample's residual scales with its
+        exposure). Added to every pass's objective, gradient, d^T H d and J^T J. No-op for other models."""
+        if not (math.isfinite(weight) and weight >= 0):
+            raise ConfigError(f"view prior {weight} invalid", fix="use a weight >= 0")
+        lay = self.layout
+        if not lay.view_terms:
+            return
+        exposures = np.asarray(getattr(self.photos, "exposures", [1.0]), np.float64)
+        mean_sq = float(np.mean(exposures ** 2)) if exposures.size else 1.0
+        self.prior_lam = float(weight) * mean_sq
+        w = np.zeros(lay.n_params)
+        w[lay.view_offset(0):] = 1.0
+        self.prior_weights = self.vec(*w)
+
+    def _add_prior(self, params, f, g, act, direction=None, dhd=None, jtj=None) -> None:
+        if self.prior_lam <= 0:
+            return
+        lam = self.scalar(self.prior_lam)
+        want = direction is not None and dhd is not None
+        wp.launch(K.quadratic_prior_kernel, dim=self.n, device=self.device,
+                  inputs=[params, direction if want else self.no_direction, self.prior_weights, lam, act,
+                          self.layout.n_params, int(want)],
+                  outputs=[f, g, dhd if want else f])
+        if jtj is not None:
+            wp.launch(K.quadratic_prior_diag_kernel, dim=self.n, device=self.device,
+                      inputs=[self.prior_weights, lam, act, self.layout.n_params], outputs=[jtj])
+
     def _init_lookup(self, texels: TexelSet, layout: ModelLayout, cfg: StreamConfig, dev: str) -> None:
         """The renderer's texture lookup (``StreamConfig.model_lookup``): texel coordinates and
         their gradients, the atlas's read map and the held parameters (placeholders when off)."""
@@ -525,6 +559,9 @@ class StreamProblem:
         tex, n = self.tex, texels.n
         tex.grid_width, tex.grid_height = int(texels.width), int(texels.height)
         tex.n_lobes, tex.anisotropic = int(layout.n_lobes), int(layout.anisotropic)
+        if self.lookup and layout.view_terms:
+            raise ConfigError("model_lookup bilinear does not blend the view-dependent radiance's view terms",
+                              fix="set stream.model_lookup to texel")
         if not self.lookup:
             tex.centre_xy = wp.zeros(1, dtype=wp.vec2, device=dev)
             tex.dx_dp = tex.dy_dp = wp.zeros(1, dtype=wp.vec3, device=dev)
@@ -650,6 +687,7 @@ class StreamProblem:
                 wp.launch(stream.reduce_vec_partials_kernel, dim=self.n, device=self.device,
                           inputs=[self.pdiag, self.groups, 0 if first else 1], outputs=[diag])
             first = False
+        self._add_prior(params, f, g, act, direction, dhd)
         self.passes += 1
 
     def ph_scratch(self) -> wp.array:
@@ -676,4 +714,5 @@ class StreamProblem:
                       inputs=[self.pf, self.pg, self.pm, self.pst, self.groups, 0 if first else 1],
                       outputs=[f, g, jtj, stats])
             first = False
+        self._add_prior(params, f, g, act, jtj=jtj)
         self.passes += 1

@@ -149,6 +149,7 @@ class Renderer:
         wp.launch(render_kernel, dim=(height, width), device=self.device,
                   inputs=[self.mesh.id, self.points, self.indices, self.normals, self.uvs,
                           self.params, self.tex_w, self.tex_h, self.layout.n_lobes, int(self.layout.anisotropic),
+                          int(self.layout.view_terms),
                           cam, lt, self.shadow_eps, int(self.shadows)],
                   outputs=[self._radiance, self._mask, self._depth, self._face])
         return RenderResult(radiance=self._radiance.numpy().reshape(height, width, 3).astype(np.float32, copy=True),

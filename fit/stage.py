@@ -29,7 +29,8 @@ from .models import ModelLayout
 
 UNITS = {"lafortune": "BRDF values in 1/sr (capture/conventions.py)",
          "diffuse": "BRDF values in 1/sr (capture/conventions.py)",
-         "radiance": "exitant radiance in photo values per unit exposure"}
+         "radiance": "exitant radiance in photo values per unit exposure",
+         "view_radiance": "exitant radiance in photo values per unit exposure (along the normal; view terms alike)"}
 
 
 @dataclasses.dataclass
@@ -252,7 +253,7 @@ def split_holdout(frames: list, every: int) -> tuple[list, list]:
 
 def check_capture_lights(capture, model: str, capture_dir: str | Path) -> None:
     """Reflectance models need a light per photo; the radiance model needs none."""
-    if model != "radiance" and not capture.has_lights:
+    if model not in ("radiance", "view_radiance") and not capture.has_lights:
         raise InputError(f"the {model} model needs a light per photo and some frames have none",
                          Path(capture_dir) / "capture.json",
                          "fit the radiance model (--model radiance), or add per-frame lights (texstream ingest "
@@ -358,9 +359,16 @@ def average_seams_in_bounds(grid: np.ndarray, seams, layout: ModelLayout) -> tup
         return grid, None
     from texstream.geometry.seams import average_across_seams, seam_gaps
 
-    before = float(np.abs(seam_gaps(grid, seams)).max()) if seams.n_samples else 0.0
-    grid = average_across_seams(grid, seams, lower=layout.lower(), upper=layout.upper()).astype(np.float32)
-    after = float(np.abs(seam_gaps(grid, seams)).max()) if seams.n_samples else 0.0
+    # the view terms' coefficients live in each chart's own tangent frame, so two sides of a seam do
+    # not share them: only the radiance along the normal (columns 0:3) is tied there
+    cols = slice(0, 3) if layout.view_terms else slice(0, grid.shape[-1])
+    part = np.ascontiguousarray(grid[..., cols])
+    before = float(np.abs(seam_gaps(part, seams)).max()) if seams.n_samples else 0.0
+    part = average_across_seams(part, seams, lower=layout.lower()[cols], upper=layout.upper()[cols])
+    grid = grid.copy()
+    grid[..., cols] = part
+    grid = grid.astype(np.float32)
+    after = float(np.abs(seam_gaps(part, seams)).max()) if seams.n_samples else 0.0
     return grid, {"samples": int(seams.n_samples), "max_gap_before": before, "max_gap_after": after}
 
 

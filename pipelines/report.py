@@ -45,9 +45,8 @@ MAX_VIEWER_FRAMES = 400
 def load_report_model(model_dir: str | Path):
     """(mesh with normals, grid (H, W, P) float32, info dict, model.json) of a model folder.
 
-    ``info``: kind ("lafortune", "diffuse" or "radiance"), n_lobes, anisotropic, and the
-    ModelLayout for the reflectance kinds (None for "radiance", which is 3 unlit RGB radiance
-    parameters in radiance.exr).
+    ``info``: kind ("lafortune", "diffuse", "radiance" or "view_radiance"), n_lobes, anisotropic, and
+    the ModelLayout (None for "radiance", which is 3 unlit RGB radiance parameters in radiance.exr).
     """
     d = Path(model_dir)
     man = read_json(d / "model.json", what="model manifest")
@@ -280,9 +279,15 @@ def param_map_figures(grid: np.ndarray, info: dict, seen: np.ndarray | None, fol
         scale = scale if scale > 0 else 1.0
         return linear_to_srgb(np.clip(x / scale, 0, 1)), scale
 
-    if info["kind"] == "radiance":
+    if info["kind"] in ("radiance", "view_radiance"):
         img, s = rgb_scaled(grid[..., 0:3])
-        save("radiance", img, f"radiance (RGB, divided by {s:.4g}, the 99th percentile; sRGB)")
+        save("radiance", img, f"radiance (RGB, divided by {s:.4g}, the 99th percentile; sRGB)"
+             + (", seen along the normal" if info["kind"] == "view_radiance" else ""))
+        if info["kind"] == "view_radiance":
+            # how much the view changes the radiance: the coefficients' magnitude over the view terms
+            amp = np.sqrt(np.sum(grid[..., 3:18] ** 2, axis=-1))
+            a, sa = rgb_scaled(np.repeat(amp[..., None], 3, axis=2))
+            save("view_dependence", a, f"view dependence: |view-term coefficients| (divided by {sa:.4g}; sRGB)")
     else:
         save("rho_d", linear_to_srgb(np.clip(np.pi * grid[..., 0:3], 0, 1)),
              "diffuse albedo pi * rho_d (RGB, clipped to 1; sRGB)")
@@ -624,8 +629,9 @@ def write_report(out_dir: str | Path, stages: list[dict], model_dir: str | Path,
             default = next((i for i, vf in enumerate(vframes) if vf["held_out"] and vf["photo"]),
                            next((i for i, vf in enumerate(vframes) if vf["photo"]), 0))
         model_data = viewer_model_data(mesh, grid, info, vframes, seen, default)
-        kind_note = ("Radiance model: unlit (view-independent radiance), the light controls do nothing."
-                     if info["kind"] == "radiance" else "")
+        kind_note = {"radiance": "Radiance model: unlit (view-independent radiance), the light controls do nothing.",
+                     "view_radiance": "View-dependent radiance model: unlit (radiance as a function of the view "
+                                      "direction), the light controls do nothing."}.get(info["kind"], "")
         sections.append(VIEWER_HTML.replace("%%KIND_NOTE%%", _e(kind_note)))
 
         # ---- parameter maps

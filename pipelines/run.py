@@ -33,7 +33,7 @@ from texstream.core.outputs import write_atomic_with, write_json_atomic
 
 STAGES = ("ingest", "register", "mesh", "atlas", "fit", "export", "report")
 STAMP = ".texstream_stage.json"
-MODELS = ("auto", "lafortune", "diffuse", "radiance")
+MODELS = ("auto", "lafortune", "diffuse", "radiance", "view_radiance")
 MIN_PHOTOS = 3  # structure from motion needs two views to start and a third to check them
 
 
@@ -59,7 +59,9 @@ class RunConfig:
 
     device: str = option("cpu", "Warp device for the mesh, atlas and fit: cpu or cuda:N")
     model: str = option("auto", "appearance model: auto (lafortune when every photo has a known light, radiance "
-                                "when the lighting is fixed and unknown), lafortune, diffuse or radiance",
+                                "when the lighting is fixed and unknown; with held-out photos the diffuse or the "
+                                "view-dependent radiance model too, the better held-out one kept), lafortune, "
+                                "diffuse, radiance or view_radiance",
                         choices=MODELS)
     mesh_file: str | None = option(None, "a mesh of the object (OBJ/PLY) to use instead of one from the photos; "
                                          "with usable UVs it also skips the atlas")
@@ -199,7 +201,7 @@ def _summary_safe(summary: dict) -> dict:
 def decide_model(capture, requested: str) -> tuple[str, str]:
     """The model the scene needs, and why."""
     if requested != "auto":
-        if requested != "radiance" and not capture.has_lights:
+        if requested not in ("radiance", "view_radiance") and not capture.has_lights:
             raise InputError(f"--model {requested} needs a light per photo and the capture has none",
                              capture.root / "capture.json", "use --model radiance (or auto), or give the lights")
         return requested, "requested"
@@ -317,19 +319,21 @@ def run_pipeline(source: str | Path, out: str | Path, config: RunConfig | None =
     model_kind, why = decide_model(capture, cfg.model)
     fit_cfg = dataclasses.replace(cfg.fit, device=cfg.device, fit=dataclasses.replace(cfg.fit.fit, model=model_kind))
     model_dir = out / "model"
-    # known lights: a specular lobe only where it generalises, judged on the held-out photos
-    compare = cfg.model == "auto" and model_kind == "lafortune" and cfg.fit.holdout_every > 0
+    # judged on the held-out photos: with known lights a specular lobe only where it generalises; under
+    # one fixed unknown lighting view dependence only where it does
+    alternative = {"lafortune": "diffuse", "radiance": "view_radiance"}.get(model_kind)
+    compare = cfg.model == "auto" and alternative is not None and cfg.fit.holdout_every > 0
     choice: dict = {}
 
     def fit_work():
         if not compare:
             return fit_stage(posed_dir, fit_geometry, model_dir, fit_cfg)
-        return fit_with_selection(posed_dir, fit_geometry, out, fit_cfg, ("lafortune", "diffuse"), choice, pipe.log)
+        return fit_with_selection(posed_dir, fit_geometry, out, fit_cfg, (model_kind, alternative), choice, pipe.log)
 
     fit_rec = pipe.run("fit", model_dir, [pipe.stamp_of("atlas"), pipe.stamp_of("mesh"), pipe.stamp_of("register"),
                                           _files_hash(posed_dir) if posed else "", config_to_dict(fit_cfg), compare],
-                       f"{model_kind} model: {why}" + ("; the diffuse model too, the better held-out one kept"
-                                                       if compare else ""), fit_work)
+                       f"{model_kind} model: {why}" + (f"; the {alternative} model too, the better held-out one "
+                                                       "kept" if compare else ""), fit_work)
     if compare:
         chosen = fit_rec.summary.get("selection", {})
         if chosen.get("chosen"):
@@ -366,7 +370,8 @@ def run_warnings(records: list[StageRecord], heldout: dict, fit_summary: dict) -
 def fit_with_selection(capture_dir: Path, geometry: Path, out: Path, fit_cfg, kinds: tuple, choice: dict,
                        log: Callable[[str], None]):
     """Fit each model kind of ``kinds`` into ``OUT/model_<kind>`` and keep the one with the best pooled
-    held-out PSNR as ``OUT/model`` (a lobe no held-out view supports only adds error there)."""
+    held-out PSNR as ``OUT/model`` (a lobe, or a view dependence, that no held-out view supports only adds
+    error there)."""
     import shutil
 
     from texstream.fit.stage import fit_stage

@@ -175,3 +175,57 @@ def lafortune_funcs(n_lobes: int, anisotropic: int) -> LafortuneFuncs:
         return out
 
     return LafortuneFuncs(features, dhd, model_value, jacobian_row, row_entry, row_nonzeros)
+
+
+@functools.cache
+def view_radiance_funcs() -> LafortuneFuncs:
+    """The model functions of the view-dependent radiance (fit/models.py, kind "view_radiance").
+
+    m_c = p_c + sum_k p_(3 + 3k + c) phi_k(v), phi = (v_x, v_y, v_x^2, v_x v_y, v_y^2) of the local
+    view direction v (``u``, the light, is unused). Features: f[3 + 3k + c] = phi_k(v) for every
+    channel c (the same value three times, so ``model_value`` and ``row_entry`` index f at the
+    parameter's own column); f[0:3] = 1. Linear in p: the Jacobian row of channel c has 6
+    non-zeros (1, then phi_k) and d^T (Hess m_c) d = 0.
+    """
+    n_terms = 5
+    row_nonzeros = 1 + n_terms
+
+    @wp.func
+    def features(p: Any, u: Any, v: Any, one: Any):
+        f = p * (one - one)
+        phi = wp.vector(v[0], v[1], v[0] * v[0], v[0] * v[1], v[1] * v[1])
+        for c in range(3):
+            f[c] = one
+        for k in range(wp.static(n_terms)):
+            for c in range(3):
+                f[3 + 3 * k + c] = phi[k]
+        return f
+
+    @wp.func
+    def model_value(p: Any, f: Any, c: int):
+        m = p[c]
+        for k in range(wp.static(n_terms)):
+            m = m + p[3 + 3 * k + c] * f[3 + 3 * k + c]
+        return m
+
+    @wp.func
+    def row_entry(p: Any, f: Any, c: int, t: int):
+        if t == 0:
+            return c, p[0] - p[0] + type(p[0])(1.0)
+        col = 3 + 3 * (t - 1) + c
+        return col, f[col]
+
+    @wp.func
+    def jacobian_row(p: Any, f: Any, c: int):
+        jc = p * (p[0] - p[0])
+        for t in range(wp.static(row_nonzeros)):
+            col, val = row_entry(p, f, c, t)
+            jc[col] = val
+        return jc
+
+    @wp.func
+    def dhd(p: Any, d: Any, u: Any, v: Any, one: Any):
+        zero = one - one
+        return type(u)(zero, zero, zero)
+
+    return LafortuneFuncs(features, dhd, model_value, jacobian_row, row_entry, row_nonzeros)

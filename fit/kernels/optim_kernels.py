@@ -567,3 +567,45 @@ def final_sums_kernel(partial: wp.array2d(dtype=wp.float64), n_chunks: int, row:
         for c in range(n_chunks):
             s = s + partial[c, k]
         trace[row, k] = s
+
+
+@wp.kernel
+def quadratic_prior_kernel(params: wp.array2d(dtype=Any), direction: wp.array2d(dtype=Any), weights: Any,
+                           lam: Any, active: wp.array(dtype=wp.int32), n_params: int, want_dhd: int,
+                           f: wp.array(dtype=Any), g: wp.array(dtype=Any), dhd: wp.array(dtype=Any)):
+    """Adds the prior P_i = lam / 2 sum_k w_k p_ik^2 to texel i's objective, lam w p to its gradient
+    and (``want_dhd``) lam sum_k w_k d_k^2 to its d^T H d; inactive texels are left as they are
+    (their pass outputs are zero and unused)."""
+    i = wp.tid()
+    if active[i] == 0:
+        return
+    zero = lam - lam
+    half = type(lam)(0.5)
+    pen = zero
+    curv = zero
+    gi = g[i]
+    for k in range(n_params):
+        pk = type(lam)(params[i, k])
+        wk = weights[k]
+        pen = pen + wk * pk * pk
+        gi[k] = gi[k] + lam * wk * pk
+        if want_dhd != 0:
+            dk = type(lam)(direction[i, k])
+            curv = curv + wk * dk * dk
+    f[i] = f[i] + half * lam * pen
+    g[i] = gi
+    if want_dhd != 0:
+        dhd[i] = dhd[i] + lam * curv
+
+
+@wp.kernel
+def quadratic_prior_diag_kernel(weights: Any, lam: Any, active: wp.array(dtype=wp.int32), n_params: int,
+                                jtj: wp.array(dtype=Any)):
+    """Adds the prior's Hessian lam diag(w) to texel i's Gauss-Newton matrix (:func:`quadratic_prior_kernel`)."""
+    i = wp.tid()
+    if active[i] == 0:
+        return
+    h = jtj[i]
+    for k in range(n_params):
+        h[k, k] = h[k, k] + lam * weights[k]
+    jtj[i] = h

@@ -23,7 +23,8 @@ from __future__ import annotations
 
 import warp as wp
 
-from .shading import LIGHT_NONE, bilinear_taps, incident_light, lafortune_brdf, surface_frame, texel_coords, to_local
+from .shading import (LIGHT_NONE, bilinear_taps, incident_light, lafortune_brdf, surface_frame, texel_coords, to_local,
+                      view_radiance)
 
 
 @wp.struct
@@ -67,12 +68,29 @@ def shade_texel_grid(params: wp.array2d(dtype=wp.float32), tex_w: int, tex_h: in
     return ((1.0 - fx) * (1.0 - fy)) * f00 + (fx * (1.0 - fy)) * f10 + ((1.0 - fx) * fy) * f01 + (fx * fy) * f11
 
 
+@wp.func
+def shade_view_texel_grid(params: wp.array2d(dtype=wp.float32), tex_w: int, tex_h: int, uv: wp.vec2,
+                          v_local: wp.vec3):
+    """Bilinear blend of the view-dependent radiance of the four texels around ``uv``, seen along the
+    local view direction ``v_local``; negative values (a polynomial past its photos) clamp to 0."""
+    x, y = texel_coords(uv, tex_w, tex_h)
+    x0, y0, fx, fy = bilinear_taps(x, y, tex_w, tex_h)
+    one = wp.float32(1.0)
+    r00 = y0 * tex_w + x0
+    f00 = view_radiance(params, r00, v_local, one)
+    f10 = view_radiance(params, r00 + 1, v_local, one)
+    f01 = view_radiance(params, r00 + tex_w, v_local, one)
+    f11 = view_radiance(params, r00 + tex_w + 1, v_local, one)
+    out = ((1.0 - fx) * (1.0 - fy)) * f00 + (fx * (1.0 - fy)) * f10 + ((1.0 - fx) * fy) * f01 + (fx * fy) * f11
+    return wp.max(out, wp.vec3(0.0))
+
+
 @wp.kernel(enable_backward=False)
 def render_kernel(mesh_id: wp.uint64,
                   points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
                   normals: wp.array(dtype=wp.vec3), uvs: wp.array(dtype=wp.vec2),
                   params: wp.array2d(dtype=wp.float32), tex_w: int, tex_h: int, n_lobes: int, aniso: int,
-                  cam: PinholeCamera, light: RenderLight, shadow_eps: float, shadows: int,
+                  view_terms: int, cam: PinholeCamera, light: RenderLight, shadow_eps: float, shadows: int,
                   radiance: wp.array2d(dtype=wp.vec3), mask: wp.array2d(dtype=wp.uint8),
                   depth: wp.array2d(dtype=wp.float32), face_id: wp.array2d(dtype=wp.int32)):
     """Render one image; launch with dim = (height, width).
@@ -109,7 +127,10 @@ def render_kernel(mesh_id: wp.uint64,
     pos, uv, n, tg, bt = surface_frame(points, indices, normals, uvs, hit.face, hit.u, hit.v)
     if light.kind == LIGHT_NONE:
         # radiance model: n_lobes = 0, so the blended "BRDF" is the texels' radiance L itself
-        radiance[j, i] = shade_texel_grid(params, tex_w, tex_h, n_lobes, aniso, uv, n, n)
+        if view_terms > 0:
+            radiance[j, i] = shade_view_texel_grid(params, tex_w, tex_h, uv, to_local(-d, tg, bt, n))
+        else:
+            radiance[j, i] = shade_texel_grid(params, tex_w, tex_h, n_lobes, aniso, uv, n, n)
         return
     l, e, dist = incident_light(light.kind, light.pos_or_dir, light.intensity, pos)
     cos_i = wp.dot(n, l)

@@ -144,3 +144,16 @@ def lafortune_brdf(params: wp.array2d(dtype=Any), row: int, n_lobes: int, aniso:
         lobe = lafortune_lobe(c, n, u, v)
         out = out + lobe * type(u)(type(one)(params[row, o]), type(one)(params[row, o + 1]), type(one)(params[row, o + 2]))
     return out
+
+
+@wp.func
+def view_radiance(params: wp.array2d(dtype=Any), row: int, v: Any, one: Any):
+    """Radiance (RGB) of texel ``row`` of the view-dependent radiance model for local view ``v``:
+    L_c + sum_k a_k,c phi_k(v), phi = (v_x, v_y, v_x^2, v_x v_y, v_y^2) (fit/models.py)."""
+    phi = wp.vector(v[0], v[1], v[0] * v[0], v[0] * v[1], v[1] * v[1])
+    out = type(v)(type(one)(params[row, 0]), type(one)(params[row, 1]), type(one)(params[row, 2]))
+    for k in range(5):
+        o = 3 + 3 * k
+        out = out + phi[k] * type(v)(type(one)(params[row, o]), type(one)(params[row, o + 1]),
+                                     type(one)(params[row, o + 2]))
+    return out

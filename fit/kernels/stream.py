@@ -32,7 +32,7 @@ from typing import Any, NamedTuple
 
 import warp as wp
 
-from .lafortune_grad import lafortune_funcs
+from .lafortune_grad import lafortune_funcs, view_radiance_funcs
 from .shading import bilinear_taps, incident_light, lafortune_brdf, surface_frame, texel_coords, to_local
 
 # no kernel here is differentiated (the fit writes its own derivatives): skipping Warp's adjoint
@@ -419,6 +419,9 @@ def observe_func(radiance: bool = False):
             y = (1.0 - fy) * ((1.0 - fx) * c00 + fx * c01) + fy * ((1.0 - fx) * c10 + fx * c11)
         w = infos[k].exposure * cos_i * e_int
         if opt.sampling == SAMPLING_FILTERED and infos[k].depth_is_mask == 0:
+            if wp.static(no_light):
+                # the view-dependent radiance reads the texel centre's view for all four taps
+                return True, y, w, zero3, to_local(vdir, tan, bit, nrm), xs, ys
             return True, y, w, zero3, zero3, xs, ys  # sample_model takes each tap's own directions
         return True, y, w, to_local(wi, tan, bit, nrm), to_local(vdir, tan, bit, nrm), xs, ys
 
@@ -517,13 +520,15 @@ def layout_funcs(n_lobes: int, anisotropic: int, lookup: bool = False, traced: b
     the model's texture lookup (``lookup``: the renderer's bilinear blend with the neighbours, see
     ``sample_model``), to the filtered taps' geometry (``traced``: each tap's ray traced to the
     mesh, :func:`traced_tap`; else the texel's face plane, :func:`ray_surface`) and to the light
-    (``radiance``: the radiance model, no lobes, no light, W = exposure; :func:`observe_func`)."""
-    lf = lafortune_funcs(n_lobes, anisotropic)
+    (``radiance``: 1 the radiance model, no lobes, no light, W = exposure, :func:`observe_func`; 2 the
+    view-dependent radiance, the same with ``view_radiance_funcs`` of the local view direction)."""
+    view = int(radiance) == 2
+    lf = view_radiance_funcs() if view else lafortune_funcs(n_lobes, anisotropic)
     blend = bool(lookup)
     trace = bool(traced)
     no_light = bool(radiance)
     observe_sample = observe_func(no_light)
-    n_params = 3 + int(n_lobes) * (6 + int(anisotropic))
+    n_params = 18 if view else 3 + int(n_lobes) * (6 + int(anisotropic))
 
     @wp.func
     def load_params(params: wp.array2d(dtype=Any), i: int, like: Any, one: Any):
@@ -631,8 +636,10 @@ def layout_funcs(n_lobes: int, anisotropic: int, lookup: bool = False, traced: b
             tx = float(0.0)
             ty = float(0.0)
             if wp.static(no_light):
-                # the radiance model: W M = sum_t b_t exposure L_t, no light, cosine or shadow
+                # the radiance model: W M = sum_t b_t exposure L_t, no light, cosine or shadow; the
+                # view-dependent one sees every tap from the texel centre's view v (observe)
                 a = b * exposure
+                vl = v
                 if wp.static(trace):
                     hit, tx, ty = traced_texel(tex, cam, ray)
                     a = a * hit
@@ -816,7 +823,8 @@ def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, d
     name = "_".join(["accumulate", f"{int(n_lobes)}lobes", "aniso" if anisotropic else "iso"]
                     + [flag for flag, on in (("kahan", use_kahan), ("diag", want_diag), ("dhd", want_dhd),
                                              ("full", want_full), ("lookup", bool(lookup)),
-                                             ("traced", bool(traced)), ("radiance", bool(radiance))) if on]
+                                             ("traced", bool(traced)), ("radiance", bool(radiance)),
+                                             ("view", int(radiance) == 2)) if on]
                     + ([_robust_name(robust)] if robust_on else []))
     if max_registers:
         name += f"_maxreg{max_registers}"
@@ -898,7 +906,8 @@ def accumulate_lm_kernel(n_lobes: int, anisotropic: int, max_registers: int = 0,
 
     name = "_".join(["accumulate_lm", f"{int(n_lobes)}lobes", "aniso" if anisotropic else "iso"]
                     + (["lookup"] if lookup else []) + (["traced"] if traced else [])
-                    + (["radiance"] if radiance else []) + ([_robust_name(robust)] if robust_on else []))
+                    + (["radiance"] if radiance else []) + (["view"] if int(radiance) == 2 else [])
+                    + ([_robust_name(robust)] if robust_on else []))
     if max_registers:
         name += f"_maxreg{max_registers}"
     return wp.kernel(accumulate_lm, name=name, enable_backward=False, module="unique",

@@ -6,7 +6,9 @@
  * unit direction and irradiance (point: intensity / r^2, directional: intensity), the Lafortune
  * BRDF evaluated at the four texels around the hit and blended with the bilinear weights, and
  *     pixel = exposure * f_r * E * cos(theta_i)   (0 where cos <= 0)
- * sRGB-encoded for display. Model kind "radiance" is unlit: pixel = exposure * radiance.
+ * sRGB-encoded for display. Model kind "radiance" is unlit: pixel = exposure * radiance; "view_radiance"
+ * is unlit too, its radiance the biquadratic of the local view direction of fit/kernels/shading.py
+ * view_radiance (clamped at 0 like fit/kernels/render.py).
  * No cast shadows (the Warp renderer traces them; see docs/report.md).
  *
  * Cameras follow capture.json: camera_to_world 4x4 in OpenGL axes (x right, y up, looks down -z),
@@ -111,6 +113,13 @@
     '  return f;',
     '}',
     'vec3 radiance_at(ivec2 xy) { return vec3(P(xy, 0), P(xy, 1), P(xy, 2)); }',
+    '// view_radiance of shading.py: L + sum_k a_k phi_k(v), phi = (vx, vy, vx^2, vx vy, vy^2)',
+    'vec3 view_radiance_at(ivec2 xy, vec3 v) {',
+    '  float phi[5] = float[5](v.x, v.y, v.x * v.x, v.x * v.y, v.y * v.y);',
+    '  vec3 L = radiance_at(xy);',
+    '  for (int k = 0; k < 5; k++) { int o = 3 + 3 * k; L += phi[k] * vec3(P(xy, o), P(xy, o + 1), P(xy, o + 2)); }',
+    '  return L;',
+    '}',
     'vec3 srgb(vec3 x) {',
     '  x = clamp(x, 0.0, 1.0);',
     '  return mix(x * 12.92, 1.055 * pow(x, vec3(1.0 / 2.4)) - 0.055, step(vec3(0.0031308), x));',
@@ -144,6 +153,12 @@
     '    }',
     '    vec3 t = normalize(T);',
     '    vec3 b = cross(n, t);',
+    '    if (u_kind == 2) {',
+    '      vec3 vw2 = normalize(u_eye - v_pos);',
+    '      vec3 vl2 = vec3(dot(vw2, t), dot(vw2, b), dot(vw2, n));',
+    '      L = max((1.0 - fx) * (1.0 - fy) * view_radiance_at(t00, vl2) + fx * (1.0 - fy) * view_radiance_at(t10, vl2)',
+    '        + (1.0 - fx) * fy * view_radiance_at(t01, vl2) + fx * fy * view_radiance_at(t11, vl2), vec3(0.0));',
+    '    } else {',
     '    // incident_light',
     '    vec3 l; vec3 E;',
     '    if (u_lkind == 0) { vec3 d = u_lpd - v_pos; float r2 = dot(d, d); l = d / sqrt(r2); E = u_lI / r2; }',
@@ -157,6 +172,7 @@
     '      vec3 f = (1.0 - fx) * (1.0 - fy) * brdf(t00, ul, vl, part) + fx * (1.0 - fy) * brdf(t10, ul, vl, part)',
     '             + (1.0 - fx) * fy * brdf(t01, ul, vl, part) + fx * fy * brdf(t11, ul, vl, part);',
     '      L = f * E * cosi;',
+    '    }',
     '    }',
     '  }',
     '  vec3 pix = u_exposure * L;',
@@ -398,7 +414,7 @@
     gl.uniform1i(U.u_seen, 2);
     gl.uniform1i(U.u_W, M.texture.width);
     gl.uniform1i(U.u_H, M.texture.height);
-    gl.uniform1i(U.u_kind, M.kind === 'radiance' ? 1 : 0);
+    gl.uniform1i(U.u_kind, M.kind === 'radiance' ? 1 : (M.kind === 'view_radiance' ? 2 : 0));
     gl.uniform1i(U.u_nlobes, M.n_lobes);
     gl.uniform1i(U.u_aniso, M.anisotropic ? 1 : 0);
     gl.uniform1i(U.u_lkind, S.light.type === 'point' ? 0 : 1);
