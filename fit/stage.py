@@ -200,13 +200,14 @@ def fit_synthetic(train, held, cfg: FitConfig, device: str, photos=None) -> Synt
 
 def run_fit_with_progress(problem, fit: FitConfig, progress: bool, **kw) -> FitResult:
     """run_fit with a tqdm bar over iterations when ``progress`` (``kw``: checkpoint, resume)."""
-    if not progress:
-        return run_fit(problem, fit, **kw)
-    from tqdm import tqdm
+    from texstream.core.progress import bar, bars_enabled
 
+    if not (progress and bars_enabled()):
+        return run_fit(problem, fit, **kw)
     start = int(kw["resume"]["iteration"]) if kw.get("resume") else 0
-    with tqdm(total=fit.max_iterations, initial=start, desc=f"fit {fit.optimizer}", unit="it") as bar:
-        return run_fit(problem, fit, progress=lambda it: bar.update(1), **kw)
+    with bar(total=fit.max_iterations, desc=f"fit {fit.optimizer}", unit="it") as b:
+        b.update(start)
+        return run_fit(problem, fit, progress=lambda it: b.update(1), **kw)
 
 
 class Checkpoint:
@@ -482,8 +483,10 @@ def eval_stage(model_dir: str | Path, capture_dir: str | Path, device: str = "cp
     if not frames:
         raise InputError(f"no frame is held out with --holdout-every {holdout_every}", Path(capture_dir) / "capture.json",
                          "use a smaller --holdout-every, or 0 for every frame")
+    from texstream.core.progress import bar
+
     rows = []
-    for f in frames:
+    for f in bar(frames, "eval", unit="view"):
         photo = read_image(capture.image_path(f), channels=3)
         rend, rmask = render_model(mesh, grid, lay, f, device)
         check_render(rend, f.file_path)
