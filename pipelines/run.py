@@ -419,9 +419,11 @@ def lit_capture(posed_dir: Path, out: Path, lcfg):
     from texstream.capture.capture_json import _light_from
 
     light = _light_from(res.summary["light"], "light", out / "lights.json")
+    def rel(p: str) -> str:
+        return os.path.relpath(posed_dir / p, out)
+
     frames = []
     for f in keep:
-        rel = lambda p: os.path.relpath(posed_dir / p, out)  # noqa: E731
         frames.append(dataclasses.replace(f, file_path=rel(f.file_path), light=light,
                                           mask_path=None if f.mask_path is None else rel(f.mask_path)))
     extra = dict(cap.extra)

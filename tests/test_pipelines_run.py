@@ -189,7 +189,7 @@ def test_a_full_disk_is_one_line_leaves_nothing_half_written_and_the_rerun_reuse
                                                                                          monkeypatch, capsys):
     import errno
 
-    import texstream.core.outputs as outputs
+    from texstream.core import outputs
     from texstream.pipelines.cli import main
 
     out = tmp_path / "out"
@@ -240,7 +240,7 @@ def _mirror_ball_capture(root, light_pos):
     import numpy as np
 
     from conftest import SCENE_DEVICE
-    from test_calib_lights import make_ball_capture  # noqa: I001
+    from test_calib_lights import make_ball_capture
     from texstream.capture.capture_json import read_capture, write_capture
     from texstream.capture.synth import SynthConfig, load_scene, synthesize
 
