@@ -376,11 +376,14 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     cfg = config or FitStageConfig()
     check_config(cfg)
     check_output_path(out_dir)
+    from texstream.core.progress import phase
+
     t0 = time.perf_counter()
-    inputs = load_fit_inputs(capture_dir, mesh_path, cfg)
-    capture, frames, held, mesh, bake = inputs.capture, inputs.frames, inputs.held, inputs.mesh, inputs.bake
-    problem = build_problem(mesh, bake, frames, inputs.images, inputs.masks, cfg.fit, cfg.device)
-    seen_before, start = check_seen_texels(problem, cfg, capture_dir)
+    with phase("fit", f"{cfg.fit.model}: reading the photos and setting up the texels"):
+        inputs = load_fit_inputs(capture_dir, mesh_path, cfg)
+        capture, frames, held, mesh, bake = inputs.capture, inputs.frames, inputs.held, inputs.mesh, inputs.bake
+        problem = build_problem(mesh, bake, frames, inputs.images, inputs.masks, cfg.fit, cfg.device)
+        seen_before, start = check_seen_texels(problem, cfg, capture_dir)
     t_setup = time.perf_counter() - t0
     ckpt, resume = None, None
     if cfg.checkpoint and resumable(cfg.fit):
@@ -409,7 +412,7 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
             m &= read_mask(capture.mask_path(f), coverage.shape)
         return image, m
 
-    with atomic_output_dir(out_dir) as tmp:
+    with atomic_output_dir(out_dir) as tmp, phase("fit", f"{cfg.fit.model}: held-out renders and the model folder"):
         save_mesh(tmp / "mesh.obj", mesh)
         bake.save(tmp / "bake.npz")
         # every held-out view is scored (pooled and worst-view PSNR); the first `renders` are written as images
