@@ -295,9 +295,12 @@ def _run_colmap(photos: list[_Photo], img_dir: Path, mask_dir: Path | None, work
         op.mapper.abs_pose_refine_extra_params = False
     say("register", f"incremental mapping of {len(photos)} photos")
     with colmap_quiet() as term, bar(total=len(photos), desc="register: mapping", unit="photo", file=term) as b:
+        def step(k: int) -> None:  # photos registered, counted over every model the mapper starts
+            b.update(min(k, max(0, len(photos) - b.n)))
+
         recs = pycolmap.incremental_mapping(db, img_dir, work / "sparse", options=op,
-                                            initial_image_pair_callback=lambda: b.update(2),
-                                            next_image_callback=lambda: b.update(1))
+                                            initial_image_pair_callback=lambda: step(2),
+                                            next_image_callback=lambda: step(1))
     timings["map_s"] = time.perf_counter() - t0
     if timings["map_s"] >= 1.0:
         say("register", f"incremental mapping: {timings['map_s']:.1f} s")

@@ -78,12 +78,13 @@ def bar(iterable: Iterable | None = None, desc: str = "", total: int | None = No
 class _NoBar:
     def __init__(self, iterable):
         self.iterable = iterable
+        self.n = 0
 
     def __iter__(self):
         return iter(self.iterable)
 
     def update(self, n: int = 1) -> None:
-        pass
+        self.n += n
 
     def close(self) -> None:
         pass
