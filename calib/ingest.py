@@ -33,6 +33,7 @@ from texstream.capture.capture_json import Capture, Frame, Intrinsics, write_cap
 from texstream.core.errors import InputError, StageError, TexstreamError
 from texstream.core.config import option, save_config
 from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
+from texstream.core.progress import bar
 
 from .files import list_images, write_failure_report
 from .lights import load_lights_file
@@ -209,7 +210,7 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
     dropped: list[dict] = []
     infos: list[dict] = []
     hashes: dict[str, str] = {}
-    for f in files:
+    for f in bar(files, "ingest: read", unit="photo"):
         digest = hashlib.sha1(f.read_bytes()).hexdigest()
         if digest in hashes:
             dropped.append({"image": f.name, "reason": f"duplicate of {hashes[digest]}"})
@@ -263,7 +264,7 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
     with atomic_output_dir(out) as tmp:
         (tmp / "images").mkdir()
         entries = []
-        for g in groups:
+        for g in bar(groups, "ingest: write", unit="view"):
             members = [infos[i] for i in g]
             lead = members[len(members) // 2]  # the middle exposure names the view
             name = lead["path"].stem

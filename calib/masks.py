@@ -324,10 +324,10 @@ def masks_for_images(images: Sequence[np.ndarray], cfg: MaskConfig | None = None
         summary["decision"] = f"mode {mode} requested"
     summary["mode"] = mode
     out: list[np.ndarray | None] = []
-    from tqdm import tqdm
+    from texstream.core.progress import bar
 
-    # a bar on a terminal only (disable=None): GrabCut takes most of a second per photo
-    for i, img in enumerate(tqdm(images, desc="masks", unit="photo", leave=False, disable=None)):
+    # a bar on a terminal only: GrabCut takes most of a second per photo
+    for i, img in enumerate(bar(images, "masks", unit="photo")):
         pts = points[i] if points is not None else None
         m, info = compute_mask(img, cfg, mode, pts, codes[i])
         if m is not None and cfg.mode == "auto" and not info["uniform"]:

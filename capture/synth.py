@@ -599,15 +599,9 @@ def iter_renders(sc: dict, mesh, params: np.ndarray, layout, frames: list[Frame]
     from texstream.fit.render import Renderer
 
     rend = Renderer(mesh, params, layout, device=config.device, shadows=config.shadows)
-    it: Any = range(len(frames))
-    if config.progress:
-        try:
-            from tqdm import tqdm
+    from texstream.core.progress import bar
 
-            it = tqdm(it, desc=f"synth {sc.get('name', '')}", unit="photo")
-        except ImportError:  # tqdm is a dependency; progress is optional all the same
-            pass
-    for i in it:
+    for i in bar(range(len(frames)), f"synth {sc.get('name', '')}", unit="photo", enabled=config.progress):
         f = frames[i]
         res = rend.render_frame(f)
         rng = np.random.default_rng([int(config.seed), i])

@@ -602,6 +602,8 @@ def export_stage(model_dir, out_dir, config: ExportConfig | None = None) -> Stag
     EXR maps), ``export.json`` (what was written and the conversion factors) and
     ``export_config.json`` (the resolved options).
     """
+    from texstream.core.progress import phase
+
     cfg = config or ExportConfig()
     _check_config(cfg)
     m = _read_model(model_dir)  # fail before touching out_dir
@@ -609,9 +611,11 @@ def export_stage(model_dir, out_dir, config: ExportConfig | None = None) -> Stag
     with atomic_output_dir(out_dir) as tmp:
         written: dict = {}
         if "glb" in cfg.formats:
-            written["glb"] = _export_gltf(m, one, tmp / f"{cfg.name}.glb")
+            with phase("export", f"glTF binary {cfg.name}.glb"):
+                written["glb"] = _export_gltf(m, one, tmp / f"{cfg.name}.glb")
         if "obj" in cfg.formats:
-            written["obj"] = _export_obj(m, one, tmp)
+            with phase("export", f"OBJ + MTL + PNG textures {cfg.name}.obj"):
+                written["obj"] = _export_obj(m, one, tmp)
         maps = _copy_maps(m, tmp / "maps") if cfg.copy_maps else []
         for w in written.values():
             w["path"] = Path(w["path"]).name

@@ -201,13 +201,14 @@ def fit_synthetic(train, held, cfg: FitConfig, device: str, photos=None) -> Synt
 
 def run_fit_with_progress(problem, fit: FitConfig, progress: bool, **kw) -> FitResult:
     """run_fit with a tqdm bar over iterations when ``progress`` (``kw``: checkpoint, resume)."""
-    if not progress:
-        return run_fit(problem, fit, **kw)
-    from tqdm import tqdm
+    from texstream.core.progress import bar, bars_enabled
 
+    if not (progress and bars_enabled()):
+        return run_fit(problem, fit, **kw)
     start = int(kw["resume"]["iteration"]) if kw.get("resume") else 0
-    with tqdm(total=fit.max_iterations, initial=start, desc=f"fit {fit.optimizer}", unit="it") as bar:
-        return run_fit(problem, fit, progress=lambda it: bar.update(1), **kw)
+    with bar(total=fit.max_iterations, desc=f"fit {fit.optimizer}", unit="it") as b:
+        b.update(start)
+        return run_fit(problem, fit, progress=lambda it: b.update(1), **kw)
 
 
 class Checkpoint:
@@ -383,11 +384,14 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     cfg = config or FitStageConfig()
     check_config(cfg)
     check_output_path(out_dir)
+    from texstream.core.progress import phase
+
     t0 = time.perf_counter()
-    inputs = load_fit_inputs(capture_dir, mesh_path, cfg)
-    capture, frames, held, mesh, bake = inputs.capture, inputs.frames, inputs.held, inputs.mesh, inputs.bake
-    problem = build_problem(mesh, bake, frames, inputs.images, inputs.masks, cfg.fit, cfg.device)
-    seen_before, start = check_seen_texels(problem, cfg, capture_dir)
+    with phase("fit", f"{cfg.fit.model}: reading the photos and setting up the texels"):
+        inputs = load_fit_inputs(capture_dir, mesh_path, cfg)
+        capture, frames, held, mesh, bake = inputs.capture, inputs.frames, inputs.held, inputs.mesh, inputs.bake
+        problem = build_problem(mesh, bake, frames, inputs.images, inputs.masks, cfg.fit, cfg.device)
+        seen_before, start = check_seen_texels(problem, cfg, capture_dir)
     t_setup = time.perf_counter() - t0
     ckpt, resume = None, None
     if cfg.checkpoint and resumable(cfg.fit):
@@ -416,7 +420,7 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
             m &= read_mask(capture.mask_path(f), coverage.shape)
         return image, m
 
-    with atomic_output_dir(out_dir) as tmp:
+    with atomic_output_dir(out_dir) as tmp, phase("fit", f"{cfg.fit.model}: held-out renders and the model folder"):
         save_mesh(tmp / "mesh.obj", mesh)
         bake.save(tmp / "bake.npz")
         # every held-out view is scored (pooled and worst-view PSNR); the first `renders` are written as images
@@ -490,8 +494,10 @@ def eval_stage(model_dir: str | Path, capture_dir: str | Path, device: str = "cp
     if not frames:
         raise InputError(f"no frame is held out with --holdout-every {holdout_every}", Path(capture_dir) / "capture.json",
                          "use a smaller --holdout-every, or 0 for every frame")
+    from texstream.core.progress import bar
+
     rows = []
-    for f in frames:
+    for f in bar(frames, "eval", unit="view"):
         photo = read_image(capture.image_path(f), channels=3)
         rend, rmask = render_model(mesh, grid, lay, f, device)
         check_render(rend, f.file_path)

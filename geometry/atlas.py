@@ -799,6 +799,7 @@ def atlas_stage(mesh_path, out, config: AtlasConfig | None = None, face_weights:
 
     from texstream.core.config import config_to_dict, save_config
     from texstream.core.outputs import StageResult, atomic_output_dir, read_json, write_json_atomic
+    from texstream.core.progress import phase
 
     from .bake import bake_texels
     from .mesh_io import load_mesh, save_mesh
@@ -814,9 +815,10 @@ def atlas_stage(mesh_path, out, config: AtlasConfig | None = None, face_weights:
         from .visibility import depth_maps
 
         frames = read_capture(capture).frames
-        depths = depth_maps(mesh, frames, device)
-        if face_weights is None:
-            face_weights = density_face_weights(mesh, frames, device, depths)
+        with phase("atlas", f"texel density from {len(frames)} photos"):
+            depths = depth_maps(mesh, frames, device)
+            if face_weights is None:
+                face_weights = density_face_weights(mesh, frames, device, depths)
     fp = _fingerprint(mesh_path, face_weights)
     if not force and (out / "atlas_info.json").is_file() and (out / "atlas_config.json").is_file() \
             and (out / "bake.npz").is_file() and (out / "mesh.obj").is_file() and (out / "seams.npz").is_file():
@@ -828,11 +830,14 @@ def atlas_stage(mesh_path, out, config: AtlasConfig | None = None, face_weights:
         if same:
             return StageResult(output=out, summary=read_json(out / "atlas_info.json"), skipped=True,
                                reason="output exists for the same mesh and config")
-    atlas_mesh, info = build_atlas(mesh, config, face_weights)
-    bake = bake_texels(atlas_mesh, info.width, info.height, device=device, padding=config.padding)
+    with phase("atlas", f"xatlas charts and packing of {mesh.n_faces} faces"):
+        atlas_mesh, info = build_atlas(mesh, config, face_weights)
+    with phase("atlas", f"texel bake ({info.width}x{info.height})"):
+        bake = bake_texels(atlas_mesh, info.width, info.height, device=device, padding=config.padding)
     from .seams import SEAMS_FILE, find_seams
 
-    seams = find_seams(atlas_mesh, info.width, info.height, bake.fill_source)
+    with phase("atlas", "seams"):
+        seams = find_seams(atlas_mesh, info.width, info.height, bake.fill_source)
     summary = {**info.to_dict(), "n_faces": atlas_mesh.n_faces, "n_vertices": atlas_mesh.n_vertices,
                "seam_edges": seams.n_edges, "seam_samples": seams.n_samples,
                "density": "photos" if capture is not None else ("weights" if face_weights is not None else "uniform"),

@@ -47,6 +47,7 @@ import numpy as np
 from texstream.core.errors import ConfigError, InputError
 from texstream.core.config import option, save_config
 from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
+from texstream.core.progress import phase
 
 from .mesh import SurfaceMesh
 
@@ -218,7 +219,8 @@ def make_mesh(capture_dir: str | os.PathLike | None, out: str | os.PathLike,
     if capture is not None and _has_masks(capture) and source in ("sfm", "hull"):
         from .hull import load_masks
 
-        masks = load_masks(capture)
+        with phase("mesh", f"reading {len(capture.frames)} masks"):
+            masks = load_masks(capture)
     if source == "scan":
         from .mesh_io import load_mesh
 
@@ -232,14 +234,18 @@ def make_mesh(capture_dir: str | os.PathLike | None, out: str | os.PathLike,
     else:
         from .hull import HullConfig, visual_hull
 
-        mesh = visual_hull(capture.frames, masks, _hull_config(cfg), cfg.device, bounds=_capture_bounds(capture),
-                           report=report.setdefault("hull", {}))
-    cleaned, clean_rep = clean_mesh(mesh, CleanConfig(target_faces=cfg.faces, remesh=cfg.remesh,
-                                                      max_hole_edges=cfg.max_hole_edges),
-                                    path=cfg.mesh or capture_dir)
+        with phase("mesh", f"visual hull: carving {len(masks)} masks (resolution {cfg.hull_resolution})"):
+            mesh = visual_hull(capture.frames, masks, _hull_config(cfg), cfg.device, bounds=_capture_bounds(capture),
+                               report=report.setdefault("hull", {}))
+    with phase("mesh", f"cleanup and decimation of {mesh.n_faces} faces"
+                       + (f" to {cfg.faces}" if cfg.faces else "")):
+        cleaned, clean_rep = clean_mesh(mesh, CleanConfig(target_faces=cfg.faces, remesh=cfg.remesh,
+                                                          max_hole_edges=cfg.max_hole_edges),
+                                        path=cfg.mesh or capture_dir)
     report["clean"] = clean_rep.to_json()
     if capture is not None:
-        cleaned = _check_against_cameras(cleaned, capture, cfg, report, cfg.mesh or capture_dir)
+        with phase("mesh", f"orienting the surface towards {len(capture.frames)} cameras"):
+            cleaned = _check_against_cameras(cleaned, capture, cfg, report, cfg.mesh or capture_dir)
     from .scene import genus_by_component
 
     report["genus"] = genus_by_component(cleaned)
@@ -383,7 +389,8 @@ def _from_sfm(capture, cfg: MeshConfig, masks, report: dict) -> tuple[SurfaceMes
     else:
         from .triangulate import triangulate_capture
 
-        tp = triangulate_capture(capture, masks=masks)
+        with phase("mesh", f"triangulating SfM points from {len(capture.frames)} photos and their known cameras"):
+            tp = triangulate_capture(capture, masks=masks)
         pts, nrm = tp.points, tp.normals
         report["triangulation"] = tp.report
         new_points = (pts, nrm)
@@ -412,7 +419,8 @@ def _from_sfm(capture, cfg: MeshConfig, masks, report: dict) -> tuple[SurfaceMes
         pts, nrm = pts[keep], (nrm[keep] if nrm is not None else None)
         pcfg.scale = 1.1
     try:
-        mesh = poisson_reconstruct(pts, nrm, centres, pcfg, pts_path)
+        with phase("mesh", f"screened Poisson of {len(pts)} points (depth {pcfg.depth})"):
+            mesh = poisson_reconstruct(pts, nrm, centres, pcfg, pts_path)
     except InputError:
         if masks is None or cfg.source == "sfm":
             raise
@@ -439,7 +447,9 @@ def _from_sfm(capture, cfg: MeshConfig, masks, report: dict) -> tuple[SurfaceMes
                 # Poisson balloons where there are no points; the grid need not reach far past the object
                 grow = 0.1 * float(np.linalg.norm(box[1] - box[0]))
                 lo, hi = np.maximum(lo, box[0] - grow), np.minimum(hi, box[1] + grow)
-            return visual_hull(capture.frames, masks, _hull_config(cfg), cfg.device, bounds=(lo, hi),
-                               intersect=mesh, report=report.setdefault("hull", {})), new_points
-        mesh = trim_by_masks(mesh, capture.frames, masks, cfg.device)
+            with phase("mesh", f"visual hull: carving {len(masks)} masks, intersected with the Poisson surface"):
+                return visual_hull(capture.frames, masks, _hull_config(cfg), cfg.device, bounds=(lo, hi),
+                                   intersect=mesh, report=report.setdefault("hull", {})), new_points
+        with phase("mesh", f"trimming the Poisson surface by {len(masks)} masks"):
+            mesh = trim_by_masks(mesh, capture.frames, masks, cfg.device)
     return mesh, new_points

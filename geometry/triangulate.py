@@ -143,7 +143,7 @@ def triangulate_capture(capture, config: TriangulateConfig | None = None,
     import pycolmap
 
     from texstream.calib.colmap_io import intrinsics_to_colmap
-    from texstream.calib.register import quiet_colmap_log
+    from texstream.calib.register import colmap_quiet, quiet_colmap_log
 
     quiet_colmap_log()
 
@@ -186,16 +186,18 @@ def triangulate_capture(capture, config: TriangulateConfig | None = None,
             ro.camera_params = ",".join(f"{x:.12g}" for x in params)
             if mask_dir is not None:
                 ro.mask_path = str(mask_dir)
-            pycolmap.extract_features(db, img_dir, image_names=[names[i] for i in idx],
-                                      camera_mode=pycolmap.CameraMode.SINGLE, reader_options=ro,
-                                      extraction_options=eo, device=pycolmap.Device.cpu)
+            with colmap_quiet():
+                pycolmap.extract_features(db, img_dir, image_names=[names[i] for i in idx],
+                                          camera_mode=pycolmap.CameraMode.SINGLE, reader_options=ro,
+                                          extraction_options=eo, device=pycolmap.Device.cpu)
         t_extract = time.perf_counter() - t0
         mo = pycolmap.FeatureMatchingOptions()
         mo.num_threads = cfg.num_threads
         mo.guided_matching = cfg.guided_matching
         vo = pycolmap.TwoViewGeometryOptions()
         vo.ransac.random_seed = cfg.seed
-        pycolmap.match_exhaustive(db, matching_options=mo, verification_options=vo, device=pycolmap.Device.cpu)
+        with colmap_quiet():
+            pycolmap.match_exhaustive(db, matching_options=mo, verification_options=vo, device=pycolmap.Device.cpu)
         t_match = time.perf_counter() - t0 - t_extract
 
         rec = pycolmap.Reconstruction()
@@ -226,7 +228,8 @@ def triangulate_capture(capture, config: TriangulateConfig | None = None,
         op.random_seed = cfg.seed
         op.triangulation.random_seed = cfg.seed
         (work / "tri").mkdir(exist_ok=True)
-        out = pycolmap.triangulate_points(rec, db, img_dir, work / "tri", options=op, refine_intrinsics=False)
+        with colmap_quiet():
+            out = pycolmap.triangulate_points(rec, db, img_dir, work / "tri", options=op, refine_intrinsics=False)
         t_tri = time.perf_counter() - t0 - t_extract - t_match
         pts3d = list(out.points3D.values())
         frame_of_image = {im.image_id: index[im.name] for im in db_images}

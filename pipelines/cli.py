@@ -133,9 +133,32 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         print(f"texstream {command}: error: {e.one_line()}", file=sys.stderr)
         return 1
+    except OSError as e:  # a full disk, a read-only folder: the stage's output was not left half-written
+        if debug:
+            raise
+        print(f"texstream {command}: error: {os_error_line(e)}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("texstream: interrupted; no output was left half-written", file=sys.stderr)
         return 130
+
+
+def os_error_line(e: OSError) -> str:
+    """One line for an operating-system error (what failed, where, and the fix): stages write atomically,
+    so whatever failed left no half-written output, and a rerun of ``texstream run`` reuses the stages
+    that completed."""
+    import errno
+
+    where = f"{e.filename}: " if e.filename else ""
+    what = e.strerror or str(e) or type(e).__name__
+    if e.errno in (errno.ENOSPC, errno.EDQUOT):
+        fix = ("free space on that disk (or write elsewhere with -o) and run the same command again: "
+               "completed stages are kept and reused, nothing half-written was left")
+    elif e.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+        fix = "make the folder writable, or write elsewhere with -o"
+    else:
+        fix = "check the path and the disk, then run the same command again (--debug shows the traceback)"
+    return f"{where}{what.rstrip('.')}. Fix: {fix}."
 
 
 if __name__ == "__main__":

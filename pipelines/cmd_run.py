@@ -26,6 +26,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--colocated-light", dest="colocated_light", type=float, default=None,
                         help="photos lit by a flash at the camera: its irradiance at the object (the albedos' scale)")
     parser.add_argument("--lights", default=None, help="lights file (JSON) for the photos (texstream ingest --lights)")
+    parser.add_argument("--mirror-ball", dest="mirror_ball", default=None, metavar="X,Y,Z,R",
+                        help="a mirror ball at X,Y,Z with radius R in the capture's world frame (more balls: "
+                             "X,Y,Z,R,X,Y,Z,R): the run estimates the light from the ball photos and fits the "
+                             "reflectance model under it")
+    parser.add_argument("--mirror-ball-frames", dest="mirror_ball_frames", default=None, metavar="NAME,NAME",
+                        help="the photos that show the ball (names or stems), left out of the fit (default: every "
+                             "photo shows it beside the object)")
+    parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                        help="progress bars on a terminal (default: on)")
     parser.add_argument("--device", default=None, help="Warp device (default: cpu)")
     parser.add_argument("--iterations", type=int, default=None, help="fit iteration cap (default: 30)")
     parser.add_argument("--optimizer", default=None, choices=("sd", "cg", "lbfgs", "lm"), help="fit method (default: lm)")
@@ -51,7 +60,7 @@ def _config(args: argparse.Namespace):
         cfg = RunConfig()
     if args.config is None:
         cfg.fit.fit = dataclasses.replace(cfg.fit.fit, max_iterations=30)
-    top = {k: getattr(args, k) for k in ("model", "device", "mesh_file") if getattr(args, k) is not None}
+    top = {k: getattr(args, k) for k in ("model", "device", "mesh_file", "progress") if getattr(args, k) is not None}
     fit = {k: v for k, v in (("max_iterations", args.iterations), ("optimizer", args.optimizer)) if v is not None}
     cfg = dataclasses.replace(cfg, **top)
     ingest = {k: getattr(args, k) for k in ("colocated_light", "lights") if getattr(args, k) is not None}
@@ -59,6 +68,22 @@ def _config(args: argparse.Namespace):
         cfg.ingest = dataclasses.replace(cfg.ingest, **ingest)
     if fit:
         cfg.fit.fit = dataclasses.replace(cfg.fit.fit, **fit)
+    lights = {}
+    if args.mirror_ball is not None:
+        from texstream.core.errors import ConfigError
+
+        try:
+            ball = tuple(float(x) for x in args.mirror_ball.replace(" ", "").split(",") if x)
+        except ValueError:
+            ball = ()
+        if not ball or len(ball) % 4:
+            raise ConfigError(f"--mirror-ball {args.mirror_ball!r} is not X,Y,Z,R (four numbers per ball)",
+                              fix="write it as --mirror-ball 0,0,0,0.25")
+        lights["sphere"] = ball
+    if args.mirror_ball_frames is not None:
+        lights["frames"] = tuple(x for x in args.mirror_ball_frames.split(",") if x)
+    if lights:
+        cfg.lights = dataclasses.replace(cfg.lights, **lights)
     if cfg.fit.fit.max_iterations < 1:
         from texstream.core.errors import ConfigError
 

@@ -160,10 +160,11 @@ def _holdout_every(model_dir: Path) -> int:
 def evaluate_views(mesh, grid, info, capture, frames, device: str) -> list[dict]:
     """Render the model for each frame; foreground = render coverage and the photo's mask."""
     from texstream.capture.imageio import read_image, read_mask
+    from texstream.core.progress import bar
     from texstream.fit.stage import image_metrics, render_model
 
     rows = []
-    for f in frames:
+    for f in bar(frames, "report: held-out renders", unit="view"):
         photo = read_image(capture.image_path(f), channels=3)
         render, rmask = render_model(mesh, grid, info["layout"], f, device)
         m = rmask.astype(bool)

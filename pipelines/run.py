@@ -31,7 +31,7 @@ from texstream.core.config import check_config, config_from_dict, config_to_dict
 from texstream.core.errors import ConfigError, InputError
 from texstream.core.outputs import write_atomic_with, write_json_atomic
 
-STAGES = ("ingest", "register", "mesh", "atlas", "fit", "export", "report")
+STAGES = ("ingest", "register", "mesh", "atlas", "lights", "fit", "export", "report")
 STAMP = ".texstream_stage.json"
 MODELS = ("auto", "lafortune", "diffuse", "radiance", "view_radiance")
 MIN_PHOTOS = 3  # structure from motion needs two views to start and a third to check them
@@ -65,16 +65,21 @@ class RunConfig:
                         choices=MODELS)
     mesh_file: str | None = option(None, "a mesh of the object (OBJ/PLY) to use instead of one from the photos; "
                                          "with usable UVs it also skips the atlas")
+    progress: bool = option(True, "progress bars over photos and iterations (shown on a terminal only); the stages' "
+                                  "phase lines go to the run's log either way")
     ingest: Any = option(default_factory=_default("texstream.calib.ingest.IngestConfig"), help="ingest")
     register: Any = option(default_factory=_default("texstream.calib.register.RegisterConfig"), help="registration")
     mesh: Any = option(default_factory=_default("texstream.geometry.make_mesh.MeshConfig"), help="mesh")
     atlas: Any = option(default_factory=_default("texstream.geometry.atlas.AtlasConfig"), help="atlas")
+    lights: Any = option(default_factory=_default("texstream.calib.lights.LightsConfig"),
+                         help="mirror-ball lights: with sphere (or ball_masks) the run estimates one light from the "
+                              "ball photos (frames: those photos, left out of the fit) and gives it to every photo")
     fit: Any = option(default_factory=_fit_stage_config, help="fit (holdout_every 8: every 8th photo is held out)")
 
 
 SUBCONFIGS = {"ingest": "texstream.calib.ingest.IngestConfig", "register": "texstream.calib.register.RegisterConfig",
               "mesh": "texstream.geometry.make_mesh.MeshConfig", "atlas": "texstream.geometry.atlas.AtlasConfig",
-              "fit": "texstream.fit.stage.FitStageConfig"}
+              "lights": "texstream.calib.lights.LightsConfig", "fit": "texstream.fit.stage.FitStageConfig"}
 
 
 def run_config_from_dict(data: dict) -> RunConfig:
@@ -214,12 +219,21 @@ def run_pipeline(source: str | Path, out: str | Path, config: RunConfig | None =
                  from_stage: str | None = None, log: Callable[[str], None] = print) -> dict:
     """Photos (or a capture / COLMAP folder) -> OUT/{capture,posed,mesh,atlas,model,export,report}.
 
-    Returns the run summary written to ``OUT/run.json``.
+    Returns the run summary written to ``OUT/run.json``. The stages' phase lines go to ``log`` and
+    their bars show on a terminal when ``config.progress`` (:mod:`texstream.core.progress`).
     """
+    from texstream.core.progress import reporting
+
+    cfg = config or RunConfig()
+    with reporting(log, bars=cfg.progress):
+        return _run_pipeline(source, out, cfg, from_stage, log)
+
+
+def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stage: str | None,
+                  log: Callable[[str], None]) -> dict:
     from texstream.capture.capture_json import read_capture
     from texstream.core.toml import dumps
 
-    cfg = config or RunConfig()
     check_config(cfg)
     src, out = Path(source), Path(out)
     if from_stage is not None and from_stage not in STAGES:
@@ -313,10 +327,16 @@ def run_pipeline(source: str | Path, out: str | Path, config: RunConfig | None =
         pipe.skip("atlas", "the given mesh has UVs" if mesh_path.is_file() else "an atlas folder is given", mesh_path)
         fit_geometry = mesh_path
 
+    # lights: from mirror-ball photos when a ball is given
+    posed_dir, lights_summary = _mirror_ball_lights(pipe, out, posed_dir, posed, capture, cfg)
+    capture = read_capture(posed_dir)
+
     # fit: the model the scene needs
     from texstream.fit.stage import fit_stage
 
     model_kind, why = decide_model(capture, cfg.model)
+    if lights_summary:
+        why += f" (from the mirror ball: {lights_summary['kind']} light, {lights_summary['views']} ball view(s))"
     fit_cfg = dataclasses.replace(cfg.fit, device=cfg.device, fit=dataclasses.replace(cfg.fit.fit, model=model_kind))
     model_dir = out / "model"
     # judged on the held-out photos: with known lights a specular lobe only where it generalises; under
@@ -331,6 +351,7 @@ def run_pipeline(source: str | Path, out: str | Path, config: RunConfig | None =
         return fit_with_selection(posed_dir, fit_geometry, out, fit_cfg, (model_kind, alternative), choice, pipe.log)
 
     fit_rec = pipe.run("fit", model_dir, [pipe.stamp_of("atlas"), pipe.stamp_of("mesh"), pipe.stamp_of("register"),
+                                          pipe.stamp_of("lights"),
                                           _files_hash(posed_dir) if posed else "", config_to_dict(fit_cfg), compare],
                        f"{model_kind} model: {why}" + (f"; the {alternative} model too, the better held-out one "
                                                        "kept" if compare else ""), fit_work)
@@ -344,9 +365,77 @@ def run_pipeline(source: str | Path, out: str | Path, config: RunConfig | None =
     summary = {"source": str(src), "source_kind": kind, "model": model_kind, "model_reason": why,
                "total_s": time.perf_counter() - t_start,
                "heldout": heldout, "stages": [dataclasses.asdict(r) for r in pipe.records],
+               "lights": lights_summary or {"source": _lights_source(capture)},
                "fit": fit_rec.summary, "warnings": run_warnings(pipe.records, heldout, fit_rec.summary)}
     write_json_atomic(out / "run.json", _summary_safe(summary))
     return summary
+
+
+def _lights_source(capture) -> str:
+    if capture.extra.get("lights_source"):
+        return str(capture.extra["lights_source"])
+    return "known per photo" if capture.has_lights else "none known"
+
+
+def _mirror_ball_lights(pipe: Pipeline, out: Path, posed_dir: Path, posed: bool, capture, cfg: RunConfig
+                        ) -> tuple[Path, dict]:
+    """The lights stage: with a mirror ball (``[lights] sphere`` or ``ball_masks``), estimate the light
+    from the ball photos of the posed capture (:func:`texstream.calib.lights.estimate_lights`) and
+    write ``OUT/lights``: the estimate, and a capture of the other photos (``lights.frames`` names the
+    ball photos; without it every photo shows the ball beside the object) lit by it, whose images
+    stay where they are. Returns (the capture the fit reads, the lights summary or {})."""
+    lcfg = cfg.lights
+    if not (lcfg.sphere or lcfg.ball_masks):
+        why = ("every photo has a known light" if capture.has_lights else
+               "no light known and no mirror ball given (--mirror-ball X,Y,Z,R)")
+        pipe.skip("lights", why)
+        return posed_dir, {}
+    from texstream.calib.lights import _world_balls
+
+    if lcfg.sphere:
+        _world_balls(lcfg)  # a bad ball fails here, before any long work
+    lights_dir = out / "lights"
+    ball = (f"mirror ball at {', '.join(f'{x:g}' for x in lcfg.sphere)}" if lcfg.sphere
+            else f"mirror-ball masks in {lcfg.ball_masks}")
+    rec = pipe.run("lights", lights_dir,
+                   [pipe.stamp_of("register") if not posed else _files_hash(posed_dir), config_to_dict(lcfg)],
+                   f"{ball}: the light from its photos"
+                   + (" (overrides the capture's lights)" if capture.has_lights else ""),
+                   lambda: lit_capture(posed_dir, lights_dir, lcfg))
+    s = rec.summary
+    pipe.log(f"[lights] {s['kind']} light from {s['views']} ball view(s); {s['photos']} photos lit by it")
+    return lights_dir, {"source": "mirror ball", **s}
+
+
+def lit_capture(posed_dir: Path, out: Path, lcfg):
+    """Estimate the light from the ball photos (``OUT/lights.json``, report) and write ``OUT/capture.json``:
+    the posed capture's other photos, every one with that light (image paths relative to ``OUT``)."""
+    from texstream.calib.lights import estimate_lights
+    from texstream.capture.capture_json import Capture, read_capture, write_capture
+
+    cap = read_capture(posed_dir)
+    balls = set(lcfg.frames or ())
+    keep = [f for f in cap.frames if not ({f.name, Path(f.file_path).name} & balls)]
+    if len(keep) < 1:
+        raise InputError("every photo is a ball photo (lights.frames): none is left to fit", posed_dir / "capture.json",
+                         "name only the mirror-ball photos in --mirror-ball-frames")
+    res = estimate_lights(posed_dir, out, lcfg)
+    from texstream.capture.capture_json import _light_from
+
+    light = _light_from(res.summary["light"], "light", out / "lights.json")
+    def rel(p: str) -> str:
+        return os.path.relpath(posed_dir / p, out)
+
+    frames = []
+    for f in keep:
+        frames.append(dataclasses.replace(f, file_path=rel(f.file_path), light=light,
+                                          mask_path=None if f.mask_path is None else rel(f.mask_path)))
+    extra = dict(cap.extra)
+    extra["lights_source"] = f"mirror ball ({res.summary['kind']} light, {res.summary['views']} ball view(s))"
+    write_capture(Capture(root=out, frames=frames, extra=extra), out)
+    res.summary["photos"] = len(frames)
+    res.summary["ball_photos"] = len(cap.frames) - len(frames)
+    return res
 
 
 def run_warnings(records: list[StageRecord], heldout: dict, fit_summary: dict) -> list[str]:

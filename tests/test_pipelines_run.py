@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 import pytest
 
@@ -179,3 +180,124 @@ def test_run_warnings_say_what_a_finished_run_lacks():
     assert w[-1].startswith("9% of seen texels")
     every = StageRecord("register", "ran", "", summary={"registered": ["a"] * 9, "unregistered": []})
     assert run_warnings([every], {"views": 2}, {}) == []
+
+
+def _config_file(cfg: RunConfig, path):
+    from texstream.core.config import config_to_dict
+    from texstream.core.toml import dumps
+
+    path.write_text(dumps(config_to_dict(cfg)))
+    return str(path)
+
+
+def test_a_full_disk_is_one_line_leaves_nothing_half_written_and_the_rerun_reuses_the_fit(capture, tmp_path,
+                                                                                         monkeypatch, capsys):
+    import errno
+
+    from texstream.core import outputs
+    from texstream.pipelines.cli import main
+
+    out = tmp_path / "out"
+    cfg_file = _config_file(tiny_config(mesh_file=str(capture / "ground_truth")), tmp_path / "run.toml")
+    real = outputs.write_atomic_with
+
+    def disk_full_on_glb(p, write):
+        if p.suffix != ".glb":
+            return real(p, write)
+
+        def half(fh):  # some bytes reach the disk, then it is full
+            fh.write(b"glTF" * 64)
+            raise OSError(errno.ENOSPC, "No space left on device", str(p))
+        return real(p, half)
+
+    monkeypatch.setattr(outputs, "write_atomic_with", disk_full_on_glb)
+    assert main(["run", str(capture), "-o", str(out), "--config", cfg_file]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.splitlines() == [err] and "Traceback" not in err, err
+    assert "No space left on device" in err and "model.glb" in err and "free space" in err
+    # the export stage failed inside its temporary folder: no export folder, no temporary file or folder left
+    assert not (out / "export").exists()
+    assert [p.name for p in out.rglob("*") if p.name.endswith((".tmp", ".partial"))] == []
+    assert [p.name for p in out.iterdir() if p.name.startswith(".")] == []
+    assert (out / "model" / ".texstream_stage.json").is_file() and not (out / "run.json").exists()
+    model_mtime = (out / "model" / "model.json").stat().st_mtime_ns
+
+    monkeypatch.setattr(outputs, "write_atomic_with", real)  # space freed: the same command again
+    assert main(["run", str(capture), "-o", str(out), "--config", cfg_file]) == 0
+    summary = json.loads((out / "run.json").read_text())
+    st = statuses(summary)
+    assert st["fit"] == "skipped" and st["export"] == "ran" and (out / "export" / "model.glb").is_file()
+    assert (out / "model" / "model.json").stat().st_mtime_ns == model_mtime
+
+
+def test_stages_print_phase_lines_to_the_log_and_no_bars_off_a_terminal(capture, tmp_path, capsys):
+    lines: list[str] = []
+    run_pipeline(capture, tmp_path / "out", tiny_config(mesh_file=str(capture / "ground_truth")), log=lines.append)
+    assert any(m.startswith("  export: glTF binary") for m in lines), lines
+    assert any(m.startswith("[lights] skipped: every photo has a known light") for m in lines), lines
+    # pytest's captured stderr is not a terminal: no bar is drawn there (tqdm's disable=None)
+    assert "it/s" not in capsys.readouterr().err
+
+
+def _mirror_ball_capture(root, light_pos):
+    """A small sphere capture lit by one fixed point light, its lights removed from capture.json, plus four
+    photos of a mirror ball (the helper of tests/test_calib_lights.py) under the same light."""
+    import numpy as np
+
+    from conftest import SCENE_DEVICE
+    from test_calib_lights import make_ball_capture
+    from texstream.capture.capture_json import read_capture, write_capture
+    from texstream.capture.synth import SynthConfig, load_scene, synthesize
+
+    scene = load_scene("sphere")
+    scene["light"] = {"type": "point", "mode": "fixed", "position": list(light_pos), "intensity": 12.0}
+    cap_dir = root / "cap"
+    synthesize(scene, cap_dir, SynthConfig(scale=0.05, photos=16, image_size=40, progress=False, preview=False,
+                                           device=SCENE_DEVICE))
+    balls = make_ball_capture(root / "balls", [(np.zeros(3), 0.25)], ("point", np.asarray(light_pos), 0.15),
+                              [-100, -60, -10, 40])
+    cap, ball_cap = read_capture(cap_dir), read_capture(balls)
+    for f in ball_cap.frames:
+        (cap_dir / "images" / Path(f.file_path).name).write_bytes((balls / f.file_path).read_bytes())
+    frames = [dataclasses.replace(f, light=None) for f in cap.frames] + list(ball_cap.frames)
+    write_capture(dataclasses.replace(cap, frames=frames), cap_dir)
+    return cap_dir, [f.name for f in ball_cap.frames]
+
+
+def test_mirror_ball_lights_through_the_run(tmp_path, capsys):
+    import numpy as np
+    from test_calib_lights import _point_bound
+
+    from texstream.pipelines.cli import main
+
+    light = (1.8, -1.2, 2.1)  # 3 units from the ball and the object's centre
+    cap, ball_names = _mirror_ball_capture(tmp_path, light)
+    out = tmp_path / "out"
+    cfg_file = _config_file(tiny_config(mesh_file=str(cap / "ground_truth")), tmp_path / "run.toml")
+    assert main(["run", str(cap), "-o", str(out), "--config", cfg_file, "--mirror-ball", "0,0,0,0.25",
+                 "--mirror-ball-frames", ",".join(ball_names)]) == 0
+    summary = json.loads((out / "run.json").read_text())
+    st = statuses(summary)
+    assert st["lights"] == "ran" and st["fit"] == "ran"
+    assert summary["lights"]["source"] == "mirror ball" and summary["lights"]["ball_photos"] == 4
+    assert summary["lights"]["photos"] == 16 and summary["lights"]["kind"] == "point"
+    # the bound of tests/test_calib_lights.py for a lamp this far from a 0.25-unit ball (~0.13 units)
+    err = np.linalg.norm(np.array(summary["lights"]["light"]["position"]) - light)
+    assert err < _point_bound(np.linalg.norm(light), 0.3), err
+    assert summary["model"] in ("lafortune", "diffuse") and "mirror ball" in summary["model_reason"]
+    lit = json.loads((out / "lights" / "capture.json").read_text())
+    assert len(lit["frames"]) == 16 and all(f["light"]["type"] == "point" for f in lit["frames"])
+    # the lit capture points at the photos where they are (no copies)
+    assert not (out / "lights" / "images").exists()
+    # a reflectance fit under the estimated light: held-out error near the known-light run's (> 20 dB there)
+    assert summary["heldout"]["views"] == 2 and summary["heldout"]["pooled_psnr_db"] > 20, summary["heldout"]
+    toml = (out / "run_config.toml").read_text()
+    assert "[lights]" in toml and "sphere = [0.0, 0.0, 0.0, 0.25]" in toml
+    # rerun: every stage reused
+    assert main(["run", str(cap), "-o", str(out), "--config", str(out / "run_config.toml")]) == 0
+    again = statuses(json.loads((out / "run.json").read_text()))
+    assert again["lights"] == "skipped" and again["fit"] == "skipped"
+    capsys.readouterr()
+    assert main(["run", str(cap), "-o", str(tmp_path / "o2"), "--mirror-ball", "0,0,0"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.splitlines() == [err] and "X,Y,Z,R" in err
