@@ -12,7 +12,9 @@ run), aligns the SfM frame to the true one by the Sim3 of the camera centres (Um
 - masks: IoU of the ingest masks against the renderer's;
 - the held-out PSNR of the same diffuse fit with (a) recovered cameras and mesh, (b) true cameras and
   the recovered mesh mapped into the true frame, (c) recovered cameras and the true mesh mapped into
-  the SfM frame, (d) true cameras and mesh (the true atlas), each on its own capture's held-out views.
+  the SfM frame, (d) true cameras and mesh (the true atlas), each on its own capture's held-out views;
+  (d2) as (d) with the pipeline's xatlas atlas of the true mesh; (b2), (c2) as (b), (c) with the meshes
+  aligned by their surfaces (scaled ICP) instead of the camera centres.
 """
 
 from __future__ import annotations
@@ -112,7 +114,7 @@ def main() -> None:
 
     import warp as wp
     from texstream.capture.capture_json import read_capture
-    from texstream.geometry.align import transform_mesh
+    from texstream.geometry.align import align_to_points, sample_mesh, transform_mesh
     from texstream.geometry.atlas import AtlasConfig, atlas_stage
     from texstream.geometry.mesh_io import load_mesh, save_mesh
 
@@ -146,6 +148,21 @@ def main() -> None:
                                                              args.iterations, args.device)
         fits["d_truth"] = fit_heldout(out / "truth", out / "truth" / "ground_truth", d / "fit_d", args.iterations,
                                       args.device)
+        # the pipeline's own atlas (xatlas) on the true mesh with the true cameras: what the atlas costs
+        atlas_stage(out / "truth" / "ground_truth" / "mesh.obj", d / "atlas_d2", AtlasConfig(), device=args.device)
+        fits["d2_truth_xatlas"] = fit_heldout(out / "truth", d / "atlas_d2", d / "fit_d2", args.iterations, args.device)
+        # the meshes aligned by their surfaces (scaled ICP) instead of the camera centres: (b) then isolates the
+        # recovered mesh's shape, (c) the recovered cameras' agreement with the true shape
+        al = align_to_points(mesh, sample_mesh(true_mesh, 20000, seed=3))
+        result["mesh_icp"] = {"scale": al.scale, "rms_over_diameter": al.rms / diameter}
+        save_mesh(d / "recovered_icp_truth.ply", transform_mesh(mesh, al.matrix))
+        save_mesh(d / "truth_icp_sfm.ply", transform_mesh(true_mesh, np.linalg.inv(al.matrix)))
+        atlas_stage(d / "recovered_icp_truth.ply", d / "atlas_b2", AtlasConfig(), device=args.device)
+        fits["b2_true_cameras_recovered_mesh_icp"] = fit_heldout(out / "truth", d / "atlas_b2", d / "fit_b2",
+                                                                 args.iterations, args.device)
+        atlas_stage(d / "truth_icp_sfm.ply", d / "atlas_c2", AtlasConfig(), device=args.device)
+        fits["c2_recovered_cameras_true_mesh_icp"] = fit_heldout(out / "run" / "posed", d / "atlas_c2", d / "fit_c2",
+                                                                 args.iterations, args.device)
         result["fits_diffuse_heldout"] = fits
         print(json.dumps(fits, indent=1))
     (out / "diagnose.json").write_text(json.dumps(result, indent=2))

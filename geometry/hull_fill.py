@@ -26,7 +26,7 @@ numpy and warp at module level (through :mod:`.visibility`); scipy inside functi
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -95,7 +95,7 @@ def hull_fill_samples(hull: SurfaceMesh, points: np.ndarray, frames: Sequence, d
     views = np.zeros(len(samples), np.int32)
     views[far] = well_seen_views(samples[far], normals[far], hull, frames, max_angle_deg, device)
     keep = far & (views < min_views)
-    report = {"hull_samples": int(len(samples)), "far_from_points": int(far.sum()), "kept": int(keep.sum()),
+    report = {"hull_samples": len(samples), "far_from_points": int(far.sum()), "kept": int(keep.sum()),
               "spacing": spacing, "distance": float(distance), "max_angle_deg": float(max_angle_deg),
               "min_views": int(min_views)}
     return samples[keep], normals[keep], report

@@ -431,7 +431,7 @@ def _from_sfm(capture, cfg: MeshConfig, masks, report: dict) -> tuple[SurfaceMes
         if masks is None or cfg.source == "sfm":
             raise
         return _hull_instead(capture, cfg, masks, report, len(pts)), new_points
-    report["points"] = int(len(pts)) - report.get("hull_fill", {}).get("kept", 0)  # SfM points only
+    report["points"] = len(pts) - report.get("hull_fill", {}).get("kept", 0)  # SfM points only
     if scene:
         return _crop_scene(mesh, pts, cfg, pcfg, report), new_points
     if not intersect:
