@@ -4,9 +4,10 @@ the true cameras and mesh (JSON).
     python benchmarks/photos_only.py --out out/photos_only
 
 Renders the ``textured_sphere`` scene (a noise-textured matte sphere, a flash at each camera, 8-bit
-photos), copies only its images into a folder (no capture.json, no masks, no cameras), and runs the
-end-to-end pipeline with ``--colocated-light``: ingest (masks from the dark background), pycolmap
-registration with self-calibration, a mesh from the SfM points and masks, an atlas and the Lafortune
+photos), writes only its images into a folder as a camera leaves them (the same pixels with the
+camera's EXIF focal length, :func:`texstream.capture.synth.write_photos_only`; no capture.json, no masks,
+no cameras), and runs the end-to-end pipeline with ``--colocated-light``: ingest (masks from the dark
+background, the EXIF focal length as the prior), pycolmap registration with self-calibration, a mesh from the SfM points and masks, an atlas and the Lafortune
 fit, every 8th photo held out. The reference runs the same pipeline and options on the capture with the
 true cameras and the true atlas. Both are scored on their held-out views (pooled PSNR over foreground
 pixels, worst view).
@@ -36,7 +37,7 @@ def main() -> None:
     import warp as wp
 
     from texstream.capture.capture_json import read_capture
-    from texstream.capture.synth import SynthConfig, synthesize
+    from texstream.capture.synth import SynthConfig, synthesize, write_photos_only
     from texstream.pipelines.run import RunConfig, run_pipeline
 
     wp.config.quiet = True
@@ -47,9 +48,7 @@ def main() -> None:
     truth = read_capture(out / "truth")
     light = truth.frames[0].light
     photos = out / "photos"
-    photos.mkdir(parents=True)
-    for f in truth.frames:
-        shutil.copy2(truth.image_path(f), photos / Path(f.file_path).name)
+    write_photos_only(out / "truth", photos)  # the images as a camera leaves them: EXIF focal length, no poses
 
     cfg = RunConfig(device=args.device)
     # the flash's intensity as the irradiance it gives at the object (what the user can state without

@@ -305,7 +305,8 @@ def _quantise(x: np.ndarray, maxval: int, dtype) -> np.ndarray:
     return np.floor(np.clip(x, 0.0, 1.0) * maxval + 0.5).astype(dtype)
 
 
-def write_image(path: str | os.PathLike, img: np.ndarray, *, bits: int | None = None) -> Path:
+def write_image(path: str | os.PathLike, img: np.ndarray, *, bits: int | None = None,
+                metadata: dict | None = None) -> Path:
     """Write a linear image; the format comes from the extension.
 
     ========== =============== ===========================================================
@@ -328,6 +329,8 @@ def write_image(path: str | os.PathLike, img: np.ndarray, *, bits: int | None = 
         img: (H, W), (H, W, 1), (H, W, 2), (H, W, 3) or (H, W, 4) finite linear values (or
             stored codes, see above).
         bits: bit depth (see the table); None = the format's default.
+        metadata: header attributes as OpenImageIO names them (``"Exif:FocalLength"``, ``"Make"``,
+            ...), written where the format has a place for them (EXIF in PNG, JPEG, TIFF).
 
     Returns:
         The path written.
@@ -395,6 +398,8 @@ def write_image(path: str | os.PathLike, img: np.ndarray, *, bits: int | None = 
         spec.attribute("Compression", "jpeg:95")
     if fmt_name == "openexr":
         spec.attribute("compression", "zip")
+    for key, value in (metadata or {}).items():
+        spec.attribute(str(key), value)
 
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{ext}", dir=path.parent)
@@ -419,3 +424,17 @@ def write_image(path: str | os.PathLike, img: np.ndarray, *, bits: int | None = 
         oiio.geterror()
         raise
     return path
+
+
+def copy_with_metadata(src: str | os.PathLike, dst: str | os.PathLike, metadata: dict) -> Path:
+    """Copy an image, its stored values unchanged, adding header attributes (e.g. EXIF, see
+    :func:`write_image`'s ``metadata``); written atomically.
+
+    Raises:
+        InputError: ``src`` is unreadable. ConfigError: ``dst``'s extension cannot be written.
+    """
+    px, spec = _read_raw(Path(src))
+    bits = {np.dtype(np.uint8): 8, np.dtype(np.uint16): 16}.get(px.dtype, 32)
+    if bits == 32 and Path(dst).suffix.lower() == ".exr":
+        bits = 32 if spec.format.size() >= 4 else 16
+    return write_image(dst, px, bits=bits, metadata=metadata)

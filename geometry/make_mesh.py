@@ -92,6 +92,14 @@ class MeshConfig:
                                   "tunnels (Middlebury temple genus 10 -> 3 after hole filling; 133 with neither) but "
                                   "there the density atlas then evens texel size less (p90/p10 1.14 -> 1.71), not "
                                   "yet understood; off by default until it is")
+    hull_fill: bool = option(True, help="objects with masks: add visual-hull samples to the Poisson points where the "
+                                        "SfM points leave the surface open and no two cameras see it well (an "
+                                        "underside seen only at grazing angles; geometry/hull_fill.py)")
+    hull_fill_distance: float = option(2.0, help="hull fill: a region is open farther than this many times the "
+                                                 "points' spacing (median 8th-neighbour distance) from every SfM "
+                                                 "point", min=0.0)
+    hull_fill_angle: float = option(60.0, help="hull fill: a camera sees the surface well within this angle "
+                                               "(degrees) of its normal", min=0.0, max=90.0)
 
 
 def _capture_bounds(capture):
@@ -418,6 +426,12 @@ def _from_sfm(capture, cfg: MeshConfig, masks, report: dict) -> tuple[SurfaceMes
         report["points_outside_robust_box"] = int((~keep).sum())
         pts, nrm = pts[keep], (nrm[keep] if nrm is not None else None)
         pcfg.scale = 1.1
+    if intersect and cfg.hull_fill:
+        from .hull_fill import poisson_points_with_hull_fill
+
+        pts, nrm, report["hull_fill"] = poisson_points_with_hull_fill(
+            capture.frames, masks, pts, nrm, _hull_config(cfg), cfg.hull_fill_distance, cfg.hull_fill_angle,
+            pcfg.normal_neighbours, cfg.device, _capture_bounds(capture))
     try:
         with phase("mesh", f"screened Poisson of {len(pts)} points (depth {pcfg.depth})"):
             mesh = poisson_reconstruct(pts, nrm, centres, pcfg, pts_path)
@@ -425,7 +439,7 @@ def _from_sfm(capture, cfg: MeshConfig, masks, report: dict) -> tuple[SurfaceMes
         if masks is None or cfg.source == "sfm":
             raise
         return _hull_instead(capture, cfg, masks, report, len(pts)), new_points
-    report["points"] = int(len(pts))
+    report["points"] = len(pts) - report.get("hull_fill", {}).get("kept", 0)  # SfM points only
     if scene:
         return _crop_scene(mesh, pts, cfg, pcfg, report), new_points
     if not intersect:
