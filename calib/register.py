@@ -43,7 +43,7 @@ import numpy as np
 from texstream.capture.capture_json import CAPTURE_FILE, Capture, Frame, Intrinsics, read_capture, write_capture
 from texstream.core.errors import ConfigError, InputError, StageError
 from texstream.core.config import option, save_config
-from texstream.core.outputs import StageResult, atomic_output_dir, read_json, write_json_atomic
+from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
 from texstream.core.progress import bar, phase, say
 
 from .colmap_io import intrinsics_to_colmap, opencv_distortion, reconstruction_frames
@@ -764,7 +764,6 @@ def register(capture: str | os.PathLike, out: str | os.PathLike, config: Registe
         InputError: missing/empty folder, bad intrinsics file. StageError: fewer than two photos,
         or no model (photos with no overlap); a partial report is written to ``OUT.failed_report.json``.
     """
-    import pycolmap
 
     quiet_colmap_log()
     cfg = config or RegisterConfig()
