@@ -59,7 +59,7 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type, prefix: str
         if dataclasses.is_dataclass(t):
             add_config_arguments(parser, t, prefix=prefix + f.name + ".")
             continue
-        help_text = meta.get("help", "")
+        help_text = meta.get("help", "").replace("%", "%%")  # argparse %-formats help strings
         kw: dict[str, Any] = {"dest": (prefix + f.name).replace(".", "__"), "default": argparse.SUPPRESS}
         if meta.get("choices"):
             kw["choices"] = list(meta["choices"])
