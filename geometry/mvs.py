@@ -108,33 +108,42 @@ def _pixel_ray(u: float, v: float, k: wp.vec4) -> wp.vec3:
 @wp.kernel(enable_backward=False)
 def _reference_stats_kernel(grey: wp.array3d(dtype=wp.float32), mask: wp.array3d(dtype=wp.uint8), ref: int,
                             x0: int, y0: int, radius: int, min_var: float,
-                            sums: wp.array2d(dtype=wp.vec2), active: wp.array2d(dtype=wp.int32)):
-    """Window sum and sum of squares of the reference grey patch; active = in the mask and textured."""
+                            sums: wp.array2d(dtype=wp.vec3), active: wp.array2d(dtype=wp.int32)):
+    """Sums over the window's object pixels of the reference grey value a, of a^2 and of 1; active = the
+    centre is an object pixel, at least half the window is, and those pixels have texture."""
     y, x = wp.tid()
     gy = y0 + y
     gx = x0 + x
     h = grey.shape[1]
     w = grey.shape[2]
+    active[y, x] = 0
     if mask[ref, gy, gx] == wp.uint8(0) or gx < radius or gy < radius or gx >= w - radius or gy >= h - radius:
-        active[y, x] = 0
         return
     s = float(0.0)
     ss = float(0.0)
+    cnt = float(0.0)
     for dy in range(-radius, radius + 1):
         for dx in range(-radius, radius + 1):
-            a = grey[ref, gy + dy, gx + dx]
-            s += a
-            ss += a * a
-    n = float((2 * radius + 1) * (2 * radius + 1))
-    sums[y, x] = wp.vec2(s, ss)
-    active[y, x] = wp.where(ss / n - (s / n) * (s / n) >= min_var, 1, 0)
+            if mask[ref, gy + dy, gx + dx] != wp.uint8(0):
+                a = grey[ref, gy + dy, gx + dx]
+                s += a
+                ss += a * a
+                cnt += 1.0
+    sums[y, x] = wp.vec3(s, ss, cnt)
+    area = float((2 * radius + 1) * (2 * radius + 1))
+    if cnt >= 0.5 * area and ss / cnt - (s / cnt) * (s / cnt) >= min_var:
+        active[y, x] = 1
 
 
 @wp.func
-def _warped_sample(depth: float, grey: wp.array3d(dtype=wp.float32), ref: int, gx: int, gy: int, ref_k: wp.vec4,
+def _warped_sample(depth: float, grey: wp.array3d(dtype=wp.float32), mask: wp.array3d(dtype=wp.uint8), ref: int, gx: int, gy: int, ref_k: wp.vec4,
                    c: int, rot: wp.mat33, trans: wp.vec3, k: wp.vec4) -> wp.vec4:
     """Photo c's grey value b at the point reference pixel (gx, gy) shows at ``depth``, as (b, b^2, a b, 1)
-    with a the reference value; zeros where the point leaves photo c."""
+    with a the reference value; zeros where the point leaves photo c or the pixel is background in the
+    reference (the window's NCC is over object pixels only: at the silhouette the background's edge would
+    otherwise dominate it, and it is a different edge in each photo)."""
+    if mask[ref, gy, gx] == wp.uint8(0):
+        return wp.vec4(0.0)
     p = rot * (_pixel_ray(float(gx) + 0.5, float(gy) + 0.5, ref_k) * depth) + trans
     if p[2] <= 0.0:
         return wp.vec4(0.0)
@@ -156,7 +165,7 @@ def _warped_sample(depth: float, grey: wp.array3d(dtype=wp.float32), ref: int, g
 
 
 @wp.kernel(enable_backward=False)
-def _warp_rows_kernel(depth: float, grey: wp.array3d(dtype=wp.float32), ref: int, x0: int, y0: int, ref_k: wp.vec4,
+def _warp_rows_kernel(depth: float, grey: wp.array3d(dtype=wp.float32), mask: wp.array3d(dtype=wp.uint8), ref: int, x0: int, y0: int, ref_k: wp.vec4,
                       nb_index: wp.array(dtype=wp.int32), nb_rot: wp.array(dtype=wp.mat33),
                       nb_trans: wp.array(dtype=wp.vec3), nb_k: wp.array(dtype=wp.vec4),
                       needed: wp.array2d(dtype=wp.uint8), radius: int, warped: wp.array3d(dtype=wp.vec4),
@@ -169,7 +178,7 @@ def _warp_rows_kernel(depth: float, grey: wp.array3d(dtype=wp.float32), ref: int
     c = nb_index[n]
     for x in range(w):
         if needed[y, x] != wp.uint8(0):
-            warped[n, y, x] = _warped_sample(depth, grey, ref, x0 + x, y0 + y, ref_k, c, nb_rot[n], nb_trans[n],
+            warped[n, y, x] = _warped_sample(depth, grey, mask, ref, x0 + x, y0 + y, ref_k, c, nb_rot[n], nb_trans[n],
                                              nb_k[n])
         else:
             warped[n, y, x] = wp.vec4(0.0)
@@ -185,14 +194,14 @@ def _warp_rows_kernel(depth: float, grey: wp.array3d(dtype=wp.float32), ref: int
 
 
 @wp.kernel(enable_backward=False)
-def _column_cost_kernel(rows: wp.array3d(dtype=wp.vec4), ref_sums: wp.array2d(dtype=wp.vec2),
+def _column_cost_kernel(rows: wp.array3d(dtype=wp.vec4), ref_sums: wp.array2d(dtype=wp.vec3),
                         active: wp.array2d(dtype=wp.int32), radius: int, min_var: float,
                         costs: wp.array3d(dtype=wp.float32)):
     """Vertical box sums of one column of neighbour n's row sums (running sum), and 1 - NCC of each
-    active pixel's window; cost 1 (NCC 0) where the neighbour does not see the whole window or it is flat."""
+    active pixel's window (its object pixels); cost 1 (NCC 0) where the neighbour does not see all of
+    them or they are flat there."""
     n, x = wp.tid()
     h = rows.shape[1]
-    area = float((2 * radius + 1) * (2 * radius + 1))
     s = wp.vec4(0.0)
     for y in range(wp.min(radius, h)):
         s += rows[n, y, x]
@@ -204,12 +213,13 @@ def _column_cost_kernel(rows: wp.array3d(dtype=wp.vec4), ref_sums: wp.array2d(dt
         if active[y, x] == 0:
             continue
         c = float(1.0)
+        ref_s = ref_sums[y, x]
+        area = ref_s[2]
         if s[3] > area - 0.5:
-            sa = ref_sums[y, x][0]
-            var_a = ref_sums[y, x][1] - sa * sa / area
+            var_a = ref_s[1] - ref_s[0] * ref_s[0] / area
             var_b = s[1] - s[0] * s[0] / area
             if var_b >= min_var * area:
-                ncc = (s[2] - sa * s[0] / area) / wp.sqrt(var_a * var_b)
+                ncc = (s[2] - ref_s[0] * s[0] / area) / wp.sqrt(var_a * var_b)
                 c = 1.0 - wp.clamp(ncc, -1.0, 1.0)
         costs[n, y, x] = c
 
@@ -581,7 +591,7 @@ def _sweep(r: int, nbs: list[int], frames: Sequence, rots: np.ndarray, transl: n
     d_nb_k = wp.array(np.array([[frames[c].intrinsics.fx, frames[c].intrinsics.fy, frames[c].intrinsics.cx,
                                  frames[c].intrinsics.cy] for c in nbs], np.float32), dtype=wp.vec4, device=device)
     ref_k = _kvec(frames[r])
-    sums = wp.zeros((h, w), dtype=wp.vec2, device=device)
+    sums = wp.zeros((h, w), dtype=wp.vec3, device=device)
     active = wp.zeros((h, w), dtype=wp.int32, device=device)
     wp.launch(_reference_stats_kernel, dim=(h, w), inputs=[d_grey, d_mask, r, x0, y0, radius, min_var],
               outputs=[sums, active], device=device)
@@ -607,7 +617,7 @@ def _sweep(r: int, nbs: list[int], frames: Sequence, rots: np.ndarray, transl: n
     for d in range(n_planes):
         z = 1.0 / (inv_near - d * inv_step)
         wp.launch(_warp_rows_kernel, dim=(k, h),
-                  inputs=[float(z), d_grey, r, x0, y0, ref_k, d_nb, d_rel_r, d_rel_t, d_nb_k, d_needed, radius],
+                  inputs=[float(z), d_grey, d_mask, r, x0, y0, ref_k, d_nb, d_rel_r, d_rel_t, d_nb_k, d_needed, radius],
                   outputs=[warped, rows], device=device)
         wp.launch(_column_cost_kernel, dim=(k, w), inputs=[rows, sums, active, radius, min_var], outputs=[costs],
                   device=device)
