@@ -32,7 +32,8 @@ def temple(data_dir, tmp_path_factory):
     src = need_data(data_dir, "middlebury_temple_sparse")
     tmp = tmp_path_factory.mktemp("temple")
     assert main(["import", "middlebury", str(src), "-o", str(tmp / "cap"), "--make-masks"]) == 0
-    res = make_mesh(tmp / "cap", tmp / "mesh", MeshConfig(faces=20000))
+    # the sparse path (dense stereo off; the dense one is tests/test_geometry_mvs.py)
+    res = make_mesh(tmp / "cap", tmp / "mesh", MeshConfig(faces=20000, dense="off"))
     pts, nrm = read_points(tmp / "mesh" / "points3D.ply")
     return {"summary": res.summary, "mesh": load_mesh(tmp / "mesh" / "mesh.ply"), "points": pts, "normals": nrm,
             "capture": read_capture(tmp / "cap")}
