@@ -262,7 +262,7 @@ def make_mesh(capture_dir: str | os.PathLike | None, out: str | os.PathLike,
     elif source == "sfm":
         mesh, new_points = _from_sfm(capture, cfg, masks, report)
     else:
-        from .hull import HullConfig, visual_hull
+        from .hull import visual_hull
 
         mesh = visual_hull(capture.frames, masks, _hull_config(cfg), cfg.device, bounds=_capture_bounds(capture),
                            report=report.setdefault("hull", {}))
@@ -514,7 +514,7 @@ def _from_sfm(capture, cfg: MeshConfig, masks, report: dict) -> tuple[SurfaceMes
             mesh = _crop_scene(mesh, pts, cfg, pcfg, report)
     if masks is not None:
         if intersect:
-            from .hull import HullConfig, visual_hull
+            from .hull import visual_hull
 
             lo, hi = mesh.bbox()
             box = _capture_bounds(capture)

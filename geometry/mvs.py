@@ -141,7 +141,8 @@ def _reference_stats_kernel(grey: wp.array3d(dtype=wp.float32), mask: wp.array3d
 
 
 @wp.func
-def _warped_sample(depth: float, grey: wp.array3d(dtype=wp.float32), mask: wp.array3d(dtype=wp.uint8), ref: int, gx: int, gy: int, ref_k: wp.vec4,
+def _warped_sample(depth: float, grey: wp.array3d(dtype=wp.float32), mask: wp.array3d(dtype=wp.uint8), ref: int,
+                   gx: int, gy: int, ref_k: wp.vec4,
                    c: int, rot: wp.mat33, trans: wp.vec3, k: wp.vec4) -> wp.vec4:
     """Photo c's grey value b at the point reference pixel (gx, gy) shows at ``depth``, as (b, b^2, a b, 1)
     with a the reference value; zeros where the point leaves photo c or the pixel is background in the
@@ -170,7 +171,8 @@ def _warped_sample(depth: float, grey: wp.array3d(dtype=wp.float32), mask: wp.ar
 
 
 @wp.kernel(enable_backward=False)
-def _warp_rows_kernel(depth: float, grey: wp.array3d(dtype=wp.float32), mask: wp.array3d(dtype=wp.uint8), ref: int, x0: int, y0: int, ref_k: wp.vec4,
+def _warp_rows_kernel(depth: float, grey: wp.array3d(dtype=wp.float32), mask: wp.array3d(dtype=wp.uint8),
+                      ref: int, x0: int, y0: int, ref_k: wp.vec4,
                       nb_index: wp.array(dtype=wp.int32), nb_rot: wp.array(dtype=wp.mat33),
                       nb_trans: wp.array(dtype=wp.vec3), nb_k: wp.array(dtype=wp.vec4),
                       needed: wp.array2d(dtype=wp.uint8), radius: int, warped: wp.array3d(dtype=wp.vec4),
