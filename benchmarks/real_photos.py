@@ -4,8 +4,8 @@
 
 Runs ``texstream run`` on the photos alone (no cameras, no masks given: ingest makes masks,
 pycolmap registers, the mesh comes from dense stereo points (``--dense off``: the SfM points) and
-the masks, xatlas makes the atlas and the radiance model is fitted with every 8th photo held out), then scores on the held-out views,
-foreground pixels only (the photo's mask and the model's coverage), three models with the same
+the masks, xatlas makes the atlas and the radiance model is fitted with every 8th photo held out),
+then scores on the held-out views, foreground pixels only (the photo's mask and the model's coverage), three models with the same
 mesh and atlas:
 
 - the fitted radiance model (robust loss, the default);
