@@ -136,10 +136,12 @@ def test_untextured_photos_fall_back_to_sparse_points_and_say_why(tmp_path):
     from conftest import tiny_sphere_capture
     from texstream.geometry.make_mesh import MeshConfig, make_mesh
 
-    cap = tiny_sphere_capture(tmp_path, photos=12)
+    # the plain sphere's shading passes the texture test at 40 pixels: 16 photos gave 2,025 points but
+    # confirmed depths on only 18% of the mask pixels
+    cap = tiny_sphere_capture(tmp_path, photos=16)
     res = make_mesh(cap, tmp_path / "mesh", MeshConfig(faces=1000, hull_resolution=48, device=SCENE_DEVICE))
     d = res.summary["dense"]
-    assert not d["used"] and "dense points" in d["fallback"]
+    assert not d["used"] and "too few dense points" in d["fallback"]
     # then as before: SfM points triangulated (too few on the plain sphere: the hull)
     assert res.summary["source"] == "hull" and "triangulation" in res.summary
 
