@@ -1,7 +1,8 @@
 """Real photos: the Middlebury temple (16 ring views, known cameras, threshold masks) -> mesh.
 
-The mesh stage's auto choice triangulates SfM points from the known cameras (pycolmap), runs
-screened Poisson on them and intersects it with the visual hull. One module-scoped run (about
+The mesh stage's sparse path (``--dense off``; the dense one is tests/test_geometry_mvs.py) triangulates
+SfM points from the known cameras (pycolmap), runs screened Poisson on them and intersects it with the
+visual hull. One module-scoped run (about
 30 s on the 2-core CPU dev box) serves every check.
 """
 
