@@ -3,10 +3,11 @@
     python benchmarks/real_photos.py --set middlebury_temple_sparse --out out/real_temple
 
 Runs ``texstream run`` on the photos alone (no cameras, no masks given: ingest makes masks,
-pycolmap registers, the mesh comes from the SfM points and the masks, xatlas makes the atlas, and
-the run fits the radiance model and the view-dependent radiance model with every 8th photo held out
-and keeps the better held-out one), then scores on the held-out views, foreground pixels only (the
-photo's mask and the model's coverage), these models with the same mesh and atlas:
+pycolmap registers, the mesh comes from dense stereo points (``--dense off``: the SfM points) and
+the masks, xatlas makes the atlas, and the run fits the radiance model and the view-dependent radiance
+model with every 8th photo held out and keeps the better held-out one), then scores on the held-out
+views, foreground pixels only (the photo's mask and the model's coverage), these models with the same
+mesh and atlas:
 
 - the fitted model the run kept, and the one it did not;
 - the per-texel average of the reprojected photos, what texture bakers produce (the same streamed
@@ -68,6 +69,8 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--iterations", type=int, default=20)
     ap.add_argument("--holdout-every", type=int, default=8)
+    ap.add_argument("--dense", default="auto", choices=("auto", "on", "off"),
+                    help="the mesh stage's dense stereo points (geometry/mvs.py; off: the sparse SfM points)")
     ap.add_argument("--results", default=None, help="also copy the JSON here (e.g. benchmarks/results/real_photos)")
     args = ap.parse_args()
 
@@ -82,6 +85,7 @@ def main() -> None:
     photos = Path(args.data) / args.set
     out = Path(args.out)
     cfg = RunConfig(device=args.device)  # auto: no light known -> radiance and view_radiance, the better kept
+    cfg.mesh = dataclasses.replace(cfg.mesh, dense=args.dense)
     cfg.fit = dataclasses.replace(cfg.fit, holdout_every=args.holdout_every,
                                   fit=dataclasses.replace(cfg.fit.fit, max_iterations=args.iterations))
     t0 = time.perf_counter()

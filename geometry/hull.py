@@ -211,6 +211,33 @@ def _occupied_bounds(field: np.ndarray, lo: np.ndarray, step: np.ndarray) -> tup
     return lo + step * (idx.min(axis=0) - 1), lo + step * (idx.max(axis=0) + 1)
 
 
+def _coarse_bounds(frames: Sequence, sdfs: list[np.ndarray], cfg: HullConfig, device: str
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    centre, dist = axes_convergence(frames)
+    half = 0.75 * dist  # the object lies between the cameras; a cube reaching 3/4 of the way out
+    coarse, clo, cstep = carve_field(frames, sdfs, centre - half, centre + half, 48, cfg.min_views, device,
+                                     cfg.carve_outside_image)
+    ob = _occupied_bounds(coarse.numpy(), clo, cstep)
+    if ob is None:
+        raise StageError("the masks carve away everything: no point is inside the silhouettes of all cameras "
+                         "(cameras misaligned with the masks?)",
+                         fix="check the poses and masks, or use --from sfm or --from scan.obj")
+    return ob
+
+
+def hull_bounds(frames: Sequence, masks: Sequence[np.ndarray], config: HullConfig | None = None,
+                device: str = "cpu") -> tuple[np.ndarray, np.ndarray]:
+    """The bounding box (lo, hi) of a coarse visual hull (48 grid nodes along the cube the cameras look
+    into), one grid step larger on each side: where the object is, for a depth range.
+
+    Raises:
+        StageError: the masks carve away everything.
+    """
+    cfg = config or HullConfig()
+    sdfs = [mask_sdf(fill_small_holes(m, cfg.fill_holes)) for m in masks]
+    return _coarse_bounds(frames, sdfs, cfg, device)
+
+
 def visual_hull(frames: Sequence, masks: Sequence[np.ndarray], config: HullConfig | None = None,
                 device: str = "cpu", bounds: tuple[np.ndarray, np.ndarray] | None = None,
                 intersect: SurfaceMesh | None = None, report: dict | None = None) -> SurfaceMesh:
@@ -248,17 +275,7 @@ def visual_hull(frames: Sequence, masks: Sequence[np.ndarray], config: HullConfi
         report["mask_pixels_filled"] = int(sum(int(fm.sum() - np.count_nonzero(m)) for fm, m in zip(filled, masks)))
     sdfs = [mask_sdf(m) for m in filled]
     if bounds is None:
-        centre, dist = axes_convergence(frames)
-        half = 0.75 * dist  # the object lies between the cameras; a cube reaching 3/4 of the way out
-        lo, hi = centre - half, centre + half
-        coarse, clo, cstep = carve_field(frames, sdfs, lo, hi, 48, cfg.min_views, device,
-                                          cfg.carve_outside_image)
-        ob = _occupied_bounds(coarse.numpy(), clo, cstep)
-        if ob is None:
-            raise StageError("the masks carve away everything: no point is inside the silhouettes of all cameras "
-                             "(cameras misaligned with the masks?)",
-                             fix="check the poses and masks, or use --from sfm or --from scan.obj")
-        lo, hi = ob
+        lo, hi = _coarse_bounds(frames, sdfs, cfg, device)
     else:
         lo, hi = (np.asarray(b, np.float64) for b in bounds)
     pad = cfg.margin * float(np.linalg.norm(hi - lo))

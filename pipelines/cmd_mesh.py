@@ -38,6 +38,11 @@ def run(args: argparse.Namespace) -> int:
         t = s["triangulation"]
         print(f"triangulated {t['points']} SfM points from the known cameras in {t['seconds']['total']:.1f} s "
               f"(median reprojection error {t['median_reprojection_error_px']:.2f} px)")
+    if "dense" in s:
+        d = s["dense"]
+        print(f"dense stereo: {d['points']} points ({d['pixel_points']} consistent depths) from "
+              f"{len(d['views'])} photos, mean fill {100 * d['mean_fill']:.0f}% of the masks, "
+              f"{d['seconds']['total']:.1f} s" + ("" if d["used"] else f"; {d['fallback']}"))
     print(f"mesh from {s['source']} ({s['reason']}): {s['summary']}; wrote {res.output / 'mesh.ply'} "
           f"in {s['seconds']:.1f} s")
     return 0

@@ -315,7 +315,8 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
 
         pipe.run("mesh", mesh_dir, [pipe.stamp_of("register") if not posed else _files_hash(posed_dir),
                                     pipe.stamp_of("ingest"), config_to_dict(cfg.mesh)],
-                 "mesh from the photos (SfM points and masks)", lambda: make_mesh(posed_dir, mesh_dir, cfg.mesh))
+                 "mesh from the photos (dense stereo or SfM points, and masks)",
+                 lambda: make_mesh(posed_dir, mesh_dir, cfg.mesh))
         mesh_path = mesh_dir / "mesh.ply"
     if atlas_needed:
         from texstream.geometry.atlas import atlas_stage

@@ -1,7 +1,8 @@
 """Real photos: the Middlebury temple (16 ring views, known cameras, threshold masks) -> mesh.
 
-The mesh stage's auto choice triangulates SfM points from the known cameras (pycolmap), runs
-screened Poisson on them and intersects it with the visual hull. One module-scoped run (about
+The mesh stage's sparse path (``--dense off``; the dense one is tests/test_geometry_mvs.py) triangulates
+SfM points from the known cameras (pycolmap), runs screened Poisson on them and intersects it with the
+visual hull. One module-scoped run (about
 30 s on the 2-core CPU dev box) serves every check.
 """
 
@@ -32,7 +33,8 @@ def temple(data_dir, tmp_path_factory):
     src = need_data(data_dir, "middlebury_temple_sparse")
     tmp = tmp_path_factory.mktemp("temple")
     assert main(["import", "middlebury", str(src), "-o", str(tmp / "cap"), "--make-masks"]) == 0
-    res = make_mesh(tmp / "cap", tmp / "mesh", MeshConfig(faces=20000))
+    # the sparse path (dense stereo off; the dense one is tests/test_geometry_mvs.py)
+    res = make_mesh(tmp / "cap", tmp / "mesh", MeshConfig(faces=20000, dense="off"))
     pts, nrm = read_points(tmp / "mesh" / "points3D.ply")
     return {"summary": res.summary, "mesh": load_mesh(tmp / "mesh" / "mesh.ply"), "points": pts, "normals": nrm,
             "capture": read_capture(tmp / "cap")}
