@@ -285,6 +285,11 @@ def make_mesh(capture_dir: str | os.PathLike | None, out: str | os.PathLike,
                                         path=cfg.mesh or capture_dir)
     report["clean"] = clean_rep.to_json()
     if capture is not None:
+        from .scene import drop_enclosed_components
+
+        # a shell inside the body (Poisson closes pockets the points leave inside an object) is seen by no
+        # camera: it only takes atlas space and splits the surface into components
+        cleaned, report["enclosed_components_removed"] = drop_enclosed_components(cleaned)
         with phase("mesh", f"orienting the surface towards {len(capture.frames)} cameras"):
             cleaned = _check_against_cameras(cleaned, capture, cfg, report, cfg.mesh or capture_dir)
     from .scene import genus_by_component

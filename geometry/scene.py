@@ -359,3 +359,29 @@ def genus_by_component(mesh: SurfaceMesh) -> dict:
     return {"total": int(genus.sum()), "max": int(genus.max()), "components": nc,
             "per_component": [int(genus[i]) for i in order[:20]], "boundary_loops": int(loops.sum()),
             "two_manifold": manifold}
+
+
+def drop_enclosed_components(mesh: SurfaceMesh) -> tuple[SurfaceMesh, int]:
+    """Remove connected components that lie inside another component (every vertex with |winding
+    number| > 1/2 with respect to the rest of the surface): shells no camera can see, e.g. a pocket
+    Poisson closes inside an object's body. Returns (the mesh, the number of components removed)."""
+    labels = face_components(mesh)
+    if len(labels) == 0 or labels.max() == 0:
+        return mesh, 0
+    faces = np.asarray(mesh.faces)
+    drop = np.zeros(len(faces), bool)
+    removed = 0
+    for c in range(int(labels.max()) + 1):
+        own = labels == c
+        rest = SurfaceMesh(mesh.vertices, faces[~own & ~drop])
+        verts = np.unique(faces[own])
+        if rest.n_faces and np.all(np.abs(winding_numbers(rest, mesh.vertices[verts])) > 0.5):
+            drop |= own
+            removed += 1
+    if not removed:
+        return mesh, 0
+    keep = faces[~drop]
+    used, inverse = np.unique(keep, return_inverse=True)
+    return dataclasses.replace(mesh, vertices=mesh.vertices[used], faces=inverse.reshape(-1, 3),
+                               normals=None if mesh.normals is None else mesh.normals[used],
+                               uvs=None if mesh.uvs is None else mesh.uvs[used]), removed

@@ -274,3 +274,27 @@ def test_genus_by_component_counts_handles_and_boundaries():
     c, d = ((i + 1) % 24) * 12 + (j + 1) % 12, i * 12 + (j + 1) % 12
     faces = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
     assert genus_by_component(SurfaceMesh(verts, faces.astype(np.int32)))["total"] == 1
+
+
+def test_a_shell_inside_the_body_is_removed():
+    """Poisson can close a pocket inside an object's body: a closed component every vertex of which lies
+    inside another component is seen by no camera and is dropped; a separate piece outside stays."""
+    from texstream.capture import procedural
+    from texstream.geometry.scene import drop_enclosed_components
+
+    outer = procedural.uv_sphere(1.0, n_segments=24, n_rings=12)
+    inner = procedural.uv_sphere(0.3, n_segments=12, n_rings=6)
+    beside = procedural.uv_sphere(0.3, n_segments=12, n_rings=6)
+
+    def join(*meshes):
+        vs, fs, off = [], [], 0
+        for m, shift in meshes:
+            vs.append(m.vertices + shift)
+            fs.append(m.faces + off)
+            off += len(m.vertices)
+        return SurfaceMesh(np.concatenate(vs), np.concatenate(fs))
+
+    both = join((outer, 0.0), (inner, 0.0), (beside, np.array([3.0, 0.0, 0.0])))
+    kept, removed = drop_enclosed_components(both)
+    assert removed == 1 and kept.n_faces == outer.n_faces + beside.n_faces
+    assert drop_enclosed_components(join((outer, 0.0)))[1] == 0
