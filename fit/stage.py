@@ -47,7 +47,8 @@ class FitStageConfig:
     lobe_support: float = option(0.02, "per texel, drop the specular lobes (rho_s = 0; flagged in lobes.png and "
                                        "model.json) that lower the texel's error on the fitted photos by less than "
                                        "this fraction: no photo saw their highlight, so in new views they only guess "
-                                       "it; 0 keeps every lobe", min=0.0, max=1.0)
+                                       "it; with two lobes the second is also tested on its own; 0 keeps every lobe",
+                                 min=0.0, max=1.0)
     checkpoint: bool = option(True, "Levenberg-Marquardt fits keep a checkpoint beside the output (every sync_every "
                                     "iterations); a rerun after Ctrl-C or a killed process resumes from it to the "
                                     "same result as an uninterrupted fit")
@@ -350,7 +351,23 @@ def drop_unsupported_lobes(problem, result: FitResult, fraction: float) -> tuple
         bare[:, o:o + 3] = 0.0
     with_lobes, without = per_texel_objective(problem, result.params), per_texel_objective(problem, bare)
     dropped = (result.samples > 0) & (without - with_lobes <= fraction * np.maximum(without, 1e-30))
-    return np.where(dropped[:, None], bare, result.params), dropped
+    params = np.where(dropped[:, None], bare, result.params)
+    if lay.n_lobes > 1:
+        # each further lobe on its own: kept only where the texel's error without it is higher by the fraction
+        for j in range(1, lay.n_lobes):
+            o = lay.lobe_offset(j)
+            one_less = params.copy()
+            one_less[:, o:o + 3] = 0.0
+            f_with, f_without = per_texel_objective(problem, params), per_texel_objective(problem, one_less)
+            weak = ~dropped & (result.samples > 0) & (f_without - f_with <= fraction * np.maximum(f_without, 1e-30))
+            params = np.where(weak[:, None], one_less, params)
+    return params, dropped
+
+
+def lobes_in_use(params: np.ndarray, layout: ModelLayout, seen: np.ndarray) -> list[int]:
+    """Per lobe, the seen texels whose lobe is on (rho_s not all 0): what model.json records."""
+    return [int((seen & np.any(params[:, layout.lobe_offset(j):layout.lobe_offset(j) + 3] != 0, axis=1)).sum())
+            for j in range(layout.n_lobes)]
 
 
 def average_seams_in_bounds(grid: np.ndarray, seams, layout: ModelLayout) -> tuple[np.ndarray, dict | None]:
@@ -442,6 +459,7 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
                     "atlas": {"width": bake.width, "height": bake.height, "texels": int(problem.n),
                               "unseen_texels": int((result.samples == 0).sum()), "seen_before_fit": seen_before,
                               "unseen_filled_from_nearest": filled, "lobes_dropped": int(lobes_dropped.sum()),
+                              "texels_with_lobe": lobes_in_use(result.params, lay, result.samples > 0),
                               "lobe_support": cfg.lobe_support},
                     "photos": {"fitted": len(frames), "held_out": len(held)},
                     "final": {k: last[k] for k in ("iteration", "time_s", "objective", "psnr_db", "ape_percent")},

@@ -63,6 +63,10 @@ class RunConfig:
                                 "view-dependent radiance model too, the better held-out one kept), lafortune, "
                                 "diffuse, radiance or view_radiance",
                         choices=MODELS)
+    second_lobe: bool = option(True, "known lights, model auto, held-out photos: also fit a two-lobe Lafortune "
+                                     "model (the second lobe kept per texel only where it lowers the texel's error "
+                                     "on the fitted photos, fit lobe_support) and keep it only when its held-out "
+                                     "error is the best")
     mesh_file: str | None = option(None, "a mesh of the object (OBJ/PLY) to use instead of one from the photos; "
                                          "with usable UVs it also skips the atlas")
     progress: bool = option(True, "progress bars over photos and iterations (shown on a terminal only); the stages' "
@@ -344,12 +348,16 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
     # one fixed unknown lighting view dependence only where it does
     alternative = {"lafortune": "diffuse", "radiance": "view_radiance"}.get(model_kind)
     compare = cfg.model == "auto" and alternative is not None and cfg.fit.holdout_every > 0
+    candidates = [model_kind, alternative]
+    if compare and model_kind == "lafortune" and cfg.second_lobe and fit_cfg.fit.lobes == 1:
+        candidates.append(TWO_LOBES)
+        alternative = f"{alternative} and the two-lobe Lafortune"
     choice: dict = {}
 
     def fit_work():
         if not compare:
             return fit_stage(posed_dir, fit_geometry, model_dir, fit_cfg)
-        return fit_with_selection(posed_dir, fit_geometry, out, fit_cfg, (model_kind, alternative), choice, pipe.log)
+        return fit_with_selection(posed_dir, fit_geometry, out, fit_cfg, tuple(candidates), choice, pipe.log)
 
     fit_rec = pipe.run("fit", model_dir, [pipe.stamp_of("atlas"), pipe.stamp_of("mesh"), pipe.stamp_of("register"),
                                           pipe.stamp_of("lights"),
@@ -359,7 +367,7 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
     if compare:
         chosen = fit_rec.summary.get("selection", {})
         if chosen.get("chosen"):
-            model_kind, why = chosen["chosen"], f"{why}; {chosen['reason']}"
+            model_kind, why = _candidate(chosen["chosen"])[0], f"{why}; {chosen['reason']}"
 
     _export_and_report(pipe, out, model_dir, posed_dir)
     heldout = _heldout(model_dir)
@@ -457,6 +465,15 @@ def run_warnings(records: list[StageRecord], heldout: dict, fit_summary: dict) -
     return out
 
 
+TWO_LOBES = "lafortune_2lobes"
+"""The candidate name of the two-lobe Lafortune model in the run's selection (``RunConfig.second_lobe``)."""
+
+
+def _candidate(name: str) -> tuple[str, int | None]:
+    """(model kind, lobes or None for the configured number) of a selection candidate."""
+    return ("lafortune", 2) if name == TWO_LOBES else (name, None)
+
+
 def fit_with_selection(capture_dir: Path, geometry: Path, out: Path, fit_cfg, kinds: tuple, choice: dict,
                        log: Callable[[str], None]):
     """Fit each model kind of ``kinds`` into ``OUT/model_<kind>`` and keep the one with the best pooled
@@ -468,7 +485,9 @@ def fit_with_selection(capture_dir: Path, geometry: Path, out: Path, fit_cfg, ki
 
     results = {}
     for k in kinds:
-        cfg_k = dataclasses.replace(fit_cfg, fit=dataclasses.replace(fit_cfg.fit, model=k))
+        model, lobes = _candidate(k)
+        cfg_k = dataclasses.replace(fit_cfg, fit=dataclasses.replace(fit_cfg.fit, model=model,
+                                                                     lobes=lobes or fit_cfg.fit.lobes))
         res = fit_stage(capture_dir, geometry, out / f"model_{k}", cfg_k)
         results[k] = res
         h = res.summary["heldout"]

@@ -38,12 +38,16 @@ def test_known_cameras_and_atlas_skip_their_stages_and_a_rerun_skips_everything(
     first = run_pipeline(capture, out, cfg, log=lambda m: None)
     st = statuses(first)
     assert st["ingest"] == st["register"] == st["mesh"] == st["atlas"] == "skipped"
-    # the sphere's photos have lights: Lafortune and diffuse are fitted, the better held-out one kept
+    # the sphere's photos have lights: Lafortune, diffuse and two-lobe Lafortune are fitted, the best
+    # held-out one kept and the others left beside it
     assert st["fit"] == "ran" and first["model"] in ("lafortune", "diffuse")
     assert "light" in first["model_reason"] and "held-out pooled PSNR lafortune" in first["model_reason"]
+    sel = first["fit"]["selection"]
+    assert set(sel["heldout_pooled_db"]) == {"lafortune", "diffuse", "lafortune_2lobes"}
     kept = json.loads((out / "model" / "model.json").read_text())["kind"]
-    other = {"lafortune": "diffuse", "diffuse": "lafortune"}[kept]
-    assert kept == first["model"] and (out / f"model_{other}" / "model.json").is_file()
+    assert kept == first["model"]
+    for other in {"lafortune", "diffuse", "lafortune_2lobes"} - {sel["chosen"]}:
+        assert (out / f"model_{other}" / "model.json").is_file()
     reasons = {s["name"]: s["reason"] for s in first["stages"]}
     assert "cameras known" in reasons["register"]
     # held-out error as users meet it: every 8th of 16 photos, pooled and worst view
