@@ -69,6 +69,21 @@ class LafortuneFuncs(NamedTuple):
     row_nonzeros: int
 
 
+def jacobian_row_func(row_entry: Any, row_nonzeros: int):
+    """``jacobian_row(p, f, c)`` of a model from its ``row_entry``: dm_c/dp as an n_params vector, its
+    ``row_nonzeros`` structurally non-zero entries set with literal trip counts (kept in registers)."""
+
+    @wp.func
+    def jacobian_row(p: Any, f: Any, c: int):
+        jc = p * (p[0] - p[0])
+        for t in range(wp.static(row_nonzeros)):
+            col, val = row_entry(p, f, c, t)
+            jc[col] = val
+        return jc
+
+    return jacobian_row
+
+
 @functools.cache
 def lafortune_funcs(n_lobes: int, anisotropic: int) -> LafortuneFuncs:
     """The model functions specialised to one layout (K = ``n_lobes``, isotropic or not).
@@ -143,13 +158,7 @@ def lafortune_funcs(n_lobes: int, anisotropic: int) -> LafortuneFuncs:
         o = 3 + j * wp.static(stride)
         return o + 3 + k, p[o + c] * f[o + 3 + k]
 
-    @wp.func
-    def jacobian_row(p: Any, f: Any, c: int):
-        jc = p * (p[0] - p[0])
-        for t in range(wp.static(row_nonzeros)):
-            col, val = row_entry(p, f, c, t)
-            jc[col] = val
-        return jc
+    jacobian_row = jacobian_row_func(row_entry, row_nonzeros)
 
     @wp.func
     def dhd(p: Any, d: Any, u: Any, v: Any, one: Any):
@@ -215,13 +224,7 @@ def view_radiance_funcs() -> LafortuneFuncs:
         col = 3 + 3 * (t - 1) + c
         return col, f[col]
 
-    @wp.func
-    def jacobian_row(p: Any, f: Any, c: int):
-        jc = p * (p[0] - p[0])
-        for t in range(wp.static(row_nonzeros)):
-            col, val = row_entry(p, f, c, t)
-            jc[col] = val
-        return jc
+    jacobian_row = jacobian_row_func(row_entry, row_nonzeros)
 
     @wp.func
     def dhd(p: Any, d: Any, u: Any, v: Any, one: Any):
