@@ -103,6 +103,19 @@ def viewer_frame(frame, held_out: bool = False, photo: np.ndarray | None = None,
     return out
 
 
+def face_tangents(vertices: np.ndarray, faces: np.ndarray, uvs: np.ndarray) -> np.ndarray:
+    """(F, 3) dp/du of each face's UV mapping (zero where the UVs are degenerate), as surface_frame in
+    fit/kernels/shading.py computes it before making it orthogonal to the shading normal."""
+    p = np.asarray(vertices, np.float64)[faces]
+    t = np.asarray(uvs, np.float64)[faces]
+    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    d1, d2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
+    det = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]
+    ok = np.abs(det) > 1e-20
+    tan = (e1 * d2[:, 1:2] - e2 * d1[:, 1:2]) / np.where(ok, det, 1.0)[:, None]
+    return np.where(ok[:, None], tan, 0.0)
+
+
 def viewer_model_data(mesh, grid: np.ndarray, info: dict, frames: list[dict] | None = None,
                       seen: np.ndarray | None = None, default_frame: int = 0) -> dict:
     """The viewer's model block: mesh (positions, vertex normals as the renderer computes them,
@@ -122,13 +135,20 @@ def viewer_model_data(mesh, grid: np.ndarray, info: dict, frames: list[dict] | N
         raise InputError("the model's mesh has no UVs", fix="re-run the fit from an atlas folder")
     v = np.asarray(mesh.vertices, np.float64)
     lo, hi = v.min(axis=0), v.max(axis=0)
+    faces = np.asarray(mesh.faces, np.int64)
     data = {
         "kind": info["kind"], "n_lobes": int(info["n_lobes"]), "anisotropic": bool(info["anisotropic"]),
         "n_params": int(p),
         "texture": {"width": int(w), "height": int(h), "layers": int(layers), "data": _b64(tex, "<f4")},
-        "mesh": {"positions": _b64(v, "<f4"), "normals": _b64(mesh.vertex_normals(), "<f4"),
-                 "uvs": _b64(mesh.uvs, "<f4"), "indices": _b64(mesh.faces, "<u4"),
-                 "n_vertices": len(v), "n_faces": len(mesh.faces)},
+        # one vertex per face corner, so each face carries its own tangent (dp/du, what fit/kernels/
+        # shading.py surface_frame computes): derivatives taken on screen break where a 2x2 pixel quad
+        # straddles two charts of the atlas
+        "mesh": {"positions": _b64(v[faces].reshape(-1, 3), "<f4"),
+                 "normals": _b64(mesh.vertex_normals()[faces].reshape(-1, 3), "<f4"),
+                 "uvs": _b64(np.asarray(mesh.uvs)[faces].reshape(-1, 2), "<f4"),
+                 "tangents": _b64(np.repeat(face_tangents(v, faces, mesh.uvs), 3, axis=0), "<f4"),
+                 "indices": _b64(np.arange(faces.size, dtype=np.uint32), "<u4"),
+                 "n_vertices": int(faces.size), "n_faces": len(faces)},
         "center": ((lo + hi) / 2).tolist(), "radius": float(max(np.linalg.norm(hi - lo) / 2, 1e-9)),
         "seen": None, "frames": frames or [], "default_frame": int(default_frame),
     }

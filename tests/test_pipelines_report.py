@@ -281,3 +281,58 @@ def test_radiance_model_is_unlit(run, tmp_path):
         # the background stays background except along the silhouette, where WebGL's rasterisation
         # rules and texstream's ray-cast coverage may disagree by a pixel (measured: a handful of pixels)
         assert hit[mask].mean() > 0.99 and hit[~mask].mean() < 0.005, (hit[mask].mean(), hit[~mask].sum())
+
+
+def test_view_dependent_radiance_matches_texstream_render(run, tmp_path):
+    """kind "view_radiance": the viewer evaluates each texel's biquadratic of the local view direction in
+    the tangent frame it derives from screen derivatives, as texstream's renderer does from the face's UVs;
+    its screenshot of a view no photo has matches texstream's render of it (threshold as for the lobes)."""
+    from scipy.ndimage import binary_erosion
+
+    from texstream.capture.synth import write_param_maps
+    from texstream.fit.models import ModelLayout
+    from texstream.fit.render import Renderer
+    from texstream.pipelines.report import _srgb8, load_report_model, write_report
+
+    layout = ModelLayout(kind="view_radiance")
+    model = tmp_path / "view_model"
+    model.mkdir()
+    shutil.copy(run["model"] / "mesh.obj", model / "mesh.obj")
+    from texstream.geometry.bake import TexelBake
+
+    # L varies smoothly over the surface (a function of the texel's 3D position, padding filled as the
+    # fit fills it), so the two renderers agree also where a pixel's footprint straddles a chart seam
+    bake = TexelBake.load(run["model"] / "bake.npz")
+    pos = bake.position
+    span = np.ptp(pos[bake.covered], axis=0).max()
+    ramp = ((pos[..., 0:1] - pos[bake.covered][:, 0].min()) / span).astype(np.float32)
+    grid = np.zeros((bake.height, bake.width, layout.n_params), np.float32)
+    grid[..., 0:3] = np.array([0.25, 0.35, 0.45], np.float32) + 0.2 * ramp
+    # vx, vy, vxx, vxy, vyy: a tilt and a curvature large enough to move pixels by tens of 8-bit codes
+    for k, a in enumerate((0.3, -0.2, 0.25, 0.15, -0.1)):
+        grid[..., layout.view_offset(k):layout.view_offset(k) + 3] = a * np.array([1.0, 0.8, 0.6], np.float32)
+    grid = bake.fill_padding(grid)
+    files = write_param_maps(model, grid, layout)
+    (model / "model.json").write_text(json.dumps({"kind": "view_radiance", "layout": layout.to_json(),
+                                                  "maps": files, "mesh": "mesh.obj"}))
+    write_report(tmp_path, [], model)
+    html = tmp_path / "report" / "index.html"
+    assert viewer_status(html, tmp_path)["errors"] == []
+    view, _, mask = _view_and_render(run)
+    mesh, g, info, _ = load_report_model(model)
+    assert info["kind"] == "view_radiance"
+    from texstream.capture.capture_json import Frame, Intrinsics
+    from texstream.capture.conventions import look_at_w2c
+
+    c = mesh.vertices.mean(axis=0)
+    r, t = look_at_w2c(c + np.array([2.2, -2.6, 1.4]), c, (0, 0, 1))  # _view_and_render's camera
+    frame = Frame("view.png", r, t, Intrinsics(W, H, 170.0, 175.0, 97.3, 78.1), None, exposure=1.3)
+    res = Renderer(mesh, g, layout, shadows=False).render_frame(frame)
+    ref = _srgb8(res.radiance * np.float32(1.3))
+    flat = _srgb8(np.broadcast_to(grid[..., 0:3].mean(axis=(0, 1)), res.radiance.shape) * np.float32(1.3))
+    shot = screenshot(html, {**view, "exposure": 1.3}, tmp_path)
+    interior = binary_erosion(mask, iterations=1, border_value=0)
+    p = psnr8(shot, ref, interior)
+    print(f"view_radiance viewer vs texstream render: {p:.2f} dB")
+    assert p > PSNR_THRESHOLD_DB, p
+    assert psnr8(shot, flat, interior) < PSNR_THRESHOLD_DB - 10  # the view terms are really drawn

@@ -67,10 +67,10 @@
   var VS = [
     '#version 300 es',
     'precision highp float;',
-    'in vec3 a_pos; in vec3 a_nrm; in vec2 a_uv;',
+    'in vec3 a_pos; in vec3 a_nrm; in vec2 a_uv; in vec3 a_tan;',
     'uniform mat3 u_R; uniform vec3 u_t;   // world-to-camera, OpenCV axes',
     'uniform vec4 u_K; uniform vec2 u_size; uniform vec2 u_nf;',
-    'out vec3 v_pos; out vec3 v_nrm; out vec2 v_uv;',
+    'out vec3 v_pos; out vec3 v_nrm; out vec2 v_uv; out vec3 v_tan;',
     'void main() {',
     '  vec3 pc = u_R * a_pos + u_t;',
     '  float z = pc.z;',
@@ -79,7 +79,7 @@
     '  float n = u_nf.x, f = u_nf.y;',
     '  gl_Position = vec4(2.0 * px / u_size.x - z, z - 2.0 * py / u_size.y,',
     '                     z * (f + n) / (f - n) - 2.0 * f * n / (f - n), z);',
-    '  v_pos = a_pos; v_nrm = a_nrm; v_uv = a_uv;',
+    '  v_pos = a_pos; v_nrm = a_nrm; v_uv = a_uv; v_tan = a_tan;',
     '}'].join('\n');
 
   var FS = [
@@ -92,7 +92,7 @@
     'uniform int u_lkind; uniform vec3 u_lpd; uniform vec3 u_lI;',
     'uniform vec3 u_eye; uniform float u_exposure; uniform int u_mode; uniform float u_gain;',
     'uniform vec2 u_size; uniform int u_hasphoto;',
-    'in vec3 v_pos; in vec3 v_nrm; in vec2 v_uv;',
+    'in vec3 v_pos; in vec3 v_nrm; in vec2 v_uv; in vec3 v_tan;',
     'out vec4 o_color;',
     'float P(ivec2 xy, int k) { return texelFetch(u_params, ivec3(xy, k / 4), 0)[k % 4]; }',
     '// lafortune_brdf of fit/kernels/shading.py; part 0 = all, 1 = diffuse only, 2 = lobes only',
@@ -139,15 +139,10 @@
     '    L = (1.0 - fx) * (1.0 - fy) * radiance_at(t00) + fx * (1.0 - fy) * radiance_at(t10)',
     '      + (1.0 - fx) * fy * radiance_at(t01) + fx * fy * radiance_at(t11);',
     '  } else {',
-    '    // surface_frame: tangent = dp/du of the triangle (from screen derivatives), made orthogonal to n',
+    '    // surface_frame: tangent = dp/du of the triangle (per face, from the model data), made orthogonal to n',
     '    vec3 n = normalize(v_nrm);',
-    '    vec3 dpdx = dFdx(v_pos), dpdy = dFdy(v_pos);',
-    '    vec2 dtdx = dFdx(v_uv), dtdy = dFdy(v_uv);',
-    '    float det = dtdx.x * dtdy.y - dtdy.x * dtdx.y;',
-    '    vec3 T = vec3(0.0);',
-    '    if (abs(det) > 1e-30) T = (dpdx * dtdy.y - dpdy * dtdx.y) / det;',
-    '    T = T - n * dot(n, T);',
-    '    if (length(T) < 1e-12 * max(length(dpdx), 1e-30)) {',
+    '    vec3 T = v_tan - n * dot(n, v_tan);',
+    '    if (length(T) < 1e-12 * max(length(v_tan), 1e-30) || length(v_tan) == 0.0) {',
     '      vec3 a = abs(n.x) > 0.9 ? vec3(0.0, 1.0, 0.0) : vec3(1.0, 0.0, 0.0);',
     '      T = a - n * dot(n, a);',
     '    }',
@@ -218,6 +213,7 @@
     gl.bindAttribLocation(prog, 0, 'a_pos');
     gl.bindAttribLocation(prog, 1, 'a_nrm');
     gl.bindAttribLocation(prog, 2, 'a_uv');
+    gl.bindAttribLocation(prog, 3, 'a_tan');
     gl.linkProgram(prog);
     if (!gl.getProgramParameter(prog, gl.LINK_STATUS)) throw new Error('shader link: ' + gl.getProgramInfoLog(prog));
     V.prog = prog;
@@ -230,7 +226,7 @@
     // mesh
     var vao = gl.createVertexArray();
     gl.bindVertexArray(vao);
-    [[M.mesh.positions, 3], [M.mesh.normals, 3], [M.mesh.uvs, 2]].forEach(function (a, i) {
+    [[M.mesh.positions, 3], [M.mesh.normals, 3], [M.mesh.uvs, 2], [M.mesh.tangents, 3]].forEach(function (a, i) {
       var buf = gl.createBuffer();
       gl.bindBuffer(gl.ARRAY_BUFFER, buf);
       gl.bufferData(gl.ARRAY_BUFFER, f32(a[0]), gl.STATIC_DRAW);
