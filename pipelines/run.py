@@ -347,7 +347,8 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
     # judged on the held-out photos: with known lights a specular lobe only where it generalises; under
     # one fixed unknown lighting view dependence only where it does
     alternative = {"lafortune": "diffuse", "radiance": "view_radiance"}.get(model_kind)
-    compare = cfg.model == "auto" and alternative is not None and cfg.fit.holdout_every > 0
+    # a comparison needs at least one held-out photo to judge by (split_holdout: every k-th)
+    compare = (cfg.model == "auto" and alternative is not None and 0 < cfg.fit.holdout_every <= len(capture.frames))
     candidates = [model_kind, alternative]
     if compare and model_kind == "lafortune" and cfg.second_lobe and fit_cfg.fit.lobes == 1:
         candidates.append(TWO_LOBES)
@@ -469,6 +470,10 @@ TWO_LOBES = "lafortune_2lobes"
 """The candidate name of the two-lobe Lafortune model in the run's selection (``RunConfig.second_lobe``)."""
 
 
+def _db(value) -> str:
+    return "n/a" if value is None else f"{value:.2f} dB"
+
+
 def _candidate(name: str) -> tuple[str, int | None]:
     """(model kind, lobes or None for the configured number) of a selection candidate."""
     return ("lafortune", 2) if name == TWO_LOBES else (name, None)
@@ -491,10 +496,15 @@ def fit_with_selection(capture_dir: Path, geometry: Path, out: Path, fit_cfg, ki
         res = fit_stage(capture_dir, geometry, out / f"model_{k}", cfg_k)
         results[k] = res
         h = res.summary["heldout"]
-        log(f"[fit] {k}: held-out pooled PSNR {h['pooled_psnr_db']:.2f} dB, worst view {h['worst_psnr_db']:.2f} dB")
-    score = {k: r.summary["heldout"]["pooled_psnr_db"] or -math.inf for k, r in results.items()}
-    best = max(kinds, key=lambda k: score[k])
-    reason = (f"{best} kept: held-out pooled PSNR " + ", ".join(f"{k} {score[k]:.2f} dB" for k in kinds))
+        log(f"[fit] {k}: held-out pooled PSNR {_db(h.get('pooled_psnr_db'))}, worst view {_db(h.get('worst_psnr_db'))}")
+    score = {k: r.summary["heldout"].get("pooled_psnr_db") for k, r in results.items()}
+    if all(v is None for v in score.values()):
+        # fewer registered photos than --holdout-every: nothing to judge by, the scene's own model stays
+        best = kinds[0]
+        reason = f"{best} kept: no photo was held out, so no model could be judged on held-out photos"
+    else:
+        best = max(kinds, key=lambda k: -math.inf if score[k] is None else score[k])
+        reason = f"{best} kept: held-out pooled PSNR " + ", ".join(f"{k} {_db(score[k])}" for k in kinds)
     target = out / "model"
     if target.exists():
         shutil.rmtree(target)
