@@ -150,7 +150,7 @@ def texel_uncertainty(jtj: np.ndarray, params: np.ndarray, layout: ModelLayout, 
         out[:, 0] = np.maximum(out[:, 0], rel_rho)
         out[:, 1] = np.maximum(out[:, 1], rel_n)
         out[:, 2] = np.maximum(out[:, 2], np.sqrt(full[:, o + lay.lobe_stride - 2]))
-    return np.nan_to_num(out, nan=np.inf)
+    return np.nan_to_num(out, nan=np.inf, posinf=np.inf)
 
 
 def kmeans(x: np.ndarray, k: int, seed: int = 0, iterations: int = 100) -> tuple[np.ndarray, np.ndarray]:
