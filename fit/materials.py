@@ -142,7 +142,7 @@ def texel_uncertainty(jtj: np.ndarray, params: np.ndarray, layout: ModelLayout, 
     for j in range(lay.n_lobes):
         o = lay.lobe_offset(j)
         rho = p[:, o:o + 3]
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             rel_rho = np.where(rho > 0, np.sqrt(full[:, o:o + 3]) / np.maximum(rho, 1e-300), np.inf).max(axis=1)
             nn = p[:, o + lay.lobe_stride - 1]
             rel_n = np.sqrt(full[:, o + lay.lobe_stride - 1]) / np.maximum(nn, 1e-300)
