@@ -76,7 +76,7 @@ class MaterialConfig:
                                        "in samples' worth of squared residual per squared material spread (1: the "
                                        "Bayesian balance)", min=0.0)
     borrow_weight: float = option(100.0, "an unconstrained texel's pull towards its material's lobe, as a multiple of "
-                                         "its own J^T J diagonal (100: it takes the material's lobe to ~1%)", min=0.0)
+                                         "its own J^T J diagonal (100: it takes the material's lobe to about 1 percent)", min=0.0)
     spread_floor: float = option(0.02, "smallest material spread of rho_s and n, relative (and of c_z, absolute): "
                                        "keeps the pull finite for materials of identical texels", min=1e-6)
     contradiction: float = option(0.02, "a texel borrows no lobe where its material's lobe raises its error on the "
