@@ -15,7 +15,8 @@ material shows elsewhere. texstream builds this as a **prior** in the streaming 
    pinned by every photo of a texel, lobe or not, so every texel gets a material, also one whose lobe
    no photo constrained. A material's lobe is the median of its constrained texels' lobes (rho_s and n
    in log space), its spread their robust standard deviation; a material whose constrained lobes are
-   too few (``min_lobe_share``) has none (white plaster).
+   too few (``min_lobe_share``), or whose lobe the photos of most of its unconstrained texels contradict
+   (``max_contradicted``, below), has none (white plaster).
 3. **Prior** (:func:`material_prior`): 1/2 sum_k w_ik (p_ik - c_ik)^2 on each texel's lobe columns,
    centred on its material's lobe (``StreamProblem.set_material_prior``, in every pass). A constrained
    texel gets w_k = ``prior_samples`` sigma^2 / s_k^2 (s_k the material's spread): the Bayesian balance of
@@ -70,8 +71,13 @@ class MaterialConfig:
     constrained_rel_std: float = option(0.1, "a texel's lobe is constrained by its photos when the relative standard "
                                              "deviations of its rho_s and n (sigma^2 (J^T J)^-1) are below this",
                                         min=0.0)
-    min_lobe_share: float = option(0.05, "a material has a lobe when at least this share of its texels (and 3) "
-                                         "have a constrained one; else its texels borrow no lobe", min=0.0, max=1.0)
+    min_lobe_share: float = option(0.005, "a material has a lobe when at least this share of its texels (and 3) "
+                                          "have a constrained one; else its texels borrow no lobe", min=0.0, max=1.0)
+    max_contradicted: float = option(0.5, "a material has no lobe when its lobe contradicts the photos (see "
+                                          "contradiction) of more than this share of its unconstrained texels: the "
+                                          "photos looked where its highlight would be and saw none (a matte material "
+                                          "whose few constrained lobes are edge texels blending a glossy neighbour)",
+                                     min=0.0, max=1.0)
     prior_samples: float = option(1.0, "strength of the pull of a constrained texel's lobe towards its material's, "
                                        "in samples' worth of squared residual per squared material spread (1: the "
                                        "Bayesian balance)", min=0.0)
@@ -209,6 +215,8 @@ class Materials:
     """(K,) texels per material"""
     constrained: np.ndarray
     """(K,) of those, texels whose lobe is constrained"""
+    contradicted_share: np.ndarray | None = None
+    """(K,) share of the unconstrained texels whose photos contradict the material's lobe (:func:`reject_contradicted_lobes`)"""
 
     @property
     def k(self) -> int:
@@ -219,6 +227,8 @@ class Materials:
         for m in range(self.k):
             row = {"texels": int(self.texels[m]), "constrained_lobes": int(self.constrained[m]),
                    "rho_d": [float(x) for x in self.lobes[m, 0:3]], "has_lobe": bool(self.has_lobe[m])}
+            if self.contradicted_share is not None:
+                row["contradicted_share"] = float(self.contradicted_share[m])
             if layout.n_lobes and self.has_lobe[m]:
                 o = layout.lobe_offset(0)
                 row["rho_s"] = [float(x) for x in self.lobes[m, o:o + 3]]
@@ -347,6 +357,21 @@ def material_prior(params: np.ndarray, jtj: np.ndarray, seen: np.ndarray, constr
         weights[no_lobe, shape_cols] = 0.0
         centre[no_lobe, shape_cols] = start[no_lobe, shape_cols]
     return MaterialPrior(centre, weights, start, borrow, no_lobe)
+
+
+def reject_contradicted_lobes(materials: Materials, labels: np.ndarray, seen: np.ndarray, constrained: np.ndarray,
+                              contradicted: np.ndarray, max_share: float) -> np.ndarray:
+    """Drop the lobe of every material whose lobe the photos of more than ``max_share`` of its seen,
+    unconstrained texels contradict (in place on ``materials.has_lobe``); returns each material's share."""
+    share = np.zeros(materials.k)
+    free = np.asarray(seen, bool) & ~np.asarray(constrained, bool)
+    for m in range(materials.k):
+        sel = free & (labels == m)
+        if materials.has_lobe[m] and sel.any():
+            share[m] = float(np.mean(np.asarray(contradicted, bool)[sel]))
+            if share[m] > max_share:
+                materials.has_lobe[m] = False
+    return share
 
 
 def material_lobes_on(params: np.ndarray, labels: np.ndarray, materials: Materials, layout: ModelLayout) -> np.ndarray:

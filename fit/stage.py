@@ -402,7 +402,7 @@ def fit_with_materials(problem, result: FitResult, evidence: TexelEvidence, k: i
                        cfg: "FitStageConfig") -> tuple[FitResult, dict]:
     """The materials model with ``k`` materials (fit/materials.py): cluster, prior, Levenberg-Marquardt from
     the per-texel fit ``result``. Returns the fit and what model.json records of it."""
-    from .materials import find_materials, material_lobes_on, material_prior
+    from .materials import find_materials, material_lobes_on, material_prior, reject_contradicted_lobes
 
     mcfg = cfg.materials
     lay = result.layout
@@ -416,6 +416,8 @@ def fit_with_materials(problem, result: FitResult, evidence: TexelEvidence, k: i
     f_mat = per_texel_objective(problem, material_lobes_on(evidence.params, mats.labels, mats, lay))
     f_bare = per_texel_objective(problem, bare)
     contradicted = f_mat - f_bare > mcfg.contradiction * np.maximum(f_bare, 1e-30)
+    mats.contradicted_share = reject_contradicted_lobes(mats, mats.labels, seen, evidence.constrained, contradicted,
+                                                        mcfg.max_contradicted)
     prior = material_prior(evidence.params, evidence.jtj, seen, evidence.constrained, mats.labels, mats, lay,
                            evidence.sigma2, contradicted, mcfg, variant)
     problem.set_material_prior(prior.centre, prior.weights)
