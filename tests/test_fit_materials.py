@@ -24,7 +24,7 @@ import pytest
 import warp as wp
 
 from texstream.fit.materials import (MaterialConfig, find_materials, kmeans, lobe_columns, material_prior,
-                                     texel_uncertainty)
+                                     reject_contradicted_lobes, texel_uncertainty)
 from texstream.fit.models import ModelLayout
 
 from test_fit_gradients import (assert_full_dhd_matches_second_difference, assert_gradient_matches_finite_differences,
@@ -199,6 +199,26 @@ def test_find_materials_recovers_lobes_and_no_lobe():
     np.testing.assert_allclose(prior.start[lobe_mat, o + 5], found.lobes[found.labels[lobe_mat], o + 5])
     assert (prior.centre[truth == 2, o:o + 3] == 0).all()
     assert prior.weights[constrained].max() < 1e-3 * prior.weights[lobe_mat][:, o + 5].min()
+
+
+def test_contradicted_material_loses_its_lobe():
+    """A matte material whose few constrained texels carry a lobe (edge texels blending a glossy
+    neighbour) gets that lobe from the median; where the photos of most of its unconstrained texels
+    contradict it, the material ends without one, and the glossy materials keep theirs."""
+    rng = np.random.default_rng(3)
+    p, truth, _ = planted(rng)
+    o = LAYOUT.lobe_offset(0)
+    white = np.flatnonzero(truth == 2)
+    p[white[:5], o:o + 3] = 0.3  # five blended edge texels with a lobe
+    constrained = (truth < 2) | np.isin(np.arange(len(p)), white[:5])
+    seen = np.ones(len(p), bool)
+    found = find_materials(p, seen, constrained, LAYOUT, 3)
+    fw = found.labels[white[0]]
+    assert found.has_lobe.all()
+    contradicted = (truth == 2) & (np.arange(len(p)) % 4 != 0)  # 3 in 4 of the white texels' photos
+    share = reject_contradicted_lobes(found, found.labels, seen, constrained, contradicted, 0.5)
+    assert share[fw] > 0.7 and not found.has_lobe[fw]
+    assert found.has_lobe[[m for m in range(3) if m != fw]].all()
 
 
 # ------------------------------------------------------------------------------- synthetic scene
