@@ -23,9 +23,9 @@ material shows elsewhere. texstream builds this as a **prior** in the streaming 
    its photos (J^T J / sigma^2) against the spread of its material, so it keeps a lobe of its own where
    the photos say so (materials vary across an object). An unconstrained texel *borrows*: its weights
    are ``borrow_weight`` times its own J^T J diagonal (or the constrained weight, the larger), so it takes
-   its material's lobe instead of a guess. Where the material's lobe would raise a texel's error on the
-   fitted photos by more than ``contradiction`` of it (photos looked where its highlight would be and
-   saw none), its centre is no lobe. The "shared" variant makes every texel borrow.
+   its material's lobe instead of a guess. Where the texel's photos contradict its material's lobe
+   (:func:`contradiction_test`: they looked where its highlight would be and saw none), its centre is no
+   lobe. The "shared" variant makes every texel borrow.
 4. **Fit**: Levenberg-Marquardt from the per-texel parameters (borrowing texels start at their centre).
 
 Why a prior rather than basis lobes fitted jointly (the issue's first option): the prior keeps every
@@ -85,8 +85,11 @@ class MaterialConfig:
                                          "its own J^T J diagonal (100: it takes the material's lobe to about 1 percent)", min=0.0)
     spread_floor: float = option(0.02, "smallest material spread of rho_s and n, relative (and of c_z, absolute): "
                                        "keeps the pull finite for materials of identical texels", min=1e-6)
-    contradiction: float = option(0.02, "a texel borrows no lobe where its material's lobe raises its error on the "
-                                        "fitted photos by more than this fraction", min=0.0)
+    contradiction: float = option(0.5, "a texel borrows no lobe where its photos contradict its material's lobe: "
+                                       "the error the lobe adds on the fitted photos over the lobe's own energy there "
+                                       "is above this (1: nothing where the lobe predicts a highlight, -1: exactly "
+                                       "the lobe) and the lobe would show above the fit's residual",
+                                  min=-1.0, max=1.0)
     iterations: int = option(20, "Levenberg-Marquardt iterations of a materials fit (it starts from the per-texel "
                                  "fit)", min=1)
 
@@ -322,8 +325,7 @@ def material_prior(params: np.ndarray, jtj: np.ndarray, seen: np.ndarray, constr
                    labels: np.ndarray, materials: Materials, layout: ModelLayout, sigma2: float,
                    contradicted: np.ndarray | None, cfg: MaterialConfig, variant: str = "mixed") -> MaterialPrior:
     """The per-texel centres and weights of the prior (module doc, step 3). ``contradicted``: (N,) texels
-    whose error on the fitted photos rises by more than ``cfg.contradiction`` with their material's lobe
-    (:func:`contradicted_texels`); ``variant`` "mixed" or "shared" (every seen texel borrows)."""
+    whose photos contradict their material's lobe (:func:`contradiction_test`); ``variant`` "mixed" or "shared" (every seen texel borrows)."""
     if variant not in VARIANTS:
         raise ConfigError(f"materials variant {variant!r} unknown", fix="use mixed or shared")
     p = np.asarray(params, np.float64)
@@ -357,6 +359,22 @@ def material_prior(params: np.ndarray, jtj: np.ndarray, seen: np.ndarray, constr
         weights[no_lobe, shape_cols] = 0.0
         centre[no_lobe, shape_cols] = start[no_lobe, shape_cols]
     return MaterialPrior(centre, weights, start, borrow, no_lobe)
+
+
+def contradiction_test(f_bare: np.ndarray, f_lobe: np.ndarray, f_doubled: np.ndarray, samples: np.ndarray,
+                       sigma2: float, level: float) -> np.ndarray:
+    """(N,) texels whose photos contradict a lobe put on them, from three per-texel objectives on the fitted
+    photos: without the lobe (a = residuals), with it (l = its radiance) and with it doubled. The model is
+    linear in rho_s, so f_lobe - f_bare = sum a l + E and f_doubled - 2 f_lobe + f_bare = 2 E exactly, with
+    E = 1/2 sum l^2 the lobe's own energy on the texel's samples. The score (f_lobe - f_bare) / E = 1 + sum a l / E
+    is 1 where the photos show nothing where the lobe predicts light and -1 where they show exactly the
+    lobe; a texel is contradicted when it exceeds ``level`` and E exceeds the fit's residual energy there
+    (3 sigma^2 per photo; below it, the photos did not look where the lobe shines and say nothing)."""
+    energy = 0.5 * (np.asarray(f_doubled, np.float64) - 2.0 * np.asarray(f_lobe, np.float64) + np.asarray(f_bare, np.float64))
+    visible = energy > 3.0 * np.asarray(samples, np.float64) * sigma2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        score = (np.asarray(f_lobe, np.float64) - f_bare) / energy
+    return visible & (score > level)
 
 
 def reject_contradicted_lobes(materials: Materials, labels: np.ndarray, seen: np.ndarray, constrained: np.ndarray,

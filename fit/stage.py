@@ -402,7 +402,8 @@ def fit_with_materials(problem, result: FitResult, evidence: TexelEvidence, k: i
                        cfg: "FitStageConfig") -> tuple[FitResult, dict]:
     """The materials model with ``k`` materials (fit/materials.py): cluster, prior, Levenberg-Marquardt from
     the per-texel fit ``result``. Returns the fit and what model.json records of it."""
-    from .materials import find_materials, material_lobes_on, material_prior, reject_contradicted_lobes
+    from .materials import (contradiction_test, find_materials, material_lobes_on, material_prior,
+                            reject_contradicted_lobes)
 
     mcfg = cfg.materials
     lay = result.layout
@@ -413,9 +414,14 @@ def fit_with_materials(problem, result: FitResult, evidence: TexelEvidence, k: i
     for j in range(lay.n_lobes):
         o = lay.lobe_offset(j)
         bare[:, o:o + 3] = 0.0
-    f_mat = per_texel_objective(problem, material_lobes_on(evidence.params, mats.labels, mats, lay))
-    f_bare = per_texel_objective(problem, bare)
-    contradicted = f_mat - f_bare > mcfg.contradiction * np.maximum(f_bare, 1e-30)
+    with_lobe = material_lobes_on(evidence.params, mats.labels, mats, lay)
+    doubled = with_lobe.copy()
+    for j in range(lay.n_lobes):
+        o = lay.lobe_offset(j)
+        doubled[:, o:o + 3] *= 2.0
+    f_mat, f_bare = per_texel_objective(problem, with_lobe), per_texel_objective(problem, bare)
+    contradicted = contradiction_test(f_bare, f_mat, per_texel_objective(problem, doubled), evidence.samples,
+                                      evidence.sigma2, mcfg.contradiction)
     mats.contradicted_share = reject_contradicted_lobes(mats, mats.labels, seen, evidence.constrained, contradicted,
                                                         mcfg.max_contradicted)
     prior = material_prior(evidence.params, evidence.jtj, seen, evidence.constrained, mats.labels, mats, lay,
