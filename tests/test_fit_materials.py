@@ -23,8 +23,8 @@ import numpy as np
 import pytest
 import warp as wp
 
-from texstream.fit.materials import (MaterialConfig, find_materials, kmeans, lobe_columns, material_prior,
-                                     reject_contradicted_lobes, texel_uncertainty)
+from texstream.fit.materials import (MaterialConfig, contradiction_test, find_materials, kmeans, lobe_columns,
+                                     material_prior, reject_contradicted_lobes, texel_uncertainty)
 from texstream.fit.models import ModelLayout
 
 from test_fit_gradients import (assert_full_dhd_matches_second_difference, assert_gradient_matches_finite_differences,
@@ -199,6 +199,19 @@ def test_find_materials_recovers_lobes_and_no_lobe():
     np.testing.assert_allclose(prior.start[lobe_mat, o + 5], found.lobes[found.labels[lobe_mat], o + 5])
     assert (prior.centre[truth == 2, o:o + 3] == 0).all()
     assert prior.weights[constrained].max() < 1e-3 * prior.weights[lobe_mat][:, o + 5].min()
+
+
+def test_contradiction_test_reads_the_lobe_against_its_own_energy():
+    """Texels of residuals a (lobe-free model minus photos) and a lobe l on 20 samples: photos dark where
+    the lobe shines (a = 0) contradict it, photos showing it (a = -l) or 60% of it do not, and a lobe
+    too faint to show above the residual level (sigma^2) says nothing either way."""
+    rng = np.random.default_rng(4)
+    lobe = np.abs(rng.normal(size=(5, 20)))
+    a = np.stack([0.0 * lobe[0], -lobe[1], -0.6 * lobe[2], 0.2 * lobe[3] + 0.01, 0.0 * lobe[4]])
+    lobe[4] *= 1e-4
+    f = [0.5 * ((a + k * lobe) ** 2).sum(1) for k in (0, 1, 2)]
+    got = contradiction_test(*f, samples=np.full(5, 20 / 3), sigma2=1e-6, level=0.5)
+    np.testing.assert_array_equal(got, [True, False, False, True, False])
 
 
 def test_contradicted_material_loses_its_lobe():
