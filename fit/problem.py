@@ -341,6 +341,7 @@ class PhotoSet:
         self.window = self.n if cfg.photos_per_window <= 0 else min(self.n, int(cfg.photos_per_window))
         self.streamed = self.window < self.n
         self.infos = wp.array(infos, dtype=stream.ImageInfo, device=device)
+        self.info_list = infos
         if self.streamed:
             pinned = device != "cpu"
             self.host_images = wp.array(stack, dtype=img_dtype, device="cpu", pinned=pinned)
@@ -388,6 +389,7 @@ class PhotoSet:
         self.window = self.n
         self.streamed = False
         self.infos = wp.array(infos, dtype=stream.ImageInfo, device=device)
+        self.info_list = infos
         self.images = wp.array(stack, dtype=img_dtype, device=device)
         self.depth = wp.array(depth, dtype=wp.float32, device=device)
         self.shadow = wp.full((self.n, 2, 2), np.inf, dtype=wp.float32, device=device)
@@ -422,6 +424,38 @@ class PhotoSet:
         info.sh_size = size
         return True
 
+    def subset(self, indices) -> "PhotoSet":
+        """The photos ``indices`` of this set (with their depth and shadow maps, mesh and window size) as a
+        PhotoSet of their own, without loading or rendering anything again: e.g. a fit on part of the
+        photos judged on the rest (fit/materials.py). One copy through the host, at set-up."""
+        idx = np.asarray(indices, np.int64).reshape(-1)
+        if idx.size == 0 or idx.min() < 0 or idx.max() >= self.n:
+            raise InputError(f"photo subset {idx.tolist()[:8]} is empty or outside 0..{self.n - 1}",
+                             fix="report this with the command that made it")
+        out = PhotoSet.__new__(PhotoSet)
+        out.__dict__.update(self.__dict__)
+        out.n = int(idx.size)
+        out.light_kinds = [self.light_kinds[k] for k in idx]
+        out.exposures = [self.exposures[k] for k in idx]
+        out.info_list = [self.info_list[k] for k in idx]
+        dev = self.device
+        out.infos = wp.array(out.info_list, dtype=stream.ImageInfo, device=dev)
+        src = (self.host_images, self.host_depth, self.host_shadow) if self.streamed else (self.images, self.depth, self.shadow)
+        images, depth, shadow = (np.ascontiguousarray(a.numpy()[idx]) for a in src)
+        out.window = min(self.window, out.n)
+        out.streamed = out.window < out.n
+        if out.streamed:  # the window buffers are shared: the two sets are never streamed at once
+            pinned = dev != "cpu"
+            out.host_images = wp.array(images, dtype=self.images.dtype, device="cpu", pinned=pinned)
+            out.host_depth = wp.array(depth, dtype=wp.float32, device="cpu", pinned=pinned)
+            out.host_shadow = wp.array(shadow, dtype=wp.float32, device="cpu", pinned=pinned)
+        else:
+            out.images = wp.array(images, dtype=self.images.dtype, device=dev)
+            out.depth = wp.array(depth, dtype=wp.float32, device=dev)
+            out.shadow = wp.array(shadow, dtype=wp.float32, device=dev)
+        out.image_bytes = int(images.nbytes)
+        return out
+
     def windows(self):
         """Yield (images, depth, shadow, infos, begin, end) device views, uploading windows when streamed."""
         if not self.streamed:
@@ -454,6 +488,7 @@ class StreamProblem:
         self.robust = stream.ROBUST_NONE
         self.robust_scale = 0.0
         self.prior_lam = 0.0  # the view terms' ridge prior (set_view_prior)
+        self.material_centre = self.material_weights = None  # the shared materials' prior (set_material_prior)
         if cfg.storage not in PRECISIONS:
             raise ConfigError(f"storage precision {cfg.storage!r} unknown", fix="use fp16, fp32 or fp64")
         self.scalar, self.vec, self.mat = _vec_types(cfg.accumulate, layout.n_params)
@@ -537,11 +572,39 @@ class StreamProblem:
         w[lay.view_offset(0):] = 1.0
         self.prior_weights = self.vec(*w)
 
-    def _add_prior(self, params, f, g, act, direction=None, dhd=None, jtj=None) -> None:
+    def set_material_prior(self, centre: np.ndarray | None, weights: np.ndarray | None = None) -> None:
+        """The shared materials' prior (fit/materials.py): 1/2 sum_k w_ik (p_ik - c_ik)^2 per texel, a
+        quadratic pull of each texel's parameters towards a centre of its own (its material's lobe)
+        with weights of its own (zero on the columns it leaves free), both (N, n_params), in objective
+        units per squared parameter unit. Added to every pass's objective, gradient, d^T H d, Jacobi
+        diagonal and J^T J, on the device. ``None`` removes it."""
+        if centre is None:
+            self.material_centre = self.material_weights = None
+            return
+        c = np.asarray(centre, np.float64)
+        w = np.asarray(weights, np.float64)
+        shape = (self.n, self.layout.n_params)
+        if c.shape != shape or w.shape != shape:
+            raise ConfigError(f"material prior centre {c.shape} and weights {w.shape} must both be {shape}")
+        if not (np.isfinite(c).all() and np.isfinite(w).all() and (w >= 0).all()):
+            raise ConfigError("material prior has non-finite centres or negative weights",
+                              fix="report this with the command that made it")
+        self.material_centre = self.new_vec(c)
+        self.material_weights = self.new_vec(w)
+
+    def _add_prior(self, params, f, g, act, direction=None, dhd=None, jtj=None, diag=None) -> None:
+        want = direction is not None and dhd is not None
+        if self.material_centre is not None:
+            wp.launch(K.centred_prior_kernel, dim=self.n, device=self.device,
+                      inputs=[params, direction if want else self.no_direction, self.material_centre,
+                              self.material_weights, act, self.layout.n_params, int(want), int(diag is not None)],
+                      outputs=[f, g, dhd if want else f, diag if diag is not None else g])
+            if jtj is not None:
+                wp.launch(K.centred_prior_diag_kernel, dim=self.n, device=self.device,
+                          inputs=[self.material_weights, act, self.layout.n_params], outputs=[jtj])
         if self.prior_lam <= 0:
             return
         lam = self.scalar(self.prior_lam)
-        want = direction is not None and dhd is not None
         wp.launch(K.quadratic_prior_kernel, dim=self.n, device=self.device,
                   inputs=[params, direction if want else self.no_direction, self.prior_weights, lam, act,
                           self.layout.n_params, int(want)],
@@ -687,7 +750,7 @@ class StreamProblem:
                 wp.launch(stream.reduce_vec_partials_kernel, dim=self.n, device=self.device,
                           inputs=[self.pdiag, self.groups, 0 if first else 1], outputs=[diag])
             first = False
-        self._add_prior(params, f, g, act, direction, dhd)
+        self._add_prior(params, f, g, act, direction, dhd, diag=diag)
         self.passes += 1
 
     def ph_scratch(self) -> wp.array:

@@ -23,6 +23,7 @@ from texstream.core.config import check_config, option
 from texstream.core.outputs import StageResult, atomic_output_dir, read_json, write_json_atomic
 
 from .fitter import FitConfig, FitResult, light_view_angles, resumable, run_fit
+from .materials import MaterialConfig
 from .model_folder import image_metrics, plot_trace  # noqa: F401  (re-exported: tests and benchmarks use them here)
 from .models import ModelLayout
 
@@ -55,6 +56,9 @@ class FitStageConfig:
     min_seen_fraction: float = option(0.01, "fail before fitting when fewer than this fraction of the atlas's texels "
                                             "is seen by any photo (the mesh faces away or is in another frame)",
                                       min=0.0)
+    materials: MaterialConfig = option(default_factory=MaterialConfig,
+                                       help="shared materials: texels whose lobe no photo constrained borrow their "
+                                            "material's (fit/materials.py)")
     fit: FitConfig = option(default_factory=FitConfig, help="the fit", flat=True)
 
 
@@ -370,6 +374,156 @@ def lobes_in_use(params: np.ndarray, layout: ModelLayout, seen: np.ndarray) -> l
             for j in range(layout.n_lobes)]
 
 
+def data_jtj(problem, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(J^T J (N, P, P), trace stats (N, 4)) of the data term at ``params``: one Gauss-Newton pass (the
+    problem's material prior, if any, left out)."""
+    import warp as wp
+
+    held = (problem.material_centre, problem.material_weights)
+    problem.material_centre = problem.material_weights = None
+    try:
+        f, g = problem.new_scalar(), problem.new_vec()
+        jtj = wp.zeros(problem.n, dtype=problem.mat, device=problem.device)
+        stats = wp.zeros(problem.n, dtype=wp.vec4d, device=problem.device)
+        problem.evaluate_lm(problem.new_storage(params), f, g, jtj, stats)
+        return jtj.numpy().astype(np.float64), stats.numpy()
+    finally:
+        problem.material_centre, problem.material_weights = held
+
+
+@dataclasses.dataclass
+class TexelEvidence:
+    """What a per-texel fit's photos say about each texel's lobe (fit/materials.py steps 1-2)."""
+
+    params: np.ndarray
+    samples: np.ndarray
+    jtj: np.ndarray
+    sigma2: float
+    uncertainty: np.ndarray
+    """(N, 3) relative std of rho_s, of n, std of c_z (materials.texel_uncertainty)"""
+    constrained: np.ndarray
+
+
+def texel_evidence(problem, result: FitResult, mcfg: MaterialConfig) -> TexelEvidence:
+    """J^T J, residual variance and uncertainty of a per-texel fit's lobes, and which are constrained."""
+    from .materials import residual_variance, texel_uncertainty
+
+    jtj, stats = data_jtj(problem, result.params)
+    sigma2 = residual_variance(stats[result.samples > 0])
+    unc = texel_uncertainty(jtj, result.params, result.layout, sigma2)
+    constrained = (result.samples > 0) & (unc[:, 0] < mcfg.constrained_rel_std) & (unc[:, 1] < mcfg.constrained_rel_std)
+    return TexelEvidence(result.params, result.samples, jtj, sigma2, unc, constrained)
+
+
+def fit_with_materials(problem, result: FitResult, evidence: TexelEvidence, k: int, variant: str,
+                       cfg: "FitStageConfig") -> tuple[FitResult, dict]:
+    """The materials model with ``k`` materials (fit/materials.py): cluster, prior, Levenberg-Marquardt from
+    the per-texel fit ``result``. Returns the fit and what model.json records of it."""
+    from .materials import (contradiction_test, find_materials, material_lobes_on, material_prior,
+                            reject_contradicted_lobes)
+
+    mcfg = cfg.materials
+    lay = result.layout
+    seen = evidence.samples > 0
+    mats = find_materials(evidence.params, seen, evidence.constrained, lay, k, mcfg.min_lobe_share,
+                          mcfg.spread_floor)
+    bare = evidence.params.copy()
+    for j in range(lay.n_lobes):
+        o = lay.lobe_offset(j)
+        bare[:, o:o + 3] = 0.0
+    with_lobe = material_lobes_on(evidence.params, mats.labels, mats, lay)
+    doubled = with_lobe.copy()
+    for j in range(lay.n_lobes):
+        o = lay.lobe_offset(j)
+        doubled[:, o:o + 3] *= 2.0
+    f_mat, f_bare = per_texel_objective(problem, with_lobe), per_texel_objective(problem, bare)
+    contradicted = contradiction_test(f_bare, f_mat, per_texel_objective(problem, doubled), evidence.samples,
+                                      evidence.sigma2, mcfg.contradiction)
+    mats.contradicted_share = reject_contradicted_lobes(mats, mats.labels, seen, evidence.constrained, contradicted,
+                                                        mcfg.max_contradicted)
+    prior = material_prior(evidence.params, evidence.jtj, seen, evidence.constrained, mats.labels, mats, lay,
+                           evidence.sigma2, contradicted, mcfg, variant)
+    problem.set_material_prior(prior.centre, prior.weights)
+    try:
+        fit = dataclasses.replace(cfg.fit, max_iterations=mcfg.iterations, optimizer="lm")
+        res = run_fit(problem, fit, start=(prior.start, evidence.samples))
+    finally:
+        problem.set_material_prior(None)
+    info = {"variant": variant, "k": mats.k, "materials": mats.to_json(lay),
+            "borrowed_texels": int(prior.borrow.sum()), "no_lobe_texels": int(prior.no_lobe.sum()),
+            "contradicted_texels": int((contradicted & seen & ~evidence.constrained).sum()),
+            "labels": mats.labels, "borrow_mask": prior.borrow, "no_lobe_mask": prior.no_lobe}
+    return res, info
+
+
+def model_grid(params: np.ndarray, result: FitResult, problem, bake, cfg: "FitStageConfig", seams=None) -> np.ndarray:
+    """(H, W, P) maps of compact ``params`` as the stage writes them: padding, unseen texels, seams."""
+    res = dataclasses.replace(result, params=params)
+    grid = params_to_grid(res, problem, bake)
+    if cfg.unseen == "nearest":
+        grid, _ = fill_unseen_texels(grid, problem, bake, res)
+    grid, _ = average_seams_in_bounds(grid, seams, result.layout)
+    return grid
+
+
+def choose_materials(inputs: "FitInputs", problem, cfg: "FitStageConfig", log=None) -> dict:
+    """Pick the per-texel or a materials model (variant and K) on a validation split of the fitted photos:
+    every ``materials.validation_every``-th fitted photo is held back, the per-texel fit and every
+    candidate are fitted to the rest and scored by their renders of the validation photos (pooled
+    PSNR; ties within 0.05 dB go to the simpler model). The fit's own held-out photos play no part.
+    Returns the choice and every candidate's score, or {"chosen": "per-texel", "reason": ...} when the
+    fitted photos are too few to split."""
+    from .fitter import initial_guess
+    from .problem import StreamProblem
+
+    mcfg = cfg.materials
+    every = mcfg.validation_every
+    n = len(inputs.frames)
+    val = [i for i in range(n) if i % every == every - 1]
+    train = [i for i in range(n) if i % every != every - 1]
+    if len(val) < 2 or len(train) < 2:
+        return {"chosen": "per-texel", "reason": f"{n} fitted photos are too few for a validation split of every "
+                                                 f"{every}th"}
+    t0 = time.perf_counter()
+    sub = StreamProblem(problem.texels, problem.photos.subset(train), problem.layout, problem.cfg, problem.device)
+    res = run_fit(sub, cfg.fit, start=initial_guess(sub, cfg.fit))
+    frames = [inputs.frames[i] for i in val]
+    images = [inputs.images[i] for i in val]
+    masks = [np.ones(inputs.images[i].shape[:2], bool) if inputs.masks[i] is None else inputs.masks[i] for i in val]
+
+    def score(params) -> dict:
+        grid = model_grid(params, res, sub, inputs.bake, cfg, inputs.seams)
+        views, _ = heldout_psnr(inputs.mesh, grid, res.layout, frames, images, masks, cfg.device)
+        pooled = float(-10 * np.log10(np.mean([10 ** (-v / 10) for v in views])))
+        return {"pooled_psnr_db": pooled, "worst_psnr_db": float(min(views))}
+
+    cands = []
+    params, _ = drop_unsupported_lobes(sub, res, cfg.lobe_support)
+    cands.append({"model": "per-texel", **score(params)})
+    if mcfg.mode == "on":
+        cands[0]["excluded"] = "materials mode on"
+    evidence = texel_evidence(sub, res, mcfg)
+    for variant in mcfg.variant_list():
+        for k in range(1, mcfg.max_materials + 1):
+            r, info = fit_with_materials(sub, res, evidence, k, variant, cfg)
+            if info["k"] < k:
+                break  # fewer distinct albedos than k: no new model
+            cands.append({"model": variant, "k": info["k"], **score(r.params)})
+            if log is not None:
+                log(f"[fit] validation: {variant} K={k}: pooled {cands[-1]['pooled_psnr_db']:.2f} dB, "
+                    f"worst {cands[-1]['worst_psnr_db']:.2f} dB")
+    eligible = [c for c in cands if "excluded" not in c]
+    best = eligible[0]
+    for c in eligible[1:]:
+        if c["pooled_psnr_db"] > best["pooled_psnr_db"] + 0.05:
+            best = c
+    name = best["model"] + (f" K={best['k']}" if "k" in best else "")
+    return {"chosen": best["model"], "k": best.get("k"), "validation_photos": len(val), "fitted_on": len(train),
+            "candidates": cands, "seconds": time.perf_counter() - t0,
+            "reason": f"{name}: best pooled PSNR on {len(val)} validation photos (every {every}th fitted photo), "
+                      f"{best['pooled_psnr_db']:.2f} dB against per-texel {cands[0]['pooled_psnr_db']:.2f} dB"}
+
+
 def average_seams_in_bounds(grid: np.ndarray, seams, layout: ModelLayout) -> tuple[np.ndarray, dict | None]:
     """Tie the texels across chart seams (no cracks in bilinear lookups), keeping every value in its
     bounds; returns the maps and what model.json records of the seams."""
@@ -422,8 +576,26 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     result = run_fit_with_progress(problem, cfg.fit, progress, start=start,
                                    **({"checkpoint": ckpt.save, "resume": resume} if ckpt else {}))
     lay = result.layout
-    params, lobes_dropped = drop_unsupported_lobes(problem, result, cfg.lobe_support)
-    result = dataclasses.replace(result, params=params)
+    materials_info, evidence, borrowed = None, None, None
+    if lay.n_lobes and cfg.materials.mode != "off":
+        with phase("fit", f"materials: per-texel or shared lobes, judged on a validation split of the fitted photos"):
+            choice = choose_materials(inputs, problem, cfg)
+            evidence = texel_evidence(problem, result, cfg.materials)
+        materials_info = {"mode": cfg.materials.mode, **choice}
+    if materials_info is not None and materials_info["chosen"] != "per-texel":
+        with phase("fit", f"materials: {materials_info['reason']}"):
+            res_m, info = fit_with_materials(problem, result, evidence, materials_info["k"], materials_info["chosen"], cfg)
+        labels = info.pop("labels")
+        materials_info.update(info)
+        borrowed = (info, labels, res_m)
+        t_end = result.trace[-1]["time_s"]
+        extra = [{**r, "iteration": r["iteration"] + len(result.trace), "time_s": r["time_s"] + t_end, "stage": "materials"}
+                 for r in res_m.trace]
+        lobes_dropped = np.zeros(problem.n, bool)
+        result = dataclasses.replace(res_m, trace=result.trace + extra, passes=problem.passes)
+    else:
+        params, lobes_dropped = drop_unsupported_lobes(problem, result, cfg.lobe_support)
+        result = dataclasses.replace(result, params=params)
     grid, filled = params_to_grid(result, problem, bake), 0
     if cfg.unseen == "nearest":
         grid, filled = fill_unseen_texels(grid, problem, bake, result)
@@ -451,8 +623,28 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
 
             kept = np.zeros(bake.height * bake.width, np.float32)
             kept[problem.texels.grid_index] = np.where(lobes_dropped, 0.5, (result.samples > 0).astype(np.float32))
+            if borrowed is not None:
+                # white: own lobe, grey: the material's lobe borrowed, dark grey: no lobe (material without one,
+                # or photos that contradict it), black: unseen or padding
+                prior_borrow, prior_none = borrowed[0]["borrow_mask"], borrowed[0]["no_lobe_mask"]
+                kept[problem.texels.grid_index] = np.where(result.samples > 0, np.where(
+                    prior_none, 0.25, np.where(prior_borrow, 0.5, 1.0)), 0.0).astype(np.float32)
             # white: lobe kept, grey: lobe dropped (no photo saw its highlight), black: unseen or padding
             write_image(tmp / "lobes.png", np.repeat(kept.reshape(bake.height, bake.width, 1), 3, axis=2), bits=8)
+        if evidence is not None:
+            from texstream.capture.imageio import write_image
+
+            unc = np.zeros((bake.height * bake.width, 3), np.float32)
+            unc[problem.texels.grid_index] = np.minimum(evidence.uncertainty, 1e6)
+            # relative std of rho_s, relative std of n, std of c_z; 1e6: not constrained at all
+            write_image(tmp / "uncertainty.exr", unc.reshape(bake.height, bake.width, 3), bits=32)
+            if borrowed is not None:
+                lab = np.full(bake.height * bake.width, -1, np.int64)
+                lab[problem.texels.grid_index] = borrowed[1]
+                palette = np.array([[0.9, 0.6, 0.1], [0.1, 0.6, 0.2], [0.8, 0.8, 0.8], [0.2, 0.3, 0.9],
+                                    [0.8, 0.1, 0.1], [0.6, 0.2, 0.8], [0.1, 0.8, 0.8], [0.5, 0.4, 0.2]], np.float32)
+                colours = np.where(lab[:, None] >= 0, palette[np.maximum(lab, 0) % len(palette)], 0.0)
+                write_image(tmp / "materials.png", colours.reshape(bake.height, bake.width, 3), bits=8)
         last = result.trace[-1]
         at_bounds, warnings = bound_report(result.params, lay, result.samples > 0)
         manifest = {"mesh": "mesh.obj", "bake": "bake.npz", "warnings": warnings, "at_bounds": at_bounds,
@@ -464,6 +656,7 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
                     "photos": {"fitted": len(frames), "held_out": len(held)},
                     "final": {k: last[k] for k in ("iteration", "time_s", "objective", "psnr_db", "ape_percent")},
                     "lobe_shape": lobe_shape_report(cfg.fit, lay, frames, problem.texels.position),
+                    "materials": _materials_manifest(materials_info, evidence, cfg.materials),
                     "seams": seams_info, "setup_s": t_setup, "passes": result.passes, "device": cfg.device,
                     "render_eval": evals, "heldout": pooled_psnr([e for e in evals if e["held_out"]]),
                     "units": UNITS[lay.kind]}
@@ -475,7 +668,20 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
                                        "time_s": last["time_s"], "texels": problem.n, "photos": len(frames),
                                        "resumed_from": None if resume is None else int(resume["iteration"]),
                                        "render_eval": evals, "warnings": warnings,
-                                       "heldout": manifest["heldout"]})
+                                       "heldout": manifest["heldout"], "materials": manifest["materials"]})
+
+
+def _materials_manifest(info: dict | None, evidence: TexelEvidence | None, mcfg: MaterialConfig) -> dict | None:
+    """What model.json records of the materials choice (no masks or label arrays)."""
+    if info is None:
+        return None
+    out = {k: v for k, v in info.items() if not k.endswith("_mask")}
+    if evidence is not None:
+        seen = evidence.samples > 0
+        out["uncertainty"] = {"map": "uncertainty.exr", "channels": ["rho_s relative std", "n relative std", "c_z std"],
+                              "residual_variance": evidence.sigma2, "constrained_rel_std": mcfg.constrained_rel_std,
+                              "constrained_texels": int(evidence.constrained.sum()), "seen_texels": int(seen.sum())}
+    return out
 
 
 def check_output_path(out_dir: str | Path) -> None:

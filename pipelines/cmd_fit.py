@@ -41,6 +41,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--renders", type=int, default=4, help="photos rendered beside the fit (default: 4)")
     parser.add_argument("--min-seen-fraction", dest="min_seen_fraction", type=float, default=0.01,
                         help="fail before fitting when fewer than this fraction of texels is seen (default: 0.01)")
+    from texstream.fit.materials import MaterialConfig
+
+    add_config_arguments(parser, MaterialConfig, prefix="materials.")  # shared materials (fit/materials.py)
     add_config_arguments(parser, FitConfig)  # with the four above: the fields of FitStageConfig
 
 
@@ -59,9 +62,12 @@ def run(args: argparse.Namespace) -> int:
                          args.capture, "add --mesh ATLAS_OR_MESH or --normals NORMAL_MAP")
     if args.normals is not None:
         return _run_single_view(args, fit_cfg)
-    cfg = FitStageConfig(fit=fit_cfg, **{k: getattr(args, k) for k in ("device", "texture_size", "holdout_every", "renders",
-                                                                  "min_seen_fraction")
-                                         if hasattr(args, k)})
+    from texstream.fit.materials import MaterialConfig
+
+    cfg = FitStageConfig(fit=fit_cfg, materials=config_from_args(MaterialConfig, args, prefix="materials."),
+                         **{k: getattr(args, k) for k in ("device", "texture_size", "holdout_every", "renders",
+                                                          "min_seen_fraction")
+                            if hasattr(args, k)})
     res = fit_stage(args.capture, args.mesh, args.out, cfg)
     s = res.summary
     print(f"wrote {res.output}: {s['texels']} texels from {s['photos']} photos, {s['iterations']} iterations in "
@@ -71,6 +77,9 @@ def run(args: argparse.Namespace) -> int:
     h = s.get("heldout") or {}
     if h.get("views"):
         print(f"  held out: {h['views']} views, pooled PSNR {h['pooled_psnr_db']:.2f} dB, worst {h['worst_psnr_db']:.2f} dB")
+    m = s.get("materials") or {}
+    if m.get("reason"):
+        print(f"  materials: {m['reason']}")
     for w in s.get("warnings", []):
         print(f"  warning: {w}")
     return 0

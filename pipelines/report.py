@@ -276,8 +276,10 @@ def plot_comparison(photo: np.ndarray, render: np.ndarray, mask: np.ndarray | No
     plt.close(fig)
 
 
-def param_map_figures(grid: np.ndarray, info: dict, seen: np.ndarray | None, folder: Path) -> list[tuple[str, str]]:
-    """PNG previews of each parameter map; returns (file name, caption) pairs."""
+def param_map_figures(grid: np.ndarray, info: dict, seen: np.ndarray | None, folder: Path,
+                      model_dir: Path | None = None) -> list[tuple[str, str]]:
+    """PNG previews of each parameter map (and, from ``model_dir``, the lobe uncertainty and the shared
+    materials when the fit wrote them); returns (file name, caption) pairs."""
     plt = _plt()
     from texstream.capture.imageio import linear_to_srgb
 
@@ -329,6 +331,24 @@ def param_map_figures(grid: np.ndarray, info: dict, seen: np.ndarray | None, fol
     if seen is not None:
         save("seen", seen.reshape(seen.shape[0], seen.shape[1], -1)[..., 0], "texels some fitted photo saw (1) "
              "or none did (0: they keep default values)", cmap="gray", vmin=0, vmax=1)
+    if model_dir is not None and (Path(model_dir) / "uncertainty.exr").is_file():
+        from texstream.capture.imageio import read_image
+
+        unc = read_image(Path(model_dir) / "uncertainty.exr", channels=3)
+        save("uncertainty_n", np.log10(np.clip(unc[..., 1], 1e-4, 1e6)),
+             "how well the photos constrain each texel's lobe exponent: log10 of the relative standard deviation "
+             "of n from J^T J (above -1, i.e. 10%: the texel borrows its material's lobe; 6: not seen at all)",
+             cmap="magma", vmin=-4, vmax=2, colorbar_label="log10 std(n) / n")
+    if model_dir is not None and (Path(model_dir) / "materials.png").is_file():
+        from texstream.capture.imageio import read_image
+
+        lobes = (read_image(Path(model_dir) / "lobes.png", channels=3) if (Path(model_dir) / "lobes.png").is_file()
+                 else None)
+        save("materials", read_image(Path(model_dir) / "materials.png", channels=3, linear=False),
+             "shared materials: each texel's material (one colour each)")
+        if lobes is not None:
+            save("lobes", lobes[..., 0], "lobes: own (white), borrowed from the material (grey), none (dark grey)",
+                 cmap="gray", vmin=0, vmax=1)
     return out
 
 
@@ -656,7 +676,7 @@ def write_report(out_dir: str | Path, stages: list[dict], model_dir: str | Path,
         sections.append(VIEWER_HTML.replace("%%KIND_NOTE%%", _e(kind_note)))
 
         # ---- parameter maps
-        maps = param_map_figures(grid, info, seen, tmp / "maps")
+        maps = param_map_figures(grid, info, seen, tmp / "maps", model_dir)
         lay_html = ""
         if info["layout"] is not None:
             lay = info["layout"]

@@ -609,3 +609,50 @@ def quadratic_prior_diag_kernel(weights: Any, lam: Any, active: wp.array(dtype=w
     for k in range(n_params):
         h[k, k] = h[k, k] + lam * weights[k]
     jtj[i] = h
+
+
+@wp.kernel
+def centred_prior_kernel(params: wp.array2d(dtype=Any), direction: wp.array2d(dtype=Any), centre: wp.array(dtype=Any),
+                         weights: wp.array(dtype=Any), active: wp.array(dtype=wp.int32), n_params: int, want_dhd: int,
+                         want_diag: int, f: wp.array(dtype=Any), g: wp.array(dtype=Any), dhd: wp.array(dtype=Any),
+                         diag: wp.array(dtype=Any)):
+    """Adds the prior P_i = 1/2 sum_k w_ik (p_ik - c_ik)^2 with a centre ``c_i`` and weights ``w_i`` of
+    texel i's own (the shared materials' prior, fit/materials.py) to its objective, w_i (p_i - c_i) to
+    its gradient, (``want_dhd``) sum_k w_ik d_k^2 to its d^T H d and (``want_diag``) w_i to its
+    Gauss-Newton diagonal (the Jacobi preconditioner); inactive texels are left as they are."""
+    i = wp.tid()
+    if active[i] == 0:
+        return
+    c = centre[i]
+    w = weights[i]
+    zero = w[0] - w[0]
+    pen = zero
+    curv = zero
+    gi = g[i]
+    for k in range(n_params):
+        e = type(zero)(params[i, k]) - c[k]
+        pen = pen + w[k] * e * e
+        gi[k] = gi[k] + w[k] * e
+        if want_dhd != 0:
+            dk = type(zero)(direction[i, k])
+            curv = curv + w[k] * dk * dk
+    f[i] = f[i] + type(zero)(0.5) * pen
+    g[i] = gi
+    if want_dhd != 0:
+        dhd[i] = dhd[i] + curv
+    if want_diag != 0:
+        diag[i] = diag[i] + w
+
+
+@wp.kernel
+def centred_prior_diag_kernel(weights: wp.array(dtype=Any), active: wp.array(dtype=wp.int32), n_params: int,
+                              jtj: wp.array(dtype=Any)):
+    """Adds the centred prior's Hessian diag(w_i) to texel i's Gauss-Newton matrix (:func:`centred_prior_kernel`)."""
+    i = wp.tid()
+    if active[i] == 0:
+        return
+    h = jtj[i]
+    w = weights[i]
+    for k in range(n_params):
+        h[k, k] = h[k, k] + w[k]
+    jtj[i] = h
