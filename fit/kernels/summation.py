@@ -79,3 +79,33 @@ def streamed_sums(terms, method: str, device: str = "cpu"):
     out = wp.zeros(trials, dtype=wp.float64 if method == "fp64" else wp.float32, device=device)
     wp.launch(kernel, dim=trials, inputs=[a], outputs=[out], device=device)
     return out.numpy().astype(np.float64)
+
+
+# the chapter-6 sign mixes: per texel, 3 channel terms per photo
+ERROR_SUMS = ("error_gaussian", "error_near_constant", "error_wide")
+"""all-positive error terms r^2 / 2 (seed eq. 6.6): Gaussian residuals; a residual biased to 0.1 with 1%
+noise (every term nearly equal: the worst case for a serial sum); residuals spanning 10^-3 to 10
+(dark texels to highlights)"""
+GRADIENT_SUMS = ("gradient_zero_mean", "gradient_biased")
+"""mixed-sign gradient terms r dm/dp (seed eq. 6.12), dm/dp uniform in [0, 1]: zero-mean residuals (near
+convergence: the sum cancels to ~0) and residuals biased by +0.3 (far from it)"""
+
+
+def study_terms(kind: str, trials: int, n: int, seed: int = 0):
+    """(trials, n) float32 terms of one sign mix (:data:`ERROR_SUMS`, :data:`GRADIENT_SUMS`)."""
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    shape = (trials, n)
+    if kind == "error_gaussian":
+        r = rng.standard_normal(shape, np.float32)
+    elif kind == "error_near_constant":
+        r = np.float32(0.1) * (1 + np.float32(0.01) * rng.standard_normal(shape, np.float32))
+    elif kind == "error_wide":
+        r = rng.standard_normal(shape, np.float32) * (10.0 ** rng.uniform(-3, 1, shape)).astype(np.float32)
+    elif kind in GRADIENT_SUMS:
+        r = rng.standard_normal(shape, np.float32) + np.float32(0.3 if kind == "gradient_biased" else 0.0)
+        return (r * rng.uniform(0, 1, shape).astype(np.float32)).astype(np.float32)
+    else:
+        raise ValueError(f"term kind {kind!r} unknown")
+    return (np.float32(0.5) * r * r).astype(np.float32)
