@@ -13,6 +13,8 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
+from conftest import DEVICES
+
 from texstream.fit.fpcheck import (FORMATS, FpcheckConfig, exact_basic, exact_result, exact_sqrt,
                                    exact_transcendental, fpcheck, markdown_report, round_exact, schryer_pairs,
                                    schryer_significands, ulp, ulp_error, write_report)
@@ -127,7 +129,7 @@ def test_cli_writes_the_report_and_rejects_a_missing_device(tmp_path, capsys):
     from texstream.pipelines.cli import main
 
     out = tmp_path / "fp"
-    args = ["fpcheck", "--dtype", "float32", "--max-significands", "8", "--random-pairs", "50",
+    args = ["fpcheck", "--device", DEVICES[0], "--dtype", "float32", "--max-significands", "8", "--random-pairs", "50",
             "--random-transcendental", "20", "-o", str(out)]
     assert main(args) == 0
     assert (out / "fpcheck.json").is_file() and (out / "fpcheck.md").is_file()

@@ -14,6 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import DEVICES
+
 from texstream.core.errors import ConfigError
 from texstream.fit.kernels.summation import ERROR_SUMS, streamed_sums, study_terms
 from texstream.fit.problem import FP32_SAFE_PHOTOS, FP32_SAFE_TOLERANCE, StreamConfig, resolve_accumulate
@@ -81,7 +83,7 @@ def test_problem_uses_the_resolved_precision(monkeypatch):
     from texstream.fit.models import ModelLayout
 
     monkeypatch.setattr(problem_module, "FP32_SAFE_PHOTOS", 2)  # a threshold small photo sets cross
-    many, _ = plane_problem("cpu", ModelLayout(), n_photos=3, grid=2, acc="auto")
-    few, _ = plane_problem("cpu", ModelLayout(), n_photos=2, grid=2, acc="auto")
+    many, _ = plane_problem(DEVICES[0], ModelLayout(), n_photos=3, grid=2, acc="auto")
+    few, _ = plane_problem(DEVICES[0], ModelLayout(), n_photos=2, grid=2, acc="auto")
     assert many.accumulate == "fp64" and many.scalar is wp.float64
     assert few.accumulate == "fp32" and few.scalar is wp.float32
