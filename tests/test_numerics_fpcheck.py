@@ -114,8 +114,9 @@ def test_fpcheck_measures_every_operation(device, tmp_path):
             elif op in ("div", "sqrt") and device == "cpu":
                 assert -0.5 <= lo <= hi <= 0.5, (name, op, lo, hi)
             else:
-                # CUDA documents div/sqrt as correctly rounded without fast math, expf within 2 ULP, logf 1,
-                # powf 4 (CUDA C programming guide, mathematical functions): 4 ULPs bounds all of them
+                # CUDA documents div / sqrt as correctly rounded without fast math and its exp / log / pow
+                # within a few ULPs of the correctly rounded result (CUDA C programming guide, mathematical
+                # functions); the H100 measured at most 1.77 (float32 exp): 4 ULPs leaves room for other cards
                 assert -4 <= lo <= hi <= 4, (name, op, lo, hi)
         if device == "cpu":
             assert all(c["rounds_to_nearest_even"] for c in per["paranoia"]), name
