@@ -218,11 +218,25 @@ class PhotoFrame:
                           float(frame.exposure), math.inf if frame.saturation is None else float(frame.saturation))
 
 
+FP32_SAFE_TOLERANCE = 5e-6
+"""relative error of a texel's error sum E that the automatic choice allows a plain float32 accumulation: half
+of issue 20's 1e-5, a margin for sign mixes and term orders the study did not try (the float32 error grows
+about linearly with the photo count there, so this is also about a factor 2 in photos)"""
+FP32_SAFE_PHOTOS = 1000
+"""the largest photo count per texel (3 channel terms each) at which every all-positive error sum of the
+summation study (benchmarks/summation.py, benchmarks/results/summation_cpu) stayed within
+:data:`FP32_SAFE_TOLERANCE` summed naively in float32, one photo after another as a CPU pass does (a GPU pass
+splits the photos into groups, shorter chains: it is safer still)"""
+
+
 @dataclasses.dataclass
 class StreamConfig:
     """Numerical and streaming options of the evaluation passes."""
 
-    accumulate: str = option("fp32", "accumulator and compute precision of the passes", choices=("fp32", "fp64"))
+    accumulate: str = option("auto", "accumulator and compute precision of the passes: auto picks fp32 up to "
+                                      f"{FP32_SAFE_PHOTOS:,} photos and fp64 above (where the summation study found "
+                                      "fp32 sums of the error outside 5e-6 relative; docs/numerics.md)",
+                             choices=("auto", "fp32", "fp64"))
     storage: str = option("fp32", "parameter storage precision", choices=("fp16", "fp32", "fp64"))
     image_precision: str = option("fp32", "photo storage on the device (fp16 halves the streamed bytes)",
                                   choices=("fp32", "fp16"))
@@ -257,6 +271,16 @@ class StreamConfig:
     cuda_max_registers: int = option(-1, "registers per CUDA thread of the accumulation kernels: 0 uncapped, -1 "
                                          "168 for layouts of at most 9 parameters (docs/gpu-performance.md)",
                                      min=-1)
+
+def resolve_accumulate(accumulate: str, photos: int) -> str:
+    """The accumulate precision a pass uses: "fp32" or "fp64" as given; "auto": fp32 up to
+    :data:`FP32_SAFE_PHOTOS` photos, fp64 above (every pass kind honours it, LM's too, unlike Kahan)."""
+    if accumulate in ("fp32", "fp64"):
+        return accumulate
+    if accumulate == "auto":
+        return "fp32" if photos <= FP32_SAFE_PHOTOS else "fp64"
+    raise ConfigError(f"accumulate precision {accumulate!r} unknown", fix="use auto, fp32 or fp64")
+
 
 def _vec_types(acc: str, n_params: int):
     """(scalar, parameter vector, parameter matrix) types of the accumulate precision."""
@@ -491,7 +515,9 @@ class StreamProblem:
         self.material_centre = self.material_weights = None  # the shared materials' prior (set_material_prior)
         if cfg.storage not in PRECISIONS:
             raise ConfigError(f"storage precision {cfg.storage!r} unknown", fix="use fp16, fp32 or fp64")
-        self.scalar, self.vec, self.mat = _vec_types(cfg.accumulate, layout.n_params)
+        self.accumulate = resolve_accumulate(cfg.accumulate, photos.n)
+        """the accumulate precision in use ("fp32" or "fp64"; ``cfg.accumulate`` "auto" resolved)"""
+        self.scalar, self.vec, self.mat = _vec_types(self.accumulate, layout.n_params)
         self.storage_dtype = PRECISIONS[cfg.storage]
         n = texels.n
         self.n = n

@@ -34,6 +34,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "export": ("texstream.pipelines.cmd_export", "glTF binary and OBJ+MTL of a fitted model, for viewers and DCC tools"),
     "eval": ("texstream.pipelines.cmd_eval", "PSNR / APE of a fitted model on a capture"),
     "preview": ("texstream.pipelines.cmd_preview", "contact sheet of a capture folder"),
+    "fpcheck": ("texstream.pipelines.cmd_fpcheck", "error in ULPs of the device's floating-point operations (Warp)"),
 }
 
 

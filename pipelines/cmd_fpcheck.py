@@ -1,0 +1,31 @@
+"""``texstream fpcheck [--device cpu|cuda:0] [--dtype float16|float32|float64] [-o DIR]``: floating-point error
+of the device's operations as Warp compiles them (the dissertation's appendix A; fit/fpcheck.py)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from texstream.fit.fpcheck import FpcheckConfig
+    from texstream.pipelines.cli import add_config_arguments
+
+    parser.add_argument("-o", "--out", default=None,
+                        help="output folder for fpcheck.json and fpcheck.md (default: fpcheck-DEVICE)")
+    add_config_arguments(parser, FpcheckConfig)
+
+
+def run(args: argparse.Namespace) -> int:
+    import warp as wp
+
+    from texstream.fit.fpcheck import FpcheckConfig, fpcheck, write_report
+    from texstream.pipelines.cli import config_from_args
+
+    wp.config.quiet = True
+    cfg = config_from_args(FpcheckConfig, args)
+    out = Path(args.out) if args.out else Path(f"fpcheck-{cfg.device.replace(':', '')}")
+    result = fpcheck(cfg)
+    json_path, md_path = write_report(result, out)
+    print(f"wrote {json_path} and {md_path}")
+    return 0
