@@ -80,6 +80,9 @@ class LFMConfig:
     rel_tol: float = option(1e-7, "streaming fit: stop when the objective's relative decrease over sync_every "
                                   "iterations is below this", min=0.0)
     sync_every: int = option(5, "streaming fit: iterations between reads of the objective", min=1)
+    balance_every: int = option(10, "streaming fit: every k iterations equalise the norms of each term's surface "
+                                    "and view maps per patch (the g h scale gauge; costs a pass and restarts CG); "
+                                    "0 = never", min=0)
     nmf_iterations: int = option(200, "nmf: multiplicative update iterations", min=1)
     render_view: str = option("point", "rendering: each vertex's view map read along the direction from the shaded "
                                        "point (point, the interpolated view of Chen et al.'s renderer) or from the "
@@ -257,15 +260,20 @@ class LFMParams:
     H: np.ndarray
 
 
-def initial_view_maps(n_vertices: int, terms: int, res: int, mapping: str) -> np.ndarray:
-    """(V, K, M, 3) starting view maps: term k is the k-th of 1, u, v, u^2 + v^2 - 1/2 over the map
-    (u, v the texel centre's coordinates in [-1, 1]); zero outside the mask. With the surface maps
-    at 0 the first gradient moves only the surface maps, onto these view functions."""
+_INIT_MIX = np.array([[1.0, 0.7, 0.5, 0.3], [-0.6, 1.0, 0.4, -0.5], [0.3, -0.4, 1.0, 0.6], [0.5, 0.2, -0.3, 1.0]])
+
+
+def initial_view_maps(n_vertices: int, terms: int, res: int, mapping: str, offset: float = 0.0) -> np.ndarray:
+    """(V, K, M, 3) starting view maps: term k is a fixed mix (row k of ``_INIT_MIX``) of u, v,
+    u^2 + v^2 - 1/2 and u v over the map (u, v the texel centre's coordinates in [-1, 1]), plus
+    ``offset``; zero outside the mask. Not the constant: with the mean subtracted every vertex
+    light field is orthogonal to a constant view map, a saddle of the objective (zero gradient).
+    With the surface maps at 0 the first gradient moves only the surface maps, onto these."""
     c = (np.arange(res) + 0.5) / res * 2.0 - 1.0
     u, v = np.meshgrid(c, c)
-    basis = [np.ones_like(u), u, v, u * u + v * v - 0.5]
+    basis = np.stack([u, v, u * u + v * v - 0.5, u * v]).reshape(4, -1)
     m = view_mask(res, mapping).astype(np.float64)
-    h = np.stack([basis[k].reshape(-1) * m for k in range(terms)], 0)        # (K, M)
+    h = (_INIT_MIX[:terms] @ basis + offset) * m                               # (K, M)
     return np.broadcast_to(h[None, :, :, None], (n_vertices, terms, res * res, 3)).copy()
 
 
@@ -458,7 +466,8 @@ def fit_lfm(problem: LFMProblem, max_iterations: int | None = None, time_budget_
     iters = int(cfg.iterations if max_iterations is None else max_iterations)
     K = pr.K
     G = pr.new_G(G0)
-    H = pr.new_H(initial_view_maps(pr.V, K, pr.R, cfg.view_map) if H0 is None else H0)
+    offset = 2.0 if cfg.bounds == "nonnegative" else 0.0   # keeps the start inside the bounds
+    H = pr.new_H(initial_view_maps(pr.V, K, pr.R, cfg.view_map, offset) if H0 is None else H0)
     TG, TH = pr.new_G(), pr.new_H()
     gG, gH, tgG, tgH = pr.new_G(), pr.new_H(), pr.new_G(), pr.new_H()
     oG, oH = pr.new_G(), pr.new_H()            # gradient before the step (Polak-Ribiere)
@@ -507,6 +516,14 @@ def fit_lfm(problem: LFMProblem, max_iterations: int | None = None, time_budget_
         wp.launch(LK.direction_G_kernel, dim=shape_G, device=dev, inputs=[gG, beta, pr.slot_vertex], outputs=[DG])
         wp.launch(LK.direction_H_kernel, dim=shape_H, device=dev, inputs=[gH, beta, K, pr.mask], outputs=[DH])
         wp.copy(gg_old, gg_new)
+        if cfg.balance_every and it % cfg.balance_every == 0:
+            wp.launch(LK.balance_kernel, dim=pr.V, device=dev, inputs=[pr.ring_start, pr.ring_slots, K, pr.M],
+                      outputs=[G, H])
+            pr.evaluate(G, H, f, gG, gH)
+            beta.zero_()
+            wp.launch(LK.direction_G_kernel, dim=shape_G, device=dev, inputs=[gG, beta, pr.slot_vertex], outputs=[DG])
+            wp.launch(LK.direction_H_kernel, dim=shape_H, device=dev, inputs=[gH, beta, K, pr.mask], outputs=[DH])
+            pr.patch_dot(gG, gG, gH, gH, gg_old)
         if it % cfg.sync_every == 0 or it == iters:
             obj = pr.total(f)
             trace.append({"iteration": it, "time_s": time.perf_counter() - t0, "objective": obj})

@@ -77,9 +77,10 @@ def test_gradient_and_curvature_match_finite_differences(device, lookup, mapping
     gG, gH = pr.new_G(), pr.new_H()
     pr.evaluate(pr.new_G(G), pr.new_H(H), f, gG, gH)
     gG, gH = gG.numpy().reshape(G.shape), gH.numpy().reshape(H.shape)
-    step = 1e-5
-    # the objective is a quartic polynomial in the parameters: central differences with step 1e-5 are
-    # exact to ~1e-10 truncation plus ~1e-16 / 1e-5 rounding of an O(1) objective, so 1e-7 relative
+    step = 1e-2
+    # the model is linear in each single surface- or view-map entry, so the objective is quadratic in it
+    # and central differences have no truncation error; what is left is rounding, ~1e-16 x E (~5e3)
+    # / step = 5e-11 against derivatives of O(0.1): 1e-8 relative
     checked = 0
     for _ in range(12):
         s, k, c = rng.integers(pr.S), rng.integers(pr.K), rng.integers(3)
@@ -87,7 +88,7 @@ def test_gradient_and_curvature_match_finite_differences(device, lookup, mapping
         Gp[s, k, c] += step
         Gm[s, k, c] -= step
         fd = (total_objective(pr, Gp, H) - total_objective(pr, Gm, H)) / (2 * step)
-        assert fd == pytest.approx(gG[s, k, c], rel=1e-7, abs=1e-9)
+        assert fd == pytest.approx(gG[s, k, c], rel=1e-8, abs=1e-9)
         checked += abs(fd) > 1e-6
     touched = np.flatnonzero(np.abs(gH).sum(axis=3).reshape(-1) > 0)  # (vertex, term, texel) some sample reads
     for _ in range(12):
@@ -97,7 +98,7 @@ def test_gradient_and_curvature_match_finite_differences(device, lookup, mapping
         Hp[v, k, q, c] += step
         Hm[v, k, q, c] -= step
         fd = (total_objective(pr, G, Hp) - total_objective(pr, G, Hm)) / (2 * step)
-        assert fd == pytest.approx(gH[v, k, q, c], rel=1e-7, abs=1e-9)
+        assert fd == pytest.approx(gH[v, k, q, c], rel=1e-8, abs=1e-9)
         checked += abs(fd) > 1e-6
     assert checked >= 12, "most checked entries should have a non-trivial derivative"
     # d^T H d: the derivative of g(x + a d).d at a = 0, per patch (patches share no parameter)
@@ -112,8 +113,11 @@ def test_gradient_and_curvature_match_finite_differences(device, lookup, mapping
         d = pr.new_patch()
         pr.patch_dot(gG2, pr.new_G(DG), gH2, pr.new_H(DH), d)
         return d.numpy()
-    fd = (slope(step) - slope(-step)) / (2 * step)
-    np.testing.assert_allclose(dhd.numpy(), fd, rtol=1e-6, atol=1e-8)  # same truncation / rounding as above
+    # g(x + a d).d is a cubic in a, so the five-point stencil (exact to degree 4) has no truncation
+    # error at a = 0.1; rounding ~1e-16 x |g.d| (~1e3) / 0.1: 1e-8 relative
+    a = 0.1
+    fd = (8 * (slope(a) - slope(-a)) - (slope(2 * a) - slope(-2 * a))) / (12 * a)
+    np.testing.assert_allclose(dhd.numpy(), fd, rtol=1e-8, atol=1e-8)
     assert np.all(gn.numpy() >= 0)
 
 
@@ -204,7 +208,7 @@ def rank_k_case(device, K: int, cfg: LFMConfig, seed: int = 1):
 
 @pytest.mark.parametrize("K", [1, 2])
 def test_exact_rank_k_light_field_is_recovered(device, K):
-    cfg = LFMConfig(terms=K, view_res=8, lookup="nearest", laplacian=0.0, iterations=400, rel_tol=0.0,
+    cfg = LFMConfig(terms=K, view_res=8, lookup="nearest", laplacian=0.0, iterations=150, rel_tol=0.0,
                     sync_every=10)
     pr = rank_k_case(device, K, cfg)
     res = fit_lfm(pr)
@@ -213,7 +217,9 @@ def test_exact_rank_k_light_field_is_recovered(device, K):
     # every sample, the full model: d plus the three vertex light fields)
     assert err["relative_rms"] < 1e-4, err
     objs = [t["objective"] for t in res.trace]
-    assert all(b <= a * (1 + 1e-12) for a, b in zip(objs, objs[1:])), "per-patch acceptance never raises E"
+    # per-patch acceptance never raises E; the gauge balancing re-evaluates E, equal up to rounding
+    # (1e-12 relative, plus 1e-24 of the start once E is down to round-off itself)
+    assert all(b <= a * (1 + 1e-12) + 1e-24 * objs[0] for a, b in zip(objs, objs[1:]))
 
 
 def test_cg_hessian_beats_steepest_descent(device):

@@ -576,3 +576,27 @@ def render_lfm_kernel(mesh_id: wp.uint64, points: wp.array(dtype=wp.vec3), indic
     acc = acc / wsum
     mask[j, i] = wp.uint8(1)
     radiance[j, i] = wp.vec3(float(acc[0]), float(acc[1]), float(acc[2]))
+
+
+@wp.kernel
+def balance_kernel(ring_start: wp.array(dtype=wp.int32), ring_slots: wp.array(dtype=wp.int32), n_terms: int, m: int,
+                   G: wp.array2d(dtype=wp.vec3d), H: wp.array2d(dtype=wp.vec3d)):
+    """Per vertex, term and channel, fix the scale gauge of g h (g c, h / c change nothing): scale so
+    that the patch's surface-map and view-map norms are equal (better conditioned for CG)."""
+    v = wp.tid()
+    for k in range(n_terms):
+        ng = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+        nh = ng
+        for e in range(ring_start[v], ring_start[v + 1]):
+            ng = ng + wp.cw_mul(G[ring_slots[e], k], G[ring_slots[e], k])
+        row = v * n_terms + k
+        for q in range(m):
+            nh = nh + wp.cw_mul(H[row, q], H[row, q])
+        sc = wp.vec3d(wp.float64(1.0), wp.float64(1.0), wp.float64(1.0))
+        for c in range(3):
+            if ng[c] > wp.float64(0.0) and nh[c] > wp.float64(0.0):
+                sc[c] = wp.pow(nh[c] / ng[c], wp.float64(0.25))
+        for e in range(ring_start[v], ring_start[v + 1]):
+            G[ring_slots[e], k] = wp.cw_mul(G[ring_slots[e], k], sc)
+        for q in range(m):
+            H[row, q] = wp.cw_div(H[row, q], sc)
