@@ -223,10 +223,13 @@ def test_exact_rank_k_light_field_is_recovered(device, K):
 
 
 def test_cg_hessian_beats_steepest_descent(device):
-    """The dissertation's comparison (Fig. 7.2): CG with the Hessian step reaches in 25 iterations at
-    least the error of 250 steepest-descent iterations with a backtracking step."""
+    """The dissertation's comparison (Fig. 7.2): CG with the Hessian step (and the default gauge
+    balancing) reaches in 25 iterations at least the error of 250 iterations of the dissertation's
+    steepest descent (backtracking step, no gauge balancing). Steepest descent *with* the balancing is
+    far stronger than the dissertation's (docs/lfm.md), so this compares the methods as published."""
     base = dict(terms=2, view_res=8, lookup="nearest", laplacian=0.0, rel_tol=0.0, sync_every=5)
     cg = fit_lfm(rank_k_case(device, 2, LFMConfig(**base, iterations=25)))
-    sd = fit_lfm(rank_k_case(device, 2, LFMConfig(**base, iterations=250, optimizer="sd", step="backtrack")))
+    sd = fit_lfm(rank_k_case(device, 2, LFMConfig(**base, iterations=250, optimizer="sd", step="backtrack",
+                                                        balance_every=0)))
     assert cg.trace[-1]["objective"] <= sd.trace[-1]["objective"], (cg.trace[-1], sd.trace[-1])
     assert math.isfinite(cg.trace[-1]["objective"])
