@@ -222,26 +222,25 @@ class PhotoSamples:
     """The photos of a :class:`texstream.fit.problem.PhotoSet` streamed through the distribution step
     (fit/kernels/stream.py ``observe``, light free, bilinear photo sampling at the texel centre)."""
 
-    def __init__(self, photos, frames, texels, stream_cfg, device: str):
+    def __init__(self, problem, frames):
+        """``problem``: a radiance :class:`texstream.fit.problem.StreamProblem` over the texels and
+        photos (it holds the texel frames and sample options the distribution step reads)."""
         from .kernels import stream
-        from .problem import StreamProblem
-        from .models import ModelLayout
 
+        photos = problem.photos
         if getattr(photos, "streamed", False):
             raise ConfigError("the LFM fit keeps every photo on the device", fix="set stream.photos_per_window to 0")
-        if stream_cfg.image_precision != "fp32":
+        if problem.cfg.image_precision != "fp32":
             raise ConfigError("the LFM fit reads fp32 photos", fix="set stream.image_precision to fp32")
-        cfg = dataclasses.replace(stream_cfg, photo_sampling="bilinear", model_lookup="texel", tap_geometry="plane")
-        # a radiance problem holds the texel frames and sample options the distribution step reads
-        self.problem = StreamProblem(texels, photos, ModelLayout(kind="radiance"), cfg, device=device)
+        self.problem = problem
         self.photos = photos
         self.n_photos = photos.n
-        self.n = texels.n
-        self.opt = self.problem.opt
+        self.n = problem.n
+        self.opt = problem.opt
         self.opt.sampling = int(stream.SAMPLING_BILINEAR)
         self.centers = np.array([-(np.asarray(f.R).T @ np.asarray(f.t)) for f in frames], np.float64)
         self.exposures = np.array(photos.exposures, np.float64)
-        self.device = device
+        self.device = problem.device
 
     def load(self, p: int, obs_y: wp.array, obs_e: wp.array) -> None:
         ph = self.photos

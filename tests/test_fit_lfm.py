@@ -233,3 +233,22 @@ def test_cg_hessian_beats_steepest_descent(device):
                                                         balance_every=0)))
     assert cg.trace[-1]["objective"] <= sd.trace[-1]["objective"], (cg.trace[-1], sd.trace[-1])
     assert math.isfinite(cg.trace[-1]["objective"])
+
+
+def test_pca_and_nmf_baselines(device):
+    """Chen et al.'s methods on the exactly rank-K light field: PCA recovers it (the nearest-view
+    resampling copies a seen direction's column into the unseen ones, so the matrices stay rank K),
+    NMF approximates it (non-negative after the minimum, but rank K + 1 then: approximate only)."""
+    from texstream.fit.lfm_baselines import fit_nmf, fit_pca
+
+    cfg = LFMConfig(terms=2, view_res=8, lookup="nearest", laplacian=0.0)
+    pr = rank_k_case(device, 2, cfg)
+    params, info = fit_pca(pr)
+    err = pr.model_error(pr.new_G(params.G), pr.new_H(params.H))
+    assert err["relative_rms"] < 1e-8, err   # an SVD of exact data: round-off only
+    assert info["matrix_bytes"] > 0 and info["samples_bytes"] == pr.samples.n_photos * pr.N * 4 * 8
+    params, _ = fit_nmf(pr, iterations=300)
+    nmf = pr.model_error(pr.new_G(params.G), pr.new_H(params.H))
+    zero = pr.model_error(pr.new_G(), pr.new_H())  # the minimum alone
+    # NMF of a rank-K + 1 matrix with K terms: a fraction of the minimum-only error is left
+    assert nmf["relative_rms"] < 0.5 * zero["relative_rms"], (nmf, zero)
