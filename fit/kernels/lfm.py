@@ -574,6 +574,8 @@ def render_lfm_kernel(mesh_id: wp.uint64, points: wp.array(dtype=wp.vec3), indic
     if wsum <= wp.float64(0.0):
         return
     acc = acc / wsum
+    # radiance is not negative: the mean-subtracted terms may extrapolate below 0 in unseen directions
+    acc = wp.vec3d(wp.max(acc[0], wp.float64(0.0)), wp.max(acc[1], wp.float64(0.0)), wp.max(acc[2], wp.float64(0.0)))
     mask[j, i] = wp.uint8(1)
     radiance[j, i] = wp.vec3(float(acc[0]), float(acc[1]), float(acc[2]))
 
