@@ -35,102 +35,116 @@ def gather_samples(problem: LFMProblem) -> tuple[np.ndarray, np.ndarray]:
     return Y, E
 
 
-def resample(problem: LFMProblem, Y: np.ndarray, E: np.ndarray, diffuse: np.ndarray, chunk: int = 32):
-    """Per vertex light-field matrices, padded: (V, Rmax, M, 3) values L_j(s) (y / e - d(s)) at the
-    discrete views (0 in padding rows, unseen texels and view texels outside the mask), and the
-    (V, Rmax) slot of each row (-1 for padding)."""
+def resample_chunks(problem: LFMProblem, Y: np.ndarray, E: np.ndarray, diffuse: np.ndarray,
+                    budget: int = 2_000_000):
+    """Yield the vertex light-field matrices in chunks of vertices of similar ring size (sorted),
+    padded to the chunk's largest ring: (vertex ids (v,), values (v, r, M, 3) L_j(s) (y / e - d(s))
+    at the discrete views, 0 in padding rows, unseen texels and view texels outside the mask;
+    slot of each row (v, r), -1 for padding). ``budget``: padded matrix entries per chunk."""
     g = problem.geom
-    V, M = problem.V, problem.M
+    M = problem.M
     counts = np.diff(g.ring_start)
-    rmax = int(counts.max()) if counts.size else 0
-    rows = -np.ones((V, rmax), np.int64)
-    col = np.arange(rmax)[None, :]
-    valid = col < counts[:, None]
-    rows[valid] = g.ring_slots[(g.ring_start[:-1][:, None] + col)[valid]]
     dirs = view_directions(problem.R, problem.cfg.view_map)                       # (M, 3) local
     mask = view_mask(problem.R, problem.cfg.view_map).astype(bool)
     centers = problem.samples.centers                                             # (P, 3)
     seen = E > 0                                                                  # (P, N)
     radiance = np.where(seen[..., None], Y / np.where(seen, E, 1.0)[..., None], 0.0)
-    F = np.zeros((V, rmax, M, 3))
-    for b in range(0, V, chunk):
-        vs = np.arange(b, min(b + chunk, V))
+    order = np.argsort(counts, kind="stable")
+    b = 0
+    while b < order.size:
+        r = max(int(counts[order[b]]), 1)
+        e = b + 1
+        while e < order.size and (e - b + 1) * max(int(counts[order[e]]), 1) * M <= budget:
+            e += 1
+        vs = order[b:e]
+        b = e
+        r = max(int(counts[vs].max()), 1)
+        col = np.arange(r)[None, :]
+        valid = col < counts[vs][:, None]
+        sl = -np.ones((vs.size, r), np.int64)
+        sl[valid] = g.ring_slots[(g.ring_start[vs][:, None] + col)[valid]]
         w = centers[None, :, :] - g.vpos[vs][:, None, :]                        # (v, P, 3)
         w /= np.linalg.norm(w, axis=2, keepdims=True)
         frame = np.stack([g.vtan[vs], g.vbit[vs], g.vnrm[vs]], 1)                 # (v, 3, 3)
         local = np.einsum("vpk,vjk->vpj", w, frame)
-        cos = np.einsum("mj,vpj->vmp", dirs, local)                               # (v, M, P)
-        sl = rows[vs]                                                             # (v, r)
+        cos = np.einsum("mj,vpj->vpm", dirs, local)                               # (v, P, M)
         tex = np.maximum(sl, 0) // 3
-        vis = seen[:, tex].transpose(1, 2, 0) & (sl >= 0)[..., None]              # (v, r, P)
-        score = np.where(vis[:, :, None, :], cos[:, None, :, :], -np.inf)         # (v, r, M, P)
-        best = score.argmax(axis=3)                                               # (v, r, M)
-        any_vis = vis.any(axis=2)                                                 # (v, r)
-        val = radiance[best, tex[:, :, None]]                                     # (v, r, M, 3)
+        best_cos = np.full((vs.size, r, M), -np.inf)
+        val = np.zeros((vs.size, r, M, 3))
+        for p in range(Y.shape[0]):                                               # nearest seen photo per view
+            vis = seen[p, tex] & (sl >= 0)                                        # (v, r)
+            better = vis[:, :, None] & (cos[:, p][:, None, :] > best_cos)
+            best_cos = np.where(better, cos[:, p][:, None, :], best_cos)
+            val = np.where(better[..., None], radiance[p, tex][:, :, None, :], val)
+        any_vis = np.isfinite(best_cos[:, :, 0])
         hat = g.slot_hat[np.maximum(sl, 0)]
         block = hat[:, :, None, None] * (val - diffuse[tex][:, :, None, :])
         block *= (any_vis[:, :, None] & mask[None, None, :])[..., None]
-        F[vs] = block
-    return F, rows
+        yield vs, block, sl
 
 
-def _to_params(problem: LFMProblem, diffuse, rows, W, Hm) -> LFMParams:
-    """Padded factors W (V, Rmax, K, 3) and Hm (V, K, M, 3) into the model's slot / view-map arrays."""
-    G = np.zeros((problem.S, problem.K, 3))
-    ok = rows >= 0
-    G[rows[ok]] = W[ok]
-    return LFMParams(diffuse.copy(), G, Hm * view_mask(problem.R, problem.cfg.view_map)[None, None, :, None])
-
-
-def fit_pca(problem: LFMProblem) -> tuple[LFMParams, dict]:
-    """Chen et al.'s PCA: per vertex and channel the rank-K truncated SVD of the resampled matrix
-    (mean per texel subtracted: ``problem`` must use diffuse "mean"). Returns the parameters and
-    timings (resampling, factorization) and the matrices' memory."""
+def _factor(problem: LFMProblem, method: str, iterations: int):
+    """Resample and factorize chunk by chunk; returns (LFMParams, info)."""
     t0 = time.perf_counter()
-    problem.compute_diffuse("mean")
+    problem.compute_diffuse("mean" if method == "pca" else "min")
     diffuse = problem.diffuse.numpy()
     Y, E = gather_samples(problem)
-    F, rows = resample(problem, Y, E, diffuse)
-    t1 = time.perf_counter()
-    K = problem.K
-    Fc = np.moveaxis(F, 3, 1)                                                     # (V, 3, r, M)
-    U, S, Vt = np.linalg.svd(Fc, full_matrices=False)
-    k = min(K, S.shape[-1])
-    W = np.zeros(Fc.shape[:3] + (K,))
-    W[..., :k] = U[..., :k] * S[..., None, :k]
-    Hm = np.zeros(Fc.shape[:2] + (K, Fc.shape[3]))
-    Hm[:, :, :k] = Vt[:, :, :k]
-    params = _to_params(problem, diffuse, rows, np.moveaxis(W, 1, 3), np.moveaxis(Hm, 1, 3))
-    t2 = time.perf_counter()
-    return params, {"resample_s": t1 - t0, "factor_s": t2 - t1, "total_s": t2 - t0,
-                    "samples_bytes": int(Y.nbytes + E.nbytes), "matrix_bytes": int(F.nbytes)}
-
-
-def fit_nmf(problem: LFMProblem, iterations: int = 200) -> tuple[LFMParams, dict]:
-    """Chen et al.'s NMF: per vertex and channel, Lee-Seung multiplicative updates (Frobenius) of a
-    rank-K non-negative factorization of the resampled matrix (minimum per texel subtracted)."""
-    t0 = time.perf_counter()
-    problem.compute_diffuse("min")
-    diffuse = problem.diffuse.numpy()
-    Y, E = gather_samples(problem)
-    F, rows = resample(problem, Y, E, diffuse)
-    F = np.maximum(F, 0.0)
-    t1 = time.perf_counter()
-    K = problem.K
-    Fc = np.moveaxis(F, 3, 1)                                                     # (V, 3, r, M)
-    V, C, R, M = Fc.shape
+    t_resample = time.perf_counter() - t0
+    K, M = problem.K, problem.M
     m = view_mask(problem.R, problem.cfg.view_map).astype(np.float64)
+    G = np.zeros((problem.S, K, 3))
+    H = np.zeros((problem.V, K, M, 3))
+    matrix_bytes = 0
+    t_factor = 0.0
+    t1 = time.perf_counter()
+    for vs, F, sl in resample_chunks(problem, Y, E, diffuse):
+        t2 = time.perf_counter()
+        t_resample += t2 - t1
+        matrix_bytes += int((sl >= 0).sum()) * M * 3 * 8
+        Fc = np.moveaxis(F, 3, 1)                                                 # (v, 3, r, M)
+        if method == "pca":
+            U, S, Vt = np.linalg.svd(Fc, full_matrices=False)
+            k = min(K, S.shape[-1])
+            W = np.zeros(Fc.shape[:3] + (K,))
+            W[..., :k] = U[..., :k] * S[..., None, :k]
+            Hm = np.zeros(Fc.shape[:2] + (K, M))
+            Hm[:, :, :k] = Vt[:, :, :k]
+        else:
+            W, Hm = _nmf(np.maximum(Fc, 0.0), K, m, problem.R, iterations)
+        ok = sl >= 0
+        G[sl[ok]] = np.moveaxis(W, 1, 3)[ok]
+        H[vs] = np.moveaxis(Hm, 1, 3) * m[None, None, :, None]
+        t1 = time.perf_counter()
+        t_factor += t1 - t2
+    params = LFMParams(diffuse, G, H)
+    return params, {"resample_s": t_resample, "factor_s": t_factor, "total_s": t_resample + t_factor,
+                    "samples_bytes": int(Y.nbytes + E.nbytes), "matrix_bytes": matrix_bytes}
+
+
+def _nmf(Fc: np.ndarray, K: int, m: np.ndarray, res: int, iterations: int):
+    """Lee-Seung multiplicative updates on (v, 3, r, M) non-negative matrices; (W, H) factors."""
+    V, C, R, M = Fc.shape
     scale = np.sqrt(np.maximum(Fc.mean(axis=(2, 3), keepdims=True), 1e-12) / K)
-    c = (np.arange(problem.R) + 0.5) / problem.R * 2.0 - 1.0
+    c = (np.arange(res) + 0.5) / res * 2.0 - 1.0
     u, v = np.meshgrid(c, c)
     basis = np.stack([np.ones_like(u), 1 + 0.5 * u, 1 + 0.5 * v, 1.5 - 0.5 * (u * u + v * v)]).reshape(4, -1)[:K]
     Hm = np.broadcast_to(basis * m, (V, C, K, M)) * scale
-    W = np.ones((V, C, R, K)) * scale * (np.abs(Fc).sum(axis=3, keepdims=True) > 0)
+    W = np.ones((V, C, R, K)) * scale * (Fc.sum(axis=3, keepdims=True) > 0)
     eps = 1e-12
     for _ in range(int(iterations)):
         Hm = Hm * (np.einsum("vcrk,vcrm->vckm", W, Fc) / (np.einsum("vcrk,vcrj,vcjm->vckm", W, W, Hm) + eps))
         W = W * (np.einsum("vcrm,vckm->vcrk", Fc, Hm) / (np.einsum("vcrj,vcjm,vckm->vcrk", W, Hm, Hm) + eps))
-    params = _to_params(problem, diffuse, rows, np.moveaxis(W, 1, 3), np.moveaxis(Hm, 1, 3))
-    t2 = time.perf_counter()
-    return params, {"resample_s": t1 - t0, "factor_s": t2 - t1, "total_s": t2 - t0,
-                    "samples_bytes": int(Y.nbytes + E.nbytes), "matrix_bytes": int(F.nbytes)}
+    return W, Hm
+
+
+def fit_pca(problem: LFMProblem) -> tuple[LFMParams, dict]:
+    """Chen et al.'s PCA: per vertex and channel the rank-K truncated SVD of the resampled matrix
+    (the per-texel mean subtracted: d = mean). Returns the parameters and timings (resampling,
+    factorization) and memory (all samples; the resampled matrices, unpadded)."""
+    return _factor(problem, "pca", 0)
+
+
+def fit_nmf(problem: LFMProblem, iterations: int = 200) -> tuple[LFMParams, dict]:
+    """Chen et al.'s NMF: per vertex and channel, Lee-Seung multiplicative updates (Frobenius) of a
+    rank-K non-negative factorization of the resampled matrix (the per-texel minimum subtracted)."""
+    return _factor(problem, "nmf", iterations)
