@@ -27,6 +27,7 @@ from .optim.linesearch import LineSearchConfig, line_search
 from .optim.lm import LevenbergMarquardt
 from .optim.steepest import SteepestDescent
 from .penalties import PenaltyConfig, Penalties
+from .lfm import LFMConfig
 from .problem import StreamConfig, StreamProblem, no_light_error
 
 OPTIMIZERS = ("sd", "cg", "lbfgs", "lm")
@@ -39,8 +40,9 @@ class FitConfig:
     model: str = option("lafortune", "appearance model: lafortune or diffuse (reflectance, need a known light per "
                                      "photo), radiance (view-independent radiance under the photos' one fixed, "
                                      "unknown lighting; ignores lights) or view_radiance (that radiance as a "
-                                     "biquadratic of the view direction, fit/models.py)",
-                        choices=("lafortune", "diffuse", "radiance", "view_radiance"))
+                                     "biquadratic of the view direction, fit/models.py) or lfm (light field mapping: "
+                                     "vertex light fields of surface maps x view maps, fit/lfm.py; options --lfm.*)",
+                        choices=("lafortune", "diffuse", "radiance", "view_radiance", "lfm"))
     view_prior: float = option(0.5, "view_radiance: ridge prior pulling each texel's view terms to 0, in samples' "
                                     "worth of squared residual per unit coefficient (a texel seen from few directions "
                                     "stays view-independent); 0 = none", min=0.0)
@@ -102,6 +104,7 @@ class FitConfig:
     linesearch: LineSearchConfig = option(default_factory=LineSearchConfig, help="line search")
     penalties: PenaltyConfig = option(default_factory=PenaltyConfig, help="penalties")
     stream: StreamConfig = option(default_factory=StreamConfig, help="streaming and numerics")
+    lfm: LFMConfig = option(default_factory=LFMConfig, help="light field mapping (--model lfm)")
 
     def loss(self, layout: ModelLayout) -> str:
         """The robust loss the fit uses for ``layout`` (``robust_loss`` with auto resolved)."""

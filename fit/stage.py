@@ -555,6 +555,10 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     cfg = config or FitStageConfig()
     check_config(cfg)
     check_output_path(out_dir)
+    if cfg.fit.model == "lfm":  # light field mapping: its own problem and model folder (fit/lfm_stage.py)
+        from .lfm_stage import lfm_fit_stage
+
+        return lfm_fit_stage(capture_dir, mesh_path, out_dir, cfg, progress)
     from texstream.core.progress import phase
 
     t0 = time.perf_counter()
@@ -712,7 +716,15 @@ def eval_stage(model_dir: str | Path, capture_dir: str | Path, device: str = "cp
 
     from .model_folder import check_render, pooled_psnr
 
-    mesh, grid, lay, _ = load_model(model_dir)
+    if read_json(Path(model_dir) / "model.json", what="model manifest").get("layout", {}).get("kind") == "lfm":
+        from .lfm_stage import load_lfm_renderer
+
+        render = load_lfm_renderer(model_dir, device)
+    else:
+        mesh, grid, lay, _ = load_model(model_dir)
+
+        def render(f):
+            return render_model(mesh, grid, lay, f, device)
     capture = read_capture(capture_dir)
     frames = split_holdout(capture.frames, holdout_every)[1] if holdout_every > 0 else capture.frames
     if not frames:
@@ -723,7 +735,7 @@ def eval_stage(model_dir: str | Path, capture_dir: str | Path, device: str = "cp
     rows = []
     for f in bar(frames, "eval", unit="view"):
         photo = read_image(capture.image_path(f), channels=3)
-        rend, rmask = render_model(mesh, grid, lay, f, device)
+        rend, rmask = render(f)
         check_render(rend, f.file_path)
         m = rmask.astype(bool)
         mp = capture.mask_path(f)

@@ -1,0 +1,542 @@
+"""Light field mapping (LFM) fitted by image streaming (issue 18; Hillesland 2005 sec. 2.4, 5.3-5.6, ch. 7).
+
+The model (Chen et al. 2002): the surface light field f(s, w) of an object under one fixed, unknown
+lighting is the view-independent "diffuse" term d(s) plus, per vertex v of the mesh, a *vertex
+light field* weighted by v's barycentric hat function and approximated by K terms of surface map
+times view map:
+
+    f(s, w) = d(s) + sum_{j = 0..2} sum_{k < K} g_k^{(t, v_j)}(s) h_k^{v_j}(w_{v_j})
+
+for s on face t with vertices v_0..v_2. The surface maps are laid out in the atlas: every covered
+texel holds, per vertex of its owner face (a *slot*) and per term, an RGB value. The view maps are
+R x R per (vertex, term), over the hemisphere of the vertex's frame (the Nusselt "disk" mapping of
+the dissertation or hemi-octahedral), looked up nearest or bilinear. Vertices are welded by
+position (an atlas splits them at UV seams), so a view map covers its vertex's whole ring.
+
+The fit (``fit_lfm``): d is the per-texel mean (least-squares constant, PCA-style) or minimum
+(NMF-style) of the texel's samples, computed in one streaming pass; then one patch per (vertex,
+channel) minimises its vertex light field's squared error over every photo (fit/kernels/lfm.py),
+with the view maps' Laplacian on the masked disk stencil. Patches share no parameter, so each
+takes its own step and accepts it on its own (Eq. 7.6). Conjugate gradient (Polak-Ribiere+) with
+the Hessian step size -g.d / d^T H d is the default (the dissertation's best); steepest descent and
+a backtracking step are there to compare. All state is batched on the device; the host waits for
+the passes and reads one scalar every ``sync_every`` iterations.
+
+This is an LFM-specific driver, not the per-texel ``fit/optim`` protocol: those optimizers own
+(N, n_params) per-texel vectors, LFM's parameters live on slots and vertices with patch sums
+through index tables. It reuses the distribution step (fit/kernels/stream.py ``observe``, light
+free), the photo set (depth maps, masks) and the trace format of the per-texel fit.
+
+Imports only numpy and warp.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+
+import numpy as np
+import warp as wp
+
+from texstream.core.config import option
+from texstream.core.errors import ConfigError, InputError
+
+from .kernels import lfm as LK
+
+VIEW_MAPS = ("disk", "hemioct")
+LOOKUPS = ("nearest", "bilinear")
+
+
+@dataclasses.dataclass
+class LFMConfig:
+    """Light field mapping options (``--model lfm``)."""
+
+    terms: int = option(1, "approximation terms K per vertex light field", min=1, max=4)
+    view_res: int = option(8, "view map side R (texels) per vertex and term", min=2, max=64)
+    view_map: str = option("disk", "view map parameterisation of the vertex's hemisphere: disk (Nusselt analog, "
+                                   "the dissertation's) or hemioct (hemi-octahedral, fills the square)",
+                           choices=VIEW_MAPS)
+    lookup: str = option("bilinear", "view map lookup: nearest (the dissertation's) or bilinear", choices=LOOKUPS)
+    surface_lookup: str = option("bilinear", "rendering: the atlas lookup of the surface maps, nearest texel or "
+                                             "bilinear blend of the four texels' models", choices=LOOKUPS)
+    diffuse: str = option("mean", "view-independent term: mean (least squares per texel, PCA-style) or min "
+                                  "(minimum sample per texel, NMF-style)", choices=("mean", "min"))
+    method: str = option("stream", "stream (streaming nonlinear fit), pca (Chen et al.: resample into texels x "
+                                   "view-map directions, truncated SVD) or nmf (the same matrices, multiplicative "
+                                   "updates)", choices=("stream", "pca", "nmf"))
+    optimizer: str = option("cg", "streaming fit: cg (Polak-Ribiere+ per patch) or sd (steepest descent)",
+                            choices=("cg", "sd"))
+    cg_variant: str = option("pr", "cg beta: pr (Polak-Ribiere+) or fr (Fletcher-Reeves)", choices=("pr", "fr"))
+    step: str = option("hessian", "step size: hessian (-g.d / d^T H d from a curvature pass, the dissertation's "
+                                  "quadratic model) or backtrack (double on acceptance, halve on rejection)",
+                       choices=("hessian", "backtrack"))
+    laplacian: float = option(1.0, "view-map Laplacian regularization weight, in samples' worth of squared "
+                                   "radiance-space residual per unit squared difference of neighbouring view "
+                                   "texels (fills directions no photo saw); 0 = none", min=0.0)
+    bounds: str = option("none", "surface and view map bounds: none, or nonnegative (with diffuse min, NMF-like)",
+                         choices=("none", "nonnegative"))
+    iterations: int = option(100, "streaming fit: iteration cap", min=1)
+    rel_tol: float = option(1e-7, "streaming fit: stop when the objective's relative decrease over sync_every "
+                                  "iterations is below this", min=0.0)
+    sync_every: int = option(5, "streaming fit: iterations between reads of the objective", min=1)
+    balance_every: int = option(10, "streaming fit: every k iterations equalise the norms of each term's surface "
+                                    "and view maps per patch (the g h scale gauge; costs a pass and restarts CG); "
+                                    "0 = never", min=0)
+    nmf_iterations: int = option(200, "nmf: multiplicative update iterations", min=1)
+    render_view: str = option("point", "rendering: each vertex's view map read along the direction from the shaded "
+                                       "point (point, the interpolated view of Chen et al.'s renderer) or from the "
+                                       "vertex (vertex, what the fit assumes)", choices=("point", "vertex"))
+
+    def check(self) -> None:
+        for name, allowed in (("view_map", VIEW_MAPS), ("lookup", LOOKUPS), ("surface_lookup", LOOKUPS),
+                              ("diffuse", ("mean", "min")), ("method", ("stream", "pca", "nmf")),
+                              ("optimizer", ("cg", "sd")), ("step", ("hessian", "backtrack")),
+                              ("bounds", ("none", "nonnegative")), ("render_view", ("point", "vertex")),
+                              ("cg_variant", ("pr", "fr"))):
+            if getattr(self, name) not in allowed:
+                raise ConfigError(f"lfm.{name} {getattr(self, name)!r} unknown", fix=f"use one of {allowed}")
+        if not 1 <= self.terms <= 4:
+            raise ConfigError(f"lfm.terms {self.terms} out of range", fix="use 1 to 4")
+        if not 2 <= self.view_res <= 64:
+            raise ConfigError(f"lfm.view_res {self.view_res} out of range", fix="use 2 to 64")
+
+
+def vertex_frames(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(tangent, bitangent) of each unit normal: the branchless orthonormal basis of Duff et al. 2017,
+    continuous except across n_z = 0 and identical for identical normals."""
+    n = np.asarray(normals, np.float64)
+    sign = np.where(n[:, 2] >= 0, 1.0, -1.0)
+    a = -1.0 / (sign + n[:, 2])
+    b = n[:, 0] * n[:, 1] * a
+    t = np.stack([1.0 + sign * n[:, 0] ** 2 * a, sign * b, -sign * n[:, 0]], 1)
+    bt = np.stack([b, sign + n[:, 1] ** 2 * a, -n[:, 1]], 1)
+    return t, bt
+
+
+def view_mask(res: int, mapping: str) -> np.ndarray:
+    """(R * R,) 1 for the view-map texels a lookup can read (the masked disk stencil: texel centres
+    within two texel diagonals of the unit disk; every texel for the hemi-octahedral map)."""
+    if mapping == "hemioct":
+        return np.ones(res * res, np.int32)
+    c = (np.arange(res) + 0.5) / res * 2.0 - 1.0
+    r = np.hypot(c[None, :], c[:, None])
+    return (r <= 1.0 + 2.0 * math.sqrt(2.0) / res).astype(np.int32).reshape(-1)
+
+
+def view_directions(res: int, mapping: str) -> np.ndarray:
+    """(R * R, 3) the local direction at each view-map texel centre (the discrete views of the
+    PCA / NMF matrices); disk centres outside the unit disk are pulled onto its rim (horizon)."""
+    c = (np.arange(res) + 0.5) / res * 2.0 - 1.0
+    u, v = np.meshgrid(c, c)            # row = y (v), column = x (u)
+    u, v = u.reshape(-1), v.reshape(-1)
+    if mapping == "hemioct":
+        px, py = (u + v) / 2.0, (u - v) / 2.0
+        z = 1.0 - np.abs(px) - np.abs(py)
+        d = np.stack([px, py, np.maximum(z, 0.0)], 1)
+    else:
+        r = np.hypot(u, v)
+        s = np.where(r > 1.0, 1.0 / np.maximum(r, 1e-12), 1.0)
+        x, y = u * s, v * s
+        d = np.stack([x, y, np.sqrt(np.maximum(1.0 - x * x - y * y, 0.0))], 1)
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+@dataclasses.dataclass
+class LFMGeometry:
+    """Slots, welded vertices, their frames and the ring index table (host arrays; see module doc).
+
+    Attributes:
+        slot_vertex: (3N,) welded vertex of each slot 3 s + j (vertex j of texel s's owner face).
+        slot_hat: (3N,) the hat function L_j(s): texel s's barycentric j.
+        ring_start, ring_slots: the index table: vertex v's ring slots are
+            ``ring_slots[ring_start[v]:ring_start[v + 1]]``.
+        vpos, vnrm, vtan, vbit: (V, 3) welded vertex positions and frames.
+        weld: (n mesh vertices,) welded id of every mesh vertex.
+        texel_pos: (N, 3) texel centres (for the renderer's view direction at a point).
+    """
+
+    slot_vertex: np.ndarray
+    slot_hat: np.ndarray
+    ring_start: np.ndarray
+    ring_slots: np.ndarray
+    vpos: np.ndarray
+    vnrm: np.ndarray
+    vtan: np.ndarray
+    vbit: np.ndarray
+    weld: np.ndarray
+    texel_pos: np.ndarray
+
+    @property
+    def n_texels(self) -> int:
+        return int(self.slot_vertex.size // 3)
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.vpos.shape[0])
+
+    @staticmethod
+    def build(points: np.ndarray, faces: np.ndarray, normals: np.ndarray, texel_face: np.ndarray,
+              texel_bary: np.ndarray, texel_pos: np.ndarray) -> "LFMGeometry":
+        """From the mesh (points, faces, vertex normals) and each compact texel's owner face,
+        barycentrics and position (a TexelBake's ``face``, ``bary``, ``position`` at the texels)."""
+        pts = np.asarray(points, np.float64)
+        faces = np.asarray(faces, np.int64)
+        tf = np.asarray(texel_face, np.int64)
+        if tf.size and (tf.min() < 0 or tf.max() >= faces.shape[0]):
+            raise InputError("a fitted texel has no owner face", fix="rebuild the atlas bake (texstream atlas)")
+        uniq, weld = np.unique(pts, axis=0, return_inverse=True)
+        weld = weld.reshape(-1)
+        nsum = np.zeros((uniq.shape[0], 3))
+        np.add.at(nsum, weld, np.asarray(normals, np.float64))
+        length = np.linalg.norm(nsum, axis=1, keepdims=True)
+        vnrm = np.where(length > 1e-12, nsum / np.maximum(length, 1e-300), np.array([0.0, 0.0, 1.0]))
+        vtan, vbit = vertex_frames(vnrm)
+        slot_vertex = weld[faces[tf]].reshape(-1).astype(np.int32)
+        hat = np.clip(np.asarray(texel_bary, np.float64).reshape(-1, 3), 0.0, 1.0)
+        hat = hat / np.maximum(hat.sum(1, keepdims=True), 1e-300)
+        order = np.argsort(slot_vertex, kind="stable").astype(np.int32)
+        counts = np.bincount(slot_vertex, minlength=uniq.shape[0])
+        start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
+        return LFMGeometry(slot_vertex, hat.reshape(-1), start, order, uniq, vnrm, vtan, vbit, weld.astype(np.int32),
+                           np.asarray(texel_pos, np.float64))
+
+
+class TableSamples:
+    """Samples given as tables (tests, and the resampled data of the baselines): (P, N, 3) photo
+    values ``y`` and (P, N) exposures ``e`` (0 = unobserved), and (P, 3) camera centres."""
+
+    def __init__(self, y: np.ndarray, e: np.ndarray, centers: np.ndarray, device: str):
+        self.n_photos, self.n = int(e.shape[0]), int(e.shape[1])
+        self.y = wp.array(np.ascontiguousarray(np.asarray(y, np.float64).reshape(-1, 3)), dtype=wp.vec3d, device=device)
+        self.e = wp.array(np.ascontiguousarray(np.asarray(e, np.float64).reshape(-1)), dtype=wp.float64, device=device)
+        self.centers = np.asarray(centers, np.float64).reshape(-1, 3)
+        self.exposures = np.array([float(np.max(r)) if np.any(r > 0) else 1.0 for r in np.asarray(e)])
+
+    def load(self, p: int, obs_y: wp.array, obs_e: wp.array) -> None:
+        wp.copy(obs_y, self.y, 0, p * self.n, self.n)
+        wp.copy(obs_e, self.e, 0, p * self.n, self.n)
+
+
+class PhotoSamples:
+    """The photos of a :class:`texstream.fit.problem.PhotoSet` streamed through the distribution step
+    (fit/kernels/stream.py ``observe``, light free, bilinear photo sampling at the texel centre)."""
+
+    def __init__(self, problem, frames):
+        """``problem``: a radiance :class:`texstream.fit.problem.StreamProblem` over the texels and
+        photos (it holds the texel frames and sample options the distribution step reads)."""
+        from .kernels import stream
+
+        photos = problem.photos
+        if getattr(photos, "streamed", False):
+            raise ConfigError("the LFM fit keeps every photo on the device", fix="set stream.photos_per_window to 0")
+        if problem.cfg.image_precision != "fp32":
+            raise ConfigError("the LFM fit reads fp32 photos", fix="set stream.image_precision to fp32")
+        self.problem = problem
+        self.photos = photos
+        self.n_photos = photos.n
+        self.n = problem.n
+        self.opt = problem.opt
+        self.opt.sampling = int(stream.SAMPLING_BILINEAR)
+        self.centers = np.array([-(np.asarray(f.R).T @ np.asarray(f.t)) for f in frames], np.float64)
+        self.exposures = np.array(photos.exposures, np.float64)
+        self.device = problem.device
+
+    def load(self, p: int, obs_y: wp.array, obs_e: wp.array) -> None:
+        ph = self.photos
+        wp.launch(LK.observe_kernel, dim=self.n, device=self.device,
+                  inputs=[self.problem.tex, ph.images, ph.depth, ph.shadow, ph.infos, int(p), self.opt],
+                  outputs=[obs_y, obs_e])
+
+
+@dataclasses.dataclass
+class LFMParams:
+    """Fitted LFM parameters on the host: diffuse (N, 3), G (3N, K, 3) slots x terms x RGB,
+    H (V, K, R * R, 3) view maps."""
+
+    diffuse: np.ndarray
+    G: np.ndarray
+    H: np.ndarray
+
+
+_INIT_MIX = np.array([[1.0, 0.7, 0.5, 0.3], [-0.6, 1.0, 0.4, -0.5], [0.3, -0.4, 1.0, 0.6], [0.5, 0.2, -0.3, 1.0]])
+
+
+def initial_view_maps(n_vertices: int, terms: int, res: int, mapping: str, offset: float = 0.0) -> np.ndarray:
+    """(V, K, M, 3) starting view maps: term k is a fixed mix (row k of ``_INIT_MIX``) of u, v,
+    u^2 + v^2 - 1/2 and u v over the map (u, v the texel centre's coordinates in [-1, 1]), plus
+    ``offset``; zero outside the mask. Not the constant: with the mean subtracted every vertex
+    light field is orthogonal to a constant view map, a saddle of the objective (zero gradient).
+    With the surface maps at 0 the first gradient moves only the surface maps, onto these."""
+    c = (np.arange(res) + 0.5) / res * 2.0 - 1.0
+    u, v = np.meshgrid(c, c)
+    basis = np.stack([u, v, u * u + v * v - 0.5, u * v]).reshape(4, -1)
+    m = view_mask(res, mapping).astype(np.float64)
+    h = (_INIT_MIX[:terms] @ basis + offset) * m                               # (K, M)
+    return np.broadcast_to(h[None, :, :, None], (n_vertices, terms, res * res, 3)).copy()
+
+
+class LFMProblem:
+    """Device buffers and streaming passes of an LFM fit (allocated once; see the module doc)."""
+
+    def __init__(self, geom: LFMGeometry, samples, cfg: LFMConfig, device: str = "cpu"):
+        cfg.check()
+        self.geom, self.samples, self.cfg, self.device = geom, samples, cfg, device
+        self.K, self.R = int(cfg.terms), int(cfg.view_res)
+        self.M = self.R * self.R
+        self.N, self.V = geom.n_texels, geom.n_vertices
+        self.S = 3 * self.N
+        self.mapping = 0 if cfg.view_map == "disk" else 1
+        self.lookup = 0 if cfg.lookup == "nearest" else 1
+        dev = device
+        f64 = wp.float64
+        self.slot_vertex = wp.array(geom.slot_vertex, dtype=wp.int32, device=dev)
+        self.slot_hat = wp.array(geom.slot_hat, dtype=f64, device=dev)
+        self.ring_start = wp.array(geom.ring_start, dtype=wp.int32, device=dev)
+        self.ring_slots = wp.array(geom.ring_slots, dtype=wp.int32, device=dev)
+        self.vpos = wp.array(geom.vpos, dtype=wp.vec3d, device=dev)
+        self.vnrm = wp.array(geom.vnrm, dtype=wp.vec3d, device=dev)
+        self.vtan = wp.array(geom.vtan, dtype=wp.vec3d, device=dev)
+        self.vbit = wp.array(geom.vbit, dtype=wp.vec3d, device=dev)
+        self.texel_pos = wp.array(geom.texel_pos, dtype=wp.vec3d, device=dev)
+        self.mask_np = view_mask(self.R, cfg.view_map)
+        self.mask = wp.array(self.mask_np, dtype=wp.int32, device=dev)
+        exposures = np.asarray(samples.exposures, np.float64)
+        self.lam = float(cfg.laplacian) * float(np.mean(exposures ** 2)) if exposures.size else float(cfg.laplacian)
+        lo, hi = (0.0, 1e300) if cfg.bounds == "nonnegative" else (-1e300, 1e300)
+        self.lower, self.upper = f64(lo), f64(hi)
+        # per-photo scratch and per-slot accumulators
+        self.obs_y = wp.zeros(self.N, dtype=wp.vec3d, device=dev)
+        self.obs_e = wp.zeros(self.N, dtype=f64, device=dev)
+        self.tap_idx = wp.zeros(self.V, dtype=wp.vec4i, device=dev)
+        self.tap_w = wp.zeros(self.V, dtype=wp.vec4d, device=dev)
+        self.slot_f = wp.zeros(self.S, dtype=wp.vec3d, device=dev)
+        self.slot_dhd = wp.zeros(self.S, dtype=wp.vec3d, device=dev)
+        self.slot_gn = wp.zeros(self.S, dtype=wp.vec3d, device=dev)
+        self.slot_res = wp.zeros(self.S, dtype=wp.vec3d, device=dev)
+        self.no_G = wp.zeros((1, self.K), dtype=wp.vec3d, device=dev)
+        self.no_H = wp.zeros((1, self.M), dtype=wp.vec3d, device=dev)
+        self.no_v = wp.zeros(1, dtype=wp.vec3d, device=dev)
+        self.diffuse = wp.zeros(self.N, dtype=wp.vec3d, device=dev)
+        self.seen = np.zeros(self.N, bool)
+        self.passes = 0
+
+    # ---- arrays
+    def new_G(self, values: np.ndarray | None = None) -> wp.array:
+        if values is None:
+            return wp.zeros((self.S, self.K), dtype=wp.vec3d, device=self.device)
+        return wp.array(np.ascontiguousarray(np.asarray(values, np.float64).reshape(self.S, self.K, 3)),
+                        dtype=wp.vec3d, device=self.device)
+
+    def new_H(self, values: np.ndarray | None = None) -> wp.array:
+        if values is None:
+            return wp.zeros((self.V * self.K, self.M), dtype=wp.vec3d, device=self.device)
+        return wp.array(np.ascontiguousarray(np.asarray(values, np.float64).reshape(self.V * self.K, self.M, 3)),
+                        dtype=wp.vec3d, device=self.device)
+
+    def new_patch(self, fill: float = 0.0) -> wp.array:
+        a = wp.zeros(self.V, dtype=wp.vec3d, device=self.device)
+        if fill:
+            a.fill_(wp.vec3d(fill, fill, fill))
+        return a
+
+    def params(self, G: wp.array, H: wp.array) -> LFMParams:
+        return LFMParams(self.diffuse.numpy().copy(), G.numpy().reshape(self.S, self.K, 3).copy(),
+                         H.numpy().reshape(self.V, self.K, self.M, 3).copy())
+
+    def _taps(self, p: int) -> None:
+        c = self.samples.centers[p]
+        wp.launch(LK.vertex_taps_kernel, dim=self.V, device=self.device,
+                  inputs=[self.vpos, self.vtan, self.vbit, self.vnrm, wp.vec3d(*c), self.mapping, self.R, self.lookup],
+                  outputs=[self.tap_idx, self.tap_w])
+
+    # ---- passes
+    def compute_diffuse(self, mode: str | None = None) -> None:
+        """The view-independent term d (mean or minimum per texel, ``LFMConfig.diffuse``): one
+        streaming pass; also records which texels some photo sees (``seen``)."""
+        mode = self.cfg.diffuse if mode is None else mode
+        code = 0 if mode == "mean" else 1
+        num = wp.zeros(self.N, dtype=wp.vec3d, device=self.device)
+        den = wp.zeros(self.N, dtype=wp.float64, device=self.device)
+        for p in range(self.samples.n_photos):
+            self.samples.load(p, self.obs_y, self.obs_e)
+            wp.launch(LK.diffuse_accumulate_kernel, dim=self.N, device=self.device,
+                      inputs=[self.obs_y, self.obs_e, code], outputs=[num, den])
+        wp.launch(LK.diffuse_finish_kernel, dim=self.N, device=self.device, inputs=[num, den, code],
+                  outputs=[self.diffuse])
+        self.seen = den.numpy() > 0
+        self.passes += 1
+
+    def evaluate(self, G: wp.array, H: wp.array, f: wp.array, grad_G: wp.array | None = None,
+                 grad_H: wp.array | None = None, DG: wp.array | None = None, DH: wp.array | None = None,
+                 dhd: wp.array | None = None, gn: wp.array | None = None) -> None:
+        """One streaming pass at (G, H): per patch objective ``f`` (V,), with ``grad_G``/``grad_H``
+        the gradient, with a direction (DG, DH) the exact d^T H d (``dhd``) and its Gauss-Newton
+        part (``gn``) along it."""
+        dev = self.device
+        want_grad = grad_G is not None
+        want_dhd = DG is not None
+        self.slot_f.zero_()
+        if want_grad:
+            grad_G.zero_()
+            grad_H.zero_()
+        if want_dhd:
+            self.slot_dhd.zero_()
+            self.slot_gn.zero_()
+        gG = grad_G if want_grad else self.no_G
+        gH = grad_H if want_grad else self.no_H
+        dG = DG if want_dhd else self.no_G
+        dH = DH if want_dhd else self.no_H
+        for p in range(self.samples.n_photos):
+            self.samples.load(p, self.obs_y, self.obs_e)
+            self._taps(p)
+            wp.launch(LK.slot_pass_kernel, dim=self.N, device=dev,
+                      inputs=[self.obs_y, self.obs_e, self.diffuse, self.slot_vertex, self.slot_hat, G, H, dG, dH,
+                              self.tap_idx, self.tap_w, self.K, int(want_grad), int(want_dhd)],
+                      outputs=[self.slot_f, gG, self.slot_dhd, self.slot_gn, self.slot_res])
+            if want_grad:
+                wp.launch(LK.view_gather_kernel, dim=self.V, device=dev,
+                          inputs=[self.ring_start, self.ring_slots, self.slot_res, G, self.tap_idx, self.tap_w, self.K],
+                          outputs=[grad_H])
+        h_out = dhd if want_dhd else self.new_patch()
+        g_out = gn if want_dhd else self.new_patch()
+        wp.launch(LK.patch_reduce_kernel, dim=self.V, device=dev,
+                  inputs=[self.ring_start, self.ring_slots, self.slot_f, self.slot_dhd, self.slot_gn],
+                  outputs=[f, h_out, g_out])
+        if self.lam > 0:
+            wp.launch(LK.laplacian_kernel, dim=self.V, device=dev,
+                      inputs=[H, dH, self.mask, self.R, self.K, wp.float64(self.lam), int(want_grad), int(want_dhd)],
+                      outputs=[f, gH, h_out, g_out])
+        self.passes += 1
+
+    def patch_dot(self, aG, bG, aH, bH, out: wp.array) -> None:
+        wp.launch(LK.patch_dot_kernel, dim=self.V, device=self.device,
+                  inputs=[self.ring_start, self.ring_slots, aG, bG, aH, bH, self.K, self.M], outputs=[out])
+
+    def total(self, f: wp.array) -> float:
+        """Sum of a per-patch vec3 array (one host read)."""
+        out = wp.zeros(1, dtype=wp.float64, device=self.device)
+        wp.launch(LK.sum_vec3_kernel, dim=1, device=self.device, inputs=[f, f.shape[0]], outputs=[out])
+        return float(out.numpy()[0])
+
+    def model_error(self, G: wp.array, H: wp.array, view_interp: int = 0) -> dict:
+        """Error of the full model (sum of the vertex light fields plus d) on every sample: squared
+        error, squared data and sample count summed over photos, texels and channels; the relative
+        RMS error, RMS error and sample PSNR (peak 1)."""
+        sse = wp.zeros(self.N, dtype=wp.vec3d, device=self.device)
+        cnt = wp.zeros(self.N, dtype=wp.float64, device=self.device)
+        y2 = 0.0
+        for p in range(self.samples.n_photos):
+            self.samples.load(p, self.obs_y, self.obs_e)
+            wp.launch(LK.sample_kernel, dim=self.N, device=self.device,
+                      inputs=[self.obs_y, self.obs_e, self.diffuse, self.slot_vertex, G, H, self.vpos, self.vtan,
+                              self.vbit, self.vnrm, self.texel_pos, wp.vec3d(*self.samples.centers[p]), int(view_interp),
+                              self.K, self.mapping, self.R, self.lookup], outputs=[sse, cnt])
+            y = self.obs_y.numpy()
+            y2 += float((y * y).sum())
+        s = float(sse.numpy().sum())
+        n = float(cnt.numpy().sum()) * 3
+        mse = s / max(n, 1.0)
+        return {"sse": s, "y2": y2, "samples": n, "relative_rms": math.sqrt(s / max(y2, 1e-300)),
+                "rms": math.sqrt(mse), "psnr_db": 10 * math.log10(1.0 / mse) if mse > 0 else float("inf")}
+
+
+@dataclasses.dataclass
+class LFMResult:
+    """A fitted LFM model: parameters, per-iteration trace and counts."""
+
+    params: LFMParams
+    trace: list
+    iterations: int
+    passes: int
+    fit_s: float
+    method: str
+
+
+def fit_lfm(problem: LFMProblem, max_iterations: int | None = None, time_budget_s: float = 0.0,
+            G0: np.ndarray | None = None, H0: np.ndarray | None = None, callback=None) -> LFMResult:
+    """The streaming fit (CG or SD, Hessian or backtracking step, per-patch acceptance); computes d
+    first when it was not (``problem.compute_diffuse``). ``callback(iteration, objective)`` is
+    called at every objective read."""
+    pr, cfg, dev = problem, problem.cfg, problem.device
+    if not pr.seen.any():
+        pr.compute_diffuse()
+    t0 = time.perf_counter()
+    iters = int(cfg.iterations if max_iterations is None else max_iterations)
+    K = pr.K
+    G = pr.new_G(G0)
+    offset = 2.0 if cfg.bounds == "nonnegative" else 0.0   # keeps the start inside the bounds
+    H = pr.new_H(initial_view_maps(pr.V, K, pr.R, cfg.view_map, offset) if H0 is None else H0)
+    TG, TH = pr.new_G(), pr.new_H()
+    gG, gH, tgG, tgH = pr.new_G(), pr.new_H(), pr.new_G(), pr.new_H()
+    oG, oH = pr.new_G(), pr.new_H()            # gradient before the step (Polak-Ribiere)
+    DG, DH = pr.new_G(), pr.new_H()
+    f, f_trial, dhd, gn = pr.new_patch(), pr.new_patch(), pr.new_patch(), pr.new_patch()
+    f_dummy = pr.new_patch()
+    slope, alpha, accepted = pr.new_patch(), pr.new_patch(), pr.new_patch()
+    scale = pr.new_patch(1.0)
+    gg_new, gg_mixed, gg_old, beta = pr.new_patch(), pr.new_patch(), pr.new_patch(), pr.new_patch()
+    hessian = int(cfg.step == "hessian")
+    variant = -1 if cfg.optimizer == "sd" else (0 if cfg.cg_variant == "pr" else 1)
+    shape_G, shape_H = (pr.S, K), (pr.V * K, pr.M)
+
+    pr.evaluate(G, H, f, gG, gH)
+    wp.launch(LK.direction_G_kernel, dim=shape_G, device=dev, inputs=[gG, beta, pr.slot_vertex], outputs=[DG])
+    wp.launch(LK.direction_H_kernel, dim=shape_H, device=dev, inputs=[gH, beta, K, pr.mask], outputs=[DH])
+    pr.patch_dot(gG, gG, gH, gH, gg_old)
+    f0 = pr.total(f)
+    trace = [{"iteration": 0, "time_s": 0.0, "objective": f0}]
+    if callback:
+        callback(0, f0)
+    last = f0
+    it = 0
+    for it in range(1, iters + 1):
+        if hessian:
+            pr.evaluate(G, H, f_dummy, DG=DG, DH=DH, dhd=dhd, gn=gn)
+        pr.patch_dot(gG, DG, gH, DH, slope)
+        wp.launch(LK.step_kernel, dim=pr.V, device=dev, inputs=[f, slope, dhd, gn, scale, hessian], outputs=[alpha])
+        wp.launch(LK.trial_G_kernel, dim=shape_G, device=dev,
+                  inputs=[G, DG, alpha, pr.slot_vertex, pr.lower, pr.upper], outputs=[TG])
+        wp.launch(LK.trial_H_kernel, dim=shape_H, device=dev,
+                  inputs=[H, DH, alpha, K, pr.mask, pr.lower, pr.upper], outputs=[TH])
+        pr.evaluate(TG, TH, f_trial, tgG, tgH)
+        wp.launch(LK.accept_kernel, dim=pr.V, device=dev, inputs=[f, f_trial, alpha, hessian],
+                  outputs=[accepted, scale, f])
+        wp.copy(oG, gG)
+        wp.copy(oH, gH)
+        wp.launch(LK.adopt_G_kernel, dim=shape_G, device=dev, inputs=[TG, accepted, pr.slot_vertex], outputs=[G])
+        wp.launch(LK.adopt_H_kernel, dim=shape_H, device=dev, inputs=[TH, accepted, K], outputs=[H])
+        wp.launch(LK.adopt_G_kernel, dim=shape_G, device=dev, inputs=[tgG, accepted, pr.slot_vertex], outputs=[gG])
+        wp.launch(LK.adopt_H_kernel, dim=shape_H, device=dev, inputs=[tgH, accepted, K], outputs=[gH])
+        pr.patch_dot(gG, gG, gH, gH, gg_new)
+        pr.patch_dot(gG, oG, gH, oH, gg_mixed)
+        wp.launch(LK.beta_kernel, dim=pr.V, device=dev, inputs=[gg_new, gg_mixed, gg_old, accepted, variant],
+                  outputs=[beta])
+        wp.launch(LK.direction_G_kernel, dim=shape_G, device=dev, inputs=[gG, beta, pr.slot_vertex], outputs=[DG])
+        wp.launch(LK.direction_H_kernel, dim=shape_H, device=dev, inputs=[gH, beta, K, pr.mask], outputs=[DH])
+        wp.copy(gg_old, gg_new)
+        if it % cfg.sync_every == 0 or it == iters:
+            obj = pr.total(f)
+            trace.append({"iteration": it, "time_s": time.perf_counter() - t0, "objective": obj})
+            if callback:
+                callback(it, obj)
+            if last - obj <= cfg.rel_tol * max(abs(last), 1e-300):
+                break
+            last = obj
+            if time_budget_s > 0 and time.perf_counter() - t0 > time_budget_s:
+                break
+        if cfg.balance_every and it % cfg.balance_every == 0:
+            wp.launch(LK.balance_kernel, dim=pr.V, device=dev, inputs=[pr.ring_start, pr.ring_slots, K, pr.M],
+                      outputs=[G, H])
+            pr.evaluate(G, H, f, gG, gH)
+            beta.zero_()
+            wp.launch(LK.direction_G_kernel, dim=shape_G, device=dev, inputs=[gG, beta, pr.slot_vertex], outputs=[DG])
+            wp.launch(LK.direction_H_kernel, dim=shape_H, device=dev, inputs=[gH, beta, K, pr.mask], outputs=[DH])
+            pr.patch_dot(gG, gG, gH, gH, gg_old)
+            # the Laplacian is not invariant under the gauge (h / c costs 1 / c^2 of it): E changes with
+            # the rescaling, so the stopping test restarts from the balanced objective
+            last = pr.total(f)
+    if trace[-1]["iteration"] != it:
+        trace.append({"iteration": it, "time_s": time.perf_counter() - t0, "objective": pr.total(f)})
+    return LFMResult(pr.params(G, H), trace, it, pr.passes, time.perf_counter() - t0,
+                     f"stream-{cfg.optimizer}-{cfg.step}")

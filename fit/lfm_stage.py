@@ -1,0 +1,241 @@
+"""``texstream fit --model lfm`` and ``texstream eval`` of an LFM model folder (fit/lfm.py).
+
+The model folder: mesh.obj, bake.npz, lfm.npz (the exact float64 parameters: diffuse (N, 3), G
+(3N, K, 3), H (V, K, R*R, 3), and the compact texels' atlas index), the maps as float EXR for
+viewing (diffuse.exr; surface_k{k}_v{j}.exr: term k's surface map of each texel's face vertex j;
+view_k{k}.exr: term k's view maps tiled per vertex, R x R tiles in vertex order), model.json
+(layout kind "lfm", the LFM options, welded vertex count, trace, held-out scores) and renders/.
+A stage: imports OpenImageIO and scipy inside its functions.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from texstream.core.errors import InputError
+from texstream.core.outputs import StageResult, atomic_output_dir, read_json
+
+
+def lfm_geometry(mesh, bake, texels):
+    from .lfm import LFMGeometry
+
+    gi = np.asarray(texels.grid_index, np.int64)
+    return LFMGeometry.build(mesh.vertices, mesh.faces, mesh.vertex_normals(), bake.face.reshape(-1)[gi],
+                             bake.bary.reshape(-1, 3)[gi], texels.position)
+
+
+def grid_source(bake, grid_index: np.ndarray) -> np.ndarray:
+    """(H * W,) compact texel each atlas texel reads (itself or the texel its padding copies), -1 none."""
+    n = bake.height * bake.width
+    compact = -np.ones(n, np.int64)
+    compact[np.asarray(grid_index, np.int64)] = np.arange(len(grid_index))
+    src = np.arange(n) if getattr(bake, "fill_source", None) is None else np.asarray(bake.fill_source).reshape(-1)
+    return np.where(src >= 0, compact[np.maximum(src, 0)], -1).astype(np.int32)
+
+
+class LFMRenderer:
+    """Renders an LFM model (radiance per unit exposure) for capture frames (fit/kernels/lfm.py)."""
+
+    def __init__(self, mesh, bake, geom, params, cfg, grid_index: np.ndarray, device: str = "cpu"):
+        import warp as wp
+
+        from .kernels import lfm as LK  # noqa: F401  (compiled on first launch)
+
+        self.wp, self.cfg, self.device = wp, cfg, device
+        d = device
+        self.points = wp.array(np.asarray(mesh.vertices, np.float32), dtype=wp.vec3, device=d)
+        self.indices = wp.array(np.asarray(mesh.faces, np.int32).reshape(-1), dtype=wp.int32, device=d)
+        self.normals = wp.array(np.asarray(mesh.vertex_normals(), np.float32), dtype=wp.vec3, device=d)
+        self.uvs = wp.array(np.asarray(mesh.uvs, np.float32), dtype=wp.vec2, device=d)
+        self.mesh = wp.Mesh(points=self.points, indices=self.indices)
+        self.source = wp.array(grid_source(bake, grid_index), dtype=wp.int32, device=d)
+        self.tex_w, self.tex_h = int(bake.width), int(bake.height)
+        K = params.G.shape[1]
+        M = params.H.shape[2]
+        self.K, self.R = K, int(round(math.sqrt(M)))
+        self.diffuse = wp.array(np.asarray(params.diffuse, np.float64), dtype=wp.vec3d, device=d)
+        self.G = wp.array(np.ascontiguousarray(params.G, np.float64), dtype=wp.vec3d, device=d)
+        self.H = wp.array(np.ascontiguousarray(params.H.reshape(-1, M, 3), np.float64), dtype=wp.vec3d, device=d)
+        self.slot_vertex = wp.array(geom.slot_vertex, dtype=wp.int32, device=d)
+        self.vframe = [wp.array(a, dtype=wp.vec3d, device=d) for a in (geom.vpos, geom.vtan, geom.vbit, geom.vnrm)]
+
+    def render_frame(self, frame, view_interp: str | None = None):
+        from .kernels import lfm as LK
+        from .kernels.render import PinholeCamera
+
+        wp = self.wp
+        k = frame.intrinsics
+        cam = PinholeCamera()
+        cam.R = wp.mat33(*np.asarray(frame.R, np.float32).reshape(-1))
+        cam.t = wp.vec3(*np.asarray(frame.t, np.float32).reshape(3))
+        cam.fx, cam.fy, cam.cx, cam.cy = float(k.fx), float(k.fy), float(k.cx), float(k.cy)
+        cam.width, cam.height = int(k.width), int(k.height)
+        rad = wp.zeros((k.height, k.width), dtype=wp.vec3, device=self.device)
+        mask = wp.zeros((k.height, k.width), dtype=wp.uint8, device=self.device)
+        interp = (view_interp or self.cfg.render_view) == "point"
+        wp.launch(LK.render_lfm_kernel, dim=(k.height, k.width), device=self.device,
+                  inputs=[self.mesh.id, self.points, self.indices, self.normals, self.uvs, self.source, self.tex_w,
+                          self.tex_h, int(self.cfg.surface_lookup == "bilinear"), self.diffuse, self.slot_vertex,
+                          self.G, self.H, *self.vframe, cam, int(interp), self.K,
+                          0 if self.cfg.view_map == "disk" else 1, self.R, int(self.cfg.lookup == "bilinear")],
+                  outputs=[rad, mask])
+        return rad.numpy().reshape(k.height, k.width, 3) * np.float32(frame.exposure), mask.numpy().astype(bool)
+
+
+def tile_view_maps(H: np.ndarray, res: int) -> np.ndarray:
+    """(V, M, 3) view maps of one term tiled R x R per vertex, ceil(sqrt(V)) tiles per row."""
+    V = H.shape[0]
+    cols = max(1, math.ceil(math.sqrt(V)))
+    rows = math.ceil(V / cols)
+    out = np.zeros((rows * res, cols * res, 3), np.float32)
+    for v in range(V):  # writing the maps once, not in the fit's iteration
+        r, c = divmod(v, cols)
+        out[r * res:(r + 1) * res, c * res:(c + 1) * res] = H[v].reshape(res, res, 3)
+    return out
+
+
+def write_lfm_maps(folder: Path, params, bake, grid_index: np.ndarray, res: int) -> dict:
+    from texstream.capture.imageio import write_image
+
+    files = {}
+
+    def atlas(values):
+        grid = np.zeros((bake.height * bake.width, 3), np.float32)
+        grid[grid_index] = values
+        return bake.fill_padding(grid.reshape(bake.height, bake.width, 3))
+
+    write_image(folder / "diffuse.exr", atlas(params.diffuse), bits=32)
+    files["diffuse"] = "diffuse.exr"
+    N = params.diffuse.shape[0]
+    G = params.G.reshape(N, 3, -1, 3)
+    for k in range(G.shape[2]):
+        for j in range(3):
+            name = f"surface_k{k}_v{j}"
+            write_image(folder / f"{name}.exr", atlas(G[:, j, k]), bits=32)
+            files[name] = f"{name}.exr"
+        write_image(folder / f"view_k{k}.exr", tile_view_maps(params.H[:, k], res), bits=32)
+        files[f"view_k{k}"] = f"view_k{k}.exr"
+    return files
+
+
+def lfm_fit_stage(capture_dir, mesh_path, out_dir, cfg, progress: bool = True) -> StageResult:
+    """Fit an LFM model (streaming, PCA or NMF per ``cfg.fit.lfm.method``) and write the model folder."""
+    from texstream.capture.imageio import read_mask
+    from texstream.core.config import config_to_dict
+    from texstream.core.progress import phase
+    from texstream.geometry.mesh_io import save_mesh
+
+    from .lfm import LFMParams, LFMProblem, PhotoSamples, fit_lfm
+    from .lfm_baselines import fit_nmf, fit_pca
+    from .model_folder import pooled_psnr, render_comparisons
+    from texstream.core.outputs import write_json_atomic
+
+    from .stage import build_problem, load_fit_inputs, load_photos
+
+    lcfg = cfg.fit.lfm
+    lcfg.check()
+    t0 = time.perf_counter()
+    fit_cfg = dataclasses.replace(cfg.fit, model="radiance")
+    with phase("fit", f"lfm ({lcfg.method}): reading the photos and setting up the texels"):
+        inputs = load_fit_inputs(capture_dir, mesh_path, dataclasses.replace(cfg, fit=fit_cfg))
+        capture, frames, held, mesh, bake = inputs.capture, inputs.frames, inputs.held, inputs.mesh, inputs.bake
+        if mesh.uvs is None:
+            raise InputError("the mesh has no UVs", mesh_path, "pass an atlas folder (texstream atlas)")
+        sp = build_problem(mesh, bake, frames, inputs.images, inputs.masks, fit_cfg, cfg.device)
+        geom = lfm_geometry(mesh, bake, sp.texels)
+        if lcfg.method == "nmf":
+            lcfg = dataclasses.replace(lcfg, diffuse="min")
+        elif lcfg.method == "pca":
+            lcfg = dataclasses.replace(lcfg, diffuse="mean")
+        problem = LFMProblem(geom, PhotoSamples(sp, frames), lcfg, cfg.device)
+    t_setup = time.perf_counter() - t0
+    info = {}
+    with phase("fit", f"lfm ({lcfg.method}): {problem.V} vertices, {problem.N} texels, K={problem.K}"):
+        if lcfg.method == "stream":
+            res = fit_lfm(problem, time_budget_s=cfg.fit.time_budget_s)
+            params, trace, fit_s = res.params, res.trace, res.fit_s
+            info = {"iterations": res.iterations, "passes": res.passes}
+        else:
+            params, info = fit_pca(problem) if lcfg.method == "pca" else fit_nmf(problem, lcfg.nmf_iterations)
+            trace, fit_s = [], info["total_s"]
+        err = problem.model_error(problem.new_G(params.G), problem.new_H(params.H))
+    seen = problem.seen
+    if (~seen).any() and seen.any():  # unseen texels: the diffuse of the nearest seen texel, no view terms
+        from scipy.spatial import cKDTree
+
+        _, near = cKDTree(geom.texel_pos[seen]).query(geom.texel_pos[~seen])
+        diffuse = params.diffuse.copy()
+        diffuse[~seen] = diffuse[seen][near]
+        params = LFMParams(diffuse, params.G, params.H)
+    grid_index = np.asarray(sp.texels.grid_index, np.int64)
+    renderer = LFMRenderer(mesh, bake, geom, params, lcfg, grid_index, cfg.device)
+
+    def render(f):
+        image, m = renderer.render_frame(f)
+        mp = capture.mask_path(f)
+        if mp is not None and mp.exists():
+            m &= read_mask(mp, m.shape)
+        return image, m
+
+    with atomic_output_dir(out_dir) as tmp, phase("fit", "lfm: held-out renders and the model folder"):
+        save_mesh(tmp / "mesh.obj", mesh)
+        bake.save(tmp / "bake.npz")
+        np.savez_compressed(tmp / "lfm.npz", diffuse=params.diffuse, G=params.G, H=params.H, grid_index=grid_index,
+                            vpos=geom.vpos, vnrm=geom.vnrm, vtan=geom.vtan, vbit=geom.vbit)
+        files = write_lfm_maps(tmp, params, bake, grid_index, problem.R)
+        show = held if held else frames[: max(cfg.renders, 0)]
+        evals = render_comparisons(tmp / "renders", show, load_photos(capture, show)[0] if show else [], held, render,
+                                   images=max(cfg.renders, 0))
+        manifest = {"layout": {"kind": "lfm", **dataclasses.asdict(lcfg)}, "mesh": "mesh.obj", "bake": "bake.npz",
+                    "params": "lfm.npz", "maps": files,
+                    "lfm": {"vertices_welded": problem.V, "texels": problem.N, "slots": problem.S,
+                            "view_texels_in_mask": int(problem.mask_np.sum()),
+                            "parameters": int(problem.S * problem.K * 3 + problem.V * problem.K * problem.M * 3
+                                              + problem.N * 3)},
+                    "method_info": info, "sample_error": err, "fit_s": fit_s, "setup_s": t_setup,
+                    "photos": {"fitted": len(frames), "held_out": len(held)}, "trace": trace,
+                    "render_eval": evals, "heldout": pooled_psnr([e for e in evals if e["held_out"]]),
+                    "device": cfg.device, "config": config_to_dict(cfg),
+                    "units": "exitant radiance in photo values per unit exposure"}
+        write_json_atomic(tmp / "model.json", manifest)
+    return StageResult(Path(out_dir), {"psnr_db": err["psnr_db"], "iterations": info.get("iterations", 0),
+                                       "time_s": fit_s, "texels": problem.N, "photos": len(frames),
+                                       "resumed_from": None, "render_eval": evals, "warnings": [],
+                                       "heldout": manifest["heldout"]})
+
+
+def load_lfm_renderer(model_dir, device: str = "cpu", view_interp: str | None = None):
+    """A render function frame -> (image, coverage) for an LFM model folder."""
+    from texstream.geometry.bake import TexelBake
+    from texstream.geometry.mesh_io import load_mesh
+
+    from .lfm import LFMConfig, LFMParams
+
+    d = Path(model_dir)
+    man = read_json(d / "model.json", what="model manifest")
+    lay = dict(man["layout"])
+    lay.pop("kind")
+    cfg = LFMConfig(**{k: v for k, v in lay.items() if k in {f.name for f in dataclasses.fields(LFMConfig)}})
+    if view_interp:
+        cfg = dataclasses.replace(cfg, render_view=view_interp)
+    mesh = load_mesh(d / "mesh.obj").with_normals()
+    bake = TexelBake.load(d / "bake.npz")
+    z = np.load(d / "lfm.npz")
+    gi = z["grid_index"]
+    pos = bake.position.reshape(-1, 3)[gi]
+    from .lfm import LFMGeometry
+
+    geom = LFMGeometry.build(mesh.vertices, mesh.faces, mesh.vertex_normals(), bake.face.reshape(-1)[gi],
+                             bake.bary.reshape(-1, 3)[gi], pos)
+    if geom.n_vertices != z["H"].shape[0]:
+        raise InputError(f"lfm.npz has {z['H'].shape[0]} view maps for {geom.n_vertices} welded vertices", d / "lfm.npz",
+                         "refit the model (the mesh changed)")
+    # the fit's vertex frames exactly (the OBJ round trip may perturb the normals in the last digits)
+    geom = dataclasses.replace(geom, vpos=z["vpos"], vnrm=z["vnrm"], vtan=z["vtan"], vbit=z["vbit"])
+    r = LFMRenderer(mesh, bake, geom, LFMParams(z["diffuse"], z["G"], z["H"]), cfg, gi, device)
+    return r.render_frame
