@@ -398,8 +398,11 @@ class LFMProblem:
                 wp.launch(LK.view_gather_kernel, dim=self.V, device=dev,
                           inputs=[self.ring_start, self.ring_slots, self.slot_res, G, self.tap_idx, self.tap_w, self.K],
                           outputs=[grad_H])
-        h_out = dhd if want_dhd else self.new_patch()
-        g_out = gn if want_dhd else self.new_patch()
+        # without a direction the reduction's d^T H d outputs are scratch, allocated once (not per pass)
+        if not hasattr(self, "_scratch_dhd"):
+            self._scratch_dhd, self._scratch_gn = self.new_patch(), self.new_patch()
+        h_out = dhd if want_dhd else self._scratch_dhd
+        g_out = gn if want_dhd else self._scratch_gn
         wp.launch(LK.patch_reduce_kernel, dim=self.V, device=dev,
                   inputs=[self.ring_start, self.ring_slots, self.slot_f, self.slot_dhd, self.slot_gn],
                   outputs=[f, h_out, g_out])
@@ -415,7 +418,9 @@ class LFMProblem:
 
     def total(self, f: wp.array) -> float:
         """Sum of a per-patch vec3 array (one host read)."""
-        out = wp.zeros(1, dtype=wp.float64, device=self.device)
+        if not hasattr(self, "_total"):
+            self._total = wp.zeros(1, dtype=wp.float64, device=self.device)
+        out = self._total
         wp.launch(LK.sum_vec3_kernel, dim=1, device=self.device, inputs=[f, f.shape[0]], outputs=[out])
         return float(out.numpy()[0])
 
