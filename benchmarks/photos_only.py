@@ -32,6 +32,8 @@ def main() -> None:
     ap.add_argument("--scene", default="textured_sphere")
     ap.add_argument("--iterations", type=int, default=15)
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--hull-fill", default="on", choices=("on", "off"),
+                    help="the mesh stage's visual-hull samples where the SfM points leave the object open")
     args = ap.parse_args()
 
     import warp as wp
@@ -51,6 +53,7 @@ def main() -> None:
     write_photos_only(out / "truth", photos)  # the images as a camera leaves them: EXIF focal length, no poses
 
     cfg = RunConfig(device=args.device)
+    cfg.mesh = dataclasses.replace(cfg.mesh, hull_fill=args.hull_fill == "on")
     # the flash's intensity as the irradiance it gives at the object (what the user can state without
     # knowing the reconstruction's scale): the truth's intensity over its camera-to-centre distance squared
     d = float(sum(((f.center ** 2).sum()) ** 0.5 for f in truth.frames) / len(truth.frames))
@@ -70,7 +73,8 @@ def main() -> None:
         "machine": f"{platform.node()} ({os.cpu_count()} cores)",
         "commit": subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                                  cwd=Path(__file__).parent).stdout.strip(),
-        "command": f"python benchmarks/photos_only.py --scene {args.scene} --iterations {args.iterations}",
+        "command": f"python benchmarks/photos_only.py --scene {args.scene} --iterations {args.iterations} "
+                   f"--hull-fill {args.hull_fill}",
         "photos_only": {"heldout": run["heldout"], "seconds": run_s, "model": run["model"],
                         "model_reason": run["model_reason"],
                         "stages": [{k: s[k] for k in ("name", "status", "reason", "seconds")} for s in run["stages"]],

@@ -71,6 +71,9 @@ def main() -> None:
     ap.add_argument("--holdout-every", type=int, default=8)
     ap.add_argument("--dense", default="auto", choices=("auto", "on", "off"),
                     help="the mesh stage's dense stereo points (geometry/mvs.py; off: the sparse SfM points)")
+    ap.add_argument("--hull-fill", default="on", choices=("on", "off"),
+                    help="the mesh stage's visual-hull samples where the points leave the surface open "
+                         "(geometry/hull_fill.py)")
     ap.add_argument("--results", default=None, help="also copy the JSON here (e.g. benchmarks/results/real_photos)")
     args = ap.parse_args()
 
@@ -85,7 +88,7 @@ def main() -> None:
     photos = Path(args.data) / args.set
     out = Path(args.out)
     cfg = RunConfig(device=args.device)  # auto: no light known -> radiance and view_radiance, the better kept
-    cfg.mesh = dataclasses.replace(cfg.mesh, dense=args.dense)
+    cfg.mesh = dataclasses.replace(cfg.mesh, dense=args.dense, hull_fill=args.hull_fill == "on")
     cfg.fit = dataclasses.replace(cfg.fit, holdout_every=args.holdout_every,
                                   fit=dataclasses.replace(cfg.fit.fit, max_iterations=args.iterations))
     t0 = time.perf_counter()
