@@ -466,3 +466,33 @@ def estimate_lights(capture: str | os.PathLike, out: str | os.PathLike,
     summary = {"light": light.to_json(), "kind": info["kind"], "views": len(views), "parallax_deg": info["parallax_deg"],
                "skipped": skipped, "rms_ray_distance": info.get("rms_ray_distance"), "spread_deg": info.get("spread_deg")}
     return StageResult(output=Path(out), summary=summary)
+
+
+def lit_capture(posed_dir: Path, out: Path, lcfg: LightsConfig) -> StageResult:
+    """The run's lights stage: estimate the light from the ball photos (``OUT/lights.json``, report) and
+    write ``OUT/capture.json``: the posed capture's other photos, every one with that light (image paths
+    relative to ``OUT``, so no image is copied)."""
+    from texstream.capture.capture_json import Capture, _light_from, read_capture, write_capture
+
+    cap = read_capture(posed_dir)
+    balls = set(lcfg.frames or ())
+    keep = [f for f in cap.frames if not ({f.name, Path(f.file_path).name} & balls)]
+    if len(keep) < 1:
+        raise InputError("every photo is a ball photo (lights.frames): none is left to fit", posed_dir / "capture.json",
+                         "name only the mirror-ball photos in --mirror-ball-frames")
+    res = estimate_lights(posed_dir, out, lcfg)
+    light = _light_from(res.summary["light"], "light", out / "lights.json")
+
+    def rel(p: str) -> str:
+        return os.path.relpath(posed_dir / p, out)
+
+    frames = []
+    for f in keep:
+        frames.append(dataclasses.replace(f, file_path=rel(f.file_path), light=light,
+                                          mask_path=None if f.mask_path is None else rel(f.mask_path)))
+    extra = dict(cap.extra)
+    extra["lights_source"] = f"mirror ball ({res.summary['kind']} light, {res.summary['views']} ball view(s))"
+    write_capture(Capture(root=out, frames=frames, extra=extra), out)
+    res.summary["photos"] = len(frames)
+    res.summary["ball_photos"] = len(cap.frames) - len(frames)
+    return res

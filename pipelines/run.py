@@ -400,7 +400,7 @@ def _mirror_ball_lights(pipe: Pipeline, out: Path, posed_dir: Path, posed: bool,
                "no light known and no mirror ball given (--mirror-ball X,Y,Z,R)")
         pipe.skip("lights", why)
         return posed_dir, {}
-    from texstream.calib.lights import _world_balls
+    from texstream.calib.lights import _world_balls, lit_capture
 
     if lcfg.sphere:
         _world_balls(lcfg)  # a bad ball fails here, before any long work
@@ -415,37 +415,6 @@ def _mirror_ball_lights(pipe: Pipeline, out: Path, posed_dir: Path, posed: bool,
     s = rec.summary
     pipe.log(f"[lights] {s['kind']} light from {s['views']} ball view(s); {s['photos']} photos lit by it")
     return lights_dir, {"source": "mirror ball", **s}
-
-
-def lit_capture(posed_dir: Path, out: Path, lcfg):
-    """Estimate the light from the ball photos (``OUT/lights.json``, report) and write ``OUT/capture.json``:
-    the posed capture's other photos, every one with that light (image paths relative to ``OUT``)."""
-    from texstream.calib.lights import estimate_lights
-    from texstream.capture.capture_json import Capture, read_capture, write_capture
-
-    cap = read_capture(posed_dir)
-    balls = set(lcfg.frames or ())
-    keep = [f for f in cap.frames if not ({f.name, Path(f.file_path).name} & balls)]
-    if len(keep) < 1:
-        raise InputError("every photo is a ball photo (lights.frames): none is left to fit", posed_dir / "capture.json",
-                         "name only the mirror-ball photos in --mirror-ball-frames")
-    res = estimate_lights(posed_dir, out, lcfg)
-    from texstream.capture.capture_json import _light_from
-
-    light = _light_from(res.summary["light"], "light", out / "lights.json")
-    def rel(p: str) -> str:
-        return os.path.relpath(posed_dir / p, out)
-
-    frames = []
-    for f in keep:
-        frames.append(dataclasses.replace(f, file_path=rel(f.file_path), light=light,
-                                          mask_path=None if f.mask_path is None else rel(f.mask_path)))
-    extra = dict(cap.extra)
-    extra["lights_source"] = f"mirror ball ({res.summary['kind']} light, {res.summary['views']} ball view(s))"
-    write_capture(Capture(root=out, frames=frames, extra=extra), out)
-    res.summary["photos"] = len(frames)
-    res.summary["ball_photos"] = len(cap.frames) - len(frames)
-    return res
 
 
 def run_warnings(records: list[StageRecord], heldout: dict, fit_summary: dict) -> list[str]:
