@@ -349,23 +349,28 @@ def drop_unsupported_lobes(problem, result: FitResult, fraction: float) -> tuple
     dropped = np.zeros(problem.n, bool)
     if lay.n_lobes == 0 or fraction <= 0:
         return result.params, dropped
-    bare = result.params.copy()
-    for j in range(lay.n_lobes):
-        o = lay.lobe_offset(j)
-        bare[:, o:o + 3] = 0.0
+    bare = scale_lobes(result.params, lay, 0.0)
     with_lobes, without = per_texel_objective(problem, result.params), per_texel_objective(problem, bare)
     dropped = (result.samples > 0) & (without - with_lobes <= fraction * np.maximum(without, 1e-30))
     params = np.where(dropped[:, None], bare, result.params)
     if lay.n_lobes > 1:
         # each further lobe on its own: kept only where the texel's error without it is higher by the fraction
         for j in range(1, lay.n_lobes):
-            o = lay.lobe_offset(j)
-            one_less = params.copy()
-            one_less[:, o:o + 3] = 0.0
+            one_less = scale_lobes(params, lay, 0.0, only=j)
             f_with, f_without = per_texel_objective(problem, params), per_texel_objective(problem, one_less)
             weak = ~dropped & (result.samples > 0) & (f_without - f_with <= fraction * np.maximum(f_without, 1e-30))
             params = np.where(weak[:, None], one_less, params)
     return params, dropped
+
+
+def scale_lobes(params: np.ndarray, layout: ModelLayout, factor: float, only: int | None = None) -> np.ndarray:
+    """A copy of (N, P) ``params`` with every lobe's rho_s (or lobe ``only``'s) times ``factor``: 0 takes the
+    lobes away, 2 doubles them (the model is linear in rho_s)."""
+    out = params.copy()
+    for j in range(layout.n_lobes) if only is None else (only,):
+        o = layout.lobe_offset(j)
+        out[:, o:o + 3] = 0.0 if factor == 0 else out[:, o:o + 3] * factor
+    return out
 
 
 def lobes_in_use(params: np.ndarray, layout: ModelLayout, seen: np.ndarray) -> list[int]:
@@ -427,15 +432,9 @@ def fit_with_materials(problem, result: FitResult, evidence: TexelEvidence, k: i
     seen = evidence.samples > 0
     mats = find_materials(evidence.params, seen, evidence.constrained, lay, k, mcfg.min_lobe_share,
                           mcfg.spread_floor)
-    bare = evidence.params.copy()
-    for j in range(lay.n_lobes):
-        o = lay.lobe_offset(j)
-        bare[:, o:o + 3] = 0.0
+    bare = scale_lobes(evidence.params, lay, 0.0)
     with_lobe = material_lobes_on(evidence.params, mats.labels, mats, lay)
-    doubled = with_lobe.copy()
-    for j in range(lay.n_lobes):
-        o = lay.lobe_offset(j)
-        doubled[:, o:o + 3] *= 2.0
+    doubled = scale_lobes(with_lobe, lay, 2.0)
     f_mat, f_bare = per_texel_objective(problem, with_lobe), per_texel_objective(problem, bare)
     contradicted = contradiction_test(f_bare, f_mat, per_texel_objective(problem, doubled), evidence.samples,
                                       evidence.sigma2, mcfg.contradiction)
@@ -582,7 +581,7 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     lay = result.layout
     materials_info, evidence, borrowed = None, None, None
     if lay.n_lobes and cfg.materials.mode != "off":
-        with phase("fit", f"materials: per-texel or shared lobes, judged on a validation split of the fitted photos"):
+        with phase("fit", "materials: per-texel or shared lobes, judged on a validation split of the fitted photos"):
             choice = choose_materials(inputs, problem, cfg)
             evidence = texel_evidence(problem, result, cfg.materials)
         materials_info = {"mode": cfg.materials.mode, **choice}
