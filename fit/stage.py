@@ -550,6 +550,7 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     from texstream.geometry.mesh_io import save_mesh
 
     from .model_folder import bound_report, check_model, pooled_psnr, render_comparisons, write_model_folder
+    from .stiffcheck import numerics_warnings
 
     cfg = config or FitStageConfig()
     check_config(cfg)
@@ -650,6 +651,7 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
                 write_image(tmp / "materials.png", colours.reshape(bake.height, bake.width, 3), bits=8)
         last = result.trace[-1]
         at_bounds, warnings = bound_report(result.params, lay, result.samples > 0)
+        warnings = numerics_warnings(cfg.fit.stream, len(frames), inputs.images, inputs.masks) + warnings
         manifest = {"mesh": "mesh.obj", "bake": "bake.npz", "warnings": warnings, "at_bounds": at_bounds,
                     "atlas": {"width": bake.width, "height": bake.height, "texels": int(problem.n),
                               "unseen_texels": int((result.samples == 0).sum()), "seen_before_fit": seen_before,

@@ -556,6 +556,9 @@ def write_report(out_dir: str | Path, stages: list[dict], model_dir: str | Path,
         sections.append(f"<h1>{_e(title)}</h1><p class='meta'>{_e(when)} &middot; model {_e(model_dir.resolve())}"
                         + (f" &middot; capture {_e(Path(capture_dir).resolve())}" if capture_dir else "") + "</p>")
         sections.append("<h2>Stages</h2>" + _stages_html(stages))
+        if man.get("warnings"):  # the fit's warnings (bounds, numerics), one line each
+            sections.append("<h2>Warnings</h2><ul class='warnings'>"
+                            + "".join(f"<li>{_e(w)}</li>" for w in man["warnings"]) + "</ul>")
 
         # ---- fit
         fin = man.get("final") or {}
