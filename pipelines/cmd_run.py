@@ -97,7 +97,6 @@ def run(args: argparse.Namespace) -> int:
     from texstream.pipelines.run import run_pipeline
 
     wp.config.log_level = wp.LOG_WARNING
-    wp.config.quiet = True
     cfg = _config(args)
     out = Path(args.out)
     source = args.photos

@@ -23,7 +23,7 @@ def run(args: argparse.Namespace) -> int:
     from texstream.fit.stiffcheck import StiffcheckConfig, run_suite, select_cases, write_report
     from texstream.pipelines.cli import config_from_args
 
-    wp.config.quiet = True
+    wp.config.log_level = wp.LOG_WARNING  # Warp 1.19: the init banner and module loads are info
     cfg = config_from_args(StiffcheckConfig, args)
     select_cases([n.strip() for n in cfg.cases.split(",") if n.strip()])  # unknown names fail before any work
     out = Path(args.out) if args.out else Path(f"stiffcheck-{cfg.device.replace(':', '')}-{cfg.size}")
