@@ -65,7 +65,8 @@ def main(argv=None) -> int:
             rows[k].append({"frame": f.file_path, **image_metrics(img, photo, m)})
             rows[f"{k}_vs_lfm"].append({"frame": f.file_path, **image_metrics(img, full, m)})
     out = {"model": str(Path(a.model).resolve()), "capture": str(Path(a.capture).resolve()),
-           "holdout_every": a.holdout_every, "views": len(held), "lfm": {k: v for k, v in model.manifest["layout"].items()},
+           "holdout_every": a.holdout_every, "views": len(held),
+           "lfm": dict(model.manifest["layout"]),
            "scores": {k: pooled_psnr(v) for k, v in rows.items()}, "per_view": rows,
            "seconds": time.perf_counter() - t0, "machine": platform.processor() or platform.machine(),
            "commit": subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,

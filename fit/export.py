@@ -112,7 +112,7 @@ ROUGHNESS_CONVERSIONS = ("fitted", "blinn4")
 UP_AXES = ("z", "y")
 LFM_VIEW_MEANS = ("cosine", "none")
 VIEW_MEAN_GRID = 128
-"""disk-uniform directions per side of the grid the LFM view-map means average over (12,868 inside the disk)"""
+"""disk-uniform directions per side of the grid the LFM view-map means average over (12,868 in the disk)"""
 DIELECTRIC_F0 = 0.04  # ((ior - 1) / (ior + 1))^2 at glTF's default ior 1.5
 MTL_NS_MAX = 1000.0
 _MODEL_FIX = "give the folder `texstream fit` wrote (model.json, mesh.obj, bake.npz and the EXR maps)"
@@ -138,10 +138,10 @@ class ExportConfig:
     radiance_scale: float = option(1.0, "radiance models: multiply the radiance by this before clipping "
                                    "to [0, 1] (1 = photo units, where 1 is the photo's white)")
     copy_maps: bool = option(True, "copy the float EXR parameter maps into maps/ (the exact fitted values)")
-    lfm_view_mean: str = option("cosine", "light field mapping models: unlit base colour = the view-independent "
-                                "term plus each view-dependent term's mean over view directions, cosine-weighted "
-                                "over the hemisphere (cosine), or the view-independent term alone (none)",
-                                choices=("cosine", "none"))
+    lfm_view_mean: str = option("cosine", "light field mapping models: unlit base colour = the view-"
+                                "independent term plus each view-dependent term's mean over view "
+                                "directions, cosine-weighted over the hemisphere (cosine), or the "
+                                "view-independent term alone (none)", choices=("cosine", "none"))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -264,9 +264,10 @@ def view_mean_weights(res: int, mapping: str, lookup: str, device: str = "cpu",
     d = wp.array(dirs, dtype=wp.vec3d, device=device)
     idx = wp.zeros(len(dirs), dtype=wp.vec4i, device=device)
     wt = wp.zeros(len(dirs), dtype=wp.vec4d, device=device)
+    code_map = int(LK.MAP_DISK if mapping == "disk" else LK.MAP_HEMIOCT)
+    code_lookup = int(LK.LOOKUP_NEAREST if lookup == "nearest" else LK.LOOKUP_BILINEAR)
     wp.launch(direction_taps_kernel, dim=len(dirs), device=device,
-              inputs=[d, int(LK.MAP_DISK if mapping == "disk" else LK.MAP_HEMIOCT), int(res),
-                      int(LK.LOOKUP_NEAREST if lookup == "nearest" else LK.LOOKUP_BILINEAR)], outputs=[idx, wt])
+              inputs=[d, code_map, int(res), code_lookup], outputs=[idx, wt])
     out = np.zeros(res * res)
     np.add.at(out, idx.numpy().reshape(-1), wt.numpy().reshape(-1))
     return out / out.sum()
@@ -395,8 +396,8 @@ def _read_lfm_model(d: Path, cfg: ExportConfig) -> _Model:
     try:
         model = load_lfm_model(d)
     except (KeyError, TypeError, ValueError) as e:
-        raise InputError(f"model.json or lfm.npz are inconsistent ({type(e).__name__}: {e})", d / "model.json",
-                         "re-run `texstream fit --model lfm` to rewrite the model folder") from None
+        why = f"model.json or lfm.npz are inconsistent ({type(e).__name__}: {e})"
+        raise InputError(why, d / "model.json", "re-run `texstream fit --model lfm` to rewrite the folder") from None
     if model.mesh.uvs is None:
         raise InputError("mesh has no texture coordinates", d / "mesh.obj",
                          "export the mesh.obj the fit wrote (it carries the atlas UVs)")

@@ -261,7 +261,8 @@ def load_lfm_model(model_dir) -> LFMModelFolder:
     cfg = LFMConfig(**{k: v for k, v in lay.items() if k in {f.name for f in dataclasses.fields(LFMConfig)}})
     for name in ("mesh.obj", "bake.npz", "lfm.npz"):
         if not (d / name).is_file():
-            raise InputError(f"LFM model folder has no {name}", d / name, "re-run `texstream fit --model lfm`")
+            raise InputError(f"LFM model folder has no {name}", d / name,
+                             "re-run `texstream fit --model lfm`")
     mesh = load_mesh(d / "mesh.obj").with_normals()
     bake = TexelBake.load(d / "bake.npz")
     z = np.load(d / "lfm.npz")
