@@ -397,7 +397,8 @@ def _read_lfm_model(d: Path, cfg: ExportConfig) -> _Model:
         model = load_lfm_model(d)
     except (KeyError, TypeError, ValueError) as e:
         why = f"model.json or lfm.npz are inconsistent ({type(e).__name__}: {e})"
-        raise InputError(why, d / "model.json", "re-run `texstream fit --model lfm` to rewrite the folder") from None
+        raise InputError(why, d / "model.json",
+                         "re-run `texstream fit --model lfm` to rewrite the folder") from None
     if model.mesh.uvs is None:
         raise InputError("mesh has no texture coordinates", d / "mesh.obj",
                          "export the mesh.obj the fit wrote (it carries the atlas UVs)")
