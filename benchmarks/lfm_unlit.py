@@ -23,8 +23,6 @@ import subprocess
 import time
 from pathlib import Path
 
-import numpy as np
-
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

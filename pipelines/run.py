@@ -391,7 +391,7 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
                                           pipe.stamp_of("lights"),
                                           _files_hash(posed_dir) if posed else "", config_to_dict(fit_cfg), compare]
                        + ([cfg.lfm, cfg.lfm_min_gain_db] if lfm_rule else []),
-                       f"{model_kind} model: {why}" + (f"; the {alternative} model too, the better held-out one "
+                       f"{model_kind} model: {why}" + (f"; the {alternative} model too, the best held-out one "
                                                        "kept" if compare else ""), fit_work)
     if compare:
         chosen = fit_rec.summary.get("selection", {})
