@@ -11,6 +11,8 @@
   fitted model from its parameter textures with the fit's own shading (docs/report.md). Its
   data (mesh, float parameter textures, cameras, lights, a few photos) is inlined as base64 in a
   JSON script block, and the JS and CSS are inlined too, so ``file://`` loading needs nothing else.
+  Light field mapping models (kind "lfm") ship their surface maps per atlas texel, their view maps
+  and vertex frames as textures, and the shader sums the terms as fit/lfm_stage.py's LFMRenderer does.
 
 Heavy imports (matplotlib, OpenImageIO through capture.imageio, warp through the renderer) are
 inside the functions.
