@@ -9,18 +9,16 @@ import json
 import numpy as np
 import pytest
 
-pytest.importorskip("OpenImageIO")
+from conftest import SCENE_DEVICE
+from lfm_scenes import fixed_light_sphere_capture
 
-from conftest import SCENE_DEVICE  # noqa: E402
-from lfm_scenes import fixed_light_sphere_capture  # noqa: E402
-from test_fit_export import assert_srgb_codes, glb_images, trimesh  # noqa: E402
-
-from texstream.fit import export as E  # noqa: E402
+from texstream.fit import export as E
 
 
 @pytest.fixture(scope="module")
 def lfm_model(tmp_path_factory):
     """A K = 1 LFM fit (20 CG iterations) of the fixed-light sphere."""
+    pytest.importorskip("OpenImageIO")  # the synthetic photos are EXR files
     from texstream.fit.fitter import FitConfig
     from texstream.fit.lfm import LFMConfig
     from texstream.fit.stage import FitStageConfig, fit_stage
@@ -82,6 +80,7 @@ def test_unlit_equals_the_full_model_when_the_view_maps_are_constant(lfm_model, 
 
 def test_lfm_exports_an_unlit_glb_and_obj_with_its_maps(lfm_model, tmp_path):
     from texstream.fit.lfm_stage import load_lfm_model
+    from test_fit_export import assert_srgb_codes, glb_images, trimesh  # pygltflib, trimesh, PIL or a skip
 
     out = tmp_path / "export"
     res = E.export_stage(lfm_model, out)
