@@ -250,16 +250,19 @@ def cosine_directions(n: int = VIEW_MEAN_GRID) -> np.ndarray:
     return np.stack([x[keep], y[keep], np.sqrt(1.0 - r2[keep])], 1)
 
 
-def view_mean_weights(res: int, mapping: str, lookup: str, device: str = "cpu",
+def view_mean_weights(res: int, mapping: str, lookup: str, device: str | None = None,
                       n: int = VIEW_MEAN_GRID) -> np.ndarray:
     """(R * R,) weights w (summing to 1) such that ``sum_q w[q] h[q]`` is the cosine-weighted mean over
     view directions of a view map h looked up as the renderer does (mapping "disk" | "hemioct",
-    lookup "nearest" | "bilinear"): the average of ``view_taps`` over :func:`cosine_directions`."""
+    lookup "nearest" | "bilinear"): the average of ``view_taps`` over :func:`cosine_directions`, on
+    ``device`` (None: the CPU where Warp can compile for it, else Warp's preferred device)."""
     import warp as wp
 
     from .kernels import lfm as LK
     from .kernels.lfm_lookup import direction_taps_kernel
 
+    if device is None:
+        device = "cpu" if wp.is_cpu_available() else str(wp.get_preferred_device())
     dirs = cosine_directions(n)
     d = wp.array(dirs, dtype=wp.vec3d, device=device)
     idx = wp.zeros(len(dirs), dtype=wp.vec4i, device=device)
@@ -273,7 +276,7 @@ def view_mean_weights(res: int, mapping: str, lookup: str, device: str = "cpu",
     return out / out.sum()
 
 
-def lfm_unlit_radiance(model, view_mean: str = "cosine", device: str = "cpu") -> np.ndarray:
+def lfm_unlit_radiance(model, view_mean: str = "cosine", device: str | None = None) -> np.ndarray:
     """(N, 3) the unlit radiance of each compact texel of an LFM model (fit/lfm_stage.py
     ``LFMModelFolder``): d(s) plus, with ``view_mean = "cosine"``, sum over the texel's slots j and terms
     k of g_k(slot) times the cosine-weighted mean of h_k over the slot vertex's view directions."""
