@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from texstream.core.config import check_config, config_from_dict, config_to_dict, option
-from texstream.core.errors import ConfigError, InputError
+from texstream.core.errors import ConfigError, InputError, TexstreamError
 from texstream.core.outputs import write_atomic_with, write_json_atomic
 
 STAGES = ("ingest", "register", "mesh", "atlas", "lights", "fit", "export", "report")
@@ -525,8 +525,12 @@ def fit_with_selection(capture_dir: Path, geometry: Path, out: Path, fit_cfg, ki
         extra, extra_reason = more({k: r.summary["heldout"].get("pooled_psnr_db") for k, r in results.items()})
         log(f"[fit] {extra_reason}")
         for k in extra:
-            fit_kind(k)
-        kinds = tuple(kinds) + tuple(k for k in extra if k not in kinds)
+            try:
+                fit_kind(k)
+            except TexstreamError as e:  # an optional candidate the capture cannot take (e.g. streamed photos)
+                extra_reason += f"; {k} could not be fitted ({e.message}), left out"
+                log(f"[fit] {k} could not be fitted ({e.message}): left out")
+        kinds = tuple(kinds) + tuple(k for k in extra if k in results and k not in kinds)
     score = {k: r.summary["heldout"].get("pooled_psnr_db") for k, r in results.items()}
     if all(v is None for v in score.values()):
         # fewer registered photos than --holdout-every: nothing to judge by, the scene's own model stays

@@ -78,3 +78,15 @@ def test_lfm_candidate_overrides_and_an_lfm_model_through_export_and_report(capt
     assert exp["model_kind"] == "lfm" and "maps/view_k0.exr" in exp["maps"]
     html = (out / "report" / "index.html").read_text()
     assert '"kind":"lfm"' in html and "Light field mapping model" in html
+
+
+def test_an_lfm_candidate_the_capture_cannot_take_is_left_out_with_the_reason(capture, tmp_path):
+    """Photos streamed in windows (stream.photos_per_window > 0) suit the radiance fits but not the LFM fit,
+    which keeps every photo on the device: the run keeps going without it and says why."""
+    cfg = tiny_config(mesh_file=str(capture / "ground_truth"), lfm="always")
+    cfg.fit.fit = dataclasses.replace(cfg.fit.fit, stream=dataclasses.replace(cfg.fit.fit.stream, photos_per_window=8))
+    s = run_pipeline(capture, tmp_path / "out", cfg, log=lambda m: None)
+    sel = s["fit"]["selection"]
+    assert set(sel["heldout_pooled_db"]) == {"radiance", "view_radiance"}
+    assert "lfm could not be fitted" in sel["lfm"] and "photo" in sel["lfm"]
+    assert s["model"] in ("radiance", "view_radiance")
