@@ -25,5 +25,6 @@ def fixed_light_sphere_capture(root: Path, photos: int = 48, image_size: int = 3
     synthesize(scene, cap_dir, SynthConfig(scale=1.0, photos=photos, image_size=image_size, progress=False,
                                            preview=False, device=device))
     cap = read_capture(cap_dir)
-    write_capture(dataclasses.replace(cap, frames=[dataclasses.replace(f, light=None) for f in cap.frames]), cap_dir)
+    unlit = [dataclasses.replace(f, light=None) for f in cap.frames]
+    write_capture(dataclasses.replace(cap, frames=unlit), cap_dir)
     return cap_dir

@@ -3,7 +3,6 @@ OBJ base colour, its view-map means, and the EXR maps alongside."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 
 import numpy as np
@@ -86,8 +85,8 @@ def test_lfm_exports_an_unlit_glb_and_obj_with_its_maps(lfm_model, tmp_path):
     res = E.export_stage(lfm_model, out)
     s = res.summary
     assert s["model_kind"] == "lfm" and s["kind"] == "radiance" and s["lfm_view_mean"] == "cosine"
-    assert sorted(s["maps"]) == sorted(f"maps/{n}.exr" for n in
-                                       ("diffuse", "surface_k0_v0", "surface_k0_v1", "surface_k0_v2", "view_k0"))
+    names = ("diffuse", "surface_k0_v0", "surface_k0_v1", "surface_k0_v2", "view_k0")
+    assert sorted(s["maps"]) == sorted(f"maps/{n}.exr" for n in names)
     assert all((out / f).is_file() for f in s["maps"])
     model = load_lfm_model(lfm_model)
     unlit = E.lfm_atlas(model, E.lfm_unlit_radiance(model, "cosine"))
@@ -120,4 +119,4 @@ def test_a_broken_lfm_folder_is_an_input_error(lfm_model, tmp_path):
         E.export_stage(model, tmp_path / "out")
     assert not (tmp_path / "out").exists()
     with pytest.raises(ConfigError, match="lfm_view_mean"):
-        E.export_stage(lfm_model, tmp_path / "out", dataclasses.replace(E.ExportConfig(), lfm_view_mean="max"))
+        E.export_stage(lfm_model, tmp_path / "out", E.ExportConfig(lfm_view_mean="max"))

@@ -22,7 +22,8 @@ pytest.importorskip("OpenImageIO")
 
 from conftest import SCENE_DEVICE  # noqa: E402
 from lfm_scenes import fixed_light_sphere_capture  # noqa: E402
-from test_pipelines_report import H, PSNR_THRESHOLD_DB, SILHOUETTE_MISMATCH_MAX, W, psnr8, screenshot, viewer_status  # noqa: E402,E501
+from test_pipelines_report import (H, PSNR_THRESHOLD_DB, SILHOUETTE_MISMATCH_MAX, W, psnr8,  # noqa: E402
+                                   screenshot, viewer_status)
 
 # the same model read with the other view-map mapping, view direction and lookups: every branch of the shader
 VARIANTS = {"disk_bilinear_point": {},
@@ -75,8 +76,8 @@ def _view(model_dir, exposure=1.3):
     k = Intrinsics(W, H, 170.0, 175.0, 97.3, 78.1)
     frame = Frame("view.png", r, t, k, None, exposure=exposure)
     img, mask = model.renderer(SCENE_DEVICE).render_frame(frame)
-    view = {"camera_to_world": w2c_cv_to_c2w_gl(r, t).tolist(), "fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy,
-            "width": W, "height": H, "exposure": exposure, "mode": "full"}
+    view = {"camera_to_world": w2c_cv_to_c2w_gl(r, t).tolist(), "fx": k.fx, "fy": k.fy, "cx": k.cx,
+            "cy": k.cy, "width": W, "height": H, "exposure": exposure, "mode": "full"}
     return view, frame, model, _srgb8(img), mask
 
 
@@ -108,8 +109,8 @@ def test_lfm_screenshot_matches_the_lfm_renderer(variant, lfm_report, tmp_path):
     interior = binary_erosion(mask, iterations=1, border_value=0)
     p = psnr8(shot, ref, interior)
     diff = np.abs(shot.astype(int) - ref).max(axis=2)[interior]
-    print(f"LFM viewer ({variant}) vs LFMRenderer: {p:.2f} dB, {(diff > 1).sum()} of {diff.size} interior pixels "
-          "off by more than one code")
+    print(f"LFM viewer ({variant}) vs LFMRenderer: {p:.2f} dB, {(diff > 1).sum()} of {diff.size} interior "
+          "pixels off by more than one code")
     if "nearest" in variant:
         assert (diff > 1).mean() < NEAREST_FLIPS_MAX, (diff > 1).sum()
     else:

@@ -24,7 +24,8 @@ def capture(tmp_path_factory):
 
 def tiny_config(**top) -> RunConfig:
     cfg = RunConfig(device=SCENE_DEVICE, progress=False, **top)
-    fit = dataclasses.replace(cfg.fit.fit, max_iterations=5, lfm=dataclasses.replace(cfg.fit.fit.lfm, iterations=20))
+    lfm = dataclasses.replace(cfg.fit.fit.lfm, iterations=20)
+    fit = dataclasses.replace(cfg.fit.fit, max_iterations=5, lfm=lfm)
     cfg.fit = dataclasses.replace(cfg.fit, renders=1, fit=fit)
     return cfg
 
@@ -45,7 +46,8 @@ def test_lfm_decision_rules():
 def test_view_dependence_brings_in_lfm_and_the_best_held_out_model_is_kept(capture, tmp_path):
     out = tmp_path / "out"
     lines: list[str] = []
-    summary = run_pipeline(capture, out, tiny_config(mesh_file=str(capture / "ground_truth")), log=lines.append)
+    cfg = tiny_config(mesh_file=str(capture / "ground_truth"))
+    summary = run_pipeline(capture, out, cfg, log=lines.append)
     sel = summary["fit"]["selection"]
     scores = sel["heldout_pooled_db"]
     # the highlight moves with the camera under the fixed light: view_radiance beats radiance on the held-out
@@ -65,8 +67,8 @@ def test_view_dependence_brings_in_lfm_and_the_best_held_out_model_is_kept(captu
 
 def test_lfm_candidate_overrides_and_an_lfm_model_through_export_and_report(capture, tmp_path):
     # never: the two radiance models only, the reason recorded
-    s = run_pipeline(capture, tmp_path / "never", tiny_config(mesh_file=str(capture / "ground_truth"), lfm="never"),
-                     log=lambda m: None)
+    cfg = tiny_config(mesh_file=str(capture / "ground_truth"), lfm="never")
+    s = run_pipeline(capture, tmp_path / "never", cfg, log=lambda m: None)
     assert set(s["fit"]["selection"]["heldout_pooled_db"]) == {"radiance", "view_radiance"}
     assert "lfm = never" in s["fit"]["selection"]["lfm"]
     # model lfm, asked for: no selection; export writes the unlit glTF, the report the LFM viewer
@@ -84,7 +86,8 @@ def test_an_lfm_candidate_the_capture_cannot_take_is_left_out_with_the_reason(ca
     """Photos streamed in windows (stream.photos_per_window > 0) suit the radiance fits but not the LFM fit,
     which keeps every photo on the device: the run keeps going without it and says why."""
     cfg = tiny_config(mesh_file=str(capture / "ground_truth"), lfm="always")
-    cfg.fit.fit = dataclasses.replace(cfg.fit.fit, stream=dataclasses.replace(cfg.fit.fit.stream, photos_per_window=8))
+    windows = dataclasses.replace(cfg.fit.fit.stream, photos_per_window=8)
+    cfg.fit.fit = dataclasses.replace(cfg.fit.fit, stream=windows)
     s = run_pipeline(capture, tmp_path / "out", cfg, log=lambda m: None)
     sel = s["fit"]["selection"]
     assert set(sel["heldout_pooled_db"]) == {"radiance", "view_radiance"}
