@@ -39,7 +39,13 @@ class FitStageConfig:
     """Options of ``texstream fit`` around the numerical FitConfig."""
 
     device: str = option("cpu", "Warp device: cpu or cuda:N")
-    texture_size: int = option(256, "atlas side in texels when the mesh has UVs but no bake", min=8, max=16384)
+    texture_size: int = option(0, "atlas side in texels when the mesh has UVs but no bake; 0: automatic, the power "
+                                  "of two whose texels are about texel_pixels of the photos' pixels wide",
+                               min=0, max=16384)
+    texel_pixels: float = option(3.0, "automatic texture_size: the texel width to aim at, in photo pixels (texels "
+                                      "narrower than a pixel or two share their pixels with their neighbours and "
+                                      "fit the photos' filtered highlights as broad, weak lobes that new views "
+                                      "contradict; docs/accuracy.md)", min=0.25)
     holdout_every: int = option(0, "hold out every k-th photo from the fit for evaluation (0 = none)", min=0)
     renders: int = option(4, "photos rendered beside the fitted model in renders/", min=0)
     unseen: str = option("nearest", "texels no photo saw: nearest (the value of the nearest seen texel on the "
@@ -62,8 +68,10 @@ class FitStageConfig:
     fit: FitConfig = option(default_factory=FitConfig, help="the fit", flat=True)
 
 
-def load_geometry(mesh_path: str | Path, texture_size: int, device: str):
-    """(mesh with UVs, TexelBake) from an atlas folder, or a mesh file baked at ``texture_size``."""
+def load_geometry(mesh_path: str | Path, texture_size: int, device: str, frames=None, texel_pixels: float = 3.0):
+    """(mesh with UVs, TexelBake) from an atlas folder, or a mesh file baked at ``texture_size`` (0: the side
+    :func:`texstream.geometry.density.texture_side_for` picks from ``frames`` and ``texel_pixels``; 256 without
+    frames)."""
     from texstream.geometry.bake import TexelBake, bake_texels
     from texstream.geometry.mesh_io import load_mesh
 
@@ -80,9 +88,16 @@ def load_geometry(mesh_path: str | Path, texture_size: int, device: str):
     if mesh.uvs is None:
         from texstream.geometry.atlas import AtlasConfig, build_atlas
 
-        mesh, _ = build_atlas(mesh, AtlasConfig(resolution=texture_size))
+        mesh, _ = build_atlas(mesh, AtlasConfig(resolution=texture_size or 1024))
     mesh = mesh.with_normals()
-    return mesh, bake_texels(mesh, texture_size, texture_size, device=device)
+    side = texture_size
+    if side == 0:
+        side = 256
+        if frames:
+            from texstream.geometry.density import texture_side_for
+
+            side = texture_side_for(mesh, frames, texel_pixels)[0]
+    return mesh, bake_texels(mesh, side, side, device=device)
 
 
 def load_photos(capture, frames, device: str | None = None):
@@ -307,7 +322,7 @@ def load_fit_inputs(capture_dir: str | Path, mesh_path: str | Path, cfg: FitStag
     if not frames:
         raise InputError("no photo is left to fit after the hold-out split", Path(capture_dir) / "capture.json",
                          "lower --holdout-every or add photos")
-    mesh, bake = load_geometry(mesh_path, cfg.texture_size, cfg.device)
+    mesh, bake = load_geometry(mesh_path, cfg.texture_size, cfg.device, frames, cfg.texel_pixels)
     seams = load_seams(mesh_path, bake)
     images, masks = load_photos(capture, frames)
     return FitInputs(capture, frames, held, mesh, bake, seams, images, masks)
