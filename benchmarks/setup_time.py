@@ -65,6 +65,7 @@ def child(a) -> dict:
         return StreamConfig(**{k: v for k, v in kw.items() if k in known})
 
     stream = stream_config(image_precision=a.image_precision, photo_residency=a.residency,
+                           shadow_map_size=a.shadow_map_size,
                            photos_per_window=a.photos_per_window, memory_limit_mb=a.memory_limit_mb)
     cfg = FitConfig(optimizer="lm", max_iterations=a.iterations, sync_every=100000, stream=stream)
     rss_start = rss_mib()
@@ -81,13 +82,15 @@ def child(a) -> dict:
     else:
         from texstream.capture.synth import SynthConfig, render_scene
 
-        sc = render_scene(a.scene, SynthConfig(scale=a.scale, device=a.device, progress=False))
+        sc = render_scene(a.scene, SynthConfig(scale=a.scale, device=a.device, progress=False, photos=a.photos,
+                                               image_size=a.image_size))
         mesh, bake, frames, photos, masks = sc.mesh, sc.bake, sc.frames, sc.images, sc.masks
         warm = photos[:2], masks[:2]
     rss_inputs = rss_mib()
     # compile and load every set-up kernel on two photos first
     warm_cfg = FitConfig(optimizer="lm", max_iterations=1, stream=stream_config(
-        image_precision=a.image_precision, photo_residency="device" if a.residency == "auto" else a.residency,
+        image_precision=a.image_precision, shadow_map_size=a.shadow_map_size,
+        photo_residency="device" if a.residency == "auto" else a.residency,
         photos_per_window=1 if a.residency in ("host", "disk") else 0))
     wprob = build_problem(mesh, bake, frames[:2], warm[0], warm[1], warm_cfg, a.device)
     run_fit(wprob, warm_cfg)
@@ -135,6 +138,9 @@ def main() -> None:
     ap.add_argument("--scene", default="ornament")
     ap.add_argument("--scale", type=float, default=0.05)
     ap.add_argument("--out", default="out/setup_time")
+    ap.add_argument("--photos", type=int, default=0, help="SynthConfig.photos (0: the scene's count x scale)")
+    ap.add_argument("--image-size", type=int, default=0, help="SynthConfig.image_size (0: the scene's x sqrt(scale))")
+    ap.add_argument("--shadow-map-size", type=int, default=512, help="StreamConfig.shadow_map_size")
     ap.add_argument("--source", default="memory", choices=("memory", "disk"))
     ap.add_argument("--residency", default="auto", help="comma list of StreamConfig.photo_residency values")
     ap.add_argument("--photos-per-window", type=int, default=0, help="StreamConfig.photos_per_window")
@@ -149,7 +155,8 @@ def main() -> None:
         return
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    results = {"scene": a.scene, "scale": a.scale, "device": a.device, "source": a.source,
+    results = {"scene": a.scene, "scale": a.scale, "photos": a.photos, "image_size": a.image_size,
+               "shadow_map_size": a.shadow_map_size, "device": a.device, "source": a.source,
                "image_precision": a.image_precision, "iterations": a.iterations, "machine": platform.node(),
                "command": "python benchmarks/setup_time.py " + " ".join(sys.argv[1:]), "runs": {}}
     try:
@@ -162,14 +169,16 @@ def main() -> None:
         from texstream.capture.synth import SynthConfig, synthesize
 
         t0 = time.perf_counter()
-        synthesize(a.scene, capture, SynthConfig(scale=a.scale, device=a.device, progress=False, preview=False))
+        synthesize(a.scene, capture, SynthConfig(scale=a.scale, device=a.device, progress=False, preview=False,
+                                                 photos=a.photos, image_size=a.image_size))
         results["write_capture_s"] = time.perf_counter() - t0
         results["capture_bytes"] = sum(p.stat().st_size for p in (capture / "images").iterdir())
     for residency in a.residency.split(","):
         cmd = [sys.executable, __file__, "--child", "--device", a.device, "--scene", a.scene, "--scale", str(a.scale),
                "--source", a.source, "--residency", residency, "--photos-per-window", str(a.photos_per_window),
                "--memory-limit-mb", str(a.memory_limit_mb), "--image-precision", a.image_precision,
-               "--iterations", str(a.iterations), "--capture", str(capture)]
+               "--iterations", str(a.iterations), "--capture", str(capture), "--photos", str(a.photos),
+               "--image-size", str(a.image_size), "--shadow-map-size", str(a.shadow_map_size)]
         proc = subprocess.run(cmd, capture_output=True, text=True)
         line = next((x for x in proc.stdout.splitlines() if x.startswith("RESULT ")), None)
         if line is None:
@@ -179,7 +188,8 @@ def main() -> None:
             run = json.loads(line[len("RESULT "):])
             results["runs"][residency] = run
             ph = run["setup_phases_s"]
-            print(f"{residency} -> {run['residency']} ({run['photos_per_window']}/window): set-up {run['setup_s']:.3f} s "
+            print(f"{residency} -> {run['residency']} ({run['photos_per_window']}/window): "
+                  f"set-up {run['setup_s']:.3f} s "
                   f"({', '.join(f'{k} {v:.3f}' for k, v in ph.items())}); fit {run['fit_loop_s']:.3f} s "
                   f"({run['pass_ms']:.1f} ms/pass); converged model {run['converged_model_s']:.3f} s; "
                   f"peak RSS {run['peak_rss_mib']:.0f} MiB" +

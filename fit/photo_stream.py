@@ -203,7 +203,8 @@ class PhotoLoader:
         self.has_masks = (any(p is not None for p in source.mask_paths) if self.files
                           else masks is not None and any(m is not None for m in masks))
         self.threads = threads if threads > 0 else min(8, os.cpu_count() or 1)
-        self.pool = concurrent.futures.ThreadPoolExecutor(max_workers=self.threads, thread_name_prefix="texstream-photo")
+        self.pool = concurrent.futures.ThreadPoolExecutor(max_workers=self.threads,
+                                                          thread_name_prefix="texstream-photo")
 
     def close(self) -> None:
         self.pool.shutdown(wait=True, cancel_futures=True)

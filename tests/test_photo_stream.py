@@ -21,19 +21,34 @@ from texstream.fit.stage import build_problem, photo_files
 SHADOW = 48
 
 
+SMALL = dict(scale=0.02, photos=10, image_size=40, progress=False)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """(mesh, bake, frames, images, masks) of a small ornament rendered in memory."""
+    from conftest import SCENE_DEVICE
+    from texstream.capture.synth import SynthConfig, render_scene
+
+    sc = render_scene("ornament", SynthConfig(device=SCENE_DEVICE, **SMALL))
+    return sc.mesh, sc.bake, sc.frames, sc.images, sc.masks
+
+
 @pytest.fixture(scope="module")
 def capture_dir(tmp_path_factory):
-    """A small ornament written as a capture folder (float EXR photos, masks)."""
+    """The small ornament written as a capture folder (float EXR photos, masks)."""
+    pytest.importorskip("OpenImageIO", reason="writing and reading a capture folder needs OpenImageIO")
+    from conftest import SCENE_DEVICE
     from texstream.capture.synth import SynthConfig, synthesize
 
     out = tmp_path_factory.mktemp("ornament") / "capture"
-    synthesize("ornament", out, SynthConfig(scale=0.02, photos=10, image_size=40, progress=False, preview=False))
+    synthesize("ornament", out, SynthConfig(device=SCENE_DEVICE, preview=False, **SMALL))
     return out
 
 
 @pytest.fixture(scope="module")
-def scene(capture_dir):
-    """(capture, mesh, bake, frames, images, masks) of the capture folder, photos read into memory."""
+def disk_scene(capture_dir):
+    """(capture, mesh, bake, frames, images, masks) of the capture folder, photos also read into memory."""
     from texstream.capture.capture_json import read_capture
     from texstream.fit.stage import load_geometry, load_photos
 
@@ -44,7 +59,7 @@ def scene(capture_dir):
 
 
 def photo_set(scene, device, **stream):
-    capture, mesh, bake, frames, images, masks = scene
+    mesh, bake, frames, images, masks = scene
     cfg = StreamConfig(shadow_map_size=SHADOW, **stream)
     return PhotoSet([PhotoFrame.from_capture_frame(f) for f in frames], images, mesh.vertices, mesh.faces,
                     masks=masks, config=cfg, device=device)
@@ -74,7 +89,7 @@ def per_photo_maps(ps: PhotoSet, masks, device):
 
 def test_batched_maps_equal_the_per_photo_maps(scene, device):
     ps = photo_set(scene, device, crop_photos=False)
-    depth, shadow = per_photo_maps(ps, scene[5], device)
+    depth, shadow = per_photo_maps(ps, scene[4], device)
     assert ps.infos_host["has_shadow"].all()
     np.testing.assert_array_equal(ps.depth.numpy(), depth)
     np.testing.assert_array_equal(ps.shadow.numpy(), shadow)
@@ -95,7 +110,7 @@ def test_cropped_photos_and_depth_maps_are_crops_of_the_whole_ones(scene, device
 
 
 def test_cropped_photos_keep_every_sample(scene, device):
-    capture, mesh, bake, frames, images, masks = scene
+    mesh, bake, frames, images, masks = scene
     cfg = FitConfig(optimizer="lm", max_iterations=1, stream=StreamConfig(shadow_map_size=SHADOW, crop_photos=False))
     whole = build_problem(mesh, bake, frames, images, masks, cfg, device)
     crop = build_problem(mesh, bake, frames, images, masks,
@@ -117,31 +132,31 @@ def test_cropped_photos_keep_every_sample(scene, device):
     np.testing.assert_allclose(out[1][1], out[0][1], rtol=1e-3, atol=1e-5 * gscale)
 
 
-def fit(scene, files, device, **stream):
-    capture, mesh, bake, frames, images, masks = scene
+def fit(disk_scene, files, device, **stream):
+    capture, mesh, bake, frames, images, masks = disk_scene
     cfg = FitConfig(optimizer="lm", max_iterations=3, stream=StreamConfig(shadow_map_size=SHADOW, **stream))
     source = photo_files(capture, frames) if files else images
     prob = build_problem(mesh, bake, frames, source, None if files else masks, cfg, device)
     return prob, run_fit(prob, cfg)
 
 
-def test_streamed_from_disk_host_and_device_fits_agree(scene, device):
-    disk, r_disk = fit(scene, True, device, photo_residency="disk", photos_per_window=4)
-    host, r_host = fit(scene, False, device, photo_residency="host", photos_per_window=4)
+def test_streamed_from_disk_host_and_device_fits_agree(disk_scene, device):
+    disk, r_disk = fit(disk_scene, True, device, photo_residency="disk", photos_per_window=4)
+    host, r_host = fit(disk_scene, False, device, photo_residency="host", photos_per_window=4)
     assert (disk.photos.residency, host.photos.residency) == ("disk", "host")
     assert disk.photos.window == 4 and disk.photos.loader is not None and not hasattr(disk.photos, "host_images")
     # same windows, same summation order: the same parameters to the last bit
     np.testing.assert_array_equal(r_disk.params, r_host.params)
     assert [r["objective"] for r in r_disk.trace] == [r["objective"] for r in r_host.trace]
     # one window of all photos, decoded again every pass, sums as the photos resident on the device do
-    dev, r_dev = fit(scene, True, device, photo_residency="device")
-    disk1, r_disk1 = fit(scene, True, device, photo_residency="disk", photos_per_window=len(scene[3]))
+    dev, r_dev = fit(disk_scene, True, device, photo_residency="device")
+    disk1, r_disk1 = fit(disk_scene, True, device, photo_residency="disk", photos_per_window=len(disk_scene[3]))
     assert dev.photos.residency == "device" and disk1.photos.residency == "disk"
     np.testing.assert_array_equal(r_disk1.params, r_dev.params)
 
 
-def test_a_memory_cap_below_the_photos_streams_them_from_disk(scene, device):
-    prob, res = fit(scene, True, device, memory_limit_mb=0.05)
+def test_a_memory_cap_below_the_photos_streams_them_from_disk(disk_scene, device):
+    prob, res = fit(disk_scene, True, device, memory_limit_mb=0.05)
     ph = prob.photos
     assert ph.residency == "disk" and ph.window < ph.n
     assert "exceed" in ph.residency_reason
@@ -159,8 +174,8 @@ def test_automatic_residency_follows_the_memory_available():
     assert gib  # sizes above in bytes
 
 
-def test_a_corrupt_photo_in_the_stream_fails_naming_it(scene, capture_dir, device, tmp_path):
-    capture, mesh, bake, frames, images, masks = scene
+def test_a_corrupt_photo_in_the_stream_fails_naming_it(disk_scene, device, tmp_path):
+    capture, mesh, bake, frames, images, masks = disk_scene
     files = photo_files(capture, frames)
     bad = tmp_path / "broken.exr"
     bad.write_bytes(b"not an exr at all")
