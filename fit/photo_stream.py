@@ -30,7 +30,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import warp as wp
 
-from texstream.capture.conventions import look_at_w2c
+from texstream.capture.conventions import look_at_w2c_batch
 from texstream.core.errors import InputError
 
 from .kernels import stream
@@ -87,17 +87,21 @@ def image_infos(frames, crops: np.ndarray | None, center: np.ndarray | None, rad
     """
     n = len(frames)
     a = np.zeros(n, dtype=stream.ImageInfo.numpy_dtype())
+    if n == 0:
+        return a
     f32 = np.float32
-    for k, fr in enumerate(frames):
-        R = np.asarray(fr.R)
-        a["rot"][k] = R.astype(f32)
-        a["trans"][k] = np.asarray(fr.t, f32)
-        a["center"][k] = (-R.T @ np.asarray(fr.t)).astype(f32)
-        a["light_vec"][k] = np.asarray(fr.light_vec, f32)
-        a["light_intensity"][k] = np.asarray(fr.light_intensity, f32)
-        if fr.light_kind not in LIGHT_KINDS:
-            raise InputError(f"light kind {fr.light_kind!r} unknown", fix=f"use one of {sorted(LIGHT_KINDS)}")
-        a["light_kind"][k] = LIGHT_KINDS[fr.light_kind]
+    bad = sorted({fr.light_kind for fr in frames} - set(LIGHT_KINDS))
+    if bad:
+        raise InputError(f"light kind {bad[0]!r} unknown", fix=f"use one of {sorted(LIGHT_KINDS)}")
+    R = np.array([np.asarray(fr.R, np.float64) for fr in frames]).reshape(n, 3, 3)
+    t = np.array([np.asarray(fr.t, np.float64) for fr in frames]).reshape(n, 3)
+    a["rot"] = R.astype(f32)
+    a["trans"] = t.astype(f32)
+    a["center"] = (-np.einsum("nji,nj->ni", R, t)).astype(f32)   # camera centre -R^T t
+    a["light_vec"] = np.array([np.asarray(fr.light_vec, np.float64) for fr in frames]).reshape(n, 3).astype(f32)
+    a["light_intensity"] = np.array([np.asarray(fr.light_intensity, np.float64)
+                                     for fr in frames]).reshape(n, 3).astype(f32)
+    a["light_kind"] = [LIGHT_KINDS[fr.light_kind] for fr in frames]
     a["fx"] = [fr.fx for fr in frames]
     a["fy"] = [fr.fy for fr in frames]
     a["cx"] = [fr.cx for fr in frames]
@@ -110,40 +114,50 @@ def image_infos(frames, crops: np.ndarray | None, center: np.ndarray | None, rad
         a["cx"] -= crops[:, 0].astype(f32)
         a["cy"] -= crops[:, 1].astype(f32)
         a["width"], a["height"] = crops[:, 2], crops[:, 3]
-    if shadow_size > 0 and center is not None:
-        for k, fr in enumerate(frames):
-            _shadow_camera(a[k:k + 1], fr, center, radius, shadow_size)
+    if shadow_size > 0 and center is not None and n:
+        _shadow_cameras(a, frames, np.asarray(center, np.float64), radius, shadow_size)
     return a
 
 
-def _shadow_camera(rec: np.ndarray, fr, center: np.ndarray, radius: float, size: int) -> None:
-    """Aim a shadow-map camera from the light at the object's bounding sphere (one record of
-    :func:`image_infos`; has_shadow stays 0 for no light or a light inside the bounds)."""
+def struct_array(records: np.ndarray, dtype, device: str) -> wp.array:
+    """A Warp array of structs from a numpy structured array of ``dtype.numpy_dtype()``, one memory
+    copy (``wp.array`` of a structured array converts record by record, ~70 us each)."""
+    out = wp.empty(len(records), dtype=dtype, device=device)
+    if len(records):
+        records = np.ascontiguousarray(records)
+        view = wp.array(ptr=records.ctypes.data, shape=(len(records),), dtype=dtype, device="cpu")
+        wp.copy(out, view)
+        wp.synchronize_device(device)  # ``records`` may go once the copy has read it
+    return out
+
+
+def _shadow_cameras(a: np.ndarray, frames, center: np.ndarray, radius: float, size: int) -> None:
+    """Aim each photo's shadow-map camera from its light at the object's bounding sphere (records of
+    :func:`image_infos`): perspective from a point light, orthographic along a directional one;
+    has_shadow stays 0 for no light and for a point light inside the bounds (no frustum covers it)."""
     r = max(radius, 1e-9)
-    if fr.light_kind == "none":
-        return  # no light, no shadows (the radiance model tests none)
-    if fr.light_kind == "point":
-        lp = np.asarray(fr.light_vec, float)
-        dist = float(np.linalg.norm(lp - center))
-        if dist <= _SHADOW_INSIDE * r:
-            return  # light inside the object's bounds: no single frustum covers it
-        rot, trans = look_at_w2c(lp, center)
-        half = math.asin(min(r / dist, 0.999)) * _SHADOW_FOV_PAD
-        f = 0.5 * size / math.tan(half)
-        ortho = 0
-    else:
-        d = np.asarray(fr.light_vec, float)
-        d = d / np.linalg.norm(d)
-        rot, trans = look_at_w2c(center - 3.0 * r * d, center)
-        f = size / (_SHADOW_ORTHO_SPAN * r)
-        ortho = 1
-    rec["has_shadow"] = 1
-    rec["sh_rot"] = np.asarray(rot, np.float32)
-    rec["sh_trans"] = np.asarray(trans, np.float32)
-    rec["sh_fx"] = rec["sh_fy"] = float(f)
-    rec["sh_cx"] = rec["sh_cy"] = 0.5 * size
-    rec["sh_ortho"] = ortho
-    rec["sh_size"] = size
+    kinds = np.array([fr.light_kind for fr in frames])
+    light = np.array([np.asarray(fr.light_vec, float) for fr in frames], np.float64).reshape(-1, 3)
+    point, directional = kinds == "point", kinds == "directional"
+    dist = np.linalg.norm(light - center, axis=1)
+    point &= dist > _SHADOW_INSIDE * r
+    eye = light.copy()
+    d = light[directional] / np.linalg.norm(light[directional], axis=1, keepdims=True)
+    eye[directional] = center - 3.0 * r * d
+    has = point | directional
+    if not has.any():
+        return
+    rot, trans = look_at_w2c_batch(eye[has], center)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        half = np.arcsin(np.minimum(r / dist, 0.999)) * _SHADOW_FOV_PAD
+        f = np.where(point, 0.5 * size / np.tan(half), size / (_SHADOW_ORTHO_SPAN * r))
+    a["has_shadow"][has] = 1
+    a["sh_rot"][has] = rot.astype(np.float32)
+    a["sh_trans"][has] = trans.astype(np.float32)
+    a["sh_fx"][has] = a["sh_fy"][has] = f[has]
+    a["sh_cx"][has] = a["sh_cy"][has] = 0.5 * size
+    a["sh_ortho"][has] = directional[has]
+    a["sh_size"][has] = size
 
 
 @wp.kernel

@@ -26,7 +26,7 @@ from .kernels.shading import SHADOW_EPS_REL
 from .kernels.visibility import depth_maps_kernel, shadow_maps_kernel
 from .models import ModelLayout
 from .photo_stream import (LIGHT_KINDS, PhotoFiles, PhotoLoader, choose_residency, crop_boxes,  # noqa: F401
-                           image_infos, wait, window_size)
+                           image_infos, struct_array, wait, window_size)
 
 PRECISIONS = {"fp16": wp.float16, "fp32": wp.float32, "fp64": wp.float64}
 UPLOAD_CHUNK_BYTES = 64 << 20
@@ -358,7 +358,7 @@ class PhotoSet:
         self.sizes = sizes = np.array([[fr.height, fr.width] for fr in frames], np.int64)
         infos = image_infos(frames, None, self.center, self.radius, ssize)
         if cfg.crop_photos:
-            full = wp.array(infos, dtype=stream.ImageInfo, device=device)
+            full = struct_array(infos, stream.ImageInfo, device)
             self.crops = crop_boxes(self.mesh.points, full, sizes[:, 1], sizes[:, 0], device)
             infos = image_infos(frames, self.crops, self.center, self.radius, ssize)
             self.hmax, self.wmax = int(self.crops[:, 3].max()), int(self.crops[:, 2].max())
@@ -368,7 +368,7 @@ class PhotoSet:
             self.hmax = max(int(im.shape[0]) for im in images)
             self.wmax = max(int(im.shape[1]) for im in images)
         self.infos_host = infos
-        self.infos = wp.array(infos, dtype=stream.ImageInfo, device=device)
+        self.infos = struct_array(infos, stream.ImageInfo, device)
         fp16 = cfg.image_precision == "fp16"
         self.img_dtype = wp.vec3h if fp16 else wp.vec3
         pixels = self.hmax * self.wmax
@@ -524,7 +524,7 @@ class PhotoSet:
         self.residency, self.residency_reason = "device", "single-view photos"
         self.shadow_side = 2
         self.infos_host = infos
-        self.infos = wp.array(infos, dtype=stream.ImageInfo, device=device)
+        self.infos = struct_array(infos, stream.ImageInfo, device)
         self.img_dtype = wp.vec3h if fp16 else wp.vec3
         self.images = wp.array(stack, dtype=self.img_dtype, device=device)
         self.depth = wp.array(depth, dtype=wp.float32, device=device)
@@ -547,7 +547,7 @@ class PhotoSet:
         out.infos_host = self.infos_host[idx]
         out.crops = None if self.crops is None else self.crops[idx]
         dev = self.device
-        out.infos = wp.array(out.infos_host, dtype=stream.ImageInfo, device=dev)
+        out.infos = struct_array(out.infos_host, stream.ImageInfo, dev)
         out.window = min(self.window, out.n)
         if self.residency == "disk":  # the window buffers are shared: the two sets are never streamed at once
             src = self.loader.source
