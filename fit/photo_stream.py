@@ -261,6 +261,26 @@ class PhotoLoader:
         wait(self.submit(ks, images, masks))
 
 
+@dataclasses.dataclass
+class WindowSlots:
+    """The two host buffers photos streamed from disk are decoded into, alternately, and what is in
+    flight: shared by a PhotoSet and its subsets (never streamed at once, but interleaved), so each
+    knows whether the prefetched window is its own.
+
+    Attributes:
+        images, masks: per slot a (window, hmax, wmax) Warp array on the CPU (pinned for CUDA).
+        turn: windows submitted so far (the next slot is ``turn % 2``).
+        pending: (owner PhotoSet, first photo, slot, futures) of the window being decoded, or None.
+        copied: per slot the CUDA event of its last upload (None: none, or the CPU).
+    """
+
+    images: list
+    masks: list
+    turn: int = 0
+    pending: tuple | None = None
+    copied: list = dataclasses.field(default_factory=lambda: [None, None])
+
+
 def wait(futures: list) -> None:
     """Wait for every future, then raise the first failure in submission order."""
     concurrent.futures.wait(futures)

@@ -26,7 +26,7 @@ from .kernels.shading import SHADOW_EPS_REL
 from .kernels.visibility import depth_maps_kernel, shadow_maps_kernel
 from .models import ModelLayout
 from .photo_stream import (LIGHT_KINDS, PhotoFiles, PhotoLoader, choose_residency, crop_boxes,  # noqa: F401
-                           image_infos, struct_array, wait, window_size)
+                           WindowSlots, image_infos, struct_array, wait, window_size)
 
 PRECISIONS = {"fp16": wp.float16, "fp32": wp.float32, "fp64": wp.float64}
 UPLOAD_CHUNK_BYTES = 64 << 20
@@ -467,15 +467,12 @@ class PhotoSet:
         self.shadow = wp.empty((w, self.shadow_side, self.shadow_side), dtype=wp.float32, device=dev)
         self.infos_window = wp.zeros(w, dtype=stream.ImageInfo, device=dev)
         self.window_masks = self._masks_buffer(w, dev)
-        self._turn = 0
-        self._pending = None
-        self._copied = [None, None]
         if self.residency == "disk":
             # two slots the loader fills alternately (one decoding while the other's window is in use);
             # on the CPU they are the passes' own image and mask arrays
-            self.slot_images = [wp.empty((w, self.hmax, self.wmax), dtype=self.img_dtype, device="cpu", pinned=pinned)
-                                for _ in range(2)]
-            self.slot_masks = [self._masks_buffer(w, "cpu", pinned) for _ in range(2)]
+            self.slots = WindowSlots(
+                [wp.empty((w, self.hmax, self.wmax), dtype=self.img_dtype, device="cpu", pinned=pinned)
+                 for _ in range(2)], [self._masks_buffer(w, "cpu", pinned) for _ in range(2)])
             return
         t0 = time.perf_counter()
         self.host_images = wp.empty((n, self.hmax, self.wmax), dtype=self.img_dtype, device="cpu", pinned=pinned)
@@ -555,7 +552,6 @@ class PhotoSet:
                                src.read_mask)
             out.sizes = self.sizes[idx]
             out.loader = PhotoLoader(files, None, out.crops, out.sizes, self.loader.threads)
-            out._pending, out._turn, out._copied = None, 0, [None, None]
             out.image_bytes = self.image_bytes // self.n * out.n
             return out
         src = (self.host_images, self.host_depth, self.host_shadow) if self.streamed else (self.images, self.depth, self.shadow)
@@ -593,38 +589,40 @@ class PhotoSet:
             wp.copy(self.infos_window, self.infos, 0, b, c)
             yield images, self.depth, self.shadow, self.infos_window, 0, c
 
-    def _submit_window(self, b: int, slot: int) -> tuple:
+    def _submit_window(self, b: int) -> None:
+        """Start decoding the window from photo ``b`` into the next slot (once its last upload has left it)."""
+        slots = self.slots
+        slot = slots.turn % 2
+        slots.turn += 1
+        if slots.copied[slot] is not None:
+            wp.synchronize_event(slots.copied[slot])
         c = min(self.window, self.n - b)
-        if self._copied[slot] is not None:
-            wp.synchronize_event(self._copied[slot])  # the slot's last upload has left it
-        masks = self.slot_masks[slot].numpy() if self.loader.has_masks else None
-        return b, slot, self.loader.submit(range(b, b + c), self.slot_images[slot].numpy(), masks)
+        masks = slots.masks[slot].numpy() if self.loader.has_masks else None
+        slots.pending = (self, b, slot, self.loader.submit(range(b, b + c), slots.images[slot].numpy(), masks))
 
     def _disk_window(self, b: int, c: int):
         """Photos b..b+c-1 decoded (prefetched since the previous window), uploaded, with their depth
         and shadow maps recomputed on the device; starts decoding the next window (cyclically, so a
         pass's last window prefetches the next pass's first). Returns the device images of the window."""
-        if self._pending is None or self._pending[0] != b:
-            if self._pending is not None:
-                wait(self._pending[2])  # a window nobody asked for (a pass cut short): let it finish
-            self._pending = self._submit_window(b, self._turn % 2)
-            self._turn += 1
-        _, slot, futures = self._pending
+        slots = self.slots
+        if slots.pending is None or slots.pending[0] is not self or slots.pending[1] != b:
+            if slots.pending is not None:
+                wait(slots.pending[3])  # a window nobody asked for (a pass cut short, or another set's)
+            self._submit_window(b)
+        _, _, slot, futures = slots.pending
         wait(futures)
-        nxt = b + self.window if b + self.window < self.n else 0
-        self._pending = self._submit_window(nxt, self._turn % 2)
-        self._turn += 1
+        self._submit_window(b + self.window if b + self.window < self.n else 0)
         pix = self.hmax * self.wmax
         masks = self.window_masks
         if self.device == "cpu":
-            images = self.slot_images[slot]
+            images = slots.images[slot]
             if self.loader.has_masks:
-                masks = self.slot_masks[slot]
+                masks = slots.masks[slot]
         else:
-            wp.copy(self.images, self.slot_images[slot], 0, 0, c * pix)
+            wp.copy(self.images, slots.images[slot], 0, 0, c * pix)
             if self.loader.has_masks:
-                wp.copy(self.window_masks, self.slot_masks[slot], 0, 0, c * pix)
-            self._copied[slot] = wp.get_stream(dev).record_event()
+                wp.copy(self.window_masks, slots.masks[slot], 0, 0, c * pix)
+            slots.copied[slot] = wp.get_stream(self.device).record_event()
             images = self.images
         wp.launch(depth_maps_kernel, dim=(c, self.hmax, self.wmax), device=self.device,
                   inputs=[self.mesh.id, self.infos, b, masks, int(self.loader.has_masks)], outputs=[self.depth])

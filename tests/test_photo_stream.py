@@ -186,3 +186,24 @@ def test_a_corrupt_photo_in_the_stream_fails_naming_it(disk_scene, device, tmp_p
     with pytest.raises(InputError, match="broken.exr"):
         prob = build_problem(mesh, bake, frames, files, None, cfg, device)
         run_fit(prob, cfg)
+
+
+def test_subsets_of_a_disk_stream_interleave_with_it(disk_scene, device):
+    """A subset shares the streamed set's window buffers (fit/materials.py fits part of the photos
+    between passes over all of them): each pass still reads its own photos."""
+    from texstream.fit.problem import StreamProblem
+
+    def passes(prob):
+        sub = StreamProblem(prob.texels, prob.photos.subset([0, 2, 3, 7, 9]), prob.layout, prob.cfg, device)
+        out = []
+        for p in (prob, sub, prob, sub):
+            params = p.new_storage(np.tile(p.layout.defaults(), (p.n, 1)))
+            f, g, st = p.new_scalar(), p.new_vec(), wp.zeros(p.n, dtype=wp.vec4d, device=device)
+            p.evaluate(params, f, g, st)
+            out.append(f.numpy())
+        return out
+
+    disk, _ = fit(disk_scene, True, device, photo_residency="disk", photos_per_window=3)
+    host, _ = fit(disk_scene, False, device, photo_residency="host", photos_per_window=3)
+    for a, b in zip(passes(disk), passes(host)):
+        np.testing.assert_array_equal(a, b)
