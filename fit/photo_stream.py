@@ -182,6 +182,13 @@ def _projected_bounds_kernel(points: wp.array(dtype=wp.vec3), infos: wp.array(dt
     wp.atomic_max(bounds, k, 3, yi)
 
 
+@wp.kernel
+def to_half_kernel(src: wp.array3d(dtype=wp.vec3), first: int, dst: wp.array3d(dtype=wp.vec3h)):
+    """dst[first + i] = src[i] in half floats (round to nearest even)."""
+    i, y, x = wp.tid()
+    dst[first + i, y, x] = wp.vec3h(src[i, y, x])
+
+
 def crop_boxes(points: wp.array, infos: wp.array, widths: np.ndarray, heights: np.ndarray,
                device: str) -> np.ndarray:
     """(n, 4) int64 (x0, y0, width, height) per photo: the bounding box of the mesh's projection

@@ -26,7 +26,7 @@ from .kernels.shading import SHADOW_EPS_REL
 from .kernels.visibility import depth_maps_kernel, shadow_maps_kernel
 from .models import ModelLayout
 from .photo_stream import (LIGHT_KINDS, PhotoFiles, PhotoLoader, choose_residency, crop_boxes,  # noqa: F401
-                           WindowSlots, image_infos, struct_array, wait, window_size)
+                           WindowSlots, image_infos, struct_array, to_half_kernel, wait, window_size)
 
 PRECISIONS = {"fp16": wp.float16, "fp32": wp.float32, "fp64": wp.float64}
 UPLOAD_CHUNK_BYTES = 64 << 20
@@ -276,7 +276,7 @@ class StreamConfig:
                                           "host memory, uploaded a window per pass), disk (decoded from the "
                                           "capture's files a window per pass, depth and shadow maps recomputed per "
                                           "window), or auto (the first that fits half the memory available and "
-                                          "memory_limit_mb; printed, and recorded as PhotoSet.residency)",
+                                          "memory_limit_mb; printed, and recorded in model.json's photos)",
                                   choices=("auto", "device", "host", "disk"))
     memory_limit_mb: float = option(0.0, "cap on the memory the photos and their maps may take on the device "
                                          "and in host memory (0: half of what is available)", min=0.0)
@@ -426,36 +426,55 @@ class PhotoSet:
         self.timings["shadow_maps"] += time.perf_counter() - t1
 
     def _init_device(self) -> None:
-        """All photos, depth and shadow maps on the device: photos uploaded in chunks of ~64 MiB through
-        two pinned buffers (filled on the loader's threads while the other one's copy runs), then one
-        depth-map and one shadow-map launch over all photos."""
+        """All photos, depth and shadow maps on the device: photos filled in place on the CPU, or uploaded
+        in chunks through pinned buffers (:meth:`upload_staged`); then one depth-map and one shadow-map
+        launch over all photos."""
         t0 = time.perf_counter()
-        n, dev, pix = self.n, self.device, self.hmax * self.wmax
+        n, dev = self.n, self.device
         self.images = wp.empty((n, self.hmax, self.wmax), dtype=self.img_dtype, device=dev)
         masks = self._masks_buffer(n, dev)
         if dev == "cpu":  # the device's arrays are host memory: fill them in place
             self.loader.fill(range(n), self.images.numpy(), masks.numpy() if self.loader.has_masks else None)
         else:
-            chunk = max(1, min(n, UPLOAD_CHUNK_BYTES // (pix * wp.types.type_size_in_bytes(self.img_dtype))))
-            stage = [wp.empty((chunk, self.hmax, self.wmax), dtype=self.img_dtype, device="cpu", pinned=True)
-                     for _ in range(2)]
-            stage_m = [self._masks_buffer(chunk, "cpu", pinned=True) for _ in range(2)]
-            copied = [None, None]
-            for turn, b in enumerate(range(0, n, chunk)):
-                c, slot = min(chunk, n - b), turn % 2
-                if copied[slot] is not None:
-                    wp.synchronize_event(copied[slot])  # this buffer's previous copy has left it
-                self.loader.fill(range(b, b + c), stage[slot].numpy(),
-                                 stage_m[slot].numpy() if self.loader.has_masks else None)
-                wp.copy(self.images, stage[slot], b * pix, 0, c * pix)
-                if self.loader.has_masks:
-                    wp.copy(masks, stage_m[slot], b * pix, 0, c * pix)
-                copied[slot] = wp.get_stream(dev).record_event()
+            self.upload_staged(self.images, masks)
         self._sync()
         self.timings["upload"] += time.perf_counter() - t0
         self.depth = wp.empty((n, self.hmax, self.wmax), dtype=wp.float32, device=dev)
         self.shadow = wp.empty((n, self.shadow_side, self.shadow_side), dtype=wp.float32, device=dev)
         self._maps(0, n, masks, self.depth, self.shadow)
+
+    def upload_staged(self, images: wp.array, masks: wp.array) -> None:
+        """Fill the device's ``images`` (n, hmax, wmax) and ``masks`` (when any photo has one) in chunks of
+        ~:data:`UPLOAD_CHUNK_BYTES`: the loader's threads crop each chunk into one of two host buffers
+        (pinned for CUDA) while the other one's copy runs. The buffers hold float32, as the photos come,
+        and half-float photos are converted on the device: a plain copy on the host is ~5x faster than
+        numpy's float16 conversion, which would otherwise bound the set-up (both round to nearest even,
+        so the halves are the same)."""
+        n, dev, pix = self.n, self.device, self.hmax * self.wmax
+        half = self.img_dtype == wp.vec3h
+        pinned = dev != "cpu"
+        chunk = max(1, min(n, UPLOAD_CHUNK_BYTES // (pix * 12)))
+        shape = (chunk, self.hmax, self.wmax)
+        stage = [wp.empty(shape, dtype=wp.vec3, device="cpu", pinned=pinned) for _ in range(2)]
+        stage_m = [self._masks_buffer(chunk, "cpu", pinned) for _ in range(2)]
+        landing = wp.empty(shape, dtype=wp.vec3, device=dev) if half else None
+        copied = [None, None]
+        for turn, b in enumerate(range(0, n, chunk)):
+            c, slot = min(chunk, n - b), turn % 2
+            if copied[slot] is not None:
+                wp.synchronize_event(copied[slot])  # this buffer's previous copy has left it
+            self.loader.fill(range(b, b + c), stage[slot].numpy(),
+                             stage_m[slot].numpy() if self.loader.has_masks else None)
+            if half:
+                wp.copy(landing, stage[slot], 0, 0, c * pix)
+                wp.launch(to_half_kernel, dim=(c, self.hmax, self.wmax), device=dev, inputs=[landing, b],
+                          outputs=[images])
+            else:
+                wp.copy(images, stage[slot], b * pix, 0, c * pix)
+            if self.loader.has_masks:
+                wp.copy(masks, stage_m[slot], b * pix, 0, c * pix)
+            if pinned:
+                copied[slot] = wp.get_stream(dev).record_event()
 
     def _init_windows(self) -> None:
         """Window-sized device buffers; for "host" residency also every photo and its maps in (pinned)

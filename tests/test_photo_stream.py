@@ -207,3 +207,31 @@ def test_subsets_of_a_disk_stream_interleave_with_it(disk_scene, device):
     host, _ = fit(disk_scene, False, device, photo_residency="host", photos_per_window=3)
     for a, b in zip(passes(disk), passes(host)):
         np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("precision", ["fp16", "fp32"])
+def test_staged_upload_gives_the_cropped_photos(scene, device, precision):
+    """The chunked upload through two host buffers (the CUDA set-up) gives each photo's crop, zero
+    padded, in the image precision: half floats converted on the device round to nearest even as
+    numpy does, so the bits are numpy's."""
+    import texstream.fit.problem as problem
+
+    ps = photo_set(scene, device, image_precision=precision)
+    ps.loader = problem.PhotoLoader(scene[3], scene[4], ps.crops, ps.sizes)
+    images = wp.empty((ps.n, ps.hmax, ps.wmax), dtype=ps.img_dtype, device=device)
+    masks = wp.empty((ps.n, ps.hmax, ps.wmax), dtype=wp.uint8, device=device)
+    saved = problem.UPLOAD_CHUNK_BYTES
+    problem.UPLOAD_CHUNK_BYTES = 3 * ps.hmax * ps.wmax * 12  # chunks of 3 photos: both buffers, a short last one
+    try:
+        ps.upload_staged(images, masks)
+    finally:
+        problem.UPLOAD_CHUNK_BYTES = saved
+        ps.loader.close()
+    want = np.zeros((ps.n, ps.hmax, ps.wmax, 3), np.float16 if precision == "fp16" else np.float32)
+    want_m = np.zeros(masks.shape, np.uint8)
+    for k, (x0, y0, w, h) in enumerate(ps.crops):
+        want[k, :h, :w] = scene[3][k][y0:y0 + h, x0:x0 + w, :3]
+        want_m[k, :h, :w] = scene[4][k][y0:y0 + h, x0:x0 + w]
+    np.testing.assert_array_equal(images.numpy(), want)
+    np.testing.assert_array_equal(ps.images.numpy(), want)
+    np.testing.assert_array_equal(masks.numpy(), want_m)
