@@ -29,6 +29,9 @@ from .photo_stream import (LIGHT_KINDS, PhotoFiles, PhotoLoader, choose_residenc
                            WindowSlots, image_infos, struct_array, to_half_kernel, wait, window_size)
 
 PRECISIONS = {"fp16": wp.float16, "fp32": wp.float32, "fp64": wp.float64}
+MAX_LAUNCH_THREADS = 1 << 30
+"""threads per depth- or shadow-map launch: larger sets launch in chunks of photos (a launch's size must
+stay within Warp's 32-bit bounds; 10,000 shadow maps of 512x512 are 2.6 G threads)"""
 UPLOAD_CHUNK_BYTES = 64 << 20
 """photo bytes per pinned upload chunk at set-up: large transfers (PCIe runs near its peak from a few
 MiB), small enough that two pinned staging buffers cost little to allocate"""
@@ -415,15 +418,33 @@ class PhotoSet:
         """Depth maps (``masks`` applied) and shadow maps of photos first..first+count-1 into ``depth``
         and ``shadow`` (each timed, see ``timings``)."""
         t0 = time.perf_counter()
-        wp.launch(depth_maps_kernel, dim=(count, self.hmax, self.wmax), device=self.device,
-                  inputs=[self.mesh.id, self.infos, first, masks, int(self.loader.has_masks)], outputs=[depth])
+        self.launch_depth_maps(first, count, masks, depth)
         self._sync()
         t1 = time.perf_counter()
-        wp.launch(shadow_maps_kernel, dim=(count, self.shadow_side, self.shadow_side), device=self.device,
-                  inputs=[self.mesh.id, self.infos, first], outputs=[shadow])
+        self.launch_shadow_maps(first, count, shadow)
         self._sync()
         self.timings["depth_maps"] += t1 - t0
         self.timings["shadow_maps"] += time.perf_counter() - t1
+
+    def _photo_chunks(self, count: int, pixels: int):
+        """(offset, size) chunks of ``count`` photos of ``pixels`` each, at most :data:`MAX_LAUNCH_THREADS`
+        threads a launch (one launch for any ornament-sized set)."""
+        step = max(1, MAX_LAUNCH_THREADS // max(pixels, 1))
+        return [(j, min(step, count - j)) for j in range(0, count, step)]
+
+    def launch_depth_maps(self, first: int, count: int, masks, depth) -> None:
+        """Depth maps of photos first..first+count-1 into ``depth[0:count]`` (``masks`` likewise indexed)."""
+        use = int(self.loader.has_masks)
+        for j, c in self._photo_chunks(count, self.hmax * self.wmax):
+            wp.launch(depth_maps_kernel, dim=(c, self.hmax, self.wmax), device=self.device,
+                      inputs=[self.mesh.id, self.infos, first + j, masks[j:j + c] if use else masks, use],
+                      outputs=[depth[j:j + c]])
+
+    def launch_shadow_maps(self, first: int, count: int, shadow) -> None:
+        """Shadow maps of photos first..first+count-1 into ``shadow[0:count]``."""
+        for j, c in self._photo_chunks(count, self.shadow_side ** 2):
+            wp.launch(shadow_maps_kernel, dim=(c, self.shadow_side, self.shadow_side), device=self.device,
+                      inputs=[self.mesh.id, self.infos, first + j], outputs=[shadow[j:j + c]])
 
     def _init_device(self) -> None:
         """All photos, depth and shadow maps on the device: photos filled in place on the CPU, or uploaded
@@ -488,7 +509,7 @@ class PhotoSet:
         self.window_masks = self._masks_buffer(w, dev)
         if self.residency == "disk":
             # two slots the loader fills alternately (one decoding while the other's window is in use);
-            # on the CPU they are the passes' own image and mask arrays
+            # copied to the window's device arrays before each window's passes
             self.slots = WindowSlots(
                 [wp.empty((w, self.hmax, self.wmax), dtype=self.img_dtype, device="cpu", pinned=pinned)
                  for _ in range(2)], [self._masks_buffer(w, "cpu", pinned) for _ in range(2)])
@@ -631,23 +652,17 @@ class PhotoSet:
         _, _, slot, futures = slots.pending
         wait(futures)
         self._submit_window(b + self.window if b + self.window < self.n else 0)
+        # one copy to the window's device arrays on every device (on the CPU a memcpy, small beside the
+        # decoding), so the CPU runs the path CUDA does
         pix = self.hmax * self.wmax
-        masks = self.window_masks
-        if self.device == "cpu":
-            images = slots.images[slot]
-            if self.loader.has_masks:
-                masks = slots.masks[slot]
-        else:
-            wp.copy(self.images, slots.images[slot], 0, 0, c * pix)
-            if self.loader.has_masks:
-                wp.copy(self.window_masks, slots.masks[slot], 0, 0, c * pix)
+        wp.copy(self.images, slots.images[slot], 0, 0, c * pix)
+        if self.loader.has_masks:
+            wp.copy(self.window_masks, slots.masks[slot], 0, 0, c * pix)
+        if self.device != "cpu":
             slots.copied[slot] = wp.get_stream(self.device).record_event()
-            images = self.images
-        wp.launch(depth_maps_kernel, dim=(c, self.hmax, self.wmax), device=self.device,
-                  inputs=[self.mesh.id, self.infos, b, masks, int(self.loader.has_masks)], outputs=[self.depth])
-        wp.launch(shadow_maps_kernel, dim=(c, self.shadow_side, self.shadow_side), device=self.device,
-                  inputs=[self.mesh.id, self.infos, b], outputs=[self.shadow])
-        return images
+        self.launch_depth_maps(b, c, self.window_masks, self.depth)
+        self.launch_shadow_maps(b, c, self.shadow)
+        return self.images
 
 
 class StreamProblem:

@@ -235,3 +235,14 @@ def test_staged_upload_gives_the_cropped_photos(scene, device, precision):
     np.testing.assert_array_equal(images.numpy(), want)
     np.testing.assert_array_equal(ps.images.numpy(), want)
     np.testing.assert_array_equal(masks.numpy(), want_m)
+
+
+def test_maps_launched_in_chunks_equal_one_launch(scene, device, monkeypatch):
+    """Sets too large for one launch (MAX_LAUNCH_THREADS) make their maps a few photos at a time."""
+    import texstream.fit.problem as problem
+
+    one = photo_set(scene, device)
+    monkeypatch.setattr(problem, "MAX_LAUNCH_THREADS", 3 * one.hmax * one.wmax)
+    chunked = photo_set(scene, device)
+    np.testing.assert_array_equal(chunked.depth.numpy(), one.depth.numpy())
+    np.testing.assert_array_equal(chunked.shadow.numpy(), one.shadow.numpy())
