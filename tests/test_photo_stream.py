@@ -246,3 +246,19 @@ def test_maps_launched_in_chunks_equal_one_launch(scene, device, monkeypatch):
     chunked = photo_set(scene, device)
     np.testing.assert_array_equal(chunked.depth.numpy(), one.depth.numpy())
     np.testing.assert_array_equal(chunked.shadow.numpy(), one.shadow.numpy())
+
+
+def test_fit_stage_streams_a_capture_from_disk_and_records_it(capture_dir, tmp_path):
+    """``texstream fit`` under a memory cap: the photos stream from the capture's files, and
+    model.json says so (residency, why, photos per window)."""
+    import json
+
+    from texstream.fit.stage import FitStageConfig, fit_stage
+
+    cfg = FitStageConfig(texture_size=64, renders=1)
+    cfg.fit.max_iterations = 2
+    cfg.fit.stream = StreamConfig(shadow_map_size=SHADOW, memory_limit_mb=0.05)
+    fit_stage(capture_dir, capture_dir / "ground_truth", tmp_path / "model", cfg, progress=False)
+    photos = json.loads((tmp_path / "model" / "model.json").read_text())["photos"]
+    assert photos["residency"] == "disk" and "exceed" in photos["residency_reason"]
+    assert 1 <= photos["photos_per_window"] < photos["fitted"]
