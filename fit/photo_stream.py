@@ -328,10 +328,10 @@ def choose_residency(requested: str, device: str, device_bytes: int, host_bytes:
     if requested != "auto":
         return requested, "requested"
     gib = 1 << 30
-    dev_room = MEMORY_FRACTION * device_available_bytes(device)
+    dev_room = device_room(device, limit_bytes)
     host_room = MEMORY_FRACTION * host_available_bytes()
     if limit_bytes > 0:
-        dev_room, host_room = min(dev_room, limit_bytes), min(host_room, limit_bytes)
+        host_room = min(host_room, limit_bytes)
     if device_bytes <= dev_room:
         return "device", f"{device_bytes / gib:.2f} GiB of photos and maps fit {dev_room / gib:.2f} GiB on {device}"
     over = f"{device_bytes / gib:.2f} GiB of photos and maps exceed {dev_room / gib:.2f} GiB on {device}"
@@ -342,10 +342,21 @@ def choose_residency(requested: str, device: str, device_bytes: int, host_bytes:
     return "host", f"{over}; the photos were given in memory, so they are streamed from there in windows"
 
 
+def device_room(device: str, limit_bytes: int = 0) -> float:
+    """Bytes the photos and their maps may take on ``device``: :data:`MEMORY_FRACTION` of what is
+    available, and at most ``limit_bytes`` (0: no limit)."""
+    room = MEMORY_FRACTION * device_available_bytes(device)
+    return min(room, limit_bytes) if limit_bytes > 0 else room
+
+
 def window_size(n: int, per_photo_bytes: int, device: str, limit_bytes: int = 0) -> int:
     """Photos per window when streaming: half the room :func:`choose_residency` allows on the device
     (the other half for the next window's buffers and the passes), at least 1."""
-    room = MEMORY_FRACTION * device_available_bytes(device)
-    if limit_bytes > 0:
-        room = min(room, limit_bytes)
-    return max(1, min(n, int(room // (2 * max(per_photo_bytes, 1)))))
+    return max(1, min(n, int(device_room(device, limit_bytes) // (2 * max(per_photo_bytes, 1)))))
+
+
+def keep_maps_on_device(device: str, map_bytes: int, limit_bytes: int = 0) -> bool:
+    """Whether photos streamed from disk keep every depth and shadow map on the device (made once at
+    set-up) rather than recomputing a window's maps for every pass: on a CUDA device with room for
+    them. On the CPU the device's memory is the host memory that streaming from disk saves."""
+    return device != "cpu" and map_bytes <= device_room(device, limit_bytes)

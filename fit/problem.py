@@ -23,10 +23,11 @@ from .kernels import optim_kernels as K
 from .kernels import stream
 from .kernels.lafortune_grad import param_types
 from .kernels.shading import SHADOW_EPS_REL
-from .kernels.visibility import depth_maps_kernel, shadow_maps_kernel
+from .kernels.visibility import depth_maps_kernel, masked_depth_kernel, shadow_maps_kernel
 from .models import ModelLayout
 from .photo_stream import (LIGHT_KINDS, PhotoFiles, PhotoLoader, choose_residency, crop_boxes,  # noqa: F401
-                           WindowSlots, image_infos, struct_array, to_half_kernel, wait, window_size)
+                           WindowSlots, image_infos, keep_maps_on_device, struct_array, to_half_kernel, wait,
+                           window_size)
 
 PRECISIONS = {"fp16": wp.float16, "fp32": wp.float32, "fp64": wp.float64}
 MAX_LAUNCH_THREADS = 1 << 30
@@ -394,6 +395,13 @@ class PhotoSet:
         else:
             self.window = window_size(self.n, per_photo, device, limit)
         self.streamed = self.residency != "device"
+        self.maps_on_device = self.residency == "disk" and keep_maps_on_device(
+            device, self.n * (4 * pixels + 4 * self.shadow_side ** 2), limit)
+        """photos streamed from disk with every depth and shadow map kept on the device (else a window's
+        maps are recomputed for each pass)"""
+        if self.residency == "disk":
+            self.residency_reason += ("; depth and shadow maps kept on the device" if self.maps_on_device
+                                      else "; depth and shadow maps recomputed per window")
         say("fit", f"photos: {self.residency}, {self.window} per window ({self.residency_reason})")
         self.loader = PhotoLoader(images, masks, self.crops, sizes, cfg.decode_threads)
         self.timings["other"] += time.perf_counter() - t_start
@@ -432,9 +440,10 @@ class PhotoSet:
         step = max(1, MAX_LAUNCH_THREADS // max(pixels, 1))
         return [(j, min(step, count - j)) for j in range(0, count, step)]
 
-    def launch_depth_maps(self, first: int, count: int, masks, depth) -> None:
-        """Depth maps of photos first..first+count-1 into ``depth[0:count]`` (``masks`` likewise indexed)."""
-        use = int(self.loader.has_masks)
+    def launch_depth_maps(self, first: int, count: int, masks, depth, use_masks: bool = True) -> None:
+        """Depth maps of photos first..first+count-1 into ``depth[0:count]`` (``masks`` likewise indexed,
+        applied when any photo has a mask and ``use_masks``)."""
+        use = int(self.loader.has_masks and use_masks)
         for j, c in self._photo_chunks(count, self.hmax * self.wmax):
             wp.launch(depth_maps_kernel, dim=(c, self.hmax, self.wmax), device=self.device,
                       inputs=[self.mesh.id, self.infos, first + j, masks[j:j + c] if use else masks, use],
@@ -513,6 +522,19 @@ class PhotoSet:
             self.slots = WindowSlots(
                 [wp.empty((w, self.hmax, self.wmax), dtype=self.img_dtype, device="cpu", pinned=pinned)
                  for _ in range(2)], [self._masks_buffer(w, "cpu", pinned) for _ in range(2)])
+            if self.maps_on_device:
+                # the depth maps without masks (the masks come with each window's photos, applied by
+                # masked_depth_kernel: the same values the masked launch writes)
+                self.all_depth = wp.empty((n, self.hmax, self.wmax), dtype=wp.float32, device=dev)
+                self.all_shadow = wp.empty((n, self.shadow_side, self.shadow_side), dtype=wp.float32, device=dev)
+                t0 = time.perf_counter()
+                self.launch_depth_maps(0, n, self.window_masks, self.all_depth, use_masks=False)
+                self._sync()
+                t1 = time.perf_counter()
+                self.launch_shadow_maps(0, n, self.all_shadow)
+                self._sync()
+                self.timings["depth_maps"] += t1 - t0
+                self.timings["shadow_maps"] += time.perf_counter() - t1
             return
         t0 = time.perf_counter()
         self.host_images = wp.empty((n, self.hmax, self.wmax), dtype=self.img_dtype, device="cpu", pinned=pinned)
@@ -592,6 +614,7 @@ class PhotoSet:
                                src.read_mask)
             out.sizes = self.sizes[idx]
             out.loader = PhotoLoader(files, None, out.crops, out.sizes, self.loader.threads)
+            out.maps_on_device = False  # the kept maps are the whole set's: a subset's windows make their own
             out.image_bytes = self.image_bytes // self.n * out.n
             return out
         src = (self.host_images, self.host_depth, self.host_shadow) if self.streamed else (self.images, self.depth, self.shadow)
@@ -619,15 +642,15 @@ class PhotoSet:
             e = min(b + self.window, self.n)
             c = e - b
             if self.residency == "disk":
-                images = self._disk_window(b, c)
+                images, depth, shadow = self._disk_window(b, c)
             else:
                 wp.copy(self.images, self.host_images, 0, b * pix, c * pix)
                 wp.copy(self.depth, self.host_depth, 0, b * pix, c * pix)
                 ss = self.shadow_side ** 2
                 wp.copy(self.shadow, self.host_shadow, 0, b * ss, c * ss)
-                images = self.images
+                images, depth, shadow = self.images, self.depth, self.shadow
             wp.copy(self.infos_window, self.infos, 0, b, c)
-            yield images, self.depth, self.shadow, self.infos_window, 0, c
+            yield images, depth, shadow, self.infos_window, 0, c
 
     def _submit_window(self, b: int) -> None:
         """Start decoding the window from photo ``b`` into the next slot (once its last upload has left it)."""
@@ -641,9 +664,10 @@ class PhotoSet:
         slots.pending = (self, b, slot, self.loader.submit(range(b, b + c), slots.images[slot].numpy(), masks))
 
     def _disk_window(self, b: int, c: int):
-        """Photos b..b+c-1 decoded (prefetched since the previous window), uploaded, with their depth
-        and shadow maps recomputed on the device; starts decoding the next window (cyclically, so a
-        pass's last window prefetches the next pass's first). Returns the device images of the window."""
+        """Photos b..b+c-1 decoded (prefetched since the previous window) and uploaded, with their depth
+        and shadow maps (recomputed on the device, or the ones kept there, masked by the window's masks);
+        starts decoding the next window (cyclically, so a pass's last window prefetches the next pass's
+        first). Returns the window's device (images, depth, shadow)."""
         slots = self.slots
         if slots.pending is None or slots.pending[0] is not self or slots.pending[1] != b:
             if slots.pending is not None:
@@ -660,9 +684,16 @@ class PhotoSet:
             wp.copy(self.window_masks, slots.masks[slot], 0, 0, c * pix)
         if self.device != "cpu":
             slots.copied[slot] = wp.get_stream(self.device).record_event()
-        self.launch_depth_maps(b, c, self.window_masks, self.depth)
-        self.launch_shadow_maps(b, c, self.shadow)
-        return self.images
+        if not self.maps_on_device:
+            self.launch_depth_maps(b, c, self.window_masks, self.depth)
+            self.launch_shadow_maps(b, c, self.shadow)
+            return self.images, self.depth, self.shadow
+        shadow = self.all_shadow[b:b + c]
+        if not self.loader.has_masks:
+            return self.images, self.all_depth[b:b + c], shadow
+        wp.launch(masked_depth_kernel, dim=(c, self.hmax, self.wmax), device=self.device,
+                  inputs=[self.all_depth, b, self.window_masks], outputs=[self.depth])
+        return self.images, self.depth, shadow
 
 
 class StreamProblem:

@@ -188,7 +188,8 @@ def test_a_corrupt_photo_in_the_stream_fails_naming_it(disk_scene, device, tmp_p
         run_fit(prob, cfg)
 
 
-def test_subsets_of_a_disk_stream_interleave_with_it(disk_scene, device):
+@pytest.mark.parametrize("keep_maps", [False, True])
+def test_subsets_of_a_disk_stream_interleave_with_it(disk_scene, device, keep_maps, monkeypatch):
     """A subset shares the streamed set's window buffers (fit/materials.py fits part of the photos
     between passes over all of them): each pass still reads its own photos."""
     from texstream.fit.problem import StreamProblem
@@ -203,7 +204,11 @@ def test_subsets_of_a_disk_stream_interleave_with_it(disk_scene, device):
             out.append(f.numpy())
         return out
 
+    import texstream.fit.problem as problem
+
+    monkeypatch.setattr(problem, "keep_maps_on_device", lambda *a: keep_maps)
     disk, _ = fit(disk_scene, True, device, photo_residency="disk", photos_per_window=3)
+    assert disk.photos.maps_on_device == keep_maps
     host, _ = fit(disk_scene, False, device, photo_residency="host", photos_per_window=3)
     for a, b in zip(passes(disk), passes(host)):
         np.testing.assert_array_equal(a, b)
@@ -262,3 +267,18 @@ def test_fit_stage_streams_a_capture_from_disk_and_records_it(capture_dir, tmp_p
     photos = json.loads((tmp_path / "model" / "model.json").read_text())["photos"]
     assert photos["residency"] == "disk" and "exceed" in photos["residency_reason"]
     assert 1 <= photos["photos_per_window"] < photos["fitted"]
+
+
+def test_disk_stream_with_maps_kept_on_the_device_equals_recomputing_them(disk_scene, device, monkeypatch):
+    """On CUDA, photos streamed from disk keep every depth and shadow map on the device when there is
+    room (made once, masked per window); the maps are the recomputed ones, so the fit is the same."""
+    import texstream.fit.problem as problem
+
+    monkeypatch.setattr(problem, "keep_maps_on_device", lambda *a: False)
+    again, r_again = fit(disk_scene, True, device, photo_residency="disk", photos_per_window=4)
+    monkeypatch.setattr(problem, "keep_maps_on_device", lambda *a: True)
+    kept, r_kept = fit(disk_scene, True, device, photo_residency="disk", photos_per_window=4)
+    assert kept.photos.maps_on_device and not again.photos.maps_on_device
+    assert "kept on the device" in kept.photos.residency_reason
+    np.testing.assert_array_equal(r_kept.params, r_again.params)
+    assert [r["objective"] for r in r_kept.trace] == [r["objective"] for r in r_again.trace]

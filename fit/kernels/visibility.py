@@ -68,6 +68,18 @@ def depth_maps_kernel(mesh: wp.uint64, infos: wp.array(dtype=ImageInfo), first: 
 
 
 @wp.kernel
+def masked_depth_kernel(depth: wp.array3d(dtype=wp.float32), first: int, masks: wp.array3d(dtype=wp.uint8),
+                        out: wp.array3d(dtype=wp.float32)):
+    """out[i] = depth[first + i] where masks[i] is nonzero, else 0: a depth map made without its mask,
+    masked (the values :func:`depth_maps_kernel` writes with the mask)."""
+    i, y, x = wp.tid()
+    z = float(0.0)
+    if masks[i, y, x] != wp.uint8(0):
+        z = depth[first + i, y, x]
+    out[i, y, x] = z
+
+
+@wp.kernel
 def shadow_maps_kernel(mesh: wp.uint64, infos: wp.array(dtype=ImageInfo), first: int,
                        shadow: wp.array3d(dtype=wp.float32)):
     """Shadow maps of photos ``first + i`` into ``shadow[i]`` (one launch over photos x texels of
