@@ -111,12 +111,19 @@ def image_infos(frames, crops: np.ndarray | None, center: np.ndarray | None, rad
     a["exposure"] = [fr.exposure for fr in frames]
     a["saturation"] = [min(fr.saturation, 3.0e38) for fr in frames]
     if crops is not None:
-        a["cx"] -= crops[:, 0].astype(f32)
-        a["cy"] -= crops[:, 1].astype(f32)
-        a["width"], a["height"] = crops[:, 2], crops[:, 3]
+        crop_infos(a, crops)
     if shadow_size > 0 and center is not None and n:
         _shadow_cameras(a, frames, np.asarray(center, np.float64), radius, shadow_size)
     return a
+
+
+def crop_infos(a: np.ndarray, crops: np.ndarray) -> None:
+    """Make records of :func:`image_infos` the cameras of the photos' crops (n, 4) (x0, y0, width,
+    height): cx, cy less x0, y0 in float32, exact (an integer taken from a float32 of larger
+    magnitude), and the crop's size."""
+    a["cx"] -= crops[:, 0].astype(np.float32)
+    a["cy"] -= crops[:, 1].astype(np.float32)
+    a["width"], a["height"] = crops[:, 2], crops[:, 3]
 
 
 def struct_array(records: np.ndarray, dtype, device: str) -> wp.array:
@@ -320,11 +327,13 @@ take (the passes' per-texel buffers, the model and other processes need the rest
 
 
 def choose_residency(requested: str, device: str, device_bytes: int, host_bytes: int, from_files: bool,
-                     limit_bytes: int = 0) -> tuple[str, str]:
+                     limit_bytes: int = 0, windows: bool = False) -> tuple[str, str]:
     """(residency, reason): ``requested`` as given, or for "auto" the first of device, host, disk
     whose memory holds the photos and their maps (``device_bytes`` on the device, ``host_bytes`` in
     host memory) within :data:`MEMORY_FRACTION` of what is available and ``limit_bytes`` (0: none).
-    Photos already in memory (not ``from_files``) are never streamed from disk."""
+    ``windows`` (``photos_per_window`` set): never all on the device. Photos already in memory (not
+    ``from_files``) are never streamed from disk. On the CPU device, whose memory is the host's, host
+    residency is chosen only for windows."""
     if requested != "auto":
         return requested, "requested"
     gib = 1 << 30
@@ -332,13 +341,17 @@ def choose_residency(requested: str, device: str, device_bytes: int, host_bytes:
     host_room = MEMORY_FRACTION * host_available_bytes()
     if limit_bytes > 0:
         host_room = min(host_room, limit_bytes)
-    if device_bytes <= dev_room:
+    if windows:
+        over = "windows requested (photos_per_window)"
+    elif device_bytes <= dev_room:
         return "device", f"{device_bytes / gib:.2f} GiB of photos and maps fit {dev_room / gib:.2f} GiB on {device}"
-    over = f"{device_bytes / gib:.2f} GiB of photos and maps exceed {dev_room / gib:.2f} GiB on {device}"
-    if device != "cpu" and host_bytes <= host_room:
+    else:
+        over = f"{device_bytes / gib:.2f} GiB of photos and maps exceed {dev_room / gib:.2f} GiB on {device}"
+    if (device != "cpu" or windows) and host_bytes <= host_room:
         return "host", f"{over}; held in host memory, uploaded a window at a time"
     if from_files:
-        return "disk", f"{over} and host memory; decoded from the capture's files a window at a time"
+        return "disk", (f"{over}, and {host_bytes / gib:.2f} GiB exceed {host_room / gib:.2f} GiB of host memory; "
+                        "decoded from the capture's files a window at a time")
     return "host", f"{over}; the photos were given in memory, so they are streamed from there in windows"
 
 

@@ -26,7 +26,7 @@ from .kernels.shading import SHADOW_EPS_REL
 from .kernels.visibility import depth_maps_kernel, masked_depth_kernel, shadow_maps_kernel
 from .models import ModelLayout
 from .photo_stream import (LIGHT_KINDS, PhotoFiles, PhotoLoader, choose_residency, crop_boxes,  # noqa: F401
-                           WindowSlots, image_infos, keep_maps_on_device, struct_array, to_half_kernel, wait,
+                           WindowSlots, crop_infos, image_infos, keep_maps_on_device, struct_array, to_half_kernel, wait,
                            window_size)
 
 PRECISIONS = {"fp16": wp.float16, "fp32": wp.float32, "fp64": wp.float64}
@@ -364,7 +364,7 @@ class PhotoSet:
         if cfg.crop_photos:
             full = struct_array(infos, stream.ImageInfo, device)
             self.crops = crop_boxes(self.mesh.points, full, sizes[:, 1], sizes[:, 0], device)
-            infos = image_infos(frames, self.crops, self.center, self.radius, ssize)
+            crop_infos(infos, self.crops)
             self.hmax, self.wmax = int(self.crops[:, 3].max()), int(self.crops[:, 2].max())
         elif self.files:
             self.hmax, self.wmax = int(sizes[:, 0].max()), int(sizes[:, 1].max())
@@ -380,14 +380,12 @@ class PhotoSet:
         per_photo = pixels * (3 * (2 if fp16 else 4) + 4) + 4 * self.shadow_side ** 2
         limit = int(cfg.memory_limit_mb * 2 ** 20)
         requested = cfg.photo_residency
-        if requested == "auto" and cfg.photos_per_window > 0:  # windows asked for: never all on the device
-            requested = "disk" if self.files and choose_residency("auto", device, 1 << 62, self.n * per_photo,
-                                                                  True, limit)[0] == "disk" else "host"
         if requested == "disk" and not self.files:
             raise ConfigError("photo_residency disk needs the photos as files (a capture folder), not arrays",
                               fix="set stream.photo_residency to auto, device or host")
         self.residency, self.residency_reason = choose_residency(requested, device, self.n * per_photo,
-                                                                 self.n * per_photo, self.files, limit)
+                                                                 self.n * per_photo, self.files, limit,
+                                                                 windows=cfg.photos_per_window > 0)
         if self.residency == "device":
             self.window = self.n
         elif cfg.photos_per_window > 0:

@@ -164,14 +164,17 @@ def test_a_memory_cap_below_the_photos_streams_them_from_disk(disk_scene, device
 
 
 def test_automatic_residency_follows_the_memory_available():
-    gib = 1 << 30
+    # sizes in bytes; 1 << 62 exceeds any machine's memory
     assert choose_residency("auto", "cpu", 1 << 20, 1 << 20, True)[0] == "device"
     assert choose_residency("auto", "cpu", 1 << 20, 1 << 20, True, limit_bytes=1 << 10)[0] == "disk"
     # photos given in memory are never read back from disk: windows from where they are
     assert choose_residency("auto", "cpu", 1 << 20, 1 << 20, False, limit_bytes=1 << 10)[0] == "host"
     assert choose_residency("disk", "cpu", 1, 1, True) == ("disk", "requested")
     assert choose_residency("auto", "cpu", 1 << 62, 1 << 62, True)[0] == "disk"
-    assert gib  # sizes above in bytes
+    # windows asked for (photos_per_window): from host memory when it holds them, else from disk
+    assert choose_residency("auto", "cpu", 1 << 20, 1 << 20, True, windows=True)[0] == "host"
+    assert choose_residency("auto", "cpu", 1 << 20, 1 << 62, True, windows=True)[0] == "disk"
+    assert choose_residency("auto", "cpu", 1 << 20, 1 << 62, False, windows=True)[0] == "host"
 
 
 def test_a_corrupt_photo_in_the_stream_fails_naming_it(disk_scene, device, tmp_path):
