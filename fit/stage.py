@@ -112,6 +112,40 @@ def load_photos(capture, frames, device: str | None = None):
     return images, masks
 
 
+def photo_files(capture, frames):
+    """The frames' photos and masks as files (:class:`texstream.fit.photo_stream.PhotoFiles`), decoded
+    by the fit's PhotoSet on a pool of threads: all at set-up when they stay in memory, or a window
+    per pass when streamed from disk (``StreamConfig.photo_residency``)."""
+    from texstream.capture.imageio import read_image, read_mask
+
+    from .photo_stream import PhotoFiles
+
+    masks = []
+    for f in frames:
+        mp = capture.mask_path(f)
+        masks.append(mp if mp is not None and mp.exists() else None)
+    return PhotoFiles([capture.image_path(f) for f in frames], masks,
+                      lambda path: read_image(path, channels=3), read_mask)
+
+
+def read_photos(photos, masks, indices):
+    """Images and masks (all-true where none) of ``indices`` of ``photos`` (a list of arrays with a
+    list of masks or None, or a PhotoFiles, which names its masks)."""
+    from .photo_stream import PhotoFiles
+
+    images, masks = [], []
+    for i in indices:
+        if isinstance(photos, PhotoFiles):
+            im = photos.read_image(photos.paths[i])
+            mp = photos.mask_paths[i]
+            mk = None if mp is None else photos.read_mask(mp, im.shape[:2])
+        else:
+            im, mk = photos[i], None if masks is None else masks[i]
+        images.append(im)
+        masks.append(np.ones(im.shape[:2], bool) if mk is None else mk)
+    return images, masks
+
+
 def build_problem(mesh, bake, frames, images, masks, cfg: FitConfig, device: str, photos=None):
     """The StreamProblem of a fit: texels from the bake, photos on the device with their depth and
     shadow maps (``photos``: a PhotoSet of these frames built before, e.g. by another problem's
@@ -308,8 +342,10 @@ class FitInputs:
     mesh: object
     bake: object
     seams: object
-    images: list
-    masks: list
+    images: object
+    """the fitted frames' photos: a :class:`texstream.fit.photo_stream.PhotoFiles` (decoded by the fit's
+    PhotoSet) or a list of arrays"""
+    masks: list | None
 
 
 def load_fit_inputs(capture_dir: str | Path, mesh_path: str | Path, cfg: FitStageConfig) -> FitInputs:
@@ -324,8 +360,7 @@ def load_fit_inputs(capture_dir: str | Path, mesh_path: str | Path, cfg: FitStag
                          "lower --holdout-every or add photos")
     mesh, bake = load_geometry(mesh_path, cfg.texture_size, cfg.device, frames, cfg.texel_pixels)
     seams = load_seams(mesh_path, bake)
-    images, masks = load_photos(capture, frames)
-    return FitInputs(capture, frames, held, mesh, bake, seams, images, masks)
+    return FitInputs(capture, frames, held, mesh, bake, seams, photo_files(capture, frames), None)
 
 
 def fill_unseen_texels(grid: np.ndarray, problem, bake, result: FitResult) -> tuple[np.ndarray, int]:
@@ -502,8 +537,7 @@ def choose_materials(inputs: "FitInputs", problem, cfg: "FitStageConfig", log=No
     sub = StreamProblem(problem.texels, problem.photos.subset(train), problem.layout, problem.cfg, problem.device)
     res = run_fit(sub, cfg.fit, start=initial_guess(sub, cfg.fit))
     frames = [inputs.frames[i] for i in val]
-    images = [inputs.images[i] for i in val]
-    masks = [np.ones(inputs.images[i].shape[:2], bool) if inputs.masks[i] is None else inputs.masks[i] for i in val]
+    images, masks = read_photos(inputs.images, inputs.masks, val)
 
     def score(params) -> dict:
         grid = model_grid(params, res, sub, inputs.bake, cfg, inputs.seams)
@@ -673,7 +707,9 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
                               "unseen_filled_from_nearest": filled, "lobes_dropped": int(lobes_dropped.sum()),
                               "texels_with_lobe": lobes_in_use(result.params, lay, result.samples > 0),
                               "lobe_support": cfg.lobe_support},
-                    "photos": {"fitted": len(frames), "held_out": len(held)},
+                    "photos": {"fitted": len(frames), "held_out": len(held), "residency": problem.photos.residency,
+                               "residency_reason": problem.photos.residency_reason,
+                               "photos_per_window": problem.photos.window},
                     "final": {k: last[k] for k in ("iteration", "time_s", "objective", "psnr_db", "ape_percent")},
                     "lobe_shape": lobe_shape_report(cfg.fit, lay, frames, problem.texels.position),
                     "materials": _materials_manifest(materials_info, evidence, cfg.materials),
