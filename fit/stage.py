@@ -39,13 +39,13 @@ class FitStageConfig:
     """Options of ``texstream fit`` around the numerical FitConfig."""
 
     device: str = option("cpu", "Warp device: cpu or cuda:N")
-    texture_size: int = option(0, "atlas side in texels when the mesh has UVs but no bake; 0: automatic, the power "
-                                  "of two whose texels are about texel_pixels of the photos' pixels wide",
+    texture_size: int = option(256, "atlas side in texels when the mesh has UVs but no bake; 0: automatic, the "
+                                    "power of two whose texels are about texel_pixels of the photos' pixels wide",
                                min=0, max=16384)
-    texel_pixels: float = option(3.0, "automatic texture_size: the texel width to aim at, in photo pixels (texels "
-                                      "narrower than a pixel or two share their pixels with their neighbours and "
-                                      "fit the photos' filtered highlights as broad, weak lobes that new views "
-                                      "contradict; docs/accuracy.md)", min=0.25)
+    texel_pixels: float = option(3.0, "texture_size 0: the texel width to aim at, in photo pixels (texels narrower "
+                                      "than a pixel or two share their pixels with their neighbours and fit the "
+                                      "photos' filtered highlights as broad, weak lobes that new views contradict; "
+                                      "wider ones lose detail: docs/accuracy.md)", min=0.25)
     holdout_every: int = option(0, "hold out every k-th photo from the fit for evaluation (0 = none)", min=0)
     renders: int = option(4, "photos rendered beside the fitted model in renders/", min=0)
     unseen: str = option("nearest", "texels no photo saw: nearest (the value of the nearest seen texel on the "
