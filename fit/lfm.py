@@ -422,6 +422,11 @@ class LFMProblem:
         wp.launch(LK.patch_dot_kernel, dim=self.V, device=self.device,
                   inputs=[self.ring_start, self.ring_slots, aG, bG, aH, bH, self.K, self.M], outputs=[out])
 
+    def state_bytes(self) -> int:
+        """Device bytes of the problem's own buffers (index tables, frames, d and the per-photo and
+        per-slot scratch; not the photos): O(model), independent of the photo count."""
+        return sum(int(a.capacity) for a in vars(self).values() if isinstance(a, wp.array))
+
     def total(self, f: wp.array) -> float:
         """Sum of a per-patch vec3 array (one host read)."""
         if not hasattr(self, "_total"):
@@ -462,6 +467,8 @@ class LFMResult:
     passes: int
     fit_s: float
     method: str
+    state_bytes: int = 0
+    """device bytes of the fit's state: the problem's buffers and the optimizer's model-sized vectors"""
 
 
 class PatchLBFGS:
@@ -529,10 +536,12 @@ class PatchLBFGS:
 
 
 def fit_lfm(problem: LFMProblem, max_iterations: int | None = None, time_budget_s: float = 0.0,
-            G0: np.ndarray | None = None, H0: np.ndarray | None = None, callback=None) -> LFMResult:
+            G0: np.ndarray | None = None, H0: np.ndarray | None = None, callback=None,
+            snapshot=None) -> LFMResult:
     """The streaming fit (CG, SD or L-BFGS, Hessian or backtracking step, per-patch acceptance); computes d
     first when it was not (``problem.compute_diffuse``). ``callback(iteration, objective)`` is
-    called at every objective read."""
+    called at every objective read, then ``snapshot(iteration, G, H)`` with the current device
+    parameters (benchmarks score the model there; keep it out of the timing yourself)."""
     pr, cfg, dev = problem, problem.cfg, problem.device
     if not pr.seen.any():
         pr.compute_diffuse()
@@ -576,6 +585,8 @@ def fit_lfm(problem: LFMProblem, max_iterations: int | None = None, time_budget_
     trace = [{"iteration": 0, "time_s": 0.0, "objective": f0}]
     if callback:
         callback(0, f0)
+    if snapshot:
+        snapshot(0, G, H)
     last = f0
     it = 0
     for it in range(1, iters + 1):
@@ -614,6 +625,8 @@ def fit_lfm(problem: LFMProblem, max_iterations: int | None = None, time_budget_
             trace.append({"iteration": it, "time_s": time.perf_counter() - t0, "objective": obj})
             if callback:
                 callback(it, obj)
+            if snapshot:
+                snapshot(it, G, H)
             if last - obj <= cfg.rel_tol * max(abs(last), 1e-300):
                 break
             last = obj
@@ -629,5 +642,9 @@ def fit_lfm(problem: LFMProblem, max_iterations: int | None = None, time_budget_
             last = pr.total(f)
     if trace[-1]["iteration"] != it:
         trace.append({"iteration": it, "time_s": time.perf_counter() - t0, "objective": pr.total(f)})
-    return LFMResult(pr.params(G, H), trace, it, pr.passes, time.perf_counter() - t0,
-                     f"stream-{cfg.optimizer}-{cfg.step}")
+    fit_s = time.perf_counter() - t0
+    state = [G, H, TG, TH, gG, gH, tgG, tgH, oG, oH, DG, DH]
+    if lbfgs is not None:
+        state += [a for a in vars(lbfgs).values() if isinstance(a, wp.array)]
+    state_bytes = pr.state_bytes() + sum(int(a.capacity) for a in state if a is not None)
+    return LFMResult(pr.params(G, H), trace, it, pr.passes, fit_s, f"stream-{cfg.optimizer}-{cfg.step}", state_bytes)
