@@ -85,8 +85,9 @@ class LFMConfig:
                                   "iterations is below this", min=0.0)
     sync_every: int = option(5, "streaming fit: iterations between reads of the objective", min=1)
     balance_every: int = option(10, "streaming fit: every k iterations equalise the norms of each term's surface "
-                                    "and view maps per patch (the g h scale gauge; costs a pass and restarts CG); "
-                                    "0 = never", min=0)
+                                    "and view maps per patch (the g h scale gauge; costs a pass and restarts CG / "
+                                    "L-BFGS; with the Laplacian on only view maps larger than their surface maps "
+                                    "are shrunk, which lowers the objective); 0 = never", min=0)
     nmf_iterations: int = option(200, "nmf: multiplicative update iterations", min=1)
     render_view: str = option("point", "rendering: each vertex's view map read along the direction from the shaded "
                                        "point (point, the interpolated view of Chen et al.'s renderer) or from the "
@@ -633,8 +634,8 @@ def fit_lfm(problem: LFMProblem, max_iterations: int | None = None, time_budget_
             if time_budget_s > 0 and time.perf_counter() - t0 > time_budget_s:
                 break
         if cfg.balance_every and it % cfg.balance_every == 0:
-            wp.launch(LK.balance_kernel, dim=pr.V, device=dev, inputs=[pr.ring_start, pr.ring_slots, K, pr.M],
-                      outputs=[G, H])
+            wp.launch(LK.balance_kernel, dim=pr.V, device=dev,
+                      inputs=[pr.ring_start, pr.ring_slots, K, pr.M, int(pr.lam > 0)], outputs=[G, H])
             pr.evaluate(G, H, f, gG, gH)
             first_direction()
             # the Laplacian is not invariant under the gauge (h / c costs 1 / c^2 of it): E changes with

@@ -582,9 +582,11 @@ def render_lfm_kernel(mesh_id: wp.uint64, points: wp.array(dtype=wp.vec3), indic
 
 @wp.kernel
 def balance_kernel(ring_start: wp.array(dtype=wp.int32), ring_slots: wp.array(dtype=wp.int32), n_terms: int, m: int,
-                   G: wp.array2d(dtype=wp.vec3d), H: wp.array2d(dtype=wp.vec3d)):
-    """Per vertex, term and channel, fix the scale gauge of g h (g c, h / c change nothing): scale so
-    that the patch's surface-map and view-map norms are equal (better conditioned for CG)."""
+                   shrink_only: int, G: wp.array2d(dtype=wp.vec3d), H: wp.array2d(dtype=wp.vec3d)):
+    """Per vertex, term and channel, fix the scale gauge of g h (g c, h / c leave the data term
+    unchanged): scale so that the patch's surface-map and view-map norms are equal (better
+    conditioned for CG). With ``shrink_only`` (a view-map Laplacian in the objective: it costs
+    1 / c^2 as much at h / c) only c >= 1 is applied, so the objective never rises."""
     v = wp.tid()
     for k in range(n_terms):
         ng = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
@@ -598,6 +600,8 @@ def balance_kernel(ring_start: wp.array(dtype=wp.int32), ring_slots: wp.array(dt
         for c in range(3):
             if ng[c] > wp.float64(0.0) and nh[c] > wp.float64(0.0):
                 sc[c] = wp.pow(nh[c] / ng[c], wp.float64(0.25))
+                if shrink_only != 0:
+                    sc[c] = wp.max(sc[c], wp.float64(1.0))
         for e in range(ring_start[v], ring_start[v + 1]):
             G[ring_slots[e], k] = wp.cw_mul(G[ring_slots[e], k], sc)
         for q in range(m):
