@@ -69,14 +69,21 @@ def resample_chunks(problem: LFMProblem, Y: np.ndarray, E: np.ndarray, diffuse: 
         local = np.einsum("vpk,vjk->vpj", w, frame)
         cos = np.einsum("mj,vpj->vpm", dirs, local)                               # (v, P, M)
         tex = np.maximum(sl, 0) // 3
-        best_cos = np.full((vs.size, r, M), -np.inf)
+        # per (vertex, view direction) the photos nearest first (ties: the lower index); each entry takes
+        # the first of them that sees its texel. Most entries resolve at the first ranks, so the loop
+        # touches only the unresolved ones instead of every photo for every entry.
+        rank = np.argsort(-cos, axis=1, kind="stable")                            # (v, P, M)
+        any_vis = seen[:, tex].any(axis=0) & (sl >= 0)                            # (v, r)
         val = np.zeros((vs.size, r, M, 3))
-        for p in range(Y.shape[0]):                                               # nearest seen photo per view
-            vis = seen[p, tex] & (sl >= 0)                                        # (v, r)
-            better = vis[:, :, None] & (cos[:, p][:, None, :] > best_cos)
-            best_cos = np.where(better, cos[:, p][:, None, :], best_cos)
-            val = np.where(better[..., None], radiance[p, tex][:, :, None, :], val)
-        any_vis = np.isfinite(best_cos[:, :, 0])
+        vi, ri, mi = np.nonzero(np.broadcast_to(any_vis[:, :, None], (vs.size, r, M)))
+        k = 0
+        while vi.size:
+            p = rank[vi, k, mi]
+            t = tex[vi, ri]
+            hit = seen[p, t]
+            val[vi[hit], ri[hit], mi[hit]] = radiance[p[hit], t[hit]]
+            vi, ri, mi = vi[~hit], ri[~hit], mi[~hit]
+            k += 1
         hat = g.slot_hat[np.maximum(sl, 0)]
         block = hat[:, :, None, None] * (val - diffuse[tex][:, :, None, :])
         block *= (any_vis[:, :, None] & mask[None, None, :])[..., None]
