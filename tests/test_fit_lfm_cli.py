@@ -37,3 +37,22 @@ def test_synth_fit_lfm_eval(tmp_path):
         # texel per triangle; a render that is wrong (black, NaN, another frame's pose) scores below 12 dB
         assert r["pooled_psnr_db"] > 15.0, (name, r)
         assert r["frames"] == 3 and r["mean_ape_percent"] > 0.0, (name, r)
+
+
+def test_star_mesh():
+    """The star scene's procedural mesh: the dissertation's size (6,240 triangles against its 6,093),
+    outward faces, unit normals pointing out, points at radius 1.45 and half-thickness 0.5."""
+    import numpy as np
+
+    from texstream.capture.procedural import star
+
+    m = star()
+    assert m.n_faces == 6240 and m.uvs is not None
+    v = m.vertices
+    fn = np.cross(v[m.faces[:, 1]] - v[m.faces[:, 0]], v[m.faces[:, 2]] - v[m.faces[:, 0]])
+    centre = v[m.faces].mean(axis=1)
+    assert np.all(np.einsum("ij,ij->i", fn, centre) > 0)       # star-shaped about the origin: outward
+    np.testing.assert_allclose(np.linalg.norm(m.normals, axis=1), 1.0, rtol=1e-12)
+    assert np.all(np.einsum("ij,ij->i", m.normals, v) > 0)
+    r = np.hypot(v[:, 0], v[:, 1])
+    assert r.max() == pytest.approx(1.45, rel=1e-9) and np.abs(v[:, 2]).max() == pytest.approx(0.5, rel=1e-9)
