@@ -108,6 +108,23 @@ def look_at_w2c(eye: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, 0.0,
     return r, -r @ eye
 
 
+def look_at_w2c_batch(eyes: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`look_at_w2c` for (N, 3) eyes at once: (N, 3, 3) rotations and (N, 3) translations (the
+    same construction and fallback up vector, equal to float64 rounding)."""
+    eyes = np.asarray(eyes, dtype=np.float64).reshape(-1, 3)
+    fwd = np.asarray(target, dtype=np.float64).reshape(-1, 3) - eyes
+    fwd /= np.linalg.norm(fwd, axis=1, keepdims=True)
+    up = np.asarray(up, dtype=np.float64)
+    ups = np.broadcast_to(up, fwd.shape).copy()
+    near = np.abs(fwd @ (up / np.linalg.norm(up))) > 0.999
+    ups[near] = np.where(np.abs(fwd[near, 1:2]) < 0.9, [0.0, 1.0, 0.0], [1.0, 0.0, 0.0])
+    right = np.cross(fwd, ups)
+    right /= np.linalg.norm(right, axis=1, keepdims=True)
+    down = np.cross(fwd, right)
+    r = np.stack([right, down, fwd], axis=1)
+    return r, -np.einsum("nij,nj->ni", r, eyes)
+
+
 def texel_center_uv(x: np.ndarray, y: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
     """UV of texel centres (see the module doc)."""
     return (np.asarray(x) + 0.5) / width, 1.0 - (np.asarray(y) + 0.5) / height

@@ -72,6 +72,16 @@ neither glTF nor OBJ has a view-dependent colour; the view terms stay in the EXR
     material (``KHR_materials_unlit``, fallback metallic 0, roughness 0.9 as the extension suggests);
     OBJ: map_Kd with ``illum 0``.
 
+light field mapping models (``layout.kind == "lfm"``, fit/lfm_stage.py: lfm.npz)
+    Exported unlit like the radiance models. Base colour per texel: the view-independent term d(s)
+    plus, for each of the texel's three vertex light fields and each term k, its surface map value
+    times the mean of the vertex's view map over view directions, cosine-weighted over the vertex's
+    hemisphere (``lfm_view_mean = "cosine"``: seen from viewpoints all around, a surface element
+    covers pixels in proportion to cos(theta_v), so this is the pixel-weighted average colour of the
+    element); ``"none"`` keeps d(s) alone. The mean uses the renderer's own view-map lookups
+    (``view_taps`` of fit/kernels/lfm.py at a 128 x 128 grid of disk-uniform directions). The exact
+    surface and view maps stay in ``maps/*.exr`` (diffuse, surface_k{k}_v{j}, view_k{k}).
+
 Geometry
     Positions, unit vertex normals, UVs. texstream UVs have v up (capture/conventions.py), glTF's
     origin is the top-left of the image: TEXCOORD_0 = (u, 1 - v); OBJ keeps v up. Texture images
@@ -100,6 +110,9 @@ from texstream.core.outputs import StageResult, atomic_output_dir, read_json, wr
 FORMATS = ("glb", "obj")
 ROUGHNESS_CONVERSIONS = ("fitted", "blinn4")
 UP_AXES = ("z", "y")
+LFM_VIEW_MEANS = ("cosine", "none")
+VIEW_MEAN_GRID = 128
+"""disk-uniform directions per side of the grid the LFM view-map means average over (12,868 in the disk)"""
 DIELECTRIC_F0 = 0.04  # ((ior - 1) / (ior + 1))^2 at glTF's default ior 1.5
 MTL_NS_MAX = 1000.0
 _MODEL_FIX = "give the folder `texstream fit` wrote (model.json, mesh.obj, bake.npz and the EXR maps)"
@@ -125,6 +138,10 @@ class ExportConfig:
     radiance_scale: float = option(1.0, "radiance models: multiply the radiance by this before clipping "
                                    "to [0, 1] (1 = photo units, where 1 is the photo's white)")
     copy_maps: bool = option(True, "copy the float EXR parameter maps into maps/ (the exact fitted values)")
+    lfm_view_mean: str = option("cosine", "light field mapping models: unlit base colour = the view-"
+                                "independent term plus each view-dependent term's mean over view "
+                                "directions, cosine-weighted over the hemisphere (cosine), or the "
+                                "view-independent term alone (none)", choices=("cosine", "none"))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -219,6 +236,92 @@ def lobe_conversion_table(exponents=(1, 10, 100, 1000, 10000), conversion: str =
 
 
 # ---------------------------------------------------------------------------------------------
+# light field mapping: the unlit approximation
+
+
+def cosine_directions(n: int = VIEW_MEAN_GRID) -> np.ndarray:
+    """(D, 3) unit local directions (z = the normal) cosine-distributed over the hemisphere: the
+    centres of an n x n grid on [-1, 1]^2 inside the unit disk, lifted to z = sqrt(1 - x^2 - y^2)
+    (equal disk areas are equal projected solid angles, Nusselt's analog)."""
+    c = (np.arange(n) + 0.5) / n * 2.0 - 1.0
+    x, y = (a.reshape(-1) for a in np.meshgrid(c, c))
+    r2 = x * x + y * y
+    keep = r2 < 1.0
+    return np.stack([x[keep], y[keep], np.sqrt(1.0 - r2[keep])], 1)
+
+
+def view_mean_weights(res: int, mapping: str, lookup: str, device: str | None = None,
+                      n: int = VIEW_MEAN_GRID) -> np.ndarray:
+    """(R * R,) weights w (summing to 1) such that ``sum_q w[q] h[q]`` is the cosine-weighted mean over
+    view directions of a view map h looked up as the renderer does (mapping "disk" | "hemioct",
+    lookup "nearest" | "bilinear"): the average of ``view_taps`` over :func:`cosine_directions`, on
+    ``device`` (None: the CPU where Warp can compile for it, else Warp's preferred device)."""
+    import warp as wp
+
+    from .kernels import lfm as LK
+    from .kernels.lfm_lookup import direction_taps_kernel
+
+    if device is None:
+        device = "cpu" if wp.is_cpu_available() else str(wp.get_preferred_device())
+    dirs = cosine_directions(n)
+    d = wp.array(dirs, dtype=wp.vec3d, device=device)
+    idx = wp.zeros(len(dirs), dtype=wp.vec4i, device=device)
+    wt = wp.zeros(len(dirs), dtype=wp.vec4d, device=device)
+    code_map = int(LK.MAP_DISK if mapping == "disk" else LK.MAP_HEMIOCT)
+    code_lookup = int(LK.LOOKUP_NEAREST if lookup == "nearest" else LK.LOOKUP_BILINEAR)
+    wp.launch(direction_taps_kernel, dim=len(dirs), device=device,
+              inputs=[d, code_map, int(res), code_lookup], outputs=[idx, wt])
+    out = np.zeros(res * res)
+    np.add.at(out, idx.numpy().reshape(-1), wt.numpy().reshape(-1))
+    return out / out.sum()
+
+
+def lfm_unlit_radiance(model, view_mean: str = "cosine", device: str | None = None) -> np.ndarray:
+    """(N, 3) the unlit radiance of each compact texel of an LFM model (fit/lfm_stage.py
+    ``LFMModelFolder``): d(s) plus, with ``view_mean = "cosine"``, sum over the texel's slots j and terms
+    k of g_k(slot) times the cosine-weighted mean of h_k over the slot vertex's view directions."""
+    p = model.params
+    d = np.asarray(p.diffuse, np.float64)
+    if view_mean == "none":
+        return d.copy()
+    if view_mean != "cosine":
+        raise ConfigError(f"unknown lfm_view_mean {view_mean!r}", fix=f"use one of {LFM_VIEW_MEANS}")
+    w = view_mean_weights(model.view_res, model.cfg.view_map, model.cfg.lookup, device)
+    h_mean = np.einsum("vkmc,m->vkc", np.asarray(p.H, np.float64), w)     # (V, K, 3)
+    terms = (np.asarray(p.G, np.float64) * h_mean[model.geom.slot_vertex]).sum(axis=1)   # (3N, 3)
+    return d + terms.reshape(-1, 3, 3).sum(axis=1)
+
+
+def lfm_atlas(model, values: np.ndarray) -> np.ndarray:
+    """(H, W, C) float32 atlas of per-compact-texel ``values`` (N, C): each texel holds its own value or,
+    for padding, the value of the texel it copies (what the LFM renderer reads); 0 elsewhere."""
+    from .lfm_stage import grid_source
+
+    b = model.bake
+    src = grid_source(b, model.grid_index)
+    v = np.asarray(values)
+    out = np.zeros((b.height * b.width, v.shape[1]), np.float32)
+    out[src >= 0] = v[src[src >= 0]]
+    return out.reshape(b.height, b.width, v.shape[1])
+
+
+def lfm_unlit_renderer(model, view_mean: str = "cosine", device: str = "cpu"):
+    """frame -> (image, coverage): the exported unlit approximation of an LFM model rendered by
+    texstream's radiance renderer (fit/render.py, bilinear atlas lookup, times the frame's exposure),
+    to score it against the full model or the photos."""
+    from .models import ModelLayout
+    from .stage import render_model
+
+    grid = lfm_atlas(model, lfm_unlit_radiance(model, view_mean, device))
+    layout = ModelLayout(kind="radiance")
+    mesh = model.mesh
+
+    def render(frame):
+        return render_model(mesh, grid, layout, frame, device)
+    return render
+
+
+# ---------------------------------------------------------------------------------------------
 # reading the model folder
 
 
@@ -232,8 +335,9 @@ class _Model:
     covered: np.ndarray  # (H, W) bool: texels on the surface (all True without a usable bake.npz)
 
 
-def _read_model(model_dir) -> _Model:
-    """Load and check a model folder; every problem is an InputError naming the file and the fix."""
+def _read_model(model_dir, cfg: ExportConfig | None = None) -> _Model:
+    """Load and check a model folder; every problem is an InputError naming the file and the fix.
+    An LFM folder's grid is its unlit radiance (:func:`lfm_unlit_radiance`, ``cfg.lfm_view_mean``)."""
     from . import stage
 
     d = Path(model_dir)
@@ -245,6 +349,8 @@ def _read_model(model_dir) -> _Model:
     if not isinstance(man, dict) or not isinstance(man.get("layout"), dict) or "kind" not in man["layout"]:
         raise InputError("model.json has no layout (kind, n_lobes, ...)", d / "model.json",
                          "re-run `texstream fit`, which writes the layout")
+    if man["layout"]["kind"] == "lfm":
+        return _read_lfm_model(d, cfg or ExportConfig())
     try:
         mesh, grid, layout, man = stage.load_model(d)
     except InputError as e:
@@ -278,6 +384,33 @@ def _read_model(model_dir) -> _Model:
     return _Model(d, mesh, grid, layout, man, covered)
 
 
+@dataclasses.dataclass
+class _LFMLayout:
+    """What the export reads of an LFM model's layout (it has no per-texel parameter table)."""
+
+    kind: str = "lfm"
+    n_lobes: int = 0
+    view_mean: str = "cosine"
+
+
+def _read_lfm_model(d: Path, cfg: ExportConfig) -> _Model:
+    from .lfm_stage import load_lfm_model
+
+    try:
+        model = load_lfm_model(d)
+    except (KeyError, TypeError, ValueError) as e:
+        why = f"model.json or lfm.npz are inconsistent ({type(e).__name__}: {e})"
+        raise InputError(why, d / "model.json",
+                         "re-run `texstream fit --model lfm` to rewrite the folder") from None
+    if model.mesh.uvs is None:
+        raise InputError("mesh has no texture coordinates", d / "mesh.obj",
+                         "export the mesh.obj the fit wrote (it carries the atlas UVs)")
+    grid = lfm_atlas(model, lfm_unlit_radiance(model, cfg.lfm_view_mean))
+    covered = np.asarray(model.bake.covered, bool)
+    return _Model(d, model.mesh, grid, _LFMLayout(view_mean=cfg.lfm_view_mean), model.manifest,
+                  covered if covered.any() else np.ones(grid.shape[:2], bool))
+
+
 def _map_files(m: _Model) -> list[Path]:
     names = m.manifest.get("maps")
     files = [m.folder / str(v) for v in names.values()] if isinstance(names, dict) else []
@@ -303,8 +436,9 @@ class _Material:
 def _material(m: _Model, cfg: ExportConfig) -> _Material:
     g = m.grid.astype(np.float64)
     lay = m.layout
-    if lay.kind in ("radiance", "view_radiance"):
-        # glTF and OBJ have no view-dependent colour: the radiance seen along the normal
+    if lay.kind in ("radiance", "view_radiance", "lfm"):
+        # glTF and OBJ have no view-dependent colour: the radiance seen along the normal (view_radiance),
+        # or the view-independent term plus the view terms' mean over directions (lfm, _read_lfm_model)
         rad = g[..., 0:3] * float(cfg.radiance_scale)
         clipped = int((rad.max(axis=-1)[m.covered] > 1.0).sum())
         return _Material("radiance", np.clip(rad, 0.0, 1.0), None, 0.0, None, 1.0, clipped)
@@ -382,6 +516,9 @@ def _info(m: _Model, mat: _Material, cfg: ExportConfig) -> dict:
                      "roughness_conversion": cfg.roughness, "mtl_ns": mat.ns})
     if mat.kind == "radiance":
         info["radiance_scale"] = cfg.radiance_scale
+    info["model_kind"] = m.layout.kind
+    if m.layout.kind == "lfm":
+        info["lfm_view_mean"] = cfg.lfm_view_mean
     return info
 
 
@@ -394,6 +531,8 @@ def _check_config(cfg: ExportConfig) -> None:
     if not (math.isfinite(cfg.radiance_scale) and cfg.radiance_scale > 0):
         raise ConfigError(f"radiance_scale must be > 0, got {cfg.radiance_scale}",
                           fix="pass a positive scale")
+    if cfg.lfm_view_mean not in LFM_VIEW_MEANS:
+        raise ConfigError(f"unknown lfm_view_mean {cfg.lfm_view_mean!r}", fix=f"use one of {LFM_VIEW_MEANS}")
     if not cfg.name or "/" in cfg.name or cfg.name.startswith("."):
         raise ConfigError(f"bad file stem {cfg.name!r}", fix="pass a plain file name without folders")
 
@@ -424,7 +563,7 @@ def export_gltf(model_dir, out_path, config: ExportConfig | None = None) -> dict
     """
     cfg = config or ExportConfig()
     _check_config(cfg)
-    return _export_gltf(_read_model(model_dir), cfg, Path(out_path))
+    return _export_gltf(_read_model(model_dir, cfg), cfg, Path(out_path))
 
 
 def _export_gltf(m: _Model, cfg: ExportConfig, out: Path) -> dict:
@@ -476,7 +615,9 @@ def _write_glb(m: _Model, mat: _Material, cfg: ExportConfig, out: Path) -> None:
         return len(textures) - 1
 
     units = "base colour = albedo (pi * rho_d) or clipped radiance; see docs/export.md"
-    extras = {"texstream": {"kind": mat.kind, "units": units}}
+    extras = {"texstream": {"kind": mat.kind, "model_kind": m.layout.kind, "units": units}}
+    if m.layout.kind == "lfm":  # the unlit approximation of a light field (module doc)
+        extras["texstream"]["lfm_view_mean"] = cfg.lfm_view_mean
     pbr = G.PbrMetallicRoughness(baseColorFactor=[1.0, 1.0, 1.0, 1.0],
                                  baseColorTexture=G.TextureInfo(index=texture("base_color", mat.base)),
                                  metallicFactor=0.0)
@@ -537,7 +678,7 @@ def export_obj(model_dir, out_dir, config: ExportConfig | None = None) -> dict:
     """
     cfg = config or ExportConfig()
     _check_config(cfg)
-    return _export_obj(_read_model(model_dir), cfg, Path(out_dir))
+    return _export_obj(_read_model(model_dir, cfg), cfg, Path(out_dir))
 
 
 def _export_obj(m: _Model, cfg: ExportConfig, out: Path) -> dict:
@@ -606,7 +747,7 @@ def export_stage(model_dir, out_dir, config: ExportConfig | None = None) -> Stag
 
     cfg = config or ExportConfig()
     _check_config(cfg)
-    m = _read_model(model_dir)  # fail before touching out_dir
+    m = _read_model(model_dir, cfg)  # fail before touching out_dir
     one = dataclasses.replace(cfg, copy_maps=False)
     with atomic_output_dir(out_dir) as tmp:
         written: dict = {}

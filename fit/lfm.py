@@ -236,7 +236,10 @@ class PhotoSamples:
 
         photos = problem.photos
         if getattr(photos, "streamed", False):
-            raise ConfigError("the LFM fit keeps every photo on the device", fix="set stream.photos_per_window to 0")
+            raise ConfigError(f"the LFM fit keeps every photo on the device, and these stream from "
+                              f"{photos.residency} ({photos.residency_reason})",
+                              fix="set stream.photo_residency to device and stream.photos_per_window to 0, "
+                                  "or fit fewer or smaller photos")
         if problem.cfg.image_precision != "fp32":
             raise ConfigError("the LFM fit reads fp32 photos", fix="set stream.image_precision to fp32")
         self.problem = problem

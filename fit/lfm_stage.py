@@ -209,27 +209,65 @@ def lfm_fit_stage(capture_dir, mesh_path, out_dir, cfg, progress: bool = True) -
                                        "heldout": manifest["heldout"]})
 
 
-def load_lfm_renderer(model_dir, device: str = "cpu", view_interp: str | None = None):
-    """A render function frame -> (image, coverage) for an LFM model folder."""
+@dataclasses.dataclass
+class LFMModelFolder:
+    """An LFM model folder loaded for rendering, export and the report's viewer.
+
+    Attributes:
+        folder: the model folder.
+        mesh: the mesh (with normals and UVs).
+        bake: its TexelBake (atlas grid, padding sources).
+        geom: the :class:`texstream.fit.lfm.LFMGeometry` with the fit's exact vertex frames.
+        params: the fitted :class:`texstream.fit.lfm.LFMParams` (float64).
+        cfg: the :class:`texstream.fit.lfm.LFMConfig` the model was fitted with (lookups, mapping).
+        grid_index: (N,) atlas index (y * W + x) of each compact texel.
+        manifest: model.json.
+    """
+
+    folder: Path
+    mesh: object
+    bake: object
+    geom: object
+    params: object
+    cfg: object
+    grid_index: np.ndarray
+    manifest: dict
+
+    @property
+    def terms(self) -> int:
+        return int(self.params.G.shape[1])
+
+    @property
+    def view_res(self) -> int:
+        return int(round(math.sqrt(self.params.H.shape[2])))
+
+    def renderer(self, device: str = "cpu", view_interp: str | None = None) -> LFMRenderer:
+        cfg = self.cfg if not view_interp else dataclasses.replace(self.cfg, render_view=view_interp)
+        return LFMRenderer(self.mesh, self.bake, self.geom, self.params, cfg, self.grid_index, device)
+
+
+def load_lfm_model(model_dir) -> LFMModelFolder:
+    """Read an LFM model folder (model.json, mesh.obj, bake.npz, lfm.npz); InputError naming the file
+    when one is missing or they disagree."""
     from texstream.geometry.bake import TexelBake
     from texstream.geometry.mesh_io import load_mesh
 
-    from .lfm import LFMConfig, LFMParams
+    from .lfm import LFMConfig, LFMGeometry, LFMParams
 
     d = Path(model_dir)
     man = read_json(d / "model.json", what="model manifest")
     lay = dict(man["layout"])
     lay.pop("kind")
     cfg = LFMConfig(**{k: v for k, v in lay.items() if k in {f.name for f in dataclasses.fields(LFMConfig)}})
-    if view_interp:
-        cfg = dataclasses.replace(cfg, render_view=view_interp)
+    for name in ("mesh.obj", "bake.npz", "lfm.npz"):
+        if not (d / name).is_file():
+            raise InputError(f"LFM model folder has no {name}", d / name,
+                             "re-run `texstream fit --model lfm`")
     mesh = load_mesh(d / "mesh.obj").with_normals()
     bake = TexelBake.load(d / "bake.npz")
     z = np.load(d / "lfm.npz")
     gi = z["grid_index"]
     pos = bake.position.reshape(-1, 3)[gi]
-    from .lfm import LFMGeometry
-
     geom = LFMGeometry.build(mesh.vertices, mesh.faces, mesh.vertex_normals(), bake.face.reshape(-1)[gi],
                              bake.bary.reshape(-1, 3)[gi], pos)
     if geom.n_vertices != z["H"].shape[0]:
@@ -237,5 +275,9 @@ def load_lfm_renderer(model_dir, device: str = "cpu", view_interp: str | None = 
                          "refit the model (the mesh changed)")
     # the fit's vertex frames exactly (the OBJ round trip may perturb the normals in the last digits)
     geom = dataclasses.replace(geom, vpos=z["vpos"], vnrm=z["vnrm"], vtan=z["vtan"], vbit=z["vbit"])
-    r = LFMRenderer(mesh, bake, geom, LFMParams(z["diffuse"], z["G"], z["H"]), cfg, gi, device)
-    return r.render_frame
+    return LFMModelFolder(d, mesh, bake, geom, LFMParams(z["diffuse"], z["G"], z["H"]), cfg, gi, man)
+
+
+def load_lfm_renderer(model_dir, device: str = "cpu", view_interp: str | None = None):
+    """A render function frame -> (image, coverage) for an LFM model folder."""
+    return load_lfm_model(model_dir).renderer(device, view_interp).render_frame

@@ -10,22 +10,32 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 
 import numpy as np
 import warp as wp
 
-from texstream.capture.conventions import look_at_w2c
 from texstream.core.config import option
 from texstream.core.errors import ConfigError, InputError
+from texstream.core.progress import say
 
 from .kernels import optim_kernels as K
 from .kernels import stream
 from .kernels.lafortune_grad import param_types
 from .kernels.shading import SHADOW_EPS_REL
-from .kernels.visibility import apply_mask_kernel, depth_map_kernel
+from .kernels.visibility import depth_maps_kernel, masked_depth_kernel, shadow_maps_kernel
 from .models import ModelLayout
+from .photo_stream import (LIGHT_KINDS, PhotoFiles, PhotoLoader, choose_residency, crop_boxes,  # noqa: F401
+                           WindowSlots, crop_infos, image_infos, keep_maps_on_device, struct_array, to_half_kernel, wait,
+                           window_size)
 
 PRECISIONS = {"fp16": wp.float16, "fp32": wp.float32, "fp64": wp.float64}
+MAX_LAUNCH_THREADS = 1 << 30
+"""threads per depth- or shadow-map launch: larger sets launch in chunks of photos (a launch's size must
+stay within Warp's 32-bit bounds; 10,000 shadow maps of 512x512 are 2.6 G threads)"""
+UPLOAD_CHUNK_BYTES = 64 << 20
+"""photo bytes per pinned upload chunk at set-up: large transfers (PCIe runs near its peak from a few
+MiB), small enough that two pinned staging buffers cost little to allocate"""
 
 
 @dataclasses.dataclass
@@ -167,7 +177,6 @@ def texel_coordinate_gradients(points: np.ndarray, faces: np.ndarray, uvs: np.nd
     return grad.reshape(*shape, 2, 3).astype(np.float32)
 
 
-LIGHT_KINDS = {"point": 0, "directional": 1, "none": 2}  # fit/kernels/shading.py LIGHT_*
 
 
 def no_light_error(n_unlit: int, n_total: int, kind: str) -> InputError:
@@ -264,8 +273,21 @@ class StreamConfig:
                                         "the renderer's normal, UV and shadow; a ray query per tap)",
                                choices=("plane", "mesh"))
     groups: int = option(0, "photo groups per pass, parallelism over photos (0: automatic)", min=0)
-    photos_per_window: int = option(0, "photos resident on the device at once (0: all; else streamed from host "
-                                       "memory in windows)", min=0)
+    photos_per_window: int = option(0, "photos on the device at once when streaming (0: all when they fit, else "
+                                       "sized from the memory available); a positive value with photo_residency "
+                                       "auto streams in windows", min=0)
+    photo_residency: str = option("auto", "where the photos live: device (all on the device), host (all in pinned "
+                                          "host memory, uploaded a window per pass), disk (decoded from the "
+                                          "capture's files a window per pass, depth and shadow maps recomputed per "
+                                          "window), or auto (the first that fits half the memory available and "
+                                          "memory_limit_mb; printed, and recorded in model.json's photos)",
+                                  choices=("auto", "device", "host", "disk"))
+    memory_limit_mb: float = option(0.0, "cap on the memory the photos and their maps may take on the device "
+                                         "and in host memory (0: half of what is available)", min=0.0)
+    crop_photos: bool = option(True, "store each photo cropped to the object's footprint (the mesh's projected "
+                                     "bounding box plus 3 px): only pixels a texel can see; results equal the "
+                                     "uncropped photos' to float rounding of the projection")
+    decode_threads: int = option(0, "threads that decode and crop photos (0: min(8, CPU cores))", min=0)
     cuda_block_dim: int = option(128, "threads per CUDA block of the accumulation kernels (128 fits three blocks "
                                       "per SM at the register cap; docs/gpu-performance.md)", min=32, max=1024)
     cuda_max_registers: int = option(-1, "registers per CUDA thread of the accumulation kernels: 0 uncapped, -1 "
@@ -290,43 +312,42 @@ def _vec_types(acc: str, n_params: int):
     return (scalars[acc], *param_types(n_params, scalars[acc]))
 
 
-def image_info(fr: PhotoFrame) -> stream.ImageInfo:
-    """The kernels' per-photo camera, light and photometric constants of one frame."""
-    info = stream.ImageInfo()
-    info.rot = wp.mat33(*np.asarray(fr.R, np.float32).reshape(-1))
-    info.trans = wp.vec3(*np.asarray(fr.t, np.float32))
-    info.center = wp.vec3(*(-np.asarray(fr.R).T @ np.asarray(fr.t)).astype(np.float32))
-    info.fx, info.fy, info.cx, info.cy = float(fr.fx), float(fr.fy), float(fr.cx), float(fr.cy)
-    info.width, info.height = int(fr.width), int(fr.height)
-    info.exposure = float(fr.exposure)
-    info.saturation = float(min(fr.saturation, 3.0e38))
-    if fr.light_kind not in LIGHT_KINDS:
-        raise InputError(f"light kind {fr.light_kind!r} unknown", fix=f"use one of {sorted(LIGHT_KINDS)}")
-    info.light_kind = LIGHT_KINDS[fr.light_kind]
-    info.light_vec = wp.vec3(*np.asarray(fr.light_vec, np.float32))
-    info.light_intensity = wp.vec3(*np.asarray(fr.light_intensity, np.float32))
-    return info
-
-
 class PhotoSet:
-    """Photos, depth maps and shadow maps on the device (or in pinned host memory when streamed)."""
+    """Photos, depth maps and shadow maps where the passes read them: on the device, in (pinned)
+    host memory uploaded a window per pass, or decoded from the capture's files a window per pass
+    (``residency``; ``StreamConfig.photo_residency``). Set-up makes no host round trip per photo:
+    per-photo constants in one array, photos uploaded in chunks through pinned buffers, depth and
+    shadow maps in one launch over photos x pixels (fit/photo_stream.py)."""
 
-    def __init__(self, frames: list[PhotoFrame], images: list[np.ndarray], mesh_points: np.ndarray | None,
+    def __init__(self, frames: list[PhotoFrame], images, mesh_points: np.ndarray | None,
                  mesh_faces: np.ndarray | None, masks: list[np.ndarray | None] | None = None,
                  config: StreamConfig | None = None, device: str = "cpu", mesh_normals: np.ndarray | None = None,
                  mesh_uvs: np.ndarray | None = None):
-        """``mesh_points=None`` (no geometry: single-view fits, fit/photometric_stereo.py) builds no
-        depth or shadow maps: each photo's depth map holds its mask (1 = sample, 0 = masked) and
-        ``ImageInfo.depth_is_mask`` tells the kernels to test only that. Per-vertex
-        ``mesh_normals`` and ``mesh_uvs`` serve traced taps (``StreamConfig.tap_geometry``)."""
+        """``images``: a list of (H, W, >=3) linear arrays, or a :class:`~texstream.fit.photo_stream.PhotoFiles`
+        to read them from (masks then come from its mask paths). ``mesh_points=None`` (no geometry:
+        single-view fits, fit/photometric_stereo.py) builds no depth or shadow maps: each photo's depth
+        map holds its mask (1 = sample, 0 = masked) and ``ImageInfo.depth_is_mask`` tells the kernels
+        to test only that. Per-vertex ``mesh_normals`` and ``mesh_uvs`` serve traced taps
+        (``StreamConfig.tap_geometry``).
+
+        ``timings`` records the set-up's phases in seconds (upload, depth_maps, shadow_maps, other;
+        each phase ends with a device synchronisation so the figures are its own)."""
         self.mesh_normals = self.mesh_uvs = None
         self.light_kinds = [fr.light_kind for fr in frames]
-        self.exposures = [float(fr.exposure) for fr in frames]
         """per photo "point", "directional" or "none" (checked against the model by StreamProblem)"""
+        self.exposures = [float(fr.exposure) for fr in frames]
+        self.timings = {"upload": 0.0, "depth_maps": 0.0, "shadow_maps": 0.0, "other": 0.0}
+        self.crops = None
+        """(n, 4) int64 (x0, y0, width, height) of each photo's stored crop (None: whole photos)"""
+        self.device = device
+        self.n = len(frames)
+        if self.n == 0 or len(images) != self.n:
+            raise InputError("no photos to fit", fix="give a capture with at least one photo")
         if mesh_points is None:
             return self._init_without_mesh(frames, images, masks, config, device)
+        t_start = time.perf_counter()
         cfg = config or StreamConfig()
-        stack, img_dtype = self._stack_photos(frames, images, cfg, device)
+        self.files = isinstance(images, PhotoFiles)
         self.mesh = wp.Mesh(points=wp.array(np.asarray(mesh_points, np.float32), dtype=wp.vec3, device=device),
                             indices=wp.array(np.asarray(mesh_faces, np.int32).reshape(-1), dtype=wp.int32, device=device))
         if mesh_normals is not None and mesh_uvs is not None:
@@ -336,117 +357,236 @@ class PhotoSet:
         self.center = 0.5 * (lo + hi)
         self.radius = 0.5 * float(np.linalg.norm(hi - lo))
         self.shadow_eps = SHADOW_EPS_REL * max(2.0 * self.radius, 1e-12)  # the renderer's (fit/render.py)
-        depth = np.zeros((self.n, self.hmax, self.wmax), np.float32)
         ssize = int(cfg.shadow_map_size)
-        shadow = np.full((self.n, max(ssize, 2), max(ssize, 2)), np.inf, np.float32)
-        infos = []
-        dbuf = wp.zeros((self.hmax, self.wmax), dtype=wp.float32, device=device)
-        sbuf = wp.zeros((max(ssize, 2), max(ssize, 2)), dtype=wp.float32, device=device)
-        for k, fr in enumerate(frames):
-            info = image_info(fr)
-            dbuf.zero_()
-            wp.launch(depth_map_kernel, dim=(fr.height, fr.width), device=device,
-                      inputs=[self.mesh.id, info.rot, info.trans, info.fx, info.fy, info.cx, info.cy, 0,
-                              fr.width, fr.height, 0.0, dbuf])
-            if masks is not None and masks[k] is not None:
-                mk = wp.array(np.ascontiguousarray(masks[k].astype(np.uint8)), dtype=wp.uint8, device=device)
-                wp.launch(apply_mask_kernel, dim=(fr.height, fr.width), inputs=[mk, dbuf], device=device)
-            depth[k, :fr.height, :fr.width] = dbuf.numpy()[:fr.height, :fr.width]
-            info.has_shadow = 0
-            if ssize > 0:
-                ok = self._shadow_camera(info, fr, ssize)
-                if ok:
-                    sbuf.fill_(np.inf)
-                    wp.launch(depth_map_kernel, dim=(ssize, ssize), device=device,
-                              inputs=[self.mesh.id, info.sh_rot, info.sh_trans, info.sh_fx, info.sh_fy, info.sh_cx,
-                                      info.sh_cy, info.sh_ortho, ssize, ssize, float(np.inf), sbuf])
-                    shadow[k] = sbuf.numpy()
-            infos.append(info)
-        self.window = self.n if cfg.photos_per_window <= 0 else min(self.n, int(cfg.photos_per_window))
-        self.streamed = self.window < self.n
-        self.infos = wp.array(infos, dtype=stream.ImageInfo, device=device)
-        self.info_list = infos
-        if self.streamed:
-            pinned = device != "cpu"
-            self.host_images = wp.array(stack, dtype=img_dtype, device="cpu", pinned=pinned)
-            self.host_depth = wp.array(depth, dtype=wp.float32, device="cpu", pinned=pinned)
-            self.host_shadow = wp.array(shadow, dtype=wp.float32, device="cpu", pinned=pinned)
-            self.images = wp.zeros((self.window, self.hmax, self.wmax), dtype=img_dtype, device=device)
-            self.depth = wp.zeros((self.window, self.hmax, self.wmax), dtype=wp.float32, device=device)
-            self.shadow = wp.zeros((self.window, *shadow.shape[1:]), dtype=wp.float32, device=device)
-            self.infos_window = wp.zeros(self.window, dtype=stream.ImageInfo, device=device)
+        self.shadow_side = max(ssize, 2)
+        self.sizes = sizes = np.array([[fr.height, fr.width] for fr in frames], np.int64)
+        infos = image_infos(frames, None, self.center, self.radius, ssize)
+        if cfg.crop_photos:
+            full = struct_array(infos, stream.ImageInfo, device)
+            self.crops = crop_boxes(self.mesh.points, full, sizes[:, 1], sizes[:, 0], device)
+            crop_infos(infos, self.crops)
+            self.hmax, self.wmax = int(self.crops[:, 3].max()), int(self.crops[:, 2].max())
+        elif self.files:
+            self.hmax, self.wmax = int(sizes[:, 0].max()), int(sizes[:, 1].max())
         else:
-            self.images = wp.array(stack, dtype=img_dtype, device=device)
-            self.depth = wp.array(depth, dtype=wp.float32, device=device)
-            self.shadow = wp.array(shadow, dtype=wp.float32, device=device)
-        self.image_bytes = int(stack.nbytes)
-
-    def _stack_photos(self, frames, images, cfg: StreamConfig, device: str):
-        """Photos padded into one (n, hmax, wmax, 3) host stack in the image precision, and the
-        Warp element type; sets ``device``, ``n``, ``hmax``, ``wmax``."""
-        self.device = device
-        self.n = len(frames)
-        if self.n == 0 or len(images) != self.n:
-            raise InputError("no photos to fit", fix="give a capture with at least one photo")
-        self.hmax = max(int(im.shape[0]) for im in images)
-        self.wmax = max(int(im.shape[1]) for im in images)
+            self.hmax = max(int(im.shape[0]) for im in images)
+            self.wmax = max(int(im.shape[1]) for im in images)
+        self.infos_host = infos
+        self.infos = struct_array(infos, stream.ImageInfo, device)
         fp16 = cfg.image_precision == "fp16"
-        stack = np.zeros((self.n, self.hmax, self.wmax, 3), dtype=np.float16 if fp16 else np.float32)
-        for k, im in enumerate(images):
-            stack[k, :im.shape[0], :im.shape[1]] = im[..., :3]
-        return stack, (wp.vec3h if fp16 else wp.vec3)
+        self.img_dtype = wp.vec3h if fp16 else wp.vec3
+        pixels = self.hmax * self.wmax
+        self.image_bytes = self.n * pixels * 3 * (2 if fp16 else 4)
+        per_photo = pixels * (3 * (2 if fp16 else 4) + 4) + 4 * self.shadow_side ** 2
+        limit = int(cfg.memory_limit_mb * 2 ** 20)
+        requested = cfg.photo_residency
+        if requested == "disk" and not self.files:
+            raise ConfigError("photo_residency disk needs the photos as files (a capture folder), not arrays",
+                              fix="set stream.photo_residency to auto, device or host")
+        self.residency, self.residency_reason = choose_residency(requested, device, self.n * per_photo,
+                                                                 self.n * per_photo, self.files, limit,
+                                                                 windows=cfg.photos_per_window > 0)
+        if self.residency == "device":
+            self.window = self.n
+        elif cfg.photos_per_window > 0:
+            self.window = min(self.n, int(cfg.photos_per_window))
+        else:
+            self.window = window_size(self.n, per_photo, device, limit)
+        self.streamed = self.residency != "device"
+        self.maps_on_device = self.residency == "disk" and keep_maps_on_device(
+            device, self.n * (4 * pixels + 4 * self.shadow_side ** 2), limit)
+        """photos streamed from disk with every depth and shadow map kept on the device (else a window's
+        maps are recomputed for each pass)"""
+        if self.residency == "disk":
+            self.residency_reason += ("; depth and shadow maps kept on the device" if self.maps_on_device
+                                      else "; depth and shadow maps recomputed per window")
+        say("fit", f"photos: {self.residency}, {self.window} per window ({self.residency_reason})")
+        self.loader = PhotoLoader(images, masks, self.crops, sizes, cfg.decode_threads)
+        self.timings["other"] += time.perf_counter() - t_start
+        if self.residency == "device":
+            self._init_device()
+        else:
+            self._init_windows()
+        if self.residency != "disk":
+            self.loader.close()
+            self.loader = None  # nothing is read again: drop the caller's photos' references
+
+    def _sync(self) -> None:
+        wp.synchronize_device(self.device)
+
+    def _masks_buffer(self, count: int, device: str, pinned: bool = False):
+        """A (count, hmax, wmax) uint8 mask buffer, or a one-element placeholder when no photo has a mask."""
+        if not self.loader.has_masks:
+            return wp.zeros((1, 1, 1), dtype=wp.uint8, device=device)
+        return wp.empty((count, self.hmax, self.wmax), dtype=wp.uint8, device=device, pinned=pinned)
+
+    def _maps(self, first: int, count: int, masks, depth, shadow) -> None:
+        """Depth maps (``masks`` applied) and shadow maps of photos first..first+count-1 into ``depth``
+        and ``shadow`` (each timed, see ``timings``)."""
+        t0 = time.perf_counter()
+        self.launch_depth_maps(first, count, masks, depth)
+        self._sync()
+        t1 = time.perf_counter()
+        self.launch_shadow_maps(first, count, shadow)
+        self._sync()
+        self.timings["depth_maps"] += t1 - t0
+        self.timings["shadow_maps"] += time.perf_counter() - t1
+
+    def _photo_chunks(self, count: int, pixels: int):
+        """(offset, size) chunks of ``count`` photos of ``pixels`` each, at most :data:`MAX_LAUNCH_THREADS`
+        threads a launch (one launch for any ornament-sized set)."""
+        step = max(1, MAX_LAUNCH_THREADS // max(pixels, 1))
+        return [(j, min(step, count - j)) for j in range(0, count, step)]
+
+    def launch_depth_maps(self, first: int, count: int, masks, depth, use_masks: bool = True) -> None:
+        """Depth maps of photos first..first+count-1 into ``depth[0:count]`` (``masks`` likewise indexed,
+        applied when any photo has a mask and ``use_masks``)."""
+        use = int(self.loader.has_masks and use_masks)
+        for j, c in self._photo_chunks(count, self.hmax * self.wmax):
+            wp.launch(depth_maps_kernel, dim=(c, self.hmax, self.wmax), device=self.device,
+                      inputs=[self.mesh.id, self.infos, first + j, masks[j:j + c] if use else masks, use],
+                      outputs=[depth[j:j + c]])
+
+    def launch_shadow_maps(self, first: int, count: int, shadow) -> None:
+        """Shadow maps of photos first..first+count-1 into ``shadow[0:count]``."""
+        for j, c in self._photo_chunks(count, self.shadow_side ** 2):
+            wp.launch(shadow_maps_kernel, dim=(c, self.shadow_side, self.shadow_side), device=self.device,
+                      inputs=[self.mesh.id, self.infos, first + j], outputs=[shadow[j:j + c]])
+
+    def _init_device(self) -> None:
+        """All photos, depth and shadow maps on the device: photos filled in place on the CPU, or uploaded
+        in chunks through pinned buffers (:meth:`upload_staged`); then one depth-map and one shadow-map
+        launch over all photos."""
+        t0 = time.perf_counter()
+        n, dev = self.n, self.device
+        self.images = wp.empty((n, self.hmax, self.wmax), dtype=self.img_dtype, device=dev)
+        masks = self._masks_buffer(n, dev)
+        if dev == "cpu":  # the device's arrays are host memory: fill them in place
+            self.loader.fill(range(n), self.images.numpy(), masks.numpy() if self.loader.has_masks else None)
+        else:
+            self.upload_staged(self.images, masks)
+        self._sync()
+        self.timings["upload"] += time.perf_counter() - t0
+        self.depth = wp.empty((n, self.hmax, self.wmax), dtype=wp.float32, device=dev)
+        self.shadow = wp.empty((n, self.shadow_side, self.shadow_side), dtype=wp.float32, device=dev)
+        self._maps(0, n, masks, self.depth, self.shadow)
+
+    def upload_staged(self, images: wp.array, masks: wp.array) -> None:
+        """Fill the device's ``images`` (n, hmax, wmax) and ``masks`` (when any photo has one) in chunks of
+        ~:data:`UPLOAD_CHUNK_BYTES`: the loader's threads crop each chunk into one of two host buffers
+        (pinned for CUDA) while the other one's copy runs. The buffers hold float32, as the photos come,
+        and half-float photos are converted on the device: a plain copy on the host is ~5x faster than
+        numpy's float16 conversion, which would otherwise bound the set-up (both round to nearest even,
+        so the halves are the same)."""
+        n, dev, pix = self.n, self.device, self.hmax * self.wmax
+        half = self.img_dtype == wp.vec3h
+        pinned = dev != "cpu"
+        chunk = max(1, min(n, UPLOAD_CHUNK_BYTES // (pix * 12)))
+        shape = (chunk, self.hmax, self.wmax)
+        stage = [wp.empty(shape, dtype=wp.vec3, device="cpu", pinned=pinned) for _ in range(2)]
+        stage_m = [self._masks_buffer(chunk, "cpu", pinned) for _ in range(2)]
+        landing = wp.empty(shape, dtype=wp.vec3, device=dev) if half else None
+        copied = [None, None]
+        for turn, b in enumerate(range(0, n, chunk)):
+            c, slot = min(chunk, n - b), turn % 2
+            if copied[slot] is not None:
+                wp.synchronize_event(copied[slot])  # this buffer's previous copy has left it
+            self.loader.fill(range(b, b + c), stage[slot].numpy(),
+                             stage_m[slot].numpy() if self.loader.has_masks else None)
+            if half:
+                wp.copy(landing, stage[slot], 0, 0, c * pix)
+                wp.launch(to_half_kernel, dim=(c, self.hmax, self.wmax), device=dev, inputs=[landing, b],
+                          outputs=[images])
+            else:
+                wp.copy(images, stage[slot], b * pix, 0, c * pix)
+            if self.loader.has_masks:
+                wp.copy(masks, stage_m[slot], b * pix, 0, c * pix)
+            if pinned:
+                copied[slot] = wp.get_stream(dev).record_event()
+
+    def _init_windows(self) -> None:
+        """Window-sized device buffers; for "host" residency also every photo and its maps in (pinned)
+        host memory, the maps computed a window at a time on the device and copied back."""
+        n, dev, w, pix = self.n, self.device, self.window, self.hmax * self.wmax
+        pinned = dev != "cpu"
+        self.images = wp.empty((w, self.hmax, self.wmax), dtype=self.img_dtype, device=dev)
+        self.depth = wp.empty((w, self.hmax, self.wmax), dtype=wp.float32, device=dev)
+        self.shadow = wp.empty((w, self.shadow_side, self.shadow_side), dtype=wp.float32, device=dev)
+        self.infos_window = wp.zeros(w, dtype=stream.ImageInfo, device=dev)
+        self.window_masks = self._masks_buffer(w, dev)
+        if self.residency == "disk":
+            # two slots the loader fills alternately (one decoding while the other's window is in use);
+            # copied to the window's device arrays before each window's passes
+            self.slots = WindowSlots(
+                [wp.empty((w, self.hmax, self.wmax), dtype=self.img_dtype, device="cpu", pinned=pinned)
+                 for _ in range(2)], [self._masks_buffer(w, "cpu", pinned) for _ in range(2)])
+            if self.maps_on_device:
+                # the depth maps without masks (the masks come with each window's photos, applied by
+                # masked_depth_kernel: the same values the masked launch writes)
+                self.all_depth = wp.empty((n, self.hmax, self.wmax), dtype=wp.float32, device=dev)
+                self.all_shadow = wp.empty((n, self.shadow_side, self.shadow_side), dtype=wp.float32, device=dev)
+                t0 = time.perf_counter()
+                self.launch_depth_maps(0, n, self.window_masks, self.all_depth, use_masks=False)
+                self._sync()
+                t1 = time.perf_counter()
+                self.launch_shadow_maps(0, n, self.all_shadow)
+                self._sync()
+                self.timings["depth_maps"] += t1 - t0
+                self.timings["shadow_maps"] += time.perf_counter() - t1
+            return
+        t0 = time.perf_counter()
+        self.host_images = wp.empty((n, self.hmax, self.wmax), dtype=self.img_dtype, device="cpu", pinned=pinned)
+        self.host_depth = wp.empty((n, self.hmax, self.wmax), dtype=wp.float32, device="cpu", pinned=pinned)
+        self.host_shadow = wp.empty((n, self.shadow_side, self.shadow_side), dtype=wp.float32, device="cpu",
+                                    pinned=pinned)
+        host_masks = self._masks_buffer(w, "cpu", pinned)
+        imgs = self.host_images.numpy()
+        for b in range(0, n, w):
+            c = min(w, n - b)
+            t1 = time.perf_counter()
+            self.loader.fill(range(b, b + c), imgs[b:b + c], host_masks.numpy() if self.loader.has_masks else None)
+            if self.loader.has_masks:
+                wp.copy(self.window_masks, host_masks, 0, 0, c * pix)
+            self._sync()
+            self.timings["upload"] += time.perf_counter() - t1
+            self._maps(b, c, self.window_masks, self.depth, self.shadow)
+            t2 = time.perf_counter()
+            wp.copy(self.host_depth, self.depth, b * pix, 0, c * pix)
+            ss = self.shadow_side ** 2
+            wp.copy(self.host_shadow, self.shadow, b * ss, 0, c * ss)
+            self._sync()
+            self.timings["upload"] += time.perf_counter() - t2
 
     def _init_without_mesh(self, frames, images, masks, config, device) -> None:
         """Photos and masks only (see __init__); never streamed in windows (one view is small)."""
         cfg = config or StreamConfig()
-        stack, img_dtype = self._stack_photos(frames, images, cfg, device)
+        if isinstance(images, PhotoFiles):
+            raise ConfigError("single-view fits take their photos as arrays", fix="load the photos first")
+        self.hmax = max(int(im.shape[0]) for im in images)
+        self.wmax = max(int(im.shape[1]) for im in images)
+        fp16 = cfg.image_precision == "fp16"
+        stack = np.zeros((self.n, self.hmax, self.wmax, 3), dtype=np.float16 if fp16 else np.float32)
         depth = np.zeros((self.n, self.hmax, self.wmax), np.float32)
-        infos = []
-        for k, (fr, im) in enumerate(zip(frames, images)):
+        for k, im in enumerate(images):
+            stack[k, :im.shape[0], :im.shape[1]] = im[..., :3]
             mk = masks[k] if masks is not None and masks[k] is not None else np.ones(im.shape[:2], bool)
             depth[k, :im.shape[0], :im.shape[1]] = np.asarray(mk, bool)
-            info = image_info(fr)
-            info.has_shadow = 0  # no geometry, no cast shadows: mask them in the photo's mask
-            info.depth_is_mask = 1
-            infos.append(info)
+        infos = image_infos(frames, None, None, 0.0, 0)
+        infos["depth_is_mask"] = 1  # no geometry, no cast shadows: mask them in the photo's mask
         self.mesh = None
+        self.files = False
+        self.loader = None
         self.window = self.n
         self.streamed = False
-        self.infos = wp.array(infos, dtype=stream.ImageInfo, device=device)
-        self.info_list = infos
-        self.images = wp.array(stack, dtype=img_dtype, device=device)
+        self.residency, self.residency_reason = "device", "single-view photos"
+        self.shadow_side = 2
+        self.infos_host = infos
+        self.infos = struct_array(infos, stream.ImageInfo, device)
+        self.img_dtype = wp.vec3h if fp16 else wp.vec3
+        self.images = wp.array(stack, dtype=self.img_dtype, device=device)
         self.depth = wp.array(depth, dtype=wp.float32, device=device)
         self.shadow = wp.full((self.n, 2, 2), np.inf, dtype=wp.float32, device=device)
         self.image_bytes = int(stack.nbytes)
-
-    def _shadow_camera(self, info, fr: PhotoFrame, size: int) -> bool:
-        """Aim a shadow-map camera from the light at the object's bounding sphere."""
-        r = max(self.radius, 1e-9)
-        if fr.light_kind == "none":
-            return False  # no light, no shadows (the radiance model tests none)
-        if fr.light_kind == "point":
-            lp = np.asarray(fr.light_vec, float)
-            dist = float(np.linalg.norm(lp - self.center))
-            if dist <= 1.05 * r:
-                return False  # light inside the object's bounds: no single frustum covers it
-            rot, trans = look_at_w2c(lp, self.center)
-            half = math.asin(min(r / dist, 0.999)) * 1.05
-            f = 0.5 * size / math.tan(half)
-            ortho = 0
-        else:
-            d = np.asarray(fr.light_vec, float)
-            d = d / np.linalg.norm(d)
-            rot, trans = look_at_w2c(self.center - 3.0 * r * d, self.center)
-            f = size / (2.2 * r)
-            ortho = 1
-        info.has_shadow = 1
-        info.sh_rot = wp.mat33(*np.asarray(rot, np.float32).reshape(-1))
-        info.sh_trans = wp.vec3(*np.asarray(trans, np.float32))
-        info.sh_fx = info.sh_fy = float(f)
-        info.sh_cx = info.sh_cy = 0.5 * size
-        info.sh_ortho = ortho
-        info.sh_size = size
-        return True
 
     def subset(self, indices) -> "PhotoSet":
         """The photos ``indices`` of this set (with their depth and shadow maps, mesh and window size) as a
@@ -461,13 +601,22 @@ class PhotoSet:
         out.n = int(idx.size)
         out.light_kinds = [self.light_kinds[k] for k in idx]
         out.exposures = [self.exposures[k] for k in idx]
-        out.info_list = [self.info_list[k] for k in idx]
+        out.infos_host = self.infos_host[idx]
+        out.crops = None if self.crops is None else self.crops[idx]
         dev = self.device
-        out.infos = wp.array(out.info_list, dtype=stream.ImageInfo, device=dev)
+        out.infos = struct_array(out.infos_host, stream.ImageInfo, dev)
+        out.window = min(self.window, out.n)
+        if self.residency == "disk":  # the window buffers are shared: the two sets are never streamed at once
+            src = self.loader.source
+            files = PhotoFiles([src.paths[k] for k in idx], [src.mask_paths[k] for k in idx], src.read_image,
+                               src.read_mask)
+            out.sizes = self.sizes[idx]
+            out.loader = PhotoLoader(files, None, out.crops, out.sizes, self.loader.threads)
+            out.maps_on_device = False  # the kept maps are the whole set's: a subset's windows make their own
+            out.image_bytes = self.image_bytes // self.n * out.n
+            return out
         src = (self.host_images, self.host_depth, self.host_shadow) if self.streamed else (self.images, self.depth, self.shadow)
         images, depth, shadow = (np.ascontiguousarray(a.numpy()[idx]) for a in src)
-        out.window = min(self.window, out.n)
-        out.streamed = out.window < out.n
         if out.streamed:  # the window buffers are shared: the two sets are never streamed at once
             pinned = dev != "cpu"
             out.host_images = wp.array(images, dtype=self.images.dtype, device="cpu", pinned=pinned)
@@ -481,19 +630,68 @@ class PhotoSet:
         return out
 
     def windows(self):
-        """Yield (images, depth, shadow, infos, begin, end) device views, uploading windows when streamed."""
+        """Yield (images, depth, shadow, infos, begin, end) device views, uploading windows when streamed
+        (and, from disk, decoding the next window on the loader's threads while this one is in use)."""
         if not self.streamed:
             yield self.images, self.depth, self.shadow, self.infos, 0, self.n
             return
+        pix = self.hmax * self.wmax
         for b in range(0, self.n, self.window):
             e = min(b + self.window, self.n)
             c = e - b
-            wp.copy(self.images, self.host_images, 0, b * self.hmax * self.wmax, c * self.hmax * self.wmax)
-            wp.copy(self.depth, self.host_depth, 0, b * self.hmax * self.wmax, c * self.hmax * self.wmax)
-            ss = self.shadow.shape[1] * self.shadow.shape[2]
-            wp.copy(self.shadow, self.host_shadow, 0, b * ss, c * ss)
+            if self.residency == "disk":
+                images, depth, shadow = self._disk_window(b, c)
+            else:
+                wp.copy(self.images, self.host_images, 0, b * pix, c * pix)
+                wp.copy(self.depth, self.host_depth, 0, b * pix, c * pix)
+                ss = self.shadow_side ** 2
+                wp.copy(self.shadow, self.host_shadow, 0, b * ss, c * ss)
+                images, depth, shadow = self.images, self.depth, self.shadow
             wp.copy(self.infos_window, self.infos, 0, b, c)
-            yield self.images, self.depth, self.shadow, self.infos_window, 0, c
+            yield images, depth, shadow, self.infos_window, 0, c
+
+    def _submit_window(self, b: int) -> None:
+        """Start decoding the window from photo ``b`` into the next slot (once its last upload has left it)."""
+        slots = self.slots
+        slot = slots.turn % 2
+        slots.turn += 1
+        if slots.copied[slot] is not None:
+            wp.synchronize_event(slots.copied[slot])
+        c = min(self.window, self.n - b)
+        masks = slots.masks[slot].numpy() if self.loader.has_masks else None
+        slots.pending = (self, b, slot, self.loader.submit(range(b, b + c), slots.images[slot].numpy(), masks))
+
+    def _disk_window(self, b: int, c: int):
+        """Photos b..b+c-1 decoded (prefetched since the previous window) and uploaded, with their depth
+        and shadow maps (recomputed on the device, or the ones kept there, masked by the window's masks);
+        starts decoding the next window (cyclically, so a pass's last window prefetches the next pass's
+        first). Returns the window's device (images, depth, shadow)."""
+        slots = self.slots
+        if slots.pending is None or slots.pending[0] is not self or slots.pending[1] != b:
+            if slots.pending is not None:
+                wait(slots.pending[3])  # a window nobody asked for (a pass cut short, or another set's)
+            self._submit_window(b)
+        _, _, slot, futures = slots.pending
+        wait(futures)
+        self._submit_window(b + self.window if b + self.window < self.n else 0)
+        # one copy to the window's device arrays on every device (on the CPU a memcpy, small beside the
+        # decoding), so the CPU runs the path CUDA does
+        pix = self.hmax * self.wmax
+        wp.copy(self.images, slots.images[slot], 0, 0, c * pix)
+        if self.loader.has_masks:
+            wp.copy(self.window_masks, slots.masks[slot], 0, 0, c * pix)
+        if self.device != "cpu":
+            slots.copied[slot] = wp.get_stream(self.device).record_event()
+        if not self.maps_on_device:
+            self.launch_depth_maps(b, c, self.window_masks, self.depth)
+            self.launch_shadow_maps(b, c, self.shadow)
+            return self.images, self.depth, self.shadow
+        shadow = self.all_shadow[b:b + c]
+        if not self.loader.has_masks:
+            return self.images, self.all_depth[b:b + c], shadow
+        wp.launch(masked_depth_kernel, dim=(c, self.hmax, self.wmax), device=self.device,
+                  inputs=[self.all_depth, b, self.window_masks], outputs=[self.depth])
+        return self.images, self.depth, shadow
 
 
 class StreamProblem:

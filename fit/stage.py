@@ -39,7 +39,13 @@ class FitStageConfig:
     """Options of ``texstream fit`` around the numerical FitConfig."""
 
     device: str = option("cpu", "Warp device: cpu or cuda:N")
-    texture_size: int = option(256, "atlas side in texels when the mesh has UVs but no bake", min=8, max=16384)
+    texture_size: int = option(0, "atlas side in texels when the mesh has UVs but no bake; 0: automatic, the power "
+                                  "of two whose texels are about texel_pixels of the photos' pixels wide",
+                               min=0, max=16384)
+    texel_pixels: float = option(3.0, "automatic texture_size: the texel width to aim at, in photo pixels (texels "
+                                      "narrower than a pixel or two share their pixels with their neighbours and "
+                                      "fit the photos' filtered highlights as broad, weak lobes that new views "
+                                      "contradict; docs/accuracy.md)", min=0.25)
     holdout_every: int = option(0, "hold out every k-th photo from the fit for evaluation (0 = none)", min=0)
     renders: int = option(4, "photos rendered beside the fitted model in renders/", min=0)
     unseen: str = option("nearest", "texels no photo saw: nearest (the value of the nearest seen texel on the "
@@ -62,8 +68,10 @@ class FitStageConfig:
     fit: FitConfig = option(default_factory=FitConfig, help="the fit", flat=True)
 
 
-def load_geometry(mesh_path: str | Path, texture_size: int, device: str):
-    """(mesh with UVs, TexelBake) from an atlas folder, or a mesh file baked at ``texture_size``."""
+def load_geometry(mesh_path: str | Path, texture_size: int, device: str, frames=None, texel_pixels: float = 3.0):
+    """(mesh with UVs, TexelBake) from an atlas folder, or a mesh file baked at ``texture_size`` (0: the side
+    :func:`texstream.geometry.density.texture_side_for` picks from ``frames`` and ``texel_pixels``; 256 without
+    frames)."""
     from texstream.geometry.bake import TexelBake, bake_texels
     from texstream.geometry.mesh_io import load_mesh
 
@@ -80,9 +88,16 @@ def load_geometry(mesh_path: str | Path, texture_size: int, device: str):
     if mesh.uvs is None:
         from texstream.geometry.atlas import AtlasConfig, build_atlas
 
-        mesh, _ = build_atlas(mesh, AtlasConfig(resolution=texture_size))
+        mesh, _ = build_atlas(mesh, AtlasConfig(resolution=texture_size or 1024))
     mesh = mesh.with_normals()
-    return mesh, bake_texels(mesh, texture_size, texture_size, device=device)
+    side = texture_size
+    if side == 0:
+        side = 256
+        if frames:
+            from texstream.geometry.density import texture_side_for
+
+            side = texture_side_for(mesh, frames, texel_pixels)[0]
+    return mesh, bake_texels(mesh, side, side, device=device)
 
 
 def load_photos(capture, frames, device: str | None = None):
@@ -94,6 +109,40 @@ def load_photos(capture, frames, device: str | None = None):
         images.append(read_image(capture.image_path(f), channels=3))
         mp = capture.mask_path(f)
         masks.append(read_mask(mp, images[-1].shape[:2]) if mp is not None and mp.exists() else None)
+    return images, masks
+
+
+def photo_files(capture, frames):
+    """The frames' photos and masks as files (:class:`texstream.fit.photo_stream.PhotoFiles`), decoded
+    by the fit's PhotoSet on a pool of threads: all at set-up when they stay in memory, or a window
+    per pass when streamed from disk (``StreamConfig.photo_residency``)."""
+    from texstream.capture.imageio import read_image, read_mask
+
+    from .photo_stream import PhotoFiles
+
+    masks = []
+    for f in frames:
+        mp = capture.mask_path(f)
+        masks.append(mp if mp is not None and mp.exists() else None)
+    return PhotoFiles([capture.image_path(f) for f in frames], masks,
+                      lambda path: read_image(path, channels=3), read_mask)
+
+
+def read_photos(photos, masks, indices):
+    """Images and masks (all-true where none) of ``indices`` of ``photos`` (a list of arrays with a
+    list of masks or None, or a PhotoFiles, which names its masks)."""
+    from .photo_stream import PhotoFiles
+
+    images, masks = [], []
+    for i in indices:
+        if isinstance(photos, PhotoFiles):
+            im = photos.read_image(photos.paths[i])
+            mp = photos.mask_paths[i]
+            mk = None if mp is None else photos.read_mask(mp, im.shape[:2])
+        else:
+            im, mk = photos[i], None if masks is None else masks[i]
+        images.append(im)
+        masks.append(np.ones(im.shape[:2], bool) if mk is None else mk)
     return images, masks
 
 
@@ -293,8 +342,10 @@ class FitInputs:
     mesh: object
     bake: object
     seams: object
-    images: list
-    masks: list
+    images: object
+    """the fitted frames' photos: a :class:`texstream.fit.photo_stream.PhotoFiles` (decoded by the fit's
+    PhotoSet) or a list of arrays"""
+    masks: list | None
 
 
 def load_fit_inputs(capture_dir: str | Path, mesh_path: str | Path, cfg: FitStageConfig) -> FitInputs:
@@ -307,10 +358,9 @@ def load_fit_inputs(capture_dir: str | Path, mesh_path: str | Path, cfg: FitStag
     if not frames:
         raise InputError("no photo is left to fit after the hold-out split", Path(capture_dir) / "capture.json",
                          "lower --holdout-every or add photos")
-    mesh, bake = load_geometry(mesh_path, cfg.texture_size, cfg.device)
+    mesh, bake = load_geometry(mesh_path, cfg.texture_size, cfg.device, frames, cfg.texel_pixels)
     seams = load_seams(mesh_path, bake)
-    images, masks = load_photos(capture, frames)
-    return FitInputs(capture, frames, held, mesh, bake, seams, images, masks)
+    return FitInputs(capture, frames, held, mesh, bake, seams, photo_files(capture, frames), None)
 
 
 def fill_unseen_texels(grid: np.ndarray, problem, bake, result: FitResult) -> tuple[np.ndarray, int]:
@@ -487,8 +537,7 @@ def choose_materials(inputs: "FitInputs", problem, cfg: "FitStageConfig", log=No
     sub = StreamProblem(problem.texels, problem.photos.subset(train), problem.layout, problem.cfg, problem.device)
     res = run_fit(sub, cfg.fit, start=initial_guess(sub, cfg.fit))
     frames = [inputs.frames[i] for i in val]
-    images = [inputs.images[i] for i in val]
-    masks = [np.ones(inputs.images[i].shape[:2], bool) if inputs.masks[i] is None else inputs.masks[i] for i in val]
+    images, masks = read_photos(inputs.images, inputs.masks, val)
 
     def score(params) -> dict:
         grid = model_grid(params, res, sub, inputs.bake, cfg, inputs.seams)
@@ -550,6 +599,7 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     from texstream.geometry.mesh_io import save_mesh
 
     from .model_folder import bound_report, check_model, pooled_psnr, render_comparisons, write_model_folder
+    from .stiffcheck import numerics_warnings
 
     cfg = config or FitStageConfig()
     check_config(cfg)
@@ -650,13 +700,16 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
                 write_image(tmp / "materials.png", colours.reshape(bake.height, bake.width, 3), bits=8)
         last = result.trace[-1]
         at_bounds, warnings = bound_report(result.params, lay, result.samples > 0)
+        warnings = numerics_warnings(cfg.fit.stream, len(frames), inputs.images, inputs.masks) + warnings
         manifest = {"mesh": "mesh.obj", "bake": "bake.npz", "warnings": warnings, "at_bounds": at_bounds,
                     "atlas": {"width": bake.width, "height": bake.height, "texels": int(problem.n),
                               "unseen_texels": int((result.samples == 0).sum()), "seen_before_fit": seen_before,
                               "unseen_filled_from_nearest": filled, "lobes_dropped": int(lobes_dropped.sum()),
                               "texels_with_lobe": lobes_in_use(result.params, lay, result.samples > 0),
                               "lobe_support": cfg.lobe_support},
-                    "photos": {"fitted": len(frames), "held_out": len(held)},
+                    "photos": {"fitted": len(frames), "held_out": len(held), "residency": problem.photos.residency,
+                               "residency_reason": problem.photos.residency_reason,
+                               "photos_per_window": problem.photos.window},
                     "final": {k: last[k] for k in ("iteration", "time_s", "objective", "psnr_db", "ape_percent")},
                     "lobe_shape": lobe_shape_report(cfg.fit, lay, frames, problem.texels.position),
                     "materials": _materials_manifest(materials_info, evidence, cfg.materials),

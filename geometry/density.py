@@ -122,3 +122,40 @@ def texel_size_spread(mesh: SurfaceMesh, width: int, height: int, frames: Sequen
     mean = np.average(lg, weights=w)
     return {"median": q(0.5), "p10": q(0.1), "p90": q(0.9), "p90_over_p10": q(0.9) / q(0.1),
             "log2_std": float(np.sqrt(np.average((lg - mean) ** 2, weights=w))), "faces_seen": int(ok.sum())}
+
+
+def pixel_footprint(mesh: SurfaceMesh, frames: Sequence) -> float:
+    """The median, over ``frames``, of the surface length one pixel spans at the mesh's median depth in
+    that photo (scene units per pixel; the object's centre, seen head-on)."""
+    sizes = []
+    for fr in frames:
+        pc = mesh.vertices @ np.asarray(fr.R, np.float64).T + np.asarray(fr.t, np.float64).reshape(1, 3)
+        z = pc[:, 2][pc[:, 2] > 0]
+        if z.size:
+            sizes.append(float(np.median(z)) / float(fr.intrinsics.fx))
+    if not sizes:
+        raise ValueError("no frame sees the mesh in front of its camera")
+    return float(np.median(sizes))
+
+
+def texture_side_for(mesh: SurfaceMesh, frames: Sequence, texel_pixels: float, smallest: int = 32,
+                     largest: int = 4096) -> tuple[int, dict]:
+    """The power-of-two atlas side (within [smallest, largest]) whose texels on ``mesh``'s UV layout are
+    closest, in log scale, to ``texel_pixels`` of the photos' pixels wide (:func:`pixel_footprint`).
+
+    Returns:
+        (side, info) with the pixel footprint, the texel size at that side and its width in pixels.
+    """
+    if mesh.uvs is None:
+        raise ValueError("the mesh has no UVs")
+    uv = np.asarray(mesh.uvs, np.float64)
+    a, b, c = uv[mesh.faces[:, 0]], uv[mesh.faces[:, 1]], uv[mesh.faces[:, 2]]
+    uv_area = float(0.5 * np.abs((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])).sum())
+    surface = float(mesh.face_areas().sum())
+    pixel = pixel_footprint(mesh, frames)
+    # a side S gives texels of sqrt(surface / (uv_area S^2)) scene units
+    unit = np.sqrt(surface / max(uv_area, 1e-12))
+    want = unit / (texel_pixels * pixel)
+    side = int(2 ** np.clip(np.round(np.log2(max(want, 1.0))), np.log2(smallest), np.log2(largest)))
+    return side, {"pixel_footprint": pixel, "texel_size": unit / side, "texel_pixels": unit / side / pixel,
+                  "uv_area": uv_area}

@@ -35,6 +35,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "eval": ("texstream.pipelines.cmd_eval", "PSNR / APE of a fitted model on a capture"),
     "preview": ("texstream.pipelines.cmd_preview", "contact sheet of a capture folder"),
     "fpcheck": ("texstream.pipelines.cmd_fpcheck", "error in ULPs of the device's floating-point operations (Warp)"),
+    "stiffcheck": ("texstream.pipelines.cmd_stiffcheck", "stiff and extreme fits against a float64 reference"),
 }
 
 

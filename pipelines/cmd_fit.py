@@ -34,8 +34,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(irrelevant for directional lights; default: 1.0)")
     parser.add_argument("-o", "--out", required=True, help="model folder to write (replaced if it exists)")
     parser.add_argument("--device", default="cpu", help="Warp device: cpu or cuda:N (default: cpu)")
-    parser.add_argument("--texture-size", dest="texture_size", type=int, default=256,
-                        help="atlas side when the mesh has UVs but no bake (default: 256)")
+    parser.add_argument("--texture-size", dest="texture_size", type=int, default=0,
+                        help="atlas side when the mesh has UVs but no bake (default: 0 = automatic, the power of two "
+                             "whose texels are about --texel-pixels of the photos' pixels wide)")
+    parser.add_argument("--texel-pixels", dest="texel_pixels", type=float, default=3.0,
+                        help="automatic --texture-size: the texel width to aim at, in photo pixels (default: 3)")
     parser.add_argument("--holdout-every", dest="holdout_every", type=int, default=0,
                         help="hold out every k-th photo for evaluation (default: 0 = none)")
     parser.add_argument("--renders", type=int, default=4, help="photos rendered beside the fit (default: 4)")
@@ -65,8 +68,8 @@ def run(args: argparse.Namespace) -> int:
     from texstream.fit.materials import MaterialConfig
 
     cfg = FitStageConfig(fit=fit_cfg, materials=config_from_args(MaterialConfig, args, prefix="materials."),
-                         **{k: getattr(args, k) for k in ("device", "texture_size", "holdout_every", "renders",
-                                                          "min_seen_fraction")
+                         **{k: getattr(args, k) for k in ("device", "texture_size", "texel_pixels", "holdout_every",
+                                                          "renders", "min_seen_fraction")
                             if hasattr(args, k)})
     res = fit_stage(args.capture, args.mesh, args.out, cfg)
     s = res.summary

@@ -22,7 +22,7 @@ def run(args: argparse.Namespace) -> int:
     from texstream.fit.fpcheck import FpcheckConfig, fpcheck, write_report
     from texstream.pipelines.cli import config_from_args
 
-    wp.config.quiet = True
+    wp.config.log_level = wp.LOG_WARNING  # Warp 1.19: the init banner and module loads are info
     cfg = config_from_args(FpcheckConfig, args)
     out = Path(args.out) if args.out else Path(f"fpcheck-{cfg.device.replace(':', '')}")
     result = fpcheck(cfg)

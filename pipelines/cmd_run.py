@@ -14,7 +14,7 @@ from pathlib import Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from texstream.pipelines.run import MODELS, STAGES
+    from texstream.pipelines.run import LFM_CANDIDATE, MODELS, STAGES
 
     parser.add_argument("photos", nargs="?", default=None,
                         help="photos, capture, transforms.json or COLMAP folder (default: the built-in synthetic set)")
@@ -22,6 +22,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", default=None, help="run options as TOML (OUT/run_config.toml of an earlier run)")
     parser.add_argument("--from", dest="from_stage", default=None, choices=STAGES, help="rerun from this stage on")
     parser.add_argument("--model", default=None, choices=MODELS, help="appearance model (default: auto)")
+    parser.add_argument("--lfm", default=None, choices=LFM_CANDIDATE,
+                        help="fixed unknown lighting, model auto: also fit light field mapping when view dependence "
+                             "matters (auto, the default), always, or never")
     parser.add_argument("--mesh-file", dest="mesh_file", default=None, help="use this mesh instead of one from the photos")
     parser.add_argument("--colocated-light", dest="colocated_light", type=float, default=None,
                         help="photos lit by a flash at the camera: its irradiance at the object (the albedos' scale)")
@@ -60,7 +63,8 @@ def _config(args: argparse.Namespace):
         cfg = RunConfig()
     if args.config is None:
         cfg.fit.fit = dataclasses.replace(cfg.fit.fit, max_iterations=30)
-    top = {k: getattr(args, k) for k in ("model", "device", "mesh_file", "progress") if getattr(args, k) is not None}
+    top = {k: getattr(args, k) for k in ("model", "lfm", "device", "mesh_file", "progress")
+           if getattr(args, k, None) is not None}
     fit = {k: v for k, v in (("max_iterations", args.iterations), ("optimizer", args.optimizer)) if v is not None}
     cfg = dataclasses.replace(cfg, **top)
     ingest = {k: getattr(args, k) for k in ("colocated_light", "lights") if getattr(args, k) is not None}
@@ -97,7 +101,6 @@ def run(args: argparse.Namespace) -> int:
     from texstream.pipelines.run import run_pipeline
 
     wp.config.log_level = wp.LOG_WARNING
-    wp.config.quiet = True
     cfg = _config(args)
     out = Path(args.out)
     source = args.photos

@@ -11,6 +11,8 @@
   fitted model from its parameter textures with the fit's own shading (docs/report.md). Its
   data (mesh, float parameter textures, cameras, lights, a few photos) is inlined as base64 in a
   JSON script block, and the JS and CSS are inlined too, so ``file://`` loading needs nothing else.
+  Light field mapping models (kind "lfm") ship their surface maps per atlas texel, their view maps
+  and vertex frames as textures, and the shader sums the terms as fit/lfm_stage.py's LFMRenderer does.
 
 Heavy imports (matplotlib, OpenImageIO through capture.imageio, warp through the renderer) are
 inside the functions.
@@ -45,12 +47,20 @@ MAX_VIEWER_FRAMES = 400
 def load_report_model(model_dir: str | Path):
     """(mesh with normals, grid (H, W, P) float32, info dict, model.json) of a model folder.
 
-    ``info``: kind ("lafortune", "diffuse", "radiance" or "view_radiance"), n_lobes, anisotropic, and
-    the ModelLayout (None for "radiance", which is 3 unlit RGB radiance parameters in radiance.exr).
+    ``info``: kind ("lafortune", "diffuse", "radiance", "view_radiance" or "lfm"), n_lobes, anisotropic,
+    and the ModelLayout (None for "radiance", which is 3 unlit RGB radiance parameters in radiance.exr,
+    and for "lfm"). For "lfm" the grid is :func:`lfm_viewer_grid` and ``info["lfm"]`` the loaded
+    model folder (fit/lfm_stage.py ``LFMModelFolder``).
     """
     d = Path(model_dir)
     man = read_json(d / "model.json", what="model manifest")
     kind = man.get("kind") or man.get("layout", {}).get("kind")
+    if kind == "lfm":
+        from texstream.fit.lfm_stage import load_lfm_model
+
+        model = load_lfm_model(d)
+        return model.mesh, lfm_viewer_grid(model), {"kind": "lfm", "n_lobes": 0, "anisotropic": False,
+                                                    "layout": None, "lfm": model}, model.manifest
     if kind == "radiance":
         from texstream.capture.imageio import read_image
         from texstream.geometry.mesh_io import load_mesh
@@ -66,6 +76,53 @@ def load_report_model(model_dir: str | Path):
     mesh, grid, lay, man = load_model(d)
     return mesh, grid, {"kind": lay.kind, "n_lobes": lay.n_lobes, "anisotropic": bool(lay.anisotropic),
                         "layout": lay}, man
+
+
+LFM_FRAME_COLUMNS = 512
+"""vertices per row of the LFM viewer's vertex-frame texture (4 texels each: 2048 wide, WebGL2's minimum)"""
+
+
+def lfm_viewer_grid(model) -> np.ndarray:
+    """(H, W, 6 + 9 K) float32 per atlas texel of an LFM model (what its renderer reads there: the texel
+    itself or, for padding, the texel it copies): the view-independent term d (0:3), the welded vertex
+    of each of its three slots (3:6, -1: no texel), and the surface maps G[slot j, term k] at
+    6 + 3 (j K + k) (fit/kernels/lfm.py ``texel_radiance``)."""
+    from texstream.fit.export import lfm_atlas
+
+    p = model.params
+    n, k = p.diffuse.shape[0], model.terms
+    per_texel = np.concatenate([p.diffuse, model.geom.slot_vertex.reshape(n, 3).astype(np.float64),
+                                np.asarray(p.G, np.float64).reshape(n, 9 * k)], axis=1)
+    grid = lfm_atlas(model, per_texel)
+    valid = lfm_atlas(model, np.ones((n, 1)))[..., 0] > 0
+    grid[~valid, 3:6] = -1.0
+    return grid
+
+
+def lfm_viewer_data(model) -> dict:
+    """The viewer's LFM block: the view maps as RGBA32F layers (term k in layer k, vertex v's R x R tile
+    at tile column v % cols, row v // cols: fit/lfm_stage.py ``tile_view_maps``) and the welded
+    vertices' positions and frames (texels 4 (v % LFM_FRAME_COLUMNS) + [0: position, 1: tangent,
+    2: bitangent, 3: normal], row v // LFM_FRAME_COLUMNS), with the lookup options."""
+    from texstream.fit.lfm_stage import tile_view_maps
+
+    p, g, res = model.params, model.geom, model.view_res
+    tiles = np.stack([tile_view_maps(np.asarray(p.H[:, k]), res) for k in range(model.terms)])  # (K, h, w, 3)
+    views = np.zeros((*tiles.shape[:3], 4), np.float32)
+    views[..., :3] = tiles
+    V = g.n_vertices
+    rows = -(-V // LFM_FRAME_COLUMNS)
+    frames = np.zeros((rows * LFM_FRAME_COLUMNS, 4, 4), np.float32)
+    frames[:V, :, :3] = np.stack([g.vpos, g.vtan, g.vbit, g.vnrm], axis=1)
+    frames = frames.reshape(rows, LFM_FRAME_COLUMNS * 4, 4)
+    c = model.cfg
+    return {"terms": model.terms, "view_res": res, "vertices": V, "tile_columns": max(1, int(np.ceil(np.sqrt(V)))),
+            "view_map": c.view_map, "lookup": c.lookup, "surface_lookup": c.surface_lookup,
+            "render_view": c.render_view,
+            "views": {"width": int(views.shape[2]), "height": int(views.shape[1]), "layers": int(views.shape[0]),
+                      "data": _b64(views, "<f4")},
+            "frames": {"width": int(frames.shape[1]), "height": int(frames.shape[0]), "columns": LFM_FRAME_COLUMNS,
+                       "data": _b64(frames, "<f4")}}
 
 
 def _b64(a: np.ndarray, dtype: str) -> str:
@@ -156,6 +213,8 @@ def viewer_model_data(mesh, grid: np.ndarray, info: dict, frames: list[dict] | N
         s = np.asarray(seen)
         if s.shape[:2] == (h, w):
             data["seen"] = _b64((s.reshape(h, w, -1)[..., 0] > 0.5).astype(np.uint8) * 255, "u1")
+    if info["kind"] == "lfm":
+        data["lfm"] = lfm_viewer_data(info["lfm"])
     return data
 
 
@@ -184,9 +243,13 @@ def evaluate_views(mesh, grid, info, capture, frames, device: str) -> list[dict]
     from texstream.fit.stage import image_metrics, render_model
 
     rows = []
+    lfm_render = info["lfm"].renderer(device).render_frame if info["kind"] == "lfm" else None
     for f in bar(frames, "report: held-out renders", unit="view"):
         photo = read_image(capture.image_path(f), channels=3)
-        render, rmask = render_model(mesh, grid, info["layout"], f, device)
+        if lfm_render is not None:
+            render, rmask = lfm_render(f)
+        else:
+            render, rmask = render_model(mesh, grid, info["layout"], f, device)
         m = rmask.astype(bool)
         mp = capture.mask_path(f)
         if mp is not None and mp.exists():
@@ -218,13 +281,21 @@ def _plt():
 
 
 def plot_error_vs_time(trace: list[dict], path: Path) -> None:
+    """Objective (and, where the trace has it, the fitted samples' PSNR) against the fit's run time."""
     plt = _plt()
-    fig, ax = plt.subplots(1, 2, figsize=(10, 3.4))
+    has_psnr = all("psnr_db" in r for r in trace)
+    fig, ax = plt.subplots(1, 2 if has_psnr else 1, figsize=(10 if has_psnr else 5, 3.4), squeeze=False)
+    ax = ax[0]
     t = [r["time_s"] for r in trace]
     ax[0].semilogy(t, [max(float(r["objective"]), 1e-300) for r in trace], "o-", ms=3)
     ax[0].set_xlabel("fit run time (s)")
     ax[0].set_ylabel("objective (sum of squared residuals)")
     ax[0].grid(alpha=0.3)
+    if not has_psnr:
+        fig.tight_layout()
+        fig.savefig(path, dpi=100)
+        plt.close(fig)
+        return
     ax[1].plot(t, [r["psnr_db"] for r in trace], "o-", ms=3, color="C1")
     ax[1].set_xlabel("fit run time (s)")
     ax[1].set_ylabel("PSNR of the fitted samples (dB)")
@@ -302,7 +373,25 @@ def param_map_figures(grid: np.ndarray, info: dict, seen: np.ndarray | None, fol
         scale = scale if scale > 0 else 1.0
         return linear_to_srgb(np.clip(x / scale, 0, 1)), scale
 
-    if info["kind"] in ("radiance", "view_radiance"):
+    if info["kind"] == "lfm":
+        from texstream.fit.export import lfm_atlas, lfm_unlit_radiance
+
+        model = info["lfm"]
+        img, s = rgb_scaled(grid[..., 0:3])
+        save("diffuse", img, f"view-independent term d (RGB, divided by {s:.4g}, the 99th percentile; sRGB)")
+        img, s = rgb_scaled(np.maximum(lfm_atlas(model, lfm_unlit_radiance(model)), 0.0))
+        save("unlit", img, "the exported unlit colour: d plus each term's cosine-weighted mean over view directions "
+             f"(divided by {s:.4g}; sRGB)")
+        amp = np.sqrt(np.sum(grid[..., 6:] ** 2, axis=-1))
+        a, sa = rgb_scaled(np.repeat(amp[..., None], 3, axis=2))
+        save("surface_maps", a, f"view dependence: |surface maps| over slots and terms (divided by {sa:.4g}; sRGB)")
+        from texstream.fit.lfm_stage import tile_view_maps
+
+        views = tile_view_maps(np.asarray(model.params.H[:, 0]), model.view_res)
+        v, sv = rgb_scaled(np.abs(views))
+        save("view_k0", v, f"term 0's view maps |h|, one {model.view_res}x{model.view_res} tile per vertex "
+             f"(divided by {sv:.4g}; sRGB)")
+    elif info["kind"] in ("radiance", "view_radiance"):
         img, s = rgb_scaled(grid[..., 0:3])
         save("radiance", img, f"radiance (RGB, divided by {s:.4g}, the 99th percentile; sRGB)"
              + (", seen along the normal" if info["kind"] == "view_radiance" else ""))
@@ -532,6 +621,8 @@ def write_report(out_dir: str | Path, stages: list[dict], model_dir: str | Path,
     model_dir = Path(model_dir)
     mesh, grid, info, man = load_report_model(model_dir)
     trace = read_json(model_dir / "trace.json", what="fit trace") if (model_dir / "trace.json").is_file() else []
+    if not trace and info["kind"] == "lfm":
+        trace = man.get("trace") or []  # the LFM fit keeps its trace in model.json
     seen = None
     if (model_dir / "seen.png").is_file():
         from texstream.capture.imageio import read_image
@@ -556,11 +647,23 @@ def write_report(out_dir: str | Path, stages: list[dict], model_dir: str | Path,
         sections.append(f"<h1>{_e(title)}</h1><p class='meta'>{_e(when)} &middot; model {_e(model_dir.resolve())}"
                         + (f" &middot; capture {_e(Path(capture_dir).resolve())}" if capture_dir else "") + "</p>")
         sections.append("<h2>Stages</h2>" + _stages_html(stages))
+        if man.get("warnings"):  # the fit's warnings (bounds, numerics), one line each
+            sections.append("<h2>Warnings</h2><ul class='warnings'>"
+                            + "".join(f"<li>{_e(w)}</li>" for w in man["warnings"]) + "</ul>")
 
         # ---- fit
         fin = man.get("final") or {}
         atlas = man.get("atlas") or {}
-        kp = [("model", f"{info['kind']}" + (f", {info['n_lobes']} lobe(s)" if info["n_lobes"] else "")
+        if info["kind"] == "lfm":  # fit/lfm_stage.py's manifest
+            lf = man.get("lfm") or {}
+            fin = {"iteration": (man.get("method_info") or {}).get("iterations"), "time_s": man.get("fit_s"),
+                   "psnr_db": (man.get("sample_error") or {}).get("psnr_db")}
+            atlas = {"texels": lf.get("texels")}
+        lay_json = man.get("layout") or {}
+        lfm_desc = (f", K={lay_json.get('terms')}, {lay_json.get('view_res')}x{lay_json.get('view_res')} "
+                    f"{lay_json.get('view_map')} view maps, {lay_json.get('method')}, "
+                    f"{(man.get('lfm') or {}).get('vertices_welded')} vertices" if info["kind"] == "lfm" else "")
+        kp = [("model", f"{info['kind']}{lfm_desc}" + (f", {info['n_lobes']} lobe(s)" if info["n_lobes"] else "")
                + (" anisotropic" if info["anisotropic"] else "")
                + (f", lobe shape {man.get('layout', {}).get('lobe_shape')}" if info["n_lobes"] else "")),
               ("texels", f"{atlas.get('texels', '?')} of {grid.shape[1]}x{grid.shape[0]}"
@@ -672,7 +775,12 @@ def write_report(out_dir: str | Path, stages: list[dict], model_dir: str | Path,
         model_data = viewer_model_data(mesh, grid, info, vframes, seen, default)
         kind_note = {"radiance": "Radiance model: unlit (view-independent radiance), the light controls do nothing.",
                      "view_radiance": "View-dependent radiance model: unlit (radiance as a function of the view "
-                                      "direction), the light controls do nothing."}.get(info["kind"], "")
+                                      "direction), the light controls do nothing.",
+                     "lfm": "Light field mapping model: unlit, the view-independent term plus, per vertex of the "
+                            "texel's triangle and term, surface map times the vertex's view map looked up along the "
+                            "view direction in the vertex's frame (fit/lfm_stage.py LFMRenderer); 'diffuse' shows the "
+                            "view-independent term, 'specular' the view-dependent terms; the light controls do "
+                            "nothing."}.get(info["kind"], "")
         sections.append(VIEWER_HTML.replace("%%KIND_NOTE%%", _e(kind_note)))
 
         # ---- parameter maps

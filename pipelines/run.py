@@ -8,7 +8,9 @@ and leaves out what the scene does not need, deciding from the data and recordin
 - cameras known (capture.json / transforms.json with poses, a COLMAP model): no registration;
 - a mesh given with UVs: no atlas (``mesh`` option);
 - lights known for every photo -> a reflectance model (Lafortune SBRDF); one fixed unknown
-  lighting -> the radiance model (``model`` "auto").
+  lighting -> the radiance model (``model`` "auto"); with held-out photos the view-dependent radiance
+  model beside it and, when view dependence matters (view_radiance beats radiance on the held-out
+  photos by ``lfm_min_gain_db``), light field mapping too (``lfm``); the best held-out one is kept.
 
 Each stage writes its own folder under ``OUT`` with a stamp (``.texstream_stage.json``: a hash of
 the stage's inputs and config); a rerun whose stamp matches skips the stage, ``from_stage`` reruns
@@ -19,6 +21,7 @@ records every stage's decision, reason and time.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import math
@@ -28,19 +31,27 @@ from pathlib import Path
 from typing import Any, Callable
 
 from texstream.core.config import check_config, config_from_dict, config_to_dict, option
-from texstream.core.errors import ConfigError, InputError
+from texstream.core.errors import ConfigError, InputError, TexstreamError
 from texstream.core.outputs import write_atomic_with, write_json_atomic
 
 STAGES = ("ingest", "register", "mesh", "atlas", "lights", "fit", "export", "report")
 STAMP = ".texstream_stage.json"
-MODELS = ("auto", "lafortune", "diffuse", "radiance", "view_radiance")
+MODELS = ("auto", "lafortune", "diffuse", "radiance", "view_radiance", "lfm")
+LIGHTLESS_MODELS = ("radiance", "view_radiance", "lfm")
+"""models of exitant radiance: they need no light per photo"""
+LFM_CANDIDATE = ("auto", "always", "never")
+RUN_LFM_ITERATIONS = 50
+"""the run's cap on the LFM candidate's streaming CG iterations (fit.lfm.iterations; docs/lfm.md gives
+the temple's held-out PSNR at 20, 50 and 100)"""
 MIN_PHOTOS = 3  # structure from motion needs two views to start and a third to check them
 
 
 def _fit_stage_config():
+    from texstream.fit.fitter import FitConfig
+    from texstream.fit.lfm import LFMConfig
     from texstream.fit.stage import FitStageConfig
 
-    return FitStageConfig(holdout_every=8)
+    return FitStageConfig(holdout_every=8, fit=FitConfig(lfm=LFMConfig(iterations=RUN_LFM_ITERATIONS)))
 
 
 def _default(factory: str) -> Callable[[], Any]:
@@ -60,9 +71,17 @@ class RunConfig:
     device: str = option("cpu", "Warp device for the mesh, atlas and fit: cpu or cuda:N")
     model: str = option("auto", "appearance model: auto (lafortune when every photo has a known light, radiance "
                                 "when the lighting is fixed and unknown; with held-out photos the diffuse or the "
-                                "view-dependent radiance model too, the better held-out one kept), lafortune, "
-                                "diffuse, radiance or view_radiance",
+                                "view-dependent radiance model too, the better held-out one kept, and light field "
+                                "mapping where view dependence matters, see lfm), lafortune, diffuse, radiance, "
+                                "view_radiance or lfm (light field mapping, [fit.lfm] options)",
                         choices=MODELS)
+    lfm: str = option("auto", "fixed unknown lighting, model auto, held-out photos: fit a light field mapping model "
+                              "([fit.lfm]: K=1 streaming CG, iterations capped at fit.lfm.iterations) beside radiance "
+                              "and view_radiance and keep it when its held-out error is the best: auto (only when view "
+                              "dependence matters: view_radiance's held-out pooled PSNR at least lfm_min_gain_db above "
+                              "radiance's), always, or never", choices=LFM_CANDIDATE)
+    lfm_min_gain_db: float = option(0.5, "lfm auto: the held-out gain (dB) of view_radiance over radiance from which "
+                                         "view dependence counts as mattering")
     second_lobe: bool = option(True, "known lights, model auto, held-out photos: also fit a two-lobe Lafortune "
                                      "model (the second lobe kept per texel only where it lowers the texel's error "
                                      "on the fitted photos, fit lobe_support) and keep it only when its held-out "
@@ -108,6 +127,8 @@ def run_config_from_dict(data: dict) -> RunConfig:
     cfg = RunConfig(**kwargs)
     if cfg.model not in MODELS:
         raise ConfigError(f"model {cfg.model!r} unknown", fix=f"use one of {MODELS}")
+    if cfg.lfm not in LFM_CANDIDATE:
+        raise ConfigError(f"lfm {cfg.lfm!r} unknown", fix=f"use one of {LFM_CANDIDATE}")
     return cfg
 
 
@@ -210,7 +231,7 @@ def _summary_safe(summary: dict) -> dict:
 def decide_model(capture, requested: str) -> tuple[str, str]:
     """The model the scene needs, and why."""
     if requested != "auto":
-        if requested not in ("radiance", "view_radiance") and not capture.has_lights:
+        if requested not in LIGHTLESS_MODELS and not capture.has_lights:
             raise InputError(f"--model {requested} needs a light per photo and the capture has none",
                              capture.root / "capture.json", "use --model radiance (or auto), or give the lights")
         return requested, "requested"
@@ -353,22 +374,30 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
     if compare and model_kind == "lafortune" and cfg.second_lobe and fit_cfg.fit.lobes == 1:
         candidates.append(TWO_LOBES)
         alternative = f"{alternative} and the two-lobe Lafortune"
+    lfm_rule = None
+    if compare and model_kind == "radiance":
+        lfm_rule = functools.partial(lfm_decision, mode=cfg.lfm, min_gain_db=cfg.lfm_min_gain_db)
+        alternative += {"auto": " (and light field mapping if view dependence matters)",
+                        "always": " and light field mapping", "never": ""}[cfg.lfm]
     choice: dict = {}
 
     def fit_work():
         if not compare:
             return fit_stage(posed_dir, fit_geometry, model_dir, fit_cfg)
-        return fit_with_selection(posed_dir, fit_geometry, out, fit_cfg, tuple(candidates), choice, pipe.log)
+        return fit_with_selection(posed_dir, fit_geometry, out, fit_cfg, tuple(candidates), choice, pipe.log,
+                                  more=lfm_rule)
 
     fit_rec = pipe.run("fit", model_dir, [pipe.stamp_of("atlas"), pipe.stamp_of("mesh"), pipe.stamp_of("register"),
                                           pipe.stamp_of("lights"),
-                                          _files_hash(posed_dir) if posed else "", config_to_dict(fit_cfg), compare],
-                       f"{model_kind} model: {why}" + (f"; the {alternative} model too, the better held-out one "
+                                          _files_hash(posed_dir) if posed else "", config_to_dict(fit_cfg), compare]
+                       + ([cfg.lfm, cfg.lfm_min_gain_db] if lfm_rule else []),
+                       f"{model_kind} model: {why}" + (f"; the {alternative} model too, the best held-out one "
                                                        "kept" if compare else ""), fit_work)
     if compare:
         chosen = fit_rec.summary.get("selection", {})
         if chosen.get("chosen"):
-            model_kind, why = _candidate(chosen["chosen"])[0], f"{why}; {chosen['reason']}"
+            model_kind = _candidate(chosen["chosen"])[0]
+            why = f"{why}; " + (f"{chosen['lfm']}; " if chosen.get("lfm") else "") + chosen["reason"]
 
     _export_and_report(pipe, out, model_dir, posed_dir)
     heldout = _heldout(model_dir)
@@ -448,17 +477,39 @@ def _candidate(name: str) -> tuple[str, int | None]:
     return ("lafortune", 2) if name == TWO_LOBES else (name, None)
 
 
+def lfm_decision(score: dict, mode: str = "auto", min_gain_db: float = 0.5) -> tuple[tuple, str]:
+    """Whether light field mapping joins the candidates, given the held-out pooled PSNR (dB, or None)
+    of the radiance and view_radiance fits: ((), reason) or (("lfm",), reason). ``mode`` "auto" fits
+    it when view dependence matters (view_radiance at least ``min_gain_db`` above radiance), "always"
+    and "never" override (RunConfig.lfm)."""
+    if mode == "never":
+        return (), "light field mapping not fitted: run option lfm = never"
+    if mode == "always":
+        return ("lfm",), "light field mapping fitted too: run option lfm = always"
+    r, v = score.get("radiance"), score.get("view_radiance")
+    if r is None or v is None:
+        return (), "light field mapping not fitted: no held-out score to tell whether view dependence matters"
+    gain = v - r
+    if gain >= min_gain_db:
+        return ("lfm",), (f"view dependence matters (view_radiance {gain:+.2f} dB over radiance on the held-out photos, "
+                          f">= lfm_min_gain_db {min_gain_db:g}): light field mapping fitted too")
+    return (), (f"view dependence does not matter enough for light field mapping (view_radiance {gain:+.2f} dB over "
+                f"radiance on the held-out photos, < lfm_min_gain_db {min_gain_db:g})")
+
+
 def fit_with_selection(capture_dir: Path, geometry: Path, out: Path, fit_cfg, kinds: tuple, choice: dict,
-                       log: Callable[[str], None]):
+                       log: Callable[[str], None], more: Callable[[dict], tuple[tuple, str]] | None = None):
     """Fit each model kind of ``kinds`` into ``OUT/model_<kind>`` and keep the one with the best pooled
     held-out PSNR as ``OUT/model`` (a lobe, or a view dependence, that no held-out view supports only adds
-    error there)."""
+    error there). ``more(scores)``, given the held-out scores so far, names further kinds to fit and why
+    (:func:`lfm_decision`); its reason is recorded in the selection."""
     import shutil
 
     from texstream.fit.stage import fit_stage
 
     results = {}
-    for k in kinds:
+
+    def fit_kind(k):
         model, lobes = _candidate(k)
         cfg_k = dataclasses.replace(fit_cfg, fit=dataclasses.replace(fit_cfg.fit, model=model,
                                                                      lobes=lobes or fit_cfg.fit.lobes))
@@ -466,6 +517,20 @@ def fit_with_selection(capture_dir: Path, geometry: Path, out: Path, fit_cfg, ki
         results[k] = res
         h = res.summary["heldout"]
         log(f"[fit] {k}: held-out pooled PSNR {_db(h.get('pooled_psnr_db'))}, worst view {_db(h.get('worst_psnr_db'))}")
+
+    for k in kinds:
+        fit_kind(k)
+    extra_reason = None
+    if more is not None:
+        extra, extra_reason = more({k: r.summary["heldout"].get("pooled_psnr_db") for k, r in results.items()})
+        log(f"[fit] {extra_reason}")
+        for k in extra:
+            try:
+                fit_kind(k)
+            except TexstreamError as e:  # an optional candidate the capture cannot take (e.g. streamed photos)
+                extra_reason += f"; {k} could not be fitted ({e.message}), left out"
+                log(f"[fit] {k} could not be fitted ({e.message}): left out")
+        kinds = tuple(kinds) + tuple(k for k in extra if k in results and k not in kinds)
     score = {k: r.summary["heldout"].get("pooled_psnr_db") for k, r in results.items()}
     if all(v is None for v in score.values()):
         # fewer registered photos than --holdout-every: nothing to judge by, the scene's own model stays
@@ -481,6 +546,8 @@ def fit_with_selection(capture_dir: Path, geometry: Path, out: Path, fit_cfg, ki
     res = results[best]
     res.output = target
     res.summary["selection"] = {"chosen": best, "reason": reason, "heldout_pooled_db": score}
+    if extra_reason is not None:
+        res.summary["selection"]["lfm"] = extra_reason
     choice.update(res.summary["selection"])
     return res
 

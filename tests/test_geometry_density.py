@@ -206,3 +206,18 @@ def test_density_bands_merge_and_undo_snapping_keep_weights():
     # half-octave bands leave at most ~0.25 octave of area error per piece (uniform in the band:
     # 0.14 std), plus stretch inside pieces; measured 0.14
     assert std < 0.3
+
+
+def test_texture_side_gives_texels_the_asked_pixel_width(ornament):
+    """The automatic atlas side of the fit (mesh with UVs, no bake): a power of two whose texels are within
+    a factor sqrt(2) of the asked width in pixels (the nearest power of two in log scale), and it grows as
+    the cameras come closer (more pixels per unit of surface)."""
+    from texstream.geometry.density import pixel_footprint, texture_side_for
+
+    mesh, far, near = ornament
+    for want in (1.0, 3.0):
+        side, info = texture_side_for(mesh, far, want)
+        assert side & (side - 1) == 0
+        assert want / np.sqrt(2) <= info["texel_pixels"] <= want * np.sqrt(2)
+    assert pixel_footprint(mesh, near) < pixel_footprint(mesh, far)
+    assert texture_side_for(mesh, near, 3.0)[0] >= texture_side_for(mesh, far, 3.0)[0]

@@ -8,7 +8,10 @@
  *     pixel = exposure * f_r * E * cos(theta_i)   (0 where cos <= 0)
  * sRGB-encoded for display. Model kind "radiance" is unlit: pixel = exposure * radiance; "view_radiance"
  * is unlit too, its radiance the biquadratic of the local view direction of fit/kernels/shading.py
- * view_radiance (clamped at 0 like fit/kernels/render.py).
+ * view_radiance (clamped at 0 like fit/kernels/render.py). "lfm" (light field mapping) is unlit: each
+ * of the four texels around the hit sums its view-independent term and, per vertex of its triangle and
+ * term, surface map times the vertex's view map looked up along the view direction in the vertex's
+ * frame (disk or hemi-octahedral mapping, nearest or bilinear), as fit/kernels/lfm.py render_lfm_kernel.
  * No cast shadows (the Warp renderer traces them; see docs/report.md).
  *
  * Cameras follow capture.json: camera_to_world 4x4 in OpenGL axes (x right, y up, looks down -z),
@@ -95,6 +98,56 @@
     'in vec3 v_pos; in vec3 v_nrm; in vec2 v_uv; in vec3 v_tan;',
     'out vec4 o_color;',
     'float P(ivec2 xy, int k) { return texelFetch(u_params, ivec3(xy, k / 4), 0)[k % 4]; }',
+    '// light field mapping (fit/kernels/lfm.py): per atlas texel d (params 0:3), its slots\' welded vertices',
+    '// (3:6, -1: no texel) and surface maps G[slot j, term k] at 6 + 3 (j K + k); view maps tiled per vertex',
+    '// in layer k of u_views; vertex frames (position, tangent, bitangent, normal) in u_vframe',
+    'uniform highp sampler2DArray u_views; uniform highp sampler2D u_vframe;',
+    'uniform int u_terms; uniform int u_vres; uniform int u_vmap; uniform int u_vlookup; uniform int u_vinterp;',
+    'uniform int u_vcols; uniform int u_fcols; uniform int u_slookup;',
+    'vec3 VF(int v, int i) { return texelFetch(u_vframe, ivec2(4 * (v % u_fcols) + i, v / u_fcols), 0).xyz; }',
+    'vec3 HV(int k, int v, int ix, int iy) {',
+    '  return texelFetch(u_views, ivec3((v % u_vcols) * u_vres + ix, (v / u_vcols) * u_vres + iy, k), 0).xyz;',
+    '}',
+    '// view_map_coords: continuous view-map coordinates of a local direction (texel centres at i + 0.5)',
+    'vec2 view_map_coords(vec3 w) {',
+    '  vec3 q = vec3(w.x, w.y, max(w.z, 0.0));',
+    '  float len = length(q);',
+    '  if (len <= 0.0) return vec2(0.5 * float(u_vres));',
+    '  q /= len;',
+    '  vec2 uv = q.xy;',
+    '  if (u_vmap == 1) { float s = abs(q.x) + abs(q.y) + q.z; vec2 pp = q.xy / s; uv = vec2(pp.x + pp.y, pp.x - pp.y); }',
+    '  return (uv + 1.0) * 0.5 * float(u_vres);',
+    '}',
+    '// texel_radiance: d + sum over the three slots and K terms of g h(view direction in the vertex frame);',
+    '// part 1 = d only, 2 = the view-dependent terms only',
+    'vec3 lfm_texel(ivec2 xy, vec3 p, int part) {',
+    '  vec3 L = part == 2 ? vec3(0.0) : vec3(P(xy, 0), P(xy, 1), P(xy, 2));',
+    '  if (part == 1) return L;',
+    '  int hi = u_vres - 1;',
+    '  for (int j = 0; j < 3; j++) {',
+    '    int v = int(P(xy, 3 + j));',
+    '    vec3 src = u_vinterp != 0 ? p : VF(v, 0);',
+    '    vec3 d = normalize(u_eye - src);',
+    '    vec2 c = view_map_coords(vec3(dot(d, VF(v, 1)), dot(d, VF(v, 2)), dot(d, VF(v, 3))));',
+    '    ivec2 i0; ivec2 i1; float ax = 0.0, ay = 0.0;',
+    '    if (u_vlookup == 0) {',
+    '      i0 = clamp(ivec2(floor(c)), 0, hi); i1 = i0;',
+    '    } else {',
+    '      vec2 f = c - 0.5; vec2 f0 = floor(f);',
+    '      ax = f.x - f0.x; ay = f.y - f0.y;',
+    '      ivec2 b = ivec2(f0);',
+    '      i1 = clamp(b + 1, 0, hi); i0 = clamp(b, 0, hi);',
+    '    }',
+    '    for (int k = 0; k < u_terms; k++) {',
+    '      vec3 h = (1.0 - ax) * (1.0 - ay) * HV(k, v, i0.x, i0.y);',
+    '      if (u_vlookup != 0) h += ax * (1.0 - ay) * HV(k, v, i1.x, i0.y) + (1.0 - ax) * ay * HV(k, v, i0.x, i1.y)',
+    '                             + ax * ay * HV(k, v, i1.x, i1.y);',
+    '      int o = 6 + 3 * (j * u_terms + k);',
+    '      L += vec3(P(xy, o), P(xy, o + 1), P(xy, o + 2)) * h;',
+    '    }',
+    '  }',
+    '  return L;',
+    '}',
     '// lafortune_brdf of fit/kernels/shading.py; part 0 = all, 1 = diffuse only, 2 = lobes only',
     'vec3 brdf(ivec2 xy, vec3 u, vec3 v, int part) {',
     '  vec3 f = vec3(0.0);',
@@ -135,7 +188,23 @@
     '  float fx = xc - float(x0), fy = yc - float(y0);',
     '  ivec2 t00 = ivec2(x0, y0), t10 = ivec2(x0 + 1, y0), t01 = ivec2(x0, y0 + 1), t11 = ivec2(x0 + 1, y0 + 1);',
     '  vec3 L = vec3(0.0);',
-    '  if (u_kind == 1) {',
+    '  if (u_kind == 3) {',
+    '    // render_lfm_kernel: the nearest texel, or the four texels\' models blended bilinearly (texels with',
+    '    // no model skipped, the weights renormalised); negative radiance clamped to 0',
+    '    int lpart = (u_mode == 1) ? 1 : ((u_mode == 2) ? 2 : 0);',
+    '    vec3 acc = vec3(0.0); float ws = 0.0;',
+    '    if (u_slookup == 0) {',
+    '      ivec2 nx = ivec2(clamp(int(floor(x + 0.5)), 0, u_W - 1), clamp(int(floor(y + 0.5)), 0, u_H - 1));',
+    '      if (P(nx, 3) >= 0.0) { acc = lfm_texel(nx, v_pos, lpart); ws = 1.0; }',
+    '    } else {',
+    '      for (int q = 0; q < 4; q++) {',
+    '        ivec2 tq = ivec2(x0 + q % 2, y0 + q / 2);',
+    '        float w = (q % 2 == 0 ? 1.0 - fx : fx) * (q / 2 == 0 ? 1.0 - fy : fy);',
+    '        if (w > 0.0 && P(tq, 3) >= 0.0) { acc += w * lfm_texel(tq, v_pos, lpart); ws += w; }',
+    '      }',
+    '    }',
+    '    if (ws > 0.0) L = max(acc / ws, vec3(0.0));',
+    '  } else if (u_kind == 1) {',
     '    L = (1.0 - fx) * (1.0 - fy) * radiance_at(t00) + fx * (1.0 - fy) * radiance_at(t10)',
     '      + (1.0 - fx) * fy * radiance_at(t01) + fx * fy * radiance_at(t11);',
     '  } else {',
@@ -219,7 +288,8 @@
     V.prog = prog;
     var U = {};
     ['u_R', 'u_t', 'u_K', 'u_size', 'u_nf', 'u_params', 'u_photo', 'u_seen', 'u_W', 'u_H', 'u_kind', 'u_nlobes',
-      'u_aniso', 'u_lkind', 'u_lpd', 'u_lI', 'u_eye', 'u_exposure', 'u_mode', 'u_gain', 'u_hasphoto'
+      'u_aniso', 'u_lkind', 'u_lpd', 'u_lI', 'u_eye', 'u_exposure', 'u_mode', 'u_gain', 'u_hasphoto',
+      'u_views', 'u_vframe', 'u_terms', 'u_vres', 'u_vmap', 'u_vlookup', 'u_vinterp', 'u_vcols', 'u_fcols', 'u_slookup'
     ].forEach(function (k) { U[k] = gl.getUniformLocation(prog, k); });
     V.U = U;
 
@@ -262,6 +332,26 @@
 
     V.photoTex = gl.createTexture();
     V.photoFor = null;
+
+    // light field mapping: view maps (unit 3) and vertex frames (unit 4); 1-texel stand-ins otherwise, so
+    // every sampler has a texture of its own type
+    var LF = M.lfm;
+    var views = gl.createTexture();
+    gl.activeTexture(gl.TEXTURE3);
+    gl.bindTexture(gl.TEXTURE_2D_ARRAY, views);
+    if (LF) gl.texImage3D(gl.TEXTURE_2D_ARRAY, 0, gl.RGBA32F, LF.views.width, LF.views.height, LF.views.layers, 0,
+      gl.RGBA, gl.FLOAT, f32(LF.views.data));
+    else gl.texImage3D(gl.TEXTURE_2D_ARRAY, 0, gl.RGBA32F, 1, 1, 1, 0, gl.RGBA, gl.FLOAT, new Float32Array(4));
+    gl.texParameteri(gl.TEXTURE_2D_ARRAY, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
+    gl.texParameteri(gl.TEXTURE_2D_ARRAY, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
+    var vframe = gl.createTexture();
+    gl.activeTexture(gl.TEXTURE4);
+    gl.bindTexture(gl.TEXTURE_2D, vframe);
+    if (LF) gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32F, LF.frames.width, LF.frames.height, 0, gl.RGBA, gl.FLOAT,
+      f32(LF.frames.data));
+    else gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32F, 1, 1, 0, gl.RGBA, gl.FLOAT, new Float32Array(4));
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
 
     var s0 = M.frames.length ? M.frames[M.default_frame || 0] : null;
     V.state = {
@@ -410,7 +500,18 @@
     gl.uniform1i(U.u_seen, 2);
     gl.uniform1i(U.u_W, M.texture.width);
     gl.uniform1i(U.u_H, M.texture.height);
-    gl.uniform1i(U.u_kind, M.kind === 'radiance' ? 1 : (M.kind === 'view_radiance' ? 2 : 0));
+    gl.uniform1i(U.u_kind, { radiance: 1, view_radiance: 2, lfm: 3 }[M.kind] || 0);
+    gl.uniform1i(U.u_views, 3);
+    gl.uniform1i(U.u_vframe, 4);
+    var LF = M.lfm || { terms: 0, view_res: 1, tile_columns: 1, frames: { columns: 1 } };
+    gl.uniform1i(U.u_terms, LF.terms);
+    gl.uniform1i(U.u_vres, LF.view_res);
+    gl.uniform1i(U.u_vmap, LF.view_map === 'hemioct' ? 1 : 0);
+    gl.uniform1i(U.u_vlookup, LF.lookup === 'nearest' ? 0 : 1);
+    gl.uniform1i(U.u_vinterp, LF.render_view === 'vertex' ? 0 : 1);
+    gl.uniform1i(U.u_vcols, LF.tile_columns);
+    gl.uniform1i(U.u_fcols, LF.frames.columns);
+    gl.uniform1i(U.u_slookup, LF.surface_lookup === 'nearest' ? 0 : 1);
     gl.uniform1i(U.u_nlobes, M.n_lobes);
     gl.uniform1i(U.u_aniso, M.anisotropic ? 1 : 0);
     gl.uniform1i(U.u_lkind, S.light.type === 'point' ? 0 : 1);

@@ -1,0 +1,375 @@
+"""Getting photos to the passes: per-photo constants in one array, crops to the object, batched
+depth and shadow maps, chunked uploads, and photos decoded from disk in windows.
+
+:class:`texstream.fit.problem.PhotoSet` holds the photos where the passes read them; this module
+holds what it builds them with, so that its set-up makes no host round trip per photo:
+
+- :func:`image_infos` fills every photo's :class:`~texstream.fit.kernels.stream.ImageInfo`
+  (camera, light, shadow camera, crop) in one numpy structured array, uploaded in one copy;
+- :func:`crop_boxes` finds each photo's footprint of the object (the bounding box of the mesh's
+  projection, one launch over photos x vertices); a photo is stored cropped to it and its camera
+  becomes the crop's (principal point shifted, size the crop's), so the passes, depth maps and
+  traced taps need no change and read only pixels a texel can see;
+- :class:`PhotoFiles` names the capture's image files and how to decode them (the caller passes
+  :mod:`texstream.capture.imageio`'s readers, so this module never imports OpenImageIO);
+- :class:`PhotoLoader` fills (photos, mask) slots of a buffer from images in memory or from files,
+  on a pool of threads (decoding and numpy copies release the GIL);
+- :func:`choose_residency` picks where the photos live from the memory available.
+
+Imports only numpy, warp and the standard library.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import math
+import os
+from collections.abc import Callable, Sequence
+
+import numpy as np
+import warp as wp
+
+from texstream.capture.conventions import look_at_w2c_batch
+from texstream.core.errors import InputError
+
+from .kernels import stream
+
+RESIDENCIES = ("device", "host", "disk")
+"""where a PhotoSet keeps its photos: all on the device; all in (pinned) host memory, uploaded a
+window per pass; or only a window at a time, decoded from the capture's files each pass"""
+
+CROP_MARGIN_PX = 3
+"""pixels kept around the mesh's projected bounding box: a sample's bilinear taps lie within 1 px
+of its projection and a filtered tap's ray within 1.5 px (fit/kernels/stream.py ``observe``), so
+every pixel a texel can read stays inside the crop; pixels outside it see no surface (depth 0) and
+were rejected anyway"""
+
+LIGHT_KINDS = {"point": 0, "directional": 1, "none": 2}  # fit/kernels/shading.py LIGHT_*
+
+# shadow cameras are aimed at the bounding sphere from the light (fit/problem.py PhotoSet)
+_SHADOW_INSIDE = 1.05    # a point light closer than this many radii from the centre gets no shadow map
+_SHADOW_FOV_PAD = 1.05   # half-angle padding of a point light's frustum around the sphere
+_SHADOW_ORTHO_SPAN = 2.2  # an orthographic (directional) map spans this many radii
+
+
+@dataclasses.dataclass
+class PhotoFiles:
+    """The photos as files, read on demand (``StreamConfig.photo_residency`` "disk").
+
+    Attributes:
+        paths: one image file per photo, in the frames' order.
+        mask_paths: per photo its mask file or None.
+        read_image: path -> (H, W, 3) float32 linear image (e.g. ``capture.imageio.read_image``).
+        read_mask: (path, (H, W)) -> (H, W) bool (e.g. ``capture.imageio.read_mask``).
+    """
+
+    paths: Sequence
+    mask_paths: Sequence
+    read_image: Callable
+    read_mask: Callable
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+
+def image_infos(frames, crops: np.ndarray | None, center: np.ndarray | None, radius: float,
+                shadow_size: int) -> np.ndarray:
+    """Every photo's kernel constants as a numpy structured array of ``ImageInfo.numpy_dtype()``.
+
+    Args:
+        frames: the photos' :class:`~texstream.fit.problem.PhotoFrame`s.
+        crops: (n, 4) int (x0, y0, width, height) of each photo's stored crop (None: whole photos).
+            The camera becomes the crop's: cx, cy less x0, y0 in float32 (exact: an integer taken
+            from a float32 of larger magnitude), width and height the crop's.
+        center, radius: the object's bounding sphere, where shadow cameras aim (None: no maps).
+        shadow_size: shadow map side (0: no shadow cameras).
+    """
+    n = len(frames)
+    a = np.zeros(n, dtype=stream.ImageInfo.numpy_dtype())
+    if n == 0:
+        return a
+    f32 = np.float32
+    bad = sorted({fr.light_kind for fr in frames} - set(LIGHT_KINDS))
+    if bad:
+        raise InputError(f"light kind {bad[0]!r} unknown", fix=f"use one of {sorted(LIGHT_KINDS)}")
+    R = np.array([np.asarray(fr.R, np.float64) for fr in frames]).reshape(n, 3, 3)
+    t = np.array([np.asarray(fr.t, np.float64) for fr in frames]).reshape(n, 3)
+    a["rot"] = R.astype(f32)
+    a["trans"] = t.astype(f32)
+    a["center"] = (-np.einsum("nji,nj->ni", R, t)).astype(f32)   # camera centre -R^T t
+    a["light_vec"] = np.array([np.asarray(fr.light_vec, np.float64) for fr in frames]).reshape(n, 3).astype(f32)
+    a["light_intensity"] = np.array([np.asarray(fr.light_intensity, np.float64)
+                                     for fr in frames]).reshape(n, 3).astype(f32)
+    a["light_kind"] = [LIGHT_KINDS[fr.light_kind] for fr in frames]
+    a["fx"] = [fr.fx for fr in frames]
+    a["fy"] = [fr.fy for fr in frames]
+    a["cx"] = [fr.cx for fr in frames]
+    a["cy"] = [fr.cy for fr in frames]
+    a["width"] = [fr.width for fr in frames]
+    a["height"] = [fr.height for fr in frames]
+    a["exposure"] = [fr.exposure for fr in frames]
+    a["saturation"] = [min(fr.saturation, 3.0e38) for fr in frames]
+    if crops is not None:
+        crop_infos(a, crops)
+    if shadow_size > 0 and center is not None and n:
+        _shadow_cameras(a, frames, np.asarray(center, np.float64), radius, shadow_size)
+    return a
+
+
+def crop_infos(a: np.ndarray, crops: np.ndarray) -> None:
+    """Make records of :func:`image_infos` the cameras of the photos' crops (n, 4) (x0, y0, width,
+    height): cx, cy less x0, y0 in float32, exact (an integer taken from a float32 of larger
+    magnitude), and the crop's size."""
+    a["cx"] -= crops[:, 0].astype(np.float32)
+    a["cy"] -= crops[:, 1].astype(np.float32)
+    a["width"], a["height"] = crops[:, 2], crops[:, 3]
+
+
+def struct_array(records: np.ndarray, dtype, device: str) -> wp.array:
+    """A Warp array of structs from a numpy structured array of ``dtype.numpy_dtype()``, one memory
+    copy (``wp.array`` of a structured array converts record by record, ~70 us each)."""
+    out = wp.empty(len(records), dtype=dtype, device=device)
+    if len(records):
+        records = np.ascontiguousarray(records)
+        view = wp.array(ptr=records.ctypes.data, shape=(len(records),), dtype=dtype, device="cpu")
+        wp.copy(out, view)
+        wp.synchronize_device(device)  # ``records`` may go once the copy has read it
+    return out
+
+
+def _shadow_cameras(a: np.ndarray, frames, center: np.ndarray, radius: float, size: int) -> None:
+    """Aim each photo's shadow-map camera from its light at the object's bounding sphere (records of
+    :func:`image_infos`): perspective from a point light, orthographic along a directional one;
+    has_shadow stays 0 for no light and for a point light inside the bounds (no frustum covers it)."""
+    r = max(radius, 1e-9)
+    kinds = np.array([fr.light_kind for fr in frames])
+    light = np.array([np.asarray(fr.light_vec, float) for fr in frames], np.float64).reshape(-1, 3)
+    point, directional = kinds == "point", kinds == "directional"
+    dist = np.linalg.norm(light - center, axis=1)
+    point &= dist > _SHADOW_INSIDE * r
+    eye = light.copy()
+    d = light[directional] / np.linalg.norm(light[directional], axis=1, keepdims=True)
+    eye[directional] = center - 3.0 * r * d
+    has = point | directional
+    if not has.any():
+        return
+    rot, trans = look_at_w2c_batch(eye[has], center)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        half = np.arcsin(np.minimum(r / dist, 0.999)) * _SHADOW_FOV_PAD
+        f = np.where(point, 0.5 * size / np.tan(half), size / (_SHADOW_ORTHO_SPAN * r))
+    a["has_shadow"][has] = 1
+    a["sh_rot"][has] = rot.astype(np.float32)
+    a["sh_trans"][has] = trans.astype(np.float32)
+    a["sh_fx"][has] = a["sh_fy"][has] = f[has]
+    a["sh_cx"][has] = a["sh_cy"][has] = 0.5 * size
+    a["sh_ortho"][has] = directional[has]
+    a["sh_size"][has] = size
+
+
+@wp.kernel
+def _projected_bounds_kernel(points: wp.array(dtype=wp.vec3), infos: wp.array(dtype=stream.ImageInfo),
+                             bounds: wp.array2d(dtype=wp.int32)):
+    """Per photo, floor(min) and floor(max) of the mesh vertices' projections (pixel units) into
+    bounds[k, 0:4] (x min, y min, x max, y max) and 1 in bounds[k, 4] when a vertex lies at or
+    behind the camera plane (its projection bounds nothing). Integer min/max: deterministic."""
+    k, v = wp.tid()
+    pc = infos[k].rot @ points[v] + infos[k].trans
+    if pc[2] <= 1.0e-6 * wp.length(pc):
+        wp.atomic_max(bounds, k, 4, 1)
+        return
+    u = infos[k].fx * pc[0] / pc[2] + infos[k].cx
+    w = infos[k].fy * pc[1] / pc[2] + infos[k].cy
+    # clamped so a vertex far outside the frame cannot overflow the int conversion
+    xi = int(wp.floor(wp.clamp(u, -1.0e6, 1.0e6)))
+    yi = int(wp.floor(wp.clamp(w, -1.0e6, 1.0e6)))
+    wp.atomic_min(bounds, k, 0, xi)
+    wp.atomic_min(bounds, k, 1, yi)
+    wp.atomic_max(bounds, k, 2, xi)
+    wp.atomic_max(bounds, k, 3, yi)
+
+
+@wp.kernel
+def to_half_kernel(src: wp.array3d(dtype=wp.vec3), first: int, dst: wp.array3d(dtype=wp.vec3h)):
+    """dst[first + i] = src[i] in half floats (round to nearest even)."""
+    i, y, x = wp.tid()
+    dst[first + i, y, x] = wp.vec3h(src[i, y, x])
+
+
+def crop_boxes(points: wp.array, infos: wp.array, widths: np.ndarray, heights: np.ndarray,
+               device: str) -> np.ndarray:
+    """(n, 4) int64 (x0, y0, width, height) per photo: the bounding box of the mesh's projection
+    grown by :data:`CROP_MARGIN_PX` and clipped to the photo (the whole photo when a vertex lies
+    behind the camera; a 1 x 1 box at the origin when the object is out of frame)."""
+    n = len(widths)
+    init = np.tile(np.array([2 ** 31 - 1, 2 ** 31 - 1, -2 ** 31, -2 ** 31, 0], np.int32), (n, 1))
+    bounds = wp.array(init, dtype=wp.int32, device=device)
+    wp.launch(_projected_bounds_kernel, dim=(n, points.shape[0]), device=device, inputs=[points, infos, bounds])
+    b = bounds.numpy().astype(np.int64)
+    w, h = np.asarray(widths, np.int64), np.asarray(heights, np.int64)
+    x0 = np.clip(b[:, 0] - CROP_MARGIN_PX, 0, w)
+    y0 = np.clip(b[:, 1] - CROP_MARGIN_PX, 0, h)
+    x1 = np.clip(b[:, 2] + 1 + CROP_MARGIN_PX, 0, w)
+    y1 = np.clip(b[:, 3] + 1 + CROP_MARGIN_PX, 0, h)
+    behind = b[:, 4] > 0
+    x0[behind], y0[behind], x1[behind], y1[behind] = 0, 0, w[behind], h[behind]
+    empty = (x1 <= x0) | (y1 <= y0)
+    x0[empty], y0[empty], x1[empty], y1[empty] = 0, 0, 1, 1
+    return np.stack([x0, y0, x1 - x0, y1 - y0], axis=1)
+
+
+class PhotoLoader:
+    """Writes photos, cropped and converted to the image precision, into slots of a buffer.
+
+    ``source`` is a list of (H, W, >=3) arrays or :class:`PhotoFiles`; ``masks`` a list of (H, W)
+    masks or None entries (ignored for PhotoFiles, which name their own). Slots are zero-padded to
+    the buffer's (hmax, wmax); mask slots hold 1 where the photo may be sampled."""
+
+    def __init__(self, source, masks, crops: np.ndarray | None, sizes: np.ndarray, threads: int = 0):
+        self.source, self.masks, self.crops, self.sizes = source, masks, crops, np.asarray(sizes)
+        self.files = isinstance(source, PhotoFiles)
+        self.has_masks = (any(p is not None for p in source.mask_paths) if self.files
+                          else masks is not None and any(m is not None for m in masks))
+        self.threads = threads if threads > 0 else min(8, os.cpu_count() or 1)
+        self.pool = concurrent.futures.ThreadPoolExecutor(max_workers=self.threads,
+                                                          thread_name_prefix="texstream-photo")
+
+    def close(self) -> None:
+        self.pool.shutdown(wait=True, cancel_futures=True)
+
+    def _photo(self, k: int) -> tuple[np.ndarray, np.ndarray | None]:
+        h, w = (int(v) for v in self.sizes[k])
+        if self.files:
+            path = self.source.paths[k]
+            im = self.source.read_image(path)
+            if tuple(im.shape[:2]) != (h, w):
+                raise InputError(f"photo is {im.shape[1]}x{im.shape[0]} but its camera is {w}x{h}", path,
+                                 "fix the frame's w/h in capture.json or re-export the photo")
+            mp = self.source.mask_paths[k]
+            mask = None if mp is None else self.source.read_mask(mp, (h, w))
+        else:
+            im = self.source[k]
+            mask = None if self.masks is None else self.masks[k]
+        return im, mask
+
+    def _fill_one(self, k: int, img: np.ndarray, msk: np.ndarray | None) -> None:
+        im, mask = self._photo(k)
+        if self.crops is not None:
+            x0, y0, cw, ch = (int(v) for v in self.crops[k])
+        else:
+            x0, y0, ch, cw = 0, 0, int(im.shape[0]), int(im.shape[1])
+        img[:ch, :cw] = im[y0:y0 + ch, x0:x0 + cw, :3]
+        img[ch:] = 0
+        img[:ch, cw:] = 0
+        if msk is not None:
+            msk[...] = 0
+            msk[:ch, :cw] = 1 if mask is None else np.asarray(mask[y0:y0 + ch, x0:x0 + cw], bool)
+
+    def submit(self, ks: Sequence[int], images: np.ndarray, masks: np.ndarray | None) -> list:
+        """Start filling slot j of ``images`` (and ``masks``) with photo ``ks[j]``; returns the futures."""
+        return [self.pool.submit(self._fill_one, int(k), images[j], None if masks is None else masks[j])
+                for j, k in enumerate(ks)]
+
+    def fill(self, ks: Sequence[int], images: np.ndarray, masks: np.ndarray | None) -> None:
+        """:meth:`submit` and wait (errors re-raised here, the first photo's first)."""
+        wait(self.submit(ks, images, masks))
+
+
+@dataclasses.dataclass
+class WindowSlots:
+    """The two host buffers photos streamed from disk are decoded into, alternately, and what is in
+    flight: shared by a PhotoSet and its subsets (never streamed at once, but interleaved), so each
+    knows whether the prefetched window is its own.
+
+    Attributes:
+        images, masks: per slot a (window, hmax, wmax) Warp array on the CPU (pinned for CUDA).
+        turn: windows submitted so far (the next slot is ``turn % 2``).
+        pending: (owner PhotoSet, first photo, slot, futures) of the window being decoded, or None.
+        copied: per slot the CUDA event of its last upload (None: none, or the CPU).
+    """
+
+    images: list
+    masks: list
+    turn: int = 0
+    pending: tuple | None = None
+    copied: list = dataclasses.field(default_factory=lambda: [None, None])
+
+
+def wait(futures: list) -> None:
+    """Wait for every future, then raise the first failure in submission order."""
+    concurrent.futures.wait(futures)
+    for f in futures:
+        f.result()
+
+
+def host_available_bytes() -> int:
+    """Memory the OS says a new allocation may take (Linux MemAvailable; else a conservative 4 GiB)."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 4 << 30
+
+
+def device_available_bytes(device: str) -> int:
+    """Free memory of a CUDA device, or the host's for the CPU device."""
+    if device == "cpu":
+        return host_available_bytes()
+    return int(wp.get_device(device).free_memory)
+
+
+MEMORY_FRACTION = 0.5
+"""the share of the memory available that the automatic residency lets the photos and their maps
+take (the passes' per-texel buffers, the model and other processes need the rest)"""
+
+
+def choose_residency(requested: str, device: str, device_bytes: int, host_bytes: int, from_files: bool,
+                     limit_bytes: int = 0, windows: bool = False) -> tuple[str, str]:
+    """(residency, reason): ``requested`` as given, or for "auto" the first of device, host, disk
+    whose memory holds the photos and their maps (``device_bytes`` on the device, ``host_bytes`` in
+    host memory) within :data:`MEMORY_FRACTION` of what is available and ``limit_bytes`` (0: none).
+    ``windows`` (``photos_per_window`` set): never all on the device. Photos already in memory (not
+    ``from_files``) are never streamed from disk. On the CPU device, whose memory is the host's, host
+    residency is chosen only for windows."""
+    if requested != "auto":
+        return requested, "requested"
+    gib = 1 << 30
+    dev_room = device_room(device, limit_bytes)
+    host_room = MEMORY_FRACTION * host_available_bytes()
+    if limit_bytes > 0:
+        host_room = min(host_room, limit_bytes)
+    if windows:
+        over = "windows requested (photos_per_window)"
+    elif device_bytes <= dev_room:
+        return "device", f"{device_bytes / gib:.2f} GiB of photos and maps fit {dev_room / gib:.2f} GiB on {device}"
+    else:
+        over = f"{device_bytes / gib:.2f} GiB of photos and maps exceed {dev_room / gib:.2f} GiB on {device}"
+    if (device != "cpu" or windows) and host_bytes <= host_room:
+        return "host", f"{over}; held in host memory, uploaded a window at a time"
+    if from_files:
+        return "disk", (f"{over}, and {host_bytes / gib:.2f} GiB exceed {host_room / gib:.2f} GiB of host memory; "
+                        "decoded from the capture's files a window at a time")
+    return "host", f"{over}; the photos were given in memory, so they are streamed from there in windows"
+
+
+def device_room(device: str, limit_bytes: int = 0) -> float:
+    """Bytes the photos and their maps may take on ``device``: :data:`MEMORY_FRACTION` of what is
+    available, and at most ``limit_bytes`` (0: no limit)."""
+    room = MEMORY_FRACTION * device_available_bytes(device)
+    return min(room, limit_bytes) if limit_bytes > 0 else room
+
+
+def window_size(n: int, per_photo_bytes: int, device: str, limit_bytes: int = 0) -> int:
+    """Photos per window when streaming: half the room :func:`choose_residency` allows on the device
+    (the other half for the next window's buffers and the passes), at least 1."""
+    return max(1, min(n, int(device_room(device, limit_bytes) // (2 * max(per_photo_bytes, 1)))))
+
+
+def keep_maps_on_device(device: str, map_bytes: int, limit_bytes: int = 0) -> bool:
+    """Whether photos streamed from disk keep every depth and shadow map on the device (made once at
+    set-up) rather than recomputing a window's maps for every pass: on a CUDA device with room for
+    them. On the CPU the device's memory is the host memory that streaming from disk saves."""
+    return device != "cpu" and map_bytes <= device_room(device, limit_bytes)

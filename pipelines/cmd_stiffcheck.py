@@ -1,0 +1,44 @@
+"""``texstream stiffcheck [--device cpu|cuda:0] [--size ci|full] [--cases a,b] [-o DIR]``: the stiff and extreme
+fitting suite (fit/stiffcheck.py): each case fitted in the fit's own precision and in float64, with
+convergence, the shortfall against float64, NaN/Inf and out-of-bounds counts and the safeguard named."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from texstream.fit.stiffcheck import StiffcheckConfig
+    from texstream.pipelines.cli import add_config_arguments
+
+    parser.add_argument("-o", "--out", default=None,
+                        help="output folder for stiffcheck.json and stiffcheck.md (default: stiffcheck-DEVICE-SIZE)")
+    add_config_arguments(parser, StiffcheckConfig)
+
+
+def run(args: argparse.Namespace) -> int:
+    import warp as wp
+
+    from texstream.fit.stiffcheck import StiffcheckConfig, run_suite, select_cases, write_report
+    from texstream.pipelines.cli import config_from_args
+
+    wp.config.log_level = wp.LOG_WARNING  # Warp 1.19: the init banner and module loads are info
+    cfg = config_from_args(StiffcheckConfig, args)
+    select_cases([n.strip() for n in cfg.cases.split(",") if n.strip()])  # unknown names fail before any work
+    out = Path(args.out) if args.out else Path(f"stiffcheck-{cfg.device.replace(':', '')}-{cfg.size}")
+    if out.exists() and not out.is_dir():
+        from texstream.core.errors import InputError
+
+        raise InputError("output path exists and is not a folder", out, "choose another -o folder")
+
+    def log(r: dict) -> None:
+        verdict = "ok" if r["ok"] else "FAILED: " + "; ".join(r["failures"])
+        short = (f"E rel. error {r['rel_error_E_auto']:.1e} ({r['auto_choice']})" if r["kind"] == "accumulation"
+                 else f"shortfall {r['shortfall_db']:+.3f} dB")
+        print(f"{r['name']:24s} {short:34s} NaN/Inf {r['nonfinite']}  {r['wall_s']:.1f} s  {verdict}", flush=True)
+
+    result = run_suite(cfg, log)
+    json_path, md_path = write_report(result, out)
+    print(f"wrote {json_path} and {md_path}")
+    return 0 if result["ok"] else 1
