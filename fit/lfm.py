@@ -18,8 +18,8 @@ The fit (``fit_lfm``): d is the per-texel mean (least-squares constant, PCA-styl
 channel) minimises its vertex light field's squared error over every photo (fit/kernels/lfm.py),
 with the view maps' Laplacian on the masked disk stencil. Patches share no parameter, so each
 takes its own step and accepts it on its own (Eq. 7.6). Conjugate gradient (Polak-Ribiere+) with
-the Hessian step size -g.d / d^T H d is the default (the dissertation's best); steepest descent and
-a backtracking step are there to compare. All state is batched on the device; the host waits for
+the Hessian step size -g.d / d^T H d is the default (the dissertation's best); L-BFGS per patch
+(:class:`PatchLBFGS`), steepest descent and a backtracking step are there to compare. All state is batched on the device; the host waits for
 the passes and reads one scalar every ``sync_every`` iterations.
 
 This is an LFM-specific driver, not the per-texel ``fit/optim`` protocol: those optimizers own
