@@ -5,6 +5,8 @@
 - :func:`flat_sample`: a subdivided square material sample in the z = 0 plane, UVs = position.
 - :func:`ornament`: a Christmas-ornament-like surface of revolution (round body, neck, cap),
   ~3,700 triangles at the defaults, like the seed's ornament (Table 8.1: 3,690 polygons).
+- :func:`star`: a puffy five-pointed star (a flattened sphere with a star-shaped outline), 6,240
+  triangles at the defaults, like the seed's LFM star (Table 7.1: 6,093 polygons).
 
 Surfaces of revolution (:func:`revolve`) are about the +z axis. UVs: u = azimuth / 2 pi (the seam
 column is duplicated, so u runs 0..1 without wrapping), v = arc-length fraction of the profile,
@@ -191,7 +193,29 @@ def ornament(n_segments: int = 64, n_body: int = 20, n_neck: int = 4, n_cap: int
     return revolve(r, z, n_segments, z_poles=poles)
 
 
-PROCEDURAL = {"uv_sphere": uv_sphere, "icosphere": icosphere, "flat_sample": flat_sample, "ornament": ornament}
+def star(n_points: int = 5, depth: float = 0.45, thickness: float = 0.5, n_segments: int = 80,
+         n_rings: int = 39) -> SurfaceMesh:
+    """A puffy star ornament: a sphere flattened to ``thickness`` along z whose radius in the xy plane
+    follows 1 + depth cos(n_points phi) (points at phi = 2 pi k / n_points), so its surface has
+    concave valleys between the points (self-occlusion, cast shadows, normals turning quickly).
+    2 * n_segments * n_rings triangles: 6,240 at the defaults, the size of the dissertation's
+    star (Table 7.1: 6,093 polygons). UVs as :func:`uv_sphere`; normals area-weighted over the welded
+    vertices (the seam column and each pole fan share them)."""
+    if n_points < 2 or not 0.0 <= depth < 1.0 or thickness <= 0.0:
+        raise ConfigError("star needs n_points >= 2, 0 <= depth < 1 and thickness > 0")
+    m = uv_sphere(1.0, n_segments, n_rings)
+    v = m.vertices.copy()
+    phi = np.arctan2(v[:, 1], v[:, 0])
+    f = 1.0 + depth * np.cos(n_points * phi)
+    v[:, 0] *= f
+    v[:, 1] *= f
+    v[:, 2] *= thickness
+    return SurfaceMesh(vertices=v, faces=m.faces, normals=None, uvs=m.uvs,
+                       source_vertex=m.source_vertex).with_normals()
+
+
+PROCEDURAL = {"uv_sphere": uv_sphere, "icosphere": icosphere, "flat_sample": flat_sample, "ornament": ornament,
+              "star": star}
 
 
 def make(name: str, **params) -> SurfaceMesh:

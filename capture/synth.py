@@ -1,7 +1,8 @@
 """Synthetic capture sets with ground truth, rendered by texstream's Warp renderer.
 
 A *scene* is a small declarative JSON file (built-ins in ``capture/scenes/``: ``sphere``,
-``flat_sample``, ``bunny``, ``ornament``); more scenes need no code. Keys (full-scale values):
+``flat_sample``, ``bunny``, ``ornament``, ``star`` (a fixed-light surface light field for light field
+mapping), ...); more scenes need no code. Keys (full-scale values):
 
 ``mesh``
     ``{"procedural": NAME, "params": {...}}`` (:mod:`texstream.capture.procedural`, analytic UVs) or
@@ -87,7 +88,8 @@ GROUND_TRUTH = "ground_truth"
 class SynthConfig:
     """Options of ``texstream synth`` (overrides of the scene's own values)."""
 
-    scene: str = option("ornament", help="built-in scene name (sphere, flat_sample, bunny, ornament) or a scene JSON path",
+    scene: str = option("ornament", help="built-in scene name (sphere, flat_sample, bunny, ornament, star, ...) or "
+                                         "a scene JSON path",
                         cli=False)
     scale: float = option(1.0, help="shrink the scene: photos x s, image sides and texture sides x sqrt(s)")
     device: str = option("cpu", help="Warp device for baking and rendering: cpu or cuda:N")

@@ -18,8 +18,8 @@ The fit (``fit_lfm``): d is the per-texel mean (least-squares constant, PCA-styl
 channel) minimises its vertex light field's squared error over every photo (fit/kernels/lfm.py),
 with the view maps' Laplacian on the masked disk stencil. Patches share no parameter, so each
 takes its own step and accepts it on its own (Eq. 7.6). Conjugate gradient (Polak-Ribiere+) with
-the Hessian step size -g.d / d^T H d is the default (the dissertation's best); steepest descent and
-a backtracking step are there to compare. All state is batched on the device; the host waits for
+the Hessian step size -g.d / d^T H d is the default (the dissertation's best); L-BFGS per patch
+(:class:`PatchLBFGS`), steepest descent and a backtracking step are there to compare. All state is batched on the device; the host waits for
 the passes and reads one scalar every ``sync_every`` iterations.
 
 This is an LFM-specific driver, not the per-texel ``fit/optim`` protocol: those optimizers own
@@ -45,6 +45,7 @@ from texstream.core.errors import ConfigError, InputError
 from .kernels import lfm as LK
 
 VIEW_MAPS = ("disk", "hemioct")
+OPTIMIZERS = ("cg", "sd", "lbfgs")
 LOOKUPS = ("nearest", "bilinear")
 
 
@@ -65,11 +66,14 @@ class LFMConfig:
     method: str = option("stream", "stream (streaming nonlinear fit), pca (Chen et al.: resample into texels x "
                                    "view-map directions, truncated SVD) or nmf (the same matrices, multiplicative "
                                    "updates)", choices=("stream", "pca", "nmf"))
-    optimizer: str = option("cg", "streaming fit: cg (Polak-Ribiere+ per patch) or sd (steepest descent)",
-                            choices=("cg", "sd"))
+    optimizer: str = option("cg", "streaming fit: cg (Polak-Ribiere+ per patch), sd (steepest descent) or lbfgs "
+                                  "(limited-memory BFGS per patch, history of lbfgs_memory pairs)",
+                            choices=OPTIMIZERS)
+    lbfgs_memory: int = option(5, "lbfgs: (step, gradient change) pairs kept per patch", min=1, max=32)
     cg_variant: str = option("pr", "cg beta: pr (Polak-Ribiere+) or fr (Fletcher-Reeves)", choices=("pr", "fr"))
     step: str = option("hessian", "step size: hessian (-g.d / d^T H d from a curvature pass, the dissertation's "
-                                  "quadratic model) or backtrack (double on acceptance, halve on rejection)",
+                                  "quadratic model) or backtrack (double on acceptance, halve on rejection; for "
+                                  "lbfgs at most 1, the quasi-Newton step, and no curvature pass)",
                        choices=("hessian", "backtrack"))
     laplacian: float = option(1.0, "view-map Laplacian regularization weight, in samples' worth of squared "
                                    "radiance-space residual per unit squared difference of neighbouring view "
@@ -81,8 +85,9 @@ class LFMConfig:
                                   "iterations is below this", min=0.0)
     sync_every: int = option(5, "streaming fit: iterations between reads of the objective", min=1)
     balance_every: int = option(10, "streaming fit: every k iterations equalise the norms of each term's surface "
-                                    "and view maps per patch (the g h scale gauge; costs a pass and restarts CG); "
-                                    "0 = never", min=0)
+                                    "and view maps per patch (the g h scale gauge; costs a pass and restarts CG / "
+                                    "L-BFGS; with the Laplacian on only view maps larger than their surface maps "
+                                    "are shrunk, which lowers the objective); 0 = never", min=0)
     nmf_iterations: int = option(200, "nmf: multiplicative update iterations", min=1)
     render_view: str = option("point", "rendering: each vertex's view map read along the direction from the shaded "
                                        "point (point, the interpolated view of Chen et al.'s renderer) or from the "
@@ -91,7 +96,7 @@ class LFMConfig:
     def check(self) -> None:
         for name, allowed in (("view_map", VIEW_MAPS), ("lookup", LOOKUPS), ("surface_lookup", LOOKUPS),
                               ("diffuse", ("mean", "min")), ("method", ("stream", "pca", "nmf")),
-                              ("optimizer", ("cg", "sd")), ("step", ("hessian", "backtrack")),
+                              ("optimizer", OPTIMIZERS), ("step", ("hessian", "backtrack")),
                               ("bounds", ("none", "nonnegative")), ("render_view", ("point", "vertex")),
                               ("cg_variant", ("pr", "fr"))):
             if getattr(self, name) not in allowed:
@@ -100,6 +105,8 @@ class LFMConfig:
             raise ConfigError(f"lfm.terms {self.terms} out of range", fix="use 1 to 4")
         if not 2 <= self.view_res <= 64:
             raise ConfigError(f"lfm.view_res {self.view_res} out of range", fix="use 2 to 64")
+        if not 1 <= self.lbfgs_memory <= 32:
+            raise ConfigError(f"lfm.lbfgs_memory {self.lbfgs_memory} out of range", fix="use 1 to 32")
 
 
 def vertex_frames(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -419,6 +426,11 @@ class LFMProblem:
         wp.launch(LK.patch_dot_kernel, dim=self.V, device=self.device,
                   inputs=[self.ring_start, self.ring_slots, aG, bG, aH, bH, self.K, self.M], outputs=[out])
 
+    def state_bytes(self) -> int:
+        """Device bytes of the problem's own buffers (index tables, frames, d and the per-photo and
+        per-slot scratch; not the photos): O(model), independent of the photo count."""
+        return sum(int(a.capacity) for a in vars(self).values() if isinstance(a, wp.array))
+
     def total(self, f: wp.array) -> float:
         """Sum of a per-patch vec3 array (one host read)."""
         if not hasattr(self, "_total"):
@@ -459,13 +471,81 @@ class LFMResult:
     passes: int
     fit_s: float
     method: str
+    state_bytes: int = 0
+    """device bytes of the fit's state: the problem's buffers and the optimizer's model-sized vectors"""
+
+
+class PatchLBFGS:
+    """L-BFGS state of every (vertex, channel) patch on the device (fit/kernels/lfm.py): ring buffers
+    of the last ``memory`` (s, y) pairs over the whole parameter vector, with per patch and channel
+    the pair count, 1 / s.y per pair and the initial scaling gamma. The two-loop recursion runs as
+    2 x memory gathers over the patches (a Python loop over the history's ages, never over patches)."""
+
+    def __init__(self, pr: "LFMProblem", memory: int):
+        self.pr, self.m = pr, int(memory)
+        dev = pr.device
+        self.s_G = wp.zeros((self.m, pr.S, pr.K), dtype=wp.vec3d, device=dev)
+        self.y_G = wp.zeros((self.m, pr.S, pr.K), dtype=wp.vec3d, device=dev)
+        self.s_H = wp.zeros((self.m, pr.V * pr.K, pr.M), dtype=wp.vec3d, device=dev)
+        self.y_H = wp.zeros((self.m, pr.V * pr.K, pr.M), dtype=wp.vec3d, device=dev)
+        self.rho = wp.zeros((self.m, pr.V), dtype=wp.vec3d, device=dev)
+        self.alpha = wp.zeros((self.m, pr.V), dtype=wp.vec3d, device=dev)
+        self.count = wp.zeros(pr.V, dtype=wp.vec3i, device=dev)
+        self.gamma = pr.new_patch()
+        self.coef = pr.new_patch()
+        self.gg = pr.new_patch()
+
+    def reset(self, gG: wp.array, gH: wp.array) -> None:
+        """Forget every pair (start, and after the gauge balancing rescaled the parameters); the first
+        direction is -g / |g| per patch."""
+        pr = self.pr
+        self.count.zero_()
+        pr.patch_dot(gG, gG, gH, gH, self.gg)
+        wp.launch(LK.lbfgs_gamma_start_kernel, dim=pr.V, device=pr.device, inputs=[self.gg], outputs=[self.gamma])
+
+    def push(self, G, TG, gG, tgG, H, TH, gH, tgH, accepted, alpha) -> None:
+        """Record the pair of this iteration's accepted trials (before they are adopted)."""
+        pr, dev = self.pr, self.pr.device
+        wp.launch(LK.lbfgs_push_G_kernel, dim=(pr.S, pr.K), device=dev,
+                  inputs=[G, TG, gG, tgG, accepted, self.count, pr.slot_vertex, self.m], outputs=[self.s_G, self.y_G])
+        wp.launch(LK.lbfgs_push_H_kernel, dim=(pr.V * pr.K, pr.M), device=dev,
+                  inputs=[H, TH, gH, tgH, accepted, self.count, pr.K, self.m], outputs=[self.s_H, self.y_H])
+        wp.launch(LK.lbfgs_finish_push_kernel, dim=pr.V, device=dev,
+                  inputs=[pr.ring_start, pr.ring_slots, self.s_G, self.s_H, self.y_G, self.y_H, accepted, alpha, pr.K,
+                          pr.M, self.m], outputs=[self.count, self.rho, self.gamma])
+
+    def direction(self, gG, gH, DG, DH) -> None:
+        """(DG, DH) = -(the L-BFGS inverse Hessian) g per patch: the two-loop recursion."""
+        pr, dev, m = self.pr, self.pr.device, self.m
+        wp.copy(DG, gG)
+        wp.copy(DH, gH)
+        for first, ages in ((1, range(m)), (0, range(m - 1, -1, -1))):
+            if not first:
+                wp.launch(LK.lbfgs_scale_G_kernel, dim=(pr.S, pr.K), device=dev,
+                          inputs=[self.gamma, pr.slot_vertex], outputs=[DG])
+                wp.launch(LK.lbfgs_scale_H_kernel, dim=(pr.V * pr.K, pr.M), device=dev,
+                          inputs=[self.gamma, pr.K, pr.mask], outputs=[DH])
+            dot_G, dot_H = (self.s_G, self.s_H) if first else (self.y_G, self.y_H)
+            add_G, add_H = (self.y_G, self.y_H) if first else (self.s_G, self.s_H)
+            for age in ages:
+                wp.launch(LK.lbfgs_coef_kernel, dim=pr.V, device=dev,
+                          inputs=[pr.ring_start, pr.ring_slots, dot_G, dot_H, DG, DH, self.count, self.rho, age, m,
+                                  pr.K, pr.M, int(not first)], outputs=[self.alpha, self.coef])
+                wp.launch(LK.lbfgs_axpy_G_kernel, dim=(pr.S, pr.K), device=dev,
+                          inputs=[add_G, self.count, self.coef, age, m, pr.slot_vertex], outputs=[DG])
+                wp.launch(LK.lbfgs_axpy_H_kernel, dim=(pr.V * pr.K, pr.M), device=dev,
+                          inputs=[add_H, self.count, self.coef, age, m, pr.K], outputs=[DH])
+        wp.launch(LK.negate_kernel, dim=(pr.S, pr.K), device=dev, inputs=[DG])
+        wp.launch(LK.negate_kernel, dim=(pr.V * pr.K, pr.M), device=dev, inputs=[DH])
 
 
 def fit_lfm(problem: LFMProblem, max_iterations: int | None = None, time_budget_s: float = 0.0,
-            G0: np.ndarray | None = None, H0: np.ndarray | None = None, callback=None) -> LFMResult:
-    """The streaming fit (CG or SD, Hessian or backtracking step, per-patch acceptance); computes d
+            G0: np.ndarray | None = None, H0: np.ndarray | None = None, callback=None,
+            snapshot=None) -> LFMResult:
+    """The streaming fit (CG, SD or L-BFGS, Hessian or backtracking step, per-patch acceptance); computes d
     first when it was not (``problem.compute_diffuse``). ``callback(iteration, objective)`` is
-    called at every objective read."""
+    called at every objective read, then ``snapshot(iteration, G, H)`` with the current device
+    parameters (benchmarks score the model there; keep it out of the timing yourself)."""
     pr, cfg, dev = problem, problem.cfg, problem.device
     if not pr.seen.any():
         pr.compute_diffuse()
@@ -477,7 +557,8 @@ def fit_lfm(problem: LFMProblem, max_iterations: int | None = None, time_budget_
     H = pr.new_H(initial_view_maps(pr.V, K, pr.R, cfg.view_map, offset) if H0 is None else H0)
     TG, TH = pr.new_G(), pr.new_H()
     gG, gH, tgG, tgH = pr.new_G(), pr.new_H(), pr.new_G(), pr.new_H()
-    oG, oH = pr.new_G(), pr.new_H()            # gradient before the step (Polak-Ribiere)
+    # gradient before the step (Polak-Ribiere; L-BFGS keeps its own history)
+    oG, oH = (pr.new_G(), pr.new_H()) if cfg.optimizer != "lbfgs" else (None, None)
     DG, DH = pr.new_G(), pr.new_H()
     f, f_trial, dhd, gn = pr.new_patch(), pr.new_patch(), pr.new_patch(), pr.new_patch()
     f_dummy = pr.new_patch()
@@ -485,17 +566,31 @@ def fit_lfm(problem: LFMProblem, max_iterations: int | None = None, time_budget_
     scale = pr.new_patch(1.0)
     gg_new, gg_mixed, gg_old, beta = pr.new_patch(), pr.new_patch(), pr.new_patch(), pr.new_patch()
     hessian = int(cfg.step == "hessian")
+    lbfgs = PatchLBFGS(pr, cfg.lbfgs_memory) if cfg.optimizer == "lbfgs" else None
+    # the backtracking scale grows back to at most 1: the Hessian step, or L-BFGS's quasi-Newton step
+    unit_cap = int(hessian or lbfgs is not None)
     variant = -1 if cfg.optimizer == "sd" else (0 if cfg.cg_variant == "pr" else 1)
     shape_G, shape_H = (pr.S, K), (pr.V * K, pr.M)
 
+    def first_direction():
+        """Steepest descent (CG, SD) or L-BFGS with an empty history (-g / |g|)."""
+        if lbfgs is not None:
+            lbfgs.reset(gG, gH)
+            lbfgs.direction(gG, gH, DG, DH)
+            return
+        beta.zero_()
+        wp.launch(LK.direction_G_kernel, dim=shape_G, device=dev, inputs=[gG, beta, pr.slot_vertex], outputs=[DG])
+        wp.launch(LK.direction_H_kernel, dim=shape_H, device=dev, inputs=[gH, beta, K, pr.mask], outputs=[DH])
+        pr.patch_dot(gG, gG, gH, gH, gg_old)
+
     pr.evaluate(G, H, f, gG, gH)
-    wp.launch(LK.direction_G_kernel, dim=shape_G, device=dev, inputs=[gG, beta, pr.slot_vertex], outputs=[DG])
-    wp.launch(LK.direction_H_kernel, dim=shape_H, device=dev, inputs=[gH, beta, K, pr.mask], outputs=[DH])
-    pr.patch_dot(gG, gG, gH, gH, gg_old)
+    first_direction()
     f0 = pr.total(f)
     trace = [{"iteration": 0, "time_s": 0.0, "objective": f0}]
     if callback:
         callback(0, f0)
+    if snapshot:
+        snapshot(0, G, H)
     last = f0
     it = 0
     for it in range(1, iters + 1):
@@ -508,43 +603,52 @@ def fit_lfm(problem: LFMProblem, max_iterations: int | None = None, time_budget_
         wp.launch(LK.trial_H_kernel, dim=shape_H, device=dev,
                   inputs=[H, DH, alpha, K, pr.mask, pr.lower, pr.upper], outputs=[TH])
         pr.evaluate(TG, TH, f_trial, tgG, tgH)
-        wp.launch(LK.accept_kernel, dim=pr.V, device=dev, inputs=[f, f_trial, alpha, hessian],
+        wp.launch(LK.accept_kernel, dim=pr.V, device=dev, inputs=[f, f_trial, alpha, unit_cap],
                   outputs=[accepted, scale, f])
-        wp.copy(oG, gG)
-        wp.copy(oH, gH)
+        if lbfgs is not None:
+            lbfgs.push(G, TG, gG, tgG, H, TH, gH, tgH, accepted, alpha)
+        else:
+            wp.copy(oG, gG)
+            wp.copy(oH, gH)
         wp.launch(LK.adopt_G_kernel, dim=shape_G, device=dev, inputs=[TG, accepted, pr.slot_vertex], outputs=[G])
         wp.launch(LK.adopt_H_kernel, dim=shape_H, device=dev, inputs=[TH, accepted, K], outputs=[H])
         wp.launch(LK.adopt_G_kernel, dim=shape_G, device=dev, inputs=[tgG, accepted, pr.slot_vertex], outputs=[gG])
         wp.launch(LK.adopt_H_kernel, dim=shape_H, device=dev, inputs=[tgH, accepted, K], outputs=[gH])
-        pr.patch_dot(gG, gG, gH, gH, gg_new)
-        pr.patch_dot(gG, oG, gH, oH, gg_mixed)
-        wp.launch(LK.beta_kernel, dim=pr.V, device=dev, inputs=[gg_new, gg_mixed, gg_old, accepted, variant],
-                  outputs=[beta])
-        wp.launch(LK.direction_G_kernel, dim=shape_G, device=dev, inputs=[gG, beta, pr.slot_vertex], outputs=[DG])
-        wp.launch(LK.direction_H_kernel, dim=shape_H, device=dev, inputs=[gH, beta, K, pr.mask], outputs=[DH])
-        wp.copy(gg_old, gg_new)
+        if lbfgs is not None:
+            lbfgs.direction(gG, gH, DG, DH)
+        else:
+            pr.patch_dot(gG, gG, gH, gH, gg_new)
+            pr.patch_dot(gG, oG, gH, oH, gg_mixed)
+            wp.launch(LK.beta_kernel, dim=pr.V, device=dev, inputs=[gg_new, gg_mixed, gg_old, accepted, variant],
+                      outputs=[beta])
+            wp.launch(LK.direction_G_kernel, dim=shape_G, device=dev, inputs=[gG, beta, pr.slot_vertex], outputs=[DG])
+            wp.launch(LK.direction_H_kernel, dim=shape_H, device=dev, inputs=[gH, beta, K, pr.mask], outputs=[DH])
+            wp.copy(gg_old, gg_new)
         if it % cfg.sync_every == 0 or it == iters:
             obj = pr.total(f)
             trace.append({"iteration": it, "time_s": time.perf_counter() - t0, "objective": obj})
             if callback:
                 callback(it, obj)
+            if snapshot:
+                snapshot(it, G, H)
             if last - obj <= cfg.rel_tol * max(abs(last), 1e-300):
                 break
             last = obj
             if time_budget_s > 0 and time.perf_counter() - t0 > time_budget_s:
                 break
         if cfg.balance_every and it % cfg.balance_every == 0:
-            wp.launch(LK.balance_kernel, dim=pr.V, device=dev, inputs=[pr.ring_start, pr.ring_slots, K, pr.M],
-                      outputs=[G, H])
+            wp.launch(LK.balance_kernel, dim=pr.V, device=dev,
+                      inputs=[pr.ring_start, pr.ring_slots, K, pr.M, int(pr.lam > 0)], outputs=[G, H])
             pr.evaluate(G, H, f, gG, gH)
-            beta.zero_()
-            wp.launch(LK.direction_G_kernel, dim=shape_G, device=dev, inputs=[gG, beta, pr.slot_vertex], outputs=[DG])
-            wp.launch(LK.direction_H_kernel, dim=shape_H, device=dev, inputs=[gH, beta, K, pr.mask], outputs=[DH])
-            pr.patch_dot(gG, gG, gH, gH, gg_old)
+            first_direction()
             # the Laplacian is not invariant under the gauge (h / c costs 1 / c^2 of it): E changes with
             # the rescaling, so the stopping test restarts from the balanced objective
             last = pr.total(f)
     if trace[-1]["iteration"] != it:
         trace.append({"iteration": it, "time_s": time.perf_counter() - t0, "objective": pr.total(f)})
-    return LFMResult(pr.params(G, H), trace, it, pr.passes, time.perf_counter() - t0,
-                     f"stream-{cfg.optimizer}-{cfg.step}")
+    fit_s = time.perf_counter() - t0
+    state = [G, H, TG, TH, gG, gH, tgG, tgH, oG, oH, DG, DH]
+    if lbfgs is not None:
+        state += [a for a in vars(lbfgs).values() if isinstance(a, wp.array)]
+    state_bytes = pr.state_bytes() + sum(int(a.capacity) for a in state if a is not None)
+    return LFMResult(pr.params(G, H), trace, it, pr.passes, fit_s, f"stream-{cfg.optimizer}-{cfg.step}", state_bytes)

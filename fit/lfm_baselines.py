@@ -69,14 +69,21 @@ def resample_chunks(problem: LFMProblem, Y: np.ndarray, E: np.ndarray, diffuse: 
         local = np.einsum("vpk,vjk->vpj", w, frame)
         cos = np.einsum("mj,vpj->vpm", dirs, local)                               # (v, P, M)
         tex = np.maximum(sl, 0) // 3
-        best_cos = np.full((vs.size, r, M), -np.inf)
+        # per (vertex, view direction) the photos nearest first (ties: the lower index); each entry takes
+        # the first of them that sees its texel. Most entries resolve at the first ranks, so the loop
+        # touches only the unresolved ones instead of every photo for every entry.
+        rank = np.argsort(-cos, axis=1, kind="stable")                            # (v, P, M)
+        any_vis = seen[:, tex].any(axis=0) & (sl >= 0)                            # (v, r)
         val = np.zeros((vs.size, r, M, 3))
-        for p in range(Y.shape[0]):                                               # nearest seen photo per view
-            vis = seen[p, tex] & (sl >= 0)                                        # (v, r)
-            better = vis[:, :, None] & (cos[:, p][:, None, :] > best_cos)
-            best_cos = np.where(better, cos[:, p][:, None, :], best_cos)
-            val = np.where(better[..., None], radiance[p, tex][:, :, None, :], val)
-        any_vis = np.isfinite(best_cos[:, :, 0])
+        vi, ri, mi = np.nonzero(np.broadcast_to(any_vis[:, :, None], (vs.size, r, M)))
+        k = 0
+        while vi.size:
+            p = rank[vi, k, mi]
+            t = tex[vi, ri]
+            hit = seen[p, t]
+            val[vi[hit], ri[hit], mi[hit]] = radiance[p[hit], t[hit]]
+            vi, ri, mi = vi[~hit], ri[~hit], mi[~hit]
+            k += 1
         hat = g.slot_hat[np.maximum(sl, 0)]
         block = hat[:, :, None, None] * (val - diffuse[tex][:, :, None, :])
         block *= (any_vis[:, :, None] & mask[None, None, :])[..., None]
@@ -103,12 +110,7 @@ def _factor(problem: LFMProblem, method: str, iterations: int):
         matrix_bytes += int((sl >= 0).sum()) * M * 3 * 8
         Fc = np.moveaxis(F, 3, 1)                                                 # (v, 3, r, M)
         if method == "pca":
-            U, S, Vt = np.linalg.svd(Fc, full_matrices=False)
-            k = min(K, S.shape[-1])
-            W = np.zeros(Fc.shape[:3] + (K,))
-            W[..., :k] = U[..., :k] * S[..., None, :k]
-            Hm = np.zeros(Fc.shape[:2] + (K, M))
-            Hm[:, :, :k] = Vt[:, :, :k]
+            W, Hm = _truncated_svd(Fc, K)
         else:
             W, Hm = _nmf(np.maximum(Fc, 0.0), K, m, problem.R, iterations)
         ok = sl >= 0
@@ -121,6 +123,34 @@ def _factor(problem: LFMProblem, method: str, iterations: int):
                     "samples_bytes": int(Y.nbytes + E.nbytes), "matrix_bytes": matrix_bytes}
 
 
+def _truncated_svd(Fc: np.ndarray, K: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rank-K truncated SVD of each (r, M) matrix of (v, 3, r, M) through the smaller of its two Gram
+    matrices: M x M (F^T F: its top K eigenvectors are the view maps, unit norm, and F V_k = U_k S_k
+    the surface maps) for rings longer than the view map has texels, else r x r (F F^T: U_k, then
+    the view maps U_k^T F / S_k). A batched eigh of small symmetric matrices instead of the thin SVD
+    of the tall ones. The Gram matrix squares the condition number: singular values below ~1e-8 of
+    the largest lose their digits, far below any term K keeps."""
+    Ft = np.swapaxes(Fc, -1, -2)
+    r, M = Fc.shape[-2:]
+    k = min(K, r, M)
+    W = np.zeros(Fc.shape[:3] + (K,))
+    Hm = np.zeros(Fc.shape[:2] + (K, M))
+    if r > M:
+        _, vecs = np.linalg.eigh(Ft @ Fc)                                 # ascending eigenvalues
+        top = vecs[..., ::-1][..., :k]                                    # (v, 3, M, k)
+        W[..., :k] = Fc @ top
+        Hm[:, :, :k] = np.swapaxes(top, -1, -2)
+    else:
+        vals, vecs = np.linalg.eigh(Fc @ Ft)
+        top = vecs[..., ::-1][..., :k]                                    # (v, 3, r, k)
+        sv = np.sqrt(np.maximum(vals[..., ::-1][..., :k], 0.0))           # (v, 3, k)
+        proj = np.swapaxes(top, -1, -2) @ Fc                              # (v, 3, k, M) = S_k V_k^T
+        ok = sv > 0
+        Hm[:, :, :k] = np.where(ok[..., None], proj / np.where(ok, sv, 1.0)[..., None], 0.0)
+        W[..., :k] = top * sv[..., None, :]
+    return W, Hm
+
+
 def _nmf(Fc: np.ndarray, K: int, m: np.ndarray, res: int, iterations: int):
     """Lee-Seung multiplicative updates on (v, 3, r, M) non-negative matrices; (W, H) factors."""
     V, C, R, M = Fc.shape
@@ -131,9 +161,11 @@ def _nmf(Fc: np.ndarray, K: int, m: np.ndarray, res: int, iterations: int):
     Hm = np.broadcast_to(basis * m, (V, C, K, M)) * scale
     W = np.ones((V, C, R, K)) * scale * (Fc.sum(axis=3, keepdims=True) > 0)
     eps = 1e-12
-    for _ in range(int(iterations)):
-        Hm = Hm * (np.einsum("vcrk,vcrm->vckm", W, Fc) / (np.einsum("vcrk,vcrj,vcjm->vckm", W, W, Hm) + eps))
-        W = W * (np.einsum("vcrm,vckm->vcrk", Fc, Hm) / (np.einsum("vcrj,vcjm,vckm->vcrk", W, Hm, Hm) + eps))
+    for _ in range(int(iterations)):   # batched matrix products (K x K Gram matrices), not r x M ones
+        Wt = np.swapaxes(W, -1, -2)
+        Hm = Hm * ((Wt @ Fc) / ((Wt @ W) @ Hm + eps))
+        Ht = np.swapaxes(Hm, -1, -2)
+        W = W * ((Fc @ Ht) / (W @ (Hm @ Ht) + eps))
     return W, Hm
 
 

@@ -252,3 +252,137 @@ def test_pca_and_nmf_baselines(device):
     zero = pr.model_error(pr.new_G(), pr.new_H())  # the minimum alone
     # NMF of a rank-K + 1 matrix with K terms: a fraction of the minimum-only error is left
     assert nmf["relative_rms"] < 0.5 * zero["relative_rms"], (nmf, zero)
+
+
+def patch_vector(pr, G, H, v, c):
+    """Patch (v, c)'s parameters as one vector: its ring slots' surface-map entries, its view maps."""
+    g = pr.geom
+    slots = g.ring_slots[g.ring_start[v]:g.ring_start[v + 1]]
+    return np.concatenate([G[slots, :, c].reshape(-1), H[v, :, :, c].reshape(-1)])
+
+
+def test_lbfgs_two_loop_equals_dense_reference(device):
+    """The batched L-BFGS state (ring buffers, per patch and channel counts, rejected and
+    curvature-failing pairs skipped) gives per patch the direction of a plain numpy two-loop
+    recursion over that patch's own accepted pairs."""
+    from texstream.fit.lfm import PatchLBFGS
+
+    cfg = LFMConfig(terms=2, view_res=5, lookup="bilinear", laplacian=0.3)
+    pr, rng = tiny_problem(device, cfg, seed=5, photos=4)
+    memory = 3
+    lb = PatchLBFGS(pr, memory)
+    G, H = random_params(pr, rng)
+    mask = pr.mask_np[None, None, :, None]
+
+    def grad(G, H):
+        f, gG, gH = pr.new_patch(), pr.new_G(), pr.new_H()
+        pr.evaluate(pr.new_G(G), pr.new_H(H), f, gG, gH)
+        return gG.numpy().reshape(G.shape), gH.numpy().reshape(H.shape)
+
+    gG, gH = grad(G, H)
+    lb.reset(pr.new_G(gG), pr.new_H(gH))
+    pairs = {(v, c): [] for v in range(pr.V) for c in range(3)}
+    gamma = {}
+    for v in range(pr.V):
+        for c in range(3):
+            n = np.linalg.norm(patch_vector(pr, gG, gH, v, c))
+            gamma[v, c] = 1.0 / n if n > 0 else 0.0
+    for it in range(6):   # more pushes than the memory: the ring wraps
+        TG = G + 0.05 * rng.normal(size=G.shape)
+        TH = H + 0.05 * rng.normal(size=H.shape) * mask
+        tgG, tgH = grad(TG, TH)
+        acc = (rng.uniform(size=(pr.V, 3)) < 0.75).astype(np.float64)
+        alpha = np.ones((pr.V, 3))   # every channel took a step (no restart)
+        lb.push(pr.new_G(G), pr.new_G(TG), pr.new_G(gG), pr.new_G(tgG), pr.new_H(H), pr.new_H(TH), pr.new_H(gH),
+                pr.new_H(tgH), wp_vec3(pr, acc), wp_vec3(pr, alpha))
+        for v in range(pr.V):
+            for c in range(3):
+                if not acc[v, c]:
+                    continue
+                s = patch_vector(pr, TG, TH, v, c) - patch_vector(pr, G, H, v, c)
+                y = patch_vector(pr, tgG, tgH, v, c) - patch_vector(pr, gG, gH, v, c)
+                if s @ y > 0 and y @ y > 0:
+                    pairs[v, c] = (pairs[v, c] + [(s, y)])[-memory:]
+                    gamma[v, c] = (s @ y) / (y @ y)
+        # adopt the accepted trials per patch
+        sv = pr.geom.slot_vertex
+        G = np.where(acc[sv][:, None, :] > 0, TG, G)
+        gG = np.where(acc[sv][:, None, :] > 0, tgG, gG)
+        H = np.where(acc[:, None, None, :] > 0, TH, H)
+        gH = np.where(acc[:, None, None, :] > 0, tgH, gH)
+    DG, DH = pr.new_G(), pr.new_H()
+    lb.direction(pr.new_G(gG), pr.new_H(gH), DG, DH)
+    DG, DH = DG.numpy().reshape(G.shape), DH.numpy().reshape(H.shape)
+    used = 0
+    for v in range(pr.V):
+        for c in range(3):
+            q = patch_vector(pr, gG, gH, v, c) * np.concatenate(
+                [np.ones(len(patch_vector(pr, gG, gH, v, c)) - pr.K * pr.M), np.tile(pr.mask_np, pr.K)])
+            a = []
+            for s, y in reversed(pairs[v, c]):
+                a.append((s @ q) / (s @ y))
+                q = q - a[-1] * y
+            r = gamma[v, c] * q * np.concatenate([np.ones(len(q) - pr.K * pr.M), np.tile(pr.mask_np, pr.K)])
+            for (s, y), ai in zip(pairs[v, c], reversed(a)):
+                r = r + (ai - (y @ r) / (s @ y)) * s
+            used += len(pairs[v, c]) == memory
+            # the same sums in another order (fp64): rounding only, 1e-9 relative to the direction's size
+            np.testing.assert_allclose(patch_vector(pr, DG, DH, v, c), -r, rtol=1e-9,
+                                       atol=1e-9 * max(np.abs(r).max(), 1e-300))
+    assert used > 0, "some patch should have a full (wrapped) history"
+
+
+def wp_vec3(pr, a):
+    import warp as wp
+
+    return wp.array(np.ascontiguousarray(a, np.float64), dtype=wp.vec3d, device=pr.device)
+
+
+@pytest.mark.parametrize("step,bar", [("hessian", 1e-4), ("backtrack", 1e-3)])
+def test_lbfgs_recovers_exact_rank_k(device, step, bar):
+    """L-BFGS per patch with the Hessian step reaches the issue's < 1e-4 relative error on the exactly
+    rank-2 light field in 150 iterations (measured 1.9e-10); with the unit quasi-Newton step and
+    backtracking (no curvature pass, half the passes) it is slower: measured 3.1e-4 after 150 and
+    5.7e-5 after 300, so 1e-3 here. Per-patch acceptance keeps the objective from rising."""
+    cfg = LFMConfig(terms=2, view_res=8, lookup="nearest", laplacian=0.0, iterations=150, rel_tol=0.0,
+                    sync_every=10, optimizer="lbfgs", step=step)
+    pr = rank_k_case(device, 2, cfg)
+    res = fit_lfm(pr)
+    err = pr.model_error(pr.new_G(res.params.G), pr.new_H(res.params.H))
+    assert err["relative_rms"] < bar, err
+    objs = [t["objective"] for t in res.trace]
+    # as in the CG test: acceptance never raises E; the gauge balancing re-evaluates it (rounding)
+    assert all(b <= a * (1 + 1e-12) + 1e-24 * objs[0] for a, b in zip(objs, objs[1:]))
+
+
+@pytest.mark.parametrize("rows", [5, 90])
+def test_gram_truncated_svd_equals_numpy_svd(rows):
+    """PCA's rank-K factorization through the smaller Gram matrix (r x r for short rings, M x M for
+    long ones) gives numpy's thin-SVD rank-K approximation."""
+    from texstream.fit.lfm_baselines import _truncated_svd
+
+    rng = np.random.default_rng(7)
+    F = rng.normal(size=(4, 3, rows, 16))
+    W, Hm = _truncated_svd(F, 2)
+    U, S, Vt = np.linalg.svd(F, full_matrices=False)
+    ref = np.einsum("vcrk,vck,vckm->vcrm", U[..., :2], S[..., :2], Vt[..., :2, :])
+    # eigh of the Gram matrix squares the condition number; with well separated singular values
+    # (random Gaussian matrices) the rank-2 product agrees to ~1e-13 of its O(1) entries: 1e-10 here
+    np.testing.assert_allclose(np.einsum("vcrk,vckm->vcrm", W, Hm), ref, atol=1e-10)
+    np.testing.assert_allclose(np.linalg.norm(Hm, axis=-1), 1.0, rtol=1e-12)   # unit view maps, as PCA's
+
+
+@pytest.mark.parametrize("optimizer", ["cg", "lbfgs"])
+def test_objective_never_rises_with_the_laplacian(device, optimizer):
+    """With the view-map Laplacian the objective is not invariant under the g h gauge (h / c costs
+    1 / c^2 of the Laplacian), so the gauge balancing only shrinks view maps: with per-patch acceptance
+    the objective read at every iteration never rises (an equalising balance raised it by ~40% each
+    time on the star, undoing ten iterations)."""
+    cfg = LFMConfig(terms=2, view_res=6, laplacian=2.0, iterations=40, rel_tol=0.0, sync_every=1, balance_every=4,
+                    optimizer=optimizer)
+    pr, _ = tiny_problem(device, cfg, seed=11, photos=8)
+    res = fit_lfm(pr)
+    objs = [t["objective"] for t in res.trace]
+    # rounding only: the balancing re-evaluates E in another summation order (1e-12 relative)
+    assert all(b <= a * (1 + 1e-12) for a, b in zip(objs, objs[1:])), objs
+    assert objs[-1] < 0.5 * objs[0]
