@@ -41,8 +41,8 @@ LABELS = {"texstream": "texstream (LM, filtered)", "texstream_bilinear": "texstr
           "scipy": "scipy two-step (MINPACK LM per texel)", "scipy_blocks": "scipy two-step (sparse trf blocks)",
           "torch_adam": "PyTorch Adam", "torch_lbfgs": "PyTorch L-BFGS", "mitsuba": "Mitsuba 3 (principled, Adam)"}
 # iteration budgets: long enough that every method passes its held-out peak (docs/peers.md)
-BUDGETS = {"quick": {"texstream": 8, "texstream_bilinear": 8, "scipy": 50, "scipy_blocks": 30, "torch_adam": 60,
-                     "torch_lbfgs": 30, "mitsuba": 20},
+BUDGETS = {"quick": {"texstream": 6, "texstream_bilinear": 6, "scipy": 30, "scipy_blocks": 30, "torch_adam": 40,
+                     "torch_lbfgs": 20, "mitsuba": 15},
            "full": {"texstream": 30, "texstream_bilinear": 30, "scipy": 100, "scipy_blocks": 100, "torch_adam": 300,
                     "torch_lbfgs": 100, "mitsuba": 100}}
 
@@ -98,6 +98,39 @@ def worker(a) -> None:
     Path(a.worker_out).write_text(json.dumps(out))
 
 
+def run_in_process(results: dict, datasets: list, methods: list, budgets: dict, a) -> None:
+    """``--quick``: every method in this process (no per-method memory figures)."""
+    import traceback
+
+    import warp as wp
+
+    from common import load_data
+
+    wp.config.log_level = wp.LOG_WARNING
+    wp.config.quiet = True
+    try:
+        import torch
+
+        torch.set_num_threads(1)
+    except ImportError:
+        pass
+    for ds in datasets:
+        data = load_data(ds, a.scale, a.photos, device=a.device)
+        runs = results["datasets"].setdefault(ds, {})
+        for m in methods:
+            t0 = time.perf_counter()
+            try:
+                runs[m] = run_method(m, data, a.device, budgets.get(m, 30), True)
+                runs[m]["process_s"] = time.perf_counter() - t0
+            except Exception:  # noqa: BLE001  (a peer that fails is reported, the others still run)
+                runs[m] = {"error": traceback.format_exc()[-2000:]}
+            summarise(results)
+            s = runs[m].get("summary") or {}
+            print(f"{ds:7s} {m:20s} {time.perf_counter() - t0:6.1f} s  best held-out "
+                  f"{s.get('best_heldout_psnr_db') or float('nan'):6.2f} dB"
+                  + ("" if "error" not in runs[m] else f"  FAILED: {runs[m]['error'][-300:]}"), flush=True)
+
+
 def summarise(results: dict) -> None:
     from common import summarise_trace
 
@@ -114,27 +147,36 @@ def summarise(results: dict) -> None:
             s = r.get("summary", {})
             t = s.get("time_to_texstream_target_s")
             s["texstream_speedup_to_its_target"] = None if (t is None or not t_ts) else t / t_ts
+            # the same comparison at the peer's own stopping PSNR: when texstream first reaches it
+            if ts and "trace" in ts and s.get("heldout_psnr_at_stop_db") is not None:
+                hit = next((x for x in ts["trace"] if x["heldout_psnr_db"] >= s["heldout_psnr_at_stop_db"]), None)
+                s["texstream_time_to_this_psnr_s"] = None if hit is None else hit["time_s"]
+                s["texstream_speedup_to_this_psnr"] = (None if hit is None or not hit["time_s"]
+                                                       else s["time_to_own_best_s"] / hit["time_s"])
 
 
 def table(results: dict) -> str:
     rows = ["| data | method | device | time to own best -0.1 dB (s) | held-out PSNR there (dB) | worst view (dB) "
             "| best held-out (dB) | final held-out (dB) | time to texstream's PSNR (s) | texstream faster by "
-            "| peak host (MB) | peak device (MB) |",
-            "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+            "| texstream's time to this PSNR (s) | texstream faster by | peak host (MB) | peak device (MB) |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     f = lambda x, p=2: "-" if x is None else (f"{x:.{p}f}" if isinstance(x, float) else str(x))  # noqa: E731
     for ds, runs in results["datasets"].items():
         for name, r in runs.items():
             s = r.get("summary")
             if s is None:
                 rows.append(f"| {ds} | {LABELS.get(name, name)} | {results['device']} | failed: {r.get('error', '?')[:80]} "
-                            "| | | | | | | | |")
+                            "| | | | | | | | | | |")
                 continue
             sp = s.get("texstream_speedup_to_its_target")
+            sp_own = s.get("texstream_speedup_to_this_psnr")
+            faster = "not reached" if sp is None and name != "texstream" else ("-" if sp is None else f"{sp:.1f}x")
+            faster_own = "-" if sp_own is None else f"{sp_own:.1f}x"
             rows.append(f"| {ds} | {LABELS.get(name, name)} | {results['device']} | {f(s['time_to_own_best_s'])} "
                         f"| {f(s['heldout_psnr_at_stop_db'])} | {f(s['worst_view_at_stop_db'])} "
                         f"| {f(s['best_heldout_psnr_db'])} | {f(s['final_heldout_psnr_db'])} "
-                        f"| {f(s.get('time_to_texstream_target_s'))} | "
-                        f"{'not reached' if sp is None and name != 'texstream' else ('-' if sp is None else f'{sp:.1f}x')} "
+                        f"| {f(s.get('time_to_texstream_target_s'))} | {faster} "
+                        f"| {f(s.get('texstream_time_to_this_psnr_s'))} | {faster_own} "
                         f"| {f(r.get('peak_host_mb'), 0)} | {f(r.get('peak_device_mb'), 0)} |")
     return "\n".join(rows)
 
@@ -191,9 +233,14 @@ def main(argv=None) -> int:
     ap.add_argument("--dataset", default="clean", help=argparse.SUPPRESS)
     ap.add_argument("--iterations", type=int, default=0, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
-    if a.plot_only:
+    if a.plot_only:  # re-summarise, table and plot from a finished run's JSON
         p = Path(a.plot_only)
-        plot(json.loads(p.read_text()), p.parent)
+        results = json.loads(p.read_text())
+        summarise(results)
+        p.write_text(json.dumps(results, indent=1))
+        (p.parent / "peers_table.md").write_text(table(results) + "\n")
+        plot(results, p.parent)
+        print(table(results))
         return 0
     cuda = a.device.startswith("cuda")
     if a.scale is None:
@@ -223,6 +270,9 @@ def main(argv=None) -> int:
     if not cuda:  # one thread per method (see the module doc)
         env.update(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
     t_all = time.perf_counter()
+    if a.quick:  # one process, the data rendered once: seconds, not memory figures
+        run_in_process(results, datasets, methods, budgets, a)
+        methods = []
     for ds in datasets:
         runs = results["datasets"].setdefault(ds, {})
         for m in methods:

@@ -1,0 +1,46 @@
+"""The peers of benchmarks/peers/ (issue 19) still run: ``run.py --quick`` on the toy ornament.
+
+Asserts only that each peer works on the toy case (scale 0.01, 120 photos: 105 fitted, 15 held out,
+968 texels, clean photos), not how fast it is (speed lives in the benchmark's JSON and docs/peers.md).
+CPU only: the scipy peer has no GPU path, and the GPU study is one command run on the GPU machine.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+# scipy, torch and mitsuba come with the test extra (pyproject.toml): no skip when they are missing, the
+# test fails instead, so CI cannot pass without running the peers
+
+
+def test_every_peer_fits_the_toy_ornament(tmp_path):
+    sys.path.insert(0, str(ROOT / "benchmarks" / "peers"))
+    try:
+        import run as peers_run
+
+        peers_run.main(["--quick", "--out", str(tmp_path)])
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks" / "peers"))
+    res = json.loads((tmp_path / "peers.json").read_text())
+    runs = res["datasets"]["clean"]
+    assert set(runs) == set(peers_run.METHODS)
+    for name, r in runs.items():
+        assert "error" not in r, f"{name} failed: {r.get('error')}"
+        tr = r["trace"]
+        best = max(x["heldout_psnr_db"] for x in tr)
+        if name == "mitsuba":
+            # its own BSDF and start (no lobe): the held-out PSNR must rise above its start by 1 dB
+            # (measured +2.7 dB; a broken gradient, UV or camera convention leaves it at or below the start)
+            assert best >= tr[0]["heldout_psnr_db"] + 1.0, (name, best, tr[0]["heldout_psnr_db"])
+            continue
+        # the Lafortune peers start from texstream's percentile guess, 29.8 dB held out on this toy case
+        # (every fit's later lobes lose held-out PSNR: too few photos per texel); a broken sample, model or
+        # scoring path scores far below it (a wrong light or frame convention: < 20 dB)
+        assert best >= 29.5, (name, best)
+        # the optimizer works: the fitted samples' PSNR rises at least 3 dB above the start (measured
+        # +3.8 dB for L-BFGS, which stalls at the bounds, to +8 dB for texstream's LM)
+        assert tr[-1]["train_psnr_db"] >= tr[0]["train_psnr_db"] + 3.0, (name, tr[0]["train_psnr_db"],
+                                                                          tr[-1]["train_psnr_db"])
