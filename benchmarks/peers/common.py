@@ -333,13 +333,18 @@ class Recorder:
         return out
 
 
-def sample_psnr(samples: Samples, layout, lobe_albedo_max: float):
-    """``psnr(params)``: PSNR (peak 1) of the radiance-space residuals of all samples (the fitted data)."""
-    u, v = samples.u.astype(np.float64), samples.v.astype(np.float64)
+def sample_psnr(samples: Samples, layout, lobe_albedo_max: float, max_samples: int = 200_000):
+    """``psnr(params)``: PSNR (peak 1) of the radiance-space residuals of the fitted samples (a fixed random
+    subset of ``max_samples`` when there are more: the GPU study has ~10^7, scored at every snapshot)."""
+    pick = np.arange(samples.y.shape[0])
+    if pick.size > max_samples:
+        pick = np.sort(np.random.default_rng(0).choice(pick, max_samples, replace=False))
+    u, v = samples.u[pick].astype(np.float64), samples.v[pick].astype(np.float64)
+    w, y, texel = samples.w[pick], samples.y[pick], samples.texel[pick]
 
     def psnr(params: np.ndarray) -> float:
-        m = projected_model(params[samples.texel], layout, u, v, lobe_albedo_max)
-        mse = float(np.mean((samples.w * m - samples.y) ** 2))
+        m = projected_model(params[texel], layout, u, v, lobe_albedo_max)
+        mse = float(np.mean((w * m - y) ** 2))
         return 10 * math.log10(1.0 / mse) if mse > 0 else float("inf")
 
     return psnr
