@@ -145,7 +145,7 @@ def run(data, device: str, iterations: int, views_per_step: int = 8, lr: float =
     warp_device = device if device.startswith("cuda") else "cpu"
     if not device.startswith("cuda"):
         dr.set_thread_count(1)  # one core, like Warp's CPU kernels and the other CPU peers (docs/peers.md)
-    cfg = fit_config("bilinear")
+    cfg = fit_config(data, "bilinear")
     prob = build_problem(data, cfg, warp_device)
     lay = prob.layout
     bake = data.scene.bake

@@ -101,7 +101,7 @@ def run(data, device: str, mode: str = "per_texel", batch: int = 0, max_nfev: in
     from scipy.optimize import least_squares
     from texstream.fit.fitter import initial_guess
 
-    cfg = fit_config("bilinear")
+    cfg = fit_config(data, "bilinear")
     prob = build_problem(data, cfg, device)
     lay = prob.layout
     check_supported(lay)

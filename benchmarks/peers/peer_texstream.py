@@ -19,7 +19,7 @@ def run(data, device: str, iterations: int, photo_sampling: str = "filtered") ->
 
     import warp as wp
 
-    cfg = fit_config(photo_sampling, max_iterations=iterations, sync_every=100000, rel_tol=0.0)
+    cfg = fit_config(data, photo_sampling, max_iterations=iterations, sync_every=100000, rel_tol=0.0)
     prob = build_problem(data, cfg, device)
     run_fit(prob, dataclasses.replace(cfg, max_iterations=1))  # compile / warm up
     prob.passes = 0

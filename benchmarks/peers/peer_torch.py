@@ -104,7 +104,7 @@ def run(data, device: str, optimizer: str, iterations: int, compile: bool = Fals
     from texstream.fit.fitter import initial_guess
 
     warp_device = device if device.startswith("cuda") else "cpu"
-    cfg = fit_config("bilinear")
+    cfg = fit_config(data, "bilinear")
     prob = build_problem(data, cfg, warp_device)
     lay = prob.layout
     check_supported(lay)
