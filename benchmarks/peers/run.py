@@ -8,7 +8,7 @@
 Methods (``--methods``; docs/peers.md says what each is and how a stronger version would differ):
 ``texstream`` (its default fit: LM, filtered photo sampling), ``texstream_bilinear`` (the same fit on
 the peers' bilinear samples), ``scipy`` (two-step, MINPACK LM per texel; ``scipy_blocks``: sparse
-block-diagonal trf, not in the default list: 50x slower on the toy case), ``torch_adam``,
+block-diagonal trf, not in the default list: 16x slower on the toy case, docs/peers.md), ``torch_adam``,
 ``torch_lbfgs``, ``mitsuba`` (differentiable rendering, principled BSDF).
 
 Data: the synthetic ornament at ``--scale`` with ``--photos`` photos, ``--datasets`` clean (float,
