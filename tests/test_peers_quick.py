@@ -24,6 +24,8 @@ def test_every_peer_fits_the_toy_ornament(tmp_path):
         peers_run.main(["--quick", "--out", str(tmp_path)])
     finally:
         sys.path.remove(str(ROOT / "benchmarks" / "peers"))
+        for name in ("run", "common", "peer_texstream", "peer_scipy", "peer_torch", "peer_mitsuba"):
+            sys.modules.pop(name, None)  # generic names: leave no trace for other tests
     res = json.loads((tmp_path / "peers.json").read_text())
     runs = res["datasets"]["clean"]
     assert set(runs) == set(peers_run.METHODS)

@@ -424,7 +424,7 @@ class DeviceMemoryPoller:
             self.nvml.nvmlDeviceGetHandleByIndex_v2(index, ctypes.byref(self.handle))
             self.base = self._used()
             self.ok = True
-        except OSError:
+        except (OSError, AttributeError):  # no NVML (driver library or symbol): no device figure
             return
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self._run, daemon=True)
