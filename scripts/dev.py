@@ -60,6 +60,28 @@ def ensure_browser() -> None:
                     env=dict(os.environ, DEBIAN_FRONTEND="noninteractive"))
 
 
+def ensure_llvm() -> None:
+    """libLLVM 16 or newer for Mitsuba 3's CPU backend (Dr.Jit's LLVM variant; the peers' test): Debian 12's
+    default LLVM (14, 15) cannot compile its kernels ("Cannot select fminimum"), so its libllvm19 is
+    installed (root only). benchmarks/peers/peer_mitsuba.py points Dr.Jit at the newest libLLVM found."""
+    import glob
+    import re
+    import shutil
+
+    versions = [int(m.group(1)) for p in glob.glob("/usr/lib/*-linux-gnu/libLLVM*.so*") + glob.glob("/usr/lib/llvm-*/lib/libLLVM*.so*")
+                if (m := re.search(r"LLVM[-.](?:so\.)?(\d+)", p))]
+    if (versions and max(versions) >= 16) or not shutil.which("apt-get"):
+        return
+    if hasattr(os, "geteuid") and os.geteuid() != 0:
+        print("[dev] libLLVM >= 16 is missing and this is not root: the Mitsuba peer's test will fail "
+              "(sudo apt-get install libllvm19)", flush=True)
+        return
+    print("[dev] installing libllvm19 (Debian package) for Mitsuba's CPU backend (the peers' test)", flush=True)
+    subprocess.call(["apt-get", "update", "-qq"])
+    subprocess.call(["apt-get", "install", "-y", "-qq", "--no-install-recommends", "libllvm19"],
+                    env=dict(os.environ, DEBIAN_FRONTEND="noninteractive"))
+
+
 def main() -> int:
     verb = sys.argv[1] if len(sys.argv) > 1 else "help"
     extra = sys.argv[2:]
@@ -72,6 +94,7 @@ def main() -> int:
         cmd = [str(BIN / "texstream"), "run", *(extra or ["--out", str(ROOT / "out" / "demo")])]
     else:
         ensure_browser()
+        ensure_llvm()
         # two workers: Warp's CPU launches use one core each (pytest-xdist)
         cmd = [str(PY), "-m", "pytest", "-q", "-rs", *(extra or ["-n", "2"])]
     print("[dev] " + " ".join(cmd), flush=True)

@@ -1,0 +1,305 @@
+"""texstream against the tools users would pick instead: held-out error against run time (JSON + PNG).
+
+    python benchmarks/peers/run.py --quick                                   # every CPU peer, toy size
+    python benchmarks/peers/run.py --out out/peers_cpu                       # the CPU study (small ornament)
+    python benchmarks/peers/run.py --device cuda:0 --out $OUT/peers_h100     # the GPU study (one H100)
+    python benchmarks/peers/run.py --plot-only out/peers_cpu/peers.json      # replot
+
+Methods (``--methods``; docs/peers.md says what each is and how a stronger version would differ):
+``texstream`` (its default fit: LM, filtered photo sampling), ``texstream_bilinear`` (the same fit on
+the peers' bilinear samples), ``scipy`` (two-step, MINPACK LM per texel; ``scipy_blocks``: sparse
+block-diagonal trf, not in the default list: 16x slower on the toy case, docs/peers.md), ``torch_adam``,
+``torch_lbfgs``, ``mitsuba`` (differentiable rendering, principled BSDF).
+
+Data: the synthetic ornament at ``--scale`` with ``--photos`` photos, ``--datasets`` clean (float,
+noise-free) and noisy8 (8-bit sRGB, camera noise sigma 0.01), every 8th photo held out. Each method
+runs in its own process (``--worker``; one CPU thread each on the CPU: OMP/MKL threads 1, torch 1
+thread, Dr.Jit 1 thread, like Warp's CPU kernels) so its peak host memory (ru_maxrss) and peak device
+memory (NVML, the whole GPU above the level at process start) are its own.
+
+Reported per method and data set: the held-out pooled PSNR trace against wall time (set-up that every
+method shares, rendering the data and building texstream's photo set, is not timed; resampling, the
+initial guess and the fit are), the best held-out PSNR, the time to within 0.1 dB of it (the stopping
+rule), the time to texstream's stopping PSNR (texstream's best - 0.1 dB) and the peak memory.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+METHODS = ("texstream", "texstream_bilinear", "scipy", "torch_adam", "torch_lbfgs", "mitsuba")
+LABELS = {"texstream": "texstream (LM, filtered)", "texstream_bilinear": "texstream (LM, bilinear samples)",
+          "scipy": "scipy two-step (MINPACK LM per texel)", "scipy_blocks": "scipy two-step (sparse trf blocks)",
+          "torch_adam": "PyTorch Adam", "torch_lbfgs": "PyTorch L-BFGS", "mitsuba": "Mitsuba 3 (principled, Adam)"}
+# iteration budgets: long enough that every method passes its held-out peak (docs/peers.md)
+BUDGETS = {"quick": {"texstream": 6, "texstream_bilinear": 6, "scipy": 30, "scipy_blocks": 30, "torch_adam": 40,
+                     "torch_lbfgs": 20, "mitsuba": 15},
+           "full": {"texstream": 30, "texstream_bilinear": 30, "scipy": 100, "scipy_blocks": 100, "torch_adam": 300,
+                    "torch_lbfgs": 100, "mitsuba": 100}}
+
+
+def run_method(method: str, data, device: str, iterations: int, quick: bool) -> dict:
+    if method in ("texstream", "texstream_bilinear"):
+        import peer_texstream
+
+        return peer_texstream.run(data, device, iterations, "filtered" if method == "texstream" else "bilinear")
+    if method in ("scipy", "scipy_blocks"):
+        import peer_scipy
+
+        if device != "cpu":
+            raise SystemExit("the scipy peer runs on the CPU only")
+        return peer_scipy.run(data, device, "per_texel" if method == "scipy" else "blocks",
+                              batch=256, max_nfev=iterations)
+    if method in ("torch_adam", "torch_lbfgs"):
+        import peer_torch
+
+        return peer_torch.run(data, device, method.split("_")[1], iterations)
+    if method == "mitsuba":
+        import peer_mitsuba
+
+        return peer_mitsuba.run(data, device, iterations, views_per_step=4 if quick else 8)
+    raise SystemExit(f"unknown method {method!r}: use {', '.join(METHODS)} or scipy_blocks")
+
+
+def worker(a) -> None:
+    """One method on one data set in this process; writes its JSON to ``a.worker_out``."""
+    from common import DeviceMemoryPoller, host_rss_mb, load_data, peak_host_mb
+
+    poller = DeviceMemoryPoller(a.device)
+    if a.device == "cpu":
+        try:
+            import torch
+
+            torch.set_num_threads(1)
+        except ImportError:
+            pass
+    import warp as wp
+
+    wp.config.log_level = wp.LOG_WARNING
+    wp.config.quiet = True
+    t0 = time.perf_counter()
+    data = load_data(a.dataset, a.scale, a.photos, device=a.device)
+    rss_data = host_rss_mb()
+    out = run_method(a.worker, data, a.device, a.iterations, a.quick)
+    out.update({"method": a.worker, "dataset": a.dataset, "iterations_budget": a.iterations,
+                "peak_host_mb": peak_host_mb(), "host_mb_after_data": rss_data,
+                "peak_device_mb": poller.result_mb(), "process_s": time.perf_counter() - t0,
+                "train_photos": len(data.train_frames), "held_photos": len(data.held_frames),
+                "image_size": list(data.train_images[0].shape[:2])})
+    Path(a.worker_out).write_text(json.dumps(out))
+
+
+def run_in_process(results: dict, datasets: list, methods: list, budgets: dict, a) -> None:
+    """``--quick``: every method in this process (no per-method memory figures)."""
+    import traceback
+
+    import warp as wp
+
+    from common import load_data
+
+    wp.config.log_level = wp.LOG_WARNING
+    wp.config.quiet = True
+    try:
+        import torch
+
+        torch.set_num_threads(1)
+    except ImportError:
+        pass
+    for ds in datasets:
+        data = load_data(ds, a.scale, a.photos, device=a.device)
+        runs = results["datasets"].setdefault(ds, {})
+        for m in methods:
+            t0 = time.perf_counter()
+            try:
+                runs[m] = run_method(m, data, a.device, budgets.get(m, 30), True)
+                runs[m]["process_s"] = time.perf_counter() - t0
+            except Exception:  # noqa: BLE001  (a peer that fails is reported, the others still run)
+                runs[m] = {"error": traceback.format_exc()[-2000:]}
+            summarise(results)
+            s = runs[m].get("summary") or {}
+            print(f"{ds:7s} {m:20s} {time.perf_counter() - t0:6.1f} s  best held-out "
+                  f"{s.get('best_heldout_psnr_db') or float('nan'):6.2f} dB"
+                  + ("" if "error" not in runs[m] else f"  FAILED: {runs[m]['error'][-300:]}"), flush=True)
+
+
+def summarise(results: dict) -> None:
+    from common import summarise_trace
+
+    for ds, runs in results["datasets"].items():
+        ts = runs.get("texstream")
+        own = summarise_trace(ts["trace"]) if ts and "trace" in ts else {}
+        target = None if not own.get("best_heldout_psnr_db") else own["best_heldout_psnr_db"] - 0.1
+        results.setdefault("texstream_target_db", {})[ds] = target
+        for name, r in runs.items():
+            if "trace" in r:
+                r["summary"] = summarise_trace(r["trace"], target)
+        t_ts = own.get("time_to_own_best_s")
+        for name, r in runs.items():
+            s = r.get("summary", {})
+            t = s.get("time_to_texstream_target_s")
+            s["texstream_speedup_to_its_target"] = None if (t is None or not t_ts) else t / t_ts
+            # the same comparison at the peer's own stopping PSNR: when texstream first reaches it
+            if ts and "trace" in ts and s.get("heldout_psnr_at_stop_db") is not None:
+                hit = next((x for x in ts["trace"] if x["heldout_psnr_db"] >= s["heldout_psnr_at_stop_db"]), None)
+                s["texstream_time_to_this_psnr_s"] = None if hit is None else hit["time_s"]
+                s["texstream_speedup_to_this_psnr"] = (None if hit is None or not hit["time_s"]
+                                                       else s["time_to_own_best_s"] / hit["time_s"])
+
+
+def table(results: dict) -> str:
+    rows = ["| data | method | device | time to own best -0.1 dB (s) | held-out PSNR there (dB) | worst view (dB) "
+            "| best held-out (dB) | final held-out (dB) | time to texstream's PSNR (s) | texstream faster by "
+            "| texstream's time to this PSNR (s) | texstream faster by | peak host (MB) | peak device (MB) |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    f = lambda x, p=2: "-" if x is None else (f"{x:.{p}f}" if isinstance(x, float) else str(x))  # noqa: E731
+    for ds, runs in results["datasets"].items():
+        for name, r in runs.items():
+            s = r.get("summary")
+            if s is None:
+                rows.append(f"| {ds} | {LABELS.get(name, name)} | {results['device']} | failed: {r.get('error', '?')[:80]} "
+                            "| | | | | | | | | | |")
+                continue
+            sp = s.get("texstream_speedup_to_its_target")
+            sp_own = s.get("texstream_speedup_to_this_psnr")
+            faster = "not reached" if sp is None and name != "texstream" else ("-" if sp is None else f"{sp:.1f}x")
+            faster_own = "-" if sp_own is None else f"{sp_own:.1f}x"
+            rows.append(f"| {ds} | {LABELS.get(name, name)} | {results['device']} | {f(s['time_to_own_best_s'])} "
+                        f"| {f(s['heldout_psnr_at_stop_db'])} | {f(s['worst_view_at_stop_db'])} "
+                        f"| {f(s['best_heldout_psnr_db'])} | {f(s['final_heldout_psnr_db'])} "
+                        f"| {f(s.get('time_to_texstream_target_s'))} | {faster} "
+                        f"| {f(s.get('texstream_time_to_this_psnr_s'))} | {faster_own} "
+                        f"| {f(r.get('peak_host_mb'), 0)} | {f(r.get('peak_device_mb'), 0)} |")
+    return "\n".join(rows)
+
+
+def plot(results: dict, out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ds_names = list(results["datasets"])
+    fig, axes = plt.subplots(1, len(ds_names), figsize=(6.5 * len(ds_names), 4.5), squeeze=False)
+    for ax, ds in zip(axes[0], ds_names):
+        for name, r in results["datasets"][ds].items():
+            if "trace" not in r:
+                continue
+            t = [max(x["time_s"], 1e-3) for x in r["trace"]]
+            ax.semilogx(t, [x["heldout_psnr_db"] for x in r["trace"]], "o-", ms=2, label=LABELS.get(name, name))
+        tgt = results.get("texstream_target_db", {}).get(ds)
+        if tgt:
+            ax.axhline(tgt, color="k", lw=0.6, ls="--", label="texstream's stopping PSNR")
+        ax.set_xlabel("wall time (s, log)")
+        ax.set_ylabel("held-out pooled PSNR (dB)")
+        ax.set_title(f"{ds}: ornament x{results['scale']}, {results.get('photos_total')} photos")
+        ax.legend(fontsize=7)
+    fig.suptitle(f"held-out error against run time on {results['device']} ({results['machine']}), "
+                 f"commit {results['commit']}", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(out / "peers.png", dpi=110)
+    plt.close(fig)
+
+
+def commit() -> str:
+    try:
+        return subprocess.check_output(["git", "rev-parse", "--short", "HEAD"], cwd=HERE, text=True).strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="toy size (scale 0.01, 120 photos), clean data, short budgets")
+    ap.add_argument("--device", default="cpu", help="cpu or cuda:N")
+    ap.add_argument("--scale", type=float, default=None, help="ornament scale (default 0.02 on the CPU, 0.25 on CUDA)")
+    ap.add_argument("--photos", type=int, default=None,
+                    help="photos before the hold-out split (default 880 on the CPU, 1760 on CUDA; 120 quick)")
+    ap.add_argument("--datasets", default=None, help="comma list of clean, noisy8 (default both; quick: clean)")
+    ap.add_argument("--methods", default=None, help=f"comma list (default: {','.join(METHODS)}; scipy is CPU only)")
+    ap.add_argument("--out", default="out/peers")
+    ap.add_argument("--timeout", type=float, default=900.0, help="seconds per method before it is stopped")
+    ap.add_argument("--plot-only", default=None)
+    ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--worker-out", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--dataset", default="clean", help=argparse.SUPPRESS)
+    ap.add_argument("--iterations", type=int, default=0, help=argparse.SUPPRESS)
+    a = ap.parse_args(argv)
+    if a.plot_only:  # re-summarise, table and plot from a finished run's JSON
+        p = Path(a.plot_only)
+        results = json.loads(p.read_text())
+        summarise(results)
+        p.write_text(json.dumps(results, indent=1))
+        (p.parent / "peers_table.md").write_text(table(results) + "\n")
+        plot(results, p.parent)
+        print(table(results))
+        return 0
+    cuda = a.device.startswith("cuda")
+    if a.scale is None:
+        a.scale = 0.01 if a.quick else (0.25 if cuda else 0.02)
+    if a.photos is None:
+        a.photos = 120 if a.quick else (1760 if cuda else 880)
+    if a.worker:
+        worker(a)
+        return 0
+    from common import machine
+
+    datasets = (a.datasets or ("clean" if a.quick else "clean,noisy8")).split(",")
+    methods = (a.methods or ",".join(m for m in METHODS if not (cuda and m == "scipy"))).split(",")
+    budgets = BUDGETS["quick" if a.quick else "full"]
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    results = {"device": a.device, "scale": a.scale, "photos_total": a.photos, "quick": a.quick, "machine": machine(),
+               "commit": commit(), "date": time.strftime("%Y-%m-%d"), "budgets": budgets,
+               "command": " ".join([Path(sys.executable).name, *sys.argv]), "datasets": {}}
+    if cuda:
+        import shutil
+
+        if shutil.which("nvidia-smi"):
+            results["gpu"] = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"],
+                                            capture_output=True, text=True).stdout.strip()
+    env = dict(os.environ)
+    if not cuda:  # one thread per method (see the module doc)
+        env.update(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
+    t_all = time.perf_counter()
+    if a.quick:  # one process, the data rendered once: seconds, not memory figures
+        run_in_process(results, datasets, methods, budgets, a)
+        methods = []
+    for ds in datasets:
+        runs = results["datasets"].setdefault(ds, {})
+        for m in methods:
+            wout = out / f"{ds}_{m}.json"
+            cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", m, "--worker-out", str(wout),
+                   "--dataset", ds, "--scale", str(a.scale), "--photos", str(a.photos), "--device", a.device,
+                   "--iterations", str(budgets.get(m, 30))] + (["--quick"] if a.quick else [])
+            t0 = time.perf_counter()
+            try:
+                p = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=a.timeout)
+                ok = p.returncode == 0 and wout.exists()
+                runs[m] = json.loads(wout.read_text()) if ok else {"error": (p.stderr or p.stdout).strip()[-2000:]}
+            except subprocess.TimeoutExpired:
+                runs[m] = {"error": f"stopped after {a.timeout:.0f} s"}
+            summarise(results)
+            s = runs[m].get("summary") or {}
+            print(f"{ds:7s} {m:20s} {time.perf_counter() - t0:6.1f} s  best held-out "
+                  f"{s.get('best_heldout_psnr_db') or float('nan'):6.2f} dB at {s.get('time_to_own_best_s') or float('nan'):7.2f} s"
+                  + ("" if "error" not in runs[m] else f"  FAILED: {runs[m]['error'][-300:]}"), flush=True)
+            (out / "peers.json").write_text(json.dumps(results, indent=1))
+    results["total_s"] = time.perf_counter() - t_all
+    (out / "peers.json").write_text(json.dumps(results, indent=1))
+    (out / "peers_table.md").write_text(table(results) + "\n")
+    plot(results, out)
+    print(table(results))
+    return 0 if all("error" not in r for runs in results["datasets"].values() for r in runs.values()) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
