@@ -88,6 +88,9 @@ class LFMConfig:
                                     "and view maps per patch (the g h scale gauge; costs a pass and restarts CG / "
                                     "L-BFGS; with the Laplacian on only view maps larger than their surface maps "
                                     "are shrunk, which lowers the objective); 0 = never", min=0)
+    photo_batch: int = option(0, "streaming fit: photos per batch of launches (their observations and slot "
+                                 "residuals held together on the device; the same sums as one photo at a time); "
+                                 "0 = as many as fit in 1 GiB on a GPU, 64 MiB on the CPU, at most 64", min=0)
     nmf_iterations: int = option(200, "nmf: multiplicative update iterations", min=1)
     render_view: str = option("point", "rendering: each vertex's view map read along the direction from the shaded "
                                        "point (point, the interpolated view of Chen et al.'s renderer) or from the "
@@ -224,6 +227,11 @@ class TableSamples:
         wp.copy(obs_y, self.y, 0, p * self.n, self.n)
         wp.copy(obs_e, self.e, 0, p * self.n, self.n)
 
+    def load_batch(self, p0: int, count: int, obs_y: wp.array, obs_e: wp.array) -> None:
+        """Photos p0 .. p0 + count - 1 into flat (batch x N) scratch, photo b at b * N."""
+        wp.copy(obs_y, self.y, 0, p0 * self.n, count * self.n)
+        wp.copy(obs_e, self.e, 0, p0 * self.n, count * self.n)
+
 
 class PhotoSamples:
     """The photos of a :class:`texstream.fit.problem.PhotoSet` streamed through the distribution step
@@ -256,6 +264,13 @@ class PhotoSamples:
         ph = self.photos
         wp.launch(LK.observe_kernel, dim=self.n, device=self.device,
                   inputs=[self.problem.tex, ph.images, ph.depth, ph.shadow, ph.infos, int(p), self.opt],
+                  outputs=[obs_y, obs_e])
+
+    def load_batch(self, p0: int, count: int, obs_y: wp.array, obs_e: wp.array) -> None:
+        """Photos p0 .. p0 + count - 1 into flat (batch x N) scratch, photo b at b * N (one launch)."""
+        ph = self.photos
+        wp.launch(LK.observe_batch_kernel, dim=(count, self.n), device=self.device,
+                  inputs=[self.problem.tex, ph.images, ph.depth, ph.shadow, ph.infos, int(p0), self.opt],
                   outputs=[obs_y, obs_e])
 
 
@@ -323,12 +338,29 @@ class LFMProblem:
         self.slot_f = wp.zeros(self.S, dtype=wp.vec3d, device=dev)
         self.slot_dhd = wp.zeros(self.S, dtype=wp.vec3d, device=dev)
         self.slot_gn = wp.zeros(self.S, dtype=wp.vec3d, device=dev)
-        self.slot_res = wp.zeros(self.S, dtype=wp.vec3d, device=dev)
         self.no_G = wp.zeros((1, self.K), dtype=wp.vec3d, device=dev)
         self.no_H = wp.zeros((1, self.M), dtype=wp.vec3d, device=dev)
         self.no_v = wp.zeros(1, dtype=wp.vec3d, device=dev)
         self.diffuse = wp.zeros(self.N, dtype=wp.vec3d, device=dev)
         self.seen = np.zeros(self.N, bool)
+        # batched passes: B photos per launch (see fit/kernels/lfm.py), the taps of every photo once
+        P = int(samples.n_photos)
+        per_photo = self.N * (24 + 8) + self.S * 24 + self.V * self.K * 24
+        budget = (1 << 30) if wp.get_device(dev).is_cuda else (64 << 20)
+        auto = int(min(64, max(1, budget // max(per_photo, 1))))
+        self.B = int(max(1, min(P, cfg.photo_batch or auto)))
+        self.batch_y = wp.zeros(self.B * self.N, dtype=wp.vec3d, device=dev)
+        self.batch_e = wp.zeros(self.B * self.N, dtype=f64, device=dev)
+        self.batch_res = wp.zeros(self.S * self.B, dtype=wp.vec3d, device=dev)
+        self.batch_gathered = wp.zeros(self.V * self.K * self.B, dtype=wp.vec3d, device=dev)
+        self.all_tap_idx = wp.zeros(max(P, 1) * self.V, dtype=wp.vec4i, device=dev)
+        self.all_tap_w = wp.zeros(max(P, 1) * self.V, dtype=wp.vec4d, device=dev)
+        if P:
+            cams = wp.array(np.ascontiguousarray(np.asarray(samples.centers, np.float64).reshape(-1, 3)[:P]),
+                            dtype=wp.vec3d, device=dev)
+            wp.launch(LK.vertex_taps_all_kernel, dim=(P, self.V), device=dev,
+                      inputs=[self.vpos, self.vtan, self.vbit, self.vnrm, cams, self.mapping, self.R, self.lookup],
+                      outputs=[self.all_tap_idx, self.all_tap_w])
         self.passes = 0
 
     # ---- arrays
@@ -397,16 +429,21 @@ class LFMProblem:
         gH = grad_H if want_grad else self.no_H
         dG = DG if want_dhd else self.no_G
         dH = DH if want_dhd else self.no_H
-        for p in range(self.samples.n_photos):
-            self.samples.load(p, self.obs_y, self.obs_e)
-            self._taps(p)
-            wp.launch(LK.slot_pass_kernel, dim=self.N, device=dev,
-                      inputs=[self.obs_y, self.obs_e, self.diffuse, self.slot_vertex, self.slot_hat, G, H, dG, dH,
-                              self.tap_idx, self.tap_w, self.K, int(want_grad), int(want_dhd)],
-                      outputs=[self.slot_f, gG, self.slot_dhd, self.slot_gn, self.slot_res])
+        B = self.B
+        for p0 in range(0, self.samples.n_photos, B):
+            nb = min(B, self.samples.n_photos - p0)
+            self.samples.load_batch(p0, nb, self.batch_y, self.batch_e)
+            wp.launch(LK.slot_pass_batch_kernel, dim=self.N, device=dev,
+                      inputs=[self.batch_y, self.batch_e, nb, B, p0, self.diffuse, self.slot_vertex, self.slot_hat,
+                              G, H, dG, dH, self.all_tap_idx, self.all_tap_w, self.V, self.K, int(want_grad),
+                              int(want_dhd)],
+                      outputs=[self.slot_f, gG, self.slot_dhd, self.slot_gn, self.batch_res])
             if want_grad:
-                wp.launch(LK.view_gather_kernel, dim=self.V, device=dev,
-                          inputs=[self.ring_start, self.ring_slots, self.slot_res, G, self.tap_idx, self.tap_w, self.K],
+                wp.launch(LK.view_gather_batch_kernel, dim=(self.V, nb), device=dev,
+                          inputs=[self.ring_start, self.ring_slots, self.batch_res, B, G, self.K],
+                          outputs=[self.batch_gathered])
+                wp.launch(LK.view_scatter_batch_kernel, dim=self.V * self.K, device=dev,
+                          inputs=[self.batch_gathered, nb, B, p0, self.all_tap_idx, self.all_tap_w, self.K, self.V],
                           outputs=[grad_H])
         # without a direction the reduction's d^T H d outputs are scratch, allocated once (not per pass)
         if not hasattr(self, "_scratch_dhd"):

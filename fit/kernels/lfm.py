@@ -195,6 +195,128 @@ def view_gather_kernel(ring_start: wp.array(dtype=wp.int32), ring_slots: wp.arra
                 grad_H[row, idx[t]] = grad_H[row, idx[t]] - wt[t] * acc
 
 
+# ---- batched photo passes (fit/lfm.py ``LFMProblem.evaluate``): a batch of B photos per launch.
+# Per-photo scratch is flat: observations obs[b * N + s], slot residuals slot_res[slot * B + b] (the
+# photos of one slot adjacent: the gather's threads (v, b) read them coalesced), gathered sums
+# gathered[(v K + k) * B + b]; the view-map taps of every photo, computed once, taps[p * V + v].
+# Every accumulator is updated in photo order, as a photo-at-a-time loop would: the same sums.
+
+
+@wp.kernel
+def vertex_taps_all_kernel(vpos: wp.array(dtype=wp.vec3d), vtan: wp.array(dtype=wp.vec3d),
+                           vbit: wp.array(dtype=wp.vec3d), vnrm: wp.array(dtype=wp.vec3d),
+                           cams: wp.array(dtype=wp.vec3d), mapping: int, res: int, lookup: int,
+                           tap_idx: wp.array(dtype=wp.vec4i), tap_w: wp.array(dtype=wp.vec4d)):
+    """The view-map taps of every (photo p, vertex v), written at p * V + v; dim = (P, V)."""
+    p, v = wp.tid()
+    n_v = vpos.shape[0]
+    d = wp.normalize(cams[p] - vpos[v])
+    idx, wt = view_taps(local_dir(d, vtan[v], vbit[v], vnrm[v]), mapping, res, lookup)
+    tap_idx[p * n_v + v] = idx
+    tap_w[p * n_v + v] = wt
+
+
+@wp.kernel
+def slot_pass_batch_kernel(obs_y: wp.array(dtype=wp.vec3d), obs_e: wp.array(dtype=wp.float64), n_batch: int,
+                           batch: int, p0: int, diffuse: wp.array(dtype=wp.vec3d),
+                           slot_vertex: wp.array(dtype=wp.int32), slot_hat: wp.array(dtype=wp.float64),
+                           G: wp.array2d(dtype=wp.vec3d), H: wp.array2d(dtype=wp.vec3d),
+                           DG: wp.array2d(dtype=wp.vec3d), DH: wp.array2d(dtype=wp.vec3d),
+                           tap_idx: wp.array(dtype=wp.vec4i), tap_w: wp.array(dtype=wp.vec4d), n_vertices: int,
+                           n_terms: int, want_grad: int, want_dhd: int,
+                           slot_f: wp.array(dtype=wp.vec3d), grad_G: wp.array2d(dtype=wp.vec3d),
+                           slot_dhd: wp.array(dtype=wp.vec3d), slot_gn: wp.array(dtype=wp.vec3d),
+                           slot_res: wp.array(dtype=wp.vec3d)):
+    """:func:`slot_pass_kernel` over photos p0 .. p0 + n_batch - 1, one thread per texel: the
+    slot's objective and curvature sums kept in registers across the batch (each photo added in
+    order), e r of photo b written at slot_res[slot * batch + b]."""
+    s = wp.tid()
+    n = diffuse.shape[0]
+    zero = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    two = wp.float64(2.0)
+    half = wp.float64(0.5)
+    d = diffuse[s]
+    for j in range(3):
+        slot = 3 * s + j
+        v = slot_vertex[slot]
+        hat = slot_hat[slot]
+        f_acc = slot_f[slot]
+        dhd_acc = zero
+        gn_acc = zero
+        if want_dhd != 0:
+            dhd_acc = slot_dhd[slot]
+            gn_acc = slot_gn[slot]
+        for b in range(n_batch):
+            o = b * n + s
+            e = obs_e[o]
+            if e <= wp.float64(0.0):
+                slot_res[slot * batch + b] = zero
+                continue
+            idx = tap_idx[(p0 + b) * n_vertices + v]
+            wt = tap_w[(p0 + b) * n_vertices + v]
+            target = hat * (obs_y[o] - e * d)
+            model = zero
+            for k in range(n_terms):
+                model = model + wp.cw_mul(G[slot, k], lookup_h(H, v * n_terms + k, idx, wt))
+            r = target - e * model
+            f_acc = f_acc + half * wp.cw_mul(r, r)
+            if want_grad != 0:
+                for k in range(n_terms):
+                    grad_G[slot, k] = grad_G[slot, k] - e * wp.cw_mul(r, lookup_h(H, v * n_terms + k, idx, wt))
+            slot_res[slot * batch + b] = e * r
+            if want_dhd != 0:
+                m1 = zero
+                m2 = zero
+                for k in range(n_terms):
+                    row = v * n_terms + k
+                    h = lookup_h(H, row, idx, wt)
+                    dh = lookup_h(DH, row, idx, wt)
+                    m1 = m1 + wp.cw_mul(DG[slot, k], h) + wp.cw_mul(G[slot, k], dh)
+                    m2 = m2 + wp.cw_mul(DG[slot, k], dh)
+                m1 = e * m1
+                m2 = e * m2
+                dhd_acc = dhd_acc + wp.cw_mul(m1, m1) - two * wp.cw_mul(r, m2)
+                gn_acc = gn_acc + wp.cw_mul(m1, m1)
+        slot_f[slot] = f_acc
+        if want_dhd != 0:
+            slot_dhd[slot] = dhd_acc
+            slot_gn[slot] = gn_acc
+
+
+@wp.kernel
+def view_gather_batch_kernel(ring_start: wp.array(dtype=wp.int32), ring_slots: wp.array(dtype=wp.int32),
+                             slot_res: wp.array(dtype=wp.vec3d), batch: int, G: wp.array2d(dtype=wp.vec3d),
+                             n_terms: int, gathered: wp.array(dtype=wp.vec3d)):
+    """Per (vertex v, batch photo b): sum over v's ring of e r g_k (index table), for every term k,
+    written at gathered[(v K + k) * batch + b]; dim = (V, n_batch). Threads of one vertex share the
+    ring walk and read the batch's residuals of one slot side by side."""
+    v, b = wp.tid()
+    for k in range(n_terms):
+        acc = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+        for e in range(ring_start[v], ring_start[v + 1]):
+            slot = ring_slots[e]
+            acc = acc + wp.cw_mul(slot_res[slot * batch + b], G[slot, k])
+        gathered[(v * n_terms + k) * batch + b] = acc
+
+
+@wp.kernel
+def view_scatter_batch_kernel(gathered: wp.array(dtype=wp.vec3d), n_batch: int, batch: int, p0: int,
+                              tap_idx: wp.array(dtype=wp.vec4i), tap_w: wp.array(dtype=wp.vec4d), n_terms: int,
+                              n_vertices: int, grad_H: wp.array2d(dtype=wp.vec3d)):
+    """Per view-map row (v K + k): subtract each batch photo's gathered sum, in photo order, from the
+    photo's taps (the view-map gradient of :func:`view_gather_kernel`)."""
+    row = wp.tid()
+    v = row / n_terms
+    for b in range(n_batch):
+        tap = (p0 + b) * n_vertices + v
+        idx = tap_idx[tap]
+        wt = tap_w[tap]
+        acc = gathered[row * batch + b]
+        for t in range(4):
+            if wt[t] != wp.float64(0.0):
+                grad_H[row, idx[t]] = grad_H[row, idx[t]] - wt[t] * acc
+
+
 @wp.kernel
 def patch_reduce_kernel(ring_start: wp.array(dtype=wp.int32), ring_slots: wp.array(dtype=wp.int32),
                         slot_a: wp.array(dtype=wp.vec3d), slot_b: wp.array(dtype=wp.vec3d),
@@ -514,6 +636,24 @@ def observe_kernel(tex: stream.TexelFrames, images: wp.array3d(dtype=wp.vec3), d
     else:
         obs_y[s] = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
         obs_e[s] = wp.float64(0.0)
+
+
+@wp.kernel
+def observe_batch_kernel(tex: stream.TexelFrames, images: wp.array3d(dtype=wp.vec3),
+                         depth: wp.array3d(dtype=wp.float32), shadow: wp.array3d(dtype=wp.float32),
+                         infos: wp.array(dtype=stream.ImageInfo), p0: int, opt: stream.SampleOptions,
+                         obs_y: wp.array(dtype=wp.vec3d), obs_e: wp.array(dtype=wp.float64)):
+    """:func:`observe_kernel` for photos p0 + b, written at b * N + s; dim = (n_batch, N)."""
+    b, s = wp.tid()
+    n = tex.pos.shape[0]
+    ok, y, w, u, v, xs, ys = observe_radiance(images, depth, shadow, infos, p0 + b, tex, s, opt)
+    o = b * n + s
+    if ok:
+        obs_y[o] = wp.vec3d(wp.float64(y[0]), wp.float64(y[1]), wp.float64(y[2]))
+        obs_e[o] = wp.float64(w[0])
+    else:
+        obs_y[o] = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+        obs_e[o] = wp.float64(0.0)
 
 
 @wp.kernel
