@@ -91,6 +91,11 @@ class LFMConfig:
     photo_batch: int = option(0, "streaming fit: photos per batch of launches (their observations and slot "
                                  "residuals held together on the device; the same sums as one photo at a time); "
                                  "0 = as many as fit in 1 GiB on a GPU, 64 MiB on the CPU, at most 64", min=0)
+    sample_cache: str = option("auto", "streaming fit: keep every photo's samples on the device (float32, photos x "
+                                       "texels x 16 bytes; the same values) after the first pass instead of "
+                                       "distributing the photos again at every pass: on, off, or auto (on when they "
+                                       "take no more device memory than the photos held)",
+                               choices=("auto", "on", "off"))
     nmf_iterations: int = option(200, "nmf: multiplicative update iterations", min=1)
     render_view: str = option("point", "rendering: each vertex's view map read along the direction from the shaded "
                                        "point (point, the interpolated view of Chen et al.'s renderer) or from the "
@@ -101,7 +106,7 @@ class LFMConfig:
                               ("diffuse", ("mean", "min")), ("method", ("stream", "pca", "nmf")),
                               ("optimizer", OPTIMIZERS), ("step", ("hessian", "backtrack")),
                               ("bounds", ("none", "nonnegative")), ("render_view", ("point", "vertex")),
-                              ("cg_variant", ("pr", "fr"))):
+                              ("cg_variant", ("pr", "fr")), ("sample_cache", ("auto", "on", "off"))):
             if getattr(self, name) not in allowed:
                 raise ConfigError(f"lfm.{name} {getattr(self, name)!r} unknown", fix=f"use one of {allowed}")
         if not 1 <= self.terms <= 4:
@@ -227,6 +232,16 @@ class TableSamples:
         wp.copy(obs_y, self.y, 0, p * self.n, self.n)
         wp.copy(obs_e, self.e, 0, p * self.n, self.n)
 
+    obs_types = (wp.vec3d, wp.float64)
+    """types of the batched passes' observation scratch"""
+
+    def resident(self):
+        """(y, e) of every photo on the device, photo p at p * N: the tables themselves."""
+        return self.y, self.e
+
+    def cache_bytes(self) -> int:
+        return 0
+
     def load_batch(self, p0: int, count: int, obs_y: wp.array, obs_e: wp.array) -> None:
         """Photos p0 .. p0 + count - 1 into flat (batch x N) scratch, photo b at b * N."""
         wp.copy(obs_y, self.y, 0, p0 * self.n, count * self.n)
@@ -266,8 +281,23 @@ class PhotoSamples:
                   inputs=[self.problem.tex, ph.images, ph.depth, ph.shadow, ph.infos, int(p), self.opt],
                   outputs=[obs_y, obs_e])
 
+    obs_types = (wp.vec3, wp.float32)
+    """the distribution step's own precision (exact)"""
+
+    def resident(self):
+        """None: the samples are distributed from the photos (see ``LFMConfig.sample_cache``)."""
+        return None
+
+    def cache_bytes(self) -> int:
+        """Device bytes of every sample in float32, against which ``sample_cache`` auto weighs the photos."""
+        return int(self.n_photos) * int(self.n) * 16
+
+    def photo_bytes(self) -> int:
+        ph = self.photos
+        return int(ph.images.capacity + ph.depth.capacity + ph.shadow.capacity)
+
     def load_batch(self, p0: int, count: int, obs_y: wp.array, obs_e: wp.array) -> None:
-        """Photos p0 .. p0 + count - 1 into flat (batch x N) scratch, photo b at b * N (one launch)."""
+        """Photos p0 .. p0 + count - 1 into flat float32 (batch x N) scratch, photo b at b * N (one launch)."""
         ph = self.photos
         wp.launch(LK.observe_batch_kernel, dim=(count, self.n), device=self.device,
                   inputs=[self.problem.tex, ph.images, ph.depth, ph.shadow, ph.infos, int(p0), self.opt],
@@ -343,14 +373,23 @@ class LFMProblem:
         self.no_v = wp.zeros(1, dtype=wp.vec3d, device=dev)
         self.diffuse = wp.zeros(self.N, dtype=wp.vec3d, device=dev)
         self.seen = np.zeros(self.N, bool)
-        # batched passes: B photos per launch (see fit/kernels/lfm.py), the taps of every photo once
+        # batched passes: B photos per launch (see fit/kernels/lfm.py), the taps of every photo once;
+        # the samples read from the device tables (TableSamples, or the cache), else distributed per batch
         P = int(samples.n_photos)
-        per_photo = self.N * (24 + 8) + self.S * 24 + self.V * self.K * 24
+        cache = samples.cache_bytes() > 0 and (
+            cfg.sample_cache == "on" or (cfg.sample_cache == "auto" and samples.cache_bytes() <= samples.photo_bytes()))
+        self.cache_filled = False
+        ty, te = samples.obs_types
+        obs_bytes = 0 if (cache or samples.resident() is not None) else self.N * (wp.types.type_size_in_bytes(ty)
+                                                                                  + wp.types.type_size_in_bytes(te))
+        per_photo = obs_bytes + self.S * 24 + self.V * self.K * 24
         budget = (1 << 30) if wp.get_device(dev).is_cuda else (64 << 20)
         auto = int(min(64, max(1, budget // max(per_photo, 1))))
         self.B = int(max(1, min(P, cfg.photo_batch or auto)))
-        self.batch_y = wp.zeros(self.B * self.N, dtype=wp.vec3d, device=dev)
-        self.batch_e = wp.zeros(self.B * self.N, dtype=f64, device=dev)
+        n_obs = P * self.N if cache else (self.B * self.N if obs_bytes else 1)
+        self.batch_y = wp.zeros(n_obs, dtype=ty, device=dev)
+        self.batch_e = wp.zeros(n_obs, dtype=te, device=dev)
+        self.cache = cache
         self.batch_res = wp.zeros(self.S * self.B, dtype=wp.vec3d, device=dev)
         self.batch_gathered = wp.zeros(self.V * self.K * self.B, dtype=wp.vec3d, device=dev)
         self.all_tap_idx = wp.zeros(max(P, 1) * self.V, dtype=wp.vec4i, device=dev)
@@ -392,6 +431,16 @@ class LFMProblem:
                   inputs=[self.vpos, self.vtan, self.vbit, self.vnrm, wp.vec3d(*c), self.mapping, self.R, self.lookup],
                   outputs=[self.tap_idx, self.tap_w])
 
+    def _resident(self):
+        """(y, e) of every photo on the device (photo p at p * N), or None: distribute per batch. The
+        sample cache is filled at its first use (a pass's worth of distribution, timed with the fit)."""
+        if self.cache:
+            if not self.cache_filled:
+                self.samples.load_batch(0, self.samples.n_photos, self.batch_y, self.batch_e)
+                self.cache_filled = True
+            return self.batch_y, self.batch_e
+        return self.samples.resident()
+
     # ---- passes
     def compute_diffuse(self, mode: str | None = None) -> None:
         """The view-independent term d (mean or minimum per texel, ``LFMConfig.diffuse``): one
@@ -430,11 +479,16 @@ class LFMProblem:
         dG = DG if want_dhd else self.no_G
         dH = DH if want_dhd else self.no_H
         B = self.B
+        resident = self._resident()
         for p0 in range(0, self.samples.n_photos, B):
             nb = min(B, self.samples.n_photos - p0)
-            self.samples.load_batch(p0, nb, self.batch_y, self.batch_e)
+            if resident is None:
+                self.samples.load_batch(p0, nb, self.batch_y, self.batch_e)
+                obs_y, obs_e, base = self.batch_y, self.batch_e, 0
+            else:
+                (obs_y, obs_e), base = resident, p0
             wp.launch(LK.slot_pass_batch_kernel, dim=self.N, device=dev,
-                      inputs=[self.batch_y, self.batch_e, nb, B, p0, self.diffuse, self.slot_vertex, self.slot_hat,
+                      inputs=[obs_y, obs_e, base, nb, B, p0, self.diffuse, self.slot_vertex, self.slot_hat,
                               G, H, dG, dH, self.all_tap_idx, self.all_tap_w, self.V, self.K, int(want_grad),
                               int(want_dhd)],
                       outputs=[self.slot_f, gG, self.slot_dhd, self.slot_gn, self.batch_res])

@@ -18,16 +18,19 @@ with L_j the barycentric hat function, e the photo's exposure and w_v the photo'
 v's frame (one direction per vertex and photo, as the dissertation fits). Patches share no
 parameter, so per-patch step sizes and acceptance are exact.
 
-Every reduction is a gather owned by one thread (no float atomics, deterministic):
-``slot_pass_kernel`` (one thread per texel, loops its three slots) accumulates the surface-map
-gradient and the slot's objective and curvature over photos and writes the slot's weighted
-residual of the current photo; ``view_gather_kernel`` (one thread per vertex) reduces those over
-the vertex's ring through the index table ``ring_slots[ring_start[v]:ring_start[v + 1]]`` and
-writes the result into the photo's view-map taps; ``patch_reduce_kernel`` reduces per-slot sums
-into per-vertex ones the same way.
+Every reduction is a gather owned by one thread (no float atomics, deterministic). Photos go
+through in batches (one launch per kernel per batch): ``slot_pass_batch_kernel`` (one thread per
+texel, loops its three slots and the batch's photos) accumulates the surface-map gradient and the
+slot's objective and curvature and writes the slot's weighted residual of each photo;
+``view_gather_batch_kernel`` (one thread per vertex and photo) reduces those over the vertex's ring
+through the index table ``ring_slots[ring_start[v]:ring_start[v + 1]]``;
+``view_scatter_batch_kernel`` (one thread per view-map row) adds them, photo by photo, into the
+photos' view-map taps; ``patch_reduce_kernel`` reduces per-slot sums into per-vertex ones.
 """
 
 from __future__ import annotations
+
+from typing import Any
 
 import warp as wp
 
@@ -124,77 +127,6 @@ def lookup_h(H: wp.array2d(dtype=wp.vec3d), row: int, idx: wp.vec4i, wt: wp.vec4
     return wt[0] * H[row, idx[0]] + wt[1] * H[row, idx[1]] + wt[2] * H[row, idx[2]] + wt[3] * H[row, idx[3]]
 
 
-@wp.kernel
-def slot_pass_kernel(obs_y: wp.array(dtype=wp.vec3d), obs_e: wp.array(dtype=wp.float64),
-                     diffuse: wp.array(dtype=wp.vec3d), slot_vertex: wp.array(dtype=wp.int32),
-                     slot_hat: wp.array(dtype=wp.float64), G: wp.array2d(dtype=wp.vec3d),
-                     H: wp.array2d(dtype=wp.vec3d), DG: wp.array2d(dtype=wp.vec3d), DH: wp.array2d(dtype=wp.vec3d),
-                     tap_idx: wp.array(dtype=wp.vec4i), tap_w: wp.array(dtype=wp.vec4d), n_terms: int,
-                     want_grad: int, want_dhd: int,
-                     slot_f: wp.array(dtype=wp.vec3d), grad_G: wp.array2d(dtype=wp.vec3d),
-                     slot_dhd: wp.array(dtype=wp.vec3d), slot_gn: wp.array(dtype=wp.vec3d),
-                     slot_res: wp.array(dtype=wp.vec3d)):
-    """One photo, one thread per texel: accumulate over the texel's three slots the objective, the
-    surface-map gradient (-e r h_k) and, with ``want_dhd``, the exact second derivative along the
-    direction (DG, DH) (m1^2 - 2 r m2, with the model along the line m0 + a m1 + a^2 m2) and its
-    Gauss-Newton part m1^2; write each slot's e r for the view-map gather (0 where unobserved)."""
-    s = wp.tid()
-    e = obs_e[s]
-    zero = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
-    for j in range(3):
-        slot = 3 * s + j
-        slot_res[slot] = zero
-        if e <= wp.float64(0.0):
-            continue
-        v = slot_vertex[slot]
-        idx = tap_idx[v]
-        wt = tap_w[v]
-        target = slot_hat[slot] * (obs_y[s] - e * diffuse[s])
-        model = zero
-        for k in range(n_terms):
-            model = model + wp.cw_mul(G[slot, k], lookup_h(H, v * n_terms + k, idx, wt))
-        r = target - e * model
-        slot_f[slot] = slot_f[slot] + wp.float64(0.5) * wp.cw_mul(r, r)
-        if want_grad != 0:
-            for k in range(n_terms):
-                grad_G[slot, k] = grad_G[slot, k] - e * wp.cw_mul(r, lookup_h(H, v * n_terms + k, idx, wt))
-        slot_res[slot] = e * r
-        if want_dhd != 0:
-            m1 = zero
-            m2 = zero
-            for k in range(n_terms):
-                row = v * n_terms + k
-                h = lookup_h(H, row, idx, wt)
-                dh = lookup_h(DH, row, idx, wt)
-                m1 = m1 + wp.cw_mul(DG[slot, k], h) + wp.cw_mul(G[slot, k], dh)
-                m2 = m2 + wp.cw_mul(DG[slot, k], dh)
-            m1 = e * m1
-            m2 = e * m2
-            slot_dhd[slot] = slot_dhd[slot] + wp.cw_mul(m1, m1) - wp.float64(2.0) * wp.cw_mul(r, m2)
-            slot_gn[slot] = slot_gn[slot] + wp.cw_mul(m1, m1)
-
-
-@wp.kernel
-def view_gather_kernel(ring_start: wp.array(dtype=wp.int32), ring_slots: wp.array(dtype=wp.int32),
-                       slot_res: wp.array(dtype=wp.vec3d), G: wp.array2d(dtype=wp.vec3d),
-                       tap_idx: wp.array(dtype=wp.vec4i), tap_w: wp.array(dtype=wp.vec4d), n_terms: int,
-                       grad_H: wp.array2d(dtype=wp.vec3d)):
-    """One photo, one thread per vertex: the view-map gradient, -sum_{ring slots} e r g_k reduced
-    over the vertex's ring (index table) and written into the photo's taps of its view maps."""
-    v = wp.tid()
-    idx = tap_idx[v]
-    wt = tap_w[v]
-    for k in range(n_terms):
-        acc = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
-        for e in range(ring_start[v], ring_start[v + 1]):
-            slot = ring_slots[e]
-            acc = acc + wp.cw_mul(slot_res[slot], G[slot, k])
-        row = v * n_terms + k
-        for t in range(4):
-            if wt[t] != wp.float64(0.0):
-                grad_H[row, idx[t]] = grad_H[row, idx[t]] - wt[t] * acc
-
-
 # ---- batched photo passes (fit/lfm.py ``LFMProblem.evaluate``): a batch of B photos per launch.
 # Per-photo scratch is flat: observations obs[b * N + s], slot residuals slot_res[slot * B + b] (the
 # photos of one slot adjacent: the gather's threads (v, b) read them coalesced), gathered sums
@@ -217,7 +149,7 @@ def vertex_taps_all_kernel(vpos: wp.array(dtype=wp.vec3d), vtan: wp.array(dtype=
 
 
 @wp.kernel
-def slot_pass_batch_kernel(obs_y: wp.array(dtype=wp.vec3d), obs_e: wp.array(dtype=wp.float64), n_batch: int,
+def slot_pass_batch_kernel(obs_y: wp.array(dtype=Any), obs_e: wp.array(dtype=Any), obs_base: int, n_batch: int,
                            batch: int, p0: int, diffuse: wp.array(dtype=wp.vec3d),
                            slot_vertex: wp.array(dtype=wp.int32), slot_hat: wp.array(dtype=wp.float64),
                            G: wp.array2d(dtype=wp.vec3d), H: wp.array2d(dtype=wp.vec3d),
@@ -227,9 +159,12 @@ def slot_pass_batch_kernel(obs_y: wp.array(dtype=wp.vec3d), obs_e: wp.array(dtyp
                            slot_f: wp.array(dtype=wp.vec3d), grad_G: wp.array2d(dtype=wp.vec3d),
                            slot_dhd: wp.array(dtype=wp.vec3d), slot_gn: wp.array(dtype=wp.vec3d),
                            slot_res: wp.array(dtype=wp.vec3d)):
-    """:func:`slot_pass_kernel` over photos p0 .. p0 + n_batch - 1, one thread per texel: the
-    slot's objective and curvature sums kept in registers across the batch (each photo added in
-    order), e r of photo b written at slot_res[slot * batch + b]."""
+    """Photos p0 .. p0 + n_batch - 1, one thread per texel: accumulate over the texel's three slots
+    the objective, the surface-map gradient (-e r h_k) and, with ``want_dhd``, the exact second
+    derivative along the direction (DG, DH) (m1^2 - 2 r m2, with the model along the line
+    m0 + a m1 + a^2 m2) and its Gauss-Newton part m1^2, each photo added in order (the objective and
+    curvature sums in registers across the batch); write each slot's e r of photo b at
+    slot_res[slot * batch + b] (0 where unobserved) for the view-map gather."""
     s = wp.tid()
     n = diffuse.shape[0]
     zero = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
@@ -247,14 +182,14 @@ def slot_pass_batch_kernel(obs_y: wp.array(dtype=wp.vec3d), obs_e: wp.array(dtyp
             dhd_acc = slot_dhd[slot]
             gn_acc = slot_gn[slot]
         for b in range(n_batch):
-            o = b * n + s
-            e = obs_e[o]
+            o = (obs_base + b) * n + s
+            e = wp.float64(obs_e[o])
             if e <= wp.float64(0.0):
                 slot_res[slot * batch + b] = zero
                 continue
             idx = tap_idx[(p0 + b) * n_vertices + v]
             wt = tap_w[(p0 + b) * n_vertices + v]
-            target = hat * (obs_y[o] - e * d)
+            target = hat * (wp.vec3d(obs_y[o]) - e * d)
             model = zero
             for k in range(n_terms):
                 model = model + wp.cw_mul(G[slot, k], lookup_h(H, v * n_terms + k, idx, wt))
@@ -303,8 +238,8 @@ def view_gather_batch_kernel(ring_start: wp.array(dtype=wp.int32), ring_slots: w
 def view_scatter_batch_kernel(gathered: wp.array(dtype=wp.vec3d), n_batch: int, batch: int, p0: int,
                               tap_idx: wp.array(dtype=wp.vec4i), tap_w: wp.array(dtype=wp.vec4d), n_terms: int,
                               n_vertices: int, grad_H: wp.array2d(dtype=wp.vec3d)):
-    """Per view-map row (v K + k): subtract each batch photo's gathered sum, in photo order, from the
-    photo's taps (the view-map gradient of :func:`view_gather_kernel`)."""
+    """Per view-map row (v K + k): the view-map gradient, each batch photo's gathered sum
+    -sum_{ring slots} e r g_k subtracted, in photo order, at the photo's taps."""
     row = wp.tid()
     v = row / n_terms
     for b in range(n_batch):
@@ -642,18 +577,19 @@ def observe_kernel(tex: stream.TexelFrames, images: wp.array3d(dtype=wp.vec3), d
 def observe_batch_kernel(tex: stream.TexelFrames, images: wp.array3d(dtype=wp.vec3),
                          depth: wp.array3d(dtype=wp.float32), shadow: wp.array3d(dtype=wp.float32),
                          infos: wp.array(dtype=stream.ImageInfo), p0: int, opt: stream.SampleOptions,
-                         obs_y: wp.array(dtype=wp.vec3d), obs_e: wp.array(dtype=wp.float64)):
-    """:func:`observe_kernel` for photos p0 + b, written at b * N + s; dim = (n_batch, N)."""
+                         obs_y: wp.array(dtype=wp.vec3), obs_e: wp.array(dtype=wp.float32)):
+    """:func:`observe_kernel` for photos p0 + b, written at b * N + s in float32 (the distribution
+    step's own precision: exact); dim = (n_batch, N)."""
     b, s = wp.tid()
     n = tex.pos.shape[0]
     ok, y, w, u, v, xs, ys = observe_radiance(images, depth, shadow, infos, p0 + b, tex, s, opt)
     o = b * n + s
     if ok:
-        obs_y[o] = wp.vec3d(wp.float64(y[0]), wp.float64(y[1]), wp.float64(y[2]))
-        obs_e[o] = wp.float64(w[0])
+        obs_y[o] = y
+        obs_e[o] = w[0]
     else:
-        obs_y[o] = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
-        obs_e[o] = wp.float64(0.0)
+        obs_y[o] = wp.vec3(0.0)
+        obs_e[o] = 0.0
 
 
 @wp.kernel
