@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 
 STREAM = {"cg": dict(optimizer="cg", step="hessian"),
+          "cg_jacobi": dict(optimizer="cg", step="hessian", precondition="jacobi"),
           "lbfgs": dict(optimizer="lbfgs", step="hessian"),
           "lbfgs_unit": dict(optimizer="lbfgs", step="backtrack"),
           "sd": dict(optimizer="sd", step="backtrack", balance_every=0)}

@@ -69,6 +69,9 @@ class LFMConfig:
     optimizer: str = option("cg", "streaming fit: cg (Polak-Ribiere+ per patch), sd (steepest descent) or lbfgs "
                                   "(limited-memory BFGS per patch, history of lbfgs_memory pairs)",
                             choices=OPTIMIZERS)
+    precondition: str = option("none", "cg / sd: none, or jacobi (the direction from the gradient scaled by the "
+                                       "inverse Gauss-Newton diagonal of the patch, computed at the start and at "
+                                       "every gauge balancing, fixed in between)", choices=("none", "jacobi"))
     lbfgs_memory: int = option(5, "lbfgs: (step, gradient change) pairs kept per patch", min=1, max=32)
     cg_variant: str = option("pr", "cg beta: pr (Polak-Ribiere+) or fr (Fletcher-Reeves)", choices=("pr", "fr"))
     step: str = option("hessian", "step size: hessian (-g.d / d^T H d from a curvature pass, the dissertation's "
@@ -106,13 +109,16 @@ class LFMConfig:
                               ("diffuse", ("mean", "min")), ("method", ("stream", "pca", "nmf")),
                               ("optimizer", OPTIMIZERS), ("step", ("hessian", "backtrack")),
                               ("bounds", ("none", "nonnegative")), ("render_view", ("point", "vertex")),
-                              ("cg_variant", ("pr", "fr")), ("sample_cache", ("auto", "on", "off"))):
+                              ("cg_variant", ("pr", "fr")), ("sample_cache", ("auto", "on", "off")),
+                              ("precondition", ("none", "jacobi"))):
             if getattr(self, name) not in allowed:
                 raise ConfigError(f"lfm.{name} {getattr(self, name)!r} unknown", fix=f"use one of {allowed}")
         if not 1 <= self.terms <= 4:
             raise ConfigError(f"lfm.terms {self.terms} out of range", fix="use 1 to 4")
         if not 2 <= self.view_res <= 64:
             raise ConfigError(f"lfm.view_res {self.view_res} out of range", fix="use 2 to 64")
+        if self.precondition == "jacobi" and self.optimizer == "lbfgs":
+            raise ConfigError("lfm.precondition jacobi is for cg and sd", fix="use --lfm.precondition none with lbfgs")
         if not 1 <= self.lbfgs_memory <= 32:
             raise ConfigError(f"lfm.lbfgs_memory {self.lbfgs_memory} out of range", fix="use 1 to 32")
 
@@ -392,6 +398,16 @@ class LFMProblem:
         self.cache = cache
         self.batch_res = wp.zeros(self.S * self.B, dtype=wp.vec3d, device=dev)
         self.batch_gathered = wp.zeros(self.V * self.K * self.B, dtype=wp.vec3d, device=dev)
+        jacobi = cfg.precondition == "jacobi"
+        self.batch_gathered_diag = wp.zeros(self.V * self.K * self.B if jacobi else 1, dtype=wp.vec3d, device=dev)
+        m = self.mask_np.reshape(self.R, self.R)
+        neighbours = np.zeros((self.R, self.R))
+        neighbours[:, :-1] += m[:, 1:]
+        neighbours[:, 1:] += m[:, :-1]
+        neighbours[:-1, :] += m[1:, :]
+        neighbours[1:, :] += m[:-1, :]
+        # the Laplacian's exact diagonal: lam per masked stencil neighbour of a masked texel
+        self.lap_diag = wp.array((self.lam * neighbours * m).reshape(-1), dtype=f64, device=dev)
         self.all_tap_idx = wp.zeros(max(P, 1) * self.V, dtype=wp.vec4i, device=dev)
         self.all_tap_w = wp.zeros(max(P, 1) * self.V, dtype=wp.vec4d, device=dev)
         if P:
@@ -460,13 +476,21 @@ class LFMProblem:
 
     def evaluate(self, G: wp.array, H: wp.array, f: wp.array, grad_G: wp.array | None = None,
                  grad_H: wp.array | None = None, DG: wp.array | None = None, DH: wp.array | None = None,
-                 dhd: wp.array | None = None, gn: wp.array | None = None) -> None:
+                 dhd: wp.array | None = None, gn: wp.array | None = None, diag_G: wp.array | None = None,
+                 diag_H: wp.array | None = None) -> None:
         """One streaming pass at (G, H): per patch objective ``f`` (V,), with ``grad_G``/``grad_H``
         the gradient, with a direction (DG, DH) the exact d^T H d (``dhd``) and its Gauss-Newton
-        part (``gn``) along it."""
+        part (``gn``) along it, with ``diag_G``/``diag_H`` (and the gradient) the Gauss-Newton
+        diagonal of the data term."""
         dev = self.device
         want_grad = grad_G is not None
         want_dhd = DG is not None
+        want_diag = diag_G is not None
+        if want_diag:
+            diag_G.zero_()
+            diag_H.zero_()
+        xG = diag_G if want_diag else self.no_G
+        xH = diag_H if want_diag else self.no_H
         self.slot_f.zero_()
         if want_grad:
             grad_G.zero_()
@@ -490,15 +514,17 @@ class LFMProblem:
             wp.launch(LK.slot_pass_batch_kernel, dim=self.N, device=dev,
                       inputs=[obs_y, obs_e, base, nb, B, p0, self.diffuse, self.slot_vertex, self.slot_hat,
                               G, H, dG, dH, self.all_tap_idx, self.all_tap_w, self.V, self.K, int(want_grad),
-                              int(want_dhd)],
-                      outputs=[self.slot_f, gG, self.slot_dhd, self.slot_gn, self.batch_res])
+                              int(want_dhd), int(want_diag)],
+                      outputs=[self.slot_f, gG, self.slot_dhd, self.slot_gn, self.batch_res, xG])
             if want_grad:
                 wp.launch(LK.view_gather_batch_kernel, dim=(self.V, nb), device=dev,
-                          inputs=[self.ring_start, self.ring_slots, self.batch_res, B, G, self.K],
-                          outputs=[self.batch_gathered])
+                          inputs=[self.ring_start, self.ring_slots, self.batch_res, B, G, self.K, int(want_diag),
+                                  obs_e, base, self.N],
+                          outputs=[self.batch_gathered, self.batch_gathered_diag])
                 wp.launch(LK.view_scatter_batch_kernel, dim=self.V * self.K, device=dev,
-                          inputs=[self.batch_gathered, nb, B, p0, self.all_tap_idx, self.all_tap_w, self.K, self.V],
-                          outputs=[grad_H])
+                          inputs=[self.batch_gathered, nb, B, p0, self.all_tap_idx, self.all_tap_w, self.K, self.V,
+                                  int(want_diag), self.batch_gathered_diag],
+                          outputs=[grad_H, xH])
         # without a direction the reduction's d^T H d outputs are scratch, allocated once (not per pass)
         if not hasattr(self, "_scratch_dhd"):
             self._scratch_dhd, self._scratch_gn = self.new_patch(), self.new_patch()
@@ -662,6 +688,24 @@ def fit_lfm(problem: LFMProblem, max_iterations: int | None = None, time_budget_
     unit_cap = int(hessian or lbfgs is not None)
     variant = -1 if cfg.optimizer == "sd" else (0 if cfg.cg_variant == "pr" else 1)
     shape_G, shape_H = (pr.S, K), (pr.V * K, pr.M)
+    # Jacobi: z = P g with P the inverse Gauss-Newton diagonal (fixed between gauge balancings); else z = g
+    jacobi = cfg.precondition == "jacobi"
+    PG, PH = (pr.new_G(), pr.new_H()) if jacobi else (None, None)
+    zG, zH = (pr.new_G(), pr.new_H()) if jacobi else (gG, gH)
+
+    def full_evaluate():
+        """Objective and gradient at (G, H); with Jacobi also the preconditioner there."""
+        if not jacobi:
+            pr.evaluate(G, H, f, gG, gH)
+            return
+        pr.evaluate(G, H, f, gG, gH, diag_G=PG, diag_H=PH)
+        wp.launch(LK.jacobi_G_kernel, dim=shape_G, device=dev, inputs=[PG], outputs=[PG])
+        wp.launch(LK.jacobi_H_kernel, dim=shape_H, device=dev, inputs=[PH, pr.lap_diag], outputs=[PH])
+
+    def precondition():
+        if jacobi:
+            wp.launch(LK.cw_mul_kernel, dim=shape_G, device=dev, inputs=[PG, gG], outputs=[zG])
+            wp.launch(LK.cw_mul_kernel, dim=shape_H, device=dev, inputs=[PH, gH], outputs=[zH])
 
     def first_direction():
         """Steepest descent (CG, SD) or L-BFGS with an empty history (-g / |g|)."""
@@ -670,11 +714,12 @@ def fit_lfm(problem: LFMProblem, max_iterations: int | None = None, time_budget_
             lbfgs.direction(gG, gH, DG, DH)
             return
         beta.zero_()
-        wp.launch(LK.direction_G_kernel, dim=shape_G, device=dev, inputs=[gG, beta, pr.slot_vertex], outputs=[DG])
-        wp.launch(LK.direction_H_kernel, dim=shape_H, device=dev, inputs=[gH, beta, K, pr.mask], outputs=[DH])
-        pr.patch_dot(gG, gG, gH, gH, gg_old)
+        precondition()
+        wp.launch(LK.direction_G_kernel, dim=shape_G, device=dev, inputs=[zG, beta, pr.slot_vertex], outputs=[DG])
+        wp.launch(LK.direction_H_kernel, dim=shape_H, device=dev, inputs=[zH, beta, K, pr.mask], outputs=[DH])
+        pr.patch_dot(gG, zG, gH, zH, gg_old)
 
-    pr.evaluate(G, H, f, gG, gH)
+    full_evaluate()
     first_direction()
     f0 = pr.total(f)
     trace = [{"iteration": 0, "time_s": 0.0, "objective": f0}]
@@ -708,12 +753,13 @@ def fit_lfm(problem: LFMProblem, max_iterations: int | None = None, time_budget_
         if lbfgs is not None:
             lbfgs.direction(gG, gH, DG, DH)
         else:
-            pr.patch_dot(gG, gG, gH, gH, gg_new)
-            pr.patch_dot(gG, oG, gH, oH, gg_mixed)
+            precondition()
+            pr.patch_dot(gG, zG, gH, zH, gg_new)
+            pr.patch_dot(zG, oG, zH, oH, gg_mixed)
             wp.launch(LK.beta_kernel, dim=pr.V, device=dev, inputs=[gg_new, gg_mixed, gg_old, accepted, variant],
                       outputs=[beta])
-            wp.launch(LK.direction_G_kernel, dim=shape_G, device=dev, inputs=[gG, beta, pr.slot_vertex], outputs=[DG])
-            wp.launch(LK.direction_H_kernel, dim=shape_H, device=dev, inputs=[gH, beta, K, pr.mask], outputs=[DH])
+            wp.launch(LK.direction_G_kernel, dim=shape_G, device=dev, inputs=[zG, beta, pr.slot_vertex], outputs=[DG])
+            wp.launch(LK.direction_H_kernel, dim=shape_H, device=dev, inputs=[zH, beta, K, pr.mask], outputs=[DH])
             wp.copy(gg_old, gg_new)
         if it % cfg.sync_every == 0 or it == iters:
             obj = pr.total(f)
@@ -730,7 +776,7 @@ def fit_lfm(problem: LFMProblem, max_iterations: int | None = None, time_budget_
         if cfg.balance_every and it % cfg.balance_every == 0:
             wp.launch(LK.balance_kernel, dim=pr.V, device=dev,
                       inputs=[pr.ring_start, pr.ring_slots, K, pr.M, int(pr.lam > 0)], outputs=[G, H])
-            pr.evaluate(G, H, f, gG, gH)
+            full_evaluate()
             first_direction()
             # the Laplacian is not invariant under the gauge (h / c costs 1 / c^2 of it): E changes with
             # the rescaling, so the stopping test restarts from the balanced objective
@@ -738,7 +784,7 @@ def fit_lfm(problem: LFMProblem, max_iterations: int | None = None, time_budget_
     if trace[-1]["iteration"] != it:
         trace.append({"iteration": it, "time_s": time.perf_counter() - t0, "objective": pr.total(f)})
     fit_s = time.perf_counter() - t0
-    state = [G, H, TG, TH, gG, gH, tgG, tgH, oG, oH, DG, DH]
+    state = [G, H, TG, TH, gG, gH, tgG, tgH, oG, oH, DG, DH] + ([PG, PH, zG, zH] if jacobi else [])
     if lbfgs is not None:
         state += [a for a in vars(lbfgs).values() if isinstance(a, wp.array)]
     state_bytes = pr.state_bytes() + sum(int(a.capacity) for a in state if a is not None)

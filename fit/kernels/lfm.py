@@ -155,10 +155,10 @@ def slot_pass_batch_kernel(obs_y: wp.array(dtype=Any), obs_e: wp.array(dtype=Any
                            G: wp.array2d(dtype=wp.vec3d), H: wp.array2d(dtype=wp.vec3d),
                            DG: wp.array2d(dtype=wp.vec3d), DH: wp.array2d(dtype=wp.vec3d),
                            tap_idx: wp.array(dtype=wp.vec4i), tap_w: wp.array(dtype=wp.vec4d), n_vertices: int,
-                           n_terms: int, want_grad: int, want_dhd: int,
+                           n_terms: int, want_grad: int, want_dhd: int, want_diag: int,
                            slot_f: wp.array(dtype=wp.vec3d), grad_G: wp.array2d(dtype=wp.vec3d),
                            slot_dhd: wp.array(dtype=wp.vec3d), slot_gn: wp.array(dtype=wp.vec3d),
-                           slot_res: wp.array(dtype=wp.vec3d)):
+                           slot_res: wp.array(dtype=wp.vec3d), diag_G: wp.array2d(dtype=wp.vec3d)):
     """Photos p0 .. p0 + n_batch - 1, one thread per texel: accumulate over the texel's three slots
     the objective, the surface-map gradient (-e r h_k) and, with ``want_dhd``, the exact second
     derivative along the direction (DG, DH) (m1^2 - 2 r m2, with the model along the line
@@ -199,6 +199,10 @@ def slot_pass_batch_kernel(obs_y: wp.array(dtype=Any), obs_e: wp.array(dtype=Any
                 for k in range(n_terms):
                     grad_G[slot, k] = grad_G[slot, k] - e * wp.cw_mul(r, lookup_h(H, v * n_terms + k, idx, wt))
             slot_res[slot * batch + b] = e * r
+            if want_diag != 0:
+                for k in range(n_terms):
+                    h = e * lookup_h(H, v * n_terms + k, idx, wt)
+                    diag_G[slot, k] = diag_G[slot, k] + wp.cw_mul(h, h)
             if want_dhd != 0:
                 m1 = zero
                 m2 = zero
@@ -221,25 +225,36 @@ def slot_pass_batch_kernel(obs_y: wp.array(dtype=Any), obs_e: wp.array(dtype=Any
 @wp.kernel
 def view_gather_batch_kernel(ring_start: wp.array(dtype=wp.int32), ring_slots: wp.array(dtype=wp.int32),
                              slot_res: wp.array(dtype=wp.vec3d), batch: int, G: wp.array2d(dtype=wp.vec3d),
-                             n_terms: int, gathered: wp.array(dtype=wp.vec3d)):
+                             n_terms: int, want_diag: int, obs_e: wp.array(dtype=Any), obs_base: int, n_texels: int,
+                             gathered: wp.array(dtype=wp.vec3d), gathered_diag: wp.array(dtype=wp.vec3d)):
     """Per (vertex v, batch photo b): sum over v's ring of e r g_k (index table), for every term k,
     written at gathered[(v K + k) * batch + b]; dim = (V, n_batch). Threads of one vertex share the
-    ring walk and read the batch's residuals of one slot side by side."""
+    ring walk and read the batch's residuals of one slot side by side. With ``want_diag`` also the
+    sum of (e g_k)^2 (the view maps' Gauss-Newton diagonal, before the taps' weights)."""
     v, b = wp.tid()
     for k in range(n_terms):
         acc = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+        acc2 = acc
         for e in range(ring_start[v], ring_start[v + 1]):
             slot = ring_slots[e]
             acc = acc + wp.cw_mul(slot_res[slot * batch + b], G[slot, k])
+            if want_diag != 0:
+                ex = wp.float64(obs_e[(obs_base + b) * n_texels + slot / 3])
+                eg = ex * G[slot, k]
+                acc2 = acc2 + wp.cw_mul(eg, eg)
         gathered[(v * n_terms + k) * batch + b] = acc
+        if want_diag != 0:
+            gathered_diag[(v * n_terms + k) * batch + b] = acc2
 
 
 @wp.kernel
 def view_scatter_batch_kernel(gathered: wp.array(dtype=wp.vec3d), n_batch: int, batch: int, p0: int,
                               tap_idx: wp.array(dtype=wp.vec4i), tap_w: wp.array(dtype=wp.vec4d), n_terms: int,
-                              n_vertices: int, grad_H: wp.array2d(dtype=wp.vec3d)):
+                              n_vertices: int, want_diag: int, gathered_diag: wp.array(dtype=wp.vec3d),
+                              grad_H: wp.array2d(dtype=wp.vec3d), diag_H: wp.array2d(dtype=wp.vec3d)):
     """Per view-map row (v K + k): the view-map gradient, each batch photo's gathered sum
-    -sum_{ring slots} e r g_k subtracted, in photo order, at the photo's taps."""
+    -sum_{ring slots} e r g_k subtracted, in photo order, at the photo's taps; with ``want_diag`` the
+    Gauss-Newton diagonal, each tap's weight squared times the photo's sum of (e g_k)^2."""
     row = wp.tid()
     v = row / n_terms
     for b in range(n_batch):
@@ -250,6 +265,43 @@ def view_scatter_batch_kernel(gathered: wp.array(dtype=wp.vec3d), n_batch: int, 
         for t in range(4):
             if wt[t] != wp.float64(0.0):
                 grad_H[row, idx[t]] = grad_H[row, idx[t]] - wt[t] * acc
+                if want_diag != 0:
+                    diag_H[row, idx[t]] = diag_H[row, idx[t]] + (wt[t] * wt[t]) * gathered_diag[row * batch + b]
+
+
+@wp.kernel
+def jacobi_G_kernel(diag: wp.array2d(dtype=wp.vec3d), out: wp.array2d(dtype=wp.vec3d)):
+    """The inverse of the surface maps' Gauss-Newton diagonal, 0 where it is 0 (no sample: the
+    gradient is 0 there too)."""
+    s, k = wp.tid()
+    d = diag[s, k]
+    o = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    for c in range(3):
+        if d[c] > wp.float64(0.0):
+            o[c] = wp.float64(1.0) / d[c]
+    out[s, k] = o
+
+
+@wp.kernel
+def jacobi_H_kernel(diag: wp.array2d(dtype=wp.vec3d), lap_diag: wp.array(dtype=wp.float64),
+                    out: wp.array2d(dtype=wp.vec3d)):
+    """The inverse of the view maps' diagonal: Gauss-Newton data part plus the Laplacian's exact
+    diagonal ``lap_diag`` (lam times the texel's masked stencil neighbours), 0 where it is 0."""
+    r, q = wp.tid()
+    d = diag[r, q]
+    o = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    for c in range(3):
+        x = d[c] + lap_diag[q]
+        if x > wp.float64(0.0):
+            o[c] = wp.float64(1.0) / x
+    out[r, q] = o
+
+
+@wp.kernel
+def cw_mul_kernel(a: wp.array2d(dtype=wp.vec3d), b: wp.array2d(dtype=wp.vec3d), out: wp.array2d(dtype=wp.vec3d)):
+    """out = a * b entrywise (the preconditioned gradient z = P g)."""
+    i, j = wp.tid()
+    out[i, j] = wp.cw_mul(a[i, j], b[i, j])
 
 
 @wp.kernel
