@@ -709,7 +709,7 @@ class StreamProblem:
         self.radiance = 2 if layout.view_terms else int(layout.is_radiance)
         self.robust = stream.ROBUST_NONE
         self.robust_scale = 0.0
-        self.prior_lam = 0.0  # the view terms' ridge prior (set_view_prior)
+        self.view_prior = None  # the view terms' ridge prior (set_view_prior): (centre, weights), one row each
         self.material_centre = self.material_weights = None  # the shared materials' prior (set_material_prior)
         if cfg.storage not in PRECISIONS:
             raise ConfigError(f"storage precision {cfg.storage!r} unknown", fix="use fp16, fp32 or fp64")
@@ -783,7 +783,8 @@ class StreamProblem:
         """The view-dependent radiance's ridge prior: lam / 2 sum_k a_k^2 per texel over its view-term
         coefficients (fit/models.py), with lam = ``weight`` x the photos' mean squared exposure so that
         ``weight`` counts in samples of the radiance-space residual (a sample's residual scales with its
-        exposure). Added to every pass's objective, gradient, d^T H d and J^T J. No-op for other models."""
+        exposure). Added to every pass's objective, gradient, d^T H d, Jacobi diagonal and J^T J (the centred
+        prior's kernels with one row for every texel, centre 0). No-op for other models."""
         if not (math.isfinite(weight) and weight >= 0):
             raise ConfigError(f"view prior {weight} invalid", fix="use a weight >= 0")
         lay = self.layout
@@ -791,10 +792,13 @@ class StreamProblem:
             return
         exposures = np.asarray(getattr(self.photos, "exposures", [1.0]), np.float64)
         mean_sq = float(np.mean(exposures ** 2)) if exposures.size else 1.0
-        self.prior_lam = float(weight) * mean_sq
-        w = np.zeros(lay.n_params)
-        w[lay.view_offset(0):] = 1.0
-        self.prior_weights = self.vec(*w)
+        lam = float(weight) * mean_sq
+        if lam <= 0:
+            self.view_prior = None
+            return
+        w = np.zeros((1, lay.n_params))
+        w[0, lay.view_offset(0):] = lam
+        self.view_prior = (self.new_vec(np.zeros((1, lay.n_params))), self.new_vec(w))
 
     def set_material_prior(self, centre: np.ndarray | None, weights: np.ndarray | None = None) -> None:
         """The shared materials' prior (fit/materials.py): 1/2 sum_k w_ik (p_ik - c_ik)^2 per texel, a
@@ -818,24 +822,17 @@ class StreamProblem:
 
     def _add_prior(self, params, f, g, act, direction=None, dhd=None, jtj=None, diag=None) -> None:
         want = direction is not None and dhd is not None
-        if self.material_centre is not None:
+        priors = [(self.material_centre, self.material_weights)] if self.material_centre is not None else []
+        if self.view_prior is not None:
+            priors.append(self.view_prior)
+        for centre, weights in priors:
             wp.launch(K.centred_prior_kernel, dim=self.n, device=self.device,
-                      inputs=[params, direction if want else self.no_direction, self.material_centre,
-                              self.material_weights, act, self.layout.n_params, int(want), int(diag is not None)],
+                      inputs=[params, direction if want else self.no_direction, centre, weights, act,
+                              self.layout.n_params, int(want), int(diag is not None)],
                       outputs=[f, g, dhd if want else f, diag if diag is not None else g])
             if jtj is not None:
                 wp.launch(K.centred_prior_diag_kernel, dim=self.n, device=self.device,
-                          inputs=[self.material_weights, act, self.layout.n_params], outputs=[jtj])
-        if self.prior_lam <= 0:
-            return
-        lam = self.scalar(self.prior_lam)
-        wp.launch(K.quadratic_prior_kernel, dim=self.n, device=self.device,
-                  inputs=[params, direction if want else self.no_direction, self.prior_weights, lam, act,
-                          self.layout.n_params, int(want)],
-                  outputs=[f, g, dhd if want else f])
-        if jtj is not None:
-            wp.launch(K.quadratic_prior_diag_kernel, dim=self.n, device=self.device,
-                      inputs=[self.prior_weights, lam, act, self.layout.n_params], outputs=[jtj])
+                          inputs=[weights, act, self.layout.n_params], outputs=[jtj])
 
     def _init_lookup(self, texels: TexelSet, layout: ModelLayout, cfg: StreamConfig, dev: str) -> None:
         """The renderer's texture lookup (``StreamConfig.model_lookup``): texel coordinates and

@@ -110,8 +110,9 @@ def _noise_floor(sc: dict) -> None:
     sc["photo"]["noise_sigma"] = 0.003
 
 
-def _two_photos(sc: dict) -> None:
-    sc["cameras"].update(min_elevation_deg=-10.0, max_elevation_deg=10.0)
+def _few_photos(sc: dict) -> None:
+    # three cameras 120 degrees apart on the equator: texels seen by none (the caps), one or two of them
+    sc["cameras"].update(layout="ring", rings=[0.0])
 
 
 def _light_at_camera(sc: dict) -> None:
@@ -158,10 +159,10 @@ def default_cases() -> list[StiffCase]:
         StiffCase("noise_floor", "diffuse signal ~0.003 with camera noise sigma 0.003",
                   "rho_d >= 0 by projection; least squares averages the noise over the texel's samples",
                   edit=_noise_floor, synth=fine),
-        StiffCase("two_photos", "two photos: texels seen by 0, 1 or 2 of them",
+        StiffCase("few_photos", "three photos: texels seen by 0, 1 or 2 of them",
                   "unseen texels keep their start and are flagged (samples == 0); LM damping where J^T J is "
                   "singular (one photo cannot separate diffuse from lobe)",
-                  edit=_two_photos, synth={"ci": {"photos": 2, "image_size": 48}, "full": {"photos": 2, "image_size": 128}},
+                  edit=_few_photos, synth={"ci": {"photos": 3, "image_size": 48}, "full": {"photos": 3, "image_size": 128}},
                   tolerance_db=0.5),
         StiffCase("scale_redundancy", "light beside the camera: rho_s and c_z trade off (one half-angle per highlight)",
                   "the scale gauge c_xy = -1 and c_z in [0, 1] (fit/models.py); lobe_shape auto holds c_z = 1 "
@@ -291,8 +292,10 @@ def _run_fit_case(case: StiffCase, size: str, device: str, iterations: int) -> d
         "render_peak_over_photo_peak": render_peak / max(peak, 1e-30),
         "truth_psnr_db": 10 * math.log10(truth_peak ** 2 / mse) if mse > 0 else float("inf"),
     })
-    if case.name == "two_photos":
+    if case.name == "few_photos":  # one sample per photo that sees a texel: counts 0, 1 and 2
+        counts = np.asarray(res.samples)
         out["texels_unseen"] = int((~seen).sum())
+        out["texels_by_photo_count"] = {int(k): int((counts == k).sum()) for k in np.unique(counts)}
     if case.name == "scale_redundancy":
         j = lay.lobe_offset(0)
         out["rho_s_spread"] = [float(np.percentile(res.params[seen, j + 1], q)) for q in (5, 50, 95)]

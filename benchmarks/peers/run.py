@@ -284,7 +284,9 @@ def main(argv=None) -> int:
             try:
                 p = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=a.timeout)
                 ok = p.returncode == 0 and wout.exists()
-                runs[m] = json.loads(wout.read_text()) if ok else {"error": (p.stderr or p.stdout).strip()[-2000:]}
+                # a worker killed by a signal (a crash in a native library) prints nothing: keep its exit status
+                runs[m] = json.loads(wout.read_text()) if ok else {
+                    "error": f"exit status {p.returncode}: " + ((p.stderr or p.stdout).strip()[-2000:] or "no output")}
             except subprocess.TimeoutExpired:
                 runs[m] = {"error": f"stopped after {a.timeout:.0f} s"}
             summarise(results)

@@ -570,61 +570,20 @@ def final_sums_kernel(partial: wp.array2d(dtype=wp.float64), n_chunks: int, row:
 
 
 @wp.kernel
-def quadratic_prior_kernel(params: wp.array2d(dtype=Any), direction: wp.array2d(dtype=Any), weights: Any,
-                           lam: Any, active: wp.array(dtype=wp.int32), n_params: int, want_dhd: int,
-                           f: wp.array(dtype=Any), g: wp.array(dtype=Any), dhd: wp.array(dtype=Any)):
-    """Adds the prior P_i = lam / 2 sum_k w_k p_ik^2 to texel i's objective, lam w p to its gradient
-    and (``want_dhd``) lam sum_k w_k d_k^2 to its d^T H d; inactive texels are left as they are
-    (their pass outputs are zero and unused)."""
-    i = wp.tid()
-    if active[i] == 0:
-        return
-    zero = lam - lam
-    half = type(lam)(0.5)
-    pen = zero
-    curv = zero
-    gi = g[i]
-    for k in range(n_params):
-        pk = type(lam)(params[i, k])
-        wk = weights[k]
-        pen = pen + wk * pk * pk
-        gi[k] = gi[k] + lam * wk * pk
-        if want_dhd != 0:
-            dk = type(lam)(direction[i, k])
-            curv = curv + wk * dk * dk
-    f[i] = f[i] + half * lam * pen
-    g[i] = gi
-    if want_dhd != 0:
-        dhd[i] = dhd[i] + lam * curv
-
-
-@wp.kernel
-def quadratic_prior_diag_kernel(weights: Any, lam: Any, active: wp.array(dtype=wp.int32), n_params: int,
-                                jtj: wp.array(dtype=Any)):
-    """Adds the prior's Hessian lam diag(w) to texel i's Gauss-Newton matrix (:func:`quadratic_prior_kernel`)."""
-    i = wp.tid()
-    if active[i] == 0:
-        return
-    h = jtj[i]
-    for k in range(n_params):
-        h[k, k] = h[k, k] + lam * weights[k]
-    jtj[i] = h
-
-
-@wp.kernel
 def centred_prior_kernel(params: wp.array2d(dtype=Any), direction: wp.array2d(dtype=Any), centre: wp.array(dtype=Any),
                          weights: wp.array(dtype=Any), active: wp.array(dtype=wp.int32), n_params: int, want_dhd: int,
                          want_diag: int, f: wp.array(dtype=Any), g: wp.array(dtype=Any), dhd: wp.array(dtype=Any),
                          diag: wp.array(dtype=Any)):
-    """Adds the prior P_i = 1/2 sum_k w_ik (p_ik - c_ik)^2 with a centre ``c_i`` and weights ``w_i`` of
-    texel i's own (the shared materials' prior, fit/materials.py) to its objective, w_i (p_i - c_i) to
-    its gradient, (``want_dhd``) sum_k w_ik d_k^2 to its d^T H d and (``want_diag``) w_i to its
-    Gauss-Newton diagonal (the Jacobi preconditioner); inactive texels are left as they are."""
+    """Adds the prior P_i = 1/2 sum_k w_ik (p_ik - c_ik)^2 to texel i's objective, w_i (p_i - c_i) to its
+    gradient, (``want_dhd``) sum_k w_ik d_k^2 to its d^T H d and (``want_diag``) w_i to its Gauss-Newton
+    diagonal (the Jacobi preconditioner); inactive texels are left as they are. ``centre`` and ``weights``
+    hold a row per texel (the shared materials' prior, fit/materials.py) or one row for every texel (the
+    view terms' ridge prior, centre 0)."""
     i = wp.tid()
     if active[i] == 0:
         return
-    c = centre[i]
-    w = weights[i]
+    c = centre[wp.min(i, centre.shape[0] - 1)]
+    w = weights[wp.min(i, weights.shape[0] - 1)]
     zero = w[0] - w[0]
     pen = zero
     curv = zero
@@ -647,12 +606,13 @@ def centred_prior_kernel(params: wp.array2d(dtype=Any), direction: wp.array2d(dt
 @wp.kernel
 def centred_prior_diag_kernel(weights: wp.array(dtype=Any), active: wp.array(dtype=wp.int32), n_params: int,
                               jtj: wp.array(dtype=Any)):
-    """Adds the centred prior's Hessian diag(w_i) to texel i's Gauss-Newton matrix (:func:`centred_prior_kernel`)."""
+    """Adds the centred prior's Hessian diag(w_i) to texel i's Gauss-Newton matrix (:func:`centred_prior_kernel`;
+    one row of ``weights`` serves every texel)."""
     i = wp.tid()
     if active[i] == 0:
         return
     h = jtj[i]
-    w = weights[i]
+    w = weights[wp.min(i, weights.shape[0] - 1)]
     for k in range(n_params):
         h[k, k] = h[k, k] + w[k]
     jtj[i] = h
