@@ -163,8 +163,8 @@ def slot_pass_batch_kernel(obs_y: wp.array(dtype=Any), obs_e: wp.array(dtype=Any
     the objective, the surface-map gradient (-e r h_k) and, with ``want_dhd``, the exact second
     derivative along the direction (DG, DH) (m1^2 - 2 r m2, with the model along the line
     m0 + a m1 + a^2 m2) and its Gauss-Newton part m1^2, each photo added in order (the objective and
-    curvature sums in registers across the batch); write each slot's e r of photo b at
-    slot_res[slot * batch + b] (0 where unobserved) for the view-map gather."""
+    curvature sums in registers across the batch); with ``want_grad`` write each slot's e r of photo b
+    at slot_res[slot * batch + b] (0 where unobserved) for the view-map gather."""
     s = wp.tid()
     n = diffuse.shape[0]
     zero = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
@@ -185,7 +185,8 @@ def slot_pass_batch_kernel(obs_y: wp.array(dtype=Any), obs_e: wp.array(dtype=Any
             o = (obs_base + b) * n + s
             e = wp.float64(obs_e[o])
             if e <= wp.float64(0.0):
-                slot_res[slot * batch + b] = zero
+                if want_grad != 0:
+                    slot_res[slot * batch + b] = zero
                 continue
             idx = tap_idx[(p0 + b) * n_vertices + v]
             wt = tap_w[(p0 + b) * n_vertices + v]
@@ -198,7 +199,8 @@ def slot_pass_batch_kernel(obs_y: wp.array(dtype=Any), obs_e: wp.array(dtype=Any
             if want_grad != 0:
                 for k in range(n_terms):
                     grad_G[slot, k] = grad_G[slot, k] - e * wp.cw_mul(r, lookup_h(H, v * n_terms + k, idx, wt))
-            slot_res[slot * batch + b] = e * r
+            if want_grad != 0:
+                slot_res[slot * batch + b] = e * r     # for the view-map gather (gradient passes only)
             if want_diag != 0:
                 for k in range(n_terms):
                     h = e * lookup_h(H, v * n_terms + k, idx, wt)
