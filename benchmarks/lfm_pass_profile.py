@@ -3,12 +3,12 @@
     python benchmarks/lfm_pass_profile.py --scene star --scale 0.1 --device cpu --out out/lfm_profile
     python benchmarks/lfm_pass_profile.py --scene star --scale 1.0 --device cuda:0 --out $OUT/lfm_profile
 
-Renders the scene in memory, builds the photo set and one LFMProblem per ``--photo-batch`` and ``--sample-cache`` value, then
-per value: a warm-up fit (compiles), a timed fit of ``--iterations`` iterations (ms per pass: the fit's
-wall time over its passes; the diffuse pass apart), and an instrumented fit of the same length in which
-every ``wp.launch`` / ``wp.copy`` is bracketed by device synchronisations, so each kernel's wall time
-(launch overhead included) is summed by kernel name. The instrumented times add the synchronisations'
-cost; the plain time is the one to quote.
+Renders the scene in memory, builds the photo set and one LFMProblem per ``--photo-batch`` and
+``--sample-cache`` value, then per value: a warm-up fit (compiles), a timed fit of ``--iterations``
+iterations (ms per pass: the fit's wall time over its passes; the diffuse pass apart), and an
+instrumented fit of the same length in which every ``wp.launch`` / ``wp.copy`` is bracketed by device
+synchronisations, so each kernel's wall time (launch overhead included) is summed by kernel name. The
+instrumented times add the synchronisations' cost; the plain time is the one to quote.
 """
 
 from __future__ import annotations
@@ -54,11 +54,13 @@ def main() -> None:
     sp = build_problem(sc.mesh, sc.bake, frames, images, masks, FitConfig(model="radiance"), a.device)
     geom = lfm_geometry(sc.mesh, sc.bake, sp.texels)
     results = {"scene": a.scene, "scale": a.scale, "device": a.device, "machine": platform.node(),
-               "photos_fitted": len(frames), "texels": int(geom.n_texels), "welded_vertices": int(geom.n_vertices),
+               "photos_fitted": len(frames), "texels": int(geom.n_texels),
+               "welded_vertices": int(geom.n_vertices),
                "terms": a.terms, "optimizer": a.optimizer, "iterations": a.iterations, "runs": []}
     if a.device.startswith("cuda"):
         results["gpu"] = wp.get_device(a.device).name
-    print(f"{a.scene} x{a.scale}: {len(frames)} photos, {geom.n_texels} texels, {geom.n_vertices} vertices", flush=True)
+    print(f"{a.scene} x{a.scale}: {len(frames)} photos, {geom.n_texels} texels, {geom.n_vertices} vertices",
+          flush=True)
 
     real_launch, real_copy = wp.launch, wp.copy
 
@@ -89,8 +91,8 @@ def main() -> None:
         wall = time.perf_counter() - t
         n_pass = pr.passes - passes0
         totals, counts = defaultdict(float), defaultdict(int)
-        wp.launch = timed(real_launch, lambda args, kw: getattr(args[0] if args else kw["kernel"], "key", "?"),
-                          totals, counts)
+        kernel_name = lambda args, kw: getattr(args[0] if args else kw["kernel"], "key", "?")  # noqa: E731
+        wp.launch = timed(real_launch, kernel_name, totals, counts)
         wp.copy = timed(real_copy, lambda args, kw: "wp.copy", totals, counts)
         try:
             pr2 = LFMProblem(geom, PhotoSamples(sp, frames), cfg, a.device)
@@ -103,16 +105,19 @@ def main() -> None:
             wall_instr = time.perf_counter() - t
         finally:
             wp.launch, wp.copy = real_launch, real_copy
-        kernels = sorted(({"name": k, "ms_per_pass": 1000 * v / n_pass, "calls": counts[k], "share": v / wall_instr}
-                          for k, v in totals.items()), key=lambda r: -r["ms_per_pass"])
-        run = {"photo_batch": pr.B, "sample_cache": pr.cache, "passes": n_pass, "fit_s": wall, "ms_per_pass": 1000 * wall / n_pass,
+        kernels = [{"name": k, "ms_per_pass": 1000 * v / n_pass, "calls": counts[k], "share": v / wall_instr}
+                   for k, v in totals.items()]
+        kernels.sort(key=lambda r: -r["ms_per_pass"])
+        run = {"photo_batch": pr.B, "sample_cache": pr.cache, "passes": n_pass, "fit_s": wall,
+               "ms_per_pass": 1000 * wall / n_pass,
                "objective": res.trace[-1]["objective"], "instrumented_s": wall_instr, "kernels": kernels,
                "state_bytes": res.state_bytes}
         results["runs"].append(run)
-        print(f"photo_batch {pr.B}, sample cache {pr.cache}: {n_pass} passes, {run['ms_per_pass']:.1f} ms/pass, objective "
-              f"{run['objective']:.10g}", flush=True)
+        print(f"photo_batch {pr.B}, sample cache {pr.cache}: {n_pass} passes, "
+              f"{run['ms_per_pass']:.1f} ms/pass, objective {run['objective']:.10g}", flush=True)
         for r in kernels[:10]:
-            print(f"   {r['name']:<32} {r['ms_per_pass']:8.2f} ms/pass  {r['calls']:6d} calls  {100 * r['share']:5.1f}%")
+            print(f"   {r['name']:<32} {r['ms_per_pass']:8.2f} ms/pass  {r['calls']:6d} calls  "
+                  f"{100 * r['share']:5.1f}%")
         (out / "lfm_pass_profile.json").write_text(json.dumps(results, indent=1))
 
 

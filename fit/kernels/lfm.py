@@ -149,13 +149,13 @@ def vertex_taps_all_kernel(vpos: wp.array(dtype=wp.vec3d), vtan: wp.array(dtype=
 
 
 @wp.kernel
-def slot_pass_batch_kernel(obs_y: wp.array(dtype=Any), obs_e: wp.array(dtype=Any), obs_base: int, n_batch: int,
-                           batch: int, p0: int, diffuse: wp.array(dtype=wp.vec3d),
+def slot_pass_batch_kernel(obs_y: wp.array(dtype=Any), obs_e: wp.array(dtype=Any), obs_base: int,
+                           n_batch: int, batch: int, p0: int, diffuse: wp.array(dtype=wp.vec3d),
                            slot_vertex: wp.array(dtype=wp.int32), slot_hat: wp.array(dtype=wp.float64),
                            G: wp.array2d(dtype=wp.vec3d), H: wp.array2d(dtype=wp.vec3d),
                            DG: wp.array2d(dtype=wp.vec3d), DH: wp.array2d(dtype=wp.vec3d),
-                           tap_idx: wp.array(dtype=wp.vec4i), tap_w: wp.array(dtype=wp.vec4d), n_vertices: int,
-                           n_terms: int, want_grad: int, want_dhd: int, want_diag: int,
+                           tap_idx: wp.array(dtype=wp.vec4i), tap_w: wp.array(dtype=wp.vec4d),
+                           n_vertices: int, n_terms: int, want_grad: int, want_dhd: int, want_diag: int,
                            slot_f: wp.array(dtype=wp.vec3d), grad_G: wp.array2d(dtype=wp.vec3d),
                            slot_dhd: wp.array(dtype=wp.vec3d), slot_gn: wp.array(dtype=wp.vec3d),
                            slot_res: wp.array(dtype=wp.vec3d), diag_G: wp.array2d(dtype=wp.vec3d)):
