@@ -1,0 +1,305 @@
+"""Tiled fits: the atlas's texels split into tiles, each fitted over only the photos that see it, on one
+device or several (one thread per device), or as Ray actors (fit/tiles_ray.py).
+
+A tile is a range of consecutive texels (the compact texel order is the atlas's row order: a band of
+atlas rows). Its photos are those in which any of its texels has a sample, from the distribution step's
+own acceptance test at set-up (:mod:`texstream.fit.kernels.tiles`), so a tile's passes see every sample
+its texels have in the untiled fit. The per-texel fits (LM; SD, CG and L-BFGS with per-texel line
+searches) couple no texels, and every tile's problem steps in lockstep with the others: one stopping
+test on the objective summed over all tiles, the robust loss's scale and the view prior's exposure
+from all photos, the accumulate precision of the whole photo set. With the photos on the device and
+one photo group per pass (the CPU's: the same summation order per texel), a tiled fit gives the
+untiled fit's parameters to the last bit. Options that couple texels (the smoothness and Laplacian
+penalties, the renderer's bilinear lookup, the global line search) are refused: there is no halo
+exchange.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import time
+
+import numpy as np
+import warp as wp
+
+from texstream.core.errors import ConfigError
+
+from .fitter import (FitConfig, FitResult, FitRun, converged, initial_guess, robust_scale_from_stats, stop_test_due,
+                     trace_rows)
+from .kernels.tiles import tile_visibility_kernel, tile_visibility_radiance_kernel
+from .problem import StreamProblem, TexelSet, exposure_mean_square
+
+
+@dataclasses.dataclass
+class TilePlan:
+    """How a fit is split: per tile its texel range, device slot and photos.
+
+    Attributes:
+        bounds: (T, 2) int64 [begin, end) compact texel indices of each tile.
+        devices: the device of each worker slot (a device may appear twice: two threads on it).
+        slots: (T,) int64 worker slot of each tile (tile t on slot t mod the slot count).
+        photos: per tile, the (P_t,) int64 indices of the photos that see it, ascending.
+    """
+
+    bounds: np.ndarray
+    devices: list[str]
+    slots: np.ndarray
+    photos: list[np.ndarray]
+
+    def report(self, n_photos: int) -> dict:
+        """A plain summary for model.json and benchmarks."""
+        return {"tiles": int(len(self.bounds)), "devices": list(self.devices),
+                "texels_per_tile": [int(e - b) for b, e in self.bounds],
+                "photos_per_tile": [int(p.size) for p in self.photos], "photos": int(n_photos)}
+
+
+def parse_devices(devices: str, default: str) -> list[str]:
+    """The worker devices of ``StreamConfig.devices`` ("cuda:0,cuda:1"; empty: ``default``)."""
+    names = [d.strip() for d in str(devices).split(",") if d.strip()]
+    if not names:
+        return [default]
+    for d in names:
+        if d != "cpu" and not d.startswith("cuda"):
+            raise ConfigError(f"device {d!r} in stream.devices unknown", fix="use cpu or cuda:N, comma separated")
+        try:
+            wp.get_device(d)
+        except Exception as e:  # warp raises RuntimeError / ValueError for a device it lacks
+            raise ConfigError(f"device {d!r} in stream.devices is not available ({e})",
+                              fix="list devices this machine has (warp.get_cuda_device_count())") from None
+    return names
+
+
+def tiled(cfg: FitConfig) -> bool:
+    """Whether ``cfg`` asks for a tiled fit (more than one tile, or other devices than the fit's, or Ray)."""
+    s = cfg.stream
+    return s.tiles > 1 or len([d for d in s.devices.split(",") if d.strip()]) > 1 or s.tile_backend == "ray"
+
+
+def check_tileable(cfg: FitConfig) -> None:
+    """Refuse options that couple texels across tiles (no halo exchange), naming the option."""
+    coupled = []
+    if cfg.penalties.smooth_weight > 0:
+        coupled.append("penalties.smooth_weight (the membrane between neighbouring texels)")
+    if cfg.penalties.laplacian_weight > 0:
+        coupled.append("penalties.laplacian_weight (the Laplacian over neighbouring texels)")
+    if cfg.stream.model_lookup == "bilinear":
+        coupled.append("stream.model_lookup bilinear (neighbours' held values)")
+    if cfg.linesearch.acceptance == "global":
+        coupled.append("linesearch.acceptance global (one step for all texels)")
+    if coupled:
+        raise ConfigError("a tiled fit needs texels that are fitted independently, and " + "; ".join(coupled)
+                          + " couple them (there is no halo exchange between tiles)",
+                          fix="set stream.tiles to 0 with one device, or turn those options off")
+
+
+def split_texels(n: int, tiles: int) -> np.ndarray:
+    """(T, 2) [begin, end) ranges of ``tiles`` near-equal runs of consecutive texels (fewer when n < tiles)."""
+    tiles = max(1, min(int(tiles), max(n, 1)))
+    edges = np.linspace(0, n, tiles + 1).round().astype(np.int64)
+    return np.stack([edges[:-1], edges[1:]], axis=1)
+
+
+def texel_range(texels: TexelSet, begin: int, end: int) -> TexelSet:
+    """Texels begin..end-1 as a TexelSet of their own (neighbours and padding sources outside the range
+    become -1, i.e. none; they serve only the coupling options a tiled fit refuses)."""
+    def cut(a):
+        return None if a is None else np.ascontiguousarray(a[begin:end])
+
+    def local(ids):
+        ids = np.asarray(ids, np.int64)
+        return np.where((ids >= begin) & (ids < end), ids - begin, -1)
+
+    source = None if texels.grid_source is None else local(texels.grid_source)
+    return TexelSet(cut(texels.position), cut(texels.normal), cut(texels.tangent), cut(texels.bitangent),
+                    cut(texels.grid_index), local(texels.neighbors[begin:end]).astype(np.int32),
+                    texels.width, texels.height, cut(texels.face_normal), cut(texels.normal_jacobian),
+                    cut(texels.coordinate_gradients), source)
+
+
+def tile_photo_visibility(problem: StreamProblem, bounds: np.ndarray) -> np.ndarray:
+    """(T, photos) bool: whether photo k has a sample of any texel of tile t (one launch over photos x
+    texels per window of photos; the acceptance test of the passes, fit/kernels/tiles.py)."""
+    n, dev, photos = problem.n, problem.device, problem.photos
+    sizes = (bounds[:, 1] - bounds[:, 0]).astype(np.int64)
+    tile_of = wp.array(np.repeat(np.arange(len(bounds), dtype=np.int32), sizes), dtype=wp.int32, device=dev)
+    seen = wp.zeros((len(bounds), photos.n), dtype=wp.int32, device=dev)
+    kernel = tile_visibility_radiance_kernel if problem.radiance else tile_visibility_kernel
+    offset = 0
+    for images, depth, shadow, infos, b, e in photos.windows():
+        wp.launch(kernel, dim=(e - b, n), device=dev,
+                  inputs=[problem.tex, images, depth, shadow, infos, offset, problem.opt, tile_of], outputs=[seen])
+        offset += e - b
+    return seen.numpy() > 0
+
+
+def plan_tiles(problem: StreamProblem, cfg: FitConfig) -> TilePlan:
+    """Tiles (``StreamConfig.tiles``, 0: one per device), their devices and their photos."""
+    check_tileable(cfg)
+    devices = parse_devices(cfg.stream.devices, problem.device)
+    # streamed photos share one set of window buffers: only one thread on the fit's device may stream them
+    if (len(devices) > 1 or devices[0] != problem.device) and problem.photos.residency != "device":
+        raise ConfigError(f"fitting on {','.join(devices)} needs the photos resident on the device, and they are "
+                          f"{problem.photos.residency} ({problem.photos.residency_reason})",
+                          fix="set stream.photo_residency device (and a memory cap that holds them), or fit on "
+                              "the one device")
+    bounds = split_texels(problem.n, cfg.stream.tiles or len(devices))
+    seen = tile_photo_visibility(problem, bounds)
+    # a tile no photo sees keeps photo 0: its texels stay unseen (no sample passes the same test), as untiled
+    photos = [np.flatnonzero(row) if row.any() else np.zeros(1, np.int64) for row in seen]
+    return TilePlan(bounds, devices, np.arange(len(bounds)) % len(devices), photos)
+
+
+def tile_problem(problem: StreamProblem, plan: TilePlan, t: int, cfg: FitConfig) -> StreamProblem:
+    """Tile ``t``'s StreamProblem on its device: its texels, and its photos with their maps (the parent's
+    own when it takes every photo on the parent's device, else a copy, :meth:`PhotoSet.subset`)."""
+    b, e = (int(x) for x in plan.bounds[t])
+    dev = plan.devices[plan.slots[t]]
+    idx = plan.photos[t]
+    photos = problem.photos
+    if dev != problem.device or not np.array_equal(idx, np.arange(photos.n)):
+        photos = photos.subset(idx, device=dev)
+    return StreamProblem(texel_range(problem.texels, b, e), photos, problem.layout, cfg.stream, device=dev)
+
+
+def tile_config(problem: StreamProblem, cfg: FitConfig) -> FitConfig:
+    """The tiles' config: the accumulate precision resolved for all the photos (a tile sees fewer, and
+    ``auto`` would pick by its own count)."""
+    return dataclasses.replace(cfg, stream=dataclasses.replace(cfg.stream, accumulate=problem.accumulate))
+
+
+class SlotPool:
+    """Runs a function over tiles, the tiles of one worker slot in order on that slot's thread (Warp's
+    launches, synchronisations and copies release the GIL, so devices run concurrently)."""
+
+    def __init__(self, plan: TilePlan):
+        self.plan = plan
+        self.pool = concurrent.futures.ThreadPoolExecutor(max_workers=len(plan.devices),
+                                                          thread_name_prefix="texstream-tile")
+
+    def map(self, fn, items: list) -> list:
+        """[fn(t, items[t]) for each tile t], each slot's tiles on its own thread; results in tile order."""
+        by_slot = [[t for t in range(len(items)) if self.plan.slots[t] == s] for s in range(len(self.plan.devices))]
+
+        def run(ts):
+            return [(t, fn(t, items[t])) for t in ts]
+
+        out = [None] * len(items)
+        for done in self.pool.map(run, [ts for ts in by_slot if ts]):
+            for t, r in done:
+                out[t] = r
+        return out
+
+    def close(self) -> None:
+        self.pool.shutdown()
+
+
+def lockstep(workers, pool_map, cfg: FitConfig, n_texels_order_stats, progress=None):
+    """Drive tile workers (objects with ``scale_pass_stats``, ``begin``, ``run_iterations``, ``needs_scale_pass``)
+    through the fit in lockstep: a segment of iterations up to each stopping test on every worker
+    (``pool_map(fn, workers)`` runs them, concurrently where it can), then one test on the summed trace.
+    Returns (summed trace rows, times, last iteration, robust scale)."""
+    t0 = time.perf_counter()
+    scale = None
+    if workers and pool_map(lambda t, w: w.needs_scale_pass(), workers)[0]:
+        stats = pool_map(lambda t, w: w.scale_pass_stats(), workers)
+        scale = robust_scale_from_stats(n_texels_order_stats(stats), cfg)
+    rows0 = pool_map(lambda t, w: w.begin(scale), workers)
+    sums = np.zeros((cfg.max_iterations + 1, 8))
+    sums[0] = np.sum(rows0, axis=0)
+    times = [time.perf_counter() - t0]
+    last_obj, it, it_done = None, 1, 0
+    while it <= cfg.max_iterations:
+        end = it
+        while not stop_test_due(end, cfg):
+            end += 1
+        rows = pool_map(lambda t, w: w.run_iterations(it, end), workers)
+        sums[it:end + 1] = np.sum(rows, axis=0)
+        now = time.perf_counter() - t0
+        times.extend([now] * (end + 1 - it))  # per segment: a tile's iterations finish at different times
+        if progress is not None:
+            for k in range(it, end + 1):
+                progress(k)
+        it_done = end
+        obj = float(sums[end, 0])
+        if converged(last_obj, obj, cfg):
+            break
+        last_obj = obj
+        if cfg.time_budget_s > 0 and now >= cfg.time_budget_s:
+            break
+        it = end + 1
+    return sums[:it_done + 1], times, it_done, scale
+
+
+class TileWorker:
+    """One tile's fit (a :class:`~texstream.fit.fitter.FitRun`) behind the calls :func:`lockstep` makes;
+    the same object runs on a local thread or inside a Ray actor."""
+
+    def __init__(self, problem: StreamProblem, cfg: FitConfig, start: tuple[np.ndarray, np.ndarray],
+                 view_mean_sq: float):
+        self.problem, self.cfg, self.view_mean_sq = problem, cfg, view_mean_sq
+        self.run = FitRun(problem, cfg, start=start)
+
+    def needs_scale_pass(self) -> bool:
+        return self.run.needs_scale_pass()
+
+    def scale_pass_stats(self) -> np.ndarray:
+        return self.run.scale_pass_stats()
+
+    def begin(self, robust_scale: float | None) -> np.ndarray:
+        """Start the fit; returns trace row 0 (8 sums over this tile's texels)."""
+        self.run.begin(robust_scale, self.view_mean_sq)
+        return self.run.trace_buf.numpy()[0]
+
+    def run_iterations(self, first: int, last: int) -> np.ndarray:
+        """Iterations first..last; returns their trace rows ((last - first + 1, 8) sums over this tile)."""
+        for it in range(first, last + 1):
+            self.run.iterate(it)
+        return self.run.trace_buf.numpy()[first:last + 1]
+
+    def params(self) -> tuple[np.ndarray, int, float]:
+        """(fitted (N_t, n_params) parameters, passes streamed, robust scale)."""
+        return self.run.state.params_numpy(), int(self.problem.passes), float(self.problem.robust_scale)
+
+
+def run_tiled_fit(problem: StreamProblem, cfg: FitConfig, start: tuple[np.ndarray, np.ndarray] | None = None,
+                  progress=None) -> tuple[FitResult, dict]:
+    """Fit ``problem`` in tiles (``cfg.stream.tiles``, ``devices``, ``tile_backend``); returns the result in the
+    untiled texel order and a report (tiles, devices, texels and photos per tile, set-up and fit times).
+
+    ``start``: :func:`initial_guess`'s (parameters, sample counts) over all texels when already streamed."""
+    if cfg.stream.tile_backend == "ray":
+        from .tiles_ray import run_ray_tiled_fit
+
+        return run_ray_tiled_fit(problem, cfg, start, progress)
+    t0 = time.perf_counter()
+    guess, counts = start if start is not None else initial_guess(problem, cfg)
+    plan = plan_tiles(problem, cfg)
+    tcfg = tile_config(problem, cfg)
+    mean_sq = exposure_mean_square(problem.photos)
+    pool = SlotPool(plan)
+    try:
+        def make(t, _):
+            b, e = plan.bounds[t]
+            return TileWorker(tile_problem(problem, plan, t, tcfg), tcfg, (guess[b:e], counts[b:e]), mean_sq)
+
+        workers = pool.map(make, list(range(len(plan.bounds))))
+        t_setup = time.perf_counter() - t0
+        sums, times, it_done, _ = lockstep(workers, pool.map, cfg, np.concatenate, progress)
+        parts = pool.map(lambda t, w: w.params(), workers)
+    finally:
+        pool.close()
+    result = assemble(problem, cfg, counts, parts, sums, times, it_done)
+    report = {**plan.report(problem.photos.n), "backend": "threads", "tile_setup_s": t_setup,
+              "fit_s": times[-1]}
+    return result, report
+
+
+def assemble(problem: StreamProblem, cfg: FitConfig, counts: np.ndarray, parts: list, sums: np.ndarray,
+             times: list, it_done: int) -> FitResult:
+    """The tiles' (parameters, passes, robust scale) as one FitResult in the untiled texel order."""
+    passes = max(p[1] for p in parts)
+    problem.passes += passes  # the passes each photo streamed through, as an untiled fit counts them
+    return FitResult(params=np.concatenate([p[0] for p in parts]), samples=counts,
+                     trace=trace_rows(sums, times[:it_done + 1], cfg), layout=problem.layout, passes=problem.passes,
+                     robust_loss=cfg.loss(problem.layout), robust_scale=parts[0][2])
