@@ -21,6 +21,7 @@ import numpy as np
 from texstream.core.errors import InputError, StageError
 from texstream.core.config import check_config, option
 from texstream.core.outputs import StageResult, atomic_output_dir, read_json, write_json_atomic
+from texstream.core.progress import say
 
 from .fitter import FitConfig, FitResult, light_view_angles, resumable, run_fit
 from .materials import MaterialConfig
@@ -617,8 +618,10 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
         problem = build_problem(mesh, bake, frames, inputs.images, inputs.masks, cfg.fit, cfg.device)
         seen_before, start = check_seen_texels(problem, cfg, capture_dir)
     t_setup = time.perf_counter() - t0
-    ckpt, resume = None, None
-    if cfg.checkpoint and resumable(cfg.fit):
+    from .tiles import run_tiled_fit, tiled
+
+    ckpt, resume, tiles_report = None, None, None
+    if cfg.checkpoint and resumable(cfg.fit) and not tiled(cfg.fit):
         from texstream.core.config import config_to_dict
 
         ckpt = Checkpoint(out_dir, {"capture": str(Path(capture_dir).resolve()), "mesh": str(Path(mesh_path).resolve()),
@@ -626,8 +629,15 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
                                     "capture_mtime": (Path(capture_dir) / "capture.json").stat().st_mtime_ns
                                     if (Path(capture_dir) / "capture.json").exists() else 0})
         resume = ckpt.load()
-    result = run_fit_with_progress(problem, cfg.fit, progress, start=start,
-                                   **({"checkpoint": ckpt.save, "resume": resume} if ckpt else {}))
+    if tiled(cfg.fit):
+        with phase("fit", f"{cfg.fit.model}: tiles of texels ({cfg.fit.stream.tile_backend})"):
+            result, tiles_report = run_tiled_fit(problem, cfg.fit, start)
+        say("fit", f"tiles: {tiles_report['tiles']} on {','.join(tiles_report['devices'])} "
+                   f"({tiles_report['backend']}), photos per tile {min(tiles_report['photos_per_tile'])}.."
+                   f"{max(tiles_report['photos_per_tile'])} of {tiles_report['photos']}")
+    else:
+        result = run_fit_with_progress(problem, cfg.fit, progress, start=start,
+                                       **({"checkpoint": ckpt.save, "resume": resume} if ckpt else {}))
     lay = result.layout
     materials_info, evidence, borrowed = None, None, None
     if lay.n_lobes and cfg.materials.mode != "off":
@@ -710,6 +720,7 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
                     "photos": {"fitted": len(frames), "held_out": len(held), "residency": problem.photos.residency,
                                "residency_reason": problem.photos.residency_reason,
                                "photos_per_window": problem.photos.window},
+                    "tiles": tiles_report,
                     "final": {k: last[k] for k in ("iteration", "time_s", "objective", "psnr_db", "ape_percent")},
                     "lobe_shape": lobe_shape_report(cfg.fit, lay, frames, problem.texels.position),
                     "materials": _materials_manifest(materials_info, evidence, cfg.materials),
