@@ -342,6 +342,10 @@ class PhotoSet:
         ``timings`` records the set-up's phases in seconds (upload, depth_maps, shadow_maps, other;
         each phase ends with a device synchronisation so the figures are its own)."""
         self.mesh_normals = self.mesh_uvs = None
+        self.frames = list(frames)
+        """the photos' :class:`PhotoFrame`s (a tile's actor builds its own set from them, fit/tiles_ray.py)"""
+        self.source = images if isinstance(images, PhotoFiles) else None
+        """the photos' files when given as a PhotoFiles (paths only: nothing decoded is held), else None"""
         self.light_kinds = [fr.light_kind for fr in frames]
         """per photo "point", "directional" or "none" (checked against the model by StreamProblem)"""
         self.exposures = [float(fr.exposure) for fr in frames]
@@ -357,6 +361,8 @@ class PhotoSet:
         t_start = time.perf_counter()
         cfg = config or StreamConfig()
         self.files = isinstance(images, PhotoFiles)
+        self.mesh_arrays = (mesh_points, mesh_faces, mesh_normals, mesh_uvs)
+        """the mesh as given (another process builds the same set from them, fit/tiles_ray.py)"""
         self.mesh = wp.Mesh(points=wp.array(np.asarray(mesh_points, np.float32), dtype=wp.vec3, device=device),
                             indices=wp.array(np.asarray(mesh_faces, np.int32).reshape(-1), dtype=wp.int32, device=device))
         if mesh_normals is not None and mesh_uvs is not None:
@@ -617,6 +623,8 @@ class PhotoSet:
         out.n = int(idx.size)
         out.light_kinds = [self.light_kinds[k] for k in idx]
         out.exposures = [self.exposures[k] for k in idx]
+        out.frames = [self.frames[k] for k in idx]
+        out.source = None if self.source is None else self.source.subset(idx)
         out.infos_host = self.infos_host[idx]
         out.crops = None if self.crops is None else self.crops[idx]
         out.infos = struct_array(out.infos_host, stream.ImageInfo, dev)
@@ -634,9 +642,7 @@ class PhotoSet:
                 return out
         out.window = min(self.window, out.n)
         if self.residency == "disk":  # the window buffers are shared: the two sets are never streamed at once
-            src = self.loader.source
-            files = PhotoFiles([src.paths[k] for k in idx], [src.mask_paths[k] for k in idx], src.read_image,
-                               src.read_mask)
+            files = self.loader.source.subset(idx)
             out.sizes = self.sizes[idx]
             out.loader = PhotoLoader(files, None, out.crops, out.sizes, self.loader.threads)
             out.maps_on_device = False  # the kept maps are the whole set's: a subset's windows make their own

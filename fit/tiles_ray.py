@@ -1,0 +1,108 @@
+"""Tiled fits on a Ray cluster (``StreamConfig.tile_backend`` ray; the optional ``texstream[distributed]``).
+
+Each tile is a Ray actor that builds its own problem: its texels (shipped, small) and its photos read
+from the capture's files (paths on storage every worker reads), cropped, with their depth and shadow
+maps made on the actor's device, as the one-process set-up makes them photo by photo (same crops, same
+rays: the same values). The driver plans the tiles (fit/tiles.py: visibility from its own set-up) and
+drives the actors in lockstep (:func:`texstream.fit.tiles.lockstep`), so a Ray fit gives the
+one-process fit's parameters to the last bit under the conditions of fit/tiles.py. Ray is imported
+here only: ``texstream.fit`` itself still imports only numpy and warp.
+
+The cluster: the one this process is connected to (``ray.init`` called before), else ``RAY_ADDRESS``'s,
+else a local one. An actor takes one GPU (``num_gpus=1``, its device cuda:0 of those Ray gives it) when
+the fit's device is CUDA, else one CPU.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+
+import numpy as np
+
+from texstream.core.errors import ConfigError
+
+from .fitter import initial_guess
+from .problem import exposure_mean_square
+from .tiles import TileWorker, assemble, lockstep, plan_tiles, texel_range, tile_config
+
+
+class TileActor:
+    """A tile's :class:`~texstream.fit.tiles.TileWorker`, built inside the actor's process from ``spec``
+    (frames, photo files, mesh arrays, texels, layout, config, start, device)."""
+
+    def __init__(self, spec: dict):
+        import warp as wp
+
+        from .problem import PhotoSet, StreamProblem
+
+        wp.config.quiet = True
+        wp.init()
+        dev = spec["device"]
+        mesh_points, mesh_faces, mesh_normals, mesh_uvs = spec["mesh"]
+        cfg = spec["config"]
+        photos = PhotoSet(spec["frames"], spec["files"], mesh_points, mesh_faces, config=cfg.stream, device=dev,
+                          mesh_normals=mesh_normals, mesh_uvs=mesh_uvs)
+        problem = StreamProblem(spec["texels"], photos, spec["layout"], cfg.stream, device=dev)
+        self.worker = TileWorker(problem, cfg, spec["start"], spec["view_mean_sq"])
+
+    def call(self, name: str, *args):
+        return getattr(self.worker, name)(*args)
+
+
+class RemoteWorker:
+    """An actor handle that looks like a TileWorker to :func:`lockstep`: each method call returns an ObjectRef."""
+
+    def __init__(self, handle):
+        self.handle = handle
+
+    def __getattr__(self, name):
+        return lambda *args: self.handle.call.remote(name, *args)
+
+
+def run_ray_tiled_fit(problem, cfg, start=None, progress=None):
+    """:func:`texstream.fit.tiles.run_tiled_fit` with one Ray actor per tile; same result and report."""
+    try:
+        import ray
+    except ImportError:
+        raise ConfigError("stream.tile_backend ray needs Ray", fix="pip install 'texstream[distributed]', or set "
+                          "stream.tile_backend threads") from None
+    photos = problem.photos
+    if photos.source is None or photos.mesh is None:
+        raise ConfigError("stream.tile_backend ray reads each tile's photos from the capture's files, and this "
+                          "fit's photos are arrays in memory", fix="fit a capture folder (texstream fit), or set "
+                          "stream.tile_backend threads")
+    t0 = time.perf_counter()
+    if not ray.is_initialized():
+        ray.init(address=os.environ.get("RAY_ADDRESS") or None, log_to_driver=False)
+    guess, counts = start if start is not None else initial_guess(problem, cfg)
+    plan = plan_tiles(problem, dataclasses.replace(cfg, stream=dataclasses.replace(cfg.stream, devices=problem.device)))
+    tcfg = tile_config(problem, cfg)
+    gpu = problem.device.startswith("cuda")
+    actor = ray.remote(num_gpus=1, num_cpus=0)(TileActor) if gpu else ray.remote(num_cpus=1)(TileActor)
+    mean_sq = exposure_mean_square(photos)
+    workers = []
+    for t, (b, e) in enumerate(plan.bounds):
+        idx = plan.photos[t]
+        spec = {"device": "cuda:0" if gpu else "cpu", "mesh": photos.mesh_arrays,
+                "frames": [photos.frames[k] for k in idx], "files": photos.source.subset(idx),
+                "texels": texel_range(problem.texels, int(b), int(e)), "layout": problem.layout, "config": tcfg,
+                "start": (guess[b:e], counts[b:e]), "view_mean_sq": mean_sq}
+        workers.append(RemoteWorker(actor.remote(spec)))
+    try:
+        def ray_map(fn, items):
+            return ray.get([fn(t, w) for t, w in enumerate(items)])
+
+        ray_map(lambda t, w: w.needs_scale_pass(), workers)  # every actor built before the clock of the fit
+        t_setup = time.perf_counter() - t0
+        sums, times, it_done, _ = lockstep(workers, ray_map, cfg, np.concatenate, progress)
+        parts = ray_map(lambda t, w: w.params(), workers)
+    finally:
+        for w in workers:
+            ray.kill(w.handle)
+    result = assemble(problem, cfg, counts, parts, sums, times, it_done)
+    report = {**plan.report(photos.n), "devices": ["ray:" + ("gpu" if gpu else "cpu")] * len(plan.bounds),
+              "backend": "ray", "tile_setup_s": t_setup, "fit_s": times[-1]}
+    return result, report
+
