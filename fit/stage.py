@@ -60,6 +60,10 @@ class FitStageConfig:
     checkpoint: bool = option(True, "Levenberg-Marquardt fits keep a checkpoint beside the output (every sync_every "
                                     "iterations); a rerun after Ctrl-C or a killed process resumes from it to the "
                                     "same result as an uninterrupted fit")
+    skip_bad_photos: bool = option(False, "leave out photos that cannot be read (corrupt, truncated, wrong size, "
+                                          "NaN values) instead of failing: each is printed and listed in "
+                                          "model.json's photos.skipped (every photo is decoded once at set-up, "
+                                          "before the fit; each bad one costs the set-up again)")
     min_seen_fraction: float = option(0.01, "fail before fitting when fewer than this fraction of the atlas's texels "
                                             "is seen by any photo (the mesh faces away or is in another frame)",
                                       min=0.0)
@@ -364,6 +368,48 @@ def load_fit_inputs(capture_dir: str | Path, mesh_path: str | Path, cfg: FitStag
     return FitInputs(capture, frames, held, mesh, bake, seams, photo_files(capture, frames), None)
 
 
+def bad_photo(error: InputError, images) -> int | None:
+    """The index of the photo (or its mask) ``error`` names, among ``images`` (a PhotoFiles); None for
+    another error."""
+    paths = getattr(images, "paths", None)
+    if error.path is None or paths is None:
+        return None
+    named = Path(error.path).resolve()
+    for k, (image, mask) in enumerate(zip(paths, images.mask_paths)):
+        if Path(image).resolve() == named or (mask is not None and Path(mask).resolve() == named):
+            return k
+    return None
+
+
+def set_up_skipping_bad_photos(inputs: FitInputs, cfg: FitStageConfig, capture_dir: str | Path):
+    """The fit's problem and its starting pass (:func:`check_seen_texels`); every photo is decoded there, so
+    an unreadable one fails here, before the fit and before anything is written, with one line naming it.
+    With ``skip_bad_photos`` the photo is left out of ``inputs`` instead, said, and the set-up run again.
+    Returns (problem, texels seen, start, skipped photos as {"file", "error"})."""
+    skipped = []
+    while True:
+        try:
+            problem = build_problem(inputs.mesh, inputs.bake, inputs.frames, inputs.images, inputs.masks, cfg.fit,
+                                    cfg.device)
+            seen, start = check_seen_texels(problem, cfg, capture_dir)
+            return problem, seen, start, skipped
+        except InputError as e:
+            k = bad_photo(e, inputs.images)
+            if k is None or not cfg.skip_bad_photos:
+                if k is not None:
+                    e.fix = (e.fix.rstrip(".") + "; or " if e.fix else "") + "leave it out with --skip-bad-photos"
+                    e.args = (e.one_line(),)
+                raise
+            skipped.append({"file": str(inputs.images.paths[k]), "error": e.message})
+            say("fit", f"skipping photo {inputs.images.paths[k]}: {e.message} (--skip-bad-photos)")
+            keep = [j for j in range(len(inputs.frames)) if j != k]
+            if not keep:
+                raise InputError("every photo of the capture is unreadable", Path(capture_dir) / "capture.json",
+                                 "check the images (model.json lists none: nothing was fitted)") from None
+            inputs.frames = [inputs.frames[j] for j in keep]
+            inputs.images = inputs.images.subset(keep)
+
+
 def fill_unseen_texels(grid: np.ndarray, problem, bake, result: FitResult) -> tuple[np.ndarray, int]:
     """Give texels no photo saw the parameters of the nearest seen texel in 3D (their defaults would
     show as a foreign colour wherever a new view sees them, and bleed into seen neighbours through
@@ -615,8 +661,8 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     with phase("fit", f"{cfg.fit.model}: reading the photos and setting up the texels"):
         inputs = load_fit_inputs(capture_dir, mesh_path, cfg)
         capture, frames, held, mesh, bake = inputs.capture, inputs.frames, inputs.held, inputs.mesh, inputs.bake
-        problem = build_problem(mesh, bake, frames, inputs.images, inputs.masks, cfg.fit, cfg.device)
-        seen_before, start = check_seen_texels(problem, cfg, capture_dir)
+        problem, seen_before, start, skipped = set_up_skipping_bad_photos(inputs, cfg, capture_dir)
+        frames = inputs.frames
     t_setup = time.perf_counter() - t0
     from .tiles import run_tiled_fit, tiled
 
@@ -717,7 +763,8 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
                               "unseen_filled_from_nearest": filled, "lobes_dropped": int(lobes_dropped.sum()),
                               "texels_with_lobe": lobes_in_use(result.params, lay, result.samples > 0),
                               "lobe_support": cfg.lobe_support},
-                    "photos": {"fitted": len(frames), "held_out": len(held), "residency": problem.photos.residency,
+                    "photos": {"fitted": len(frames), "held_out": len(held), "skipped": skipped,
+                               "residency": problem.photos.residency,
                                "residency_reason": problem.photos.residency_reason,
                                "photos_per_window": problem.photos.window},
                     "tiles": tiles_report,
@@ -734,6 +781,7 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     return StageResult(Path(out_dir), {"psnr_db": last["psnr_db"], "iterations": last["iteration"],
                                        "time_s": last["time_s"], "texels": problem.n, "photos": len(frames),
                                        "resumed_from": None if resume is None else int(resume["iteration"]),
+                                       "skipped_photos": [p["file"] for p in skipped],
                                        "render_eval": evals, "warnings": warnings,
                                        "heldout": manifest["heldout"], "materials": manifest["materials"]})
 

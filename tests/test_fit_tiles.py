@@ -136,3 +136,23 @@ def test_unknown_device_is_refused(scene):
     cfg = fit_config(tiles=2, devices="cpu,tpu:0")
     with pytest.raises(ConfigError, match="tpu:0"):
         run_tiled_fit(problem(scene, cfg, "cpu"), cfg)
+
+
+def test_texstream_fit_in_tiles_records_them(tmp_path, capsys):
+    """``texstream fit --stream.tiles 2 --stream.devices cpu,cpu`` fits in tiles and model.json says how."""
+    pytest.importorskip("OpenImageIO", reason="writing and reading a capture folder needs OpenImageIO")
+    import json
+
+    from conftest import SCENE_DEVICE
+    from texstream.capture.synth import SynthConfig, synthesize
+    from texstream.pipelines.cli import main
+
+    cap = tmp_path / "capture"
+    synthesize("ornament", cap, SynthConfig(device=SCENE_DEVICE, preview=False, **SMALL))
+    out = tmp_path / "model"
+    code = main(["fit", str(cap), "--mesh", str(cap / "ground_truth"), "-o", str(out), "--texture-size", "64",
+                 "--renders", "0", "--max-iterations", "2", "--stream.shadow-map-size", "48",
+                 "--stream.tiles", "2", "--stream.devices", "cpu,cpu", "--stream.photo-residency", "device"])
+    assert code == 0, capsys.readouterr().err
+    tiles = json.loads((out / "model.json").read_text())["tiles"]
+    assert tiles["tiles"] == 2 and tiles["devices"] == ["cpu", "cpu"] and tiles["backend"] == "threads"
