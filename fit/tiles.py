@@ -194,17 +194,25 @@ class SlotPool:
         self.pool.shutdown()
 
 
-def lockstep(workers, pool_map, cfg: FitConfig, n_texels_order_stats, progress=None):
+def in_order(fn, items: list) -> list:
+    """[fn(t, items[t]) for each t], one after another on this thread."""
+    return [fn(t, w) for t, w in enumerate(items)]
+
+
+def lockstep(workers, pool_map, cfg: FitConfig, n_texels_order_stats, progress=None, first_in_order: bool = True):
     """Drive tile workers (objects with ``scale_pass_stats``, ``begin``, ``run_iterations``, ``needs_scale_pass``)
     through the fit in lockstep: a segment of iterations up to each stopping test on every worker
     (``pool_map(fn, workers)`` runs them, concurrently where it can), then one test on the summed trace.
-    Returns (summed trace rows, times, last iteration, robust scale)."""
+    ``first_in_order``: the start and the first iteration run tile after tile on this thread (Warp builds a
+    kernel's code at its first launch, which two threads must not do at once; every kernel of the fit is
+    launched by then). Returns (summed trace rows, times, last iteration, robust scale)."""
     t0 = time.perf_counter()
+    first_map = in_order if first_in_order else pool_map
     scale = None
     if workers and pool_map(lambda t, w: w.needs_scale_pass(), workers)[0]:
-        stats = pool_map(lambda t, w: w.scale_pass_stats(), workers)
+        stats = first_map(lambda t, w: w.scale_pass_stats(), workers)
         scale = robust_scale_from_stats(n_texels_order_stats(stats), cfg)
-    rows0 = pool_map(lambda t, w: w.begin(scale), workers)
+    rows0 = first_map(lambda t, w: w.begin(scale), workers)
     sums = np.zeros((cfg.max_iterations + 1, 8))
     sums[0] = np.sum(rows0, axis=0)
     times = [time.perf_counter() - t0]
@@ -213,7 +221,12 @@ def lockstep(workers, pool_map, cfg: FitConfig, n_texels_order_stats, progress=N
         end = it
         while not stop_test_due(end, cfg):
             end += 1
-        rows = pool_map(lambda t, w: w.run_iterations(it, end), workers)
+        if it == 1 and first_in_order:
+            rows = [np.concatenate(r) for r in zip(
+                first_map(lambda t, w: w.run_iterations(1, 1), workers),
+                pool_map(lambda t, w: w.run_iterations(2, end), workers) if end > 1 else [np.zeros((0, 8))] * len(workers))]
+        else:
+            rows = pool_map(lambda t, w: w.run_iterations(it, end), workers)
         sums[it:end + 1] = np.sum(rows, axis=0)
         now = time.perf_counter() - t0
         times.extend([now] * (end + 1 - it))  # per segment: a tile's iterations finish at different times
@@ -283,7 +296,8 @@ def run_tiled_fit(problem: StreamProblem, cfg: FitConfig, start: tuple[np.ndarra
             b, e = plan.bounds[t]
             return TileWorker(tile_problem(problem, plan, t, tcfg), tcfg, (guess[b:e], counts[b:e]), mean_sq)
 
-        workers = pool.map(make, list(range(len(plan.bounds))))
+        # built one after another: building launches kernels (Warp's first launch of a kernel is not thread-safe)
+        workers = in_order(make, list(range(len(plan.bounds))))
         t_setup = time.perf_counter() - t0
         sums, times, it_done, _ = lockstep(workers, pool.map, cfg, np.concatenate, progress)
         parts = pool.map(lambda t, w: w.params(), workers)

@@ -96,7 +96,8 @@ def run_ray_tiled_fit(problem, cfg, start=None, progress=None):
 
         ray_map(lambda t, w: w.needs_scale_pass(), workers)  # every actor built before the clock of the fit
         t_setup = time.perf_counter() - t0
-        sums, times, it_done, _ = lockstep(workers, ray_map, cfg, np.concatenate, progress)
+        sums, times, it_done, _ = lockstep(workers, ray_map, cfg, np.concatenate, progress,
+                                           first_in_order=False)  # one process per actor: no shared kernels
         parts = ray_map(lambda t, w: w.params(), workers)
     finally:
         for w in workers:
