@@ -427,6 +427,17 @@ class FitRun:
 
     def iterate(self, it: int) -> None:
         """Iteration ``it``: one optimizer step over all texels, then its trace row."""
+        self.step(it)
+        self.record(it)
+
+    def refresh_totals(self) -> None:
+        """Recompute the reported objective of LM's smoothness (each texel's half share of its pair terms)
+        after neighbours held in ``state.p`` changed (a tile's halo, fit/tiles.py); no-op otherwise."""
+        if isinstance(self.opt, LevenbergMarquardt) and self.opt.smooth:
+            self.opt._report_totals(self.state)
+
+    def step(self, it: int) -> None:
+        """Iteration ``it``'s optimizer step over all texels (no trace row: :meth:`record`)."""
         cfg, state, opt, problem = self.cfg, self.state, self.opt, self.problem
         state.iteration = it
         if cfg.diffuse_free_iterations >= 0 and not self.schedule_switched and it > cfg.diffuse_free_iterations:
@@ -449,7 +460,6 @@ class FitRun:
             opt.direction(state)
             line_search(state, cfg.linesearch, self.penalties, first=(it == 1))
             opt.after_step(state)
-        self.record(it)
 
     def checkpoint_state(self, it: int, last_obj: float) -> dict:
         """What ``resume`` takes to continue after iteration ``it``."""

@@ -9,9 +9,14 @@ searches) couple no texels, and every tile's problem steps in lockstep with the 
 test on the objective summed over all tiles, the robust loss's scale and the view prior's exposure
 from all photos, the accumulate precision of the whole photo set. With the photos on the device and
 one photo group per pass (the CPU's: the same summation order per texel), a tiled fit gives the
-untiled fit's parameters to the last bit. Options that couple texels (the smoothness and Laplacian
-penalties, the renderer's bilinear lookup, the global line search) are refused: there is no halo
-exchange.
+untiled fit's parameters to the last bit.
+
+LM's smoothness (``penalties.smooth_weight``) couples each texel to its four atlas neighbours, held
+at their current values while it steps (red-black block Gauss-Seidel, fit/optim/lm.py). A tile then
+also holds its halo: the neighbours of its texels that other tiles own, never stepped or counted,
+their values copied from their owners after every iteration (device to device); with that a tiled
+smooth fit is exact too (threads only; Ray actors refuse it). The other options that couple texels
+(the Laplacian penalty, the renderer's bilinear lookup, the global line search) are refused.
 """
 
 from __future__ import annotations
@@ -27,7 +32,7 @@ from texstream.core.errors import ConfigError
 
 from .fitter import (FitConfig, FitResult, FitRun, converged, initial_guess, robust_scale_from_stats, stop_test_due,
                      trace_rows)
-from .kernels.tiles import tile_visibility_kernel, tile_visibility_radiance_kernel
+from .kernels.tiles import gather_rows_kernel, scatter_rows_kernel, tile_visibility_kernel, tile_visibility_radiance_kernel
 from .problem import StreamProblem, TexelSet, exposure_mean_square
 
 
@@ -40,12 +45,20 @@ class TilePlan:
         devices: the device of each worker slot (a device may appear twice: two threads on it).
         slots: (T,) int64 worker slot of each tile (tile t on slot t mod the slot count).
         photos: per tile, the (P_t,) int64 indices of the photos that see it, ascending.
+        halo: per tile, the (H_t,) int64 texels of other tiles its own texels' smoothness reads
+            (ascending; empty without smoothness). A tile's problem holds its own texels, then these.
     """
 
     bounds: np.ndarray
     devices: list[str]
     slots: np.ndarray
     photos: list[np.ndarray]
+    halo: list[np.ndarray]
+
+    def texels(self, t: int) -> np.ndarray:
+        """Tile t's texels (global indices) in its problem's order: its own range, then its halo."""
+        b, e = self.bounds[t]
+        return np.concatenate([np.arange(b, e, dtype=np.int64), self.halo[t]])
 
     def report(self, n_photos: int) -> dict:
         """A plain summary for model.json and benchmarks."""
@@ -77,10 +90,11 @@ def tiled(cfg: FitConfig) -> bool:
 
 
 def check_tileable(cfg: FitConfig) -> None:
-    """Refuse options that couple texels across tiles (no halo exchange), naming the option."""
+    """Refuse options that couple texels across tiles without a halo exchange, naming the option."""
     coupled = []
-    if cfg.penalties.smooth_weight > 0:
-        coupled.append("penalties.smooth_weight (the membrane between neighbouring texels)")
+    if cfg.penalties.smooth_weight > 0 and cfg.stream.tile_backend == "ray":
+        coupled.append("penalties.smooth_weight with stream.tile_backend ray (halos are exchanged between "
+                       "threads only)")
     if cfg.penalties.laplacian_weight > 0:
         coupled.append("penalties.laplacian_weight (the Laplacian over neighbouring texels)")
     if cfg.stream.model_lookup == "bilinear":
@@ -88,8 +102,8 @@ def check_tileable(cfg: FitConfig) -> None:
     if cfg.linesearch.acceptance == "global":
         coupled.append("linesearch.acceptance global (one step for all texels)")
     if coupled:
-        raise ConfigError("a tiled fit needs texels that are fitted independently, and " + "; ".join(coupled)
-                          + " couple them (there is no halo exchange between tiles)",
+        raise ConfigError("a tiled fit needs texels that are fitted independently (or LM's smoothness, whose "
+                          "halo the threads exchange), and " + "; ".join(coupled) + " couple them",
                           fix="set stream.tiles to 0 with one device, or turn those options off")
 
 
@@ -101,20 +115,35 @@ def split_texels(n: int, tiles: int) -> np.ndarray:
 
 
 def texel_range(texels: TexelSet, begin: int, end: int) -> TexelSet:
-    """Texels begin..end-1 as a TexelSet of their own (neighbours and padding sources outside the range
-    become -1, i.e. none; they serve only the coupling options a tiled fit refuses)."""
+    """Texels begin..end-1 as a TexelSet of their own (:func:`texel_subset`)."""
+    return texel_subset(texels, np.arange(begin, end, dtype=np.int64))
+
+
+def texel_subset(texels: TexelSet, indices: np.ndarray) -> TexelSet:
+    """Texels ``indices`` (in that order) as a TexelSet of their own: neighbours and padding sources map to
+    their positions in ``indices``, or -1 (none) outside it."""
+    idx = np.asarray(indices, np.int64)
+    where = -np.ones(texels.n + 1, np.int64)  # row n: the -1 of a missing neighbour maps to -1
+    where[idx] = np.arange(idx.size)
+
     def cut(a):
-        return None if a is None else np.ascontiguousarray(a[begin:end])
+        return None if a is None else np.ascontiguousarray(a[idx])
 
     def local(ids):
         ids = np.asarray(ids, np.int64)
-        return np.where((ids >= begin) & (ids < end), ids - begin, -1)
+        return where[np.where(ids >= 0, ids, texels.n)]
 
     source = None if texels.grid_source is None else local(texels.grid_source)
     return TexelSet(cut(texels.position), cut(texels.normal), cut(texels.tangent), cut(texels.bitangent),
-                    cut(texels.grid_index), local(texels.neighbors[begin:end]).astype(np.int32),
+                    cut(texels.grid_index), local(texels.neighbors[idx]).astype(np.int32),
                     texels.width, texels.height, cut(texels.face_normal), cut(texels.normal_jacobian),
                     cut(texels.coordinate_gradients), source)
+
+
+def halo_texels(texels: TexelSet, begin: int, end: int) -> np.ndarray:
+    """The texels outside begin..end-1 that are grid neighbours of texels inside it (ascending)."""
+    nb = np.asarray(texels.neighbors[begin:end], np.int64).reshape(-1)
+    return np.unique(nb[(nb >= 0) & ((nb < begin) | (nb >= end))])
 
 
 def tile_photo_visibility(problem: StreamProblem, bounds: np.ndarray) -> np.ndarray:
@@ -147,7 +176,9 @@ def plan_tiles(problem: StreamProblem, cfg: FitConfig) -> TilePlan:
     seen = tile_photo_visibility(problem, bounds)
     # a tile no photo sees keeps photo 0: its texels stay unseen (no sample passes the same test), as untiled
     photos = [np.flatnonzero(row) if row.any() else np.zeros(1, np.int64) for row in seen]
-    return TilePlan(bounds, devices, np.arange(len(bounds)) % len(devices), photos)
+    smooth = cfg.penalties.smooth_weight > 0
+    halo = [halo_texels(problem.texels, int(b), int(e)) if smooth else np.zeros(0, np.int64) for b, e in bounds]
+    return TilePlan(bounds, devices, np.arange(len(bounds)) % len(devices), photos, halo)
 
 
 def tile_problem(problem: StreamProblem, plan: TilePlan, t: int, cfg: FitConfig) -> StreamProblem:
@@ -159,7 +190,17 @@ def tile_problem(problem: StreamProblem, plan: TilePlan, t: int, cfg: FitConfig)
     photos = problem.photos
     if dev != problem.device or not np.array_equal(idx, np.arange(photos.n)):
         photos = photos.subset(idx, device=dev)
-    return StreamProblem(texel_range(problem.texels, b, e), photos, problem.layout, cfg.stream, device=dev)
+    return StreamProblem(texel_subset(problem.texels, plan.texels(t)), photos, problem.layout, cfg.stream,
+                         device=dev)
+
+
+def tile_start(plan: TilePlan, t: int, guess: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Tile t's starting (parameters, sample counts): its halo starts where its owners do, counted as unseen
+    (never stepped, never in the trace's sums)."""
+    idx = plan.texels(t)
+    c = counts[idx].copy()
+    c[plan.bounds[t][1] - plan.bounds[t][0]:] = 0
+    return guess[idx], c
 
 
 def tile_config(problem: StreamProblem, cfg: FitConfig) -> FitConfig:
@@ -199,10 +240,12 @@ def in_order(fn, items: list) -> list:
     return [fn(t, w) for t, w in enumerate(items)]
 
 
-def lockstep(workers, pool_map, cfg: FitConfig, n_texels_order_stats, progress=None, first_in_order: bool = True):
-    """Drive tile workers (objects with ``scale_pass_stats``, ``begin``, ``run_iterations``, ``needs_scale_pass``)
-    through the fit in lockstep: a segment of iterations up to each stopping test on every worker
-    (``pool_map(fn, workers)`` runs them, concurrently where it can), then one test on the summed trace.
+def lockstep(workers, pool_map, cfg: FitConfig, n_texels_order_stats, progress=None, first_in_order: bool = True,
+             exchange=None):
+    """Drive tile workers (:class:`TileWorker` or look-alikes) through the fit in lockstep: a segment of
+    iterations up to each stopping test on every worker (``pool_map(fn, workers)`` runs them, concurrently
+    where it can), then one test on the summed trace. ``exchange()``, when given, runs after every
+    iteration's step on every worker, before their trace rows (a halo exchange: segments of one iteration).
     ``first_in_order``: the start and the first iteration run tile after tile on this thread (Warp builds a
     kernel's code at its first launch, which two threads must not do at once; every kernel of the fit is
     launched by then). Returns (summed trace rows, times, last iteration, robust scale)."""
@@ -221,7 +264,15 @@ def lockstep(workers, pool_map, cfg: FitConfig, n_texels_order_stats, progress=N
         end = it
         while not stop_test_due(end, cfg):
             end += 1
-        if it == 1 and first_in_order:
+        if exchange is not None:
+            per_iteration = []
+            for k in range(it, end + 1):
+                step_map = first_map if k == 1 else pool_map
+                step_map(lambda t, w: w.step(k), workers)
+                exchange()
+                per_iteration.append(step_map(lambda t, w: w.finish(k), workers))
+            rows = [np.stack([r[t] for r in per_iteration]) for t in range(len(workers))]
+        elif it == 1 and first_in_order:
             rows = [np.concatenate(r) for r in zip(
                 first_map(lambda t, w: w.run_iterations(1, 1), workers),
                 pool_map(lambda t, w: w.run_iterations(2, end), workers) if end > 1 else [np.zeros((0, 8))] * len(workers))]
@@ -249,15 +300,28 @@ class TileWorker:
     the same object runs on a local thread or inside a Ray actor."""
 
     def __init__(self, problem: StreamProblem, cfg: FitConfig, start: tuple[np.ndarray, np.ndarray],
-                 view_mean_sq: float):
+                 view_mean_sq: float, own: int | None = None):
+        """``own``: the tile's own texels, the first of the problem's (the rest: its halo; None: all)."""
         self.problem, self.cfg, self.view_mean_sq = problem, cfg, view_mean_sq
+        self.own = problem.n if own is None else int(own)
         self.run = FitRun(problem, cfg, start=start)
 
     def needs_scale_pass(self) -> bool:
         return self.run.needs_scale_pass()
 
     def scale_pass_stats(self) -> np.ndarray:
-        return self.run.scale_pass_stats()
+        """The scale pass's per-texel statistics of the tile's own texels."""
+        return self.run.scale_pass_stats()[:self.own]
+
+    def step(self, it: int) -> None:
+        """Iteration ``it``'s step (its trace row comes from :meth:`finish`, after a halo exchange)."""
+        self.run.step(it)
+
+    def finish(self, it: int) -> np.ndarray:
+        """Iteration ``it``'s trace row, the reported objective recomputed with the exchanged halo."""
+        self.run.refresh_totals()
+        self.run.record(it)
+        return self.run.trace_buf.numpy()[it]
 
     def begin(self, robust_scale: float | None) -> np.ndarray:
         """Start the fit; returns trace row 0 (8 sums over this tile's texels)."""
@@ -272,7 +336,47 @@ class TileWorker:
 
     def params(self) -> tuple[np.ndarray, int, float]:
         """(fitted (N_t, n_params) parameters, passes streamed, robust scale)."""
-        return self.run.state.params_numpy(), int(self.problem.passes), float(self.problem.robust_scale)
+        return (self.run.state.params_numpy()[:self.own], int(self.problem.passes),
+                float(self.problem.robust_scale))
+
+
+class HaloExchange:
+    """Copies, after each iteration, every tile's halo texels' parameters (``state.p``) from the tiles that
+    own them: per (owner, receiver) pair one gather launch on the owner's device, one copy (device to
+    device, or within one), one scatter launch on the receiver's; no host round trip."""
+
+    def __init__(self, plan: TilePlan, workers: list[TileWorker]):
+        self.workers = workers
+        self.devices = sorted({w.problem.device for w in workers})
+        owner = np.searchsorted(plan.bounds[:, 1], np.arange(plan.bounds[-1, 1]), side="right")
+        self.pairs = []
+        for t, halo in enumerate(plan.halo):
+            if halo.size == 0:
+                continue
+            own_t = int(plan.bounds[t, 1] - plan.bounds[t, 0])
+            for u in np.unique(owner[halo]):
+                pick = np.flatnonzero(owner[halo] == u)
+                src = (halo[pick] - plan.bounds[u, 0]).astype(np.int32)
+                dst = (own_t + pick).astype(np.int32)
+                wu, wt = workers[u], workers[t]
+                dev_u, dev_t = wu.problem.device, wt.problem.device
+                dtype = wu.run.state.p.dtype
+                self.pairs.append((wu, wt, wp.array(src, dtype=wp.int32, device=dev_u),
+                                   wp.array(dst, dtype=wp.int32, device=dev_t),
+                                   wp.empty(src.size, dtype=dtype, device=dev_u),
+                                   wp.empty(src.size, dtype=dtype, device=dev_t)))
+
+    def __call__(self) -> None:
+        for d in self.devices:  # the owners' steps are done before their values leave
+            wp.synchronize_device(d)
+        for wu, wt, src, dst, out_u, in_t in self.pairs:
+            wp.launch(gather_rows_kernel, dim=src.shape[0], device=wu.problem.device,
+                      inputs=[wu.run.state.p, src], outputs=[out_u])
+            wp.copy(in_t, out_u)
+            wp.launch(scatter_rows_kernel, dim=dst.shape[0], device=wt.problem.device,
+                      inputs=[in_t, dst], outputs=[wt.run.state.p])
+        for d in self.devices:
+            wp.synchronize_device(d)
 
 
 def run_tiled_fit(problem: StreamProblem, cfg: FitConfig, start: tuple[np.ndarray, np.ndarray] | None = None,
@@ -294,17 +398,20 @@ def run_tiled_fit(problem: StreamProblem, cfg: FitConfig, start: tuple[np.ndarra
     try:
         def make(t, _):
             b, e = plan.bounds[t]
-            return TileWorker(tile_problem(problem, plan, t, tcfg), tcfg, (guess[b:e], counts[b:e]), mean_sq)
+            return TileWorker(tile_problem(problem, plan, t, tcfg), tcfg, tile_start(plan, t, guess, counts),
+                              mean_sq, own=int(e - b))
 
         # built one after another: building launches kernels (Warp's first launch of a kernel is not thread-safe)
         workers = in_order(make, list(range(len(plan.bounds))))
         t_setup = time.perf_counter() - t0
-        sums, times, it_done, _ = lockstep(workers, pool.map, cfg, np.concatenate, progress)
+        exchange = HaloExchange(plan, workers) if any(h.size for h in plan.halo) else None
+        sums, times, it_done, _ = lockstep(workers, pool.map, cfg, np.concatenate, progress, exchange=exchange)
         parts = pool.map(lambda t, w: w.params(), workers)
     finally:
         pool.close()
     result = assemble(problem, cfg, counts, parts, sums, times, it_done)
     report = {**plan.report(problem.photos.n), "backend": "threads", "tile_setup_s": t_setup,
+              "halo_texels": [int(h.size) for h in plan.halo],
               "fit_s": times[-1]}
     return result, report
 

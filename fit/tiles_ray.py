@@ -25,7 +25,7 @@ from texstream.core.errors import ConfigError
 
 from .fitter import initial_guess
 from .problem import exposure_mean_square
-from .tiles import TileWorker, assemble, lockstep, plan_tiles, texel_range, tile_config
+from .tiles import TileWorker, assemble, check_tileable, lockstep, plan_tiles, texel_range, tile_config
 
 
 class TileActor:
@@ -63,6 +63,7 @@ class RemoteWorker:
 
 def run_ray_tiled_fit(problem, cfg, start=None, progress=None):
     """:func:`texstream.fit.tiles.run_tiled_fit` with one Ray actor per tile; same result and report."""
+    check_tileable(cfg)
     try:
         import ray
     except ImportError:

@@ -33,3 +33,17 @@ def tile_visibility_kernel_for(radiance: bool = False):
 
 tile_visibility_kernel = tile_visibility_kernel_for(False)
 tile_visibility_radiance_kernel = tile_visibility_kernel_for(True)
+
+
+@wp.kernel
+def gather_rows_kernel(src: wp.array(dtype=Any), rows: wp.array(dtype=wp.int32), out: wp.array(dtype=Any)):
+    """out[k] = src[rows[k]]: a tile's texels that other tiles hold as halo, packed for the copy."""
+    k = wp.tid()
+    out[k] = src[rows[k]]
+
+
+@wp.kernel
+def scatter_rows_kernel(values: wp.array(dtype=Any), rows: wp.array(dtype=wp.int32), dst: wp.array(dtype=Any)):
+    """dst[rows[k]] = values[k]: the copied values into a tile's halo texels."""
+    k = wp.tid()
+    dst[rows[k]] = values[k]
