@@ -351,6 +351,8 @@ class FitRun:
         self.partial = wp.zeros((self.n_chunks, 8), dtype=wp.float64, device=dev)
         self.trace_buf = wp.zeros((cfg.max_iterations + 1, 8), dtype=wp.float64, device=dev)
         self.times: list[float] = []
+        self.stamps: dict[int, float] = {}
+        """per trace row, the wall-clock time (time.time) it was recorded"""
         if not isinstance(opt, LevenbergMarquardt):
             state.want_diag = bool(getattr(opt, "precondition", False))
         # the renderer's texture lookup holds the neighbours fixed between refreshes, so each texel's
@@ -376,6 +378,7 @@ class FitRun:
                   outputs=[self.trace_buf])
         wp.synchronize_device(dev)
         self.times.append(time.perf_counter() - self.t_start)
+        self.stamps[row] = time.time()  # comparable across processes (a tiled fit's tiles, fit/tiles.py)
 
     def evaluate_current(self) -> None:
         """f, g (and LM's J^T J) at the current parameters, as each optimizer starts from them."""

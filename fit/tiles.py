@@ -249,7 +249,7 @@ def lockstep(workers, pool_map, cfg: FitConfig, n_texels_order_stats, progress=N
     ``first_in_order``: the start and the first iteration run tile after tile on this thread (Warp builds a
     kernel's code at its first launch, which two threads must not do at once; every kernel of the fit is
     launched by then). Returns (summed trace rows, times, last iteration, robust scale)."""
-    t0 = time.perf_counter()
+    t0 = time.time()  # the tiles' trace rows carry time.time() stamps (comparable across processes)
     first_map = in_order if first_in_order else pool_map
     scale = None
     if workers and pool_map(lambda t, w: w.needs_scale_pass(), workers)[0]:
@@ -258,7 +258,7 @@ def lockstep(workers, pool_map, cfg: FitConfig, n_texels_order_stats, progress=N
     rows0 = first_map(lambda t, w: w.begin(scale), workers)
     sums = np.zeros((cfg.max_iterations + 1, 8))
     sums[0] = np.sum(rows0, axis=0)
-    times = [time.perf_counter() - t0]
+    times = [max(pool_map(lambda t, w: w.stamp(0), workers)) - t0]
     last_obj, it, it_done = None, 1, 0
     while it <= cfg.max_iterations:
         end = it
@@ -279,8 +279,10 @@ def lockstep(workers, pool_map, cfg: FitConfig, n_texels_order_stats, progress=N
         else:
             rows = pool_map(lambda t, w: w.run_iterations(it, end), workers)
         sums[it:end + 1] = np.sum(rows, axis=0)
-        now = time.perf_counter() - t0
-        times.extend([now] * (end + 1 - it))  # per segment: a tile's iterations finish at different times
+        # an iteration's time: when its last tile recorded it
+        stamps = pool_map(lambda t, w: [w.stamp(k) for k in range(it, end + 1)], workers)
+        times.extend(np.max(stamps, axis=0) - t0)
+        now = times[-1]
         if progress is not None:
             for k in range(it, end + 1):
                 progress(k)
@@ -312,6 +314,10 @@ class TileWorker:
     def scale_pass_stats(self) -> np.ndarray:
         """The scale pass's per-texel statistics of the tile's own texels."""
         return self.run.scale_pass_stats()[:self.own]
+
+    def stamp(self, row: int) -> float:
+        """The wall-clock time (time.time) trace row ``row`` was recorded."""
+        return self.run.stamps[row]
 
     def step(self, it: int) -> None:
         """Iteration ``it``'s step (its trace row comes from :meth:`finish`, after a halo exchange)."""
