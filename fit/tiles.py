@@ -258,7 +258,7 @@ def lockstep(workers, pool_map, cfg: FitConfig, n_texels_order_stats, progress=N
     rows0 = first_map(lambda t, w: w.begin(scale), workers)
     sums = np.zeros((cfg.max_iterations + 1, 8))
     sums[0] = np.sum(rows0, axis=0)
-    times = [max(pool_map(lambda t, w: w.stamp(0), workers)) - t0]
+    times = [max(s[0] for s in pool_map(lambda t, w: w.stamps(0, 0), workers)) - t0]
     last_obj, it, it_done = None, 1, 0
     while it <= cfg.max_iterations:
         end = it
@@ -280,7 +280,7 @@ def lockstep(workers, pool_map, cfg: FitConfig, n_texels_order_stats, progress=N
             rows = pool_map(lambda t, w: w.run_iterations(it, end), workers)
         sums[it:end + 1] = np.sum(rows, axis=0)
         # an iteration's time: when its last tile recorded it
-        stamps = pool_map(lambda t, w: [w.stamp(k) for k in range(it, end + 1)], workers)
+        stamps = pool_map(lambda t, w: w.stamps(it, end), workers)
         times.extend(np.max(stamps, axis=0) - t0)
         now = times[-1]
         if progress is not None:
@@ -315,9 +315,9 @@ class TileWorker:
         """The scale pass's per-texel statistics of the tile's own texels."""
         return self.run.scale_pass_stats()[:self.own]
 
-    def stamp(self, row: int) -> float:
-        """The wall-clock time (time.time) trace row ``row`` was recorded."""
-        return self.run.stamps[row]
+    def stamps(self, first: int, last: int) -> list[float]:
+        """The wall-clock times (time.time) trace rows first..last were recorded."""
+        return [self.run.stamps[row] for row in range(first, last + 1)]
 
     def step(self, it: int) -> None:
         """Iteration ``it``'s step (its trace row comes from :meth:`finish`, after a halo exchange)."""
