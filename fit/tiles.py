@@ -235,22 +235,23 @@ class SlotPool:
         self.pool.shutdown()
 
 
-def in_order(fn, items: list) -> list:
-    """[fn(t, items[t]) for each t], one after another on this thread."""
-    return [fn(t, w) for t, w in enumerate(items)]
-
-
 def lockstep(workers, pool_map, cfg: FitConfig, n_texels_order_stats, progress=None, first_in_order: bool = True,
              exchange=None):
     """Drive tile workers (:class:`TileWorker` or look-alikes) through the fit in lockstep: a segment of
     iterations up to each stopping test on every worker (``pool_map(fn, workers)`` runs them, concurrently
     where it can), then one test on the summed trace. ``exchange()``, when given, runs after every
     iteration's step on every worker, before their trace rows (a halo exchange: segments of one iteration).
-    ``first_in_order``: the start and the first iteration run tile after tile on this thread (Warp builds a
+    ``first_in_order``: tile 0 starts, and steps its first iteration, alone before the others (Warp builds a
     kernel's code at its first launch, which two threads must not do at once; every kernel of the fit is
     launched by then). Returns (summed trace rows, times, last iteration, robust scale)."""
     t0 = time.time()  # the tiles' trace rows carry time.time() stamps (comparable across processes)
-    first_map = in_order if first_in_order else pool_map
+
+    def first_map(fn, items):
+        """pool_map, tile 0 first on its own when ``first_in_order`` (its launches build every kernel)."""
+        if not first_in_order:
+            return pool_map(fn, items)
+        first = fn(0, items[0])
+        return pool_map(lambda t, w: first if t == 0 else fn(t, w), items)
     scale = None
     if workers and pool_map(lambda t, w: w.needs_scale_pass(), workers)[0]:
         stats = first_map(lambda t, w: w.scale_pass_stats(), workers)
@@ -272,10 +273,10 @@ def lockstep(workers, pool_map, cfg: FitConfig, n_texels_order_stats, progress=N
                 exchange()
                 per_iteration.append(step_map(lambda t, w: w.finish(k), workers))
             rows = [np.stack([r[t] for r in per_iteration]) for t in range(len(workers))]
-        elif it == 1 and first_in_order:
-            rows = [np.concatenate(r) for r in zip(
-                first_map(lambda t, w: w.run_iterations(1, 1), workers),
-                pool_map(lambda t, w: w.run_iterations(2, end), workers) if end > 1 else [np.zeros((0, 8))] * len(workers))]
+        elif it == 1 and first_in_order:  # tile 0's first iteration alone, then the rest concurrently
+            first = workers[0].run_iterations(1, 1)
+            rows = pool_map(lambda t, w: w.run_iterations(1, end) if t else
+                            np.concatenate([first, w.run_iterations(2, end) if end > 1 else first[:0]]), workers)
         else:
             rows = pool_map(lambda t, w: w.run_iterations(it, end), workers)
         sums[it:end + 1] = np.sum(rows, axis=0)
@@ -407,8 +408,9 @@ def run_tiled_fit(problem: StreamProblem, cfg: FitConfig, start: tuple[np.ndarra
             return TileWorker(tile_problem(problem, plan, t, tcfg), tcfg, tile_start(plan, t, guess, counts),
                               mean_sq, own=int(e - b))
 
-        # built one after another: building launches kernels (Warp's first launch of a kernel is not thread-safe)
-        workers = in_order(make, list(range(len(plan.bounds))))
+        # tile 0 first, alone: building launches kernels (Warp's first launch of a kernel is not thread-safe)
+        first = make(0, None)
+        workers = pool.map(lambda t, _: first if t == 0 else make(t, _), list(range(len(plan.bounds))))
         t_setup = time.perf_counter() - t0
         exchange = HaloExchange(plan, workers) if any(h.size for h in plan.halo) else None
         sums, times, it_done, _ = lockstep(workers, pool.map, cfg, np.concatenate, progress, exchange=exchange)
