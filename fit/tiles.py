@@ -64,7 +64,9 @@ class TilePlan:
         """A plain summary for model.json and benchmarks."""
         return {"tiles": int(len(self.bounds)), "devices": list(self.devices),
                 "texels_per_tile": [int(e - b) for b, e in self.bounds],
-                "photos_per_tile": [int(p.size) for p in self.photos], "photos": int(n_photos)}
+                "photos_per_tile": [int(p.size) for p in self.photos],
+                "photos_streamed_per_tile": [int(tile_photos(self, t, n_photos).size) for t in range(len(self.photos))],
+                "photos": int(n_photos)}
 
 
 def parse_devices(devices: str, default: str) -> list[str]:
@@ -181,12 +183,25 @@ def plan_tiles(problem: StreamProblem, cfg: FitConfig) -> TilePlan:
     return TilePlan(bounds, devices, np.arange(len(bounds)) % len(devices), photos, halo)
 
 
-def tile_problem(problem: StreamProblem, plan: TilePlan, t: int, cfg: FitConfig) -> StreamProblem:
-    """Tile ``t``'s StreamProblem on its device: its texels, and its photos with their maps (the parent's
-    own when it takes every photo on the parent's device, else a copy, :meth:`PhotoSet.subset`)."""
-    b, e = (int(x) for x in plan.bounds[t])
-    dev = plan.devices[plan.slots[t]]
+ALL_PHOTOS_FRACTION = 0.75
+"""a tile that sees at least this fraction of the photos streams them all: the others add only samples the
+distribution step rejects (cheaply, at the projection or the depth test), and the tile then needs no copy of
+its photos on the parent's device (one device-to-device copy of the arrays elsewhere) instead of a gather
+through the host"""
+
+
+def tile_photos(plan: TilePlan, t: int, n_photos: int) -> np.ndarray:
+    """The photos tile t streams: those that see it, or all of them past :data:`ALL_PHOTOS_FRACTION`."""
     idx = plan.photos[t]
+    return np.arange(n_photos) if idx.size >= ALL_PHOTOS_FRACTION * n_photos else idx
+
+
+def tile_problem(problem: StreamProblem, plan: TilePlan, t: int, cfg: FitConfig) -> StreamProblem:
+    """Tile ``t``'s StreamProblem on its device: its texels, and its photos (:func:`tile_photos`) with their
+    maps (the parent's own when it takes every photo on the parent's device, else a copy,
+    :meth:`PhotoSet.subset`)."""
+    dev = plan.devices[plan.slots[t]]
+    idx = tile_photos(plan, t, problem.photos.n)
     photos = problem.photos
     if dev != problem.device or not np.array_equal(idx, np.arange(photos.n)):
         photos = photos.subset(idx, device=dev)

@@ -47,13 +47,17 @@ def problem(scene, cfg, device):
 
 @pytest.mark.parametrize("optimizer,model", [("lm", "lafortune"), ("cg", "lafortune"), ("lbfgs", "diffuse"),
                                              ("sd", "diffuse"), ("lm", "radiance")])
-def test_tiled_fit_equals_the_untiled_fit_to_the_bit(scene, device, optimizer, model):
+def test_tiled_fit_equals_the_untiled_fit_to_the_bit(scene, device, optimizer, model, monkeypatch):
+    import texstream.fit.tiles as tiles
+
+    monkeypatch.setattr(tiles, "ALL_PHOTOS_FRACTION", 2.0)  # every tile streams only the photos that see it
     cfg = fit_config(optimizer, model)
     whole = problem(scene, cfg, device)
     ref = run_fit(whole, cfg)
     tiled_cfg = dataclasses.replace(cfg, stream=dataclasses.replace(cfg.stream, tiles=3))
     res, report = run_tiled_fit(problem(scene, tiled_cfg, device), tiled_cfg)
     assert report["tiles"] == 3 and sum(report["texels_per_tile"]) == whole.n
+    assert min(report["photos_streamed_per_tile"]) < whole.photos.n  # some tile streams a strict subset
     np.testing.assert_array_equal(res.params, ref.params)
     np.testing.assert_array_equal(res.samples, ref.samples)
     assert res.robust_loss == ref.robust_loss and res.robust_scale == ref.robust_scale  # radiance: cauchy, auto scale
@@ -84,9 +88,12 @@ def test_stopping_test_sums_the_tiles(scene, device):
     np.testing.assert_array_equal(res.params, ref.params)
 
 
-def test_each_tile_gets_every_photo_that_samples_it(scene, device):
+def test_each_tile_gets_every_photo_that_samples_it(scene, device, monkeypatch):
     """The tiles' photo lists hold every photo with a sample of their texels: each tile's own initial-guess
     pass (sample counts, per-texel percentiles) equals the untiled one's for its texels."""
+    import texstream.fit.tiles as tiles
+
+    monkeypatch.setattr(tiles, "ALL_PHOTOS_FRACTION", 2.0)
     cfg = fit_config(tiles=5)
     whole = problem(scene, cfg, device)
     guess, counts = initial_guess(whole, cfg)
