@@ -220,8 +220,10 @@ def tile_start(plan: TilePlan, t: int, guess: np.ndarray, counts: np.ndarray) ->
 
 def tile_config(problem: StreamProblem, cfg: FitConfig) -> FitConfig:
     """The tiles' config: the accumulate precision resolved for all the photos (a tile sees fewer, and
-    ``auto`` would pick by its own count)."""
-    return dataclasses.replace(cfg, stream=dataclasses.replace(cfg.stream, accumulate=problem.accumulate))
+    ``auto`` would pick by its own count) and the untiled problem's photo groups (automatic groups follow
+    the texel count; the same groups over the same photos sum each texel in the same order)."""
+    return dataclasses.replace(cfg, stream=dataclasses.replace(cfg.stream, accumulate=problem.accumulate,
+                                                                groups=problem.groups))
 
 
 class SlotPool:
