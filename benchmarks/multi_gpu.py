@@ -15,11 +15,12 @@ untimed warm-up that compiles every kernel on every device:
 
 Each run reports the set-up (photos, maps, texels: ``setup_s``), the tiles' set-up (visibility and
 the tile problems, ``tile_setup_s``), the fit loop, and the time to a converged model: set-up plus the
-fit's time to within 0.1 dB of its best PSNR, as benchmarks/setup_time.py. ``same_params``: the tiled
-fits' parameters against the one-device fit's: to the last bit with ``--groups 1`` (one photo group per
-pass, the same summation order for a texel with or without the photos a tile leaves out); with
-automatic groups a tile's group count follows its texel count, so sums are split differently and the
-parameters agree to float rounding propagated through the iterations (max differences reported).
+fit's time to within 0.1 dB of its best PSNR, as benchmarks/setup_time.py (an iteration's time in a
+tiled fit: when its last tile recorded it). ``same_params_to_the_bit``: the tiled fits' parameters
+against the one-device fit's. The tiles take the untiled problem's photo groups, so a tile that streams
+every photo (fit/tiles.py ``ALL_PHOTOS_FRACTION``) sums each texel in the same order: bit-equal; a tile
+that streams a subset splits its groups elsewhere (except with ``--groups 1``) and agrees to float
+rounding carried through the iterations (max differences reported).
 """
 
 from __future__ import annotations
