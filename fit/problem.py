@@ -289,9 +289,10 @@ class StreamConfig:
                                      "uncropped photos' to float rounding of the projection")
     decode_threads: int = option(0, "threads that decode and crop photos (0: min(8, CPU cores))", min=0)
     tiles: int = option(0, "split the atlas's texels into this many tiles of consecutive texels, each fitted over "
-                           "only the photos that see it (fit/tiles.py; exact for per-texel fits: no smoothness, "
-                           "Laplacian, bilinear model_lookup or global line search); 0: one tile per device, "
-                           "i.e. untiled on one device", min=0)
+                           "only the photos that see it (fit/tiles.py; the untiled fit's result: texels are fitted "
+                           "independently, LM's smoothness by a halo exchange; the Laplacian penalty, bilinear "
+                           "model_lookup and global line search are refused); 0: one tile per device, i.e. "
+                           "untiled on one device", min=0)
     devices: str = option("", "comma-separated devices the tiles are fitted on, one thread each (e.g. cuda:0,cuda:1; "
                               "empty: the fit's device); several devices need photo_residency device")
     tile_backend: str = option("threads", "where the tiles run: threads (one per device in this process) or ray "

@@ -652,7 +652,15 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     check_config(cfg)
     check_output_path(out_dir)
     if cfg.fit.model == "lfm":  # light field mapping: its own problem and model folder (fit/lfm_stage.py)
+        from texstream.core.errors import ConfigError
+
         from .lfm_stage import lfm_fit_stage
+        from .tiles import tiled
+
+        if tiled(cfg.fit):
+            raise ConfigError("stream.tiles, stream.devices and stream.tile_backend ray split per-texel models; "
+                              "light field mapping couples the texels of a triangle ring",
+                              fix="drop those options with --model lfm")
 
         return lfm_fit_stage(capture_dir, mesh_path, out_dir, cfg, progress)
     from texstream.core.progress import phase
