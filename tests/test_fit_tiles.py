@@ -190,3 +190,19 @@ def test_texstream_fit_in_tiles_records_them(tmp_path, capsys):
     assert code == 0, capsys.readouterr().err
     tiles = json.loads((out / "model.json").read_text())["tiles"]
     assert tiles["tiles"] == 2 and tiles["devices"] == ["cpu", "cpu"] and tiles["backend"] == "threads"
+
+
+@pytest.mark.parametrize("smooth", [0.0, 0.05])
+def test_tiles_on_two_gpus_equal_the_untiled_fit(scene, smooth):
+    """cuda:0 and cuda:1, one thread each (photos and maps copied device to device, halos exchanged between
+    the GPUs with smoothness): the one-GPU fit's parameters to the bit."""
+    import warp as wp
+
+    if wp.get_cuda_device_count() < 2:
+        pytest.skip("needs two CUDA devices (run on the two-GPU machine)")
+    cfg = dataclasses.replace(fit_config(), penalties=PenaltyConfig(smooth_weight=smooth))
+    ref = run_fit(problem(scene, cfg, "cuda:0"), cfg)
+    two = dataclasses.replace(cfg, stream=dataclasses.replace(cfg.stream, tiles=3, devices="cuda:0,cuda:1"))
+    res, report = run_tiled_fit(problem(scene, two, "cuda:0"), two)
+    assert report["devices"] == ["cuda:0", "cuda:1"]
+    np.testing.assert_array_equal(res.params, ref.params)
