@@ -33,7 +33,7 @@ from texstream.core.errors import ConfigError
 from .fitter import (FitConfig, FitResult, FitRun, converged, initial_guess, robust_scale_from_stats, stop_test_due,
                      trace_rows)
 from .kernels.tiles import gather_rows_kernel, scatter_rows_kernel, tile_visibility_kernel, tile_visibility_radiance_kernel
-from .problem import StreamProblem, TexelSet, exposure_mean_square
+from .problem import MAX_LAUNCH_THREADS, StreamProblem, TexelSet, exposure_mean_square
 
 
 @dataclasses.dataclass
@@ -157,9 +157,12 @@ def tile_photo_visibility(problem: StreamProblem, bounds: np.ndarray) -> np.ndar
     seen = wp.zeros((len(bounds), photos.n), dtype=wp.int32, device=dev)
     kernel = tile_visibility_radiance_kernel if problem.radiance else tile_visibility_kernel
     offset = 0
+    step = max(1, MAX_LAUNCH_THREADS // max(n, 1))  # a launch's size stays within Warp's 32-bit bounds
     for images, depth, shadow, infos, b, e in photos.windows():
-        wp.launch(kernel, dim=(e - b, n), device=dev,
-                  inputs=[problem.tex, images, depth, shadow, infos, offset, problem.opt, tile_of], outputs=[seen])
+        for k0 in range(b, e, step):
+            wp.launch(kernel, dim=(min(step, e - k0), n), device=dev,
+                      inputs=[problem.tex, images, depth, shadow, infos, k0, offset - b, problem.opt, tile_of],
+                      outputs=[seen])
         offset += e - b
     return seen.numpy() > 0
 

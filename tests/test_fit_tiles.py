@@ -206,3 +206,15 @@ def test_tiles_on_two_gpus_equal_the_untiled_fit(scene, smooth):
     res, report = run_tiled_fit(problem(scene, two, "cuda:0"), two)
     assert report["devices"] == ["cuda:0", "cuda:1"]
     np.testing.assert_array_equal(res.params, ref.params)
+
+
+def test_visibility_launched_in_chunks_of_photos_equals_one_launch(scene, monkeypatch):
+    import texstream.fit.tiles as tiles
+
+    cfg = fit_config(tiles=4)
+    whole = problem(scene, cfg, "cpu")
+    bounds = split_texels(whole.n, 4)
+    one = tiles.tile_photo_visibility(whole, bounds)
+    monkeypatch.setattr(tiles, "MAX_LAUNCH_THREADS", 3 * whole.n)  # 3 photos a launch
+    np.testing.assert_array_equal(tiles.tile_photo_visibility(whole, bounds), one)
+    assert one.any(axis=1).all() and not one.all()

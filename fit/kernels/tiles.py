@@ -16,13 +16,15 @@ def tile_visibility_kernel_for(radiance: bool = False):
     obs = observe_func(bool(radiance))
 
     def tile_visibility(tex: TexelFrames, images: wp.array3d(dtype=Any), depth: wp.array3d(dtype=wp.float32),
-                        shadow: wp.array3d(dtype=wp.float32), infos: wp.array(dtype=ImageInfo), photo_offset: int,
-                        opt: SampleOptions, tile_of_texel: wp.array(dtype=wp.int32),
+                        shadow: wp.array3d(dtype=wp.float32), infos: wp.array(dtype=ImageInfo), photo_begin: int,
+                        photo_offset: int, opt: SampleOptions, tile_of_texel: wp.array(dtype=wp.int32),
                         seen: wp.array2d(dtype=wp.int32)):
-        """seen[tile of texel i, photo_offset + k] = 1 when photo k of the window has a sample of texel i
-        (every thread that writes writes 1: deterministic without atomics). A sample the passes use
-        passes this test first, so the flags hold every photo a tile's passes read."""
-        k, i = wp.tid()
+        """seen[tile of texel i, photo_offset + k] = 1 when photo k (photo_begin + the launch's first index)
+        of the window has a sample of texel i (every thread that writes writes 1: deterministic without
+        atomics). A sample the passes use passes this test first, so the flags hold every photo a tile's
+        passes read."""
+        kk, i = wp.tid()
+        k = photo_begin + kk
         ok, y, w, u, v, xs, ys = obs(images, depth, shadow, infos, k, tex, i, opt)
         if ok:
             seen[tile_of_texel[i], photo_offset + k] = 1
