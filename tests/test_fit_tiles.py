@@ -172,17 +172,43 @@ def test_unknown_device_is_refused(scene):
         run_tiled_fit(problem(scene, cfg, "cpu"), cfg)
 
 
-def test_texstream_fit_in_tiles_records_them(tmp_path, capsys):
-    """``texstream fit --stream.tiles 2 --stream.devices cpu,cpu`` fits in tiles and model.json says how."""
+@pytest.fixture(scope="module")
+def capture_dir(tmp_path_factory):
+    """The small ornament written as a capture folder (float EXR photos, masks)."""
     pytest.importorskip("OpenImageIO", reason="writing and reading a capture folder needs OpenImageIO")
-    import json
-
     from conftest import SCENE_DEVICE
     from texstream.capture.synth import SynthConfig, synthesize
+
+    out = tmp_path_factory.mktemp("ornament") / "capture"
+    synthesize("ornament", out, SynthConfig(device=SCENE_DEVICE, preview=False, **SMALL))
+    return out
+
+
+@pytest.mark.parametrize("residency", ["host", "disk"])
+def test_tiles_over_streamed_photos_equal_the_untiled_fit(capture_dir, residency):
+    """Photos streamed a window per pass (host memory, or decoded from the files): tiles that stream every photo
+    share the parent's windows, so the sums and the fit are the untiled one's."""
+    from texstream.capture.capture_json import read_capture
+    from texstream.fit.stage import load_geometry, photo_files
+
+    cap = read_capture(capture_dir)
+    mesh, bake = load_geometry(capture_dir / "ground_truth", 64, "cpu")
+    cfg = fit_config(photo_residency=residency, photos_per_window=4)
+    ref = run_fit(build_problem(mesh, bake, cap.frames, photo_files(cap, cap.frames), None, cfg, "cpu"), cfg)
+    tcfg = dataclasses.replace(cfg, stream=dataclasses.replace(cfg.stream, tiles=2))
+    prob = build_problem(mesh, bake, cap.frames, photo_files(cap, cap.frames), None, tcfg, "cpu")
+    res, report = run_tiled_fit(prob, tcfg)
+    assert report["photos_streamed_per_tile"] == [prob.photos.n] * 2
+    np.testing.assert_array_equal(res.params, ref.params)
+
+
+def test_texstream_fit_in_tiles_records_them(capture_dir, tmp_path, capsys):
+    """``texstream fit --stream.tiles 2 --stream.devices cpu,cpu`` fits in tiles and model.json says how."""
+    import json
+
     from texstream.pipelines.cli import main
 
-    cap = tmp_path / "capture"
-    synthesize("ornament", cap, SynthConfig(device=SCENE_DEVICE, preview=False, **SMALL))
+    cap = capture_dir
     out = tmp_path / "model"
     code = main(["fit", str(cap), "--mesh", str(cap / "ground_truth"), "-o", str(out), "--texture-size", "64",
                  "--renders", "0", "--max-iterations", "2", "--stream.shadow-map-size", "48",
