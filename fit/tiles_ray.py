@@ -10,7 +10,8 @@ here only: ``texstream.fit`` itself still imports only numpy and warp.
 
 The cluster: the one this process is connected to (``ray.init`` called before), else ``RAY_ADDRESS``'s,
 else a local one. An actor takes one GPU (``num_gpus=1``, its device cuda:0 of those Ray gives it) when
-the fit's device is CUDA, else one CPU.
+the fit's device is CUDA, else one CPU; with more tiles than the cluster has, a share of one, so that every
+actor is placed at once (the lockstep waits for all of them).
 """
 
 from __future__ import annotations
@@ -81,7 +82,16 @@ def run_ray_tiled_fit(problem, cfg, start=None, progress=None):
     plan = plan_tiles(problem, dataclasses.replace(cfg, stream=dataclasses.replace(cfg.stream, devices=problem.device)))
     tcfg = tile_config(problem, cfg)
     gpu = problem.device.startswith("cuda")
-    actor = ray.remote(num_gpus=1, num_cpus=0)(TileActor) if gpu else ray.remote(num_cpus=1)(TileActor)
+    kind = "GPU" if gpu else "CPU"
+    available = float(ray.cluster_resources().get(kind, 0.0))
+    if available <= 0:
+        raise ConfigError(f"the Ray cluster has no {kind} for the tiles of a fit on {problem.device}",
+                          fix="start the cluster's workers with GPUs (ray start --num-gpus) or fit on the CPU")
+    # more tiles than GPUs (CPUs): tiles share them (fractional resources), so every actor is placed at once
+    share = min(1.0, available / len(plan.bounds))
+    share = max(1e-4, float(np.floor(share * 1e4) / 1e4))  # Ray's resource precision
+    actor = (ray.remote(num_gpus=share, num_cpus=0)(TileActor) if gpu
+             else ray.remote(num_cpus=share)(TileActor))
     mean_sq = exposure_mean_square(photos)
     workers = []
     for t, (b, e) in enumerate(plan.bounds):
