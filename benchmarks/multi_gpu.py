@@ -53,6 +53,8 @@ def main() -> None:
     ap.add_argument("--shadow-map-size", type=int, default=512)
     ap.add_argument("--groups", type=int, default=0, help="StreamConfig.groups (1: summation order of the "
                                                           "one-device fit, bit-equal parameters)")
+    ap.add_argument("--smooth-weight", type=float, default=0.0, help="LM smoothness (tiles exchange halos after "
+                                                                     "every iteration)")
     ap.add_argument("--repeats", type=int, default=2, help="timed repeats of each run (the fastest is reported)")
     ap.add_argument("--out", required=True)
     a = ap.parse_args()
@@ -64,6 +66,7 @@ def main() -> None:
     wp.init()
     from texstream.capture.synth import SynthConfig, render_scene
     from texstream.fit.fitter import FitConfig, run_fit
+    from texstream.fit.penalties import PenaltyConfig
     from texstream.fit.problem import StreamConfig
     from texstream.fit.stage import build_problem
     from texstream.fit.tiles import parse_devices, run_tiled_fit
@@ -80,6 +83,7 @@ def main() -> None:
 
     def config(**stream) -> FitConfig:
         return FitConfig(optimizer="lm", max_iterations=a.iterations, rel_tol=0.0, sync_every=5,
+                         penalties=PenaltyConfig(smooth_weight=a.smooth_weight),
                          stream=StreamConfig(image_precision=a.image_precision, shadow_map_size=a.shadow_map_size,
                                              photo_residency="device", groups=a.groups, **stream))
 
