@@ -255,11 +255,12 @@ class SlotPool:
         self.pool.shutdown()
 
 
-def lockstep(workers, pool_map, cfg: FitConfig, n_texels_order_stats, progress=None, first_in_order: bool = True,
+def lockstep(workers, pool_map, cfg: FitConfig, combine_stats, progress=None, first_in_order: bool = True,
              exchange=None):
     """Drive tile workers (:class:`TileWorker` or look-alikes) through the fit in lockstep: a segment of
     iterations up to each stopping test on every worker (``pool_map(fn, workers)`` runs them, concurrently
-    where it can), then one test on the summed trace. ``exchange()``, when given, runs after every
+    where it can), then one test on the summed trace. ``combine_stats``: the tiles' scale-pass statistics
+    into one array in the untiled texel order (np.concatenate for tiles of consecutive texels). ``exchange()``, when given, runs after every
     iteration's step on every worker, before their trace rows (a halo exchange: segments of one iteration).
     ``first_in_order``: tile 0 starts, and steps its first iteration, alone before the others (Warp builds a
     kernel's code at its first launch, which two threads must not do at once; every kernel of the fit is
@@ -272,10 +273,11 @@ def lockstep(workers, pool_map, cfg: FitConfig, n_texels_order_stats, progress=N
             return pool_map(fn, items)
         first = fn(0, items[0])
         return pool_map(lambda t, w: first if t == 0 else fn(t, w), items)
+
     scale = None
     if workers and pool_map(lambda t, w: w.needs_scale_pass(), workers)[0]:
         stats = first_map(lambda t, w: w.scale_pass_stats(), workers)
-        scale = robust_scale_from_stats(n_texels_order_stats(stats), cfg)
+        scale = robust_scale_from_stats(combine_stats(stats), cfg)
     rows0 = first_map(lambda t, w: w.begin(scale), workers)
     sums = np.zeros((cfg.max_iterations + 1, 8))
     sums[0] = np.sum(rows0, axis=0)
