@@ -395,17 +395,25 @@ class HaloExchange:
                                    wp.empty(src.size, dtype=dtype, device=dev_u),
                                    wp.empty(src.size, dtype=dtype, device=dev_t)))
 
-    def __call__(self) -> None:
-        for d in self.devices:  # the owners' steps are done before their values leave
+    def _sync(self) -> None:
+        for d in self.devices:
             wp.synchronize_device(d)
+
+    def __call__(self) -> None:
+        # three phases, each ended by a synchronisation of every device: a copy between two devices runs on
+        # one device's stream, not ordered after the other's launches
+        self._sync()  # the owners' steps are done
         for wu, wt, src, dst, out_u, in_t in self.pairs:
             wp.launch(gather_rows_kernel, dim=src.shape[0], device=wu.problem.device,
                       inputs=[wu.run.state.p, src], outputs=[out_u])
+        self._sync()
+        for wu, wt, src, dst, out_u, in_t in self.pairs:
             wp.copy(in_t, out_u)
+        self._sync()
+        for wu, wt, src, dst, out_u, in_t in self.pairs:
             wp.launch(scatter_rows_kernel, dim=dst.shape[0], device=wt.problem.device,
                       inputs=[in_t, dst], outputs=[wt.run.state.p])
-        for d in self.devices:
-            wp.synchronize_device(d)
+        self._sync()
 
 
 def run_tiled_fit(problem: StreamProblem, cfg: FitConfig, start: tuple[np.ndarray, np.ndarray] | None = None,
