@@ -22,7 +22,7 @@ import time
 
 import numpy as np
 
-from texstream.core.errors import ConfigError
+from texstream.core.errors import ConfigError, TexstreamError
 
 from .fitter import initial_guess
 from .problem import exposure_mean_square
@@ -40,15 +40,21 @@ class TileActor:
 
         wp.config.quiet = True
         wp.init()
-        dev = spec["device"]
-        mesh_points, mesh_faces, mesh_normals, mesh_uvs = spec["mesh"]
-        cfg = spec["config"]
-        photos = PhotoSet(spec["frames"], spec["files"], mesh_points, mesh_faces, config=cfg.stream, device=dev,
-                          mesh_normals=mesh_normals, mesh_uvs=mesh_uvs)
-        problem = StreamProblem(spec["texels"], photos, spec["layout"], cfg.stream, device=dev)
-        self.worker = TileWorker(problem, cfg, spec["start"], spec["view_mean_sq"])
+        self.error = None
+        try:
+            dev = spec["device"]
+            mesh_points, mesh_faces, mesh_normals, mesh_uvs = spec["mesh"]
+            cfg = spec["config"]
+            photos = PhotoSet(spec["frames"], spec["files"], mesh_points, mesh_faces, config=cfg.stream, device=dev,
+                              mesh_normals=mesh_normals, mesh_uvs=mesh_uvs)
+            problem = StreamProblem(spec["texels"], photos, spec["layout"], cfg.stream, device=dev)
+            self.worker = TileWorker(problem, cfg, spec["start"], spec["view_mean_sq"])
+        except TexstreamError as e:  # e.g. a photo this worker cannot read: raised by the first call, as itself
+            self.error = e
 
     def call(self, name: str, *args):
+        if self.error is not None:
+            raise self.error
         return getattr(self.worker, name)(*args)
 
 
@@ -103,7 +109,12 @@ def run_ray_tiled_fit(problem, cfg, start=None, progress=None):
         workers.append(RemoteWorker(actor.remote(spec)))
     try:
         def ray_map(fn, items):
-            return ray.get([fn(t, w) for t, w in enumerate(items)])
+            try:
+                return ray.get([fn(t, w) for t, w in enumerate(items)])
+            except ray.exceptions.RayTaskError as e:  # a user error in an actor: its one line, not Ray's traceback
+                if isinstance(getattr(e, "cause", None), TexstreamError):
+                    raise e.cause from None
+                raise
 
         ray_map(lambda t, w: w.needs_scale_pass(), workers)  # every actor built before the clock of the fit
         t_setup = time.perf_counter() - t0

@@ -71,3 +71,23 @@ def test_ray_needs_the_photos_as_files(capture, local_cluster):
     prob = build_problem(mesh, bake, cap.frames, images, masks, cfg, "cpu")
     with pytest.raises(ConfigError, match="capture's files"):
         run_tiled_fit(prob, cfg)
+
+
+def test_a_photo_a_worker_cannot_read_fails_naming_it(capture, local_cluster, tmp_path):
+    """A photo that turned unreadable on the shared storage after the driver's set-up: the actor's InputError
+    comes back as itself (one line naming the file), not as Ray's traceback."""
+    import shutil
+
+    from texstream.capture.capture_json import read_capture
+    from texstream.core.errors import InputError
+
+    cap, mesh, bake = capture
+    copy = tmp_path / "capture"
+    shutil.copytree(cap.root, copy)
+    cap2 = read_capture(copy)
+    cfg = FitConfig(max_iterations=1, stream=StreamConfig(shadow_map_size=48, tiles=2, tile_backend="ray"))
+    prob = build_problem(mesh, bake, cap2.frames, photo_files(cap2, cap2.frames), None, cfg, "cpu")
+    bad = cap2.image_path(cap2.frames[3])
+    bad.write_bytes(bad.read_bytes()[:100])
+    with pytest.raises(InputError, match=bad.name):
+        run_tiled_fit(prob, cfg)
