@@ -15,7 +15,7 @@ LM's smoothness (``penalties.smooth_weight``) couples each texel to its four atl
 at their current values while it steps (red-black block Gauss-Seidel, fit/optim/lm.py). A tile then
 also holds its halo: the neighbours of its texels that other tiles own, never stepped or counted,
 their values copied from their owners after every iteration (device to device); with that a tiled
-smooth fit is exact too (threads only; Ray actors refuse it). The other options that couple texels
+smooth fit is exact too (Ray actors exchange through the object store). The other options that couple texels
 (the Laplacian penalty, the renderer's bilinear lookup, the global line search) are refused.
 """
 
@@ -92,11 +92,9 @@ def tiled(cfg: FitConfig) -> bool:
 
 
 def check_tileable(cfg: FitConfig) -> None:
-    """Refuse options that couple texels across tiles without a halo exchange, naming the option."""
+    """Refuse options that couple texels across tiles without a halo exchange (LM's smoothness has one),
+    naming the option."""
     coupled = []
-    if cfg.penalties.smooth_weight > 0 and cfg.stream.tile_backend == "ray":
-        coupled.append("penalties.smooth_weight with stream.tile_backend ray (halos are exchanged between "
-                       "threads only)")
     if cfg.penalties.laplacian_weight > 0:
         coupled.append("penalties.laplacian_weight (the Laplacian over neighbouring texels)")
     if cfg.stream.model_lookup == "bilinear":
@@ -363,10 +361,36 @@ class TileWorker:
             self.run.iterate(it)
         return self.run.trace_buf.numpy()[first:last + 1]
 
+    def halo_values(self, rows: np.ndarray) -> np.ndarray:
+        """Parameters (``state.p``) of the tile's texels ``rows``, that another tile holds as halo (through
+        the host: the Ray backend's exchange)."""
+        return self.run.state.p.numpy()[rows]
+
+    def set_halo(self, rows: np.ndarray, values: np.ndarray) -> None:
+        """Write ``values`` into ``state.p`` at the halo texels ``rows`` (one upload and a scatter launch)."""
+        p = self.run.state.p
+        wp.launch(scatter_rows_kernel, dim=len(rows), device=p.device,
+                  inputs=[wp.array(values, dtype=p.dtype, device=p.device),
+                          wp.array(np.asarray(rows, np.int32), dtype=wp.int32, device=p.device)], outputs=[p])
+
     def params(self) -> tuple[np.ndarray, int, float]:
         """(fitted (N_t, n_params) parameters, passes streamed, robust scale)."""
         return (self.run.state.params_numpy()[:self.own], int(self.problem.passes),
                 float(self.problem.robust_scale))
+
+
+def halo_pairs(plan: TilePlan) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
+    """(owner u, receiver t, rows of u's texels, rows of t's halo) for every pair of tiles with a halo between
+    them: what an exchange copies, in the tiles' problems' texel order."""
+    owner = np.searchsorted(plan.bounds[:, 1], np.arange(plan.bounds[-1, 1]), side="right")
+    pairs = []
+    for t, halo in enumerate(plan.halo):
+        own_t = int(plan.bounds[t, 1] - plan.bounds[t, 0])
+        for u in np.unique(owner[halo]):
+            pick = np.flatnonzero(owner[halo] == u)
+            pairs.append((int(u), t, (halo[pick] - plan.bounds[u, 0]).astype(np.int32),
+                          (own_t + pick).astype(np.int32)))
+    return pairs
 
 
 class HaloExchange:
@@ -377,23 +401,15 @@ class HaloExchange:
     def __init__(self, plan: TilePlan, workers: list[TileWorker]):
         self.workers = workers
         self.devices = sorted({w.problem.device for w in workers})
-        owner = np.searchsorted(plan.bounds[:, 1], np.arange(plan.bounds[-1, 1]), side="right")
         self.pairs = []
-        for t, halo in enumerate(plan.halo):
-            if halo.size == 0:
-                continue
-            own_t = int(plan.bounds[t, 1] - plan.bounds[t, 0])
-            for u in np.unique(owner[halo]):
-                pick = np.flatnonzero(owner[halo] == u)
-                src = (halo[pick] - plan.bounds[u, 0]).astype(np.int32)
-                dst = (own_t + pick).astype(np.int32)
-                wu, wt = workers[u], workers[t]
-                dev_u, dev_t = wu.problem.device, wt.problem.device
-                dtype = wu.run.state.p.dtype
-                self.pairs.append((wu, wt, wp.array(src, dtype=wp.int32, device=dev_u),
-                                   wp.array(dst, dtype=wp.int32, device=dev_t),
-                                   wp.empty(src.size, dtype=dtype, device=dev_u),
-                                   wp.empty(src.size, dtype=dtype, device=dev_t)))
+        for u, t, src, dst in halo_pairs(plan):
+            wu, wt = workers[u], workers[t]
+            dev_u, dev_t = wu.problem.device, wt.problem.device
+            dtype = wu.run.state.p.dtype
+            self.pairs.append((wu, wt, wp.array(src, dtype=wp.int32, device=dev_u),
+                               wp.array(dst, dtype=wp.int32, device=dev_t),
+                               wp.empty(src.size, dtype=dtype, device=dev_u),
+                               wp.empty(src.size, dtype=dtype, device=dev_t)))
 
     def _sync(self) -> None:
         for d in self.devices:

@@ -26,7 +26,8 @@ from texstream.core.errors import ConfigError, TexstreamError
 
 from .fitter import initial_guess
 from .problem import exposure_mean_square
-from .tiles import TileWorker, assemble, check_tileable, lockstep, plan_tiles, texel_range, tile_config
+from .tiles import (TileWorker, assemble, check_tileable, halo_pairs, lockstep, plan_tiles, texel_subset, tile_config,
+                    tile_photos, tile_start)
 
 
 class TileActor:
@@ -48,7 +49,7 @@ class TileActor:
             photos = PhotoSet(spec["frames"], spec["files"], mesh_points, mesh_faces, config=cfg.stream, device=dev,
                               mesh_normals=mesh_normals, mesh_uvs=mesh_uvs)
             problem = StreamProblem(spec["texels"], photos, spec["layout"], cfg.stream, device=dev)
-            self.worker = TileWorker(problem, cfg, spec["start"], spec["view_mean_sq"])
+            self.worker = TileWorker(problem, cfg, spec["start"], spec["view_mean_sq"], own=spec["own"])
         except TexstreamError as e:  # e.g. a photo this worker cannot read: raised by the first call, as itself
             self.error = e
 
@@ -101,11 +102,11 @@ def run_ray_tiled_fit(problem, cfg, start=None, progress=None):
     mean_sq = exposure_mean_square(photos)
     workers = []
     for t, (b, e) in enumerate(plan.bounds):
-        idx = plan.photos[t]
+        idx = tile_photos(plan, t, photos.n)
         spec = {"device": "cuda:0" if gpu else "cpu", "mesh": photos.mesh_arrays,
                 "frames": [photos.frames[k] for k in idx], "files": photos.source.subset(idx),
-                "texels": texel_range(problem.texels, int(b), int(e)), "layout": problem.layout, "config": tcfg,
-                "start": (guess[b:e], counts[b:e]), "view_mean_sq": mean_sq}
+                "texels": texel_subset(problem.texels, plan.texels(t)), "layout": problem.layout, "config": tcfg,
+                "start": tile_start(plan, t, guess, counts), "view_mean_sq": mean_sq, "own": int(e - b)}
         workers.append(RemoteWorker(actor.remote(spec)))
     try:
         def ray_map(fn, items):
@@ -118,14 +119,23 @@ def run_ray_tiled_fit(problem, cfg, start=None, progress=None):
 
         ray_map(lambda t, w: w.needs_scale_pass(), workers)  # every actor built before the clock of the fit
         t_setup = time.perf_counter() - t0
+        pairs = halo_pairs(plan)
+
+        def exchange():
+            """The halos through the object store: every owner's values, then every receiver's update."""
+            values = ray.get([workers[u].halo_values(src) for u, t, src, dst in pairs])
+            ray.get([workers[t].set_halo(dst, v) for (u, t, src, dst), v in zip(pairs, values)])
+
         sums, times, it_done, _ = lockstep(workers, ray_map, cfg, np.concatenate, progress,
-                                           first_in_order=False)  # one process per actor: no shared kernels
+                                           first_in_order=False,  # one process per actor: no shared kernels
+                                           exchange=exchange if pairs else None)
         parts = ray_map(lambda t, w: w.params(), workers)
     finally:
         for w in workers:
             ray.kill(w.handle)
     result = assemble(problem, cfg, counts, parts, sums, times, it_done)
     report = {**plan.report(photos.n), "devices": ["ray:" + ("gpu" if gpu else "cpu")] * len(plan.bounds),
-              "backend": "ray", "tile_setup_s": t_setup, "fit_s": times[-1]}
+              "backend": "ray", "tile_setup_s": t_setup, "fit_s": times[-1],
+              "halo_texels": [int(h.size) for h in plan.halo]}
     return result, report
 

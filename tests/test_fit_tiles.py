@@ -11,6 +11,7 @@ import pytest
 
 from texstream.core.errors import ConfigError
 from texstream.fit.fitter import FitConfig, initial_guess, run_fit
+from texstream.fit.optim.linesearch import LineSearchConfig
 from texstream.fit.penalties import PenaltyConfig
 from texstream.fit.problem import StreamConfig
 from texstream.fit.stage import build_problem
@@ -149,8 +150,7 @@ def test_halo_exchange_is_needed(scene, monkeypatch):
 
 
 @pytest.mark.parametrize("change,option", [
-    (dict(penalties=PenaltyConfig(smooth_weight=0.1), stream=StreamConfig(**STREAM, tiles=2, tile_backend="ray")),
-     "penalties.smooth_weight"),
+    (dict(linesearch=LineSearchConfig(acceptance="global"), optimizer="cg"), "linesearch.acceptance"),
     (dict(penalties=PenaltyConfig(laplacian_weight=0.1), optimizer="cg"), "penalties.laplacian_weight"),
     (dict(stream=StreamConfig(**STREAM, tiles=2, model_lookup="bilinear")), "stream.model_lookup"),
 ])

@@ -11,6 +11,7 @@ import pytest
 
 from texstream.core.errors import ConfigError
 from texstream.fit.fitter import FitConfig, run_fit
+from texstream.fit.penalties import PenaltyConfig
 from texstream.fit.problem import StreamConfig
 from texstream.fit.stage import build_problem, photo_files
 from texstream.fit.tiles import run_tiled_fit
@@ -49,10 +50,15 @@ def problem(capture, cfg):
     return build_problem(mesh, bake, cap.frames, photo_files(cap, cap.frames), None, cfg, "cpu")
 
 
-def test_ray_tiles_equal_the_one_process_fit(capture, local_cluster):
+@pytest.mark.parametrize("smooth", [0.0, 0.05])
+def test_ray_tiles_equal_the_one_process_fit(capture, local_cluster, smooth, monkeypatch):
+    """With LM's smoothness the actors' halos go through the object store after every iteration."""
+    import texstream.fit.tiles as tiles
+
+    monkeypatch.setattr(tiles, "ALL_PHOTOS_FRACTION", 2.0)  # each actor reads only the photos that see its tile
     # one photo group and a fixed iteration count: the conditions of the exact comparison (test_fit_tiles.py)
     cfg = FitConfig(optimizer="lm", max_iterations=4, rel_tol=0.0, sync_every=2,
-                    stream=StreamConfig(shadow_map_size=48, groups=1))
+                    penalties=PenaltyConfig(smooth_weight=smooth), stream=StreamConfig(shadow_map_size=48, groups=1))
     ref = run_fit(problem(capture, cfg), cfg)
     # three tiles on two CPUs: the actors share them (every actor must be placed for the lockstep)
     rcfg = dataclasses.replace(cfg, stream=dataclasses.replace(cfg.stream, tiles=3, tile_backend="ray"))
