@@ -252,106 +252,207 @@ def run_fit(problem: StreamProblem, cfg: FitConfig, p0: np.ndarray | None = None
     one device. ``start``: :func:`initial_guess`'s (parameters, sample counts) when the caller has
     already streamed that pass.
     """
-    lay = problem.layout
-    n = problem.n
-    dev = problem.device
-    t_start = time.perf_counter()
-    if (checkpoint is not None or resume is not None) and not resumable(cfg):
-        raise ConfigError("only Levenberg-Marquardt fits without smoothness, lookup or diffuse schedule resume "
-                          "from a checkpoint", fix="drop the checkpoint, or use --optimizer lm")
-    guess, counts = start if start is not None else initial_guess(problem, cfg)
-    if p0 is not None:
-        guess = np.asarray(p0, dtype=np.float64)
-    free = ~lay.frozen()
-    state = FitState.create(problem, guess, free, lobe_albedo_max=cfg.lobe_albedo_max)
-    if resume is not None:
-        # exactly the checkpoint's parameters (create() re-projects them in float64), and their storage
-        state.p.assign(np.asarray(resume["p"]))
-        state.store_current()
-    state.valid = wp.array((counts > 0).astype(np.int32), dtype=wp.int32, device=dev)
-    penalties = Penalties(problem, cfg.penalties)
-    opt = make_optimizer(cfg)
-    if cfg.linesearch.kind not in ("backtracking", "hessian", "quadratic"):
-        raise ConfigError(f"line search {cfg.linesearch.kind!r} unknown", fix="use backtracking, hessian or quadratic")
-    # trace buffer: objective, |g|^2, samples, SSE, sum|r|, sum|y|, accepted, valid texels
-    n_chunks = max(1, min(1024, n))
-    chunk = math.ceil(n / n_chunks)
-    partial = wp.zeros((n_chunks, 8), dtype=wp.float64, device=dev)
-    trace_buf = wp.zeros((cfg.max_iterations + 1, 8), dtype=wp.float64, device=dev)
-    times = []
+    run = FitRun(problem, cfg, p0=p0, checkpointed=checkpoint is not None, resume=resume, start=start)
+    if resume is None and run.needs_scale_pass():
+        run.begin(robust_scale_from_stats(run.scale_pass_stats(), cfg))
+    else:
+        run.begin()
+    last_obj = run.last_obj
+    it_done = run.first - 1
+    for it in range(run.first, cfg.max_iterations + 1):
+        run.iterate(it)
+        it_done = it
+        if progress is not None:
+            progress(it)
+        if stop_test_due(it, cfg):
+            obj = float(run.trace_buf.numpy()[it, 0])
+            if converged(last_obj, obj, cfg):
+                break
+            last_obj = obj
+            if checkpoint is not None and it < cfg.max_iterations:
+                checkpoint(run.checkpoint_state(it, last_obj))
+            if cfg.time_budget_s > 0 and run.times[-1] >= cfg.time_budget_s:
+                break
+    return run.result(trace_rows(run.trace_buf.numpy()[:it_done + 1], run.times, cfg))
 
-    def record(row: int) -> None:
-        wp.launch(K.chunk_sums_kernel, dim=n_chunks, device=dev,
-                  inputs=[state.f, state.g, state.stats, state.accepted, state.valid, n, chunk], outputs=[partial])
-        wp.launch(K.final_sums_kernel, dim=1, device=dev, inputs=[partial, n_chunks, row], outputs=[trace_buf])
+
+def stop_test_due(it: int, cfg: FitConfig) -> bool:
+    """Whether iteration ``it`` ends with a stopping test (every ``sync_every`` iterations, and the last)."""
+    return it % max(cfg.sync_every, 1) == 0 or it == cfg.max_iterations
+
+
+def converged(last_obj: float | None, obj: float, cfg: FitConfig) -> bool:
+    """The stopping rule: the objective's relative decrease since the last test is at most ``rel_tol``."""
+    return last_obj is not None and abs(last_obj - obj) <= cfg.rel_tol * max(abs(obj), 1e-300)
+
+
+def robust_scale_from_stats(stats: np.ndarray, cfg: FitConfig) -> float:
+    """The robust loss's automatic scale from a pass's (N, 4) per-texel statistics at the starting point:
+    ``robust_scale_fraction`` x the mean sampled photo value."""
+    st = np.asarray(stats).sum(axis=0)
+    mean_y = st[3] / max(3.0 * st[0], 1e-300)
+    if not mean_y > 0:
+        mean_y = 1.0  # no samples, or black photos: any scale will do
+    return cfg.robust_scale_fraction * mean_y
+
+
+def trace_rows(tb: np.ndarray, times, cfg: FitConfig) -> list[dict]:
+    """The trace (one dict per iteration) from the (iterations, 8) trace sums and wall times."""
+    trace = []
+    for k in range(tb.shape[0]):
+        obj, g2, ns, sse, sabs, sy, acc, nvalid = tb[k]
+        mse = sse / max(ns * 3.0, 1.0)
+        trace.append({"iteration": k, "time_s": times[k], "objective": obj, "grad_norm": math.sqrt(max(g2, 0.0)),
+                      "samples": int(round(ns)),
+                      "psnr_db": 10.0 * math.log10(cfg.psnr_peak ** 2 / mse) if mse > 0 else float("inf"),
+                      "ape_percent": 100.0 * sabs / sy if sy > 0 else 0.0,
+                      "accepted_fraction": acc / nvalid if nvalid > 0 else 0.0})
+    return trace
+
+
+class FitRun:
+    """One problem's fit between iterations: state, optimizer and the trace buffer on the device.
+
+    :func:`run_fit` drives one; a tiled fit (fit/tiles.py) drives one per tile in lockstep and sums their
+    trace rows (every column of a row is a sum over texels) for one stopping test over all texels.
+    Call :meth:`begin` once (after :meth:`scale_pass_stats` when :meth:`needs_scale_pass`), then
+    :meth:`iterate` for iterations ``first``, ``first + 1``, ...
+    """
+
+    def __init__(self, problem: StreamProblem, cfg: FitConfig, p0: np.ndarray | None = None,
+                 checkpointed: bool = False, resume: dict | None = None,
+                 start: tuple[np.ndarray, np.ndarray] | None = None):
+        self.problem, self.cfg, self.resume = problem, cfg, resume
+        lay = problem.layout
+        n = problem.n
+        dev = problem.device
+        self.t_start = time.perf_counter()
+        if (checkpointed or resume is not None) and not resumable(cfg):
+            raise ConfigError("only Levenberg-Marquardt fits without smoothness, lookup or diffuse schedule resume "
+                              "from a checkpoint", fix="drop the checkpoint, or use --optimizer lm")
+        guess, counts = start if start is not None else initial_guess(problem, cfg)
+        if p0 is not None:
+            guess = np.asarray(p0, dtype=np.float64)
+        self.counts = counts
+        self.free = ~lay.frozen()
+        self.state = state = FitState.create(problem, guess, self.free, lobe_albedo_max=cfg.lobe_albedo_max)
+        if resume is not None:
+            # exactly the checkpoint's parameters (create() re-projects them in float64), and their storage
+            state.p.assign(np.asarray(resume["p"]))
+            state.store_current()
+        state.valid = wp.array((counts > 0).astype(np.int32), dtype=wp.int32, device=dev)
+        self.penalties = Penalties(problem, cfg.penalties)
+        self.opt = opt = make_optimizer(cfg)
+        if cfg.linesearch.kind not in ("backtracking", "hessian", "quadratic"):
+            raise ConfigError(f"line search {cfg.linesearch.kind!r} unknown", fix="use backtracking, hessian or quadratic")
+        # trace buffer: objective, |g|^2, samples, SSE, sum|r|, sum|y|, accepted, valid texels
+        self.n_chunks = max(1, min(1024, n))
+        self.chunk = math.ceil(n / self.n_chunks)
+        self.partial = wp.zeros((self.n_chunks, 8), dtype=wp.float64, device=dev)
+        self.trace_buf = wp.zeros((cfg.max_iterations + 1, 8), dtype=wp.float64, device=dev)
+        self.times: list[float] = []
+        self.stamps: dict[int, float] = {}
+        """per trace row, the wall-clock time (time.time) it was recorded"""
+        if not isinstance(opt, LevenbergMarquardt):
+            state.want_diag = bool(getattr(opt, "precondition", False))
+        # the renderer's texture lookup holds the neighbours fixed between refreshes, so each texel's
+        # objective stays its own (per-texel steps and acceptance) and changes only at a refresh
+        self.refresh_every = cfg.lookup_refresh_every or (1 if isinstance(opt, LevenbergMarquardt) else 10)
+        if self.refresh_every < 0:
+            raise ConfigError(f"lookup_refresh_every {cfg.lookup_refresh_every} invalid", fix="use 0 (automatic) or k >= 1")
+        if not 0.0 < cfg.lookup_relaxation <= 1.0:
+            raise ConfigError(f"lookup_relaxation {cfg.lookup_relaxation} invalid", fix="use a fraction in (0, 1]")
+        problem.refresh_lookup(state.storage)
+        self.loss = cfg.loss(lay)
+        self.first = 1
+        self.last_obj = None
+        self.schedule_switched = False
+
+    def record(self, row: int) -> None:
+        """Sum the trace columns over texels into row ``row`` of the trace buffer and note the wall time."""
+        state, dev = self.state, self.problem.device
+        wp.launch(K.chunk_sums_kernel, dim=self.n_chunks, device=dev,
+                  inputs=[state.f, state.g, state.stats, state.accepted, state.valid, self.problem.n, self.chunk],
+                  outputs=[self.partial])
+        wp.launch(K.final_sums_kernel, dim=1, device=dev, inputs=[self.partial, self.n_chunks, row],
+                  outputs=[self.trace_buf])
         wp.synchronize_device(dev)
-        times.append(time.perf_counter() - t_start)
+        self.times.append(time.perf_counter() - self.t_start)
+        self.stamps[row] = time.time()  # comparable across processes (a tiled fit's tiles, fit/tiles.py)
 
-    if not isinstance(opt, LevenbergMarquardt):
-        state.want_diag = bool(getattr(opt, "precondition", False))
-
-    def evaluate_current() -> None:
+    def evaluate_current(self) -> None:
         """f, g (and LM's J^T J) at the current parameters, as each optimizer starts from them."""
-        if isinstance(opt, LevenbergMarquardt):
-            opt.start(state)
+        state = self.state
+        if isinstance(self.opt, LevenbergMarquardt):
+            self.opt.start(state)
         else:
-            problem.evaluate(state.storage, state.f, state.g, state.stats, diag=state.diag_out())
-            penalties.add(state, state.p, state.f, state.g)
+            self.problem.evaluate(state.storage, state.f, state.g, state.stats, diag=state.diag_out())
+            self.penalties.add(state, state.p, state.f, state.g)
 
-    # the renderer's texture lookup holds the neighbours fixed between refreshes, so each texel's
-    # objective stays its own (per-texel steps and acceptance) and changes only at a refresh
-    refresh_every = cfg.lookup_refresh_every or (1 if isinstance(opt, LevenbergMarquardt) else 10)
-    if refresh_every < 0:
-        raise ConfigError(f"lookup_refresh_every {cfg.lookup_refresh_every} invalid", fix="use 0 (automatic) or k >= 1")
-    if not 0.0 < cfg.lookup_relaxation <= 1.0:
-        raise ConfigError(f"lookup_relaxation {cfg.lookup_relaxation} invalid", fix="use a fraction in (0, 1]")
-    problem.refresh_lookup(state.storage)
-    loss = cfg.loss(lay)
-    if resume is not None:
-        problem.set_robust_loss(loss, float(resume["robust_scale"]))
-    elif loss != "none" and cfg.robust_scale <= 0:
-        # auto scale: one pass at the starting point reads the mean sampled photo value (before the
-        # loop: the iterations themselves never wait on the host)
-        if problem.cfg.residual_space != "radiance":
+    def needs_scale_pass(self) -> bool:
+        """Whether the robust loss's scale comes from a pass at the starting point (:meth:`scale_pass_stats`)."""
+        return self.resume is None and self.loss != "none" and self.cfg.robust_scale <= 0
+
+    def scale_pass_stats(self) -> np.ndarray:
+        """One pass at the starting point; returns its (N, 4) per-texel statistics, from which
+        :func:`robust_scale_from_stats` reads the mean sampled photo value (before the loop: the
+        iterations themselves never wait on the host)."""
+        if self.problem.cfg.residual_space != "radiance":
             raise ConfigError("robust_scale auto is in photo values, for radiance-space residuals",
                               fix="set robust_scale (reflectance units) or stream.residual_space radiance")
-        problem.set_robust_loss(loss, 1.0)  # provisional: the photo statistics do not depend on it
-        evaluate_current()
-        st = state.stats.numpy().sum(axis=0)
-        mean_y = st[3] / max(3.0 * st[0], 1e-300)
-        if not mean_y > 0:
-            mean_y = 1.0  # no samples, or black photos: any scale will do
-        problem.set_robust_loss(loss, cfg.robust_scale_fraction * mean_y)
-    else:
-        problem.set_robust_loss(loss, cfg.robust_scale)
-    problem.set_view_prior(cfg.view_prior)
-    evaluate_current()
-    state.accepted.zero_()
-    first = 1
-    last_obj = None
-    if resume is not None:
-        first = int(resume["iteration"]) + 1
-        opt.lam.assign(np.asarray(resume["lam"]))
-        trace_buf.assign(np.concatenate([np.asarray(resume["trace"]),
-                                         np.zeros((cfg.max_iterations + 1 - first, 8))]).astype(np.float64))
-        times.extend(float(t) for t in resume["times"])
-        last_obj = None if not np.isfinite(resume["last_obj"]) else float(resume["last_obj"])
-    else:
-        record(0)
-    schedule_switched = False
-    it_done = first - 1
-    for it in range(first, cfg.max_iterations + 1):
+        self.problem.set_robust_loss(self.loss, 1.0)  # provisional: the photo statistics do not depend on it
+        self.evaluate_current()
+        return self.state.stats.numpy()
+
+    def begin(self, robust_scale: float | None = None, view_mean_sq: float | None = None) -> None:
+        """Set the robust loss (``robust_scale``: the automatic scale, else the config's or the checkpoint's)
+        and the view prior (``view_mean_sq``: the photos' mean squared exposure when this problem holds part
+        of them), evaluate the starting point and record trace row 0 (or restore a checkpoint's trace)."""
+        problem, cfg, state, resume = self.problem, self.cfg, self.state, self.resume
+        if resume is not None:
+            problem.set_robust_loss(self.loss, float(resume["robust_scale"]))
+        elif robust_scale is not None:
+            problem.set_robust_loss(self.loss, robust_scale)
+        else:
+            problem.set_robust_loss(self.loss, cfg.robust_scale)
+        problem.set_view_prior(cfg.view_prior, view_mean_sq)
+        self.evaluate_current()
+        state.accepted.zero_()
+        if resume is not None:
+            self.first = int(resume["iteration"]) + 1
+            self.opt.lam.assign(np.asarray(resume["lam"]))
+            self.trace_buf.assign(np.concatenate([np.asarray(resume["trace"]),
+                                                  np.zeros((cfg.max_iterations + 1 - self.first, 8))]).astype(np.float64))
+            self.times.extend(float(t) for t in resume["times"])
+            self.last_obj = None if not np.isfinite(resume["last_obj"]) else float(resume["last_obj"])
+        else:
+            self.record(0)
+
+    def iterate(self, it: int) -> None:
+        """Iteration ``it``: one optimizer step over all texels, then its trace row."""
+        self.step(it)
+        self.record(it)
+
+    def refresh_totals(self) -> None:
+        """Recompute the reported objective of LM's smoothness (each texel's half share of its pair terms)
+        after neighbours held in ``state.p`` changed (a tile's halo, fit/tiles.py); no-op otherwise."""
+        if isinstance(self.opt, LevenbergMarquardt) and self.opt.smooth:
+            self.opt._report_totals(self.state)
+
+    def step(self, it: int) -> None:
+        """Iteration ``it``'s optimizer step over all texels (no trace row: :meth:`record`)."""
+        cfg, state, opt, problem = self.cfg, self.state, self.opt, self.problem
         state.iteration = it
-        if cfg.diffuse_free_iterations >= 0 and not schedule_switched and it > cfg.diffuse_free_iterations:
-            f2 = free.copy()
+        if cfg.diffuse_free_iterations >= 0 and not self.schedule_switched and it > cfg.diffuse_free_iterations:
+            f2 = self.free.copy()
             f2[0:3] = False
             state.set_free(f2)
             opt.reset_memory(state)
-            schedule_switched = True
-        if problem.lookup and it > 1 and (it - 1) % refresh_every == 0:
+            self.schedule_switched = True
+        if problem.lookup and it > 1 and (it - 1) % self.refresh_every == 0:
             state.store_current()
             problem.refresh_lookup(state.storage, cfg.lookup_relaxation)
-            evaluate_current()
+            self.evaluate_current()
             if not isinstance(opt, LevenbergMarquardt):  # LM keeps its damping: it has no memory of the old objective
                 opt.reset_memory(state)
         wp.copy(state.p_old, state.p)
@@ -360,32 +461,17 @@ def run_fit(problem: StreamProblem, cfg: FitConfig, p0: np.ndarray | None = None
             opt.step(state)
         else:
             opt.direction(state)
-            line_search(state, cfg.linesearch, penalties, first=(it == 1))
+            line_search(state, cfg.linesearch, self.penalties, first=(it == 1))
             opt.after_step(state)
-        record(it)
-        it_done = it
-        if progress is not None:
-            progress(it)
-        if it % max(cfg.sync_every, 1) == 0 or it == cfg.max_iterations:
-            obj = float(trace_buf.numpy()[it, 0])
-            if last_obj is not None and abs(last_obj - obj) <= cfg.rel_tol * max(abs(obj), 1e-300):
-                break
-            last_obj = obj
-            if checkpoint is not None and it < cfg.max_iterations:
-                checkpoint({"iteration": it, "p": state.p.numpy(), "lam": opt.lam.numpy(),
-                            "trace": trace_buf.numpy()[:it + 1], "times": np.asarray(times),
-                            "last_obj": last_obj, "robust_scale": float(problem.robust_scale)})
-            if cfg.time_budget_s > 0 and times[-1] >= cfg.time_budget_s:
-                break
-    tb = trace_buf.numpy()[:it_done + 1]
-    trace = []
-    for k in range(it_done + 1):
-        obj, g2, ns, sse, sabs, sy, acc, nvalid = tb[k]
-        mse = sse / max(ns * 3.0, 1.0)
-        trace.append({"iteration": k, "time_s": times[k], "objective": obj, "grad_norm": math.sqrt(max(g2, 0.0)),
-                      "samples": int(round(ns)),
-                      "psnr_db": 10.0 * math.log10(cfg.psnr_peak ** 2 / mse) if mse > 0 else float("inf"),
-                      "ape_percent": 100.0 * sabs / sy if sy > 0 else 0.0,
-                      "accepted_fraction": acc / nvalid if nvalid > 0 else 0.0})
-    return FitResult(params=state.params_numpy(), samples=counts, trace=trace, layout=lay, passes=problem.passes,
-                     robust_loss=loss, robust_scale=problem.robust_scale)
+
+    def checkpoint_state(self, it: int, last_obj: float) -> dict:
+        """What ``resume`` takes to continue after iteration ``it``."""
+        return {"iteration": it, "p": self.state.p.numpy(), "lam": self.opt.lam.numpy(),
+                "trace": self.trace_buf.numpy()[:it + 1], "times": np.asarray(self.times),
+                "last_obj": last_obj, "robust_scale": float(self.problem.robust_scale)}
+
+    def result(self, trace: list[dict]) -> FitResult:
+        """The fit's parameters and sample counts with ``trace``."""
+        return FitResult(params=self.state.params_numpy(), samples=self.counts, trace=trace,
+                         layout=self.problem.layout, passes=self.problem.passes, robust_loss=self.loss,
+                         robust_scale=self.problem.robust_scale)

@@ -72,6 +72,11 @@ class PhotoFiles:
     def __len__(self) -> int:
         return len(self.paths)
 
+    def subset(self, indices) -> "PhotoFiles":
+        """The photos ``indices`` (in that order), same readers."""
+        return PhotoFiles([self.paths[k] for k in indices], [self.mask_paths[k] for k in indices],
+                          self.read_image, self.read_mask)
+
 
 def image_infos(frames, crops: np.ndarray | None, center: np.ndarray | None, radius: float,
                 shadow_size: int) -> np.ndarray:

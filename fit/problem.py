@@ -288,6 +288,16 @@ class StreamConfig:
                                      "bounding box plus 3 px): only pixels a texel can see; results equal the "
                                      "uncropped photos' to float rounding of the projection")
     decode_threads: int = option(0, "threads that decode and crop photos (0: min(8, CPU cores))", min=0)
+    tiles: int = option(0, "split the atlas's texels into this many tiles of consecutive texels, each fitted over "
+                           "only the photos that see it (fit/tiles.py; the untiled fit's result: texels are fitted "
+                           "independently, LM's smoothness by a halo exchange; the Laplacian penalty, bilinear "
+                           "model_lookup and global line search are refused); 0: one tile per device, i.e. "
+                           "untiled on one device", min=0)
+    devices: str = option("", "comma-separated devices the tiles are fitted on, one thread each (e.g. cuda:0,cuda:1; "
+                              "empty: the fit's device); several devices need photo_residency device")
+    tile_backend: str = option("threads", "where the tiles run: threads (one per device in this process) or ray "
+                                          "(one Ray actor per tile; needs texstream[distributed] and the photos "
+                                          "as files on storage every Ray worker reads)", choices=("threads", "ray"))
     cuda_block_dim: int = option(128, "threads per CUDA block of the accumulation kernels (128 fits three blocks "
                                       "per SM at the register cap; docs/gpu-performance.md)", min=32, max=1024)
     cuda_max_registers: int = option(-1, "registers per CUDA thread of the accumulation kernels: 0 uncapped, -1 "
@@ -333,6 +343,10 @@ class PhotoSet:
         ``timings`` records the set-up's phases in seconds (upload, depth_maps, shadow_maps, other;
         each phase ends with a device synchronisation so the figures are its own)."""
         self.mesh_normals = self.mesh_uvs = None
+        self.frames = list(frames)
+        """the photos' :class:`PhotoFrame`s (a tile's actor builds its own set from them, fit/tiles_ray.py)"""
+        self.source = images if isinstance(images, PhotoFiles) else None
+        """the photos' files when given as a PhotoFiles (paths only: nothing decoded is held), else None"""
         self.light_kinds = [fr.light_kind for fr in frames]
         """per photo "point", "directional" or "none" (checked against the model by StreamProblem)"""
         self.exposures = [float(fr.exposure) for fr in frames]
@@ -348,6 +362,8 @@ class PhotoSet:
         t_start = time.perf_counter()
         cfg = config or StreamConfig()
         self.files = isinstance(images, PhotoFiles)
+        self.mesh_arrays = (mesh_points, mesh_faces, mesh_normals, mesh_uvs)
+        """the mesh as given (another process builds the same set from them, fit/tiles_ray.py)"""
         self.mesh = wp.Mesh(points=wp.array(np.asarray(mesh_points, np.float32), dtype=wp.vec3, device=device),
                             indices=wp.array(np.asarray(mesh_faces, np.int32).reshape(-1), dtype=wp.int32, device=device))
         if mesh_normals is not None and mesh_uvs is not None:
@@ -588,28 +604,46 @@ class PhotoSet:
         self.shadow = wp.full((self.n, 2, 2), np.inf, dtype=wp.float32, device=device)
         self.image_bytes = int(stack.nbytes)
 
-    def subset(self, indices) -> "PhotoSet":
+    def subset(self, indices, device: str | None = None) -> "PhotoSet":
         """The photos ``indices`` of this set (with their depth and shadow maps, mesh and window size) as a
         PhotoSet of their own, without loading or rendering anything again: e.g. a fit on part of the
-        photos judged on the rest (fit/materials.py). One copy through the host, at set-up."""
+        photos judged on the rest (fit/materials.py), or a tile's photos (fit/tiles.py). One copy through
+        the host, at set-up (device to device when ``device``, another device, takes every photo).
+        ``device``: where the subset lives (default: this set's); another device needs this set's photos
+        resident on its device (``residency`` device)."""
         idx = np.asarray(indices, np.int64).reshape(-1)
         if idx.size == 0 or idx.min() < 0 or idx.max() >= self.n:
             raise InputError(f"photo subset {idx.tolist()[:8]} is empty or outside 0..{self.n - 1}",
                              fix="report this with the command that made it")
+        dev = self.device if device is None else str(device)
+        if dev != self.device and (self.residency != "device" or self.mesh is None):
+            raise ConfigError(f"photos held with residency {self.residency} cannot be moved to {dev}",
+                              fix="set stream.photo_residency to device to fit on several devices")
         out = PhotoSet.__new__(PhotoSet)
         out.__dict__.update(self.__dict__)
         out.n = int(idx.size)
         out.light_kinds = [self.light_kinds[k] for k in idx]
         out.exposures = [self.exposures[k] for k in idx]
+        out.frames = [self.frames[k] for k in idx]
+        out.source = None if self.source is None else self.source.subset(idx)
         out.infos_host = self.infos_host[idx]
         out.crops = None if self.crops is None else self.crops[idx]
-        dev = self.device
         out.infos = struct_array(out.infos_host, stream.ImageInfo, dev)
+        if dev != self.device:
+            out.device = dev
+            out.mesh = wp.Mesh(points=wp.clone(self.mesh.points, device=dev),
+                               indices=wp.clone(self.mesh.indices, device=dev))
+            if self.mesh_normals is not None:
+                out.mesh_normals = wp.clone(self.mesh_normals, device=dev)
+                out.mesh_uvs = wp.clone(self.mesh_uvs, device=dev)
+            out.window = out.n
+            if np.array_equal(idx, np.arange(self.n)):  # every photo: device to device, no host round trip
+                out.images, out.depth, out.shadow = (wp.clone(a, device=dev) for a in (self.images, self.depth,
+                                                                                        self.shadow))
+                return out
         out.window = min(self.window, out.n)
         if self.residency == "disk":  # the window buffers are shared: the two sets are never streamed at once
-            src = self.loader.source
-            files = PhotoFiles([src.paths[k] for k in idx], [src.mask_paths[k] for k in idx], src.read_image,
-                               src.read_mask)
+            files = self.loader.source.subset(idx)
             out.sizes = self.sizes[idx]
             out.loader = PhotoLoader(files, None, out.crops, out.sizes, self.loader.threads)
             out.maps_on_device = False  # the kept maps are the whole set's: a subset's windows make their own
@@ -692,6 +726,12 @@ class PhotoSet:
         wp.launch(masked_depth_kernel, dim=(c, self.hmax, self.wmax), device=self.device,
                   inputs=[self.all_depth, b, self.window_masks], outputs=[self.depth])
         return self.images, self.depth, shadow
+
+
+def exposure_mean_square(photos) -> float:
+    """The photos' mean squared exposure (1 for none): the view prior's unit (:meth:`StreamProblem.set_view_prior`)."""
+    exposures = np.asarray(getattr(photos, "exposures", [1.0]), np.float64)
+    return float(np.mean(exposures ** 2)) if exposures.size else 1.0
 
 
 class StreamProblem:
@@ -779,19 +819,20 @@ class StreamProblem:
         self.robust_scale = float(scale) if code != stream.ROBUST_NONE else 0.0
         self.opt.robust_scale = self.robust_scale
 
-    def set_view_prior(self, weight: float) -> None:
+    def set_view_prior(self, weight: float, mean_sq: float | None = None) -> None:
         """The view-dependent radiance's ridge prior: lam / 2 sum_k a_k^2 per texel over its view-term
         coefficients (fit/models.py), with lam = ``weight`` x the photos' mean squared exposure so that
         ``weight`` counts in samples of the radiance-space residual (a sample's residual scales with its
-        exposure). Added to every pass's objective, gradient, d^T H d, Jacobi diagonal and J^T J (the centred
-        prior's kernels with one row for every texel, centre 0). No-op for other models."""
+        exposure; ``mean_sq``: that mean when this problem's photos are part of the fit's, e.g. a tile's).
+        Added to every pass's objective, gradient, d^T H d, Jacobi diagonal and J^T J (the centred prior's
+        kernels with one row for every texel, centre 0). No-op for other models."""
         if not (math.isfinite(weight) and weight >= 0):
             raise ConfigError(f"view prior {weight} invalid", fix="use a weight >= 0")
         lay = self.layout
         if not lay.view_terms:
             return
-        exposures = np.asarray(getattr(self.photos, "exposures", [1.0]), np.float64)
-        mean_sq = float(np.mean(exposures ** 2)) if exposures.size else 1.0
+        if mean_sq is None:
+            mean_sq = exposure_mean_square(self.photos)
         lam = float(weight) * mean_sq
         if lam <= 0:
             self.view_prior = None

@@ -21,6 +21,7 @@ import numpy as np
 from texstream.core.errors import InputError, StageError
 from texstream.core.config import check_config, option
 from texstream.core.outputs import StageResult, atomic_output_dir, read_json, write_json_atomic
+from texstream.core.progress import say
 
 from .fitter import FitConfig, FitResult, light_view_angles, resumable, run_fit
 from .materials import MaterialConfig
@@ -59,6 +60,10 @@ class FitStageConfig:
     checkpoint: bool = option(True, "Levenberg-Marquardt fits keep a checkpoint beside the output (every sync_every "
                                     "iterations); a rerun after Ctrl-C or a killed process resumes from it to the "
                                     "same result as an uninterrupted fit")
+    skip_bad_photos: bool = option(False, "leave out photos that cannot be read (corrupt, truncated, wrong size, "
+                                          "NaN values) instead of failing: each is printed and listed in "
+                                          "model.json's photos.skipped (every photo is decoded once at set-up, "
+                                          "before the fit; each bad one costs the set-up again)")
     min_seen_fraction: float = option(0.01, "fail before fitting when fewer than this fraction of the atlas's texels "
                                             "is seen by any photo (the mesh faces away or is in another frame)",
                                       min=0.0)
@@ -363,6 +368,48 @@ def load_fit_inputs(capture_dir: str | Path, mesh_path: str | Path, cfg: FitStag
     return FitInputs(capture, frames, held, mesh, bake, seams, photo_files(capture, frames), None)
 
 
+def bad_photo(error: InputError, images) -> int | None:
+    """The index of the photo (or its mask) ``error`` names, among ``images`` (a PhotoFiles); None for
+    another error."""
+    paths = getattr(images, "paths", None)
+    if error.path is None or paths is None:
+        return None
+    named = Path(error.path).resolve()
+    for k, (image, mask) in enumerate(zip(paths, images.mask_paths)):
+        if Path(image).resolve() == named or (mask is not None and Path(mask).resolve() == named):
+            return k
+    return None
+
+
+def set_up_skipping_bad_photos(inputs: FitInputs, cfg: FitStageConfig, capture_dir: str | Path):
+    """The fit's problem and its starting pass (:func:`check_seen_texels`); every photo is decoded there, so
+    an unreadable one fails here, before the fit and before anything is written, with one line naming it.
+    With ``skip_bad_photos`` the photo is left out of ``inputs`` instead, said, and the set-up run again.
+    Returns (problem, texels seen, start, skipped photos as {"file", "error"})."""
+    skipped = []
+    while True:
+        try:
+            problem = build_problem(inputs.mesh, inputs.bake, inputs.frames, inputs.images, inputs.masks, cfg.fit,
+                                    cfg.device)
+            seen, start = check_seen_texels(problem, cfg, capture_dir)
+            return problem, seen, start, skipped
+        except InputError as e:
+            k = bad_photo(e, inputs.images)
+            if k is None or not cfg.skip_bad_photos:
+                if k is not None:
+                    e.fix = (e.fix.rstrip(".") + "; or " if e.fix else "") + "leave it out with --skip-bad-photos"
+                    e.args = (e.one_line(),)
+                raise
+            skipped.append({"file": str(inputs.images.paths[k]), "error": e.message})
+            say("fit", f"skipping photo {inputs.images.paths[k]}: {e.message} (--skip-bad-photos)")
+            keep = [j for j in range(len(inputs.frames)) if j != k]
+            if not keep:
+                raise InputError("every photo of the capture is unreadable", Path(capture_dir) / "capture.json",
+                                 "check the images (model.json lists none: nothing was fitted)") from None
+            inputs.frames = [inputs.frames[j] for j in keep]
+            inputs.images = inputs.images.subset(keep)
+
+
 def fill_unseen_texels(grid: np.ndarray, problem, bake, result: FitResult) -> tuple[np.ndarray, int]:
     """Give texels no photo saw the parameters of the nearest seen texel in 3D (their defaults would
     show as a foreign colour wherever a new view sees them, and bleed into seen neighbours through
@@ -605,7 +652,15 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     check_config(cfg)
     check_output_path(out_dir)
     if cfg.fit.model == "lfm":  # light field mapping: its own problem and model folder (fit/lfm_stage.py)
+        from texstream.core.errors import ConfigError
+
         from .lfm_stage import lfm_fit_stage
+        from .tiles import tiled
+
+        if tiled(cfg.fit):
+            raise ConfigError("stream.tiles, stream.devices and stream.tile_backend ray split per-texel models; "
+                              "light field mapping couples the texels of a triangle ring",
+                              fix="drop those options with --model lfm")
 
         return lfm_fit_stage(capture_dir, mesh_path, out_dir, cfg, progress)
     from texstream.core.progress import phase
@@ -614,11 +669,13 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     with phase("fit", f"{cfg.fit.model}: reading the photos and setting up the texels"):
         inputs = load_fit_inputs(capture_dir, mesh_path, cfg)
         capture, frames, held, mesh, bake = inputs.capture, inputs.frames, inputs.held, inputs.mesh, inputs.bake
-        problem = build_problem(mesh, bake, frames, inputs.images, inputs.masks, cfg.fit, cfg.device)
-        seen_before, start = check_seen_texels(problem, cfg, capture_dir)
+        problem, seen_before, start, skipped = set_up_skipping_bad_photos(inputs, cfg, capture_dir)
+        frames = inputs.frames
     t_setup = time.perf_counter() - t0
-    ckpt, resume = None, None
-    if cfg.checkpoint and resumable(cfg.fit):
+    from .tiles import run_tiled_fit, tiled
+
+    ckpt, resume, tiles_report = None, None, None
+    if cfg.checkpoint and resumable(cfg.fit) and not tiled(cfg.fit):
         from texstream.core.config import config_to_dict
 
         ckpt = Checkpoint(out_dir, {"capture": str(Path(capture_dir).resolve()), "mesh": str(Path(mesh_path).resolve()),
@@ -626,8 +683,15 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
                                     "capture_mtime": (Path(capture_dir) / "capture.json").stat().st_mtime_ns
                                     if (Path(capture_dir) / "capture.json").exists() else 0})
         resume = ckpt.load()
-    result = run_fit_with_progress(problem, cfg.fit, progress, start=start,
-                                   **({"checkpoint": ckpt.save, "resume": resume} if ckpt else {}))
+    if tiled(cfg.fit):
+        with phase("fit", f"{cfg.fit.model}: tiles of texels ({cfg.fit.stream.tile_backend})"):
+            result, tiles_report = run_tiled_fit(problem, cfg.fit, start)
+        say("fit", f"tiles: {tiles_report['tiles']} on {','.join(tiles_report['devices'])} "
+                   f"({tiles_report['backend']}), photos per tile {min(tiles_report['photos_per_tile'])}.."
+                   f"{max(tiles_report['photos_per_tile'])} of {tiles_report['photos']}")
+    else:
+        result = run_fit_with_progress(problem, cfg.fit, progress, start=start,
+                                       **({"checkpoint": ckpt.save, "resume": resume} if ckpt else {}))
     lay = result.layout
     materials_info, evidence, borrowed = None, None, None
     if lay.n_lobes and cfg.materials.mode != "off":
@@ -707,9 +771,11 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
                               "unseen_filled_from_nearest": filled, "lobes_dropped": int(lobes_dropped.sum()),
                               "texels_with_lobe": lobes_in_use(result.params, lay, result.samples > 0),
                               "lobe_support": cfg.lobe_support},
-                    "photos": {"fitted": len(frames), "held_out": len(held), "residency": problem.photos.residency,
+                    "photos": {"fitted": len(frames), "held_out": len(held), "skipped": skipped,
+                               "residency": problem.photos.residency,
                                "residency_reason": problem.photos.residency_reason,
                                "photos_per_window": problem.photos.window},
+                    "tiles": tiles_report,
                     "final": {k: last[k] for k in ("iteration", "time_s", "objective", "psnr_db", "ape_percent")},
                     "lobe_shape": lobe_shape_report(cfg.fit, lay, frames, problem.texels.position),
                     "materials": _materials_manifest(materials_info, evidence, cfg.materials),
@@ -723,6 +789,7 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     return StageResult(Path(out_dir), {"psnr_db": last["psnr_db"], "iterations": last["iteration"],
                                        "time_s": last["time_s"], "texels": problem.n, "photos": len(frames),
                                        "resumed_from": None if resume is None else int(resume["iteration"]),
+                                       "skipped_photos": [p["file"] for p in skipped],
                                        "render_eval": evals, "warnings": warnings,
                                        "heldout": manifest["heldout"], "materials": manifest["materials"]})
 

@@ -44,6 +44,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--renders", type=int, default=4, help="photos rendered beside the fit (default: 4)")
     parser.add_argument("--min-seen-fraction", dest="min_seen_fraction", type=float, default=0.01,
                         help="fail before fitting when fewer than this fraction of texels is seen (default: 0.01)")
+    parser.add_argument("--skip-bad-photos", dest="skip_bad_photos", action="store_true",
+                        help="leave out photos that cannot be read (corrupt, truncated, wrong size) instead of "
+                             "failing; each is printed and listed in model.json's photos.skipped")
     from texstream.fit.materials import MaterialConfig
 
     add_config_arguments(parser, MaterialConfig, prefix="materials.")  # shared materials (fit/materials.py)
@@ -69,12 +72,14 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = FitStageConfig(fit=fit_cfg, materials=config_from_args(MaterialConfig, args, prefix="materials."),
                          **{k: getattr(args, k) for k in ("device", "texture_size", "texel_pixels", "holdout_every",
-                                                          "renders", "min_seen_fraction")
+                                                          "renders", "min_seen_fraction", "skip_bad_photos")
                             if hasattr(args, k)})
     res = fit_stage(args.capture, args.mesh, args.out, cfg)
     s = res.summary
     print(f"wrote {res.output}: {s['texels']} texels from {s['photos']} photos, {s['iterations']} iterations in "
           f"{s['time_s']:.1f} s, sample PSNR {s['psnr_db']:.2f} dB")
+    for f in s.get("skipped_photos", []):
+        print(f"  skipped photo {f}: unreadable (--skip-bad-photos; model.json photos.skipped says why)")
     for e in s["render_eval"]:
         print(f"  {e['frame']}{' (held out)' if e['held_out'] else ''}: render PSNR {e['psnr_db']:.2f} dB, APE {e['ape_percent']:.2f}%")
     h = s.get("heldout") or {}

@@ -1,0 +1,59 @@
+"""A capture with a corrupt photo in the middle: ``texstream fit`` fails with one line naming the file
+before anything is written, or leaves the photo out with --skip-bad-photos and says so."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+
+from texstream.pipelines.cli import main
+
+SMALL = dict(scale=0.02, photos=10, image_size=40, progress=False)
+
+
+@pytest.fixture(scope="module")
+def broken_capture(tmp_path_factory):
+    """The small ornament's capture folder with its 6th photo truncated (a valid header, no pixel data)."""
+    pytest.importorskip("OpenImageIO", reason="writing and reading a capture folder needs OpenImageIO")
+    from conftest import SCENE_DEVICE
+    from texstream.capture.capture_json import read_capture
+    from texstream.capture.synth import SynthConfig, synthesize
+
+    out = tmp_path_factory.mktemp("ornament") / "capture"
+    synthesize("ornament", out, SynthConfig(device=SCENE_DEVICE, preview=False, **SMALL))
+    cap = read_capture(out)
+    bad = cap.image_path(cap.frames[5])
+    data = bad.read_bytes()
+    bad.write_bytes(data[: len(data) // 3])
+    return out, bad
+
+
+ARGS = ["--texture-size", "64", "--renders", "0", "--max-iterations", "2", "--stream.shadow-map-size", "48"]
+
+
+@pytest.mark.parametrize("residency", ["device", "disk"])
+def test_a_corrupt_photo_fails_naming_it_before_writing(broken_capture, tmp_path, capsys, residency):
+    cap, bad = broken_capture
+    out = tmp_path / "model"
+    code = main(["fit", str(cap), "--mesh", str(cap / "ground_truth"), "-o", str(out), *ARGS,
+                 "--stream.photo-residency", residency, "--stream.photos-per-window", "3"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code != 0
+    assert len(err) == 1 and bad.name in err[0] and "--skip-bad-photos" in err[0]
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("residency", ["device", "disk"])
+def test_skip_bad_photos_leaves_it_out_and_says_so(broken_capture, tmp_path, capsys, residency):
+    cap, bad = broken_capture
+    out = tmp_path / "model"
+    code = main(["fit", str(cap), "--mesh", str(cap / "ground_truth"), "-o", str(out), *ARGS, "--skip-bad-photos",
+                 "--stream.photo-residency", residency, "--stream.photos-per-window", "3"])
+    assert code == 0
+    said = capsys.readouterr()
+    assert f"skipped photo {bad}" in said.out
+    photos = json.loads((out / "model.json").read_text())["photos"]
+    assert photos["fitted"] == 9 and [p["file"] for p in photos["skipped"]] == [str(bad)]
+    assert "truncated" in photos["skipped"][0]["error"] or "corrupt" in photos["skipped"][0]["error"]
