@@ -44,20 +44,24 @@ def ensure_env() -> None:
         stamp.write_text(want)
 
 
+def apt_install(package: str, missing: str, why: str, without: str) -> None:
+    """Install a Debian package for a test (root only; elsewhere say what to run and what ``without`` it)."""
+    if hasattr(os, "geteuid") and os.geteuid() != 0:
+        print(f"[dev] {missing} is missing and this is not root: {without} (sudo apt-get install {package})", flush=True)
+        return
+    print(f"[dev] installing {package} (Debian package) for {why}", flush=True)
+    subprocess.call(["apt-get", "update", "-qq"])
+    subprocess.call(["apt-get", "install", "-y", "-qq", "--no-install-recommends", package],
+                    env=dict(os.environ, DEBIAN_FRONTEND="noninteractive"))
+
+
 def ensure_browser() -> None:
     """Headless Chromium for the report viewer's browser test (Debian's package; root installs it)."""
     import shutil
 
     if shutil.which("chromium") or shutil.which("chromium-browser") or not shutil.which("apt-get"):
         return
-    if hasattr(os, "geteuid") and os.geteuid() != 0:
-        print("[dev] chromium is missing and this is not root: the viewer's browser test will skip "
-              "(sudo apt-get install chromium)", flush=True)
-        return
-    print("[dev] installing chromium (Debian package) for the report viewer's browser test", flush=True)
-    subprocess.call(["apt-get", "update", "-qq"])
-    subprocess.call(["apt-get", "install", "-y", "-qq", "--no-install-recommends", "chromium"],
-                    env=dict(os.environ, DEBIAN_FRONTEND="noninteractive"))
+    apt_install("chromium", "chromium", "the report viewer's browser test", "the viewer's browser test will skip")
 
 
 def ensure_llvm() -> None:
@@ -72,14 +76,8 @@ def ensure_llvm() -> None:
                 if (m := re.search(r"LLVM[-.](?:so\.)?(\d+)", p))]
     if (versions and max(versions) >= 16) or not shutil.which("apt-get"):
         return
-    if hasattr(os, "geteuid") and os.geteuid() != 0:
-        print("[dev] libLLVM >= 16 is missing and this is not root: the Mitsuba peer's test will fail "
-              "(sudo apt-get install libllvm19)", flush=True)
-        return
-    print("[dev] installing libllvm19 (Debian package) for Mitsuba's CPU backend (the peers' test)", flush=True)
-    subprocess.call(["apt-get", "update", "-qq"])
-    subprocess.call(["apt-get", "install", "-y", "-qq", "--no-install-recommends", "libllvm19"],
-                    env=dict(os.environ, DEBIAN_FRONTEND="noninteractive"))
+    apt_install("libllvm19", "libLLVM >= 16", "Mitsuba's CPU backend (the peers' test)",
+                "the Mitsuba peer's test will fail")
 
 
 def main() -> int:
