@@ -17,6 +17,12 @@ from texstream.fit.problem import StreamConfig
 from texstream.fit.stage import build_problem
 from texstream.fit.tiles import plan_tiles, run_tiled_fit, split_texels, texel_range
 
+from conftest import DEVICES
+
+ANY = DEVICES[0]
+"""the device of the tests that are not device-parametrised: the first there is (the GPU machine's Warp has
+no CPU compiler)"""
+
 SMALL = dict(scale=0.02, photos=10, image_size=40, progress=False)
 # small shadow maps keep the CPU ray casts to a fraction of a second; one photo group per pass (the CPU's
 # automatic choice, forced on CUDA too) sums each texel's photos in order, the same with or without the
@@ -115,7 +121,7 @@ def test_split_and_texel_range():
 
 def test_texel_range_keeps_neighbours_inside(scene):
     cfg = fit_config()
-    whole = problem(scene, cfg, "cpu")
+    whole = problem(scene, cfg, ANY)
     part = texel_range(whole.texels, 100, 200)
     nb = part.neighbors
     inside = (whole.texels.neighbors[100:200] >= 100) & (whole.texels.neighbors[100:200] < 200)
@@ -142,10 +148,10 @@ def test_halo_exchange_is_needed(scene, monkeypatch):
     import texstream.fit.tiles as tiles
 
     cfg = dataclasses.replace(fit_config(), penalties=PenaltyConfig(smooth_weight=0.05))
-    ref = run_fit(problem(scene, cfg, "cpu"), cfg)
+    ref = run_fit(problem(scene, cfg, ANY), cfg)
     monkeypatch.setattr(tiles.HaloExchange, "__call__", lambda self: None)
     tcfg = dataclasses.replace(cfg, stream=dataclasses.replace(cfg.stream, tiles=3))
-    res, _ = run_tiled_fit(problem(scene, tcfg, "cpu"), tcfg)
+    res, _ = run_tiled_fit(problem(scene, tcfg, ANY), tcfg)
     assert not np.array_equal(res.params, ref.params)
 
 
@@ -157,19 +163,19 @@ def test_halo_exchange_is_needed(scene, monkeypatch):
 def test_options_that_couple_texels_are_refused(scene, change, option):
     cfg = dataclasses.replace(fit_config(tiles=2), **change)
     with pytest.raises(ConfigError, match=option.replace(".", r"\.")):
-        run_tiled_fit(problem(scene, cfg, "cpu"), cfg)
+        run_tiled_fit(problem(scene, cfg, ANY), cfg)
 
 
 def test_other_devices_need_resident_photos(scene):
-    cfg = fit_config(tiles=2, devices="cpu,cpu", photo_residency="host", photos_per_window=4)
+    cfg = fit_config(tiles=2, devices=f"{ANY},{ANY}", photo_residency="host", photos_per_window=4)
     with pytest.raises(ConfigError, match="photo_residency device"):
-        run_tiled_fit(problem(scene, cfg, "cpu"), cfg)
+        run_tiled_fit(problem(scene, cfg, ANY), cfg)
 
 
 def test_unknown_device_is_refused(scene):
-    cfg = fit_config(tiles=2, devices="cpu,tpu:0")
+    cfg = fit_config(tiles=2, devices=f"{ANY},tpu:0")
     with pytest.raises(ConfigError, match="tpu:0"):
-        run_tiled_fit(problem(scene, cfg, "cpu"), cfg)
+        run_tiled_fit(problem(scene, cfg, ANY), cfg)
 
 
 @pytest.fixture(scope="module")
@@ -238,7 +244,7 @@ def test_visibility_launched_in_chunks_of_photos_equals_one_launch(scene, monkey
     import texstream.fit.tiles as tiles
 
     cfg = fit_config(tiles=4)
-    whole = problem(scene, cfg, "cpu")
+    whole = problem(scene, cfg, ANY)
     bounds = split_texels(whole.n, 4)
     one = tiles.tile_photo_visibility(whole, bounds)
     monkeypatch.setattr(tiles, "MAX_LAUNCH_THREADS", 3 * whole.n)  # 3 photos a launch
