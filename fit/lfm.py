@@ -43,6 +43,7 @@ from texstream.core.config import option
 from texstream.core.errors import ConfigError, InputError
 
 from .kernels import lfm as LK
+from .problem import exposure_mean_square
 
 VIEW_MAPS = ("disk", "hemioct")
 OPTIMIZERS = ("cg", "sd", "lbfgs")
@@ -362,8 +363,7 @@ class LFMProblem:
         self.texel_pos = wp.array(geom.texel_pos, dtype=wp.vec3d, device=dev)
         self.mask_np = view_mask(self.R, cfg.view_map)
         self.mask = wp.array(self.mask_np, dtype=wp.int32, device=dev)
-        exposures = np.asarray(samples.exposures, np.float64)
-        self.lam = float(cfg.laplacian) * float(np.mean(exposures ** 2)) if exposures.size else float(cfg.laplacian)
+        self.lam = float(cfg.laplacian) * exposure_mean_square(samples)
         lo, hi = (0.0, 1e300) if cfg.bounds == "nonnegative" else (-1e300, 1e300)
         self.lower, self.upper = f64(lo), f64(hi)
         # per-photo scratch and per-slot accumulators

@@ -755,6 +755,23 @@ def ring_slot(count: int, age: int, m: int):
     return (count - 1 - age) % m
 
 
+@wp.func
+def push_history(x: wp.array2d(dtype=wp.vec3d), tx: wp.array2d(dtype=wp.vec3d), gx: wp.array2d(dtype=wp.vec3d),
+                 tgx: wp.array2d(dtype=wp.vec3d), accepted: wp.vec3d, count: wp.vec3i, m: int, i: int, j: int,
+                 hist_s: wp.array3d(dtype=wp.vec3d), hist_y: wp.array3d(dtype=wp.vec3d)):
+    """Entry (i, j) of one L-BFGS pair, per channel c whose patch accepted its step: s = tx - x, y = tgx - gx
+    into the patch channel's ring slot count mod m."""
+    for c in range(3):
+        if accepted[c] > wp.float64(0.0):
+            q = count[c] % m
+            a = hist_s[q, i, j]
+            b = hist_y[q, i, j]
+            a[c] = tx[i, j][c] - x[i, j][c]
+            b[c] = tgx[i, j][c] - gx[i, j][c]
+            hist_s[q, i, j] = a
+            hist_y[q, i, j] = b
+
+
 @wp.kernel
 def lbfgs_push_G_kernel(G: wp.array2d(dtype=wp.vec3d), TG: wp.array2d(dtype=wp.vec3d),
                         gG: wp.array2d(dtype=wp.vec3d), tgG: wp.array2d(dtype=wp.vec3d),
@@ -764,16 +781,7 @@ def lbfgs_push_G_kernel(G: wp.array2d(dtype=wp.vec3d), TG: wp.array2d(dtype=wp.v
     """Before adoption: write s = TG - G, y = tgG - gG into ring slot count mod m of every accepted
     patch channel (surface-map entries)."""
     s, k = wp.tid()
-    v = slot_vertex[s]
-    for c in range(3):
-        if accepted[v][c] > wp.float64(0.0):
-            q = count[v][c] % m
-            a = hist_s[q, s, k]
-            b = hist_y[q, s, k]
-            a[c] = TG[s, k][c] - G[s, k][c]
-            b[c] = tgG[s, k][c] - gG[s, k][c]
-            hist_s[q, s, k] = a
-            hist_y[q, s, k] = b
+    push_history(G, TG, gG, tgG, accepted[slot_vertex[s]], count[slot_vertex[s]], m, s, k, hist_s, hist_y)
 
 
 @wp.kernel
@@ -783,16 +791,7 @@ def lbfgs_push_H_kernel(H: wp.array2d(dtype=wp.vec3d), TH: wp.array2d(dtype=wp.v
                         hist_s: wp.array3d(dtype=wp.vec3d), hist_y: wp.array3d(dtype=wp.vec3d)):
     """The view-map entries of :func:`lbfgs_push_G_kernel`."""
     r, q2 = wp.tid()
-    v = r / n_terms
-    for c in range(3):
-        if accepted[v][c] > wp.float64(0.0):
-            q = count[v][c] % m
-            a = hist_s[q, r, q2]
-            b = hist_y[q, r, q2]
-            a[c] = TH[r, q2][c] - H[r, q2][c]
-            b[c] = tgH[r, q2][c] - gH[r, q2][c]
-            hist_s[q, r, q2] = a
-            hist_y[q, r, q2] = b
+    push_history(H, TH, gH, tgH, accepted[r / n_terms], count[r / n_terms], m, r, q2, hist_s, hist_y)
 
 
 @wp.func
