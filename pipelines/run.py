@@ -2,11 +2,12 @@
 
 ``run_pipeline(source, out, config)`` chains the stage functions the subcommands call:
 
-    ingest -> register -> mesh -> atlas -> fit -> export -> report
+    ingest -> register -> mesh -> atlas -> lights -> refine -> fit -> export -> report
 
 and leaves out what the scene does not need, deciding from the data and recording why:
 - cameras known (capture.json / transforms.json with poses, a COLMAP model): no registration;
 - a mesh given with UVs: no atlas (``mesh`` option);
+- cameras this run registered and a mesh it made: refined against the photos (``refine``); given ones stay;
 - lights known for every photo -> a reflectance model (Lafortune SBRDF); one fixed unknown
   lighting -> the radiance model (``model`` "auto"); with held-out photos the view-dependent radiance
   model beside it and, when view dependence matters (view_radiance beats radiance on the held-out
@@ -34,7 +35,7 @@ from texstream.core.config import check_config, config_from_dict, config_to_dict
 from texstream.core.errors import ConfigError, InputError, TexstreamError
 from texstream.core.outputs import write_atomic_with, write_json_atomic
 
-STAGES = ("ingest", "register", "mesh", "atlas", "lights", "fit", "export", "report")
+STAGES = ("ingest", "register", "mesh", "atlas", "lights", "refine", "fit", "export", "report")
 STAMP = ".texstream_stage.json"
 MODELS = ("auto", "lafortune", "diffuse", "radiance", "view_radiance", "lfm")
 LIGHTLESS_MODELS = ("radiance", "view_radiance", "lfm")
@@ -97,12 +98,16 @@ class RunConfig:
     lights: Any = option(default_factory=_default("texstream.calib.lights.LightsConfig"),
                          help="mirror-ball lights: with sphere (or ball_masks) the run estimates one light from the "
                               "ball photos (frames: those photos, left out of the fit) and gives it to every photo")
+    refine: Any = option(default_factory=_default("texstream.geometry.refine.RefineConfig"),
+                         help="photometric refinement of registered cameras and a reconstructed mesh (its "
+                              "holdout_every follows the fit's)")
     fit: Any = option(default_factory=_fit_stage_config, help="fit (holdout_every 8: every 8th photo is held out)")
 
 
 SUBCONFIGS = {"ingest": "texstream.calib.ingest.IngestConfig", "register": "texstream.calib.register.RegisterConfig",
               "mesh": "texstream.geometry.make_mesh.MeshConfig", "atlas": "texstream.geometry.atlas.AtlasConfig",
-              "lights": "texstream.calib.lights.LightsConfig", "fit": "texstream.fit.stage.FitStageConfig"}
+              "lights": "texstream.calib.lights.LightsConfig", "refine": "texstream.geometry.refine.RefineConfig",
+              "fit": "texstream.fit.stage.FitStageConfig"}
 
 
 def run_config_from_dict(data: dict) -> RunConfig:
@@ -357,6 +362,22 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
     posed_dir, lights_summary = _mirror_ball_lights(pipe, out, posed_dir, posed, capture, cfg)
     capture = read_capture(posed_dir)
 
+    # refine: cameras registered here and a mesh made here, moved until the photos agree
+    refine_cfg, why_refine = refine_decision(cfg, registered=not posed, mesh_made=cfg.mesh_file is None,
+                                             atlas_folder=Path(fit_geometry).is_dir())
+    if refine_cfg is None:
+        pipe.skip("refine", why_refine)
+    else:
+        from texstream.geometry.refine import refine_stage
+
+        refine_dir = out / "refine"
+        pipe.run("refine", refine_dir, [pipe.stamp_of("atlas"), pipe.stamp_of("mesh"), pipe.stamp_of("register"),
+                                        pipe.stamp_of("lights"), _files_hash(posed_dir) if posed else "",
+                                        str(fit_geometry), config_to_dict(refine_cfg), cfg.device], why_refine,
+                 lambda: refine_stage(posed_dir, fit_geometry, refine_dir, refine_cfg, device=cfg.device, log=pipe.log))
+        posed_dir = fit_geometry = refine_dir
+        capture = read_capture(posed_dir)
+
     # fit: the model the scene needs
     from texstream.fit.stage import fit_stage
 
@@ -388,7 +409,7 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
                                   more=lfm_rule)
 
     fit_rec = pipe.run("fit", model_dir, [pipe.stamp_of("atlas"), pipe.stamp_of("mesh"), pipe.stamp_of("register"),
-                                          pipe.stamp_of("lights"),
+                                          pipe.stamp_of("lights"), pipe.stamp_of("refine"),
                                           _files_hash(posed_dir) if posed else "", config_to_dict(fit_cfg), compare]
                        + ([cfg.lfm, cfg.lfm_min_gain_db] if lfm_rule else []),
                        f"{model_kind} model: {why}" + (f"; the {alternative} model too, the best held-out one "
@@ -408,6 +429,26 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
                "fit": fit_rec.summary, "warnings": run_warnings(pipe.records, heldout, fit_rec.summary)}
     write_json_atomic(out / "run.json", _summary_safe(summary))
     return summary
+
+
+def refine_decision(cfg: RunConfig, registered: bool, mesh_made: bool, atlas_folder: bool):
+    """(the refine stage's config, or None to skip it; the reason). Auto refines cameras this run registered
+    and a mesh it made; given ones are taken as exact."""
+    rc = cfg.refine
+    if rc.mode == "off":
+        return None, "refine off"
+    if not atlas_folder:
+        return None, "the mesh's own UVs are used (no atlas folder to re-bake)"
+    cameras, mesh = rc.cameras, rc.mesh
+    if rc.mode == "auto":
+        cameras, mesh = cameras and registered, mesh and mesh_made
+    if not (cameras or mesh):
+        return None, "cameras and mesh given (taken as exact)" if rc.mode == "auto" else "nothing to refine"
+    what = " and ".join(x for x, on in (("cameras", cameras), ("mesh", mesh)) if on)
+    rc = dataclasses.replace(rc, cameras=cameras, mesh=mesh, holdout_every=cfg.fit.holdout_every)
+    held = (f"; held-out photos (every {rc.holdout_every}th) only aligned, moving no colour or vertex"
+            if rc.holdout_every and rc.align_heldout and cameras else "")
+    return rc, f"{what} refined against the photos (Gauss-Newton on one shared texture){held}"
 
 
 def _lights_source(capture) -> str:

@@ -1,0 +1,495 @@
+"""Photometric refinement: registered cameras and the reconstructed mesh moved until the photos agree.
+
+Structure from motion places each camera to within a pixel or two, and a mesh from sparse or dense points
+lies within about as much of the surface; a texture of detail a few pixels across, fitted to such photos,
+blurs and ghosts, and held-out views score far below what the same model reaches with exact cameras
+(docs/real-data.md). This stage aligns them the way colour-map optimisation does (Zhou and Koltun 2014;
+Open3D's ``color_map_optimization``), with the fit's streaming structure: every iteration streams every photo
+over the atlas's texels and accumulates, per texel, a colour shared by all photos (the photo's shading divided
+out: exposure, and a known light's irradiance and cosine), per photo, the Gauss-Newton system of a 6-degree-of-
+freedom pose update, and per welded mesh vertex, the curvature and gradient of a displacement along its normal
+(smoothed by a graph Laplacian). Steps are damped and kept only where the Huber objective falls, coarse to fine
+over blurred copies of the photos.
+
+Held-out photos (every ``holdout_every``-th, as the fit splits them) move neither the colours nor the mesh; with
+``align_heldout`` each one's pose is aligned to the texture the other photos made (6 numbers per photo, as a
+new photo is registered to a model), so their held-out scores measure the model rather than the camera
+registration; the report says so.
+
+Kernels in geometry/refine_kernels.py; imports only numpy and warp at import time.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+from texstream.core.config import option
+from texstream.core.errors import ConfigError, InputError
+
+from . import refine_kernels as rk
+
+
+@dataclasses.dataclass
+class RefineConfig:
+    """Options of the photometric refinement of cameras and mesh (``texstream refine``)."""
+
+    mode: str = option("auto", "when texstream run refines: auto (cameras it registered and a mesh it made, each "
+                               "only then), on (cameras and mesh whatever their source), off", choices=("auto", "on", "off"))
+    cameras: bool = option(True, "refine each photo's pose (rotation and translation; intrinsics stay)")
+    mesh: bool = option(True, "move the mesh's vertices along their normals (seams stay closed)")
+    align_heldout: bool = option(True, "align the held-out photos' poses to the texture the fitted photos make "
+                                       "(their pixels move no colour and no vertex)")
+    holdout_every: int = option(8, "photos held out as the fit holds them out (every k-th; 0: none)", min=0)
+    blur: str = option("2,1,0.5", "Gaussian blur (standard deviation in pixels) of the photos at each level, "
+                                  "coarse to fine")
+    iterations: int = option(8, "iterations per level", min=1)
+    smoothness: float = option(0.01, "weight of the displacements' graph Laplacian relative to the mean data "
+                                    "curvature per vertex", min=0.0)
+    max_displacement: float = option(0.01, "largest displacement of a vertex, as a fraction of the mesh's "
+                                           "bounding-box diagonal", min=0.0)
+    max_rotation_step: float = option(0.25, "largest rotation of a camera per iteration (degrees)", min=0.0)
+    max_translation_step: float = option(0.002, "largest translation of a camera per iteration, as a fraction of "
+                                                "its distance to the object", min=0.0)
+    huber: float = option(0.1, "scale of the Huber loss as a fraction of the photos' mean foreground value "
+                               "(residuals beyond it, occlusions and highlights, count linearly)", min=1e-6)
+    cos_view_min: float = option(0.2, "samples seen more grazingly than this cosine are left out", min=0.0, max=1.0)
+    depth_tol: float = option(0.01, "visibility test tolerance, as a fraction of the camera distance", min=0.0)
+    max_photo_mb: float = option(8192.0, "largest size of the photos (float32) this stage holds on the device; "
+                                         "beyond it the stage refuses with a one-line error", min=1.0)
+
+    def levels(self) -> list[float]:
+        try:
+            out = [float(x) for x in str(self.blur).split(",") if x.strip()]
+        except ValueError:
+            out = []
+        if not out or any(not (math.isfinite(x) and x >= 0.0) for x in out):
+            raise ConfigError(f"refine blur {self.blur!r} is not a comma-separated list of pixel widths",
+                              fix="write e.g. --refine.blur 2,1,0.5")
+        return out
+
+
+def _gaussian(sigma: float) -> tuple[np.ndarray, int]:
+    if sigma <= 0.0:
+        return np.ones(1, np.float32), 0
+    radius = max(1, int(math.ceil(3.0 * sigma)))
+    x = np.arange(-radius, radius + 1, dtype=np.float64)
+    w = np.exp(-0.5 * (x / sigma) ** 2)
+    return (w / w.sum()).astype(np.float32), radius
+
+
+def weld_vertices(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(weld index per vertex, welded positions): vertices at the same position (an atlas splits them along
+    seams) become one."""
+    welded, index = np.unique(np.asarray(vertices, np.float64), axis=0, return_inverse=True)
+    return index.reshape(-1).astype(np.int32), welded
+
+
+def welded_normals(welded: np.ndarray, faces_welded: np.ndarray) -> np.ndarray:
+    """Area-weighted unit normals of the welded vertices."""
+    v = welded[faces_welded]
+    fn = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    acc = np.zeros_like(welded)
+    for c in range(3):
+        np.add.at(acc, faces_welded[:, c], fn)
+    ln = np.linalg.norm(acc, axis=1, keepdims=True)
+    return np.divide(acc, ln, out=np.tile([0.0, 0.0, 1.0], (len(acc), 1)), where=ln > 0)
+
+
+def vertex_neighbours(faces_welded: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """CSR (offsets, neighbours) of the welded mesh's edge graph."""
+    e = np.concatenate([faces_welded[:, [0, 1]], faces_welded[:, [1, 2]], faces_welded[:, [2, 0]]])
+    e = np.concatenate([e, e[:, ::-1]])
+    e = np.unique(e[e[:, 0] != e[:, 1]], axis=0)
+    offsets = np.zeros(n + 1, np.int64)
+    np.add.at(offsets, e[:, 0] + 1, 1)
+    return np.cumsum(offsets).astype(np.int32), e[:, 1].astype(np.int32)
+
+
+def camera_attached_lights(frames) -> tuple[np.ndarray, np.ndarray]:
+    """(attached, offset in camera axes) per frame: a point light at the camera centre (a flash,
+    ``--colocated-light``) moves with a refined camera; other lights stay where they are."""
+    attached = np.zeros(len(frames), np.int32)
+    offset = np.zeros((len(frames), 3), np.float32)
+    for i, f in enumerate(frames):
+        if f.light is not None and f.light.type == "point":
+            cam = np.asarray(f.R, float) @ np.asarray(f.light.position, float) + np.asarray(f.t, float).reshape(3)
+            if np.linalg.norm(cam) <= 1e-6 * max(np.linalg.norm(f.center), 1e-12):
+                attached[i] = 1
+                offset[i] = cam
+    return attached, offset
+
+
+@dataclasses.dataclass
+class RefineResult:
+    """Refined poses (world-to-camera R, t per frame), welded vertex displacements and the trace."""
+
+    rotations: np.ndarray
+    translations: np.ndarray
+    points: np.ndarray
+    displacement: np.ndarray
+    trace: list
+    summary: dict
+
+
+class PhotometricRefinement:
+    """The refinement's device state: photos, masks, depth maps, poses, mesh, texels (see the module)."""
+
+    def __init__(self, capture, mesh, bake, cfg: RefineConfig, device: str = "cpu", log=None):
+        from texstream.capture.imageio import read_image, read_mask
+        from texstream.fit.kernels.stream import ImageInfo
+        from texstream.fit.photo_stream import image_infos, struct_array
+        from texstream.fit.problem import PhotoFrame
+        from texstream.fit.stage import split_holdout
+
+        self.cfg, self.device, self.log = cfg, device, log or (lambda m: None)
+        self.frames = list(capture.frames)
+        n = len(self.frames)
+        fitted, held = split_holdout(self.frames, cfg.holdout_every)
+        held_ids = {id(f) for f in held}
+        roles = np.array([rk.ALIGN if id(f) in held_ids else rk.FIT for f in self.frames], np.int32)
+        if not cfg.align_heldout:
+            roles[roles == rk.ALIGN] = rk.UNUSED
+        if not np.any(roles == rk.FIT):
+            raise InputError("no photo left to refine with after the held-out split", capture.root,
+                             "lower --holdout-every or add photos")
+        self.roles_host = roles
+        sizes = np.array([[f.intrinsics.height, f.intrinsics.width] for f in self.frames], np.int64)
+        self.hmax, self.wmax = int(sizes[:, 0].max()), int(sizes[:, 1].max())
+        mb = n * self.hmax * self.wmax * 12 * 2 / 2 ** 20  # photos and their blurred copy
+        if mb > cfg.max_photo_mb:
+            raise ConfigError(f"refining {n} photos of up to {self.wmax}x{self.hmax} takes {mb:,.0f} MB "
+                              f"(refine.max_photo_mb {cfg.max_photo_mb:,.0f})",
+                              fix="raise --refine.max-photo-mb, or run with --refine off")
+        images = np.zeros((n, self.hmax, self.wmax, 3), np.float32)
+        masks = np.zeros((n, self.hmax, self.wmax), np.uint8)
+        fg_sum = fg_count = 0.0
+        for i, f in enumerate(self.frames):
+            im = read_image(capture.image_path(f), channels=3)
+            h, w = im.shape[:2]
+            if (h, w) != tuple(sizes[i]):
+                raise InputError(f"photo is {w}x{h}, its camera says {sizes[i][1]}x{sizes[i][0]}",
+                                 capture.image_path(f), "re-run texstream register")
+            images[i, :h, :w] = im
+            mp = capture.mask_path(f)
+            mk = read_mask(mp, (h, w)) if mp is not None and mp.exists() else np.ones((h, w), bool)
+            masks[i, :h, :w] = mk
+            fg_sum += float(im[mk].sum())
+            fg_count += 3.0 * float(mk.sum())
+        self.huber = cfg.huber * max(fg_sum / max(fg_count, 1.0), 1e-12)
+        self.images = wp.array(images, dtype=wp.vec3, device=device)
+        self.blurred = wp.empty_like(self.images)
+        self._scratch = wp.empty_like(self.images)
+        self.masks = wp.array(masks, dtype=wp.uint8, device=device)
+        self.widths = wp.array(sizes[:, 1].astype(np.int32), device=device)
+        self.heights = wp.array(sizes[:, 0].astype(np.int32), device=device)
+        del images, masks
+        pframes = [PhotoFrame.from_capture_frame(f) for f in self.frames]
+        self.infos = struct_array(image_infos(pframes, None, None, 0.0, 0), ImageInfo, device)
+        self.saved_infos = wp.empty_like(self.infos)
+        self.roles = wp.array(roles, dtype=wp.int32, device=device)
+        attached, offset = camera_attached_lights(self.frames)
+        self.light_attached = wp.array(attached, dtype=wp.int32, device=device)
+        self.light_offset = wp.array(offset, dtype=wp.vec3, device=device)
+
+        # the mesh, welded so a displacement moves both sides of a seam
+        self.mesh = mesh
+        self.weld_host, welded = weld_vertices(mesh.vertices)
+        faces = np.asarray(mesh.faces, np.int32)
+        normals = welded_normals(welded, self.weld_host[faces])
+        self.n_welded = len(welded)
+        self.diagonal = float(np.linalg.norm(welded.max(axis=0) - welded.min(axis=0)))
+        offsets, neighbours = vertex_neighbours(self.weld_host[faces], self.n_welded)
+        self.weld = wp.array(self.weld_host, dtype=wp.int32, device=device)
+        self.faces = wp.array(faces, dtype=wp.vec3i, device=device)
+        self.base = wp.array(welded.astype(np.float32), dtype=wp.vec3, device=device)
+        self.direction = wp.array(normals.astype(np.float32), dtype=wp.vec3, device=device)
+        self.welded_points = wp.array(welded.astype(np.float32), dtype=wp.vec3, device=device)
+        self.points = wp.array(np.asarray(mesh.vertices, np.float32), dtype=wp.vec3, device=device)
+        self.bvh = wp.Mesh(points=self.points, indices=wp.array(faces.reshape(-1), dtype=wp.int32, device=device))
+        self.offsets = wp.array(offsets, dtype=wp.int32, device=device)
+        self.neighbours = wp.array(neighbours, dtype=wp.int32, device=device)
+        self.disp = wp.zeros(self.n_welded, dtype=wp.float64, device=device)
+        self.disp_saved = wp.zeros_like(self.disp)
+        self.disp_a = wp.zeros_like(self.disp)
+        self.disp_b = wp.zeros_like(self.disp)
+        self.curvature = wp.zeros_like(self.disp)
+        self.gradient = wp.zeros_like(self.disp)
+        self.curv_mean = wp.zeros(2, dtype=wp.float64, device=device)
+        self.disp_damping = wp.array([1.0], dtype=wp.float64, device=device)
+        self.disp_accepted = wp.zeros(1, dtype=wp.int32, device=device)
+
+        # texels: the bake's covered texels, at the surface's current position
+        covered = bake.covered.reshape(-1)
+        self.n_texels = int(covered.sum())
+        if self.n_texels == 0:
+            raise InputError("the atlas has no texels", fix="re-run texstream atlas")
+        self.t_face = wp.array(bake.face.reshape(-1)[covered].astype(np.int32), dtype=wp.int32, device=device)
+        self.t_bary = wp.array(bake.bary.reshape(-1, 3)[covered].astype(np.float32), dtype=wp.vec3, device=device)
+        self.t_p = wp.empty(self.n_texels, dtype=wp.vec3, device=device)
+        self.t_n = wp.empty(self.n_texels, dtype=wp.vec3, device=device)
+        self.num = wp.zeros(self.n_texels, dtype=wp.vec3, device=device)
+        self.den = wp.zeros_like(self.num)
+        self.colour = wp.zeros_like(self.num)
+        self.known = wp.zeros(self.n_texels, dtype=wp.int32, device=device)
+
+        # per photo
+        self.depth = wp.zeros((n, self.hmax, self.wmax), dtype=wp.float32, device=device)
+        self.system = wp.zeros((n, rk.POSE_TERMS), dtype=wp.float64, device=device)
+        self.obj_before = wp.zeros((n, 2), dtype=wp.float64, device=device)
+        self.obj_after = wp.zeros_like(self.obj_before)
+        self.pose_damping = wp.full(n, 1e-3, dtype=wp.float64, device=device)
+        self.pose_accepted = wp.zeros(n, dtype=wp.int32, device=device)
+        centres = np.array([f.center for f in self.frames])
+        mid = 0.5 * (welded.max(axis=0) + welded.min(axis=0))
+        self.max_translation = wp.array((cfg.max_translation_step * np.linalg.norm(centres - mid, axis=1)
+                                         ).astype(np.float32), dtype=float, device=device)
+        self.totals = wp.zeros(4, dtype=wp.float64, device=device)  # before sum, count; after sum, count
+
+    # ------------------------------------------------------------------------------------------- passes
+    def blur(self, sigma: float) -> None:
+        w, radius = _gaussian(sigma)
+        if radius == 0:
+            wp.copy(self.blurred, self.images)
+            return
+        weights = wp.array(w, dtype=float, device=self.device)
+        dims = (len(self.frames), self.hmax, self.wmax)
+        wp.launch(rk.blur_rows_kernel, dim=dims, inputs=[self.images, weights, radius, self.widths],
+                  outputs=[self._scratch], device=self.device)
+        wp.launch(rk.blur_columns_kernel, dim=dims, inputs=[self._scratch, weights, radius, self.heights],
+                  outputs=[self.blurred], device=self.device)
+
+    def update_geometry(self) -> None:
+        """Mesh vertices from the welded ones, the BVH, texel positions, and every photo's depth map."""
+        from texstream.fit.kernels.visibility import depth_maps_kernel
+
+        wp.launch(rk.scatter_points_kernel, dim=len(self.mesh.vertices), inputs=[self.welded_points, self.weld],
+                  outputs=[self.points], device=self.device)
+        self.bvh.refit()
+        wp.launch(rk.texel_points_kernel, dim=self.n_texels,
+                  inputs=[self.t_face, self.t_bary, self.faces, self.points, self.direction, self.weld],
+                  outputs=[self.t_p, self.t_n], device=self.device)
+        wp.launch(depth_maps_kernel, dim=(len(self.frames), self.hmax, self.wmax), device=self.device,
+                  inputs=[self.bvh.id, self.infos, 0, self.masks, 1], outputs=[self.depth])
+
+    def colours(self, images) -> None:
+        self.num.zero_()
+        self.den.zero_()
+        dims = (len(self.frames), self.n_texels)
+        wp.launch(rk.albedo_sums_kernel, dim=dims, device=self.device,
+                  inputs=[self.infos, images, self.depth, self.roles, self.t_p, self.t_n, self.cfg.cos_view_min,
+                          self.cfg.depth_tol], outputs=[self.num, self.den])
+        wp.launch(rk.albedo_kernel, dim=self.n_texels, inputs=[self.num, self.den], outputs=[self.colour, self.known],
+                  device=self.device)
+
+    def objective(self, images, out, system: bool = False) -> None:
+        """Per-photo Huber objective (and the pose systems) into ``out`` (n, 2: sum, samples)."""
+        out.zero_()
+        if system:
+            self.system.zero_()
+        wp.launch(rk.pose_system_kernel, dim=(len(self.frames), self.n_texels), device=self.device,
+                  inputs=[self.infos, images, self.depth, self.roles, self.t_p, self.t_n, self.colour, self.known,
+                          self.cfg.cos_view_min, self.cfg.depth_tol, self.huber, int(system)],
+                  outputs=[self.system, out])
+
+    def pose_step(self, images) -> None:
+        self.objective(images, self.obj_before, system=True)
+        wp.launch(rk.pose_step_kernel, dim=len(self.frames), device=self.device,
+                  inputs=[self.system, self.pose_damping, math.radians(self.cfg.max_rotation_step),
+                          self.max_translation, 12, self.light_attached, self.light_offset],
+                  outputs=[self.infos, self.saved_infos])
+        self.objective(images, self.obj_after)
+        wp.launch(rk.pose_accept_kernel, dim=len(self.frames), device=self.device,
+                  inputs=[self.obj_before, self.obj_after, self.saved_infos],
+                  outputs=[self.infos, self.pose_damping, self.pose_accepted])
+
+    def displacement_step(self, images) -> None:
+        dev = self.device
+        self.objective(images, self.obj_before)
+        self.curvature.zero_()
+        self.gradient.zero_()
+        self.curv_mean.zero_()
+        wp.launch(rk.vertex_system_kernel, dim=(len(self.frames), self.n_texels), device=dev,
+                  inputs=[self.infos, images, self.depth, self.roles, self.t_face, self.t_bary, self.faces, self.weld,
+                          self.direction, self.t_p, self.t_n, self.colour, self.known, self.cfg.cos_view_min,
+                          self.cfg.depth_tol, self.huber], outputs=[self.curvature, self.gradient])
+        wp.launch(rk.mean_curvature_kernel, dim=self.n_welded, inputs=[self.curvature], outputs=[self.curv_mean],
+                  device=dev)
+        wp.copy(self.disp_a, self.disp)
+        src, dst = self.disp_a, self.disp_b
+        for _ in range(30):  # Jacobi sweeps: the Laplacian spreads a step over ~5 rings of vertices
+            wp.launch(rk.displacement_sweep_kernel, dim=self.n_welded, device=dev,
+                      inputs=[self.disp, self.curvature, self.gradient, self.offsets, self.neighbours, self.curv_mean,
+                              self.cfg.smoothness, self.disp_damping, src], outputs=[dst])
+            src, dst = dst, src
+        edge = self.cfg.max_displacement * self.diagonal
+        wp.launch(rk.apply_displacement_kernel, dim=self.n_welded, device=dev,
+                  inputs=[src, 0.25 * edge, edge], outputs=[self.disp, self.disp_saved, self.base, self.direction,
+                                                             self.welded_points])
+        self.update_geometry()
+        self.objective(images, self.obj_after)
+        self.totals.zero_()
+        wp.launch(rk.total_kernel, dim=len(self.frames), inputs=[self.obj_before, self.roles],
+                  outputs=[self.totals], device=dev)
+        wp.launch(rk.total_kernel, dim=len(self.frames), inputs=[self.obj_after, self.roles],
+                  outputs=[self.totals[2:]], device=dev)
+        wp.launch(rk.displacement_accept_kernel, dim=self.n_welded, device=dev,
+                  inputs=[self.totals[0:2], self.totals[2:4], self.disp_saved],
+                  outputs=[self.disp, self.base, self.direction, self.welded_points, self.disp_damping,
+                           self.disp_accepted])
+
+    def run(self) -> RefineResult:
+        cfg = self.cfg
+        t0 = time.perf_counter()
+        self.update_geometry()
+        self.blur(0.0)
+        self.colours(self.blurred)
+        start = self._score()
+        levels = cfg.levels()
+        history = wp.zeros((len(levels) * cfg.iterations, len(self.frames), 2), dtype=wp.float64, device=self.device)
+        step = 0
+        for sigma in levels:
+            self.blur(sigma)
+            self.log(f"blur {sigma:g} px: {cfg.iterations} iterations")
+            for it in range(cfg.iterations):
+                self.colours(self.blurred)
+                if cfg.cameras:
+                    self.pose_step(self.blurred)
+                    self.update_geometry()
+                if cfg.mesh:
+                    self.colours(self.blurred)
+                    self.displacement_step(self.blurred)
+                    self.update_geometry()
+                self.objective(self.blurred, history[step])
+                step += 1
+        hist = history.numpy()  # read once, after the loop
+        trace = [{"blur_px": sigma, "iteration": it, **self._per_role(hist[i * cfg.iterations + it])}
+                 for i, sigma in enumerate(levels) for it in range(cfg.iterations)]
+        self.blur(0.0)
+        self.colours(self.blurred)
+        end = self._score()
+        return self._result(start, end, trace, time.perf_counter() - t0)
+
+    # ------------------------------------------------------------------------------------------ results
+    def _per_role(self, obj: np.ndarray) -> dict:
+        out = {}
+        for name, role in (("fit", rk.FIT), ("align", rk.ALIGN)):
+            sel = self.roles_host == role
+            if sel.any():
+                s, c = obj[sel, 0].sum(), obj[sel, 1].sum()
+                out[f"{name}_rms"] = float(math.sqrt(2.0 * s / c)) if c > 0 else float("nan")
+        return out
+
+    def _score(self) -> dict:
+        """Huber-RMS residual of the unblurred photos against the colours they make, per role."""
+        self.objective(self.blurred, self.obj_after)
+        return self._per_role(self.obj_after.numpy())
+
+    def _result(self, start: dict, end: dict, trace: list, seconds: float) -> RefineResult:
+        infos = self.infos.numpy()
+        rot = np.asarray(infos["rot"], np.float64).reshape(-1, 3, 3)
+        trans = np.asarray(infos["trans"], np.float64).reshape(-1, 3)
+        disp = self.disp.numpy()
+        before_c = np.array([f.center for f in self.frames])
+        after_c = -np.einsum("nji,nj->ni", rot, trans)
+        dang = []
+        for f, r in zip(self.frames, rot):
+            c = np.clip((np.trace(r @ np.asarray(f.R, float).T) - 1.0) / 2.0, -1.0, 1.0)
+            dang.append(math.degrees(math.acos(c)))
+        dpos = np.linalg.norm(after_c - before_c, axis=1) / self.diagonal
+        accepted_poses = self.pose_accepted.numpy()
+        summary = {
+            "photos": len(self.frames), "fitted": int((self.roles_host == rk.FIT).sum()),
+            "aligned_heldout": int((self.roles_host == rk.ALIGN).sum()),
+            "texels": self.n_texels, "welded_vertices": self.n_welded, "seconds": seconds,
+            "residual_before": start, "residual_after": end,
+            "camera_rotation_deg": {"median": float(np.median(dang)), "max": float(np.max(dang))},
+            "camera_centre_moved": {"median": float(np.median(dpos)), "max": float(np.max(dpos)),
+                                    "unit": "bounding-box diagonal"},
+            "pose_steps_kept": {"median": float(np.median(accepted_poses)), "min": int(accepted_poses.min())},
+            "displacement": {"median_abs": float(np.median(np.abs(disp)) / self.diagonal),
+                             "max_abs": float(np.max(np.abs(disp)) / self.diagonal), "unit": "bounding-box diagonal",
+                             "steps_kept": int(self.disp_accepted.numpy()[0])},
+        }
+        points = self.points.numpy().astype(np.float64)
+        for name, v in (("points", points), ("rotations", rot), ("translations", trans)):
+            if not np.all(np.isfinite(v)):
+                raise RuntimeError(f"photometric refinement produced non-finite {name}")
+        return RefineResult(rot, trans, points, disp, trace, summary)
+
+
+def refined_capture(capture, result: RefineResult, out: Path):
+    """The capture with refined poses (lights fixed to a camera moved with it), its files referenced from
+    ``out``."""
+    from texstream.capture.capture_json import Capture, Light
+
+    frames = []
+    attached, offset = camera_attached_lights(capture.frames)
+    for i, f in enumerate(capture.frames):
+        r, t = result.rotations[i], result.translations[i]
+        light = f.light
+        if attached[i]:
+            light = Light.point(r.T @ (offset[i].astype(np.float64) - t), f.light.intensity)
+        rel = os.path.relpath(capture.root / f.file_path, out)
+        mask = None if f.mask_path is None else os.path.relpath(capture.root / f.mask_path, out)
+        frames.append(dataclasses.replace(f, R=r, t=t, light=light, file_path=rel, mask_path=mask))
+    extra = dict(capture.extra)
+    extra["refined"] = "photometric (texstream refine)"
+    return Capture(root=out, frames=frames, extra=extra)
+
+
+def refine_stage(capture_dir: str | Path, geometry: str | Path, out: str | Path, cfg: RefineConfig | None = None,
+                 device: str = "cpu", log=None):
+    """Refine the capture's cameras and the atlas's mesh against the photos; write ``out``:
+
+    ``capture.json`` (refined poses; photos and masks referenced where they are), ``mesh.obj`` (moved vertices,
+    the same faces and UVs), ``bake.npz`` (texels re-baked on the moved surface at the same size), ``seams.npz``
+    (copied: the atlas is unchanged), ``refine.json`` (summary and trace), ``refine_config.json``.
+
+    Args:
+        capture_dir: a posed capture folder.
+        geometry: an atlas folder (``texstream atlas``: mesh.obj, bake.npz, seams.npz).
+        out: output folder (written atomically).
+        cfg: options (defaults when None).
+        device: Warp device.
+    """
+    from texstream.capture.capture_json import read_capture, write_capture
+    from texstream.core.config import save_config
+    from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
+    from texstream.core.progress import phase
+
+    from .bake import TexelBake, bake_texels
+    from .mesh_io import load_mesh, save_mesh
+
+    cfg = cfg or RefineConfig()
+    cfg.levels()
+    capture_dir, geometry, out = Path(capture_dir), Path(geometry), Path(out)
+    if not (geometry / "bake.npz").is_file() or not (geometry / "mesh.obj").is_file():
+        raise InputError("not an atlas folder (needs mesh.obj and bake.npz)", geometry, "run texstream atlas first")
+    capture = read_capture(capture_dir)
+    mesh = load_mesh(geometry / "mesh.obj")
+    bake = TexelBake.load(geometry / "bake.npz")
+    with phase("refine", f"cameras and mesh against {len(capture.frames)} photos"):
+        job = PhotometricRefinement(capture, mesh, bake, cfg, device, log)
+        result = job.run()
+    moved = dataclasses.replace(mesh, vertices=result.points, normals=None)
+    with phase("refine", f"texel bake ({bake.width}x{bake.height})"):
+        new_bake = bake_texels(moved, bake.width, bake.height, device=device, padding=bake.padding)
+    summary = dict(result.summary)
+    summary["trace"] = result.trace
+    with atomic_output_dir(out) as tmp:
+        write_capture(refined_capture(capture, result, out), tmp)
+        save_mesh(tmp / "mesh.obj", moved)
+        new_bake.save(tmp / "bake.npz")
+        if (geometry / "seams.npz").is_file():
+            shutil.copy2(geometry / "seams.npz", tmp / "seams.npz")
+        save_config(cfg, tmp / "refine_config.json")
+        write_json_atomic(tmp / "refine.json", summary)
+    return StageResult(output=out, summary={k: v for k, v in summary.items() if k != "trace"})
