@@ -50,6 +50,10 @@ class RefineConfig:
     holdout_every: int = option(8, "photos held out as the fit holds them out (every k-th; 0: none)", min=0)
     blur: str = option("2,1,0.5", "Gaussian blur (standard deviation in pixels) of the photos at each level, "
                                   "coarse to fine")
+    detail: float = option(6.0, "compare the photos' detail, not their intensities: each level's blurred photo less "
+                                "the photo blurred this wide (standard deviation, pixels), so that shading the "
+                                "shared texture cannot explain (a lamp that moves with the camera, soft shadows, "
+                                "sheen) does not pull cameras and mesh; 0: intensities", min=0.0)
     iterations: int = option(8, "iterations per level", min=1)
     smoothness: float = option(0.01, "weight of the displacements' graph Laplacian relative to the mean data "
                                     "curvature per vertex", min=0.0)
@@ -163,7 +167,7 @@ class PhotometricRefinement:
         self.roles_host = roles
         sizes = np.array([[f.intrinsics.height, f.intrinsics.width] for f in self.frames], np.int64)
         self.hmax, self.wmax = int(sizes[:, 0].max()), int(sizes[:, 1].max())
-        mb = n * self.hmax * self.wmax * 12 * 2 / 2 ** 20  # photos and their blurred copy
+        mb = n * self.hmax * self.wmax * 12 * 4 / 2 ** 20  # photos, their blurred copy, a wide blur and scratch
         if mb > cfg.max_photo_mb:
             raise ConfigError(f"refining {n} photos of up to {self.wmax}x{self.hmax} takes {mb:,.0f} MB "
                               f"(refine.max_photo_mb {cfg.max_photo_mb:,.0f})",
@@ -187,6 +191,7 @@ class PhotometricRefinement:
         self.images = wp.array(images, dtype=wp.vec3, device=device)
         self.blurred = wp.empty_like(self.images)
         self._scratch = wp.empty_like(self.images)
+        self._wide = wp.empty_like(self.images) if cfg.detail > 0.0 else None
         self.masks = wp.array(masks, dtype=wp.uint8, device=device)
         self.widths = wp.array(sizes[:, 1].astype(np.int32), device=device)
         self.heights = wp.array(sizes[:, 0].astype(np.int32), device=device)
@@ -254,17 +259,25 @@ class PhotometricRefinement:
         self.totals = wp.zeros(4, dtype=wp.float64, device=device)  # before sum, count; after sum, count
 
     # ------------------------------------------------------------------------------------------- passes
-    def blur(self, sigma: float) -> None:
+    def _gaussian_blur(self, sigma: float, out) -> None:
         w, radius = _gaussian(sigma)
         if radius == 0:
-            wp.copy(self.blurred, self.images)
+            wp.copy(out, self.images)
             return
         weights = wp.array(w, dtype=float, device=self.device)
         dims = (len(self.frames), self.hmax, self.wmax)
         wp.launch(rk.blur_rows_kernel, dim=dims, inputs=[self.images, weights, radius, self.widths],
                   outputs=[self._scratch], device=self.device)
         wp.launch(rk.blur_columns_kernel, dim=dims, inputs=[self._scratch, weights, radius, self.heights],
-                  outputs=[self.blurred], device=self.device)
+                  outputs=[out], device=self.device)
+
+    def blur(self, sigma: float) -> None:
+        """``blurred``: the photos at this level, blurred by ``sigma`` pixels, less their ``detail``-wide blur."""
+        self._gaussian_blur(sigma, self.blurred)
+        if self.cfg.detail > 0.0:
+            self._gaussian_blur(self.cfg.detail, self._wide)
+            wp.launch(rk.subtract_kernel, dim=(len(self.frames), self.hmax, self.wmax), inputs=[self._wide],
+                      outputs=[self.blurred], device=self.device)
 
     def update_geometry(self) -> None:
         """Mesh vertices from the welded ones, the BVH, texel positions, and every photo's depth map."""

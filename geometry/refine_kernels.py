@@ -489,3 +489,10 @@ def blur_columns_kernel(src: wp.array3d(dtype=wp.vec3), weights: wp.array(dtype=
         yi = wp.clamp(y + i, 0, h - 1)
         acc = acc + weights[i + radius] * src[k, yi, x]
     dst[k, y, x] = acc
+
+
+@wp.kernel
+def subtract_kernel(b: wp.array3d(dtype=wp.vec3), a: wp.array3d(dtype=wp.vec3)):
+    """a -= b (a photo's detail: its blur less a wider blur)."""
+    k, y, x = wp.tid()
+    a[k, y, x] = a[k, y, x] - b[k, y, x]

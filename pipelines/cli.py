@@ -30,6 +30,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "synth": ("texstream.pipelines.cmd_synth", "render a synthetic capture set with ground truth"),
     "mesh": ("texstream.pipelines.cmd_mesh", "make, clean and simplify the mesh"),
     "atlas": ("texstream.pipelines.cmd_atlas", "UV atlas and texel bake for fitting"),
+    "refine": ("texstream.pipelines.cmd_refine", "refine registered cameras and the mesh against the photos (Warp)"),
     "fit": ("texstream.pipelines.cmd_fit", "fit an appearance model to a posed capture (Warp)"),
     "export": ("texstream.pipelines.cmd_export", "glTF binary and OBJ+MTL of a fitted model, for viewers and DCC tools"),
     "eval": ("texstream.pipelines.cmd_eval", "PSNR / APE of a fitted model on a capture"),

@@ -50,6 +50,7 @@ def test_known_cameras_and_atlas_skip_their_stages_and_a_rerun_skips_everything(
         assert (out / f"model_{other}" / "model.json").is_file()
     reasons = {s["name"]: s["reason"] for s in first["stages"]}
     assert "cameras known" in reasons["register"]
+    assert st["refine"] == "skipped" and "cameras and mesh given" in reasons["refine"]
     # held-out error as users meet it: every 8th of 16 photos, pooled and worst view
     assert first["heldout"]["views"] == 2 and first["heldout"]["pooled_psnr_db"] > 20
     assert json.loads((out / "run.json").read_text())["model"] == kept
@@ -145,6 +146,10 @@ def test_turntable_object_under_unknown_lighting_to_a_valid_radiance_model(captu
     summary = run_pipeline(cap, tmp_path / "out", cfg, log=lambda m: None)
     st = statuses(summary)
     assert st["mesh"] == st["atlas"] == st["fit"] == "ran" and summary["model"] in ("radiance", "view_radiance")
+    # known cameras stay; the mesh the run made is refined against the photos
+    refine = next(s for s in summary["stages"] if s["name"] == "refine")
+    assert refine["status"] == "ran" and refine["reason"].startswith("mesh refined"), refine
+    assert refine["summary"]["residual_after"]["fit_rms"] < refine["summary"]["residual_before"]["fit_rms"]
     mesh = next(s for s in summary["stages"] if s["name"] == "mesh")["summary"]
     assert mesh["facing"]["after"]["back_fraction"] < 0.01  # the stage itself fails above 5%
     model = tmp_path / "out" / "model"
