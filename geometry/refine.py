@@ -76,7 +76,7 @@ class RefineConfig:
             out = []
         if not out or any(not (math.isfinite(x) and x >= 0.0) for x in out):
             raise ConfigError(f"refine blur {self.blur!r} is not a comma-separated list of pixel widths",
-                              fix="write e.g. --refine.blur 2,1,0.5")
+                              fix="write it as 2,1,0.5 (coarse to fine)")
         return out
 
 
@@ -266,9 +266,9 @@ class PhotometricRefinement:
             return
         weights = wp.array(w, dtype=float, device=self.device)
         dims = (len(self.frames), self.hmax, self.wmax)
-        wp.launch(rk.blur_rows_kernel, dim=dims, inputs=[self.images, weights, radius, self.widths],
+        wp.launch(rk.blur_axis_kernel, dim=dims, inputs=[self.images, weights, radius, 1, self.widths, self.heights],
                   outputs=[self._scratch], device=self.device)
-        wp.launch(rk.blur_columns_kernel, dim=dims, inputs=[self._scratch, weights, radius, self.heights],
+        wp.launch(rk.blur_axis_kernel, dim=dims, inputs=[self._scratch, weights, radius, 0, self.widths, self.heights],
                   outputs=[out], device=self.device)
 
     def blur(self, sigma: float) -> None:

@@ -460,34 +460,23 @@ def total_kernel(per_photo: wp.array2d(dtype=wp.float64), role: wp.array(dtype=w
 
 
 @wp.kernel
-def blur_rows_kernel(src: wp.array3d(dtype=wp.vec3), weights: wp.array(dtype=float), radius: int,
-                     widths: wp.array(dtype=wp.int32), dst: wp.array3d(dtype=wp.vec3)):
-    """Separable Gaussian along x within each photo's width (edges clamped)."""
+def blur_axis_kernel(src: wp.array3d(dtype=wp.vec3), weights: wp.array(dtype=float), radius: int, along_x: int,
+                     widths: wp.array(dtype=wp.int32), heights: wp.array(dtype=wp.int32),
+                     dst: wp.array3d(dtype=wp.vec3)):
+    """One pass of a separable Gaussian, along x (``along_x``) or y, within each photo's own size (edges
+    clamped; the padding beyond it zero)."""
     k, y, x = wp.tid()
     w = widths[k]
-    if x >= w:
-        dst[k, y, x] = wp.vec3(0.0)
-        return
-    acc = wp.vec3(0.0)
-    for i in range(-radius, radius + 1):
-        xi = wp.clamp(x + i, 0, w - 1)
-        acc = acc + weights[i + radius] * src[k, y, xi]
-    dst[k, y, x] = acc
-
-
-@wp.kernel
-def blur_columns_kernel(src: wp.array3d(dtype=wp.vec3), weights: wp.array(dtype=float), radius: int,
-                        heights: wp.array(dtype=wp.int32), dst: wp.array3d(dtype=wp.vec3)):
-    """Separable Gaussian along y within each photo's height (edges clamped)."""
-    k, y, x = wp.tid()
     h = heights[k]
-    if y >= h:
+    if x >= w or y >= h:
         dst[k, y, x] = wp.vec3(0.0)
         return
     acc = wp.vec3(0.0)
     for i in range(-radius, radius + 1):
-        yi = wp.clamp(y + i, 0, h - 1)
-        acc = acc + weights[i + radius] * src[k, yi, x]
+        if along_x != 0:
+            acc = acc + weights[i + radius] * src[k, y, wp.clamp(x + i, 0, w - 1)]
+        else:
+            acc = acc + weights[i + radius] * src[k, wp.clamp(y + i, 0, h - 1), x]
     dst[k, y, x] = acc
 
 
