@@ -365,13 +365,17 @@ class PhotometricRefinement:
         self.blur(0.0)
         self.colours(self.blurred)
         start = self._score()
+        from texstream.core.progress import bar
+
         levels = cfg.levels()
         history = wp.zeros((len(levels) * cfg.iterations, len(self.frames), 2), dtype=wp.float64, device=self.device)
         step = 0
+        progress = bar(total=len(levels) * cfg.iterations, desc="refine", unit="it")
         for sigma in levels:
             self.blur(sigma)
             self.log(f"blur {sigma:g} px: {cfg.iterations} iterations")
             for it in range(cfg.iterations):
+                progress.update(1)
                 self.colours(self.blurred)
                 if cfg.cameras:
                     self.pose_step(self.blurred)
@@ -382,6 +386,7 @@ class PhotometricRefinement:
                     self.update_geometry()
                 self.objective(self.blurred, history[step])
                 step += 1
+        progress.close()
         hist = history.numpy()  # read once, after the loop
         trace = [{"blur_px": sigma, "iteration": it, **self._per_role(hist[i * cfg.iterations + it])}
                  for i, sigma in enumerate(levels) for it in range(cfg.iterations)]
