@@ -359,14 +359,15 @@ class PhotometricRefinement:
                            self.disp_accepted])
 
     def run(self) -> RefineResult:
+        """Every level's iterations (colours, pose steps, displacement steps), then the summary."""
+        from texstream.core.progress import bar
+
         cfg = self.cfg
         t0 = time.perf_counter()
         self.update_geometry()
         self.blur(0.0)
         self.colours(self.blurred)
         start = self._score()
-        from texstream.core.progress import bar
-
         levels = cfg.levels()
         history = wp.zeros((len(levels) * cfg.iterations, len(self.frames), 2), dtype=wp.float64, device=self.device)
         step = 0
@@ -406,7 +407,8 @@ class PhotometricRefinement:
         return out
 
     def _score(self) -> dict:
-        """Huber-RMS residual of the unblurred photos against the colours they make, per role."""
+        """Huber-RMS residual of the photos as compared (unblurred; their detail when ``detail`` is on) against
+        the colours they make, per role."""
         self.objective(self.blurred, self.obj_after)
         return self._per_role(self.obj_after.numpy())
 
