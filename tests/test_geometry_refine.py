@@ -130,7 +130,8 @@ def test_a_mesh_too_large_shrinks_to_the_sphere(sphere, tmp_path, device):
     assert (tmp_path / "refined" / "seams.npz").is_file() == (root / "ground_truth" / "seams.npz").is_file()
 
 
-def test_pose_gradient_matches_finite_differences(sphere):
+@pytest.mark.parametrize("device", DEVICES)
+def test_pose_gradient_matches_finite_differences(sphere, device):
     """J^T r of the pose system against central differences of the objective (inside the Huber threshold the
     objective is 1/2 sum w |r|^2, so its gradient is exactly sum w J^T r)."""
     from texstream.fit.kernels.stream import ImageInfo
@@ -142,7 +143,7 @@ def test_pose_gradient_matches_finite_differences(sphere):
     root, truth = sphere
     g = root / "ground_truth"
     job = PhotometricRefinement(truth, load_mesh(g / "mesh.obj"), TexelBake.load(g / "bake.npz"),
-                                RefineConfig(holdout_every=0, huber=100.0), "cpu")
+                                RefineConfig(holdout_every=0, huber=100.0), device)
     job.update_geometry()
     job.blur(2.0)  # a smooth image: the bilinear derivative is close to the blurred photo's
     job.colours(job.blurred)
@@ -151,7 +152,7 @@ def test_pose_gradient_matches_finite_differences(sphere):
     # move the camera off the colours' optimum, so the gradient is not ~0
     rec = base.copy()
     rec["rot"][k] = (_rotation([0.3, 1.0, 0.2], 0.3) @ np.asarray(base["rot"][k], np.float64)).astype(np.float32)
-    job.infos = struct_array(rec, ImageInfo, "cpu")
+    job.infos = struct_array(rec, ImageInfo, device)
     job.objective(job.blurred, job.obj_before, system=True)
     grad = job.system.numpy()[k, 21:27]
 
@@ -162,7 +163,7 @@ def test_pose_gradient_matches_finite_differences(sphere):
         moved = rec.copy()
         moved["rot"][k] = (d @ r).astype(np.float32)
         moved["trans"][k] = (d @ t + delta[3:]).astype(np.float32)
-        job.infos = struct_array(moved, ImageInfo, "cpu")
+        job.infos = struct_array(moved, ImageInfo, device)
         job.objective(job.blurred, job.obj_after)
         return float(job.obj_after.numpy()[k, 0])
 
@@ -184,13 +185,14 @@ def test_pose_gradient_matches_finite_differences(sphere):
 
 
 def test_stage_writes_a_capture_and_an_atlas_folder(sphere, tmp_path):
+    device = SCENE_DEVICE
     from texstream.capture.capture_json import read_capture
     from texstream.core.errors import InputError
     from texstream.geometry.bake import TexelBake
     from texstream.geometry.refine import RefineConfig, refine_stage
 
     root, truth = sphere
-    res = refine_stage(root, root / "ground_truth", tmp_path / "r", RefineConfig(blur="1", iterations=2), "cpu")
+    res = refine_stage(root, root / "ground_truth", tmp_path / "r", RefineConfig(blur="1", iterations=2), device)
     out = tmp_path / "r"
     for name in ("capture.json", "mesh.obj", "bake.npz", "refine.json", "refine_config.json"):
         assert (out / name).is_file(), name
@@ -201,5 +203,5 @@ def test_stage_writes_a_capture_and_an_atlas_folder(sphere, tmp_path):
     assert np.array_equal(bake.covered, TexelBake.load(root / "ground_truth" / "bake.npz").covered)
     assert res.summary["aligned_heldout"] == 3 and res.summary["fitted"] == 21
     with pytest.raises(InputError, match="atlas folder"):
-        refine_stage(root, root, tmp_path / "x", RefineConfig(), "cpu")
+        refine_stage(root, root, tmp_path / "x", RefineConfig(), device)
     assert not (tmp_path / "x").exists()
