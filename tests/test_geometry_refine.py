@@ -111,7 +111,7 @@ def test_a_mesh_too_large_shrinks_to_the_sphere(sphere, tmp_path, device):
     atlas = tmp_path / "atlas"
     atlas.mkdir()
     save_mesh(atlas / "mesh.obj", big)
-    bake_texels(big, bake.width, bake.height, padding=bake.padding).save(atlas / "bake.npz")
+    bake_texels(big, bake.width, bake.height, device=device, padding=bake.padding).save(atlas / "bake.npz")
     radius = np.linalg.norm(mesh.vertices, axis=1).mean()
     cfg = RefineConfig(cameras=False, holdout_every=0, iterations=6)
     refine_stage(root, atlas, tmp_path / "refined", cfg, device=device)
