@@ -70,5 +70,14 @@ class SurfaceMesh:
         ln = np.linalg.norm(n, axis=1, keepdims=True)
         return np.divide(n, ln, out=np.tile([0.0, 0.0, 1.0], (len(n), 1)), where=ln > 0)
 
+    def weld_key(self) -> np.ndarray:
+        """(V,) int64 compact index of the welded vertex each vertex belongs to: ``source_vertex`` when the mesh
+        has it (an atlas splits vertices along UV seams), else vertices at equal positions."""
+        if self.source_vertex is not None:
+            key = np.asarray(self.source_vertex, np.int64)
+        else:
+            key = np.unique(np.asarray(self.vertices), axis=0, return_inverse=True)[1]
+        return np.unique(key.reshape(-1), return_inverse=True)[1].reshape(-1).astype(np.int64)
+
     def with_normals(self) -> "SurfaceMesh":
         return dataclasses.replace(self, normals=self.vertex_normals())

@@ -89,11 +89,13 @@ def _gaussian(sigma: float) -> tuple[np.ndarray, int]:
     return (w / w.sum()).astype(np.float32), radius
 
 
-def weld_vertices(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(weld index per vertex, welded positions): vertices at the same position (an atlas splits them along
-    seams) become one."""
-    welded, index = np.unique(np.asarray(vertices, np.float64), axis=0, return_inverse=True)
-    return index.reshape(-1).astype(np.int32), welded
+def weld_vertices(mesh) -> tuple[np.ndarray, np.ndarray]:
+    """(weld index per vertex, welded positions): the vertices an atlas split along seams become one again
+    (:meth:`~texstream.geometry.mesh.SurfaceMesh.weld_key`)."""
+    key = mesh.weld_key()
+    welded = np.zeros((int(key.max()) + 1 if key.size else 0, 3))
+    welded[key] = np.asarray(mesh.vertices, np.float64)
+    return key.astype(np.int32), welded
 
 
 def welded_normals(welded: np.ndarray, faces_welded: np.ndarray) -> np.ndarray:
@@ -206,7 +208,7 @@ class PhotometricRefinement:
 
         # the mesh, welded so a displacement moves both sides of a seam
         self.mesh = mesh
-        self.weld_host, welded = weld_vertices(mesh.vertices)
+        self.weld_host, welded = weld_vertices(mesh)
         faces = np.asarray(mesh.faces, np.int32)
         normals = welded_normals(welded, self.weld_host[faces])
         self.n_welded = len(welded)

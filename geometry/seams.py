@@ -131,11 +131,7 @@ def seam_edges(mesh: SurfaceMesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         A, verts_b (E, 2) int32 the matching atlas vertices in face B, in the same welded order).
     """
     f = np.asarray(mesh.faces, np.int64)
-    if mesh.source_vertex is not None:
-        key = np.asarray(mesh.source_vertex, np.int64)
-    else:
-        _, key = np.unique(np.asarray(mesh.vertices), axis=0, return_inverse=True)
-        key = key.reshape(-1).astype(np.int64)
+    key = mesh.weld_key()
     a = f.reshape(-1)
     b = f[:, [1, 2, 0]].reshape(-1)
     face = np.repeat(np.arange(len(f)), 3)
