@@ -57,6 +57,12 @@ class FitStageConfig:
                                        "this fraction: no photo saw their highlight, so in new views they only guess "
                                        "it; with two lobes the second is also tested on its own; 0 keeps every lobe",
                                  min=0.0, max=1.0)
+    traced_polish: int = option(5, "Levenberg-Marquardt iterations that end a fit with specular lobes with each "
+                                    "filtered tap's pixel ray traced to the mesh (stream.tap_geometry mesh, the "
+                                    "renderer's surface at every tap) when the fit ran with plane taps: a highlight "
+                                    "narrower than a pixel is then fitted as the photos filtered it, not as a "
+                                    "broad, weak lobe new views contradict (docs/accuracy.md); a traced pass costs "
+                                    "~7-20x a plane one; 0: off", min=0)
     checkpoint: bool = option(True, "Levenberg-Marquardt fits keep a checkpoint beside the output (every sync_every "
                                     "iterations); a rerun after Ctrl-C or a killed process resumes from it to the "
                                     "same result as an uninterrupted fit")
@@ -517,10 +523,42 @@ def texel_evidence(problem, result: FitResult, mcfg: MaterialConfig) -> TexelEvi
     return TexelEvidence(result.params, result.samples, jtj, sigma2, unc, constrained)
 
 
+def traced_polish_applies(problem, cfg: "FitStageConfig") -> bool:
+    """Whether the fit ends with :func:`traced_polish`: a model with specular lobes, fitted with filtered plane
+    taps on a mesh (an atlas fit, not a single view), untiled."""
+    from .tiles import tiled
+
+    s = problem.cfg
+    return (cfg.traced_polish > 0 and problem.layout.n_lobes > 0 and s.photo_sampling == "filtered"
+            and s.tap_geometry == "plane" and problem.photos.mesh_normals is not None
+            and problem.photos.mesh_uvs is not None and not tiled(cfg.fit))
+
+
+def traced_polish(problem, result: FitResult, cfg: "FitStageConfig", prior=None) -> FitResult:
+    """``cfg.traced_polish`` Levenberg-Marquardt iterations from ``result`` on the same texels and photos with
+    traced taps (``StreamConfig.tap_geometry`` mesh), the materials' ``prior`` (centre, weights) kept on; the
+    trace continues ``result``'s (its first row: the start, evaluated with traced taps). Returns ``result`` unchanged where :func:`traced_polish_applies` says no."""
+    from .problem import StreamProblem
+
+    if not traced_polish_applies(problem, cfg):
+        return result
+    traced = StreamProblem(problem.texels, problem.photos, problem.layout,
+                           dataclasses.replace(problem.cfg, tap_geometry="mesh"), problem.device)
+    if prior is not None:
+        traced.set_material_prior(*prior)
+    fit = dataclasses.replace(cfg.fit, max_iterations=cfg.traced_polish, optimizer="lm")
+    res = run_fit(traced, fit, start=(result.params, result.samples))
+    t_end = result.trace[-1]["time_s"] if result.trace else 0.0
+    extra = [{**r, "iteration": r["iteration"] + len(result.trace), "time_s": r["time_s"] + t_end,
+              "stage": "traced polish"} for r in res.trace]
+    return dataclasses.replace(res, trace=result.trace + extra, passes=result.passes + res.passes)
+
+
 def fit_with_materials(problem, result: FitResult, evidence: TexelEvidence, k: int, variant: str,
-                       cfg: "FitStageConfig") -> tuple[FitResult, dict]:
+                       cfg: "FitStageConfig", polish: bool = False) -> tuple[FitResult, dict]:
     """The materials model with ``k`` materials (fit/materials.py): cluster, prior, Levenberg-Marquardt from
-    the per-texel fit ``result``. Returns the fit and what model.json records of it."""
+    the per-texel fit ``result``, then (``polish``) :func:`traced_polish` with the prior on. Returns the fit
+    and what model.json records of it."""
     from .materials import (contradiction_test, find_materials, material_lobes_on, material_prior,
                             reject_contradicted_lobes)
 
@@ -545,6 +583,8 @@ def fit_with_materials(problem, result: FitResult, evidence: TexelEvidence, k: i
         res = run_fit(problem, fit, start=(prior.start, evidence.samples))
     finally:
         problem.set_material_prior(None)
+    if polish:
+        res = traced_polish(problem, res, cfg, prior=(prior.centre, prior.weights))
     info = {"variant": variant, "k": mats.k, "materials": mats.to_json(lay),
             "borrowed_texels": int(prior.borrow.sum()), "no_lobe_texels": int(prior.no_lobe.sum()),
             "contradicted_texels": int((contradicted & seen & ~evidence.constrained).sum()),
@@ -701,16 +741,20 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
         materials_info = {"mode": cfg.materials.mode, **choice}
     if materials_info is not None and materials_info["chosen"] != "per-texel":
         with phase("fit", f"materials: {materials_info['reason']}"):
-            res_m, info = fit_with_materials(problem, result, evidence, materials_info["k"], materials_info["chosen"], cfg)
+            res_m, info = fit_with_materials(problem, result, evidence, materials_info["k"], materials_info["chosen"], cfg,
+                                             polish=True)
         labels = info.pop("labels")
         materials_info.update(info)
         borrowed = (info, labels, res_m)
         t_end = result.trace[-1]["time_s"]
-        extra = [{**r, "iteration": r["iteration"] + len(result.trace), "time_s": r["time_s"] + t_end, "stage": "materials"}
-                 for r in res_m.trace]
+        extra = [{**r, "iteration": r["iteration"] + len(result.trace), "time_s": r["time_s"] + t_end,
+                  "stage": r.get("stage", "materials")} for r in res_m.trace]
         lobes_dropped = np.zeros(problem.n, bool)
-        result = dataclasses.replace(res_m, trace=result.trace + extra, passes=problem.passes)
+        result = dataclasses.replace(res_m, trace=result.trace + extra)
     else:
+        if traced_polish_applies(problem, cfg):
+            with phase("fit", f"traced polish: {cfg.traced_polish} iterations with taps traced to the mesh"):
+                result = traced_polish(problem, result, cfg)
         params, lobes_dropped = drop_unsupported_lobes(problem, result, cfg.lobe_support)
         result = dataclasses.replace(result, params=params)
     grid, filled = params_to_grid(result, problem, bake), 0
@@ -776,6 +820,7 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
                                "residency_reason": problem.photos.residency_reason,
                                "photos_per_window": problem.photos.window},
                     "tiles": tiles_report,
+                    "traced_polish_iterations": max(0, sum(r.get("stage") == "traced polish" for r in result.trace) - 1),
                     "final": {k: last[k] for k in ("iteration", "time_s", "objective", "psnr_db", "ape_percent")},
                     "lobe_shape": lobe_shape_report(cfg.fit, lay, frames, problem.texels.position),
                     "materials": _materials_manifest(materials_info, evidence, cfg.materials),

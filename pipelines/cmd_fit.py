@@ -47,6 +47,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--skip-bad-photos", dest="skip_bad_photos", action="store_true",
                         help="leave out photos that cannot be read (corrupt, truncated, wrong size) instead of "
                              "failing; each is printed and listed in model.json's photos.skipped")
+    parser.add_argument("--traced-polish", dest="traced_polish", type=int, default=5,
+                        help="Levenberg-Marquardt iterations that end a fit with specular lobes with taps traced to "
+                             "the mesh (stream.tap_geometry mesh): highlights narrower than a pixel fitted as the "
+                             "photos filtered them (default: 5; 0 = off)")
     from texstream.fit.materials import MaterialConfig
 
     add_config_arguments(parser, MaterialConfig, prefix="materials.")  # shared materials (fit/materials.py)
@@ -72,7 +76,8 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = FitStageConfig(fit=fit_cfg, materials=config_from_args(MaterialConfig, args, prefix="materials."),
                          **{k: getattr(args, k) for k in ("device", "texture_size", "texel_pixels", "holdout_every",
-                                                          "renders", "min_seen_fraction", "skip_bad_photos")
+                                                          "renders", "min_seen_fraction", "skip_bad_photos",
+                                                          "traced_polish")
                             if hasattr(args, k)})
     res = fit_stage(args.capture, args.mesh, args.out, cfg)
     s = res.summary
