@@ -28,8 +28,8 @@ pytest.importorskip("OpenImageIO")  # the stage reads and writes EXR / PNG files
 from conftest import SCENE_DEVICE  # noqa: E402
 
 
-def stage_config(**fit) -> FitStageConfig:
-    return FitStageConfig(device=SCENE_DEVICE, renders=1,
+def stage_config(traced_polish: int = 5, **fit) -> FitStageConfig:
+    return FitStageConfig(device=SCENE_DEVICE, renders=1, traced_polish=traced_polish,
                           fit=FitConfig(optimizer="lm", max_iterations=5, sync_every=100, **fit))
 
 
@@ -65,11 +65,13 @@ def test_fit_stage_writes_the_model_folder(fitted):
         assert (model / f).is_file(), f
     assert len(list((model / "renders").glob("*.png"))) == 1
     trace = json.loads((model / "trace.json").read_text())
-    assert [r["iteration"] for r in trace] == list(range(len(trace))) and len(trace) == 6
+    assert [r["iteration"] for r in trace] == list(range(len(trace)))
+    polish = [r for r in trace if r.get("stage") == "traced polish"]
+    assert len(trace) - len(polish) == 6 and len(polish) == 6 and man["traced_polish_iterations"] == 5
     assert all(np.isfinite(r["objective"]) for r in trace) and trace[-1]["objective"] < trace[0]["objective"]
     seams = Seams.load(root / "atlas" / SEAMS_FILE)
     assert man["seams"]["samples"] == seams.n_samples > 0
-    assert res.summary["iterations"] == 5
+    assert res.summary["iterations"] == 5 + 1 + 5  # the fit, the polish's start row, its 5 iterations
     # the sphere's light rides beside the camera: "auto" held c_z at 1 and says why (fit/models.py)
     assert man["lobe_shape"]["requested"] == "auto" and man["lobe_shape"]["fitted"] == man["layout"]["lobe_shape"] == "phong"
     lo, hi = man["lobe_shape"]["light_view_angle_deg"]
@@ -184,7 +186,8 @@ def test_extreme_fitted_values_stay_in_bounds_through_the_seam_averaging(capture
         return np.where(pick, lay.lower(), lay.upper())
 
     monkeypatch.setattr("texstream.fit.stage.run_fit_with_progress", fake_fit(extremes))
-    fit_stage(root / "cap", root / "atlas", root / "model_extreme", stage_config(), progress=False)
+    fit_stage(root / "cap", root / "atlas", root / "model_extreme", stage_config(traced_polish=0),
+              progress=False)  # the faked fit's values reach the checks unpolished
     man = json.loads((root / "model_extreme" / "model.json").read_text())
     lay = ModelLayout.from_json(man["layout"])
     grid = read_param_maps(root / "model_extreme", lay)
@@ -210,7 +213,8 @@ def test_a_model_out_of_bounds_or_not_finite_is_never_written(capture_and_atlas,
     monkeypatch.setattr("texstream.fit.stage.run_fit_with_progress", run)
     out = root / "model_bad"
     with pytest.raises(StageError) as e:
-        fit_stage(root / "cap", root / "atlas", out, stage_config(), progress=False)
+        # the faked fit's bad value reaches the checks unpolished
+        fit_stage(root / "cap", root / "atlas", out, stage_config(traced_polish=0), progress=False)
     msg = e.value.one_line()
     assert "texels" in msg and "lobe0.n" in msg and "nothing was written" in msg, msg
     assert not out.exists() and not list(root.glob(".model_bad.*"))
@@ -237,7 +241,8 @@ def test_albedos_pinned_at_their_bound_are_reported(capture_and_atlas, monkeypat
         return p
 
     monkeypatch.setattr("texstream.fit.stage.run_fit_with_progress", fake_fit(pinned))
-    res = fit_stage(root / "cap", root / "atlas", root / "model_pinned", stage_config(), progress=False)
+    res = fit_stage(root / "cap", root / "atlas", root / "model_pinned", stage_config(traced_polish=0),
+              progress=False)  # the faked fit's values reach the checks unpolished
     warnings = res.summary["warnings"]
     assert any("lafortune.rho_d.r at its upper bound" in w and "intensity" in w for w in warnings), warnings
     man = json.loads((root / "model_pinned" / "model.json").read_text())
