@@ -112,6 +112,21 @@ def child(a) -> dict:
     ph = prob.photos
     phases = dict(getattr(ph, "timings", {}))  # absent before the batched set-up (the reference run)
     phases["texels_and_problem"] = setup_s - sum(phases.values())
+    profile = None
+    if a.profile:  # a second set-up under cProfile, after the timed one: where the host's time goes
+        import cProfile
+        import io
+        import pstats
+
+        prof = cProfile.Profile()
+        prof.enable()
+        again = build_problem(mesh, bake, frames, photos, masks, cfg, a.device)
+        wp.synchronize_device(a.device)
+        prof.disable()
+        del again
+        text = io.StringIO()
+        pstats.Stats(prof, stream=text).sort_stats("cumulative").print_stats(45)
+        profile = text.getvalue()
     run_fit(prob, FitConfig(optimizer="lm", max_iterations=1, stream=stream))  # compile the passes
     prob.passes = 0
     t1 = time.perf_counter()
@@ -130,7 +145,7 @@ def child(a) -> dict:
            "final_psnr_db": tr[-1]["psnr_db"], "final_objective": tr[-1]["objective"],
            "fit_time_to_best_minus_0p1dB_s": hit["time_s"], "iterations_to_best_minus_0p1dB": hit["iteration"],
            "converged_model_s": setup_s + hit["time_s"],
-           "rss_start_mib": rss_start, "rss_after_inputs_mib": rss_inputs, "peak_rss_mib": peak_rss_mib()}
+           "profile": profile, "rss_start_mib": rss_start, "rss_after_inputs_mib": rss_inputs, "peak_rss_mib": peak_rss_mib()}
     if cuda:
         if pool:
             high = wp.get_mempool_used_mem_high(a.device)
@@ -159,6 +174,8 @@ def main() -> None:
     ap.add_argument("--image-precision", default="fp16", choices=("fp16", "fp32"))
     ap.add_argument("--iterations", type=int, default=10)
     ap.add_argument("--capture", default=None, help="(child) the capture folder")
+    ap.add_argument("--profile", action="store_true", help="also profile a second set-up (cProfile, cumulative) into "
+                                                           "the JSON's profile and OUT/profile_RESIDENCY.txt")
     ap.add_argument("--child", action="store_true", help="(internal) run one residency and print its JSON")
     a = ap.parse_args()
     if a.child:
@@ -189,7 +206,7 @@ def main() -> None:
                "--source", a.source, "--residency", residency, "--photos-per-window", str(a.photos_per_window),
                "--memory-limit-mb", str(a.memory_limit_mb), "--image-precision", a.image_precision,
                "--iterations", str(a.iterations), "--capture", str(capture), "--photos", str(a.photos),
-               "--image-size", str(a.image_size), "--shadow-map-size", str(a.shadow_map_size)]
+               "--image-size", str(a.image_size), "--shadow-map-size", str(a.shadow_map_size)] + (["--profile"] if a.profile else [])
         proc = subprocess.run(cmd, capture_output=True, text=True)
         line = next((x for x in proc.stdout.splitlines() if x.startswith("RESULT ")), None)
         if line is None:
@@ -198,6 +215,8 @@ def main() -> None:
         else:
             run = json.loads(line[len("RESULT "):])
             results["runs"][residency] = run
+            if run.get("profile"):
+                (out / f"profile_{residency}.txt").write_text(run["profile"])
             ph = run["setup_phases_s"]
             print(f"{residency} -> {run['residency']} ({run['photos_per_window']}/window): "
                   f"set-up {run['setup_s']:.3f} s "

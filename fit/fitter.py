@@ -139,16 +139,18 @@ class FitConfig:
 def light_view_angles(frames, centre) -> np.ndarray:
     """Angle (degrees) between the directions from ``centre`` to each photo's camera and light."""
     centre = np.asarray(centre, dtype=np.float64)
-    out = np.empty(len(frames))
-    for k, f in enumerate(frames):
-        to_cam = -np.asarray(f.R, np.float64).T @ np.asarray(f.t, np.float64) - centre
-        if f.light_kind == "point":
-            to_light = np.asarray(f.light_vec, np.float64) - centre
-        else:  # a directional light's vector points the way the light travels (shading.incident_light)
-            to_light = -np.asarray(f.light_vec, np.float64)
-        cos = to_cam @ to_light / max(np.linalg.norm(to_cam) * np.linalg.norm(to_light), 1e-30)
-        out[k] = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-    return out
+    if len(frames) == 0:
+        return np.empty(0)
+    rot = np.array([f.R for f in frames], np.float64).reshape(-1, 3, 3)
+    trans = np.array([f.t for f in frames], np.float64).reshape(-1, 3)
+    light = np.array([f.light_vec for f in frames], np.float64).reshape(-1, 3)
+    point = np.array([f.light_kind == "point" for f in frames])
+    to_cam = -np.einsum("nji,nj->ni", rot, trans) - centre
+    # a directional light's vector points the way the light travels (shading.incident_light)
+    to_light = np.where(point[:, None], light - centre, -light)
+    cos = np.einsum("ni,ni->n", to_cam, to_light) / np.maximum(
+        np.linalg.norm(to_cam, axis=1) * np.linalg.norm(to_light, axis=1), 1e-30)
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
 def choose_lobe_shape(frames, centre, spread_deg: float) -> str:
