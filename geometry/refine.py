@@ -64,10 +64,28 @@ class RefineConfig:
                                                 "its distance to the object", min=0.0)
     huber: float = option(0.1, "scale of the Huber loss as a fraction of the photos' mean foreground value "
                                "(residuals beyond it, occlusions and highlights, count linearly)", min=1e-6)
+    normal_smoothing: str = option("0,2,5,10,20", "shading normals of the refined mesh: rounds of 1-ring averaging "
+                                                  "of its vertex normals to try (comma-separated); with known "
+                                                  "lights the one whose shading best explains the fitted photos' "
+                                                  "intensities is kept and written as the mesh's normals (positions "
+                                                  "a stereo mesh and the refinement make are good to a fraction of "
+                                                  "a pixel, their normals to a few degrees, which under a known "
+                                                  "light is several percent of shading); 0 alone: the mesh's own",
+                                   )
     cos_view_min: float = option(0.2, "samples seen more grazingly than this cosine are left out", min=0.0, max=1.0)
     depth_tol: float = option(0.01, "visibility test tolerance, as a fraction of the camera distance", min=0.0)
     max_photo_mb: float = option(8192.0, "largest size of the photos (float32) this stage holds on the device; "
                                          "beyond it the stage refuses with a one-line error", min=1.0)
+
+    def smoothing_rounds(self) -> list[int]:
+        try:
+            out = sorted({int(x) for x in str(self.normal_smoothing).split(",") if x.strip()})
+        except ValueError:
+            out = []
+        if not out or out[0] < 0:
+            raise ConfigError(f"refine normal_smoothing {self.normal_smoothing!r} is not a comma-separated list of "
+                              "rounds", fix="write it as 0,2,5,10,20 (or 0 to keep the mesh's normals)")
+        return out
 
     def levels(self) -> list[float]:
         try:
@@ -109,6 +127,19 @@ def welded_normals(welded: np.ndarray, faces_welded: np.ndarray) -> np.ndarray:
     return np.divide(acc, ln, out=np.tile([0.0, 0.0, 1.0], (len(acc), 1)), where=ln > 0)
 
 
+def smoothed_normals(normals: np.ndarray, offsets: np.ndarray, neighbours: np.ndarray, rounds: int) -> np.ndarray:
+    """Unit vertex normals averaged with their 1-ring neighbours' ``rounds`` times (CSR graph)."""
+    out = np.asarray(normals, np.float64)
+    counts = np.diff(offsets)
+    owner = np.repeat(np.arange(len(out)), counts)
+    for _ in range(rounds):
+        acc = out.copy()
+        np.add.at(acc, owner, out[neighbours])
+        ln = np.linalg.norm(acc, axis=1, keepdims=True)
+        out = np.divide(acc, ln, out=out.copy(), where=ln > 0)
+    return out
+
+
 def vertex_neighbours(faces_welded: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     """CSR (offsets, neighbours) of the welded mesh's edge graph."""
     e = np.concatenate([faces_welded[:, [0, 1]], faces_welded[:, [1, 2]], faces_welded[:, [2, 0]]])
@@ -143,6 +174,8 @@ class RefineResult:
     displacement: np.ndarray
     trace: list
     summary: dict
+    normals: np.ndarray | None = None
+    """(welded vertices, 3) shading normals chosen for the refined mesh (None: the mesh's own)"""
 
 
 class PhotometricRefinement:
@@ -214,6 +247,8 @@ class PhotometricRefinement:
         self.n_welded = len(welded)
         self.diagonal = float(np.linalg.norm(welded.max(axis=0) - welded.min(axis=0)))
         offsets, neighbours = vertex_neighbours(self.weld_host[faces], self.n_welded)
+        self.graph_host = (offsets, neighbours)
+        self.lit = all(f.light is not None for f in self.frames)
         self.weld = wp.array(self.weld_host, dtype=wp.int32, device=device)
         self.faces = wp.array(faces, dtype=wp.vec3i, device=device)
         self.base = wp.array(welded.astype(np.float32), dtype=wp.vec3, device=device)
@@ -396,7 +431,39 @@ class PhotometricRefinement:
         self.blur(0.0)
         self.colours(self.blurred)
         end = self._score()
-        return self._result(start, end, trace, time.perf_counter() - t0)
+        result = self._result(start, end, trace, time.perf_counter() - t0)
+        rounds, normals, scores = self.choose_shading_normals()
+        result.normals = normals
+        result.summary["shading_normals"] = {"smoothing_rounds": rounds, "intensity_rms_by_rounds": scores}
+        return result
+
+    def choose_shading_normals(self) -> tuple[int, np.ndarray | None, dict]:
+        """After the iterations: the refined mesh's vertex normals averaged over 1-ring neighbours for each of
+        ``normal_smoothing``'s rounds, scored by the fitted photos' intensity residual (unblurred, no detail
+        band: shading is what normals change) against the shared texture each makes; with known lights only
+        (without, shading is not modelled and the mesh's own normals stay). Returns (rounds, welded normals or
+        None for the mesh's own, {rounds: RMS})."""
+        rounds = self.cfg.smoothing_rounds()
+        if rounds == [0] or not self.lit:
+            return 0, None, {}
+        welded = self.welded_points.numpy().astype(np.float64)  # once, after the loop
+        faces = self.weld_host[np.asarray(self.mesh.faces, np.int32)]
+        own = welded_normals(welded, faces)
+        kept = wp.clone(self.direction)
+        self._gaussian_blur(0.0, self.blurred)  # intensities
+        scores, candidates = {}, {}
+        for r in rounds:
+            candidates[r] = smoothed_normals(own, *self.graph_host, r)
+            self.direction.assign(candidates[r].astype(np.float32))  # the texels' shading normals read it
+            wp.launch(rk.texel_points_kernel, dim=self.n_texels,
+                      inputs=[self.t_face, self.t_bary, self.faces, self.points, self.direction, self.weld],
+                      outputs=[self.t_p, self.t_n], device=self.device)
+            self.colours(self.blurred)
+            self.objective(self.blurred, self.obj_after)
+            scores[r] = self._per_role(self.obj_after.numpy())["fit_rms"]
+        wp.copy(self.direction, kept)
+        best = min(rounds, key=lambda r: (scores[r], r))
+        return best, candidates[best], {str(r): v for r, v in scores.items()}
 
     # ------------------------------------------------------------------------------------------ results
     def _per_role(self, obj: np.ndarray) -> dict:
@@ -492,6 +559,7 @@ def refine_stage(capture_dir: str | Path, geometry: str | Path, out: str | Path,
 
     cfg = cfg or RefineConfig()
     cfg.levels()
+    cfg.smoothing_rounds()
     capture_dir, geometry, out = Path(capture_dir), Path(geometry), Path(out)
     if not (geometry / "bake.npz").is_file() or not (geometry / "mesh.obj").is_file():
         raise InputError("not an atlas folder (needs mesh.obj and bake.npz)", geometry, "run texstream atlas first")
@@ -501,7 +569,8 @@ def refine_stage(capture_dir: str | Path, geometry: str | Path, out: str | Path,
     with phase("refine", f"cameras and mesh against {len(capture.frames)} photos"):
         job = PhotometricRefinement(capture, mesh, bake, cfg, device, log)
         result = job.run()
-    moved = dataclasses.replace(mesh, vertices=result.points, normals=None)
+    normals = None if result.normals is None else result.normals[job.weld_host]
+    moved = dataclasses.replace(mesh, vertices=result.points, normals=normals)
     with phase("refine", f"texel bake ({bake.width}x{bake.height})"):
         new_bake = bake_texels(moved, bake.width, bake.height, device=device, padding=bake.padding)
     summary = dict(result.summary)
