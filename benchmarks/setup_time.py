@@ -66,7 +66,8 @@ def child(a) -> dict:
 
     stream = stream_config(image_precision=a.image_precision, photo_residency=a.residency,
                            shadow_map_size=a.shadow_map_size,
-                           photos_per_window=a.photos_per_window, memory_limit_mb=a.memory_limit_mb)
+                           photos_per_window=a.photos_per_window, memory_limit_mb=a.memory_limit_mb,
+                           decode_threads=a.decode_threads)
     cfg = FitConfig(optimizer="lm", max_iterations=a.iterations, sync_every=100000, stream=stream)
     rss_start = rss_mib()
     if a.source == "disk":
@@ -173,6 +174,7 @@ def main() -> None:
     ap.add_argument("--memory-limit-mb", type=float, default=0.0, help="StreamConfig.memory_limit_mb")
     ap.add_argument("--image-precision", default="fp16", choices=("fp16", "fp32"))
     ap.add_argument("--iterations", type=int, default=10)
+    ap.add_argument("--decode-threads", type=int, default=0, help="StreamConfig.decode_threads (0: its default)")
     ap.add_argument("--capture", default=None, help="(child) the capture folder")
     ap.add_argument("--profile", action="store_true", help="also profile a second set-up (cProfile, cumulative) into "
                                                            "the JSON's profile and OUT/profile_RESIDENCY.txt")
@@ -206,7 +208,8 @@ def main() -> None:
                "--source", a.source, "--residency", residency, "--photos-per-window", str(a.photos_per_window),
                "--memory-limit-mb", str(a.memory_limit_mb), "--image-precision", a.image_precision,
                "--iterations", str(a.iterations), "--capture", str(capture), "--photos", str(a.photos),
-               "--image-size", str(a.image_size), "--shadow-map-size", str(a.shadow_map_size)] + (["--profile"] if a.profile else [])
+               "--image-size", str(a.image_size), "--shadow-map-size", str(a.shadow_map_size),
+               "--decode-threads", str(a.decode_threads)] + (["--profile"] if a.profile else [])
         proc = subprocess.run(cmd, capture_output=True, text=True)
         line = next((x for x in proc.stdout.splitlines() if x.startswith("RESULT ")), None)
         if line is None:
