@@ -537,7 +537,8 @@ def traced_polish_applies(problem, cfg: "FitStageConfig") -> bool:
 def traced_polish(problem, result: FitResult, cfg: "FitStageConfig", prior=None) -> FitResult:
     """``cfg.traced_polish`` Levenberg-Marquardt iterations from ``result`` on the same texels and photos with
     traced taps (``StreamConfig.tap_geometry`` mesh), the materials' ``prior`` (centre, weights) kept on; the
-    trace continues ``result``'s (its first row: the start, evaluated with traced taps). Returns ``result`` unchanged where :func:`traced_polish_applies` says no."""
+    trace continues ``result``'s (its first row: the start, evaluated with traced taps). Returns ``result``
+    unchanged where :func:`traced_polish_applies` says no."""
     from .problem import StreamProblem
 
     if not traced_polish_applies(problem, cfg):
@@ -741,8 +742,8 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
         materials_info = {"mode": cfg.materials.mode, **choice}
     if materials_info is not None and materials_info["chosen"] != "per-texel":
         with phase("fit", f"materials: {materials_info['reason']}"):
-            res_m, info = fit_with_materials(problem, result, evidence, materials_info["k"], materials_info["chosen"], cfg,
-                                             polish=True)
+            res_m, info = fit_with_materials(problem, result, evidence, materials_info["k"],
+                                             materials_info["chosen"], cfg, polish=True)
         labels = info.pop("labels")
         materials_info.update(info)
         borrowed = (info, labels, res_m)

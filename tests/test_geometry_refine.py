@@ -193,7 +193,7 @@ def test_noisy_normals_are_smoothed_by_the_shading_they_explain(sphere, tmp_path
     from texstream.geometry.mesh_io import load_mesh, save_mesh
     from texstream.geometry.refine import RefineConfig, refine_stage
 
-    root, truth = sphere
+    root, _ = sphere
     mesh = load_mesh(root / "ground_truth" / "mesh.obj")
     bake = TexelBake.load(root / "ground_truth" / "bake.npz")
     _, inverse = np.unique(mesh.vertices, axis=0, return_inverse=True)  # seams: one jitter per position
