@@ -758,6 +758,7 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
                 result = traced_polish(problem, result, cfg)
         params, lobes_dropped = drop_unsupported_lobes(problem, result, cfg.lobe_support)
         result = dataclasses.replace(result, params=params)
+    polish_iterations = max(0, sum(r.get("stage") == "traced polish" for r in result.trace) - 1)  # less its start row
     grid, filled = params_to_grid(result, problem, bake), 0
     if cfg.unseen == "nearest":
         grid, filled = fill_unseen_texels(grid, problem, bake, result)
@@ -821,7 +822,7 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
                                "residency_reason": problem.photos.residency_reason,
                                "photos_per_window": problem.photos.window},
                     "tiles": tiles_report,
-                    "traced_polish_iterations": max(0, sum(r.get("stage") == "traced polish" for r in result.trace) - 1),
+                    "traced_polish_iterations": polish_iterations,
                     "final": {k: last[k] for k in ("iteration", "time_s", "objective", "psnr_db", "ape_percent")},
                     "lobe_shape": lobe_shape_report(cfg.fit, lay, frames, problem.texels.position),
                     "materials": _materials_manifest(materials_info, evidence, cfg.materials),
