@@ -1,0 +1,116 @@
+"""Variants of the refinement on the photos-only sphere (JSON lines): run after ``benchmarks/refine_limits.py --out
+OUT``, whose folders it reuses.
+
+    python benchmarks/refine_variants.py --out out/photos_only mesh '{"iterations": 24, "normal_smoothing": "0"}'
+    python benchmarks/refine_variants.py --out out/photos_only normals 0,5,20,60
+    python benchmarks/refine_variants.py --out out/photos_only run '{}'
+    python benchmarks/refine_variants.py --out out/photos_only normal_errors -
+
+* ``mesh OPTIONS``: the true cameras with the run's mesh (refine_limits' ``atlas_registered_in_truth``), the mesh
+  refined with these RefineConfig options (cameras held), then the diffuse held-out fit;
+* ``normals ROUNDS``: the refined mesh of refine_limits' ``true_cameras_registered_mesh`` case with its vertex
+  normals averaged over 1-ring neighbours this many times (``geometry/refine.py`` ``smoothed_normals``), re-baked,
+  then the same fit, per number of rounds;
+* ``run OPTIONS``: the run's registered cameras and mesh refined with these options, then the same fit;
+* ``normal_errors``: the angle between each mesh's vertex normals and the true sphere's (radial) normals, median
+  and 90th percentile, for the true mesh, the run's mesh, its refinement (true cameras) and the ``normals`` meshes
+  made so far.
+
+Each result is printed and appended to ``OUT/refine_variants.jsonl`` with the machine and commit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import platform
+import shutil
+import subprocess
+from pathlib import Path
+
+
+def smoothed_atlas(src: Path, out: Path, rounds: int) -> Path:
+    import numpy as np
+
+    from texstream.geometry.bake import TexelBake, bake_texels
+    from texstream.geometry.mesh_io import load_mesh, save_mesh
+    from texstream.geometry.refine import smoothed_normals, vertex_neighbours, weld_vertices, welded_normals
+
+    mesh = load_mesh(src / "mesh.obj")
+    bake = TexelBake.load(src / "bake.npz")
+    weld, welded = weld_vertices(mesh)
+    faces = weld[np.asarray(mesh.faces)]
+    normals = smoothed_normals(welded_normals(welded, faces), *vertex_neighbours(faces, len(welded)), rounds)
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    moved = dataclasses.replace(mesh, normals=normals[weld])
+    save_mesh(out / "mesh.obj", moved)
+    bake_texels(load_mesh(out / "mesh.obj"), bake.width, bake.height, device="cpu", padding=bake.padding).save(
+        out / "bake.npz")
+    if (src / "seams.npz").exists():
+        shutil.copy2(src / "seams.npz", out / "seams.npz")
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", default="out/photos_only")
+    ap.add_argument("mode", choices=("mesh", "normals", "run", "normal_errors"))
+    ap.add_argument("arg", help="RefineConfig options as JSON (mesh, run) or comma-separated rounds (normals)")
+    args = ap.parse_args()
+
+    import warp as wp
+
+    from refine_limits import fit_case, refine_case
+
+    wp.config.quiet = True
+    out = Path(args.out)
+    work = out / "refine_limits"
+    rows = []
+    if args.mode == "normal_errors":
+        import numpy as np
+
+        from texstream.geometry.mesh_io import load_mesh
+
+        truth = load_mesh(out / "truth" / "ground_truth" / "mesh.obj")
+        centre = truth.vertices.mean(axis=0)
+        meshes = {"true mesh": out / "truth" / "ground_truth", "run's mesh": work / "atlas_registered_in_truth",
+                  "refined (true cameras)": work / "true_cameras_registered_mesh",
+                  **{f"refined, {p.name.split('_')[1]} rounds": p for p in sorted(work.glob("normals_*"))
+                     if p.is_dir() and not p.name.endswith("_fit")}}
+        for name, folder in meshes.items():
+            m = load_mesh(folder / "mesh.obj")
+            radial = m.vertices - centre
+            radial /= np.linalg.norm(radial, axis=1, keepdims=True)
+            deg = np.degrees(np.arccos(np.clip(np.sum(m.vertex_normals() * radial, axis=1), -1.0, 1.0)))
+            rows.append({"mode": "normal_errors", "mesh": name, "median_deg": float(np.median(deg)),
+                         "p90_deg": float(np.percentile(deg, 90))})
+    elif args.mode == "normals":
+        for rounds in [int(x) for x in args.arg.split(",")]:
+            atlas = smoothed_atlas(work / "true_cameras_registered_mesh", work / f"normals_{rounds}", rounds)
+            rows.append({"mode": "normals", "rounds": rounds,
+                         **fit_case(work / "true_cameras_registered_mesh", atlas, Path(str(atlas) + "_fit"))})
+    else:
+        options = json.loads(args.arg)
+        tag = "_".join(f"{k}{v}" for k, v in sorted(options.items())) or "default"
+        if args.mode == "mesh":
+            res = refine_case(out / "truth", work / "atlas_registered_in_truth", work / f"mesh_{tag}",
+                              cameras=False, **options)
+        else:
+            res = refine_case(out / "run" / "posed", out / "run" / "atlas", work / f"run_{tag}", **options)
+        rows.append({"mode": args.mode, **res})
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                            cwd=Path(__file__).parent).stdout.strip()
+    with open(out / "refine_variants.jsonl", "a") as f:
+        for r in rows:
+            r.update(machine=f"{platform.node()} ({os.cpu_count()} cores)", commit=commit)
+            f.write(json.dumps(r) + "\n")
+            print(json.dumps({k: r[k] for k in r if k in ("mode", "rounds", "options", "pooled_psnr_db",
+                                                         "worst_psnr_db", "training_psnr_db", "mesh",
+                                                         "median_deg", "p90_deg")}))
+
+
+if __name__ == "__main__":
+    main()
