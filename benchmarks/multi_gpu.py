@@ -121,7 +121,9 @@ def main() -> None:
                "iterations_to_best_minus_0p1dB": hit["iteration"],
                "converged_model_s": setup_s + tile_setup + hit["time_s"],
                "final_objective": tr[-1]["objective"], "final_psnr_db": tr[-1]["psnr_db"],
-               "texels": int(prob.n), "photos": int(prob.photos.n), "tiles": report}
+               "texels": int(prob.n), "photos": int(prob.photos.n), "tiles": report,
+               "setup_phases_s": {**{k: float(v) for k, v in prob.photos.timings.items()},
+                                  "texels_and_problem": setup_s - float(sum(prob.photos.timings.values()))}}
         del prob
         return out, res.params
 

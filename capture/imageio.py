@@ -122,13 +122,31 @@ def _open(path: Path):
     return inp
 
 
-def _read_raw(path: Path) -> tuple[np.ndarray, object]:
-    """Stored pixel values (H, W, C) in the file's own integer or float type, plus the spec."""
+def _size_error(spec, size: tuple[int, int], path: Path, kind: str) -> InputError:
+    """The one-line error for an image whose header size is not the expected (H, W)."""
+    if kind == "mask":
+        return InputError(f"mask is {spec.width}x{spec.height} but its photo is "
+                          f"{int(size[1])}x{int(size[0])}", path, "make the mask the same size as its photo")
+    return InputError(f"image is {spec.width}x{spec.height} but {int(size[1])}x{int(size[0])} is expected "
+                      "(its camera's size)", path,
+                      "fix the frame's w/h in capture.json or re-export the photo")
+
+
+def _read_raw(path: Path, rows: tuple[int, int] | None = None, size: tuple[int, int] | None = None,
+              kind: str = "image") -> tuple[np.ndarray, object]:
+    """Stored pixel values (H, W, C) in the file's own integer or float type, plus the spec.
+
+    ``rows`` (y0, y1): only those rows, (y1 - y0, W, C) (scanline files decode just the blocks holding
+    them; tiled files, data windows not at the origin and volumes are read whole and cut).
+    ``size`` (H, W): the size the caller expects, checked against the header before any pixel is
+    decoded (InputError naming the file; ``kind`` "mask" words it for a mask)."""
     import OpenImageIO as oiio
 
     inp = _open(path)
     try:
         spec = inp.spec()
+        if size is not None and (spec.height, spec.width) != tuple(int(v) for v in size[:2]):
+            raise _size_error(spec, size, path, kind)
         basetype = spec.format.basetype
         if basetype in (oiio.UINT8, oiio.INT8):
             fmt = "uint8"
@@ -136,7 +154,14 @@ def _read_raw(path: Path) -> tuple[np.ndarray, object]:
             fmt = "uint16"
         else:
             fmt = "float"
-        px = inp.read_image(0, 0, 0, spec.nchannels, fmt)
+        if rows is not None and not (0 <= rows[0] < rows[1] <= spec.height):
+            raise InputError(f"rows {rows[0]}..{rows[1]} lie outside the image's {spec.height}", path,
+                             "report this with the command that made it")
+        whole = rows is None or spec.tile_width > 0 or spec.x != 0 or spec.y != 0 or spec.depth > 1
+        if whole:
+            px = inp.read_image(0, 0, 0, spec.nchannels, fmt)
+        else:
+            px = inp.read_scanlines(0, 0, int(rows[0]), int(rows[1]), 0, 0, spec.nchannels, fmt)
         if px is None or inp.has_error:
             msg = inp.geterror().strip().splitlines()
             raise InputError(f"image is corrupt or truncated ({msg[0] if msg else 'read failed'})", path,
@@ -146,6 +171,8 @@ def _read_raw(path: Path) -> tuple[np.ndarray, object]:
             px = px[:, :, None]
         elif px.ndim == 4:  # volume images: (depth, H, W, C); take the first slice
             px = px[0]
+        if whole and rows is not None:
+            px = px[rows[0]:rows[1]]
         return px, spec
     finally:
         inp.close()
@@ -165,8 +192,9 @@ def _gamma_from_colorspace(name: str | None) -> float | None:
     return None
 
 
-def _to_linear(px: np.ndarray, spec, path: Path, linear: bool) -> np.ndarray:
-    """Stored values -> float32, decoding 8-bit sRGB when ``linear``."""
+def _to_linear(px: np.ndarray, spec, path: Path, linear: bool, first_row: int = 0) -> np.ndarray:
+    """Stored values -> float32, decoding 8-bit sRGB when ``linear`` (``first_row``: the image row of
+    ``px``'s first, for the NaN message)."""
     if px.dtype == np.uint8:
         gamma = _gamma_from_colorspace(spec.getattribute("oiio:ColorSpace"))
         if not linear or gamma == 1.0:
@@ -182,7 +210,7 @@ def _to_linear(px: np.ndarray, spec, path: Path, linear: bool) -> np.ndarray:
     if bad.any():
         n = int(bad.sum())
         y, x = np.argwhere(bad)[0][:2]
-        raise InputError(f"image holds {n} NaN/Inf value(s), first at pixel (x={x}, y={y})", path,
+        raise InputError(f"image holds {n} NaN/Inf value(s), first at pixel (x={x}, y={y + first_row})", path,
                          "re-export the image without NaN/Inf (e.g. clamp in the renderer or compositor)")
     return out
 
@@ -198,7 +226,8 @@ def _split_alpha(px: np.ndarray, spec) -> tuple[np.ndarray, np.ndarray | None]:
     return px, None
 
 
-def read_image(path: str | os.PathLike, *, channels: int = 3, linear: bool = True) -> np.ndarray:
+def read_image(path: str | os.PathLike, *, channels: int = 3, linear: bool = True,
+               rows: tuple[int, int] | None = None, size: tuple[int, int] | None = None) -> np.ndarray:
     """Read an image as linear float32.
 
     Args:
@@ -206,21 +235,26 @@ def read_image(path: str | os.PathLike, *, channels: int = 3, linear: bool = Tru
         channels: 3 -> RGB (grey replicated, alpha dropped); 4 -> RGBA (alpha 1 when the file has
             none); 1 -> one channel (grey as is; RGB -> Rec. 709 luminance of the linear values).
         linear: decode 8-bit sRGB to linear (True) or return code / 255 (False).
+        rows: (y0, y1) to read only those rows (a photo cropped to the object: an EXR decodes only
+            the blocks that hold them); NaN/Inf are then checked in those rows only.
+        size: the expected (H, W), checked against the header before decoding.
 
     Returns:
-        (H, W, channels) float32; linear radiance (see the module doc for the per-type rules).
+        (H, W, channels) float32 ((y1 - y0, W, channels) with ``rows``); linear radiance (see the
+        module doc for the per-type rules).
 
     Raises:
-        InputError: missing, empty, unreadable, corrupt or truncated file, zero size, NaN/Inf.
+        InputError: missing, empty, unreadable, corrupt or truncated file, zero size, NaN/Inf, a size
+            other than ``size``.
     """
     if channels not in (1, 3, 4):
         raise ConfigError(f"channels must be 1, 3 or 4, got {channels}")
     path = Path(path)
-    px, spec = _read_raw(path)
+    px, spec = _read_raw(path, rows, size)
     colour, alpha = _split_alpha(px, spec)
     if colour.shape[2] == 0:  # alpha-only image: treat the alpha as grey
         colour, alpha = alpha[:, :, None], None
-    colour = _to_linear(colour, spec, path, linear)
+    colour = _to_linear(colour, spec, path, linear, rows[0] if rows else 0)
     if alpha is not None:  # alpha is coverage, never sRGB-encoded
         alpha = _to_linear(alpha[:, :, None], spec, path, False)[:, :, 0]
     if channels == 1:
@@ -251,7 +285,8 @@ def read_alpha(path: str | os.PathLike) -> np.ndarray | None:
     return _to_linear(alpha[:, :, None], spec, path, False)[:, :, 0]
 
 
-def read_mask(path: str | os.PathLike, shape: tuple[int, int] | None = None) -> np.ndarray:
+def read_mask(path: str | os.PathLike, shape: tuple[int, int] | None = None,
+              rows: tuple[int, int] | None = None) -> np.ndarray:
     """Read a mask: a pixel is object where any colour channel is nonzero (nerfstudio's rule).
 
     A mask file holding only alpha (grey+alpha or RGBA with black colour) uses its alpha.
@@ -259,22 +294,19 @@ def read_mask(path: str | os.PathLike, shape: tuple[int, int] | None = None) -> 
     Args:
         path: mask image (any readable format).
         shape: expected (H, W) (the photo's size); a mismatch is an InputError.
+        rows: (y0, y1) to read only those rows.
 
     Returns:
-        (H, W) bool, True = object.
+        (H, W) bool, True = object ((y1 - y0, W) with ``rows``).
     """
     path = Path(path)
-    px, spec = _read_raw(path)
+    px, spec = _read_raw(path, rows, shape, kind="mask")
     colour, alpha = _split_alpha(px, spec)
     if colour.shape[2] == 0 or (alpha is not None and not colour.any()):
         colour = alpha[:, :, None]
     if colour.dtype.kind == "f":
         colour = _to_linear(colour, spec, path, False)
-    mask = np.any(colour != 0, axis=2)
-    if shape is not None and tuple(mask.shape) != tuple(shape[:2]):
-        raise InputError(f"mask is {mask.shape[1]}x{mask.shape[0]} but its photo is {shape[1]}x{shape[0]}",
-                         path, "make the mask the same size as its photo")
-    return mask
+    return np.any(colour != 0, axis=2)
 
 
 def image_size(path: str | os.PathLike) -> tuple[int, int, int]:

@@ -60,22 +60,27 @@ class PhotoFiles:
     Attributes:
         paths: one image file per photo, in the frames' order.
         mask_paths: per photo its mask file or None.
-        read_image: path -> (H, W, 3) float32 linear image (e.g. ``capture.imageio.read_image``).
-        read_mask: (path, (H, W)) -> (H, W) bool (e.g. ``capture.imageio.read_mask``).
+        read_image: (path, rows=None, size=None) -> (H, W, 3) float32 linear image, only rows
+            (y0, y1) when given, after checking the header's size against ``size`` (H, W) (e.g.
+            ``capture.imageio.read_image``).
+        read_mask: (path, (H, W), rows=None) -> (H, W) bool, likewise (e.g. ``capture.imageio.read_mask``).
     """
 
     paths: Sequence
     mask_paths: Sequence
     read_image: Callable
     read_mask: Callable
+    cache_dir: object = None
+    """folder for the decoded photos' cache (:class:`PhotoCache`; e.g. ``CAPTURE/.texstream-cache``); None:
+    none"""
 
     def __len__(self) -> int:
         return len(self.paths)
 
     def subset(self, indices) -> "PhotoFiles":
-        """The photos ``indices`` (in that order), same readers."""
+        """The photos ``indices`` (in that order), same readers and cache folder."""
         return PhotoFiles([self.paths[k] for k in indices], [self.mask_paths[k] for k in indices],
-                          self.read_image, self.read_mask)
+                          self.read_image, self.read_mask, self.cache_dir)
 
 
 def image_infos(frames, crops: np.ndarray | None, center: np.ndarray | None, radius: float,
@@ -223,15 +228,147 @@ def crop_boxes(points: wp.array, infos: wp.array, widths: np.ndarray, heights: n
     return np.stack([x0, y0, x1 - x0, y1 - y0], axis=1)
 
 
+CACHE_KEEP = 2
+"""photo caches kept per cache folder (the most recently used; a capture fitted with another mesh has other
+crops, hence another cache)"""
+
+CACHE_SPARE_BYTES = 1 << 30
+"""free disk space a new photo cache leaves on its disk"""
+
+
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` runs (on this machine)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:
+        return True  # it exists, owned by someone else
+    return True
+
+
+class PhotoCache:
+    """The photos of a :class:`PhotoFiles` as a window slot holds them (cropped, zero padded to (hmax, wmax),
+    in the image precision) and their masks, in one raw file that is memory-mapped: photos streamed from
+    disk are decoded once, in the first pass, and every later pass (and a later fit of the same capture,
+    crops and precision) copies them from the file (the page cache when it fits in memory) instead of
+    decoding them again. The same bytes as decoding: fits give the same parameters to the bit.
+
+    The file is ``FOLDER/photos-KEY.bin``, KEY a hash of the image and mask paths, sizes and modification
+    times, the crops and the precision, so an edited photo or another mesh (other crops) makes another
+    cache. It is written to a temporary name and renamed when every photo is in it; at most
+    :data:`CACHE_KEEP` caches stay in a folder (the oldest go). Nothing is cached when the folder cannot
+    be written or the disk lacks room (the fit decodes as before)."""
+
+    def __init__(self, files: PhotoFiles, crops: np.ndarray | None, hmax: int, wmax: int, dtype,
+                 has_masks: bool):
+        import hashlib
+        import json
+        from pathlib import Path
+
+        self.folder = Path(files.cache_dir)
+        self.n, self.dtype, self.has_masks = len(files), np.dtype(dtype), bool(has_masks)
+        self.image_shape = (self.n, hmax, wmax, 3)
+        self.mask_shape = (self.n, hmax, wmax)
+        self.image_bytes = int(np.prod(self.image_shape)) * self.dtype.itemsize
+        self.nbytes = self.image_bytes + (int(np.prod(self.mask_shape)) if self.has_masks else 0)
+
+        def stamp(p):
+            if p is None:
+                return None
+            st = os.stat(p)
+            return [os.path.abspath(p), st.st_size, st.st_mtime_ns]
+
+        key = json.dumps({"images": [stamp(p) for p in files.paths],
+                          "masks": [stamp(p) for p in files.mask_paths],
+                          "crops": None if crops is None else np.asarray(crops).tolist(),
+                          "shape": [hmax, wmax], "dtype": self.dtype.str}, sort_keys=True)
+        self.path = self.folder / f"photos-{hashlib.sha256(key.encode()).hexdigest()[:20]}.bin"
+        self.ready = self.path.is_file() and self.path.stat().st_size == self.nbytes
+        self.writing = False
+        self.images = self.masks = None
+        if self.ready:
+            self._map(self.path, "r")
+            os.utime(self.path)  # most recently used: kept when another cache is written
+
+    def _map(self, path, mode: str) -> None:
+        self.images = np.memmap(path, dtype=self.dtype, mode=mode, shape=self.image_shape)
+        self.masks = (np.memmap(path, dtype=np.uint8, mode=mode, offset=self.image_bytes,
+                                shape=self.mask_shape) if self.has_masks else None)
+
+    def start_writing(self) -> str | None:
+        """Open a temporary file for the photos (filled by :meth:`store`). Returns None, or why no cache
+        is written."""
+        import shutil
+
+        try:
+            self.folder.mkdir(parents=True, exist_ok=True)
+            for stale in self.folder.glob("photos-*.bin.tmp*"):  # left by a fit that was killed while writing
+                pid = stale.name.rsplit(".tmp", 1)[-1]
+                if not (pid.isdigit() and _alive(int(pid))):
+                    stale.unlink(missing_ok=True)
+            if shutil.disk_usage(self.folder).free < self.nbytes + CACHE_SPARE_BYTES:
+                return (f"{self.nbytes / 2 ** 30:.2f} GiB would not leave {CACHE_SPARE_BYTES >> 30} GiB free "
+                        "there")
+            self.tmp = self.path.with_name(f"{self.path.name}.tmp{os.getpid()}")
+            self._map(self.tmp, "w+")
+        except OSError as e:
+            return f"{self.folder} cannot be written ({e.strerror or e})"
+        self.written = np.zeros(self.n, bool)
+        self.writing = True
+        return None
+
+    def store(self, k: int, img: np.ndarray, msk: np.ndarray | None) -> None:
+        """Photo k as its slot holds it (called on the loader's threads; photos are disjoint rows)."""
+        self.images[k] = img
+        if self.has_masks:
+            self.masks[k] = msk
+        self.written[k] = True
+
+    def finish(self) -> bool:
+        """Once every photo is stored: flush, rename into place and map it read-only (older caches beyond
+        :data:`CACHE_KEEP` removed). Returns whether the cache is ready."""
+        if not self.writing or not self.written.all():
+            return self.ready
+        try:
+            self.images.flush()
+            if self.masks is not None:
+                self.masks.flush()
+            self.images = self.masks = None
+            os.replace(self.tmp, self.path)
+            self._map(self.path, "r")
+            self.ready, self.writing = True, False
+            caches = sorted(self.folder.glob("photos-*.bin"), key=lambda p: p.stat().st_mtime, reverse=True)
+            for old in caches[CACHE_KEEP:]:
+                old.unlink(missing_ok=True)
+        except OSError:
+            self.abandon()
+        return self.ready
+
+    def abandon(self) -> None:
+        """Stop writing (a fit that ends before a full pass): the temporary file is removed."""
+        if self.writing:
+            self.images = self.masks = None
+            self.writing = False
+            try:
+                self.tmp.unlink(missing_ok=True)
+            except OSError:
+                pass
+
+
 class PhotoLoader:
     """Writes photos, cropped and converted to the image precision, into slots of a buffer.
 
     ``source`` is a list of (H, W, >=3) arrays or :class:`PhotoFiles`; ``masks`` a list of (H, W)
     masks or None entries (ignored for PhotoFiles, which name their own). Slots are zero-padded to
-    the buffer's (hmax, wmax); mask slots hold 1 where the photo may be sampled."""
+    the buffer's (hmax, wmax); mask slots hold 1 where the photo may be sampled. With a ready
+    :class:`PhotoCache` (``cache``, ``index``: photo k is the cache's ``index[k]``) a slot is copied from
+    it; with one being written, each decoded slot is also stored in it."""
 
-    def __init__(self, source, masks, crops: np.ndarray | None, sizes: np.ndarray, threads: int = 0):
+    def __init__(self, source, masks, crops: np.ndarray | None, sizes: np.ndarray, threads: int = 0,
+                 cache: PhotoCache | None = None, index: np.ndarray | None = None):
         self.source, self.masks, self.crops, self.sizes = source, masks, crops, np.asarray(sizes)
+        self.cache, self.index = cache, index
         self.files = isinstance(source, PhotoFiles)
         self.has_masks = (any(p is not None for p in source.mask_paths) if self.files
                           else masks is not None and any(m is not None for m in masks))
@@ -242,26 +379,42 @@ class PhotoLoader:
     def close(self) -> None:
         self.pool.shutdown(wait=True, cancel_futures=True)
 
-    def _photo(self, k: int) -> tuple[np.ndarray, np.ndarray | None]:
+    def _photo(self, k: int, rows: tuple[int, int] | None) -> tuple[np.ndarray, np.ndarray | None]:
+        """Photo k and its mask (None: none), only ``rows`` (y0, y1) of a file when given; the rows of
+        arrays in memory are cut by the caller."""
         h, w = (int(v) for v in self.sizes[k])
         if self.files:
             path = self.source.paths[k]
-            im = self.source.read_image(path)
-            if tuple(im.shape[:2]) != (h, w):
-                raise InputError(f"photo is {im.shape[1]}x{im.shape[0]} but its camera is {w}x{h}", path,
-                                 "fix the frame's w/h in capture.json or re-export the photo")
+            im = self.source.read_image(path, rows=rows, size=(h, w))
             mp = self.source.mask_paths[k]
-            mask = None if mp is None else self.source.read_mask(mp, (h, w))
-        else:
-            im = self.source[k]
-            mask = None if self.masks is None else self.masks[k]
-        return im, mask
+            mask = None if mp is None else self.source.read_mask(mp, (h, w), rows=rows)
+            return im, mask
+        return self.source[k], None if self.masks is None else self.masks[k]
+
+    def cached(self) -> bool:
+        """Whether slots come from a ready :class:`PhotoCache` (copies, no decoding)."""
+        return self.cache is not None and self.cache.ready
 
     def _fill_one(self, k: int, img: np.ndarray, msk: np.ndarray | None) -> None:
-        im, mask = self._photo(k)
+        if self.cached():
+            j = k if self.index is None else int(self.index[k])
+            img[...] = self.cache.images[j]
+            if msk is not None:
+                msk[...] = self.cache.masks[j] if self.cache.has_masks else 1
+            return
+        self._decode_one(k, img, msk)
+        if self.cache is not None and self.cache.writing and self.index is None:
+            self.cache.store(k, img, msk)
+
+    def _decode_one(self, k: int, img: np.ndarray, msk: np.ndarray | None) -> None:
         if self.crops is not None:
             x0, y0, cw, ch = (int(v) for v in self.crops[k])
+            # a file decodes only the crop's rows; the offset of arrays in memory stays y0
+            im, mask = self._photo(k, (y0, y0 + ch))
+            if self.files:
+                y0 = 0
         else:
+            im, mask = self._photo(k, None)
             x0, y0, ch, cw = 0, 0, int(im.shape[0]), int(im.shape[1])
         img[:ch, :cw] = im[y0:y0 + ch, x0:x0 + cw, :3]
         img[ch:] = 0

@@ -25,9 +25,9 @@ from .kernels.lafortune_grad import param_types
 from .kernels.shading import SHADOW_EPS_REL
 from .kernels.visibility import depth_maps_kernel, masked_depth_kernel, shadow_maps_kernel
 from .models import ModelLayout
-from .photo_stream import (LIGHT_KINDS, PhotoFiles, PhotoLoader, choose_residency, crop_boxes,  # noqa: F401
-                           WindowSlots, crop_infos, image_infos, keep_maps_on_device, struct_array, to_half_kernel, wait,
-                           window_size)
+from .photo_stream import (LIGHT_KINDS, PhotoCache, PhotoFiles, PhotoLoader,  # noqa: F401
+                           WindowSlots, choose_residency, crop_boxes, crop_infos, image_infos,
+                           keep_maps_on_device, struct_array, to_half_kernel, wait, window_size)
 
 PRECISIONS = {"fp16": wp.float16, "fp32": wp.float32, "fp64": wp.float64}
 MAX_LAUNCH_THREADS = 1 << 30
@@ -294,6 +294,13 @@ class StreamConfig:
                                      "bounding box plus 3 px): only pixels a texel can see; results equal the "
                                      "uncropped photos' to float rounding of the projection")
     decode_threads: int = option(0, "threads that decode and crop photos (0: min(8, CPU cores))", min=0)
+    photo_cache: str = option("auto", "photos streamed from disk are decoded once, in the first pass, into a "
+                                      "cache beside the capture (CAPTURE/.texstream-cache: the cropped "
+                                      "photos in the image precision, memory-mapped; same values, so the "
+                                      "same fit) that later passes and later fits of the same photos, crops "
+                                      "and precision read instead of decoding again (auto); off: never read "
+                                      "or written",
+                              choices=("auto", "off"))
     tiles: int = option(0, "split the atlas's texels into this many tiles of consecutive texels, each fitted over "
                            "only the photos that see it (fit/tiles.py; the untiled fit's result: texels are fitted "
                            "independently, LM's smoothness by a halo exchange; the Laplacian penalty, bilinear "
@@ -424,6 +431,7 @@ class PhotoSet:
                                       else "; depth and shadow maps recomputed per window")
         say("fit", f"photos: {self.residency}, {self.window} per window ({self.residency_reason})")
         self.loader = PhotoLoader(images, masks, self.crops, sizes, cfg.decode_threads)
+        self._open_cache(cfg, fp16)
         self.timings["other"] += time.perf_counter() - t_start
         if self.residency == "device":
             self._init_device()
@@ -432,6 +440,32 @@ class PhotoSet:
         if self.residency != "disk":
             self.loader.close()
             self.loader = None  # nothing is read again: drop the caller's photos' references
+
+    def _open_cache(self, cfg: StreamConfig, fp16: bool) -> None:
+        """The decoded photos' cache (:class:`~texstream.fit.photo_stream.PhotoCache`): read when one is
+        ready for these photos, crops and precision (any residency); started when photos are streamed
+        from disk (filled by the first pass). Said, with the reason when none is written."""
+        source = self.loader.source
+        if cfg.photo_cache == "off" or not self.files or source.cache_dir is None:
+            return
+        cache = PhotoCache(source, self.crops, self.hmax, self.wmax, np.float16 if fp16 else np.float32,
+                           self.loader.has_masks)
+        if cache.ready:
+            self.loader.cache = cache
+            say("fit", f"photos: read from the cache {cache.path} (decoded before)")
+        elif self.residency == "disk":
+            why = cache.start_writing()
+            if why is None:
+                self.loader.cache = cache
+                say("fit", f"photos: decoded once into the cache {cache.path} "
+                           f"({cache.nbytes / 2 ** 30:.2f} GiB)")
+            else:
+                say("fit", f"photos: no cache written ({why}); each pass decodes them")
+
+    def _finish_cache(self) -> None:
+        cache = self.loader.cache if self.loader is not None else None
+        if cache is not None and cache.writing and cache.finish():
+            say("fit", f"photos: cached in {cache.path}")
 
     def _sync(self) -> None:
         wp.synchronize_device(self.device)
@@ -501,11 +535,13 @@ class PhotoSet:
         numpy's float16 conversion, which would otherwise bound the set-up (both round to nearest even,
         so the halves are the same)."""
         n, dev, pix = self.n, self.device, self.hmax * self.wmax
-        half = self.img_dtype == wp.vec3h
+        # photos from the cache are already in the image precision: staged and copied as they are
+        half = self.img_dtype == wp.vec3h and not self.loader.cached()
         pinned = dev != "cpu"
-        chunk = max(1, min(n, UPLOAD_CHUNK_BYTES // (pix * 12)))
+        stage_dtype = wp.vec3 if half else self.img_dtype
+        chunk = max(1, min(n, UPLOAD_CHUNK_BYTES // (pix * wp.types.type_size_in_bytes(stage_dtype))))
         shape = (chunk, self.hmax, self.wmax)
-        stage = [wp.empty(shape, dtype=wp.vec3, device="cpu", pinned=pinned) for _ in range(2)]
+        stage = [wp.empty(shape, dtype=stage_dtype, device="cpu", pinned=pinned) for _ in range(2)]
         stage_m = [self._masks_buffer(chunk, "cpu", pinned) for _ in range(2)]
         landing = wp.empty(shape, dtype=wp.vec3, device=dev) if half else None
         copied = [None, None]
@@ -651,7 +687,11 @@ class PhotoSet:
         if self.residency == "disk":  # the window buffers are shared: the two sets are never streamed at once
             files = self.loader.source.subset(idx)
             out.sizes = self.sizes[idx]
-            out.loader = PhotoLoader(files, None, out.crops, out.sizes, self.loader.threads)
+            parent = self.loader
+            cache = parent.cache if parent.cached() else None  # a cache still being written serves no subset
+            index = None if cache is None else (idx if parent.index is None else parent.index[idx])
+            out.loader = PhotoLoader(files, None, out.crops, out.sizes, parent.threads, cache=cache,
+                                     index=index)
             out.maps_on_device = False  # the kept maps are the whole set's: a subset's windows make their own
             out.image_bytes = self.image_bytes // self.n * out.n
             return out
@@ -713,6 +753,7 @@ class PhotoSet:
             self._submit_window(b)
         _, _, slot, futures = slots.pending
         wait(futures)
+        self._finish_cache()
         self._submit_window(b + self.window if b + self.window < self.n else 0)
         # one copy to the window's device arrays on every device (on the CPU a memcpy, small beside the
         # decoding), so the CPU runs the path CUDA does

@@ -13,6 +13,7 @@ matplotlib inside its functions: it is a stage, not the GPU-side core.
 from __future__ import annotations
 
 import dataclasses
+import shutil
 import time
 from pathlib import Path
 
@@ -123,6 +124,11 @@ def load_photos(capture, frames, device: str | None = None):
     return images, masks
 
 
+PHOTO_CACHE_FOLDER = ".texstream-cache"
+"""the capture's folder for photos decoded once and streamed from there
+(:class:`~texstream.fit.photo_stream.PhotoCache`)"""
+
+
 def photo_files(capture, frames):
     """The frames' photos and masks as files (:class:`texstream.fit.photo_stream.PhotoFiles`), decoded
     by the fit's PhotoSet on a pool of threads: all at set-up when they stay in memory, or a window
@@ -136,7 +142,8 @@ def photo_files(capture, frames):
         mp = capture.mask_path(f)
         masks.append(mp if mp is not None and mp.exists() else None)
     return PhotoFiles([capture.image_path(f) for f in frames], masks,
-                      lambda path: read_image(path, channels=3), read_mask)
+                      lambda path, rows=None, size=None: read_image(path, channels=3, rows=rows, size=size),
+                      read_mask, cache_dir=Path(capture.root) / PHOTO_CACHE_FOLDER)
 
 
 def read_photos(photos, masks, indices):
@@ -303,7 +310,9 @@ class Checkpoint:
     def save(self, state: dict) -> None:
         from texstream.geometry.mesh_io import write_npz_atomic
 
-        write_npz_atomic(self.path, key=np.array(self.key), **{k: np.asarray(v) for k, v in state.items()})
+        # uncompressed: written every sync_every iterations and removed at the end
+        write_npz_atomic(self.path, compress=False, key=np.array(self.key),
+                         **{k: np.asarray(v) for k, v in state.items()})
 
     def remove(self) -> None:
         self.path.unlink(missing_ok=True)
@@ -772,9 +781,14 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
             m &= read_mask(capture.mask_path(f), coverage.shape)
         return image, m
 
+    t_fitted = time.perf_counter()
     with atomic_output_dir(out_dir) as tmp, phase("fit", f"{cfg.fit.model}: held-out renders and the model folder"):
         save_mesh(tmp / "mesh.obj", mesh)
-        bake.save(tmp / "bake.npz")
+        baked = Path(mesh_path) / "bake.npz"
+        if Path(mesh_path).is_dir() and baked.is_file():  # the bake the fit read (load_geometry): copied
+            shutil.copyfile(baked, tmp / "bake.npz")
+        else:
+            bake.save(tmp / "bake.npz")
         # every held-out view is scored (pooled and worst-view PSNR); the first `renders` are written as images
         show = held if held else frames[: max(cfg.renders, 0)]
         evals = render_comparisons(tmp / "renders", show, load_photos(capture, show)[0] if show else [], held, render,
@@ -827,6 +841,8 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
                     "lobe_shape": lobe_shape_report(cfg.fit, lay, frames, problem.texels.position),
                     "materials": _materials_manifest(materials_info, evidence, cfg.materials),
                     "seams": seams_info, "setup_s": t_setup, "passes": result.passes, "device": cfg.device,
+                    "timings_s": {"inputs_and_setup": t_setup, "fit": t_fitted - t0 - t_setup,
+                                  "renders": time.perf_counter() - t_fitted},
                     "render_eval": evals, "heldout": pooled_psnr([e for e in evals if e["held_out"]]),
                     "units": UNITS[lay.kind]}
         write_model_folder(tmp, grid, lay, seen.reshape(bake.height, bake.width), result.trace,

@@ -444,7 +444,9 @@ def run_tiled_fit(problem: StreamProblem, cfg: FitConfig, start: tuple[np.ndarra
         return run_ray_tiled_fit(problem, cfg, start, progress)
     t0 = time.perf_counter()
     guess, counts = start if start is not None else initial_guess(problem, cfg)
+    t_guess = time.perf_counter()
     plan = plan_tiles(problem, cfg)
+    t_plan = time.perf_counter()
     tcfg = tile_config(problem, cfg)
     mean_sq = exposure_mean_square(problem.photos)
     pool = SlotPool(plan)
@@ -465,6 +467,8 @@ def run_tiled_fit(problem: StreamProblem, cfg: FitConfig, start: tuple[np.ndarra
         pool.close()
     result = assemble(problem, cfg, counts, parts, sums, times, it_done)
     report = {**plan.report(problem.photos.n), "backend": "threads", "tile_setup_s": t_setup,
+              "tile_setup_phases_s": {"initial_guess": t_guess - t0, "plan": t_plan - t_guess,
+                                      "tile_problems": t_setup - (t_plan - t0)},
               "halo_texels": [int(h.size) for h in plan.halo],
               "fit_s": times[-1]}
     return result, report

@@ -123,9 +123,10 @@ def _write_atomic(p: Path, data: bytes) -> None:
     write_atomic_with(p, lambda fh: fh.write(data))
 
 
-def write_npz_atomic(path: str | os.PathLike, **arrays) -> None:
-    """``np.savez_compressed(path, **arrays)`` written atomically (a temporary file, then a rename)."""
-    write_atomic_with(Path(path), lambda fh: np.savez_compressed(fh, **arrays))
+def write_npz_atomic(path: str | os.PathLike, compress: bool = True, **arrays) -> None:
+    """``np.savez_compressed(path, **arrays)`` (``np.savez`` without ``compress``: a scratch file written
+    often, where zlib would cost more than the disk) written atomically (a temporary file, then a rename)."""
+    write_atomic_with(Path(path), lambda fh: (np.savez_compressed if compress else np.savez)(fh, **arrays))
 
 
 def _unweld(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

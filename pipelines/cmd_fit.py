@@ -79,7 +79,11 @@ def run(args: argparse.Namespace) -> int:
                                                           "renders", "min_seen_fraction", "skip_bad_photos",
                                                           "traced_polish")
                             if hasattr(args, k)})
-    res = fit_stage(args.capture, args.mesh, args.out, cfg)
+    from texstream.core.progress import reporting
+
+    # the stage's phase lines, as texstream run prints them
+    with reporting(lambda line: print(line, flush=True)):
+        res = fit_stage(args.capture, args.mesh, args.out, cfg)
     s = res.summary
     print(f"wrote {res.output}: {s['texels']} texels from {s['photos']} photos, {s['iterations']} iterations in "
           f"{s['time_s']:.1f} s, sample PSNR {s['psnr_db']:.2f} dB")

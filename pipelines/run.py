@@ -157,9 +157,11 @@ def _hash(*parts: Any) -> str:
 
 
 def _files_hash(folder: Path) -> str:
-    """Names, sizes and modification times of a folder's files (cheap; changes when a photo does)."""
+    """Names, sizes and modification times of a folder's files (cheap; changes when a photo does). Hidden
+    files and folders (a stage's stamp, the fit's decoded-photo cache ``.texstream-cache``) are not inputs."""
     rows = sorted((str(p.relative_to(folder)), p.stat().st_size, p.stat().st_mtime_ns)
-                  for p in folder.rglob("*") if p.is_file() and not p.name.startswith("."))
+                  for p in folder.rglob("*")
+                  if p.is_file() and not any(part.startswith(".") for part in p.relative_to(folder).parts))
     return _hash(rows)
 
 

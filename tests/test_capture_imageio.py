@@ -195,3 +195,48 @@ def test_nan_in_exr(tmp_path, bad):
     p = write_image(tmp_path / "nan.exr", img, bits=32)
     with pytest.raises(InputError, match=r"nan.exr.*NaN/Inf.*x=5, y=3"):
         read_image(p)
+
+
+# ---------------------------------------------------------------- rows (photos cropped to the object)
+
+
+@pytest.mark.parametrize("ext,bits", [("exr", 32), ("exr", None), ("png", 8), ("png", 16), ("jpg", 8),
+                                      ("tif", 32)])
+def test_rows_equal_the_rows_of_the_whole_image(tmp_path, ext, bits):
+    """Reading rows y0..y1 gives those rows of the whole image to the bit (the same decoder, only the
+    blocks holding them decoded), for scanline formats of every depth."""
+    img = _smooth(40, 28)
+    p = write_image(tmp_path / f"rows.{ext}", img, **({} if bits is None else {"bits": bits}))
+    whole = read_image(p)
+    for y0, y1 in ((0, 40), (7, 23), (39, 40)):
+        np.testing.assert_array_equal(read_image(p, rows=(y0, y1), size=(40, 28)), whole[y0:y1])
+    m = write_image(tmp_path / "mask.png", (img[..., :1] > 0.5).repeat(3, axis=2).astype(np.float32), bits=8)
+    np.testing.assert_array_equal(read_mask(m, (40, 28), rows=(5, 30)), read_mask(m)[5:30])
+
+
+def test_rows_of_a_tiled_exr(tmp_path):
+    """A tiled EXR has no scanlines to pick: it is read whole and cut, the same values."""
+    import OpenImageIO as oiio
+
+    img = _smooth(40, 28)
+    spec = oiio.ImageSpec(28, 40, 3, "float")
+    spec.tile_width = spec.tile_height = 16
+    out = oiio.ImageOutput.create(str(tmp_path / "tiled.exr"))
+    assert out.open(str(tmp_path / "tiled.exr"), spec) and out.write_image(img)
+    out.close()
+    assert image_size(tmp_path / "tiled.exr") == (28, 40, 3)
+    np.testing.assert_array_equal(read_image(tmp_path / "tiled.exr", rows=(9, 33)), img[9:33])
+
+
+def test_rows_check_the_size_first_and_nan_only_in_them(tmp_path):
+    img = _smooth(40, 28)
+    img[2, 3, 0] = np.nan  # outside the rows read: never decoded, never a sample
+    p = write_image(tmp_path / "photo.exr", img, bits=32)
+    with pytest.raises(InputError, match=r"photo.exr: image is 28x40 but 30x40 is expected.*capture.json"):
+        read_image(p, rows=(5, 10), size=(40, 30))
+    assert np.isfinite(read_image(p, rows=(5, 10))).all()
+    with pytest.raises(InputError, match=r"NaN/Inf.*x=3, y=2"):
+        read_image(p, rows=(1, 10))
+    m = write_image(tmp_path / "m.png", np.ones((40, 28, 3), np.float32), bits=8)
+    with pytest.raises(InputError, match=r"m.png: mask is 28x40 but its photo is 30x40"):
+        read_mask(m, (40, 30), rows=(0, 4))

@@ -133,11 +133,54 @@ def test_cropped_photos_keep_every_sample(scene, device):
 
 
 def fit(disk_scene, files, device, **stream):
+    """A 3-iteration LM fit of the capture, from its files (``files``: True, or a PhotoFiles) or from the
+    photos in memory; photos are decoded, not read from a cache, unless ``photo_cache`` says otherwise."""
     capture, mesh, bake, frames, images, masks = disk_scene
+    stream.setdefault("photo_cache", "off")
     cfg = FitConfig(optimizer="lm", max_iterations=3, stream=StreamConfig(shadow_map_size=SHADOW, **stream))
-    source = photo_files(capture, frames) if files else images
-    prob = build_problem(mesh, bake, frames, source, None if files else masks, cfg, device)
+    source = images if files is False else photo_files(capture, frames) if files is True else files
+    prob = build_problem(mesh, bake, frames, source, None if files is False else masks, cfg, device)
     return prob, run_fit(prob, cfg)
+
+
+@pytest.mark.parametrize("precision", ["fp32", "fp16"])
+def test_photos_streamed_from_disk_are_decoded_once_into_a_cache(disk_scene, device, tmp_path, precision):
+    """The first pass from disk fills the cache; later passes and later fits read it (no decoding) and fit
+    to the same bits as decoding every pass; a ready cache also feeds a fit with the photos on the device."""
+    import os
+
+    capture, mesh, bake, frames, images, masks = disk_scene
+    files = photo_files(capture, frames)
+    files.cache_dir = tmp_path / "cache"  # the module's capture folder stays uncached for the other tests
+    kw = dict(photo_residency="disk", photos_per_window=4, image_precision=precision)
+    decoded, r_decoded = fit(disk_scene, True, device, **kw)
+    first, r_first = fit(disk_scene, files, device, photo_cache="auto", **kw)
+    cache = first.photos.loader.cache
+    assert cache is not None and cache.ready and first.photos.loader.cached()
+    assert [p.name for p in files.cache_dir.iterdir()] == [cache.path.name]  # no temporary file left
+    np.testing.assert_array_equal(r_first.params, r_decoded.params)
+    assert [r["objective"] for r in r_first.trace] == [r["objective"] for r in r_decoded.trace]
+    again, r_again = fit(disk_scene, files, device, photo_cache="auto", **kw)
+    assert again.photos.loader.cached() and again.photos.loader.cache.path == cache.path
+    np.testing.assert_array_equal(r_again.params, r_decoded.params)
+    dev = dict(photo_residency="device", image_precision=precision)
+    on_device, r_on_device = fit(disk_scene, True, device, **dev)
+    from_cache, r_from_cache = fit(disk_scene, files, device, photo_cache="auto", **dev)
+    np.testing.assert_array_equal(r_from_cache.params, r_on_device.params)
+    # a photo edited since (its modification time) makes another cache; an unwritable folder none
+    st = os.stat(files.paths[3])
+    os.utime(files.paths[3], ns=(st.st_atime_ns, st.st_mtime_ns + 1))
+    try:
+        edited, _ = fit(disk_scene, files, device, photo_cache="auto", **kw)
+        assert edited.photos.loader.cache.path != cache.path and edited.photos.loader.cached()
+    finally:
+        os.utime(files.paths[3], ns=(st.st_atime_ns, st.st_mtime_ns))
+    blocked = tmp_path / "blocked"
+    blocked.write_text("a file where the cache folder would go")
+    files.cache_dir = blocked
+    none, r_none = fit(disk_scene, files, device, photo_cache="auto", **kw)
+    assert none.photos.loader.cache is None
+    np.testing.assert_array_equal(r_none.params, r_decoded.params)
 
 
 def test_streamed_from_disk_host_and_device_fits_agree(disk_scene, device):
