@@ -63,6 +63,8 @@ procedural meshes), :func:`synthesize` writes a capture folder plus ``ground_tru
 
 from __future__ import annotations
 
+import collections
+import concurrent.futures
 import dataclasses
 import json
 import math
@@ -762,12 +764,26 @@ def synthesize(scene, out_dir: str | os.PathLike, config: SynthConfig | None = N
         (tmp / "masks").mkdir()
         gt.mkdir()
         n_fg = 0
-        for i, f, photo, mask, clean in iter_renders(sc, mesh, params, layout, frames, config):
+
+        def write(f, photo, mask, clean):
             write_image(tmp / f.file_path, photo, bits=bits)
             write_image(tmp / f.mask_path, np.where(mask, np.uint8(255), np.uint8(0)), bits=8)
             if config.save_clean:
                 write_image(gt / "clean" / f"{f.name}.exr", clean, bits=32)
-            n_fg += int(mask.sum())
+
+        # encoding (EXR zip, PNG deflate) releases the GIL: photos are written on threads while the next ones
+        # render; at most two per thread wait, so memory stays a few photos
+        workers = max(1, min(8, os.cpu_count() or 1))
+        with concurrent.futures.ThreadPoolExecutor(max_workers=workers) as pool:
+            pending = collections.deque()
+            for i, f, photo, mask, clean in iter_renders(sc, mesh, params, layout, frames, config):
+                # copies: the renderer may hand out views of buffers it reuses for the next frame
+                pending.append(pool.submit(write, f, photo, np.array(mask), np.array(clean)))
+                n_fg += int(mask.sum())
+                while len(pending) > 2 * workers:
+                    pending.popleft().result()
+            for job in pending:
+                job.result()
         write_capture(Capture(root=tmp, frames=frames, extra={"texstream_synthetic": sc.get("name", "")}), tmp)
         save_mesh(gt / "mesh.obj", mesh)
         files = write_param_maps(gt, params, layout)
