@@ -249,10 +249,12 @@ def _alive(pid: int) -> bool:
 
 class PhotoCache:
     """The photos of a :class:`PhotoFiles` as a window slot holds them (cropped, zero padded to (hmax, wmax),
-    in the image precision) and their masks, in one raw file that is memory-mapped: photos streamed from
-    disk are decoded once, in the first pass, and every later pass (and a later fit of the same capture,
-    crops and precision) copies them from the file (the page cache when it fits in memory) instead of
-    decoding them again. The same bytes as decoding: fits give the same parameters to the bit.
+    in the image precision) and their masks, in one raw file: photos streamed from disk are decoded once, in
+    the first pass, and every later pass (and a later fit of the same capture, crops and precision) reads
+    them from the file (the page cache when it fits in memory) straight into the slots instead of decoding
+    them again. The same bytes as decoding: fits give the same parameters to the bit. Reads and writes are
+    positioned (pread / pwrite from the loader's threads), not a memory map, so the page cache does not
+    count in the fit's resident memory.
 
     The file is ``FOLDER/photos-KEY.bin``, KEY a hash of the image and mask paths, sizes and modification
     times, the crops and the precision, so an edited photo or another mesh (other crops) makes another
@@ -268,10 +270,11 @@ class PhotoCache:
 
         self.folder = Path(files.cache_dir)
         self.n, self.dtype, self.has_masks = len(files), np.dtype(dtype), bool(has_masks)
-        self.image_shape = (self.n, hmax, wmax, 3)
-        self.mask_shape = (self.n, hmax, wmax)
-        self.image_bytes = int(np.prod(self.image_shape)) * self.dtype.itemsize
-        self.nbytes = self.image_bytes + (int(np.prod(self.mask_shape)) if self.has_masks else 0)
+        self.slot_shape, self.mask_slot_shape = (hmax, wmax, 3), (hmax, wmax)
+        self.photo_bytes = hmax * wmax * 3 * self.dtype.itemsize
+        self.mask_bytes = hmax * wmax if self.has_masks else 0
+        self.image_bytes = self.n * self.photo_bytes
+        self.nbytes = self.image_bytes + self.n * self.mask_bytes
 
         def stamp(p):
             if p is None:
@@ -284,17 +287,33 @@ class PhotoCache:
                           "crops": None if crops is None else np.asarray(crops).tolist(),
                           "shape": [hmax, wmax], "dtype": self.dtype.str}, sort_keys=True)
         self.path = self.folder / f"photos-{hashlib.sha256(key.encode()).hexdigest()[:20]}.bin"
-        self.ready = self.path.is_file() and self.path.stat().st_size == self.nbytes
+        self.fd = None
         self.writing = False
-        self.images = self.masks = None
+        self.ready = self.path.is_file() and self.path.stat().st_size == self.nbytes
         if self.ready:
-            self._map(self.path, "r")
-            os.utime(self.path)  # most recently used: kept when another cache is written
+            try:
+                self.fd = os.open(self.path, os.O_RDONLY)
+                os.utime(self.path)  # most recently used: kept when another cache is written
+            except OSError:
+                self.ready = False
 
-    def _map(self, path, mode: str) -> None:
-        self.images = np.memmap(path, dtype=self.dtype, mode=mode, shape=self.image_shape)
-        self.masks = (np.memmap(path, dtype=np.uint8, mode=mode, offset=self.image_bytes,
-                                shape=self.mask_shape) if self.has_masks else None)
+    def __del__(self):
+        self.close()
+
+    def close(self) -> None:
+        if self.fd is not None:
+            os.close(self.fd)
+            self.fd = None
+
+    def read(self, k: int, img: np.ndarray, msk: np.ndarray | None) -> None:
+        """Photo k into its slot ``img`` and mask slot ``msk`` (on the loader's threads)."""
+        _read_exactly(self.fd, img, k * self.photo_bytes, self.dtype, self.slot_shape)
+        if msk is not None:
+            if self.has_masks:
+                _read_exactly(self.fd, msk, self.image_bytes + k * self.mask_bytes, np.uint8,
+                              self.mask_slot_shape)
+            else:
+                msk[...] = 1
 
     def start_writing(self) -> str | None:
         """Open a temporary file for the photos (filled by :meth:`store`). Returns None, or why no cache
@@ -311,32 +330,29 @@ class PhotoCache:
                 return (f"{self.nbytes / 2 ** 30:.2f} GiB would not leave {CACHE_SPARE_BYTES >> 30} GiB free "
                         "there")
             self.tmp = self.path.with_name(f"{self.path.name}.tmp{os.getpid()}")
-            self._map(self.tmp, "w+")
+            self.fd = os.open(self.tmp, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o644)
+            os.ftruncate(self.fd, self.nbytes)
         except OSError as e:
+            self.close()
             return f"{self.folder} cannot be written ({e.strerror or e})"
         self.written = np.zeros(self.n, bool)
         self.writing = True
         return None
 
     def store(self, k: int, img: np.ndarray, msk: np.ndarray | None) -> None:
-        """Photo k as its slot holds it (called on the loader's threads; photos are disjoint rows)."""
-        self.images[k] = img
+        """Photo k as its slot holds it (on the loader's threads: positioned writes of disjoint ranges)."""
+        _write_exactly(self.fd, img, k * self.photo_bytes, self.dtype)
         if self.has_masks:
-            self.masks[k] = msk
+            _write_exactly(self.fd, msk, self.image_bytes + k * self.mask_bytes, np.uint8)
         self.written[k] = True
 
     def finish(self) -> bool:
-        """Once every photo is stored: flush, rename into place and map it read-only (older caches beyond
-        :data:`CACHE_KEEP` removed). Returns whether the cache is ready."""
+        """Once every photo is stored: rename the file into place (older caches beyond :data:`CACHE_KEEP`
+        removed) and read from it from now on. Returns whether the cache is ready."""
         if not self.writing or not self.written.all():
             return self.ready
         try:
-            self.images.flush()
-            if self.masks is not None:
-                self.masks.flush()
-            self.images = self.masks = None
-            os.replace(self.tmp, self.path)
-            self._map(self.path, "r")
+            os.replace(self.tmp, self.path)  # the descriptor stays open on the renamed file
             self.ready, self.writing = True, False
             caches = sorted(self.folder.glob("photos-*.bin"), key=lambda p: p.stat().st_mtime, reverse=True)
             for old in caches[CACHE_KEEP:]:
@@ -348,12 +364,35 @@ class PhotoCache:
     def abandon(self) -> None:
         """Stop writing (a fit that ends before a full pass): the temporary file is removed."""
         if self.writing:
-            self.images = self.masks = None
             self.writing = False
+            self.close()
             try:
                 self.tmp.unlink(missing_ok=True)
             except OSError:
                 pass
+
+
+def _read_exactly(fd: int, dst: np.ndarray, offset: int, dtype, shape) -> None:
+    """Fill ``dst`` ((shape) of ``dtype``) from the file at ``offset`` (through a temporary when ``dst`` is
+    not a contiguous array of that type)."""
+    direct = dst.dtype == dtype and dst.flags.c_contiguous and dst.shape == tuple(shape)
+    buf = dst if direct else np.empty(shape, dtype)
+    view = memoryview(buf.reshape(-1).view(np.uint8))
+    done = 0
+    while done < view.nbytes:
+        got = os.preadv(fd, [view[done:]], offset + done)
+        if got <= 0:
+            raise OSError(f"photo cache ended early at byte {offset + done}")
+        done += got
+    if not direct:
+        dst[...] = buf
+
+
+def _write_exactly(fd: int, src: np.ndarray, offset: int, dtype) -> None:
+    data = memoryview(np.ascontiguousarray(src, dtype=dtype).reshape(-1).view(np.uint8))
+    done = 0
+    while done < data.nbytes:
+        done += os.pwrite(fd, data[done:], offset + done)
 
 
 class PhotoLoader:
@@ -397,10 +436,7 @@ class PhotoLoader:
 
     def _fill_one(self, k: int, img: np.ndarray, msk: np.ndarray | None) -> None:
         if self.cached():
-            j = k if self.index is None else int(self.index[k])
-            img[...] = self.cache.images[j]
-            if msk is not None:
-                msk[...] = self.cache.masks[j] if self.cache.has_masks else 1
+            self.cache.read(k if self.index is None else int(self.index[k]), img, msk)
             return
         self._decode_one(k, img, msk)
         if self.cache is not None and self.cache.writing and self.index is None:
