@@ -27,7 +27,7 @@ from .optim.linesearch import LineSearchConfig, line_search
 from .optim.lm import LevenbergMarquardt
 from .optim.steepest import SteepestDescent
 from .penalties import PenaltyConfig, Penalties
-from .lfm import LFMConfig
+from .lfm_config import LFMConfig
 from .problem import StreamConfig, StreamProblem, no_light_error
 
 OPTIMIZERS = ("sd", "cg", "lbfgs", "lm")

@@ -49,7 +49,7 @@ MIN_PHOTOS = 3  # structure from motion needs two views to start and a third to 
 
 def _fit_stage_config():
     from texstream.fit.fitter import FitConfig
-    from texstream.fit.lfm import LFMConfig
+    from texstream.fit.lfm_config import LFMConfig
     from texstream.fit.stage import FitStageConfig
 
     return FitStageConfig(holdout_every=8, fit=FitConfig(lfm=LFMConfig(iterations=RUN_LFM_ITERATIONS)))
