@@ -189,6 +189,9 @@ def _light_from(d: Any, where: str, path: Path) -> Light:
                      "use a point or directional light")
 
 
+_LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
+
+
 def read_capture(folder: str | os.PathLike) -> Capture:
     """Read ``capture.json`` (or a nerfstudio ``transforms.json``) from a folder or file path.
 
@@ -223,7 +226,7 @@ def read_capture(folder: str | os.PathLike) -> Capture:
             m = np.zeros(0)
         if m.shape not in ((4, 4), (3, 4)) or not np.all(np.isfinite(m)):
             raise InputError(f"{where} transform_matrix is not a finite 4x4 matrix", path, "write a 4x4 camera-to-world matrix")
-        if m.shape == (4, 4) and not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
+        if m.shape == (4, 4) and np.abs(m[3] - _LAST_ROW).max() > 1e-6:
             raise InputError(f"{where} transform_matrix last row is {m[3].tolist()}, not [0, 0, 0, 1]", path,
                              "write a rigid 4x4 camera-to-world matrix")
         if not is_rotation(m[:3, :3], tol=1e-3):

@@ -88,9 +88,15 @@ def project(points: np.ndarray, r: np.ndarray, t: np.ndarray, fx: float, fy: flo
 def is_rotation(r: np.ndarray, tol: float = 1e-4) -> bool:
     """True when r is a proper rotation (orthonormal, det +1) to tol."""
     r = np.asarray(r, dtype=np.float64)
-    if r.shape != (3, 3) or not np.all(np.isfinite(r)):
+    if r.shape != (3, 3) or not np.isfinite(r).all():
         return False
-    return bool(np.allclose(r.T @ r, np.eye(3), atol=tol) and abs(np.linalg.det(r) - 1.0) < tol)
+    # plain array arithmetic: a capture of thousands of frames checks one per frame
+    det = (r[0, 0] * (r[1, 1] * r[2, 2] - r[1, 2] * r[2, 1]) - r[0, 1] * (r[1, 0] * r[2, 2] - r[1, 2] * r[2, 0])
+           + r[0, 2] * (r[1, 0] * r[2, 1] - r[1, 1] * r[2, 0]))
+    return bool(np.abs(r.T @ r - _EYE3).max() <= tol and abs(det - 1.0) < tol)
+
+
+_EYE3 = np.eye(3)
 
 
 def look_at_w2c(eye: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
