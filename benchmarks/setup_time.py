@@ -55,6 +55,10 @@ def child(a) -> dict:
 
     wp.config.quiet = True
     wp.init()
+    if a.recompute_maps:
+        import texstream.fit.problem as problem
+
+        problem.keep_maps_on_device = lambda *args, **kw: False
     from texstream.fit.fitter import FitConfig, run_fit
     from texstream.fit.problem import StreamConfig
     from texstream.fit.stage import build_problem
@@ -186,6 +190,9 @@ def main() -> None:
     ap.add_argument("--capture", default=None, help="(child) the capture folder")
     ap.add_argument("--profile", action="store_true", help="also profile a second set-up (cProfile, cumulative) into "
                                                            "the JSON's profile and OUT/profile_RESIDENCY.txt")
+    ap.add_argument("--recompute-maps", action="store_true", help="photos streamed from disk: recompute each window's "
+                                                                   "depth and shadow maps even where the device has "
+                                                                   "room to keep them (as larger captures must)")
     ap.add_argument("--reuse-capture", action="store_true", help="with --source disk: fit OUT/capture as it is when "
                                                                   "it exists (written by an earlier run)")
     ap.add_argument("--child", action="store_true", help="(internal) run one residency and print its JSON")
@@ -222,7 +229,8 @@ def main() -> None:
                "--memory-limit-mb", str(a.memory_limit_mb), "--image-precision", a.image_precision,
                "--iterations", str(a.iterations), "--capture", str(capture), "--photos", str(a.photos),
                "--image-size", str(a.image_size), "--shadow-map-size", str(a.shadow_map_size),
-               "--decode-threads", str(a.decode_threads)] + (["--profile"] if a.profile else [])
+               "--decode-threads", str(a.decode_threads)] + (["--profile"] if a.profile else []) + (
+                   ["--recompute-maps"] if a.recompute_maps else [])
         proc = subprocess.run(cmd, capture_output=True, text=True)
         line = next((x for x in proc.stdout.splitlines() if x.startswith("RESULT ")), None)
         if line is None:
