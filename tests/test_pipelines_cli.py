@@ -92,3 +92,17 @@ def test_debug_shows_the_traceback_from_the_console_script(tmp_path):
     debug = subprocess.run([*cmd, "--debug"], capture_output=True, text=True, timeout=60)
     assert debug.returncode == 1  # Python's own exit code for an uncaught exception
     assert "Traceback" in debug.stderr and "InputError: unknown scene 'no_such_scene'" in debug.stderr
+
+
+def test_console_script_exits_with_main_s_code_and_flushed_output(tmp_path):
+    """The console script (``console_main``) ends without the interpreter's teardown: its exit code is
+    main's, and what it printed reaches a pipe in full."""
+    run = [sys.executable, "-c", "from texstream.pipelines.cli import console_main; console_main()"]
+    bad = subprocess.run(run + ["fit", str(tmp_path / "missing"), "--mesh", "x", "-o", str(tmp_path / "m")],
+                         capture_output=True, text=True)
+    assert bad.returncode == 1
+    assert "missing: capture file not found" in bad.stderr.strip().splitlines()[-1]
+    ok = subprocess.run(run + ["synth", "sphere", "-o", str(tmp_path / "cap"), "--scale", "0.02"],
+                        capture_output=True, text=True)
+    assert ok.returncode == 0 and ok.stdout.strip().splitlines()[-1].startswith("wrote ")
+    assert (tmp_path / "cap" / "capture.json").is_file()
