@@ -294,13 +294,14 @@ class StreamConfig:
                                      "bounding box plus 3 px): only pixels a texel can see; results equal the "
                                      "uncropped photos' to float rounding of the projection")
     decode_threads: int = option(0, "threads that decode and crop photos (0: min(8, CPU cores))", min=0)
-    photo_cache: str = option("auto", "photos streamed from disk are decoded once, in the first pass, into a "
-                                      "cache beside the capture (CAPTURE/.texstream-cache: the cropped "
-                                      "photos in the image precision, memory-mapped; same values, so the "
-                                      "same fit) that later passes and later fits of the same photos, crops "
-                                      "and precision read instead of decoding again (auto); off: never read "
-                                      "or written",
-                              choices=("auto", "off"))
+    photo_cache: str = option("auto", "decoded photos cached beside the capture (CAPTURE/.texstream-cache: the "
+                                      "cropped photos in the image precision; the same values, so the same "
+                                      "fit), read instead of decoding again by later passes and later fits "
+                                      "of the same photos, crops and precision. auto: written when photos "
+                                      "stream from disk (by the first pass), read whenever ready; on: also "
+                                      "written by fits with the photos on the device (in the background, "
+                                      "for repeated fits of one capture); off: never read or written",
+                              choices=("auto", "on", "off"))
     tiles: int = option(0, "split the atlas's texels into this many tiles of consecutive texels, each fitted over "
                            "only the photos that see it (fit/tiles.py; the untiled fit's result: texels are fitted "
                            "independently, LM's smoothness by a halo exchange; the Laplacian penalty, bilinear "
@@ -366,6 +367,7 @@ class PhotoSet:
         self.timings = {"upload": 0.0, "depth_maps": 0.0, "shadow_maps": 0.0, "other": 0.0}
         self.crops = None
         """(n, 4) int64 (x0, y0, width, height) of each photo's stored crop (None: whole photos)"""
+        self.cache_to_write = self.cache_writer = None  # photo_cache on: _write_cache_from_device
         self.device = device
         self.n = len(frames)
         if self.n == 0 or len(images) != self.n:
@@ -453,6 +455,8 @@ class PhotoSet:
         if cache.ready:
             self.loader.cache = cache
             say("fit", f"photos: read from the cache {cache.path} (decoded before)")
+        elif self.residency == "device" and cfg.photo_cache == "on":
+            self.cache_to_write = cache  # written from the device's photos once they are there (_init_device)
         elif self.residency == "disk":
             why = cache.start_writing()
             if why is None:
@@ -461,6 +465,53 @@ class PhotoSet:
                            f"({cache.nbytes / 2 ** 30:.2f} GiB)")
             else:
                 say("fit", f"photos: no cache written ({why}); each pass decodes them")
+
+    def _write_cache_from_device(self, masks) -> None:
+        """Write :attr:`cache_to_write` from the photos and masks on the device, on a thread of its own (the
+        device's photos copied out a chunk at a time on a CUDA stream of its own, while the fit runs on
+        the device's); :meth:`wait_for_cache` waits for it."""
+        import threading
+
+        cache = self.cache_to_write
+        why = cache.start_writing()
+        if why is not None:
+            say("fit", f"photos: no cache written ({why})")
+            return
+        pix, dev = self.hmax * self.wmax, self.device
+        chunk = max(1, min(self.n, UPLOAD_CHUNK_BYTES // (pix * wp.types.type_size_in_bytes(self.img_dtype))))
+        pinned = dev != "cpu"
+        buf = wp.empty((chunk, self.hmax, self.wmax), dtype=self.img_dtype, device="cpu", pinned=pinned)
+        mbuf = self._masks_buffer(chunk, "cpu", pinned)
+        stream = wp.Stream(dev) if pinned else None
+        has_masks = self.loader.has_masks
+
+        def write():
+            try:
+                for b in range(0, self.n, chunk):
+                    c = min(chunk, self.n - b)
+                    wp.copy(buf, self.images, 0, b * pix, c * pix, stream=stream)
+                    if has_masks:
+                        wp.copy(mbuf, masks, 0, b * pix, c * pix, stream=stream)
+                    if stream is not None:
+                        wp.synchronize_stream(stream)
+                    images, ms = buf.numpy(), mbuf.numpy() if has_masks else None
+                    for j in range(c):
+                        cache.store(b + j, images[j], None if ms is None else ms[j])
+                cache.finish()
+            except Exception:  # noqa: BLE001 - a cache that cannot be written is only a lost speed-up
+                cache.abandon()
+
+        self.cache_writer = threading.Thread(target=write, name="texstream-photo-cache")
+        self.cache_writer.start()
+        say("fit", f"photos: written to the cache {cache.path} in the background "
+                   f"({cache.nbytes / 2 ** 30:.2f} GiB)")
+
+    def wait_for_cache(self) -> None:
+        """Wait for a cache being written in the background (:meth:`_write_cache_from_device`)."""
+        writer = self.cache_writer
+        if writer is not None:
+            writer.join()
+            self.cache_writer = None
 
     def _finish_cache(self) -> None:
         cache = self.loader.cache if self.loader is not None else None
@@ -526,6 +577,8 @@ class PhotoSet:
         self.depth = wp.empty((n, self.hmax, self.wmax), dtype=wp.float32, device=dev)
         self.shadow = wp.empty((n, self.shadow_side, self.shadow_side), dtype=wp.float32, device=dev)
         self._maps(0, n, masks, self.depth, self.shadow)
+        if self.cache_to_write is not None:
+            self._write_cache_from_device(masks)
 
     def upload_staged(self, images: wp.array, masks: wp.array) -> None:
         """Fill the device's ``images`` (n, hmax, wmax) and ``masks`` (when any photo has one) in chunks of

@@ -852,6 +852,7 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
                            trace_plot=trace_plot)
     if ckpt is not None:
         ckpt.remove()
+    problem.photos.wait_for_cache()  # a photo cache written in the background is complete for the next fit
     return StageResult(Path(out_dir), {"psnr_db": last["psnr_db"], "iterations": last["iteration"],
                                        "time_s": last["time_s"], "texels": problem.n, "photos": len(frames),
                                        "resumed_from": None if resume is None else int(resume["iteration"]),

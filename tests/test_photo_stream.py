@@ -175,6 +175,20 @@ def test_photos_streamed_from_disk_are_decoded_once_into_a_cache(disk_scene, dev
         assert edited.photos.loader.cache.path != cache.path and edited.photos.loader.cached()
     finally:
         os.utime(files.paths[3], ns=(st.st_atime_ns, st.st_mtime_ns))
+    # photo_cache on: a fit with the photos on the device writes the cache in the background
+    files.cache_dir = tmp_path / "cache_on"
+    dev_on, r_dev_on = fit(disk_scene, files, device, photo_cache="on", **dev)
+    dev_on.photos.wait_for_cache()
+    written = list(files.cache_dir.glob("photos-*.bin"))
+    assert len(written) == 1 and not list(files.cache_dir.glob("*.tmp*"))
+    np.testing.assert_array_equal(r_dev_on.params, r_on_device.params)
+
+    def no_decoding(*args, **kw):
+        raise AssertionError("a photo was decoded although the cache holds it")
+
+    reread, r_reread = fit(disk_scene, dataclasses.replace(files, read_image=no_decoding, read_mask=no_decoding),
+                           device, photo_cache="auto", **dev)
+    np.testing.assert_array_equal(r_reread.params, r_on_device.params)
     blocked = tmp_path / "blocked"
     blocked.write_text("a file where the cache folder would go")
     files.cache_dir = blocked
