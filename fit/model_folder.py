@@ -14,7 +14,6 @@ numpy at module level; OpenImageIO (through capture.imageio) and matplotlib insi
 
 from __future__ import annotations
 
-import concurrent.futures
 import math
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -99,8 +98,8 @@ def plot_trace(trace: list[dict], path: Path, title: str) -> None:
 
 
 def trace_plot_png(trace: list[dict], title: str) -> bytes:
-    """:func:`plot_trace`'s PNG as bytes. Matplotlib's object API without pyplot (no global figure state),
-    so it may run on a thread of its own while the stage renders (:func:`start_trace_plot`)."""
+    """:func:`plot_trace`'s PNG as bytes, drawn with matplotlib's object API (no pyplot: neither its import
+    nor its global figure state)."""
     import io
 
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -123,13 +122,6 @@ def trace_plot_png(trace: list[dict], title: str) -> bytes:
     return buf.getvalue()
 
 
-def start_trace_plot(trace: list[dict], title: str) -> concurrent.futures.Future:
-    """:func:`trace_plot_png` on a thread of its own (its matplotlib import and drawing overlap the stage's
-    renders); pass the future to :func:`write_model_folder`."""
-    pool = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="texstream-plot")
-    future = pool.submit(trace_plot_png, list(trace), title)
-    pool.shutdown(wait=False)
-    return future
 
 
 def image_metrics(render: np.ndarray, photo: np.ndarray, mask: np.ndarray, peak: float = 1.0) -> dict:
@@ -179,8 +171,7 @@ def render_comparisons(folder: Path, frames: Sequence, photos: Sequence[np.ndarr
 
 
 def write_model_folder(folder: Path, grid: np.ndarray, layout: ModelLayout, seen: np.ndarray, trace: list[dict],
-                       title: str, manifest: dict, config: Any,
-                       trace_plot: concurrent.futures.Future | None = None) -> dict[str, str]:
+                       title: str, manifest: dict, config: Any) -> dict[str, str]:
     """Write the maps, seen.png, trace, error-against-time plot, model.json and the config into
     ``folder`` (a stage's temporary output folder), after :func:`check_model`.
 
@@ -189,7 +180,6 @@ def write_model_folder(folder: Path, grid: np.ndarray, layout: ModelLayout, seen
         seen: (H, W) bool, texels some photo saw.
         manifest: model.json's stage-specific fields; kind, layout and maps are added here.
         config: the stage's resolved config, saved as fit_config.json.
-        trace_plot: the error-against-time plot started before (:func:`start_trace_plot`); None: drawn here.
 
     Returns:
         The map files by name (as model.json lists them).
@@ -201,8 +191,7 @@ def write_model_folder(folder: Path, grid: np.ndarray, layout: ModelLayout, seen
     files = write_param_maps(folder, grid, layout)
     write_image(folder / "seen.png", np.repeat(seen.astype(np.float32)[..., None], 3, axis=2), bits=8)
     write_json_atomic(folder / "trace.json", json_safe(trace))
-    (folder / "error_vs_time.png").write_bytes(trace_plot.result() if trace_plot is not None
-                                               else trace_plot_png(trace, title))
+    plot_trace(trace, folder / "error_vs_time.png", title)
     write_json_atomic(folder / "model.json",
                       json_safe({"kind": layout.kind, "layout": layout.to_json(), "maps": files, **manifest}))
     save_config(config, folder / "fit_config.json")

@@ -695,8 +695,7 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     from texstream.capture.imageio import read_mask
     from texstream.geometry.mesh_io import save_mesh
 
-    from .model_folder import (bound_report, check_model, pooled_psnr, render_comparisons, start_trace_plot,
-                               write_model_folder)
+    from .model_folder import bound_report, check_model, pooled_psnr, render_comparisons, write_model_folder
     from .stiffcheck import numerics_warnings
 
     cfg = config or FitStageConfig()
@@ -769,7 +768,6 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
         params, lobes_dropped = drop_unsupported_lobes(problem, result, cfg.lobe_support)
         result = dataclasses.replace(result, params=params)
     title = f"{lay.kind} fit, {cfg.fit.optimizer}, {cfg.device}"
-    trace_plot = start_trace_plot(result.trace, title)  # drawn on its own thread while the views render
     polish_iterations = max(0, sum(r.get("stage") == "traced polish" for r in result.trace) - 1)  # less its start row
     grid, filled = params_to_grid(result, problem, bake), 0
     if cfg.unseen == "nearest":
@@ -848,8 +846,7 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
                                   "renders": time.perf_counter() - t_fitted},
                     "render_eval": evals, "heldout": pooled_psnr([e for e in evals if e["held_out"]]),
                     "units": UNITS[lay.kind]}
-        write_model_folder(tmp, grid, lay, seen.reshape(bake.height, bake.width), result.trace, title, manifest, cfg,
-                           trace_plot=trace_plot)
+        write_model_folder(tmp, grid, lay, seen.reshape(bake.height, bake.width), result.trace, title, manifest, cfg)
     if ckpt is not None:
         ckpt.remove()
     problem.photos.wait_for_cache()  # a photo cache written in the background is complete for the next fit
