@@ -718,6 +718,7 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     t0 = time.perf_counter()
     with phase("fit", f"{cfg.fit.model}: reading the photos and setting up the texels"):
         inputs = load_fit_inputs(capture_dir, mesh_path, cfg)
+        t_inputs = time.perf_counter() - t0
         capture, frames, held, mesh, bake = inputs.capture, inputs.frames, inputs.held, inputs.mesh, inputs.bake
         problem, seen_before, start, skipped = set_up_skipping_bad_photos(inputs, cfg, capture_dir)
         frames = inputs.frames
@@ -742,6 +743,7 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     else:
         result = run_fit_with_progress(problem, cfg.fit, progress, start=start,
                                        **({"checkpoint": ckpt.save, "resume": resume} if ckpt else {}))
+    t_loop = time.perf_counter()
     lay = result.layout
     materials_info, evidence, borrowed = None, None, None
     if lay.n_lobes and cfg.materials.mode != "off":
@@ -842,8 +844,8 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
                     "lobe_shape": lobe_shape_report(cfg.fit, lay, frames, problem.texels.position),
                     "materials": _materials_manifest(materials_info, evidence, cfg.materials),
                     "seams": seams_info, "setup_s": t_setup, "passes": result.passes, "device": cfg.device,
-                    "timings_s": {"inputs_and_setup": t_setup, "fit": t_fitted - t0 - t_setup,
-                                  "renders": time.perf_counter() - t_fitted},
+                    "timings_s": {"inputs": t_inputs, "setup": t_setup - t_inputs, "fit": t_loop - t0 - t_setup,
+                                  "after_fit": t_fitted - t_loop, "renders": time.perf_counter() - t_fitted},
                     "render_eval": evals, "heldout": pooled_psnr([e for e in evals if e["held_out"]]),
                     "units": UNITS[lay.kind]}
         write_model_folder(tmp, grid, lay, seen.reshape(bake.height, bake.width), result.trace, title, manifest, cfg)
