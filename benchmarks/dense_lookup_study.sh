@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The dense ornament on the fit's own 256x256 atlas (issue 17's worst held-out view) with the photo-sampling
 # models of StreamConfig: the default (texel lookup, plane taps), mesh-traced taps, and the renderer's bilinear
-# texture lookup with mesh-traced taps. Usage: benchmarks/dense_lookup_study.sh OUT DEVICE [VARIANTS...]
+# texture lookup with mesh-traced taps, and the materials step on traced taps (tracedmat: --traced-materials).
+# Usage: benchmarks/dense_lookup_study.sh OUT DEVICE [VARIANTS...]
 set -euo pipefail
 out=$1; dev=$2; shift 2
 variants=${*:-default tapmesh lookup}
@@ -14,6 +15,7 @@ for v in $variants; do
     default) extra=() ;;
     tapmesh) extra=(--stream.tap-geometry mesh) ;;
     lookup) extra=(--stream.tap-geometry mesh --stream.model-lookup bilinear) ;;
+    tracedmat) extra=(--traced-materials) ;;
     *) echo "unknown variant $v"; exit 2 ;;
   esac
   start=$(date +%s.%N)

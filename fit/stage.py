@@ -64,6 +64,12 @@ class FitStageConfig:
                                     "narrower than a pixel is then fitted as the photos filtered it, not as a "
                                     "broad, weak lobe new views contradict (docs/accuracy.md); a traced pass costs "
                                     "~7-20x a plane one; 0: off", min=0)
+    traced_materials: bool = option(False, "with the traced polish and shared materials chosen: polish the "
+                                            "per-texel fit on traced taps first, and find the materials' evidence, "
+                                            "contradictions and fit on traced taps too. It helps texels narrower "
+                                            "than a pixel that saw narrow highlights, but more texels then pass the "
+                                            "constrained test, some that never saw their highlight among them, "
+                                            "and those keep wrong lobes (docs/accuracy.md): off by default")
     checkpoint: bool = option(True, "Levenberg-Marquardt fits keep a checkpoint beside the output (every sync_every "
                                     "iterations); a rerun after Ctrl-C or a killed process resumes from it to the "
                                     "same result as an uninterrupted fit")
@@ -543,6 +549,14 @@ def traced_polish_applies(problem, cfg: "FitStageConfig") -> bool:
             and problem.photos.mesh_uvs is not None and not tiled(cfg.fit))
 
 
+def traced_problem(problem):
+    """``problem``'s texels and photos with every filtered tap traced to the mesh (``tap_geometry`` mesh)."""
+    from .problem import StreamProblem
+
+    return StreamProblem(problem.texels, problem.photos, problem.layout,
+                         dataclasses.replace(problem.cfg, tap_geometry="mesh"), problem.device)
+
+
 def traced_polish(problem, result: FitResult, cfg: "FitStageConfig", prior=None) -> FitResult:
     """``cfg.traced_polish`` Levenberg-Marquardt iterations from ``result`` on the same texels and photos with
     traced taps (``StreamConfig.tap_geometry`` mesh), the materials' ``prior`` (centre, weights) kept on; the
@@ -552,8 +566,7 @@ def traced_polish(problem, result: FitResult, cfg: "FitStageConfig", prior=None)
 
     if not traced_polish_applies(problem, cfg):
         return result
-    traced = StreamProblem(problem.texels, problem.photos, problem.layout,
-                           dataclasses.replace(problem.cfg, tap_geometry="mesh"), problem.device)
+    traced = traced_problem(problem)
     if prior is not None:
         traced.set_material_prior(*prior)
     fit = dataclasses.replace(cfg.fit, max_iterations=cfg.traced_polish, optimizer="lm")
@@ -746,14 +759,19 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     t_loop = time.perf_counter()
     lay = result.layout
     materials_info, evidence, borrowed = None, None, None
+    materials_problem = problem
     if lay.n_lobes and cfg.materials.mode != "off":
         with phase("fit", "materials: per-texel or shared lobes, judged on a validation split of the fitted photos"):
             choice = choose_materials(inputs, problem, cfg)
-            evidence = texel_evidence(problem, result, cfg.materials)
-        materials_info = {"mode": cfg.materials.mode, **choice}
+            if cfg.traced_materials and choice["chosen"] != "per-texel" and traced_polish_applies(problem, cfg):
+                result = traced_polish(problem, result, cfg)
+                materials_problem = traced_problem(problem)
+            evidence = texel_evidence(materials_problem, result, cfg.materials)
+        materials_info = {"mode": cfg.materials.mode, "traced": materials_problem is not problem, **choice}
     if materials_info is not None and materials_info["chosen"] != "per-texel":
         with phase("fit", f"materials: {materials_info['reason']}"):
-            res_m, info = fit_with_materials(problem, result, evidence, materials_info["k"],
+            # on traced taps the materials' fit is the polish (traced_polish does nothing more there)
+            res_m, info = fit_with_materials(materials_problem, result, evidence, materials_info["k"],
                                              materials_info["chosen"], cfg, polish=True)
         labels = info.pop("labels")
         materials_info.update(info)

@@ -51,6 +51,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="Levenberg-Marquardt iterations that end a fit with specular lobes with taps traced to "
                              "the mesh (stream.tap_geometry mesh): highlights narrower than a pixel fitted as the "
                              "photos filtered them (default: 5; 0 = off)")
+    parser.add_argument("--traced-materials", dest="traced_materials", action="store_true",
+                        help="with the traced polish and shared materials chosen: polish the per-texel fit on traced "
+                             "taps first, and find and fit the materials on traced taps too (helps sub-pixel texels "
+                             "that saw narrow highlights; can keep wrong lobes on texels that never saw theirs: "
+                             "docs/accuracy.md)")
     from texstream.fit.materials import MaterialConfig
 
     add_config_arguments(parser, MaterialConfig, prefix="materials.")  # shared materials (fit/materials.py)
@@ -77,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = FitStageConfig(fit=fit_cfg, materials=config_from_args(MaterialConfig, args, prefix="materials."),
                          **{k: getattr(args, k) for k in ("device", "texture_size", "texel_pixels", "holdout_every",
                                                           "renders", "min_seen_fraction", "skip_bad_photos",
-                                                          "traced_polish")
+                                                          "traced_polish", "traced_materials")
                             if hasattr(args, k)})
     from texstream.core.progress import reporting
 
