@@ -313,3 +313,24 @@ def test_stage_records_choice_and_uncertainty(sphere_fit):
     assert unc.shape[:2] == (man["atlas"]["height"], man["atlas"]["width"])
     assert np.isfinite(unc).all() and (unc >= 0).all()
     assert (model / "materials.png").is_file()
+
+
+def test_traced_materials_option_runs_the_materials_step_on_traced_taps(sphere_fit):
+    """``--traced-materials``: the per-texel fit is polished on traced taps before the materials' evidence and
+    fit, model.json says so, and the model is finite (what it does to the lobes: docs/accuracy.md)."""
+    from texstream.fit.fitter import FitConfig
+    from texstream.fit.stage import FitStageConfig, fit_stage
+
+    root = sphere_fit
+    cfg = FitStageConfig(device=SCENE_DEVICE, renders=0, holdout_every=8, traced_materials=True,
+                         materials=MaterialConfig(mode="on", max_materials=1, validation_every=6),
+                         fit=FitConfig(max_iterations=10))
+    fit_stage(root / "cap", root / "cap" / "ground_truth", root / "model_traced", cfg, progress=False)
+    man = json.loads((root / "model_traced" / "model.json").read_text())
+    assert man["materials"]["traced"] is True and man["materials"]["chosen"] != "per-texel"
+    stages = [r.get("stage") for r in json.loads((root / "model_traced" / "trace.json").read_text())]
+    first_polish, first_materials = stages.index("traced polish"), stages.index("materials")
+    assert first_polish < first_materials  # the per-texel fit polished before the materials' evidence
+    assert np.isfinite(man["heldout"]["pooled_psnr_db"])
+    plain = json.loads((root / "model" / "model.json").read_text())
+    assert plain["materials"]["traced"] is False
