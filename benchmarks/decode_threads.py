@@ -16,9 +16,10 @@ import argparse
 import json
 import os
 import platform
-import subprocess
 import time
 from pathlib import Path
+
+from gitinfo import commit
 
 
 def _warm(_: int) -> int:
@@ -155,17 +156,12 @@ def main() -> None:
         row = decode_in_processes(files, crops, sizes, hmax, wmax, procs, decoded_mb)
         rows.append(row)
         print(json.dumps(row), flush=True)
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).parent).stdout.strip()
-    except OSError:
-        commit = "unknown"
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "decode_threads.json").write_text(json.dumps(
         {"command": "python benchmarks/decode_threads.py " + " ".join(f"--{k.replace('_', '-')} {v}" for k, v in
                                                                        vars(a).items()),
-         "commit": commit, "machine": platform.node(), "cpus": os.cpu_count(), "capture": str(cap),
+         "commit": commit(), "machine": platform.node(), "cpus": os.cpu_count(), "capture": str(cap),
          "stored_photo_size": [hmax, wmax], "rows": rows}, indent=1))
 
 

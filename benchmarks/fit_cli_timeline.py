@@ -23,13 +23,7 @@ import threading
 import time
 from pathlib import Path
 
-
-def commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                              cwd=Path(__file__).parent).stdout.strip() or "unknown"
-    except OSError:
-        return "unknown"
+from gitinfo import commit
 
 
 def timed_run(cmd: list[str]) -> tuple[float, list[tuple[float, str]], int]:
