@@ -72,6 +72,22 @@ class RefineConfig:
                                                   "a pixel, their normals to a few degrees, which under a known "
                                                   "light is several percent of shading); 0 alone: the mesh's own",
                                    )
+    normal_iterations: int = option(12, "photometric shading normals, with known lights only: damped Gauss-Newton "
+                                        "iterations on a 2-degree-of-freedom tilt of each welded vertex's normal "
+                                        "(a texel's normal interpolates its face's), alternated with the texture's "
+                                        "colours, the photos' intensities compared; they start from the "
+                                        "normal_smoothing choice and are written as the mesh's normals; 0: off",
+                                    min=0)
+    normal_smoothness: float = option(0.1, "weight of the shading normals' agreement with their 1-ring neighbours "
+                                           "relative to the mean data curvature per vertex", min=0.0)
+    normal_prior: float = option(0.01, "weight of the shading normals' pull toward their start relative to the "
+                                       "mean data curvature per vertex (holds vertices the photos barely see)",
+                                 min=0.0)
+    normal_blur: float = option(0.0, "Gaussian blur (standard deviation in pixels) of the photos the shading "
+                                     "normals compare (shading is smooth; the texture's resampling is not)",
+                                min=0.0)
+    max_normal_tilt: float = option(20.0, "largest tilt of a shading normal from its start (degrees)", min=0.0,
+                                    max=80.0)
     cos_view_min: float = option(0.2, "samples seen more grazingly than this cosine are left out", min=0.0, max=1.0)
     depth_tol: float = option(0.01, "visibility test tolerance, as a fraction of the camera distance", min=0.0)
     max_photo_mb: float = option(8192.0, "largest size of the photos (float32) this stage holds on the device; "
@@ -277,6 +293,7 @@ class PhotometricRefinement:
         self.t_bary = wp.array(bake.bary.reshape(-1, 3)[covered].astype(np.float32), dtype=wp.vec3, device=device)
         self.t_p = wp.empty(self.n_texels, dtype=wp.vec3, device=device)
         self.t_n = wp.empty(self.n_texels, dtype=wp.vec3, device=device)
+        self.t_shade = self.t_n  # the texels' shading normals: their surface normals until shading normals are fitted
         self.num = wp.zeros(self.n_texels, dtype=wp.vec3, device=device)
         self.den = wp.zeros_like(self.num)
         self.colour = wp.zeros_like(self.num)
@@ -334,7 +351,7 @@ class PhotometricRefinement:
         self.den.zero_()
         dims = (len(self.frames), self.n_texels)
         wp.launch(rk.albedo_sums_kernel, dim=dims, device=self.device,
-                  inputs=[self.infos, images, self.depth, self.roles, self.t_p, self.t_n, self.cfg.cos_view_min,
+                  inputs=[self.infos, images, self.depth, self.roles, self.t_p, self.t_n, self.t_shade, self.cfg.cos_view_min,
                           self.cfg.depth_tol], outputs=[self.num, self.den])
         wp.launch(rk.albedo_kernel, dim=self.n_texels, inputs=[self.num, self.den], outputs=[self.colour, self.known],
                   device=self.device)
@@ -345,7 +362,8 @@ class PhotometricRefinement:
         if system:
             self.system.zero_()
         wp.launch(rk.pose_system_kernel, dim=(len(self.frames), self.n_texels), device=self.device,
-                  inputs=[self.infos, images, self.depth, self.roles, self.t_p, self.t_n, self.colour, self.known,
+                  inputs=[self.infos, images, self.depth, self.roles, self.t_p, self.t_n, self.t_shade, self.colour,
+                          self.known,
                           self.cfg.cos_view_min, self.cfg.depth_tol, self.huber, int(system)],
                   outputs=[self.system, out])
 
@@ -368,7 +386,7 @@ class PhotometricRefinement:
         self.curv_mean.zero_()
         wp.launch(rk.vertex_system_kernel, dim=(len(self.frames), self.n_texels), device=dev,
                   inputs=[self.infos, images, self.depth, self.roles, self.t_face, self.t_bary, self.faces, self.weld,
-                          self.direction, self.t_p, self.t_n, self.colour, self.known, self.cfg.cos_view_min,
+                          self.direction, self.t_p, self.t_n, self.t_shade, self.colour, self.known, self.cfg.cos_view_min,
                           self.cfg.depth_tol, self.huber], outputs=[self.curvature, self.gradient])
         wp.launch(rk.mean_curvature_kernel, dim=self.n_welded, inputs=[self.curvature], outputs=[self.curv_mean],
                   device=dev)
@@ -433,9 +451,98 @@ class PhotometricRefinement:
         end = self._score()
         result = self._result(start, end, trace, time.perf_counter() - t0)
         rounds, normals, scores = self.choose_shading_normals()
-        result.normals = normals
         result.summary["shading_normals"] = {"smoothing_rounds": rounds, "intensity_rms_by_rounds": scores}
+        if self.lit and cfg.normal_iterations > 0:
+            if normals is None:
+                welded = self.welded_points.numpy().astype(np.float64)  # once, after the loop
+                normals = welded_normals(welded, self.weld_host[np.asarray(self.mesh.faces, np.int32)])
+            normals, fitted = self.fit_shading_normals(normals)
+            result.summary["shading_normals"]["photometric"] = fitted
+        result.normals = normals
         return result
+
+    def fit_shading_normals(self, start: np.ndarray) -> tuple[np.ndarray, dict]:
+        """Photometric normals under the known lights: from ``start`` (welded unit normals), ``normal_iterations``
+        of (the texture's closed-form colours; a damped Gauss-Newton step on every welded vertex's 2-degree-of-
+        freedom tilt, its system accumulated from every fitting photo's samples with the colours held, the two
+        priors solved by Jacobi sweeps; each vertex keeps its step where its share of the intensity objective
+        fell). Returns (welded shading normals, summary)."""
+        cfg, dev, n = self.cfg, self.device, self.n_welded
+        base = np.asarray(start, np.float64)
+        base = base / np.maximum(np.linalg.norm(base, axis=1, keepdims=True), 1e-30)
+        helper = np.where(np.abs(base[:, :1]) < 0.6, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+        tu = np.cross(base, helper)
+        tu /= np.linalg.norm(tu, axis=1, keepdims=True)
+        tv = np.cross(base, tu)
+        vec3 = dict(dtype=wp.vec3, device=dev)
+        nb, ntu, ntv = (wp.array(a.astype(np.float32), **vec3) for a in (base, tu, tv))
+        shade = wp.array(base.astype(np.float32), **vec3)
+        tilt = wp.zeros(n, dtype=wp.vec2, device=dev)
+        saved, xa, xb = (wp.zeros_like(tilt) for _ in range(3))
+        system = wp.zeros((n, rk.NORMAL_TERMS), dtype=wp.float64, device=dev)
+        before = wp.zeros((n, 2), dtype=wp.float64, device=dev)
+        after = wp.zeros_like(before)
+        mean = wp.zeros(2, dtype=wp.float64, device=dev)
+        prior_before = wp.zeros(n, dtype=wp.float64, device=dev)
+        prior_after = wp.zeros_like(prior_before)
+        damping = wp.full(n, 1e-3, dtype=wp.float64, device=dev)
+        accepted = wp.zeros(1, dtype=wp.int32, device=dev)
+        history = wp.zeros((cfg.normal_iterations + 1, 2), dtype=wp.float64, device=dev)
+        self.t_shade = wp.empty_like(self.t_n)
+        texel_inputs = [self.t_face, self.t_bary, self.faces, shade, self.weld]
+        wp.launch(rk.texel_normals_kernel, dim=self.n_texels, inputs=texel_inputs, outputs=[self.t_shade], device=dev)
+        self._gaussian_blur(cfg.normal_blur, self.blurred)  # intensities: shading is the signal
+        samples = (len(self.frames), self.n_texels)
+
+        def vertex_objective(out, with_system: int) -> None:
+            out.zero_()
+            wp.launch(rk.normal_system_kernel, dim=samples, device=dev,
+                      inputs=[self.infos, self.blurred, self.depth, self.roles, self.t_face, self.t_bary, self.faces,
+                              self.weld, self.t_p, self.t_n, self.t_shade, shade, nb, ntu, ntv, tilt, self.colour,
+                              self.known, cfg.cos_view_min, cfg.depth_tol, self.huber, with_system],
+                      outputs=[system, out])
+
+        max_step = math.tan(math.radians(min(2.0, cfg.max_normal_tilt)))
+        max_total = math.tan(math.radians(cfg.max_normal_tilt))
+        for it in range(cfg.normal_iterations):
+            self.colours(self.blurred)
+            system.zero_()
+            vertex_objective(before, 1)
+            wp.launch(rk.vertex_total_kernel, dim=n, inputs=[before], outputs=[history[it]], device=dev)
+            mean.zero_()
+            wp.launch(rk.mean_tilt_curvature_kernel, dim=n, inputs=[system], outputs=[mean], device=dev)
+            prior_inputs = [self.offsets, self.neighbours, nb, ntu, ntv, mean, cfg.normal_smoothness, cfg.normal_prior]
+            wp.launch(rk.tilt_prior_kernel, dim=n, inputs=[tilt, *prior_inputs], outputs=[prior_before], device=dev)
+            wp.copy(xa, tilt)
+            src, dst = xa, xb
+            for _ in range(20):  # Jacobi sweeps: the priors spread a step over a few rings
+                wp.launch(rk.tilt_sweep_kernel, dim=n, device=dev,
+                          inputs=[tilt, system, self.offsets, self.neighbours, nb, ntu, ntv, mean,
+                                  cfg.normal_smoothness, cfg.normal_prior, damping, src], outputs=[dst])
+                src, dst = dst, src
+            wp.launch(rk.apply_tilt_kernel, dim=n, inputs=[src, max_step, max_total],
+                      outputs=[tilt, saved, nb, ntu, ntv, shade], device=dev)
+            wp.launch(rk.texel_normals_kernel, dim=self.n_texels, inputs=texel_inputs, outputs=[self.t_shade],
+                      device=dev)
+            vertex_objective(after, 0)
+            wp.launch(rk.tilt_prior_kernel, dim=n, inputs=[tilt, *prior_inputs], outputs=[prior_after], device=dev)
+            wp.launch(rk.tilt_accept_kernel, dim=n, inputs=[before, after, prior_before, prior_after, saved],
+                      outputs=[tilt, nb, ntu, ntv, shade, damping, accepted], device=dev)
+            wp.launch(rk.texel_normals_kernel, dim=self.n_texels, inputs=texel_inputs, outputs=[self.t_shade],
+                      device=dev)
+        self.colours(self.blurred)
+        vertex_objective(before, 0)
+        last = cfg.normal_iterations
+        wp.launch(rk.vertex_total_kernel, dim=n, inputs=[before], outputs=[history[last]], device=dev)
+        hist = history.numpy()  # read once, after the loop
+        normals = shade.numpy().astype(np.float64)
+        self.t_shade = self.t_n
+        angle = np.degrees(np.arccos(np.clip(np.sum(normals * base, axis=1), -1.0, 1.0)))
+        rms = [float(math.sqrt(2.0 * a / c)) if c > 0 else float("nan") for a, c in hist]
+        return normals, {"iterations": cfg.normal_iterations, "intensity_rms": rms,
+                         "vertex_steps_kept": int(accepted.numpy()[0]),
+                         "tilt_deg": {"median": float(np.median(angle)), "p90": float(np.percentile(angle, 90)),
+                                      "max": float(angle.max())}}
 
     def choose_shading_normals(self) -> tuple[int, np.ndarray | None, dict]:
         """After the iterations: the refined mesh's vertex normals averaged over 1-ring neighbours for each of

@@ -93,8 +93,10 @@ class Observation:
 
 @wp.func
 def observe(infos: wp.array(dtype=ImageInfo), images: wp.array3d(dtype=wp.vec3),
-            depth: wp.array3d(dtype=wp.float32), k: int, p: wp.vec3, n: wp.vec3, cos_view_min: float,
-            depth_tol: float):
+            depth: wp.array3d(dtype=wp.float32), k: int, p: wp.vec3, n: wp.vec3, n_shade: wp.vec3,
+            cos_view_min: float, depth_tol: float):
+    """Texel at ``p`` in photo ``k``: its surface normal ``n`` decides whether the camera sees it and weighs the
+    sample (the view cosine); its shading normal ``n_shade`` sets a known light's cosine."""
     ob = Observation()
     ob.ok = 0
     info = infos[k]
@@ -118,7 +120,7 @@ def observe(infos: wp.array(dtype=ImageInfo), images: wp.array3d(dtype=wp.vec3),
     shading = wp.vec3(info.exposure, info.exposure, info.exposure)
     if info.light_kind != 2:  # a known light: Lambertian shading (fit/kernels/shading.py LIGHT_*)
         wi, irradiance, dist = incident_light(info.light_kind, info.light_vec, info.light_intensity, p)
-        cos_light = wp.dot(n, wi)
+        cos_light = wp.dot(n_shade, wi)
         if cos_light < 0.1:  # the fit's grazing-light rejection (StreamConfig.cos_light_min)
             return ob
         shading = info.exposure * cos_light * irradiance
@@ -162,13 +164,15 @@ def texel_points_kernel(face: wp.array(dtype=wp.int32), bary: wp.array(dtype=wp.
 @wp.kernel
 def albedo_sums_kernel(infos: wp.array(dtype=ImageInfo), images: wp.array3d(dtype=wp.vec3),
                        depth: wp.array3d(dtype=wp.float32), role: wp.array(dtype=wp.int32),
-                       p: wp.array(dtype=wp.vec3), n: wp.array(dtype=wp.vec3), cos_view_min: float,
-                       depth_tol: float, num: wp.array(dtype=wp.vec3), den: wp.array(dtype=wp.vec3)):
-    """Weighted least-squares sums of each texel's colour over the fitting photos: C = sum w s I / sum w s^2."""
+                       p: wp.array(dtype=wp.vec3), n: wp.array(dtype=wp.vec3), ns: wp.array(dtype=wp.vec3),
+                       cos_view_min: float, depth_tol: float, num: wp.array(dtype=wp.vec3),
+                       den: wp.array(dtype=wp.vec3)):
+    """Weighted least-squares sums of each texel's colour over the fitting photos: C = sum w s I / sum w s^2
+    (``n``: the texels' surface normals, ``ns``: their shading normals)."""
     k, t = wp.tid()
     if role[k] != ROLE_FIT:
         return
-    ob = observe(infos, images, depth, k, p[t], n[t], cos_view_min, depth_tol)
+    ob = observe(infos, images, depth, k, p[t], n[t], ns[t], cos_view_min, depth_tol)
     if ob.ok == 0:
         return
     s = ob.shading
@@ -192,15 +196,16 @@ def albedo_kernel(num: wp.array(dtype=wp.vec3), den: wp.array(dtype=wp.vec3), co
 @wp.kernel
 def pose_system_kernel(infos: wp.array(dtype=ImageInfo), images: wp.array3d(dtype=wp.vec3),
                        depth: wp.array3d(dtype=wp.float32), role: wp.array(dtype=wp.int32),
-                       p: wp.array(dtype=wp.vec3), n: wp.array(dtype=wp.vec3), colour: wp.array(dtype=wp.vec3),
-                       known: wp.array(dtype=wp.int32), cos_view_min: float, depth_tol: float, huber: float,
-                       with_system: int, system: wp.array2d(dtype=wp.float64), objective: wp.array2d(dtype=wp.float64)):
+                       p: wp.array(dtype=wp.vec3), n: wp.array(dtype=wp.vec3), ns: wp.array(dtype=wp.vec3),
+                       colour: wp.array(dtype=wp.vec3), known: wp.array(dtype=wp.int32), cos_view_min: float,
+                       depth_tol: float, huber: float, with_system: int, system: wp.array2d(dtype=wp.float64),
+                       objective: wp.array2d(dtype=wp.float64)):
     """Per photo: the Huber objective of its samples and their count (``objective[k]``: sum, count) and
     (``with_system``) the Gauss-Newton system of its pose update (omega, tau) (:data:`POSE_TERMS` entries)."""
     k, t = wp.tid()
     if role[k] == ROLE_UNUSED or known[t] == 0:
         return
-    ob = observe(infos, images, depth, k, p[t], n[t], cos_view_min, depth_tol)
+    ob = observe(infos, images, depth, k, p[t], n[t], ns[t], cos_view_min, depth_tol)
     if ob.ok == 0:
         return
     r = ob.value - wp.cw_mul(ob.shading, colour[t])
@@ -340,15 +345,15 @@ def vertex_system_kernel(infos: wp.array(dtype=ImageInfo), images: wp.array3d(dt
                          face: wp.array(dtype=wp.int32), bary: wp.array(dtype=wp.vec3),
                          faces: wp.array(dtype=wp.vec3i), weld: wp.array(dtype=wp.int32),
                          direction: wp.array(dtype=wp.vec3), p: wp.array(dtype=wp.vec3), n: wp.array(dtype=wp.vec3),
-                         colour: wp.array(dtype=wp.vec3), known: wp.array(dtype=wp.int32), cos_view_min: float,
-                         depth_tol: float, huber: float, curvature: wp.array(dtype=wp.float64),
+                         ns: wp.array(dtype=wp.vec3), colour: wp.array(dtype=wp.vec3), known: wp.array(dtype=wp.int32),
+                         cos_view_min: float, depth_tol: float, huber: float, curvature: wp.array(dtype=wp.float64),
                          gradient: wp.array(dtype=wp.float64)):
     """Per welded vertex: the lumped diagonal of J^T J and J^T r of its displacement along ``direction`` over
     the fitting photos (a texel moves with the barycentric share of each of its face's vertices)."""
     k, t = wp.tid()
     if role[k] != ROLE_FIT or known[t] == 0:
         return
-    ob = observe(infos, images, depth, k, p[t], n[t], cos_view_min, depth_tol)
+    ob = observe(infos, images, depth, k, p[t], n[t], ns[t], cos_view_min, depth_tol)
     if ob.ok == 0:
         return
     info = infos[k]
@@ -485,3 +490,224 @@ def subtract_kernel(b: wp.array3d(dtype=wp.vec3), a: wp.array3d(dtype=wp.vec3)):
     """a -= b (a photo's detail: its blur less a wider blur)."""
     k, y, x = wp.tid()
     a[k, y, x] = a[k, y, x] - b[k, y, x]
+
+
+# ------------------------------------------------------------------------------------ shading normals
+# Photometric normals under known lights: each welded vertex's shading normal is its start normal b (unit) tilted
+# in the tangent plane, n = normalize(b + x0 tu + x1 tv) with (tu, tv, b) orthonormal; a texel's shading normal
+# interpolates its face's vertex normals, n_t = normalize(sum_c beta_c n_c). The sample model is
+# I_kt = C_t * s_k * (wi . n_t) (s_k: exposure times the light's irradiance), compared in intensities; with C_t held
+# (the closed-form colour of the current normals), a damped Gauss-Newton step moves every vertex's tilt.
+
+NORMAL_TERMS = 5
+"""per welded vertex: the lumped 2x2 J^T J of its tilt (entries 00, 01, 11) and J^T r (2)"""
+
+
+@wp.func
+def tilted_normal(base: wp.vec3, tu: wp.vec3, tv: wp.vec3, x: wp.vec2):
+    """The unit normal ``base`` tilted by ``x`` along the tangents (tu, tv)."""
+    return wp.normalize(base + x[0] * tu + x[1] * tv)
+
+
+@wp.func
+def cosine_tilt_derivative(wi: wp.vec3, n_t: wp.vec3, m_len: float, n_c: wp.vec3, q_len: float, tu: wp.vec3,
+                           tv: wp.vec3):
+    """d (wi . n_t) / d x_c per unit barycentric share: texel normal n_t = m / |m|, m = sum_c beta_c n_c, vertex
+    normal n_c = q / |q|, q = b + x0 tu + x1 tv. With P_a = I - a a^T, d n_t / d x_c,j = beta_c P_t P_c e_j /
+    (|m| |q|); this returns that without beta_c (the caller weighs by it)."""
+    a = wi - wp.dot(wi, n_t) * n_t
+    s = 1.0 / (m_len * q_len)
+    au = tu - wp.dot(n_c, tu) * n_c
+    av = tv - wp.dot(n_c, tv) * n_c
+    return wp.vec2(s * wp.dot(a, au), s * wp.dot(a, av))
+
+
+@wp.kernel
+def tilted_normals_kernel(base: wp.array(dtype=wp.vec3), tu: wp.array(dtype=wp.vec3), tv: wp.array(dtype=wp.vec3),
+                          tilt: wp.array(dtype=wp.vec2), shade: wp.array(dtype=wp.vec3)):
+    v = wp.tid()
+    shade[v] = tilted_normal(base[v], tu[v], tv[v], tilt[v])
+
+
+@wp.kernel
+def texel_normals_kernel(face: wp.array(dtype=wp.int32), bary: wp.array(dtype=wp.vec3),
+                         faces: wp.array(dtype=wp.vec3i), normals: wp.array(dtype=wp.vec3),
+                         weld: wp.array(dtype=wp.int32), n_out: wp.array(dtype=wp.vec3)):
+    t = wp.tid()
+    n_out[t] = texel_normal(face[t], bary[t], faces, normals, weld)
+
+
+@wp.kernel
+def normal_system_kernel(infos: wp.array(dtype=ImageInfo), images: wp.array3d(dtype=wp.vec3),
+                         depth: wp.array3d(dtype=wp.float32), role: wp.array(dtype=wp.int32),
+                         face: wp.array(dtype=wp.int32), bary: wp.array(dtype=wp.vec3),
+                         faces: wp.array(dtype=wp.vec3i), weld: wp.array(dtype=wp.int32),
+                         p: wp.array(dtype=wp.vec3), n: wp.array(dtype=wp.vec3), ns: wp.array(dtype=wp.vec3),
+                         shade: wp.array(dtype=wp.vec3), base: wp.array(dtype=wp.vec3), tu: wp.array(dtype=wp.vec3),
+                         tv: wp.array(dtype=wp.vec3), tilt: wp.array(dtype=wp.vec2), colour: wp.array(dtype=wp.vec3),
+                         known: wp.array(dtype=wp.int32), cos_view_min: float, depth_tol: float, huber: float,
+                         with_system: int, system: wp.array2d(dtype=wp.float64),
+                         objective: wp.array2d(dtype=wp.float64)):
+    """Per welded vertex, over the fitting photos' samples under a known light: its share of the Huber objective
+    and of the samples' weight (``objective[v]``: sum of beta_c w loss, sum of beta_c w) and (``with_system``) the
+    lumped Gauss-Newton system of its tilt (:data:`NORMAL_TERMS`), the texels' colours held. ``n``: the texels'
+    surface normals (visibility, weights), ``ns``: their shading normals, ``shade``: the vertices'."""
+    k, t = wp.tid()
+    if role[k] != ROLE_FIT or known[t] == 0:
+        return
+    info = infos[k]
+    if info.light_kind == 2:
+        return
+    ob = observe(infos, images, depth, k, p[t], n[t], ns[t], cos_view_min, depth_tol)
+    if ob.ok == 0:
+        return
+    c = colour[t]
+    r = ob.value - wp.cw_mul(ob.shading, c)
+    loss = ob.weight * huber_loss(r, huber)
+    f = faces[face[t]]
+    b = bary[t]
+    for i in range(3):
+        v = weld[f[i]]
+        wp.atomic_add(objective, v, 0, wp.float64(b[i] * loss))
+        wp.atomic_add(objective, v, 1, wp.float64(b[i] * ob.weight))
+    if with_system == 0:
+        return
+    wi, irradiance, dist = incident_light(info.light_kind, info.light_vec, info.light_intensity, p[t])
+    dr = -info.exposure * wp.cw_mul(irradiance, c)  # d r / d (wi . n_t), per channel
+    m = b[0] * shade[weld[f[0]]] + b[1] * shade[weld[f[1]]] + b[2] * shade[weld[f[2]]]
+    m_len = wp.length(m)
+    n_t = m / m_len
+    w = ob.weight * huber_weight(r, huber)
+    drr = wp.dot(dr, r)
+    dd = wp.dot(dr, dr)
+    for i in range(3):
+        v = weld[f[i]]
+        x = tilt[v]
+        q = base[v] + x[0] * tu[v] + x[1] * tv[v]
+        a = cosine_tilt_derivative(wi, n_t, m_len, shade[v], wp.length(q), tu[v], tv[v])
+        # J_c = beta_c a (x) dr. The lumped (row-sum) block beta_c |dr|^2 a a^T, not beta_c^2: the three vertices of
+        # a texel would each take the whole step otherwise (as the displacement's curvature)
+        h = w * b[i] * dd
+        wp.atomic_add(system, v, 0, wp.float64(h * a[0] * a[0]))
+        wp.atomic_add(system, v, 1, wp.float64(h * a[0] * a[1]))
+        wp.atomic_add(system, v, 2, wp.float64(h * a[1] * a[1]))
+        g = w * b[i] * drr
+        wp.atomic_add(system, v, 3, wp.float64(g * a[0]))
+        wp.atomic_add(system, v, 4, wp.float64(g * a[1]))
+
+
+@wp.kernel
+def mean_tilt_curvature_kernel(system: wp.array2d(dtype=wp.float64), out: wp.array(dtype=wp.float64)):
+    """out[0] += half the trace of J^T J, out[1] += 1 over vertices some sample tilts (the priors' scale)."""
+    v = wp.tid()
+    c = wp.float64(0.5) * (system[v, 0] + system[v, 2])
+    if c > wp.float64(0.0):
+        wp.atomic_add(out, 0, c)
+        wp.atomic_add(out, 1, wp.float64(1.0))
+
+
+@wp.kernel
+def tilt_sweep_kernel(current: wp.array(dtype=wp.vec2), system: wp.array2d(dtype=wp.float64),
+                      offsets: wp.array(dtype=wp.int32), neighbours: wp.array(dtype=wp.int32),
+                      base: wp.array(dtype=wp.vec3), tu: wp.array(dtype=wp.vec3), tv: wp.array(dtype=wp.vec3),
+                      mean: wp.array(dtype=wp.float64), smoothness: float, prior: float,
+                      damping: wp.array(dtype=wp.float64), x_in: wp.array(dtype=wp.vec2),
+                      x_out: wp.array(dtype=wp.vec2)):
+    """One Jacobi sweep of the damped Gauss-Newton step of the tilts with two priors: minimises per vertex
+    1/2 (x - x0)^T H~ (x - x0) + g^T (x - x0) + lambda sum_neighbours |b + T x - n_j|^2 + mu |x|^2, with H~ = H +
+    damping diag(H), T = (tu, tv), n_j the neighbour's normal at its current sweep value, lambda = ``smoothness``
+    and mu = ``prior`` times the mean half-trace of H (mu holds a vertex to its start normal, lambda to its
+    neighbours': vertices no photo tilts follow them)."""
+    v = wp.tid()
+    scale = mean[0] / wp.max(mean[1], wp.float64(1.0))
+    lam = wp.float64(smoothness) * scale
+    mu = wp.float64(prior) * scale
+    d = wp.float64(1.0) + damping[v]
+    h00 = system[v, 0] * d
+    h01 = system[v, 1]
+    h11 = system[v, 2] * d
+    x0 = current[v]
+    r0 = h00 * wp.float64(x0[0]) + h01 * wp.float64(x0[1]) - system[v, 3]
+    r1 = h01 * wp.float64(x0[0]) + h11 * wp.float64(x0[1]) - system[v, 4]
+    deg = wp.float64(0.0)
+    for e in range(offsets[v], offsets[v + 1]):
+        j = neighbours[e]
+        nj = tilted_normal(base[j], tu[j], tv[j], x_in[j])
+        r0 = r0 + wp.float64(2.0) * lam * wp.float64(wp.dot(tu[v], nj))
+        r1 = r1 + wp.float64(2.0) * lam * wp.float64(wp.dot(tv[v], nj))
+        deg = deg + wp.float64(1.0)
+    diag = wp.float64(2.0) * (lam * deg + mu)
+    a00 = h00 + diag
+    a11 = h11 + diag
+    det = a00 * a11 - h01 * h01
+    if det > wp.float64(0.0):
+        x_out[v] = wp.vec2(float((a11 * r0 - h01 * r1) / det), float((a00 * r1 - h01 * r0) / det))
+    else:
+        x_out[v] = x0
+
+
+@wp.kernel
+def apply_tilt_kernel(proposed: wp.array(dtype=wp.vec2), max_step: float, max_total: float,
+                      current: wp.array(dtype=wp.vec2), saved: wp.array(dtype=wp.vec2), base: wp.array(dtype=wp.vec3),
+                      tu: wp.array(dtype=wp.vec3), tv: wp.array(dtype=wp.vec3), shade: wp.array(dtype=wp.vec3)):
+    """Clamp each vertex's tilt step and total tilt (tangents of the angles), keep the old tilt in ``saved``,
+    tilt the vertex's shading normal."""
+    v = wp.tid()
+    x = current[v]
+    saved[v] = x
+    step = proposed[v] - x
+    ls = wp.length(step)
+    if ls > max_step:
+        step = step * (max_step / ls)
+    y = x + step
+    ly = wp.length(y)
+    if ly > max_total:
+        y = y * (max_total / ly)
+    current[v] = y
+    shade[v] = tilted_normal(base[v], tu[v], tv[v], y)
+
+
+@wp.kernel
+def tilt_prior_kernel(tilt: wp.array(dtype=wp.vec2), offsets: wp.array(dtype=wp.int32),
+                      neighbours: wp.array(dtype=wp.int32), base: wp.array(dtype=wp.vec3), tu: wp.array(dtype=wp.vec3),
+                      tv: wp.array(dtype=wp.vec3), mean: wp.array(dtype=wp.float64), smoothness: float, prior: float,
+                      out: wp.array(dtype=wp.float64)):
+    """Per vertex, the priors of :func:`tilt_sweep_kernel` at the current tilts: mu |x|^2 + lambda sum_neighbours
+    |n - n_j|^2."""
+    v = wp.tid()
+    scale = mean[0] / wp.max(mean[1], wp.float64(1.0))
+    x = tilt[v]
+    nv = tilted_normal(base[v], tu[v], tv[v], x)
+    e = wp.float64(0.0)
+    for k in range(offsets[v], offsets[v + 1]):
+        j = neighbours[k]
+        d = nv - tilted_normal(base[j], tu[j], tv[j], tilt[j])
+        e = e + wp.float64(wp.dot(d, d))
+    out[v] = scale * (wp.float64(smoothness) * e + wp.float64(prior) * wp.float64(wp.dot(x, x)))
+
+
+@wp.kernel
+def tilt_accept_kernel(before: wp.array2d(dtype=wp.float64), after: wp.array2d(dtype=wp.float64),
+                       prior_before: wp.array(dtype=wp.float64), prior_after: wp.array(dtype=wp.float64),
+                       saved: wp.array(dtype=wp.vec2), current: wp.array(dtype=wp.vec2), base: wp.array(dtype=wp.vec3),
+                       tu: wp.array(dtype=wp.vec3), tv: wp.array(dtype=wp.vec3), shade: wp.array(dtype=wp.vec3),
+                       damping: wp.array(dtype=wp.float64), accepted: wp.array(dtype=wp.int32)):
+    """Keep a vertex's tilt step where its share of the intensity objective plus its priors fell (and trust the
+    quadratic model more), else restore its tilt and damp its next step ten times more."""
+    v = wp.tid()
+    if after[v, 0] + prior_after[v] <= before[v, 0] + prior_before[v]:
+        damping[v] = wp.max(damping[v] * wp.float64(0.3), wp.float64(1.0e-4))
+        if before[v, 1] > wp.float64(0.0):
+            wp.atomic_add(accepted, 0, 1)
+    else:
+        current[v] = saved[v]
+        shade[v] = tilted_normal(base[v], tu[v], tv[v], saved[v])
+        damping[v] = wp.min(damping[v] * wp.float64(10.0), wp.float64(1.0e6))
+
+
+@wp.kernel
+def vertex_total_kernel(per_vertex: wp.array2d(dtype=wp.float64), out: wp.array(dtype=wp.float64)):
+    """out[0:2] += every vertex's share of the objective and of the sample weight."""
+    v = wp.tid()
+    wp.atomic_add(out, 0, per_vertex[v, 0])
+    wp.atomic_add(out, 1, per_vertex[v, 1])
