@@ -12,6 +12,9 @@ OUT``, whose folders it reuses.
   normals averaged over 1-ring neighbours this many times (``geometry/refine.py`` ``smoothed_normals``), re-baked,
   then the same fit, per number of rounds;
 * ``run OPTIONS``: the run's registered cameras and mesh refined with these options, then the same fit;
+* ``shading OPTIONS``: refine_limits' ``registered`` and ``true_cameras_registered_mesh`` refinements and the true
+  cameras and mesh taken as they are (cameras and mesh held) and only their shading normals made with these
+  options, then the same fit (``SHADING_CASES=registered,...`` in the environment: only those);
 * ``truth_swap PARTS``: the refined meshes of refine_limits' ``true_cameras_registered_mesh`` (true frame) and
   ``registered`` (the run's frame, the true sphere mapped into it by the Sim3 of the camera centres) with the
   true sphere's normals (``normals``: radial, positions kept), its positions (``positions``: each vertex moved
@@ -85,7 +88,7 @@ def swapped_atlas(src: Path, out: Path, centre, radius: float, part: str) -> Pat
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="out/photos_only")
-    ap.add_argument("mode", choices=("mesh", "normals", "run", "truth_swap", "normal_errors"))
+    ap.add_argument("mode", choices=("mesh", "normals", "run", "shading", "truth_swap", "normal_errors"))
     ap.add_argument("arg", help="RefineConfig options as JSON (mesh, run), comma-separated rounds (normals) or parts "
                                      "(truth_swap: normals, positions, both)")
     args = ap.parse_args()
@@ -104,7 +107,7 @@ def main() -> None:
         from texstream.geometry.mesh_io import load_mesh
 
         truth = load_mesh(out / "truth" / "ground_truth" / "mesh.obj")
-        centre = truth.vertices.mean(axis=0)
+        centre = 0.5 * (truth.vertices.min(axis=0) + truth.vertices.max(axis=0))  # the mean leans to the UV seam
         meshes = {"true mesh": out / "truth" / "ground_truth", "run's mesh": work / "atlas_registered_in_truth",
                   "refined (true cameras)": work / "true_cameras_registered_mesh",
                   **{f"refined, {p.name.split('_')[1]} rounds": p for p in sorted(work.glob("normals_*"))
@@ -130,7 +133,7 @@ def main() -> None:
 
         s, r, t, _ = sim3_sfm_to_truth(read_capture(out / "run" / "posed"), read_capture(out / "truth"))
         truth_mesh = load_mesh(out / "truth" / "ground_truth" / "mesh.obj")
-        centre = truth_mesh.vertices.mean(axis=0)
+        centre = 0.5 * (truth_mesh.vertices.min(axis=0) + truth_mesh.vertices.max(axis=0))
         radius = float(np.linalg.norm(truth_mesh.vertices - centre, axis=1).mean())
         frames = {"true_cameras_registered_mesh": (centre, radius),
                   "registered": (r.T @ (centre - t) / s, radius / s)}
@@ -139,6 +142,16 @@ def main() -> None:
                 atlas = swapped_atlas(work / case, work / f"swap_{case}_{part}", c, rad, part)
                 rows.append({"mode": "truth_swap", "case": case, "part": part,
                              **fit_case(work / case, atlas, Path(str(atlas) + "_fit"))})
+    elif args.mode == "shading":
+        options = json.loads(args.arg)
+        tag = "_".join(f"{k}{v}" for k, v in sorted(options.items())) or "default"
+        starts = {"registered": (work / "registered", work / "registered"),
+                  "true_cameras_registered_mesh": (work / "true_cameras_registered_mesh",) * 2,
+                  "truth": (out / "truth", out / "truth" / "ground_truth")}
+        for case in [c for c in os.environ.get("SHADING_CASES", ",".join(starts)).split(",") if c]:
+            res = refine_case(*starts[case], work / f"shading_{case}_{tag}", cameras=False, mesh=False,
+                              iterations=1, blur="0.5", **options)
+            rows.append({"mode": "shading", "case": case, **res})
     else:
         options = json.loads(args.arg)
         tag = "_".join(f"{k}{v}" for k, v in sorted(options.items())) or "default"

@@ -72,7 +72,7 @@ class RefineConfig:
                                                   "a pixel, their normals to a few degrees, which under a known "
                                                   "light is several percent of shading); 0 alone: the mesh's own",
                                    )
-    normal_iterations: int = option(12, "photometric shading normals, with known lights only: damped Gauss-Newton "
+    normal_iterations: int = option(0, "photometric shading normals, with known lights only: damped Gauss-Newton "
                                         "iterations on a 2-degree-of-freedom tilt of each welded vertex's normal "
                                         "(a texel's normal interpolates its face's), alternated with the texture's "
                                         "colours, the photos' intensities compared; they start from the "
@@ -462,85 +462,23 @@ class PhotometricRefinement:
         return result
 
     def fit_shading_normals(self, start: np.ndarray) -> tuple[np.ndarray, dict]:
-        """Photometric normals under the known lights: from ``start`` (welded unit normals), ``normal_iterations``
-        of (the texture's closed-form colours; a damped Gauss-Newton step on every welded vertex's 2-degree-of-
-        freedom tilt, its system accumulated from every fitting photo's samples with the colours held, the two
-        priors solved by Jacobi sweeps; each vertex keeps its step where its share of the intensity objective
-        fell). Returns (welded shading normals, summary)."""
-        cfg, dev, n = self.cfg, self.device, self.n_welded
-        base = np.asarray(start, np.float64)
-        base = base / np.maximum(np.linalg.norm(base, axis=1, keepdims=True), 1e-30)
-        helper = np.where(np.abs(base[:, :1]) < 0.6, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-        tu = np.cross(base, helper)
-        tu /= np.linalg.norm(tu, axis=1, keepdims=True)
-        tv = np.cross(base, tu)
-        vec3 = dict(dtype=wp.vec3, device=dev)
-        nb, ntu, ntv = (wp.array(a.astype(np.float32), **vec3) for a in (base, tu, tv))
-        shade = wp.array(base.astype(np.float32), **vec3)
-        tilt = wp.zeros(n, dtype=wp.vec2, device=dev)
-        saved, xa, xb = (wp.zeros_like(tilt) for _ in range(3))
-        system = wp.zeros((n, rk.NORMAL_TERMS), dtype=wp.float64, device=dev)
-        before = wp.zeros((n, 2), dtype=wp.float64, device=dev)
-        after = wp.zeros_like(before)
-        mean = wp.zeros(2, dtype=wp.float64, device=dev)
-        prior_before = wp.zeros(n, dtype=wp.float64, device=dev)
-        prior_after = wp.zeros_like(prior_before)
-        damping = wp.full(n, 1e-3, dtype=wp.float64, device=dev)
-        accepted = wp.zeros(1, dtype=wp.int32, device=dev)
-        history = wp.zeros((cfg.normal_iterations + 1, 2), dtype=wp.float64, device=dev)
-        self.t_shade = wp.empty_like(self.t_n)
-        texel_inputs = [self.t_face, self.t_bary, self.faces, shade, self.weld]
-        wp.launch(rk.texel_normals_kernel, dim=self.n_texels, inputs=texel_inputs, outputs=[self.t_shade], device=dev)
-        self._gaussian_blur(cfg.normal_blur, self.blurred)  # intensities: shading is the signal
-        samples = (len(self.frames), self.n_texels)
-
-        def vertex_objective(out, with_system: int) -> None:
-            out.zero_()
-            wp.launch(rk.normal_system_kernel, dim=samples, device=dev,
-                      inputs=[self.infos, self.blurred, self.depth, self.roles, self.t_face, self.t_bary, self.faces,
-                              self.weld, self.t_p, self.t_n, self.t_shade, shade, nb, ntu, ntv, tilt, self.colour,
-                              self.known, cfg.cos_view_min, cfg.depth_tol, self.huber, with_system],
-                      outputs=[system, out])
-
-        max_step = math.tan(math.radians(min(2.0, cfg.max_normal_tilt)))
-        max_total = math.tan(math.radians(cfg.max_normal_tilt))
-        for it in range(cfg.normal_iterations):
-            self.colours(self.blurred)
-            system.zero_()
-            vertex_objective(before, 1)
-            wp.launch(rk.vertex_total_kernel, dim=n, inputs=[before], outputs=[history[it]], device=dev)
-            mean.zero_()
-            wp.launch(rk.mean_tilt_curvature_kernel, dim=n, inputs=[system], outputs=[mean], device=dev)
-            prior_inputs = [self.offsets, self.neighbours, nb, ntu, ntv, mean, cfg.normal_smoothness, cfg.normal_prior]
-            wp.launch(rk.tilt_prior_kernel, dim=n, inputs=[tilt, *prior_inputs], outputs=[prior_before], device=dev)
-            wp.copy(xa, tilt)
-            src, dst = xa, xb
-            for _ in range(20):  # Jacobi sweeps: the priors spread a step over a few rings
-                wp.launch(rk.tilt_sweep_kernel, dim=n, device=dev,
-                          inputs=[tilt, system, self.offsets, self.neighbours, nb, ntu, ntv, mean,
-                                  cfg.normal_smoothness, cfg.normal_prior, damping, src], outputs=[dst])
-                src, dst = dst, src
-            wp.launch(rk.apply_tilt_kernel, dim=n, inputs=[src, max_step, max_total],
-                      outputs=[tilt, saved, nb, ntu, ntv, shade], device=dev)
-            wp.launch(rk.texel_normals_kernel, dim=self.n_texels, inputs=texel_inputs, outputs=[self.t_shade],
-                      device=dev)
-            vertex_objective(after, 0)
-            wp.launch(rk.tilt_prior_kernel, dim=n, inputs=[tilt, *prior_inputs], outputs=[prior_after], device=dev)
-            wp.launch(rk.tilt_accept_kernel, dim=n, inputs=[before, after, prior_before, prior_after, saved],
-                      outputs=[tilt, nb, ntu, ntv, shade, damping, accepted], device=dev)
-            wp.launch(rk.texel_normals_kernel, dim=self.n_texels, inputs=texel_inputs, outputs=[self.t_shade],
-                      device=dev)
+        """Photometric normals under the known lights from ``start`` (welded unit normals): ``normal_iterations`` of
+        :meth:`ShadingNormals.iterate`. Returns (welded shading normals, summary)."""
+        job = ShadingNormals(self, start)
+        history = wp.zeros((self.cfg.normal_iterations + 1, 2), dtype=wp.float64, device=self.device)
+        for it in range(self.cfg.normal_iterations):
+            job.iterate(history[it])
         self.colours(self.blurred)
-        vertex_objective(before, 0)
-        last = cfg.normal_iterations
-        wp.launch(rk.vertex_total_kernel, dim=n, inputs=[before], outputs=[history[last]], device=dev)
+        job.evaluate(job.before, with_system=False)
+        wp.launch(rk.vertex_total_kernel, dim=self.n_welded, inputs=[job.before], outputs=[history[-1]],
+                  device=self.device)
         hist = history.numpy()  # read once, after the loop
-        normals = shade.numpy().astype(np.float64)
+        normals = job.normals()
         self.t_shade = self.t_n
-        angle = np.degrees(np.arccos(np.clip(np.sum(normals * base, axis=1), -1.0, 1.0)))
+        angle = np.degrees(np.arccos(np.clip(np.sum(normals * job.start, axis=1), -1.0, 1.0)))
         rms = [float(math.sqrt(2.0 * a / c)) if c > 0 else float("nan") for a, c in hist]
-        return normals, {"iterations": cfg.normal_iterations, "intensity_rms": rms,
-                         "vertex_steps_kept": int(accepted.numpy()[0]),
+        return normals, {"iterations": self.cfg.normal_iterations, "patch_rms": rms,
+                         "vertex_steps_kept": int(job.accepted.numpy()[0]),
                          "tilt_deg": {"median": float(np.median(angle)), "p90": float(np.percentile(angle, 90)),
                                       "max": float(angle.max())}}
 
@@ -619,6 +557,118 @@ class PhotometricRefinement:
             if not np.all(np.isfinite(v)):
                 raise RuntimeError(f"photometric refinement produced non-finite {name}")
         return RefineResult(rot, trans, points, disp, trace, summary)
+
+
+class ShadingNormals:
+    """Photometric shading normals under known lights, on a :class:`PhotometricRefinement`'s device state.
+
+    Each welded vertex's normal is its start normal b tilted in its tangent plane, n = normalize(b + x0 tu + x1 tv);
+    a texel's shading normal interpolates its face's vertex normals. A sample's residual is r = I - C s (wi . n_t)
+    (``refine_kernels`` :func:`observe`: the texture's colour C, the photo's exposure and the light's irradiance s,
+    the unit direction to the light wi; the texel's surface normal, not its shading normal, decides visibility and
+    weighs the sample). Samples are compared in intensities (the shading is the signal), averaged over each vertex's
+    patch (its faces' texels, weighted by its barycentric share): the objective is sum over photos and vertices of
+    W rho(R), R the patch's weighted mean residual, W its weight, rho the Huber loss. An iteration: the colours in
+    closed form, then with them held a damped Gauss-Newton step of every tilt (exact gradient, a lumped 2x2
+    curvature per vertex), a neighbour smoothness and a pull toward the start solved by Jacobi sweeps, the step
+    clamped, and each vertex keeping its step where its patch's objective plus its priors fell. No host reads.
+    """
+
+    def __init__(self, job: "PhotometricRefinement", start: np.ndarray):
+        self.job, cfg, dev, n = job, job.cfg, job.device, job.n_welded
+        base = np.asarray(start, np.float64)
+        base = base / np.maximum(np.linalg.norm(base, axis=1, keepdims=True), 1e-30)
+        helper = np.where(np.abs(base[:, :1]) < 0.6, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+        tu = np.cross(base, helper)
+        tu /= np.linalg.norm(tu, axis=1, keepdims=True)
+        self.start = base
+        vec3 = dict(dtype=wp.vec3, device=dev)
+        self.base, self.tu, self.tv = (wp.array(a.astype(np.float32), **vec3) for a in (base, tu, np.cross(base, tu)))
+        self.shade = wp.array(base.astype(np.float32), **vec3)
+        self.tilt = wp.zeros(n, dtype=wp.vec2, device=dev)
+        self.saved, self.x_a, self.x_b = (wp.zeros_like(self.tilt) for _ in range(3))
+        self.system = wp.zeros((n, rk.NORMAL_TERMS), dtype=wp.float64, device=dev)
+        self.before = wp.zeros((n, 2), dtype=wp.float64, device=dev)
+        self.after = wp.zeros_like(self.before)
+        self.mean = wp.zeros(2, dtype=wp.float64, device=dev)
+        self.prior_before = wp.zeros(n, dtype=wp.float64, device=dev)
+        self.prior_after = wp.zeros_like(self.prior_before)
+        self.damping = wp.full(n, 1e-3, dtype=wp.float64, device=dev)
+        self.accepted = wp.zeros(1, dtype=wp.int32, device=dev)
+        shape = (len(job.frames), n)
+        self.patch_w = wp.zeros(shape, dtype=float, device=dev)
+        self.patch_r, self.patch_ju, self.patch_jv, self.back = (wp.zeros(shape, **vec3) for _ in range(4))
+        self.max_step = math.tan(math.radians(min(2.0, cfg.max_normal_tilt)))
+        self.max_total = math.tan(math.radians(cfg.max_normal_tilt))
+        job.t_shade = wp.empty_like(job.t_n)
+        self.texel_normals()
+        job._gaussian_blur(cfg.normal_blur, job.blurred)  # intensities: shading is the signal
+
+    def texel_normals(self) -> None:
+        """The texels' shading normals from the vertices'."""
+        j = self.job
+        wp.launch(rk.texel_normals_kernel, dim=j.n_texels, inputs=[j.t_face, j.t_bary, j.faces, self.shade, j.weld],
+                  outputs=[j.t_shade], device=j.device)
+
+    def set_tilt(self, tilt) -> None:
+        """Tilts (welded vertices, 2) from the host (tests)."""
+        self.tilt.assign(np.asarray(tilt, np.float32))
+        wp.launch(rk.tilted_normals_kernel, dim=self.job.n_welded, inputs=[self.base, self.tu, self.tv, self.tilt],
+                  outputs=[self.shade], device=self.job.device)
+        self.texel_normals()
+
+    def evaluate(self, out, with_system: bool) -> None:
+        """Each vertex's patch objective into ``out`` (welded vertices, 2: sum of W rho(R), sum of W) and, with
+        ``with_system``, its tilt's lumped curvature and exact gradient into ``system`` (zeroed by the caller), the
+        colours held."""
+        j, cfg = self.job, self.job.cfg
+        out.zero_()
+        for a in (self.patch_w, self.patch_r, self.patch_ju, self.patch_jv, self.back):
+            a.zero_()
+        samples = (len(j.frames), j.n_texels)
+        state = [j.t_p, j.t_n, j.t_shade, self.shade, self.base, self.tu, self.tv, self.tilt, j.colour, j.known,
+                 cfg.cos_view_min, cfg.depth_tol]
+        head = [j.infos, j.blurred, j.depth, j.roles, j.t_face, j.t_bary, j.faces, j.weld]
+        wp.launch(rk.patch_residual_kernel, dim=samples, device=j.device, inputs=[*head, *state, int(with_system)],
+                  outputs=[self.patch_w, self.patch_r, self.patch_ju, self.patch_jv])
+        wp.launch(rk.patch_system_kernel, dim=(len(j.frames), j.n_welded), device=j.device,
+                  inputs=[self.patch_w, self.patch_r, self.patch_ju, self.patch_jv, j.huber, int(with_system)],
+                  outputs=[self.system, out, self.back])
+        if with_system:
+            wp.launch(rk.normal_gradient_kernel, dim=samples, device=j.device, inputs=[*head, *state, self.back],
+                      outputs=[self.system])
+
+    def iterate(self, history) -> None:
+        """One iteration (see the class); ``history`` (2,) += the objective before the step (sum, weight)."""
+        j, cfg, dev, n = self.job, self.job.cfg, self.job.device, self.job.n_welded
+        j.colours(j.blurred)
+        self.system.zero_()
+        self.evaluate(self.before, with_system=True)
+        wp.launch(rk.vertex_total_kernel, dim=n, inputs=[self.before], outputs=[history], device=dev)
+        self.mean.zero_()
+        wp.launch(rk.mean_tilt_curvature_kernel, dim=n, inputs=[self.system], outputs=[self.mean], device=dev)
+        frame = [j.offsets, j.neighbours, self.base, self.tu, self.tv, self.mean]
+        priors = [*frame, cfg.normal_smoothness, cfg.normal_prior]
+        wp.launch(rk.tilt_prior_kernel, dim=n, inputs=[self.tilt, *priors], outputs=[self.prior_before], device=dev)
+        wp.copy(self.x_a, self.tilt)
+        src, dst = self.x_a, self.x_b
+        for _ in range(20):  # Jacobi sweeps: the priors spread a step over a few rings
+            wp.launch(rk.tilt_sweep_kernel, dim=n, device=dev,
+                      inputs=[self.tilt, self.system, *priors, self.damping, src], outputs=[dst])
+            src, dst = dst, src
+        wp.launch(rk.apply_tilt_kernel, dim=n, inputs=[src, self.max_step, self.max_total],
+                  outputs=[self.tilt, self.saved, self.base, self.tu, self.tv, self.shade], device=dev)
+        self.texel_normals()
+        self.evaluate(self.after, with_system=False)
+        wp.launch(rk.tilt_prior_kernel, dim=n, inputs=[self.tilt, *priors], outputs=[self.prior_after], device=dev)
+        wp.launch(rk.tilt_accept_kernel, dim=n,
+                  inputs=[self.before, self.after, self.prior_before, self.prior_after, self.saved],
+                  outputs=[self.tilt, self.base, self.tu, self.tv, self.shade, self.damping, self.accepted], device=dev)
+        self.texel_normals()
+
+    def normals(self) -> np.ndarray:
+        """(welded vertices, 3) the current shading normals (a host read)."""
+        return self.shade.numpy().astype(np.float64)
 
 
 def refined_capture(capture, result: RefineResult, out: Path):

@@ -538,20 +538,22 @@ def texel_normals_kernel(face: wp.array(dtype=wp.int32), bary: wp.array(dtype=wp
 
 
 @wp.kernel
-def normal_system_kernel(infos: wp.array(dtype=ImageInfo), images: wp.array3d(dtype=wp.vec3),
-                         depth: wp.array3d(dtype=wp.float32), role: wp.array(dtype=wp.int32),
-                         face: wp.array(dtype=wp.int32), bary: wp.array(dtype=wp.vec3),
-                         faces: wp.array(dtype=wp.vec3i), weld: wp.array(dtype=wp.int32),
-                         p: wp.array(dtype=wp.vec3), n: wp.array(dtype=wp.vec3), ns: wp.array(dtype=wp.vec3),
-                         shade: wp.array(dtype=wp.vec3), base: wp.array(dtype=wp.vec3), tu: wp.array(dtype=wp.vec3),
-                         tv: wp.array(dtype=wp.vec3), tilt: wp.array(dtype=wp.vec2), colour: wp.array(dtype=wp.vec3),
-                         known: wp.array(dtype=wp.int32), cos_view_min: float, depth_tol: float, huber: float,
-                         with_system: int, system: wp.array2d(dtype=wp.float64),
-                         objective: wp.array2d(dtype=wp.float64)):
-    """Per welded vertex, over the fitting photos' samples under a known light: its share of the Huber objective
-    and of the samples' weight (``objective[v]``: sum of beta_c w loss, sum of beta_c w) and (``with_system``) the
-    lumped Gauss-Newton system of its tilt (:data:`NORMAL_TERMS`), the texels' colours held. ``n``: the texels'
-    surface normals (visibility, weights), ``ns``: their shading normals, ``shade``: the vertices'."""
+def patch_residual_kernel(infos: wp.array(dtype=ImageInfo), images: wp.array3d(dtype=wp.vec3),
+                          depth: wp.array3d(dtype=wp.float32), role: wp.array(dtype=wp.int32),
+                          face: wp.array(dtype=wp.int32), bary: wp.array(dtype=wp.vec3),
+                          faces: wp.array(dtype=wp.vec3i), weld: wp.array(dtype=wp.int32),
+                          p: wp.array(dtype=wp.vec3), n: wp.array(dtype=wp.vec3), ns: wp.array(dtype=wp.vec3),
+                          shade: wp.array(dtype=wp.vec3), base: wp.array(dtype=wp.vec3), tu: wp.array(dtype=wp.vec3),
+                          tv: wp.array(dtype=wp.vec3), tilt: wp.array(dtype=wp.vec2), colour: wp.array(dtype=wp.vec3),
+                          known: wp.array(dtype=wp.int32), cos_view_min: float, depth_tol: float, with_jacobian: int,
+                          weight: wp.array2d(dtype=float), residual: wp.array2d(dtype=wp.vec3),
+                          jac_u: wp.array2d(dtype=wp.vec3), jac_v: wp.array2d(dtype=wp.vec3)):
+    """Per (photo, welded vertex), over the fitting photos' samples under a known light, the sums over the vertex's
+    patch (its faces' texels, weighted by the vertex's barycentric share beta times the sample weight w): sum beta w,
+    sum beta w r and (``with_jacobian``) sum beta w dr/dx of the residual r = I - s (wi . n_t) C with the colours
+    held, x the tilt of the patch's normals (the vertex's tangents; lumped: the texel's three vertex normals tilted
+    together). ``n``: the texels' surface normals (visibility, weights), ``ns``: their shading normals,
+    ``shade``: the vertices'."""
     k, t = wp.tid()
     if role[k] != ROLE_FIT or known[t] == 0:
         return
@@ -563,37 +565,102 @@ def normal_system_kernel(infos: wp.array(dtype=ImageInfo), images: wp.array3d(dt
         return
     c = colour[t]
     r = ob.value - wp.cw_mul(ob.shading, c)
-    loss = ob.weight * huber_loss(r, huber)
     f = faces[face[t]]
     b = bary[t]
-    for i in range(3):
-        v = weld[f[i]]
-        wp.atomic_add(objective, v, 0, wp.float64(b[i] * loss))
-        wp.atomic_add(objective, v, 1, wp.float64(b[i] * ob.weight))
-    if with_system == 0:
+    if with_jacobian == 0:
+        for i in range(3):
+            v = weld[f[i]]
+            wt = b[i] * ob.weight
+            wp.atomic_add(weight, k, v, wt)
+            wp.atomic_add(residual, k, v, wt * r)
         return
-    wi, irradiance, dist = incident_light(info.light_kind, info.light_vec, info.light_intensity, p[t])
+    wi, irradiance, _dist = incident_light(info.light_kind, info.light_vec, info.light_intensity, p[t])
     dr = -info.exposure * wp.cw_mul(irradiance, c)  # d r / d (wi . n_t), per channel
     m = b[0] * shade[weld[f[0]]] + b[1] * shade[weld[f[1]]] + b[2] * shade[weld[f[2]]]
     m_len = wp.length(m)
     n_t = m / m_len
-    w = ob.weight * huber_weight(r, huber)
-    drr = wp.dot(dr, r)
-    dd = wp.dot(dr, dr)
+    for i in range(3):
+        v = weld[f[i]]
+        wt = b[i] * ob.weight
+        wp.atomic_add(weight, k, v, wt)
+        wp.atomic_add(residual, k, v, wt * r)
+        x = tilt[v]
+        q = base[v] + x[0] * tu[v] + x[1] * tv[v]
+        a = cosine_tilt_derivative(wi, n_t, m_len, shade[v], wp.length(q), tu[v], tv[v])
+        wp.atomic_add(jac_u, k, v, (wt * a[0]) * dr)
+        wp.atomic_add(jac_v, k, v, (wt * a[1]) * dr)
+
+
+@wp.kernel
+def patch_system_kernel(weight: wp.array2d(dtype=float), residual: wp.array2d(dtype=wp.vec3),
+                        jac_u: wp.array2d(dtype=wp.vec3), jac_v: wp.array2d(dtype=wp.vec3), huber: float,
+                        with_system: int, system: wp.array2d(dtype=wp.float64), objective: wp.array2d(dtype=wp.float64),
+                        back: wp.array2d(dtype=wp.vec3)):
+    """Per (photo, welded vertex): the Huber objective of the vertex's patch mean residual R = sum beta w r / W,
+    weighted by W = sum beta w (``objective[v]`` += W rho(R), W), and (``with_system``) the lumped curvature of the
+    vertex's tilt, W psi'(R) |J|^2 with J = sum beta w dr/dx / W (``system[v]`` entries 00, 01, 11), and the
+    objective's derivative per unit of a sample's weighted residual, ``back[k, v]`` = psi(R) (what
+    :func:`normal_gradient_kernel` hands back to the samples). The mean over a patch keeps the shading (smooth on
+    the surface) and averages out most of what the texture's point samples leave (the photos alias the texture,
+    each view its own way)."""
+    k, v = wp.tid()
+    big_w = weight[k, v]
+    if big_w <= 0.0:
+        return
+    r = residual[k, v] / big_w
+    wp.atomic_add(objective, v, 0, wp.float64(big_w * huber_loss(r, huber)))
+    wp.atomic_add(objective, v, 1, wp.float64(big_w))
+    if with_system == 0:
+        return
+    hw = huber_weight(r, huber)
+    back[k, v] = hw * r
+    ju = jac_u[k, v] / big_w
+    jv = jac_v[k, v] / big_w
+    h = big_w * hw
+    wp.atomic_add(system, v, 0, wp.float64(h * wp.dot(ju, ju)))
+    wp.atomic_add(system, v, 1, wp.float64(h * wp.dot(ju, jv)))
+    wp.atomic_add(system, v, 2, wp.float64(h * wp.dot(jv, jv)))
+
+
+@wp.kernel
+def normal_gradient_kernel(infos: wp.array(dtype=ImageInfo), images: wp.array3d(dtype=wp.vec3),
+                           depth: wp.array3d(dtype=wp.float32), role: wp.array(dtype=wp.int32),
+                           face: wp.array(dtype=wp.int32), bary: wp.array(dtype=wp.vec3),
+                           faces: wp.array(dtype=wp.vec3i), weld: wp.array(dtype=wp.int32),
+                           p: wp.array(dtype=wp.vec3), n: wp.array(dtype=wp.vec3), ns: wp.array(dtype=wp.vec3),
+                           shade: wp.array(dtype=wp.vec3), base: wp.array(dtype=wp.vec3),
+                           tu: wp.array(dtype=wp.vec3), tv: wp.array(dtype=wp.vec3), tilt: wp.array(dtype=wp.vec2),
+                           colour: wp.array(dtype=wp.vec3), known: wp.array(dtype=wp.int32), cos_view_min: float,
+                           depth_tol: float, back: wp.array2d(dtype=wp.vec3), system: wp.array2d(dtype=wp.float64)):
+    """The gradient of the patch objective with respect to every vertex's tilt (``system[v]`` entries 3, 4): each
+    sample's residual enters the patches of its texel's three vertices, d E / d r = w sum_c beta_c psi(R_c)
+    (``back``), and its derivative d r / d x_u = beta_u (d r / d (wi . n_t)) (d (wi . n_t) / d x_u) for each of
+    them (:func:`cosine_tilt_derivative`)."""
+    k, t = wp.tid()
+    if role[k] != ROLE_FIT or known[t] == 0:
+        return
+    info = infos[k]
+    if info.light_kind == 2:
+        return
+    ob = observe(infos, images, depth, k, p[t], n[t], ns[t], cos_view_min, depth_tol)
+    if ob.ok == 0:
+        return
+    f = faces[face[t]]
+    b = bary[t]
+    lam = ob.weight * (b[0] * back[k, weld[f[0]]] + b[1] * back[k, weld[f[1]]] + b[2] * back[k, weld[f[2]]])
+    wi, irradiance, _dist = incident_light(info.light_kind, info.light_vec, info.light_intensity, p[t])
+    dr = -info.exposure * wp.cw_mul(irradiance, colour[t])  # d r / d (wi . n_t), per channel
+    g = wp.dot(lam, dr)
+    m = b[0] * shade[weld[f[0]]] + b[1] * shade[weld[f[1]]] + b[2] * shade[weld[f[2]]]
+    m_len = wp.length(m)
+    n_t = m / m_len
     for i in range(3):
         v = weld[f[i]]
         x = tilt[v]
         q = base[v] + x[0] * tu[v] + x[1] * tv[v]
         a = cosine_tilt_derivative(wi, n_t, m_len, shade[v], wp.length(q), tu[v], tv[v])
-        # J_c = beta_c a (x) dr. The lumped (row-sum) block beta_c |dr|^2 a a^T, not beta_c^2: the three vertices of
-        # a texel would each take the whole step otherwise (as the displacement's curvature)
-        h = w * b[i] * dd
-        wp.atomic_add(system, v, 0, wp.float64(h * a[0] * a[0]))
-        wp.atomic_add(system, v, 1, wp.float64(h * a[0] * a[1]))
-        wp.atomic_add(system, v, 2, wp.float64(h * a[1] * a[1]))
-        g = w * b[i] * drr
-        wp.atomic_add(system, v, 3, wp.float64(g * a[0]))
-        wp.atomic_add(system, v, 4, wp.float64(g * a[1]))
+        wp.atomic_add(system, v, 3, wp.float64(g * b[i] * a[0]))
+        wp.atomic_add(system, v, 4, wp.float64(g * b[i] * a[1]))
 
 
 @wp.kernel
@@ -614,10 +681,12 @@ def tilt_sweep_kernel(current: wp.array(dtype=wp.vec2), system: wp.array2d(dtype
                       damping: wp.array(dtype=wp.float64), x_in: wp.array(dtype=wp.vec2),
                       x_out: wp.array(dtype=wp.vec2)):
     """One Jacobi sweep of the damped Gauss-Newton step of the tilts with two priors: minimises per vertex
-    1/2 (x - x0)^T H~ (x - x0) + g^T (x - x0) + lambda sum_neighbours |b + T x - n_j|^2 + mu |x|^2, with H~ = H +
-    damping diag(H), T = (tu, tv), n_j the neighbour's normal at its current sweep value, lambda = ``smoothness``
-    and mu = ``prior`` times the mean half-trace of H (mu holds a vertex to its start normal, lambda to its
-    neighbours': vertices no photo tilts follow them)."""
+    1/2 (x - x0)^T H~ (x - x0) + g^T (x - x0) + lambda sum_neighbours |T x - T_j x_j|^2 + mu |x|^2, with H~ = H +
+    damping diag(H), T = (tu, tv), x_j the neighbour's tilt at its current sweep value, lambda = ``smoothness``
+    and mu = ``prior`` times the mean half-trace of H. lambda keeps the correction of the start normals smooth
+    (vertices no photo tilts follow their neighbours), mu holds it small. The smoothness is on the correction,
+    not on the normals themselves: the normals' own Dirichlet energy is flat along the conformal maps of the sphere
+    of directions, so weakly seen regions would drift along them at no cost."""
     v = wp.tid()
     scale = mean[0] / wp.max(mean[1], wp.float64(1.0))
     lam = wp.float64(smoothness) * scale
@@ -632,9 +701,9 @@ def tilt_sweep_kernel(current: wp.array(dtype=wp.vec2), system: wp.array2d(dtype
     deg = wp.float64(0.0)
     for e in range(offsets[v], offsets[v + 1]):
         j = neighbours[e]
-        nj = tilted_normal(base[j], tu[j], tv[j], x_in[j])
-        r0 = r0 + wp.float64(2.0) * lam * wp.float64(wp.dot(tu[v], nj))
-        r1 = r1 + wp.float64(2.0) * lam * wp.float64(wp.dot(tv[v], nj))
+        dj = x_in[j][0] * tu[j] + x_in[j][1] * tv[j]
+        r0 = r0 + wp.float64(2.0) * lam * wp.float64(wp.dot(tu[v], dj))
+        r1 = r1 + wp.float64(2.0) * lam * wp.float64(wp.dot(tv[v], dj))
         deg = deg + wp.float64(1.0)
     diag = wp.float64(2.0) * (lam * deg + mu)
     a00 = h00 + diag
@@ -673,15 +742,15 @@ def tilt_prior_kernel(tilt: wp.array(dtype=wp.vec2), offsets: wp.array(dtype=wp.
                       tv: wp.array(dtype=wp.vec3), mean: wp.array(dtype=wp.float64), smoothness: float, prior: float,
                       out: wp.array(dtype=wp.float64)):
     """Per vertex, the priors of :func:`tilt_sweep_kernel` at the current tilts: mu |x|^2 + lambda sum_neighbours
-    |n - n_j|^2."""
+    |T x - T_j x_j|^2."""
     v = wp.tid()
     scale = mean[0] / wp.max(mean[1], wp.float64(1.0))
     x = tilt[v]
-    nv = tilted_normal(base[v], tu[v], tv[v], x)
+    dv = x[0] * tu[v] + x[1] * tv[v]
     e = wp.float64(0.0)
     for k in range(offsets[v], offsets[v + 1]):
         j = neighbours[k]
-        d = nv - tilted_normal(base[j], tu[j], tv[j], tilt[j])
+        d = dv - (tilt[j][0] * tu[j] + tilt[j][1] * tv[j])
         e = e + wp.float64(wp.dot(d, d))
     out[v] = scale * (wp.float64(smoothness) * e + wp.float64(prior) * wp.float64(wp.dot(x, x)))
 
