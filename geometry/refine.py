@@ -72,20 +72,24 @@ class RefineConfig:
                                                   "a pixel, their normals to a few degrees, which under a known "
                                                   "light is several percent of shading); 0 alone: the mesh's own",
                                    )
-    normal_iterations: int = option(0, "photometric shading normals, with known lights only: damped Gauss-Newton "
-                                        "iterations on a 2-degree-of-freedom tilt of each welded vertex's normal "
-                                        "(a texel's normal interpolates its face's), alternated with the texture's "
-                                        "colours, the photos' intensities compared; they start from the "
-                                        "normal_smoothing choice and are written as the mesh's normals; 0: off",
-                                    min=0)
-    normal_smoothness: float = option(0.1, "weight of the shading normals' agreement with their 1-ring neighbours "
-                                           "relative to the mean data curvature per vertex", min=0.0)
+    normal_iterations: int = option(6, "with known lights: iterations of photometric shading normals after the "
+                                       "levels (a 2-degree-of-freedom tilt of each welded vertex's normal, a "
+                                       "texel's normal interpolating its face's; damped Gauss-Newton on the "
+                                       "photos' intensities averaged over each vertex's faces, alternated with the "
+                                       "texture's colours), from the normal_smoothing choice; written as the "
+                                       "mesh's normals; 0: off (the smoothing choice is written)", min=0)
+    intensity_iterations: int = option(8, "with known lights, after the shading normals: iterations of pose and "
+                                          "displacement steps comparing the photos' intensities (not their detail) "
+                                          "with the texture shaded by the fitted normals, each followed by one "
+                                          "iteration of the normals (needs normal_iterations > 0)", min=0)
+    intensity_blur: float = option(0.0, "Gaussian blur (standard deviation in pixels) of the photos the shading "
+                                        "normals and the intensity iterations compare", min=0.0)
+    normal_smoothness: float = option(0.1, "weight of the smoothness of the shading normals' correction (its "
+                                           "difference between neighbouring vertices) relative to the mean data "
+                                           "curvature per vertex", min=0.0)
     normal_prior: float = option(0.01, "weight of the shading normals' pull toward their start relative to the "
                                        "mean data curvature per vertex (holds vertices the photos barely see)",
                                  min=0.0)
-    normal_blur: float = option(0.0, "Gaussian blur (standard deviation in pixels) of the photos the shading "
-                                     "normals compare (shading is smooth; the texture's resampling is not)",
-                                min=0.0)
     max_normal_tilt: float = option(20.0, "largest tilt of a shading normal from its start (degrees)", min=0.0,
                                     max=80.0)
     cos_view_min: float = option(0.2, "samples seen more grazingly than this cosine are left out", min=0.0, max=1.0)
@@ -426,7 +430,9 @@ class PhotometricRefinement:
         levels = cfg.levels()
         history = wp.zeros((len(levels) * cfg.iterations, len(self.frames), 2), dtype=wp.float64, device=self.device)
         step = 0
-        progress = bar(total=len(levels) * cfg.iterations, desc="refine", unit="it")
+        shaded = self.lit and cfg.normal_iterations > 0
+        extra = cfg.normal_iterations + cfg.intensity_iterations if shaded else 0
+        progress = bar(total=len(levels) * cfg.iterations + extra, desc="refine", unit="it")
         for sigma in levels:
             self.blur(sigma)
             self.log(f"blur {sigma:g} px: {cfg.iterations} iterations")
@@ -442,45 +448,66 @@ class PhotometricRefinement:
                     self.update_geometry()
                 self.objective(self.blurred, history[step])
                 step += 1
-        progress.close()
         hist = history.numpy()  # read once, after the loop
         trace = [{"blur_px": sigma, "iteration": it, **self._per_role(hist[i * cfg.iterations + it])}
                  for i, sigma in enumerate(levels) for it in range(cfg.iterations)]
         self.blur(0.0)
         self.colours(self.blurred)
         end = self._score()
-        result = self._result(start, end, trace, time.perf_counter() - t0)
         rounds, normals, scores = self.choose_shading_normals()
-        result.summary["shading_normals"] = {"smoothing_rounds": rounds, "intensity_rms_by_rounds": scores}
-        if self.lit and cfg.normal_iterations > 0:
+        shading = {"smoothing_rounds": rounds, "intensity_rms_by_rounds": scores}
+        if shaded:
             if normals is None:
                 welded = self.welded_points.numpy().astype(np.float64)  # once, after the loop
                 normals = welded_normals(welded, self.weld_host[np.asarray(self.mesh.faces, np.int32)])
-            normals, fitted = self.fit_shading_normals(normals)
-            result.summary["shading_normals"]["photometric"] = fitted
+            normals, shading["photometric"] = self.shaded_refinement(normals, progress)
+        progress.close()
+        result = self._result(start, end, trace, time.perf_counter() - t0)
+        result.summary["shading_normals"] = shading
         result.normals = normals
         return result
 
-    def fit_shading_normals(self, start: np.ndarray) -> tuple[np.ndarray, dict]:
-        """Photometric normals under the known lights from ``start`` (welded unit normals): ``normal_iterations`` of
-        :meth:`ShadingNormals.iterate`. Returns (welded shading normals, summary)."""
+    def shaded_refinement(self, start: np.ndarray, progress=None) -> tuple[np.ndarray, dict]:
+        """With known lights, after the levels: ``normal_iterations`` of :meth:`ShadingNormals.iterate` from
+        ``start`` (welded unit normals), then ``intensity_iterations`` of (colours, a pose step, a displacement step,
+        each on the photos' intensities shaded by the fitted normals; one iteration of the normals). Returns
+        (welded shading normals, summary)."""
+        cfg, dev = self.cfg, self.device
         job = ShadingNormals(self, start)
-        history = wp.zeros((self.cfg.normal_iterations + 1, 2), dtype=wp.float64, device=self.device)
-        for it in range(self.cfg.normal_iterations):
+        history = wp.zeros((cfg.normal_iterations + cfg.intensity_iterations + 1, 2), dtype=wp.float64, device=dev)
+        intensity = wp.zeros((cfg.intensity_iterations + 1, len(self.frames), 2), dtype=wp.float64, device=dev)
+        self.log(f"shading normals: {cfg.normal_iterations} iterations, then {cfg.intensity_iterations} on intensities")
+        for it in range(cfg.normal_iterations):
             job.iterate(history[it])
+            if progress is not None:
+                progress.update(1)
         self.colours(self.blurred)
+        self.objective(self.blurred, intensity[0])
+        for it in range(cfg.intensity_iterations):
+            if progress is not None:
+                progress.update(1)
+            if cfg.cameras:
+                self.pose_step(self.blurred)
+                self.update_geometry()
+            if cfg.mesh:
+                self.colours(self.blurred)
+                self.displacement_step(self.blurred)
+                self.update_geometry()
+            job.iterate(history[cfg.normal_iterations + it])  # colours first
+            self.colours(self.blurred)
+            self.objective(self.blurred, intensity[it + 1])
         job.evaluate(job.before, with_system=False)
-        wp.launch(rk.vertex_total_kernel, dim=self.n_welded, inputs=[job.before], outputs=[history[-1]],
-                  device=self.device)
-        hist = history.numpy()  # read once, after the loop
+        wp.launch(rk.vertex_total_kernel, dim=self.n_welded, inputs=[job.before], outputs=[history[-1]], device=dev)
+        hist, inten = history.numpy(), intensity.numpy()  # read once, after the loops
         normals = job.normals()
         self.t_shade = self.t_n
         angle = np.degrees(np.arccos(np.clip(np.sum(normals * job.start, axis=1), -1.0, 1.0)))
-        rms = [float(math.sqrt(2.0 * a / c)) if c > 0 else float("nan") for a, c in hist]
-        return normals, {"iterations": self.cfg.normal_iterations, "patch_rms": rms,
-                         "vertex_steps_kept": int(job.accepted.numpy()[0]),
-                         "tilt_deg": {"median": float(np.median(angle)), "p90": float(np.percentile(angle, 90)),
-                                      "max": float(angle.max())}}
+        return normals, {
+            "normal_iterations": cfg.normal_iterations, "intensity_iterations": cfg.intensity_iterations,
+            "patch_rms": [float(math.sqrt(2.0 * a / c)) if c > 0 else float("nan") for a, c in hist],
+            "intensity_rms": [self._per_role(h) for h in inten], "vertex_steps_kept": int(job.accepted.numpy()[0]),
+            "tilt_deg": {"median": float(np.median(angle)), "p90": float(np.percentile(angle, 90)),
+                         "max": float(angle.max())}}
 
     def choose_shading_normals(self) -> tuple[int, np.ndarray | None, dict]:
         """After the iterations: the refined mesh's vertex normals averaged over 1-ring neighbours for each of
@@ -602,7 +629,7 @@ class ShadingNormals:
         self.max_total = math.tan(math.radians(cfg.max_normal_tilt))
         job.t_shade = wp.empty_like(job.t_n)
         self.texel_normals()
-        job._gaussian_blur(cfg.normal_blur, job.blurred)  # intensities: shading is the signal
+        job._gaussian_blur(cfg.intensity_blur, job.blurred)  # intensities: shading is the signal
 
     def texel_normals(self) -> None:
         """The texels' shading normals from the vertices'."""

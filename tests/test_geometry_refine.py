@@ -84,7 +84,7 @@ def test_cameras_return_to_their_true_poses(sphere, tmp_path, device):
     points = load_mesh(root / "ground_truth" / "mesh.obj").vertices
     moved = _perturbed_capture(root, truth, tmp_path / "moved")
     px_before = _reprojection_px(read_capture(moved), truth, points)
-    cfg = RefineConfig(mesh=False, holdout_every=0, iterations=6)
+    cfg = RefineConfig(mesh=False, holdout_every=0, iterations=6, normal_iterations=0)  # shading: its own test
     res = refine_stage(moved, root / "ground_truth", tmp_path / "refined", cfg, device=device)
     got = read_capture(tmp_path / "refined")
     px = _reprojection_px(got, truth, points)
@@ -117,7 +117,7 @@ def test_a_mesh_too_large_shrinks_to_the_sphere(sphere, tmp_path, device):
     save_mesh(atlas / "mesh.obj", big)
     bake_texels(big, bake.width, bake.height, device=device, padding=bake.padding).save(atlas / "bake.npz")
     radius = np.linalg.norm(mesh.vertices, axis=1).mean()
-    cfg = RefineConfig(cameras=False, holdout_every=0, iterations=6)
+    cfg = RefineConfig(cameras=False, holdout_every=0, iterations=6, normal_iterations=0)  # shading: its own test
     refine_stage(root, atlas, tmp_path / "refined", cfg, device=device)
     out = load_mesh(tmp_path / "refined" / "mesh.obj")
     err_before = np.abs(np.linalg.norm(big.vertices, axis=1) / radius - 1.0)
@@ -208,7 +208,7 @@ def test_noisy_normals_are_smoothed_by_the_shading_they_explain(sphere, tmp_path
     atlas.mkdir()
     save_mesh(atlas / "mesh.obj", noisy)
     bake_texels(noisy, bake.width, bake.height, device=device, padding=bake.padding).save(atlas / "bake.npz")
-    cfg = RefineConfig(cameras=False, mesh=False, holdout_every=0, blur="1", iterations=1)
+    cfg = RefineConfig(cameras=False, mesh=False, holdout_every=0, blur="1", iterations=1, normal_iterations=0)
     res = refine_stage(root, atlas, tmp_path / "refined", cfg, device=device)
     shading = res.summary["shading_normals"]
     assert shading["smoothing_rounds"] > 0, shading
@@ -222,7 +222,8 @@ def test_noisy_normals_are_smoothed_by_the_shading_they_explain(sphere, tmp_path
     # measured on the CPU: the jittered mesh's normals 1.44 degrees off (median), the kept ones (5 rounds) 0.29;
     # half is far from both
     assert np.median(kept) < 0.5 * np.median(own), (np.median(own), np.median(kept))
-    off = RefineConfig(cameras=False, mesh=False, holdout_every=0, blur="1", iterations=1, normal_smoothing="0")
+    off = RefineConfig(cameras=False, mesh=False, holdout_every=0, blur="1", iterations=1, normal_smoothing="0",
+                       normal_iterations=0)
     res0 = refine_stage(root, atlas, tmp_path / "own", off, device=device)
     assert res0.summary["shading_normals"]["smoothing_rounds"] == 0
 
@@ -235,7 +236,8 @@ def test_stage_writes_a_capture_and_an_atlas_folder(sphere, tmp_path):
     from texstream.geometry.refine import RefineConfig, refine_stage
 
     root, truth = sphere
-    res = refine_stage(root, root / "ground_truth", tmp_path / "r", RefineConfig(blur="1", iterations=2), device)
+    res = refine_stage(root, root / "ground_truth", tmp_path / "r", RefineConfig(blur="1", iterations=2,
+                                                                              normal_iterations=0), device)
     out = tmp_path / "r"
     for name in ("capture.json", "mesh.obj", "bake.npz", "refine.json", "refine_config.json"):
         assert (out / name).is_file(), name
@@ -311,7 +313,6 @@ def test_shading_normal_jacobian_matches_float64_central_differences(device):
     # the derivatives are O(0.1-1); float32 inputs and some 30 float32 operations: errors ~1e-6. A missing
     # projection, factor 1/|m| or 1/|q|, or a barycentric weight squared is off by 1e-2 or more
     assert np.abs(fd).max() > 0.3
-    print("JACERR", np.abs(got - fd).max())
     np.testing.assert_allclose(got, fd, atol=2e-5)
 
 
@@ -356,5 +357,63 @@ def test_shading_normal_gradient_matches_finite_differences(sphere, device):
             fd = (plus - objective(d)) / (2 * h)
             # measured ...: the objective is smooth in the tilt (visibility and the samples' weights follow the
             # surface normals, which stay); only a sample crossing the grazing-light cut-off jumps
-            print("FDREL", v, j, fd, grad[v, j], abs(fd - grad[v, j]) / np.abs(grad[v]).max())
             assert abs(fd - grad[v, j]) <= 0.02 * np.abs(grad[v]).max(), (v, j, fd, grad[v])
+
+
+def _bumped_sphere(root, out, amplitude, frequency, seed, width, height):
+    """An atlas folder of the scene's sphere with smooth bumps: each vertex moved radially by ``amplitude`` times
+    a sum of six plane waves of ``frequency`` (radians per unit) over the unit sphere, re-baked at width x height.
+    Returns (the folder, the unit radial directions, the radial offsets)."""
+    from texstream.geometry.bake import TexelBake, bake_texels
+    from texstream.geometry.mesh_io import load_mesh, save_mesh
+
+    mesh = load_mesh(root / "ground_truth" / "mesh.obj")
+    bake = TexelBake.load(root / "ground_truth" / "bake.npz")
+    radial = mesh.vertices / np.linalg.norm(mesh.vertices, axis=1, keepdims=True)  # centred at 0
+    rng = np.random.default_rng(seed)
+    waves = rng.normal(size=(6, 3))
+    waves /= np.linalg.norm(waves, axis=1, keepdims=True)
+    phase = rng.uniform(0.0, 2.0 * np.pi, 6)
+    offset = amplitude * sum(np.sin(frequency * radial @ w + f) for w, f in zip(waves, phase)) / np.sqrt(6.0)
+    bumped = dataclasses.replace(mesh, vertices=mesh.vertices * (1.0 + offset)[:, None], normals=None)
+    out.mkdir()
+    save_mesh(out / "mesh.obj", bumped)
+    bake_texels(bumped, width, height, device=SCENE_DEVICE, padding=bake.padding).save(out / "bake.npz")
+    return out, radial, offset
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_bumped_sphere_comes_back_with_its_shading_normals(sphere, tmp_path, device):
+    """A sphere with smooth bumps of 0.4% of its radius (its normals 0.64 degrees off, median): the shading normals
+    and the intensity iterations bring the surface and its normals closer to the sphere than the detail-band levels
+    with the smoothing proxy do in as many iterations (cameras held at the truth)."""
+    from texstream.geometry.mesh_io import load_mesh
+    from texstream.geometry.refine import RefineConfig, refine_stage
+
+    root, _ = sphere
+    # half the scene's texels: the same outcome (measured), twice as fast
+    atlas, radial, offset = _bumped_sphere(root, tmp_path / "atlas", 0.004, 6.0, 4, 512, 256)
+    lat = np.degrees(np.arcsin(radial[:, 2]))
+    band = (lat > -30.0) & (lat < 60.0)  # what both camera rings (5 and 35 degrees up) see within 60 degrees
+
+    def errors(folder):
+        m = load_mesh(folder / "mesh.obj")
+        dr = np.abs(np.linalg.norm(m.vertices, axis=1) - 1.0)[band]
+        deg = np.degrees(np.arccos(np.clip(np.sum(m.vertex_normals() * radial, axis=1), -1.0, 1.0)))[band]
+        return float(np.median(dr)), float(np.median(deg))
+
+    base = dict(cameras=False, holdout_every=0, blur="1")
+    proxy = RefineConfig(**base, iterations=9, normal_iterations=0)
+    refine_stage(root, atlas, tmp_path / "proxy", proxy, device=device)
+    shaded = RefineConfig(**base, iterations=1, normal_iterations=6, intensity_iterations=8)
+    res = refine_stage(root, atlas, tmp_path / "shaded", shaded, device=device)
+    assert res.summary["shading_normals"]["photometric"]["vertex_steps_kept"] > 0
+    own_deg = np.median(np.degrees(np.arccos(np.clip(np.sum(
+        load_mesh(atlas / "mesh.obj").vertex_normals() * radial, axis=1), -1.0, 1.0)))[band])
+    (dr_proxy, deg_proxy), (dr, deg) = errors(tmp_path / "proxy"), errors(tmp_path / "shaded")
+    # measured on the CPU, median in the band: bumps 0.17% of the radius and normals 0.64 degrees off; the levels and
+    # the smoothing proxy leave 0.13% and 0.35 degrees, the shaded refinement 0.033% and 0.20 degrees. The
+    # thresholds sit midway in ratio; a step that did nothing would leave the proxy's figures
+    assert np.median(np.abs(offset[band])) > 0.0015 and own_deg > 0.55
+    assert dr < 0.5 * dr_proxy, (dr, dr_proxy)
+    assert deg < 0.8 * deg_proxy and deg < 0.5 * own_deg, (deg, deg_proxy, own_deg)
