@@ -119,12 +119,14 @@ def main() -> None:
         "registered": lambda: refine_case(run / "posed", run / "atlas", work / "registered"),
         "registered_detail0": lambda: refine_case(run / "posed", run / "atlas", work / "registered_detail0",
                                                   detail=0.0),
-        "registered_all_fitted": lambda: refine_case(run / "posed", run / "atlas", work / "registered_all_fitted",
-                                                     holdout_every=0),
+        "registered_all_fitted": lambda: refine_case(run / "posed", run / "atlas",
+                                                     work / "registered_all_fitted", holdout_every=0),
         "registered_cameras_true_mesh": lambda: refine_case(run / "posed", mapped["true_in_registered"],
-                                                            work / "registered_cameras_true_mesh", mesh=False),
+                                                            work / "registered_cameras_true_mesh",
+                                                            mesh=False),
         "true_cameras_registered_mesh": lambda: refine_case(truth, mapped["registered_in_truth"],
-                                                            work / "true_cameras_registered_mesh", cameras=False)}
+                                                            work / "true_cameras_registered_mesh",
+                                                            cameras=False)}
     chosen = [c for c in args.cases.split(",") if c] or list(todo)
     unknown = sorted(set(chosen) - set(todo))
     if unknown:

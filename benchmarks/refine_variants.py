@@ -12,9 +12,9 @@ OUT``, whose folders it reuses.
   normals averaged over 1-ring neighbours this many times (``geometry/refine.py`` ``smoothed_normals``), re-baked,
   then the same fit, per number of rounds;
 * ``run OPTIONS``: the run's registered cameras and mesh refined with these options, then the same fit;
-* ``shading OPTIONS``: refine_limits' ``registered`` and ``true_cameras_registered_mesh`` refinements and the true
-  cameras and mesh taken as they are (cameras and mesh held) and only their shading normals made with these
-  options, then the same fit (``SHADING_CASES=registered,...`` in the environment: only those);
+* ``shading OPTIONS``: refine_limits' ``registered`` and ``true_cameras_registered_mesh`` refinements and the
+  true cameras and mesh taken as they are (cameras and mesh held) and only their shading normals made with
+  these options, then the same fit (``SHADING_CASES=registered,...`` in the environment: only those);
 * ``truth_swap PARTS``: the refined meshes of refine_limits' ``true_cameras_registered_mesh`` (true frame) and
   ``registered`` (the run's frame, the true sphere mapped into it by the Sim3 of the camera centres) with the
   true sphere's normals (``normals``: radial, positions kept), its positions (``positions``: each vertex moved
@@ -78,8 +78,8 @@ def swapped_atlas(src: Path, out: Path, centre, radius: float, part: str) -> Pat
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
     save_mesh(out / "mesh.obj", dataclasses.replace(mesh, vertices=vertices, normals=normals))
-    bake_texels(load_mesh(out / "mesh.obj"), bake.width, bake.height, device="cpu", padding=bake.padding).save(
-        out / "bake.npz")
+    moved = load_mesh(out / "mesh.obj")
+    bake_texels(moved, bake.width, bake.height, device="cpu", padding=bake.padding).save(out / "bake.npz")
     if (src / "seams.npz").exists():
         shutil.copy2(src / "seams.npz", out / "seams.npz")
     return out
@@ -89,8 +89,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="out/photos_only")
     ap.add_argument("mode", choices=("mesh", "normals", "run", "shading", "truth_swap", "normal_errors"))
-    ap.add_argument("arg", help="RefineConfig options as JSON (mesh, run), comma-separated rounds (normals) or parts "
-                                     "(truth_swap: normals, positions, both)")
+    ap.add_argument("arg", help="RefineConfig options as JSON (mesh, run, shading), comma-separated rounds "
+                                "(normals) or parts (truth_swap: normals, positions, both)")
     args = ap.parse_args()
 
     import warp as wp
@@ -107,7 +107,7 @@ def main() -> None:
         from texstream.geometry.mesh_io import load_mesh
 
         truth = load_mesh(out / "truth" / "ground_truth" / "mesh.obj")
-        centre = 0.5 * (truth.vertices.min(axis=0) + truth.vertices.max(axis=0))  # the mean leans to the UV seam
+        centre = 0.5 * (truth.vertices.min(axis=0) + truth.vertices.max(axis=0))  # the mean leans to the seam
         meshes = {"true mesh": out / "truth" / "ground_truth", "run's mesh": work / "atlas_registered_in_truth",
                   "refined (true cameras)": work / "true_cameras_registered_mesh",
                   **{f"refined, {p.name.split('_')[1]} rounds": p for p in sorted(work.glob("normals_*"))
@@ -168,8 +168,8 @@ def main() -> None:
             r.update(machine=f"{platform.node()} ({os.cpu_count()} cores)", commit=commit)
             f.write(json.dumps(r) + "\n")
             print(json.dumps({k: r[k] for k in r if k in ("mode", "rounds", "options", "pooled_psnr_db",
-                                                         "worst_psnr_db", "training_psnr_db", "mesh", "case", "part",
-                                                         "median_deg", "p90_deg")}))
+                                                         "worst_psnr_db", "training_psnr_db", "mesh", "case",
+                                                         "part", "median_deg", "p90_deg")}))
 
 
 if __name__ == "__main__":

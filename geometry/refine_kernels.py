@@ -10,6 +10,9 @@ gradient (the photos are blurred first, coarse to fine, so the gradient sees a f
 projection). The derivative of the shading with respect to pose and position is left out: under a flash or a
 distant lamp it varies far more slowly than the texture.
 
+The shading's cosine takes the texel's shading normal, which the photometric shading normals (the last section)
+fit; visibility and a sample's weight take its surface normal.
+
 Every per-sample kernel runs over (photo, texel); per-photo and per-vertex sums are atomic adds. Imports only
 numpy and warp.
 """
@@ -95,8 +98,8 @@ class Observation:
 def observe(infos: wp.array(dtype=ImageInfo), images: wp.array3d(dtype=wp.vec3),
             depth: wp.array3d(dtype=wp.float32), k: int, p: wp.vec3, n: wp.vec3, n_shade: wp.vec3,
             cos_view_min: float, depth_tol: float):
-    """Texel at ``p`` in photo ``k``: its surface normal ``n`` decides whether the camera sees it and weighs the
-    sample (the view cosine); its shading normal ``n_shade`` sets a known light's cosine."""
+    """Texel at ``p`` in photo ``k``: its surface normal ``n`` decides whether the camera sees it and weighs
+    the sample (the view cosine); its shading normal ``n_shade`` sets a known light's cosine."""
     ob = Observation()
     ob.ok = 0
     info = infos[k]
@@ -344,10 +347,11 @@ def vertex_system_kernel(infos: wp.array(dtype=ImageInfo), images: wp.array3d(dt
                          depth: wp.array3d(dtype=wp.float32), role: wp.array(dtype=wp.int32),
                          face: wp.array(dtype=wp.int32), bary: wp.array(dtype=wp.vec3),
                          faces: wp.array(dtype=wp.vec3i), weld: wp.array(dtype=wp.int32),
-                         direction: wp.array(dtype=wp.vec3), p: wp.array(dtype=wp.vec3), n: wp.array(dtype=wp.vec3),
-                         ns: wp.array(dtype=wp.vec3), colour: wp.array(dtype=wp.vec3), known: wp.array(dtype=wp.int32),
-                         cos_view_min: float, depth_tol: float, huber: float, curvature: wp.array(dtype=wp.float64),
-                         gradient: wp.array(dtype=wp.float64)):
+                         direction: wp.array(dtype=wp.vec3), p: wp.array(dtype=wp.vec3),
+                         n: wp.array(dtype=wp.vec3), ns: wp.array(dtype=wp.vec3),
+                         colour: wp.array(dtype=wp.vec3), known: wp.array(dtype=wp.int32),
+                         cos_view_min: float, depth_tol: float, huber: float,
+                         curvature: wp.array(dtype=wp.float64), gradient: wp.array(dtype=wp.float64)):
     """Per welded vertex: the lumped diagonal of J^T J and J^T r of its displacement along ``direction`` over
     the fitting photos (a texel moves with the barycentric share of each of its face's vertices)."""
     k, t = wp.tid()
@@ -493,14 +497,15 @@ def subtract_kernel(b: wp.array3d(dtype=wp.vec3), a: wp.array3d(dtype=wp.vec3)):
 
 
 # ------------------------------------------------------------------------------------ shading normals
-# Photometric normals under known lights: each welded vertex's shading normal is its start normal b (unit) tilted
-# in the tangent plane, n = normalize(b + x0 tu + x1 tv) with (tu, tv, b) orthonormal; a texel's shading normal
-# interpolates its face's vertex normals, n_t = normalize(sum_c beta_c n_c). The sample model is
-# I_kt = C_t * s_k * (wi . n_t) (s_k: exposure times the light's irradiance), compared in intensities; with C_t held
-# (the closed-form colour of the current normals), a damped Gauss-Newton step moves every vertex's tilt.
+# Photometric normals under known lights: each welded vertex's shading normal is its start normal b (unit)
+# tilted in its tangent plane, n = normalize(b + x0 tu + x1 tv) with (tu, tv, b) orthonormal; a texel's
+# shading normal interpolates its face's vertex normals, n_t = normalize(sum_c beta_c n_c). A sample's model
+# is C_t s_k (wi . n_t) (s_k: exposure times the light's irradiance), compared in intensities, the residuals
+# averaged over each vertex's patch (geometry/refine.py ShadingNormals); with C_t held (the closed-form colour
+# of the current normals), a damped Gauss-Newton step moves every vertex's tilt.
 
 NORMAL_TERMS = 5
-"""per welded vertex: the lumped 2x2 J^T J of its tilt (entries 00, 01, 11) and J^T r (2)"""
+"""per welded vertex: the lumped 2x2 J^T J of its tilt (entries 00, 01, 11) and the gradient (2)"""
 
 
 @wp.func
@@ -512,9 +517,9 @@ def tilted_normal(base: wp.vec3, tu: wp.vec3, tv: wp.vec3, x: wp.vec2):
 @wp.func
 def cosine_tilt_derivative(wi: wp.vec3, n_t: wp.vec3, m_len: float, n_c: wp.vec3, q_len: float, tu: wp.vec3,
                            tv: wp.vec3):
-    """d (wi . n_t) / d x_c per unit barycentric share: texel normal n_t = m / |m|, m = sum_c beta_c n_c, vertex
-    normal n_c = q / |q|, q = b + x0 tu + x1 tv. With P_a = I - a a^T, d n_t / d x_c,j = beta_c P_t P_c e_j /
-    (|m| |q|); this returns that without beta_c (the caller weighs by it)."""
+    """d (wi . n_t) / d x_c per unit barycentric share: texel normal n_t = m / |m|, m = sum_c beta_c n_c,
+    vertex normal n_c = q / |q|, q = b + x0 tu + x1 tv. With P_a = I - a a^T, d n_t / d x_c,j = beta_c P_t P_c
+    e_j / (|m| |q|); this returns it without beta_c (the caller weighs by it)."""
     a = wi - wp.dot(wi, n_t) * n_t
     s = 1.0 / (m_len * q_len)
     au = tu - wp.dot(n_c, tu) * n_c
@@ -523,8 +528,9 @@ def cosine_tilt_derivative(wi: wp.vec3, n_t: wp.vec3, m_len: float, n_c: wp.vec3
 
 
 @wp.kernel
-def tilted_normals_kernel(base: wp.array(dtype=wp.vec3), tu: wp.array(dtype=wp.vec3), tv: wp.array(dtype=wp.vec3),
-                          tilt: wp.array(dtype=wp.vec2), shade: wp.array(dtype=wp.vec3)):
+def tilted_normals_kernel(base: wp.array(dtype=wp.vec3), tu: wp.array(dtype=wp.vec3),
+                          tv: wp.array(dtype=wp.vec3), tilt: wp.array(dtype=wp.vec2),
+                          shade: wp.array(dtype=wp.vec3)):
     v = wp.tid()
     shade[v] = tilted_normal(base[v], tu[v], tv[v], tilt[v])
 
@@ -543,17 +549,19 @@ def patch_residual_kernel(infos: wp.array(dtype=ImageInfo), images: wp.array3d(d
                           face: wp.array(dtype=wp.int32), bary: wp.array(dtype=wp.vec3),
                           faces: wp.array(dtype=wp.vec3i), weld: wp.array(dtype=wp.int32),
                           p: wp.array(dtype=wp.vec3), n: wp.array(dtype=wp.vec3), ns: wp.array(dtype=wp.vec3),
-                          shade: wp.array(dtype=wp.vec3), base: wp.array(dtype=wp.vec3), tu: wp.array(dtype=wp.vec3),
-                          tv: wp.array(dtype=wp.vec3), tilt: wp.array(dtype=wp.vec2), colour: wp.array(dtype=wp.vec3),
-                          known: wp.array(dtype=wp.int32), cos_view_min: float, depth_tol: float, with_jacobian: int,
-                          weight: wp.array2d(dtype=float), residual: wp.array2d(dtype=wp.vec3),
-                          jac_u: wp.array2d(dtype=wp.vec3), jac_v: wp.array2d(dtype=wp.vec3)):
-    """Per (photo, welded vertex), over the fitting photos' samples under a known light, the sums over the vertex's
-    patch (its faces' texels, weighted by the vertex's barycentric share beta times the sample weight w): sum beta w,
-    sum beta w r and (``with_jacobian``) sum beta w dr/dx of the residual r = I - s (wi . n_t) C with the colours
-    held, x the tilt of the patch's normals (the vertex's tangents; lumped: the texel's three vertex normals tilted
-    together). ``n``: the texels' surface normals (visibility, weights), ``ns``: their shading normals,
-    ``shade``: the vertices'."""
+                          shade: wp.array(dtype=wp.vec3), base: wp.array(dtype=wp.vec3),
+                          tu: wp.array(dtype=wp.vec3), tv: wp.array(dtype=wp.vec3),
+                          tilt: wp.array(dtype=wp.vec2), colour: wp.array(dtype=wp.vec3),
+                          known: wp.array(dtype=wp.int32), cos_view_min: float,
+                          depth_tol: float, with_jacobian: int, weight: wp.array2d(dtype=float),
+                          residual: wp.array2d(dtype=wp.vec3), jac_u: wp.array2d(dtype=wp.vec3),
+                          jac_v: wp.array2d(dtype=wp.vec3)):
+    """Per (photo, welded vertex), over the fitting photos' samples under a known light, sums over the
+    vertex's patch (its faces' texels, each weighted by the vertex's barycentric share beta times the sample
+    weight w): sum beta w, sum beta w r and (``with_jacobian``) sum beta w dr/dx of the residual
+    r = I - s (wi . n_t) C with the colours held, x the tilt of the patch's normals in the vertex's tangents
+    (lumped: the texel's three vertex normals tilted together). ``n``: the texels' surface normals
+    (visibility, weights), ``ns``: their shading normals, ``shade``: the vertices'."""
     k, t = wp.tid()
     if role[k] != ROLE_FIT or known[t] == 0:
         return
@@ -594,15 +602,15 @@ def patch_residual_kernel(infos: wp.array(dtype=ImageInfo), images: wp.array3d(d
 @wp.kernel
 def patch_system_kernel(weight: wp.array2d(dtype=float), residual: wp.array2d(dtype=wp.vec3),
                         jac_u: wp.array2d(dtype=wp.vec3), jac_v: wp.array2d(dtype=wp.vec3), huber: float,
-                        with_system: int, system: wp.array2d(dtype=wp.float64), objective: wp.array2d(dtype=wp.float64),
-                        back: wp.array2d(dtype=wp.vec3)):
-    """Per (photo, welded vertex): the Huber objective of the vertex's patch mean residual R = sum beta w r / W,
-    weighted by W = sum beta w (``objective[v]`` += W rho(R), W), and (``with_system``) the lumped curvature of the
-    vertex's tilt, W psi'(R) |J|^2 with J = sum beta w dr/dx / W (``system[v]`` entries 00, 01, 11), and the
-    objective's derivative per unit of a sample's weighted residual, ``back[k, v]`` = psi(R) (what
-    :func:`normal_gradient_kernel` hands back to the samples). The mean over a patch keeps the shading (smooth on
-    the surface) and averages out most of what the texture's point samples leave (the photos alias the texture,
-    each view its own way)."""
+                        with_system: int, system: wp.array2d(dtype=wp.float64),
+                        objective: wp.array2d(dtype=wp.float64), back: wp.array2d(dtype=wp.vec3)):
+    """Per (photo, welded vertex): the Huber objective of the vertex's patch mean residual R = sum beta w r /
+    W, weighted by W = sum beta w (``objective[v]`` += W rho(R), W), and (``with_system``) the lumped
+    curvature of the vertex's tilt, W psi'(R) |J|^2 with J = sum beta w dr/dx / W (``system[v]`` entries 00,
+    01, 11), and the objective's derivative per unit of a sample's weighted residual, ``back[k, v]`` = psi(R)
+    (what :func:`normal_gradient_kernel` hands back to the samples). The mean over a patch keeps the shading
+    (smooth on the surface) and averages out most of what the texture's point samples leave (the photos alias
+    the texture, each view its own way)."""
     k, v = wp.tid()
     big_w = weight[k, v]
     if big_w <= 0.0:
@@ -627,15 +635,17 @@ def normal_gradient_kernel(infos: wp.array(dtype=ImageInfo), images: wp.array3d(
                            depth: wp.array3d(dtype=wp.float32), role: wp.array(dtype=wp.int32),
                            face: wp.array(dtype=wp.int32), bary: wp.array(dtype=wp.vec3),
                            faces: wp.array(dtype=wp.vec3i), weld: wp.array(dtype=wp.int32),
-                           p: wp.array(dtype=wp.vec3), n: wp.array(dtype=wp.vec3), ns: wp.array(dtype=wp.vec3),
-                           shade: wp.array(dtype=wp.vec3), base: wp.array(dtype=wp.vec3),
-                           tu: wp.array(dtype=wp.vec3), tv: wp.array(dtype=wp.vec3), tilt: wp.array(dtype=wp.vec2),
-                           colour: wp.array(dtype=wp.vec3), known: wp.array(dtype=wp.int32), cos_view_min: float,
-                           depth_tol: float, back: wp.array2d(dtype=wp.vec3), system: wp.array2d(dtype=wp.float64)):
-    """The gradient of the patch objective with respect to every vertex's tilt (``system[v]`` entries 3, 4): each
+                           p: wp.array(dtype=wp.vec3), n: wp.array(dtype=wp.vec3),
+                           ns: wp.array(dtype=wp.vec3), shade: wp.array(dtype=wp.vec3),
+                           base: wp.array(dtype=wp.vec3),
+                           tu: wp.array(dtype=wp.vec3), tv: wp.array(dtype=wp.vec3),
+                           tilt: wp.array(dtype=wp.vec2), colour: wp.array(dtype=wp.vec3),
+                           known: wp.array(dtype=wp.int32), cos_view_min: float, depth_tol: float,
+                           back: wp.array2d(dtype=wp.vec3), system: wp.array2d(dtype=wp.float64)):
+    """The gradient of the patch objective with respect to every vertex's tilt (``system[v]`` entries 3, 4): a
     sample's residual enters the patches of its texel's three vertices, d E / d r = w sum_c beta_c psi(R_c)
-    (``back``), and its derivative d r / d x_u = beta_u (d r / d (wi . n_t)) (d (wi . n_t) / d x_u) for each of
-    them (:func:`cosine_tilt_derivative`)."""
+    (``back``), and d r / d x_u = beta_u (d r / d (wi . n_t)) (d (wi . n_t) / d x_u) for each of them
+    (:func:`cosine_tilt_derivative`)."""
     k, t = wp.tid()
     if role[k] != ROLE_FIT or known[t] == 0:
         return
@@ -680,13 +690,13 @@ def tilt_sweep_kernel(current: wp.array(dtype=wp.vec2), system: wp.array2d(dtype
                       mean: wp.array(dtype=wp.float64), smoothness: float, prior: float,
                       damping: wp.array(dtype=wp.float64), x_in: wp.array(dtype=wp.vec2),
                       x_out: wp.array(dtype=wp.vec2)):
-    """One Jacobi sweep of the damped Gauss-Newton step of the tilts with two priors: minimises per vertex
-    1/2 (x - x0)^T H~ (x - x0) + g^T (x - x0) + lambda sum_neighbours |T x - T_j x_j|^2 + mu |x|^2, with H~ = H +
-    damping diag(H), T = (tu, tv), x_j the neighbour's tilt at its current sweep value, lambda = ``smoothness``
-    and mu = ``prior`` times the mean half-trace of H. lambda keeps the correction of the start normals smooth
-    (vertices no photo tilts follow their neighbours), mu holds it small. The smoothness is on the correction,
-    not on the normals themselves: the normals' own Dirichlet energy is flat along the conformal maps of the sphere
-    of directions, so weakly seen regions would drift along them at no cost."""
+    """One Jacobi sweep of the damped Gauss-Newton step of the tilts with two priors: minimises per vertex 1/2
+    (x - x0)^T H~ (x - x0) + g^T (x - x0) + lambda sum_neighbours |T x - T_j x_j|^2 + mu |x|^2, with H~ = H +
+    damping diag(H), T = (tu, tv), x_j the neighbour's tilt at its current sweep value, lambda =
+    ``smoothness`` and mu = ``prior`` times the mean half-trace of H. lambda keeps the correction of the start
+    normals smooth (vertices no photo tilts follow their neighbours), mu holds it small. The smoothness is on
+    the correction, not on the normals themselves: the normals' own Dirichlet energy is flat along the
+    conformal maps of the sphere of directions, so weakly seen regions would drift along them at no cost."""
     v = wp.tid()
     scale = mean[0] / wp.max(mean[1], wp.float64(1.0))
     lam = wp.float64(smoothness) * scale
@@ -717,8 +727,9 @@ def tilt_sweep_kernel(current: wp.array(dtype=wp.vec2), system: wp.array2d(dtype
 
 @wp.kernel
 def apply_tilt_kernel(proposed: wp.array(dtype=wp.vec2), max_step: float, max_total: float,
-                      current: wp.array(dtype=wp.vec2), saved: wp.array(dtype=wp.vec2), base: wp.array(dtype=wp.vec3),
-                      tu: wp.array(dtype=wp.vec3), tv: wp.array(dtype=wp.vec3), shade: wp.array(dtype=wp.vec3)):
+                      current: wp.array(dtype=wp.vec2), saved: wp.array(dtype=wp.vec2),
+                      base: wp.array(dtype=wp.vec3), tu: wp.array(dtype=wp.vec3), tv: wp.array(dtype=wp.vec3),
+                      shade: wp.array(dtype=wp.vec3)):
     """Clamp each vertex's tilt step and total tilt (tangents of the angles), keep the old tilt in ``saved``,
     tilt the vertex's shading normal."""
     v = wp.tid()
@@ -738,11 +749,12 @@ def apply_tilt_kernel(proposed: wp.array(dtype=wp.vec2), max_step: float, max_to
 
 @wp.kernel
 def tilt_prior_kernel(tilt: wp.array(dtype=wp.vec2), offsets: wp.array(dtype=wp.int32),
-                      neighbours: wp.array(dtype=wp.int32), base: wp.array(dtype=wp.vec3), tu: wp.array(dtype=wp.vec3),
-                      tv: wp.array(dtype=wp.vec3), mean: wp.array(dtype=wp.float64), smoothness: float, prior: float,
+                      neighbours: wp.array(dtype=wp.int32), base: wp.array(dtype=wp.vec3),
+                      tu: wp.array(dtype=wp.vec3), tv: wp.array(dtype=wp.vec3),
+                      mean: wp.array(dtype=wp.float64), smoothness: float, prior: float,
                       out: wp.array(dtype=wp.float64)):
-    """Per vertex, the priors of :func:`tilt_sweep_kernel` at the current tilts: mu |x|^2 + lambda sum_neighbours
-    |T x - T_j x_j|^2."""
+    """Per vertex, the priors of :func:`tilt_sweep_kernel` at the current tilts: mu |x|^2 + lambda
+    sum_neighbours |T x - T_j x_j|^2."""
     v = wp.tid()
     scale = mean[0] / wp.max(mean[1], wp.float64(1.0))
     x = tilt[v]
@@ -758,11 +770,13 @@ def tilt_prior_kernel(tilt: wp.array(dtype=wp.vec2), offsets: wp.array(dtype=wp.
 @wp.kernel
 def tilt_accept_kernel(before: wp.array2d(dtype=wp.float64), after: wp.array2d(dtype=wp.float64),
                        prior_before: wp.array(dtype=wp.float64), prior_after: wp.array(dtype=wp.float64),
-                       saved: wp.array(dtype=wp.vec2), current: wp.array(dtype=wp.vec2), base: wp.array(dtype=wp.vec3),
-                       tu: wp.array(dtype=wp.vec3), tv: wp.array(dtype=wp.vec3), shade: wp.array(dtype=wp.vec3),
-                       damping: wp.array(dtype=wp.float64), accepted: wp.array(dtype=wp.int32)):
-    """Keep a vertex's tilt step where its share of the intensity objective plus its priors fell (and trust the
-    quadratic model more), else restore its tilt and damp its next step ten times more."""
+                       saved: wp.array(dtype=wp.vec2), current: wp.array(dtype=wp.vec2),
+                       base: wp.array(dtype=wp.vec3), tu: wp.array(dtype=wp.vec3),
+                       tv: wp.array(dtype=wp.vec3), shade: wp.array(dtype=wp.vec3),
+                       damping: wp.array(dtype=wp.float64),
+                       accepted: wp.array(dtype=wp.int32)):
+    """Keep a vertex's tilt step where its patch's objective plus its priors fell (and trust the quadratic
+    model more), else restore its tilt and damp its next step ten times more."""
     v = wp.tid()
     if after[v, 0] + prior_after[v] <= before[v, 0] + prior_before[v]:
         damping[v] = wp.max(damping[v] * wp.float64(0.3), wp.float64(1.0e-4))

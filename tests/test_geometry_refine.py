@@ -84,7 +84,7 @@ def test_cameras_return_to_their_true_poses(sphere, tmp_path, device):
     points = load_mesh(root / "ground_truth" / "mesh.obj").vertices
     moved = _perturbed_capture(root, truth, tmp_path / "moved")
     px_before = _reprojection_px(read_capture(moved), truth, points)
-    cfg = RefineConfig(mesh=False, holdout_every=0, iterations=6, normal_iterations=0)  # shading: its own test
+    cfg = RefineConfig(mesh=False, holdout_every=0, iterations=6, normal_iterations=0)  # shading: own test
     res = refine_stage(moved, root / "ground_truth", tmp_path / "refined", cfg, device=device)
     got = read_capture(tmp_path / "refined")
     px = _reprojection_px(got, truth, points)
@@ -117,7 +117,8 @@ def test_a_mesh_too_large_shrinks_to_the_sphere(sphere, tmp_path, device):
     save_mesh(atlas / "mesh.obj", big)
     bake_texels(big, bake.width, bake.height, device=device, padding=bake.padding).save(atlas / "bake.npz")
     radius = np.linalg.norm(mesh.vertices, axis=1).mean()
-    cfg = RefineConfig(cameras=False, holdout_every=0, iterations=6, normal_iterations=0)  # shading: its own test
+    cfg = RefineConfig(cameras=False, holdout_every=0, iterations=6,
+                       normal_iterations=0)  # the shading normals: their own test
     refine_stage(root, atlas, tmp_path / "refined", cfg, device=device)
     out = load_mesh(tmp_path / "refined" / "mesh.obj")
     err_before = np.abs(np.linalg.norm(big.vertices, axis=1) / radius - 1.0)
@@ -208,7 +209,8 @@ def test_noisy_normals_are_smoothed_by_the_shading_they_explain(sphere, tmp_path
     atlas.mkdir()
     save_mesh(atlas / "mesh.obj", noisy)
     bake_texels(noisy, bake.width, bake.height, device=device, padding=bake.padding).save(atlas / "bake.npz")
-    cfg = RefineConfig(cameras=False, mesh=False, holdout_every=0, blur="1", iterations=1, normal_iterations=0)
+    cfg = RefineConfig(cameras=False, mesh=False, holdout_every=0, blur="1", iterations=1,
+                       normal_iterations=0)
     res = refine_stage(root, atlas, tmp_path / "refined", cfg, device=device)
     shading = res.summary["shading_normals"]
     assert shading["smoothing_rounds"] > 0, shading
@@ -222,8 +224,8 @@ def test_noisy_normals_are_smoothed_by_the_shading_they_explain(sphere, tmp_path
     # measured on the CPU: the jittered mesh's normals 1.44 degrees off (median), the kept ones (5 rounds) 0.29;
     # half is far from both
     assert np.median(kept) < 0.5 * np.median(own), (np.median(own), np.median(kept))
-    off = RefineConfig(cameras=False, mesh=False, holdout_every=0, blur="1", iterations=1, normal_smoothing="0",
-                       normal_iterations=0)
+    off = RefineConfig(cameras=False, mesh=False, holdout_every=0, blur="1", iterations=1,
+                       normal_smoothing="0", normal_iterations=0)
     res0 = refine_stage(root, atlas, tmp_path / "own", off, device=device)
     assert res0.summary["shading_normals"]["smoothing_rounds"] == 0
 
@@ -253,8 +255,9 @@ def test_stage_writes_a_capture_and_an_atlas_folder(sphere, tmp_path):
 
 
 @wp.kernel
-def _cosine_tilt_kernel(wi: wp.array(dtype=wp.vec3), base: wp.array2d(dtype=wp.vec3), tu: wp.array2d(dtype=wp.vec3),
-                        tv: wp.array2d(dtype=wp.vec3), tilt: wp.array2d(dtype=wp.vec2), bary: wp.array(dtype=wp.vec3),
+def _cosine_tilt_kernel(wi: wp.array(dtype=wp.vec3), base: wp.array2d(dtype=wp.vec3),
+                        tu: wp.array2d(dtype=wp.vec3), tv: wp.array2d(dtype=wp.vec3),
+                        tilt: wp.array2d(dtype=wp.vec2), bary: wp.array(dtype=wp.vec3),
                         out: wp.array2d(dtype=wp.vec2)):
     """d (wi . n_t) / d x_c for texel i's three vertices, as the normal kernels assemble it."""
     i = wp.tid()
@@ -267,15 +270,16 @@ def _cosine_tilt_kernel(wi: wp.array(dtype=wp.vec3), base: wp.array2d(dtype=wp.v
         x = tilt[i, c]
         q = base[i, c] + x[0] * tu[i, c] + x[1] * tv[i, c]
         n_c = rk.tilted_normal(base[i, c], tu[i, c], tv[i, c], x)
-        out[i, c] = b[c] * rk.cosine_tilt_derivative(wi[i], m / m_len, m_len, n_c, wp.length(q), tu[i, c], tv[i, c])
+        a = rk.cosine_tilt_derivative(wi[i], m / m_len, m_len, n_c, wp.length(q), tu[i, c], tv[i, c])
+        out[i, c] = b[c] * a
 
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_shading_normal_jacobian_matches_float64_central_differences(device):
-    """The derivative of a texel's light cosine with respect to each of its vertices' normal tilts (the shading
-    normals' Jacobian, up to the per-channel factor -C s) against central differences of the same function in
-    float64, on random texels of a curved surface: vertex normals within ~20 degrees of each other, tilts up to
-    0.2, lights anywhere over the texel's hemisphere."""
+    """The derivative of a texel's light cosine with respect to each of its vertices' normal tilts (the
+    shading normals' Jacobian, up to the per-channel factor -C s) against central differences of the same
+    function in float64, on random texels of a curved surface: vertex normals within ~20 degrees of each
+    other, tilts up to 0.2, lights anywhere over the texel's hemisphere."""
     rng = np.random.default_rng(5)
     n = 200
     up = rng.normal(size=(n, 3))
@@ -319,8 +323,8 @@ def test_shading_normal_jacobian_matches_float64_central_differences(device):
 @pytest.mark.parametrize("device", DEVICES)
 def test_shading_normal_gradient_matches_finite_differences(sphere, device):
     """The patch objective's gradient with respect to single vertices' tilts (colours held) against central
-    differences of the objective as the kernels evaluate it (inside the Huber threshold: 1/2 sum W |R|^2, whose
-    gradient the two-pass kernels assemble exactly)."""
+    differences of the objective as the kernels evaluate it (inside the Huber threshold: 1/2 sum W |R|^2,
+    whose gradient the two-pass kernels assemble exactly)."""
     from texstream.geometry.bake import TexelBake
     from texstream.geometry.mesh_io import load_mesh
     from texstream.geometry.refine import PhotometricRefinement, RefineConfig, ShadingNormals, welded_normals
@@ -355,15 +359,17 @@ def test_shading_normal_gradient_matches_finite_differences(sphere, device):
             plus = objective(d)
             d[v, j] -= 2 * h
             fd = (plus - objective(d)) / (2 * h)
-            # measured ...: the objective is smooth in the tilt (visibility and the samples' weights follow the
-            # surface normals, which stay); only a sample crossing the grazing-light cut-off jumps
-            assert abs(fd - grad[v, j]) <= 0.02 * np.abs(grad[v]).max(), (v, j, fd, grad[v])
+            # measured on the CPU: within 3e-5 of the vertex's largest component. The objective is smooth in
+            # the tilt (visibility and the samples' weights follow the surface normals, which stay); its
+            # float32 sums leave ~1e-5, and a sample crossing the grazing-light cut-off would jump. A dropped
+            # term of the chain rule (a projection, 1/|m|, a neighbour's patch) is off by 1e-2 or more
+            assert abs(fd - grad[v, j]) <= 1e-3 * np.abs(grad[v]).max(), (v, j, fd, grad[v])
 
 
 def _bumped_sphere(root, out, amplitude, frequency, seed, width, height):
-    """An atlas folder of the scene's sphere with smooth bumps: each vertex moved radially by ``amplitude`` times
-    a sum of six plane waves of ``frequency`` (radians per unit) over the unit sphere, re-baked at width x height.
-    Returns (the folder, the unit radial directions, the radial offsets)."""
+    """An atlas folder of the scene's sphere with smooth bumps: each vertex moved radially by ``amplitude``
+    times a sum of six plane waves of ``frequency`` (radians per unit) over the unit sphere, re-baked at width
+    x height. Returns (the folder, the unit radial directions, the radial offsets)."""
     from texstream.geometry.bake import TexelBake, bake_texels
     from texstream.geometry.mesh_io import load_mesh, save_mesh
 
@@ -384,9 +390,9 @@ def _bumped_sphere(root, out, amplitude, frequency, seed, width, height):
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_bumped_sphere_comes_back_with_its_shading_normals(sphere, tmp_path, device):
-    """A sphere with smooth bumps of 0.4% of its radius (its normals 0.64 degrees off, median): the shading normals
-    and the intensity iterations bring the surface and its normals closer to the sphere than the detail-band levels
-    with the smoothing proxy do in as many iterations (cameras held at the truth)."""
+    """A sphere with smooth bumps of 0.4% of its radius (its normals 0.64 degrees off, median): the shading
+    normals and the intensity iterations bring the surface and its normals closer to the sphere than the
+    detail-band levels with the smoothing proxy do in as many iterations (cameras held at the truth)."""
     from texstream.geometry.mesh_io import load_mesh
     from texstream.geometry.refine import RefineConfig, refine_stage
 
@@ -411,9 +417,9 @@ def test_bumped_sphere_comes_back_with_its_shading_normals(sphere, tmp_path, dev
     own_deg = np.median(np.degrees(np.arccos(np.clip(np.sum(
         load_mesh(atlas / "mesh.obj").vertex_normals() * radial, axis=1), -1.0, 1.0)))[band])
     (dr_proxy, deg_proxy), (dr, deg) = errors(tmp_path / "proxy"), errors(tmp_path / "shaded")
-    # measured on the CPU, median in the band: bumps 0.17% of the radius and normals 0.64 degrees off; the levels and
-    # the smoothing proxy leave 0.13% and 0.35 degrees, the shaded refinement 0.033% and 0.20 degrees. The
-    # thresholds sit midway in ratio; a step that did nothing would leave the proxy's figures
+    # measured on the CPU, median in the band: bumps 0.17% of the radius and normals 0.64 degrees off; the
+    # levels and the smoothing proxy leave 0.13% and 0.35 degrees, the shaded refinement 0.033% and 0.20
+    # degrees. The thresholds sit midway in ratio; a step that did nothing would leave the proxy's figures
     assert np.median(np.abs(offset[band])) > 0.0015 and own_deg > 0.55
     assert dr < 0.5 * dr_proxy, (dr, dr_proxy)
     assert deg < 0.8 * deg_proxy and deg < 0.5 * own_deg, (deg, deg_proxy, own_deg)
