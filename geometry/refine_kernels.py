@@ -10,8 +10,8 @@ gradient (the photos are blurred first, coarse to fine, so the gradient sees a f
 projection). The derivative of the shading with respect to pose and position is left out: under a flash or a
 distant lamp it varies far more slowly than the texture.
 
-The shading's cosine takes the texel's shading normal, which the photometric shading normals (the last section)
-fit; visibility and a sample's weight take its surface normal.
+The shading's cosine takes the texel's shading normal, which the photometric shading normals (the last
+section) fit; visibility and a sample's weight take its surface normal.
 
 Every per-sample kernel runs over (photo, texel); per-photo and per-vertex sums are atomic adds. Imports only
 numpy and warp.
