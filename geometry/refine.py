@@ -12,11 +12,11 @@ freedom pose update, and per welded mesh vertex, the curvature and gradient of a
 over blurred copies of the photos.
 
 Under known lights (every photo has one) the levels are followed by a shaded refinement
-(:class:`ShadingNormals`, ``normal_iterations``, ``intensity_iterations``): the mesh's shading normals, which set
-a known light's cosine, are fitted to the photos' intensities (per welded vertex, a tilt of its normal from the
-smoothing choice of ``normal_smoothing``), then poses and displacements take further steps on the intensities
-shaded by them, where the levels compare only the photos' detail. The normals are written as the refined mesh's
-vertex normals.
+(:class:`ShadingNormals`, ``normal_iterations``, ``intensity_iterations``): the mesh's shading normals, which
+set a known light's cosine, are fitted to the photos' intensities (per welded vertex, a tilt of its normal
+from the smoothing choice of ``normal_smoothing``), then poses and displacements take further steps on the
+intensities shaded by them, where the levels compare only the photos' detail. The normals are written as the
+refined mesh's vertex normals.
 
 Held-out photos (every ``holdout_every``-th, as the fit splits them) move neither the colours nor the mesh; with
 ``align_heldout`` each one's pose is aligned to the texture the other photos made (6 numbers per photo, as a
