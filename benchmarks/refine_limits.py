@@ -1,7 +1,7 @@
 """What bounds the photometric refinement on the photos-only sphere (JSON): run after ``benchmarks/photos_only.py
 --out OUT``.
 
-    python benchmarks/refine_limits.py --out out/photos_only
+    python benchmarks/refine_limits.py --out out/photos_only [--cases truth,registered] [--refine JSON]
 
 Each case runs the refine stage (``geometry/refine.py``) from a start and then the diffuse held-out fit of
 ``photos_only_diagnose.fit_heldout`` (every 8th photo held out, 15 LM iterations; the held-out cameras are the
@@ -83,7 +83,7 @@ def fit_case(capture: Path, atlas: Path, out: Path) -> dict:
     return res
 
 
-def refine_case(capture: Path, atlas: Path, out: Path, **options) -> dict:
+def refine_with(capture: Path, atlas: Path, out: Path, **options) -> dict:
     from texstream.geometry.refine import RefineConfig, refine_stage
 
     shutil.rmtree(out, ignore_errors=True)
@@ -100,6 +100,8 @@ def main() -> None:
     ap.add_argument("--out", default="out/photos_only")
     ap.add_argument("--results", default=None, help="also copy the JSON here (e.g. benchmarks/results/real_photos)")
     ap.add_argument("--cases", default="", help="only these cases (comma-separated names; default: all)")
+    ap.add_argument("--refine", default="{}", help="RefineConfig options for every refining case, as JSON "
+                                                   "(e.g. '{\"normal_iterations\": 0}': no shaded refinement)")
     args = ap.parse_args()
 
     import warp as wp
@@ -107,6 +109,11 @@ def main() -> None:
     wp.config.quiet = True
     out = Path(args.out)
     truth, true_atlas, run = out / "truth", out / "truth" / "ground_truth", out / "run"
+    common = json.loads(args.refine)
+
+    def refine_case(capture, atlas, folder, **options):
+        return refine_with(capture, atlas, folder, **{**common, **options})
+
     work = out / "refine_limits"
     work.mkdir(exist_ok=True)
     mapped = map_meshes(out, work)
@@ -137,7 +144,8 @@ def main() -> None:
         "commit": subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                                  cwd=Path(__file__).parent).stdout.strip(),
         "command": f"python benchmarks/refine_limits.py --out {args.out}"
-                   + (f" --cases {args.cases}" if args.cases else ""), "cases": cases}
+                   + (f" --cases {args.cases}" if args.cases else "")
+                   + (f" --refine '{args.refine}'" if common else ""), "cases": cases}
     text = json.dumps(result, indent=2)
     (out / "refine_limits.json").write_text(text)
     if args.results:

@@ -95,7 +95,7 @@ def main() -> None:
 
     import warp as wp
 
-    from refine_limits import fit_case, refine_case
+    from refine_limits import fit_case, refine_with as refine_case
 
     wp.config.quiet = True
     out = Path(args.out)
