@@ -1,7 +1,7 @@
 """What bounds the photometric refinement on the photos-only sphere (JSON): run after ``benchmarks/photos_only.py
 --out OUT``.
 
-    python benchmarks/refine_limits.py --out out/photos_only
+    python benchmarks/refine_limits.py --out out/photos_only [--cases truth,registered] [--refine JSON]
 
 Each case runs the refine stage (``geometry/refine.py``) from a start and then the diffuse held-out fit of
 ``photos_only_diagnose.fit_heldout`` (every 8th photo held out, 15 LM iterations; the held-out cameras are the
@@ -83,7 +83,7 @@ def fit_case(capture: Path, atlas: Path, out: Path) -> dict:
     return res
 
 
-def refine_case(capture: Path, atlas: Path, out: Path, **options) -> dict:
+def refine_with(capture: Path, atlas: Path, out: Path, **options) -> dict:
     from texstream.geometry.refine import RefineConfig, refine_stage
 
     shutil.rmtree(out, ignore_errors=True)
@@ -91,6 +91,7 @@ def refine_case(capture: Path, atlas: Path, out: Path, **options) -> dict:
     s = refine_stage(capture, atlas, out, RefineConfig(**options), device="cpu").summary
     return {"options": options, "residual_before": s["residual_before"], "residual_after": s["residual_after"],
             "camera_turn_deg": s["camera_rotation_deg"], "seconds": time.perf_counter() - t0,
+            "shading_normals": s.get("shading_normals"),
             **fit_case(out, out, Path(str(out) + "_fit"))}
 
 
@@ -98,6 +99,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="out/photos_only")
     ap.add_argument("--results", default=None, help="also copy the JSON here (e.g. benchmarks/results/real_photos)")
+    ap.add_argument("--cases", default="", help="only these cases (comma-separated names; default: all)")
+    ap.add_argument("--refine", default="{}", help="RefineConfig options for every refining case, as JSON "
+                                                   "(e.g. '{\"normal_iterations\": 0}': no shaded refinement)")
     args = ap.parse_args()
 
     import warp as wp
@@ -105,27 +109,43 @@ def main() -> None:
     wp.config.quiet = True
     out = Path(args.out)
     truth, true_atlas, run = out / "truth", out / "truth" / "ground_truth", out / "run"
+    common = json.loads(args.refine)
+
+    def refine_case(capture, atlas, folder, **options):
+        return refine_with(capture, atlas, folder, **{**common, **options})
+
     work = out / "refine_limits"
     work.mkdir(exist_ok=True)
     mapped = map_meshes(out, work)
-    cases = {"truth": fit_case(truth, true_atlas, work / "truth_fit"),
-             "from_truth": refine_case(truth, true_atlas, work / "from_truth"),
-             "from_truth_focal": refine_case(focal_scaled_capture(truth, work / "focal_capture", 1.0012), true_atlas,
-                                             work / "from_truth_focal"),
-             "from_truth_detail0": refine_case(truth, true_atlas, work / "from_truth_detail0", detail=0.0),
-             "registered": refine_case(run / "posed", run / "atlas", work / "registered"),
-             "registered_detail0": refine_case(run / "posed", run / "atlas", work / "registered_detail0", detail=0.0),
-             "registered_all_fitted": refine_case(run / "posed", run / "atlas", work / "registered_all_fitted",
-                                                  holdout_every=0),
-             "registered_cameras_true_mesh": refine_case(run / "posed", mapped["true_in_registered"],
-                                                         work / "registered_cameras_true_mesh", mesh=False),
-             "true_cameras_registered_mesh": refine_case(truth, mapped["registered_in_truth"],
-                                                         work / "true_cameras_registered_mesh", cameras=False)}
+    todo = {
+        "truth": lambda: fit_case(truth, true_atlas, work / "truth_fit"),
+        "from_truth": lambda: refine_case(truth, true_atlas, work / "from_truth"),
+        "from_truth_focal": lambda: refine_case(focal_scaled_capture(truth, work / "focal_capture", 1.0012),
+                                                true_atlas, work / "from_truth_focal"),
+        "from_truth_detail0": lambda: refine_case(truth, true_atlas, work / "from_truth_detail0", detail=0.0),
+        "registered": lambda: refine_case(run / "posed", run / "atlas", work / "registered"),
+        "registered_detail0": lambda: refine_case(run / "posed", run / "atlas", work / "registered_detail0",
+                                                  detail=0.0),
+        "registered_all_fitted": lambda: refine_case(run / "posed", run / "atlas",
+                                                     work / "registered_all_fitted", holdout_every=0),
+        "registered_cameras_true_mesh": lambda: refine_case(run / "posed", mapped["true_in_registered"],
+                                                            work / "registered_cameras_true_mesh",
+                                                            mesh=False),
+        "true_cameras_registered_mesh": lambda: refine_case(truth, mapped["registered_in_truth"],
+                                                            work / "true_cameras_registered_mesh",
+                                                            cameras=False)}
+    chosen = [c for c in args.cases.split(",") if c] or list(todo)
+    unknown = sorted(set(chosen) - set(todo))
+    if unknown:
+        raise SystemExit(f"refine_limits.py: unknown case(s) {unknown}; choose from {sorted(todo)}")
+    cases = {name: todo[name]() for name in chosen}
     result = {
         "machine": f"{platform.node()} ({os.cpu_count()} cores)",
         "commit": subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                                  cwd=Path(__file__).parent).stdout.strip(),
-        "command": f"python benchmarks/refine_limits.py --out {args.out}", "cases": cases}
+        "command": f"python benchmarks/refine_limits.py --out {args.out}"
+                   + (f" --cases {args.cases}" if args.cases else "")
+                   + (f" --refine '{args.refine}'" if common else ""), "cases": cases}
     text = json.dumps(result, indent=2)
     (out / "refine_limits.json").write_text(text)
     if args.results:

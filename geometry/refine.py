@@ -11,6 +11,13 @@ freedom pose update, and per welded mesh vertex, the curvature and gradient of a
 (smoothed by a graph Laplacian). Steps are damped and kept only where the Huber objective falls, coarse to fine
 over blurred copies of the photos.
 
+Under known lights (every photo has one) the levels are followed by a shaded refinement
+(:class:`ShadingNormals`, ``normal_iterations``, ``intensity_iterations``): the mesh's shading normals, which
+set a known light's cosine, are fitted to the photos' intensities (per welded vertex, a tilt of its normal
+from the smoothing choice of ``normal_smoothing``), then poses and displacements take further steps on the
+intensities shaded by them, where the levels compare only the photos' detail. The normals are written as the
+refined mesh's vertex normals.
+
 Held-out photos (every ``holdout_every``-th, as the fit splits them) move neither the colours nor the mesh; with
 ``align_heldout`` each one's pose is aligned to the texture the other photos made (6 numbers per photo, as a
 new photo is registered to a model), so their held-out scores measure the model rather than the camera
@@ -72,6 +79,26 @@ class RefineConfig:
                                                   "a pixel, their normals to a few degrees, which under a known "
                                                   "light is several percent of shading); 0 alone: the mesh's own",
                                    )
+    normal_iterations: int = option(
+        6, "with known lights: iterations of photometric shading normals after the levels (a 2-degree-of-"
+           "freedom tilt of each welded vertex's normal, a texel's normal interpolating its face's; damped "
+           "Gauss-Newton on the photos' intensities averaged over each vertex's faces, alternated with the "
+           "texture's colours), from the normal_smoothing choice; written as the mesh's normals; 0: off (the "
+           "smoothing choice is written)", min=0)
+    intensity_iterations: int = option(
+        8, "with known lights, after the shading normals: iterations of pose and displacement steps "
+           "comparing the photos' intensities (not their detail) with the texture shaded by the fitted "
+           "normals, each followed by one iteration of the normals (needs normal_iterations > 0)", min=0)
+    intensity_blur: float = option(0.0, "Gaussian blur (standard deviation in pixels) of the photos the "
+                                        "shading normals and the intensity iterations compare", min=0.0)
+    normal_smoothness: float = option(0.1, "weight of the smoothness of the shading normals' correction (its "
+                                           "difference between neighbouring vertices) relative to the mean "
+                                           "data curvature per vertex", min=0.0)
+    normal_prior: float = option(0.01, "weight of the shading normals' pull toward their start relative to "
+                                       "the mean data curvature per vertex (holds vertices the photos barely "
+                                       "see)", min=0.0)
+    max_normal_tilt: float = option(20.0, "largest tilt of a shading normal from its start (degrees)",
+                                    min=0.0, max=80.0)
     cos_view_min: float = option(0.2, "samples seen more grazingly than this cosine are left out", min=0.0, max=1.0)
     depth_tol: float = option(0.01, "visibility test tolerance, as a fraction of the camera distance", min=0.0)
     max_photo_mb: float = option(8192.0, "largest size of the photos (float32) this stage holds on the device; "
@@ -277,6 +304,7 @@ class PhotometricRefinement:
         self.t_bary = wp.array(bake.bary.reshape(-1, 3)[covered].astype(np.float32), dtype=wp.vec3, device=device)
         self.t_p = wp.empty(self.n_texels, dtype=wp.vec3, device=device)
         self.t_n = wp.empty(self.n_texels, dtype=wp.vec3, device=device)
+        self.t_shade = self.t_n  # the texels' shading normals: their surface normals until ShadingNormals
         self.num = wp.zeros(self.n_texels, dtype=wp.vec3, device=device)
         self.den = wp.zeros_like(self.num)
         self.colour = wp.zeros_like(self.num)
@@ -334,8 +362,8 @@ class PhotometricRefinement:
         self.den.zero_()
         dims = (len(self.frames), self.n_texels)
         wp.launch(rk.albedo_sums_kernel, dim=dims, device=self.device,
-                  inputs=[self.infos, images, self.depth, self.roles, self.t_p, self.t_n, self.cfg.cos_view_min,
-                          self.cfg.depth_tol], outputs=[self.num, self.den])
+                  inputs=[self.infos, images, self.depth, self.roles, self.t_p, self.t_n, self.t_shade,
+                          self.cfg.cos_view_min, self.cfg.depth_tol], outputs=[self.num, self.den])
         wp.launch(rk.albedo_kernel, dim=self.n_texels, inputs=[self.num, self.den], outputs=[self.colour, self.known],
                   device=self.device)
 
@@ -345,8 +373,9 @@ class PhotometricRefinement:
         if system:
             self.system.zero_()
         wp.launch(rk.pose_system_kernel, dim=(len(self.frames), self.n_texels), device=self.device,
-                  inputs=[self.infos, images, self.depth, self.roles, self.t_p, self.t_n, self.colour, self.known,
-                          self.cfg.cos_view_min, self.cfg.depth_tol, self.huber, int(system)],
+                  inputs=[self.infos, images, self.depth, self.roles, self.t_p, self.t_n, self.t_shade,
+                          self.colour, self.known, self.cfg.cos_view_min, self.cfg.depth_tol, self.huber,
+                          int(system)],
                   outputs=[self.system, out])
 
     def pose_step(self, images) -> None:
@@ -368,8 +397,9 @@ class PhotometricRefinement:
         self.curv_mean.zero_()
         wp.launch(rk.vertex_system_kernel, dim=(len(self.frames), self.n_texels), device=dev,
                   inputs=[self.infos, images, self.depth, self.roles, self.t_face, self.t_bary, self.faces, self.weld,
-                          self.direction, self.t_p, self.t_n, self.colour, self.known, self.cfg.cos_view_min,
-                          self.cfg.depth_tol, self.huber], outputs=[self.curvature, self.gradient])
+                          self.direction, self.t_p, self.t_n, self.t_shade, self.colour, self.known,
+                          self.cfg.cos_view_min, self.cfg.depth_tol, self.huber],
+                  outputs=[self.curvature, self.gradient])
         wp.launch(rk.mean_curvature_kernel, dim=self.n_welded, inputs=[self.curvature], outputs=[self.curv_mean],
                   device=dev)
         wp.copy(self.disp_a, self.disp)
@@ -408,7 +438,9 @@ class PhotometricRefinement:
         levels = cfg.levels()
         history = wp.zeros((len(levels) * cfg.iterations, len(self.frames), 2), dtype=wp.float64, device=self.device)
         step = 0
-        progress = bar(total=len(levels) * cfg.iterations, desc="refine", unit="it")
+        shaded = self.lit and cfg.normal_iterations > 0
+        extra = cfg.normal_iterations + cfg.intensity_iterations if shaded else 0
+        progress = bar(total=len(levels) * cfg.iterations + extra, desc="refine", unit="it")
         for sigma in levels:
             self.blur(sigma)
             self.log(f"blur {sigma:g} px: {cfg.iterations} iterations")
@@ -424,18 +456,69 @@ class PhotometricRefinement:
                     self.update_geometry()
                 self.objective(self.blurred, history[step])
                 step += 1
-        progress.close()
         hist = history.numpy()  # read once, after the loop
         trace = [{"blur_px": sigma, "iteration": it, **self._per_role(hist[i * cfg.iterations + it])}
                  for i, sigma in enumerate(levels) for it in range(cfg.iterations)]
         self.blur(0.0)
         self.colours(self.blurred)
         end = self._score()
-        result = self._result(start, end, trace, time.perf_counter() - t0)
         rounds, normals, scores = self.choose_shading_normals()
+        shading = {"smoothing_rounds": rounds, "intensity_rms_by_rounds": scores}
+        if shaded:
+            if normals is None:
+                welded = self.welded_points.numpy().astype(np.float64)  # once, after the loop
+                normals = welded_normals(welded, self.weld_host[np.asarray(self.mesh.faces, np.int32)])
+            normals, shading["photometric"] = self.shaded_refinement(normals, progress)
+        progress.close()
+        result = self._result(start, end, trace, time.perf_counter() - t0)
+        result.summary["shading_normals"] = shading
         result.normals = normals
-        result.summary["shading_normals"] = {"smoothing_rounds": rounds, "intensity_rms_by_rounds": scores}
         return result
+
+    def shaded_refinement(self, start: np.ndarray, progress=None) -> tuple[np.ndarray, dict]:
+        """With known lights, after the levels: ``normal_iterations`` of :meth:`ShadingNormals.iterate` from
+        ``start`` (welded unit normals), then ``intensity_iterations`` of (a pose step, a displacement step,
+        each on the photos' intensities against the texture shaded by the fitted normals; one iteration of the
+        normals). Returns (welded shading normals, summary)."""
+        cfg, dev, n = self.cfg, self.device, self.n_welded
+        job = ShadingNormals(self, start)
+        f64 = {"dtype": wp.float64, "device": dev}
+        history = wp.zeros((cfg.normal_iterations + cfg.intensity_iterations + 1, 2), **f64)
+        intensity = wp.zeros((cfg.intensity_iterations + 1, len(self.frames), 2), **f64)
+        self.log(f"shading normals: {cfg.normal_iterations} iterations, then {cfg.intensity_iterations} on "
+                 "intensities")
+        for it in range(cfg.normal_iterations):
+            job.iterate(history[it])
+            if progress is not None:
+                progress.update(1)
+        self.colours(self.blurred)
+        self.objective(self.blurred, intensity[0])
+        for it in range(cfg.intensity_iterations):
+            if progress is not None:
+                progress.update(1)
+            if cfg.cameras:
+                self.pose_step(self.blurred)
+                self.update_geometry()
+            if cfg.mesh:
+                self.colours(self.blurred)
+                self.displacement_step(self.blurred)
+                self.update_geometry()
+            job.iterate(history[cfg.normal_iterations + it])  # colours first
+            self.colours(self.blurred)
+            self.objective(self.blurred, intensity[it + 1])
+        job.evaluate(job.before, with_system=False)
+        wp.launch(rk.vertex_total_kernel, dim=n, inputs=[job.before], outputs=[history[-1]], device=dev)
+        hist, inten = history.numpy(), intensity.numpy()  # read once, after the loops
+        normals = job.normals()
+        self.t_shade = self.t_n
+        angle = np.degrees(np.arccos(np.clip(np.sum(normals * job.start, axis=1), -1.0, 1.0)))
+        return normals, {
+            "normal_iterations": cfg.normal_iterations, "intensity_iterations": cfg.intensity_iterations,
+            "patch_rms": [float(math.sqrt(2.0 * a / c)) if c > 0 else float("nan") for a, c in hist],
+            "intensity_rms": [self._per_role(h) for h in inten],
+            "vertex_steps_kept": int(job.accepted.numpy()[0]),
+            "tilt_deg": {"median": float(np.median(angle)), "p90": float(np.percentile(angle, 90)),
+                         "max": float(angle.max())}}
 
     def choose_shading_normals(self) -> tuple[int, np.ndarray | None, dict]:
         """After the iterations: the refined mesh's vertex normals averaged over 1-ring neighbours for each of
@@ -512,6 +595,126 @@ class PhotometricRefinement:
             if not np.all(np.isfinite(v)):
                 raise RuntimeError(f"photometric refinement produced non-finite {name}")
         return RefineResult(rot, trans, points, disp, trace, summary)
+
+
+class ShadingNormals:
+    """Photometric shading normals under known lights, on a :class:`PhotometricRefinement`'s device state.
+
+    Each welded vertex's normal is its start normal b tilted in its tangent plane, n = normalize(b + x0 tu +
+    x1 tv); a texel's shading normal interpolates its face's vertex normals. A sample's residual is r = I - C
+    s (wi . n_t) (``refine_kernels.observe``: the texture's colour C, the photo's exposure and the light's
+    irradiance s, the unit direction to the light wi; the texel's surface normal, not its shading normal,
+    decides visibility and weighs the sample). Samples are compared in intensities (the shading is the
+    signal), averaged over each vertex's patch (its faces' texels, weighted by its barycentric share): the
+    objective is the sum over photos and vertices of W rho(R), R the patch's weighted mean residual, W its
+    weight, rho the Huber loss. The mean keeps the shading, smooth on the surface, and averages out most of
+    the residual a texel's point samples leave where the photos alias the texture.
+
+    An iteration: the colours in closed form, then with them held a damped Gauss-Newton step of every tilt
+    (exact gradient, a lumped 2x2 curvature per vertex) with a smoothness of the correction between neighbours
+    and a pull toward the start, solved by Jacobi sweeps; the step is clamped, and each vertex keeps it where
+    its patch's objective plus its priors fell. No host reads."""
+
+    def __init__(self, job: PhotometricRefinement, start: np.ndarray):
+        self.job, cfg, dev, n = job, job.cfg, job.device, job.n_welded
+        base = np.asarray(start, np.float64)
+        base = base / np.maximum(np.linalg.norm(base, axis=1, keepdims=True), 1e-30)
+        helper = np.where(np.abs(base[:, :1]) < 0.6, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+        tu = np.cross(base, helper)
+        tu /= np.linalg.norm(tu, axis=1, keepdims=True)
+        self.start = base
+        vec3 = {"dtype": wp.vec3, "device": dev}
+        self.base, self.tu, self.tv = (wp.array(a.astype(np.float32), **vec3)
+                                       for a in (base, tu, np.cross(base, tu)))
+        self.shade = wp.array(base.astype(np.float32), **vec3)
+        self.tilt = wp.zeros(n, dtype=wp.vec2, device=dev)
+        self.saved, self.x_a, self.x_b = (wp.zeros_like(self.tilt) for _ in range(3))
+        self.system = wp.zeros((n, rk.NORMAL_TERMS), dtype=wp.float64, device=dev)
+        self.before = wp.zeros((n, 2), dtype=wp.float64, device=dev)
+        self.after = wp.zeros_like(self.before)
+        self.mean = wp.zeros(2, dtype=wp.float64, device=dev)
+        self.prior_before = wp.zeros(n, dtype=wp.float64, device=dev)
+        self.prior_after = wp.zeros_like(self.prior_before)
+        self.damping = wp.full(n, 1e-3, dtype=wp.float64, device=dev)
+        self.accepted = wp.zeros(1, dtype=wp.int32, device=dev)
+        shape = (len(job.frames), n)
+        self.patch_w = wp.zeros(shape, dtype=float, device=dev)
+        self.patch_r, self.patch_ju, self.patch_jv, self.back = (wp.zeros(shape, **vec3) for _ in range(4))
+        self.max_step = math.tan(math.radians(min(2.0, cfg.max_normal_tilt)))
+        self.max_total = math.tan(math.radians(cfg.max_normal_tilt))
+        job.t_shade = wp.empty_like(job.t_n)
+        self.texel_normals()
+        job._gaussian_blur(cfg.intensity_blur, job.blurred)  # intensities: shading is the signal
+
+    def texel_normals(self) -> None:
+        """The texels' shading normals from the vertices'."""
+        j = self.job
+        wp.launch(rk.texel_normals_kernel, dim=j.n_texels, outputs=[j.t_shade], device=j.device,
+                  inputs=[j.t_face, j.t_bary, j.faces, self.shade, j.weld])
+
+    def set_tilt(self, tilt) -> None:
+        """Tilts (welded vertices, 2) from the host (tests)."""
+        self.tilt.assign(np.asarray(tilt, np.float32))
+        wp.launch(rk.tilted_normals_kernel, dim=self.job.n_welded, outputs=[self.shade],
+                  inputs=[self.base, self.tu, self.tv, self.tilt], device=self.job.device)
+        self.texel_normals()
+
+    def evaluate(self, out, with_system: bool) -> None:
+        """Each vertex's patch objective into ``out`` (welded vertices, 2: sum of W rho(R), sum of W) and,
+        with ``with_system``, its tilt's lumped curvature and exact gradient into ``system`` (zeroed by the
+        caller), the colours held."""
+        j, cfg = self.job, self.job.cfg
+        out.zero_()
+        for a in (self.patch_w, self.patch_r, self.patch_ju, self.patch_jv, self.back):
+            a.zero_()
+        samples = (len(j.frames), j.n_texels)
+        state = [j.t_p, j.t_n, j.t_shade, self.shade, self.base, self.tu, self.tv, self.tilt, j.colour,
+                 j.known, cfg.cos_view_min, cfg.depth_tol]
+        head = [j.infos, j.blurred, j.depth, j.roles, j.t_face, j.t_bary, j.faces, j.weld]
+        wp.launch(rk.patch_residual_kernel, dim=samples, device=j.device,
+                  inputs=[*head, *state, int(with_system)],
+                  outputs=[self.patch_w, self.patch_r, self.patch_ju, self.patch_jv])
+        wp.launch(rk.patch_system_kernel, dim=(len(j.frames), j.n_welded), device=j.device,
+                  inputs=[self.patch_w, self.patch_r, self.patch_ju, self.patch_jv, j.huber,
+                          int(with_system)],
+                  outputs=[self.system, out, self.back])
+        if with_system:
+            wp.launch(rk.normal_gradient_kernel, dim=samples, device=j.device,
+                      inputs=[*head, *state, self.back], outputs=[self.system])
+
+    def iterate(self, history) -> None:
+        """One iteration (see the class); ``history`` (2,) += the objective before the step (sum, weight)."""
+        j, cfg, dev, n = self.job, self.job.cfg, self.job.device, self.job.n_welded
+        j.colours(j.blurred)
+        self.system.zero_()
+        self.evaluate(self.before, with_system=True)
+        wp.launch(rk.vertex_total_kernel, dim=n, inputs=[self.before], outputs=[history], device=dev)
+        self.mean.zero_()
+        wp.launch(rk.mean_tilt_curvature_kernel, dim=n, inputs=[self.system], outputs=[self.mean], device=dev)
+        priors = [j.offsets, j.neighbours, self.base, self.tu, self.tv, self.mean, cfg.normal_smoothness,
+                  cfg.normal_prior]
+        wp.launch(rk.tilt_prior_kernel, dim=n, inputs=[self.tilt, *priors], outputs=[self.prior_before],
+                  device=dev)
+        wp.copy(self.x_a, self.tilt)
+        src, dst = self.x_a, self.x_b
+        for _ in range(20):  # Jacobi sweeps: the priors spread a step over a few rings
+            wp.launch(rk.tilt_sweep_kernel, dim=n, device=dev,
+                      inputs=[self.tilt, self.system, *priors, self.damping, src], outputs=[dst])
+            src, dst = dst, src
+        wp.launch(rk.apply_tilt_kernel, dim=n, inputs=[src, self.max_step, self.max_total], device=dev,
+                  outputs=[self.tilt, self.saved, self.base, self.tu, self.tv, self.shade])
+        self.texel_normals()
+        self.evaluate(self.after, with_system=False)
+        wp.launch(rk.tilt_prior_kernel, dim=n, inputs=[self.tilt, *priors], outputs=[self.prior_after],
+                  device=dev)
+        wp.launch(rk.tilt_accept_kernel, dim=n, device=dev,
+                  inputs=[self.before, self.after, self.prior_before, self.prior_after, self.saved],
+                  outputs=[self.tilt, self.base, self.tu, self.tv, self.shade, self.damping, self.accepted])
+        self.texel_normals()
+
+    def normals(self) -> np.ndarray:
+        """(welded vertices, 3) the current shading normals (a host read)."""
+        return self.shade.numpy().astype(np.float64)
 
 
 def refined_capture(capture, result: RefineResult, out: Path):

@@ -150,6 +150,8 @@ def test_turntable_object_under_unknown_lighting_to_a_valid_radiance_model(captu
     refine = next(s for s in summary["stages"] if s["name"] == "refine")
     assert refine["status"] == "ran" and refine["reason"].startswith("mesh refined"), refine
     assert refine["summary"]["residual_after"]["fit_rms"] < refine["summary"]["residual_before"]["fit_rms"]
+    # no light: the shading normals (smoothing or photometric) stay out
+    assert refine["summary"]["shading_normals"] == {"smoothing_rounds": 0, "intensity_rms_by_rounds": {}}
     mesh = next(s for s in summary["stages"] if s["name"] == "mesh")["summary"]
     assert mesh["facing"]["after"]["back_fraction"] < 0.01  # the stage itself fails above 5%
     model = tmp_path / "out" / "model"
