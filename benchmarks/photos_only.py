@@ -42,6 +42,9 @@ def main() -> None:
     from texstream.capture.synth import SynthConfig, synthesize, write_photos_only
     from texstream.pipelines.run import RunConfig, run_pipeline
 
+    # the code that runs, read before the run (a commit made while it runs must not be named)
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                            cwd=Path(__file__).parent).stdout.strip()
     wp.config.quiet = True
     wp.config.log_level = wp.LOG_WARNING
     out = Path(args.out)
@@ -71,8 +74,7 @@ def main() -> None:
     result = {
         "scene": args.scene, "photos": len(truth.frames), "device": args.device,
         "machine": f"{platform.node()} ({os.cpu_count()} cores)",
-        "commit": subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                 cwd=Path(__file__).parent).stdout.strip(),
+        "commit": commit,
         "command": f"python benchmarks/photos_only.py --scene {args.scene} --iterations {args.iterations} "
                    f"--hull-fill {args.hull_fill}",
         "photos_only": {"heldout": run["heldout"], "seconds": run_s, "model": run["model"],
