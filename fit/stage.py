@@ -67,9 +67,10 @@ class FitStageConfig:
     traced_materials: bool = option(False, "with the traced polish and shared materials chosen: polish the "
                                             "per-texel fit on traced taps first, and find the materials' evidence, "
                                             "contradictions and fit on traced taps too. It helps texels narrower "
-                                            "than a pixel that saw narrow highlights, but more texels then pass the "
-                                            "constrained test, some that never saw their highlight among them, "
-                                            "and those keep wrong lobes (docs/accuracy.md): off by default")
+                                            "than a pixel that saw narrow highlights; the constrained test on traced "
+                                            "taps is confirmed at the materials' lobes, yet a few texels that never "
+                                            "saw their highlight still pass it and keep wrong lobes "
+                                            "(docs/accuracy.md): off by default")
     checkpoint: bool = option(True, "Levenberg-Marquardt fits keep a checkpoint beside the output (every sync_every "
                                     "iterations); a rerun after Ctrl-C or a killed process resumes from it to the "
                                     "same result as an uninterrupted fit")
@@ -538,6 +539,28 @@ def texel_evidence(problem, result: FitResult, mcfg: MaterialConfig) -> TexelEvi
     return TexelEvidence(result.params, result.samples, jtj, sigma2, unc, constrained)
 
 
+def confirm_at_material_lobes(traced, evidence: TexelEvidence, plane: TexelEvidence, k: int,
+                              mcfg: MaterialConfig) -> tuple[TexelEvidence, int]:
+    """``evidence`` (a fit's on traced taps) with its constrained texels kept only where the photos also
+    constrain the lobe of the texel's material: J^T J on ``traced`` taps linearised at the materials' lobes
+    (found from the ``plane``-tap evidence, as the default path finds them), not at the texel's own lobe.
+    A texel whose own wrong lobe is steep where its photos looked (the flank of a highlight no photo showed
+    at its peak) passes the test at its own lobe; at the material's lobe those samples see almost no lobe
+    and it fails. A texel that saw its (even sub-pixel) highlight passes both. Returns (the evidence, how
+    many constrained texels the second test took away)."""
+    from .materials import find_materials, material_lobes_on, texel_uncertainty
+
+    lay = traced.layout
+    seen = plane.samples > 0
+    mats = find_materials(plane.params, seen, plane.constrained, lay, k, mcfg.min_lobe_share, mcfg.spread_floor)
+    at = material_lobes_on(evidence.params, mats.labels, mats, lay)
+    jtj, _ = data_jtj(traced, at)
+    unc = texel_uncertainty(jtj, at, lay, evidence.sigma2)
+    keep = (unc[:, 0] < mcfg.constrained_rel_std) & (unc[:, 1] < mcfg.constrained_rel_std)
+    constrained = evidence.constrained & keep
+    return dataclasses.replace(evidence, constrained=constrained), int((evidence.constrained & ~keep).sum())
+
+
 def traced_polish_applies(problem, cfg: "FitStageConfig") -> bool:
     """Whether the fit ends with :func:`traced_polish`: a model with specular lobes, fitted with filtered plane
     taps on a mesh (an atlas fit, not a single view), untiled."""
@@ -763,11 +786,18 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     if lay.n_lobes and cfg.materials.mode != "off":
         with phase("fit", "materials: per-texel or shared lobes, judged on a validation split of the fitted photos"):
             choice = choose_materials(inputs, problem, cfg)
+            traced_extra = {}
             if cfg.traced_materials and choice["chosen"] != "per-texel" and traced_polish_applies(problem, cfg):
+                plane_evidence = texel_evidence(problem, result, cfg.materials)
                 result = traced_polish(problem, result, cfg)
                 materials_problem = traced_problem(problem)
             evidence = texel_evidence(materials_problem, result, cfg.materials)
-        materials_info = {"mode": cfg.materials.mode, "traced": materials_problem is not problem, **choice}
+            if materials_problem is not problem:
+                evidence, dropped = confirm_at_material_lobes(materials_problem, evidence, plane_evidence,
+                                                              choice["k"], cfg.materials)
+                traced_extra = {"unconfirmed_at_material_lobe": dropped}
+        materials_info = {"mode": cfg.materials.mode, "traced": materials_problem is not problem, **traced_extra,
+                          **choice}
     if materials_info is not None and materials_info["chosen"] != "per-texel":
         with phase("fit", f"materials: {materials_info['reason']}"):
             # on traced taps the materials' fit is the polish (traced_polish does nothing more there)
