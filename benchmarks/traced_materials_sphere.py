@@ -1,6 +1,6 @@
 """The one-material sphere of tests/test_fit_materials.py fitted with and without ``--traced-materials`` (JSON lines).
 
-    python benchmarks/traced_materials_sphere.py --out DIR [--device cpu]
+    python benchmarks/traced_materials_sphere.py --out DIR [--device cpu] [--traced off,on]
 
 The built-in sphere with one material (rho_s 0.6, n 60), 160 photos of 48x48 on its own atlas, every 8th held
 out, materials on with one material: per setting, the held-out pooled and worst-view PSNR, the borrowing and
@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -20,8 +21,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", required=True)
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--traced", default="off,on", help="the --traced-materials settings to fit, comma-separated")
     a = ap.parse_args()
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    import platform
+
+    from gitinfo import commit
     import numpy as np
 
     from test_fit_materials import one_material_sphere
@@ -38,7 +43,10 @@ def main() -> None:
                                                                     progress=False, preview=False, device=a.device))
     _, truth, _, bake, _ = load_ground_truth(root / "cap")
     fitted, _ = split_holdout(read_capture(root / "cap").frames, 8)
-    for traced in (False, True):
+    settings = [t.strip() for t in a.traced.split(",")]
+    if not settings or any(t not in ("off", "on") for t in settings):
+        ap.error(f"--traced {a.traced}: expected off, on or off,on")
+    for traced in [t == "on" for t in settings]:
         cfg = FitStageConfig(device=a.device, renders=0, holdout_every=8, traced_materials=traced,
                              materials=MaterialConfig(mode="on", max_materials=1, validation_every=6),
                              fit=FitConfig(max_iterations=40))
@@ -57,7 +65,8 @@ def main() -> None:
         row = {"traced_materials": traced, "heldout_pooled_db": man["heldout"]["pooled_psnr_db"],
                "heldout_worst_db": man["heldout"]["worst_psnr_db"], "borrowed_texels": mat["borrowed_texels"],
                "constrained_texels": mat["uncertainty"]["constrained_texels"],
-               "never_saw_highlight": int(never.sum()), "within_10pct_share": float(ok[never].mean())}
+               "never_saw_highlight": int(never.sum()), "within_10pct_share": float(ok[never].mean()),
+               "device": a.device, "machine": f"{platform.node()} ({os.cpu_count()} cores)", "commit": commit()}
         print(json.dumps(row), flush=True)
         with open(root / "traced_materials_sphere.jsonl", "a") as fh:
             fh.write(json.dumps(row) + "\n")
