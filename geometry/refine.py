@@ -378,6 +378,17 @@ class PhotometricRefinement:
                           int(system)],
                   outputs=[self.system, out])
 
+    def geometry_step(self, images) -> None:
+        """One pose step of every camera (``cameras``), then the colours and one displacement step of the mesh
+        (``mesh``), each followed by the geometry's update; the colours the pose step compares are the caller's."""
+        if self.cfg.cameras:
+            self.pose_step(images)
+            self.update_geometry()
+        if self.cfg.mesh:
+            self.colours(images)
+            self.displacement_step(images)
+            self.update_geometry()
+
     def pose_step(self, images) -> None:
         self.objective(images, self.obj_before, system=True)
         wp.launch(rk.pose_step_kernel, dim=len(self.frames), device=self.device,
@@ -447,13 +458,7 @@ class PhotometricRefinement:
             for it in range(cfg.iterations):
                 progress.update(1)
                 self.colours(self.blurred)
-                if cfg.cameras:
-                    self.pose_step(self.blurred)
-                    self.update_geometry()
-                if cfg.mesh:
-                    self.colours(self.blurred)
-                    self.displacement_step(self.blurred)
-                    self.update_geometry()
+                self.geometry_step(self.blurred)
                 self.objective(self.blurred, history[step])
                 step += 1
         hist = history.numpy()  # read once, after the loop
@@ -496,13 +501,7 @@ class PhotometricRefinement:
         for it in range(cfg.intensity_iterations):
             if progress is not None:
                 progress.update(1)
-            if cfg.cameras:
-                self.pose_step(self.blurred)
-                self.update_geometry()
-            if cfg.mesh:
-                self.colours(self.blurred)
-                self.displacement_step(self.blurred)
-                self.update_geometry()
+            self.geometry_step(self.blurred)
             job.iterate(history[cfg.normal_iterations + it])  # colours first
             self.colours(self.blurred)
             self.objective(self.blurred, intensity[it + 1])

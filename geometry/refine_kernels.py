@@ -527,6 +527,24 @@ def cosine_tilt_derivative(wi: wp.vec3, n_t: wp.vec3, m_len: float, n_c: wp.vec3
     return wp.vec2(s * wp.dot(a, au), s * wp.dot(a, av))
 
 
+@wp.func
+def patch_tilt_derivatives(wi: wp.vec3, f: wp.vec3i, b: wp.vec3, weld: wp.array(dtype=wp.int32),
+                           shade: wp.array(dtype=wp.vec3), base: wp.array(dtype=wp.vec3),
+                           tu: wp.array(dtype=wp.vec3), tv: wp.array(dtype=wp.vec3), tilt: wp.array(dtype=wp.vec2)):
+    """Row c (3x2): :func:`cosine_tilt_derivative` for the c-th vertex of a texel on face ``f`` at barycentrics
+    ``b``, its shading normal interpolating the vertices' ``shade``."""
+    m = b[0] * shade[weld[f[0]]] + b[1] * shade[weld[f[1]]] + b[2] * shade[weld[f[2]]]
+    m_len = wp.length(m)
+    n_t = m / m_len
+    v0, v1, v2 = weld[f[0]], weld[f[1]], weld[f[2]]
+    q0 = base[v0] + tilt[v0][0] * tu[v0] + tilt[v0][1] * tv[v0]
+    q1 = base[v1] + tilt[v1][0] * tu[v1] + tilt[v1][1] * tv[v1]
+    q2 = base[v2] + tilt[v2][0] * tu[v2] + tilt[v2][1] * tv[v2]
+    return wp.matrix_from_rows(cosine_tilt_derivative(wi, n_t, m_len, shade[v0], wp.length(q0), tu[v0], tv[v0]),
+                               cosine_tilt_derivative(wi, n_t, m_len, shade[v1], wp.length(q1), tu[v1], tv[v1]),
+                               cosine_tilt_derivative(wi, n_t, m_len, shade[v2], wp.length(q2), tu[v2], tv[v2]))
+
+
 @wp.kernel
 def tilted_normals_kernel(base: wp.array(dtype=wp.vec3), tu: wp.array(dtype=wp.vec3),
                           tv: wp.array(dtype=wp.vec3), tilt: wp.array(dtype=wp.vec2),
@@ -584,17 +602,13 @@ def patch_residual_kernel(infos: wp.array(dtype=ImageInfo), images: wp.array3d(d
         return
     wi, irradiance, _dist = incident_light(info.light_kind, info.light_vec, info.light_intensity, p[t])
     dr = -info.exposure * wp.cw_mul(irradiance, c)  # d r / d (wi . n_t), per channel
-    m = b[0] * shade[weld[f[0]]] + b[1] * shade[weld[f[1]]] + b[2] * shade[weld[f[2]]]
-    m_len = wp.length(m)
-    n_t = m / m_len
+    d = patch_tilt_derivatives(wi, f, b, weld, shade, base, tu, tv, tilt)
     for i in range(3):
         v = weld[f[i]]
         wt = b[i] * ob.weight
         wp.atomic_add(weight, k, v, wt)
         wp.atomic_add(residual, k, v, wt * r)
-        x = tilt[v]
-        q = base[v] + x[0] * tu[v] + x[1] * tv[v]
-        a = cosine_tilt_derivative(wi, n_t, m_len, shade[v], wp.length(q), tu[v], tv[v])
+        a = d[i]
         wp.atomic_add(jac_u, k, v, (wt * a[0]) * dr)
         wp.atomic_add(jac_v, k, v, (wt * a[1]) * dr)
 
@@ -661,14 +675,10 @@ def normal_gradient_kernel(infos: wp.array(dtype=ImageInfo), images: wp.array3d(
     wi, irradiance, _dist = incident_light(info.light_kind, info.light_vec, info.light_intensity, p[t])
     dr = -info.exposure * wp.cw_mul(irradiance, colour[t])  # d r / d (wi . n_t), per channel
     g = wp.dot(lam, dr)
-    m = b[0] * shade[weld[f[0]]] + b[1] * shade[weld[f[1]]] + b[2] * shade[weld[f[2]]]
-    m_len = wp.length(m)
-    n_t = m / m_len
+    d = patch_tilt_derivatives(wi, f, b, weld, shade, base, tu, tv, tilt)
     for i in range(3):
         v = weld[f[i]]
-        x = tilt[v]
-        q = base[v] + x[0] * tu[v] + x[1] * tv[v]
-        a = cosine_tilt_derivative(wi, n_t, m_len, shade[v], wp.length(q), tu[v], tv[v])
+        a = d[i]
         wp.atomic_add(system, v, 3, wp.float64(g * b[i] * a[0]))
         wp.atomic_add(system, v, 4, wp.float64(g * b[i] * a[1]))
 
