@@ -528,6 +528,20 @@ def cosine_tilt_derivative(wi: wp.vec3, n_t: wp.vec3, m_len: float, n_c: wp.vec3
 
 
 @wp.func
+def observe_lit_fit(infos: wp.array(dtype=ImageInfo), images: wp.array3d(dtype=wp.vec3),
+                    depth: wp.array3d(dtype=wp.float32), role: wp.array(dtype=wp.int32),
+                    known: wp.array(dtype=wp.int32), k: int, t: int, p: wp.array(dtype=wp.vec3),
+                    n: wp.array(dtype=wp.vec3), ns: wp.array(dtype=wp.vec3), cos_view_min: float, depth_tol: float):
+    """:func:`observe` of texel ``t`` in photo ``k`` for the shading normals: only a fitting photo with a known
+    light and a texel with a colour give a sample (``ok`` 0 otherwise)."""
+    if role[k] != ROLE_FIT or known[t] == 0 or infos[k].light_kind == 2:
+        ob = Observation()
+        ob.ok = 0
+        return ob
+    return observe(infos, images, depth, k, p[t], n[t], ns[t], cos_view_min, depth_tol)
+
+
+@wp.func
 def patch_tilt_derivatives(wi: wp.vec3, f: wp.vec3i, b: wp.vec3, weld: wp.array(dtype=wp.int32),
                            shade: wp.array(dtype=wp.vec3), base: wp.array(dtype=wp.vec3),
                            tu: wp.array(dtype=wp.vec3), tv: wp.array(dtype=wp.vec3), tilt: wp.array(dtype=wp.vec2)):
@@ -581,14 +595,10 @@ def patch_residual_kernel(infos: wp.array(dtype=ImageInfo), images: wp.array3d(d
     (lumped: the texel's three vertex normals tilted together). ``n``: the texels' surface normals
     (visibility, weights), ``ns``: their shading normals, ``shade``: the vertices'."""
     k, t = wp.tid()
-    if role[k] != ROLE_FIT or known[t] == 0:
-        return
-    info = infos[k]
-    if info.light_kind == 2:
-        return
-    ob = observe(infos, images, depth, k, p[t], n[t], ns[t], cos_view_min, depth_tol)
+    ob = observe_lit_fit(infos, images, depth, role, known, k, t, p, n, ns, cos_view_min, depth_tol)
     if ob.ok == 0:
         return
+    info = infos[k]
     c = colour[t]
     r = ob.value - wp.cw_mul(ob.shading, c)
     f = faces[face[t]]
@@ -661,14 +671,10 @@ def normal_gradient_kernel(infos: wp.array(dtype=ImageInfo), images: wp.array3d(
     (``back``), and d r / d x_u = beta_u (d r / d (wi . n_t)) (d (wi . n_t) / d x_u) for each of them
     (:func:`cosine_tilt_derivative`)."""
     k, t = wp.tid()
-    if role[k] != ROLE_FIT or known[t] == 0:
-        return
-    info = infos[k]
-    if info.light_kind == 2:
-        return
-    ob = observe(infos, images, depth, k, p[t], n[t], ns[t], cos_view_min, depth_tol)
+    ob = observe_lit_fit(infos, images, depth, role, known, k, t, p, n, ns, cos_view_min, depth_tol)
     if ob.ok == 0:
         return
+    info = infos[k]
     f = faces[face[t]]
     b = bary[t]
     lam = ob.weight * (b[0] * back[k, weld[f[0]]] + b[1] * back[k, weld[f[1]]] + b[2] * back[k, weld[f[2]]])
