@@ -23,7 +23,8 @@ material shows elsewhere. texstream builds this as a **prior** in the streaming 
    its photos (J^T J / sigma^2) against the spread of its material, so it keeps a lobe of its own where
    the photos say so (materials vary across an object). An unconstrained texel *borrows*: its weights
    are ``borrow_weight`` times its own J^T J diagonal (or the constrained weight, the larger), so it takes
-   its material's lobe instead of a guess. Where the texel's photos contradict its material's lobe
+   its material's lobe instead of a guess, moved only a tenth of the way toward what its own photos weakly
+   say (a narrow highlight the plane taps blurred below the constrained test still counts a little). Where the texel's photos contradict its material's lobe
    (:func:`contradiction_test`: they looked where its highlight would be and saw none), its centre is no
    lobe. The "shared" variant makes every texel borrow.
 4. **Fit**: Levenberg-Marquardt from the per-texel parameters (borrowing texels start at their centre).
@@ -81,8 +82,11 @@ class MaterialConfig:
     prior_samples: float = option(1.0, "strength of the pull of a constrained texel's lobe towards its material's, "
                                        "in samples' worth of squared residual per squared material spread (1: the "
                                        "Bayesian balance)", min=0.0)
-    borrow_weight: float = option(100.0, "an unconstrained texel's pull towards its material's lobe, as a multiple of "
-                                         "its own J^T J diagonal (100: it takes the material's lobe to about 1 percent)", min=0.0)
+    borrow_weight: float = option(10.0, "an unconstrained texel's pull towards its material's lobe, as a multiple of "
+                                        "its own J^T J diagonal (10: its photos move it about a tenth of the way from "
+                                        "the material's lobe to their own estimate; a texel they say nothing about "
+                                        "takes the material's lobe, as the weight is at least a constrained texel's)",
+                                  min=0.0)
     spread_floor: float = option(0.02, "smallest material spread of rho_s and n, relative (and of c_z, absolute): "
                                        "keeps the pull finite for materials of identical texels", min=1e-6)
     contradiction: float = option(0.5, "a texel borrows no lobe where its photos contradict its material's lobe: "
