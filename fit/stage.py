@@ -791,11 +791,12 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
                 plane_evidence = texel_evidence(problem, result, cfg.materials)
                 result = traced_polish(problem, result, cfg)
                 materials_problem = traced_problem(problem)
-            evidence = texel_evidence(materials_problem, result, cfg.materials)
-            if materials_problem is not problem:
-                evidence, dropped = confirm_at_material_lobes(materials_problem, evidence, plane_evidence,
-                                                              choice["k"], cfg.materials)
+                evidence, dropped = confirm_at_material_lobes(
+                    materials_problem, texel_evidence(materials_problem, result, cfg.materials), plane_evidence,
+                    choice["k"], cfg.materials)
                 traced_extra = {"unconfirmed_at_material_lobe": dropped}
+            else:
+                evidence = texel_evidence(problem, result, cfg.materials)
         materials_info = {"mode": cfg.materials.mode, "traced": materials_problem is not problem, **traced_extra,
                           **choice}
     if materials_info is not None and materials_info["chosen"] != "per-texel":
