@@ -99,29 +99,31 @@ def plot_trace(trace: list[dict], path: Path, title: str) -> None:
 
 def trace_plot_png(trace: list[dict], title: str) -> bytes:
     """:func:`plot_trace`'s PNG as bytes, drawn with matplotlib's object API (no pyplot: neither its import
-    nor its global figure state)."""
+    nor its global figure state). The log axis's labels are plain text and the margins fixed: mathtext
+    labels and ``tight_layout`` measure every label and cost more than the drawing."""
     import io
 
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+    from matplotlib.ticker import LogFormatter
 
     fig = Figure(figsize=(10, 3.6))
     FigureCanvasAgg(fig)
     ax = fig.subplots(1, 2)
+    fig.subplots_adjust(left=0.08, right=0.98, bottom=0.15, top=0.88, wspace=0.25)
     t = [r["time_s"] for r in trace]
     ax[0].semilogy(t, [max(r["objective"], 1e-300) for r in trace], "o-", ms=3)
+    ax[0].yaxis.set_major_formatter(LogFormatter())
+    ax[0].yaxis.set_minor_formatter(LogFormatter(labelOnlyBase=False))  # labels within one decade
     ax[0].set_xlabel("wall time (s)")
     ax[0].set_ylabel("objective")
     ax[1].plot(t, [r["psnr_db"] if math.isfinite(r["psnr_db"]) else float("nan") for r in trace], "o-", ms=3)
     ax[1].set_xlabel("wall time (s)")
     ax[1].set_ylabel("sample PSNR (dB)")
     fig.suptitle(title)
-    fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, dpi=110, format="png")
     return buf.getvalue()
-
-
 
 
 def image_metrics(render: np.ndarray, photo: np.ndarray, mask: np.ndarray, peak: float = 1.0) -> dict:

@@ -436,11 +436,11 @@ def fill_unseen_texels(grid: np.ndarray, problem, bake, result: FitResult) -> tu
     """Give texels no photo saw the parameters of the nearest seen texel in 3D (their defaults would
     show as a foreign colour wherever a new view sees them, and bleed into seen neighbours through
     the renderer's bilinear lookup). Returns the maps and the number of texels filled."""
-    from scipy.spatial import cKDTree
-
     seen = result.samples > 0
     if seen.all() or not seen.any():
         return grid, 0
+    from scipy.spatial import cKDTree  # imported only when needed: ~0.5 s, a tenth of a first fit's run
+
     pos = problem.texels.position
     _, nearest = cKDTree(pos[seen]).query(pos[~seen])
     flat = grid.reshape(-1, grid.shape[-1]).copy()
