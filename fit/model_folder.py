@@ -14,9 +14,13 @@ numpy at module level; OpenImageIO (through capture.imageio) and matplotlib insi
 
 from __future__ import annotations
 
+import json
 import math
+import subprocess
+import sys
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -97,6 +101,33 @@ def plot_trace(trace: list[dict], path: Path, title: str) -> None:
     Path(path).write_bytes(trace_plot_png(trace, title))
 
 
+@contextmanager
+def trace_plot(folder: Path, trace: list[dict], title: str) -> Iterator[subprocess.Popen | None]:
+    """Write ``trace.json`` into ``folder`` and draw ``error_vs_time.png`` from it in a child process, so
+    that matplotlib's import (~0.5 s, a tenth of a fit from a capture folder) runs while the stage
+    renders. Yields the child (None when none could be started) for :func:`write_model_folder`, which
+    waits for it and draws the plot itself if the child failed; a stage that fails first stops it."""
+    write_json_atomic(folder / "trace.json", json_safe(trace))
+    code = "import sys; from texstream.fit.model_folder import plot_trace_file; plot_trace_file(*sys.argv[1:])"
+    try:
+        child = subprocess.Popen([sys.executable, "-c", code, str(folder / "trace.json"),
+                                  str(folder / "error_vs_time.png"), title],
+                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    except OSError:
+        child = None
+    try:
+        yield child
+    finally:
+        if child is not None and child.poll() is None:
+            child.kill()
+            child.wait()
+
+
+def plot_trace_file(trace_path: str, png_path: str, title: str) -> None:
+    """:func:`plot_trace` of a ``trace.json`` (the child process of :func:`trace_plot`)."""
+    plot_trace(json.loads(Path(trace_path).read_text()), Path(png_path), title)
+
+
 def trace_plot_png(trace: list[dict], title: str) -> bytes:
     """:func:`plot_trace`'s PNG as bytes, drawn with matplotlib's object API (no pyplot: neither its import
     nor its global figure state). The log axis's labels are plain text and the margins fixed: mathtext
@@ -117,7 +148,8 @@ def trace_plot_png(trace: list[dict], title: str) -> bytes:
     ax[0].yaxis.set_minor_formatter(LogFormatter(labelOnlyBase=False))  # labels within one decade
     ax[0].set_xlabel("wall time (s)")
     ax[0].set_ylabel("objective")
-    ax[1].plot(t, [r["psnr_db"] if math.isfinite(r["psnr_db"]) else float("nan") for r in trace], "o-", ms=3)
+    psnr = [r["psnr_db"] if r["psnr_db"] is not None and math.isfinite(r["psnr_db"]) else float("nan") for r in trace]
+    ax[1].plot(t, psnr, "o-", ms=3)
     ax[1].set_xlabel("wall time (s)")
     ax[1].set_ylabel("sample PSNR (dB)")
     fig.suptitle(title)
@@ -173,7 +205,7 @@ def render_comparisons(folder: Path, frames: Sequence, photos: Sequence[np.ndarr
 
 
 def write_model_folder(folder: Path, grid: np.ndarray, layout: ModelLayout, seen: np.ndarray, trace: list[dict],
-                       title: str, manifest: dict, config: Any) -> dict[str, str]:
+                       title: str, manifest: dict, config: Any, plot: subprocess.Popen | None = None) -> dict[str, str]:
     """Write the maps, seen.png, trace, error-against-time plot, model.json and the config into
     ``folder`` (a stage's temporary output folder), after :func:`check_model`.
 
@@ -182,6 +214,7 @@ def write_model_folder(folder: Path, grid: np.ndarray, layout: ModelLayout, seen
         seen: (H, W) bool, texels some photo saw.
         manifest: model.json's stage-specific fields; kind, layout and maps are added here.
         config: the stage's resolved config, saved as fit_config.json.
+        plot: the child of :func:`trace_plot` drawing ``trace``'s plot into ``folder`` (None: drawn here).
 
     Returns:
         The map files by name (as model.json lists them).
@@ -193,7 +226,8 @@ def write_model_folder(folder: Path, grid: np.ndarray, layout: ModelLayout, seen
     files = write_param_maps(folder, grid, layout)
     write_image(folder / "seen.png", np.repeat(seen.astype(np.float32)[..., None], 3, axis=2), bits=8)
     write_json_atomic(folder / "trace.json", json_safe(trace))
-    plot_trace(trace, folder / "error_vs_time.png", title)
+    if plot is None or plot.wait() != 0 or not (folder / "error_vs_time.png").is_file():
+        plot_trace(trace, folder / "error_vs_time.png", title)
     write_json_atomic(folder / "model.json",
                       json_safe({"kind": layout.kind, "layout": layout.to_json(), "maps": files, **manifest}))
     save_config(config, folder / "fit_config.json")

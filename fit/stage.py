@@ -731,7 +731,8 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     from texstream.capture.imageio import read_mask
     from texstream.geometry.mesh_io import save_mesh
 
-    from .model_folder import bound_report, check_model, pooled_psnr, render_comparisons, write_model_folder
+    from .model_folder import (bound_report, check_model, pooled_psnr, render_comparisons, trace_plot,
+                               write_model_folder)
     from .stiffcheck import numerics_warnings
 
     cfg = config or FitStageConfig()
@@ -834,7 +835,8 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
         return image, m
 
     t_fitted = time.perf_counter()
-    with atomic_output_dir(out_dir) as tmp, phase("fit", f"{cfg.fit.model}: held-out renders and the model folder"):
+    with (atomic_output_dir(out_dir) as tmp, phase("fit", f"{cfg.fit.model}: held-out renders and the model folder"),
+          trace_plot(tmp, result.trace, title) as plot):  # drawn by a child process while this one renders
         save_mesh(tmp / "mesh.obj", mesh)
         baked = Path(mesh_path) / "bake.npz"
         if Path(mesh_path).is_dir() and baked.is_file():  # the bake the fit read (load_geometry): copied
@@ -897,7 +899,8 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
                                   "after_fit": t_fitted - t_loop, "renders": time.perf_counter() - t_fitted},
                     "render_eval": evals, "heldout": pooled_psnr([e for e in evals if e["held_out"]]),
                     "units": UNITS[lay.kind]}
-        write_model_folder(tmp, grid, lay, seen.reshape(bake.height, bake.width), result.trace, title, manifest, cfg)
+        write_model_folder(tmp, grid, lay, seen.reshape(bake.height, bake.width), result.trace, title, manifest, cfg,
+                           plot=plot)
     if ckpt is not None:
         ckpt.remove()
     problem.photos.wait_for_cache()  # a photo cache written in the background is complete for the next fit

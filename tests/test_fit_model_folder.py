@@ -1,0 +1,49 @@
+"""The model folder's error-against-time plot, drawn by a child process while the stage renders
+(fit/model_folder.py ``trace_plot``). Host-only code: no device parameter."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from texstream.fit.model_folder import trace_plot, trace_plot_png, write_model_folder
+from texstream.fit.models import ModelLayout
+
+
+@dataclasses.dataclass
+class TinyConfig:
+    """A stage config to save beside the maps."""
+    device: str = "cpu"
+
+TRACE = [{"iteration": k, "time_s": 0.1 * k, "objective": 10.0 / (k + 1), "psnr_db": 30.0 + k} for k in range(6)]
+TRACE[0]["psnr_db"] = float("inf")  # a fit that reproduces its samples exactly: None in trace.json
+
+
+def test_child_draws_the_plot_the_stage_would(tmp_path):
+    with trace_plot(tmp_path, TRACE, "title") as child:
+        assert child is not None and child.wait() == 0
+    drawn = (tmp_path / "error_vs_time.png").read_bytes()
+    # same code and matplotlib in both processes; the trace read back from JSON has None for inf
+    assert drawn == trace_plot_png(TRACE, "title")
+    assert (tmp_path / "trace.json").is_file()
+
+
+def test_a_failing_stage_stops_the_child(tmp_path):
+    with pytest.raises(RuntimeError):
+        with trace_plot(tmp_path, TRACE, "title") as child:
+            raise RuntimeError("render check failed")
+    assert child.poll() is not None  # not left running into the removed output folder
+
+
+def test_model_folder_draws_the_plot_itself_when_the_child_failed(tmp_path):
+    failed = subprocess.Popen([sys.executable, "-c", "raise SystemExit(3)"])
+    lay = ModelLayout("diffuse", 0)
+    grid = np.full((2, 2, lay.n_params), 0.5, np.float32)
+    write_model_folder(tmp_path, grid, lay, np.ones((2, 2), bool), TRACE, "title", {}, TinyConfig(), plot=failed)
+    assert (tmp_path / "error_vs_time.png").read_bytes() == trace_plot_png(TRACE, "title")
+    assert json.loads((tmp_path / "model.json").read_text())["kind"] == "diffuse"
