@@ -1,6 +1,6 @@
 """How fast the fit's loader decodes a capture's photos, by decode threads and OpenEXR's own threads (JSON).
 
-    python benchmarks/decode_threads.py --capture CAPTURE --out DIR [--threads 1,8,16] [--exr-threads -1,0,1]
+    python benchmarks/decode_threads.py --capture CAPTURE --out DIR [--threads 1,8,16] [--exr-threads -1,0,1] [--raw]
 
 Decodes every photo of CAPTURE (with its mask) into a slot buffer the way the fit's set-up does
 (``fit/photo_stream.py`` ``PhotoLoader``: cropped to the object's footprint, only the crop's rows read), in
@@ -96,6 +96,8 @@ def main() -> None:
     ap.add_argument("--whole", action="store_true", help="also read whole photos (no row crop)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--limit", type=int, default=0, help="first N photos only (0: all)")
+    ap.add_argument("--raw", action="store_true", help="also time OpenImageIO's reads alone (the crop's rows of each "
+                                                      "photo, no mask, no conversion or checks) on the same threads")
     ap.add_argument("--processes", default="", help="also decode with pools of this many processes (spawned, each "
                                                     "writing its photos' crops into shared memory), e.g. 8,16")
     a = ap.parse_args()
@@ -152,6 +154,24 @@ def main() -> None:
                        "ms_per_photo": 1000 * wall / n, "decoded_mb_per_s": decoded_mb / wall}
                 rows.append(row)
                 print(json.dumps(row), flush=True)
+    if a.raw:  # the reads alone: does the loader's own work (masks, checks, copies) or the decoding bound it?
+        import concurrent.futures
+
+        from texstream.capture.imageio import _read_raw
+
+        def read(k):
+            y0, ch = int(crops[k, 1]), int(crops[k, 3])
+            return _read_raw(files.paths[k], (y0, y0 + ch))[0].shape
+
+        for threads in [int(x) for x in a.threads.split(",")]:
+            with concurrent.futures.ThreadPoolExecutor(threads) as pool:
+                t0 = time.perf_counter()
+                list(pool.map(read, range(n)))
+                wall = time.perf_counter() - t0
+            row = {"raw_reads": True, "threads": threads, "photos": n, "wall_s": wall, "ms_per_photo": 1000 * wall / n,
+                   "decoded_mb_per_s": decoded_mb / wall}
+            rows.append(row)
+            print(json.dumps(row), flush=True)
     for procs in [int(x) for x in a.processes.split(",") if x.strip()]:
         row = decode_in_processes(files, crops, sizes, hmax, wmax, procs, decoded_mb)
         rows.append(row)

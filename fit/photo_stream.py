@@ -45,6 +45,13 @@ of its projection and a filtered tap's ray within 1.5 px (fit/kernels/stream.py 
 every pixel a texel can read stays inside the crop; pixels outside it see no surface (depth 0) and
 were rejected anyway"""
 
+FILE_DECODE_THREADS = 4
+"""default threads decoding photos from files (at most the CPU count): OpenEXR spreads each read over the
+cores itself, so more readers only contend for Python's lock; 4 beat 8 on 16-core GPU hosts (docs/scale.md)"""
+
+ARRAY_COPY_THREADS = 8
+"""default threads cropping photos given as arrays into the upload buffers (at most the CPU count)"""
+
 LIGHT_KINDS = {"point": 0, "directional": 1, "none": 2}  # fit/kernels/shading.py LIGHT_*
 
 # shadow cameras are aimed at the bounding sphere from the light (fit/problem.py PhotoSet)
@@ -411,7 +418,8 @@ class PhotoLoader:
         self.files = isinstance(source, PhotoFiles)
         self.has_masks = (any(p is not None for p in source.mask_paths) if self.files
                           else masks is not None and any(m is not None for m in masks))
-        self.threads = threads if threads > 0 else min(8, os.cpu_count() or 1)
+        default = FILE_DECODE_THREADS if self.files else ARRAY_COPY_THREADS
+        self.threads = threads if threads > 0 else min(default, os.cpu_count() or 1)
         self.pool = concurrent.futures.ThreadPoolExecutor(max_workers=self.threads,
                                                           thread_name_prefix="texstream-photo")
 

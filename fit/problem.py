@@ -293,7 +293,8 @@ class StreamConfig:
     crop_photos: bool = option(True, "store each photo cropped to the object's footprint (the mesh's projected "
                                      "bounding box plus 3 px): only pixels a texel can see; results equal the "
                                      "uncropped photos' to float rounding of the projection")
-    decode_threads: int = option(0, "threads that decode and crop photos (0: min(8, CPU cores))", min=0)
+    decode_threads: int = option(0, "threads that decode and crop photos (0: at most 4 for files, 8 for photos "
+                                    "in memory, and the CPU count)", min=0)
     photo_cache: str = option("auto", "decoded photos cached beside the capture (CAPTURE/.texstream-cache: the "
                                       "cropped photos in the image precision; the same values, so the same "
                                       "fit), read instead of decoding again by later passes and later fits "
