@@ -24,9 +24,9 @@ material shows elsewhere. texstream builds this as a **prior** in the streaming 
    the photos say so (materials vary across an object). An unconstrained texel *borrows*: its weights
    are ``borrow_weight`` times its own J^T J diagonal (or the constrained weight, the larger), so it takes
    its material's lobe instead of a guess, moved only a tenth of the way toward what its own photos weakly
-   say (a narrow highlight the plane taps blurred below the constrained test still counts a little). Where the texel's photos contradict its material's lobe
-   (:func:`contradiction_test`: they looked where its highlight would be and saw none), its centre is no
-   lobe. The "shared" variant makes every texel borrow.
+   say (a narrow highlight the plane taps blurred below the constrained test still counts a little).
+   Where the texel's photos contradict its material's lobe (:func:`contradiction_test`: they looked
+   where its highlight would be and saw none), its centre is no lobe. The "shared" variant makes every texel borrow.
 4. **Fit**: Levenberg-Marquardt from the per-texel parameters (borrowing texels start at their centre).
 
 Why a prior rather than basis lobes fitted jointly (the issue's first option): the prior keeps every

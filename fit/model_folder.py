@@ -226,7 +226,8 @@ def write_model_folder(folder: Path, grid: np.ndarray, layout: ModelLayout, seen
     check_model(grid, layout)
     files = write_param_maps(folder, grid, layout)
     write_image(folder / "seen.png", np.repeat(seen.astype(np.float32)[..., None], 3, axis=2), bits=8)
-    write_json_atomic(folder / "trace.json", json_safe(trace))
+    if plot is None:  # else trace_plot wrote it for its child
+        write_json_atomic(folder / "trace.json", json_safe(trace))
     if plot is None or plot.wait() != 0 or not (folder / "error_vs_time.png").is_file():
         plot_trace(trace, folder / "error_vs_time.png", title)
     write_json_atomic(folder / "model.json",
