@@ -105,7 +105,7 @@ def plot_trace(trace: list[dict], path: Path, title: str) -> None:
 @contextmanager
 def trace_plot(folder: Path, trace: list[dict], title: str) -> Iterator[subprocess.Popen | None]:
     """Write ``trace.json`` into ``folder`` and draw ``error_vs_time.png`` from it in a child process, so
-    that matplotlib's import (~0.5 s, a tenth of a fit from a capture folder) runs while the stage
+    that matplotlib's import (a large share of a short fit's run) happens while the stage
     renders. Yields the child (None when none could be started) for :func:`write_model_folder`, which
     waits for it and draws the plot itself if the child failed; a stage that fails first stops it."""
     write_json_atomic(folder / "trace.json", json_safe(trace))
