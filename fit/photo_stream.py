@@ -13,7 +13,8 @@ holds what it builds them with, so that its set-up makes no host round trip per 
 - :class:`PhotoFiles` names the capture's image files and how to decode them (the caller passes
   :mod:`texstream.capture.imageio`'s readers, so this module never imports OpenImageIO);
 - :class:`PhotoLoader` fills (photos, mask) slots of a buffer from images in memory or from files,
-  on a pool of threads (decoding and numpy copies release the GIL);
+  on a pool of threads (numpy copies and most of decoding release the GIL), files on machines with many
+  cores by worker processes (:mod:`texstream.fit.decode_pool`);
 - :func:`choose_residency` picks where the photos live from the memory available.
 
 Imports only numpy, warp and the standard library.
@@ -22,9 +23,11 @@ Imports only numpy, warp and the standard library.
 from __future__ import annotations
 
 import concurrent.futures
+import contextvars
 import dataclasses
 import math
 import os
+import queue
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -33,6 +36,7 @@ import warp as wp
 from texstream.capture.conventions import look_at_w2c_batch
 from texstream.core.errors import InputError
 
+from . import decode_pool
 from .kernels import stream
 
 RESIDENCIES = ("device", "host", "disk")
@@ -412,31 +416,28 @@ class PhotoLoader:
     it; with one being written, each decoded slot is also stored in it."""
 
     def __init__(self, source, masks, crops: np.ndarray | None, sizes: np.ndarray, threads: int = 0,
-                 cache: PhotoCache | None = None, index: np.ndarray | None = None):
+                 cache: PhotoCache | None = None, index: np.ndarray | None = None, decoder: str = "auto"):
         self.source, self.masks, self.crops, self.sizes = source, masks, crops, np.asarray(sizes)
-        self.cache, self.index = cache, index
+        self.cache, self.index, self.decoder = cache, index, decoder
         self.files = isinstance(source, PhotoFiles)
         self.has_masks = (any(p is not None for p in source.mask_paths) if self.files
                           else masks is not None and any(m is not None for m in masks))
         default = FILE_DECODE_THREADS if self.files else ARRAY_COPY_THREADS
+        self.requested_threads = threads
         self.threads = threads if threads > 0 else min(default, os.cpu_count() or 1)
-        self.pool = concurrent.futures.ThreadPoolExecutor(max_workers=self.threads,
+        # files decoded in worker processes (fit/decode_pool.py): one thread here per worker, each sending a
+        # batch and copying its slots from the staging buffer
+        self.processes = decode_pool.processes_for(decoder, threads) if self.files else 0
+        self.staging: dict = {}
+        self.free_blocks: queue.SimpleQueue = queue.SimpleQueue()
+        for b in range(self.processes):
+            self.free_blocks.put(b)
+        self.pool = concurrent.futures.ThreadPoolExecutor(max_workers=max(self.threads, self.processes),
                                                           thread_name_prefix="texstream-photo")
 
     def close(self) -> None:
         self.pool.shutdown(wait=True, cancel_futures=True)
-
-    def _photo(self, k: int, rows: tuple[int, int] | None) -> tuple[np.ndarray, np.ndarray | None]:
-        """Photo k and its mask (None: none), only ``rows`` (y0, y1) of a file when given; the rows of
-        arrays in memory are cut by the caller."""
-        h, w = (int(v) for v in self.sizes[k])
-        if self.files:
-            path = self.source.paths[k]
-            im = self.source.read_image(path, rows=rows, size=(h, w))
-            mp = self.source.mask_paths[k]
-            mask = None if mp is None else self.source.read_mask(mp, (h, w), rows=rows)
-            return im, mask
-        return self.source[k], None if self.masks is None else self.masks[k]
+        self.staging.clear()
 
     def cached(self) -> bool:
         """Whether slots come from a ready :class:`PhotoCache` (copies, no decoding)."""
@@ -451,24 +452,69 @@ class PhotoLoader:
             self.cache.store(k, img, msk)
 
     def _decode_one(self, k: int, img: np.ndarray, msk: np.ndarray | None) -> None:
-        if self.crops is not None:
-            x0, y0, cw, ch = (int(v) for v in self.crops[k])
-            # a file decodes only the crop's rows; the offset of arrays in memory stays y0
-            im, mask = self._photo(k, (y0, y0 + ch))
-            if self.files:
-                y0 = 0
-        else:
-            im, mask = self._photo(k, None)
-            x0, y0, ch, cw = 0, 0, int(im.shape[0]), int(im.shape[1])
-        img[:ch, :cw] = im[y0:y0 + ch, x0:x0 + cw, :3]
-        img[ch:] = 0
-        img[:ch, cw:] = 0
-        if msk is not None:
-            msk[...] = 0
-            msk[:ch, :cw] = 1 if mask is None else np.asarray(mask[y0:y0 + ch, x0:x0 + cw], bool)
+        crop = None if self.crops is None else self.crops[k]
+        if self.files:
+            decode_pool.decode_file_into(self.source.read_image, self.source.read_mask, self.source.paths[k],
+                                         self.source.mask_paths[k], self.sizes[k], crop, img, msk)
+            return
+        im, mask = self.source[k], None if self.masks is None else self.masks[k]
+        x0, y0, cw, ch = (0, 0, int(im.shape[1]), int(im.shape[0])) if crop is None else (int(v) for v in crop)
+        decode_pool.place_photo(im, mask, x0, y0, cw, ch, img, msk)
+
+    def _fill_batch(self, ks: Sequence[int], images: np.ndarray, masks: np.ndarray | None) -> None:
+        """Photos ``ks`` (files) decoded by a worker process into a staging block, then copied into their
+        slots (and stored in a cache being written); in this thread where the pool has failed."""
+        processes = self.processes
+        if not processes:
+            for j, k in enumerate(ks):
+                self._fill_one(k, images[j], None if masks is None else masks[j])
+            return
+        key = (images.dtype.str, images.shape[1:])
+        block = self.free_blocks.get()
+        try:
+            staging = self.staging.get(key)
+            if staging is None:
+                staging = self.staging[key] = decode_pool.Staging(processes, decode_pool.BATCH,
+                                                                  images.shape[1], images.shape[2], images.dtype)
+            jobs = [(str(self.source.paths[k]), None if self.source.mask_paths[k] is None
+                     else str(self.source.mask_paths[k]), tuple(int(v) for v in self.sizes[k]),
+                     None if self.crops is None else tuple(int(v) for v in self.crops[k])) for k in ks]
+            try:
+                failure = decode_pool.start(processes).submit(
+                    decode_pool.decode_batch, staging.task(block), masks is not None, jobs, self.source.read_image,
+                    self.source.read_mask).result()
+            except Exception as e:  # noqa: BLE001 - user errors come back as values: this is the pool's failure
+                # (a worker killed, readers that cannot be sent); threads decode from here on, and raise
+                # the photo's own error if it has one
+                self._pool_failed(e)
+                return self._fill_batch(ks, images, masks)
+            staged_images, staged_masks = staging.views(block, len(ks))
+            for j, k in enumerate(ks):
+                if failure is not None and failure[0] == j:
+                    raise decode_pool.user_error(failure)
+                images[j] = staged_images[j]
+                if masks is not None:
+                    masks[j] = staged_masks[j]
+                if self.cache is not None and self.cache.writing and self.index is None:
+                    self.cache.store(k, images[j], None if masks is None else masks[j])
+        finally:
+            self.free_blocks.put(block)
+
+    def _pool_failed(self, error: Exception) -> None:
+        if self.processes:
+            self.processes = 0
+            from texstream.core.progress import say
+
+            say("fit", f"photo decoding processes failed ({type(error).__name__}: {error}); decoding in threads")
 
     def submit(self, ks: Sequence[int], images: np.ndarray, masks: np.ndarray | None) -> list:
         """Start filling slot j of ``images`` (and ``masks``) with photo ``ks[j]``; returns the futures."""
+        if self.processes and not self.cached():
+            b = decode_pool.BATCH
+            # in the caller's context, so the pool's failure is said to its log
+            return [self.pool.submit(contextvars.copy_context().run, self._fill_batch, [int(k) for k in ks[j:j + b]],
+                                     images[j:j + b], None if masks is None else masks[j:j + b])
+                    for j in range(0, len(ks), b)]
         return [self.pool.submit(self._fill_one, int(k), images[j], None if masks is None else masks[j])
                 for j, k in enumerate(ks)]
 

@@ -293,8 +293,13 @@ class StreamConfig:
     crop_photos: bool = option(True, "store each photo cropped to the object's footprint (the mesh's projected "
                                      "bounding box plus 3 px): only pixels a texel can see; results equal the "
                                      "uncropped photos' to float rounding of the projection")
-    decode_threads: int = option(0, "threads that decode and crop photos (0: at most 4 for files, 8 for photos "
-                                    "in memory, and the CPU count)", min=0)
+    decode_threads: int = option(0, "threads (or worker processes) that decode and crop photos (0: at most 4 "
+                                    "threads for files, 8 for photos in memory, and the CPU count; one process "
+                                    "per CPU up to 16)", min=0)
+    photo_decoder: str = option("auto", "what decodes photo files: threads of the fitting process, worker "
+                                        "processes (no lock shared with the fit; same bytes), or auto (processes "
+                                        "with 8 or more CPUs, else threads)",
+                                choices=("auto", "threads", "processes"))
     photo_cache: str = option("auto", "decoded photos cached beside the capture (CAPTURE/.texstream-cache: the "
                                       "cropped photos in the image precision; the same values, so the same "
                                       "fit), read instead of decoding again by later passes and later fits "
@@ -433,7 +438,7 @@ class PhotoSet:
             self.residency_reason += ("; depth and shadow maps kept on the device" if self.maps_on_device
                                       else "; depth and shadow maps recomputed per window")
         say("fit", f"photos: {self.residency}, {self.window} per window ({self.residency_reason})")
-        self.loader = PhotoLoader(images, masks, self.crops, sizes, cfg.decode_threads)
+        self.loader = PhotoLoader(images, masks, self.crops, sizes, cfg.decode_threads, decoder=cfg.photo_decoder)
         self._open_cache(cfg, fp16)
         self.timings["other"] += time.perf_counter() - t_start
         if self.residency == "device":
@@ -744,8 +749,8 @@ class PhotoSet:
             parent = self.loader
             cache = parent.cache if parent.cached() else None  # a cache still being written serves no subset
             index = None if cache is None else (idx if parent.index is None else parent.index[idx])
-            out.loader = PhotoLoader(files, None, out.crops, out.sizes, parent.threads, cache=cache,
-                                     index=index)
+            out.loader = PhotoLoader(files, None, out.crops, out.sizes, parent.requested_threads, cache=cache,
+                                     index=index, decoder=parent.decoder if parent.processes else "threads")
             out.maps_on_device = False  # the kept maps are the whole set's: a subset's windows make their own
             out.image_bytes = self.image_bytes // self.n * out.n
             return out

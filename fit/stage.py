@@ -138,7 +138,7 @@ PHOTO_CACHE_FOLDER = ".texstream-cache"
 
 def photo_files(capture, frames):
     """The frames' photos and masks as files (:class:`texstream.fit.photo_stream.PhotoFiles`), decoded
-    by the fit's PhotoSet on a pool of threads: all at set-up when they stay in memory, or a window
+    by the fit's PhotoSet on a pool of threads or processes: all at set-up when they stay in memory, or a window
     per pass when streamed from disk (``StreamConfig.photo_residency``)."""
     from texstream.capture.imageio import read_image, read_mask
 
@@ -148,9 +148,9 @@ def photo_files(capture, frames):
     for f in frames:
         mp = capture.mask_path(f)
         masks.append(mp if mp is not None and mp.exists() else None)
-    return PhotoFiles([capture.image_path(f) for f in frames], masks,
-                      lambda path, rows=None, size=None: read_image(path, channels=3, rows=rows, size=size),
-                      read_mask, cache_dir=Path(capture.root) / PHOTO_CACHE_FOLDER)
+    # module functions, not closures: worker processes receive them (fit/decode_pool.py)
+    return PhotoFiles([capture.image_path(f) for f in frames], masks, read_image, read_mask,
+                      cache_dir=Path(capture.root) / PHOTO_CACHE_FOLDER)
 
 
 def read_photos(photos, masks, indices):

@@ -39,6 +39,9 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "stiffcheck": ("texstream.pipelines.cmd_stiffcheck", "stiff and extreme fits against a float64 reference"),
 }
 
+DECODING_COMMANDS = ("fit", "run")
+"""commands that decode a capture's photo files (their decoding processes are started with the command)"""
+
 
 def _field_type(t: Any) -> Any:
     origin = typing.get_origin(t)
@@ -123,6 +126,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     command = next((a for a in argv if not a.startswith("-")), None)
     debug = "--debug" in argv or os.environ.get("TEXSTREAM_DEBUG") == "1"
+    if command in DECODING_COMMANDS:
+        # the photo decoders start while this process imports Warp and reads the capture (fit/decode_pool.py)
+        from texstream.fit import decode_pool
+
+        decode_pool.start_in_background()
     try:
         parser = build_parser(only=command if command in SUBCOMMANDS else None)
         args = parser.parse_args(argv)
@@ -144,6 +152,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("texstream: interrupted; no output was left half-written", file=sys.stderr)
         return 130
+    finally:
+        if command in DECODING_COMMANDS:
+            from texstream.fit import decode_pool
+
+            decode_pool.shutdown()
 
 
 def console_main() -> None:

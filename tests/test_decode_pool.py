@@ -1,0 +1,147 @@
+"""Photo files decoded in worker processes (fit/decode_pool.py): the same bytes as threads, the same one-line
+error for a bad photo, threads when the pool fails, and the texstream command's pool started with it and
+stopped at its end."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from texstream.core.errors import InputError
+from texstream.core.progress import reporting
+from texstream.fit import decode_pool
+from texstream.fit.photo_stream import PhotoLoader
+from texstream.fit.problem import PhotoFrame
+
+pytest.importorskip("OpenImageIO", reason="decoding photo files needs OpenImageIO")
+if not decode_pool.available():
+    pytest.skip("no fork server on this platform: photos are decoded in threads", allow_module_level=True)
+
+SMALL = dict(scale=0.02, photos=10, image_size=40, progress=False)
+
+
+@pytest.fixture(scope="module")
+def capture_dir(tmp_path_factory):
+    """The small ornament as a capture folder (float EXR photos with masks)."""
+    from conftest import SCENE_DEVICE
+    from texstream.capture.synth import SynthConfig, synthesize
+
+    out = tmp_path_factory.mktemp("ornament") / "capture"
+    synthesize("ornament", out, SynthConfig(device=SCENE_DEVICE, preview=False, **SMALL))
+    return out
+
+
+@pytest.fixture(scope="module", autouse=True)
+def stop_the_pool():
+    yield
+    decode_pool.shutdown()
+
+
+def files_and_sizes(capture_dir):
+    from texstream.capture.capture_json import read_capture
+    from texstream.fit.stage import photo_files
+
+    capture = read_capture(capture_dir)
+    sizes = np.array([[p.height, p.width] for p in map(PhotoFrame.from_capture_frame, capture.frames)])
+    return photo_files(capture, capture.frames), sizes
+
+
+def fill(loader: PhotoLoader, n: int, shape, dtype):
+    # a value no photo or padding has, so a slot left unwritten shows
+    images, masks = np.full((n, *shape, 3), 7, dtype), np.full((n, *shape), 7, np.uint8)
+    loader.fill(range(n), images, masks if loader.has_masks else None)
+    return images, masks
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float16])
+@pytest.mark.parametrize("cropped", [True, False])
+def test_processes_decode_the_same_bytes_as_threads(capture_dir, dtype, cropped):
+    files, sizes = files_and_sizes(capture_dir)
+    n, (h, w) = len(files), sizes.max(axis=0)
+    crops = np.array([[2 + k % 3, 3 + k % 4, w - 9, h - 11] for k in range(n)]) if cropped else None
+    threads = PhotoLoader(files, None, crops, sizes, 2, decoder="threads")
+    processes = PhotoLoader(files, None, crops, sizes, 2, decoder="processes")
+    assert (threads.processes, processes.processes) == (0, 2) and processes.has_masks
+    by_threads, by_processes = fill(threads, n, (h, w), dtype), fill(processes, n, (h, w), dtype)
+    np.testing.assert_array_equal(by_processes[0], by_threads[0])
+    np.testing.assert_array_equal(by_processes[1], by_threads[1])
+    assert (by_processes[1] == 1).any() and (by_processes[1] == 0).any()
+    threads.close()
+    processes.close()
+
+
+def test_a_bad_photo_fails_with_the_threads_one_line(capture_dir, tmp_path):
+    files, sizes = files_and_sizes(capture_dir)
+    bad = tmp_path / "broken.exr"
+    bad.write_bytes(b"not an exr at all")
+    files.paths = list(files.paths)
+    files.paths[6] = bad
+    errors = []
+    for decoder in ("threads", "processes"):
+        loader = PhotoLoader(files, None, None, sizes, 2, decoder=decoder)
+        with pytest.raises(InputError, match="broken.exr") as e:
+            fill(loader, len(files), tuple(sizes.max(axis=0)), np.float32)
+        errors.append((e.value.one_line(), e.value.path, e.value.fix))
+        loader.close()
+    assert errors[0] == errors[1]
+
+
+def test_a_failed_pool_falls_back_to_threads(capture_dir, monkeypatch):
+    files, sizes = files_and_sizes(capture_dir)
+    shape = tuple(sizes.max(axis=0))
+    expected = fill(PhotoLoader(files, None, None, sizes, 2, decoder="threads"), len(files), shape, np.float32)
+
+    class Broken:
+        def submit(self, *args, **kw):
+            from concurrent.futures.process import BrokenProcessPool
+
+            raise BrokenProcessPool("a worker was killed")
+
+    monkeypatch.setattr(decode_pool, "start", lambda processes: Broken())
+    loader = PhotoLoader(files, None, None, sizes, 2, decoder="processes")
+    said = []
+    with reporting(said.append):
+        got = fill(loader, len(files), shape, np.float32)
+    assert loader.processes == 0
+    np.testing.assert_array_equal(got[0], expected[0])
+    np.testing.assert_array_equal(got[1], expected[1])
+    assert any("a worker was killed" in line and "decoding in threads" in line for line in said)
+
+
+def test_the_automatic_choice_is_processes_only_under_the_command(monkeypatch):
+    monkeypatch.setattr(decode_pool, "_command_processes", 0)
+    assert decode_pool.processes_for("auto") == 0  # called from Python: threads
+    assert decode_pool.processes_for("processes", 3) == 3
+    assert decode_pool.processes_for("threads", 3) == 0
+    monkeypatch.setattr(decode_pool, "_command_processes", 12)
+    assert decode_pool.processes_for("auto") == 12 and decode_pool.processes_for("auto", 5) == 5
+    monkeypatch.setattr("os.cpu_count", lambda: decode_pool.MIN_CPUS - 1)
+    assert decode_pool.default_processes() == 0
+    monkeypatch.setattr("os.cpu_count", lambda: 64)
+    assert decode_pool.default_processes() == decode_pool.MAX_PROCESSES
+
+
+def test_the_fit_command_starts_its_decoders_and_stops_them(capture_dir, tmp_path, monkeypatch):
+    """`texstream fit` on a machine with enough CPUs (pretended here) decodes in processes it started before
+    its imports, fits the same model as threads, and leaves no pool running when it returns."""
+    import json
+
+    from texstream.pipelines.cli import main
+
+    monkeypatch.setattr(decode_pool, "MIN_CPUS", 1)
+    monkeypatch.setattr(decode_pool, "MAX_PROCESSES", 2)
+    started = []
+    real_start = decode_pool._start
+    monkeypatch.setattr(decode_pool, "_start", lambda n: started.append(n) or real_start(n))
+    common = ["fit", str(capture_dir), "--mesh", str(capture_dir / "ground_truth"), "--device", "cpu",
+              "--max-iterations", "2", "--materials.mode", "off", "--traced-polish", "0",
+              "--stream.photo-cache", "off"]
+    assert main(common + ["-o", str(tmp_path / "auto")]) == 0
+    assert started and started[0] == 2 and decode_pool._pool is None and decode_pool._command_processes == 0
+    assert main(common + ["-o", str(tmp_path / "threads"), "--stream.photo-decoder", "threads"]) == 0
+    auto, threads = (json.loads((tmp_path / d / "model.json").read_text()) for d in ("auto", "threads"))
+    assert auto["final"]["objective"] == threads["final"]["objective"]
+    from texstream.capture.imageio import read_image
+
+    np.testing.assert_array_equal(read_image(tmp_path / "auto" / "rho_d.exr", linear=False),
+                                  read_image(tmp_path / "threads" / "rho_d.exr", linear=False))
