@@ -102,26 +102,76 @@ def plot_trace(trace: list[dict], path: Path, title: str) -> None:
     Path(path).write_bytes(trace_plot_png(trace, title))
 
 
-@contextmanager
-def trace_plot(folder: Path, trace: list[dict], title: str) -> Iterator[subprocess.Popen | None]:
-    """Write ``trace.json`` into ``folder`` and draw ``error_vs_time.png`` from it in a child process, so
-    that matplotlib's import (a large share of a short fit's run) happens while the stage
-    renders. Yields the child (None when none could be started) for :func:`write_model_folder`, which
-    waits for it and draws the plot itself if the child failed; a stage that fails first stops it."""
-    write_json_atomic(folder / "trace.json", json_safe(trace))
-    code = "import sys; from texstream.fit.model_folder import plot_trace_file; plot_trace_file(*sys.argv[1:])"
+def start_plotter() -> subprocess.Popen | None:
+    """A child process that imports matplotlib now and draws the error-against-time plot when
+    :func:`trace_plot` sends it the trace (a request on its stdin), so that the import happens while the
+    stage reads the photos and fits. It exits without drawing when its stdin closes first (the stage
+    failed, or this process ended). None when no child could be started."""
+    code = "from texstream.fit.model_folder import serve_plot; serve_plot()"
     try:
-        child = subprocess.Popen([sys.executable, "-c", code, str(folder / "trace.json"),
-                                  str(folder / "error_vs_time.png"), title],
-                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        return subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL)
     except OSError:
-        child = None
+        return None
+
+
+def serve_plot() -> None:
+    """(The child of :func:`start_plotter`.) Import the plot's modules, then draw the one request that comes
+    on stdin: a JSON line {"trace", "png", "title"}."""
+    import matplotlib.backends.backend_agg  # noqa: F401 - imported before the request comes
+    import matplotlib.figure  # noqa: F401
+    import matplotlib.ticker  # noqa: F401
+
+    line = sys.stdin.readline()
+    if line.strip():
+        request = json.loads(line)
+        plot_trace_file(request["trace"], request["png"], request["title"])
+
+
+def stop_plotter(child: subprocess.Popen | None) -> None:
+    """End a child of :func:`start_plotter` that is still running (no request came, or its drawing is no
+    longer wanted)."""
+    if child is None:
+        return
+    if child.poll() is None:
+        child.kill()
+    child.wait()
+    if child.stdin is not None:
+        try:
+            child.stdin.close()
+        except OSError:
+            pass
+
+
+@contextmanager
+def trace_plot(folder: Path, trace: list[dict], title: str,
+               plotter: subprocess.Popen | None = None) -> Iterator[subprocess.Popen | None]:
+    """Write ``trace.json`` into ``folder`` and have a child process draw ``error_vs_time.png`` from it while
+    the stage renders: ``plotter`` (:func:`start_plotter`, its imports done by now) or, without one, a child
+    started here. Yields the child (None when none could be started) for :func:`write_model_folder`,
+    which waits for it and draws the plot itself if the child failed; a stage that fails first stops it."""
+    write_json_atomic(folder / "trace.json", json_safe(trace))
+    request = {"trace": str(folder / "trace.json"), "png": str(folder / "error_vs_time.png"), "title": title}
+    child = None
+    if plotter is not None and plotter.poll() is None:
+        try:
+            plotter.stdin.write((json.dumps(request) + "\n").encode())
+            plotter.stdin.close()
+            child = plotter
+        except OSError:  # the child ended early: one started now draws instead
+            stop_plotter(plotter)
+    if child is None:
+        code = "import sys; from texstream.fit.model_folder import plot_trace_file; plot_trace_file(*sys.argv[1:])"
+        try:
+            child = subprocess.Popen([sys.executable, "-c", code, request["trace"], request["png"], title],
+                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        except OSError:
+            child = None
     try:
         yield child
     finally:
         if child is not None and child.poll() is None:
-            child.kill()
-            child.wait()
+            stop_plotter(child)
 
 
 def plot_trace_file(trace_path: str, png_path: str, title: str) -> None:

@@ -728,13 +728,6 @@ def average_seams_in_bounds(grid: np.ndarray, seams, layout: ModelLayout) -> tup
 def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Path,
               config: FitStageConfig | None = None, progress: bool = True) -> StageResult:
     """Fit the appearance model of ``config.fit`` to a capture; write the model folder atomically."""
-    from texstream.capture.imageio import read_mask
-    from texstream.geometry.mesh_io import save_mesh
-
-    from .model_folder import (bound_report, check_model, pooled_psnr, render_comparisons, trace_plot,
-                               write_model_folder)
-    from .stiffcheck import numerics_warnings
-
     cfg = config or FitStageConfig()
     check_config(cfg)
     check_output_path(out_dir)
@@ -750,7 +743,27 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
                               fix="drop those options with --model lfm")
 
         return lfm_fit_stage(capture_dir, mesh_path, out_dir, cfg, progress)
+    from .model_folder import start_plotter, stop_plotter
+
+    plotter = start_plotter()  # a child imports matplotlib while the photos are read and fitted
+    try:
+        return fit_per_texel_model(capture_dir, mesh_path, out_dir, cfg, progress, plotter)
+    finally:
+        stop_plotter(plotter)
+
+
+def fit_per_texel_model(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Path, cfg: FitStageConfig,
+                        progress: bool, plotter=None) -> StageResult:
+    """:func:`fit_stage` for the per-texel models (Lafortune, radiance): ``plotter`` draws the
+    error-against-time plot (:func:`~texstream.fit.model_folder.start_plotter`; None: a child started at
+    the end does)."""
+    from texstream.capture.imageio import read_mask
     from texstream.core.progress import phase
+    from texstream.geometry.mesh_io import save_mesh
+
+    from .model_folder import (bound_report, check_model, pooled_psnr, render_comparisons, trace_plot,
+                               write_model_folder)
+    from .stiffcheck import numerics_warnings
 
     t0 = time.perf_counter()
     with phase("fit", f"{cfg.fit.model}: reading the photos and setting up the texels"):
@@ -836,7 +849,7 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
 
     t_fitted = time.perf_counter()
     with (atomic_output_dir(out_dir) as tmp, phase("fit", f"{cfg.fit.model}: held-out renders and the model folder"),
-          trace_plot(tmp, result.trace, title) as plot):  # drawn by a child process while this one renders
+          trace_plot(tmp, result.trace, title, plotter) as plot):  # drawn by the child while this one renders
         save_mesh(tmp / "mesh.obj", mesh)
         baked = Path(mesh_path) / "bake.npz"
         if Path(mesh_path).is_dir() and baked.is_file():  # the bake the fit read (load_geometry): copied

@@ -1,5 +1,5 @@
 """The model folder's error-against-time plot, drawn by a child process while the stage renders
-(fit/model_folder.py ``trace_plot``). Host-only code: no device parameter."""
+(fit/model_folder.py ``trace_plot``, ``start_plotter``). Host-only code: no device parameter."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import sys
 import numpy as np
 import pytest
 
-from texstream.fit.model_folder import trace_plot, trace_plot_png, write_model_folder
+from texstream.fit.model_folder import start_plotter, stop_plotter, trace_plot, trace_plot_png, write_model_folder
 from texstream.fit.models import ModelLayout
 
 
@@ -47,3 +47,38 @@ def test_model_folder_draws_the_plot_itself_when_the_child_failed(tmp_path):
     write_model_folder(tmp_path, grid, lay, np.ones((2, 2), bool), TRACE, "title", {}, TinyConfig(), plot=failed)
     assert (tmp_path / "error_vs_time.png").read_bytes() == trace_plot_png(TRACE, "title")
     assert json.loads((tmp_path / "model.json").read_text())["kind"] == "diffuse"
+
+
+def test_a_plotter_started_early_draws_the_same_plot(tmp_path):
+    plotter = start_plotter()
+    with trace_plot(tmp_path, TRACE, "title", plotter) as child:
+        assert child is plotter and child.wait() == 0
+    assert (tmp_path / "error_vs_time.png").read_bytes() == trace_plot_png(TRACE, "title")
+
+
+def test_a_plotter_no_request_reaches_exits(tmp_path):
+    plotter = start_plotter()
+    plotter.stdin.close()  # the stage failed before its model folder (or this process ended)
+    assert plotter.wait(timeout=60) == 0
+    stop_plotter(plotter)
+    killed = start_plotter()
+    stop_plotter(killed)
+    assert killed.poll() is not None
+
+
+def test_a_plotter_that_ended_is_replaced(tmp_path):
+    ended = start_plotter()
+    stop_plotter(ended)
+    with trace_plot(tmp_path, TRACE, "title", ended) as child:
+        assert child is not ended and child.wait() == 0
+    assert (tmp_path / "error_vs_time.png").read_bytes() == trace_plot_png(TRACE, "title")
+
+
+def test_a_failing_fit_stage_stops_its_plotter(tmp_path, monkeypatch):
+    from texstream.fit import model_folder, stage
+
+    started = []
+    monkeypatch.setattr(model_folder, "start_plotter", lambda: started.append(start_plotter()) or started[-1])
+    with pytest.raises(Exception):
+        stage.fit_stage(tmp_path / "no capture here", tmp_path / "no mesh", tmp_path / "out")
+    assert started and started[0].poll() is not None and not (tmp_path / "out").exists()
