@@ -1,6 +1,7 @@
 """How fast the fit's loader decodes a capture's photos, by decode threads and OpenEXR's own threads (JSON).
 
     python benchmarks/decode_threads.py --capture CAPTURE --out DIR [--threads 1,8,16] [--exr-threads -1,0,1] [--raw]
+        [--processes 8,16 [--reader-threads 1,0]]
 
 Decodes every photo of CAPTURE (with its mask) into a slot buffer the way the fit's set-up does
 (``fit/photo_stream.py`` ``PhotoLoader``: cropped to the object's footprint, only the crop's rows read), in
@@ -22,69 +23,40 @@ from pathlib import Path
 from gitinfo import commit
 
 
-def _warm(_: int) -> int:
-    """(process pool worker) Import the readers, so that the timed decoding does not."""
-    import texstream.capture.imageio  # noqa: F401
-
-    return 0
-
-
-def _decode_into_shared(args) -> int:
-    """(process pool worker) Decode photos ``ks`` into the shared block ``name`` (n, hmax, wmax, 3) float32 as the
-    loader does (the crop's rows, then the columns); returns the count."""
-    import numpy as np
-    from multiprocessing import shared_memory
-
-    from texstream.capture.imageio import read_image, read_mask
-
-    name, shape, ks, paths, mask_paths, crops, sizes = args
-    shm = shared_memory.SharedMemory(name=name)
-    try:
-        out = np.ndarray(shape, np.float32, buffer=shm.buf)
-        for k in ks:
-            x0, y0, cw, ch = (int(v) for v in crops[k])
-            h, w = (int(v) for v in sizes[k])
-            im = read_image(paths[k], rows=(y0, y0 + ch), size=(h, w))
-            if mask_paths[k] is not None:
-                read_mask(mask_paths[k], (h, w), rows=(y0, y0 + ch))
-            out[k, :ch, :cw] = im[:, x0:x0 + cw]
-        del out
-    finally:
-        shm.close()
-    return len(ks)
-
-
-def decode_in_processes(files, crops, sizes, hmax: int, wmax: int, procs: int, decoded_mb: float) -> dict:
-    """Wall time to decode every photo with a pool of ``procs`` spawned processes into shared memory (the pool's
-    start timed apart)."""
-    import concurrent.futures
-    import multiprocessing as mp
+def decode_with_loader(files, crops, sizes, images, masks, threads: int, decoder: str, reader_threads: int,
+                       pipelined: bool, decoded_mb: float) -> dict:
+    """Wall time of the fit's loader (``PhotoLoader``, ``decoder`` threads or processes) filling every photo in
+    chunks of ``images``' length; ``pipelined``: the next chunk submitted before the current one is waited for
+    (as the set-up's upload does). A pool of processes is started first, its start timed apart."""
     import time
-    from multiprocessing import shared_memory
 
-    import numpy as np
+    from texstream.fit import decode_pool
+    from texstream.fit.photo_stream import PhotoLoader, wait
 
-    n = len(files.paths)
-    shape = (n, hmax, wmax, 3)
-    shm = shared_memory.SharedMemory(create=True, size=int(np.prod(shape)) * 4)
-    try:
-        t0 = time.perf_counter()
-        pool = concurrent.futures.ProcessPoolExecutor(procs, mp_context=mp.get_context("spawn"))
-        list(pool.map(_warm, range(4 * procs)))  # the workers started, their readers imported
-        t1 = time.perf_counter()
-        paths = [str(p) for p in files.paths]
-        masks = [None if m is None else str(m) for m in files.mask_paths]
-        step = max(1, n // (procs * 8))
-        jobs = [(shm.name, shape, list(range(b, min(n, b + step))), paths, masks, crops, sizes)
-                for b in range(0, n, step)]
-        assert sum(pool.map(_decode_into_shared, jobs)) == n
-        t2 = time.perf_counter()
-        pool.shutdown()
-    finally:
-        shm.close()
-        shm.unlink()
-    return {"processes": procs, "photos": n, "pool_start_s": t1 - t0, "wall_s": t2 - t1,
-            "ms_per_photo": 1000 * (t2 - t1) / n, "decoded_mb_per_s": decoded_mb / (t2 - t1)}
+    t0 = time.perf_counter()
+    if decoder == "processes":
+        pool = decode_pool.start(threads, reader_threads)
+        for f in [pool.submit(decode_pool._ready) for _ in range(4 * threads)]:
+            f.result()
+    t1 = time.perf_counter()
+    loader = PhotoLoader(files, None, crops, sizes, threads, decoder=decoder)
+    n, chunk = len(files.paths), len(images) // 2
+    pending = None
+    for turn, b in enumerate(range(0, n, chunk)):
+        c, half = min(chunk, n - b), (turn % 2) * chunk
+        futures = loader.submit(range(b, b + c), images[half:half + c],
+                                masks[half:half + c] if loader.has_masks else None)
+        if not pipelined:
+            wait(futures)
+        elif pending is not None:
+            wait(pending)
+        pending = futures
+    wait(pending or [])
+    wall = time.perf_counter() - t1
+    loader.close()
+    return {"decoder": decoder, "threads_or_processes": threads, "reader_threads": reader_threads,
+            "pipelined": pipelined, "photos": n, "pool_start_s": t1 - t0, "wall_s": wall,
+            "ms_per_photo": 1000 * wall / n, "decoded_mb_per_s": decoded_mb / wall}
 
 
 def main() -> None:
@@ -98,8 +70,11 @@ def main() -> None:
     ap.add_argument("--limit", type=int, default=0, help="first N photos only (0: all)")
     ap.add_argument("--raw", action="store_true", help="also time OpenImageIO's reads alone (the crop's rows of each "
                                                       "photo, no mask, no conversion or checks) on the same threads")
-    ap.add_argument("--processes", default="", help="also decode with pools of this many processes (spawned, each "
-                                                    "writing its photos' crops into shared memory), e.g. 8,16")
+    ap.add_argument("--processes", default="", help="also decode with the loader's worker processes "
+                                                    "(fit/decode_pool.py), pools of these sizes, e.g. 8,16, against "
+                                                    "4 threads; chunks waited for and pipelined")
+    ap.add_argument("--reader-threads", default="1,0", help="with --processes: each worker's reader threads "
+                                                           "(decode_pool.READER_THREADS; 0: the reader's default)")
     a = ap.parse_args()
 
     import numpy as np
@@ -172,10 +147,20 @@ def main() -> None:
                    "decoded_mb_per_s": decoded_mb / wall}
             rows.append(row)
             print(json.dumps(row), flush=True)
-    for procs in [int(x) for x in a.processes.split(",") if x.strip()]:
-        row = decode_in_processes(files, crops, sizes, hmax, wmax, procs, decoded_mb)
-        rows.append(row)
-        print(json.dumps(row), flush=True)
+    if a.processes:  # the fit's loader with threads against worker processes, chunks waited for or pipelined
+        two = np.empty((2 * chunk, hmax, wmax, 3), np.float32), np.empty((2 * chunk, hmax, wmax), np.uint8)
+        configs = [("threads", t, -1) for t in (4,)] + [
+            ("processes", p, r) for p in (int(x) for x in a.processes.split(",") if x.strip())
+            for r in (int(x) for x in a.reader_threads.split(","))]
+        for decoder, count, reader_threads in configs:
+            for pipelined in (False, True):
+                row = decode_with_loader(files, crops, sizes, *two, count, decoder, reader_threads, pipelined,
+                                         decoded_mb)
+                rows.append(row)
+                print(json.dumps(row), flush=True)
+        from texstream.fit import decode_pool
+
+        decode_pool.shutdown()
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "decode_threads.json").write_text(json.dumps(

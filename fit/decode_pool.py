@@ -43,6 +43,10 @@ MAX_PROCESSES = 16
 """most workers the automatic choice starts (one per CPU up to this): 16 processes decoded the full
 ornament's 1,760 float EXRs in 1.3-1.6 s on a 16-core GPU host (docs/scale.md)"""
 
+READER_THREADS = 1
+"""threads each worker's reader (OpenImageIO, OpenEXR) decodes one file with: the pool's parallelism is
+over photos (0: the reader's default, a thread per CPU in each worker)"""
+
 BATCH = 4
 """photos per task sent to a worker: few enough that a window's batches spread over the workers, enough
 that the per-task cost (a message each way) stays small against decoding"""
@@ -51,7 +55,7 @@ DECODERS = ("auto", "threads", "processes")
 
 _lock = threading.Lock()
 _pool: concurrent.futures.ProcessPoolExecutor | None = None
-_pool_size = 0
+_pool_size: tuple = (0, 0)
 _tokens = itertools.count(1)
 _command_processes = 0  # the automatic choice's workers, set by start_in_background (the texstream command)
 
@@ -81,30 +85,33 @@ def available() -> bool:
     return "forkserver" in multiprocessing.get_all_start_methods()
 
 
-def _start(processes: int) -> concurrent.futures.ProcessPoolExecutor:
+def _start(processes: int, reader_threads: int = -1) -> concurrent.futures.ProcessPoolExecutor:
     global _pool, _pool_size
     import multiprocessing
 
+    key = (processes, READER_THREADS if reader_threads < 0 else reader_threads)
     with _lock:
-        if _pool is not None and _pool_size == processes:
+        if _pool is not None and _pool_size == key:
             return _pool
         if _pool is not None:
             _pool.shutdown(wait=False, cancel_futures=True)
         ctx = multiprocessing.get_context("forkserver")
         # imported once in the fork server, so each worker starts with them
         ctx.set_forkserver_preload([__name__, "numpy", "OpenImageIO", "texstream.capture.imageio"])
-        _pool = concurrent.futures.ProcessPoolExecutor(processes, mp_context=ctx, initializer=_worker_init)
-        _pool_size = processes
+        _pool = concurrent.futures.ProcessPoolExecutor(processes, mp_context=ctx, initializer=_worker_init,
+                                                       initargs=(key[1],))
+        _pool_size = key
         pool = _pool
     for _ in range(processes):  # one task per worker: the pool starts them all now
         pool.submit(_ready)
     return pool
 
 
-def start(processes: int) -> concurrent.futures.ProcessPoolExecutor:
-    """The shared pool of ``processes`` workers, started (or restarted with that count) if need be.
-    Starting blocks the caller until the fork server has imported its modules."""
-    return _start(processes)
+def start(processes: int, reader_threads: int = -1) -> concurrent.futures.ProcessPoolExecutor:
+    """The shared pool of ``processes`` workers whose readers use ``reader_threads`` (-1:
+    :data:`READER_THREADS`), started (or restarted so) if need be. Starting blocks the caller until the
+    fork server has imported its modules."""
+    return _start(processes, reader_threads)
 
 
 def start_in_background() -> None:
@@ -121,7 +128,7 @@ def shutdown() -> None:
     """Stop the shared pool's workers (the command's end; idle workers exit at once)."""
     global _pool, _pool_size, _command_processes
     with _lock:
-        pool, _pool, _pool_size, _command_processes = _pool, None, 0, 0
+        pool, _pool, _pool_size, _command_processes = _pool, None, (0, 0), 0
     if pool is not None:
         pool.shutdown(wait=True, cancel_futures=True)
 
@@ -130,14 +137,15 @@ def _ready() -> int:
     return os.getpid()
 
 
-def _worker_init() -> None:
-    """One thread per worker: the pool's parallelism is over photos (OpenEXR would otherwise start a
-    pool of CPU-count threads in each of the workers)."""
+def _worker_init(reader_threads: int) -> None:
+    """The worker's reader threads (:data:`READER_THREADS`; 0 leaves the reader's default)."""
+    if reader_threads <= 0:
+        return
     try:
         import OpenImageIO as oiio
 
-        oiio.attribute("threads", 1)
-        oiio.attribute("exr_threads", 1)
+        oiio.attribute("threads", reader_threads)
+        oiio.attribute("exr_threads", reader_threads)
     except ImportError:
         pass
 

@@ -604,12 +604,9 @@ class PhotoSet:
         stage_m = [self._masks_buffer(chunk, "cpu", pinned) for _ in range(2)]
         landing = wp.empty(shape, dtype=wp.vec3, device=dev) if half else None
         copied = [None, None]
-        for turn, b in enumerate(range(0, n, chunk)):
-            c, slot = min(chunk, n - b), turn % 2
-            if copied[slot] is not None:
-                wp.synchronize_event(copied[slot])  # this buffer's previous copy has left it
-            self.loader.fill(range(b, b + c), stage[slot].numpy(),
-                             stage_m[slot].numpy() if self.loader.has_masks else None)
+
+        def upload(b: int, c: int, slot: int, filling: list) -> None:
+            wait(filling)
             if half:
                 wp.copy(landing, stage[slot], 0, 0, c * pix)
                 wp.launch(to_half_kernel, dim=(c, self.hmax, self.wmax), device=dev, inputs=[landing, b],
@@ -620,6 +617,20 @@ class PhotoSet:
                 wp.copy(masks, stage_m[slot], b * pix, 0, c * pix)
             if pinned:
                 copied[slot] = wp.get_stream(dev).record_event()
+
+        previous = None
+        for turn, b in enumerate(range(0, n, chunk)):
+            c, slot = min(chunk, n - b), turn % 2
+            if copied[slot] is not None:
+                wp.synchronize_event(copied[slot])  # this buffer's previous copy has left it
+            # the next chunk is decoded while the loader finishes this one: no decoder idles at a chunk's end
+            filling = self.loader.submit(range(b, b + c), stage[slot].numpy(),
+                                         stage_m[slot].numpy() if self.loader.has_masks else None)
+            if previous is not None:
+                upload(*previous)
+            previous = (b, c, slot, filling)
+        if previous is not None:
+            upload(*previous)
 
     def _init_windows(self) -> None:
         """Window-sized device buffers; for "host" residency also every photo and its maps in (pinned)

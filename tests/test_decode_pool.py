@@ -132,7 +132,7 @@ def test_the_fit_command_starts_its_decoders_and_stops_them(capture_dir, tmp_pat
     monkeypatch.setattr(decode_pool, "MAX_PROCESSES", 2)
     started = []
     real_start = decode_pool._start
-    monkeypatch.setattr(decode_pool, "_start", lambda n: started.append(n) or real_start(n))
+    monkeypatch.setattr(decode_pool, "_start", lambda n, reader_threads=-1: started.append(n) or real_start(n, reader_threads))
     common = ["fit", str(capture_dir), "--mesh", str(capture_dir / "ground_truth"), "--device", "cpu",
               "--max-iterations", "2", "--materials.mode", "off", "--traced-polish", "0",
               "--stream.photo-cache", "off"]
