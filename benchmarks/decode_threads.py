@@ -36,8 +36,8 @@ def decode_with_loader(files, crops, sizes, images, masks, threads: int, decoder
     t0 = time.perf_counter()
     if decoder == "processes":
         pool = decode_pool.start(threads, reader_threads)
-        for f in [pool.submit(decode_pool._ready) for _ in range(4 * threads)]:
-            f.result()
+        for w in pool.workers:  # every worker up, its readers imported
+            w.call(os.getpid, ())
     t1 = time.perf_counter()
     loader = PhotoLoader(files, None, crops, sizes, threads, decoder=decoder)
     n, chunk = len(files.paths), len(images) // 2

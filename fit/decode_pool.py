@@ -9,21 +9,21 @@ sent the batch copies the block into its destination. The values are the same by
 
 The pool is shared by the process and started once: ``texstream fit`` and ``texstream run`` start it in the
 background before their imports (:func:`start_in_background`), so the workers are up, their readers
-imported, by the time the photos are read. Its processes come from a fork server (a fresh interpreter
-that has imported numpy and the readers), never from a fork of the fitting process, whose threads may
-hold locks. Where processes are not available, or the pool fails, the loader decodes in threads.
+imported, by the time the photos are read. Each worker is a fresh interpreter (``python -c``, the parent's
+``sys.path``) talking to the parent over two pipes: never a fork of the fitting process, whose threads may
+hold locks, and never an import of the program's main script (which ``multiprocessing``'s spawn and fork
+server do). Where the pool fails (a worker killed, readers that cannot be sent), the loader decodes in
+threads.
 
-The automatic choice uses processes only under those commands: like any process pool that is not forked,
-the workers import the main script of the program that started them, so a fit called from a script
-without a ``if __name__ == "__main__"`` guard would run again in each of them. From Python, processes are
-used when asked for (``StreamConfig.photo_decoder = "processes"``).
+The automatic choice uses processes only under those commands, where the workers' start (about 0.3 s, their
+imports) is hidden behind the command's own; from Python, processes are used when asked for
+(``StreamConfig.photo_decoder = "processes"``).
 
 Imports only numpy and the standard library; the workers import the readers they are given.
 """
 
 from __future__ import annotations
 
-import concurrent.futures
 import itertools
 import mmap
 import os
@@ -54,8 +54,7 @@ that the per-task cost (a message each way) stays small against decoding"""
 DECODERS = ("auto", "threads", "processes")
 
 _lock = threading.Lock()
-_pool: concurrent.futures.ProcessPoolExecutor | None = None
-_pool_size: tuple = (0, 0)
+_pool: "WorkerPool | None" = None
 _tokens = itertools.count(1)
 _command_processes = 0  # the automatic choice's workers, set by start_in_background (the texstream command)
 
@@ -70,84 +69,154 @@ def default_processes() -> int:
 def processes_for(decoder: str, count: int = 0) -> int:
     """Workers for ``StreamConfig.photo_decoder`` ("auto", "threads" or "processes") and
     ``decode_threads`` ``count`` (0: the default), or 0 for threads: "auto" is processes only under a
-    command that called :func:`start_in_background`; 0 too where the platform has no fork server."""
-    if decoder == "threads" or not available():
+    command that called :func:`start_in_background`."""
+    if decoder == "threads":
         return 0
     if decoder == "processes":
         return count if count > 0 else max(2, min(MAX_PROCESSES, os.cpu_count() or 1))
     return (count if count > 0 else _command_processes) if _command_processes else 0
 
 
-def available() -> bool:
-    """Whether worker processes can be started here (a fork server: Linux and macOS)."""
-    import multiprocessing
-
-    return "forkserver" in multiprocessing.get_all_start_methods()
+class WorkerFailed(RuntimeError):
+    """A worker died or its task could not be sent or answered: the pool is no longer used."""
 
 
-def _start(processes: int, reader_threads: int = -1) -> concurrent.futures.ProcessPoolExecutor:
-    global _pool, _pool_size
-    import multiprocessing
+class Worker:
+    """One decoding process: a fresh interpreter running :func:`serve` on two pipes."""
 
+    def __init__(self, reader_threads: int):
+        import json
+        import subprocess
+
+        from_parent, to_worker = os.pipe()
+        from_worker, to_parent = os.pipe()
+        code = (f"import sys; sys.path[:] = {json.dumps(sys.path)}; "
+                f"from texstream.fit.decode_pool import serve; serve({from_parent}, {to_parent}, {reader_threads})")
+        try:
+            self.proc = subprocess.Popen([sys.executable, "-c", code], pass_fds=(from_parent, to_parent),
+                                         stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                         stderr=subprocess.DEVNULL)
+        finally:
+            os.close(from_parent)
+            os.close(to_parent)
+        from multiprocessing.connection import Connection
+
+        self.send, self.recv = Connection(to_worker, readable=False), Connection(from_worker, writable=False)
+
+    def call(self, fn, args: tuple):
+        """``fn(*args)`` in the worker: its value, or its exception raised here."""
+        try:
+            self.send.send((fn, args))
+            ok, value = self.recv.recv()
+        except (EOFError, OSError, TypeError, AttributeError, ValueError) as e:  # died, or unpicklable
+            raise WorkerFailed(f"{type(e).__name__}: {e}") from e
+        if not ok:
+            raise value
+        return value
+
+    def stop(self) -> None:
+        """Close the pipes (the worker exits at the end of its input) and reap it."""
+        for conn in (self.send, self.recv):
+            conn.close()
+        try:
+            self.proc.wait(timeout=5)
+        except Exception:  # noqa: BLE001 - a worker stuck in a read is killed
+            self.proc.kill()
+            self.proc.wait()
+
+
+class WorkerPool:
+    """``processes`` :class:`Worker` s, lent one at a time to the calling thread (the loader runs one thread
+    per worker, so none waits for another's)."""
+
+    def __init__(self, processes: int, reader_threads: int):
+        import queue
+
+        self.key = (processes, reader_threads)
+        self.workers = [Worker(reader_threads) for _ in range(processes)]
+        self.idle: queue.SimpleQueue = queue.SimpleQueue()
+        for w in self.workers:
+            self.idle.put(w)
+
+    def call(self, fn, *args):
+        """``fn(*args)`` on an idle worker (waiting for one); :class:`WorkerFailed` if it died."""
+        worker = self.idle.get()
+        try:
+            return worker.call(fn, args)
+        finally:
+            if worker.proc.poll() is None:
+                self.idle.put(worker)
+
+    def shutdown(self) -> None:
+        for w in self.workers:
+            w.stop()
+
+
+def start(processes: int, reader_threads: int = -1) -> WorkerPool:
+    """The shared pool of ``processes`` workers whose readers use ``reader_threads`` (-1:
+    :data:`READER_THREADS`), started (or restarted so) if need be; its workers import their modules in the
+    background."""
+    global _pool
     key = (processes, READER_THREADS if reader_threads < 0 else reader_threads)
     with _lock:
-        if _pool is not None and _pool_size == key:
+        if _pool is not None and _pool.key == key:
             return _pool
-        if _pool is not None:
-            _pool.shutdown(wait=False, cancel_futures=True)
-        ctx = multiprocessing.get_context("forkserver")
-        # imported once in the fork server, so each worker starts with them
-        ctx.set_forkserver_preload([__name__, "numpy", "OpenImageIO", "texstream.capture.imageio"])
-        _pool = concurrent.futures.ProcessPoolExecutor(processes, mp_context=ctx, initializer=_worker_init,
-                                                       initargs=(key[1],))
-        _pool_size = key
+        old, _pool = _pool, WorkerPool(*key)
         pool = _pool
-    for _ in range(processes):  # one task per worker: the pool starts them all now
-        pool.submit(_ready)
+    if old is not None:
+        old.shutdown()
     return pool
-
-
-def start(processes: int, reader_threads: int = -1) -> concurrent.futures.ProcessPoolExecutor:
-    """The shared pool of ``processes`` workers whose readers use ``reader_threads`` (-1:
-    :data:`READER_THREADS`), started (or restarted so) if need be. Starting blocks the caller until the
-    fork server has imported its modules."""
-    return _start(processes, reader_threads)
 
 
 def start_in_background() -> None:
     """Make the automatic choice processes (:func:`default_processes`), and start their pool in a thread,
     returning at once (nothing where the automatic choice is threads)."""
     global _command_processes
-    n = default_processes() if available() else 0
+    n = default_processes()
     _command_processes = n
     if n:
-        threading.Thread(target=_start, args=(n,), name="texstream-decode-pool", daemon=True).start()
+        threading.Thread(target=start, args=(n,), name="texstream-decode-pool", daemon=True).start()
 
 
 def shutdown() -> None:
     """Stop the shared pool's workers (the command's end; idle workers exit at once)."""
-    global _pool, _pool_size, _command_processes
+    global _pool, _command_processes
     with _lock:
-        pool, _pool, _pool_size, _command_processes = _pool, None, (0, 0), 0
+        pool, _pool, _command_processes = _pool, None, 0
     if pool is not None:
-        pool.shutdown(wait=True, cancel_futures=True)
+        pool.shutdown()
 
 
-def _ready() -> int:
-    return os.getpid()
+def serve(from_parent: int, to_parent: int, reader_threads: int) -> None:
+    """(A worker's main.) Answer (fn, args) messages with (True, value) or (False, exception) until the
+    parent closes the pipe."""
+    from multiprocessing.connection import Connection
 
+    import texstream.capture.imageio  # noqa: F401 - the readers' modules, imported before the first task
 
-def _worker_init(reader_threads: int) -> None:
-    """The worker's reader threads (:data:`READER_THREADS`; 0 leaves the reader's default)."""
-    if reader_threads <= 0:
-        return
     try:
         import OpenImageIO as oiio
 
-        oiio.attribute("threads", reader_threads)
-        oiio.attribute("exr_threads", reader_threads)
+        if reader_threads > 0:
+            oiio.attribute("threads", reader_threads)
+            oiio.attribute("exr_threads", reader_threads)
     except ImportError:
         pass
+
+    inbox, outbox = Connection(from_parent, writable=False), Connection(to_parent, readable=False)
+    while True:
+        try:
+            fn, args = inbox.recv()
+        except (EOFError, OSError):
+            return
+        try:
+            reply = (True, fn(*args))
+        except Exception as e:  # noqa: BLE001 - sent back and raised in the parent
+            reply = (False, e)
+        try:
+            outbox.send(reply)
+        except Exception as e:  # noqa: BLE001 - an exception that cannot be pickled
+            outbox.send((False, RuntimeError(f"{type(reply[1]).__name__}: {reply[1]}")))
 
 
 class Staging:

@@ -480,12 +480,12 @@ class PhotoLoader:
                      else str(self.source.mask_paths[k]), tuple(int(v) for v in self.sizes[k]),
                      None if self.crops is None else tuple(int(v) for v in self.crops[k])) for k in ks]
             try:
-                failure = decode_pool.start(processes).submit(
+                failure = decode_pool.start(processes).call(
                     decode_pool.decode_batch, staging.task(block), masks is not None, jobs, self.source.read_image,
-                    self.source.read_mask).result()
+                    self.source.read_mask)
             except Exception as e:  # noqa: BLE001 - user errors come back as values: this is the pool's failure
-                # (a worker killed, readers that cannot be sent); threads decode from here on, and raise
-                # the photo's own error if it has one
+                # (a worker killed, readers that cannot be sent) or a reader's bug; threads decode from here on,
+                # and raise the photo's own error if it has one
                 self._pool_failed(e)
                 return self._fill_batch(ks, images, masks)
             staged_images, staged_masks = staging.views(block, len(ks))

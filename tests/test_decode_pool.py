@@ -14,8 +14,6 @@ from texstream.fit.photo_stream import PhotoLoader
 from texstream.fit.problem import PhotoFrame
 
 pytest.importorskip("OpenImageIO", reason="decoding photo files needs OpenImageIO")
-if not decode_pool.available():
-    pytest.skip("no fork server on this platform: photos are decoded in threads", allow_module_level=True)
 
 SMALL = dict(scale=0.02, photos=10, image_size=40, progress=False)
 
@@ -63,6 +61,7 @@ def test_processes_decode_the_same_bytes_as_threads(capture_dir, dtype, cropped)
     processes = PhotoLoader(files, None, crops, sizes, 2, decoder="processes")
     assert (threads.processes, processes.processes) == (0, 2) and processes.has_masks
     by_threads, by_processes = fill(threads, n, (h, w), dtype), fill(processes, n, (h, w), dtype)
+    assert processes.processes == 2  # the workers decoded (no fall back to threads)
     np.testing.assert_array_equal(by_processes[0], by_threads[0])
     np.testing.assert_array_equal(by_processes[1], by_threads[1])
     assert (by_processes[1] == 1).any() and (by_processes[1] == 0).any()
@@ -82,6 +81,7 @@ def test_a_bad_photo_fails_with_the_threads_one_line(capture_dir, tmp_path):
         with pytest.raises(InputError, match="broken.exr") as e:
             fill(loader, len(files), tuple(sizes.max(axis=0)), np.float32)
         errors.append((e.value.one_line(), e.value.path, e.value.fix))
+        assert loader.processes == (2 if decoder == "processes" else 0)  # a user error is not the pool's failure
         loader.close()
     assert errors[0] == errors[1]
 
@@ -92,10 +92,8 @@ def test_a_failed_pool_falls_back_to_threads(capture_dir, monkeypatch):
     expected = fill(PhotoLoader(files, None, None, sizes, 2, decoder="threads"), len(files), shape, np.float32)
 
     class Broken:
-        def submit(self, *args, **kw):
-            from concurrent.futures.process import BrokenProcessPool
-
-            raise BrokenProcessPool("a worker was killed")
+        def call(self, *args):
+            raise decode_pool.WorkerFailed("EOFError: a worker was killed")
 
     monkeypatch.setattr(decode_pool, "start", lambda processes: Broken())
     loader = PhotoLoader(files, None, None, sizes, 2, decoder="processes")
@@ -121,7 +119,7 @@ def test_the_automatic_choice_is_processes_only_under_the_command(monkeypatch):
     assert decode_pool.default_processes() == decode_pool.MAX_PROCESSES
 
 
-def test_the_fit_command_starts_its_decoders_and_stops_them(capture_dir, tmp_path, monkeypatch):
+def test_the_fit_command_starts_its_decoders_and_stops_them(capture_dir, tmp_path, monkeypatch, capsys):
     """`texstream fit` on a machine with enough CPUs (pretended here) decodes in processes it started before
     its imports, fits the same model as threads, and leaves no pool running when it returns."""
     import json
@@ -131,8 +129,8 @@ def test_the_fit_command_starts_its_decoders_and_stops_them(capture_dir, tmp_pat
     monkeypatch.setattr(decode_pool, "MIN_CPUS", 1)
     monkeypatch.setattr(decode_pool, "MAX_PROCESSES", 2)
     started = []
-    real_start = decode_pool._start
-    monkeypatch.setattr(decode_pool, "_start", lambda n, reader_threads=-1: started.append(n) or real_start(n, reader_threads))
+    real_start = decode_pool.start
+    monkeypatch.setattr(decode_pool, "start", lambda n, reader_threads=-1: started.append(n) or real_start(n, reader_threads))
     common = ["fit", str(capture_dir), "--mesh", str(capture_dir / "ground_truth"), "--device", "cpu",
               "--max-iterations", "2", "--materials.mode", "off", "--traced-polish", "0",
               "--stream.photo-cache", "off"]
@@ -141,7 +139,42 @@ def test_the_fit_command_starts_its_decoders_and_stops_them(capture_dir, tmp_pat
     assert main(common + ["-o", str(tmp_path / "threads"), "--stream.photo-decoder", "threads"]) == 0
     auto, threads = (json.loads((tmp_path / d / "model.json").read_text()) for d in ("auto", "threads"))
     assert auto["final"]["objective"] == threads["final"]["objective"]
+    said = capsys.readouterr()
+    assert "photo decoding processes failed" not in said.out + said.err
     from texstream.capture.imageio import read_image
 
     np.testing.assert_array_equal(read_image(tmp_path / "auto" / "rho_d.exr", linear=False),
                                   read_image(tmp_path / "threads" / "rho_d.exr", linear=False))
+
+
+def test_a_killed_worker_leaves_the_pool_and_threads_decode(capture_dir):
+    files, sizes = files_and_sizes(capture_dir)
+    shape = tuple(sizes.max(axis=0))
+    expected = fill(PhotoLoader(files, None, None, sizes, 2, decoder="threads"), len(files), shape, np.float32)
+    pool = decode_pool.start(2)
+    pool.workers[0].proc.kill()
+    pool.workers[0].proc.wait()
+    loader = PhotoLoader(files, None, None, sizes, 2, decoder="processes")
+    got = fill(loader, len(files), shape, np.float32)
+    np.testing.assert_array_equal(got[0], expected[0])
+    np.testing.assert_array_equal(got[1], expected[1])
+    decode_pool.shutdown()
+
+
+def test_workers_do_not_run_the_main_script(tmp_path):
+    """A script without a main guard, run from a file or from stdin, decodes in processes without running
+    itself again in the workers (they are not multiprocessing's spawned children)."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "unguarded.py"
+    script.write_text(
+        "import os, numpy as np\n"
+        "from texstream.fit import decode_pool\n"
+        f"open({str(tmp_path / 'runs.txt')!r}, 'a').write(str(os.getpid()) + '\\n')\n"
+        "pool = decode_pool.start(2)\n"
+        "assert [w.call(os.getpid, ()) for w in pool.workers] != [os.getpid()] * 2\n"
+        "decode_pool.shutdown()\n")
+    subprocess.run([sys.executable, str(script)], check=True, timeout=120)
+    subprocess.run([sys.executable, "-"], input=script.read_bytes(), check=True, timeout=120)
+    assert len((tmp_path / "runs.txt").read_text().split()) == 2
