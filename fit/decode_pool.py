@@ -92,10 +92,13 @@ class Worker:
         from_worker, to_parent = os.pipe()
         code = (f"import sys; sys.path[:] = {json.dumps(sys.path)}; "
                 f"from texstream.fit.decode_pool import serve; serve({from_parent}, {to_parent}, {reader_threads})")
+        # one thread of BLAS and OpenMP per worker: numpy's import would otherwise start a pool of CPU-count
+        # threads in each worker, which slows every process on the machine while they start
+        env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
         try:
             self.proc = subprocess.Popen([sys.executable, "-c", code], pass_fds=(from_parent, to_parent),
                                          stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                         stderr=subprocess.DEVNULL)
+                                         stderr=subprocess.DEVNULL, env=env)
         finally:
             os.close(from_parent)
             os.close(to_parent)
@@ -114,15 +117,10 @@ class Worker:
             raise value
         return value
 
-    def stop(self) -> None:
-        """Close the pipes (the worker exits at the end of its input) and reap it."""
+    def close(self) -> None:
+        """Close the pipes: the worker exits when it reaches the end of its input."""
         for conn in (self.send, self.recv):
             conn.close()
-        try:
-            self.proc.wait(timeout=5)
-        except Exception:  # noqa: BLE001 - a worker stuck in a read is killed
-            self.proc.kill()
-            self.proc.wait()
 
 
 class WorkerPool:
@@ -147,9 +145,14 @@ class WorkerPool:
             if worker.proc.poll() is None:
                 self.idle.put(worker)
 
-    def shutdown(self) -> None:
+    def shutdown(self, wait: bool = True) -> None:
+        """Close every worker's pipes; with ``wait``, reap them (they exit together, a worker busy with a
+        batch after it)."""
         for w in self.workers:
-            w.stop()
+            w.close()
+        if wait:
+            for w in self.workers:
+                w.proc.wait()
 
 
 def start(processes: int, reader_threads: int = -1) -> WorkerPool:
@@ -164,7 +167,7 @@ def start(processes: int, reader_threads: int = -1) -> WorkerPool:
         old, _pool = _pool, WorkerPool(*key)
         pool = _pool
     if old is not None:
-        old.shutdown()
+        old.shutdown(wait=False)
     return pool
 
 
@@ -178,13 +181,14 @@ def start_in_background() -> None:
         threading.Thread(target=start, args=(n,), name="texstream-decode-pool", daemon=True).start()
 
 
-def shutdown() -> None:
-    """Stop the shared pool's workers (the command's end; idle workers exit at once)."""
+def shutdown(wait: bool = True) -> None:
+    """Stop the shared pool's workers; ``wait``: until they have exited (a command about to end need not:
+    they exit at the end of their input)."""
     global _pool, _command_processes
     with _lock:
         pool, _pool, _command_processes = _pool, None, 0
     if pool is not None:
-        pool.shutdown()
+        pool.shutdown(wait)
 
 
 def serve(from_parent: int, to_parent: int, reader_threads: int) -> None:

@@ -104,6 +104,13 @@ def config_from_args(cls: type, args: argparse.Namespace, prefix: str = "", **ov
     return cls(**kwargs)
 
 
+def threads_asked_for(argv: Sequence[str]) -> bool:
+    """Whether the command line sets ``--stream.photo-decoder threads`` (read before the parser exists, to
+    start no decoding processes)."""
+    flag = "--stream.photo-decoder"
+    return any(a == f"{flag}=threads" or (a == flag and argv[i + 1:i + 2] == ["threads"]) for i, a in enumerate(argv))
+
+
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="texstream",
@@ -126,7 +133,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     command = next((a for a in argv if not a.startswith("-")), None)
     debug = "--debug" in argv or os.environ.get("TEXSTREAM_DEBUG") == "1"
-    if command in DECODING_COMMANDS:
+    decoding = command in DECODING_COMMANDS and not threads_asked_for(argv)
+    if decoding:
         # the photo decoders start while this process imports Warp and reads the capture (fit/decode_pool.py)
         from texstream.fit import decode_pool
 
@@ -153,10 +161,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("texstream: interrupted; no output was left half-written", file=sys.stderr)
         return 130
     finally:
-        if command in DECODING_COMMANDS:
+        if decoding:
             from texstream.fit import decode_pool
 
-            decode_pool.shutdown()
+            decode_pool.shutdown(wait=False)  # the workers exit at the end of their input; nothing waits for it
 
 
 def console_main() -> None:

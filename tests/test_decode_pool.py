@@ -126,17 +126,19 @@ def test_the_fit_command_starts_its_decoders_and_stops_them(capture_dir, tmp_pat
 
     from texstream.pipelines.cli import main
 
+    decode_pool.shutdown()  # the other tests' pool
     monkeypatch.setattr(decode_pool, "MIN_CPUS", 1)
     monkeypatch.setattr(decode_pool, "MAX_PROCESSES", 2)
-    started = []
-    real_start = decode_pool.start
-    monkeypatch.setattr(decode_pool, "start", lambda n, reader_threads=-1: started.append(n) or real_start(n, reader_threads))
+    started = []  # the pools created
+    real_init = decode_pool.WorkerPool.__init__
+    monkeypatch.setattr(decode_pool.WorkerPool, "__init__", lambda self, n, r: started.append(n) or real_init(self, n, r))
     common = ["fit", str(capture_dir), "--mesh", str(capture_dir / "ground_truth"), "--device", "cpu",
               "--max-iterations", "2", "--materials.mode", "off", "--traced-polish", "0",
               "--stream.photo-cache", "off"]
     assert main(common + ["-o", str(tmp_path / "auto")]) == 0
-    assert started and started[0] == 2 and decode_pool._pool is None and decode_pool._command_processes == 0
+    assert started == [2] and decode_pool._pool is None and decode_pool._command_processes == 0
     assert main(common + ["-o", str(tmp_path / "threads"), "--stream.photo-decoder", "threads"]) == 0
+    assert started == [2]  # no processes started for a fit told to decode in threads
     auto, threads = (json.loads((tmp_path / d / "model.json").read_text()) for d in ("auto", "threads"))
     assert auto["final"]["objective"] == threads["final"]["objective"]
     said = capsys.readouterr()
