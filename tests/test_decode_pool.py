@@ -132,7 +132,9 @@ def test_the_fit_command_starts_its_decoders_and_stops_them(capture_dir, tmp_pat
     started = []  # the pools created
     real_init = decode_pool.WorkerPool.__init__
     monkeypatch.setattr(decode_pool.WorkerPool, "__init__", lambda self, n, r: started.append(n) or real_init(self, n, r))
-    common = ["fit", str(capture_dir), "--mesh", str(capture_dir / "ground_truth"), "--device", "cpu",
+    from conftest import SCENE_DEVICE
+
+    common = ["fit", str(capture_dir), "--mesh", str(capture_dir / "ground_truth"), "--device", SCENE_DEVICE,
               "--max-iterations", "2", "--materials.mode", "off", "--traced-polish", "0",
               "--stream.photo-cache", "off"]
     assert main(common + ["-o", str(tmp_path / "auto")]) == 0

@@ -8,6 +8,7 @@ import shutil
 
 import pytest
 
+from conftest import SCENE_DEVICE
 from texstream.pipelines.cli import main
 
 SMALL = dict(scale=0.02, photos=10, image_size=40, progress=False)
@@ -30,7 +31,9 @@ def broken_capture(tmp_path_factory):
     return out, bad
 
 
-ARGS = ["--texture-size", "64", "--renders", "0", "--max-iterations", "2", "--stream.shadow-map-size", "48"]
+# the first device there is (the GPU machine's Warp has no CPU compiler)
+ARGS = ["--texture-size", "64", "--renders", "0", "--max-iterations", "2", "--stream.shadow-map-size", "48",
+        "--device", SCENE_DEVICE]
 
 
 @pytest.mark.parametrize("residency", ["device", "disk"])

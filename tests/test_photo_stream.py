@@ -318,9 +318,10 @@ def test_fit_stage_streams_a_capture_from_disk_and_records_it(capture_dir, tmp_p
     model.json says so (residency, why, photos per window)."""
     import json
 
+    from conftest import SCENE_DEVICE
     from texstream.fit.stage import FitStageConfig, fit_stage
 
-    cfg = FitStageConfig(texture_size=64, renders=1)
+    cfg = FitStageConfig(texture_size=64, renders=1, device=SCENE_DEVICE)
     cfg.fit.max_iterations = 2
     cfg.fit.stream = StreamConfig(shadow_map_size=SHADOW, memory_limit_mb=0.05)
     fit_stage(capture_dir, capture_dir / "ground_truth", tmp_path / "model", cfg, progress=False)
