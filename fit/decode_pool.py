@@ -15,8 +15,8 @@ hold locks, and never an import of the program's main script (which ``multiproce
 server do). Where the pool fails (a worker killed, readers that cannot be sent), the loader decodes in
 threads.
 
-The automatic choice uses processes only under those commands, where the workers' start (about 0.3 s, their
-imports) is hidden behind the command's own; from Python, processes are used when asked for
+The automatic choice uses processes only under those commands, where the workers' start (about 0.5 s for 16,
+their imports) is hidden behind the command's own; from Python, processes are used when asked for
 (``StreamConfig.photo_decoder = "processes"``).
 
 Imports only numpy and the standard library; the workers import the readers they are given.
@@ -34,14 +34,13 @@ import weakref
 
 import numpy as np
 
-MIN_CPUS = 8
-"""the automatic choice decodes in processes on machines with at least this many CPUs: with fewer, the
-threads of one process keep the cores busy (the reads themselves release Python's lock) and a pool's
-start would cost more than the lock does"""
+MIN_CPUS = 16
+"""the automatic choice decodes in processes on machines with at least this many CPUs: on a 16-core GPU host 8
+workers did no better than 4 threads (2.2 s for 1,760 float EXRs), 16 took half the time (docs/scale.md)"""
 
 MAX_PROCESSES = 16
-"""most workers the automatic choice starts (one per CPU up to this): 16 processes decoded the full
-ornament's 1,760 float EXRs in 1.3-1.6 s on a 16-core GPU host (docs/scale.md)"""
+"""most workers the automatic choice starts (one per CPU up to this): 16 decoded the full ornament's 1,760 float
+EXRs in 1.13 s on a 16-core GPU host, against 2.2 s for 4 threads (docs/scale.md)"""
 
 READER_THREADS = 1
 """threads each worker's reader (OpenImageIO, OpenEXR) decodes one file with: the pool's parallelism is
@@ -50,8 +49,6 @@ over photos (0: the reader's default, a thread per CPU in each worker)"""
 BATCH = 4
 """photos per task sent to a worker: few enough that a window's batches spread over the workers, enough
 that the per-task cost (a message each way) stays small against decoding"""
-
-DECODERS = ("auto", "threads", "processes")
 
 _lock = threading.Lock()
 _pool: "WorkerPool | None" = None
@@ -131,19 +128,32 @@ class WorkerPool:
         import queue
 
         self.key = (processes, reader_threads)
+        self.broken = False
         self.workers = [Worker(reader_threads) for _ in range(processes)]
         self.idle: queue.SimpleQueue = queue.SimpleQueue()
         for w in self.workers:
             self.idle.put(w)
 
     def call(self, fn, *args):
-        """``fn(*args)`` on an idle worker (waiting for one); :class:`WorkerFailed` if it died."""
+        """``fn(*args)`` on an idle worker (waiting for one). :class:`WorkerFailed` if it died, and for every
+        call after that: a failed worker's pipes may hold half a message, so the pool is given up."""
         worker = self.idle.get()
+        if worker is None:  # the pool broke while this thread waited
+            self.idle.put(None)
+            raise WorkerFailed("an earlier worker failed")
         try:
-            return worker.call(fn, args)
-        finally:
-            if worker.proc.poll() is None:
-                self.idle.put(worker)
+            value = worker.call(fn, args)
+        except WorkerFailed:
+            self.broken = True
+            worker.close()
+            worker.proc.kill()
+            self.idle.put(None)  # wakes the threads waiting for a worker
+            raise
+        except BaseException:
+            self.idle.put(worker)
+            raise
+        self.idle.put(worker)
+        return value
 
     def shutdown(self, wait: bool = True) -> None:
         """Close every worker's pipes; with ``wait``, reap them (they exit together, a worker busy with a
@@ -162,7 +172,7 @@ def start(processes: int, reader_threads: int = -1) -> WorkerPool:
     global _pool
     key = (processes, READER_THREADS if reader_threads < 0 else reader_threads)
     with _lock:
-        if _pool is not None and _pool.key == key:
+        if _pool is not None and _pool.key == key and not _pool.broken:
             return _pool
         old, _pool = _pool, WorkerPool(*key)
         pool = _pool

@@ -298,7 +298,7 @@ class StreamConfig:
                                     "per CPU up to 16)", min=0)
     photo_decoder: str = option("auto", "what decodes photo files: threads of the fitting process, worker "
                                         "processes (no lock shared with the fit; same bytes), or auto (processes "
-                                        "with 8 or more CPUs, else threads)",
+                                        "under the texstream command with 16 or more CPUs, else threads)",
                                 choices=("auto", "threads", "processes"))
     photo_cache: str = option("auto", "decoded photos cached beside the capture (CAPTURE/.texstream-cache: the "
                                       "cropped photos in the image precision; the same values, so the same "

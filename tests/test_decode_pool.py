@@ -160,8 +160,10 @@ def test_a_killed_worker_leaves_the_pool_and_threads_decode(capture_dir):
     pool.workers[0].proc.wait()
     loader = PhotoLoader(files, None, None, sizes, 2, decoder="processes")
     got = fill(loader, len(files), shape, np.float32)
+    assert loader.processes == 0 and pool.broken
     np.testing.assert_array_equal(got[0], expected[0])
     np.testing.assert_array_equal(got[1], expected[1])
+    assert decode_pool.start(2) is not pool  # a broken pool is replaced
     decode_pool.shutdown()
 
 
