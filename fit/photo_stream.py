@@ -23,12 +23,13 @@ Imports only numpy, warp and the standard library.
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import contextvars
 import dataclasses
 import math
 import os
 import queue
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
 import warp as wp
@@ -406,6 +407,24 @@ def _write_exactly(fd: int, src: np.ndarray, offset: int, dtype) -> None:
         done += os.pwrite(fd, data[done:], offset + done)
 
 
+_OPEN_LOADERS: contextvars.ContextVar[list | None] = contextvars.ContextVar("texstream_open_loaders", default=None)
+
+
+@contextlib.contextmanager
+def loaders_closed_after() -> Iterator[None]:
+    """Close every :class:`PhotoLoader` made inside the block when it ends, however it ends. A loader
+    streaming from disk lives as long as its fit, and its threads would otherwise keep the process alive
+    after the stage returns or fails (``texstream``'s exit waits for threads)."""
+    token = _OPEN_LOADERS.set([])
+    try:
+        yield
+    finally:
+        loaders = _OPEN_LOADERS.get()
+        _OPEN_LOADERS.reset(token)
+        for loader in loaders:
+            loader.close()
+
+
 class PhotoLoader:
     """Writes photos, cropped and converted to the image precision, into slots of a buffer.
 
@@ -434,6 +453,9 @@ class PhotoLoader:
             self.free_blocks.put(b)
         self.pool = concurrent.futures.ThreadPoolExecutor(max_workers=max(self.threads, self.processes),
                                                           thread_name_prefix="texstream-photo")
+        opened = _OPEN_LOADERS.get()
+        if opened is not None:
+            opened.append(self)
 
     def close(self) -> None:
         self.pool.shutdown(wait=True, cancel_futures=True)

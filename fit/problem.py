@@ -441,10 +441,14 @@ class PhotoSet:
         self.loader = PhotoLoader(images, masks, self.crops, sizes, cfg.decode_threads, decoder=cfg.photo_decoder)
         self._open_cache(cfg, fp16)
         self.timings["other"] += time.perf_counter() - t_start
-        if self.residency == "device":
-            self._init_device()
-        else:
-            self._init_windows()
+        try:
+            if self.residency == "device":
+                self._init_device()
+            else:
+                self._init_windows()
+        except BaseException:
+            self.loader.close()  # its threads (and a bad photo's pending chunk) end with the set-up
+            raise
         if self.residency != "disk":
             self.loader.close()
             self.loader = None  # nothing is read again: drop the caller's photos' references

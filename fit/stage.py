@@ -728,6 +728,14 @@ def average_seams_in_bounds(grid: np.ndarray, seams, layout: ModelLayout) -> tup
 def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Path,
               config: FitStageConfig | None = None, progress: bool = True) -> StageResult:
     """Fit the appearance model of ``config.fit`` to a capture; write the model folder atomically."""
+    from .photo_stream import loaders_closed_after
+
+    with loaders_closed_after():  # photos streamed from disk: their loaders' threads end with the stage
+        return _fit_stage(capture_dir, mesh_path, out_dir, config, progress)
+
+
+def _fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Path, config: FitStageConfig | None,
+               progress: bool) -> StageResult:
     cfg = config or FitStageConfig()
     check_config(cfg)
     check_output_path(out_dir)

@@ -60,3 +60,25 @@ def test_skip_bad_photos_leaves_it_out_and_says_so(broken_capture, tmp_path, cap
     photos = json.loads((out / "model.json").read_text())["photos"]
     assert photos["fitted"] == 9 and [p["file"] for p in photos["skipped"]] == [str(bad)]
     assert "truncated" in photos["skipped"][0]["error"] or "corrupt" in photos["skipped"][0]["error"]
+
+
+@pytest.mark.parametrize("broken", [True, False])
+def test_the_command_exits_after_a_disk_stream_and_after_a_bad_photo(broken_capture, tmp_path, broken):
+    """`texstream` as a process: the loader streaming photos from disk ends with the stage, whether the stage
+    wrote its model or failed on a bad photo (threads left running would keep the process alive)."""
+    import subprocess
+    import sys
+
+    cap, bad = broken_capture
+    if not broken:  # the same capture with the bad photo replaced by a good one
+        shutil.copytree(cap, tmp_path / "capture")
+        cap = tmp_path / "capture"
+        good = sorted(p for p in (cap / "images").iterdir() if p.name != bad.name)[0]
+        shutil.copyfile(good, cap / "images" / bad.name)
+    args = ["fit", str(cap), "--mesh", str(cap / "ground_truth"), "-o", str(tmp_path / "model"), *ARGS,
+            "--stream.photo-residency", "disk", "--stream.photos-per-window", "3"]
+    code = f"import sys; from texstream.pipelines.cli import console_main; sys.argv = ['texstream'] + {args!r}; console_main()"
+    # 300 s: far above the run's few seconds on the CPU; a process kept alive by its threads never ends
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == (1 if broken else 0), done.stderr[-2000:]
+    assert (tmp_path / "model" / "model.json").is_file() != broken
