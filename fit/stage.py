@@ -755,12 +755,12 @@ def _fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pa
 
     plotter = start_plotter()  # a child imports matplotlib while the photos are read and fitted
     try:
-        return fit_per_texel_model(capture_dir, mesh_path, out_dir, cfg, progress, plotter)
+        return _fit_per_texel_model(capture_dir, mesh_path, out_dir, cfg, progress, plotter)
     finally:
         stop_plotter(plotter)
 
 
-def fit_per_texel_model(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Path, cfg: FitStageConfig,
+def _fit_per_texel_model(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Path, cfg: FitStageConfig,
                         progress: bool, plotter=None) -> StageResult:
     """:func:`fit_stage` for the per-texel models (Lafortune, radiance): ``plotter`` draws the
     error-against-time plot (:func:`~texstream.fit.model_folder.start_plotter`; None: a child started at
