@@ -223,7 +223,10 @@ def main() -> None:
                                                  photos=a.photos, image_size=a.image_size))
         results["write_capture_s"] = time.perf_counter() - t0
         results["capture_bytes"] = sum(p.stat().st_size for p in (capture / "images").iterdir())
-    for residency in a.residency.split(","):
+    names = a.residency.split(",")
+    for k, residency in enumerate(names):
+        # a residency named again (device,device,device: repeated runs) is keyed device#2, device#3
+        key = residency if names.index(residency) == k else f"{residency}#{names[:k + 1].count(residency)}"
         cmd = [sys.executable, __file__, "--child", "--device", a.device, "--scene", a.scene, "--scale", str(a.scale),
                "--source", a.source, "--residency", residency, "--photos-per-window", str(a.photos_per_window),
                "--memory-limit-mb", str(a.memory_limit_mb), "--image-precision", a.image_precision,
@@ -234,13 +237,13 @@ def main() -> None:
         proc = subprocess.run(cmd, capture_output=True, text=True)
         line = next((x for x in proc.stdout.splitlines() if x.startswith("RESULT ")), None)
         if line is None:
-            results["runs"][residency] = {"error": (proc.stderr or proc.stdout)[-2000:]}
+            results["runs"][key] = {"error": (proc.stderr or proc.stdout)[-2000:]}
             print(residency, "failed:", (proc.stderr or proc.stdout)[-2000:], flush=True)
         else:
             run = json.loads(line[len("RESULT "):])
-            results["runs"][residency] = run
+            results["runs"][key] = run
             if run.get("profile"):
-                (out / f"profile_{residency}.txt").write_text(run["profile"])
+                (out / f"profile_{key.replace('#', '_')}.txt").write_text(run["profile"])
             ph = run["setup_phases_s"]
             print(f"{residency} -> {run['residency']} ({run['photos_per_window']}/window): "
                   f"set-up {run['setup_s']:.3f} s "
