@@ -184,3 +184,28 @@ def test_workers_do_not_run_the_main_script(tmp_path):
     subprocess.run([sys.executable, str(script)], check=True, timeout=120)
     subprocess.run([sys.executable, "-"], input=script.read_bytes(), check=True, timeout=120)
     assert len((tmp_path / "runs.txt").read_text().split()) == 2
+
+
+@pytest.mark.parametrize("ext,bits", [(".png", 8), (".png", 16), (".jpg", 8), (".exr", 32)])
+def test_processes_decode_every_photo_format_as_threads(tmp_path, ext, bits):
+    """8-bit sRGB PNG and JPEG, 16-bit linear PNG, float EXR, with PNG masks: the workers' slots are the
+    threads' bytes (the sRGB decode and the checks run in the worker)."""
+    from texstream.capture.imageio import read_image, read_mask, write_image
+    from texstream.fit.photo_stream import PhotoFiles
+
+    rng = np.random.default_rng(7)
+    paths, masks = [], []
+    for k in range(6):
+        photo = rng.random((30 + k, 40, 3), dtype=np.float32)
+        paths.append(write_image(tmp_path / f"photo_{k}{ext}", photo, bits=bits))
+        mask = (rng.random((30 + k, 40, 1)) > 0.3).astype(np.float32).repeat(3, axis=2)
+        masks.append(write_image(tmp_path / f"mask_{k}.png", mask, bits=8) if k % 2 == 0 else None)
+    files = PhotoFiles(paths, masks, read_image, read_mask)
+    sizes = np.array([[30 + k, 40] for k in range(6)])
+    crops = np.array([[3, 2, 30, 25]] * 6)
+    loaders = [PhotoLoader(files, None, crops, sizes, 2, decoder=d) for d in ("threads", "processes")]
+    slots = [fill(loader, 6, (35, 40), np.float32) for loader in loaders]
+    assert loaders[1].processes == 2  # the workers decoded (no fall back to threads)
+    np.testing.assert_array_equal(slots[1][0], slots[0][0])
+    np.testing.assert_array_equal(slots[1][1], slots[0][1])
+    assert slots[0][0][:, :25, :30].any() and (slots[0][1][0] == 0).any()  # photos and masks really decoded
