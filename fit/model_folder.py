@@ -240,18 +240,26 @@ def render_comparisons(folder: Path, frames: Sequence, photos: Sequence[np.ndarr
                        render: Callable[[Any], tuple[np.ndarray, np.ndarray]], images: int | None = None) -> list[dict]:
     """Render the model for each frame (``render(frame)`` -> (image, foreground mask)), check the
     render, score it against the photo and write ``<frame>_fit_vs_photo.png`` into ``folder`` (for
-    the first ``images`` frames; None: all)."""
+    the first ``images`` frames; None: all). The PNGs are encoded on threads while the next frames
+    render (the encoder releases Python's lock)."""
+    import concurrent.futures
+    import os
+
     from texstream.capture.imageio import write_image
 
     folder.mkdir(exist_ok=True)
     rows = []
-    for k, (f, photo) in enumerate(zip(frames, photos)):
-        image, mask = render(f)
-        check_render(image, f.file_path)
-        rows.append({"frame": f.file_path, "held_out": f in held, **image_metrics(image, photo, mask)})
-        if images is None or k < images:
-            write_image(folder / f"{f.name}_fit_vs_photo.png", np.clip(np.concatenate([image, photo], axis=1), 0, 1),
-                        bits=8)
+    with concurrent.futures.ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as writers:
+        written = []
+        for k, (f, photo) in enumerate(zip(frames, photos)):
+            image, mask = render(f)
+            check_render(image, f.file_path)
+            rows.append({"frame": f.file_path, "held_out": f in held, **image_metrics(image, photo, mask)})
+            if images is None or k < images:
+                written.append(writers.submit(write_image, folder / f"{f.name}_fit_vs_photo.png",
+                                              np.clip(np.concatenate([image, photo], axis=1), 0, 1), bits=8))
+        for w in written:
+            w.result()  # a write's error raised here
     return rows
 
 
