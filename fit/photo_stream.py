@@ -29,6 +29,7 @@ import dataclasses
 import math
 import os
 import queue
+import threading
 from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
@@ -448,6 +449,7 @@ class PhotoLoader:
         # batch and copying its slots from the staging buffer
         self.processes = decode_pool.processes_for(decoder, threads) if self.files else 0
         self.staging: dict = {}
+        self.staging_lock = threading.Lock()
         self.free_blocks: queue.SimpleQueue = queue.SimpleQueue()
         for b in range(self.processes):
             self.free_blocks.put(b)
@@ -494,10 +496,11 @@ class PhotoLoader:
         key = (images.dtype.str, images.shape[1:])
         block = self.free_blocks.get()
         try:
-            staging = self.staging.get(key)
-            if staging is None:
-                staging = self.staging[key] = decode_pool.Staging(processes, decode_pool.BATCH,
-                                                                  images.shape[1], images.shape[2], images.dtype)
+            with self.staging_lock:  # one staging buffer per slot shape, made by the first batch that needs it
+                staging = self.staging.get(key)
+                if staging is None:
+                    staging = self.staging[key] = decode_pool.Staging(processes, decode_pool.BATCH, images.shape[1],
+                                                                      images.shape[2], images.dtype)
             jobs = [(str(self.source.paths[k]), None if self.source.mask_paths[k] is None
                      else str(self.source.mask_paths[k]), tuple(int(v) for v in self.sizes[k]),
                      None if self.crops is None else tuple(int(v) for v in self.crops[k])) for k in ks]
