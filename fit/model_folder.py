@@ -147,26 +147,22 @@ def stop_plotter(child: subprocess.Popen | None) -> None:
 def trace_plot(folder: Path, trace: list[dict], title: str,
                plotter: subprocess.Popen | None = None) -> Iterator[subprocess.Popen | None]:
     """Write ``trace.json`` into ``folder`` and have a child process draw ``error_vs_time.png`` from it while
-    the stage renders: ``plotter`` (:func:`start_plotter`, its imports done by now) or, without one, a child
-    started here. Yields the child (None when none could be started) for :func:`write_model_folder`,
-    which waits for it and draws the plot itself if the child failed; a stage that fails first stops it."""
+    the stage renders: ``plotter`` (:func:`start_plotter`, its imports done by now) or, without one or when it
+    has ended, a child started here. Yields the child (None when none could be started) for
+    :func:`write_model_folder`, which waits for it and draws the plot itself if the child failed; a stage
+    that fails first stops it."""
     write_json_atomic(folder / "trace.json", json_safe(trace))
     request = {"trace": str(folder / "trace.json"), "png": str(folder / "error_vs_time.png"), "title": title}
-    child = None
-    if plotter is not None and plotter.poll() is None:
+    if plotter is not None and plotter.poll() is not None:
+        stop_plotter(plotter)
+        plotter = None
+    child = plotter or start_plotter()
+    if child is not None:
         try:
-            plotter.stdin.write((json.dumps(request) + "\n").encode())
-            plotter.stdin.close()
-            child = plotter
-        except OSError:  # the child ended early: one started now draws instead
-            stop_plotter(plotter)
-    if child is None:
-        code = "import sys; from texstream.fit.model_folder import plot_trace_file; plot_trace_file(*sys.argv[1:])"
-        try:
-            child = subprocess.Popen([sys.executable, "-c", code, request["trace"], request["png"], title],
-                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        except OSError:
-            child = None
+            child.stdin.write((json.dumps(request) + "\n").encode())
+            child.stdin.close()
+        except OSError:  # the child ended before the request: write_model_folder draws the plot itself
+            stop_plotter(child)
     try:
         yield child
     finally:

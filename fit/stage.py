@@ -728,36 +728,30 @@ def average_seams_in_bounds(grid: np.ndarray, seams, layout: ModelLayout) -> tup
 def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Path,
               config: FitStageConfig | None = None, progress: bool = True) -> StageResult:
     """Fit the appearance model of ``config.fit`` to a capture; write the model folder atomically."""
+    from .model_folder import start_plotter, stop_plotter
     from .photo_stream import loaders_closed_after
 
-    with loaders_closed_after():  # photos streamed from disk: their loaders' threads end with the stage
-        return _fit_stage(capture_dir, mesh_path, out_dir, config, progress)
-
-
-def _fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Path, config: FitStageConfig | None,
-               progress: bool) -> StageResult:
     cfg = config or FitStageConfig()
     check_config(cfg)
     check_output_path(out_dir)
-    if cfg.fit.model == "lfm":  # light field mapping: its own problem and model folder (fit/lfm_stage.py)
-        from texstream.core.errors import ConfigError
+    with loaders_closed_after():  # photos streamed from disk: their loaders' threads end with the stage
+        if cfg.fit.model == "lfm":  # light field mapping: its own problem and model folder (fit/lfm_stage.py)
+            from texstream.core.errors import ConfigError
 
-        from .lfm_stage import lfm_fit_stage
-        from .tiles import tiled
+            from .lfm_stage import lfm_fit_stage
+            from .tiles import tiled
 
-        if tiled(cfg.fit):
-            raise ConfigError("stream.tiles, stream.devices and stream.tile_backend ray split per-texel models; "
-                              "light field mapping couples the texels of a triangle ring",
-                              fix="drop those options with --model lfm")
+            if tiled(cfg.fit):
+                raise ConfigError("stream.tiles, stream.devices and stream.tile_backend ray split per-texel models; "
+                                  "light field mapping couples the texels of a triangle ring",
+                                  fix="drop those options with --model lfm")
 
-        return lfm_fit_stage(capture_dir, mesh_path, out_dir, cfg, progress)
-    from .model_folder import start_plotter, stop_plotter
-
-    plotter = start_plotter()  # a child imports matplotlib while the photos are read and fitted
-    try:
-        return _fit_per_texel_model(capture_dir, mesh_path, out_dir, cfg, progress, plotter)
-    finally:
-        stop_plotter(plotter)
+            return lfm_fit_stage(capture_dir, mesh_path, out_dir, cfg, progress)
+        plotter = start_plotter()  # a child imports matplotlib while the photos are read and fitted
+        try:
+            return _fit_per_texel_model(capture_dir, mesh_path, out_dir, cfg, progress, plotter)
+        finally:
+            stop_plotter(plotter)
 
 
 def _fit_per_texel_model(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Path, cfg: FitStageConfig,
