@@ -1,4 +1,5 @@
-"""Time to a converged model on one device against several (tiled fit, fit/tiles.py); writes JSON.
+"""Time to a converged model on one device against several (tiles of texels, fit/tiles.py, or the photos split
+over the devices, fit/photo_split.py); writes JSON.
 
     python benchmarks/multi_gpu.py --devices cuda:0,cuda:1 --scene ornament --scale 1.0 --texel-factor 4 --out DIR
     python benchmarks/multi_gpu.py --devices cpu,cpu --scene ornament --scale 0.02 --out DIR   # the path, on a CPU
@@ -11,13 +12,20 @@ untimed warm-up that compiles every kernel on every device:
 - ``tiled_one_device``: the same problem in as many tiles as devices, all on the first device (what
   tiling costs by itself: the visibility pass, the tiles' set-up, lockstep);
 - ``multi_device``: those tiles on the listed devices, one thread each (photos and maps copied to each
-  device at the tiles' set-up).
+  device at the tiles' set-up);
+- ``photos_one_device``: the photos split in as many runs as devices, all on the first device (the split's
+  path and summation order on one device: the bit-for-bit reference of the next run);
+- ``photos_multi_device``: the photos split over the listed devices (each device crops, uploads and maps
+  its run of photos at once; the first adds the others' sums each pass).
+
+``--splits`` picks the kinds (tiles, photos).
 
 Each run reports the set-up (photos, maps, texels: ``setup_s``), the tiles' set-up (visibility and
 the tile problems, ``tile_setup_s``), the fit loop, and the time to a converged model: set-up plus the
 fit's time to within 0.1 dB of its best PSNR, as benchmarks/setup_time.py (an iteration's time in a
 tiled fit: when its last tile recorded it). ``same_params_to_the_bit``: the tiled fits' parameters
-against the one-device fit's. The tiles take the untiled problem's photo groups, so a tile that streams
+against the one-device fit's; the split photos' against ``photos_one_device`` (and, to rounding, against
+the one-device fit: their sums associate the photos' runs differently). The tiles take the untiled problem's photo groups, so a tile that streams
 every photo (fit/tiles.py ``ALL_PHOTOS_FRACTION``) sums each texel in the same order: bit-equal; a tile
 that streams a subset splits its groups elsewhere (except with ``--groups 1``) and agrees to float
 rounding carried through the iterations (max differences reported).
@@ -49,6 +57,7 @@ def main() -> None:
     ap.add_argument("--smooth-weight", type=float, default=0.0, help="LM smoothness (tiles exchange halos after "
                                                                      "every iteration)")
     ap.add_argument("--repeats", type=int, default=2, help="timed repeats of each run (the fastest is reported)")
+    ap.add_argument("--splits", default="tiles,photos", help="how the devices share the fit: tiles, photos or both")
     ap.add_argument("--out", required=True)
     a = ap.parse_args()
 
@@ -80,13 +89,19 @@ def main() -> None:
                          stream=StreamConfig(image_precision=a.image_precision, shadow_map_size=a.shadow_map_size,
                                              photo_residency="device", groups=a.groups, **stream))
 
-    runs = {"one_device": config(),
-            "tiled_one_device": config(tiles=len(devices)),
-            "multi_device": config(tiles=len(devices), devices=",".join(devices))}
-    # warm-up: every kernel compiled and loaded on every device (two photos, the same configs)
+    splits = [k.strip() for k in a.splits.split(",") if k.strip()]
+    runs = {"one_device": config()}
+    if "tiles" in splits:
+        runs.update({"tiled_one_device": config(tiles=len(devices)),
+                     "multi_device": config(tiles=len(devices), devices=",".join(devices))})
+    if "photos" in splits:
+        runs.update({"photos_one_device": config(device_split="photos", devices=",".join([dev0] * len(devices))),
+                     "photos_multi_device": config(device_split="photos", devices=",".join(devices))})
+    # warm-up: every kernel compiled and loaded on every device (a photo per device, the same configs)
     for cfg in runs.values():
         wcfg = dataclasses.replace(cfg, max_iterations=2)
-        wprob = build_problem(mesh, bake, frames[:2], images[:2], masks[:2], wcfg, dev0)
+        k = len(devices)
+        wprob = build_problem(mesh, bake, frames[:k], images[:k], masks[:k], wcfg, dev0)
         run_tiled_fit(wprob, wcfg) if cfg.stream.tiles else run_fit(wprob, wcfg)
     for d in set(devices):
         wp.synchronize_device(d)
@@ -129,18 +144,29 @@ def main() -> None:
                 best = r
             params[name] = p
         results[name] = best
-    ref = params["one_device"]
-    for name in ("tiled_one_device", "multi_device"):
-        d = np.abs(params[name] - ref)
-        results[name]["same_params_to_the_bit"] = bool(np.array_equal(params[name], ref))
-        results[name]["max_abs_param_diff"] = float(d.max())
-        results[name]["max_rel_param_diff"] = float((d / np.maximum(np.abs(ref), 1e-6)).max())
-        results[name]["final_objective_rel_diff"] = abs(results[name]["final_objective"]
-                                                        - results["one_device"]["final_objective"]) / abs(
-            results["one_device"]["final_objective"])
-    one, multi = results["one_device"], results["multi_device"]
-    summary = {"speedup_converged_model": one["converged_model_s"] / multi["converged_model_s"],
-               "speedup_fit_loop": one["fit_loop_s"] / max(multi["fit_loop_s"], 1e-12)}
+    def compare(name: str, against: str, prefix: str = "") -> None:
+        ref, got = params[against], params[name]
+        d = np.abs(got - ref)
+        r = results[name]
+        r[prefix + "same_params_to_the_bit"] = bool(np.array_equal(got, ref))
+        r[prefix + "max_abs_param_diff"] = float(d.max())
+        r[prefix + "max_rel_param_diff"] = float((d / np.maximum(np.abs(ref), 1e-6)).max())
+        r[prefix + "params_differing_fraction"] = float(np.mean(d > 0))
+        r[prefix + "final_objective_rel_diff"] = abs(r["final_objective"] - results[against]["final_objective"]) / abs(
+            results[against]["final_objective"])
+
+    for name in ("tiled_one_device", "multi_device", "photos_one_device"):
+        if name in results:
+            compare(name, "one_device")
+    if "photos_multi_device" in results:
+        compare("photos_multi_device", "photos_one_device")
+        compare("photos_multi_device", "one_device", "vs_one_device_")
+    one = results["one_device"]
+    summary = {}
+    for name, key in (("multi_device", ""), ("photos_multi_device", "_photos")):
+        if name in results:
+            summary["speedup_converged_model" + key] = one["converged_model_s"] / results[name]["converged_model_s"]
+            summary["speedup_fit_loop" + key] = one["fit_loop_s"] / max(results[name]["fit_loop_s"], 1e-12)
     gpus = {d: wp.get_device(d).name for d in set(devices)}
     doc = {"command": "python benchmarks/multi_gpu.py " + " ".join(
                f"--{k.replace('_', '-')} {v}" for k, v in vars(a).items()),

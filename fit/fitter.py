@@ -217,10 +217,14 @@ def initial_guess(problem: StreamProblem, cfg: FitConfig) -> tuple[np.ndarray, n
     high = wp.zeros(n, dtype=wp.vec3, device=dev)
     count = wp.zeros(n, dtype=wp.int32, device=dev)
     kernel = stream.initial_guess_kernel_for(lay.is_radiance)
-    for images, depth, shadow, infos, b, e in problem.photos.windows():
-        wp.launch(kernel, dim=n, device=dev,
-                  inputs=[problem.tex, images, depth, shadow, infos, b, e,
-                          problem.opt, int(cfg.init_rank)], outputs=[low, high, count])
+    if problem.peers:
+        problem.split_initial_guess(kernel, int(cfg.init_rank), low, high, count)
+    else:
+        no_lists = wp.zeros(1, dtype=wp.mat44, device=dev)
+        for images, depth, shadow, infos, b, e in problem.photos.windows():
+            wp.launch(kernel, dim=n, device=dev,
+                      inputs=[problem.tex, images, depth, shadow, infos, b, e,
+                              problem.opt, int(cfg.init_rank), 0], outputs=[low, high, count, no_lists])
     lo = low.numpy().astype(np.float64)
     hi = high.numpy().astype(np.float64)
     cnt = count.numpy()

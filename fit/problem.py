@@ -313,8 +313,14 @@ class StreamConfig:
                            "independently, LM's smoothness by a halo exchange; the Laplacian penalty, bilinear "
                            "model_lookup and global line search are refused); 0: one tile per device, i.e. "
                            "untiled on one device", min=0)
-    devices: str = option("", "comma-separated devices the tiles are fitted on, one thread each (e.g. cuda:0,cuda:1; "
-                              "empty: the fit's device); several devices need photo_residency device")
+    devices: str = option("", "comma-separated devices that share the fit (e.g. cuda:0,cuda:1; empty: the fit's "
+                              "device), as device_split says; several devices need photo_residency device")
+    device_split: str = option("tiles", "how several devices share the fit: tiles (each fits tiles of texels "
+                                        "over every photo that sees them, one thread per device; fit/tiles.py) "
+                                        "or photos (each holds a run of the photos, built on it at once, and "
+                                        "streams them over every texel; the first device, the fit's, adds "
+                                        "their sums each pass and steps every texel; fit/photo_split.py)",
+                               choices=("tiles", "photos"))
     tile_backend: str = option("threads", "where the tiles run: threads (one per device in this process) or ray "
                                           "(one Ray actor per tile; needs texstream[distributed] and the photos "
                                           "as files on storage every Ray worker reads)", choices=("threads", "ray"))
@@ -860,8 +866,17 @@ class StreamProblem:
 
     def __init__(self, texels: TexelSet, photos: PhotoSet, layout: ModelLayout,
                  config: StreamConfig | None = None, device: str = "cpu"):
+        """``photos``: a :class:`PhotoSet`, or photos split over devices
+        (:class:`~texstream.fit.photo_split.DevicePhotos`, whose first part is on ``device``): the problem
+        then streams its first part itself and the others through ``peers``."""
         self.cfg = cfg = config or StreamConfig()
         self.texels, self.photos, self.layout, self.device = texels, photos, layout, device
+        parts = getattr(photos, "parts", None)
+        self.own_photos = parts[0] if parts else photos
+        """the photos this problem's own launches stream (the first part of split photos)"""
+        if self.own_photos.device != device:
+            raise ConfigError(f"the problem is on {device} and its photos on {self.own_photos.device}",
+                              fix="list the fit's device first in stream.devices")
         kinds = list(getattr(photos, "light_kinds", []))
         unlit = sum(k == "none" for k in kinds)
         if unlit and not layout.is_radiance:
@@ -895,8 +910,14 @@ class StreamProblem:
         self.tex.face_nrm = wp.array(np.ascontiguousarray(face_nrm, np.float32), dtype=wp.vec3, device=dev)
         self.tex.dn_dp = wp.array(np.ascontiguousarray(jac, np.float32), dtype=wp.mat33, device=dev)
         self._init_lookup(texels, layout, cfg, dev)
-        self._init_taps(photos, cfg, dev)
+        self._init_taps(self.own_photos, cfg, dev)
         self.neighbors = wp.array(texels.neighbors, dtype=wp.vec4i, device=dev)
+        # the other parts of split photos: the same texels over those photos, in this precision
+        peer_cfg = dataclasses.replace(cfg, accumulate=self.accumulate)
+        self.peers = [StreamProblem(texels, part, layout, peer_cfg, part.device) for part in (parts or [])[1:]]
+        """one problem per other part of split photos (photo_split.py): they launch into their own partial
+        sums, which this problem adds to its own; empty for a PhotoSet"""
+        self._mirrors = {}  # this problem's copies of the first problem's arrays, when it is a peer
         self.set_groups(cfg.groups)
         self.no_diag = wp.zeros((1, 1), dtype=self.vec, device=dev)
         self.all_active = wp.ones(n, dtype=wp.int32, device=dev)
@@ -939,6 +960,8 @@ class StreamProblem:
         self.robust = code
         self.robust_scale = float(scale) if code != stream.ROBUST_NONE else 0.0
         self.opt.robust_scale = self.robust_scale
+        for peer in self.peers:
+            peer.set_robust_loss(kind, scale)
 
     def set_view_prior(self, weight: float, mean_sq: float | None = None) -> None:
         """The view-dependent radiance's ridge prior: lam / 2 sum_k a_k^2 per texel over its view-term
@@ -1064,21 +1087,29 @@ class StreamProblem:
         if self.lookup:
             wp.launch(stream.hold_lookup_params_kernel, dim=(self.n, self.layout.n_params), device=self.device,
                       inputs=[params, float(relaxation)], outputs=[self.tex.lookup_params])
+            for peer, mirrored in zip(self.peers, self._to_peers(params=params)):
+                peer.refresh_lookup(mirrored["params"], relaxation)
 
     def set_groups(self, groups: int) -> None:
         """Split each pass's photos into ``groups`` groups, one thread per (group, texel); 0 picks
-        one group on the CPU and enough for ~262k GPU threads. Reallocates the per-group partials."""
+        one group on the CPU and enough for ~262k GPU threads. Reallocates the per-group partials
+        (with split photos, ``groups`` per device: the peers' rows follow this problem's own)."""
         n, dev = self.n, self.device
+        window = self.own_photos.window
         if groups <= 0:
-            groups = 1 if dev == "cpu" else max(1, min(self.photos.window, math.ceil(262144 / max(n, 1))))
+            groups = 1 if dev == "cpu" else max(1, min(window, math.ceil(262144 / max(n, 1))))
         self.groups = groups
-        self.per_group = math.ceil(self.photos.window / groups)
-        self.pf = wp.zeros((groups, n), dtype=self.scalar, device=dev)
-        self.pg = wp.zeros((groups, n), dtype=self.vec, device=dev)
-        self.ph = wp.zeros((groups, n), dtype=self.scalar, device=dev)
-        self.pst = wp.zeros((groups, n), dtype=wp.vec4d, device=dev)
+        self.per_group = math.ceil(window / groups)
+        self.rows = groups * (1 + len(self.peers))
+        """partial-sum rows a pass reduces: this problem's groups, then each peer's"""
+        self.pf = wp.zeros((self.rows, n), dtype=self.scalar, device=dev)
+        self.pg = wp.zeros((self.rows, n), dtype=self.vec, device=dev)
+        self.ph = wp.zeros((self.rows, n), dtype=self.scalar, device=dev)
+        self.pst = wp.zeros((self.rows, n), dtype=wp.vec4d, device=dev)
         self.pm = None  # per-group J^T J (LM), allocated on first request
         self.pdiag = None  # per-group Gauss-Newton diagonals, allocated on first request
+        for peer in self.peers:
+            peer.set_groups(groups)
 
     def new_storage(self, values: np.ndarray | None = None) -> wp.array:
         """A (N, n_params) parameter array in the storage precision."""
@@ -1112,29 +1143,115 @@ class StreamProblem:
         kernel = stream.accumulate_kernel(lay.n_lobes, int(lay.anisotropic), bool(self.cfg.kahan), diag is not None,
                                           direction is not None, bool(full_hessian and direction is not None),
                                           self.max_registers, self.lookup, self.traced, self.radiance, self.robust)
-        if diag is not None and self.pdiag is None:
-            self.pdiag = wp.zeros((self.groups, self.n), dtype=self.vec, device=self.device)
-        pdiag = self.pdiag if diag is not None else self.no_diag
-        act = self.all_active if active is None else active
-        dirn = direction if direction is not None else self.no_direction
-        if dirn.dtype != params.dtype:
+        if direction is not None and direction.dtype != params.dtype:
             raise ConfigError("direction and parameters must share a dtype")
         h_out = dhd if dhd is not None else self.ph_scratch()
+
+        def launch(pr: StreamProblem, inputs: dict, window) -> None:
+            images, depth, shadow, infos, b, e = window
+            if diag is not None and pr.pdiag is None:
+                pr.pdiag = wp.zeros((pr.rows, pr.n), dtype=pr.vec, device=pr.device)
+            dirn = inputs["direction"] if inputs["direction"] is not None else pr.no_direction
+            act = inputs["active"] if inputs["active"] is not None else pr.all_active
+            wp.launch(kernel, dim=(pr.groups, pr.n), device=pr.device, block_dim=pr.block_dim,
+                      inputs=[pr.tex, inputs["params"], dirn, act, images, depth, shadow, infos, b, e,
+                              math.ceil((e - b) / pr.groups), pr.opt, pr.like, pr.one],
+                      outputs=[pr.pf, pr.pg, pr.ph, pr.pst, pr.pdiag if diag is not None else pr.no_diag])
+
+        partials = ["pf", "pg", "ph", "pst"] + (["pdiag"] if diag is not None else [])
         first = True
-        for images, depth, shadow, infos, b, e in self.photos.windows():
-            wp.launch(kernel, dim=(self.groups, self.n), device=self.device, block_dim=self.block_dim,
-                      inputs=[self.tex, params, dirn, act, images, depth, shadow, infos, b, e,
-                              math.ceil((e - b) / self.groups), self.opt, self.like, self.one],
-                      outputs=[self.pf, self.pg, self.ph, self.pst, pdiag])
+        for rows in self._launch_passes(launch, partials, params=params, direction=direction, active=active):
             wp.launch(stream.reduce_partials_kernel, dim=self.n, device=self.device,
-                      inputs=[self.pf, self.pg, self.ph, self.pst, self.groups, 0 if first else 1],
+                      inputs=[self.pf, self.pg, self.ph, self.pst, rows, 0 if first else 1],
                       outputs=[f, g, h_out, stats])
             if diag is not None:
                 wp.launch(stream.reduce_vec_partials_kernel, dim=self.n, device=self.device,
-                          inputs=[self.pdiag, self.groups, 0 if first else 1], outputs=[diag])
+                          inputs=[self.pdiag, rows, 0 if first else 1], outputs=[diag])
             first = False
+        act = self.all_active if active is None else active
         self._add_prior(params, f, g, act, direction, dhd, diag=diag)
         self.passes += 1
+
+    def _launch_passes(self, launch, partials: list[str], **inputs):
+        """Launch a pass's accumulation over every photo: per window of this problem's photos, yields the
+        number of partial-sum rows to reduce after ``launch(problem, inputs, window)`` has filled them.
+        With split photos (one window per device): every peer's launch on its device with ``inputs``
+        copied there, this problem's own, then the peers' ``partials`` rows copied after its own."""
+        if not self.peers:
+            for window in self.own_photos.windows():
+                launch(self, inputs, window)
+                yield self.groups
+            return
+        for peer, mirrored in zip(self.peers, self._to_peers(**inputs)):
+            launch(peer, mirrored, next(iter(peer.own_photos.windows())))
+        launch(self, inputs, next(iter(self.own_photos.windows())))
+        self._gather_from_peers(partials, self.groups * self.n)
+        yield self.rows
+
+    def _record(self):
+        """An event after the work queued so far on this problem's device (None on the CPU: synchronous)."""
+        return wp.get_stream(self.device).record_event() if self.device != "cpu" else None
+
+    def _to_peers(self, **arrays) -> list[dict]:
+        """Per peer, ``arrays`` (this device's; None passes through) as that peer reads them: the same arrays
+        on the same device, else copies on its device made after this device's queued work (events)."""
+        event = self._record()
+        out = []
+        for peer in self.peers:
+            if peer.device == self.device:
+                out.append(dict(arrays))
+                continue
+            if event is not None:
+                wp.get_stream(peer.device).wait_event(event)
+            mirrored = {}
+            for name, a in arrays.items():
+                if a is not None:
+                    buf = peer._mirrors.get(name)
+                    if buf is None or buf.shape != a.shape or buf.dtype != a.dtype:
+                        buf = peer._mirrors[name] = wp.empty(a.shape, dtype=a.dtype, device=peer.device)
+                    wp.copy(buf, a)  # on the peer's stream (the destination's)
+                    a = buf
+                mirrored[name] = a
+            out.append(mirrored)
+        return out
+
+    def _gather_from_peers(self, names: list[str], count: int) -> None:
+        """Copy each peer's first ``count`` elements of the partial arrays ``names`` after this problem's
+        own (peer k's into rows k x groups on), once the peer's launches are done (events)."""
+        for k, peer in enumerate(self.peers, 1):
+            if peer.device != self.device and self.device != "cpu":
+                wp.get_stream(self.device).wait_event(peer._record())
+            for name in names:
+                wp.copy(getattr(self, name), getattr(peer, name), k * count, 0, count)
+
+    def split_initial_guess(self, kernel, rank: int, low: wp.array, high: wp.array, count: wp.array) -> None:
+        """fitter.initial_guess's pass over split photos: each device's 4 smallest samples per channel,
+        largest and count, merged on this device (``low``, ``high``, ``count``: the one-pass values)."""
+        parts, n = 1 + len(self.peers), self.n
+        lists = wp.zeros((parts, n), dtype=wp.mat44, device=self.device)
+        highs = wp.zeros((parts, n), dtype=wp.vec3, device=self.device)
+        counts = wp.zeros((parts, n), dtype=wp.int32, device=self.device)
+        for k, pr in enumerate([self, *self.peers]):
+            images, depth, shadow, infos, b, e = next(iter(pr.own_photos.windows()))
+            if pr is self:
+                out = [low, highs[0], counts[0], lists[0]]
+            else:
+                out = [wp.zeros(n, dtype=wp.vec3, device=pr.device), wp.zeros(n, dtype=wp.vec3, device=pr.device),
+                       wp.zeros(n, dtype=wp.int32, device=pr.device), wp.zeros(n, dtype=wp.mat44, device=pr.device)]
+            wp.launch(kernel, dim=n, device=pr.device,
+                      inputs=[pr.tex, images, depth, shadow, infos, b, e, pr.opt, rank, 1], outputs=out)
+            if pr is not self:
+                pr._part_guess = out
+        for k, peer in enumerate(self.peers, 1):
+            if peer.device != self.device and self.device != "cpu":
+                wp.get_stream(self.device).wait_event(peer._record())
+            _, hi, cnt, sm = peer._part_guess
+            wp.copy(lists, sm, k * n, 0, n)
+            wp.copy(highs, hi, k * n, 0, n)
+            wp.copy(counts, cnt, k * n, 0, n)
+            peer._part_guess = None
+        wp.launch(stream.merge_smallest_kernel, dim=n, device=self.device,
+                  inputs=[lists, highs, counts, parts, rank], outputs=[low, high, count])
 
     def ph_scratch(self) -> wp.array:
         if not hasattr(self, "_h_scratch"):
@@ -1144,21 +1261,26 @@ class StreamProblem:
     def evaluate_lm(self, params: wp.array, f: wp.array, g: wp.array, jtj: wp.array, stats: wp.array, *,
                     active: wp.array | None = None) -> None:
         """One streaming pass accumulating f, J^T r and J^T J per texel (Gauss-Newton / LM)."""
-        if self.pm is None:
-            self.pm = wp.zeros((self.groups, self.n), dtype=self.mat, device=self.device)
         lay = self.layout
         kernel = stream.accumulate_lm_kernel(lay.n_lobes, int(lay.anisotropic), self.max_registers, self.lookup,
                                              self.traced, self.radiance, self.robust)
-        act = self.all_active if active is None else active
+
+        def launch(pr: StreamProblem, inputs: dict, window) -> None:
+            images, depth, shadow, infos, b, e = window
+            if pr.pm is None:
+                pr.pm = wp.zeros((pr.rows, pr.n), dtype=pr.mat, device=pr.device)
+            act = inputs["active"] if inputs["active"] is not None else pr.all_active
+            wp.launch(kernel, dim=(pr.groups, pr.n), device=pr.device, block_dim=pr.block_dim,
+                      inputs=[pr.tex, inputs["params"], act, images, depth, shadow, infos, b, e,
+                              math.ceil((e - b) / pr.groups), pr.opt, pr.like, pr.like_m, pr.one],
+                      outputs=[pr.pf, pr.pg, pr.pm, pr.pst])
+
         first = True
-        for images, depth, shadow, infos, b, e in self.photos.windows():
-            wp.launch(kernel, dim=(self.groups, self.n), device=self.device, block_dim=self.block_dim,
-                      inputs=[self.tex, params, act, images, depth, shadow, infos, b, e,
-                              math.ceil((e - b) / self.groups), self.opt, self.like, self.like_m, self.one],
-                      outputs=[self.pf, self.pg, self.pm, self.pst])
+        for rows in self._launch_passes(launch, ["pf", "pg", "pm", "pst"], params=params, active=active):
             wp.launch(stream.reduce_partials_kernel, dim=self.n, device=self.device,
-                      inputs=[self.pf, self.pg, self.pm, self.pst, self.groups, 0 if first else 1],
+                      inputs=[self.pf, self.pg, self.pm, self.pst, rows, 0 if first else 1],
                       outputs=[f, g, jtj, stats])
             first = False
+        act = self.all_active if active is None else active
         self._add_prior(params, f, g, act, jtj=jtj)
         self.passes += 1

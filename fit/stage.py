@@ -174,23 +174,44 @@ def read_photos(photos, masks, indices):
 def build_problem(mesh, bake, frames, images, masks, cfg: FitConfig, device: str, photos=None):
     """The StreamProblem of a fit: texels from the bake, photos on the device with their depth and
     shadow maps (``photos``: a PhotoSet of these frames built before, e.g. by another problem's
-    call, reused as it is; building one is most of the set-up time)."""
-    from .problem import PhotoFrame, PhotoSet, StreamProblem, TexelSet, surface_derivatives, texel_coordinate_gradients
+    call, reused as it is; building one is most of the set-up time). The photos are set up on a
+    thread of their own while this one computes the texels (host work, beside the photos' uploads
+    and map launches); split over devices (``StreamConfig.device_split`` photos), each device's on
+    a thread of its own."""
+    import concurrent.futures
+    import contextvars
 
+    from .problem import PhotoFrame, PhotoSet, StreamProblem, TexelSet, surface_derivatives, texel_coordinate_gradients
+    from .tiles import parse_devices, split_photos
+
+    photo_frames = [PhotoFrame.from_capture_frame(f) for f in frames]
     normals = mesh.vertex_normals()  # computed anew on each call for a mesh without stored normals
-    face_normal, normal_jacobian = surface_derivatives(mesh.vertices, mesh.faces, normals, bake.face, bake.bary)
-    coordinate_gradients = None
-    if mesh.uvs is not None:
-        coordinate_gradients = texel_coordinate_gradients(mesh.vertices, mesh.faces, mesh.uvs, bake.face,
-                                                          bake.width, bake.height)
-    texels = TexelSet.from_grid(bake.covered, bake.position, bake.normal, bake.tangent, bake.bitangent,
-                                face_normal, normal_jacobian, coordinate_gradients, bake.fill_source)
+
+    def make_photos():
+        if split_photos(cfg):
+            from .photo_split import build_device_photos, check_split_devices
+
+            devices = parse_devices(cfg.stream.devices, device)
+            check_split_devices(devices, device)
+            return build_device_photos(photo_frames, images, mesh.vertices, mesh.faces, masks, cfg.stream, devices,
+                                       mesh_normals=normals, mesh_uvs=mesh.uvs)
+        return PhotoSet(photo_frames, images, mesh.vertices, mesh.faces, masks=masks, config=cfg.stream,
+                        device=device, mesh_normals=normals, mesh_uvs=mesh.uvs)
+
+    with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="texstream-photos") as pool:
+        # in a copy of this context: the stage's log and its registry of loaders to close
+        pending = pool.submit(contextvars.copy_context().run, make_photos) if photos is None else None
+        face_normal, normal_jacobian = surface_derivatives(mesh.vertices, mesh.faces, normals, bake.face, bake.bary)
+        coordinate_gradients = None
+        if mesh.uvs is not None:
+            coordinate_gradients = texel_coordinate_gradients(mesh.vertices, mesh.faces, mesh.uvs, bake.face,
+                                                              bake.width, bake.height)
+        texels = TexelSet.from_grid(bake.covered, bake.position, bake.normal, bake.tangent, bake.bitangent,
+                                    face_normal, normal_jacobian, coordinate_gradients, bake.fill_source)
+        if pending is not None:
+            photos = pending.result()  # a photo's error is raised here, after the texels
     if texels.n == 0:
         raise InputError("the atlas has no covered texels", fix="rebuild the atlas with a larger resolution")
-    photo_frames = [PhotoFrame.from_capture_frame(f) for f in frames]
-    if photos is None:
-        photos = PhotoSet(photo_frames, images, mesh.vertices, mesh.faces, masks=masks, config=cfg.stream,
-                          device=device, mesh_normals=normals, mesh_uvs=mesh.uvs)
     layout = cfg.layout(photo_frames, texels.position.mean(axis=0))
     return StreamProblem(texels, photos, layout, cfg.stream, device=device)
 
@@ -739,9 +760,9 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
             from texstream.core.errors import ConfigError
 
             from .lfm_stage import lfm_fit_stage
-            from .tiles import tiled
+            from .tiles import split_photos, tiled
 
-            if tiled(cfg.fit):
+            if tiled(cfg.fit) or split_photos(cfg.fit):
                 raise ConfigError("stream.tiles, stream.devices and stream.tile_backend ray split per-texel models; "
                                   "light field mapping couples the texels of a triangle ring",
                                   fix="drop those options with --model lfm")

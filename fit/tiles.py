@@ -86,9 +86,21 @@ def parse_devices(devices: str, default: str) -> list[str]:
 
 
 def tiled(cfg: FitConfig) -> bool:
-    """Whether ``cfg`` asks for a tiled fit (more than one tile, or other devices than the fit's, or Ray)."""
+    """Whether ``cfg`` asks for a tiled fit (more than one tile, or other devices than the fit's, or Ray).
+    Photos split over devices (``device_split`` photos) are not tiles: refused together with them."""
     s = cfg.stream
+    if s.device_split == "photos":
+        if s.tiles > 1 or s.tile_backend == "ray":
+            raise ConfigError("stream.device_split photos splits the photos, not the texels, and takes no tiles",
+                              fix="set stream.tiles to 0 and stream.tile_backend to threads, or device_split to tiles")
+        return False
     return s.tiles > 1 or len([d for d in s.devices.split(",") if d.strip()]) > 1 or s.tile_backend == "ray"
+
+
+def split_photos(cfg: FitConfig) -> bool:
+    """Whether ``cfg`` splits the photos over several devices (``device_split`` photos, two or more devices)."""
+    s = cfg.stream
+    return s.device_split == "photos" and len([d for d in s.devices.split(",") if d.strip()]) > 1
 
 
 def check_tileable(cfg: FitConfig) -> None:

@@ -974,12 +974,14 @@ def initial_guess_kernel_for(radiance: bool = False):
     def initial_guess(tex: TexelFrames, images: wp.array3d(dtype=Any),
                       depth: wp.array3d(dtype=wp.float32), shadow: wp.array3d(dtype=wp.float32),
                       infos: wp.array(dtype=ImageInfo), img_begin: int, img_end: int, opt: SampleOptions,
-                      rank: int, low: wp.array(dtype=wp.vec3), high: wp.array(dtype=wp.vec3),
-                      count: wp.array(dtype=wp.int32)):
+                      rank: int, keep_smallest: int, low: wp.array(dtype=wp.vec3), high: wp.array(dtype=wp.vec3),
+                      count: wp.array(dtype=wp.int32), smallest: wp.array(dtype=wp.mat44)):
         """Per texel: the ``rank``-th smallest observed reflectance y / (exposure E cos) per channel
         (a low percentile, McAllister's diffuse estimate used by the seed; for the radiance model
         y / exposure, a low percentile of the radiance, below any highlight), the largest, and the
-        number of samples. Windows accumulate (call with the outputs pre-filled)."""
+        number of samples. Windows accumulate (call with the outputs pre-filled). ``keep_smallest``
+        1 also writes the 4 smallest per channel (rows: channel; ascending, 1e30 where none) to
+        ``smallest``: photos split over devices merge them exactly (:func:`merge_smallest_kernel`)."""
         i = wp.tid()
         lo = wp.mat44(0.0)  # rows: channel, columns: the 4 smallest so far, ascending
         for c in range(3):
@@ -1004,13 +1006,11 @@ def initial_guess_kernel_for(radiance: bool = False):
                                 t = lo[c, j]
                                 lo[c, j] = lo[c, j + 1]
                                 lo[c, j + 1] = t
-        r = wp.clamp(rank, 0, 3)
+        if keep_smallest != 0:
+            smallest[i] = lo
         est = low[i]
         for c in range(3):
-            pick = lo[c, 0]
-            for j in range(4):
-                if j <= r and lo[c, j] < 1.0e29:
-                    pick = lo[c, j]
+            pick = rank_pick(lo, c, rank)
             if pick < 1.0e29:
                 if count[i] > 0:
                     est[c] = wp.min(est[c], pick)
@@ -1022,6 +1022,58 @@ def initial_guess_kernel_for(radiance: bool = False):
 
     return wp.kernel(initial_guess, name="initial_guess_radiance" if radiance else "initial_guess",
                      enable_backward=False, module="unique")
+
+
+@wp.func
+def rank_pick(lo: wp.mat44, c: int, rank: int):
+    """The ``rank``-th (0..3) smallest of row ``c`` (ascending, 1e30 where none), or the largest there is."""
+    r = wp.clamp(rank, 0, 3)
+    pick = lo[c, 0]
+    for j in range(4):
+        if j <= r and lo[c, j] < 1.0e29:
+            pick = lo[c, j]
+    return pick
+
+
+@wp.kernel
+def merge_smallest_kernel(smallest: wp.array2d(dtype=wp.mat44), highs: wp.array2d(dtype=wp.vec3),
+                          counts: wp.array2d(dtype=wp.int32), parts: int, rank: int,
+                          low: wp.array(dtype=wp.vec3), high: wp.array(dtype=wp.vec3),
+                          count: wp.array(dtype=wp.int32)):
+    """The initial guess of photos split over devices: row d of each input is part d's
+    ``initial_guess`` (4 smallest per channel, largest, count; outputs unfilled); the 4 smallest of
+    the union are the 4 smallest of the parts' lists, so ``low`` is the one-pass value exactly."""
+    i = wp.tid()
+    lo = wp.mat44(0.0)
+    for c in range(3):
+        for j in range(4):
+            lo[c, j] = 1.0e30
+    hi = wp.vec3(0.0)
+    n = int(0)
+    for d in range(parts):
+        part = smallest[d, i]
+        n = n + counts[d, i]
+        h = highs[d, i]
+        for c in range(3):
+            hi[c] = wp.max(hi[c], h[c])
+            for k in range(4):
+                val = part[c, k]
+                if val < lo[c, 3]:
+                    lo[c, 3] = val
+                    for jj in range(3):
+                        j = 2 - jj
+                        if lo[c, j + 1] < lo[c, j]:
+                            t = lo[c, j]
+                            lo[c, j] = lo[c, j + 1]
+                            lo[c, j + 1] = t
+    est = wp.vec3(0.0)
+    for c in range(3):
+        pick = rank_pick(lo, c, rank)
+        if pick < 1.0e29:
+            est[c] = pick
+    low[i] = est
+    high[i] = hi
+    count[i] = n
 
 
 initial_guess_kernel = initial_guess_kernel_for(False)

@@ -1,0 +1,141 @@
+"""Photos split over devices (fit/photo_split.py): each device streams a run of the photos over every texel
+and the first adds their sums. The split fit equals one device's fit with one photo group per device
+part to the last bit, and the one-group fit to float64 rounding; the initial guess is exact."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from texstream.core.errors import ConfigError
+from texstream.fit.fitter import FitConfig, initial_guess, run_fit
+from texstream.fit.penalties import PenaltyConfig
+from texstream.fit.photo_split import DevicePhotos, split_bounds
+from texstream.fit.problem import StreamConfig
+from texstream.fit.stage import build_problem
+
+from conftest import DEVICES
+
+SMALL = dict(scale=0.02, photos=10, image_size=40, progress=False)
+STREAM = dict(shadow_map_size=48)  # small shadow maps: the CPU's ray casts take a fraction of a second
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """(mesh, bake, frames, images, masks) of a small ornament rendered in memory."""
+    from conftest import SCENE_DEVICE
+    from texstream.capture.synth import SynthConfig, render_scene
+
+    sc = render_scene("ornament", SynthConfig(device=SCENE_DEVICE, **SMALL))
+    return sc.mesh, sc.bake, sc.frames, sc.images, sc.masks
+
+
+def fit_config(optimizer="lm", model="lafortune", smooth=0.0, **stream) -> FitConfig:
+    # rel_tol 0: a fixed number of iterations, so that stopping tests on objectives equal to rounding
+    # cannot part at a threshold
+    return FitConfig(model=model, optimizer=optimizer, max_iterations=6, rel_tol=0.0, sync_every=2,
+                     penalties=PenaltyConfig(smooth_weight=smooth), stream=StreamConfig(**STREAM, **stream))
+
+
+def split(cfg: FitConfig, devices: str) -> FitConfig:
+    return dataclasses.replace(cfg, stream=dataclasses.replace(cfg.stream, devices=devices, device_split="photos"))
+
+
+def problem(scene, cfg, device):
+    mesh, bake, frames, images, masks = scene
+    return build_problem(mesh, bake, frames, images, masks, cfg, device)
+
+
+def test_split_bounds():
+    assert split_bounds(10, 2) == [(0, 5), (5, 10)]
+    assert split_bounds(10, 3) == [(0, 4), (4, 8), (8, 10)]
+    assert split_bounds(2, 3) == [(0, 1), (1, 2)]  # no device without photos
+
+
+@pytest.mark.parametrize("optimizer,model,smooth", [("lm", "lafortune", 0.0), ("lm", "lafortune", 0.05),
+                                                    ("cg", "lafortune", 0.0), ("lbfgs", "diffuse", 0.0),
+                                                    ("lm", "radiance", 0.0)])
+def test_split_fit_equals_the_one_device_fit_with_a_group_per_part(scene, device, optimizer, model, smooth):
+    """Two parts on one device (the path of two devices, the copies within one) with one group each sum
+    every texel in the order of one device with two groups: the same parameters to the last bit."""
+    one = fit_config(optimizer, model, smooth, groups=2)
+    ref = run_fit(problem(scene, one, device), one)
+    two = split(fit_config(optimizer, model, smooth, groups=1), f"{device},{device}")
+    pr = problem(scene, two, device)
+    assert isinstance(pr.photos, DevicePhotos) and [p.n for p in pr.photos.parts] == [5, 5]
+    assert len(pr.peers) == 1 and pr.rows == 2
+    res = run_fit(pr, two)
+    np.testing.assert_array_equal(res.params, ref.params)
+    np.testing.assert_array_equal(res.samples, ref.samples)
+    assert res.robust_scale == ref.robust_scale  # radiance: the Cauchy loss's automatic scale from the pass
+    assert [r["objective"] for r in res.trace] == [r["objective"] for r in ref.trace]
+
+
+def test_split_fit_matches_the_one_group_fit(scene, device):
+    """Against one device with one group the sums associate differently. In float64 sums (what ``auto``
+    picks above 1,000 photos) that is ~1e-16 relative per sum, carried through 6 LM iterations; the
+    parameters are stored in float32, so a rounding difference can move a value by an ulp of float32:
+    1e-5 relative leaves that room and nothing more."""
+    cfg = fit_config(groups=1, accumulate="fp64")
+    ref = run_fit(problem(scene, cfg, device), cfg)
+    res = run_fit(problem(scene, split(cfg, f"{device},{device}"), device), split(cfg, f"{device},{device}"))
+    np.testing.assert_allclose(res.params, ref.params, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose([r["objective"] for r in res.trace], [r["objective"] for r in ref.trace], rtol=1e-9)
+
+
+def test_split_initial_guess_is_exact(scene, device):
+    """The low percentile merges exactly from each part's 4 smallest samples, for every rank, over 3 parts."""
+    for rank in (0, 1, 3):
+        cfg = dataclasses.replace(fit_config(), init_rank=rank)
+        guess, counts = initial_guess(problem(scene, cfg, device), cfg)
+        three = split(cfg, ",".join([device] * 3))
+        pr = problem(scene, three, device)
+        assert len(pr.peers) == 2
+        g3, c3 = initial_guess(pr, three)
+        np.testing.assert_array_equal(c3, counts)
+        np.testing.assert_array_equal(g3, guess)
+
+
+def test_split_photos_subset_and_refusals(scene, device):
+    cfg = split(fit_config(), f"{device},{device}")
+    pr = problem(scene, cfg, device)
+    sub = pr.photos.subset([0, 2, 6, 9])
+    assert [p.n for p in sub.parts] == [2, 2] and sub.n == 4 and sub.bounds == [(0, 2), (2, 4)]
+    assert sub.frames == [pr.photos.frames[k] for k in (0, 2, 6, 9)]
+    rest = pr.photos.subset([7, 8])  # the second part's photos only: on the same device, one part
+    assert [p.n for p in rest.parts] == [2] and rest.frames == pr.photos.frames[7:9]
+    with pytest.raises(ConfigError, match="no tiles"):
+        from texstream.fit.tiles import tiled
+
+        tiled(split(fit_config(tiles=2), f"{device},{device}"))
+    with pytest.raises(ConfigError, match="stays on the devices|stay on the devices"):
+        problem(scene, split(fit_config(photo_residency="host"), f"{device},{device}"), device)
+
+
+def test_split_photos_need_the_fit_device_first(scene):
+    if len(DEVICES) < 2:
+        pytest.skip("needs a second device kind (CPU and CUDA) to list another device first")
+    with pytest.raises(ConfigError, match="not the fit's device"):
+        problem(scene, split(fit_config(), f"{DEVICES[1]},{DEVICES[0]}"), DEVICES[0])
+
+
+@pytest.mark.skipif(sum(d.startswith("cuda") for d in DEVICES) < 1, reason="needs CUDA")
+def test_split_over_two_gpus_equals_one_gpu_with_two_groups():
+    import warp as wp
+
+    if wp.get_cuda_device_count() < 2:
+        pytest.skip("needs two GPUs")
+    from conftest import SCENE_DEVICE  # noqa: F401
+    from texstream.capture.synth import SynthConfig, render_scene
+
+    sc = render_scene("ornament", SynthConfig(device="cuda:0", **SMALL))
+    scene = (sc.mesh, sc.bake, sc.frames, sc.images, sc.masks)
+    for smooth in (0.0, 0.05):
+        one = fit_config(smooth=smooth, groups=2)
+        ref = run_fit(problem(scene, one, "cuda:0"), one)
+        two = split(fit_config(smooth=smooth, groups=1), "cuda:0,cuda:1")
+        pr = problem(scene, two, "cuda:0")
+        assert pr.peers[0].device == "cuda:1"
+        np.testing.assert_array_equal(run_fit(pr, two).params, ref.params)
