@@ -1241,7 +1241,7 @@ class StreamProblem:
             wp.launch(kernel, dim=n, device=pr.device,
                       inputs=[pr.tex, images, depth, shadow, infos, b, e, pr.opt, rank, 1], outputs=out)
             if pr is not self:
-                pr._part_guess = out
+                pr._part_guess = out  # kept until the next call: this device's copies read them after this returns
         for k, peer in enumerate(self.peers, 1):
             if peer.device != self.device and self.device != "cpu":
                 wp.get_stream(self.device).wait_event(peer._record())
@@ -1249,7 +1249,6 @@ class StreamProblem:
             wp.copy(lists, sm, k * n, 0, n)
             wp.copy(highs, hi, k * n, 0, n)
             wp.copy(counts, cnt, k * n, 0, n)
-            peer._part_guess = None
         wp.launch(stream.merge_smallest_kernel, dim=n, device=self.device,
                   inputs=[lists, highs, counts, parts, rank], outputs=[low, high, count])
 
