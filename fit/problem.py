@@ -1087,8 +1087,9 @@ class StreamProblem:
         if self.lookup:
             wp.launch(stream.hold_lookup_params_kernel, dim=(self.n, self.layout.n_params), device=self.device,
                       inputs=[params, float(relaxation)], outputs=[self.tex.lookup_params])
-            for peer, mirrored in zip(self.peers, self._to_peers(params=params)):
-                peer.refresh_lookup(mirrored["params"], relaxation)
+            # a copy of its own (not the passes' "params"): the next pass's copy may run before the peer has read it
+            for peer, mirrored in zip(self.peers, self._to_peers(lookup_params=params)):
+                peer.refresh_lookup(mirrored["lookup_params"], relaxation)
 
     def set_groups(self, groups: int) -> None:
         """Split each pass's photos into ``groups`` groups, one thread per (group, texel); 0 picks
@@ -1188,41 +1189,54 @@ class StreamProblem:
         self._gather_from_peers(partials, self.groups * self.n)
         yield self.rows
 
+    def _stream(self):
+        """This problem's device's stream (None on the CPU: copies and launches there are synchronous)."""
+        return wp.get_stream(self.device) if self.device != "cpu" else None
+
     def _record(self):
-        """An event after the work queued so far on this problem's device (None on the CPU: synchronous)."""
-        return wp.get_stream(self.device).record_event() if self.device != "cpu" else None
+        """An event after the work queued so far on this problem's device (None on the CPU)."""
+        stream = self._stream()
+        return stream.record_event() if stream is not None else None
 
     def _to_peers(self, **arrays) -> list[dict]:
         """Per peer, ``arrays`` (this device's; None passes through) as that peer reads them: the same arrays
-        on the same device, else copies on its device made after this device's queued work (events)."""
-        event = self._record()
+        on the same device, else copies on its device. A copy runs on this device's stream, after the work
+        that wrote the array; the peer's stream then waits for it (an event)."""
         out = []
         for peer in self.peers:
             if peer.device == self.device:
                 out.append(dict(arrays))
                 continue
-            if event is not None:
-                wp.get_stream(peer.device).wait_event(event)
             mirrored = {}
             for name, a in arrays.items():
                 if a is not None:
                     buf = peer._mirrors.get(name)
                     if buf is None or buf.shape != a.shape or buf.dtype != a.dtype:
                         buf = peer._mirrors[name] = wp.empty(a.shape, dtype=a.dtype, device=peer.device)
-                    wp.copy(buf, a)  # on the peer's stream (the destination's)
+                    wp.copy(buf, a, stream=self._stream())
                     a = buf
                 mirrored[name] = a
+            event = self._record()
+            if event is not None:
+                peer._stream().wait_event(event)
             out.append(mirrored)
         return out
 
+    def _from_peer(self, peer: "StreamProblem", pairs, count: int, offset: int) -> None:
+        """Copy ``count`` elements of each (peer's array, this problem's array) in ``pairs`` to this one's
+        element ``offset``: on the peer's stream after the peer's launches, this device's stream then
+        waiting for them (an event); a plain copy within one device."""
+        stream = peer._stream() if peer.device != self.device else None
+        for theirs, mine in pairs:
+            wp.copy(mine, theirs, offset, 0, count, stream=stream)
+        if stream is not None:
+            self._stream().wait_event(peer._record())
+
     def _gather_from_peers(self, names: list[str], count: int) -> None:
-        """Copy each peer's first ``count`` elements of the partial arrays ``names`` after this problem's
-        own (peer k's into rows k x groups on), once the peer's launches are done (events)."""
+        """Each peer's first ``count`` elements of the partial arrays ``names`` after this problem's own (peer
+        k's into rows k x groups on)."""
         for k, peer in enumerate(self.peers, 1):
-            if peer.device != self.device and self.device != "cpu":
-                wp.get_stream(self.device).wait_event(peer._record())
-            for name in names:
-                wp.copy(getattr(self, name), getattr(peer, name), k * count, 0, count)
+            self._from_peer(peer, [(getattr(peer, name), getattr(self, name)) for name in names], count, k * count)
 
     def split_initial_guess(self, kernel, rank: int, low: wp.array, high: wp.array, count: wp.array) -> None:
         """fitter.initial_guess's pass over split photos: each device's 4 smallest samples per channel,
@@ -1243,12 +1257,8 @@ class StreamProblem:
             if pr is not self:
                 pr._part_guess = out  # kept until the next call: this device's copies read them after this returns
         for k, peer in enumerate(self.peers, 1):
-            if peer.device != self.device and self.device != "cpu":
-                wp.get_stream(self.device).wait_event(peer._record())
             _, hi, cnt, sm = peer._part_guess
-            wp.copy(lists, sm, k * n, 0, n)
-            wp.copy(highs, hi, k * n, 0, n)
-            wp.copy(counts, cnt, k * n, 0, n)
+            self._from_peer(peer, [(sm, lists), (hi, highs), (cnt, counts)], n, k * n)
         wp.launch(stream.merge_smallest_kernel, dim=n, device=self.device,
                   inputs=[lists, highs, counts, parts, rank], outputs=[low, high, count])
 

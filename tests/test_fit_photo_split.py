@@ -54,15 +54,19 @@ def test_split_bounds():
     assert split_bounds(2, 3) == [(0, 1), (1, 2)]  # no device without photos
 
 
-@pytest.mark.parametrize("optimizer,model,smooth", [("lm", "lafortune", 0.0), ("lm", "lafortune", 0.05),
-                                                    ("cg", "lafortune", 0.0), ("lbfgs", "diffuse", 0.0),
-                                                    ("lm", "radiance", 0.0)])
-def test_split_fit_equals_the_one_device_fit_with_a_group_per_part(scene, device, optimizer, model, smooth):
+@pytest.mark.parametrize("optimizer,model,smooth,lookup", [("lm", "lafortune", 0.0, "texel"),
+                                                           ("lm", "lafortune", 0.05, "texel"),
+                                                           ("lm", "lafortune", 0.0, "bilinear"),
+                                                           ("cg", "lafortune", 0.0, "texel"),
+                                                           ("lbfgs", "diffuse", 0.0, "texel"),
+                                                           ("lm", "radiance", 0.0, "texel")])
+def test_split_fit_equals_the_one_device_fit_with_a_group_per_part(scene, device, optimizer, model, smooth, lookup):
     """Two parts on one device (the path of two devices, the copies within one) with one group each sum
-    every texel in the order of one device with two groups: the same parameters to the last bit."""
-    one = fit_config(optimizer, model, smooth, groups=2)
+    every texel in the order of one device with two groups: the same parameters to the last bit (with the
+    renderer's lookup too, whose held neighbours each part refreshes)."""
+    one = fit_config(optimizer, model, smooth, groups=2, model_lookup=lookup)
     ref = run_fit(problem(scene, one, device), one)
-    two = split(fit_config(optimizer, model, smooth, groups=1), f"{device},{device}")
+    two = split(fit_config(optimizer, model, smooth, groups=1, model_lookup=lookup), f"{device},{device}")
     pr = problem(scene, two, device)
     assert isinstance(pr.photos, DevicePhotos) and [p.n for p in pr.photos.parts] == [5, 5]
     assert len(pr.peers) == 1 and pr.rows == 2
@@ -132,10 +136,10 @@ def test_split_over_two_gpus_equals_one_gpu_with_two_groups():
 
     sc = render_scene("ornament", SynthConfig(device="cuda:0", **SMALL))
     scene = (sc.mesh, sc.bake, sc.frames, sc.images, sc.masks)
-    for smooth in (0.0, 0.05):
-        one = fit_config(smooth=smooth, groups=2)
+    for smooth, lookup in ((0.0, "texel"), (0.05, "texel"), (0.0, "bilinear")):
+        one = fit_config(smooth=smooth, groups=2, model_lookup=lookup)
         ref = run_fit(problem(scene, one, "cuda:0"), one)
-        two = split(fit_config(smooth=smooth, groups=1), "cuda:0,cuda:1")
+        two = split(fit_config(smooth=smooth, groups=1, model_lookup=lookup), "cuda:0,cuda:1")
         pr = problem(scene, two, "cuda:0")
         assert pr.peers[0].device == "cuda:1"
         np.testing.assert_array_equal(run_fit(pr, two).params, ref.params)
