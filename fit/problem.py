@@ -34,8 +34,12 @@ MAX_LAUNCH_THREADS = 1 << 30
 """threads per depth- or shadow-map launch: larger sets launch in chunks of photos (a launch's size must
 stay within Warp's 32-bit bounds; 10,000 shadow maps of 512x512 are 2.6 G threads)"""
 UPLOAD_CHUNK_BYTES = 64 << 20
-"""photo bytes per pinned upload chunk at set-up: large transfers (PCIe runs near its peak from a few
-MiB), small enough that two pinned staging buffers cost little to allocate"""
+"""photo bytes per pinned upload chunk at set-up, for photo files: large transfers (PCIe runs near its peak
+from a few MiB), and enough photos in flight to keep the decoding workers busy"""
+ARRAY_UPLOAD_CHUNK_BYTES = 16 << 20
+"""the same for photos given as arrays (host copies, a dozen photos of 430x430 a chunk): pinned memory takes
+time to allocate in proportion to its size (4 buffers of 16 MiB in 0.04 s, of 64 MiB in 0.15 s on the
+two-H200 machine), and copy threads need few photos in flight"""
 
 
 @dataclasses.dataclass
@@ -598,7 +602,7 @@ class PhotoSet:
 
     def upload_staged(self, images: wp.array, masks: wp.array) -> None:
         """Fill the device's ``images`` (n, hmax, wmax) and ``masks`` (when any photo has one) in chunks of
-        ~:data:`UPLOAD_CHUNK_BYTES`: the loader's threads crop each chunk into one of two host buffers
+        ~:data:`UPLOAD_CHUNK_BYTES` (:data:`ARRAY_UPLOAD_CHUNK_BYTES` for arrays): the loader's threads crop each chunk into one of two host buffers
         (pinned for CUDA) while the other one's copy runs. The buffers hold float32, as the photos come,
         and half-float photos are converted on the device: a plain copy on the host is ~5x faster than
         numpy's float16 conversion, which would otherwise bound the set-up (both round to nearest even,
@@ -608,7 +612,8 @@ class PhotoSet:
         half = self.img_dtype == wp.vec3h and not self.loader.cached()
         pinned = dev != "cpu"
         stage_dtype = wp.vec3 if half else self.img_dtype
-        chunk = max(1, min(n, UPLOAD_CHUNK_BYTES // (pix * wp.types.type_size_in_bytes(stage_dtype))))
+        chunk_bytes = UPLOAD_CHUNK_BYTES if self.loader.files else ARRAY_UPLOAD_CHUNK_BYTES
+        chunk = max(1, min(n, chunk_bytes // (pix * wp.types.type_size_in_bytes(stage_dtype))))
         shape = (chunk, self.hmax, self.wmax)
         stage = [wp.empty(shape, dtype=stage_dtype, device="cpu", pinned=pinned) for _ in range(2)]
         stage_m = [self._masks_buffer(chunk, "cpu", pinned) for _ in range(2)]

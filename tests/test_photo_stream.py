@@ -285,12 +285,12 @@ def test_staged_upload_gives_the_cropped_photos(scene, device, precision):
     ps.loader = problem.PhotoLoader(scene[3], scene[4], ps.crops, ps.sizes)
     images = wp.empty((ps.n, ps.hmax, ps.wmax), dtype=ps.img_dtype, device=device)
     masks = wp.empty((ps.n, ps.hmax, ps.wmax), dtype=wp.uint8, device=device)
-    saved = problem.UPLOAD_CHUNK_BYTES
-    problem.UPLOAD_CHUNK_BYTES = 3 * ps.hmax * ps.wmax * 12  # chunks of 3 photos: both buffers, a short last one
+    saved = problem.ARRAY_UPLOAD_CHUNK_BYTES  # the photos are arrays
+    problem.ARRAY_UPLOAD_CHUNK_BYTES = 3 * ps.hmax * ps.wmax * 12  # chunks of 3 photos: both buffers, a short last one
     try:
         ps.upload_staged(images, masks)
     finally:
-        problem.UPLOAD_CHUNK_BYTES = saved
+        problem.ARRAY_UPLOAD_CHUNK_BYTES = saved
         ps.loader.close()
     want = np.zeros((ps.n, ps.hmax, ps.wmax, 3), np.float16 if precision == "fp16" else np.float32)
     want_m = np.zeros(masks.shape, np.uint8)
