@@ -7,8 +7,9 @@ it over every texel. A pass is then one launch per device into that device's per
 sums; the first device copies the others' partials after its own and adds all of them in the fixed
 order of :func:`~texstream.fit.kernels.stream.reduce_partials_kernel`, then steps every texel
 itself (:class:`~texstream.fit.problem.StreamProblem` ``peers``). Between devices only the
-parameters (to the others, before a pass) and the partial sums (back) travel; no host round trip,
-ordered by events on the devices' streams.
+parameters (to the others, before a pass) and the partial sums (back) travel, device to device (peer
+copies over NVLink where there is one); as the tiles' halo exchange, a copy waits for its source
+device to be synchronised.
 
 Summation order: device d's photos are the run [d c, (d+1) c) with c = ceil(photos / devices), one
 device's photo groups after another's. That is the order of one device with ``devices`` x

@@ -1194,48 +1194,37 @@ class StreamProblem:
         self._gather_from_peers(partials, self.groups * self.n)
         yield self.rows
 
-    def _stream(self):
-        """This problem's device's stream (None on the CPU: copies and launches there are synchronous)."""
-        return wp.get_stream(self.device) if self.device != "cpu" else None
-
-    def _record(self):
-        """An event after the work queued so far on this problem's device (None on the CPU)."""
-        stream = self._stream()
-        return stream.record_event() if stream is not None else None
-
     def _to_peers(self, **arrays) -> list[dict]:
         """Per peer, ``arrays`` (this device's; None passes through) as that peer reads them: the same arrays
-        on the same device, else copies on its device. A copy runs on this device's stream, after the work
-        that wrote the array; the peer's stream then waits for it (an event)."""
+        on the same device, else copies on its device. As the tiles' halo exchange (fit/tiles.py): this device
+        is synchronised first (the arrays written), then each copy runs on the peer's stream, ahead of the
+        peer's launches that read it."""
         out = []
         for peer in self.peers:
             if peer.device == self.device:
                 out.append(dict(arrays))
                 continue
+            wp.synchronize_device(self.device)
             mirrored = {}
             for name, a in arrays.items():
                 if a is not None:
                     buf = peer._mirrors.get(name)
                     if buf is None or buf.shape != a.shape or buf.dtype != a.dtype:
                         buf = peer._mirrors[name] = wp.empty(a.shape, dtype=a.dtype, device=peer.device)
-                    wp.copy(buf, a, stream=self._stream())
+                    wp.copy(buf, a)  # the destination's (peer's) stream
                     a = buf
                 mirrored[name] = a
-            event = self._record()
-            if event is not None:
-                peer._stream().wait_event(event)
             out.append(mirrored)
         return out
 
     def _from_peer(self, peer: "StreamProblem", pairs, count: int, offset: int) -> None:
         """Copy ``count`` elements of each (peer's array, this problem's array) in ``pairs`` to this one's
-        element ``offset``: on the peer's stream after the peer's launches, this device's stream then
-        waiting for them (an event); a plain copy within one device."""
-        stream = peer._stream() if peer.device != self.device else None
+        element ``offset``, on this device's stream, ahead of the launches that read them: from another
+        device once that device is synchronised (the peer's launches done)."""
+        if peer.device != self.device:
+            wp.synchronize_device(peer.device)
         for theirs, mine in pairs:
-            wp.copy(mine, theirs, offset, 0, count, stream=stream)
-        if stream is not None:
-            self._stream().wait_event(peer._record())
+            wp.copy(mine, theirs, offset, 0, count)
 
     def _gather_from_peers(self, names: list[str], count: int) -> None:
         """Each peer's first ``count`` elements of the partial arrays ``names`` after this problem's own (peer

@@ -187,8 +187,10 @@ def build_problem(mesh, bake, frames, images, masks, cfg: FitConfig, device: str
     photo_frames = [PhotoFrame.from_capture_frame(f) for f in frames]
     normals = mesh.vertex_normals()  # computed anew on each call for a mesh without stored normals
 
+    split = split_photos(cfg)  # before any work: refuses tiles with it
+
     def make_photos():
-        if split_photos(cfg):
+        if split:
             from .photo_split import build_device_photos, check_split_devices
 
             devices = parse_devices(cfg.stream.devices, device)

@@ -90,17 +90,21 @@ def tiled(cfg: FitConfig) -> bool:
     Photos split over devices (``device_split`` photos) are not tiles: refused together with them."""
     s = cfg.stream
     if s.device_split == "photos":
-        if s.tiles > 1 or s.tile_backend == "ray":
-            raise ConfigError("stream.device_split photos splits the photos, not the texels, and takes no tiles",
-                              fix="set stream.tiles to 0 and stream.tile_backend to threads, or device_split to tiles")
+        split_photos(cfg)  # refuses tiles with it
         return False
     return s.tiles > 1 or len([d for d in s.devices.split(",") if d.strip()]) > 1 or s.tile_backend == "ray"
 
 
 def split_photos(cfg: FitConfig) -> bool:
-    """Whether ``cfg`` splits the photos over several devices (``device_split`` photos, two or more devices)."""
+    """Whether ``cfg`` splits the photos over several devices (``device_split`` photos, two or more devices);
+    refuses tiles with it."""
     s = cfg.stream
-    return s.device_split == "photos" and len([d for d in s.devices.split(",") if d.strip()]) > 1
+    if s.device_split != "photos":
+        return False
+    if s.tiles > 1 or s.tile_backend == "ray":
+        raise ConfigError("stream.device_split photos splits the photos, not the texels, and takes no tiles",
+                          fix="set stream.tiles to 0 and stream.tile_backend to threads, or device_split to tiles")
+    return len([d for d in s.devices.split(",") if d.strip()]) > 1
 
 
 def check_tileable(cfg: FitConfig) -> None:
