@@ -25,8 +25,9 @@ the tile problems, ``tile_setup_s``), the fit loop, and the time to a converged 
 fit's time to within 0.1 dB of its best PSNR, as benchmarks/setup_time.py (an iteration's time in a
 tiled fit: when its last tile recorded it). ``same_params_to_the_bit``: the tiled fits' parameters
 against the one-device fit's; the split photos' against ``photos_one_device`` (and, to rounding, against
-the one-device fit: their sums associate the photos' runs differently). The tiles take the untiled problem's photo groups, so a tile that streams
-every photo (fit/tiles.py ``ALL_PHOTOS_FRACTION``) sums each texel in the same order: bit-equal; a tile
+the one-device fit: their sums associate the photos' runs differently). The tiles take the untiled
+problem's photo groups, so a tile that streams every photo (fit/tiles.py ``ALL_PHOTOS_FRACTION``) sums
+each texel in the same order: bit-equal; a tile
 that streams a subset splits its groups elsewhere (except with ``--groups 1``) and agrees to float
 rounding carried through the iterations (max differences reported).
 """

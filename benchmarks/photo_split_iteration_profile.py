@@ -4,17 +4,25 @@ the devices; writes JSON and prints a log.
 
     python benchmarks/photo_split_iteration_profile.py OUT_DIR     # on a machine with two CUDA GPUs
 """
-import collections, concurrent.futures, json, os, sys, time
-import numpy as np
+
+import collections
+import concurrent.futures
+import json
+import os
+import sys
+import time
+
 import warp as wp
-wp.config.quiet = True
-wp.init()
+
+import texstream.fit.problem as P
 from texstream.capture.synth import SynthConfig, render_scene
-from texstream.geometry.bake import bake_texels
 from texstream.fit.fitter import FitConfig, FitRun
 from texstream.fit.problem import PhotoFrame, PhotoSet, StreamConfig
 from texstream.fit.stage import build_problem
-import texstream.fit.problem as P
+from texstream.geometry.bake import bake_texels
+
+wp.config.quiet = True
+wp.init()
 
 out = {}
 sc = render_scene("ornament", SynthConfig(scale=1.0, device="cuda:0", progress=False))
@@ -22,10 +30,16 @@ mesh, frames, images, masks = sc.mesh, sc.frames, sc.images, sc.masks
 bake = bake_texels(mesh, sc.bake.width * 2, sc.bake.height * 2, device="cuda:0")
 # A: kernel times per LM iteration
 for name, extra in (("one", {}), ("split", dict(devices="cuda:0,cuda:1", device_split="photos"))):
-    cfg = FitConfig(optimizer="lm", max_iterations=10, rel_tol=0.0,
-                    stream=StreamConfig(image_precision="fp16", photo_residency="device", **extra))
+    cfg = FitConfig(
+        optimizer="lm",
+        max_iterations=10,
+        rel_tol=0.0,
+        stream=StreamConfig(image_precision="fp16", photo_residency="device", **extra),
+    )
     pr = build_problem(mesh, bake, frames, images, masks, cfg, "cuda:0")
-    run = FitRun(pr, cfg); run.begin(); run.iterate(1)
+    run = FitRun(pr, cfg)
+    run.begin()
+    run.iterate(1)
     wp.synchronize()
     t = time.perf_counter()
     wp.timing_begin(cuda_filter=wp.TIMING_ALL)
@@ -44,11 +58,24 @@ for name, extra in (("one", {}), ("split", dict(devices="cuda:0,cuda:1", device_
     del run, pr
 pf = [PhotoFrame.from_capture_frame(f) for f in frames]
 normals = mesh.vertex_normals()
+
+
 def photoset(dev, lo=0, hi=None, **kw):
     hi = len(pf) if hi is None else hi
     cfg = StreamConfig(image_precision="fp16", photo_residency="device", **kw)
-    return PhotoSet(pf[lo:hi], images[lo:hi], mesh.vertices, mesh.faces, masks=masks[lo:hi], config=cfg, device=dev,
-                    mesh_normals=normals, mesh_uvs=mesh.uvs)
+    return PhotoSet(
+        pf[lo:hi],
+        images[lo:hi],
+        mesh.vertices,
+        mesh.faces,
+        masks=masks[lo:hi],
+        config=cfg,
+        device=dev,
+        mesh_normals=normals,
+        mesh_uvs=mesh.uvs,
+    )
+
+
 ps = photoset("cuda:0")
 # B1: pinned allocation
 for mb in (16, 64):
@@ -58,10 +85,14 @@ for mb in (16, 64):
     print("pinned alloc 4 x %d MB %.3f s" % (mb, out[f"pinned_alloc_4x{mb}MB_s"]), flush=True)
     del bufs
 n, half = len(pf), len(pf) // 2
+
+
 def variant(tag, switch=None, chunk=None, **kw):
     old_sw, old_chunk = sys.getswitchinterval(), P.UPLOAD_CHUNK_BYTES
-    if switch: sys.setswitchinterval(switch)
-    if chunk: P.UPLOAD_CHUNK_BYTES = chunk
+    if switch:
+        sys.setswitchinterval(switch)
+    if chunk:
+        P.UPLOAD_CHUNK_BYTES = chunk
     try:
         res = {}
         for what in ("one", "halves2"):
@@ -69,19 +100,29 @@ def variant(tag, switch=None, chunk=None, **kw):
             for _ in range(2):
                 t = time.perf_counter()
                 if what == "one":
-                    s = photoset("cuda:0", **kw); tm = [s.timings]
+                    s = photoset("cuda:0", **kw)
+                    tm = [s.timings]
                 else:
                     with concurrent.futures.ThreadPoolExecutor(2) as ex:
-                        a = ex.submit(photoset, "cuda:0", 0, half, **kw); b = ex.submit(photoset, "cuda:1", half, n, **kw)
+                        a = ex.submit(photoset, "cuda:0", 0, half, **kw)
+                        b = ex.submit(photoset, "cuda:1", half, n, **kw)
                         tm = [a.result().timings, b.result().timings]
-                wp.synchronize(); dt = time.perf_counter() - t
-                if best is None or dt < best[0]: best = (dt, [round(x["upload"], 3) for x in tm])
+                wp.synchronize()
+                dt = time.perf_counter() - t
+                if best is None or dt < best[0]:
+                    best = (dt, [round(x["upload"], 3) for x in tm])
             res[what] = best
         out["variant_" + tag] = res
-        print("variant %-28s one %.3f s (upload %s)   halves on 2 GPUs %.3f s (uploads %s)" % (
-            tag, res["one"][0], res["one"][1], res["halves2"][0], res["halves2"][1]), flush=True)
+        print(
+            "variant %-28s one %.3f s (upload %s)   halves on 2 GPUs %.3f s (uploads %s)"
+            % (tag, res["one"][0], res["one"][1], res["halves2"][0], res["halves2"][1]),
+            flush=True,
+        )
     finally:
-        sys.setswitchinterval(old_sw); P.UPLOAD_CHUNK_BYTES = old_chunk
+        sys.setswitchinterval(old_sw)
+        P.UPLOAD_CHUNK_BYTES = old_chunk
+
+
 variant("default")
 variant("switch_0.1ms", switch=1e-4)
 variant("threads4", decode_threads=4)
@@ -89,6 +130,8 @@ variant("threads4_switch_0.1ms", switch=1e-4, decode_threads=4)
 variant("chunk16MB", chunk=16 << 20)
 variant("chunk16MB_threads4_switch", chunk=16 << 20, switch=1e-4, decode_threads=4)
 variant("threads16_switch", switch=1e-4, decode_threads=16)
+
+
 # B4: pageable whole photos straight to the device (no host staging)
 def direct(dev, lo, hi):
     dst = wp.empty((hi - lo, 430, 430), dtype=wp.vec3, device=dev)
@@ -98,15 +141,33 @@ def direct(dev, lo, hi):
         wp.copy(dst, src, (k - lo) * 430 * 430, 0, 430 * 430)
     wp.synchronize_device(dev)
     return dst
-for tag, jobs in (("one", [("cuda:0", 0, n)]), ("halves2", [("cuda:0", 0, half), ("cuda:1", half, n)]),
-                  ("quarters2", [("cuda:0", 0, n // 4), ("cuda:0", n // 4, half), ("cuda:1", half, 3 * n // 4), ("cuda:1", 3 * n // 4, n)])):
+
+
+for tag, jobs in (
+    ("one", [("cuda:0", 0, n)]),
+    ("halves2", [("cuda:0", 0, half), ("cuda:1", half, n)]),
+    (
+        "quarters2",
+        [
+            ("cuda:0", 0, n // 4),
+            ("cuda:0", n // 4, half),
+            ("cuda:1", half, 3 * n // 4),
+            ("cuda:1", 3 * n // 4, n),
+        ],
+    ),
+):
     best = None
     for _ in range(2):
         t = time.perf_counter()
         with concurrent.futures.ThreadPoolExecutor(len(jobs)) as ex:
-            rs = [ex.submit(direct, *j) for j in jobs]; [r.result() for r in rs]
+            rs = [ex.submit(direct, *j) for j in jobs]
+            [r.result() for r in rs]
         dt = time.perf_counter() - t
         best = dt if best is None else min(best, dt)
     out["direct_pageable_" + tag] = best
-    print("pageable whole photos straight to the device, %s: %.3f s (%.1f GB/s)" % (tag, best, n * 430 * 430 * 12 / best / 1e9), flush=True)
+    print(
+        "pageable whole photos straight to the device, %s: %.3f s (%.1f GB/s)"
+        % (tag, best, n * 430 * 430 * 12 / best / 1e9),
+        flush=True,
+    )
 json.dump(out, open(os.path.join(sys.argv[1], "iteration_profile.json"), "w"), indent=1, default=str)

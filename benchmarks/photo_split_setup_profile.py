@@ -4,19 +4,26 @@ LM pass per half; writes JSON and prints a log.
 
     python benchmarks/photo_split_setup_profile.py OUT_DIR     # on a machine with two CUDA GPUs
 """
-import concurrent.futures, json, os, sys, time
-import numpy as np
+
+import concurrent.futures
+import json
+import math
+import os
+import sys
+import time
+
 import warp as wp
+
+import texstream.fit.problem as P
+from texstream.capture.synth import SynthConfig, render_scene
+from texstream.fit.fitter import FitConfig, FitRun
+from texstream.fit.photo_stream import PhotoLoader
+from texstream.fit.problem import PhotoFrame, PhotoSet, StreamConfig
+from texstream.fit.stage import build_problem
+from texstream.geometry.bake import bake_texels
+
 wp.config.quiet = True
 wp.init()
-from texstream.capture.synth import SynthConfig, render_scene
-from texstream.geometry.bake import bake_texels
-from texstream.fit.fitter import FitConfig
-from texstream.fit.problem import PhotoFrame, PhotoSet, StreamConfig, StreamProblem
-from texstream.fit.photo_stream import PhotoLoader
-from texstream.fit.photo_split import build_device_photos
-from texstream.fit.stage import build_problem
-import texstream.fit.problem as P
 
 out = {}
 sc = render_scene("ornament", SynthConfig(scale=1.0, device="cuda:0", progress=False))
@@ -25,16 +32,43 @@ bake = bake_texels(mesh, sc.bake.width * 2, sc.bake.height * 2, device="cuda:0")
 pf = [PhotoFrame.from_capture_frame(f) for f in frames]
 scfg = StreamConfig(image_precision="fp16", photo_residency="device")
 normals = mesh.vertex_normals()
+
+
 def photoset(dev, lo=0, hi=None, cfg=scfg):
     hi = len(pf) if hi is None else hi
-    return PhotoSet(pf[lo:hi], images[lo:hi], mesh.vertices, mesh.faces, masks=masks[lo:hi], config=cfg, device=dev,
-                    mesh_normals=normals, mesh_uvs=mesh.uvs)
+    return PhotoSet(
+        pf[lo:hi],
+        images[lo:hi],
+        mesh.vertices,
+        mesh.faces,
+        masks=masks[lo:hi],
+        config=cfg,
+        device=dev,
+        mesh_normals=normals,
+        mesh_uvs=mesh.uvs,
+    )
+
+
 for rep in range(3):
-    t = time.perf_counter(); ps = photoset("cuda:0"); wp.synchronize()
+    t = time.perf_counter()
+    ps = photoset("cuda:0")
+    wp.synchronize()
     out.setdefault("photoset_one_gpu", []).append([time.perf_counter() - t, ps.timings])
 print("one gpu", out["photoset_one_gpu"][-1], flush=True)
-print("crop", ps.hmax, ps.wmax, "photos", ps.n, "image shape", images[0].shape, images[0].dtype, images[0].flags["C_CONTIGUOUS"],
-      "mask", None if masks[0] is None else (masks[0].shape, masks[0].dtype), flush=True)
+print(
+    "crop",
+    ps.hmax,
+    ps.wmax,
+    "photos",
+    ps.n,
+    "image shape",
+    images[0].shape,
+    images[0].dtype,
+    images[0].flags["C_CONTIGUOUS"],
+    "mask",
+    None if masks[0] is None else (masks[0].shape, masks[0].dtype),
+    flush=True,
+)
 out["crop"] = [ps.hmax, ps.wmax]
 crops, sizes = ps.crops, ps.sizes
 n = ps.n
@@ -46,35 +80,64 @@ for pinned in (False, True):
     for threads in (1, 4, 8, 16, 32):
         ld = PhotoLoader(images, masks, crops, sizes, threads)
         ld.fill(range(n), arr, marr)  # touch
-        t = time.perf_counter(); ld.fill(range(n), arr, marr); dt = time.perf_counter() - t
+        t = time.perf_counter()
+        ld.fill(range(n), arr, marr)
+        dt = time.perf_counter() - t
         ld.close()
         out[f"host_crop_pinned{int(pinned)}_t{threads}"] = dt
-        print("host crop pinned", pinned, "threads", threads, "%.3f s  %.1f GB/s written" % (dt, arr.nbytes / dt / 1e9), flush=True)
+        print(
+            "host crop pinned",
+            pinned,
+            "threads",
+            threads,
+            "%.3f s  %.1f GB/s written" % (dt, arr.nbytes / dt / 1e9),
+            flush=True,
+        )
     del buf, mb, arr, marr
 # H2D from pinned, 64 MB chunks, one GPU and both at once
 chunk = wp.empty(64 << 20 >> 2, dtype=float, device="cpu", pinned=True)
 dst = {d: wp.empty(64 << 20 >> 2, dtype=float, device=d) for d in ("cuda:0", "cuda:1")}
 for devs in (["cuda:0"], ["cuda:1"], ["cuda:0", "cuda:1"]):
-    for d in devs: wp.copy(dst[d], chunk)
+    for d in devs:
+        wp.copy(dst[d], chunk)
     wp.synchronize()
     t = time.perf_counter()
     for _ in range(30):
-        for d in devs: wp.copy(dst[d], chunk)
-    wp.synchronize(); dt = time.perf_counter() - t
+        for d in devs:
+            wp.copy(dst[d], chunk)
+    wp.synchronize()
+    dt = time.perf_counter() - t
     out["h2d_" + "+".join(devs)] = 30 * len(devs) * 64 / 1024 / dt
     print("H2D", devs, "%.1f GB/s total" % (30 * len(devs) * (64 << 20) / dt / 1e9), flush=True)
 # the upload pipeline instrumented: time waiting for fills vs the rest
 waits = []
 orig_wait = P.wait
+
+
 def timed_wait(fs):
-    t = time.perf_counter(); r = orig_wait(fs); waits.append(time.perf_counter() - t); return r
+    t = time.perf_counter()
+    r = orig_wait(fs)
+    waits.append(time.perf_counter() - t)
+    return r
+
+
 P.wait = timed_wait
 for threads in (8, 16):
     waits.clear()
     cfg = StreamConfig(image_precision="fp16", photo_residency="device", decode_threads=threads)
-    t = time.perf_counter(); ps = photoset("cuda:0", cfg=cfg); wp.synchronize(); dt = time.perf_counter() - t
+    t = time.perf_counter()
+    ps = photoset("cuda:0", cfg=cfg)
+    wp.synchronize()
+    dt = time.perf_counter() - t
     out[f"pipeline_t{threads}"] = [dt, ps.timings, sum(waits), len(waits)]
-    print("pipeline threads", threads, "%.3f" % dt, ps.timings, "waiting for fills %.3f s in %d" % (sum(waits), len(waits)), flush=True)
+    print(
+        "pipeline threads",
+        threads,
+        "%.3f" % dt,
+        ps.timings,
+        "waiting for fills %.3f s in %d" % (sum(waits), len(waits)),
+        flush=True,
+    )
 P.wait = orig_wait
 # two halves at once, on two GPUs and on one, and each alone
 half = n // 2
@@ -82,27 +145,47 @@ for devs in (("cuda:0", "cuda:1"), ("cuda:0", "cuda:0")):
     for rep in range(2):
         t = time.perf_counter()
         with concurrent.futures.ThreadPoolExecutor(2) as ex:
-            a = ex.submit(photoset, devs[0], 0, half); b = ex.submit(photoset, devs[1], half, n)
+            a = ex.submit(photoset, devs[0], 0, half)
+            b = ex.submit(photoset, devs[1], half, n)
             pa, pb = a.result(), b.result()
-        wp.synchronize(); dt = time.perf_counter() - t
+        wp.synchronize()
+        dt = time.perf_counter() - t
     out["halves_" + "+".join(devs)] = [dt, pa.timings, pb.timings]
     print("halves at once", devs, "%.3f" % dt, pa.timings, pb.timings, flush=True)
 for d, lo, hi in (("cuda:0", 0, half), ("cuda:1", half, n)):
-    t = time.perf_counter(); p1 = photoset(d, lo, hi); wp.synchronize(); dt = time.perf_counter() - t
+    t = time.perf_counter()
+    p1 = photoset(d, lo, hi)
+    wp.synchronize()
+    dt = time.perf_counter() - t
     out[f"half_alone_{d}_{lo}"] = [dt, p1.timings]
     print("half alone", d, lo, "%.3f" % dt, p1.timings, flush=True)
 # balance of the split passes: each part's LM pass alone
-cfg = FitConfig(optimizer="lm", stream=StreamConfig(image_precision="fp16", photo_residency="device",
-                                                    devices="cuda:0,cuda:1", device_split="photos"))
+cfg = FitConfig(
+    optimizer="lm",
+    stream=StreamConfig(
+        image_precision="fp16", photo_residency="device", devices="cuda:0,cuda:1", device_split="photos"
+    ),
+)
 pr = build_problem(mesh, bake, frames, images, masks, cfg, "cuda:0")
-from texstream.fit.fitter import FitRun
+
 run = FitRun(pr, cfg)
 run.begin()
 st = run.state
 for name, prob in (("part0", pr), ("part1", pr.peers[0])):
-    ins = {"params": st.storage if prob is pr else pr._to_peers(params=st.storage)[0]["params"], "active": None}
-    import math
-    kernel = P.stream.accumulate_lm_kernel(pr.layout.n_lobes, int(pr.layout.anisotropic), pr.max_registers, pr.lookup, pr.traced, pr.radiance, pr.robust)
+    ins = {
+        "params": st.storage if prob is pr else pr._to_peers(params=st.storage)[0]["params"],
+        "active": None,
+    }
+
+    kernel = P.stream.accumulate_lm_kernel(
+        pr.layout.n_lobes,
+        int(pr.layout.anisotropic),
+        pr.max_registers,
+        pr.lookup,
+        pr.traced,
+        pr.radiance,
+        pr.robust,
+    )
     wp.synchronize()
     ts = []
     for _ in range(5):
@@ -110,18 +193,40 @@ for name, prob in (("part0", pr), ("part1", pr.peers[0])):
         images_, depth, shadow, infos, b, e = next(iter(prob.own_photos.windows()))
         if prob.pm is None:
             prob.pm = wp.zeros((prob.rows, prob.n), dtype=prob.mat, device=prob.device)
-        wp.launch(kernel, dim=(prob.groups, prob.n), device=prob.device, block_dim=prob.block_dim,
-                  inputs=[prob.tex, ins["params"], prob.all_active, images_, depth, shadow, infos, b, e,
-                          math.ceil((e - b) / prob.groups), prob.opt, prob.like, prob.like_m, prob.one],
-                  outputs=[prob.pf, prob.pg, prob.pm, prob.pst])
-        wp.synchronize_device(prob.device); ts.append(time.perf_counter() - t)
+        wp.launch(
+            kernel,
+            dim=(prob.groups, prob.n),
+            device=prob.device,
+            block_dim=prob.block_dim,
+            inputs=[
+                prob.tex,
+                ins["params"],
+                prob.all_active,
+                images_,
+                depth,
+                shadow,
+                infos,
+                b,
+                e,
+                math.ceil((e - b) / prob.groups),
+                prob.opt,
+                prob.like,
+                prob.like_m,
+                prob.one,
+            ],
+            outputs=[prob.pf, prob.pg, prob.pm, prob.pst],
+        )
+        wp.synchronize_device(prob.device)
+        ts.append(time.perf_counter() - t)
     out["pass_" + name] = ts
     print("LM pass", name, ["%.1f ms" % (x * 1e3) for x in ts], flush=True)
 ts = []
 for _ in range(5):
-    wp.synchronize(); t = time.perf_counter()
+    wp.synchronize()
+    t = time.perf_counter()
     pr.evaluate_lm(st.storage, st.f_trial, st.g_trial, run.opt.jtj_trial, st.stats_trial)
-    wp.synchronize(); ts.append(time.perf_counter() - t)
+    wp.synchronize()
+    ts.append(time.perf_counter() - t)
 out["pass_split"] = ts
 print("LM pass split", ["%.1f ms" % (x * 1e3) for x in ts], flush=True)
 json.dump(out, open(os.path.join(sys.argv[1], "setup_profile.json"), "w"), indent=1, default=str)

@@ -602,11 +602,11 @@ class PhotoSet:
 
     def upload_staged(self, images: wp.array, masks: wp.array) -> None:
         """Fill the device's ``images`` (n, hmax, wmax) and ``masks`` (when any photo has one) in chunks of
-        ~:data:`UPLOAD_CHUNK_BYTES` (:data:`ARRAY_UPLOAD_CHUNK_BYTES` for arrays): the loader's threads crop each chunk into one of two host buffers
-        (pinned for CUDA) while the other one's copy runs. The buffers hold float32, as the photos come,
-        and half-float photos are converted on the device: a plain copy on the host is ~5x faster than
-        numpy's float16 conversion, which would otherwise bound the set-up (both round to nearest even,
-        so the halves are the same)."""
+        ~:data:`UPLOAD_CHUNK_BYTES` (:data:`ARRAY_UPLOAD_CHUNK_BYTES` for arrays): the loader's threads
+        crop each chunk into one of two host buffers (pinned for CUDA) while the other one's copy runs. The
+        buffers hold float32, as the photos come, and half-float photos are converted on the device: a plain
+        copy on the host is ~5x faster than numpy's float16 conversion, which would otherwise bound the
+        set-up (both round to nearest even, so the halves are the same)."""
         n, dev, pix = self.n, self.device, self.hmax * self.wmax
         # photos from the cache are already in the image precision: staged and copied as they are
         half = self.img_dtype == wp.vec3h and not self.loader.cached()
@@ -1092,7 +1092,7 @@ class StreamProblem:
         if self.lookup:
             wp.launch(stream.hold_lookup_params_kernel, dim=(self.n, self.layout.n_params), device=self.device,
                       inputs=[params, float(relaxation)], outputs=[self.tex.lookup_params])
-            # a copy of its own (not the passes' "params"): the next pass's copy may run before the peer has read it
+            # a buffer of its own on the peer: the passes' "params" buffer is rewritten every pass
             for peer, mirrored in zip(self.peers, self._to_peers(lookup_params=params)):
                 peer.refresh_lookup(mirrored["lookup_params"], relaxation)
 
