@@ -998,14 +998,7 @@ def initial_guess_kernel_for(radiance: bool = False):
                 for c in range(3):
                     val = y[c] / w[c]
                     hi[c] = wp.max(hi[c], val)
-                    if val < lo[c, 3]:
-                        lo[c, 3] = val
-                        for jj in range(3):
-                            j = 2 - jj
-                            if lo[c, j + 1] < lo[c, j]:
-                                t = lo[c, j]
-                                lo[c, j] = lo[c, j + 1]
-                                lo[c, j + 1] = t
+                    lo = with_smallest(lo, c, val)
         if keep_smallest != 0:
             smallest[i] = lo
         est = low[i]
@@ -1022,6 +1015,21 @@ def initial_guess_kernel_for(radiance: bool = False):
 
     return wp.kernel(initial_guess, name="initial_guess_radiance" if radiance else "initial_guess",
                      enable_backward=False, module="unique")
+
+
+@wp.func
+def with_smallest(lo: wp.mat44, c: int, val: float):
+    """``lo`` with ``val`` kept among row ``c``'s 4 smallest values (ascending; 1e30 where none yet)."""
+    out = wp.mat44(lo)
+    if val < out[c, 3]:
+        out[c, 3] = val
+        for jj in range(3):
+            j = 2 - jj
+            if out[c, j + 1] < out[c, j]:
+                t = out[c, j]
+                out[c, j] = out[c, j + 1]
+                out[c, j + 1] = t
+    return out
 
 
 @wp.func
@@ -1057,15 +1065,7 @@ def merge_smallest_kernel(smallest: wp.array2d(dtype=wp.mat44), highs: wp.array2
         for c in range(3):
             hi[c] = wp.max(hi[c], h[c])
             for k in range(4):
-                val = part[c, k]
-                if val < lo[c, 3]:
-                    lo[c, 3] = val
-                    for jj in range(3):
-                        j = 2 - jj
-                        if lo[c, j + 1] < lo[c, j]:
-                            t = lo[c, j]
-                            lo[c, j] = lo[c, j + 1]
-                            lo[c, j + 1] = t
+                lo = with_smallest(lo, c, part[c, k])
     est = wp.vec3(0.0)
     for c in range(3):
         pick = rank_pick(lo, c, rank)
