@@ -15,19 +15,18 @@ import time
 import warp as wp
 
 import texstream.fit.problem as P
-from texstream.capture.synth import SynthConfig, render_scene
+from photo_split_scene import OrnamentAt4x
 from texstream.fit.fitter import FitConfig, FitRun
-from texstream.fit.problem import PhotoFrame, PhotoSet, StreamConfig
+from texstream.fit.problem import StreamConfig
 from texstream.fit.stage import build_problem
-from texstream.geometry.bake import bake_texels
 
 wp.config.quiet = True
 wp.init()
 
 out = {}
-sc = render_scene("ornament", SynthConfig(scale=1.0, device="cuda:0", progress=False))
-mesh, frames, images, masks = sc.mesh, sc.frames, sc.images, sc.masks
-bake = bake_texels(mesh, sc.bake.width * 2, sc.bake.height * 2, device="cuda:0")
+scene = OrnamentAt4x("cuda:0")
+mesh, frames, images, masks, bake = scene.mesh, scene.frames, scene.images, scene.masks, scene.bake
+photoset = scene.photoset
 # A: kernel times per LM iteration
 for name, extra in (("one", {}), ("split", dict(devices="cuda:0,cuda:1", device_split="photos"))):
     cfg = FitConfig(
@@ -56,26 +55,6 @@ for name, extra in (("one", {}), ("split", dict(devices="cuda:0,cuda:1", device_
     for (d, n), v in rows:
         print("   %-8s %-60s %7.2f ms" % (d, n, v), flush=True)
     del run, pr
-pf = [PhotoFrame.from_capture_frame(f) for f in frames]
-normals = mesh.vertex_normals()
-
-
-def photoset(dev, lo=0, hi=None, **kw):
-    hi = len(pf) if hi is None else hi
-    cfg = StreamConfig(image_precision="fp16", photo_residency="device", **kw)
-    return PhotoSet(
-        pf[lo:hi],
-        images[lo:hi],
-        mesh.vertices,
-        mesh.faces,
-        masks=masks[lo:hi],
-        config=cfg,
-        device=dev,
-        mesh_normals=normals,
-        mesh_uvs=mesh.uvs,
-    )
-
-
 ps = photoset("cuda:0")
 # B1: pinned allocation
 for mb in (16, 64):
@@ -84,7 +63,7 @@ for mb in (16, 64):
     out[f"pinned_alloc_4x{mb}MB_s"] = time.perf_counter() - t
     print("pinned alloc 4 x %d MB %.3f s" % (mb, out[f"pinned_alloc_4x{mb}MB_s"]), flush=True)
     del bufs
-n, half = len(pf), len(pf) // 2
+n, half = len(frames), len(frames) // 2
 
 
 def variant(tag, switch=None, chunk=None, **kw):

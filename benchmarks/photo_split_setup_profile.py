@@ -15,40 +15,19 @@ import time
 import warp as wp
 
 import texstream.fit.problem as P
-from texstream.capture.synth import SynthConfig, render_scene
+from photo_split_scene import OrnamentAt4x
 from texstream.fit.fitter import FitConfig, FitRun
 from texstream.fit.photo_stream import PhotoLoader
-from texstream.fit.problem import PhotoFrame, PhotoSet, StreamConfig
+from texstream.fit.problem import StreamConfig
 from texstream.fit.stage import build_problem
-from texstream.geometry.bake import bake_texels
 
 wp.config.quiet = True
 wp.init()
 
 out = {}
-sc = render_scene("ornament", SynthConfig(scale=1.0, device="cuda:0", progress=False))
-mesh, frames, images, masks = sc.mesh, sc.frames, sc.images, sc.masks
-bake = bake_texels(mesh, sc.bake.width * 2, sc.bake.height * 2, device="cuda:0")
-pf = [PhotoFrame.from_capture_frame(f) for f in frames]
-scfg = StreamConfig(image_precision="fp16", photo_residency="device")
-normals = mesh.vertex_normals()
-
-
-def photoset(dev, lo=0, hi=None, cfg=scfg):
-    hi = len(pf) if hi is None else hi
-    return PhotoSet(
-        pf[lo:hi],
-        images[lo:hi],
-        mesh.vertices,
-        mesh.faces,
-        masks=masks[lo:hi],
-        config=cfg,
-        device=dev,
-        mesh_normals=normals,
-        mesh_uvs=mesh.uvs,
-    )
-
-
+scene = OrnamentAt4x("cuda:0")
+mesh, frames, images, masks, bake = scene.mesh, scene.frames, scene.images, scene.masks, scene.bake
+photoset = scene.photoset
 for rep in range(3):
     t = time.perf_counter()
     ps = photoset("cuda:0")
@@ -124,9 +103,8 @@ def timed_wait(fs):
 P.wait = timed_wait
 for threads in (8, 16):
     waits.clear()
-    cfg = StreamConfig(image_precision="fp16", photo_residency="device", decode_threads=threads)
     t = time.perf_counter()
-    ps = photoset("cuda:0", cfg=cfg)
+    ps = photoset("cuda:0", decode_threads=threads)
     wp.synchronize()
     dt = time.perf_counter() - t
     out[f"pipeline_t{threads}"] = [dt, ps.timings, sum(waits), len(waits)]
