@@ -1194,6 +1194,10 @@ class StreamProblem:
         self._gather_from_peers(partials, self.groups * self.n)
         yield self.rows
 
+    def _same_device(self, peer: "StreamProblem") -> bool:
+        """Whether ``peer`` reads this problem's arrays where they are (its device is this one)."""
+        return peer.device == self.device
+
     def _to_peers(self, **arrays) -> list[dict]:
         """Per peer, ``arrays`` (this device's; None passes through) as that peer reads them: the same arrays
         on the same device, else copies on its device. As the tiles' halo exchange (fit/tiles.py): this device
@@ -1201,7 +1205,7 @@ class StreamProblem:
         peer's launches that read it."""
         out = []
         for peer in self.peers:
-            if peer.device == self.device:
+            if self._same_device(peer):
                 out.append(dict(arrays))
                 continue
             wp.synchronize_device(self.device)
@@ -1221,7 +1225,7 @@ class StreamProblem:
         """Copy ``count`` elements of each (peer's array, this problem's array) in ``pairs`` to this one's
         element ``offset``, on this device's stream, ahead of the launches that read them: from another
         device once that device is synchronised (the peer's launches done)."""
-        if peer.device != self.device:
+        if not self._same_device(peer):
             wp.synchronize_device(peer.device)
         for theirs, mine in pairs:
             wp.copy(mine, theirs, offset, 0, count)

@@ -77,6 +77,23 @@ def test_split_fit_equals_the_one_device_fit_with_a_group_per_part(scene, device
     assert [r["objective"] for r in res.trace] == [r["objective"] for r in ref.trace]
 
 
+def test_the_copies_between_devices_on_one_device(scene, device, monkeypatch):
+    """The path that copies parameters to another device and partial sums back (mirrors, offsets, the
+    synchronisations), taken on one device by telling the problem its peer is elsewhere: still the
+    two-group fit to the last bit (the two-GPU test runs it between devices)."""
+    from texstream.fit.problem import StreamProblem
+
+    monkeypatch.setattr(StreamProblem, "_same_device", lambda self, peer: False)
+    one = fit_config(smooth=0.05, groups=2, model_lookup="bilinear")
+    ref = run_fit(problem(scene, one, device), one)
+    two = split(fit_config(smooth=0.05, groups=1, model_lookup="bilinear"), f"{device},{device}")
+    pr = problem(scene, two, device)
+    res = run_fit(pr, two)
+    assert set(pr.peers[0]._mirrors) == {"params", "active", "lookup_params"}  # copies were made
+    np.testing.assert_array_equal(res.params, ref.params)
+    np.testing.assert_array_equal(initial_guess(pr, two)[0], initial_guess(problem(scene, one, device), one)[0])
+
+
 def test_split_fit_matches_the_one_group_fit(scene, device):
     """Against one device with one group the sums associate differently. In float64 sums (what ``auto``
     picks above 1,000 photos) that is ~1e-16 relative per sum, carried through 6 LM iterations; the
