@@ -15,7 +15,8 @@ Summation order: device d's photos are the run [d c, (d+1) c) with c = ceil(phot
 device's photo groups after another's. That is the order of one device with ``devices`` x
 ``groups`` photo groups (when each device has one group, as automatic groups give for large
 atlases): the split fit equals that one-device fit to the last bit. Against the one-device fit with
-one group it differs by float64 rounding of the sums' association (a few 1e-16 relative per sum).
+one group it differs by rounding of the sums' association (in the accumulate precision: float32 up to
+1,000 photos, float64 above, a few 1e-16 relative per sum).
 
 The initial guess (a per-texel low percentile, not a sum) is exact too: each device keeps its 4
 smallest samples per channel and the first merges them (:func:`~texstream.fit.kernels.stream.merge_smallest_kernel`).
