@@ -187,3 +187,18 @@ def test_fit_stage_with_split_photos(tmp_path):
                       (two["heldout"]["pooled_psnr_db"], one["heldout"]["pooled_psnr_db"]),
                       (two["heldout"]["worst_psnr_db"], one["heldout"]["worst_psnr_db"])):
         assert abs(got - want) < 0.01, (got, want)
+
+
+def test_split_serves_the_options_tiles_refuse(scene, device):
+    """Every texel is stepped on the first device, so what couples texels works with the photos split: CG
+    with the Laplacian penalty and the global line search, to the two-group fit's bits."""
+    from texstream.fit.optim.linesearch import LineSearchConfig
+
+    def cfg(groups, **extra):
+        c = fit_config("cg", groups=groups, **extra)
+        return dataclasses.replace(c, penalties=PenaltyConfig(laplacian_weight=1e-3),
+                                   linesearch=LineSearchConfig(acceptance="global"))
+
+    ref = run_fit(problem(scene, cfg(2), device), cfg(2))
+    two = split(cfg(1), f"{device},{device}")
+    np.testing.assert_array_equal(run_fit(problem(scene, two, device), two).params, ref.params)
