@@ -148,7 +148,6 @@ def test_split_over_two_gpus_equals_one_gpu_with_two_groups():
 
     if wp.get_cuda_device_count() < 2:
         pytest.skip("needs two GPUs")
-    from conftest import SCENE_DEVICE  # noqa: F401
     from texstream.capture.synth import SynthConfig, render_scene
 
     sc = render_scene("ornament", SynthConfig(device="cuda:0", **SMALL))
