@@ -1,8 +1,9 @@
 """Photos split over several devices (``StreamConfig.device_split`` "photos").
 
 Each device holds a share of the photos, a run of consecutive ones with their depth and shadow maps
-(a :class:`~texstream.fit.problem.PhotoSet` of its own, built on its device at the same time as the
-others: cropping, uploading and mapping the photos is divided between the devices), and streams
+(a :class:`~texstream.fit.problem.PhotoSet` of its own on its device; the host crops every part's
+photos in one pipeline, each chunk copied to its device while the next is cropped, and each device
+makes its own photos' maps), and streams
 it over every texel. A pass is then one launch per device into that device's per-group partial
 sums; the first device copies the others' partials after its own and adds all of them in the fixed
 order of :func:`~texstream.fit.kernels.stream.reduce_partials_kernel`, then steps every texel
@@ -128,11 +129,14 @@ class DevicePhotos:
 
 def build_device_photos(frames, images, mesh_points, mesh_faces, masks, config, devices: list[str],
                         mesh_normals=None, mesh_uvs=None) -> DevicePhotos:
-    """The photos split over ``devices`` (:func:`split_bounds`), every part built at once on a thread of its
-    own (each with its loader's threads): photos cropped, uploaded and mapped on their device. The
-    photos stay on the devices (``photo_residency`` device or auto; a part that does not fit fails)."""
+    """The photos split over ``devices`` (:func:`split_bounds`): every part set up at once on a thread of its
+    own (mesh, crops, device buffers), then all parts' photos cropped by the host once, one part after the
+    other, each chunk copied to its part's device while the next is cropped, and mapped there
+    (:func:`~texstream.fit.problem.upload_photo_sets`: the host's copies, which bound the upload, are not
+    made to compete). The photos stay on the devices (``photo_residency`` device or auto; a part that does
+    not fit fails)."""
     from .photo_stream import PhotoFiles
-    from .problem import PhotoSet
+    from .problem import PhotoSet, upload_photo_sets
 
     check_split_devices(devices, devices[0])  # the fit's device: the caller's check
     if config.photo_residency not in ("auto", "device"):
@@ -151,12 +155,23 @@ def build_device_photos(frames, images, mesh_points, mesh_faces, masks, config, 
         b, e = bounds[d]
         part = images.subset(range(b, e)) if isinstance(images, PhotoFiles) else list(images[b:e])
         return PhotoSet(frames[b:e], part, mesh_points, mesh_faces, masks=None if masks is None else masks[b:e],
-                        config=pcfg, device=devices[d], mesh_normals=mesh_normals, mesh_uvs=mesh_uvs)
+                        config=pcfg, device=devices[d], mesh_normals=mesh_normals, mesh_uvs=mesh_uvs,
+                        defer_upload=True)
 
     with concurrent.futures.ThreadPoolExecutor(len(bounds), thread_name_prefix="texstream-photos") as pool:
         # each thread in a copy of this context: the stage's log and its registry of loaders to close
         jobs = [pool.submit(contextvars.copy_context().run, build, d) for d in range(len(bounds))]
-        parts = [j.result() for j in jobs]
+        concurrent.futures.wait(jobs)
+        parts = [j.result() for j in jobs if j.exception() is None]
+    try:
+        if len(parts) < len(jobs):
+            next(j.result() for j in jobs if j.exception() is not None)  # the first failure, raised
+        upload_photo_sets(parts)
+    finally:
+        for p in parts:
+            p.loader.close()
+            p.loader = None  # nothing is read again: drop the caller's photos' references
+            p.device_masks = None
     photos = DevicePhotos(parts, bounds)
     say("fit", f"photos: {photos.residency_reason}")
     return photos

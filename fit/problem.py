@@ -362,7 +362,7 @@ class PhotoSet:
     def __init__(self, frames: list[PhotoFrame], images, mesh_points: np.ndarray | None,
                  mesh_faces: np.ndarray | None, masks: list[np.ndarray | None] | None = None,
                  config: StreamConfig | None = None, device: str = "cpu", mesh_normals: np.ndarray | None = None,
-                 mesh_uvs: np.ndarray | None = None):
+                 mesh_uvs: np.ndarray | None = None, defer_upload: bool = False):
         """``images``: a list of (H, W, >=3) linear arrays, or a :class:`~texstream.fit.photo_stream.PhotoFiles`
         to read them from (masks then come from its mask paths). ``mesh_points=None`` (no geometry:
         single-view fits, fit/photometric_stereo.py) builds no depth or shadow maps: each photo's depth
@@ -371,7 +371,10 @@ class PhotoSet:
         (``StreamConfig.tap_geometry``).
 
         ``timings`` records the set-up's phases in seconds (upload, depth_maps, shadow_maps, other;
-        each phase ends with a device synchronisation so the figures are its own)."""
+        each phase ends with a device synchronisation so the figures are its own).
+
+        ``defer_upload`` (photos resident on the device): the device buffers only, with the loader kept
+        open; :func:`upload_photo_sets` fills them together with other devices' sets (the photo split)."""
         self.mesh_normals = self.mesh_uvs = None
         self.frames = list(frames)
         """the photos' :class:`PhotoFrame`s (a tile's actor builds its own set from them, fit/tiles_ray.py)"""
@@ -451,14 +454,19 @@ class PhotoSet:
         self.loader = PhotoLoader(images, masks, self.crops, sizes, cfg.decode_threads, decoder=cfg.photo_decoder)
         self._open_cache(cfg, fp16)
         self.timings["other"] += time.perf_counter() - t_start
+        if defer_upload and self.residency != "device":
+            raise ConfigError(f"a deferred upload needs the photos on the device, not {self.residency}",
+                              fix="set stream.photo_residency to device")
         try:
             if self.residency == "device":
-                self._init_device()
+                self._init_device(defer_upload)
             else:
                 self._init_windows()
         except BaseException:
             self.loader.close()  # its threads (and a bad photo's pending chunk) end with the set-up
             raise
+        if defer_upload:
+            return
         if self.residency != "disk":
             self.loader.close()
             self.loader = None  # nothing is read again: drop the caller's photos' references
@@ -565,87 +573,39 @@ class PhotoSet:
         step = max(1, MAX_LAUNCH_THREADS // max(pixels, 1))
         return [(j, min(step, count - j)) for j in range(0, count, step)]
 
-    def launch_depth_maps(self, first: int, count: int, masks, depth, use_masks: bool = True) -> None:
+    def launch_depth_maps(self, first: int, count: int, masks, depth, use_masks: bool = True,
+                          stream: wp.Stream | None = None) -> None:
         """Depth maps of photos first..first+count-1 into ``depth[0:count]`` (``masks`` likewise indexed,
-        applied when any photo has a mask and ``use_masks``)."""
+        applied when any photo has a mask and ``use_masks``), on ``stream`` (default: the device's)."""
         use = int(self.loader.has_masks and use_masks)
         for j, c in self._photo_chunks(count, self.hmax * self.wmax):
-            wp.launch(depth_maps_kernel, dim=(c, self.hmax, self.wmax), device=self.device,
+            wp.launch(depth_maps_kernel, dim=(c, self.hmax, self.wmax), device=self.device, stream=stream,
                       inputs=[self.mesh.id, self.infos, first + j, masks[j:j + c] if use else masks, use],
                       outputs=[depth[j:j + c]])
 
-    def launch_shadow_maps(self, first: int, count: int, shadow) -> None:
-        """Shadow maps of photos first..first+count-1 into ``shadow[0:count]``."""
+    def launch_shadow_maps(self, first: int, count: int, shadow, stream: wp.Stream | None = None) -> None:
+        """Shadow maps of photos first..first+count-1 into ``shadow[0:count]``, on ``stream``."""
         for j, c in self._photo_chunks(count, self.shadow_side ** 2):
             wp.launch(shadow_maps_kernel, dim=(c, self.shadow_side, self.shadow_side), device=self.device,
-                      inputs=[self.mesh.id, self.infos, first + j], outputs=[shadow[j:j + c]])
+                      stream=stream, inputs=[self.mesh.id, self.infos, first + j], outputs=[shadow[j:j + c]])
 
-    def _init_device(self) -> None:
+    def _init_device(self, defer_upload: bool = False) -> None:
         """All photos, depth and shadow maps on the device: photos filled in place on the CPU, or uploaded
-        in chunks through pinned buffers (:meth:`upload_staged`); then one depth-map and one shadow-map
-        launch over all photos."""
-        t0 = time.perf_counter()
+        in chunks through pinned buffers with the maps made beside them (:func:`upload_photo_sets`).
+        ``defer_upload``: the device buffers only, filled later by :func:`upload_photo_sets` with other
+        sets' photos (photos split over devices: the host crops all of them once, one pipeline)."""
         n, dev = self.n, self.device
         self.images = wp.empty((n, self.hmax, self.wmax), dtype=self.img_dtype, device=dev)
-        masks = self._masks_buffer(n, dev)
-        if dev == "cpu":  # the device's arrays are host memory: fill them in place
-            self.loader.fill(range(n), self.images.numpy(), masks.numpy() if self.loader.has_masks else None)
-        else:
-            self.upload_staged(self.images, masks)
-        self._sync()
-        self.timings["upload"] += time.perf_counter() - t0
+        self.device_masks = self._masks_buffer(n, dev)
+        """the photos' masks on the device while the depth maps are made (then dropped)"""
         self.depth = wp.empty((n, self.hmax, self.wmax), dtype=wp.float32, device=dev)
         self.shadow = wp.empty((n, self.shadow_side, self.shadow_side), dtype=wp.float32, device=dev)
-        self._maps(0, n, masks, self.depth, self.shadow)
+        if defer_upload:
+            return
+        upload_photo_sets([self])
         if self.cache_to_write is not None:
-            self._write_cache_from_device(masks)
-
-    def upload_staged(self, images: wp.array, masks: wp.array) -> None:
-        """Fill the device's ``images`` (n, hmax, wmax) and ``masks`` (when any photo has one) in chunks of
-        ~:data:`UPLOAD_CHUNK_BYTES` (:data:`ARRAY_UPLOAD_CHUNK_BYTES` for arrays): the loader's threads
-        crop each chunk into one of two host buffers (pinned for CUDA) while the other one's copy runs. The
-        buffers hold float32, as the photos come, and half-float photos are converted on the device: a plain
-        copy on the host is ~5x faster than numpy's float16 conversion, which would otherwise bound the
-        set-up (both round to nearest even, so the halves are the same)."""
-        n, dev, pix = self.n, self.device, self.hmax * self.wmax
-        # photos from the cache are already in the image precision: staged and copied as they are
-        half = self.img_dtype == wp.vec3h and not self.loader.cached()
-        pinned = dev != "cpu"
-        stage_dtype = wp.vec3 if half else self.img_dtype
-        chunk_bytes = UPLOAD_CHUNK_BYTES if self.loader.files else ARRAY_UPLOAD_CHUNK_BYTES
-        chunk = max(1, min(n, chunk_bytes // (pix * wp.types.type_size_in_bytes(stage_dtype))))
-        shape = (chunk, self.hmax, self.wmax)
-        stage = [wp.empty(shape, dtype=stage_dtype, device="cpu", pinned=pinned) for _ in range(2)]
-        stage_m = [self._masks_buffer(chunk, "cpu", pinned) for _ in range(2)]
-        landing = wp.empty(shape, dtype=wp.vec3, device=dev) if half else None
-        copied = [None, None]
-
-        def upload(b: int, c: int, slot: int, filling: list) -> None:
-            wait(filling)
-            if half:
-                wp.copy(landing, stage[slot], 0, 0, c * pix)
-                wp.launch(to_half_kernel, dim=(c, self.hmax, self.wmax), device=dev, inputs=[landing, b],
-                          outputs=[images])
-            else:
-                wp.copy(images, stage[slot], b * pix, 0, c * pix)
-            if self.loader.has_masks:
-                wp.copy(masks, stage_m[slot], b * pix, 0, c * pix)
-            if pinned:
-                copied[slot] = wp.get_stream(dev).record_event()
-
-        previous = None
-        for turn, b in enumerate(range(0, n, chunk)):
-            c, slot = min(chunk, n - b), turn % 2
-            if copied[slot] is not None:
-                wp.synchronize_event(copied[slot])  # this buffer's previous copy has left it
-            # the next chunk is decoded while the loader finishes this one: no decoder idles at a chunk's end
-            filling = self.loader.submit(range(b, b + c), stage[slot].numpy(),
-                                         stage_m[slot].numpy() if self.loader.has_masks else None)
-            if previous is not None:
-                upload(*previous)
-            previous = (b, c, slot, filling)
-        if previous is not None:
-            upload(*previous)
+            self._write_cache_from_device(self.device_masks)
+        self.device_masks = None
 
     def _init_windows(self) -> None:
         """Window-sized device buffers; for "host" residency also every photo and its maps in (pinned)
@@ -858,6 +818,113 @@ class PhotoSet:
         wp.launch(masked_depth_kernel, dim=(c, self.hmax, self.wmax), device=self.device,
                   inputs=[self.all_depth, b, self.window_masks], outputs=[self.depth])
         return self.images, self.depth, shadow
+
+
+def upload_photo_sets(sets: list[PhotoSet], in_place: bool | None = None) -> None:
+    """Fill the device photos of ``sets`` (each set up by ``_init_device``; one set, or one per device of a
+    photo split) and make their depth and shadow maps.
+
+    The photos go in chunks of ~:data:`UPLOAD_CHUNK_BYTES` (:data:`ARRAY_UPLOAD_CHUNK_BYTES` for arrays)
+    through two pinned host buffers shared by all sets: the sets' loaders crop one chunk while the previous
+    chunk's copy runs to its set's device. The host's cropping bounds this set-up, so with several sets it is
+    done once, one set after another, as for one set: a chunk's copy does not wait for another set's. The
+    buffers hold float32, as the photos come, and half-float photos are converted on the device: a plain
+    host copy is ~5x faster than numpy's float16 conversion (both round to nearest even, so the halves are
+    the same).
+
+    Beside the copies, on a second stream of each device, the shadow maps (which need no photo) run at
+    once and each chunk's depth maps as soon as its masks have landed. ``timings``: ``upload`` until every
+    copy is done; ``depth_maps`` what is left of both maps' work after it (``shadow_maps`` stays 0: it
+    runs within the upload). ``in_place``: CPU sets filled in place, no buffers (default: on the CPU);
+    False runs the pipeline there too (tests)."""
+    if in_place is None:
+        in_place = all(s.device == "cpu" for s in sets)
+    t0 = time.perf_counter()
+    if in_place:
+        for s in sets:
+            s.loader.fill(range(s.n), s.images.numpy(), s.device_masks.numpy() if s.loader.has_masks else None)
+        t1 = time.perf_counter()
+        for s in sets:
+            s.timings["upload"] += t1 - t0
+            s._maps(0, s.n, s.device_masks, s.depth, s.shadow)
+        return
+    # per set: whether its photos arrive as float32 for half-float storage, and its chunk of photos
+    half = [s.img_dtype == wp.vec3h and not s.loader.cached() for s in sets]
+    stage_types = {wp.vec3 if h else s.img_dtype for s, h in zip(sets, half)}
+    if len(stage_types) > 1:
+        raise ValueError("photo sets uploaded together must stage one pixel type")
+    stage_dtype = stage_types.pop()
+    pixel_bytes = wp.types.type_size_in_bytes(stage_dtype)
+    pixels = [s.hmax * s.wmax for s in sets]
+    chunks = [max(1, min(s.n, (UPLOAD_CHUNK_BYTES if s.loader.files else ARRAY_UPLOAD_CHUNK_BYTES) // (p * pixel_bytes)))
+              for s, p in zip(sets, pixels)]
+    size = max(c * p for c, p in zip(chunks, pixels))
+    pinned = any(s.device != "cpu" for s in sets)
+    stage = [wp.empty(size, dtype=stage_dtype, device="cpu", pinned=pinned) for _ in range(2)]
+    stage_m = [wp.empty(size, dtype=wp.uint8, device="cpu", pinned=pinned) for _ in range(2)]
+    landing = [wp.empty((c, s.hmax, s.wmax), dtype=wp.vec3, device=s.device) if h else None
+               for s, c, h in zip(sets, chunks, half)]
+    maps_streams = []
+    for s in sets:
+        if s.device == "cpu":  # synchronous launches
+            s.launch_shadow_maps(0, s.n, s.shadow)
+            maps_streams.append(None)
+            continue
+        ms = wp.Stream(s.device)
+        ms.wait_stream(wp.get_stream(s.device))  # the maps' buffers were allocated on the device's stream
+        s.launch_shadow_maps(0, s.n, s.shadow, stream=ms)
+        maps_streams.append(ms)
+    copied = [None, None]
+
+    def upload(i: int, b: int, c: int, slot: int, filling: list) -> None:
+        s, dev, pix = sets[i], sets[i].device, pixels[i]
+        wait(filling)
+        if half[i]:
+            wp.copy(landing[i], stage[slot], 0, 0, c * pix)
+            wp.launch(to_half_kernel, dim=(c, s.hmax, s.wmax), device=dev, inputs=[landing[i], b],
+                      outputs=[s.images])
+        else:
+            wp.copy(s.images, stage[slot], b * pix, 0, c * pix)
+        if s.loader.has_masks:
+            wp.copy(s.device_masks, stage_m[slot], b * pix, 0, c * pix)
+        if dev == "cpu":
+            s.launch_depth_maps(b, c, s.device_masks[b:b + c] if s.loader.has_masks else s.device_masks,
+                                s.depth[b:b + c])
+            return
+        copied[slot] = wp.get_stream(dev).record_event()
+        maps_streams[i].wait_event(copied[slot])  # this chunk's masks have landed
+        s.launch_depth_maps(b, c, s.device_masks[b:b + c] if s.loader.has_masks else s.device_masks,
+                            s.depth[b:b + c], stream=maps_streams[i])
+
+    previous, turn = None, 0
+    for i, s in enumerate(sets):
+        pix, chunk = pixels[i], chunks[i]
+        for b in range(0, s.n, chunk):
+            c, slot = min(chunk, s.n - b), turn % 2
+            turn += 1
+            if copied[slot] is not None:
+                wp.synchronize_event(copied[slot])  # this buffer's previous copy has left it
+            images = stage[slot].numpy()[:chunk * pix].reshape(chunk, s.hmax, s.wmax, -1)
+            masks = stage_m[slot].numpy()[:chunk * pix].reshape(chunk, s.hmax, s.wmax)
+            # the next chunk is cropped while the loader finishes this one: no thread idles at a chunk's end
+            filling = s.loader.submit(range(b, b + c), images, masks if s.loader.has_masks else None)
+            if previous is not None:
+                upload(*previous)
+            previous = (i, b, c, slot, filling)
+    if previous is not None:
+        upload(*previous)
+    for s in sets:
+        if s.device != "cpu":
+            wp.synchronize_stream(wp.get_stream(s.device))
+    t1 = time.perf_counter()
+    for s, ms in zip(sets, maps_streams):
+        if ms is not None:
+            wp.get_stream(s.device).wait_stream(ms)  # later work on the device's stream sees the maps
+            wp.synchronize_stream(ms)
+    t2 = time.perf_counter()
+    for s in sets:
+        s.timings["upload"] += t1 - t0
+        s.timings["depth_maps"] += t2 - t1
 
 
 def exposure_mean_square(photos) -> float:

@@ -276,30 +276,47 @@ def test_subsets_of_a_disk_stream_interleave_with_it(disk_scene, device, keep_ma
 
 @pytest.mark.parametrize("precision", ["fp16", "fp32"])
 def test_staged_upload_gives_the_cropped_photos(scene, device, precision):
-    """The chunked upload through two host buffers (the CUDA set-up) gives each photo's crop, zero
-    padded, in the image precision: half floats converted on the device round to nearest even as
-    numpy does, so the bits are numpy's."""
+    """The chunked upload through two host buffers (the CUDA set-up, here also run on the CPU) gives each
+    photo's crop, zero padded, in the image precision: half floats converted on the device round to
+    nearest even as numpy does, so the bits are numpy's. The depth and shadow maps made beside it, a
+    chunk at a time on a stream of their own, equal the set's (one launch each, after the upload); so do
+    two sets uploaded together through the same buffers (the photo split's upload)."""
     import texstream.fit.problem as problem
 
-    ps = photo_set(scene, device, image_precision=precision)
-    ps.loader = problem.PhotoLoader(scene[3], scene[4], ps.crops, ps.sizes)
-    images = wp.empty((ps.n, ps.hmax, ps.wmax), dtype=ps.img_dtype, device=device)
-    masks = wp.empty((ps.n, ps.hmax, ps.wmax), dtype=wp.uint8, device=device)
-    saved = problem.ARRAY_UPLOAD_CHUNK_BYTES  # the photos are arrays
-    problem.ARRAY_UPLOAD_CHUNK_BYTES = 3 * ps.hmax * ps.wmax * 12  # chunks of 3 photos: both buffers, a short last one
-    try:
-        ps.upload_staged(images, masks)
-    finally:
-        problem.ARRAY_UPLOAD_CHUNK_BYTES = saved
-        ps.loader.close()
-    want = np.zeros((ps.n, ps.hmax, ps.wmax, 3), np.float16 if precision == "fp16" else np.float32)
-    want_m = np.zeros(masks.shape, np.uint8)
-    for k, (x0, y0, w, h) in enumerate(ps.crops):
+    ref = photo_set(scene, device, image_precision=precision)
+    want = np.zeros((ref.n, ref.hmax, ref.wmax, 3), np.float16 if precision == "fp16" else np.float32)
+    want_m = np.zeros((ref.n, ref.hmax, ref.wmax), np.uint8)
+    for k, (x0, y0, w, h) in enumerate(ref.crops):
         want[k, :h, :w] = scene[3][k][y0:y0 + h, x0:x0 + w, :3]
         want_m[k, :h, :w] = scene[4][k][y0:y0 + h, x0:x0 + w]
-    np.testing.assert_array_equal(images.numpy(), want)
-    np.testing.assert_array_equal(ps.images.numpy(), want)
-    np.testing.assert_array_equal(masks.numpy(), want_m)
+    np.testing.assert_array_equal(ref.images.numpy(), want)
+    halves = [(0, ref.n // 2), (ref.n // 2, ref.n)]
+    layouts = {"one set": [(0, ref.n)], "two sets": halves}
+    saved = problem.ARRAY_UPLOAD_CHUNK_BYTES  # the photos are arrays
+    # chunks of 3 photos: both buffers, a short last one, and a set's first chunk in either buffer
+    problem.ARRAY_UPLOAD_CHUNK_BYTES = 3 * ref.hmax * ref.wmax * 12
+    try:
+        for name, runs in layouts.items():
+            sets = []
+            for b, e in runs:
+                ps = ref.subset(range(b, e))
+                ps.loader = problem.PhotoLoader(scene[3][b:e], scene[4][b:e], ps.crops, ps.sizes)
+                ps.timings = dict.fromkeys(ref.timings, 0.0)
+                ps._init_device(defer_upload=True)
+                sets.append(ps)
+            try:
+                problem.upload_photo_sets(sets, in_place=False)
+            finally:
+                for ps in sets:
+                    ps.loader.close()
+            for ps, (b, e) in zip(sets, runs):
+                np.testing.assert_array_equal(ps.images.numpy(), want[b:e], err_msg=name)
+                np.testing.assert_array_equal(ps.device_masks.numpy(), want_m[b:e], err_msg=name)
+                np.testing.assert_array_equal(ps.depth.numpy(), ref.depth.numpy()[b:e], err_msg=name)
+                np.testing.assert_array_equal(ps.shadow.numpy(), ref.shadow.numpy()[b:e], err_msg=name)
+                assert ps.timings["upload"] > 0, name
+    finally:
+        problem.ARRAY_UPLOAD_CHUNK_BYTES = saved
 
 
 def test_maps_launched_in_chunks_equal_one_launch(scene, device, monkeypatch):
