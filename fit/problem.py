@@ -827,16 +827,16 @@ def upload_photo_sets(sets: list[PhotoSet], in_place: bool | None = None) -> Non
     The photos go in chunks of ~:data:`UPLOAD_CHUNK_BYTES` (:data:`ARRAY_UPLOAD_CHUNK_BYTES` for arrays)
     through two pinned host buffers shared by all sets: the sets' loaders crop one chunk while the previous
     chunk's copy runs to its set's device. The host's cropping bounds this set-up, so with several sets it is
-    done once, one set after another, as for one set: a chunk's copy does not wait for another set's. The
-    buffers hold float32, as the photos come, and half-float photos are converted on the device: a plain
-    host copy is ~5x faster than numpy's float16 conversion (both round to nearest even, so the halves are
-    the same).
+    done once, one set after another, as for one set: no set's copies compete with another's. The buffers
+    hold float32, as the photos come, and half-float photos are converted on the device: a plain host copy
+    is ~5x faster than numpy's float16 conversion (both round to nearest even, so the halves are the same).
 
-    Beside the copies, on a second stream of each device, the shadow maps (which need no photo) run at
-    once and each chunk's depth maps as soon as its masks have landed. ``timings``: ``upload`` until every
-    copy is done; ``depth_maps`` what is left of both maps' work after it (``shadow_maps`` stays 0: it
-    runs within the upload). ``in_place``: CPU sets filled in place, no buffers (default: on the CPU);
-    False runs the pipeline there too (tests)."""
+    On CUDA the copies and conversions run on a high-priority stream of their own, so the maps, made
+    meanwhile on the device's stream, never hold a buffer the host waits for: the shadow maps (which need
+    no photo) at once, each chunk's depth maps as soon as its masks have landed. ``timings``: ``upload``
+    until every copy is done; ``depth_maps`` what is left of both maps' work after it (``shadow_maps``
+    stays 0: it runs within the upload). ``in_place``: CPU sets filled in place, no buffers (default: on
+    the CPU); False runs the pipeline there too (tests)."""
     if in_place is None:
         in_place = all(s.device == "cpu" for s in sets)
     t0 = time.perf_counter()
@@ -862,39 +862,40 @@ def upload_photo_sets(sets: list[PhotoSet], in_place: bool | None = None) -> Non
     pinned = any(s.device != "cpu" for s in sets)
     stage = [wp.empty(size, dtype=stage_dtype, device="cpu", pinned=pinned) for _ in range(2)]
     stage_m = [wp.empty(size, dtype=wp.uint8, device="cpu", pinned=pinned) for _ in range(2)]
-    landing = [wp.empty((c, s.hmax, s.wmax), dtype=wp.vec3, device=s.device) if h else None
+    # per set and buffer, where a chunk lands on the device before its conversion to half floats
+    landing = [[wp.empty((c, s.hmax, s.wmax), dtype=wp.vec3, device=s.device) for _ in range(2)] if h else None
                for s, c, h in zip(sets, chunks, half)]
-    maps_streams = []
+    streams = []  # per set: (the device's stream: maps; the upload's), None on the CPU (synchronous)
     for s in sets:
-        if s.device == "cpu":  # synchronous launches
+        if s.device == "cpu":
             s.launch_shadow_maps(0, s.n, s.shadow)
-            maps_streams.append(None)
+            streams.append((None, None))
             continue
-        ms = wp.Stream(s.device)
-        ms.wait_stream(wp.get_stream(s.device))  # the maps' buffers were allocated on the device's stream
-        s.launch_shadow_maps(0, s.n, s.shadow, stream=ms)
-        maps_streams.append(ms)
+        main = wp.get_stream(s.device)
+        up = wp.Stream(s.device, priority=-1)
+        up.wait_stream(main)  # the buffers were allocated on the device's stream
+        s.launch_shadow_maps(0, s.n, s.shadow, stream=main)
+        streams.append((main, up))
     copied = [None, None]
 
     def upload(i: int, b: int, c: int, slot: int, filling: list) -> None:
-        s, dev, pix = sets[i], sets[i].device, pixels[i]
+        s, pix = sets[i], pixels[i]
+        main, up = streams[i]
         wait(filling)
         if half[i]:
-            wp.copy(landing[i], stage[slot], 0, 0, c * pix)
-            wp.launch(to_half_kernel, dim=(c, s.hmax, s.wmax), device=dev, inputs=[landing[i], b],
-                      outputs=[s.images])
+            wp.copy(landing[i][slot], stage[slot], 0, 0, c * pix, stream=up)
         else:
-            wp.copy(s.images, stage[slot], b * pix, 0, c * pix)
+            wp.copy(s.images, stage[slot], b * pix, 0, c * pix, stream=up)
         if s.loader.has_masks:
-            wp.copy(s.device_masks, stage_m[slot], b * pix, 0, c * pix)
-        if dev == "cpu":
-            s.launch_depth_maps(b, c, s.device_masks[b:b + c] if s.loader.has_masks else s.device_masks,
-                                s.depth[b:b + c])
-            return
-        copied[slot] = wp.get_stream(dev).record_event()
-        maps_streams[i].wait_event(copied[slot])  # this chunk's masks have landed
+            wp.copy(s.device_masks, stage_m[slot], b * pix, 0, c * pix, stream=up)
+        if up is not None:
+            copied[slot] = up.record_event()  # the host buffer is free again
+            main.wait_event(copied[slot])  # this chunk's masks have landed
+        if half[i]:
+            wp.launch(to_half_kernel, dim=(c, s.hmax, s.wmax), device=s.device, stream=up,
+                      inputs=[landing[i][slot], b], outputs=[s.images])
         s.launch_depth_maps(b, c, s.device_masks[b:b + c] if s.loader.has_masks else s.device_masks,
-                            s.depth[b:b + c], stream=maps_streams[i])
+                            s.depth[b:b + c], stream=main)
 
     previous, turn = None, 0
     for i, s in enumerate(sets):
@@ -913,14 +914,14 @@ def upload_photo_sets(sets: list[PhotoSet], in_place: bool | None = None) -> Non
             previous = (i, b, c, slot, filling)
     if previous is not None:
         upload(*previous)
-    for s in sets:
-        if s.device != "cpu":
-            wp.synchronize_stream(wp.get_stream(s.device))
+    for main, up in streams:
+        if up is not None:
+            wp.synchronize_stream(up)
     t1 = time.perf_counter()
-    for s, ms in zip(sets, maps_streams):
-        if ms is not None:
-            wp.get_stream(s.device).wait_stream(ms)  # later work on the device's stream sees the maps
-            wp.synchronize_stream(ms)
+    for main, up in streams:
+        if up is not None:
+            main.wait_stream(up)  # later work on the device's stream sees the photos
+            wp.synchronize_stream(main)
     t2 = time.perf_counter()
     for s in sets:
         s.timings["upload"] += t1 - t0
