@@ -573,21 +573,20 @@ class PhotoSet:
         step = max(1, MAX_LAUNCH_THREADS // max(pixels, 1))
         return [(j, min(step, count - j)) for j in range(0, count, step)]
 
-    def launch_depth_maps(self, first: int, count: int, masks, depth, use_masks: bool = True,
-                          stream: wp.Stream | None = None) -> None:
+    def launch_depth_maps(self, first: int, count: int, masks, depth, use_masks: bool = True) -> None:
         """Depth maps of photos first..first+count-1 into ``depth[0:count]`` (``masks`` likewise indexed,
-        applied when any photo has a mask and ``use_masks``), on ``stream`` (default: the device's)."""
+        applied when any photo has a mask and ``use_masks``)."""
         use = int(self.loader.has_masks and use_masks)
         for j, c in self._photo_chunks(count, self.hmax * self.wmax):
-            wp.launch(depth_maps_kernel, dim=(c, self.hmax, self.wmax), device=self.device, stream=stream,
+            wp.launch(depth_maps_kernel, dim=(c, self.hmax, self.wmax), device=self.device,
                       inputs=[self.mesh.id, self.infos, first + j, masks[j:j + c] if use else masks, use],
                       outputs=[depth[j:j + c]])
 
-    def launch_shadow_maps(self, first: int, count: int, shadow, stream: wp.Stream | None = None) -> None:
-        """Shadow maps of photos first..first+count-1 into ``shadow[0:count]``, on ``stream``."""
+    def launch_shadow_maps(self, first: int, count: int, shadow) -> None:
+        """Shadow maps of photos first..first+count-1 into ``shadow[0:count]``."""
         for j, c in self._photo_chunks(count, self.shadow_side ** 2):
             wp.launch(shadow_maps_kernel, dim=(c, self.shadow_side, self.shadow_side), device=self.device,
-                      stream=stream, inputs=[self.mesh.id, self.infos, first + j], outputs=[shadow[j:j + c]])
+                      inputs=[self.mesh.id, self.infos, first + j], outputs=[shadow[j:j + c]])
 
     def _init_device(self, defer_upload: bool = False) -> None:
         """All photos, depth and shadow maps on the device: photos filled in place on the CPU, or uploaded
@@ -822,32 +821,47 @@ class PhotoSet:
 
 def upload_photo_sets(sets: list[PhotoSet], in_place: bool | None = None) -> None:
     """Fill the device photos of ``sets`` (each set up by ``_init_device``; one set, or one per device of a
-    photo split) and make their depth and shadow maps.
+    photo split), then make their depth and shadow maps (every set's at once, each on its device).
 
     The photos go in chunks of ~:data:`UPLOAD_CHUNK_BYTES` (:data:`ARRAY_UPLOAD_CHUNK_BYTES` for arrays)
     through two pinned host buffers shared by all sets: the sets' loaders crop one chunk while the previous
     chunk's copy runs to its set's device. The host's cropping bounds this set-up, so with several sets it is
-    done once, one set after another, as for one set: no set's copies compete with another's. The buffers
-    hold float32, as the photos come, and half-float photos are converted on the device: a plain host copy
-    is ~5x faster than numpy's float16 conversion (both round to nearest even, so the halves are the same).
-
-    On CUDA the copies and conversions run on a high-priority stream of their own, so the maps, made
-    meanwhile on the device's stream, never hold a buffer the host waits for: the shadow maps (which need
-    no photo) at once, each chunk's depth maps as soon as its masks have landed. ``timings``: ``upload``
-    until every copy is done; ``depth_maps`` what is left of both maps' work after it (``shadow_maps``
-    stays 0: it runs within the upload). ``in_place``: CPU sets filled in place, no buffers (default: on
-    the CPU); False runs the pipeline there too (tests)."""
+    done once, one set after another, as for one set: no set's crops compete with another's for the host's
+    memory and threads. The buffers hold float32, as the photos come, and half-float photos are converted
+    on the device: a plain host copy is ~5x faster than numpy's float16 conversion (both round to nearest
+    even, so the halves are the same). Everything runs on each device's stream. ``in_place``: CPU sets
+    filled in place, no buffers (default: on the CPU); False runs the pipeline there too (tests)."""
     if in_place is None:
         in_place = all(s.device == "cpu" for s in sets)
     t0 = time.perf_counter()
     if in_place:
         for s in sets:
             s.loader.fill(range(s.n), s.images.numpy(), s.device_masks.numpy() if s.loader.has_masks else None)
-        t1 = time.perf_counter()
-        for s in sets:
-            s.timings["upload"] += t1 - t0
-            s._maps(0, s.n, s.device_masks, s.depth, s.shadow)
-        return
+    else:
+        _upload_in_chunks(sets)
+    devices = sorted({s.device for s in sets})
+    for d in devices:
+        wp.synchronize_device(d)
+    t1 = time.perf_counter()
+    for s in sets:
+        s.launch_depth_maps(0, s.n, s.device_masks, s.depth)
+    for d in devices:
+        wp.synchronize_device(d)
+    t2 = time.perf_counter()
+    for s in sets:
+        s.launch_shadow_maps(0, s.n, s.shadow)
+    for d in devices:
+        wp.synchronize_device(d)
+    t3 = time.perf_counter()
+    for s in sets:
+        s.timings["upload"] += t1 - t0
+        s.timings["depth_maps"] += t2 - t1
+        s.timings["shadow_maps"] += t3 - t2
+
+
+def _upload_in_chunks(sets: list[PhotoSet]) -> None:
+    """:func:`upload_photo_sets`'s pipeline: the sets' photos, one set after another, through two shared host
+    buffers (pinned where a set is on CUDA)."""
     # per set: whether its photos arrive as float32 for half-float storage, and its chunk of photos
     half = [s.img_dtype == wp.vec3h and not s.loader.cached() for s in sets]
     stage_types = {wp.vec3 if h else s.img_dtype for s, h in zip(sets, half)}
@@ -862,40 +876,24 @@ def upload_photo_sets(sets: list[PhotoSet], in_place: bool | None = None) -> Non
     pinned = any(s.device != "cpu" for s in sets)
     stage = [wp.empty(size, dtype=stage_dtype, device="cpu", pinned=pinned) for _ in range(2)]
     stage_m = [wp.empty(size, dtype=wp.uint8, device="cpu", pinned=pinned) for _ in range(2)]
-    # per set and buffer, where a chunk lands on the device before its conversion to half floats
-    landing = [[wp.empty((c, s.hmax, s.wmax), dtype=wp.vec3, device=s.device) for _ in range(2)] if h else None
+    # per set, where a chunk lands on its device before the conversion to half floats
+    landing = [wp.empty((c, s.hmax, s.wmax), dtype=wp.vec3, device=s.device) if h else None
                for s, c, h in zip(sets, chunks, half)]
-    streams = []  # per set: (the device's stream: maps; the upload's), None on the CPU (synchronous)
-    for s in sets:
-        if s.device == "cpu":
-            s.launch_shadow_maps(0, s.n, s.shadow)
-            streams.append((None, None))
-            continue
-        main = wp.get_stream(s.device)
-        up = wp.Stream(s.device, priority=-1)
-        up.wait_stream(main)  # the buffers were allocated on the device's stream
-        s.launch_shadow_maps(0, s.n, s.shadow, stream=main)
-        streams.append((main, up))
     copied = [None, None]
 
     def upload(i: int, b: int, c: int, slot: int, filling: list) -> None:
         s, pix = sets[i], pixels[i]
-        main, up = streams[i]
         wait(filling)
         if half[i]:
-            wp.copy(landing[i][slot], stage[slot], 0, 0, c * pix, stream=up)
+            wp.copy(landing[i], stage[slot], 0, 0, c * pix)
+            wp.launch(to_half_kernel, dim=(c, s.hmax, s.wmax), device=s.device, inputs=[landing[i], b],
+                      outputs=[s.images])
         else:
-            wp.copy(s.images, stage[slot], b * pix, 0, c * pix, stream=up)
+            wp.copy(s.images, stage[slot], b * pix, 0, c * pix)
         if s.loader.has_masks:
-            wp.copy(s.device_masks, stage_m[slot], b * pix, 0, c * pix, stream=up)
-        if up is not None:
-            copied[slot] = up.record_event()  # the host buffer is free again
-            main.wait_event(copied[slot])  # this chunk's masks have landed
-        if half[i]:
-            wp.launch(to_half_kernel, dim=(c, s.hmax, s.wmax), device=s.device, stream=up,
-                      inputs=[landing[i][slot], b], outputs=[s.images])
-        s.launch_depth_maps(b, c, s.device_masks[b:b + c] if s.loader.has_masks else s.device_masks,
-                            s.depth[b:b + c], stream=main)
+            wp.copy(s.device_masks, stage_m[slot], b * pix, 0, c * pix)
+        if s.device != "cpu":
+            copied[slot] = wp.get_stream(s.device).record_event()
 
     previous, turn = None, 0
     for i, s in enumerate(sets):
@@ -914,18 +912,6 @@ def upload_photo_sets(sets: list[PhotoSet], in_place: bool | None = None) -> Non
             previous = (i, b, c, slot, filling)
     if previous is not None:
         upload(*previous)
-    for main, up in streams:
-        if up is not None:
-            wp.synchronize_stream(up)
-    t1 = time.perf_counter()
-    for main, up in streams:
-        if up is not None:
-            main.wait_stream(up)  # later work on the device's stream sees the photos
-            wp.synchronize_stream(main)
-    t2 = time.perf_counter()
-    for s in sets:
-        s.timings["upload"] += t1 - t0
-        s.timings["depth_maps"] += t2 - t1
 
 
 def exposure_mean_square(photos) -> float:

@@ -278,9 +278,8 @@ def test_subsets_of_a_disk_stream_interleave_with_it(disk_scene, device, keep_ma
 def test_staged_upload_gives_the_cropped_photos(scene, device, precision):
     """The chunked upload through two host buffers (the CUDA set-up, here also run on the CPU) gives each
     photo's crop, zero padded, in the image precision: half floats converted on the device round to
-    nearest even as numpy does, so the bits are numpy's. The depth and shadow maps made beside it, a
-    chunk at a time on a stream of their own, equal the set's (one launch each, after the upload); so do
-    two sets uploaded together through the same buffers (the photo split's upload)."""
+    nearest even as numpy does, so the bits are numpy's; the depth and shadow maps equal the set's. So
+    do two sets uploaded together through the same buffers (the photo split's upload)."""
     import texstream.fit.problem as problem
 
     ref = photo_set(scene, device, image_precision=precision)
