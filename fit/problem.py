@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import threading
 import time
 
 import numpy as np
@@ -352,6 +353,21 @@ def _vec_types(acc: str, n_params: int):
     return (scalars[acc], *param_types(n_params, scalars[acc]))
 
 
+_MESH_BUILD_LOCK = threading.Lock()
+
+
+def build_mesh(points: wp.array, indices: wp.array) -> wp.Mesh:
+    """A ``wp.Mesh`` (its BVH built on the points' device), one build at a time in this process, finished
+    before the next starts. Warp sorts during a build in a temporary buffer shared by the builds on a
+    device, held in a table without a lock: two threads building at once (the photo split's parts, one per
+    thread) corrupted each other's BVH, which showed as illegal memory accesses or a set-up that never
+    ended."""
+    with _MESH_BUILD_LOCK:
+        mesh = wp.Mesh(points=points, indices=indices)
+        wp.synchronize_device(points.device)
+    return mesh
+
+
 class PhotoSet:
     """Photos, depth maps and shadow maps where the passes read them: on the device, in (pinned)
     host memory uploaded a window per pass, or decoded from the capture's files a window per pass
@@ -398,8 +414,8 @@ class PhotoSet:
         self.files = isinstance(images, PhotoFiles)
         self.mesh_arrays = (mesh_points, mesh_faces, mesh_normals, mesh_uvs)
         """the mesh as given (another process builds the same set from them, fit/tiles_ray.py)"""
-        self.mesh = wp.Mesh(points=wp.array(np.asarray(mesh_points, np.float32), dtype=wp.vec3, device=device),
-                            indices=wp.array(np.asarray(mesh_faces, np.int32).reshape(-1), dtype=wp.int32, device=device))
+        self.mesh = build_mesh(wp.array(np.asarray(mesh_points, np.float32), dtype=wp.vec3, device=device),
+                               wp.array(np.asarray(mesh_faces, np.int32).reshape(-1), dtype=wp.int32, device=device))
         if mesh_normals is not None and mesh_uvs is not None:
             self.mesh_normals = wp.array(np.asarray(mesh_normals, np.float32), dtype=wp.vec3, device=device)
             self.mesh_uvs = wp.array(np.asarray(mesh_uvs, np.float32), dtype=wp.vec2, device=device)
@@ -717,8 +733,7 @@ class PhotoSet:
         out.infos = struct_array(out.infos_host, stream.ImageInfo, dev)
         if dev != self.device:
             out.device = dev
-            out.mesh = wp.Mesh(points=wp.clone(self.mesh.points, device=dev),
-                               indices=wp.clone(self.mesh.indices, device=dev))
+            out.mesh = build_mesh(wp.clone(self.mesh.points, device=dev), wp.clone(self.mesh.indices, device=dev))
             if self.mesh_normals is not None:
                 out.mesh_normals = wp.clone(self.mesh_normals, device=dev)
                 out.mesh_uvs = wp.clone(self.mesh_uvs, device=dev)
