@@ -927,6 +927,10 @@ def _upload_in_chunks(sets: list[PhotoSet]) -> None:
             previous = (i, b, c, slot, filling)
     if previous is not None:
         upload(*previous)
+    # the pinned buffers are freed on return: every copy reading them done first (freeing pinned memory
+    # waits only for the calling thread's current device, not for a copy to another one)
+    for d in sorted({s.device for s in sets}):
+        wp.synchronize_device(d)
 
 
 def exposure_mean_square(photos) -> float:
