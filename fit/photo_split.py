@@ -9,8 +9,8 @@ sums; the first device copies the others' partials after its own and adds all of
 order of :func:`~texstream.fit.kernels.stream.reduce_partials_kernel`, then steps every texel
 itself (:class:`~texstream.fit.problem.StreamProblem` ``peers``). Between devices only the
 parameters (to the others, before a pass) and the partial sums (back) travel, device to device (peer
-copies over NVLink where there is one); as the tiles' halo exchange, a copy waits for its source
-device to be synchronised.
+copies over NVLink where there is one). A copy runs on its source device's stream, and that device
+is synchronised before the other device's work reads it.
 
 Summation order: device d's photos are the run [d c, (d+1) c) with c = ceil(photos / devices), one
 device's photo groups after another's. That is the order of one device with ``devices`` x

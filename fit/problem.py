@@ -933,6 +933,11 @@ def _upload_in_chunks(sets: list[PhotoSet]) -> None:
         wp.synchronize_device(d)
 
 
+def _stream_of(device: str):
+    """The device's current stream (None on the CPU, whose copies are synchronous)."""
+    return None if device == "cpu" else wp.get_stream(device)
+
+
 def exposure_mean_square(photos) -> float:
     """The photos' mean squared exposure (1 for none): the view prior's unit (:meth:`StreamProblem.set_view_prior`)."""
     exposures = np.asarray(getattr(photos, "exposures", [1.0]), np.float64)
@@ -1273,35 +1278,43 @@ class StreamProblem:
 
     def _to_peers(self, **arrays) -> list[dict]:
         """Per peer, ``arrays`` (this device's; None passes through) as that peer reads them: the same arrays
-        on the same device, else copies on its device. As the tiles' halo exchange (fit/tiles.py): this device
-        is synchronised first (the arrays written), then each copy runs on the peer's stream, ahead of the
-        peer's launches that read it."""
-        out = []
+        on the same device, else copies on its device. A copy runs on this (the source) device's stream,
+        after the work that wrote the array, and this device is synchronised before the peers' launches
+        read it (the tiles' halo exchange, fit/tiles.py, orders its copies by host synchronisations too)."""
+        out, copied = [], False
         for peer in self.peers:
             if self._same_device(peer):
                 out.append(dict(arrays))
                 continue
-            wp.synchronize_device(self.device)
             mirrored = {}
             for name, a in arrays.items():
                 if a is not None:
                     buf = peer._mirrors.get(name)
                     if buf is None or buf.shape != a.shape or buf.dtype != a.dtype:
                         buf = peer._mirrors[name] = wp.empty(a.shape, dtype=a.dtype, device=peer.device)
-                    wp.copy(buf, a)  # the destination's (peer's) stream
+                        wp.synchronize_device(peer.device)  # allocated on the peer's stream: ready for another's
+                    wp.copy(buf, a, stream=_stream_of(self.device))
+                    copied = True
                     a = buf
                 mirrored[name] = a
             out.append(mirrored)
+        if copied:
+            wp.synchronize_device(self.device)
         return out
 
     def _from_peer(self, peer: "StreamProblem", pairs, count: int, offset: int) -> None:
         """Copy ``count`` elements of each (peer's array, this problem's array) in ``pairs`` to this one's
-        element ``offset``, on this device's stream, ahead of the launches that read them: from another
-        device once that device is synchronised (the peer's launches done)."""
-        if not self._same_device(peer):
-            wp.synchronize_device(peer.device)
+        element ``offset``, ahead of this device's launches that read them: from another device on that
+        device's stream (after its launches that wrote them), once this device's queued work is done (its
+        arrays written), then that device synchronised."""
+        if self._same_device(peer):
+            for theirs, mine in pairs:
+                wp.copy(mine, theirs, offset, 0, count)
+            return
+        wp.synchronize_device(self.device)
         for theirs, mine in pairs:
-            wp.copy(mine, theirs, offset, 0, count)
+            wp.copy(mine, theirs, offset, 0, count, stream=_stream_of(peer.device))
+        wp.synchronize_device(peer.device)
 
     def _gather_from_peers(self, names: list[str], count: int) -> None:
         """Each peer's first ``count`` elements of the partial arrays ``names`` after this problem's own (peer
