@@ -836,7 +836,8 @@ class PhotoSet:
 
 def upload_photo_sets(sets: list[PhotoSet], in_place: bool | None = None) -> None:
     """Fill the device photos of ``sets`` (each set up by ``_init_device``; one set, or one per device of a
-    photo split), then make their depth and shadow maps (every set's at once, each on its device).
+    photo split), then make their depth and shadow maps (each on its set's device, at once; a split's sets
+    before the last beside the upload, see :func:`_upload_in_chunks`).
 
     The photos go in chunks of ~:data:`UPLOAD_CHUNK_BYTES` (:data:`ARRAY_UPLOAD_CHUNK_BYTES` for arrays)
     through two pinned host buffers shared by all sets: the sets' loaders crop one chunk while the previous
@@ -844,26 +845,30 @@ def upload_photo_sets(sets: list[PhotoSet], in_place: bool | None = None) -> Non
     done once, one set after another, as for one set: no set's crops compete with another's for the host's
     memory and threads. The buffers hold float32, as the photos come, and half-float photos are converted
     on the device: a plain host copy is ~5x faster than numpy's float16 conversion (both round to nearest
-    even, so the halves are the same). Everything runs on each device's stream. ``in_place``: CPU sets
-    filled in place, no buffers (default: on the CPU); False runs the pipeline there too (tests)."""
+    even, so the halves are the same). Everything runs on each device's stream. ``timings``: ``upload``
+    until every copy is done (with the maps made beside it), then ``depth_maps`` and ``shadow_maps`` of the
+    other sets. ``in_place``: CPU sets filled in place, no buffers (default: on the CPU); False runs the
+    pipeline there too (tests)."""
     if in_place is None:
         in_place = all(s.device == "cpu" for s in sets)
     t0 = time.perf_counter()
+    mapped = set()
     if in_place:
         for s in sets:
             s.loader.fill(range(s.n), s.images.numpy(), s.device_masks.numpy() if s.loader.has_masks else None)
     else:
-        _upload_in_chunks(sets)
+        mapped = _upload_in_chunks(sets)
     devices = sorted({s.device for s in sets})
     for d in devices:
         wp.synchronize_device(d)
     t1 = time.perf_counter()
-    for s in sets:
+    rest = [s for i, s in enumerate(sets) if i not in mapped]
+    for s in rest:
         s.launch_depth_maps(0, s.n, s.device_masks, s.depth)
     for d in devices:
         wp.synchronize_device(d)
     t2 = time.perf_counter()
-    for s in sets:
+    for s in rest:
         s.launch_shadow_maps(0, s.n, s.shadow)
     for d in devices:
         wp.synchronize_device(d)
@@ -874,9 +879,11 @@ def upload_photo_sets(sets: list[PhotoSet], in_place: bool | None = None) -> Non
         s.timings["shadow_maps"] += t3 - t2
 
 
-def _upload_in_chunks(sets: list[PhotoSet]) -> None:
+def _upload_in_chunks(sets: list[PhotoSet]) -> set:
     """:func:`upload_photo_sets`'s pipeline: the sets' photos, one set after another, through two shared host
-    buffers (pinned where a set is on CUDA)."""
+    buffers (pinned where a set is on CUDA). A CUDA set before the last whose device no later set uses gets
+    its depth and shadow maps launched as soon as its last chunk is queued: they run on its device while the host crops
+    the next sets' photos (on one device they would hold up the copies). Returns the indices of those sets."""
     # per set: whether its photos arrive as float32 for half-float storage, and its chunk of photos
     half = [s.img_dtype == wp.vec3h and not s.loader.cached() for s in sets]
     stage_types = {wp.vec3 if h else s.img_dtype for s, h in zip(sets, half)}
@@ -909,7 +916,13 @@ def _upload_in_chunks(sets: list[PhotoSet]) -> None:
             wp.copy(s.device_masks, stage_m[slot], b * pix, 0, c * pix)
         if s.device != "cpu":
             copied[slot] = wp.get_stream(s.device).record_event()
+        later = sets[i + 1:]
+        if b + c == s.n and s.device != "cpu" and later and all(o.device != s.device for o in later):
+            s.launch_depth_maps(0, s.n, s.device_masks, s.depth)
+            s.launch_shadow_maps(0, s.n, s.shadow)
+            mapped.add(i)
 
+    mapped = set()
     previous, turn = None, 0
     for i, s in enumerate(sets):
         pix, chunk = pixels[i], chunks[i]
@@ -931,6 +944,7 @@ def _upload_in_chunks(sets: list[PhotoSet]) -> None:
     # waits only for the calling thread's current device, not for a copy to another one)
     for d in sorted({s.device for s in sets}):
         wp.synchronize_device(d)
+    return mapped
 
 
 def _stream_of(device: str):

@@ -67,14 +67,15 @@ class FitState:
         n = pr.n
         dev = pr.device
         p0 = energy_bound_numpy(np.clip(p0, lay.lower(), lay.upper()), lay, lobe_albedo_max)
+        p = pr.new_vec(p0)  # uploaded once; the trial and previous points start as device copies of it
         st = FitState(
-            problem=pr, p=pr.new_vec(p0), f=pr.new_scalar(), g=pr.new_vec(),
+            problem=pr, p=p, f=pr.new_scalar(), g=pr.new_vec(),
             stats=wp.zeros(n, dtype=wp.vec4d, device=dev), d=pr.new_vec(), alpha=pr.new_scalar(1.0),
             prev_alpha=pr.new_scalar(1.0), slope=pr.new_scalar(), prev_slope=pr.new_scalar(),
-            dhd=pr.new_scalar(), trial=pr.new_vec(p0), f_trial=pr.new_scalar(), g_trial=pr.new_vec(),
+            dhd=pr.new_scalar(), trial=wp.clone(p), f_trial=pr.new_scalar(), g_trial=pr.new_vec(),
             stats_trial=wp.zeros(n, dtype=wp.vec4d, device=dev), storage=pr.new_storage(p0),
             active=wp.zeros(n, dtype=wp.int32, device=dev), accepted=wp.zeros(n, dtype=wp.int32, device=dev),
-            valid=wp.ones(n, dtype=wp.int32, device=dev), p_old=pr.new_vec(p0), g_old=pr.new_vec(),
+            valid=wp.ones(n, dtype=wp.int32, device=dev), p_old=wp.clone(p), g_old=pr.new_vec(),
             free=vec(*fr), lower=vec(*lo), upper=vec(*hi), lobe_albedo_max=float(lobe_albedo_max),
             diag=pr.new_vec(), diag_trial=pr.new_vec())
         return st
