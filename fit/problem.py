@@ -606,7 +606,7 @@ class PhotoSet:
 
     def _init_device(self, defer_upload: bool = False) -> None:
         """All photos, depth and shadow maps on the device: photos filled in place on the CPU, or uploaded
-        in chunks through pinned buffers with the maps made beside them (:func:`upload_photo_sets`).
+        in chunks through pinned buffers, then their depth and shadow maps (:func:`upload_photo_sets`).
         ``defer_upload``: the device buffers only, filled later by :func:`upload_photo_sets` with other
         sets' photos (photos split over devices: the host crops all of them once, one pipeline)."""
         n, dev = self.n, self.device
@@ -882,8 +882,9 @@ def upload_photo_sets(sets: list[PhotoSet], in_place: bool | None = None) -> Non
 def _upload_in_chunks(sets: list[PhotoSet]) -> set:
     """:func:`upload_photo_sets`'s pipeline: the sets' photos, one set after another, through two shared host
     buffers (pinned where a set is on CUDA). A CUDA set before the last whose device no later set uses gets
-    its depth and shadow maps launched as soon as its last chunk is queued: they run on its device while the host crops
-    the next sets' photos (on one device they would hold up the copies). Returns the indices of those sets."""
+    its depth and shadow maps launched as soon as its last chunk is queued: they run on its device while the
+    host crops the next sets' photos (on one device they would hold up the copies). Returns the indices of
+    those sets."""
     # per set: whether its photos arrive as float32 for half-float storage, and its chunk of photos
     half = [s.img_dtype == wp.vec3h and not s.loader.cached() for s in sets]
     stage_types = {wp.vec3 if h else s.img_dtype for s, h in zip(sets, half)}
@@ -902,6 +903,7 @@ def _upload_in_chunks(sets: list[PhotoSet]) -> set:
     landing = [wp.empty((c, s.hmax, s.wmax), dtype=wp.vec3, device=s.device) if h else None
                for s, c, h in zip(sets, chunks, half)]
     copied = [None, None]
+    mapped = set()
 
     def upload(i: int, b: int, c: int, slot: int, filling: list) -> None:
         s, pix = sets[i], pixels[i]
@@ -922,7 +924,6 @@ def _upload_in_chunks(sets: list[PhotoSet]) -> set:
             s.launch_shadow_maps(0, s.n, s.shadow)
             mapped.add(i)
 
-    mapped = set()
     previous, turn = None, 0
     for i, s in enumerate(sets):
         pix, chunk = pixels[i], chunks[i]
