@@ -201,3 +201,33 @@ def test_split_serves_the_options_tiles_refuse(scene, device):
     ref = run_fit(problem(scene, cfg(2), device), cfg(2))
     two = split(cfg(1), f"{device},{device}")
     np.testing.assert_array_equal(run_fit(problem(scene, two, device), two).params, ref.params)
+
+
+def test_parts_build_their_meshes_one_at_a_time(scene, device, monkeypatch):
+    """Warp's BVH build sorts in a buffer shared by a device's builds, held without a lock: two parts set
+    up at once on threads of their own once corrupted each other's BVH on a GPU (a hung set-up, illegal
+    memory accesses). Their builds must not overlap: here each build takes 50 ms (a sleep, so that two
+    threads would overlap if nothing serialised them), and none may start before the other has finished."""
+    import threading
+    import time
+
+    import warp as wp
+
+    real, lock = wp.Mesh, threading.Lock()
+    running, most = [0], [0]
+
+    def slow_mesh(**kwargs):
+        with lock:
+            running[0] += 1
+            most[0] = max(most[0], running[0])
+        time.sleep(0.05)
+        try:
+            return real(**kwargs)
+        finally:
+            with lock:
+                running[0] -= 1
+
+    monkeypatch.setattr(wp, "Mesh", slow_mesh)
+    pr = problem(scene, split(fit_config(), f"{device},{device},{device}"), device)
+    assert len(pr.photos.parts) == 3
+    assert most[0] == 1
