@@ -8,6 +8,7 @@ device. Imports only numpy and warp (plus numpy-only spine modules).
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import math
 import threading
@@ -467,12 +468,12 @@ class PhotoSet:
             self.residency_reason += ("; depth and shadow maps kept on the device" if self.maps_on_device
                                       else "; depth and shadow maps recomputed per window")
         say("fit", f"photos: {self.residency}, {self.window} per window ({self.residency_reason})")
-        self.loader = PhotoLoader(images, masks, self.crops, sizes, cfg.decode_threads, decoder=cfg.photo_decoder)
-        self._open_cache(cfg, fp16)
-        self.timings["other"] += time.perf_counter() - t_start
         if defer_upload and self.residency != "device":
             raise ConfigError(f"a deferred upload needs the photos on the device, not {self.residency}",
                               fix="set stream.photo_residency to device")
+        self.loader = PhotoLoader(images, masks, self.crops, sizes, cfg.decode_threads, decoder=cfg.photo_decoder)
+        self._open_cache(cfg, fp16)
+        self.timings["other"] += time.perf_counter() - t_start
         try:
             if self.residency == "device":
                 self._init_device(defer_upload)
@@ -924,26 +925,38 @@ def _upload_in_chunks(sets: list[PhotoSet]) -> set:
             s.launch_shadow_maps(0, s.n, s.shadow)
             mapped.add(i)
 
-    previous, turn = None, 0
-    for i, s in enumerate(sets):
-        pix, chunk = pixels[i], chunks[i]
-        for b in range(0, s.n, chunk):
-            c, slot = min(chunk, s.n - b), turn % 2
-            turn += 1
-            if copied[slot] is not None:
-                wp.synchronize_event(copied[slot])  # this buffer's previous copy has left it
-            images = stage[slot].numpy()[:chunk * pix].reshape(chunk, s.hmax, s.wmax, -1)
-            masks = stage_m[slot].numpy()[:chunk * pix].reshape(chunk, s.hmax, s.wmax)
-            # the next chunk is cropped while the loader finishes this one: no thread idles at a chunk's end
-            filling = s.loader.submit(range(b, b + c), images, masks if s.loader.has_masks else None)
-            if previous is not None:
-                upload(*previous)
-            previous = (i, b, c, slot, filling)
-    if previous is not None:
-        upload(*previous)
+    previous, turn, submitted = None, 0, []
+    devices = sorted({s.device for s in sets})
+    try:
+        for i, s in enumerate(sets):
+            pix, chunk = pixels[i], chunks[i]
+            for b in range(0, s.n, chunk):
+                c, slot = min(chunk, s.n - b), turn % 2
+                turn += 1
+                if copied[slot] is not None:
+                    wp.synchronize_event(copied[slot])  # this buffer's previous copy has left it
+                images = stage[slot].numpy()[:chunk * pix].reshape(chunk, s.hmax, s.wmax, -1)
+                masks = stage_m[slot].numpy()[:chunk * pix].reshape(chunk, s.hmax, s.wmax)
+                # the next chunk is cropped while the loader finishes this one: no thread idles at a chunk's end
+                filling = s.loader.submit(range(b, b + c), images, masks if s.loader.has_masks else None)
+                submitted.extend(filling)
+                if previous is not None:
+                    upload(*previous)
+                previous = (i, b, c, slot, filling)
+        if previous is not None:
+            upload(*previous)
+    except BaseException:
+        # a photo failed: the buffers go with this frame, so no crop may still write them nor copy read them
+        concurrent.futures.wait(submitted)
+        for d in devices:
+            try:
+                wp.synchronize_device(d)
+            except Exception:  # noqa: BLE001 - the photo's error is the one to report
+                pass
+        raise
     # the pinned buffers are freed on return: every copy reading them done first (freeing pinned memory
     # waits only for the calling thread's current device, not for a copy to another one)
-    for d in sorted({s.device for s in sets}):
+    for d in devices:
         wp.synchronize_device(d)
     return mapped
 

@@ -318,6 +318,46 @@ def test_staged_upload_gives_the_cropped_photos(scene, device, precision):
         problem.ARRAY_UPLOAD_CHUNK_BYTES = saved
 
 
+def test_staged_upload_fails_on_a_bad_photo_with_nothing_left_running(scene, device):
+    """A photo that fails in the middle of the upload raises its own error, and when it does no crop is still
+    writing the host buffers (they are freed with the pipeline) and no copy is still reading them. Chunks of 3
+    photos: photo 4 fails in the second chunk while the third chunk's crops (slowed to 0.2 s each) run."""
+    import time
+
+    import texstream.fit.problem as problem
+
+    ref = photo_set(scene, device)
+    assert ref.n >= 9
+    ps = ref.subset(range(ref.n))
+    ps.loader = problem.PhotoLoader(scene[3], scene[4], ps.crops, ps.sizes)
+    ps.timings = dict.fromkeys(ref.timings, 0.0)
+    ps._init_device(defer_upload=True)
+    fill, submit, submitted = ps.loader._fill_one, ps.loader.submit, []
+
+    def failing(k, img, msk):
+        if k == 4:
+            raise InputError("photo 4 is bad", fix="leave it out")
+        if 6 <= k <= 8:
+            time.sleep(0.2)
+        fill(k, img, msk)
+
+    def recording(*args, **kwargs):
+        futures = submit(*args, **kwargs)
+        submitted.extend(futures)
+        return futures
+
+    ps.loader._fill_one, ps.loader.submit = failing, recording
+    saved = problem.ARRAY_UPLOAD_CHUNK_BYTES
+    problem.ARRAY_UPLOAD_CHUNK_BYTES = 3 * ref.hmax * ref.wmax * 12
+    try:
+        with pytest.raises(InputError, match="photo 4 is bad"):
+            problem.upload_photo_sets([ps], in_place=False)
+        assert len(submitted) >= 9 and all(f.done() for f in submitted)
+    finally:
+        problem.ARRAY_UPLOAD_CHUNK_BYTES = saved
+        ps.loader.close()
+
+
 def test_maps_launched_in_chunks_equal_one_launch(scene, device, monkeypatch):
     """Sets too large for one launch (MAX_LAUNCH_THREADS) make their maps a few photos at a time."""
     import texstream.fit.problem as problem
