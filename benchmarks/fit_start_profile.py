@@ -15,7 +15,7 @@ import time
 import warp as wp
 
 from photo_split_scene import OrnamentAt4x
-from texstream.fit.fitter import FitConfig, FitRun, initial_guess
+from texstream.fit.fitter import FitConfig, FitRun, fit_start
 from texstream.fit.problem import StreamConfig
 from texstream.fit.stage import build_problem
 
@@ -48,7 +48,7 @@ for repeat in range(3):  # the first compiles and loads every kernel; the fastes
         pr = build_problem(scene.mesh, scene.bake, scene.frames, scene.images, scene.masks, cfg, "cuda:0")
         t1 = synced()
         wp.timing_begin(cuda_filter=wp.TIMING_ALL)
-        start = initial_guess(pr, cfg)
+        start = fit_start(pr, cfg)
         t2 = synced()
         run = FitRun(pr, cfg, start=start)
         t3 = synced()

@@ -59,6 +59,12 @@ def main() -> None:
                                                                      "every iteration)")
     ap.add_argument("--repeats", type=int, default=2, help="timed repeats of each run (the fastest is reported)")
     ap.add_argument("--splits", default="tiles,photos", help="how the devices share the fit: tiles, photos or both")
+    ap.add_argument("--decode-threads", type=int, default=0, help="StreamConfig.decode_threads (0: the default)")
+    ap.add_argument("--upload-slots", type=int, default=0, help="fit.problem.UPLOAD_SLOTS (0: the default)")
+    ap.add_argument("--upload-chunk-mib", type=float, default=0,
+                    help="fit.problem.ARRAY_UPLOAD_CHUNK_BYTES in MiB (0: the default)")
+    ap.add_argument("--upload-interleave", choices=("default", "on", "off"), default="default",
+                    help="fit.problem.UPLOAD_INTERLEAVE")
     ap.add_argument("--out", required=True)
     a = ap.parse_args()
 
@@ -75,6 +81,16 @@ def main() -> None:
     from texstream.fit.tiles import parse_devices, run_tiled_fit
     from texstream.geometry.bake import bake_texels
 
+    import texstream.fit.problem as fit_problem
+
+    if a.upload_slots:
+        fit_problem.UPLOAD_SLOTS = a.upload_slots
+    if a.upload_chunk_mib:
+        fit_problem.ARRAY_UPLOAD_CHUNK_BYTES = int(a.upload_chunk_mib * (1 << 20))
+    if a.upload_interleave != "default":
+        fit_problem.UPLOAD_INTERLEAVE = a.upload_interleave == "on"
+    pipeline = {"upload_slots": fit_problem.UPLOAD_SLOTS, "array_upload_chunk_bytes": fit_problem.ARRAY_UPLOAD_CHUNK_BYTES,
+                "upload_interleave": fit_problem.UPLOAD_INTERLEAVE, "decode_threads": a.decode_threads}
     devices = parse_devices(a.devices, "cpu")
     dev0 = devices[0]
     t0 = time.perf_counter()
@@ -88,7 +104,8 @@ def main() -> None:
         return FitConfig(optimizer="lm", max_iterations=a.iterations, rel_tol=0.0, sync_every=5,
                          penalties=PenaltyConfig(smooth_weight=a.smooth_weight),
                          stream=StreamConfig(image_precision=a.image_precision, shadow_map_size=a.shadow_map_size,
-                                             photo_residency="device", groups=a.groups, **stream))
+                                             photo_residency="device", groups=a.groups,
+                                             decode_threads=a.decode_threads, **stream))
 
     splits = [k.strip() for k in a.splits.split(",") if k.strip()]
     runs = {"one_device": config()}
@@ -173,7 +190,8 @@ def main() -> None:
                f"--{k.replace('_', '-')} {v}" for k, v in vars(a).items()),
            "commit": commit(), "machine": platform.node(), "devices": devices, "device_names": gpus,
            "scene": a.scene, "scale": a.scale, "texel_factor": a.texel_factor, "render_s": render_s,
-           "photos": len(frames), "atlas": [bake.height, bake.width], "runs": results, "summary": summary}
+           "photos": len(frames), "atlas": [bake.height, bake.width], "upload_pipeline": pipeline, "runs": results,
+           "summary": summary}
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "multi_gpu.json").write_text(json.dumps(doc, indent=2))

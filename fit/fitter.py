@@ -208,8 +208,34 @@ def make_optimizer(cfg: FitConfig):
     raise ConfigError(f"optimizer {cfg.optimizer!r} unknown", fix=f"use one of {OPTIMIZERS}")
 
 
-def initial_guess(problem: StreamProblem, cfg: FitConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Parameters to start from and the per-texel sample counts (one streaming pass)."""
+@dataclasses.dataclass
+class FitStart:
+    """Where a fit starts, on the problem's device: ``params`` the (N, n_params) float64 starting parameters
+    (before the projection onto the bounds, :meth:`FitState.create`) and ``counts`` the (N,) int32 samples
+    per texel (0: no photo sees it)."""
+
+    params: wp.array
+    counts: wp.array
+
+    def numpy(self) -> tuple[np.ndarray, np.ndarray]:
+        """(parameters, sample counts) as NumPy arrays."""
+        return self.params.numpy(), self.counts.numpy()
+
+    @staticmethod
+    def of(start, problem: StreamProblem) -> "FitStart":
+        """``start`` as a FitStart on the problem's device: a FitStart, or (parameters, counts) arrays."""
+        if isinstance(start, FitStart):
+            return start
+        guess, counts = start
+        dev = problem.device
+        return FitStart(wp.array(np.ascontiguousarray(guess, dtype=np.float64), dtype=wp.float64, device=dev),
+                        wp.array(np.ascontiguousarray(counts, dtype=np.int32), dtype=wp.int32, device=dev))
+
+
+def fit_start(problem: StreamProblem, cfg: FitConfig) -> FitStart:
+    """The initial guess's streaming pass and the starting parameters made from it, on the device (no host
+    round trip): with ``init`` "percentile", a low percentile of each texel's samples as its diffuse term (or
+    radiance) and the brightest sample's excess as its lobes' rho_s; else the layout's defaults."""
     lay = problem.layout
     n = problem.n
     dev = problem.device
@@ -225,19 +251,29 @@ def initial_guess(problem: StreamProblem, cfg: FitConfig) -> tuple[np.ndarray, n
             wp.launch(kernel, dim=n, device=dev,
                       inputs=[problem.tex, images, depth, shadow, infos, b, e,
                               problem.opt, int(cfg.init_rank), 0], outputs=[low, high, count, no_lists])
-    lo = low.numpy().astype(np.float64)
-    hi = high.numpy().astype(np.float64)
-    cnt = count.numpy()
-    p = np.tile(lay.defaults(), (n, 1))
-    if cfg.init == "percentile":
-        seen = cnt > 0
-        p[seen, 0:3] = np.clip(lo[seen], lay.lower()[0:3], lay.upper()[0:3])  # rho_d in [0, 10], L in [0, 1000]
-        for j in range(lay.n_lobes):
-            o = lay.lobe_offset(j)
-            # lobe peak value is rho_s (max(s,0)^n <= 1 at c_z = 1): start at the excess of the brightest sample
-            excess = np.clip(hi[seen] - lo[seen], 0.05, None) / (j + 1)
-            p[seen, o:o + 3] = excess
-    return p, cnt
+    guess = wp.empty((n, lay.n_params), dtype=wp.float64, device=dev)
+    as_f64 = {name: wp.array(v, dtype=wp.float64, device=dev)
+              for name, v in (("defaults", lay.defaults()), ("lower", lay.lower()), ("upper", lay.upper()))}
+    # rho_d in [0, 10], L in [0, 1000]; a lobe peaks at rho_s (max(s,0)^n <= 1 at c_z = 1), so it starts at the
+    # excess of the brightest sample
+    wp.launch(K.guess_from_samples_kernel, dim=n, device=dev,
+              inputs=[low, high, count, as_f64["defaults"], as_f64["lower"], as_f64["upper"],
+                      int(cfg.init == "percentile"), lay.n_lobes, lay.lobe_stride, wp.float64(0.05)], outputs=[guess])
+    return FitStart(guess, count)
+
+
+def initial_guess(problem: StreamProblem, cfg: FitConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Parameters to start from and the per-texel sample counts (one streaming pass): :func:`fit_start`
+    as NumPy arrays."""
+    return fit_start(problem, cfg).numpy()
+
+
+def start_arrays(start, problem: StreamProblem, cfg: FitConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(parameters, sample counts) as NumPy arrays from ``start`` (a :class:`FitStart`, arrays, or None: the
+    initial guess's pass)."""
+    if start is None:
+        return initial_guess(problem, cfg)
+    return start.numpy() if isinstance(start, FitStart) else start
 
 
 def resumable(cfg: FitConfig) -> bool:
@@ -249,14 +285,14 @@ def resumable(cfg: FitConfig) -> bool:
 
 def run_fit(problem: StreamProblem, cfg: FitConfig, p0: np.ndarray | None = None,
             progress=None, checkpoint=None, resume: dict | None = None,
-            start: tuple[np.ndarray, np.ndarray] | None = None) -> FitResult:
+            start: "FitStart | tuple[np.ndarray, np.ndarray] | None" = None) -> FitResult:
     """Fit the problem's model; returns parameters, sample counts and the per-iteration trace.
 
     ``checkpoint(state_dict)`` is called at every stopping-test sync (every ``sync_every``
     iterations) with what ``resume`` takes to continue the fit from there; for :func:`resumable`
     configs the resumed fit takes the same iterations to the same parameters, to the last bit, on
-    one device. ``start``: :func:`initial_guess`'s (parameters, sample counts) when the caller has
-    already streamed that pass.
+    one device. ``start``: :func:`fit_start`'s :class:`FitStart` (or :func:`initial_guess`'s arrays) when
+    the caller has already streamed that pass.
     """
     run = FitRun(problem, cfg, p0=p0, checkpointed=checkpoint is not None, resume=resume, start=start)
     if resume is None and run.needs_scale_pass():
@@ -327,7 +363,7 @@ class FitRun:
 
     def __init__(self, problem: StreamProblem, cfg: FitConfig, p0: np.ndarray | None = None,
                  checkpointed: bool = False, resume: dict | None = None,
-                 start: tuple[np.ndarray, np.ndarray] | None = None):
+                 start: "FitStart | tuple[np.ndarray, np.ndarray] | None" = None):
         self.problem, self.cfg, self.resume = problem, cfg, resume
         lay = problem.layout
         n = problem.n
@@ -336,17 +372,17 @@ class FitRun:
         if (checkpointed or resume is not None) and not resumable(cfg):
             raise ConfigError("only Levenberg-Marquardt fits without smoothness, lookup or diffuse schedule resume "
                               "from a checkpoint", fix="drop the checkpoint, or use --optimizer lm")
-        guess, counts = start if start is not None else initial_guess(problem, cfg)
-        if p0 is not None:
-            guess = np.asarray(p0, dtype=np.float64)
-        self.counts = counts
+        start = FitStart.of(start, problem) if start is not None else fit_start(problem, cfg)
+        guess = start.params if p0 is None else np.asarray(p0, dtype=np.float64)
+        self.counts = start.counts
+        """(N,) samples per texel on the device"""
         self.free = ~lay.frozen()
-        self.state = state = FitState.create(problem, guess, self.free, lobe_albedo_max=cfg.lobe_albedo_max)
+        self.state = state = FitState.create(problem, guess, self.free, lobe_albedo_max=cfg.lobe_albedo_max,
+                                             counts=start.counts)
         if resume is not None:
             # exactly the checkpoint's parameters (create() re-projects them in float64), and their storage
             state.p.assign(np.asarray(resume["p"]))
             state.store_current()
-        state.valid = wp.array((counts > 0).astype(np.int32), dtype=wp.int32, device=dev)
         self.penalties = Penalties(problem, cfg.penalties)
         self.opt = opt = make_optimizer(cfg)
         if cfg.linesearch.kind not in ("backtracking", "hessian", "quadratic"):
@@ -478,6 +514,6 @@ class FitRun:
 
     def result(self, trace: list[dict]) -> FitResult:
         """The fit's parameters and sample counts with ``trace``."""
-        return FitResult(params=self.state.params_numpy(), samples=self.counts, trace=trace,
+        return FitResult(params=self.state.params_numpy(), samples=self.counts.numpy(), trace=trace,
                          layout=self.problem.layout, passes=self.problem.passes, robust_loss=self.loss,
                          robust_scale=self.problem.robust_scale)

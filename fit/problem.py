@@ -8,6 +8,7 @@ device. Imports only numpy and warp (plus numpy-only spine modules).
 
 from __future__ import annotations
 
+import collections
 import concurrent.futures
 import dataclasses
 import math
@@ -42,6 +43,12 @@ ARRAY_UPLOAD_CHUNK_BYTES = 16 << 20
 """the same for photos given as arrays (host copies, a dozen photos of 430x430 a chunk): pinned memory takes
 time to allocate in proportion to its size (4 buffers of 16 MiB in 0.04 s, of 64 MiB in 0.15 s on the
 two-H200 machine), and copy threads need few photos in flight"""
+UPLOAD_SLOTS = 2
+"""pinned host buffers the set-up's upload cycles through (:func:`_upload_in_chunks`): the chunks of all slots
+but one are being cropped while the oldest is copied to its device"""
+UPLOAD_INTERLEAVE = False
+"""whether the upload alternates between the sets of a photo split (each device's copies beside the others')
+rather than taking one set after another"""
 
 
 @dataclasses.dataclass
@@ -841,10 +848,8 @@ def upload_photo_sets(sets: list[PhotoSet], in_place: bool | None = None) -> Non
     before the last beside the upload, see :func:`_upload_in_chunks`).
 
     The photos go in chunks of ~:data:`UPLOAD_CHUNK_BYTES` (:data:`ARRAY_UPLOAD_CHUNK_BYTES` for arrays)
-    through two pinned host buffers shared by all sets: the sets' loaders crop one chunk while the previous
-    chunk's copy runs to its set's device. The host's cropping bounds this set-up, so with several sets it is
-    done once, one set after another, as for one set: no set's crops compete with another's for the host's
-    memory and threads. The buffers hold float32, as the photos come, and half-float photos are converted
+    through :data:`UPLOAD_SLOTS` pinned host buffers shared by all sets: the sets' loaders crop the next
+    chunks while the oldest chunk's copy runs to its set's device (:func:`_upload_in_chunks`). The buffers hold float32, as the photos come, and half-float photos are converted
     on the device: a plain host copy is ~5x faster than numpy's float16 conversion (both round to nearest
     even, so the halves are the same). Everything runs on each device's stream. ``timings``: ``upload``
     until every copy is done (with the maps made beside it), then ``depth_maps`` and ``shadow_maps`` of the
@@ -880,12 +885,25 @@ def upload_photo_sets(sets: list[PhotoSet], in_place: bool | None = None) -> Non
         s.timings["shadow_maps"] += t3 - t2
 
 
+def _upload_order(sets: list[PhotoSet], chunks: list[int]) -> list[tuple[int, int, int]]:
+    """The pipeline's chunks as (set, first photo, photos): one set after another, or (with
+    :data:`UPLOAD_INTERLEAVE`) one chunk of each set in turn, each set's chunks in order."""
+    per_set = [[(i, b, min(c, s.n - b)) for b in range(0, s.n, c)] for i, (s, c) in enumerate(zip(sets, chunks))]
+    if not UPLOAD_INTERLEAVE:
+        return [q for qs in per_set for q in qs]
+    order = []
+    for k in range(max(len(qs) for qs in per_set)):
+        order += [qs[k] for qs in per_set if k < len(qs)]
+    return order
+
+
 def _upload_in_chunks(sets: list[PhotoSet]) -> set:
-    """:func:`upload_photo_sets`'s pipeline: the sets' photos, one set after another, through two shared host
-    buffers (pinned where a set is on CUDA). A CUDA set before the last whose device no later set uses gets
-    its depth and shadow maps launched as soon as its last chunk is queued: they run on its device while the
-    host crops the next sets' photos (on one device they would hold up the copies). Returns the indices of
-    those sets."""
+    """:func:`upload_photo_sets`'s pipeline: the sets' photos in :func:`_upload_order` through
+    :data:`UPLOAD_SLOTS` shared host buffers (pinned where a set is on CUDA), the loaders cropping the chunks of
+    all buffers but one while the oldest chunk is copied to its set's device. A CUDA set whose device no later
+    chunk goes to gets its depth and shadow maps launched as soon as its last chunk is queued: they run on its
+    device while the host crops the other sets' photos (on one device they would hold up the copies). Returns
+    the indices of those sets."""
     # per set: whether its photos arrive as float32 for half-float storage, and its chunk of photos
     half = [s.img_dtype == wp.vec3h and not s.loader.cached() for s in sets]
     stage_types = {wp.vec3 if h else s.img_dtype for s, h in zip(sets, half)}
@@ -898,15 +916,20 @@ def _upload_in_chunks(sets: list[PhotoSet]) -> set:
               for s, p in zip(sets, pixels)]
     size = max(c * p for c, p in zip(chunks, pixels))
     pinned = any(s.device != "cpu" for s in sets)
-    stage = [wp.empty(size, dtype=stage_dtype, device="cpu", pinned=pinned) for _ in range(2)]
-    stage_m = [wp.empty(size, dtype=wp.uint8, device="cpu", pinned=pinned) for _ in range(2)]
+    order = _upload_order(sets, chunks)
+    n_slots = max(2, min(int(UPLOAD_SLOTS), len(order)))
+    stage = [wp.empty(size, dtype=stage_dtype, device="cpu", pinned=pinned) for _ in range(n_slots)]
+    stage_m = [wp.empty(size, dtype=wp.uint8, device="cpu", pinned=pinned) for _ in range(n_slots)]
+    stage_np = [(a.numpy(), m.numpy()) for a, m in zip(stage, stage_m)]
     # per set, where a chunk lands on its device before the conversion to half floats
     landing = [wp.empty((c, s.hmax, s.wmax), dtype=wp.vec3, device=s.device) if h else None
                for s, c, h in zip(sets, chunks, half)]
-    copied = [None, None]
+    last_to_device = {sets[i].device: q for q, (i, _, _) in enumerate(order)}
+    copied = [None] * n_slots
     mapped = set()
 
-    def upload(i: int, b: int, c: int, slot: int, filling: list) -> None:
+    def upload(q: int, slot: int, filling: list) -> None:
+        i, b, c = order[q]
         s, pix = sets[i], pixels[i]
         wait(filling)
         if half[i]:
@@ -919,32 +942,29 @@ def _upload_in_chunks(sets: list[PhotoSet]) -> set:
             wp.copy(s.device_masks, stage_m[slot], b * pix, 0, c * pix)
         if s.device != "cpu":
             copied[slot] = wp.get_stream(s.device).record_event()
-        later = sets[i + 1:]
-        if b + c == s.n and s.device != "cpu" and later and all(o.device != s.device for o in later):
+        # the set's last chunk, and no later chunk for its device: its maps run beside the rest of the upload
+        if b + c == s.n and s.device != "cpu" and last_to_device[s.device] == q and q < len(order) - 1:
             s.launch_depth_maps(0, s.n, s.device_masks, s.depth)
             s.launch_shadow_maps(0, s.n, s.shadow)
             mapped.add(i)
 
-    previous, turn, submitted = None, 0, []
+    pending, submitted = collections.deque(), []
     devices = sorted({s.device for s in sets})
     try:
-        for i, s in enumerate(sets):
-            pix, chunk = pixels[i], chunks[i]
-            for b in range(0, s.n, chunk):
-                c, slot = min(chunk, s.n - b), turn % 2
-                turn += 1
-                if copied[slot] is not None:
-                    wp.synchronize_event(copied[slot])  # this buffer's previous copy has left it
-                images = stage[slot].numpy()[:chunk * pix].reshape(chunk, s.hmax, s.wmax, -1)
-                masks = stage_m[slot].numpy()[:chunk * pix].reshape(chunk, s.hmax, s.wmax)
-                # the next chunk is cropped while the loader finishes this one: no thread idles at a chunk's end
-                filling = s.loader.submit(range(b, b + c), images, masks if s.loader.has_masks else None)
-                submitted.extend(filling)
-                if previous is not None:
-                    upload(*previous)
-                previous = (i, b, c, slot, filling)
-        if previous is not None:
-            upload(*previous)
+        for q, (i, b, c) in enumerate(order):
+            s, pix, chunk, slot = sets[i], pixels[i], chunks[i], q % n_slots
+            if copied[slot] is not None:
+                wp.synchronize_event(copied[slot])  # this buffer's previous copy has left it
+            images = stage_np[slot][0][:chunk * pix].reshape(chunk, s.hmax, s.wmax, -1)
+            masks = stage_np[slot][1][:chunk * pix].reshape(chunk, s.hmax, s.wmax)
+            # later chunks are cropped while the loaders finish this one: no thread idles at a chunk's end
+            filling = s.loader.submit(range(b, b + c), images, masks if s.loader.has_masks else None)
+            submitted.extend(filling)
+            pending.append((q, slot, filling))
+            if len(pending) == n_slots:
+                upload(*pending.popleft())
+        while pending:
+            upload(*pending.popleft())
     except BaseException:
         # a photo failed: the buffers go with this frame, so no crop may still write them nor copy read them
         concurrent.futures.wait(submitted)

@@ -365,15 +365,14 @@ def check_capture_lights(capture, model: str, capture_dir: str | Path) -> None:
                          "--lights, texstream lights, or a co-located flash)")
 
 
-def check_seen_texels(problem, cfg: FitStageConfig, capture_dir: str | Path) -> tuple[int, tuple]:
+def check_seen_texels(problem, cfg: FitStageConfig, capture_dir: str | Path) -> tuple:
     """Count the texels some photo sees and fail before fitting when almost none are: a mesh facing away
     from the cameras or in another frame than the capture's. The count comes from the fit's starting
-    pass (:func:`initial_guess`), returned for the fit to reuse."""
-    from .fitter import initial_guess
+    pass (:func:`fit_start`), returned for the fit to reuse."""
+    from .fitter import fit_start
 
-    start = initial_guess(problem, cfg.fit)
-    counts = start[1]
-    seen = int((counts > 0).sum())
+    start = fit_start(problem, cfg.fit)
+    seen = int((start.counts.numpy() > 0).sum())
     if seen < cfg.min_seen_fraction * problem.n:
         raise StageError(f"only {seen:,} of {problem.n:,} texels ({100.0 * seen / max(problem.n, 1):.2f}%) are seen by "
                          f"any photo (need {100 * cfg.min_seen_fraction:g}%)", Path(capture_dir) / "capture.json",
@@ -678,7 +677,6 @@ def choose_materials(inputs: "FitInputs", problem, cfg: "FitStageConfig", log=No
     PSNR; ties within 0.05 dB go to the simpler model). The fit's own held-out photos play no part.
     Returns the choice and every candidate's score, or {"chosen": "per-texel", "reason": ...} when the
     fitted photos are too few to split."""
-    from .fitter import initial_guess
     from .problem import StreamProblem
 
     mcfg = cfg.materials
@@ -691,7 +689,7 @@ def choose_materials(inputs: "FitInputs", problem, cfg: "FitStageConfig", log=No
                                                  f"{every}th"}
     t0 = time.perf_counter()
     sub = StreamProblem(problem.texels, problem.photos.subset(train), problem.layout, problem.cfg, problem.device)
-    res = run_fit(sub, cfg.fit, start=initial_guess(sub, cfg.fit))
+    res = run_fit(sub, cfg.fit)
     frames = [inputs.frames[i] for i in val]
     images, masks = read_photos(inputs.images, inputs.masks, val)
 

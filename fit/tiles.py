@@ -30,7 +30,7 @@ import warp as wp
 
 from texstream.core.errors import ConfigError
 
-from .fitter import (FitConfig, FitResult, FitRun, converged, initial_guess, robust_scale_from_stats, stop_test_due,
+from .fitter import (FitConfig, FitResult, FitRun, converged, start_arrays, robust_scale_from_stats, stop_test_due,
                      trace_rows)
 from .kernels.tiles import gather_rows_kernel, scatter_rows_kernel, tile_visibility_kernel, tile_visibility_radiance_kernel
 from .problem import MAX_LAUNCH_THREADS, StreamProblem, TexelSet, exposure_mean_square
@@ -448,18 +448,18 @@ class HaloExchange:
         self._sync()
 
 
-def run_tiled_fit(problem: StreamProblem, cfg: FitConfig, start: tuple[np.ndarray, np.ndarray] | None = None,
+def run_tiled_fit(problem: StreamProblem, cfg: FitConfig, start=None,
                   progress=None) -> tuple[FitResult, dict]:
     """Fit ``problem`` in tiles (``cfg.stream.tiles``, ``devices``, ``tile_backend``); returns the result in the
     untiled texel order and a report (tiles, devices, texels and photos per tile, set-up and fit times).
 
-    ``start``: :func:`initial_guess`'s (parameters, sample counts) over all texels when already streamed."""
+    ``start``: :func:`~texstream.fit.fitter.fit_start`'s start (or its arrays) over all texels when already streamed."""
     if cfg.stream.tile_backend == "ray":
         from .tiles_ray import run_ray_tiled_fit
 
         return run_ray_tiled_fit(problem, cfg, start, progress)
     t0 = time.perf_counter()
-    guess, counts = start if start is not None else initial_guess(problem, cfg)
+    guess, counts = start_arrays(start, problem, cfg)
     t_guess = time.perf_counter()
     plan = plan_tiles(problem, cfg)
     t_plan = time.perf_counter()

@@ -24,7 +24,7 @@ import numpy as np
 
 from texstream.core.errors import ConfigError, TexstreamError
 
-from .fitter import initial_guess
+from .fitter import start_arrays
 from .problem import exposure_mean_square
 from .tiles import (TileWorker, assemble, check_tileable, halo_pairs, lockstep, plan_tiles, texel_subset, tile_config,
                     tile_photos, tile_start)
@@ -85,7 +85,7 @@ def run_ray_tiled_fit(problem, cfg, start=None, progress=None):
     t0 = time.perf_counter()
     if not ray.is_initialized():
         ray.init(address=os.environ.get("RAY_ADDRESS") or None, log_to_driver=False)
-    guess, counts = start if start is not None else initial_guess(problem, cfg)
+    guess, counts = start_arrays(start, problem, cfg)
     plan = plan_tiles(problem, dataclasses.replace(cfg, stream=dataclasses.replace(cfg.stream, devices=problem.device)))
     tcfg = tile_config(problem, cfg)
     gpu = problem.device.startswith("cuda")

@@ -56,6 +56,55 @@ def trial_kernel(p: wp.array(dtype=Any), d: wp.array(dtype=Any), alpha: wp.array
 
 
 @wp.kernel
+def guess_from_samples_kernel(low: wp.array(dtype=wp.vec3), high: wp.array(dtype=wp.vec3),
+                              count: wp.array(dtype=wp.int32), defaults: wp.array(dtype=wp.float64),
+                              lower: wp.array(dtype=wp.float64), upper: wp.array(dtype=wp.float64),
+                              percentile: int, n_lobes: int, lobe_stride: int, min_excess: wp.float64,
+                              guess: wp.array2d(dtype=wp.float64)):
+    """The starting parameters from the initial guess's pass (fitter.fit_start), in float64: the defaults,
+    and for seen texels with ``percentile`` the low sample clipped to its bounds as the diffuse term (or
+    radiance) and each lobe j's rho_s at max(high - low, ``min_excess``) / (j + 1), the excess of the
+    brightest sample (a lobe peaks at rho_s). ``min_excess`` comes from the host: a literal here would be
+    a float32 constant."""
+    i = wp.tid()
+    for k in range(guess.shape[1]):
+        guess[i, k] = defaults[k]
+    if percentile != 0 and count[i] > 0:
+        lo = low[i]
+        hi = high[i]
+        for c in range(3):
+            sample_low = wp.float64(lo[c])
+            guess[i, c] = wp.min(wp.max(sample_low, lower[c]), upper[c])
+            excess = wp.max(wp.float64(hi[c]) - sample_low, min_excess)
+            for j in range(n_lobes):
+                guess[i, 3 + j * lobe_stride + c] = excess / wp.float64(j + 1)
+
+
+@wp.kernel
+def start_point_kernel(guess: wp.array2d(dtype=wp.float64), lower: wp.array(dtype=wp.float64),
+                       upper: wp.array(dtype=wp.float64), n_lobes: int, lobe_stride: int,
+                       albedo_max: wp.float64, two_pi: wp.float64, count: wp.array(dtype=wp.int32),
+                       p: wp.array(dtype=Any), storage: wp.array2d(dtype=Any), valid: wp.array(dtype=wp.int32)):
+    """A fit's first point from its (N, n_params) float64 start: clipped to the bounds, then each lobe's
+    rho_s capped by the energy bound, in float64 (models.energy_bound_numpy's operations, in its order),
+    then rounded to the compute precision ``p`` and to the storage precision (half floats through float32,
+    as Warp converts). ``valid``: 1 where the texel has samples."""
+    i = wp.tid()
+    t = p[i]
+    lobes_end = 3 + n_lobes * lobe_stride
+    for k in range(guess.shape[1]):
+        v = wp.min(wp.max(guess[i, k], lower[k]), upper[k])
+        if albedo_max > wp.float64(0.0) and k >= 3 and k < lobes_end and (k - 3) % lobe_stride < 3:
+            last = k - (k - 3) % lobe_stride + lobe_stride - 1  # the lobe's exponent n
+            exponent = wp.min(wp.max(guess[i, last], lower[last]), upper[last])
+            v = wp.min(v, albedo_max * (exponent + wp.float64(2.0)) / two_pi)
+        t[k] = type(t[k])(v)
+        storage[i, k] = type(storage[i, k])(v)
+    p[i] = t
+    valid[i] = wp.where(count[i] > 0, 1, 0)
+
+
+@wp.kernel
 def accept_kernel(p: wp.array(dtype=Any), f: wp.array(dtype=Any), g: wp.array(dtype=Any),
                   d: wp.array(dtype=Any), trial: wp.array(dtype=Any), f_trial: wp.array(dtype=Any),
                   g_trial: wp.array(dtype=Any), alpha: wp.array(dtype=Any), active: wp.array(dtype=wp.int32),

@@ -14,7 +14,6 @@ import numpy as np
 import warp as wp
 
 from ..kernels import optim_kernels as K
-from ..models import energy_bound_numpy
 from ..problem import StreamProblem
 
 
@@ -56,9 +55,11 @@ class FitState:
     """accumulate the diagonal in every gradient pass (the optimizer preconditions with it)"""
 
     @staticmethod
-    def create(problem: StreamProblem, p0: np.ndarray, free_mask: np.ndarray,
-               lobe_albedo_max: float = 0.0) -> "FitState":
-        """State at ``p0`` (N, n_params), projected onto the bounds and the lobe energy bound."""
+    def create(problem: StreamProblem, p0, free_mask: np.ndarray, lobe_albedo_max: float = 0.0,
+               counts: wp.array | None = None) -> "FitState":
+        """State at ``p0`` ((N, n_params) float64, a NumPy array or a Warp array on the problem's device),
+        projected onto the bounds and the lobe energy bound on the device. ``counts``: samples per texel
+        (``valid`` is 1 where positive); None: every texel valid."""
         pr = problem
         lay = pr.layout
         vec = pr.vec
@@ -66,16 +67,28 @@ class FitState:
         fr = free_mask.astype(float)
         n = pr.n
         dev = pr.device
-        p0 = energy_bound_numpy(np.clip(p0, lay.lower(), lay.upper()), lay, lobe_albedo_max)
-        p = pr.new_vec(p0)  # uploaded once; the trial and previous points start as device copies of it
+        if not isinstance(p0, wp.array):
+            p0 = wp.array(np.ascontiguousarray(p0, dtype=np.float64), dtype=wp.float64, device=dev)
+        if p0.shape != (n, lay.n_params) or p0.dtype != wp.float64:
+            raise ValueError(f"start of shape {p0.shape} ({p0.dtype.__name__}); the fit needs ({n}, {lay.n_params}) float64")
+        p = pr.new_vec()
+        storage = wp.empty((n, lay.n_params), dtype=pr.storage_dtype, device=dev)
+        valid = wp.empty(n, dtype=wp.int32, device=dev)
+        if counts is None:
+            counts = wp.ones(n, dtype=wp.int32, device=dev)
+        wp.launch(K.start_point_kernel, dim=n, device=dev,
+                  inputs=[p0, wp.array(lo, dtype=wp.float64, device=dev), wp.array(hi, dtype=wp.float64, device=dev),
+                          lay.n_lobes, lay.lobe_stride, wp.float64(lobe_albedo_max), wp.float64(2.0 * np.pi), counts],
+                  outputs=[p, storage, valid])
+        # the trial and previous points start as device copies of the first point
         st = FitState(
             problem=pr, p=p, f=pr.new_scalar(), g=pr.new_vec(),
             stats=wp.zeros(n, dtype=wp.vec4d, device=dev), d=pr.new_vec(), alpha=pr.new_scalar(1.0),
             prev_alpha=pr.new_scalar(1.0), slope=pr.new_scalar(), prev_slope=pr.new_scalar(),
             dhd=pr.new_scalar(), trial=wp.clone(p), f_trial=pr.new_scalar(), g_trial=pr.new_vec(),
-            stats_trial=wp.zeros(n, dtype=wp.vec4d, device=dev), storage=pr.new_storage(p0),
+            stats_trial=wp.zeros(n, dtype=wp.vec4d, device=dev), storage=storage,
             active=wp.zeros(n, dtype=wp.int32, device=dev), accepted=wp.zeros(n, dtype=wp.int32, device=dev),
-            valid=wp.ones(n, dtype=wp.int32, device=dev), p_old=wp.clone(p), g_old=pr.new_vec(),
+            valid=valid, p_old=wp.clone(p), g_old=pr.new_vec(),
             free=vec(*fr), lower=vec(*lo), upper=vec(*hi), lobe_albedo_max=float(lobe_albedo_max),
             diag=pr.new_vec(), diag_trial=pr.new_vec())
         return st
