@@ -31,6 +31,9 @@ from .lfm_config import LFMConfig
 from .problem import StreamConfig, StreamProblem, no_light_error
 
 OPTIMIZERS = ("sd", "cg", "lbfgs", "lm")
+TRACE_CHUNKS = 4096
+"""the trace's first reduction level: chunks of texels, each summed in order by one thread, then the chunks
+in order (a fixed summation order, so the trace is the same on every run and device)"""
 
 
 @dataclasses.dataclass
@@ -388,7 +391,9 @@ class FitRun:
         if cfg.linesearch.kind not in ("backtracking", "hessian", "quadratic"):
             raise ConfigError(f"line search {cfg.linesearch.kind!r} unknown", fix="use backtracking, hessian or quadratic")
         # trace buffer: objective, |g|^2, samples, SSE, sum|r|, sum|y|, accepted, valid texels
-        self.n_chunks = max(1, min(1024, n))
+        # in chunks of ~n / TRACE_CHUNKS texels: one thread sums a chunk, texels far apart in memory, so more,
+        # shorter chunks keep the reduction off each iteration's critical path
+        self.n_chunks = max(1, min(TRACE_CHUNKS, n))
         self.chunk = math.ceil(n / self.n_chunks)
         self.partial = wp.zeros((self.n_chunks, 8), dtype=wp.float64, device=dev)
         self.trace_buf = wp.zeros((cfg.max_iterations + 1, 8), dtype=wp.float64, device=dev)
@@ -416,7 +421,7 @@ class FitRun:
         wp.launch(K.chunk_sums_kernel, dim=self.n_chunks, device=dev,
                   inputs=[state.f, state.g, state.stats, state.accepted, state.valid, self.problem.n, self.chunk],
                   outputs=[self.partial])
-        wp.launch(K.final_sums_kernel, dim=1, device=dev, inputs=[self.partial, self.n_chunks, row],
+        wp.launch(K.final_sums_kernel, dim=8, device=dev, inputs=[self.partial, self.n_chunks, row],
                   outputs=[self.trace_buf])
         wp.synchronize_device(dev)
         self.times.append(time.perf_counter() - self.t_start)

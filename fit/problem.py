@@ -849,9 +849,9 @@ def upload_photo_sets(sets: list[PhotoSet], in_place: bool | None = None) -> Non
 
     The photos go in chunks of ~:data:`UPLOAD_CHUNK_BYTES` (:data:`ARRAY_UPLOAD_CHUNK_BYTES` for arrays)
     through :data:`UPLOAD_SLOTS` pinned host buffers shared by all sets: the sets' loaders crop the next
-    chunks while the oldest chunk's copy runs to its set's device (:func:`_upload_in_chunks`). The buffers hold float32, as the photos come, and half-float photos are converted
-    on the device: a plain host copy is ~5x faster than numpy's float16 conversion (both round to nearest
-    even, so the halves are the same). Everything runs on each device's stream. ``timings``: ``upload``
+    chunks while the oldest chunk's copy runs to its set's device (:func:`_upload_in_chunks`). The buffers
+    hold float32, as the photos come, and half-float photos are converted on the device: a plain host copy
+    is ~5x faster than numpy's float16 conversion (both round to nearest even, so the halves are the same). Everything runs on each device's stream. ``timings``: ``upload``
     until every copy is done (with the maps made beside it), then ``depth_maps`` and ``shadow_maps`` of the
     other sets. ``in_place``: CPU sets filled in place, no buffers (default: on the CPU); False runs the
     pipeline there too (tests)."""

@@ -610,12 +610,13 @@ def chunk_sums_kernel(f: wp.array(dtype=Any), g: wp.array(dtype=Any), st: wp.arr
 @wp.kernel
 def final_sums_kernel(partial: wp.array2d(dtype=wp.float64), n_chunks: int, row: int,
                       trace: wp.array2d(dtype=wp.float64)):
-    """Second reduction level (one thread, fixed order) into row ``row`` of the trace buffer."""
-    for k in range(8):
-        s = wp.float64(0.0)
-        for c in range(n_chunks):
-            s = s + partial[c, k]
-        trace[row, k] = s
+    """Second reduction level into row ``row`` of the trace buffer: thread k sums column k over the chunks,
+    in order."""
+    k = wp.tid()
+    s = wp.float64(0.0)
+    for c in range(n_chunks):
+        s = s + partial[c, k]
+    trace[row, k] = s
 
 
 @wp.kernel
