@@ -1,7 +1,8 @@
 """Where the photos' upload spends its time (fit/problem.py upload_photo_sets, one GPU): the pinned buffers'
 allocation, the main thread waiting for each chunk's crops and for each buffer's last copy, and the final
-synchronisation, per pipeline shape (buffers, chunk size, crop threads). The full ornament's 1,760 photos of
-430x430 (rendered in memory), the fastest of 3 set-ups per shape; writes JSON and prints a log.
+synchronisation, per pipeline shape (buffers, chunk size, crop threads, the interpreter's switch interval).
+The full ornament's 1,760 photos of 430x430 (rendered in memory), the fastest of 3 set-ups per shape; writes
+JSON and prints a log.
 
     python benchmarks/upload_timeline.py OUT_DIR [DEVICE]     # on a CUDA machine
 """
@@ -22,13 +23,13 @@ from photo_split_scene import OrnamentAt4x
 wp.config.quiet = True
 wp.init()
 DEVICE = sys.argv[2] if len(sys.argv) > 2 else "cuda:0"
-SHAPES = {  # name: (buffers, chunk MiB, crop threads)
-    "2 x 16 MiB, 8 threads": (2, 16, 0),
-    "4 x 16 MiB, 8 threads": (4, 16, 0),
-    "2 x 64 MiB, 8 threads": (2, 64, 0),
-    "3 x 32 MiB, 8 threads": (3, 32, 0),
-    "2 x 16 MiB, 4 threads": (2, 16, 4),
-    "4 x 16 MiB, 12 threads": (4, 16, 12),
+SHAPES = {  # name: (buffers, chunk MiB, crop threads, switch interval s)
+    "2 x 16 MiB, 8 threads, 5 ms": (2, 16, 0, 5e-3),
+    "2 x 16 MiB, 8 threads, 0.1 ms": (2, 16, 0, 1e-4),
+    "2 x 16 MiB, 8 threads, 0.5 ms": (2, 16, 0, 5e-4),
+    "4 x 16 MiB, 8 threads, 0.1 ms": (4, 16, 0, 1e-4),
+    "2 x 16 MiB, 4 threads, 0.1 ms": (2, 16, 4, 1e-4),
+    "3 x 16 MiB, 12 threads, 0.1 ms": (3, 16, 12, 1e-4),
 }
 
 
@@ -70,8 +71,8 @@ class Recorder:
 scene = OrnamentAt4x(DEVICE)
 scene.photoset(DEVICE)  # compiles and loads every kernel
 out = {"commit": commit(), "device": wp.get_device(DEVICE).name, "shapes": {}}
-for name, (slots, mib, threads) in SHAPES.items():
-    P.UPLOAD_SLOTS, P.ARRAY_UPLOAD_CHUNK_BYTES = slots, mib << 20
+for name, (slots, mib, threads, switch) in SHAPES.items():
+    P.UPLOAD_SLOTS, P.ARRAY_UPLOAD_CHUNK_BYTES, P.UPLOAD_SWITCH_INTERVAL_S = slots, mib << 20, switch
     best = None
     for _ in range(3):
         wp.synchronize_device(DEVICE)
@@ -85,7 +86,7 @@ for name, (slots, mib, threads) in SHAPES.items():
             best = row
         del ps
     out["shapes"][name] = best
-    print(f"{name:24s} upload {best['upload']:.3f} s: pinned alloc {best['pinned_alloc_s']:.3f}, waiting for crops "
+    print(f"{name:32s} upload {best['upload']:.3f} s: pinned alloc {best['pinned_alloc_s']:.3f}, waiting for crops "
           f"{best['crop_wait_s']:.3f} ({best['chunks']} chunks), for buffers {best['buffer_wait_s']:.3f}; photo set "
           f"{best['photo_set_s']:.3f} s", flush=True)
 os.makedirs(sys.argv[1], exist_ok=True)

@@ -12,6 +12,7 @@ import collections
 import concurrent.futures
 import dataclasses
 import math
+import sys
 import threading
 import time
 
@@ -46,6 +47,10 @@ two-H200 machine), and copy threads need few photos in flight"""
 UPLOAD_SLOTS = 2
 """pinned host buffers the set-up's upload cycles through (:func:`_upload_in_chunks`): the chunks of all slots
 but one are being cropped while the oldest is copied to its device"""
+UPLOAD_SWITCH_INTERVAL_S = 1e-4
+"""the interpreter's thread switch interval while the upload runs (sys.setswitchinterval; the default is 5 ms):
+the thread issuing the copies takes the GIL back after every Warp call, between the crop threads' numpy
+calls, and with the default it waited for it"""
 UPLOAD_INTERLEAVE = False
 """whether the upload alternates between the sets of a photo split (each device's copies beside the others')
 rather than taking one set after another"""
@@ -950,6 +955,8 @@ def _upload_in_chunks(sets: list[PhotoSet]) -> set:
 
     pending, submitted = collections.deque(), []
     devices = sorted({s.device for s in sets})
+    switch_interval = sys.getswitchinterval()
+    sys.setswitchinterval(min(switch_interval, UPLOAD_SWITCH_INTERVAL_S))
     try:
         for q, (i, b, c) in enumerate(order):
             s, pix, chunk, slot = sets[i], pixels[i], chunks[i], q % n_slots
@@ -974,6 +981,8 @@ def _upload_in_chunks(sets: list[PhotoSet]) -> set:
             except Exception:  # noqa: BLE001 - the photo's error is the one to report
                 pass
         raise
+    finally:
+        sys.setswitchinterval(switch_interval)
     # the pinned buffers are freed on return: every copy reading them done first (freeing pinned memory
     # waits only for the calling thread's current device, not for a copy to another one)
     for d in devices:

@@ -5,6 +5,7 @@ the device give the same fit."""
 from __future__ import annotations
 
 import dataclasses
+import sys
 
 import numpy as np
 import pytest
@@ -308,11 +309,13 @@ def test_staged_upload_gives_the_cropped_photos(scene, device, precision, slots,
                 ps.timings = dict.fromkeys(ref.timings, 0.0)
                 ps._init_device(defer_upload=True)
                 sets.append(ps)
+            interval = sys.getswitchinterval()
             try:
                 problem.upload_photo_sets(sets, in_place=False)
             finally:
                 for ps in sets:
                     ps.loader.close()
+            assert sys.getswitchinterval() == interval, name  # the upload's shorter switch interval is undone
             for ps, (b, e) in zip(sets, runs):
                 np.testing.assert_array_equal(ps.images.numpy(), want[b:e], err_msg=name)
                 np.testing.assert_array_equal(ps.device_masks.numpy(), want_m[b:e], err_msg=name)
@@ -355,9 +358,11 @@ def test_staged_upload_fails_on_a_bad_photo_with_nothing_left_running(scene, dev
     saved = problem.ARRAY_UPLOAD_CHUNK_BYTES
     problem.ARRAY_UPLOAD_CHUNK_BYTES = 3 * ref.hmax * ref.wmax * 12
     try:
+        interval = sys.getswitchinterval()
         with pytest.raises(InputError, match="photo 4 is bad"):
             problem.upload_photo_sets([ps], in_place=False)
         assert len(submitted) >= 9 and all(f.done() for f in submitted)
+        assert sys.getswitchinterval() == interval  # the upload's shorter switch interval is undone
     finally:
         problem.ARRAY_UPLOAD_CHUNK_BYTES = saved
         ps.loader.close()
