@@ -55,8 +55,10 @@ FILE_DECODE_THREADS = 4
 """default threads decoding photos from files (at most the CPU count): OpenEXR spreads each read over the
 cores itself, so more readers only contend for Python's lock; 4 beat 8 on 16-core GPU hosts (docs/scale.md)"""
 
-ARRAY_COPY_THREADS = 8
-"""default threads cropping photos given as arrays into the upload buffers (at most the CPU count)"""
+ARRAY_COPY_THREADS = 4
+"""default threads cropping photos given as arrays into the upload buffers (at most the CPU count): beside
+the thread issuing the copies, more croppers only contend for Python's lock; 4 beat 8 and 12 on a 32-core
+two-GPU host (docs/scale.md)"""
 
 LIGHT_KINDS = {"point": 0, "directional": 1, "none": 2}  # fit/kernels/shading.py LIGHT_*
 

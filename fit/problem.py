@@ -311,9 +311,9 @@ class StreamConfig:
     crop_photos: bool = option(True, "store each photo cropped to the object's footprint (the mesh's projected "
                                      "bounding box plus 3 px): only pixels a texel can see; results equal the "
                                      "uncropped photos' to float rounding of the projection")
-    decode_threads: int = option(0, "threads (or worker processes) that decode and crop photos (0: at most 4 "
-                                    "threads for files, 8 for photos in memory, and the CPU count; one process "
-                                    "per CPU up to 16)", min=0)
+    decode_threads: int = option(0, "threads (or worker processes) that decode and crop photos (0: 4 threads, at "
+                                    "most the CPU count; for files under worker processes one process per CPU up "
+                                    "to 16)", min=0)
     photo_decoder: str = option("auto", "what decodes photo files: threads of the fitting process, worker "
                                         "processes (no lock shared with the fit; same bytes), or auto (processes "
                                         "under the texstream command with 16 or more CPUs, else threads)",
