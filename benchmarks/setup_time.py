@@ -206,11 +206,10 @@ def main() -> None:
                "shadow_map_size": a.shadow_map_size, "device": a.device, "source": a.source,
                "image_precision": a.image_precision, "iterations": a.iterations, "machine": platform.node(),
                "command": "python benchmarks/setup_time.py " + " ".join(sys.argv[1:]), "runs": {}}
-    try:
-        results["commit"] = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                           cwd=Path(__file__).parent).stdout.strip()
-    except OSError:
-        pass
+    sys.path.insert(0, str(Path(__file__).parent))
+    from gitinfo import commit
+
+    results["commit"] = commit()
     capture = out / "capture"
     if a.source == "disk" and a.reuse_capture and (capture / "capture.json").is_file():
         results["write_capture_s"] = None  # written by an earlier run
