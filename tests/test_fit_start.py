@@ -80,8 +80,9 @@ def test_first_point_is_the_float64_projection(device, sphere, storage, accumula
     # bit for bit: the kernel's clip and energy bound are NumPy's float64 operations, then one rounding
     np.testing.assert_array_equal(got, want.astype(compute))
     # the storage precision is rounded from float64 directly, except half floats: through float32, as Warp converts
-    stored = want.astype(np.float32).astype(np.float16) if storage == "fp16" else want.astype({"fp32": np.float32,
-                                                                                             "fp64": np.float64}[storage])
+    with np.errstate(over="ignore"):  # rho_s up to 1e5 is beyond half floats: inf, in both
+        stored = want.astype(np.float32).astype(np.float16) if storage == "fp16" else want.astype(
+            {"fp32": np.float32, "fp64": np.float64}[storage])
     np.testing.assert_array_equal(st.storage.numpy(), stored)
     np.testing.assert_array_equal(st.valid.numpy(), (counts > 0).astype(np.int32))
     np.testing.assert_array_equal(st.trial.numpy(), st.p.numpy())
