@@ -46,14 +46,12 @@ time to allocate in proportion to its size (4 buffers of 16 MiB in 0.04 s, of 64
 two-H200 machine), and copy threads need few photos in flight"""
 UPLOAD_SLOTS = 2
 """pinned host buffers the set-up's upload cycles through (:func:`_upload_in_chunks`): the chunks of all slots
-but one are being cropped while the oldest is copied to its device"""
+but one are being cropped while the oldest is copied to its device (4 were no faster on a two-H200 host,
+and each buffer costs ~7 ms to pin)"""
 UPLOAD_SWITCH_INTERVAL_S = 1e-4
 """the interpreter's thread switch interval while the upload runs (sys.setswitchinterval; the default is 5 ms):
 the thread issuing the copies takes the GIL back after every Warp call, between the crop threads' numpy
 calls, and with the default it waited for it"""
-UPLOAD_INTERLEAVE = False
-"""whether the upload alternates between the sets of a photo split (each device's copies beside the others')
-rather than taking one set after another"""
 
 
 @dataclasses.dataclass
@@ -856,7 +854,8 @@ def upload_photo_sets(sets: list[PhotoSet], in_place: bool | None = None) -> Non
     through :data:`UPLOAD_SLOTS` pinned host buffers shared by all sets: the sets' loaders crop the next
     chunks while the oldest chunk's copy runs to its set's device (:func:`_upload_in_chunks`). The buffers
     hold float32, as the photos come, and half-float photos are converted on the device: a plain host copy
-    is ~5x faster than numpy's float16 conversion (both round to nearest even, so the halves are the same). Everything runs on each device's stream. ``timings``: ``upload``
+    is ~5x faster than numpy's float16 conversion (both round to nearest even, so the halves are the same).
+    Everything runs on each device's stream. ``timings``: ``upload``
     until every copy is done (with the maps made beside it), then ``depth_maps`` and ``shadow_maps`` of the
     other sets. ``in_place``: CPU sets filled in place, no buffers (default: on the CPU); False runs the
     pipeline there too (tests)."""
@@ -891,15 +890,10 @@ def upload_photo_sets(sets: list[PhotoSet], in_place: bool | None = None) -> Non
 
 
 def _upload_order(sets: list[PhotoSet], chunks: list[int]) -> list[tuple[int, int, int]]:
-    """The pipeline's chunks as (set, first photo, photos): one set after another, or (with
-    :data:`UPLOAD_INTERLEAVE`) one chunk of each set in turn, each set's chunks in order."""
-    per_set = [[(i, b, min(c, s.n - b)) for b in range(0, s.n, c)] for i, (s, c) in enumerate(zip(sets, chunks))]
-    if not UPLOAD_INTERLEAVE:
-        return [q for qs in per_set for q in qs]
-    order = []
-    for k in range(max(len(qs) for qs in per_set)):
-        order += [qs[k] for qs in per_set if k < len(qs)]
-    return order
+    """The pipeline's chunks as (set, first photo, photos): one set after another, each set's in order (sets
+    taken at once, alternating, crop with both loaders' threads, which contend for Python's lock: slower on
+    a two-GPU host, docs/scale.md)."""
+    return [(i, b, min(c, s.n - b)) for i, (s, c) in enumerate(zip(sets, chunks)) for b in range(0, s.n, c)]
 
 
 def _upload_in_chunks(sets: list[PhotoSet]) -> set:
