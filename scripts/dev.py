@@ -94,7 +94,8 @@ def main() -> int:
         ensure_browser()
         ensure_llvm()
         # two workers: Warp's CPU launches use one core each (pytest-xdist)
-        cmd = [str(PY), "-m", "pytest", "-q", "-rs", *(extra or ["-n", "2"])]
+        # the slowest tests listed, so a CI log shows where its time goes
+        cmd = [str(PY), "-m", "pytest", "-q", "-rs", "--durations=20", *(extra or ["-n", "2"])]
     print("[dev] " + " ".join(cmd), flush=True)
     return subprocess.call(cmd, cwd=ROOT, env=env)
 
