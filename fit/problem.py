@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import collections
 import concurrent.futures
+import contextlib
 import dataclasses
 import math
 import sys
@@ -949,23 +950,22 @@ def _upload_in_chunks(sets: list[PhotoSet]) -> set:
 
     pending, submitted = collections.deque(), []
     devices = sorted({s.device for s in sets})
-    switch_interval = sys.getswitchinterval()
-    sys.setswitchinterval(min(switch_interval, UPLOAD_SWITCH_INTERVAL_S))
     try:
-        for q, (i, b, c) in enumerate(order):
-            s, pix, chunk, slot = sets[i], pixels[i], chunks[i], q % n_slots
-            if copied[slot] is not None:
-                wp.synchronize_event(copied[slot])  # this buffer's previous copy has left it
-            images = stage_np[slot][0][:chunk * pix].reshape(chunk, s.hmax, s.wmax, -1)
-            masks = stage_np[slot][1][:chunk * pix].reshape(chunk, s.hmax, s.wmax)
-            # later chunks are cropped while the loaders finish this one: no thread idles at a chunk's end
-            filling = s.loader.submit(range(b, b + c), images, masks if s.loader.has_masks else None)
-            submitted.extend(filling)
-            pending.append((q, slot, filling))
-            if len(pending) == n_slots:
+        with _short_switch_interval():
+            for q, (i, b, c) in enumerate(order):
+                s, pix, chunk, slot = sets[i], pixels[i], chunks[i], q % n_slots
+                if copied[slot] is not None:
+                    wp.synchronize_event(copied[slot])  # this buffer's previous copy has left it
+                images = stage_np[slot][0][:chunk * pix].reshape(chunk, s.hmax, s.wmax, -1)
+                masks = stage_np[slot][1][:chunk * pix].reshape(chunk, s.hmax, s.wmax)
+                # later chunks are cropped while the loaders finish this one: no thread idles at a chunk's end
+                filling = s.loader.submit(range(b, b + c), images, masks if s.loader.has_masks else None)
+                submitted.extend(filling)
+                pending.append((q, slot, filling))
+                if len(pending) == n_slots:
+                    upload(*pending.popleft())
+            while pending:
                 upload(*pending.popleft())
-        while pending:
-            upload(*pending.popleft())
     except BaseException:
         # a photo failed: the buffers go with this frame, so no crop may still write them nor copy read them
         concurrent.futures.wait(submitted)
@@ -975,13 +975,33 @@ def _upload_in_chunks(sets: list[PhotoSet]) -> set:
             except Exception:  # noqa: BLE001 - the photo's error is the one to report
                 pass
         raise
-    finally:
-        sys.setswitchinterval(switch_interval)
     # the pinned buffers are freed on return: every copy reading them done first (freeing pinned memory
     # waits only for the calling thread's current device, not for a copy to another one)
     for d in devices:
         wp.synchronize_device(d)
     return mapped
+
+
+_SWITCH_LOCK = threading.Lock()
+_switch_state = {"users": 0, "saved": 0.0}
+
+
+@contextlib.contextmanager
+def _short_switch_interval():
+    """:data:`UPLOAD_SWITCH_INTERVAL_S` as the interpreter's switch interval while any upload runs (uploads on
+    several threads at once share it), the interval before restored when the last one ends."""
+    with _SWITCH_LOCK:
+        if _switch_state["users"] == 0:
+            _switch_state["saved"] = sys.getswitchinterval()
+            sys.setswitchinterval(min(_switch_state["saved"], UPLOAD_SWITCH_INTERVAL_S))
+        _switch_state["users"] += 1
+    try:
+        yield
+    finally:
+        with _SWITCH_LOCK:
+            _switch_state["users"] -= 1
+            if _switch_state["users"] == 0:
+                sys.setswitchinterval(_switch_state["saved"])
 
 
 def _stream_of(device: str):

@@ -408,3 +408,31 @@ def test_disk_stream_with_maps_kept_on_the_device_equals_recomputing_them(disk_s
     assert "kept on the device" in kept.photos.residency_reason
     np.testing.assert_array_equal(r_kept.params, r_again.params)
     assert [r["objective"] for r in r_kept.trace] == [r["objective"] for r in r_again.trace]
+
+
+def test_uploads_at_once_share_the_short_switch_interval_and_restore_it():
+    """Uploads on two threads overlap: the interval stays short until the last one ends, then is the one before
+    (not the first upload's short value left behind by the second)."""
+    import threading
+
+    import texstream.fit.problem as problem
+
+    before = sys.getswitchinterval()
+    first_in, second_done = threading.Event(), threading.Event()
+    seen = []
+
+    def first():
+        with problem._short_switch_interval():
+            first_in.set()
+            second_done.wait(5)
+            seen.append(sys.getswitchinterval())
+
+    t = threading.Thread(target=first)
+    t.start()
+    first_in.wait(5)
+    with problem._short_switch_interval():
+        seen.append(sys.getswitchinterval())
+    second_done.set()
+    t.join(5)
+    assert seen == [pytest.approx(problem.UPLOAD_SWITCH_INTERVAL_S)] * 2  # held in microseconds
+    assert sys.getswitchinterval() == before
