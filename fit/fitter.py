@@ -249,11 +249,15 @@ def fit_start(problem: StreamProblem, cfg: FitConfig) -> FitStart:
     if problem.peers:
         problem.split_initial_guess(kernel, int(cfg.init_rank), low, high, count)
     else:
-        no_lists = wp.zeros(1, dtype=wp.mat44, device=dev)
-        for images, depth, shadow, infos, b, e in problem.photos.windows():
+        # streamed windows carry each texel's 4 smallest samples per channel from one window to the next, so
+        # the percentile is the one-pass value whatever the windows
+        windowed = problem.photos.window < problem.photos.n
+        lists = wp.empty(n if windowed else 1, dtype=wp.mat44, device=dev)
+        for k, (images, depth, shadow, infos, b, e) in enumerate(problem.photos.windows()):
+            keep = 0 if not windowed else (1 if k == 0 else 2)
             wp.launch(kernel, dim=n, device=dev,
                       inputs=[problem.tex, images, depth, shadow, infos, b, e,
-                              problem.opt, int(cfg.init_rank), 0], outputs=[low, high, count, no_lists])
+                              problem.opt, int(cfg.init_rank), keep], outputs=[low, high, count, lists])
     guess = wp.empty((n, lay.n_params), dtype=wp.float64, device=dev)
     as_f64 = {name: wp.array(v, dtype=wp.float64, device=dev)
               for name, v in (("defaults", lay.defaults()), ("lower", lay.lower()), ("upper", lay.upper()))}

@@ -213,6 +213,24 @@ def test_streamed_from_disk_host_and_device_fits_agree(disk_scene, device):
     np.testing.assert_array_equal(r_disk1.params, r_dev.params)
 
 
+@pytest.mark.parametrize("rank", [0, 1, 3])
+def test_the_initial_guess_of_windows_is_the_one_pass_guess(scene, device, rank):
+    """Windows carry each texel's 4 smallest samples per channel from one to the next: the starting parameters
+    and sample counts of photos streamed 3 at a time are those of all photos on the device, to the bit."""
+    mesh, bake, frames, images, masks = scene
+
+    def start(**stream):
+        cfg = FitConfig(optimizer="lm", init_rank=rank, stream=StreamConfig(shadow_map_size=SHADOW, **stream))
+        prob = build_problem(mesh, bake, frames, images, masks, cfg, device)
+        return prob.photos.window, initial_guess(prob, cfg)
+
+    w_dev, (p_dev, n_dev) = start(photo_residency="device")
+    w_win, (p_win, n_win) = start(photo_residency="host", photos_per_window=3)
+    assert w_dev == len(frames) and w_win == 3
+    np.testing.assert_array_equal(n_win, n_dev)
+    np.testing.assert_array_equal(p_win, p_dev)
+
+
 def test_a_memory_cap_below_the_photos_streams_them_from_disk(disk_scene, device):
     prob, res = fit(disk_scene, True, device, memory_limit_mb=0.05)
     ph = prob.photos

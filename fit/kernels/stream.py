@@ -981,14 +981,16 @@ def initial_guess_kernel_for(radiance: bool = False):
         y / exposure, a low percentile of the radiance, below any highlight), the largest, and the
         number of samples. Windows accumulate (call with the outputs pre-filled). ``keep_smallest``
         1 also writes the 4 smallest per channel (rows: channel; ascending, 1e30 where none) to
-        ``smallest``: photos split over devices merge them exactly (:func:`merge_smallest_kernel`)."""
+        ``smallest``: photos split over devices merge them exactly (:func:`merge_smallest_kernel`);
+        2 resumes from ``smallest`` (the earlier windows' list) and writes it back, so windows of photos
+        give the one-pass values exactly."""
         i = wp.tid()
         lo = wp.mat44(0.0)  # rows: channel, columns: the 4 smallest so far, ascending
         for c in range(3):
             for j in range(4):
                 lo[c, j] = 1.0e30
-        # resume from previous windows: low[i] holds the rank-th value only, so windows restart the
-        # small-value list (documented: with streamed windows the estimate is per-window min-merged)
+        if keep_smallest == 2:
+            lo = smallest[i]
         hi = high[i]
         n = count[i]
         for k in range(img_begin, img_end):
@@ -1005,8 +1007,8 @@ def initial_guess_kernel_for(radiance: bool = False):
         for c in range(3):
             pick = rank_pick(lo, c, rank)
             if pick < 1.0e29:
-                if count[i] > 0:
-                    est[c] = wp.min(est[c], pick)
+                if count[i] > 0 and keep_smallest != 2:
+                    est[c] = wp.min(est[c], pick)  # without the earlier windows' list: the smaller estimate
                 else:
                     est[c] = pick
         low[i] = est
