@@ -856,10 +856,9 @@ def upload_photo_sets(sets: list[PhotoSet], in_place: bool | None = None) -> Non
     chunks while the oldest chunk's copy runs to its set's device (:func:`_upload_in_chunks`). The buffers
     hold float32, as the photos come, and half-float photos are converted on the device: a plain host copy
     is ~5x faster than numpy's float16 conversion (both round to nearest even, so the halves are the same).
-    Everything runs on each device's stream. ``timings``: ``upload``
-    until every copy is done (with the maps made beside it), then ``depth_maps`` and ``shadow_maps`` of the
-    other sets. ``in_place``: CPU sets filled in place, no buffers (default: on the CPU); False runs the
-    pipeline there too (tests)."""
+    Everything runs on each device's stream. ``timings``: ``upload`` until every copy is done (with the maps
+    made beside it), then ``depth_maps`` and ``shadow_maps`` of the other sets. ``in_place``: CPU sets filled
+    in place, no buffers (default: on the CPU); False runs the pipeline there too (tests)."""
     if in_place is None:
         in_place = all(s.device == "cpu" for s in sets)
     t0 = time.perf_counter()
@@ -919,7 +918,9 @@ def _upload_in_chunks(sets: list[PhotoSet]) -> set:
     order = _upload_order(sets, chunks)
     n_slots = max(2, min(int(UPLOAD_SLOTS), len(order)))
     stage = [wp.empty(size, dtype=stage_dtype, device="cpu", pinned=pinned) for _ in range(n_slots)]
-    stage_m = [wp.empty(size, dtype=wp.uint8, device="cpu", pinned=pinned) for _ in range(n_slots)]
+    # mask buffers only where some photo has a mask (a one-element placeholder otherwise, as _masks_buffer)
+    mask_size = size if any(s.loader.has_masks for s in sets) else 1
+    stage_m = [wp.empty(mask_size, dtype=wp.uint8, device="cpu", pinned=pinned) for _ in range(n_slots)]
     stage_np = [(a.numpy(), m.numpy()) for a, m in zip(stage, stage_m)]
     # per set, where a chunk lands on its device before the conversion to half floats
     landing = [wp.empty((c, s.hmax, s.wmax), dtype=wp.vec3, device=s.device) if h else None
@@ -957,9 +958,9 @@ def _upload_in_chunks(sets: list[PhotoSet]) -> set:
                 if copied[slot] is not None:
                     wp.synchronize_event(copied[slot])  # this buffer's previous copy has left it
                 images = stage_np[slot][0][:chunk * pix].reshape(chunk, s.hmax, s.wmax, -1)
-                masks = stage_np[slot][1][:chunk * pix].reshape(chunk, s.hmax, s.wmax)
+                masks = stage_np[slot][1][:chunk * pix].reshape(chunk, s.hmax, s.wmax) if s.loader.has_masks else None
                 # later chunks are cropped while the loaders finish this one: no thread idles at a chunk's end
-                filling = s.loader.submit(range(b, b + c), images, masks if s.loader.has_masks else None)
+                filling = s.loader.submit(range(b, b + c), images, masks)
                 submitted.extend(filling)
                 pending.append((q, slot, filling))
                 if len(pending) == n_slots:

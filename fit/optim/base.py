@@ -71,7 +71,7 @@ class FitState:
             p0 = wp.array(np.ascontiguousarray(p0, dtype=np.float64), dtype=wp.float64, device=dev)
         if p0.shape != (n, lay.n_params) or p0.dtype != wp.float64:
             raise ValueError(f"start of shape {p0.shape} ({p0.dtype.__name__}); the fit needs ({n}, {lay.n_params}) float64")
-        p = pr.new_vec()
+        p = wp.empty(n, dtype=vec, device=dev)  # every element written by the start kernel
         storage = wp.empty((n, lay.n_params), dtype=pr.storage_dtype, device=dev)
         valid = wp.empty(n, dtype=wp.int32, device=dev)
         if counts is None:
