@@ -9,9 +9,12 @@ one bool mask per photo), cropped to a fixed box:
 
 Each into one pinned buffer holding every photo (``full``) and into two 16 MiB pinned slots reused in turn
 (``ring``, as the upload pipeline does). Also the pinned host-to-device copy rate per GPU and with every GPU at
-once. Writes JSON and prints a log.
+once, and (``--pageable-threads``) each photo's rows copied straight from its own pageable memory to a device
+buffer (the driver stages them), by thread count, to each GPU alone and to every GPU at once (the photos split
+between them): whether the host's part of the upload divides between GPUs. Writes JSON and prints a log.
 
     python benchmarks/host_copy_rates.py --out DIR [--photos 1760 --size 430 --box 350x312] [--devices cuda:0,cuda:1]
+        [--pageable-threads 1,2,4,8]
 """
 
 from __future__ import annotations
@@ -39,6 +42,8 @@ def main() -> None:
     ap.add_argument("--threads", default="1,4,8,16,24")
     ap.add_argument("--devices", default="")
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--pageable-threads", default="", help="thread counts for the pageable copies (none: skipped)")
+    ap.add_argument("--skip-host", action="store_true", help="only the device copies")
     a = ap.parse_args()
     wp.config.quiet = True
     wp.init()
@@ -77,7 +82,7 @@ def main() -> None:
         np.copyto(img.reshape(ch, s, 3), photos[k][y0:y0 + ch])
         np.copyto(msk.reshape(ch, s), masks[k][y0:y0 + ch].view(np.uint8))
 
-    for method, px, fn in (("crop", crop_px, crop_one), ("rows", rows_px, rows_one)):
+    for method, px, fn in () if a.skip_host else (("crop", crop_px, crop_one), ("rows", rows_px, rows_one)):
         for kind in ("full", "ring"):
             views, per, keep = buffers(kind, px)
             for t in thread_counts:
@@ -106,7 +111,7 @@ def main() -> None:
     dst_buf = wp.empty(total, dtype=wp.float32, device="cpu", pinned=pinned)
     dst = dst_buf.numpy()
     dst[:] = 0
-    for t in thread_counts:
+    for t in [] if a.skip_host else thread_counts:
         parts = np.array_split(np.arange(total), t)
         bounds = [(int(p[0]), int(p[-1]) + 1) for p in parts]
         pool = concurrent.futures.ThreadPoolExecutor(t)
@@ -137,8 +142,51 @@ def main() -> None:
             gb = reps * len(group) * chunk * 4 / 1e9
             result["rates_gb_s"]["h2d_" + "+".join(group)] = {"s": dt, "gb": gb, "gb_s": gb / dt}
             print(f"host to {'+'.join(group)}: {gb / dt:5.1f} GB/s", flush=True)
+        pageable_rates(a, result, photos, masks, y0, ch, devices)
     with open(os.path.join(a.out, "host_copy_rates.json"), "w") as fh:
         json.dump(result, fh, indent=1)
+
+
+def pageable_rates(a, result: dict, photos: list, masks: list, y0: int, ch: int, devices: list[str]) -> None:
+    """Each photo's rows ``y0:y0+ch`` (one contiguous block of its own pageable memory) and its mask rows copied
+    straight to a device buffer, ``t`` threads per device each with its own stream, to each device alone and
+    to every device at once (photo k to device k % devices): GB/s of photo bytes, all copies finished."""
+    n, s = len(photos), photos[0].shape[1]
+    row_floats = ch * s * 3
+    for t in [int(v) for v in a.pageable_threads.split(",") if v]:
+        for group in [[d] for d in devices] + ([devices] if len(devices) > 1 else []):
+            landing = {(d, j): (wp.empty(row_floats, dtype=wp.float32, device=d),
+                                wp.empty(ch * s, dtype=wp.uint8, device=d)) for d in group for j in range(t)}
+            streams = {(d, j): wp.Stream(d) if d != "cpu" else None for d in group for j in range(t)}
+
+            def worker(d_j):
+                d, j = d_j
+                img, msk = landing[d_j]
+                stream = streams[d_j]
+                for k in range(group.index(d) + j * len(group), n, len(group) * t):
+                    rows = photos[k][y0:y0 + ch].reshape(-1)
+                    wp.copy(img, wp.array(ptr=rows.ctypes.data, shape=(rows.size,), dtype=wp.float32, device="cpu"),
+                            stream=stream)
+                    mrows = masks[k][y0:y0 + ch].reshape(-1)
+                    wp.copy(msk, wp.array(ptr=mrows.ctypes.data, shape=(mrows.size,), dtype=wp.uint8, device="cpu"),
+                            stream=stream)
+                if stream is not None:
+                    wp.synchronize_stream(stream)
+
+            pool = concurrent.futures.ThreadPoolExecutor(t * len(group))
+            best = None
+            for _ in range(a.repeats):
+                for d in group:
+                    wp.synchronize_device(d)
+                t0 = time.perf_counter()
+                list(pool.map(worker, list(landing)))
+                dt = time.perf_counter() - t0
+                best = dt if best is None else min(best, dt)
+            pool.shutdown()
+            gb = n * ch * s * 13 / 1e9
+            key = f"pageable_rows_{'+'.join(group)}_t{t}"
+            result["rates_gb_s"][key] = {"s": best, "gb": gb, "gb_s": gb / best}
+            print(f"pageable rows to {'+'.join(group)}, {t} threads each: {best:.3f} s, {gb / best:5.1f} GB/s", flush=True)
 
 
 if __name__ == "__main__":
