@@ -2,7 +2,11 @@
 set-up's upload variants (switch interval, copy threads, chunk size) and whole pageable photos copied straight to
 the devices; writes JSON and prints a log.
 
-    python benchmarks/photo_split_iteration_profile.py OUT_DIR     # on a machine with two CUDA GPUs
+    python benchmarks/photo_split_iteration_profile.py OUT_DIR [--iterations-only]   # on a machine with two CUDA GPUs
+
+The split iteration is timed with the second GPU's partial sums written straight into the first's memory
+(``split``, the default) and copied after the pass (``split_copied``, ``fit.problem.PEER_WRITES`` off).
+``--iterations-only`` stops after the iterations.
 """
 
 import collections
@@ -28,7 +32,9 @@ scene = OrnamentAt4x("cuda:0")
 mesh, frames, images, masks, bake = scene.mesh, scene.frames, scene.images, scene.masks, scene.bake
 photoset = scene.photoset
 # A: kernel times per LM iteration
-for name, extra in (("one", {}), ("split", dict(devices="cuda:0,cuda:1", device_split="photos"))):
+SPLIT = dict(devices="cuda:0,cuda:1", device_split="photos")
+for name, extra in (("one", {}), ("split", SPLIT), ("split_copied", SPLIT)):
+    P.PEER_WRITES = name != "split_copied"
     cfg = FitConfig(
         optimizer="lm",
         max_iterations=10,
@@ -55,6 +61,11 @@ for name, extra in (("one", {}), ("split", dict(devices="cuda:0,cuda:1", device_
     for (d, n), v in rows:
         print("   %-8s %-60s %7.2f ms" % (d, n, v), flush=True)
     del run, pr
+P.PEER_WRITES = True
+if "--iterations-only" in sys.argv:
+    with open(os.path.join(sys.argv[1], "iteration_profile.json"), "w") as fh:
+        json.dump(out, fh, indent=1)
+    sys.exit(0)
 ps = photoset("cuda:0")
 # B1: pinned allocation
 for mb in (16, 64):
