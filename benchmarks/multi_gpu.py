@@ -63,8 +63,6 @@ def main() -> None:
     ap.add_argument("--upload-slots", type=int, default=0, help="fit.problem.UPLOAD_SLOTS (0: the default)")
     ap.add_argument("--upload-chunk-mib", type=float, default=0,
                     help="fit.problem.ARRAY_UPLOAD_CHUNK_BYTES in MiB (0: the default)")
-    ap.add_argument("--peer-writes", default="on", choices=("on", "off"),
-                    help="fit.problem.PEER_WRITES: the photo split's second GPU writes its sums into the first's memory")
     ap.add_argument("--out", required=True)
     a = ap.parse_args()
 
@@ -87,9 +85,8 @@ def main() -> None:
         fit_problem.UPLOAD_SLOTS = a.upload_slots
     if a.upload_chunk_mib:
         fit_problem.ARRAY_UPLOAD_CHUNK_BYTES = int(a.upload_chunk_mib * (1 << 20))
-    fit_problem.PEER_WRITES = a.peer_writes == "on"
     pipeline = {"upload_slots": fit_problem.UPLOAD_SLOTS, "array_upload_chunk_bytes": fit_problem.ARRAY_UPLOAD_CHUNK_BYTES,
-                "decode_threads": a.decode_threads, "peer_writes": fit_problem.PEER_WRITES}
+                "decode_threads": a.decode_threads}
     devices = parse_devices(a.devices, "cpu")
     dev0 = devices[0]
     t0 = time.perf_counter()

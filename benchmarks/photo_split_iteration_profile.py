@@ -4,8 +4,6 @@ the devices; writes JSON and prints a log.
 
     python benchmarks/photo_split_iteration_profile.py OUT_DIR [--iterations-only]   # on a machine with two CUDA GPUs
 
-The split iteration is timed with the second GPU's partial sums written straight into the first's memory
-(``split``, the default) and copied after the pass (``split_copied``, ``fit.problem.PEER_WRITES`` off).
 ``--iterations-only`` stops after the iterations.
 """
 
@@ -32,9 +30,7 @@ scene = OrnamentAt4x("cuda:0")
 mesh, frames, images, masks, bake = scene.mesh, scene.frames, scene.images, scene.masks, scene.bake
 photoset = scene.photoset
 # A: kernel times per LM iteration
-SPLIT = dict(devices="cuda:0,cuda:1", device_split="photos")
-for name, extra in (("one", {}), ("split", SPLIT), ("split_copied", SPLIT)):
-    P.PEER_WRITES = name != "split_copied"
+for name, extra in (("one", {}), ("split", dict(devices="cuda:0,cuda:1", device_split="photos"))):
     cfg = FitConfig(
         optimizer="lm",
         max_iterations=10,
@@ -61,7 +57,6 @@ for name, extra in (("one", {}), ("split", SPLIT), ("split_copied", SPLIT)):
     for (d, n), v in rows:
         print("   %-8s %-60s %7.2f ms" % (d, n, v), flush=True)
     del run, pr
-P.PEER_WRITES = True
 if "--iterations-only" in sys.argv:
     with open(os.path.join(sys.argv[1], "iteration_profile.json"), "w") as fh:
         json.dump(out, fh, indent=1)

@@ -49,10 +49,6 @@ UPLOAD_SLOTS = 2
 """pinned host buffers the set-up's upload cycles through (:func:`_upload_in_chunks`): the chunks of all slots
 but one are being cropped while the oldest is copied to its device (4 were no faster on a two-H200 host,
 and each buffer costs ~7 ms to pin)"""
-PEER_WRITES = True
-"""with photos split over devices, each other device's passes write their partial sums straight into the first
-device's rows where they can address its memory (the same device, or CUDA peer access), instead of into their
-own rows copied over after the pass (False: always copied; for comparisons)"""
 UPLOAD_SWITCH_INTERVAL_S = 1e-4
 """the interpreter's thread switch interval while the upload runs (sys.setswitchinterval; the default is 5 ms):
 the thread issuing the copies takes the GIL back after every Warp call, between the crop threads' numpy
@@ -1307,18 +1303,18 @@ class StreamProblem:
             raise ConfigError("direction and parameters must share a dtype")
         h_out = dhd if dhd is not None else self.ph_scratch()
 
-        def launch(pr: StreamProblem, inputs: dict, window, out: list) -> None:
+        def launch(pr: StreamProblem, inputs: dict, window) -> None:
             images, depth, shadow, infos, b, e = window
+            if diag is not None and pr.pdiag is None:
+                pr.pdiag = wp.zeros((pr.rows, pr.n), dtype=pr.vec, device=pr.device)
             dirn = inputs["direction"] if inputs["direction"] is not None else pr.no_direction
             act = inputs["active"] if inputs["active"] is not None else pr.all_active
             wp.launch(kernel, dim=(pr.groups, pr.n), device=pr.device, block_dim=pr.block_dim,
                       inputs=[pr.tex, inputs["params"], dirn, act, images, depth, shadow, infos, b, e,
                               math.ceil((e - b) / pr.groups), pr.opt, pr.like, pr.one],
-                      outputs=out + ([] if diag is not None else [pr.no_diag]))
+                      outputs=[pr.pf, pr.pg, pr.ph, pr.pst, pr.pdiag if diag is not None else pr.no_diag])
 
         partials = ["pf", "pg", "ph", "pst"] + (["pdiag"] if diag is not None else [])
-        if diag is not None:
-            self._allocate_partials("pdiag", "vec")
         first = True
         for rows in self._launch_passes(launch, partials, params=params, direction=direction, active=active):
             wp.launch(stream.reduce_partials_kernel, dim=self.n, device=self.device,
@@ -1332,62 +1328,21 @@ class StreamProblem:
         self._add_prior(params, f, g, act, direction, dhd, diag=diag)
         self.passes += 1
 
-    def _allocate_partials(self, name: str, kind: str) -> None:
-        """Allocate the per-group partial-sum array ``name`` (of this problem's ``kind`` type: "vec" or "mat"),
-        (rows, n), here and on every peer that does not write into this problem's, where not yet allocated."""
-        for pr in (self, *(p for p in self.peers if not self._writes_here(p))):
-            if getattr(pr, name) is None:
-                setattr(pr, name, wp.zeros((pr.rows, pr.n), dtype=getattr(pr, kind), device=pr.device))
-
     def _launch_passes(self, launch, partials: list[str], **inputs):
         """Launch a pass's accumulation over every photo: per window of this problem's photos, yields the
-        number of partial-sum rows to reduce after ``launch(problem, inputs, window, outputs)`` has filled
-        ``outputs``, the arrays ``partials`` names. With split photos (one window per device): every peer's
-        launch on its device with ``inputs`` copied there, writing into this problem's rows after its own
-        (:meth:`_peer_outputs`), then this problem's own launch, then the peers' rows made ready for the
-        reduction (:meth:`_gather_from_peers`)."""
-        own = [getattr(self, name) for name in partials]
+        number of partial-sum rows to reduce after ``launch(problem, inputs, window)`` has filled them.
+        With split photos (one window per device): every peer's launch on its device with ``inputs``
+        copied there, this problem's own, then the peers' ``partials`` rows copied after its own."""
         if not self.peers:
             for window in self.own_photos.windows():
-                launch(self, inputs, window, own)
+                launch(self, inputs, window)
                 yield self.groups
             return
-        for k, (peer, mirrored) in enumerate(zip(self.peers, self._to_peers(**inputs)), 1):
-            launch(peer, mirrored, next(iter(peer.own_photos.windows())), self._peer_outputs(peer, k, partials))
-        launch(self, inputs, next(iter(self.own_photos.windows())), own)
+        for peer, mirrored in zip(self.peers, self._to_peers(**inputs)):
+            launch(peer, mirrored, next(iter(peer.own_photos.windows())))
+        launch(self, inputs, next(iter(self.own_photos.windows())))
         self._gather_from_peers(partials, self.groups * self.n)
         yield self.rows
-
-    def _writes_here(self, peer: "StreamProblem") -> bool:
-        """Whether ``peer``'s launches write their partial sums straight into this problem's arrays
-        (:data:`PEER_WRITES`): on the same device, or on a CUDA device that can address this one's memory,
-        both its pooled and its default allocations (peer access, which the photo split enables where the
-        hardware has it)."""
-        if not PEER_WRITES:
-            return False
-        if self._same_device(peer):
-            return True
-        if "cpu" in (self.device, peer.device):
-            return False
-        return (wp.is_peer_access_enabled(self.device, peer.device)
-                and (not wp.is_mempool_enabled(self.device) or wp.is_mempool_access_enabled(self.device, peer.device)))
-
-    def _peer_outputs(self, peer: "StreamProblem", k: int, names: list[str]) -> list:
-        """The arrays peer ``k``'s launch writes its partial sums ``names`` into: this problem's rows
-        k x groups on (:meth:`_writes_here`; from another device, the same memory addressed as that device's),
-        else the peer's own, copied here after the pass."""
-        if not self._writes_here(peer):
-            return [getattr(peer, name) for name in names]
-        out = []
-        for name in names:
-            rows = getattr(self, name)[k * self.groups:(k + 1) * self.groups]
-            if not self._same_device(peer):
-                # no copy: the peer's kernel stores over NVLink (or PCIe) into this device's memory, which
-                # stays allocated here while the wrapper lives
-                rows = wp.array(ptr=rows.ptr, shape=rows.shape, strides=rows.strides, dtype=rows.dtype,
-                                device=peer.device)
-            out.append(rows)
-        return out
 
     def _same_device(self, peer: "StreamProblem") -> bool:
         """Whether ``peer`` reads this problem's arrays where they are (its device is this one)."""
@@ -1398,9 +1353,7 @@ class StreamProblem:
         on the same device, else copies on its device. A copy runs on this (the source) device's stream,
         after the work that wrote the array, and this device is synchronised before the peers' launches
         read it (the tiles' halo exchange, fit/tiles.py, orders its copies by host synchronisations too)."""
-        # a peer on another device writes into this device's partial sums (_peer_outputs): this device's
-        # work that reads them (the last pass's reduction) is done before the peer's launch
-        out, copied = [], any(not self._same_device(peer) for peer in self.peers)
+        out, copied = [], False
         for peer in self.peers:
             if self._same_device(peer):
                 out.append(dict(arrays))
@@ -1437,13 +1390,8 @@ class StreamProblem:
 
     def _gather_from_peers(self, names: list[str], count: int) -> None:
         """Each peer's first ``count`` elements of the partial arrays ``names`` after this problem's own (peer
-        k's into rows k x groups on): written there by the peer's launch (:meth:`_writes_here`; from another
-        device, that device is synchronised before this one's reduction is queued), else copied."""
+        k's into rows k x groups on)."""
         for k, peer in enumerate(self.peers, 1):
-            if self._writes_here(peer):
-                if not self._same_device(peer):
-                    wp.synchronize_device(peer.device)
-                continue
             self._from_peer(peer, [(getattr(peer, name), getattr(self, name)) for name in names], count, k * count)
 
     def split_initial_guess(self, kernel, rank: int, low: wp.array, high: wp.array, count: wp.array) -> None:
@@ -1482,15 +1430,16 @@ class StreamProblem:
         kernel = stream.accumulate_lm_kernel(lay.n_lobes, int(lay.anisotropic), self.max_registers, self.lookup,
                                              self.traced, self.radiance, self.robust)
 
-        def launch(pr: StreamProblem, inputs: dict, window, out: list) -> None:
+        def launch(pr: StreamProblem, inputs: dict, window) -> None:
             images, depth, shadow, infos, b, e = window
+            if pr.pm is None:
+                pr.pm = wp.zeros((pr.rows, pr.n), dtype=pr.mat, device=pr.device)
             act = inputs["active"] if inputs["active"] is not None else pr.all_active
             wp.launch(kernel, dim=(pr.groups, pr.n), device=pr.device, block_dim=pr.block_dim,
                       inputs=[pr.tex, inputs["params"], act, images, depth, shadow, infos, b, e,
                               math.ceil((e - b) / pr.groups), pr.opt, pr.like, pr.like_m, pr.one],
-                      outputs=out)
+                      outputs=[pr.pf, pr.pg, pr.pm, pr.pst])
 
-        self._allocate_partials("pm", "mat")
         first = True
         for rows in self._launch_passes(launch, ["pf", "pg", "pm", "pst"], params=params, active=active):
             wp.launch(stream.reduce_partials_kernel, dim=self.n, device=self.device,

@@ -77,18 +77,13 @@ def test_split_fit_equals_the_one_device_fit_with_a_group_per_part(scene, device
     assert [r["objective"] for r in res.trace] == [r["objective"] for r in ref.trace]
 
 
-@pytest.mark.parametrize("peer_writes", [False, True])
-def test_the_copies_between_devices_on_one_device(scene, device, monkeypatch, peer_writes):
+def test_the_copies_between_devices_on_one_device(scene, device, monkeypatch):
     """The path that copies parameters to another device and partial sums back (mirrors, offsets, the
     synchronisations), taken on one device by telling the problem its peer is elsewhere: still the
-    two-group fit to the last bit (the two-GPU test runs it between devices). With ``PEER_WRITES`` on
-    CUDA the peer writes its sums through a wrapper of the first device's memory instead (on the CPU,
-    which has no peer access, it copies either way)."""
-    import texstream.fit.problem as fit_problem
+    two-group fit to the last bit (the two-GPU test runs it between devices)."""
     from texstream.fit.problem import StreamProblem
 
     monkeypatch.setattr(StreamProblem, "_same_device", lambda self, peer: False)
-    monkeypatch.setattr(fit_problem, "PEER_WRITES", peer_writes)
     one = fit_config(smooth=0.05, groups=2, model_lookup="bilinear")
     ref = run_fit(problem(scene, one, device), one)
     two = split(fit_config(smooth=0.05, groups=1, model_lookup="bilinear"), f"{device},{device}")
@@ -157,23 +152,13 @@ def test_split_over_two_gpus_equals_one_gpu_with_two_groups():
 
     sc = render_scene("ornament", SynthConfig(device="cuda:0", **SMALL))
     scene = (sc.mesh, sc.bake, sc.frames, sc.images, sc.masks)
-    import texstream.fit.problem as fit_problem
-
     for smooth, lookup in ((0.0, "texel"), (0.05, "texel"), (0.0, "bilinear")):
         one = fit_config(smooth=smooth, groups=2, model_lookup=lookup)
         ref = run_fit(problem(scene, one, "cuda:0"), one)
         two = split(fit_config(smooth=smooth, groups=1, model_lookup=lookup), "cuda:0,cuda:1")
-        # the second GPU's sums written straight into the first's memory (where peer access is), and copied
-        for peer_writes in (True, False):
-            fit_problem.PEER_WRITES = peer_writes
-            try:
-                pr = problem(scene, two, "cuda:0")
-                assert pr.peers[0].device == "cuda:1"
-                if peer_writes and wp.is_peer_access_supported("cuda:0", "cuda:1"):
-                    assert pr._writes_here(pr.peers[0])
-                np.testing.assert_array_equal(run_fit(pr, two).params, ref.params)
-            finally:
-                fit_problem.PEER_WRITES = True
+        pr = problem(scene, two, "cuda:0")
+        assert pr.peers[0].device == "cuda:1"
+        np.testing.assert_array_equal(run_fit(pr, two).params, ref.params)
 
 
 def test_fit_stage_with_split_photos(tmp_path):
