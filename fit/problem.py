@@ -601,24 +601,26 @@ class PhotoSet:
         step = max(1, MAX_LAUNCH_THREADS // max(pixels, 1))
         return [(j, min(step, count - j)) for j in range(0, count, step)]
 
-    def launch_depth_maps(self, first: int, count: int, masks, depth, use_masks: bool = True) -> None:
+    def launch_depth_maps(self, first: int, count: int, masks, depth, use_masks: bool = True,
+                          stream: wp.Stream | None = None) -> None:
         """Depth maps of photos first..first+count-1 into ``depth[0:count]`` (``masks`` likewise indexed,
-        applied when any photo has a mask and ``use_masks``)."""
+        applied when any photo has a mask and ``use_masks``), on ``stream`` (default: the device's current)."""
         use = int(self.loader.has_masks and use_masks)
         for j, c in self._photo_chunks(count, self.hmax * self.wmax):
-            wp.launch(depth_maps_kernel, dim=(c, self.hmax, self.wmax), device=self.device,
+            wp.launch(depth_maps_kernel, dim=(c, self.hmax, self.wmax), device=self.device, stream=stream,
                       inputs=[self.mesh.id, self.infos, first + j, masks[j:j + c] if use else masks, use],
                       outputs=[depth[j:j + c]])
 
-    def launch_shadow_maps(self, first: int, count: int, shadow) -> None:
-        """Shadow maps of photos first..first+count-1 into ``shadow[0:count]``."""
+    def launch_shadow_maps(self, first: int, count: int, shadow, stream: wp.Stream | None = None) -> None:
+        """Shadow maps of photos first..first+count-1 into ``shadow[0:count]``, on ``stream`` (default: the
+        device's current)."""
         for j, c in self._photo_chunks(count, self.shadow_side ** 2):
             wp.launch(shadow_maps_kernel, dim=(c, self.shadow_side, self.shadow_side), device=self.device,
-                      inputs=[self.mesh.id, self.infos, first + j], outputs=[shadow[j:j + c]])
+                      stream=stream, inputs=[self.mesh.id, self.infos, first + j], outputs=[shadow[j:j + c]])
 
     def _init_device(self, defer_upload: bool = False) -> None:
         """All photos, depth and shadow maps on the device: photos filled in place on the CPU, or uploaded
-        in chunks through pinned buffers, then their depth and shadow maps (:func:`upload_photo_sets`).
+        in chunks through pinned buffers, their depth and shadow maps made beside (:func:`upload_photo_sets`).
         ``defer_upload``: the device buffers only, filled later by :func:`upload_photo_sets` with other
         sets' photos (photos split over devices: the host crops all of them once, one pipeline)."""
         n, dev = self.n, self.device
@@ -848,31 +850,38 @@ class PhotoSet:
 
 def upload_photo_sets(sets: list[PhotoSet], in_place: bool | None = None) -> None:
     """Fill the device photos of ``sets`` (each set up by ``_init_device``; one set, or one per device of a
-    photo split), then make their depth and shadow maps (each on its set's device, at once; a split's sets
-    before the last beside the upload, see :func:`_upload_in_chunks`).
+    photo split) and make their depth and shadow maps (each on its set's device). The maps depend on the
+    mesh and the cameras only, so a CUDA set's run on a stream of their own while its photos upload (the
+    depth maps unmasked, their masks applied when the masks have arrived: the same values); the CPU's after.
 
     The photos go in chunks of ~:data:`UPLOAD_CHUNK_BYTES` (:data:`ARRAY_UPLOAD_CHUNK_BYTES` for arrays)
     through :data:`UPLOAD_SLOTS` pinned host buffers shared by all sets: the sets' loaders crop the next
     chunks while the oldest chunk's copy runs to its set's device (:func:`_upload_in_chunks`). The buffers
     hold float32, as the photos come, and half-float photos are converted on the device: a plain host copy
     is ~5x faster than numpy's float16 conversion (both round to nearest even, so the halves are the same).
-    Everything runs on each device's stream. ``timings``: ``upload`` until every copy is done (with the maps
-    made beside it), then ``depth_maps`` and ``shadow_maps`` of the other sets. ``in_place``: CPU sets filled
-    in place, no buffers (default: on the CPU); False runs the pipeline there too (tests)."""
+    The copies and conversions run on each device's current stream. ``timings``: ``upload`` until every copy is
+    done, then ``depth_maps``: the wait for the maps made beside it and the masks' application, or the CPU
+    sets' depth maps, and ``shadow_maps``: the CPU sets' shadow maps. ``in_place``: CPU sets filled in place,
+    no buffers (default: on the CPU); False runs the pipeline there too (tests)."""
     if in_place is None:
         in_place = all(s.device == "cpu" for s in sets)
     t0 = time.perf_counter()
-    mapped = set()
+    beside = [s for s in sets if s.device != "cpu"]
+    maps_streams = [_maps_beside_the_upload(s) for s in beside]
     if in_place:
         for s in sets:
             s.loader.fill(range(s.n), s.images.numpy(), s.device_masks.numpy() if s.loader.has_masks else None)
     else:
-        mapped = _upload_in_chunks(sets)
+        _upload_in_chunks(sets)
     devices = sorted({s.device for s in sets})
-    for d in devices:
-        wp.synchronize_device(d)
+    _synchronize_current_streams(devices)
     t1 = time.perf_counter()
-    rest = [s for i, s in enumerate(sets) if i not in mapped]
+    for s, maps_stream in zip(beside, maps_streams):
+        wp.synchronize_stream(maps_stream)  # the maps made beside the upload: any wait for them is counted here
+        if s.loader.has_masks:
+            wp.launch(masked_depth_kernel, dim=(s.n, s.hmax, s.wmax), device=s.device,
+                      inputs=[s.depth, 0, s.device_masks], outputs=[s.depth])
+    rest = [s for s in sets if s.device == "cpu"]
     for s in rest:
         s.launch_depth_maps(0, s.n, s.device_masks, s.depth)
     for d in devices:
@@ -889,6 +898,19 @@ def upload_photo_sets(sets: list[PhotoSet], in_place: bool | None = None) -> Non
         s.timings["shadow_maps"] += t3 - t2
 
 
+def _maps_beside_the_upload(s: PhotoSet) -> wp.Stream:
+    """Launch the depth maps (without masks) and shadow maps of CUDA set ``s`` on a new stream of its device,
+    after the work queued on its current stream (the mesh, the photos' constants), so that they run while
+    the host crops the photos and the copies and conversions use the current stream. Returns the stream."""
+    maps_stream = wp.Stream(s.device)
+    maps_stream.wait_stream(wp.get_stream(s.device))
+    # launched on the stream itself, not made the device's current stream: another thread's work on the
+    # device meanwhile (the texels' set-up) stays on the current one
+    s.launch_depth_maps(0, s.n, s.device_masks, s.depth, use_masks=False, stream=maps_stream)
+    s.launch_shadow_maps(0, s.n, s.shadow, stream=maps_stream)
+    return maps_stream
+
+
 def _upload_order(sets: list[PhotoSet], chunks: list[int]) -> list[tuple[int, int, int]]:
     """The pipeline's chunks as (set, first photo, photos): one set after another, each set's in order (sets
     taken at once, alternating, crop with both loaders' threads, which contend for Python's lock: slower on
@@ -896,13 +918,10 @@ def _upload_order(sets: list[PhotoSet], chunks: list[int]) -> list[tuple[int, in
     return [(i, b, min(c, s.n - b)) for i, (s, c) in enumerate(zip(sets, chunks)) for b in range(0, s.n, c)]
 
 
-def _upload_in_chunks(sets: list[PhotoSet]) -> set:
+def _upload_in_chunks(sets: list[PhotoSet]) -> None:
     """:func:`upload_photo_sets`'s pipeline: the sets' photos in :func:`_upload_order` through
     :data:`UPLOAD_SLOTS` shared host buffers (pinned where a set is on CUDA), the loaders cropping the chunks of
-    all buffers but one while the oldest chunk is copied to its set's device. A CUDA set whose device no later
-    chunk goes to gets its depth and shadow maps launched as soon as its last chunk is queued: they run on its
-    device while the host crops the other sets' photos (on one device they would hold up the copies). Returns
-    the indices of those sets."""
+    all buffers but one while the oldest chunk is copied to its set's device."""
     # per set: whether its photos arrive as float32 for half-float storage, and its chunk of photos
     half = [s.img_dtype == wp.vec3h and not s.loader.cached() for s in sets]
     stage_types = {wp.vec3 if h else s.img_dtype for s, h in zip(sets, half)}
@@ -925,9 +944,7 @@ def _upload_in_chunks(sets: list[PhotoSet]) -> set:
     # per set, where a chunk lands on its device before the conversion to half floats
     landing = [wp.empty((c, s.hmax, s.wmax), dtype=wp.vec3, device=s.device) if h else None
                for s, c, h in zip(sets, chunks, half)]
-    last_to_device = {sets[i].device: q for q, (i, _, _) in enumerate(order)}
     copied = [None] * n_slots
-    mapped = set()
 
     def upload(q: int, slot: int, filling: list) -> None:
         i, b, c = order[q]
@@ -943,11 +960,6 @@ def _upload_in_chunks(sets: list[PhotoSet]) -> set:
             wp.copy(s.device_masks, stage_m[slot], b * pix, 0, c * pix)
         if s.device != "cpu":
             copied[slot] = wp.get_stream(s.device).record_event()
-        # the set's last chunk, and no later chunk for its device: its maps run beside the rest of the upload
-        if b + c == s.n and s.device != "cpu" and last_to_device[s.device] == q and q < len(order) - 1:
-            s.launch_depth_maps(0, s.n, s.device_masks, s.depth)
-            s.launch_shadow_maps(0, s.n, s.shadow)
-            mapped.add(i)
 
     pending, submitted = collections.deque(), []
     devices = sorted({s.device for s in sets})
@@ -978,9 +990,15 @@ def _upload_in_chunks(sets: list[PhotoSet]) -> set:
         raise
     # the pinned buffers are freed on return: every copy reading them done first (freeing pinned memory
     # waits only for the calling thread's current device, not for a copy to another one)
+    _synchronize_current_streams(devices)
+
+
+def _synchronize_current_streams(devices: list[str]) -> None:
+    """Wait for the work queued on each CUDA device's current stream (not its other streams: the maps made
+    beside the upload)."""
     for d in devices:
-        wp.synchronize_device(d)
-    return mapped
+        if d != "cpu":
+            wp.synchronize_stream(wp.get_stream(d))
 
 
 _SWITCH_LOCK = threading.Lock()
