@@ -859,8 +859,8 @@ def upload_photo_sets(sets: list[PhotoSet], in_place: bool | None = None) -> Non
     chunks while the oldest chunk's copy runs to its set's device (:func:`_upload_in_chunks`). The buffers
     hold float32, as the photos come, and half-float photos are converted on the device: a plain host copy
     is ~5x faster than numpy's float16 conversion (both round to nearest even, so the halves are the same).
-    The copies and conversions run on each device's current stream. ``timings``: ``upload`` until every copy is
-    done, then ``depth_maps``: the wait for the maps made beside it and the masks' application, or the CPU
+    The copies and conversions run on a high-priority stream per device, which the device's current stream
+    then waits for. ``timings``: ``upload`` until every copy is done, then ``depth_maps``: the wait for the maps made beside it and the masks' application, or the CPU
     sets' depth maps, and ``shadow_maps``: the CPU sets' shadow maps. ``in_place``: CPU sets filled in place,
     no buffers (default: on the CPU); False runs the pipeline there too (tests)."""
     if in_place is None:
@@ -945,24 +945,31 @@ def _upload_in_chunks(sets: list[PhotoSet]) -> None:
     landing = [wp.empty((c, s.hmax, s.wmax), dtype=wp.vec3, device=s.device) if h else None
                for s, c, h in zip(sets, chunks, half)]
     copied = [None] * n_slots
+    devices = sorted({s.device for s in sets})
+    # per CUDA device a high-priority stream for the copies and conversions, after the device's queued work:
+    # the maps made beside the upload (default priority) fill the GPU, and each conversion would wait behind
+    # them, the host's next crop with it
+    streams = {d: wp.Stream(d, priority=-1) for d in devices if d != "cpu"}
+    for d, st in streams.items():
+        st.wait_stream(wp.get_stream(d))
 
     def upload(q: int, slot: int, filling: list) -> None:
         i, b, c = order[q]
         s, pix = sets[i], pixels[i]
+        st = streams.get(s.device)
         wait(filling)
         if half[i]:
-            wp.copy(landing[i], stage[slot], 0, 0, c * pix)
-            wp.launch(to_half_kernel, dim=(c, s.hmax, s.wmax), device=s.device, inputs=[landing[i], b],
+            wp.copy(landing[i], stage[slot], 0, 0, c * pix, stream=st)
+            wp.launch(to_half_kernel, dim=(c, s.hmax, s.wmax), device=s.device, stream=st, inputs=[landing[i], b],
                       outputs=[s.images])
         else:
-            wp.copy(s.images, stage[slot], b * pix, 0, c * pix)
+            wp.copy(s.images, stage[slot], b * pix, 0, c * pix, stream=st)
         if s.loader.has_masks:
-            wp.copy(s.device_masks, stage_m[slot], b * pix, 0, c * pix)
-        if s.device != "cpu":
-            copied[slot] = wp.get_stream(s.device).record_event()
+            wp.copy(s.device_masks, stage_m[slot], b * pix, 0, c * pix, stream=st)
+        if st is not None:
+            copied[slot] = st.record_event()
 
     pending, submitted = collections.deque(), []
-    devices = sorted({s.device for s in sets})
     try:
         with _short_switch_interval():
             for q, (i, b, c) in enumerate(order):
@@ -988,9 +995,12 @@ def _upload_in_chunks(sets: list[PhotoSet]) -> None:
             except Exception:  # noqa: BLE001 - the photo's error is the one to report
                 pass
         raise
-    # the pinned buffers are freed on return: every copy reading them done first (freeing pinned memory
-    # waits only for the calling thread's current device, not for a copy to another one)
-    _synchronize_current_streams(devices)
+    # the device's later work after the upload's; the pinned buffers are freed on return: every copy reading
+    # them done first (freeing pinned memory waits only for the calling thread's current device, not for a
+    # copy to another one or on another stream)
+    for d, st in streams.items():
+        wp.get_stream(d).wait_stream(st)
+        wp.synchronize_stream(st)
 
 
 def _synchronize_current_streams(devices: list[str]) -> None:
