@@ -860,9 +860,10 @@ def upload_photo_sets(sets: list[PhotoSet], in_place: bool | None = None) -> Non
     hold float32, as the photos come, and half-float photos are converted on the device: a plain host copy
     is ~5x faster than numpy's float16 conversion (both round to nearest even, so the halves are the same).
     The copies and conversions run on a high-priority stream per device, which the device's current stream
-    then waits for. ``timings``: ``upload`` until every copy is done, then ``depth_maps``: the wait for the maps made beside it and the masks' application, or the CPU
-    sets' depth maps, and ``shadow_maps``: the CPU sets' shadow maps. ``in_place``: CPU sets filled in place,
-    no buffers (default: on the CPU); False runs the pipeline there too (tests)."""
+    then waits for. ``timings``: ``upload`` until every copy is done; ``depth_maps`` the wait for the maps made
+    beside it and the masks' application, or the CPU sets' depth maps; ``shadow_maps`` the CPU sets' shadow
+    maps. ``in_place``: CPU sets filled in place, no buffers (default: on the CPU); False runs the pipeline
+    there too (tests)."""
     if in_place is None:
         in_place = all(s.device == "cpu" for s in sets)
     t0 = time.perf_counter()
@@ -876,7 +877,7 @@ def upload_photo_sets(sets: list[PhotoSet], in_place: bool | None = None) -> Non
     devices = sorted({s.device for s in sets})
     _synchronize_current_streams(devices)
     t1 = time.perf_counter()
-    for s, maps_stream in zip(beside, maps_streams):
+    for s, maps_stream in zip(beside, maps_streams, strict=True):
         wp.synchronize_stream(maps_stream)  # the maps made beside the upload: any wait for them is counted here
         if s.loader.has_masks:
             wp.launch(masked_depth_kernel, dim=(s.n, s.hmax, s.wmax), device=s.device,
@@ -900,8 +901,9 @@ def upload_photo_sets(sets: list[PhotoSet], in_place: bool | None = None) -> Non
 
 def _maps_beside_the_upload(s: PhotoSet) -> wp.Stream:
     """Launch the depth maps (without masks) and shadow maps of CUDA set ``s`` on a new stream of its device,
-    after the work queued on its current stream (the mesh, the photos' constants), so that they run while
-    the host crops the photos and the copies and conversions use the current stream. Returns the stream."""
+    after the work queued on its current stream (the mesh, the photos' constants, the buffers), so that they
+    run while the host crops the photos (the copies and conversions on a stream of higher priority,
+    :func:`_upload_in_chunks`). Returns the stream."""
     maps_stream = wp.Stream(s.device)
     maps_stream.wait_stream(wp.get_stream(s.device))
     # launched on the stream itself, not made the device's current stream: another thread's work on the
