@@ -43,7 +43,6 @@ def main() -> None:
     ap.add_argument("--devices", default="")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--pageable-threads", default="", help="thread counts for the pageable copies (none: skipped)")
-    ap.add_argument("--skip-host", action="store_true", help="only the device copies")
     a = ap.parse_args()
     wp.config.quiet = True
     wp.init()
@@ -82,7 +81,7 @@ def main() -> None:
         np.copyto(img.reshape(ch, s, 3), photos[k][y0:y0 + ch])
         np.copyto(msk.reshape(ch, s), masks[k][y0:y0 + ch].view(np.uint8))
 
-    for method, px, fn in () if a.skip_host else (("crop", crop_px, crop_one), ("rows", rows_px, rows_one)):
+    for method, px, fn in (("crop", crop_px, crop_one), ("rows", rows_px, rows_one)):
         for kind in ("full", "ring"):
             views, per, keep = buffers(kind, px)
             for t in thread_counts:
@@ -111,7 +110,7 @@ def main() -> None:
     dst_buf = wp.empty(total, dtype=wp.float32, device="cpu", pinned=pinned)
     dst = dst_buf.numpy()
     dst[:] = 0
-    for t in [] if a.skip_host else thread_counts:
+    for t in thread_counts:
         parts = np.array_split(np.arange(total), t)
         bounds = [(int(p[0]), int(p[-1]) + 1) for p in parts]
         pool = concurrent.futures.ThreadPoolExecutor(t)
