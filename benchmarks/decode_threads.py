@@ -30,8 +30,8 @@ def decode_with_loader(files, crops, sizes, images, masks, threads: int, decoder
     (as the set-up's upload does). A pool of processes is started first, its start timed apart."""
     import time
 
-    from texstream.fit import decode_pool
-    from texstream.fit.photo_stream import PhotoLoader, wait
+    from texstream.fit.stream import decode_pool
+    from texstream.fit.stream.photo_stream import PhotoLoader, wait
 
     t0 = time.perf_counter()
     if decoder == "processes":
@@ -85,9 +85,9 @@ def main() -> None:
     wp.init()
     from texstream.capture.capture_json import read_capture
     from texstream.fit.kernels import stream
-    from texstream.fit.photo_stream import PhotoLoader, crop_boxes, image_infos, struct_array
-    from texstream.fit.problem import PhotoFrame
-    from texstream.fit.stage import load_geometry, photo_files
+    from texstream.fit.stream.photo_stream import PhotoLoader, crop_boxes, image_infos, struct_array
+    from texstream.fit.stream.problem import PhotoFrame
+    from texstream.fit.stages.stage import load_geometry, photo_files
 
     cap = Path(a.capture)
     capture = read_capture(cap)
@@ -158,7 +158,7 @@ def main() -> None:
                                          decoded_mb)
                 rows.append(row)
                 print(json.dumps(row), flush=True)
-        from texstream.fit import decode_pool
+        from texstream.fit.stream import decode_pool
 
         decode_pool.shutdown()
     out = Path(a.out)

@@ -58,12 +58,12 @@ def main() -> None:
 
     wp.config.log_level = wp.LOG_WARNING
     from texstream.capture.synth import SynthConfig, render_scene
-    from texstream.fit.accuracy import highlight_counts, interior_texels, lobe_normal_peak, relative_errors
-    from texstream.fit.fitter import FitConfig
+    from texstream.fit.diagnostics.accuracy import highlight_counts, interior_texels, lobe_normal_peak, relative_errors
+    from texstream.fit.optim.fitter import FitConfig
     from texstream.fit.optim.base import FitState
-    from texstream.fit.penalties import PenaltyConfig
-    from texstream.fit.problem import StreamConfig
-    from texstream.fit.stage import fit_synthetic, lobe_shape_report
+    from texstream.fit.stream.penalties import PenaltyConfig
+    from texstream.fit.stream.problem import StreamConfig
+    from texstream.fit.stages.stage import fit_synthetic, lobe_shape_report
 
     base = dict(scale=a.scale, photos=a.photos, image_size=a.image_size, progress=False, device=a.device)
     t0 = time.perf_counter()

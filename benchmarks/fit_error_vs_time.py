@@ -137,9 +137,9 @@ def main() -> None:
 
     wp.config.log_level = wp.LOG_WARNING
     from texstream.capture.synth import SynthConfig, render_scene
-    from texstream.fit.fitter import FitConfig, run_fit
-    from texstream.fit.problem import StreamConfig
-    from texstream.fit.stage import build_problem
+    from texstream.fit.optim.fitter import FitConfig, run_fit
+    from texstream.fit.stream.problem import StreamConfig
+    from texstream.fit.stages.stage import build_problem
 
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

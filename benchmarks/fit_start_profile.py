@@ -15,9 +15,9 @@ import time
 import warp as wp
 
 from photo_split_scene import OrnamentAt4x
-from texstream.fit.fitter import FitConfig, FitRun, fit_start
-from texstream.fit.problem import StreamConfig
-from texstream.fit.stage import build_problem
+from texstream.fit.optim.fitter import FitConfig, FitRun, fit_start
+from texstream.fit.stream.problem import StreamConfig
+from texstream.fit.stages.stage import build_problem
 
 wp.config.quiet = True
 wp.init()

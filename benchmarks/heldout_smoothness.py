@@ -29,9 +29,9 @@ def main() -> None:
 
     wp.config.log_level = wp.LOG_WARNING
     from texstream.capture.synth import SynthConfig, render_scene
-    from texstream.fit.fitter import FitConfig
-    from texstream.fit.penalties import PenaltyConfig
-    from texstream.fit.stage import fit_synthetic
+    from texstream.fit.optim.fitter import FitConfig
+    from texstream.fit.stream.penalties import PenaltyConfig
+    from texstream.fit.stages.stage import fit_synthetic
 
     train = render_scene(a.scene, SynthConfig(scale=a.scale, device=a.device, progress=False))
     held = render_scene(a.scene, SynthConfig(scale=a.scale, device=a.device, progress=False, photos=8,

@@ -30,7 +30,7 @@ import time
 import numpy as np
 import warp as wp
 
-from texstream.fit.decode_pool import place_photo
+from texstream.fit.stream.decode_pool import place_photo
 
 
 def main() -> None:

@@ -71,9 +71,9 @@ def main() -> None:
     from pass_profile import time_passes
 
     from texstream.capture.synth import SynthConfig, render_scene
-    from texstream.fit.fitter import FitConfig
-    from texstream.fit.problem import StreamConfig
-    from texstream.fit.stage import build_problem
+    from texstream.fit.optim.fitter import FitConfig
+    from texstream.fit.stream.problem import StreamConfig
+    from texstream.fit.stages.stage import build_problem
     from texstream.core.outputs import write_json_atomic
 
     sc = render_scene("ornament", SynthConfig(scale=0.02, device="cpu", progress=False))

@@ -49,7 +49,7 @@ BASELINES = ("pca", "nmf")
 
 def heldout_scores(renderer_factory, params, held, held_images, held_masks) -> dict:
     """Pooled PSNR, worst view PSNR and APE over the held-out photos' foreground pixels."""
-    from texstream.fit.model_folder import image_metrics, pooled_psnr
+    from texstream.fit.stages.model_folder import image_metrics, pooled_psnr
 
     render = renderer_factory(params)
     rows, abs_err, abs_ref = [], 0.0, 0.0
@@ -146,11 +146,11 @@ def main() -> None:
 
     wp.config.log_level = wp.LOG_WARNING
     from texstream.capture.synth import SynthConfig, render_scene
-    from texstream.fit.fitter import FitConfig
-    from texstream.fit.lfm import LFMConfig, LFMProblem, PhotoSamples, fit_lfm
-    from texstream.fit.lfm_baselines import fit_nmf, fit_pca
-    from texstream.fit.lfm_stage import LFMRenderer, lfm_geometry
-    from texstream.fit.stage import build_problem, split_holdout
+    from texstream.fit.optim.fitter import FitConfig
+    from texstream.fit.models.lfm import LFMConfig, LFMProblem, PhotoSamples, fit_lfm
+    from texstream.fit.models.lfm_baselines import fit_nmf, fit_pca
+    from texstream.fit.stages.lfm_stage import LFMRenderer, lfm_geometry
+    from texstream.fit.stages.stage import build_problem, split_holdout
 
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -39,10 +39,10 @@ def main() -> None:
 
     wp.config.log_level = wp.LOG_WARNING
     from texstream.capture.synth import SynthConfig, render_scene
-    from texstream.fit.fitter import FitConfig
-    from texstream.fit.lfm import LFMConfig, LFMProblem, PhotoSamples, fit_lfm
-    from texstream.fit.lfm_stage import lfm_geometry
-    from texstream.fit.stage import build_problem, split_holdout
+    from texstream.fit.optim.fitter import FitConfig
+    from texstream.fit.models.lfm import LFMConfig, LFMProblem, PhotoSamples, fit_lfm
+    from texstream.fit.stages.lfm_stage import lfm_geometry
+    from texstream.fit.stages.stage import build_problem, split_holdout
 
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -35,10 +35,10 @@ def main(argv=None) -> int:
 
     from texstream.capture.capture_json import read_capture
     from texstream.capture.imageio import read_image, read_mask
-    from texstream.fit.export import LFM_VIEW_MEANS, lfm_unlit_renderer
-    from texstream.fit.lfm_stage import load_lfm_model
-    from texstream.fit.model_folder import image_metrics, pooled_psnr
-    from texstream.fit.stage import split_holdout
+    from texstream.fit.stages.export import LFM_VIEW_MEANS, lfm_unlit_renderer
+    from texstream.fit.stages.lfm_stage import load_lfm_model
+    from texstream.fit.stages.model_folder import image_metrics, pooled_psnr
+    from texstream.fit.stages.stage import split_holdout
 
     t0 = time.perf_counter()
     model = load_lfm_model(a.model)

@@ -58,8 +58,8 @@ def main() -> None:
 
     wp.config.log_level = wp.LOG_WARNING
     from texstream.capture.synth import SynthConfig, render_scene
-    from texstream.fit.fitter import FitConfig, run_fit
-    from texstream.fit.stage import build_problem
+    from texstream.fit.optim.fitter import FitConfig, run_fit
+    from texstream.fit.stages.stage import build_problem
     from texstream.core.outputs import write_json_atomic
 
     sc = render_scene(a.scene, SynthConfig(scale=a.scale, device=a.device, progress=False))
@@ -72,7 +72,7 @@ def main() -> None:
         fits[opt] = {"params": res.params.astype(np.float64), "f": f, "g": g, "seen": res.seen,
                      "trace_objective": res.trace[-1]["objective"]}
     lay = prob.layout
-    from texstream.fit.accuracy import interior_texels
+    from texstream.fit.diagnostics.accuracy import interior_texels
 
     truth = sc.params.reshape(-1, sc.params.shape[-1])[prob.texels.grid_index].astype(np.float64)
     f_truth, _ = per_texel(prob, truth)

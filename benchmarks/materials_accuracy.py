@@ -30,8 +30,8 @@ def main() -> None:
     a = ap.parse_args()
     from texstream.capture.capture_json import read_capture
     from texstream.capture.synth import load_ground_truth
-    from texstream.fit.accuracy import highlight_counts, relative_errors
-    from texstream.fit.stage import load_model, split_holdout
+    from texstream.fit.diagnostics.accuracy import highlight_counts, relative_errors
+    from texstream.fit.stages.stage import load_model, split_holdout
 
     _, truth, lay_t, bake, _ = load_ground_truth(a.capture)
     _, grid, lay, man = load_model(a.model)

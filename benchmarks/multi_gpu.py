@@ -72,14 +72,14 @@ def main() -> None:
     wp.config.quiet = True
     wp.init()
     from texstream.capture.synth import SynthConfig, render_scene
-    from texstream.fit.fitter import FitConfig, run_fit
-    from texstream.fit.penalties import PenaltyConfig
-    from texstream.fit.problem import StreamConfig
-    from texstream.fit.stage import build_problem
-    from texstream.fit.tiles import parse_devices, run_tiled_fit
+    from texstream.fit.optim.fitter import FitConfig, run_fit
+    from texstream.fit.stream.penalties import PenaltyConfig
+    from texstream.fit.stream.problem import StreamConfig
+    from texstream.fit.stages.stage import build_problem
+    from texstream.fit.multi.tiles import parse_devices, run_tiled_fit
     from texstream.geometry.bake import bake_texels
 
-    import texstream.fit.problem as fit_problem
+    import texstream.fit.stream.problem as fit_problem
 
     if a.upload_slots:
         fit_problem.UPLOAD_SLOTS = a.upload_slots

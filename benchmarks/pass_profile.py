@@ -124,9 +124,9 @@ def main() -> None:
     from fit_error_vs_time import measured_bandwidth, unique_bytes_per_pass
 
     from texstream.capture.synth import SynthConfig, render_scene
-    from texstream.fit.fitter import FitConfig
-    from texstream.fit.problem import StreamConfig
-    from texstream.fit.stage import build_problem
+    from texstream.fit.optim.fitter import FitConfig
+    from texstream.fit.stream.problem import StreamConfig
+    from texstream.fit.stages.stage import build_problem
     from texstream.core.outputs import write_json_atomic
 
     out = Path(a.out)

@@ -13,7 +13,7 @@ print("peer", wp.is_peer_access_supported("cuda:0", "cuda:1"), "mempool",
       wp.is_mempool_access_supported("cuda:0", "cuda:1"))
 for enable in (False, True):
     if enable:
-        from texstream.fit.photo_split import enable_peer_copies
+        from texstream.fit.multi.photo_split import enable_peer_copies
 
         enable_peer_copies(["cuda:0", "cuda:1"])
     a = wp.zeros(300 * 2**20 // 4, dtype=float, device="cuda:1")

@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 from texstream.capture.synth import SynthConfig, render_scene
-from texstream.fit.problem import PhotoFrame, PhotoSet, StreamConfig
+from texstream.fit.stream.problem import PhotoFrame, PhotoSet, StreamConfig
 from texstream.geometry.bake import bake_texels
 
 

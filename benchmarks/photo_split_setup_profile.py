@@ -14,12 +14,12 @@ import time
 
 import warp as wp
 
-import texstream.fit.problem as P
+import texstream.fit.stream.problem as P
 from photo_split_scene import OrnamentAt4x
-from texstream.fit.fitter import FitConfig, FitRun
-from texstream.fit.photo_stream import PhotoLoader
-from texstream.fit.problem import StreamConfig
-from texstream.fit.stage import build_problem
+from texstream.fit.optim.fitter import FitConfig, FitRun
+from texstream.fit.stream.photo_stream import PhotoLoader
+from texstream.fit.stream.problem import StreamConfig
+from texstream.fit.stages.stage import build_problem
 
 wp.config.quiet = True
 wp.init()

@@ -94,7 +94,7 @@ def mask_iou(got, truth) -> dict:
 
 
 def fit_heldout(capture_dir: Path, geometry: Path, out: Path, iterations: int, device: str) -> dict:
-    from texstream.fit.stage import FitStageConfig, fit_stage
+    from texstream.fit.stages.stage import FitStageConfig, fit_stage
 
     cfg = FitStageConfig(holdout_every=8, device=device)
     cfg = dataclasses.replace(cfg, fit=dataclasses.replace(cfg.fit, model="diffuse", max_iterations=iterations))

@@ -37,8 +37,8 @@ def constant_colour_views(capture_dir: Path, model_dir: Path, holdout_every: int
     """Per held-out view: the mean foreground colour of the fitted photos, scored like eval_stage."""
     from texstream.capture.capture_json import read_capture
     from texstream.capture.imageio import read_image, read_mask
-    from texstream.fit.model_folder import image_metrics
-    from texstream.fit.stage import load_model, render_model, split_holdout
+    from texstream.fit.stages.model_folder import image_metrics
+    from texstream.fit.stages.stage import load_model, render_model, split_holdout
 
     capture = read_capture(capture_dir)
     fitted, held = split_holdout(capture.frames, holdout_every)
@@ -79,8 +79,8 @@ def main() -> None:
 
     import warp as wp
 
-    from texstream.fit.model_folder import pooled_psnr
-    from texstream.fit.stage import eval_stage, fit_stage
+    from texstream.fit.stages.model_folder import pooled_psnr
+    from texstream.fit.stages.stage import eval_stage, fit_stage
     from texstream.pipelines.run import RunConfig, run_pipeline
 
     wp.config.quiet = True

@@ -56,12 +56,12 @@ def child(a) -> dict:
     wp.config.quiet = True
     wp.init()
     if a.recompute_maps:
-        import texstream.fit.problem as problem
+        import texstream.fit.stream.problem as problem
 
         problem.keep_maps_on_device = lambda *args, **kw: False
-    from texstream.fit.fitter import FitConfig, run_fit
-    from texstream.fit.problem import StreamConfig
-    from texstream.fit.stage import build_problem
+    from texstream.fit.optim.fitter import FitConfig, run_fit
+    from texstream.fit.stream.problem import StreamConfig
+    from texstream.fit.stages.stage import build_problem
 
     def stream_config(**kw):
         # options the checkout lacks are left out (a reference run on a commit before them)
@@ -76,7 +76,7 @@ def child(a) -> dict:
     rss_start = rss_mib()
     if a.source == "disk":
         from texstream.capture.capture_json import read_capture
-        from texstream.fit.stage import load_geometry, photo_files
+        from texstream.fit.stages.stage import load_geometry, photo_files
 
         cap_dir = Path(a.capture)
         capture = read_capture(cap_dir)

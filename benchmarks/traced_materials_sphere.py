@@ -32,10 +32,10 @@ def main() -> None:
     from test_fit_materials import one_material_sphere
     from texstream.capture.capture_json import read_capture
     from texstream.capture.synth import SynthConfig, load_ground_truth, synthesize
-    from texstream.fit.accuracy import highlight_counts, relative_errors
-    from texstream.fit.fitter import FitConfig
-    from texstream.fit.materials import MaterialConfig
-    from texstream.fit.stage import FitStageConfig, fit_stage, load_model, split_holdout
+    from texstream.fit.diagnostics.accuracy import highlight_counts, relative_errors
+    from texstream.fit.optim.fitter import FitConfig
+    from texstream.fit.models.materials import MaterialConfig
+    from texstream.fit.stages.stage import FitStageConfig, fit_stage, load_model, split_holdout
 
     root = Path(a.out)
     if not (root / "cap" / "capture.json").is_file():

@@ -16,7 +16,7 @@ import time
 
 import warp as wp
 
-import texstream.fit.problem as P
+import texstream.fit.stream.problem as P
 from gitinfo import commit
 from photo_split_scene import OrnamentAt4x
 

@@ -561,7 +561,7 @@ def prepare_scene(scene, config: SynthConfig):
     Returns:
         (resolved scene, mesh, bake, layout, params (H, W, P), material ids, material names, info).
     """
-    from texstream.fit.models import ModelLayout
+    from texstream.fit.models.layout import ModelLayout
     from texstream.geometry.bake import bake_texels
 
     sc = resolve_scene(scene, config)
@@ -600,7 +600,7 @@ def _image_ext(bits: int) -> str:
 def iter_renders(sc: dict, mesh, params: np.ndarray, layout, frames: list[Frame], config: SynthConfig,
                  ) -> Iterator[tuple[int, Frame, np.ndarray, np.ndarray, np.ndarray]]:
     """Render and develop every frame: yields (index, frame, photo, mask, clean) one at a time."""
-    from texstream.fit.render import Renderer
+    from texstream.fit.stages.render import Renderer
 
     rend = Renderer(mesh, params, layout, device=config.device, shadows=config.shadows)
     from texstream.core.progress import bar
@@ -699,7 +699,7 @@ def load_ground_truth(folder: str | os.PathLike):
     Returns:
         (mesh, params (H, W, P) float32, ModelLayout, TexelBake, manifest dict).
     """
-    from texstream.fit.models import ModelLayout
+    from texstream.fit.models.layout import ModelLayout
     from texstream.geometry.bake import TexelBake
     from texstream.geometry.mesh_io import load_mesh
     from texstream.core.outputs import read_json

@@ -211,9 +211,9 @@ class PhotometricRefinement:
     def __init__(self, capture, mesh, bake, cfg: RefineConfig, device: str = "cpu", log=None):
         from texstream.capture.imageio import read_image, read_mask
         from texstream.fit.kernels.stream import ImageInfo
-        from texstream.fit.photo_stream import image_infos, struct_array
-        from texstream.fit.problem import PhotoFrame
-        from texstream.fit.stage import split_holdout
+        from texstream.fit.stream.photo_stream import image_infos, struct_array
+        from texstream.fit.stream.problem import PhotoFrame
+        from texstream.fit.stages.stage import split_holdout
 
         self.cfg, self.device, self.log = cfg, device, log or (lambda m: None)
         self.frames = list(capture.frames)

@@ -136,7 +136,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     decoding = command in DECODING_COMMANDS and not threads_asked_for(argv)
     if decoding:
         # the photo decoders start while this process imports Warp and reads the capture (fit/decode_pool.py)
-        from texstream.fit import decode_pool
+        from texstream.fit.stream import decode_pool
 
         decode_pool.start_in_background()
     try:
@@ -162,7 +162,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
     finally:
         if decoding:
-            from texstream.fit import decode_pool
+            from texstream.fit.stream import decode_pool
 
             decode_pool.shutdown(wait=False)  # the workers exit at the end of their input; nothing waits for it
 

@@ -17,7 +17,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import warp as wp
 
-    from texstream.fit.stage import eval_stage
+    from texstream.fit.stages.stage import eval_stage
 
     wp.config.log_level = wp.LOG_WARNING
     res = eval_stage(args.model, args.capture, device=args.device, out_json=args.out, holdout_every=args.holdout_every)

@@ -1,5 +1,5 @@
 """``texstream export MODEL -o OUT``: glTF binary (model.glb) and OBJ + MTL + PNG textures of a model
-folder, with the EXR maps alongside. The stage is :func:`texstream.fit.export.export_stage`."""
+folder, with the EXR maps alongside. The stage is :func:`texstream.fit.stages.export.export_stage`."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import argparse
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from texstream.fit.export import ExportConfig
+    from texstream.fit.stages.export import ExportConfig
     from texstream.pipelines.cli import add_config_arguments
 
     parser.add_argument("model", help="model folder written by texstream fit or texstream run")
@@ -16,7 +16,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from texstream.fit.export import ExportConfig, export_stage
+    from texstream.fit.stages.export import ExportConfig, export_stage
     from texstream.pipelines.cli import config_from_args
 
     res = export_stage(args.model, args.out, config_from_args(ExportConfig, args))

@@ -18,7 +18,7 @@ import argparse
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from texstream.fit.fitter import FitConfig
+    from texstream.fit.optim.fitter import FitConfig
     from texstream.pipelines.cli import add_config_arguments
 
     parser.add_argument("capture", help="capture folder (capture.json with per-frame lights)")
@@ -56,7 +56,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "taps first, and find and fit the materials on traced taps too (helps sub-pixel texels "
                              "that saw narrow highlights; can keep wrong lobes on texels that never saw theirs: "
                              "docs/accuracy.md)")
-    from texstream.fit.materials import MaterialConfig
+    from texstream.fit.models.materials import MaterialConfig
 
     add_config_arguments(parser, MaterialConfig, prefix="materials.")  # shared materials (fit/materials.py)
     add_config_arguments(parser, FitConfig)  # with the four above: the fields of FitStageConfig
@@ -65,8 +65,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import warp as wp
 
-    from texstream.fit.fitter import FitConfig
-    from texstream.fit.stage import FitStageConfig, fit_stage
+    from texstream.fit.optim.fitter import FitConfig
+    from texstream.fit.stages.stage import FitStageConfig, fit_stage
     from texstream.pipelines.cli import config_from_args
     from texstream.core.errors import InputError
 
@@ -77,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
                          args.capture, "add --mesh ATLAS_OR_MESH or --normals NORMAL_MAP")
     if args.normals is not None:
         return _run_single_view(args, fit_cfg)
-    from texstream.fit.materials import MaterialConfig
+    from texstream.fit.models.materials import MaterialConfig
 
     cfg = FitStageConfig(fit=fit_cfg, materials=config_from_args(MaterialConfig, args, prefix="materials."),
                          **{k: getattr(args, k) for k in ("device", "texture_size", "texel_pixels", "holdout_every",
@@ -108,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run_single_view(args: argparse.Namespace, fit_cfg) -> int:
-    from texstream.fit.photometric_stereo import SingleViewConfig, fit_single_view_stage
+    from texstream.fit.models.photometric_stereo import SingleViewConfig, fit_single_view_stage
 
     cfg = SingleViewConfig(fit=fit_cfg, **{k: getattr(args, k) for k in ("device", "holdout_every", "renders",
                                                                           "normal_space", "depth")})

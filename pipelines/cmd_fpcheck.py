@@ -8,7 +8,7 @@ from pathlib import Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from texstream.fit.fpcheck import FpcheckConfig
+    from texstream.fit.diagnostics.fpcheck import FpcheckConfig
     from texstream.pipelines.cli import add_config_arguments
 
     parser.add_argument("-o", "--out", default=None,
@@ -19,7 +19,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import warp as wp
 
-    from texstream.fit.fpcheck import FpcheckConfig, fpcheck, write_report
+    from texstream.fit.diagnostics.fpcheck import FpcheckConfig, fpcheck, write_report
     from texstream.pipelines.cli import config_from_args
 
     wp.config.log_level = wp.LOG_WARNING  # Warp 1.19: the init banner and module loads are info

@@ -9,7 +9,7 @@ from pathlib import Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from texstream.fit.stiffcheck import StiffcheckConfig
+    from texstream.fit.diagnostics.stiffcheck import StiffcheckConfig
     from texstream.pipelines.cli import add_config_arguments
 
     parser.add_argument("-o", "--out", default=None,
@@ -20,7 +20,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import warp as wp
 
-    from texstream.fit.stiffcheck import StiffcheckConfig, run_suite, select_cases, write_report
+    from texstream.fit.diagnostics.stiffcheck import StiffcheckConfig, run_suite, select_cases, write_report
     from texstream.pipelines.cli import config_from_args
 
     wp.config.log_level = wp.LOG_WARNING  # Warp 1.19: the init banner and module loads are info

@@ -56,7 +56,7 @@ def load_report_model(model_dir: str | Path):
     man = read_json(d / "model.json", what="model manifest")
     kind = man.get("kind") or man.get("layout", {}).get("kind")
     if kind == "lfm":
-        from texstream.fit.lfm_stage import load_lfm_model
+        from texstream.fit.stages.lfm_stage import load_lfm_model
 
         model = load_lfm_model(d)
         return model.mesh, lfm_viewer_grid(model), {"kind": "lfm", "n_lobes": 0, "anisotropic": False,
@@ -71,7 +71,7 @@ def load_report_model(model_dir: str | Path):
         grid = read_image(d / name, channels=3).astype(np.float32)
         mesh = load_mesh(d / man.get("mesh", "mesh.obj")).with_normals()
         return mesh, grid, {"kind": "radiance", "n_lobes": 0, "anisotropic": False, "layout": None}, man
-    from texstream.fit.stage import load_model
+    from texstream.fit.stages.stage import load_model
 
     mesh, grid, lay, man = load_model(d)
     return mesh, grid, {"kind": lay.kind, "n_lobes": lay.n_lobes, "anisotropic": bool(lay.anisotropic),
@@ -87,7 +87,7 @@ def lfm_viewer_grid(model) -> np.ndarray:
     itself or, for padding, the texel it copies): the view-independent term d (0:3), the welded vertex
     of each of its three slots (3:6, -1: no texel), and the surface maps G[slot j, term k] at
     6 + 3 (j K + k) (fit/kernels/lfm.py ``texel_radiance``)."""
-    from texstream.fit.export import lfm_atlas
+    from texstream.fit.stages.export import lfm_atlas
 
     p = model.params
     n, k = p.diffuse.shape[0], model.terms
@@ -104,7 +104,7 @@ def lfm_viewer_data(model) -> dict:
     at tile column v % cols, row v // cols: fit/lfm_stage.py ``tile_view_maps``) and the welded
     vertices' positions and frames (texels 4 (v % LFM_FRAME_COLUMNS) + [0: position, 1: tangent,
     2: bitangent, 3: normal], row v // LFM_FRAME_COLUMNS), with the lookup options."""
-    from texstream.fit.lfm_stage import tile_view_maps
+    from texstream.fit.stages.lfm_stage import tile_view_maps
 
     p, g, res = model.params, model.geom, model.view_res
     tiles = np.stack([tile_view_maps(np.asarray(p.H[:, k]), res) for k in range(model.terms)])  # (K, h, w, 3)
@@ -240,7 +240,7 @@ def evaluate_views(mesh, grid, info, capture, frames, device: str) -> list[dict]
     """Render the model for each frame; foreground = render coverage and the photo's mask."""
     from texstream.capture.imageio import read_image, read_mask
     from texstream.core.progress import bar
-    from texstream.fit.stage import image_metrics, render_model
+    from texstream.fit.stages.stage import image_metrics, render_model
 
     rows = []
     lfm_render = info["lfm"].renderer(device).render_frame if info["kind"] == "lfm" else None
@@ -374,7 +374,7 @@ def param_map_figures(grid: np.ndarray, info: dict, seen: np.ndarray | None, fol
         return linear_to_srgb(np.clip(x / scale, 0, 1)), scale
 
     if info["kind"] == "lfm":
-        from texstream.fit.export import lfm_atlas, lfm_unlit_radiance
+        from texstream.fit.stages.export import lfm_atlas, lfm_unlit_radiance
 
         model = info["lfm"]
         img, s = rgb_scaled(grid[..., 0:3])
@@ -385,7 +385,7 @@ def param_map_figures(grid: np.ndarray, info: dict, seen: np.ndarray | None, fol
         amp = np.sqrt(np.sum(grid[..., 6:] ** 2, axis=-1))
         a, sa = rgb_scaled(np.repeat(amp[..., None], 3, axis=2))
         save("surface_maps", a, f"view dependence: |surface maps| over slots and terms (divided by {sa:.4g}; sRGB)")
-        from texstream.fit.lfm_stage import tile_view_maps
+        from texstream.fit.stages.lfm_stage import tile_view_maps
 
         views = tile_view_maps(np.asarray(model.params.H[:, 0]), model.view_res)
         v, sv = rgb_scaled(np.abs(views))
@@ -603,7 +603,7 @@ def write_report(out_dir: str | Path, stages: list[dict], model_dir: str | Path,
     Args:
         out_dir: the run's output folder; the report goes to ``out_dir/report``.
         stages: per stage a dict {name, status: "ran" | "skipped", reason, seconds, summary (dict)}.
-        model_dir: a model folder written by ``texstream.fit.stage.fit_stage``.
+        model_dir: a model folder written by ``texstream.fit.stages.stage.fit_stage``.
         capture_dir: the capture the model was fitted to; with it the held-out views (fit_config.json's
             holdout_every) are rendered and scored here, the viewer gets every camera and light and
             a few photos, and the rig is plotted. Without it the report uses model.json's render_eval

@@ -48,9 +48,9 @@ MIN_PHOTOS = 3  # structure from motion needs two views to start and a third to 
 
 
 def _fit_stage_config():
-    from texstream.fit.fitter import FitConfig
-    from texstream.fit.lfm_config import LFMConfig
-    from texstream.fit.stage import FitStageConfig
+    from texstream.fit.optim.fitter import FitConfig
+    from texstream.fit.models.lfm_config import LFMConfig
+    from texstream.fit.stages.stage import FitStageConfig
 
     return FitStageConfig(holdout_every=8, fit=FitConfig(lfm=LFMConfig(iterations=RUN_LFM_ITERATIONS)))
 
@@ -107,7 +107,7 @@ class RunConfig:
 SUBCONFIGS = {"ingest": "texstream.calib.ingest.IngestConfig", "register": "texstream.calib.register.RegisterConfig",
               "mesh": "texstream.geometry.make_mesh.MeshConfig", "atlas": "texstream.geometry.atlas.AtlasConfig",
               "lights": "texstream.calib.lights.LightsConfig", "refine": "texstream.geometry.refine.RefineConfig",
-              "fit": "texstream.fit.stage.FitStageConfig"}
+              "fit": "texstream.fit.stages.stage.FitStageConfig"}
 
 
 def run_config_from_dict(data: dict) -> RunConfig:
@@ -230,7 +230,7 @@ class Pipeline:
 
 
 def _summary_safe(summary: dict) -> dict:
-    from texstream.fit.model_folder import json_safe
+    from texstream.fit.stages.model_folder import json_safe
 
     return json.loads(json.dumps(json_safe(summary), default=str))
 
@@ -381,7 +381,7 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
         capture = read_capture(posed_dir)
 
     # fit: the model the scene needs
-    from texstream.fit.stage import fit_stage
+    from texstream.fit.stages.stage import fit_stage
 
     model_kind, why = decide_model(capture, cfg.model)
     if lights_summary:
@@ -548,7 +548,7 @@ def fit_with_selection(capture_dir: Path, geometry: Path, out: Path, fit_cfg, ki
     (:func:`lfm_decision`); its reason is recorded in the selection."""
     import shutil
 
-    from texstream.fit.stage import fit_stage
+    from texstream.fit.stages.stage import fit_stage
 
     results = {}
 
@@ -605,7 +605,7 @@ def _heldout(model_dir: Path) -> dict:
 def _export_and_report(pipe: Pipeline, out: Path, model_dir: Path, capture_dir: Path) -> None:
     """Exports (glTF binary, OBJ+MTL) and the HTML report, when those stages are installed."""
     try:
-        from texstream.fit.export import export_stage
+        from texstream.fit.stages.export import export_stage
     except ImportError:
         pipe.skip("export", "the export module is not available")
     else:

@@ -9,9 +9,9 @@ import pytest
 
 from texstream.core.errors import InputError
 from texstream.core.progress import reporting
-from texstream.fit import decode_pool
-from texstream.fit.photo_stream import PhotoLoader
-from texstream.fit.problem import PhotoFrame
+from texstream.fit.stream import decode_pool
+from texstream.fit.stream.photo_stream import PhotoLoader
+from texstream.fit.stream.problem import PhotoFrame
 
 pytest.importorskip("OpenImageIO", reason="decoding photo files needs OpenImageIO")
 
@@ -37,7 +37,7 @@ def stop_the_pool():
 
 def files_and_sizes(capture_dir):
     from texstream.capture.capture_json import read_capture
-    from texstream.fit.stage import photo_files
+    from texstream.fit.stages.stage import photo_files
 
     capture = read_capture(capture_dir)
     sizes = np.array([[p.height, p.width] for p in map(PhotoFrame.from_capture_frame, capture.frames)])
@@ -191,7 +191,7 @@ def test_processes_decode_every_photo_format_as_threads(tmp_path, ext, bits):
     """8-bit sRGB PNG and JPEG, 16-bit linear PNG, float EXR, with PNG masks: the workers' slots are the
     threads' bytes (the sRGB decode and the checks run in the worker)."""
     from texstream.capture.imageio import read_image, read_mask, write_image
-    from texstream.fit.photo_stream import PhotoFiles
+    from texstream.fit.stream.photo_stream import PhotoFiles
 
     rng = np.random.default_rng(7)
     paths, masks = [], []

@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 
 from texstream.capture.synth import SynthConfig, render_scene
-from texstream.fit.accuracy import highlight_counts, interior_texels, relative_errors
-from texstream.fit.fitter import FitConfig
-from texstream.fit.penalties import PenaltyConfig
-from texstream.fit.problem import StreamConfig
-from texstream.fit.stage import build_problem, fit_synthetic
+from texstream.fit.diagnostics.accuracy import highlight_counts, interior_texels, relative_errors
+from texstream.fit.optim.fitter import FitConfig
+from texstream.fit.stream.penalties import PenaltyConfig
+from texstream.fit.stream.problem import StreamConfig
+from texstream.fit.stages.stage import build_problem, fit_synthetic
 
 from conftest import SCENE_DEVICE
 

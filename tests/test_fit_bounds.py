@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from texstream.capture.synth import SynthConfig, render_scene
-from texstream.fit.fitter import FitConfig, run_fit
-from texstream.fit.stage import build_problem
+from texstream.fit.optim.fitter import FitConfig, run_fit
+from texstream.fit.stages.stage import build_problem
 
 from conftest import SCENE_DEVICE
 

@@ -24,12 +24,12 @@ import pytest
 import warp as wp
 
 from texstream.capture.synth import SynthConfig, load_scene, render_scene
-from texstream.fit.fitter import FitConfig, make_optimizer
+from texstream.fit.optim.fitter import FitConfig, make_optimizer
 from texstream.fit.optim.base import FitState
 from texstream.fit.optim.linesearch import LineSearchConfig, line_search
-from texstream.fit.penalties import Penalties
-from texstream.fit.problem import StreamConfig
-from texstream.fit.stage import build_problem
+from texstream.fit.stream.penalties import Penalties
+from texstream.fit.stream.problem import StreamConfig
+from texstream.fit.stages.stage import build_problem
 
 from conftest import SCENE_DEVICE
 

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from texstream.capture.synth import SynthConfig, render_scene
-from texstream.fit.fitter import FitConfig, run_fit
-from texstream.fit.penalties import PenaltyConfig
-from texstream.fit.problem import StreamConfig
-from texstream.fit.stage import build_problem
+from texstream.fit.optim.fitter import FitConfig, run_fit
+from texstream.fit.stream.penalties import PenaltyConfig
+from texstream.fit.stream.problem import StreamConfig
+from texstream.fit.stages.stage import build_problem
 
 from conftest import DEVICES, SCENE_DEVICE, cuda_device_or_skip
 

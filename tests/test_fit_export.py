@@ -25,8 +25,8 @@ from texstream.capture.procedural import flat_sample
 from texstream.capture.synth import write_param_maps
 from texstream.core.config import load_config
 from texstream.core.errors import ConfigError, InputError
-from texstream.fit import export as E
-from texstream.fit.models import MODEL_KINDS, ModelLayout
+from texstream.fit.stages import export as E
+from texstream.fit.models.layout import MODEL_KINDS, ModelLayout
 from texstream.geometry.mesh import SurfaceMesh
 from texstream.geometry.mesh_io import load_mesh, save_mesh
 
@@ -236,7 +236,7 @@ def radiance_model(folder, monkeypatch):
         files = {"radiance": "radiance.exr"}
         layout_json = {"kind": "radiance", "n_lobes": 0, "anisotropic": False}
         stub = types.SimpleNamespace(kind="radiance", n_lobes=0, n_params=3)
-        from texstream.fit import stage
+        from texstream.fit.stages import stage
 
         def load_model(d):
             man = json.loads((d / "model.json").read_text())

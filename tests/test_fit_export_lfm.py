@@ -11,16 +11,16 @@ import pytest
 from conftest import SCENE_DEVICE
 from lfm_scenes import fixed_light_sphere_capture
 
-from texstream.fit import export as E
+from texstream.fit.stages import export as E
 
 
 @pytest.fixture(scope="module")
 def lfm_model(tmp_path_factory):
     """A K = 1 LFM fit (20 CG iterations) of the fixed-light sphere."""
     pytest.importorskip("OpenImageIO")  # the synthetic photos are EXR files
-    from texstream.fit.fitter import FitConfig
-    from texstream.fit.lfm import LFMConfig
-    from texstream.fit.stage import FitStageConfig, fit_stage
+    from texstream.fit.optim.fitter import FitConfig
+    from texstream.fit.models.lfm import LFMConfig
+    from texstream.fit.stages.stage import FitStageConfig, fit_stage
 
     root = tmp_path_factory.mktemp("lfm_export")
     cap = fixed_light_sphere_capture(root, photos=24, device=SCENE_DEVICE)
@@ -33,7 +33,7 @@ def lfm_model(tmp_path_factory):
 @pytest.mark.parametrize("mapping", ["disk", "hemioct"])
 @pytest.mark.parametrize("lookup", ["bilinear", "nearest"])
 def test_view_mean_weights_average_the_renderers_lookups(device, mapping, lookup):
-    from texstream.fit.lfm import view_directions
+    from texstream.fit.models.lfm import view_directions
 
     res = 32
     w = E.view_mean_weights(res, mapping, lookup, device)
@@ -56,7 +56,7 @@ def test_unlit_equals_the_full_model_when_the_view_maps_are_constant(lfm_model, 
     import shutil
 
     from texstream.capture.capture_json import read_capture
-    from texstream.fit.lfm_stage import load_lfm_model
+    from texstream.fit.stages.lfm_stage import load_lfm_model
 
     model = tmp_path / "model"
     shutil.copytree(lfm_model, model)
@@ -78,7 +78,7 @@ def test_unlit_equals_the_full_model_when_the_view_maps_are_constant(lfm_model, 
 
 
 def test_lfm_exports_an_unlit_glb_and_obj_with_its_maps(lfm_model, tmp_path):
-    from texstream.fit.lfm_stage import load_lfm_model
+    from texstream.fit.stages.lfm_stage import load_lfm_model
     from test_fit_export import assert_srgb_codes, glb_images, trimesh  # pygltflib, trimesh, PIL or a skip
 
     out = tmp_path / "export"

@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 
 from texstream.capture.synth import SynthConfig, load_scene, render_scene
-from texstream.fit.fitter import FitConfig, run_fit
-from texstream.fit.problem import StreamConfig
-from texstream.fit.stage import build_problem
+from texstream.fit.optim.fitter import FitConfig, run_fit
+from texstream.fit.stream.problem import StreamConfig
+from texstream.fit.stages.stage import build_problem
 
 from conftest import SCENE_DEVICE
 

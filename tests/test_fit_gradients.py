@@ -7,8 +7,8 @@ import pytest
 import warp as wp
 
 from texstream.capture.conventions import look_at_w2c
-from texstream.fit.models import ModelLayout
-from texstream.fit.problem import PhotoFrame, PhotoSet, StreamConfig, StreamProblem, TexelSet
+from texstream.fit.models.layout import ModelLayout
+from texstream.fit.stream.problem import PhotoFrame, PhotoSet, StreamConfig, StreamProblem, TexelSet
 
 
 SAMPLINGS = ["filtered", "point", "bilinear"]
@@ -217,7 +217,7 @@ def test_smoothness_gradient_and_block_hessian_match_finite_differences(device):
     global penalty; its gradient and diagonal block Hessian must be the penalty's derivatives."""
     from texstream.fit.kernels import optim_kernels as K
     from texstream.fit.optim.lm import edge_weights
-    from texstream.fit.penalties import PenaltyConfig
+    from texstream.fit.stream.penalties import PenaltyConfig
 
     layout = ModelLayout()
     prob, rng = plane_problem(device, layout, n_photos=1, grid=6, seed=4)

@@ -10,9 +10,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from texstream.fit.fitter import FitConfig, choose_lobe_shape, light_view_angles
-from texstream.fit.models import ModelLayout
-from texstream.fit.problem import PhotoFrame
+from texstream.fit.optim.fitter import FitConfig, choose_lobe_shape, light_view_angles
+from texstream.fit.models.layout import ModelLayout
+from texstream.fit.stream.problem import PhotoFrame
 from texstream.core.errors import ConfigError
 
 

@@ -17,11 +17,11 @@ import pytest
 import warp as wp
 
 from texstream.capture.synth import SynthConfig, render_scene
-from texstream.fit.fitter import FitConfig, run_fit
-from texstream.fit.models import ModelLayout
+from texstream.fit.optim.fitter import FitConfig, run_fit
+from texstream.fit.models.layout import ModelLayout
 from texstream.fit.optim.base import FitState
-from texstream.fit.problem import StreamConfig, StreamProblem
-from texstream.fit.stage import build_problem
+from texstream.fit.stream.problem import StreamConfig, StreamProblem
+from texstream.fit.stages.stage import build_problem
 from texstream.core.errors import ConfigError
 
 from conftest import SCENE_DEVICE

@@ -23,9 +23,9 @@ import numpy as np
 import pytest
 import warp as wp
 
-from texstream.fit.materials import (MaterialConfig, contradiction_test, find_materials, kmeans, lobe_columns,
+from texstream.fit.models.materials import (MaterialConfig, contradiction_test, find_materials, kmeans, lobe_columns,
                                      material_prior, reject_contradicted_lobes, texel_uncertainty)
-from texstream.fit.models import ModelLayout
+from texstream.fit.models.layout import ModelLayout
 
 from test_fit_gradients import (assert_full_dhd_matches_second_difference, assert_gradient_matches_finite_differences,
                                 evaluate, plane_problem, random_params)
@@ -255,8 +255,8 @@ def sphere_fit(tmp_path_factory):
     materials on with one material: the model folder and its ground truth."""
     pytest.importorskip("OpenImageIO")
     from texstream.capture.synth import SynthConfig, load_ground_truth, synthesize
-    from texstream.fit.fitter import FitConfig
-    from texstream.fit.stage import FitStageConfig, fit_stage
+    from texstream.fit.optim.fitter import FitConfig
+    from texstream.fit.stages.stage import FitStageConfig, fit_stage
 
     root = tmp_path_factory.mktemp("materials")
     synthesize(one_material_sphere(), root / "cap", SynthConfig(scale=0.05, photos=160, image_size=48, progress=False,
@@ -276,8 +276,8 @@ def test_unseen_highlight_texels_take_the_material_lobe(sphere_fit):
     docs/accuracy.md (measured: 1.3% and 0.9%)."""
     from texstream.capture.capture_json import read_capture
     from texstream.capture.synth import load_ground_truth
-    from texstream.fit.accuracy import highlight_counts, relative_errors
-    from texstream.fit.stage import load_model, split_holdout
+    from texstream.fit.diagnostics.accuracy import highlight_counts, relative_errors
+    from texstream.fit.stages.stage import load_model, split_holdout
 
     root = sphere_fit
     _, truth, _, bake, _ = load_ground_truth(root / "cap")
@@ -318,8 +318,8 @@ def test_stage_records_choice_and_uncertainty(sphere_fit):
 def test_traced_materials_option_runs_the_materials_step_on_traced_taps(sphere_fit):
     """``--traced-materials``: the per-texel fit is polished on traced taps before the materials' evidence and
     fit, model.json says so, and the model is finite (what it does to the lobes: docs/accuracy.md)."""
-    from texstream.fit.fitter import FitConfig
-    from texstream.fit.stage import FitStageConfig, fit_stage
+    from texstream.fit.optim.fitter import FitConfig
+    from texstream.fit.stages.stage import FitStageConfig, fit_stage
 
     root = sphere_fit
     cfg = FitStageConfig(device=SCENE_DEVICE, renders=0, holdout_every=8, traced_materials=True,

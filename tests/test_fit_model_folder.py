@@ -11,8 +11,8 @@ import sys
 import numpy as np
 import pytest
 
-from texstream.fit.model_folder import start_plotter, stop_plotter, trace_plot, trace_plot_png, write_model_folder
-from texstream.fit.models import ModelLayout
+from texstream.fit.stages.model_folder import start_plotter, stop_plotter, trace_plot, trace_plot_png, write_model_folder
+from texstream.fit.models.layout import ModelLayout
 
 
 @dataclasses.dataclass
@@ -75,7 +75,8 @@ def test_a_plotter_that_ended_is_replaced(tmp_path):
 
 
 def test_a_failing_fit_stage_stops_its_plotter(tmp_path, monkeypatch):
-    from texstream.fit import model_folder, stage
+    from texstream.fit.stages import model_folder
+    from texstream.fit.stages import stage
 
     started = []
     monkeypatch.setattr(model_folder, "start_plotter", lambda: started.append(start_plotter()) or started[-1])

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from texstream.core.errors import ConfigError
-from texstream.fit.fitter import FitConfig, initial_guess, run_fit
-from texstream.fit.penalties import PenaltyConfig
-from texstream.fit.photo_split import DevicePhotos, split_bounds
-from texstream.fit.problem import StreamConfig
-from texstream.fit.stage import build_problem
+from texstream.fit.optim.fitter import FitConfig, initial_guess, run_fit
+from texstream.fit.stream.penalties import PenaltyConfig
+from texstream.fit.multi.photo_split import DevicePhotos, split_bounds
+from texstream.fit.stream.problem import StreamConfig
+from texstream.fit.stages.stage import build_problem
 
 from conftest import DEVICES
 
@@ -81,7 +81,7 @@ def test_the_copies_between_devices_on_one_device(scene, device, monkeypatch):
     """The path that copies parameters to another device and partial sums back (mirrors, offsets, the
     synchronisations), taken on one device by telling the problem its peer is elsewhere: still the
     two-group fit to the last bit (the two-GPU test runs it between devices)."""
-    from texstream.fit.problem import StreamProblem
+    from texstream.fit.stream.problem import StreamProblem
 
     monkeypatch.setattr(StreamProblem, "_same_device", lambda self, peer: False)
     one = fit_config(smooth=0.05, groups=2, model_lookup="bilinear")
@@ -128,7 +128,7 @@ def test_split_photos_subset_and_refusals(scene, device):
     rest = pr.photos.subset([7, 8])  # the second part's photos only: on the same device, one part
     assert [p.n for p in rest.parts] == [2] and rest.frames == pr.photos.frames[7:9]
     with pytest.raises(ConfigError, match="no tiles"):
-        from texstream.fit.tiles import tiled
+        from texstream.fit.multi.tiles import tiled
 
         tiled(split(fit_config(tiles=2), f"{device},{device}"))
     with pytest.raises(ConfigError, match="stays on the devices|stay on the devices"):
@@ -170,7 +170,7 @@ def test_fit_stage_with_split_photos(tmp_path):
     import json
 
     from conftest import SCENE_DEVICE, tiny_sphere_capture
-    from texstream.fit.stage import FitStageConfig, fit_stage
+    from texstream.fit.stages.stage import FitStageConfig, fit_stage
 
     capture = tiny_sphere_capture(tmp_path, photos=12)
     gt = capture / "ground_truth"

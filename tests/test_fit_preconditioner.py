@@ -7,10 +7,10 @@ import pytest
 import warp as wp
 
 from texstream.capture.synth import SynthConfig, render_scene
-from texstream.fit.fitter import FitConfig, run_fit
-from texstream.fit.models import ModelLayout
+from texstream.fit.optim.fitter import FitConfig, run_fit
+from texstream.fit.models.layout import ModelLayout
 from texstream.fit.optim.linesearch import LineSearchConfig
-from texstream.fit.stage import build_problem
+from texstream.fit.stages.stage import build_problem
 
 from conftest import SCENE_DEVICE
 from test_fit_gradients import plane_problem, random_params

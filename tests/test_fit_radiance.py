@@ -21,10 +21,10 @@ import warp as wp
 from texstream.capture.capture_json import Light
 from texstream.capture.synth import SynthConfig, render_scene
 from texstream.core.errors import InputError
-from texstream.fit.fitter import FitConfig, run_fit
-from texstream.fit.models import ModelLayout
-from texstream.fit.problem import PhotoFrame, PhotoSet, StreamProblem, TexelSet, surface_derivatives
-from texstream.fit.render import Renderer
+from texstream.fit.optim.fitter import FitConfig, run_fit
+from texstream.fit.models.layout import ModelLayout
+from texstream.fit.stream.problem import PhotoFrame, PhotoSet, StreamProblem, TexelSet, surface_derivatives
+from texstream.fit.stages.render import Renderer
 
 from conftest import SCENE_DEVICE
 from test_fit_gradients import (SAMPLINGS, assert_full_dhd_matches_second_difference,

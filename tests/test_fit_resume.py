@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from texstream.fit.fitter import FitConfig
-from texstream.fit.stage import FitStageConfig, fit_stage
+from texstream.fit.optim.fitter import FitConfig
+from texstream.fit.stages.stage import FitStageConfig, fit_stage
 
 pytest.importorskip("OpenImageIO")
 
@@ -28,14 +28,14 @@ def config() -> FitStageConfig:
 
 def maps(model):
     from texstream.capture.synth import read_param_maps
-    from texstream.fit.models import ModelLayout
+    from texstream.fit.models.layout import ModelLayout
 
     lay = ModelLayout.from_json(json.loads((model / "model.json").read_text())["layout"])
     return read_param_maps(model, lay)
 
 
 def test_an_interrupted_fit_resumes_to_the_uninterrupted_result(capture, tmp_path, monkeypatch):
-    import texstream.fit.stage as stage
+    import texstream.fit.stages.stage as stage
 
     gt = capture / "ground_truth"
     whole = fit_stage(capture, gt, tmp_path / "whole", config(), progress=False)
@@ -66,7 +66,7 @@ def test_an_interrupted_fit_resumes_to_the_uninterrupted_result(capture, tmp_pat
 def test_a_checkpoint_of_other_options_is_not_used(capture, tmp_path, monkeypatch):
     import dataclasses
 
-    import texstream.fit.stage as stage
+    import texstream.fit.stages.stage as stage
 
     gt = capture / "ground_truth"
     ck = stage.Checkpoint(tmp_path / "m", {"other": "options"})

@@ -17,8 +17,8 @@ import pytest
 pytest.importorskip("OpenImageIO", reason="single-view stage tests need OpenImageIO for photo files")
 
 from texstream.capture.capture_json import Capture, Frame, Intrinsics, Light, write_capture
-from texstream.fit.fitter import FitConfig
-from texstream.fit.photometric_stereo import SingleViewConfig, fit_single_view_stage, read_normal_map
+from texstream.fit.optim.fitter import FitConfig
+from texstream.fit.models.photometric_stereo import SingleViewConfig, fit_single_view_stage, read_normal_map
 from texstream.core.errors import InputError
 
 SIZE = 40  # image side: ~900 texels inside the hemisphere, a few seconds per fit on one CPU core
@@ -115,7 +115,7 @@ def write_set(folder, specular: bool, normals_ext: str = ".npy", shadow: bool = 
 
 def read_maps(model):
     from texstream.capture.synth import read_param_maps
-    from texstream.fit.models import ModelLayout
+    from texstream.fit.models.layout import ModelLayout
 
     man = json.loads((model / "model.json").read_text())
     return read_param_maps(model, ModelLayout.from_json(man["layout"])), man
@@ -226,7 +226,7 @@ def test_bad_inputs_are_one_line_input_errors(tmp_path, capsys):
 
 def test_normal_spaces_and_texel_positions_agree():
     from texstream.capture.conventions import look_at_w2c, project
-    from texstream.fit.photometric_stereo import single_view_geometry
+    from texstream.fit.models.photometric_stereo import single_view_geometry
 
     intr, n_gl, inside, _, _, _, depth = scene(False)
     R, t = look_at_w2c(np.array([1.0, -2.0, 0.5]), np.zeros(3))  # a camera that is not the world frame

@@ -16,9 +16,9 @@ import shutil
 import numpy as np
 import pytest
 
-from texstream.fit.fitter import FitConfig
-from texstream.fit.models import ModelLayout
-from texstream.fit.stage import FitStageConfig, fit_stage
+from texstream.fit.optim.fitter import FitConfig
+from texstream.fit.models.layout import ModelLayout
+from texstream.fit.stages.stage import FitStageConfig, fit_stage
 from texstream.geometry.seams import SEAMS_FILE, Seams, seam_gaps
 from texstream.core.errors import InputError
 
@@ -123,7 +123,7 @@ def test_corrupt_seams_file_is_one_line_input_error(capture_and_atlas, monkeypat
     root = capture_and_atlas
     atlas = copy_atlas(root, "atlas_corrupt")
     (atlas / SEAMS_FILE).write_bytes(b"not an npz file")
-    monkeypatch.setattr("texstream.fit.stage.run_fit_with_progress", no_fitting)
+    monkeypatch.setattr("texstream.fit.stages.stage.run_fit_with_progress", no_fitting)
     out = root / "model_corrupt"
     with pytest.raises(InputError) as e:
         fit_stage(root / "cap", atlas, out, stage_config(), progress=False)
@@ -138,7 +138,7 @@ def test_seams_of_another_atlas_is_an_input_error(capture_and_atlas, monkeypatch
     atlas = copy_atlas(root, "atlas_stale")
     s = Seams.load(atlas / SEAMS_FILE)
     dataclasses.replace(s, width=2 * s.width, height=2 * s.height).save(atlas / SEAMS_FILE)
-    monkeypatch.setattr("texstream.fit.stage.run_fit_with_progress", no_fitting)
+    monkeypatch.setattr("texstream.fit.stages.stage.run_fit_with_progress", no_fitting)
     out = root / "model_stale"
     with pytest.raises(InputError) as e:
         fit_stage(root / "cap", atlas, out, stage_config(), progress=False)
@@ -153,7 +153,7 @@ def test_cli_prints_one_line_for_a_corrupt_seams_file(capture_and_atlas, capsys,
     root = capture_and_atlas
     atlas = copy_atlas(root, "atlas_corrupt_cli")
     (atlas / SEAMS_FILE).write_bytes(b"\x00" * 16)
-    monkeypatch.setattr("texstream.fit.stage.run_fit_with_progress", no_fitting)
+    monkeypatch.setattr("texstream.fit.stages.stage.run_fit_with_progress", no_fitting)
     rc = main(["fit", str(root / "cap"), "--mesh", str(atlas), "-o", str(root / "model_cli"),
                "--device", SCENE_DEVICE])
     err = capsys.readouterr().err.strip()
@@ -164,7 +164,7 @@ def test_cli_prints_one_line_for_a_corrupt_seams_file(capture_and_atlas, capsys,
 def fake_fit(make_params):
     """A stand-in for the fit returning ``make_params(n, layout)`` (the texels' parameters) with a
     one-row trace: the stage's post-processing and checks see exactly those values."""
-    from texstream.fit.fitter import FitResult
+    from texstream.fit.optim.fitter import FitResult
 
     def run(problem, fit, progress, **kw):
         lay = problem.layout
@@ -185,7 +185,7 @@ def test_extreme_fitted_values_stay_in_bounds_through_the_seam_averaging(capture
         pick = np.random.default_rng(5).random((n, lay.n_params)) < 0.5
         return np.where(pick, lay.lower(), lay.upper())
 
-    monkeypatch.setattr("texstream.fit.stage.run_fit_with_progress", fake_fit(extremes))
+    monkeypatch.setattr("texstream.fit.stages.stage.run_fit_with_progress", fake_fit(extremes))
     fit_stage(root / "cap", root / "atlas", root / "model_extreme", stage_config(traced_polish=0),
               progress=False)  # the faked fit's values reach the checks unpolished
     man = json.loads((root / "model_extreme" / "model.json").read_text())
@@ -210,7 +210,7 @@ def test_a_model_out_of_bounds_or_not_finite_is_never_written(capture_and_atlas,
         res.params[i, problem.layout.index("lobe0.n")] = bad_value
         return res
 
-    monkeypatch.setattr("texstream.fit.stage.run_fit_with_progress", run)
+    monkeypatch.setattr("texstream.fit.stages.stage.run_fit_with_progress", run)
     out = root / "model_bad"
     with pytest.raises(StageError) as e:
         # the faked fit's bad value reaches the checks unpolished
@@ -224,7 +224,7 @@ def test_a_capture_whose_texels_are_almost_unseen_fails_before_fitting(capture_a
     from texstream.core.errors import StageError
 
     root = capture_and_atlas
-    monkeypatch.setattr("texstream.fit.stage.run_fit_with_progress", no_fitting)
+    monkeypatch.setattr("texstream.fit.stages.stage.run_fit_with_progress", no_fitting)
     cfg = dataclasses.replace(stage_config(), min_seen_fraction=1.01)  # more than every texel: always too few
     with pytest.raises(StageError, match="texels .* are seen by any photo") as e:
         fit_stage(root / "cap", root / "atlas", root / "model_unseen", cfg, progress=False)
@@ -240,7 +240,7 @@ def test_albedos_pinned_at_their_bound_are_reported(capture_and_atlas, monkeypat
         p[: n // 2, 0:3] = lay.upper()[0:3]
         return p
 
-    monkeypatch.setattr("texstream.fit.stage.run_fit_with_progress", fake_fit(pinned))
+    monkeypatch.setattr("texstream.fit.stages.stage.run_fit_with_progress", fake_fit(pinned))
     res = fit_stage(root / "cap", root / "atlas", root / "model_pinned", stage_config(traced_polish=0),
               progress=False)  # the faked fit's values reach the checks unpolished
     warnings = res.summary["warnings"]
@@ -255,8 +255,8 @@ def test_lobes_no_photo_saw_are_dropped_and_the_seen_ones_kept(capture_and_atlas
     true lobe whose highlight no photo caught."""
     from texstream.capture.capture_json import read_capture
     from texstream.capture.synth import load_ground_truth
-    from texstream.fit.fitter import FitResult
-    from texstream.fit.stage import build_problem, drop_unsupported_lobes, load_photos
+    from texstream.fit.optim.fitter import FitResult
+    from texstream.fit.stages.stage import build_problem, drop_unsupported_lobes, load_photos
 
     root = capture_and_atlas
     mesh, truth, lay, bake, _ = load_ground_truth(root / "cap" / "ground_truth")
@@ -268,7 +268,7 @@ def test_lobes_no_photo_saw_are_dropped_and_the_seen_ones_kept(capture_and_atlas
     rho_s = slice(lay.lobe_offset(0), lay.lobe_offset(0) + 3)
     tiny = np.arange(prob.n) % 2 == 0
     params[tiny, rho_s] = np.minimum(params[tiny, rho_s], 1e-9)
-    from texstream.fit.fitter import initial_guess
+    from texstream.fit.optim.fitter import initial_guess
 
     _, samples = initial_guess(prob, cfg)
     res = FitResult(params=params, samples=samples, trace=[], layout=prob.layout, passes=0)
@@ -293,8 +293,8 @@ def test_a_second_lobe_stays_only_where_it_lowers_the_error(capture_and_atlas):
     on its own while the first lobe is untouched."""
     from texstream.capture.capture_json import read_capture
     from texstream.capture.synth import load_ground_truth
-    from texstream.fit.fitter import FitResult, initial_guess
-    from texstream.fit.stage import build_problem, drop_unsupported_lobes, load_photos
+    from texstream.fit.optim.fitter import FitResult, initial_guess
+    from texstream.fit.stages.stage import build_problem, drop_unsupported_lobes, load_photos
 
     root = capture_and_atlas
     mesh, truth, lay, bake, _ = load_ground_truth(root / "cap" / "ground_truth")

@@ -8,12 +8,12 @@ import pytest
 import warp as wp
 
 from texstream.capture.synth import SynthConfig, render_scene
-from texstream.fit.fitter import FitConfig
+from texstream.fit.optim.fitter import FitConfig
 from texstream.fit.kernels import optim_kernels as K
-from texstream.fit.models import ModelLayout, energy_bound_numpy
+from texstream.fit.models.layout import ModelLayout, energy_bound_numpy
 from texstream.fit.optim.base import FitState
-from texstream.fit.problem import StreamConfig
-from texstream.fit.stage import build_problem
+from texstream.fit.stream.problem import StreamConfig
+from texstream.fit.stages.stage import build_problem
 
 from conftest import SCENE_DEVICE
 

@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 from texstream.core.errors import ConfigError
-from texstream.fit.fitter import FitConfig, initial_guess, run_fit
+from texstream.fit.optim.fitter import FitConfig, initial_guess, run_fit
 from texstream.fit.optim.linesearch import LineSearchConfig
-from texstream.fit.penalties import PenaltyConfig
-from texstream.fit.problem import StreamConfig
-from texstream.fit.stage import build_problem
-from texstream.fit.tiles import plan_tiles, run_tiled_fit, split_texels, texel_range
+from texstream.fit.stream.penalties import PenaltyConfig
+from texstream.fit.stream.problem import StreamConfig
+from texstream.fit.stages.stage import build_problem
+from texstream.fit.multi.tiles import plan_tiles, run_tiled_fit, split_texels, texel_range
 
 from conftest import DEVICES
 
@@ -55,7 +55,7 @@ def problem(scene, cfg, device):
 @pytest.mark.parametrize("optimizer,model", [("lm", "lafortune"), ("cg", "lafortune"), ("lbfgs", "diffuse"),
                                              ("sd", "diffuse"), ("lm", "radiance")])
 def test_tiled_fit_equals_the_untiled_fit_to_the_bit(scene, device, optimizer, model, monkeypatch):
-    import texstream.fit.tiles as tiles
+    import texstream.fit.multi.tiles as tiles
 
     monkeypatch.setattr(tiles, "ALL_PHOTOS_FRACTION", 2.0)  # every tile streams only the photos that see it
     cfg = fit_config(optimizer, model)
@@ -98,7 +98,7 @@ def test_stopping_test_sums_the_tiles(scene, device):
 def test_each_tile_gets_every_photo_that_samples_it(scene, device, monkeypatch):
     """The tiles' photo lists hold every photo with a sample of their texels: each tile's own initial-guess
     pass (sample counts, per-texel percentiles) equals the untiled one's for its texels."""
-    import texstream.fit.tiles as tiles
+    import texstream.fit.multi.tiles as tiles
 
     monkeypatch.setattr(tiles, "ALL_PHOTOS_FRACTION", 2.0)
     cfg = fit_config(tiles=5)
@@ -106,7 +106,7 @@ def test_each_tile_gets_every_photo_that_samples_it(scene, device, monkeypatch):
     guess, counts = initial_guess(whole, cfg)
     plan = plan_tiles(whole, cfg)
     assert any(p.size < whole.photos.n for p in plan.photos)  # the split does leave photos out
-    from texstream.fit.tiles import tile_problem
+    from texstream.fit.multi.tiles import tile_problem
 
     for t, (b, e) in enumerate(plan.bounds):
         g_t, c_t = initial_guess(tile_problem(whole, plan, t, cfg), cfg)
@@ -145,7 +145,7 @@ def test_smoothness_with_halo_exchange_equals_the_untiled_fit(scene, device, dev
 
 def test_halo_exchange_is_needed(scene, monkeypatch):
     """Without the exchange (halos held at the start) the smooth fit differs: the test above has teeth."""
-    import texstream.fit.tiles as tiles
+    import texstream.fit.multi.tiles as tiles
 
     cfg = dataclasses.replace(fit_config(), penalties=PenaltyConfig(smooth_weight=0.05))
     ref = run_fit(problem(scene, cfg, ANY), cfg)
@@ -195,7 +195,7 @@ def test_tiles_over_streamed_photos_equal_the_untiled_fit(capture_dir, residency
     """Photos streamed a window per pass (host memory, or decoded from the files): tiles that stream every photo
     share the parent's windows, so the sums and the fit are the untiled one's."""
     from texstream.capture.capture_json import read_capture
-    from texstream.fit.stage import load_geometry, photo_files
+    from texstream.fit.stages.stage import load_geometry, photo_files
 
     cap = read_capture(capture_dir)
     mesh, bake = load_geometry(capture_dir / "ground_truth", 64, "cpu")
@@ -241,7 +241,7 @@ def test_tiles_on_two_gpus_equal_the_untiled_fit(scene, smooth):
 
 
 def test_visibility_launched_in_chunks_of_photos_equals_one_launch(scene, monkeypatch):
-    import texstream.fit.tiles as tiles
+    import texstream.fit.multi.tiles as tiles
 
     cfg = fit_config(tiles=4)
     whole = problem(scene, cfg, ANY)

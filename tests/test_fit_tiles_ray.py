@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from texstream.core.errors import ConfigError
-from texstream.fit.fitter import FitConfig, run_fit
-from texstream.fit.penalties import PenaltyConfig
-from texstream.fit.problem import StreamConfig
-from texstream.fit.stage import build_problem, photo_files
-from texstream.fit.tiles import run_tiled_fit
+from texstream.fit.optim.fitter import FitConfig, run_fit
+from texstream.fit.stream.penalties import PenaltyConfig
+from texstream.fit.stream.problem import StreamConfig
+from texstream.fit.stages.stage import build_problem, photo_files
+from texstream.fit.multi.tiles import run_tiled_fit
 
 ray = pytest.importorskip("ray", reason="Ray is the optional extra texstream[distributed] (also in the test extra)")
 
@@ -28,7 +28,7 @@ def capture(tmp_path_factory):
     from conftest import SCENE_DEVICE
     from texstream.capture.capture_json import read_capture
     from texstream.capture.synth import SynthConfig, synthesize
-    from texstream.fit.stage import load_geometry
+    from texstream.fit.stages.stage import load_geometry
 
     out = tmp_path_factory.mktemp("ornament") / "capture"
     synthesize("ornament", out, SynthConfig(device=SCENE_DEVICE, preview=False, **SMALL))
@@ -53,7 +53,7 @@ def problem(capture, cfg):
 @pytest.mark.parametrize("smooth", [0.0, 0.05])
 def test_ray_tiles_equal_the_one_process_fit(capture, local_cluster, smooth, monkeypatch):
     """With LM's smoothness the actors' halos go through the object store after every iteration."""
-    import texstream.fit.tiles as tiles
+    import texstream.fit.multi.tiles as tiles
 
     monkeypatch.setattr(tiles, "ALL_PHOTOS_FRACTION", 2.0)  # each actor reads only the photos that see its tile
     # one photo group and a fixed iteration count: the conditions of the exact comparison (test_fit_tiles.py)
@@ -70,7 +70,7 @@ def test_ray_tiles_equal_the_one_process_fit(capture, local_cluster, smooth, mon
 
 def test_ray_needs_the_photos_as_files(capture, local_cluster):
     cap, mesh, bake = capture
-    from texstream.fit.stage import load_photos
+    from texstream.fit.stages.stage import load_photos
 
     images, masks = load_photos(cap, cap.frames)
     cfg = FitConfig(max_iterations=1, stream=StreamConfig(shadow_map_size=48, tiles=2, tile_backend="ray"))

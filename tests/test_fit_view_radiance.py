@@ -18,10 +18,10 @@ import pytest
 import warp as wp
 
 from texstream.capture.synth import VIEW_TERM_NAMES, SynthConfig, render_scene
-from texstream.fit.fitter import FitConfig, run_fit
-from texstream.fit.models import VIEW_TERMS, ModelLayout
-from texstream.fit.problem import PhotoFrame, PhotoSet, StreamProblem, TexelSet, surface_derivatives
-from texstream.fit.render import Renderer
+from texstream.fit.optim.fitter import FitConfig, run_fit
+from texstream.fit.models.layout import VIEW_TERMS, ModelLayout
+from texstream.fit.stream.problem import PhotoFrame, PhotoSet, StreamProblem, TexelSet, surface_derivatives
+from texstream.fit.stages.render import Renderer
 
 from conftest import SCENE_DEVICE
 from test_fit_gradients import SAMPLINGS, assert_gradient_matches_finite_differences, evaluate, plane_problem

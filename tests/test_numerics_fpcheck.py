@@ -15,7 +15,7 @@ import pytest
 
 from conftest import DEVICES
 
-from texstream.fit.fpcheck import (FORMATS, FpcheckConfig, exact_basic, exact_result, exact_sqrt,
+from texstream.fit.diagnostics.fpcheck import (FORMATS, FpcheckConfig, exact_basic, exact_result, exact_sqrt,
                                    exact_transcendental, fpcheck, markdown_report, round_exact, schryer_pairs,
                                    schryer_significands, ulp, ulp_error, write_report)
 

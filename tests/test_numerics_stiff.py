@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import pytest
 
-from texstream.fit.stiffcheck import default_cases, run_case
+from texstream.fit.diagnostics.stiffcheck import default_cases, run_case
 
 CASES = default_cases()
 
@@ -44,8 +44,8 @@ def test_each_regime_is_exercised():
 def test_fit_warns_where_the_suite_found_the_precision_unsafe():
     import numpy as np
 
-    from texstream.fit.problem import FP32_SAFE_PHOTOS, StreamConfig
-    from texstream.fit.stiffcheck import numerics_warnings
+    from texstream.fit.stream.problem import FP32_SAFE_PHOTOS, StreamConfig
+    from texstream.fit.diagnostics.stiffcheck import numerics_warnings
 
     assert numerics_warnings(StreamConfig(), 10 * FP32_SAFE_PHOTOS) == []  # auto: fp64 sums there
     many = numerics_warnings(StreamConfig(accumulate="fp32"), FP32_SAFE_PHOTOS + 1)
@@ -66,14 +66,14 @@ def test_fit_stage_records_the_numerics_warning(tmp_path):
     from unittest import mock
 
     from conftest import tiny_sphere_capture
-    from texstream.fit.stage import FitStageConfig, fit_stage
+    from texstream.fit.stages.stage import FitStageConfig, fit_stage
 
     cap = tiny_sphere_capture(tmp_path, photos=6)
     cfg = FitStageConfig()
     cfg.fit.max_iterations = 2
     cfg.fit.stream.accumulate = "fp32"
     cfg.materials.mode = "off"
-    with mock.patch("texstream.fit.problem.FP32_SAFE_PHOTOS", 3):
+    with mock.patch("texstream.fit.stream.problem.FP32_SAFE_PHOTOS", 3):
         res = fit_stage(cap, cap / "ground_truth", tmp_path / "model", cfg, progress=False)
     man = json.loads((tmp_path / "model" / "model.json").read_text())
     assert any(w.startswith("numerics: float32 sums") for w in man["warnings"])

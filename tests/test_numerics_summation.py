@@ -18,7 +18,7 @@ from conftest import DEVICES
 
 from texstream.core.errors import ConfigError
 from texstream.fit.kernels.summation import ERROR_SUMS, streamed_sums, study_terms
-from texstream.fit.problem import FP32_SAFE_PHOTOS, FP32_SAFE_TOLERANCE, StreamConfig, resolve_accumulate
+from texstream.fit.stream.problem import FP32_SAFE_PHOTOS, FP32_SAFE_TOLERANCE, StreamConfig, resolve_accumulate
 
 ROOT = Path(__file__).resolve().parent.parent
 STUDY = ROOT / "benchmarks" / "results" / "summation_cpu" / "summation.json"
@@ -79,8 +79,8 @@ def test_problem_uses_the_resolved_precision(monkeypatch):
 
     from test_fit_gradients import plane_problem
 
-    from texstream.fit import problem as problem_module
-    from texstream.fit.models import ModelLayout
+    from texstream.fit.stream import problem as problem_module
+    from texstream.fit.models.layout import ModelLayout
 
     monkeypatch.setattr(problem_module, "FP32_SAFE_PHOTOS", 2)  # a threshold small photo sets cross
     many, _ = plane_problem(DEVICES[0], ModelLayout(), n_photos=3, grid=2, acc="auto")

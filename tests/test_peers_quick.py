@@ -62,7 +62,7 @@ def test_mitsuba_scene_matches_texstreams_renderer():
         import drjit as dr
         import mitsuba as mi
 
-        from texstream.fit.stage import render_model
+        from texstream.fit.stages.stage import render_model
 
         mi.set_variant("llvm_ad_rgb")
         dr.set_thread_count(1)

@@ -10,8 +10,8 @@ import pytest
 from texstream.capture import procedural
 from texstream.capture.capture_json import Light
 from texstream.capture.conventions import look_at_w2c, uv_to_texel
-from texstream.fit.models import ModelLayout
-from texstream.fit.render import Renderer
+from texstream.fit.models.layout import ModelLayout
+from texstream.fit.stages.render import Renderer
 from texstream.geometry.mesh import SurfaceMesh
 
 # float32 renderer vs float64 reference: positions, normals and cosines carry ~1e-7 relative

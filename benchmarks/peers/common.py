@@ -2,9 +2,9 @@
 
 Data: the synthetic ornament (capture/scenes/ornament.json) rendered by texstream at ``scale``,
 noise-free float photos ("clean") or 8-bit sRGB photos with Gaussian camera noise ("noisy8");
-every 8th photo is held out (:func:`texstream.fit.stage.split_holdout`). Scores: the held-out
+every 8th photo is held out (:func:`texstream.fit.stages.stage.split_holdout`). Scores: the held-out
 PSNR of the pooled (mean over views) MSE on foreground pixels and the worst view's PSNR, both
-from texstream's own renderer for the Lafortune peers (:func:`texstream.fit.stage.heldout_psnr`).
+from texstream's own renderer for the Lafortune peers (:func:`texstream.fit.stages.stage.heldout_psnr`).
 
 Samples (the two-step approach's step 1, the seed's Table 4.1): every training photo resampled
 once at every texel centre with texstream's own distribution step (``stream.observe``, bilinear
@@ -67,7 +67,7 @@ def load_data(dataset: str, scale: float, photos: int = 0, device: str = "cpu") 
         cfg.noise, cfg.bits = NOISE_SIGMA, 8
     sc = render_scene("ornament", cfg)
     idx = np.arange(len(sc.frames))
-    held = idx % HOLDOUT_EVERY == HOLDOUT_EVERY - 1  # texstream.fit.stage.split_holdout's rule
+    held = idx % HOLDOUT_EVERY == HOLDOUT_EVERY - 1  # texstream.fit.stages.stage.split_holdout's rule
     pick = lambda xs, m: [x for x, k in zip(xs, m) if k]  # noqa: E731
     return PeerData(sc, pick(sc.frames, ~held), pick(sc.images, ~held), pick(sc.masks, ~held),
                     pick(sc.frames, held), pick(sc.images, held), pick(sc.masks, held), dataset, scale)
@@ -85,14 +85,14 @@ def fit_config(data: PeerData, photo_sampling: str = "filtered", **kw):
     """texstream's default FitConfig (LM) with the given photo sampling and the data's shadow map size
     (:func:`shadow_map_size`); what every Lafortune peer shares of it: the model layout (lobes, lobe
     shape), bounds, initial guess and the distribution step's options."""
-    from texstream.fit.fitter import FitConfig
-    from texstream.fit.problem import StreamConfig
+    from texstream.fit.optim.fitter import FitConfig
+    from texstream.fit.stream.problem import StreamConfig
 
     return FitConfig(stream=StreamConfig(photo_sampling=photo_sampling, shadow_map_size=shadow_map_size(data)), **kw)
 
 
 def build_problem(data: PeerData, cfg, device: str):
-    from texstream.fit.stage import build_problem as build
+    from texstream.fit.stages.stage import build_problem as build
 
     sc = data.scene
     return build(sc.mesh, sc.bake, data.train_frames, data.train_images, data.train_masks, cfg, device)
@@ -267,7 +267,7 @@ def projected_model(x: np.ndarray, layout, u: np.ndarray, v: np.ndarray, lobe_al
 
 def project(p: np.ndarray, layout, lobe_albedo_max: float) -> np.ndarray:
     """Box bounds of the layout, then texstream's energy bound (models.energy_bound_numpy)."""
-    from texstream.fit.models import energy_bound_numpy
+    from texstream.fit.models.layout import energy_bound_numpy
 
     return energy_bound_numpy(np.clip(p, layout.lower(), layout.upper()), layout, lobe_albedo_max)
 
@@ -291,7 +291,7 @@ class HeldOut:
 
     def score(self, params: np.ndarray) -> tuple[float, float]:
         """(pooled PSNR, worst view PSNR) in dB over the held-out views."""
-        from texstream.fit.stage import heldout_psnr
+        from texstream.fit.stages.stage import heldout_psnr
 
         d = self.data
         views, pooled = heldout_psnr(d.scene.mesh, self.grid(params), self.layout, d.held_frames, d.held_images,

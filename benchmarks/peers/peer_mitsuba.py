@@ -139,8 +139,8 @@ def run(data, device: str, iterations: int, views_per_step: int = 8, lr: float =
     import drjit as dr
     import mitsuba as mi
 
-    from texstream.fit.fitter import initial_guess
-    from texstream.fit.stage import render_model
+    from texstream.fit.optim.fitter import initial_guess
+    from texstream.fit.stages.stage import render_model
 
     mi.set_variant("cuda_ad_rgb" if device.startswith("cuda") else "llvm_ad_rgb")
     warp_device = device if device.startswith("cuda") else "cpu"

@@ -99,7 +99,7 @@ def run(data, device: str, mode: str = "per_texel", batch: int = 0, max_nfev: in
     """Fit every texel: ``mode`` "per_texel" (MINPACK LM per texel) or "blocks" (``batch`` texels per
     sparse trf problem, 0 = all in one)."""
     from scipy.optimize import least_squares
-    from texstream.fit.fitter import initial_guess
+    from texstream.fit.optim.fitter import initial_guess
 
     cfg = fit_config(data, "bilinear")
     prob = build_problem(data, cfg, device)

@@ -15,7 +15,7 @@ from common import HeldOut, build_problem, fit_config
 
 
 def run(data, device: str, iterations: int, photo_sampling: str = "filtered") -> dict:
-    from texstream.fit.fitter import run_fit
+    from texstream.fit.optim.fitter import run_fit
 
     import warp as wp
 
@@ -30,7 +30,7 @@ def run(data, device: str, iterations: int, photo_sampling: str = "filtered") ->
             checkpoint=lambda st: snaps.append((int(st["iteration"]), st["p"].copy())))
     scorer = HeldOut(data, prob, prob.layout, device)
     times = {r["iteration"]: r["time_s"] for r in timed.trace}
-    from texstream.fit.fitter import initial_guess
+    from texstream.fit.optim.fitter import initial_guess
 
     p0, _ = initial_guess(prob, cfg)
     trace = []

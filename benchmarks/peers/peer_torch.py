@@ -115,7 +115,7 @@ def objective(obj: TorchLafortune, X):
 def run(data, device: str, optimizer: str, iterations: int, compile: bool = True, lr: float = ADAM_LR) -> dict:
     import torch
 
-    from texstream.fit.fitter import initial_guess
+    from texstream.fit.optim.fitter import initial_guess
 
     warp_device = device if device.startswith("cuda") else "cpu"
     cfg = fit_config(data, "bilinear")

@@ -34,9 +34,9 @@ from typing import Any
 
 import warp as wp
 
-from . import stream
-from .render import PinholeCamera
-from .shading import bilinear_taps, surface_frame, texel_coords
+from texstream.fit.kernels import stream
+from texstream.fit.kernels.render import PinholeCamera
+from texstream.fit.kernels.shading import bilinear_taps, surface_frame, texel_coords
 
 wp.set_module_options({"enable_backward": False})
 

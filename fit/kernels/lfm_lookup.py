@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from . import lfm as LK
+from texstream.fit.kernels import lfm as LK
 
 wp.set_module_options({"enable_backward": False})
 

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from .shading import (LIGHT_NONE, bilinear_taps, incident_light, lafortune_brdf, surface_frame, texel_coords, to_local,
+from texstream.fit.kernels.shading import (LIGHT_NONE, bilinear_taps, incident_light, lafortune_brdf, surface_frame, texel_coords, to_local,
                       view_radiance)
 
 

@@ -32,8 +32,8 @@ from typing import Any, NamedTuple
 
 import warp as wp
 
-from .lafortune_grad import lafortune_funcs, view_radiance_funcs
-from .shading import bilinear_taps, incident_light, lafortune_brdf, surface_frame, texel_coords, to_local
+from texstream.fit.kernels.lafortune_grad import lafortune_funcs, view_radiance_funcs
+from texstream.fit.kernels.shading import bilinear_taps, incident_light, lafortune_brdf, surface_frame, texel_coords, to_local
 
 # no kernel here is differentiated (the fit writes its own derivatives): skipping Warp's adjoint
 # code generation roughly halves compile time

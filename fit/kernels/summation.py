@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from .stream import kahan_add
+from texstream.fit.kernels.stream import kahan_add
 
 wp.set_module_options({"enable_backward": False})
 

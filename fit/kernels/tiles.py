@@ -7,7 +7,7 @@ from typing import Any
 
 import warp as wp
 
-from .stream import ImageInfo, SampleOptions, TexelFrames, observe_func
+from texstream.fit.kernels.stream import ImageInfo, SampleOptions, TexelFrames, observe_func
 
 
 def tile_visibility_kernel_for(radiance: bool = False):

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from .stream import ImageInfo
+from texstream.fit.kernels.stream import ImageInfo
 
 # no kernel here is differentiated (the fit writes its own derivatives): skipping Warp's adjoint
 # code generation roughly halves compile time

@@ -13,8 +13,8 @@ from typing import Protocol
 import numpy as np
 import warp as wp
 
-from ..kernels import optim_kernels as K
-from ..problem import StreamProblem
+from texstream.fit.kernels import optim_kernels as K
+from texstream.fit.stream.problem import StreamProblem
 
 
 @dataclasses.dataclass

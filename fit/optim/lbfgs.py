@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import warp as wp
 
-from ..kernels import optim_kernels as K
-from .base import FitState
+from texstream.fit.kernels import optim_kernels as K
+from texstream.fit.optim.base import FitState
 
 
 class LBFGS:

@@ -18,9 +18,9 @@ import numpy as np
 import warp as wp
 
 from texstream.core.config import option
-from ..kernels import optim_kernels as K
-from ..penalties import Penalties
-from .base import FitState
+from texstream.fit.kernels import optim_kernels as K
+from texstream.fit.stream.penalties import Penalties
+from texstream.fit.optim.base import FitState
 
 LINE_SEARCHES = ("backtracking", "hessian", "quadratic")
 

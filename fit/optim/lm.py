@@ -22,9 +22,9 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from ..kernels import optim_kernels as K
-from ..penalties import PenaltyConfig
-from .base import FitState
+from texstream.fit.kernels import optim_kernels as K
+from texstream.fit.stream.penalties import PenaltyConfig
+from texstream.fit.optim.base import FitState
 
 
 class LevenbergMarquardt:

@@ -1,7 +1,7 @@
 """Getting photos to the passes: per-photo constants in one array, crops to the object, batched
 depth and shadow maps, chunked uploads, and photos decoded from disk in windows.
 
-:class:`texstream.fit.problem.PhotoSet` holds the photos where the passes read them; this module
+:class:`texstream.fit.stream.problem.PhotoSet` holds the photos where the passes read them; this module
 holds what it builds them with, so that its set-up makes no host round trip per photo:
 
 - :func:`image_infos` fills every photo's :class:`~texstream.fit.kernels.stream.ImageInfo`
@@ -14,7 +14,7 @@ holds what it builds them with, so that its set-up makes no host round trip per 
   :mod:`texstream.capture.imageio`'s readers, so this module never imports OpenImageIO);
 - :class:`PhotoLoader` fills (photos, mask) slots of a buffer from images in memory or from files,
   on a pool of threads (numpy copies and most of decoding release the GIL), files on machines with many
-  cores by worker processes (:mod:`texstream.fit.decode_pool`);
+  cores by worker processes (:mod:`texstream.fit.stream.decode_pool`);
 - :func:`choose_residency` picks where the photos live from the memory available.
 
 Imports only numpy, warp and the standard library.
@@ -38,8 +38,8 @@ import warp as wp
 from texstream.capture.conventions import look_at_w2c_batch
 from texstream.core.errors import InputError
 
-from . import decode_pool
-from .kernels import stream
+from texstream.fit.stream import decode_pool
+from texstream.fit.kernels import stream
 
 RESIDENCIES = ("device", "host", "disk")
 """where a PhotoSet keeps its photos: all on the device; all in (pinned) host memory, uploaded a
@@ -103,7 +103,7 @@ def image_infos(frames, crops: np.ndarray | None, center: np.ndarray | None, rad
     """Every photo's kernel constants as a numpy structured array of ``ImageInfo.numpy_dtype()``.
 
     Args:
-        frames: the photos' :class:`~texstream.fit.problem.PhotoFrame`s.
+        frames: the photos' :class:`~texstream.fit.stream.problem.PhotoFrame`s.
         crops: (n, 4) int (x0, y0, width, height) of each photo's stored crop (None: whole photos).
             The camera becomes the crop's: cx, cy less x0, y0 in float32 (exact: an integer taken
             from a float32 of larger magnitude), width and height the crop's.

@@ -24,13 +24,13 @@ from texstream.core.config import option
 from texstream.core.errors import ConfigError, InputError
 from texstream.core.progress import say
 
-from .kernels import optim_kernels as K
-from .kernels import stream
-from .kernels.lafortune_grad import param_types
-from .kernels.shading import SHADOW_EPS_REL
-from .kernels.visibility import depth_maps_kernel, masked_depth_kernel, shadow_maps_kernel
-from .models import ModelLayout
-from .photo_stream import (LIGHT_KINDS, PhotoCache, PhotoFiles, PhotoLoader,  # noqa: F401
+from texstream.fit.kernels import optim_kernels as K
+from texstream.fit.kernels import stream
+from texstream.fit.kernels.lafortune_grad import param_types
+from texstream.fit.kernels.shading import SHADOW_EPS_REL
+from texstream.fit.kernels.visibility import depth_maps_kernel, masked_depth_kernel, shadow_maps_kernel
+from texstream.fit.models.layout import ModelLayout
+from texstream.fit.stream.photo_stream import (LIGHT_KINDS, PhotoCache, PhotoFiles, PhotoLoader,  # noqa: F401
                            WindowSlots, choose_residency, crop_boxes, crop_infos, image_infos,
                            keep_maps_on_device, struct_array, to_half_kernel, wait, window_size)
 
@@ -391,7 +391,7 @@ class PhotoSet:
                  mesh_faces: np.ndarray | None, masks: list[np.ndarray | None] | None = None,
                  config: StreamConfig | None = None, device: str = "cpu", mesh_normals: np.ndarray | None = None,
                  mesh_uvs: np.ndarray | None = None, defer_upload: bool = False):
-        """``images``: a list of (H, W, >=3) linear arrays, or a :class:`~texstream.fit.photo_stream.PhotoFiles`
+        """``images``: a list of (H, W, >=3) linear arrays, or a :class:`~texstream.fit.stream.photo_stream.PhotoFiles`
         to read them from (masks then come from its mask paths). ``mesh_points=None`` (no geometry:
         single-view fits, fit/photometric_stereo.py) builds no depth or shadow maps: each photo's depth
         map holds its mask (1 = sample, 0 = masked) and ``ImageInfo.depth_is_mask`` tells the kernels
@@ -500,7 +500,7 @@ class PhotoSet:
             self.loader = None  # nothing is read again: drop the caller's photos' references
 
     def _open_cache(self, cfg: StreamConfig, fp16: bool) -> None:
-        """The decoded photos' cache (:class:`~texstream.fit.photo_stream.PhotoCache`): read when one is
+        """The decoded photos' cache (:class:`~texstream.fit.stream.photo_stream.PhotoCache`): read when one is
         ready for these photos, crops and precision (any residency); started when photos are streamed
         from disk (filled by the first pass). Said, with the reason when none is written."""
         source = self.loader.source
@@ -1052,7 +1052,7 @@ class StreamProblem:
     def __init__(self, texels: TexelSet, photos: PhotoSet, layout: ModelLayout,
                  config: StreamConfig | None = None, device: str = "cpu"):
         """``photos``: a :class:`PhotoSet`, or photos split over devices
-        (:class:`~texstream.fit.photo_split.DevicePhotos`, whose first part is on ``device``): the problem
+        (:class:`~texstream.fit.multi.photo_split.DevicePhotos`, whose first part is on ``device``): the problem
         then streams its first part itself and the others through ``peers``."""
         self.cfg = cfg = config or StreamConfig()
         self.texels, self.photos, self.layout, self.device = texels, photos, layout, device

@@ -30,10 +30,10 @@ import warp as wp
 
 from texstream.core.errors import ConfigError
 
-from .fitter import (FitConfig, FitResult, FitRun, converged, start_arrays, robust_scale_from_stats, stop_test_due,
+from texstream.fit.optim.fitter import (FitConfig, FitResult, FitRun, converged, start_arrays, robust_scale_from_stats, stop_test_due,
                      trace_rows)
-from .kernels.tiles import gather_rows_kernel, scatter_rows_kernel, tile_visibility_kernel, tile_visibility_radiance_kernel
-from .problem import MAX_LAUNCH_THREADS, StreamProblem, TexelSet, exposure_mean_square
+from texstream.fit.kernels.tiles import gather_rows_kernel, scatter_rows_kernel, tile_visibility_kernel, tile_visibility_radiance_kernel
+from texstream.fit.stream.problem import MAX_LAUNCH_THREADS, StreamProblem, TexelSet, exposure_mean_square
 
 
 @dataclasses.dataclass
@@ -335,7 +335,7 @@ def lockstep(workers, pool_map, cfg: FitConfig, combine_stats, progress=None, fi
 
 
 class TileWorker:
-    """One tile's fit (a :class:`~texstream.fit.fitter.FitRun`) behind the calls :func:`lockstep` makes;
+    """One tile's fit (a :class:`~texstream.fit.optim.fitter.FitRun`) behind the calls :func:`lockstep` makes;
     the same object runs on a local thread or inside a Ray actor."""
 
     def __init__(self, problem: StreamProblem, cfg: FitConfig, start: tuple[np.ndarray, np.ndarray],
@@ -453,9 +453,9 @@ def run_tiled_fit(problem: StreamProblem, cfg: FitConfig, start=None,
     """Fit ``problem`` in tiles (``cfg.stream.tiles``, ``devices``, ``tile_backend``); returns the result in the
     untiled texel order and a report (tiles, devices, texels and photos per tile, set-up and fit times).
 
-    ``start``: :func:`~texstream.fit.fitter.fit_start`'s start (or its arrays) over all texels when already streamed."""
+    ``start``: :func:`~texstream.fit.optim.fitter.fit_start`'s start (or its arrays) over all texels when already streamed."""
     if cfg.stream.tile_backend == "ray":
-        from .tiles_ray import run_ray_tiled_fit
+        from texstream.fit.multi.tiles_ray import run_ray_tiled_fit
 
         return run_ray_tiled_fit(problem, cfg, start, progress)
     t0 = time.perf_counter()

@@ -17,18 +17,18 @@ import warp as wp
 from texstream.core.errors import ConfigError
 from texstream.core.config import option
 
-from .kernels import optim_kernels as K
-from .kernels import stream
-from .models import ModelLayout
-from .optim.base import FitState
-from .optim.cg import ConjugateGradient
-from .optim.lbfgs import LBFGS
-from .optim.linesearch import LineSearchConfig, line_search
-from .optim.lm import LevenbergMarquardt
-from .optim.steepest import SteepestDescent
-from .penalties import PenaltyConfig, Penalties
-from .lfm_config import LFMConfig
-from .problem import StreamConfig, StreamProblem, no_light_error
+from texstream.fit.kernels import optim_kernels as K
+from texstream.fit.kernels import stream
+from texstream.fit.models.layout import ModelLayout
+from texstream.fit.optim.base import FitState
+from texstream.fit.optim.cg import ConjugateGradient
+from texstream.fit.optim.lbfgs import LBFGS
+from texstream.fit.optim.linesearch import LineSearchConfig, line_search
+from texstream.fit.optim.lm import LevenbergMarquardt
+from texstream.fit.optim.steepest import SteepestDescent
+from texstream.fit.stream.penalties import PenaltyConfig, Penalties
+from texstream.fit.models.lfm_config import LFMConfig
+from texstream.fit.stream.problem import StreamConfig, StreamProblem, no_light_error
 
 OPTIMIZERS = ("sd", "cg", "lbfgs", "lm")
 TRACE_CHUNKS = 4096

@@ -41,9 +41,9 @@ import warp as wp
 
 from texstream.core.errors import ConfigError, InputError
 
-from .kernels import lfm as LK
-from .lfm_config import LOOKUPS, OPTIMIZERS, VIEW_MAPS, LFMConfig  # noqa: F401  (re-exported)
-from .problem import exposure_mean_square
+from texstream.fit.kernels import lfm as LK
+from texstream.fit.models.lfm_config import LOOKUPS, OPTIMIZERS, VIEW_MAPS, LFMConfig  # noqa: F401  (re-exported)
+from texstream.fit.stream.problem import exposure_mean_square
 
 
 def vertex_frames(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -178,13 +178,13 @@ class TableSamples:
 
 
 class PhotoSamples:
-    """The photos of a :class:`texstream.fit.problem.PhotoSet` streamed through the distribution step
+    """The photos of a :class:`texstream.fit.stream.problem.PhotoSet` streamed through the distribution step
     (fit/kernels/stream.py ``observe``, light free, bilinear photo sampling at the texel centre)."""
 
     def __init__(self, problem, frames):
-        """``problem``: a radiance :class:`texstream.fit.problem.StreamProblem` over the texels and
+        """``problem``: a radiance :class:`texstream.fit.stream.problem.StreamProblem` over the texels and
         photos (it holds the texel frames and sample options the distribution step reads)."""
-        from .kernels import stream
+        from texstream.fit.kernels import stream
 
         photos = problem.photos
         if getattr(photos, "streamed", False):

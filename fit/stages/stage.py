@@ -24,10 +24,10 @@ from texstream.core.config import check_config, option
 from texstream.core.outputs import StageResult, atomic_output_dir, read_json, write_json_atomic
 from texstream.core.progress import say
 
-from .fitter import FitConfig, FitResult, light_view_angles, resumable, run_fit
-from .materials import MaterialConfig
-from .model_folder import image_metrics, plot_trace  # noqa: F401  (re-exported: tests and benchmarks use them here)
-from .models import ModelLayout
+from texstream.fit.optim.fitter import FitConfig, FitResult, light_view_angles, resumable, run_fit
+from texstream.fit.models.materials import MaterialConfig
+from texstream.fit.stages.model_folder import image_metrics, plot_trace  # noqa: F401  (re-exported: tests and benchmarks use them here)
+from texstream.fit.models.layout import ModelLayout
 
 
 UNITS = {"lafortune": "BRDF values in 1/sr (capture/conventions.py)",
@@ -133,16 +133,16 @@ def load_photos(capture, frames, device: str | None = None):
 
 PHOTO_CACHE_FOLDER = ".texstream-cache"
 """the capture's folder for photos decoded once and streamed from there
-(:class:`~texstream.fit.photo_stream.PhotoCache`)"""
+(:class:`~texstream.fit.stream.photo_stream.PhotoCache`)"""
 
 
 def photo_files(capture, frames):
-    """The frames' photos and masks as files (:class:`texstream.fit.photo_stream.PhotoFiles`), decoded
+    """The frames' photos and masks as files (:class:`texstream.fit.stream.photo_stream.PhotoFiles`), decoded
     by the fit's PhotoSet on a pool of threads or processes: all at set-up when they stay in memory, or a window
     per pass when streamed from disk (``StreamConfig.photo_residency``)."""
     from texstream.capture.imageio import read_image, read_mask
 
-    from .photo_stream import PhotoFiles
+    from texstream.fit.stream.photo_stream import PhotoFiles
 
     masks = []
     for f in frames:
@@ -156,7 +156,7 @@ def photo_files(capture, frames):
 def read_photos(photos, masks, indices):
     """Images and masks (all-true where none) of ``indices`` of ``photos`` (a list of arrays with a
     list of masks or None, or a PhotoFiles, which names its masks)."""
-    from .photo_stream import PhotoFiles
+    from texstream.fit.stream.photo_stream import PhotoFiles
 
     images, masks = [], []
     for i in indices:
@@ -181,8 +181,8 @@ def build_problem(mesh, bake, frames, images, masks, cfg: FitConfig, device: str
     import concurrent.futures
     import contextvars
 
-    from .problem import PhotoFrame, PhotoSet, StreamProblem, TexelSet, surface_derivatives, texel_coordinate_gradients
-    from .tiles import parse_devices, split_photos
+    from texstream.fit.stream.problem import PhotoFrame, PhotoSet, StreamProblem, TexelSet, surface_derivatives, texel_coordinate_gradients
+    from texstream.fit.multi.tiles import parse_devices, split_photos
 
     photo_frames = [PhotoFrame.from_capture_frame(f) for f in frames]
     normals = mesh.vertex_normals()  # computed anew on each call for a mesh without stored normals
@@ -191,7 +191,7 @@ def build_problem(mesh, bake, frames, images, masks, cfg: FitConfig, device: str
 
     def make_photos():
         if split:
-            from .photo_split import build_device_photos, check_split_devices
+            from texstream.fit.multi.photo_split import build_device_photos, check_split_devices
 
             devices = parse_devices(cfg.stream.devices, device)
             check_split_devices(devices, device)
@@ -220,7 +220,7 @@ def build_problem(mesh, bake, frames, images, masks, cfg: FitConfig, device: str
 
 def lobe_shape_report(cfg: FitConfig, layout, frames, positions: np.ndarray) -> dict:
     """What model.json records of the lobe-shape choice (fit/models.py "Lobe shape")."""
-    from .problem import PhotoFrame
+    from texstream.fit.stream.problem import PhotoFrame
 
     if layout.n_lobes == 0:
         return {"requested": cfg.lobe_shape, "fitted": None, "light_view_angle_deg": None}  # no lobe to shape
@@ -256,7 +256,7 @@ def params_to_grid(result: FitResult, problem, bake) -> np.ndarray:
 
 
 def render_model(mesh, grid: np.ndarray, layout: ModelLayout, frame, device: str):
-    from .render import Renderer
+    from texstream.fit.stages.render import Renderer
 
     rend = Renderer(mesh, grid, layout, device=device)
     res = rend.render_frame(frame)
@@ -369,7 +369,7 @@ def check_seen_texels(problem, cfg: FitStageConfig, capture_dir: str | Path) -> 
     """Count the texels some photo sees and fail before fitting when almost none are: a mesh facing away
     from the cameras or in another frame than the capture's. The count comes from the fit's starting
     pass (:func:`fit_start`), returned for the fit to reuse."""
-    from .fitter import fit_start
+    from texstream.fit.optim.fitter import fit_start
 
     start = fit_start(problem, cfg.fit)
     seen = int((start.counts.numpy() > 0).sum())
@@ -392,7 +392,7 @@ class FitInputs:
     bake: object
     seams: object
     images: object
-    """the fitted frames' photos: a :class:`texstream.fit.photo_stream.PhotoFiles` (decoded by the fit's
+    """the fitted frames' photos: a :class:`texstream.fit.stream.photo_stream.PhotoFiles` (decoded by the fit's
     PhotoSet) or a list of arrays"""
     masks: list | None
 
@@ -552,7 +552,7 @@ class TexelEvidence:
 
 def texel_evidence(problem, result: FitResult, mcfg: MaterialConfig) -> TexelEvidence:
     """J^T J, residual variance and uncertainty of a per-texel fit's lobes, and which are constrained."""
-    from .materials import residual_variance, texel_uncertainty
+    from texstream.fit.models.materials import residual_variance, texel_uncertainty
 
     jtj, stats = data_jtj(problem, result.params)
     sigma2 = residual_variance(stats[result.samples > 0])
@@ -570,7 +570,7 @@ def confirm_at_material_lobes(traced, evidence: TexelEvidence, plane: TexelEvide
     at its peak) passes the test at its own lobe; at the material's lobe those samples see almost no lobe
     and it fails. A texel that saw its (even sub-pixel) highlight passes both. Returns (the evidence, how
     many constrained texels the second test took away)."""
-    from .materials import find_materials, material_lobes_on, texel_uncertainty
+    from texstream.fit.models.materials import find_materials, material_lobes_on, texel_uncertainty
 
     lay = traced.layout
     seen = plane.samples > 0
@@ -586,7 +586,7 @@ def confirm_at_material_lobes(traced, evidence: TexelEvidence, plane: TexelEvide
 def traced_polish_applies(problem, cfg: "FitStageConfig") -> bool:
     """Whether the fit ends with :func:`traced_polish`: a model with specular lobes, fitted with filtered plane
     taps on a mesh (an atlas fit, not a single view), untiled."""
-    from .tiles import tiled
+    from texstream.fit.multi.tiles import tiled
 
     s = problem.cfg
     return (cfg.traced_polish > 0 and problem.layout.n_lobes > 0 and s.photo_sampling == "filtered"
@@ -596,7 +596,7 @@ def traced_polish_applies(problem, cfg: "FitStageConfig") -> bool:
 
 def traced_problem(problem):
     """``problem``'s texels and photos with every filtered tap traced to the mesh (``tap_geometry`` mesh)."""
-    from .problem import StreamProblem
+    from texstream.fit.stream.problem import StreamProblem
 
     return StreamProblem(problem.texels, problem.photos, problem.layout,
                          dataclasses.replace(problem.cfg, tap_geometry="mesh"), problem.device)
@@ -607,7 +607,7 @@ def traced_polish(problem, result: FitResult, cfg: "FitStageConfig", prior=None)
     traced taps (``StreamConfig.tap_geometry`` mesh), the materials' ``prior`` (centre, weights) kept on; the
     trace continues ``result``'s (its first row: the start, evaluated with traced taps). Returns ``result``
     unchanged where :func:`traced_polish_applies` says no."""
-    from .problem import StreamProblem
+    from texstream.fit.stream.problem import StreamProblem
 
     if not traced_polish_applies(problem, cfg):
         return result
@@ -627,7 +627,7 @@ def fit_with_materials(problem, result: FitResult, evidence: TexelEvidence, k: i
     """The materials model with ``k`` materials (fit/materials.py): cluster, prior, Levenberg-Marquardt from
     the per-texel fit ``result``, then (``polish``) :func:`traced_polish` with the prior on. Returns the fit
     and what model.json records of it."""
-    from .materials import (contradiction_test, find_materials, material_lobes_on, material_prior,
+    from texstream.fit.models.materials import (contradiction_test, find_materials, material_lobes_on, material_prior,
                             reject_contradicted_lobes)
 
     mcfg = cfg.materials
@@ -677,7 +677,7 @@ def choose_materials(inputs: "FitInputs", problem, cfg: "FitStageConfig", log=No
     PSNR; ties within 0.05 dB go to the simpler model). The fit's own held-out photos play no part.
     Returns the choice and every candidate's score, or {"chosen": "per-texel", "reason": ...} when the
     fitted photos are too few to split."""
-    from .problem import StreamProblem
+    from texstream.fit.stream.problem import StreamProblem
 
     mcfg = cfg.materials
     every = mcfg.validation_every
@@ -749,8 +749,8 @@ def average_seams_in_bounds(grid: np.ndarray, seams, layout: ModelLayout) -> tup
 def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Path,
               config: FitStageConfig | None = None, progress: bool = True) -> StageResult:
     """Fit the appearance model of ``config.fit`` to a capture; write the model folder atomically."""
-    from .model_folder import start_plotter, stop_plotter
-    from .photo_stream import loaders_closed_after
+    from texstream.fit.stages.model_folder import start_plotter, stop_plotter
+    from texstream.fit.stream.photo_stream import loaders_closed_after
 
     cfg = config or FitStageConfig()
     check_config(cfg)
@@ -759,8 +759,8 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
         if cfg.fit.model == "lfm":  # light field mapping: its own problem and model folder (fit/lfm_stage.py)
             from texstream.core.errors import ConfigError
 
-            from .lfm_stage import lfm_fit_stage
-            from .tiles import split_photos, tiled
+            from texstream.fit.stages.lfm_stage import lfm_fit_stage
+            from texstream.fit.multi.tiles import split_photos, tiled
 
             if tiled(cfg.fit) or split_photos(cfg.fit):
                 raise ConfigError("stream.tiles, stream.devices and stream.tile_backend ray split per-texel models; "
@@ -778,15 +778,15 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
 def _fit_per_texel_model(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Path, cfg: FitStageConfig,
                         progress: bool, plotter=None) -> StageResult:
     """:func:`fit_stage` for the per-texel models (Lafortune, radiance): ``plotter`` draws the
-    error-against-time plot (:func:`~texstream.fit.model_folder.start_plotter`; None: a child started at
+    error-against-time plot (:func:`~texstream.fit.stages.model_folder.start_plotter`; None: a child started at
     the end does)."""
     from texstream.capture.imageio import read_mask
     from texstream.core.progress import phase
     from texstream.geometry.mesh_io import save_mesh
 
-    from .model_folder import (bound_report, check_model, pooled_psnr, render_comparisons, trace_plot,
+    from texstream.fit.stages.model_folder import (bound_report, check_model, pooled_psnr, render_comparisons, trace_plot,
                                write_model_folder)
-    from .stiffcheck import numerics_warnings
+    from texstream.fit.diagnostics.stiffcheck import numerics_warnings
 
     t0 = time.perf_counter()
     with phase("fit", f"{cfg.fit.model}: reading the photos and setting up the texels"):
@@ -796,7 +796,7 @@ def _fit_per_texel_model(capture_dir: str | Path, mesh_path: str | Path, out_dir
         problem, seen_before, start, skipped = set_up_skipping_bad_photos(inputs, cfg, capture_dir)
         frames = inputs.frames
     t_setup = time.perf_counter() - t0
-    from .tiles import run_tiled_fit, tiled
+    from texstream.fit.multi.tiles import run_tiled_fit, tiled
 
     ckpt, resume, tiles_report = None, None, None
     if cfg.checkpoint and resumable(cfg.fit) and not tiled(cfg.fit):
@@ -987,10 +987,10 @@ def eval_stage(model_dir: str | Path, capture_dir: str | Path, device: str = "cp
     from texstream.capture.capture_json import read_capture
     from texstream.capture.imageio import read_image, read_mask
 
-    from .model_folder import check_render, pooled_psnr
+    from texstream.fit.stages.model_folder import check_render, pooled_psnr
 
     if read_json(Path(model_dir) / "model.json", what="model manifest").get("layout", {}).get("kind") == "lfm":
-        from .lfm_stage import load_lfm_renderer
+        from texstream.fit.stages.lfm_stage import load_lfm_renderer
 
         render = load_lfm_renderer(model_dir, device)
     else:

@@ -335,7 +335,7 @@ def run_operations(a: np.ndarray, b: np.ndarray, dtype: str, device: str) -> np.
     """(8, n) results of :data:`fparith.OPERATIONS` on the device, as float64 (exact widening)."""
     import warp as wp
 
-    from .kernels.fparith import FP_OPS_KERNELS
+    from texstream.fit.kernels.fparith import FP_OPS_KERNELS
 
     wdt = {"float16": wp.float16, "float32": wp.float32, "float64": wp.float64}[dtype]
     n = len(a)
@@ -424,7 +424,7 @@ def _operands(fmt: FloatFormat, cfg: FpcheckConfig, rng: np.random.Generator) ->
 def measure_dtype(dtype: str, cfg: FpcheckConfig) -> dict:
     """Every measurement of one dtype on ``cfg.device``: per operation and operand source the ULP
     statistics (and rounding for + - * /), the Paranoia-style checks and the denormal checks."""
-    from .kernels.fparith import OPERATIONS
+    from texstream.fit.kernels.fparith import OPERATIONS
 
     fmt = FORMATS[dtype]
     rng = np.random.default_rng(cfg.seed)
@@ -535,7 +535,7 @@ def markdown_report(result: dict) -> str:
              "(computed - exact) / ulp(exact); correctly rounded results lie in [-0.5, 0.5].", "",
              "## Error in ULPs (Table A.2 layout): all operands (Table A.1 patterns and random)", "",
              "| operation | " + " | ".join(dts) + " |", "| --- |" + " --- |" * len(dts)]
-    from .kernels.fparith import OPERATIONS
+    from texstream.fit.kernels.fparith import OPERATIONS
 
     for op in OPERATIONS:
         lines.append(f"| {op} | " + " | ".join(_span(result["dtypes"][dt]["operations"][op]["all"])

@@ -88,7 +88,7 @@ class Worker:
         from_parent, to_worker = os.pipe()
         from_worker, to_parent = os.pipe()
         code = (f"import sys; sys.path[:] = {json.dumps(sys.path)}; "
-                f"from texstream.fit.decode_pool import serve; serve({from_parent}, {to_parent}, {reader_threads})")
+                f"from texstream.fit.stream.decode_pool import serve; serve({from_parent}, {to_parent}, {reader_threads})")
         # one thread of BLAS and OpenMP per worker: numpy's import would otherwise start a pool of CPU-count
         # threads in each worker, which slows every process on the machine while they start
         env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")

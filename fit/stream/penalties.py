@@ -16,7 +16,7 @@ import warp as wp
 
 from texstream.core.config import option
 
-from .kernels import optim_kernels as K
+from texstream.fit.kernels import optim_kernels as K
 
 
 @dataclasses.dataclass

@@ -258,8 +258,8 @@ def view_mean_weights(res: int, mapping: str, lookup: str, device: str | None = 
     ``device`` (None: the CPU where Warp can compile for it, else Warp's preferred device)."""
     import warp as wp
 
-    from .kernels import lfm as LK
-    from .kernels.lfm_lookup import direction_taps_kernel
+    from texstream.fit.kernels import lfm as LK
+    from texstream.fit.kernels.lfm_lookup import direction_taps_kernel
 
     if device is None:
         device = "cpu" if wp.is_cpu_available() else str(wp.get_preferred_device())
@@ -295,7 +295,7 @@ def lfm_unlit_radiance(model, view_mean: str = "cosine", device: str | None = No
 def lfm_atlas(model, values: np.ndarray) -> np.ndarray:
     """(H, W, C) float32 atlas of per-compact-texel ``values`` (N, C): each texel holds its own value or,
     for padding, the value of the texel it copies (what the LFM renderer reads); 0 elsewhere."""
-    from .lfm_stage import grid_source
+    from texstream.fit.stages.lfm_stage import grid_source
 
     b = model.bake
     src = grid_source(b, model.grid_index)
@@ -309,8 +309,8 @@ def lfm_unlit_renderer(model, view_mean: str = "cosine", device: str = "cpu"):
     """frame -> (image, coverage): the exported unlit approximation of an LFM model rendered by
     texstream's radiance renderer (fit/render.py, bilinear atlas lookup, times the frame's exposure),
     to score it against the full model or the photos."""
-    from .models import ModelLayout
-    from .stage import render_model
+    from texstream.fit.models.layout import ModelLayout
+    from texstream.fit.stages.stage import render_model
 
     grid = lfm_atlas(model, lfm_unlit_radiance(model, view_mean, device))
     layout = ModelLayout(kind="radiance")
@@ -338,7 +338,7 @@ class _Model:
 def _read_model(model_dir, cfg: ExportConfig | None = None) -> _Model:
     """Load and check a model folder; every problem is an InputError naming the file and the fix.
     An LFM folder's grid is its unlit radiance (:func:`lfm_unlit_radiance`, ``cfg.lfm_view_mean``)."""
-    from . import stage
+    from texstream.fit.stages import stage
 
     d = Path(model_dir)
     if not d.is_dir():
@@ -394,7 +394,7 @@ class _LFMLayout:
 
 
 def _read_lfm_model(d: Path, cfg: ExportConfig) -> _Model:
-    from .lfm_stage import load_lfm_model
+    from texstream.fit.stages.lfm_stage import load_lfm_model
 
     try:
         model = load_lfm_model(d)

@@ -22,7 +22,7 @@ from texstream.core.outputs import StageResult, atomic_output_dir, read_json
 
 
 def lfm_geometry(mesh, bake, texels):
-    from .lfm import LFMGeometry
+    from texstream.fit.models.lfm import LFMGeometry
 
     gi = np.asarray(texels.grid_index, np.int64)
     return LFMGeometry.build(mesh.vertices, mesh.faces, mesh.vertex_normals(), bake.face.reshape(-1)[gi],
@@ -44,7 +44,7 @@ class LFMRenderer:
     def __init__(self, mesh, bake, geom, params, cfg, grid_index: np.ndarray, device: str = "cpu"):
         import warp as wp
 
-        from .kernels import lfm as LK  # noqa: F401  (compiled on first launch)
+        from texstream.fit.kernels import lfm as LK  # noqa: F401  (compiled on first launch)
 
         self.wp, self.cfg, self.device = wp, cfg, device
         d = device
@@ -65,8 +65,8 @@ class LFMRenderer:
         self.vframe = [wp.array(a, dtype=wp.vec3d, device=d) for a in (geom.vpos, geom.vtan, geom.vbit, geom.vnrm)]
 
     def render_frame(self, frame, view_interp: str | None = None):
-        from .kernels import lfm as LK
-        from .kernels.render import PinholeCamera
+        from texstream.fit.kernels import lfm as LK
+        from texstream.fit.kernels.render import PinholeCamera
 
         wp = self.wp
         k = frame.intrinsics
@@ -130,12 +130,12 @@ def lfm_fit_stage(capture_dir, mesh_path, out_dir, cfg, progress: bool = True) -
     from texstream.core.progress import phase
     from texstream.geometry.mesh_io import save_mesh
 
-    from .lfm import LFMParams, LFMProblem, PhotoSamples, fit_lfm
-    from .lfm_baselines import fit_nmf, fit_pca
-    from .model_folder import pooled_psnr, render_comparisons
+    from texstream.fit.models.lfm import LFMParams, LFMProblem, PhotoSamples, fit_lfm
+    from texstream.fit.models.lfm_baselines import fit_nmf, fit_pca
+    from texstream.fit.stages.model_folder import pooled_psnr, render_comparisons
     from texstream.core.outputs import write_json_atomic
 
-    from .stage import build_problem, load_fit_inputs, load_photos
+    from texstream.fit.stages.stage import build_problem, load_fit_inputs, load_photos
 
     lcfg = cfg.fit.lfm
     lcfg.check()
@@ -217,9 +217,9 @@ class LFMModelFolder:
         folder: the model folder.
         mesh: the mesh (with normals and UVs).
         bake: its TexelBake (atlas grid, padding sources).
-        geom: the :class:`texstream.fit.lfm.LFMGeometry` with the fit's exact vertex frames.
-        params: the fitted :class:`texstream.fit.lfm.LFMParams` (float64).
-        cfg: the :class:`texstream.fit.lfm.LFMConfig` the model was fitted with (lookups, mapping).
+        geom: the :class:`texstream.fit.models.lfm.LFMGeometry` with the fit's exact vertex frames.
+        params: the fitted :class:`texstream.fit.models.lfm.LFMParams` (float64).
+        cfg: the :class:`texstream.fit.models.lfm.LFMConfig` the model was fitted with (lookups, mapping).
         grid_index: (N,) atlas index (y * W + x) of each compact texel.
         manifest: model.json.
     """
@@ -252,7 +252,7 @@ def load_lfm_model(model_dir) -> LFMModelFolder:
     from texstream.geometry.bake import TexelBake
     from texstream.geometry.mesh_io import load_mesh
 
-    from .lfm import LFMConfig, LFMGeometry, LFMParams
+    from texstream.fit.models.lfm import LFMConfig, LFMGeometry, LFMParams
 
     d = Path(model_dir)
     man = read_json(d / "model.json", what="model manifest")

@@ -48,10 +48,10 @@ from texstream.core.errors import InputError
 from texstream.core.config import check_config, option
 from texstream.core.outputs import StageResult, atomic_output_dir
 
-from .fitter import FitConfig
-from .kernels import stream
-from .kernels.shading import incident_light, lafortune_brdf, to_local
-from .models import ModelLayout
+from texstream.fit.optim.fitter import FitConfig
+from texstream.fit.kernels import stream
+from texstream.fit.kernels.shading import incident_light, lafortune_brdf, to_local
+from texstream.fit.models.layout import ModelLayout
 
 NORMAL_SPACES = ("opengl", "opencv", "world")
 FLOAT_NORMAL_SUFFIXES = (".exr", ".hdr", ".pfm", ".npy")
@@ -269,7 +269,7 @@ def load_single_view(capture_dir: str | Path, normals_path: str | Path | None, c
 
 def build_single_view_problem(geo: SingleViewGeometry, frames, images, masks, cfg: FitConfig, device: str):
     """A :class:`StreamProblem` over the covered pixels, photos without geometry (no depth test)."""
-    from .problem import PhotoFrame, PhotoSet, StreamProblem, TexelSet
+    from texstream.fit.stream.problem import PhotoFrame, PhotoSet, StreamProblem, TexelSet
 
     texels = TexelSet.from_grid(geo.covered, geo.position, geo.normal, geo.tangent, geo.bitangent)
     photo_frames = [PhotoFrame.from_capture_frame(f) for f in frames]
@@ -304,7 +304,7 @@ def render_texels_kernel(pos: wp.array(dtype=wp.vec3), nrm: wp.array(dtype=wp.ve
 
 def render_single_view(problem, params: np.ndarray, layout: ModelLayout, frame) -> np.ndarray:
     """Render fitted per-texel ``params`` (N, P) for a capture frame; returns (H, W, 3) float32."""
-    from .problem import PhotoFrame
+    from texstream.fit.stream.problem import PhotoFrame
 
     fr = PhotoFrame.from_capture_frame(frame)
     info = stream.ImageInfo()
@@ -340,8 +340,8 @@ def fit_single_view_stage(capture_dir: str | Path, normals_path: str | Path | No
     """
     from texstream.capture.imageio import read_image, read_mask, write_image
 
-    from .model_folder import check_model, pooled_psnr, render_comparisons, write_model_folder
-    from .stage import check_output_path, run_fit_with_progress
+    from texstream.fit.stages.model_folder import check_model, pooled_psnr, render_comparisons, write_model_folder
+    from texstream.fit.stages.stage import check_output_path, run_fit_with_progress
 
     cfg = config or SingleViewConfig()
     check_config(cfg)
