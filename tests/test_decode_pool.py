@@ -176,7 +176,7 @@ def test_workers_do_not_run_the_main_script(tmp_path):
     script = tmp_path / "unguarded.py"
     script.write_text(
         "import os, numpy as np\n"
-        "from texstream.fit import decode_pool\n"
+        "from texstream.fit.stream import decode_pool\n"
         f"open({str(tmp_path / 'runs.txt')!r}, 'a').write(str(os.getpid()) + '\\n')\n"
         "pool = decode_pool.start(2)\n"
         "assert [w.call(os.getpid, ()) for w in pool.workers] != [os.getpid()] * 2\n"

@@ -1,0 +1,229 @@
+"""The appearance-model registry: each model kind is a plugin folder under ``fit/models/``.
+
+A plugin declares in one place what the rest of texstream needs of a model kind, and nothing outside
+``fit/models/`` branches on a kind's name: the fit, eval and export stages, the report, its viewer and the
+run look the model up here (by the requested kind, or by ``model.json``'s ``layout.kind``).
+
+A plugin is a folder ``fit/models/<name>/`` whose ``__init__.py`` builds an :class:`AppearanceModel` and
+calls :func:`register` with it. :func:`load_plugins` imports every such folder once (the only import by
+name in the package: adding a model is adding a folder); a model defined elsewhere (a test, a user's own
+package) registers itself the same way.
+
+Two halves:
+- the **fit side** (:class:`AppearanceModel`): its parameter layout and bounds (``layout``), whether it
+  needs a known light per photo, its units, how it fits a capture into a model folder (``fit``), and which
+  candidates it offers the automatic model choice (``candidates``);
+- the **model-folder side** (:class:`FittedModel`, made by ``AppearanceModel.load``): how a written
+  model renders (eval, the report's held-out views), exports (glTF / OBJ material) and is shown (the
+  report's parameter maps and summary lines, the viewer's data and GLSL shading function).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import pkgutil
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from texstream.core.errors import ConfigError, InputError
+from texstream.core.outputs import read_json
+
+
+@dataclasses.dataclass
+class ExportMaterial:
+    """A model's material as images for glTF / OBJ (fit/stages/export.py writes it).
+
+    Attributes:
+        base: (H, W, 3) linear in [0, 1]: the albedo (lit) or the clipped radiance (unlit).
+        unlit: the colour is radiance (KHR_materials_unlit; OBJ's Kd with no lighting meant).
+        specular: (H, W, 3) F0 / specular_scale in [0, 1], or None (no specular layer).
+        specular_scale: largest F0 over covered texels (0: no specular layer).
+        roughness: (H, W) glTF roughness in [0, 1], or None.
+        ns: OBJ exponent.
+        clipped: covered texels whose base colour was clipped at 1.
+        label: what the base map holds, for file names and notes ("basecolor", "radiance").
+    """
+
+    base: np.ndarray
+    unlit: bool = False
+    specular: np.ndarray | None = None
+    specular_scale: float = 0.0
+    roughness: np.ndarray | None = None
+    ns: float = 1.0
+    clipped: int = 0
+    label: str = "basecolor"
+
+
+@dataclasses.dataclass
+class ViewerModel:
+    """What the report's WebGL viewer needs of a model.
+
+    Attributes:
+        grid: (H, W, P) float32 parameters per atlas texel, uploaded as the viewer's parameter texture.
+        shader: GLSL (ES 3.0) source defining ``vec3 model_radiance(vec2 uv, vec3 pos, vec3 nrm, vec3 tng,
+            vec3 eye, int part)``: the radiance toward ``eye`` at a surface point, lit by the viewer's light
+            (uniforms ``u_lkind``, ``u_lpd``, ``u_lI``) where ``lit`` is true. The viewer supplies
+            ``P(ivec2 texel, int column)`` to read the grid.
+        lit: the light controls change the render.
+        data: extra arrays and values for the shader (model-specific), merged into the viewer's model data.
+        note: one sentence for the viewer's caption (what the model shows, what the controls do).
+        parts: names of the shading parts the viewer's "show" menu offers (part 0 is the full model).
+    """
+
+    grid: np.ndarray
+    shader: str
+    lit: bool
+    data: dict = dataclasses.field(default_factory=dict)
+    note: str = ""
+    parts: tuple[str, ...] = ("full model",)
+
+
+class FittedModel:
+    """A model folder as read back by its plugin. Subclasses implement the hooks.
+
+    Attributes:
+        kind: the plugin's kind.
+        folder: the model folder.
+        mesh: SurfaceMesh with normals and UVs.
+        manifest: model.json.
+        covered: (H, W) bool, atlas texels on the surface.
+    """
+
+    def __init__(self, kind: str, folder: Path, mesh, manifest: dict, covered: np.ndarray):
+        self.kind, self.folder, self.mesh, self.manifest, self.covered = kind, Path(folder), mesh, manifest, covered
+
+    def renderer(self, device: str = "cpu") -> Callable[[Any], tuple[np.ndarray, np.ndarray]]:
+        """A function frame -> (image (H, W, 3) linear, coverage mask (H, W)) rendering the model as that
+        photo was taken (its camera, light and exposure)."""
+        raise NotImplementedError
+
+    def export_material(self, cfg) -> ExportMaterial:
+        """The material written to glTF / OBJ (``cfg``: fit/stages/export.py ExportConfig)."""
+        raise NotImplementedError
+
+    def map_files(self) -> list[Path]:
+        """The parameter maps copied beside an OBJ export."""
+        names = self.manifest.get("maps")
+        files = [self.folder / str(v) for v in names.values()] if isinstance(names, dict) else []
+        files = [f for f in files if f.is_file()]
+        return files or sorted(self.folder.glob("*.exr"))
+
+    def report_maps(self, save: Callable, seen: np.ndarray | None) -> None:
+        """Figures of the parameter maps: ``save(name, img, caption, cmap=None, vmin=None, vmax=None,
+        colorbar_label=None)`` per map."""
+        raise NotImplementedError
+
+    def report_facts(self) -> list[tuple[str, str]]:
+        """Model-specific (label, value) rows of the report's summary table."""
+        return []
+
+    def viewer(self) -> ViewerModel:
+        raise NotImplementedError
+
+
+@dataclasses.dataclass(frozen=True)
+class Candidate:
+    """One fit the automatic model choice may try: a plugin's kind and the FitConfig fields it changes."""
+
+    name: str
+    kind: str
+    overrides: dict = dataclasses.field(default_factory=dict)
+
+
+@dataclasses.dataclass
+class AppearanceModel:
+    """A model kind, as the stages see it.
+
+    Attributes:
+        kind: the name in ``--model`` and in model.json's ``layout.kind``.
+        title: a few words for logs and the report ("Lafortune SBRDF").
+        needs_light: fitted from photos with a known light each (reflectance); False: under one fixed,
+            unknown lighting (radiance).
+        units: of its parameters, written to model.json.
+        fit: (FitRequest) -> StageResult: fits a capture and writes the model folder.
+        load: (model folder, manifest) -> FittedModel.
+        candidates: (capture, FitStageConfig) -> list[Candidate]: the fits the automatic choice tries when
+            this is the capture's base model (None: it is never a base model).
+        escalate: (held-out scores by candidate name, FitStageConfig) -> (list[Candidate], reason): further fits
+            the choice tries once the first round is scored (None: none).
+        auto_rank: the base model for a capture with lights (needs_light) or without: lowest rank wins.
+        layout: (FitConfig) -> ModelLayout of the per-texel parameters, or None (the model has no per-texel
+            parameter table, e.g. light field mapping).
+    """
+
+    kind: str
+    title: str
+    needs_light: bool
+    units: str
+    fit: Callable
+    load: Callable
+    candidates: Callable | None = None
+    escalate: Callable | None = None
+    auto_rank: int = 100
+    layout: Callable | None = None
+
+
+_REGISTRY: dict[str, AppearanceModel] = {}
+_LOADED = False
+
+
+def register(model: AppearanceModel) -> AppearanceModel:
+    """Add a model kind (a second registration of the same kind replaces the first)."""
+    _REGISTRY[model.kind] = model
+    return model
+
+
+def unregister(kind: str) -> None:
+    _REGISTRY.pop(kind, None)
+
+
+def load_plugins() -> None:
+    """Import every plugin folder of ``fit/models/`` once; each registers itself."""
+    global _LOADED
+    if _LOADED:
+        return
+    _LOADED = True
+    for info in pkgutil.iter_modules([str(Path(__file__).parent)]):
+        if info.ispkg:
+            importlib.import_module(f"{__package__}.{info.name}")
+
+
+def kinds() -> list[str]:
+    load_plugins()
+    return sorted(_REGISTRY)
+
+
+def get(kind: str) -> AppearanceModel:
+    """The plugin of ``kind``; a ConfigError listing the known kinds otherwise."""
+    load_plugins()
+    if kind not in _REGISTRY:
+        raise ConfigError(f"unknown model kind {kind!r}", fix=f"use one of {sorted(_REGISTRY)}")
+    return _REGISTRY[kind]
+
+
+def kind_of_folder(model_dir: str | Path) -> tuple[str, dict]:
+    """(kind, model.json) of a model folder; an InputError naming the file otherwise."""
+    d = Path(model_dir)
+    fix = "pass a folder written by `texstream fit` (it holds model.json)"
+    if not d.is_dir():
+        raise InputError("model folder not found" if not d.exists() else "not a folder", d, fix)
+    if not (d / "model.json").is_file():
+        raise InputError("not a model folder (no model.json)", d / "model.json", fix)
+    man = read_json(d / "model.json", what="model manifest")
+    if not isinstance(man, dict) or not isinstance(man.get("layout"), dict) or "kind" not in man["layout"]:
+        raise InputError("model.json has no layout (kind, n_lobes, ...)", d / "model.json",
+                         "re-run `texstream fit`, which writes the layout")
+    return str(man["layout"]["kind"]), man
+
+
+def load_model_folder(model_dir: str | Path) -> FittedModel:
+    """The model folder read back by its plugin (found by model.json's ``layout.kind``)."""
+    kind, man = kind_of_folder(model_dir)
+    load_plugins()
+    if kind not in _REGISTRY:
+        raise InputError(f"model.json names a model kind this texstream does not know ({kind!r})",
+                         Path(model_dir) / "model.json", f"use a texstream with that model (known: {sorted(_REGISTRY)})")
+    return _REGISTRY[kind].load(Path(model_dir), man)
