@@ -49,7 +49,7 @@ MIN_PHOTOS = 3  # structure from motion needs two views to start and a third to 
 
 def _fit_stage_config():
     from texstream.fit.optim.fitter import FitConfig
-    from texstream.fit.models.lfm_config import LFMConfig
+    from texstream.fit.optim.lfm_config import LFMConfig
     from texstream.fit.stages.stage import FitStageConfig
 
     return FitStageConfig(holdout_every=8, fit=FitConfig(lfm=LFMConfig(iterations=RUN_LFM_ITERATIONS)))

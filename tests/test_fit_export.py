@@ -26,7 +26,7 @@ from texstream.capture.synth import write_param_maps
 from texstream.core.config import load_config
 from texstream.core.errors import ConfigError, InputError
 from texstream.fit.stages import export as E
-from texstream.fit.models.layout import MODEL_KINDS, ModelLayout
+from texstream.fit.kernels.layout import MODEL_KINDS, ModelLayout
 from texstream.geometry.mesh import SurfaceMesh
 from texstream.geometry.mesh_io import load_mesh, save_mesh
 

@@ -8,7 +8,7 @@ import warp as wp
 
 from texstream.capture.synth import SynthConfig, render_scene
 from texstream.fit.optim.fitter import FitConfig, run_fit
-from texstream.fit.models.layout import ModelLayout
+from texstream.fit.kernels.layout import ModelLayout
 from texstream.fit.optim.linesearch import LineSearchConfig
 from texstream.fit.stages.stage import build_problem
 

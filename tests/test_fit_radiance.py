@@ -22,7 +22,7 @@ from texstream.capture.capture_json import Light
 from texstream.capture.synth import SynthConfig, render_scene
 from texstream.core.errors import InputError
 from texstream.fit.optim.fitter import FitConfig, run_fit
-from texstream.fit.models.layout import ModelLayout
+from texstream.fit.kernels.layout import ModelLayout
 from texstream.fit.stream.problem import PhotoFrame, PhotoSet, StreamProblem, TexelSet, surface_derivatives
 from texstream.fit.stages.render import Renderer
 

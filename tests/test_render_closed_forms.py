@@ -10,7 +10,7 @@ import pytest
 from texstream.capture import procedural
 from texstream.capture.capture_json import Light
 from texstream.capture.conventions import look_at_w2c, uv_to_texel
-from texstream.fit.models.layout import ModelLayout
+from texstream.fit.kernels.layout import ModelLayout
 from texstream.fit.stages.render import Renderer
 from texstream.geometry.mesh import SurfaceMesh
 

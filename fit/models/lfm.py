@@ -42,7 +42,7 @@ import warp as wp
 from texstream.core.errors import ConfigError, InputError
 
 from texstream.fit.kernels import lfm as LK
-from texstream.fit.models.lfm_config import LOOKUPS, OPTIMIZERS, VIEW_MAPS, LFMConfig  # noqa: F401  (re-exported)
+from texstream.fit.optim.lfm_config import LOOKUPS, OPTIMIZERS, VIEW_MAPS, LFMConfig  # noqa: F401  (re-exported)
 from texstream.fit.stream.problem import exposure_mean_square
 
 

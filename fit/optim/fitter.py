@@ -19,7 +19,7 @@ from texstream.core.config import option
 
 from texstream.fit.kernels import optim_kernels as K
 from texstream.fit.kernels import stream
-from texstream.fit.models.layout import ModelLayout
+from texstream.fit.kernels.layout import ModelLayout
 from texstream.fit.optim.base import FitState
 from texstream.fit.optim.cg import ConjugateGradient
 from texstream.fit.optim.lbfgs import LBFGS
@@ -27,7 +27,7 @@ from texstream.fit.optim.linesearch import LineSearchConfig, line_search
 from texstream.fit.optim.lm import LevenbergMarquardt
 from texstream.fit.optim.steepest import SteepestDescent
 from texstream.fit.stream.penalties import PenaltyConfig, Penalties
-from texstream.fit.models.lfm_config import LFMConfig
+from texstream.fit.optim.lfm_config import LFMConfig
 from texstream.fit.stream.problem import StreamConfig, StreamProblem, no_light_error
 
 OPTIMIZERS = ("sd", "cg", "lbfgs", "lm")

@@ -309,7 +309,7 @@ def lfm_unlit_renderer(model, view_mean: str = "cosine", device: str = "cpu"):
     """frame -> (image, coverage): the exported unlit approximation of an LFM model rendered by
     texstream's radiance renderer (fit/render.py, bilinear atlas lookup, times the frame's exposure),
     to score it against the full model or the photos."""
-    from texstream.fit.models.layout import ModelLayout
+    from texstream.fit.kernels.layout import ModelLayout
     from texstream.fit.stages.stage import render_model
 
     grid = lfm_atlas(model, lfm_unlit_radiance(model, view_mean, device))

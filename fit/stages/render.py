@@ -22,7 +22,7 @@ import warp as wp
 from texstream.capture.capture_json import Frame, Light
 from texstream.fit.kernels.render import PinholeCamera, RenderLight, render_kernel
 from texstream.fit.kernels.shading import LIGHT_DIRECTIONAL, LIGHT_NONE, LIGHT_POINT, SHADOW_EPS_REL
-from texstream.fit.models.layout import ModelLayout
+from texstream.fit.kernels.layout import ModelLayout
 from texstream.geometry.mesh import SurfaceMesh
 from texstream.core.errors import ConfigError, InputError
 

@@ -27,7 +27,7 @@ from texstream.core.progress import say
 from texstream.fit.optim.fitter import FitConfig, FitResult, light_view_angles, resumable, run_fit
 from texstream.fit.models.materials import MaterialConfig
 from texstream.fit.stages.model_folder import image_metrics, plot_trace  # noqa: F401  (re-exported: tests and benchmarks use them here)
-from texstream.fit.models.layout import ModelLayout
+from texstream.fit.kernels.layout import ModelLayout
 
 
 UNITS = {"lafortune": "BRDF values in 1/sr (capture/conventions.py)",

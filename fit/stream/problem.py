@@ -29,7 +29,7 @@ from texstream.fit.kernels import stream
 from texstream.fit.kernels.lafortune_grad import param_types
 from texstream.fit.kernels.shading import SHADOW_EPS_REL
 from texstream.fit.kernels.visibility import depth_maps_kernel, masked_depth_kernel, shadow_maps_kernel
-from texstream.fit.models.layout import ModelLayout
+from texstream.fit.kernels.layout import ModelLayout
 from texstream.fit.stream.photo_stream import (LIGHT_KINDS, PhotoCache, PhotoFiles, PhotoLoader,  # noqa: F401
                            WindowSlots, choose_residency, crop_boxes, crop_infos, image_infos,
                            keep_maps_on_device, struct_array, to_half_kernel, wait, window_size)
