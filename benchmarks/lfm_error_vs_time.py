@@ -49,7 +49,7 @@ BASELINES = ("pca", "nmf")
 
 def heldout_scores(renderer_factory, params, held, held_images, held_masks) -> dict:
     """Pooled PSNR, worst view PSNR and APE over the held-out photos' foreground pixels."""
-    from texstream.fit.stages.model_folder import image_metrics, pooled_psnr
+    from texstream.fit.common.model_folder import image_metrics, pooled_psnr
 
     render = renderer_factory(params)
     rows, abs_err, abs_ref = [], 0.0, 0.0

@@ -37,7 +37,7 @@ def constant_colour_views(capture_dir: Path, model_dir: Path, holdout_every: int
     """Per held-out view: the mean foreground colour of the fitted photos, scored like eval_stage."""
     from texstream.capture.capture_json import read_capture
     from texstream.capture.imageio import read_image, read_mask
-    from texstream.fit.stages.model_folder import image_metrics
+    from texstream.fit.common.model_folder import image_metrics
     from texstream.fit.stages.stage import load_model, render_model, split_holdout
 
     capture = read_capture(capture_dir)
@@ -79,7 +79,7 @@ def main() -> None:
 
     import warp as wp
 
-    from texstream.fit.stages.model_folder import pooled_psnr
+    from texstream.fit.common.model_folder import pooled_psnr
     from texstream.fit.stages.stage import eval_stage, fit_stage
     from texstream.pipelines.run import RunConfig, run_pipeline
 

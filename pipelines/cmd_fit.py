@@ -57,9 +57,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "that saw narrow highlights; can keep wrong lobes on texels that never saw theirs: "
                              "docs/accuracy.md)")
     from texstream.fit.models.materials import MaterialConfig
+    from texstream.fit.stages.choice import ModelChoiceConfig
 
     add_config_arguments(parser, MaterialConfig, prefix="materials.")  # shared materials (fit/materials.py)
+    add_config_arguments(parser, ModelChoiceConfig, prefix="choice.")  # --model auto (fit/stages/choice.py)
     add_config_arguments(parser, FitConfig)  # with the four above: the fields of FitStageConfig
+    # the command's default is the model choice (a capture with lights gets its reflectance model, one without
+    # its radiance model; with --holdout-every the candidates are judged on the held-out photos)
+    parser.set_defaults(model="auto")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -79,7 +84,10 @@ def run(args: argparse.Namespace) -> int:
         return _run_single_view(args, fit_cfg)
     from texstream.fit.models.materials import MaterialConfig
 
+    from texstream.fit.stages.choice import ModelChoiceConfig
+
     cfg = FitStageConfig(fit=fit_cfg, materials=config_from_args(MaterialConfig, args, prefix="materials."),
+                         choice=config_from_args(ModelChoiceConfig, args, prefix="choice."),
                          **{k: getattr(args, k) for k in ("device", "texture_size", "texel_pixels", "holdout_every",
                                                           "renders", "min_seen_fraction", "skip_bad_photos",
                                                           "traced_polish", "traced_materials")
@@ -99,6 +107,8 @@ def run(args: argparse.Namespace) -> int:
     h = s.get("heldout") or {}
     if h.get("views"):
         print(f"  held out: {h['views']} views, pooled PSNR {h['pooled_psnr_db']:.2f} dB, worst {h['worst_psnr_db']:.2f} dB")
+    if (s.get("selection") or {}).get("reason"):
+        print(f"  model: {s['selection']['reason']}")
     m = s.get("materials") or {}
     if m.get("reason"):
         print(f"  materials: {m['reason']}")

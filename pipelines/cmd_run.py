@@ -14,14 +14,14 @@ from pathlib import Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from texstream.pipelines.run import LFM_CANDIDATE, MODELS, STAGES
+    from texstream.pipelines.run import LFM_CANDIDATE, STAGES, model_choices
 
     parser.add_argument("photos", nargs="?", default=None,
                         help="photos, capture, transforms.json or COLMAP folder (default: the built-in synthetic set)")
     parser.add_argument("-o", "--out", default="out/demo", help="output folder (default: out/demo)")
     parser.add_argument("--config", default=None, help="run options as TOML (OUT/run_config.toml of an earlier run)")
     parser.add_argument("--from", dest="from_stage", default=None, choices=STAGES, help="rerun from this stage on")
-    parser.add_argument("--model", default=None, choices=MODELS, help="appearance model (default: auto)")
+    parser.add_argument("--model", default=None, choices=model_choices(), help="appearance model (default: auto)")
     parser.add_argument("--lfm", default=None, choices=LFM_CANDIDATE,
                         help="fixed unknown lighting, model auto: also fit light field mapping when view dependence "
                              "matters (auto, the default), always, or never")

@@ -22,29 +22,31 @@ records every stage's decision, reason and time.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import hashlib
 import json
-import math
-import os
 import time
 from pathlib import Path
 from typing import Any, Callable
 
 from texstream.core.config import check_config, config_from_dict, config_to_dict, option
-from texstream.core.errors import ConfigError, InputError, TexstreamError
+from texstream.core.errors import ConfigError, InputError
 from texstream.core.outputs import write_atomic_with, write_json_atomic
+from texstream.fit.models import registry
+from texstream.fit.stages.choice import ModelChoiceConfig, fit_choice, plan_choice
+from texstream.fit.stages.stage import fit_model, fit_stage
 
 STAGES = ("ingest", "register", "mesh", "atlas", "lights", "refine", "fit", "export", "report")
 STAMP = ".texstream_stage.json"
-MODELS = ("auto", "lafortune", "diffuse", "radiance", "view_radiance", "lfm")
-LIGHTLESS_MODELS = ("radiance", "view_radiance", "lfm")
-"""models of exitant radiance: they need no light per photo"""
 LFM_CANDIDATE = ("auto", "always", "never")
 RUN_LFM_ITERATIONS = 50
 """the run's cap on the LFM candidate's streaming CG iterations (fit.lfm.iterations; docs/lfm.md gives
 the temple's held-out PSNR at 20, 50 and 100)"""
 MIN_PHOTOS = 3  # structure from motion needs two views to start and a third to check them
+
+
+def model_choices() -> list[str]:
+    """``auto`` and every kind of the model registry (fit/models/)."""
+    return ["auto", *registry.kinds()]
 
 
 def _fit_stage_config():
@@ -74,8 +76,8 @@ class RunConfig:
                                 "when the lighting is fixed and unknown; with held-out photos the diffuse or the "
                                 "view-dependent radiance model too, the better held-out one kept, and light field "
                                 "mapping where view dependence matters, see lfm), lafortune, diffuse, radiance, "
-                                "view_radiance or lfm (light field mapping, [fit.lfm] options)",
-                        choices=MODELS)
+                                "view_radiance or lfm (light field mapping, [fit.lfm] options): a kind of the model "
+                                "registry (fit/models/)")
     lfm: str = option("auto", "fixed unknown lighting, model auto, held-out photos: fit a light field mapping model "
                               "([fit.lfm]: K=1 streaming CG, iterations capped at fit.lfm.iterations) beside radiance "
                               "and view_radiance and keep it when its held-out error is the best: auto (only when view "
@@ -130,8 +132,8 @@ def run_config_from_dict(data: dict) -> RunConfig:
         else:
             kwargs[k] = v
     cfg = RunConfig(**kwargs)
-    if cfg.model not in MODELS:
-        raise ConfigError(f"model {cfg.model!r} unknown", fix=f"use one of {MODELS}")
+    if cfg.model not in model_choices():
+        raise ConfigError(f"model {cfg.model!r} unknown", fix=f"use one of {model_choices()}")
     if cfg.lfm not in LFM_CANDIDATE:
         raise ConfigError(f"lfm {cfg.lfm!r} unknown", fix=f"use one of {LFM_CANDIDATE}")
     return cfg
@@ -230,21 +232,9 @@ class Pipeline:
 
 
 def _summary_safe(summary: dict) -> dict:
-    from texstream.fit.stages.model_folder import json_safe
+    from texstream.fit.common.model_folder import json_safe
 
     return json.loads(json.dumps(json_safe(summary), default=str))
-
-
-def decide_model(capture, requested: str) -> tuple[str, str]:
-    """The model the scene needs, and why."""
-    if requested != "auto":
-        if requested not in LIGHTLESS_MODELS and not capture.has_lights:
-            raise InputError(f"--model {requested} needs a light per photo and the capture has none",
-                             capture.root / "capture.json", "use --model radiance (or auto), or give the lights")
-        return requested, "requested"
-    if capture.has_lights:
-        return "lafortune", "every photo has a known light: reflectance model (Lafortune SBRDF)"
-    return "radiance", "no photo has a known light (one fixed, unknown lighting): view-independent radiance model"
 
 
 def run_pipeline(source: str | Path, out: str | Path, config: RunConfig | None = None,
@@ -380,47 +370,37 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
         posed_dir = fit_geometry = refine_dir
         capture = read_capture(posed_dir)
 
-    # fit: the model the scene needs
-    from texstream.fit.stages.stage import fit_stage
-
-    model_kind, why = decide_model(capture, cfg.model)
+    # fit: the model the scene needs (fit/stages/choice.py: with held-out photos, the candidates it calls for
+    # judged on them: with known lights a specular lobe only where it generalises; under one fixed unknown
+    # lighting view dependence only where it does)
+    fit_cfg = dataclasses.replace(cfg.fit, device=cfg.device, fit=dataclasses.replace(cfg.fit.fit, model=cfg.model),
+                                  choice=ModelChoiceConfig(second_lobe=cfg.second_lobe, lfm=cfg.lfm,
+                                                           lfm_min_gain_db=cfg.lfm_min_gain_db))
+    plan = plan_choice(capture, cfg.model, fit_cfg)
+    model_kind, why = plan.base, plan.reason
     if lights_summary:
         why += f" (from the mirror ball: {lights_summary['kind']} light, {lights_summary['views']} ball view(s))"
-    fit_cfg = dataclasses.replace(cfg.fit, device=cfg.device, fit=dataclasses.replace(cfg.fit.fit, model=model_kind))
     model_dir = out / "model"
-    # judged on the held-out photos: with known lights a specular lobe only where it generalises; under
-    # one fixed unknown lighting view dependence only where it does
-    alternative = {"lafortune": "diffuse", "radiance": "view_radiance"}.get(model_kind)
-    # a comparison needs at least one held-out photo to judge by (split_holdout: every k-th)
-    compare = (cfg.model == "auto" and alternative is not None and 0 < cfg.fit.holdout_every <= len(capture.frames))
-    candidates = [model_kind, alternative]
-    if compare and model_kind == "lafortune" and cfg.second_lobe and fit_cfg.fit.lobes == 1:
-        candidates.append(TWO_LOBES)
-        alternative = f"{alternative} and the two-lobe Lafortune"
-    lfm_rule = None
-    if compare and model_kind == "radiance":
-        lfm_rule = functools.partial(lfm_decision, mode=cfg.lfm, min_gain_db=cfg.lfm_min_gain_db)
-        alternative += {"auto": " (and light field mapping if view dependence matters)",
-                        "always": " and light field mapping", "never": ""}[cfg.lfm]
-    choice: dict = {}
+    escalates = plan.compare and registry.get(plan.base).escalate is not None
 
     def fit_work():
-        if not compare:
-            return fit_stage(posed_dir, fit_geometry, model_dir, fit_cfg)
-        return fit_with_selection(posed_dir, fit_geometry, out, fit_cfg, tuple(candidates), choice, pipe.log,
-                                  more=lfm_rule)
+        if not plan.compare:
+            return fit_stage(posed_dir, fit_geometry, model_dir, dataclasses.replace(
+                fit_cfg, fit=dataclasses.replace(fit_cfg.fit, model=plan.base)))
+        return fit_choice(posed_dir, fit_geometry, model_dir, fit_cfg, plan, fit_model, pipe.log)
 
     fit_rec = pipe.run("fit", model_dir, [pipe.stamp_of("atlas"), pipe.stamp_of("mesh"), pipe.stamp_of("register"),
                                           pipe.stamp_of("lights"), pipe.stamp_of("refine"),
-                                          _files_hash(posed_dir) if posed else "", config_to_dict(fit_cfg), compare]
-                       + ([cfg.lfm, cfg.lfm_min_gain_db] if lfm_rule else []),
-                       f"{model_kind} model: {why}" + (f"; the {alternative} model too, the best held-out one "
-                                                       "kept" if compare else ""), fit_work)
-    if compare:
+                                          _files_hash(posed_dir) if posed else "", config_to_dict(fit_cfg), plan.compare]
+                       + ([cfg.lfm, cfg.lfm_min_gain_db] if escalates else []),
+                       f"{model_kind} model: {why}" + (f"; the {plan.also} model too, the best held-out one "
+                                                       "kept" if plan.compare else ""), fit_work)
+    if plan.compare:
         chosen = fit_rec.summary.get("selection", {})
         if chosen.get("chosen"):
-            model_kind = _candidate(chosen["chosen"])[0]
-            why = f"{why}; " + (f"{chosen['lfm']}; " if chosen.get("lfm") else "") + chosen["reason"]
+            model_kind = chosen["chosen_kind"]
+            key = registry.get(plan.base).escalation_key
+            why = f"{why}; " + (f"{chosen[key]}; " if chosen.get(key) else "") + chosen["reason"]
 
     _export_and_report(pipe, out, model_dir, posed_dir)
     heldout = _heldout(model_dir)
@@ -507,92 +487,11 @@ def run_warnings(records: list[StageRecord], heldout: dict, fit_summary: dict) -
     return out
 
 
-TWO_LOBES = "lafortune_2lobes"
 """The candidate name of the two-lobe Lafortune model in the run's selection (``RunConfig.second_lobe``)."""
 
 
 def _db(value) -> str:
     return "n/a" if value is None else f"{value:.2f} dB"
-
-
-def _candidate(name: str) -> tuple[str, int | None]:
-    """(model kind, lobes or None for the configured number) of a selection candidate."""
-    return ("lafortune", 2) if name == TWO_LOBES else (name, None)
-
-
-def lfm_decision(score: dict, mode: str = "auto", min_gain_db: float = 0.5) -> tuple[tuple, str]:
-    """Whether light field mapping joins the candidates, given the held-out pooled PSNR (dB, or None)
-    of the radiance and view_radiance fits: ((), reason) or (("lfm",), reason). ``mode`` "auto" fits
-    it when view dependence matters (view_radiance at least ``min_gain_db`` above radiance), "always"
-    and "never" override (RunConfig.lfm)."""
-    if mode == "never":
-        return (), "light field mapping not fitted: run option lfm = never"
-    if mode == "always":
-        return ("lfm",), "light field mapping fitted too: run option lfm = always"
-    r, v = score.get("radiance"), score.get("view_radiance")
-    if r is None or v is None:
-        return (), "light field mapping not fitted: no held-out score to tell whether view dependence matters"
-    gain = v - r
-    if gain >= min_gain_db:
-        return ("lfm",), (f"view dependence matters (view_radiance {gain:+.2f} dB over radiance on the held-out photos, "
-                          f">= lfm_min_gain_db {min_gain_db:g}): light field mapping fitted too")
-    return (), (f"view dependence does not matter enough for light field mapping (view_radiance {gain:+.2f} dB over "
-                f"radiance on the held-out photos, < lfm_min_gain_db {min_gain_db:g})")
-
-
-def fit_with_selection(capture_dir: Path, geometry: Path, out: Path, fit_cfg, kinds: tuple, choice: dict,
-                       log: Callable[[str], None], more: Callable[[dict], tuple[tuple, str]] | None = None):
-    """Fit each model kind of ``kinds`` into ``OUT/model_<kind>`` and keep the one with the best pooled
-    held-out PSNR as ``OUT/model`` (a lobe, or a view dependence, that no held-out view supports only adds
-    error there). ``more(scores)``, given the held-out scores so far, names further kinds to fit and why
-    (:func:`lfm_decision`); its reason is recorded in the selection."""
-    import shutil
-
-    from texstream.fit.stages.stage import fit_stage
-
-    results = {}
-
-    def fit_kind(k):
-        model, lobes = _candidate(k)
-        cfg_k = dataclasses.replace(fit_cfg, fit=dataclasses.replace(fit_cfg.fit, model=model,
-                                                                     lobes=lobes or fit_cfg.fit.lobes))
-        res = fit_stage(capture_dir, geometry, out / f"model_{k}", cfg_k)
-        results[k] = res
-        h = res.summary["heldout"]
-        log(f"[fit] {k}: held-out pooled PSNR {_db(h.get('pooled_psnr_db'))}, worst view {_db(h.get('worst_psnr_db'))}")
-
-    for k in kinds:
-        fit_kind(k)
-    extra_reason = None
-    if more is not None:
-        extra, extra_reason = more({k: r.summary["heldout"].get("pooled_psnr_db") for k, r in results.items()})
-        log(f"[fit] {extra_reason}")
-        for k in extra:
-            try:
-                fit_kind(k)
-            except TexstreamError as e:  # an optional candidate the capture cannot take (e.g. streamed photos)
-                extra_reason += f"; {k} could not be fitted ({e.message}), left out"
-                log(f"[fit] {k} could not be fitted ({e.message}): left out")
-        kinds = tuple(kinds) + tuple(k for k in extra if k in results and k not in kinds)
-    score = {k: r.summary["heldout"].get("pooled_psnr_db") for k, r in results.items()}
-    if all(v is None for v in score.values()):
-        # fewer registered photos than --holdout-every: nothing to judge by, the scene's own model stays
-        best = kinds[0]
-        reason = f"{best} kept: no photo was held out, so no model could be judged on held-out photos"
-    else:
-        best = max(kinds, key=lambda k: -math.inf if score[k] is None else score[k])
-        reason = f"{best} kept: held-out pooled PSNR " + ", ".join(f"{k} {_db(score[k])}" for k in kinds)
-    target = out / "model"
-    if target.exists():
-        shutil.rmtree(target)
-    os.replace(out / f"model_{best}", target)
-    res = results[best]
-    res.output = target
-    res.summary["selection"] = {"chosen": best, "reason": reason, "heldout_pooled_db": score}
-    if extra_reason is not None:
-        res.summary["selection"]["lfm"] = extra_reason
-    choice.update(res.summary["selection"])
-    return res
 
 
 def _heldout(model_dir: Path) -> dict:

@@ -11,7 +11,7 @@ import sys
 import numpy as np
 import pytest
 
-from texstream.fit.stages.model_folder import start_plotter, stop_plotter, trace_plot, trace_plot_png, write_model_folder
+from texstream.fit.common.model_folder import start_plotter, stop_plotter, trace_plot, trace_plot_png, write_model_folder
 from texstream.fit.kernels.layout import ModelLayout
 
 
@@ -75,7 +75,7 @@ def test_a_plotter_that_ended_is_replaced(tmp_path):
 
 
 def test_a_failing_fit_stage_stops_its_plotter(tmp_path, monkeypatch):
-    from texstream.fit.stages import model_folder
+    from texstream.fit.common import model_folder
     from texstream.fit.stages import stage
 
     started = []

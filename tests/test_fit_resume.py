@@ -35,7 +35,7 @@ def maps(model):
 
 
 def test_an_interrupted_fit_resumes_to_the_uninterrupted_result(capture, tmp_path, monkeypatch):
-    import texstream.fit.stages.stage as stage
+    import texstream.fit.common.setup as stage
 
     gt = capture / "ground_truth"
     whole = fit_stage(capture, gt, tmp_path / "whole", config(), progress=False)
@@ -66,7 +66,7 @@ def test_an_interrupted_fit_resumes_to_the_uninterrupted_result(capture, tmp_pat
 def test_a_checkpoint_of_other_options_is_not_used(capture, tmp_path, monkeypatch):
     import dataclasses
 
-    import texstream.fit.stages.stage as stage
+    import texstream.fit.common.setup as stage
 
     gt = capture / "ground_truth"
     ck = stage.Checkpoint(tmp_path / "m", {"other": "options"})

@@ -123,7 +123,7 @@ def test_corrupt_seams_file_is_one_line_input_error(capture_and_atlas, monkeypat
     root = capture_and_atlas
     atlas = copy_atlas(root, "atlas_corrupt")
     (atlas / SEAMS_FILE).write_bytes(b"not an npz file")
-    monkeypatch.setattr("texstream.fit.stages.stage.run_fit_with_progress", no_fitting)
+    monkeypatch.setattr("texstream.fit.models.per_texel.fit.run_fit_with_progress", no_fitting)
     out = root / "model_corrupt"
     with pytest.raises(InputError) as e:
         fit_stage(root / "cap", atlas, out, stage_config(), progress=False)
@@ -138,7 +138,7 @@ def test_seams_of_another_atlas_is_an_input_error(capture_and_atlas, monkeypatch
     atlas = copy_atlas(root, "atlas_stale")
     s = Seams.load(atlas / SEAMS_FILE)
     dataclasses.replace(s, width=2 * s.width, height=2 * s.height).save(atlas / SEAMS_FILE)
-    monkeypatch.setattr("texstream.fit.stages.stage.run_fit_with_progress", no_fitting)
+    monkeypatch.setattr("texstream.fit.models.per_texel.fit.run_fit_with_progress", no_fitting)
     out = root / "model_stale"
     with pytest.raises(InputError) as e:
         fit_stage(root / "cap", atlas, out, stage_config(), progress=False)
@@ -153,7 +153,7 @@ def test_cli_prints_one_line_for_a_corrupt_seams_file(capture_and_atlas, capsys,
     root = capture_and_atlas
     atlas = copy_atlas(root, "atlas_corrupt_cli")
     (atlas / SEAMS_FILE).write_bytes(b"\x00" * 16)
-    monkeypatch.setattr("texstream.fit.stages.stage.run_fit_with_progress", no_fitting)
+    monkeypatch.setattr("texstream.fit.models.per_texel.fit.run_fit_with_progress", no_fitting)
     rc = main(["fit", str(root / "cap"), "--mesh", str(atlas), "-o", str(root / "model_cli"),
                "--device", SCENE_DEVICE])
     err = capsys.readouterr().err.strip()
@@ -185,7 +185,7 @@ def test_extreme_fitted_values_stay_in_bounds_through_the_seam_averaging(capture
         pick = np.random.default_rng(5).random((n, lay.n_params)) < 0.5
         return np.where(pick, lay.lower(), lay.upper())
 
-    monkeypatch.setattr("texstream.fit.stages.stage.run_fit_with_progress", fake_fit(extremes))
+    monkeypatch.setattr("texstream.fit.models.per_texel.fit.run_fit_with_progress", fake_fit(extremes))
     fit_stage(root / "cap", root / "atlas", root / "model_extreme", stage_config(traced_polish=0),
               progress=False)  # the faked fit's values reach the checks unpolished
     man = json.loads((root / "model_extreme" / "model.json").read_text())
@@ -210,7 +210,7 @@ def test_a_model_out_of_bounds_or_not_finite_is_never_written(capture_and_atlas,
         res.params[i, problem.layout.index("lobe0.n")] = bad_value
         return res
 
-    monkeypatch.setattr("texstream.fit.stages.stage.run_fit_with_progress", run)
+    monkeypatch.setattr("texstream.fit.models.per_texel.fit.run_fit_with_progress", run)
     out = root / "model_bad"
     with pytest.raises(StageError) as e:
         # the faked fit's bad value reaches the checks unpolished
@@ -224,7 +224,7 @@ def test_a_capture_whose_texels_are_almost_unseen_fails_before_fitting(capture_a
     from texstream.core.errors import StageError
 
     root = capture_and_atlas
-    monkeypatch.setattr("texstream.fit.stages.stage.run_fit_with_progress", no_fitting)
+    monkeypatch.setattr("texstream.fit.models.per_texel.fit.run_fit_with_progress", no_fitting)
     cfg = dataclasses.replace(stage_config(), min_seen_fraction=1.01)  # more than every texel: always too few
     with pytest.raises(StageError, match="texels .* are seen by any photo") as e:
         fit_stage(root / "cap", root / "atlas", root / "model_unseen", cfg, progress=False)
@@ -240,7 +240,7 @@ def test_albedos_pinned_at_their_bound_are_reported(capture_and_atlas, monkeypat
         p[: n // 2, 0:3] = lay.upper()[0:3]
         return p
 
-    monkeypatch.setattr("texstream.fit.stages.stage.run_fit_with_progress", fake_fit(pinned))
+    monkeypatch.setattr("texstream.fit.models.per_texel.fit.run_fit_with_progress", fake_fit(pinned))
     res = fit_stage(root / "cap", root / "atlas", root / "model_pinned", stage_config(traced_polish=0),
               progress=False)  # the faked fit's values reach the checks unpolished
     warnings = res.summary["warnings"]

@@ -14,7 +14,8 @@ pytest.importorskip("OpenImageIO")
 from conftest import SCENE_DEVICE  # noqa: E402
 from lfm_scenes import fixed_light_sphere_capture  # noqa: E402
 
-from texstream.pipelines.run import RUN_LFM_ITERATIONS, RunConfig, lfm_decision, run_pipeline  # noqa: E402
+from texstream.fit.models.radiance.choice import lfm_decision  # noqa: E402
+from texstream.pipelines.run import RUN_LFM_ITERATIONS, RunConfig, run_pipeline  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -47,15 +47,72 @@ Gauss-Newton is exact; same light-free weight W = exposure as "radiance".
 from __future__ import annotations
 
 import dataclasses
+import importlib
 
 import numpy as np
 
 from texstream.core.errors import ConfigError
 
-MODEL_KINDS = ("lafortune", "diffuse", "radiance", "view_radiance")
-RADIANCE_KINDS = ("radiance", "view_radiance")  # no light: fitted under one fixed, unknown lighting
 VIEW_TERMS = ("vx", "vy", "vxx", "vxy", "vyy")  # phi_k(v) of the view-dependent radiance, in this order
-REFLECTANCE_KINDS = ("lafortune", "diffuse")  # need a known light per photo
+
+
+@dataclasses.dataclass(frozen=True)
+class LayoutTraits:
+    """What a per-texel model kind's name means for its parameter table and kernels; each model plugin
+    registers its kind's traits (fit/models/<kind>/__init__.py), so nothing here knows a kind by name.
+
+    Attributes:
+        lit: samples are weighted by a known light (exposure * E * cos theta_i: reflectance); False: a
+            light-free radiance model (W = exposure; the kernels skip the light).
+        lobes: the kind carries specular lobes (n_lobes > 0 allowed); False forces n_lobes = 0.
+        view_terms: view-direction terms phi_k per channel (the first ``view_terms`` of VIEW_TERMS).
+        robust_loss: the fit's robust loss under ``robust_loss auto`` (fit/optim/fitter.py).
+    """
+
+    lit: bool = True
+    lobes: bool = True
+    view_terms: int = 0
+    robust_loss: str = "none"
+
+
+_KIND_TRAITS: dict[str, LayoutTraits] = {}
+
+
+def register_layout_kind(kind: str, traits: LayoutTraits) -> None:
+    """Declare a per-texel model kind (a model plugin does, when it is registered)."""
+    _KIND_TRAITS[kind] = traits
+
+
+def layout_traits(kind: str) -> LayoutTraits:
+    """The traits of a per-texel kind; a ConfigError naming the known kinds otherwise.
+
+    The model plugins live above this module, so an unknown kind first has the plugin folders imported by
+    name (fit/models/registry.py ``load_plugins``, the package's one import by name) and is looked up again."""
+    if kind not in _KIND_TRAITS:
+        importlib.import_module("texstream.fit.models.registry").load_plugins()
+    if kind not in _KIND_TRAITS:
+        raise ConfigError(f"unknown per-texel model kind {kind!r}", fix=f"use one of {sorted(_KIND_TRAITS)}")
+    return _KIND_TRAITS[kind]
+
+
+class _KnownKinds:
+    """The registered per-texel kinds, as a live collection (``"radiance" in MODEL_KINDS``)."""
+
+    def _kinds(self) -> list[str]:
+        importlib.import_module("texstream.fit.models.registry").load_plugins()
+        return sorted(_KIND_TRAITS)
+
+    def __contains__(self, kind) -> bool:
+        return kind in self._kinds()
+
+    def __iter__(self):
+        return iter(self._kinds())
+
+    def __repr__(self) -> str:
+        return repr(tuple(self._kinds()))
+
+
+MODEL_KINDS = _KnownKinds()
 LOBE_SHAPES = ("free", "phong")
 MAX_LOBES = 2  # per-texel vectors are sized to the layout (at most 3 + 2*7 = 17 parameters)
 
@@ -97,9 +154,8 @@ class ModelLayout:
     """Parameter layout of a per-texel reflectance model.
 
     Attributes:
-        kind: "lafortune", "diffuse" (Lafortune with no lobes), "radiance" (view-independent
-            exitant radiance, no light) or "view_radiance" (radiance as a biquadratic of the view
-            direction; see the module doc).
+        kind: a per-texel model kind registered with :func:`register_layout_kind` (its plugin's name; the
+            kinds texstream ships are described in the module doc).
         n_lobes: number of specular lobes K (0..MAX_LOBES).
         anisotropic: general C_x, C_y, C_z instead of the isotropic C_xy, C_z.
         lobe_shape: "free" (c_z fitted) or "phong" (c_z held at 1; see the module doc).
@@ -111,11 +167,10 @@ class ModelLayout:
     lobe_shape: str = "free"
 
     def __post_init__(self) -> None:
-        if self.kind not in MODEL_KINDS:
-            raise ConfigError(f"unknown model kind {self.kind!r}", fix=f"use one of {MODEL_KINDS}")
-        if self.kind in ("diffuse", *RADIANCE_KINDS) and self.n_lobes != 0:
+        traits = layout_traits(self.kind)
+        if not traits.lobes and self.n_lobes != 0:
             object.__setattr__(self, "n_lobes", 0)
-        if self.kind in RADIANCE_KINDS:  # no lobes: nothing anisotropic, no lobe shape
+        if not traits.lit:  # no lobes: nothing anisotropic, no lobe shape
             object.__setattr__(self, "anisotropic", False)
             object.__setattr__(self, "lobe_shape", "free")
         if not 0 <= self.n_lobes <= MAX_LOBES:
@@ -126,12 +181,12 @@ class ModelLayout:
     @property
     def is_radiance(self) -> bool:
         """A light-free radiance model (kernels skip the light, W = exposure)."""
-        return self.kind in RADIANCE_KINDS
+        return not layout_traits(self.kind).lit
 
     @property
     def view_terms(self) -> int:
         """Number of view-direction terms phi_k per channel (5 for "view_radiance", else 0)."""
-        return len(VIEW_TERMS) if self.kind == "view_radiance" else 0
+        return layout_traits(self.kind).view_terms
 
     def view_offset(self, k: int) -> int:
         """First column (channel r) of view term k; channel c is at ``view_offset(k) + c``."""

@@ -30,6 +30,7 @@ import numpy as np
 
 from texstream.core.errors import ConfigError, InputError
 from texstream.core.outputs import read_json
+from texstream.fit.kernels.layout import LayoutTraits, register_layout_kind
 
 
 @dataclasses.dataclass
@@ -124,6 +125,19 @@ class FittedModel:
         raise NotImplementedError
 
 
+@dataclasses.dataclass
+class FitRequest:
+    """What a plugin's ``fit`` is given: the posed capture, the mesh (an atlas folder or a mesh file), the output
+    model folder, the fit stage's config (fit/stages/stage.py FitStageConfig, ``fit.model`` this plugin's kind) and
+    whether to show progress bars."""
+
+    capture_dir: Path
+    mesh_path: Path
+    out_dir: Path
+    cfg: Any
+    progress: bool = True
+
+
 @dataclasses.dataclass(frozen=True)
 class Candidate:
     """One fit the automatic model choice may try: a plugin's kind and the FitConfig fields it changes."""
@@ -148,10 +162,15 @@ class AppearanceModel:
         candidates: (capture, FitStageConfig) -> list[Candidate]: the fits the automatic choice tries when
             this is the capture's base model (None: it is never a base model).
         escalate: (held-out scores by candidate name, FitStageConfig) -> (list[Candidate], reason): further fits
-            the choice tries once the first round is scored (None: none).
+            the choice tries once the first round is scored (None: none); called with scores None before the
+            fits, it returns ([], a phrase for the plan's log line). The reason is recorded in the selection
+            under ``escalation_key``.
         auto_rank: the base model for a capture with lights (needs_light) or without: lowest rank wins.
-        layout: (FitConfig) -> ModelLayout of the per-texel parameters, or None (the model has no per-texel
-            parameter table, e.g. light field mapping).
+        layout_traits: what the kind's name means for the per-texel parameter table and kernels
+            (fit/kernels/layout.py LayoutTraits), or None: the model has no per-texel table of its own (light field
+            mapping).
+        fit_overrides: FitConfig fields the model's fit sets (e.g. its own default optimizer), applied before
+            the fit.
     """
 
     kind: str
@@ -163,7 +182,9 @@ class AppearanceModel:
     candidates: Callable | None = None
     escalate: Callable | None = None
     auto_rank: int = 100
-    layout: Callable | None = None
+    escalation_key: str = "escalation"
+    layout_traits: LayoutTraits | None = None
+    fit_overrides: dict = dataclasses.field(default_factory=dict)
 
 
 _REGISTRY: dict[str, AppearanceModel] = {}
@@ -173,6 +194,8 @@ _LOADED = False
 def register(model: AppearanceModel) -> AppearanceModel:
     """Add a model kind (a second registration of the same kind replaces the first)."""
     _REGISTRY[model.kind] = model
+    if model.layout_traits is not None:
+        register_layout_kind(model.kind, model.layout_traits)
     return model
 
 

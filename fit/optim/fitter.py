@@ -19,7 +19,7 @@ from texstream.core.config import option
 
 from texstream.fit.kernels import optim_kernels as K
 from texstream.fit.kernels import stream
-from texstream.fit.kernels.layout import ModelLayout
+from texstream.fit.kernels.layout import ModelLayout, layout_traits
 from texstream.fit.optim.base import FitState
 from texstream.fit.optim.cg import ConjugateGradient
 from texstream.fit.optim.lbfgs import LBFGS
@@ -40,12 +40,14 @@ in order (a fixed summation order, so the trace is the same on every run and dev
 class FitConfig:
     """What to fit and how (saved as fit_config.json beside the model)."""
 
-    model: str = option("lafortune", "appearance model: lafortune or diffuse (reflectance, need a known light per "
+    model: str = option("lafortune", "appearance model, a kind of the model registry (fit/models/; `texstream fit "
+                                     "--help` lists them): lafortune or diffuse (reflectance, need a known light per "
                                      "photo), radiance (view-independent radiance under the photos' one fixed, "
-                                     "unknown lighting; ignores lights) or view_radiance (that radiance as a "
-                                     "biquadratic of the view direction, fit/models.py) or lfm (light field mapping: "
-                                     "vertex light fields of surface maps x view maps, fit/lfm.py; options --lfm.*)",
-                        choices=("lafortune", "diffuse", "radiance", "view_radiance", "lfm"))
+                                     "unknown lighting; ignores lights), view_radiance (that radiance as a "
+                                     "biquadratic of the view direction), lfm (light field mapping: vertex light "
+                                     "fields of surface maps x view maps; options --lfm.*), or auto: the model "
+                                     "choice (fit/stages/choice.py) fits the candidates the capture calls for and "
+                                     "keeps the one with the best held-out error")
     view_prior: float = option(0.5, "view_radiance: ridge prior pulling each texel's view terms to 0, in samples' "
                                     "worth of squared residual per unit coefficient (a texel seen from few directions "
                                     "stays view-independent); 0 = none", min=0.0)
@@ -114,7 +116,7 @@ class FitConfig:
         if self.robust_loss == "auto":
             # the view-dependent radiance fits what cauchy would discount as outliers (the photos'
             # disagreement across directions), so it stays least squares
-            return "cauchy" if layout.kind == "radiance" else "none"
+            return layout_traits(layout.kind).robust_loss
         if self.robust_loss not in ("none", "huber", "cauchy"):
             raise ConfigError(f"robust_loss {self.robust_loss!r} unknown", fix="use auto, none, huber or cauchy")
         return self.robust_loss
@@ -123,19 +125,20 @@ class FitConfig:
         """The model layout; ``lobe_shape`` "auto" is decided from the photos' ``frames``
         (:class:`PhotoFrame`) seen from ``centre`` (:func:`choose_lobe_shape`)."""
         shape = self.lobe_shape
-        if self.model in ("radiance", "view_radiance"):
+        traits = layout_traits(self.model)
+        if not traits.lit:
             return ModelLayout(kind=self.model)
         if frames is not None:
             unlit = sum(getattr(f, "light_kind", None) == "none" for f in frames)
             if unlit:
                 raise no_light_error(unlit, len(frames), self.model)
-        if self.model == "diffuse":
+        if not traits.lobes:
             shape = "free"  # no lobe: nothing to hold
         elif shape == "auto":
             if frames is None:
                 raise ConfigError("lobe_shape auto needs the photos to decide", fix="pass frames, or set free or phong")
             shape = choose_lobe_shape(frames, centre, self.lobe_shape_spread_deg)
-        return ModelLayout(kind=self.model, n_lobes=0 if self.model == "diffuse" else self.lobes,
+        return ModelLayout(kind=self.model, n_lobes=self.lobes if traits.lobes else 0,
                            anisotropic=self.anisotropic, lobe_shape=shape)
 
 

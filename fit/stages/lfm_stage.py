@@ -132,7 +132,7 @@ def lfm_fit_stage(capture_dir, mesh_path, out_dir, cfg, progress: bool = True) -
 
     from texstream.fit.models.lfm import LFMParams, LFMProblem, PhotoSamples, fit_lfm
     from texstream.fit.models.lfm_baselines import fit_nmf, fit_pca
-    from texstream.fit.stages.model_folder import pooled_psnr, render_comparisons
+    from texstream.fit.common.model_folder import pooled_psnr, render_comparisons
     from texstream.core.outputs import write_json_atomic
 
     from texstream.fit.stages.stage import build_problem, load_fit_inputs, load_photos

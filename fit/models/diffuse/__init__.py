@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from texstream.fit.kernels.layout import LayoutTraits
 from texstream.fit.models.registry import AppearanceModel, register
 
 from texstream.fit.models.diffuse import fit as fit_module
@@ -14,4 +15,5 @@ PLUGIN = register(AppearanceModel(
     units="BRDF values in 1/sr (capture/conventions.py)",
     fit=fit_module.fit,
     load=folder_module.load,
+    layout_traits=LayoutTraits(lit=True, lobes=False),
 ))

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from texstream.fit.kernels.layout import LayoutTraits
 from texstream.fit.models.registry import AppearanceModel, register
 
+from texstream.fit.models.lafortune import choice as choice_module
 from texstream.fit.models.lafortune import fit as fit_module
 from texstream.fit.models.lafortune import folder as folder_module
 
@@ -14,4 +16,7 @@ PLUGIN = register(AppearanceModel(
     units="BRDF values in 1/sr (capture/conventions.py)",
     fit=fit_module.fit,
     load=folder_module.load,
+    layout_traits=LayoutTraits(lit=True, lobes=True),
+    candidates=choice_module.candidates,
+    auto_rank=0,
 ))

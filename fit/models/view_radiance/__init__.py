@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from texstream.fit.kernels.layout import LayoutTraits, VIEW_TERMS
 from texstream.fit.models.registry import AppearanceModel, register
 
 from texstream.fit.models.view_radiance import fit as fit_module
@@ -14,4 +15,5 @@ PLUGIN = register(AppearanceModel(
     units="exitant radiance in photo values per unit exposure (along the normal; view terms alike)",
     fit=fit_module.fit,
     load=folder_module.load,
+    layout_traits=LayoutTraits(lit=False, lobes=False, view_terms=len(VIEW_TERMS)),
 ))

@@ -107,7 +107,7 @@ def start_plotter() -> subprocess.Popen | None:
     :func:`trace_plot` sends it the trace (a request on its stdin), so that the import happens while the
     stage reads the photos and fits. It exits without drawing when its stdin closes first (the stage
     failed, or this process ended). None when no child could be started."""
-    code = "from texstream.fit.stages.model_folder import serve_plot; serve_plot()"
+    code = "from texstream.fit.common.model_folder import serve_plot; serve_plot()"
     try:
         return subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.DEVNULL,
                                 stderr=subprocess.DEVNULL)

@@ -1,0 +1,231 @@
+"""What every fit reads before it sets up: the capture's frames and photos, the held-out split, the mesh and
+its texel bake, and the checks that fail before any work (lights, seen texels, bad photos, the output path)."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+from texstream.core.errors import InputError, StageError
+from texstream.core.progress import say
+
+
+from texstream.fit.common.setup import build_problem
+
+
+def load_geometry(mesh_path: str | Path, texture_size: int, device: str, frames=None, texel_pixels: float = 3.0):
+    """(mesh with UVs, TexelBake) from an atlas folder, or a mesh file baked at ``texture_size`` (0: the side
+    :func:`texstream.geometry.density.texture_side_for` picks from ``frames`` and ``texel_pixels``; 256 without
+    frames)."""
+    from texstream.geometry.bake import TexelBake, bake_texels
+    from texstream.geometry.mesh_io import load_mesh
+
+    p = Path(mesh_path)
+    if p.is_dir():
+        mfile = next((p / n for n in ("mesh.obj", "mesh.ply") if (p / n).exists()), None)
+        if mfile is None:
+            raise InputError("folder has no mesh.obj", p, "pass an atlas folder (texstream atlas) or a mesh file")
+        mesh = load_mesh(mfile)
+        if (p / "bake.npz").exists():
+            return mesh.with_normals(), TexelBake.load(p / "bake.npz")
+    else:
+        mesh = load_mesh(p)
+    if mesh.uvs is None:
+        from texstream.geometry.atlas import AtlasConfig, build_atlas
+
+        mesh, _ = build_atlas(mesh, AtlasConfig(resolution=texture_size or 1024))
+    mesh = mesh.with_normals()
+    side = texture_size
+    if side == 0:
+        side = 256
+        if frames:
+            from texstream.geometry.density import texture_side_for
+
+            side = texture_side_for(mesh, frames, texel_pixels)[0]
+    return mesh, bake_texels(mesh, side, side, device=device)
+
+
+def load_photos(capture, frames, device: str | None = None):
+    """Images (linear, H x W x 3) and masks of the given frames."""
+    from texstream.capture.imageio import read_image, read_mask
+
+    images, masks = [], []
+    for f in frames:
+        images.append(read_image(capture.image_path(f), channels=3))
+        mp = capture.mask_path(f)
+        masks.append(read_mask(mp, images[-1].shape[:2]) if mp is not None and mp.exists() else None)
+    return images, masks
+
+
+PHOTO_CACHE_FOLDER = ".texstream-cache"
+"""the capture's folder for photos decoded once and streamed from there
+(:class:`~texstream.fit.stream.photo_stream.PhotoCache`)"""
+
+
+def photo_files(capture, frames):
+    """The frames' photos and masks as files (:class:`texstream.fit.stream.photo_stream.PhotoFiles`), decoded
+    by the fit's PhotoSet on a pool of threads or processes: all at set-up when they stay in memory, or a window
+    per pass when streamed from disk (``StreamConfig.photo_residency``)."""
+    from texstream.capture.imageio import read_image, read_mask
+
+    from texstream.fit.stream.photo_stream import PhotoFiles
+
+    masks = []
+    for f in frames:
+        mp = capture.mask_path(f)
+        masks.append(mp if mp is not None and mp.exists() else None)
+    # module functions, not closures: worker processes receive them (fit/decode_pool.py)
+    return PhotoFiles([capture.image_path(f) for f in frames], masks, read_image, read_mask,
+                      cache_dir=Path(capture.root) / PHOTO_CACHE_FOLDER)
+
+
+def read_photos(photos, masks, indices):
+    """Images and masks (all-true where none) of ``indices`` of ``photos`` (a list of arrays with a
+    list of masks or None, or a PhotoFiles, which names its masks)."""
+    from texstream.fit.stream.photo_stream import PhotoFiles
+
+    images, masks = [], []
+    for i in indices:
+        if isinstance(photos, PhotoFiles):
+            im = photos.read_image(photos.paths[i])
+            mp = photos.mask_paths[i]
+            mk = None if mp is None else photos.read_mask(mp, im.shape[:2])
+        else:
+            im, mk = photos[i], None if masks is None else masks[i]
+        images.append(im)
+        masks.append(np.ones(im.shape[:2], bool) if mk is None else mk)
+    return images, masks
+
+
+def split_holdout(frames: list, every: int) -> tuple[list, list]:
+    """(fitted, held out): every ``every``-th frame (the 8th, 16th, ... for 8) is held out; 0 = none."""
+    if every <= 0:
+        return list(frames), []
+    held = [f for i, f in enumerate(frames) if i % every == every - 1]
+    return [f for i, f in enumerate(frames) if i % every != every - 1], held
+
+
+def check_capture_lights(capture, model: str, capture_dir: str | Path) -> None:
+    """Reflectance models need a light per photo; the radiance model needs none."""
+    if model not in ("radiance", "view_radiance") and not capture.has_lights:
+        raise InputError(f"the {model} model needs a light per photo and some frames have none",
+                         Path(capture_dir) / "capture.json",
+                         "fit the radiance model (--model radiance), or add per-frame lights (texstream ingest "
+                         "--lights, texstream lights, or a co-located flash)")
+
+
+def check_seen_texels(problem, cfg, capture_dir: str | Path) -> tuple:
+    """Count the texels some photo sees and fail before fitting when almost none are: a mesh facing away
+    from the cameras or in another frame than the capture's. The count comes from the fit's starting
+    pass (:func:`fit_start`), returned for the fit to reuse."""
+    from texstream.fit.optim.fitter import fit_start
+
+    start = fit_start(problem, cfg.fit)
+    seen = int((start.counts.numpy() > 0).sum())
+    if seen < cfg.min_seen_fraction * problem.n:
+        raise StageError(f"only {seen:,} of {problem.n:,} texels ({100.0 * seen / max(problem.n, 1):.2f}%) are seen by "
+                         f"any photo (need {100 * cfg.min_seen_fraction:g}%)", Path(capture_dir) / "capture.json",
+                         "check that the mesh is in the capture's frame and faces the cameras (texstream mesh "
+                         "orients it), or lower --min-seen-fraction")
+    return seen, start
+
+
+@dataclasses.dataclass
+class FitInputs:
+    """What a mesh fit reads: the capture split into fitted and held-out frames, the geometry and photos."""
+
+    capture: object
+    frames: list
+    held: list
+    mesh: object
+    bake: object
+    seams: object
+    images: object
+    """the fitted frames' photos: a :class:`texstream.fit.stream.photo_stream.PhotoFiles` (decoded by the fit's
+    PhotoSet) or a list of arrays"""
+    masks: list | None
+
+
+def load_fit_inputs(capture_dir: str | Path, mesh_path: str | Path, cfg) -> FitInputs:
+    """Read and check everything a fit needs, before any long work starts."""
+    from texstream.capture.capture_json import read_capture
+
+    capture = read_capture(capture_dir)
+    check_capture_lights(capture, cfg.fit.model, capture_dir)
+    frames, held = split_holdout(capture.frames, cfg.holdout_every)
+    if not frames:
+        raise InputError("no photo is left to fit after the hold-out split", Path(capture_dir) / "capture.json",
+                         "lower --holdout-every or add photos")
+    mesh, bake = load_geometry(mesh_path, cfg.texture_size, cfg.device, frames, cfg.texel_pixels)
+    seams = load_seams(mesh_path, bake)
+    return FitInputs(capture, frames, held, mesh, bake, seams, photo_files(capture, frames), None)
+
+
+def bad_photo(error: InputError, images) -> int | None:
+    """The index of the photo (or its mask) ``error`` names, among ``images`` (a PhotoFiles); None for
+    another error."""
+    paths = getattr(images, "paths", None)
+    if error.path is None or paths is None:
+        return None
+    named = Path(error.path).resolve()
+    for k, (image, mask) in enumerate(zip(paths, images.mask_paths)):
+        if Path(image).resolve() == named or (mask is not None and Path(mask).resolve() == named):
+            return k
+    return None
+
+
+def set_up_skipping_bad_photos(inputs: FitInputs, cfg, capture_dir: str | Path):
+    """The fit's problem and its starting pass (:func:`check_seen_texels`); every photo is decoded there, so
+    an unreadable one fails here, before the fit and before anything is written, with one line naming it.
+    With ``skip_bad_photos`` the photo is left out of ``inputs`` instead, said, and the set-up run again.
+    Returns (problem, texels seen, start, skipped photos as {"file", "error"})."""
+    skipped = []
+    while True:
+        try:
+            problem = build_problem(inputs.mesh, inputs.bake, inputs.frames, inputs.images, inputs.masks, cfg.fit,
+                                    cfg.device)
+            seen, start = check_seen_texels(problem, cfg, capture_dir)
+            return problem, seen, start, skipped
+        except InputError as e:
+            k = bad_photo(e, inputs.images)
+            if k is None or not cfg.skip_bad_photos:
+                if k is not None:
+                    e.fix = (e.fix.rstrip(".") + "; or " if e.fix else "") + "leave it out with --skip-bad-photos"
+                    e.args = (e.one_line(),)
+                raise
+            skipped.append({"file": str(inputs.images.paths[k]), "error": e.message})
+            say("fit", f"skipping photo {inputs.images.paths[k]}: {e.message} (--skip-bad-photos)")
+            keep = [j for j in range(len(inputs.frames)) if j != k]
+            if not keep:
+                raise InputError("every photo of the capture is unreadable", Path(capture_dir) / "capture.json",
+                                 "check the images (model.json lists none: nothing was fitted)") from None
+            inputs.frames = [inputs.frames[j] for j in keep]
+            inputs.images = inputs.images.subset(keep)
+
+
+def check_output_path(out_dir: str | Path) -> None:
+    """Fail before any work when the output path cannot become a folder."""
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError("output path exists and is not a folder", out, "choose another -o path")
+
+
+
+def load_seams(mesh_path: str | Path, bake):
+    """The atlas folder's ``seams.npz`` (None without one), checked against the bake's atlas size."""
+    p = Path(mesh_path)
+    if not p.is_dir() or not (p / "seams.npz").is_file():
+        return None
+    from texstream.geometry.seams import Seams
+
+    seams = Seams.load(p / "seams.npz")
+    n = bake.height * bake.width
+    idx = np.concatenate([seams.idx_a.ravel(), seams.idx_b.ravel()])
+    if (seams.width, seams.height) != (bake.width, bake.height) or seams.fill_source.shape != (n,) \
+            or (idx.size and (idx.min() < 0 or idx.max() >= n)):
+        raise InputError(f"seams are for a {seams.width}x{seams.height} atlas, "
+                         f"the bake is {bake.width}x{bake.height}",
+                         p / "seams.npz", "re-run `texstream atlas` to rebuild the atlas folder")
+    return seams

@@ -1,0 +1,210 @@
+"""The streaming problem of a per-texel fit set up from its inputs, run with progress and a checkpoint, and its
+parameters turned into atlas maps and renders (shared by the model plugins, the accuracy tests and the benchmarks)."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+
+import numpy as np
+
+from texstream.core.errors import InputError
+
+from texstream.fit.optim.fitter import FitConfig, FitResult, run_fit
+from texstream.fit.common.model_folder import image_metrics
+from texstream.fit.kernels.layout import ModelLayout
+
+
+
+def build_problem(mesh, bake, frames, images, masks, cfg: FitConfig, device: str, photos=None):
+    """The StreamProblem of a fit: texels from the bake, photos on the device with their depth and
+    shadow maps (``photos``: a PhotoSet of these frames built before, e.g. by another problem's
+    call, reused as it is; building one is most of the set-up time). The photos are set up on a
+    thread of their own while this one computes the texels (host work, beside the photos' uploads
+    and map launches); split over devices (``StreamConfig.device_split`` photos), each device's on
+    a thread of its own."""
+    import concurrent.futures
+    import contextvars
+
+    from texstream.fit.stream.problem import PhotoFrame, PhotoSet, StreamProblem, TexelSet, surface_derivatives, texel_coordinate_gradients
+    from texstream.fit.multi.tiles import parse_devices, split_photos
+
+    photo_frames = [PhotoFrame.from_capture_frame(f) for f in frames]
+    normals = mesh.vertex_normals()  # computed anew on each call for a mesh without stored normals
+
+    split = split_photos(cfg)  # before any work: refuses tiles with it
+
+    def make_photos():
+        if split:
+            from texstream.fit.multi.photo_split import build_device_photos, check_split_devices
+
+            devices = parse_devices(cfg.stream.devices, device)
+            check_split_devices(devices, device)
+            return build_device_photos(photo_frames, images, mesh.vertices, mesh.faces, masks, cfg.stream, devices,
+                                       mesh_normals=normals, mesh_uvs=mesh.uvs)
+        return PhotoSet(photo_frames, images, mesh.vertices, mesh.faces, masks=masks, config=cfg.stream,
+                        device=device, mesh_normals=normals, mesh_uvs=mesh.uvs)
+
+    with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="texstream-photos") as pool:
+        # in a copy of this context: the stage's log and its registry of loaders to close
+        pending = pool.submit(contextvars.copy_context().run, make_photos) if photos is None else None
+        face_normal, normal_jacobian = surface_derivatives(mesh.vertices, mesh.faces, normals, bake.face, bake.bary)
+        coordinate_gradients = None
+        if mesh.uvs is not None:
+            coordinate_gradients = texel_coordinate_gradients(mesh.vertices, mesh.faces, mesh.uvs, bake.face,
+                                                              bake.width, bake.height)
+        texels = TexelSet.from_grid(bake.covered, bake.position, bake.normal, bake.tangent, bake.bitangent,
+                                    face_normal, normal_jacobian, coordinate_gradients, bake.fill_source)
+        if pending is not None:
+            photos = pending.result()  # a photo's error is raised here, after the texels
+    if texels.n == 0:
+        raise InputError("the atlas has no covered texels", fix="rebuild the atlas with a larger resolution")
+    layout = cfg.layout(photo_frames, texels.position.mean(axis=0))
+    return StreamProblem(texels, photos, layout, cfg.stream, device=device)
+
+
+def params_to_grid(result: FitResult, problem, bake) -> np.ndarray:
+    """Compact per-texel parameters -> (H, W, P) grid with padding filled (no bilinear bleeding)."""
+    lay = result.layout
+    grid = np.tile(lay.defaults().astype(np.float32), (bake.height * bake.width, 1))
+    grid[problem.texels.grid_index] = result.params
+    return bake.fill_padding(grid.reshape(bake.height, bake.width, -1))
+
+
+def render_model(mesh, grid: np.ndarray, layout: ModelLayout, frame, device: str):
+    from texstream.fit.stages.render import Renderer
+
+    rend = Renderer(mesh, grid, layout, device=device)
+    res = rend.render_frame(frame)
+    return res.radiance * np.float32(frame.exposure), res.mask
+
+
+def heldout_psnr(mesh, grid: np.ndarray, layout: ModelLayout, frames, photos, masks, device: str) -> tuple[list, float]:
+    """Per-view PSNR of the model's renders against ``photos`` (foreground: photo mask and render
+    coverage) and the PSNR of the views' pooled mean squared error."""
+    views = []
+    for fr, photo, mask in zip(frames, photos, masks):
+        render, rmask = render_model(mesh, grid, layout, fr, device)
+        views.append(image_metrics(render, photo, rmask.astype(bool) & mask)["psnr_db"])
+    pooled = float(-10 * np.log10(np.mean([10 ** (-v / 10) for v in views])))
+    return views, pooled
+
+
+@dataclasses.dataclass
+class SyntheticFit:
+    """A fit of a rendered synthetic set scored on held-out renders (:func:`fit_synthetic`)."""
+
+    result: FitResult
+    problem: object
+    grid: np.ndarray
+    """(H, W, P) fitted parameter maps, padding filled"""
+    fit_s: float
+    """wall time of run_fit alone (no problem set-up)"""
+    heldout_views_db: list
+    heldout_pooled_db: float
+
+
+def fit_synthetic(train, held, cfg: FitConfig, device: str, photos=None) -> SyntheticFit:
+    """Fit ``train`` (a rendered scene: mesh, bake, frames, images, masks) and score the fitted model
+    on ``held``'s views; shared by the accuracy tests and the held-out benchmarks. ``photos``: a
+    PhotoSet of ``train`` to reuse (:func:`build_problem`)."""
+    prob = build_problem(train.mesh, train.bake, train.frames, train.images, train.masks, cfg, device, photos)
+    t0 = time.perf_counter()
+    res = run_fit(prob, cfg)
+    fit_s = time.perf_counter() - t0
+    grid = params_to_grid(res, prob, train.bake)
+    views, pooled = heldout_psnr(train.mesh, grid, res.layout, held.frames, held.images, held.masks, device)
+    return SyntheticFit(res, prob, grid, fit_s, views, pooled)
+
+
+def run_fit_with_progress(problem, fit: FitConfig, progress: bool, **kw) -> FitResult:
+    """run_fit with a tqdm bar over iterations when ``progress`` (``kw``: checkpoint, resume)."""
+    from texstream.core.progress import bar, bars_enabled
+
+    if not (progress and bars_enabled()):
+        return run_fit(problem, fit, **kw)
+    start = int(kw["resume"]["iteration"]) if kw.get("resume") else 0
+    with bar(total=fit.max_iterations, desc=f"fit {fit.optimizer}", unit="it") as b:
+        b.update(start)
+        return run_fit(problem, fit, progress=lambda it: b.update(1), **kw)
+
+
+class Checkpoint:
+    """The fit's checkpoint beside its output folder (``.NAME.checkpoint.npz``), tied to the inputs and
+    options by a key: a rerun with the same ones resumes from it, anything else starts afresh."""
+
+    def __init__(self, out_dir: str | Path, key: dict):
+        import hashlib
+        import json
+
+        out = Path(out_dir)
+        self.path = out.parent / f".{out.name}.checkpoint.npz"
+        self.key = hashlib.sha256(json.dumps(key, sort_keys=True, default=str).encode()).hexdigest()
+
+    def load(self) -> dict | None:
+        if not self.path.is_file():
+            return None
+        try:
+            with np.load(self.path, allow_pickle=False) as z:
+                data = {k: z[k] for k in z.files}
+        except (OSError, ValueError):
+            return None  # a damaged checkpoint is only a lost head start
+        if str(data.pop("key", "")) != self.key:
+            return None
+        return {k: (v.item() if v.ndim == 0 else v) for k, v in data.items()}
+
+    def save(self, state: dict) -> None:
+        from texstream.geometry.mesh_io import write_npz_atomic
+
+        # uncompressed: written every sync_every iterations and removed at the end
+        write_npz_atomic(self.path, compress=False, key=np.array(self.key),
+                         **{k: np.asarray(v) for k, v in state.items()})
+
+    def remove(self) -> None:
+        self.path.unlink(missing_ok=True)
+
+
+def fill_unseen_texels(grid: np.ndarray, problem, bake, result: FitResult) -> tuple[np.ndarray, int]:
+    """Give texels no photo saw the parameters of the nearest seen texel in 3D (their defaults would
+    show as a foreign colour wherever a new view sees them, and bleed into seen neighbours through
+    the renderer's bilinear lookup). Returns the maps and the number of texels filled."""
+    seen = result.samples > 0
+    if seen.all() or not seen.any():
+        return grid, 0
+    from scipy.spatial import cKDTree  # only when needed: the import is a large share of a short fit's run
+
+    pos = problem.texels.position
+    _, nearest = cKDTree(pos[seen]).query(pos[~seen])
+    flat = grid.reshape(-1, grid.shape[-1]).copy()
+    idx = problem.texels.grid_index
+    flat[idx[~seen]] = flat[idx[seen][nearest]]
+    return bake.fill_padding(flat.reshape(grid.shape)), int((~seen).sum())
+
+
+def per_texel_objective(problem, params: np.ndarray) -> np.ndarray:
+    """Each texel's objective on the fitted photos at ``params`` (N, P): one streaming pass."""
+    import warp as wp
+
+    f, g = problem.new_scalar(), problem.new_vec()
+    stats = wp.zeros(problem.n, dtype=wp.vec4d, device=problem.device)
+    problem.evaluate(problem.new_storage(params), f, g, stats)
+    return f.numpy().astype(np.float64)
+
+
+def data_jtj(problem, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(J^T J (N, P, P), trace stats (N, 4)) of the data term at ``params``: one Gauss-Newton pass (the
+    problem's material prior, if any, left out)."""
+    import warp as wp
+
+    held = (problem.material_centre, problem.material_weights)
+    problem.material_centre = problem.material_weights = None
+    try:
+        f, g = problem.new_scalar(), problem.new_vec()
+        jtj = wp.zeros(problem.n, dtype=problem.mat, device=problem.device)
+        stats = wp.zeros(problem.n, dtype=wp.vec4d, device=problem.device)
+        problem.evaluate_lm(problem.new_storage(params), f, g, jtj, stats)
+        return jtj.numpy().astype(np.float64), stats.numpy()
+    finally:
+        problem.material_centre, problem.material_weights = held
+

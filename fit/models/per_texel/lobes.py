@@ -1,0 +1,290 @@
+"""The specular lobes of a per-texel fit: the lobe shape report, lobes no photo supports dropped, the traced
+polish, and the shared materials' choice and fit (texels whose highlight no photo caught borrow their
+material's lobe); seams averaged within bounds."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+
+
+from texstream.fit.optim.fitter import FitConfig, FitResult, light_view_angles, run_fit
+from texstream.fit.models.materials import MaterialConfig
+from texstream.fit.kernels.layout import ModelLayout
+
+from texstream.fit.common.inputs import read_photos, FitInputs
+from texstream.fit.common.setup import params_to_grid, heldout_psnr, fill_unseen_texels, per_texel_objective, data_jtj
+
+
+def lobe_shape_report(cfg: FitConfig, layout, frames, positions: np.ndarray) -> dict:
+    """What model.json records of the lobe-shape choice (fit/models.py "Lobe shape")."""
+    from texstream.fit.stream.problem import PhotoFrame
+
+    if layout.n_lobes == 0:
+        return {"requested": cfg.lobe_shape, "fitted": None, "light_view_angle_deg": None}  # no lobe to shape
+    angles = light_view_angles([PhotoFrame.from_capture_frame(f) for f in frames], positions.mean(axis=0))
+    return {"requested": cfg.lobe_shape, "fitted": layout.lobe_shape,
+            "light_view_angle_deg": [float(angles.min()), float(angles.max())] if angles.size else None}
+
+
+def drop_unsupported_lobes(problem, result: FitResult, fraction: float) -> tuple[np.ndarray, np.ndarray]:
+    """(params, dropped): the fitted parameters with rho_s = 0 on every seen texel whose lobes lower its
+    objective by less than ``fraction`` of the objective without them, and the (N,) mask of those texels.
+    Such a lobe explains nothing the photos show; a narrow one whose peak fell between the cameras would
+    still light up a new view at full height."""
+    lay = result.layout
+    dropped = np.zeros(problem.n, bool)
+    if lay.n_lobes == 0 or fraction <= 0:
+        return result.params, dropped
+    bare = scale_lobes(result.params, lay, 0.0)
+    with_lobes, without = per_texel_objective(problem, result.params), per_texel_objective(problem, bare)
+    dropped = (result.samples > 0) & (without - with_lobes <= fraction * np.maximum(without, 1e-30))
+    params = np.where(dropped[:, None], bare, result.params)
+    if lay.n_lobes > 1:
+        # each further lobe on its own: kept only where the texel's error without it is higher by the fraction
+        for j in range(1, lay.n_lobes):
+            one_less = scale_lobes(params, lay, 0.0, only=j)
+            f_with, f_without = per_texel_objective(problem, params), per_texel_objective(problem, one_less)
+            weak = ~dropped & (result.samples > 0) & (f_without - f_with <= fraction * np.maximum(f_without, 1e-30))
+            params = np.where(weak[:, None], one_less, params)
+    return params, dropped
+
+
+def scale_lobes(params: np.ndarray, layout: ModelLayout, factor: float, only: int | None = None) -> np.ndarray:
+    """A copy of (N, P) ``params`` with every lobe's rho_s (or lobe ``only``'s) times ``factor``: 0 takes the
+    lobes away, 2 doubles them (the model is linear in rho_s)."""
+    out = params.copy()
+    for j in range(layout.n_lobes) if only is None else (only,):
+        o = layout.lobe_offset(j)
+        out[:, o:o + 3] = 0.0 if factor == 0 else out[:, o:o + 3] * factor
+    return out
+
+
+def lobes_in_use(params: np.ndarray, layout: ModelLayout, seen: np.ndarray) -> list[int]:
+    """Per lobe, the seen texels whose lobe is on (rho_s not all 0): what model.json records."""
+    return [int((seen & np.any(params[:, layout.lobe_offset(j):layout.lobe_offset(j) + 3] != 0, axis=1)).sum())
+            for j in range(layout.n_lobes)]
+
+
+@dataclasses.dataclass
+class TexelEvidence:
+    """What a per-texel fit's photos say about each texel's lobe (fit/materials.py steps 1-2)."""
+
+    params: np.ndarray
+    samples: np.ndarray
+    jtj: np.ndarray
+    sigma2: float
+    uncertainty: np.ndarray
+    """(N, 3) relative std of rho_s, of n, std of c_z (materials.texel_uncertainty)"""
+    constrained: np.ndarray
+
+
+def texel_evidence(problem, result: FitResult, mcfg: MaterialConfig) -> TexelEvidence:
+    """J^T J, residual variance and uncertainty of a per-texel fit's lobes, and which are constrained."""
+    from texstream.fit.models.materials import residual_variance, texel_uncertainty
+
+    jtj, stats = data_jtj(problem, result.params)
+    sigma2 = residual_variance(stats[result.samples > 0])
+    unc = texel_uncertainty(jtj, result.params, result.layout, sigma2)
+    constrained = (result.samples > 0) & (unc[:, 0] < mcfg.constrained_rel_std) & (unc[:, 1] < mcfg.constrained_rel_std)
+    return TexelEvidence(result.params, result.samples, jtj, sigma2, unc, constrained)
+
+
+def confirm_at_material_lobes(traced, evidence: TexelEvidence, plane: TexelEvidence, k: int,
+                              mcfg: MaterialConfig) -> tuple[TexelEvidence, int]:
+    """``evidence`` (a fit's on traced taps) with its constrained texels kept only where the photos also
+    constrain the lobe of the texel's material: J^T J on ``traced`` taps linearised at the materials' lobes
+    (found from the ``plane``-tap evidence, as the default path finds them), not at the texel's own lobe.
+    A texel whose own wrong lobe is steep where its photos looked (the flank of a highlight no photo showed
+    at its peak) passes the test at its own lobe; at the material's lobe those samples see almost no lobe
+    and it fails. A texel that saw its (even sub-pixel) highlight passes both. Returns (the evidence, how
+    many constrained texels the second test took away)."""
+    from texstream.fit.models.materials import find_materials, material_lobes_on, texel_uncertainty
+
+    lay = traced.layout
+    seen = plane.samples > 0
+    mats = find_materials(plane.params, seen, plane.constrained, lay, k, mcfg.min_lobe_share, mcfg.spread_floor)
+    at = material_lobes_on(evidence.params, mats.labels, mats, lay)
+    jtj, _ = data_jtj(traced, at)
+    unc = texel_uncertainty(jtj, at, lay, evidence.sigma2)
+    keep = (unc[:, 0] < mcfg.constrained_rel_std) & (unc[:, 1] < mcfg.constrained_rel_std)
+    constrained = evidence.constrained & keep
+    return dataclasses.replace(evidence, constrained=constrained), int((evidence.constrained & ~keep).sum())
+
+
+def traced_polish_applies(problem, cfg) -> bool:
+    """Whether the fit ends with :func:`traced_polish`: a model with specular lobes, fitted with filtered plane
+    taps on a mesh (an atlas fit, not a single view), untiled."""
+    from texstream.fit.multi.tiles import tiled
+
+    s = problem.cfg
+    return (cfg.traced_polish > 0 and problem.layout.n_lobes > 0 and s.photo_sampling == "filtered"
+            and s.tap_geometry == "plane" and problem.photos.mesh_normals is not None
+            and problem.photos.mesh_uvs is not None and not tiled(cfg.fit))
+
+
+def traced_problem(problem):
+    """``problem``'s texels and photos with every filtered tap traced to the mesh (``tap_geometry`` mesh)."""
+    from texstream.fit.stream.problem import StreamProblem
+
+    return StreamProblem(problem.texels, problem.photos, problem.layout,
+                         dataclasses.replace(problem.cfg, tap_geometry="mesh"), problem.device)
+
+
+def traced_polish(problem, result: FitResult, cfg, prior=None) -> FitResult:
+    """``cfg.traced_polish`` Levenberg-Marquardt iterations from ``result`` on the same texels and photos with
+    traced taps (``StreamConfig.tap_geometry`` mesh), the materials' ``prior`` (centre, weights) kept on; the
+    trace continues ``result``'s (its first row: the start, evaluated with traced taps). Returns ``result``
+    unchanged where :func:`traced_polish_applies` says no."""
+
+    if not traced_polish_applies(problem, cfg):
+        return result
+    traced = traced_problem(problem)
+    if prior is not None:
+        traced.set_material_prior(*prior)
+    fit = dataclasses.replace(cfg.fit, max_iterations=cfg.traced_polish, optimizer="lm")
+    res = run_fit(traced, fit, start=(result.params, result.samples))
+    t_end = result.trace[-1]["time_s"] if result.trace else 0.0
+    extra = [{**r, "iteration": r["iteration"] + len(result.trace), "time_s": r["time_s"] + t_end,
+              "stage": "traced polish"} for r in res.trace]
+    return dataclasses.replace(res, trace=result.trace + extra, passes=result.passes + res.passes)
+
+
+def fit_with_materials(problem, result: FitResult, evidence: TexelEvidence, k: int, variant: str,
+                       cfg, polish: bool = False) -> tuple[FitResult, dict]:
+    """The materials model with ``k`` materials (fit/materials.py): cluster, prior, Levenberg-Marquardt from
+    the per-texel fit ``result``, then (``polish``) :func:`traced_polish` with the prior on. Returns the fit
+    and what model.json records of it."""
+    from texstream.fit.models.materials import (contradiction_test, find_materials, material_lobes_on, material_prior,
+                            reject_contradicted_lobes)
+
+    mcfg = cfg.materials
+    lay = result.layout
+    seen = evidence.samples > 0
+    mats = find_materials(evidence.params, seen, evidence.constrained, lay, k, mcfg.min_lobe_share,
+                          mcfg.spread_floor)
+    bare = scale_lobes(evidence.params, lay, 0.0)
+    with_lobe = material_lobes_on(evidence.params, mats.labels, mats, lay)
+    doubled = scale_lobes(with_lobe, lay, 2.0)
+    f_mat, f_bare = per_texel_objective(problem, with_lobe), per_texel_objective(problem, bare)
+    contradicted = contradiction_test(f_bare, f_mat, per_texel_objective(problem, doubled), evidence.samples,
+                                      evidence.sigma2, mcfg.contradiction)
+    mats.contradicted_share = reject_contradicted_lobes(mats, mats.labels, seen, evidence.constrained, contradicted,
+                                                        mcfg.max_contradicted)
+    prior = material_prior(evidence.params, evidence.jtj, seen, evidence.constrained, mats.labels, mats, lay,
+                           evidence.sigma2, contradicted, mcfg, variant)
+    problem.set_material_prior(prior.centre, prior.weights)
+    try:
+        fit = dataclasses.replace(cfg.fit, max_iterations=mcfg.iterations, optimizer="lm")
+        res = run_fit(problem, fit, start=(prior.start, evidence.samples))
+    finally:
+        problem.set_material_prior(None)
+    if polish:
+        res = traced_polish(problem, res, cfg, prior=(prior.centre, prior.weights))
+    info = {"variant": variant, "k": mats.k, "materials": mats.to_json(lay),
+            "borrowed_texels": int(prior.borrow.sum()), "no_lobe_texels": int(prior.no_lobe.sum()),
+            "contradicted_texels": int((contradicted & seen & ~evidence.constrained).sum()),
+            "labels": mats.labels, "borrow_mask": prior.borrow, "no_lobe_mask": prior.no_lobe}
+    return res, info
+
+
+def model_grid(params: np.ndarray, result: FitResult, problem, bake, cfg, seams=None) -> np.ndarray:
+    """(H, W, P) maps of compact ``params`` as the stage writes them: padding, unseen texels, seams."""
+    res = dataclasses.replace(result, params=params)
+    grid = params_to_grid(res, problem, bake)
+    if cfg.unseen == "nearest":
+        grid, _ = fill_unseen_texels(grid, problem, bake, res)
+    grid, _ = average_seams_in_bounds(grid, seams, result.layout)
+    return grid
+
+
+def choose_materials(inputs: "FitInputs", problem, cfg, log=None) -> dict:
+    """Pick the per-texel or a materials model (variant and K) on a validation split of the fitted photos:
+    every ``materials.validation_every``-th fitted photo is held back, the per-texel fit and every
+    candidate are fitted to the rest and scored by their renders of the validation photos (pooled
+    PSNR; ties within 0.05 dB go to the simpler model). The fit's own held-out photos play no part.
+    Returns the choice and every candidate's score, or {"chosen": "per-texel", "reason": ...} when the
+    fitted photos are too few to split."""
+    from texstream.fit.stream.problem import StreamProblem
+
+    mcfg = cfg.materials
+    every = mcfg.validation_every
+    n = len(inputs.frames)
+    val = [i for i in range(n) if i % every == every - 1]
+    train = [i for i in range(n) if i % every != every - 1]
+    if len(val) < 2 or len(train) < 2:
+        return {"chosen": "per-texel", "reason": f"{n} fitted photos are too few for a validation split of every "
+                                                 f"{every}th"}
+    t0 = time.perf_counter()
+    sub = StreamProblem(problem.texels, problem.photos.subset(train), problem.layout, problem.cfg, problem.device)
+    res = run_fit(sub, cfg.fit)
+    frames = [inputs.frames[i] for i in val]
+    images, masks = read_photos(inputs.images, inputs.masks, val)
+
+    def score(params) -> dict:
+        grid = model_grid(params, res, sub, inputs.bake, cfg, inputs.seams)
+        views, _ = heldout_psnr(inputs.mesh, grid, res.layout, frames, images, masks, cfg.device)
+        pooled = float(-10 * np.log10(np.mean([10 ** (-v / 10) for v in views])))
+        return {"pooled_psnr_db": pooled, "worst_psnr_db": float(min(views))}
+
+    cands = []
+    params, _ = drop_unsupported_lobes(sub, res, cfg.lobe_support)
+    cands.append({"model": "per-texel", **score(params)})
+    if mcfg.mode == "on":
+        cands[0]["excluded"] = "materials mode on"
+    evidence = texel_evidence(sub, res, mcfg)
+    for variant in mcfg.variant_list():
+        for k in range(1, mcfg.max_materials + 1):
+            r, info = fit_with_materials(sub, res, evidence, k, variant, cfg)
+            if info["k"] < k:
+                break  # fewer distinct albedos than k: no new model
+            cands.append({"model": variant, "k": info["k"], **score(r.params)})
+            if log is not None:
+                log(f"[fit] validation: {variant} K={k}: pooled {cands[-1]['pooled_psnr_db']:.2f} dB, "
+                    f"worst {cands[-1]['worst_psnr_db']:.2f} dB")
+    eligible = [c for c in cands if "excluded" not in c]
+    best = eligible[0]
+    for c in eligible[1:]:
+        if c["pooled_psnr_db"] > best["pooled_psnr_db"] + 0.05:
+            best = c
+    name = best["model"] + (f" K={best['k']}" if "k" in best else "")
+    return {"chosen": best["model"], "k": best.get("k"), "validation_photos": len(val), "fitted_on": len(train),
+            "candidates": cands, "seconds": time.perf_counter() - t0,
+            "reason": f"{name}: best pooled PSNR on {len(val)} validation photos (every {every}th fitted photo), "
+                      f"{best['pooled_psnr_db']:.2f} dB against per-texel {cands[0]['pooled_psnr_db']:.2f} dB"}
+
+
+def average_seams_in_bounds(grid: np.ndarray, seams, layout: ModelLayout) -> tuple[np.ndarray, dict | None]:
+    """Tie the texels across chart seams (no cracks in bilinear lookups), keeping every value in its
+    bounds; returns the maps and what model.json records of the seams."""
+    if seams is None:
+        return grid, None
+    from texstream.geometry.seams import average_across_seams, seam_gaps
+
+    # the view terms' coefficients live in each chart's own tangent frame, so two sides of a seam do
+    # not share them: only the radiance along the normal (columns 0:3) is tied there
+    cols = slice(0, 3) if layout.view_terms else slice(0, grid.shape[-1])
+    part = np.ascontiguousarray(grid[..., cols])
+    before = float(np.abs(seam_gaps(part, seams)).max()) if seams.n_samples else 0.0
+    part = average_across_seams(part, seams, lower=layout.lower()[cols], upper=layout.upper()[cols])
+    grid = grid.copy()
+    grid[..., cols] = part
+    grid = grid.astype(np.float32)
+    after = float(np.abs(seam_gaps(part, seams)).max()) if seams.n_samples else 0.0
+    return grid, {"samples": int(seams.n_samples), "max_gap_before": before, "max_gap_after": after}
+
+
+def _materials_manifest(info: dict | None, evidence: TexelEvidence | None, mcfg: MaterialConfig) -> dict | None:
+    """What model.json records of the materials choice (no masks or label arrays)."""
+    if info is None:
+        return None
+    out = {k: v for k, v in info.items() if not k.endswith("_mask")}
+    if evidence is not None:
+        seen = evidence.samples > 0
+        out["uncertainty"] = {"map": "uncertainty.exr", "channels": ["rho_s relative std", "n relative std", "c_z std"],
+                              "residual_variance": evidence.sigma2, "constrained_rel_std": mcfg.constrained_rel_std,
+                              "constrained_texels": int(evidence.constrained.sum()), "seen_texels": int(seen.sum())}
+    return out
+
