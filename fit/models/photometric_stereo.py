@@ -341,7 +341,8 @@ def fit_single_view_stage(capture_dir: str | Path, normals_path: str | Path | No
     from texstream.capture.imageio import read_image, read_mask, write_image
 
     from texstream.fit.common.model_folder import check_model, pooled_psnr, render_comparisons, write_model_folder
-    from texstream.fit.stages.stage import check_output_path, run_fit_with_progress
+    from texstream.fit.common.inputs import check_output_path
+    from texstream.fit.common.setup import run_fit_with_progress
 
     cfg = config or SingleViewConfig()
     check_config(cfg)

@@ -33,7 +33,7 @@ def _fit_per_texel_model(capture_dir: str | Path, mesh_path: str | Path, out_dir
 
     from texstream.fit.common.model_folder import (bound_report, check_model, pooled_psnr, render_comparisons, trace_plot,
                                write_model_folder)
-    from texstream.fit.diagnostics.stiffcheck import numerics_warnings
+    from texstream.fit.common.numerics import numerics_warnings
 
     t0 = time.perf_counter()
     with phase("fit", f"{cfg.fit.model}: reading the photos and setting up the texels"):
