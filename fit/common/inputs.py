@@ -10,6 +10,7 @@ import numpy as np
 
 from texstream.core.errors import InputError, StageError
 from texstream.core.progress import say
+from texstream.fit.kernels.layout import layout_traits
 
 
 from texstream.fit.common.setup import build_problem
@@ -108,8 +109,8 @@ def split_holdout(frames: list, every: int) -> tuple[list, list]:
 
 
 def check_capture_lights(capture, model: str, capture_dir: str | Path) -> None:
-    """Reflectance models need a light per photo; the radiance model needs none."""
-    if model not in ("radiance", "view_radiance") and not capture.has_lights:
+    """Reflectance models (layout traits ``lit``) need a light per photo; radiance models need none."""
+    if layout_traits(model).lit and not capture.has_lights:
         raise InputError(f"the {model} model needs a light per photo and some frames have none",
                          Path(capture_dir) / "capture.json",
                          "fit the radiance model (--model radiance), or add per-frame lights (texstream ingest "
