@@ -45,6 +45,10 @@ class ExportMaterial:
         ns: OBJ exponent.
         clipped: covered texels whose base colour was clipped at 1.
         label: what the base map holds, for file names and notes ("basecolor", "radiance").
+        name: the material's name in the files (glTF ``texstream_<name>``, export.json's ``kind``):
+            "lafortune", "diffuse" or "radiance".
+        extras: model-specific options the export records (export.json, the glTF material's extras),
+            e.g. how an LFM's unlit colour was made.
     """
 
     base: np.ndarray
@@ -55,6 +59,8 @@ class ExportMaterial:
     ns: float = 1.0
     clipped: int = 0
     label: str = "basecolor"
+    name: str = ""
+    extras: dict = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass
