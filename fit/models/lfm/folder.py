@@ -70,7 +70,7 @@ class LFMModel(FittedModel):
         man = self.manifest
         lay, lf = man.get("layout") or {}, man.get("lfm") or {}
         res = lay.get("view_res")
-        desc = (f"lfm, K={lay.get('terms')}, {res}x{res} {lay.get('view_map')} view maps, {lay.get('method')}, "
+        desc = (f"{self.kind}, K={lay.get('terms')}, {res}x{res} {lay.get('view_map')} view maps, {lay.get('method')}, "
                 f"{lf.get('vertices_welded')} vertices")
         return [("model", desc), ("texels", f"{lf.get('texels')} of {self.lfm.bake.width}x{self.lfm.bake.height}"),
                 ("iterations", _fmt((man.get("method_info") or {}).get("iterations"))),
