@@ -6,7 +6,7 @@
  * tangent = dp/du of the triangle made orthogonal to it, bitangent = n x t; the light uniforms), the
  * model's own GLSL from its plugin (M.shader, fit/models/<kind>/viewer.glsl) defining
  *     vec3 model_radiance(vec2 uv, vec3 pos, vec3 nrm, vec3 tng, vec3 eye, int part)
- * (the radiance toward the eye; part 0 = the full model, 1 and 2 = its "diffuse" and "specular"
+ * (the radiance toward the eye; part 0 = the full model, 1 and 2 = its diffuse and specular
  * parts), and a common main():
  *     pixel = exposure * model_radiance(...)
  * sRGB-encoded for display, or the error, photo and unseen views. The plugin's integer uniforms
