@@ -149,7 +149,7 @@ def main() -> None:
     from texstream.fit.optim.fitter import FitConfig
     from texstream.fit.models.lfm import LFMConfig, LFMProblem, PhotoSamples, fit_lfm
     from texstream.fit.models.lfm_baselines import fit_nmf, fit_pca
-    from texstream.fit.stages.lfm_stage import LFMRenderer, lfm_geometry
+    from texstream.fit.models.lfm.model_folder import LFMRenderer, lfm_geometry
     from texstream.fit.stages.stage import build_problem, split_holdout
 
     out = Path(a.out)

@@ -35,8 +35,8 @@ def main(argv=None) -> int:
 
     from texstream.capture.capture_json import read_capture
     from texstream.capture.imageio import read_image, read_mask
-    from texstream.fit.stages.export import LFM_VIEW_MEANS, lfm_unlit_renderer
-    from texstream.fit.stages.lfm_stage import load_lfm_model
+    from texstream.fit.models.lfm.export import LFM_VIEW_MEANS, lfm_unlit_renderer
+    from texstream.fit.models.lfm.model_folder import load_lfm_model
     from texstream.fit.common.model_folder import image_metrics, pooled_psnr
     from texstream.fit.stages.stage import split_holdout
 

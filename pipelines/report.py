@@ -11,8 +11,8 @@
   fitted model from its parameter textures with the fit's own shading (docs/report.md). Its
   data (mesh, float parameter textures, cameras, lights, a few photos) is inlined as base64 in a
   JSON script block, and the JS and CSS are inlined too, so ``file://`` loading needs nothing else.
-  Light field mapping models (kind "lfm") ship their surface maps per atlas texel, their view maps
-  and vertex frames as textures, and the shader sums the terms as fit/lfm_stage.py's LFMRenderer does.
+  The model's plugin gives the viewer its per-texel data, extra textures and GLSL shading function
+  (fit/models/registry.py ``ViewerModel``); the report never asks which kind a model is.
 
 Heavy imports (matplotlib, OpenImageIO through capture.imageio, warp through the renderer) are
 inside the functions.
@@ -45,84 +45,20 @@ MAX_VIEWER_FRAMES = 400
 
 
 def load_report_model(model_dir: str | Path):
-    """(mesh with normals, grid (H, W, P) float32, info dict, model.json) of a model folder.
+    """(mesh with normals, viewer grid (H, W, P) float32, info dict, model.json) of a model folder, read by
+    the plugin of its kind (model.json's ``layout.kind``, or ``kind`` for a folder without a layout).
 
-    ``info``: kind ("lafortune", "diffuse", "radiance", "view_radiance" or "lfm"), n_lobes, anisotropic,
-    and the ModelLayout (None for "radiance", which is 3 unlit RGB radiance parameters in radiance.exr,
-    and for "lfm"). For "lfm" the grid is :func:`lfm_viewer_grid` and ``info["lfm"]`` the loaded
-    model folder (fit/lfm_stage.py ``LFMModelFolder``).
+    ``info``: kind, layout (the per-texel ModelLayout, or None for a model without one), model (the
+    FittedModel) and viewer (its ViewerModel, whose grid the viewer grid is).
     """
+    from texstream.fit.models import registry
+
     d = Path(model_dir)
     man = read_json(d / "model.json", what="model manifest")
-    kind = man.get("kind") or man.get("layout", {}).get("kind")
-    if kind == "lfm":
-        from texstream.fit.stages.lfm_stage import load_lfm_model
-
-        model = load_lfm_model(d)
-        return model.mesh, lfm_viewer_grid(model), {"kind": "lfm", "n_lobes": 0, "anisotropic": False,
-                                                    "layout": None, "lfm": model}, model.manifest
-    if kind == "radiance":
-        from texstream.capture.imageio import read_image
-        from texstream.geometry.mesh_io import load_mesh
-
-        name = (man.get("maps") or {}).get("radiance", "radiance.exr")
-        if not (d / name).is_file():
-            raise InputError("radiance model has no radiance map", d / name, "re-run the fit that wrote this folder")
-        grid = read_image(d / name, channels=3).astype(np.float32)
-        mesh = load_mesh(d / man.get("mesh", "mesh.obj")).with_normals()
-        return mesh, grid, {"kind": "radiance", "n_lobes": 0, "anisotropic": False, "layout": None}, man
-    from texstream.fit.stages.stage import load_model
-
-    mesh, grid, lay, man = load_model(d)
-    return mesh, grid, {"kind": lay.kind, "n_lobes": lay.n_lobes, "anisotropic": bool(lay.anisotropic),
-                        "layout": lay}, man
-
-
-LFM_FRAME_COLUMNS = 512
-"""vertices per row of the LFM viewer's vertex-frame texture (4 texels each: 2048 wide, WebGL2's minimum)"""
-
-
-def lfm_viewer_grid(model) -> np.ndarray:
-    """(H, W, 6 + 9 K) float32 per atlas texel of an LFM model (what its renderer reads there: the texel
-    itself or, for padding, the texel it copies): the view-independent term d (0:3), the welded vertex
-    of each of its three slots (3:6, -1: no texel), and the surface maps G[slot j, term k] at
-    6 + 3 (j K + k) (fit/kernels/lfm.py ``texel_radiance``)."""
-    from texstream.fit.stages.export import lfm_atlas
-
-    p = model.params
-    n, k = p.diffuse.shape[0], model.terms
-    per_texel = np.concatenate([p.diffuse, model.geom.slot_vertex.reshape(n, 3).astype(np.float64),
-                                np.asarray(p.G, np.float64).reshape(n, 9 * k)], axis=1)
-    grid = lfm_atlas(model, per_texel)
-    valid = lfm_atlas(model, np.ones((n, 1)))[..., 0] > 0
-    grid[~valid, 3:6] = -1.0
-    return grid
-
-
-def lfm_viewer_data(model) -> dict:
-    """The viewer's LFM block: the view maps as RGBA32F layers (term k in layer k, vertex v's R x R tile
-    at tile column v % cols, row v // cols: fit/lfm_stage.py ``tile_view_maps``) and the welded
-    vertices' positions and frames (texels 4 (v % LFM_FRAME_COLUMNS) + [0: position, 1: tangent,
-    2: bitangent, 3: normal], row v // LFM_FRAME_COLUMNS), with the lookup options."""
-    from texstream.fit.stages.lfm_stage import tile_view_maps
-
-    p, g, res = model.params, model.geom, model.view_res
-    tiles = np.stack([tile_view_maps(np.asarray(p.H[:, k]), res) for k in range(model.terms)])  # (K, h, w, 3)
-    views = np.zeros((*tiles.shape[:3], 4), np.float32)
-    views[..., :3] = tiles
-    V = g.n_vertices
-    rows = -(-V // LFM_FRAME_COLUMNS)
-    frames = np.zeros((rows * LFM_FRAME_COLUMNS, 4, 4), np.float32)
-    frames[:V, :, :3] = np.stack([g.vpos, g.vtan, g.vbit, g.vnrm], axis=1)
-    frames = frames.reshape(rows, LFM_FRAME_COLUMNS * 4, 4)
-    c = model.cfg
-    return {"terms": model.terms, "view_res": res, "vertices": V, "tile_columns": max(1, int(np.ceil(np.sqrt(V)))),
-            "view_map": c.view_map, "lookup": c.lookup, "surface_lookup": c.surface_lookup,
-            "render_view": c.render_view,
-            "views": {"width": int(views.shape[2]), "height": int(views.shape[1]), "layers": int(views.shape[0]),
-                      "data": _b64(views, "<f4")},
-            "frames": {"width": int(frames.shape[1]), "height": int(frames.shape[0]), "columns": LFM_FRAME_COLUMNS,
-                       "data": _b64(frames, "<f4")}}
+    model = registry.get((man.get("layout") or {}).get("kind") or man.get("kind")).load(d, man)
+    vm = model.viewer()
+    return model.mesh, vm.grid, {"kind": model.kind, "layout": getattr(model, "layout", None), "model": model,
+                                 "viewer": vm}, model.manifest
 
 
 def _b64(a: np.ndarray, dtype: str) -> str:
@@ -173,12 +109,15 @@ def face_tangents(vertices: np.ndarray, faces: np.ndarray, uvs: np.ndarray) -> n
     return np.where(ok[:, None], tan, 0.0)
 
 
-def viewer_model_data(mesh, grid: np.ndarray, info: dict, frames: list[dict] | None = None,
-                      seen: np.ndarray | None = None, default_frame: int = 0) -> dict:
+def viewer_model_data(mesh, info: dict, frames: list[dict] | None = None, seen: np.ndarray | None = None,
+                      default_frame: int = 0) -> dict:
     """The viewer's model block: mesh (positions, vertex normals as the renderer computes them,
     UVs, triangle indices), parameters as RGBA32F texture layers (parameter k in layer k // 4,
-    channel k % 4; row 0 = top row of the texel grid), the seen map and the frames."""
-    g = np.asarray(grid, dtype=np.float32)
+    channel k % 4; row 0 = top row of the texel grid), the seen map and the frames, with the plugin's
+    GLSL (``shader``) and data (``uniforms``: integer uniforms; ``textures``: RGBA32F textures of their
+    own, bound to units 3, 4, ...)."""
+    vm = info["viewer"]
+    g = np.asarray(vm.grid, dtype=np.float32)
     if g.ndim != 3 or g.shape[0] < 2 or g.shape[1] < 2:
         raise ConfigError(f"parameter grid has shape {g.shape}, expected (H >= 2, W >= 2, P)")
     if not np.all(np.isfinite(g)):
@@ -194,8 +133,7 @@ def viewer_model_data(mesh, grid: np.ndarray, info: dict, frames: list[dict] | N
     lo, hi = v.min(axis=0), v.max(axis=0)
     faces = np.asarray(mesh.faces, np.int64)
     data = {
-        "kind": info["kind"], "n_lobes": int(info["n_lobes"]), "anisotropic": bool(info["anisotropic"]),
-        "n_params": int(p),
+        "kind": info["kind"], "n_params": int(p), "shader": vm.shader, "uniforms": {}, "textures": [],
         "texture": {"width": int(w), "height": int(h), "layers": int(layers), "data": _b64(tex, "<f4")},
         # one vertex per face corner, so each face carries its own tangent (dp/du, what fit/kernels/
         # shading.py surface_frame computes): derivatives taken on screen break where a 2x2 pixel quad
@@ -213,8 +151,7 @@ def viewer_model_data(mesh, grid: np.ndarray, info: dict, frames: list[dict] | N
         s = np.asarray(seen)
         if s.shape[:2] == (h, w):
             data["seen"] = _b64((s.reshape(h, w, -1)[..., 0] > 0.5).astype(np.uint8) * 255, "u1")
-    if info["kind"] == "lfm":
-        data["lfm"] = lfm_viewer_data(info["lfm"])
+    data.update(vm.data)
     return data
 
 
@@ -236,20 +173,18 @@ def _holdout_every(model_dir: Path) -> int:
     return int(read_json(p, what="fit config").get("holdout_every", 0) or 0)
 
 
-def evaluate_views(mesh, grid, info, capture, frames, device: str) -> list[dict]:
-    """Render the model for each frame; foreground = render coverage and the photo's mask."""
+def evaluate_views(model, capture, frames, device: str) -> list[dict]:
+    """Render the model (its plugin's renderer) for each frame; foreground = render coverage and the photo's
+    mask."""
     from texstream.capture.imageio import read_image, read_mask
     from texstream.core.progress import bar
-    from texstream.fit.stages.stage import image_metrics, render_model
+    from texstream.fit.stages.stage import image_metrics
 
     rows = []
-    lfm_render = info["lfm"].renderer(device).render_frame if info["kind"] == "lfm" else None
+    render_frame = model.renderer(device)
     for f in bar(frames, "report: held-out renders", unit="view"):
         photo = read_image(capture.image_path(f), channels=3)
-        if lfm_render is not None:
-            render, rmask = lfm_render(f)
-        else:
-            render, rmask = render_model(mesh, grid, info["layout"], f, device)
+        render, rmask = render_frame(f)
         m = rmask.astype(bool)
         mp = capture.mask_path(f)
         if mp is not None and mp.exists():
@@ -347,12 +282,10 @@ def plot_comparison(photo: np.ndarray, render: np.ndarray, mask: np.ndarray | No
     plt.close(fig)
 
 
-def param_map_figures(grid: np.ndarray, info: dict, seen: np.ndarray | None, folder: Path,
-                      model_dir: Path | None = None) -> list[tuple[str, str]]:
-    """PNG previews of each parameter map (and, from ``model_dir``, the lobe uncertainty and the shared
-    materials when the fit wrote them); returns (file name, caption) pairs."""
+def param_map_figures(model, seen: np.ndarray | None, folder: Path, model_dir: Path | None = None) -> list[tuple[str, str]]:
+    """PNG previews of each parameter map (the plugin's ``report_maps``; and, from ``model_dir``, the lobe
+    uncertainty and the shared materials when the fit wrote them); returns (file name, caption) pairs."""
     plt = _plt()
-    from texstream.capture.imageio import linear_to_srgb
 
     out = []
 
@@ -368,55 +301,7 @@ def param_map_figures(grid: np.ndarray, info: dict, seen: np.ndarray | None, fol
         plt.close(fig)
         out.append((f"maps/{name}.png", caption))
 
-    def rgb_scaled(x):
-        scale = float(np.percentile(x.max(axis=2), 99))
-        scale = scale if scale > 0 else 1.0
-        return linear_to_srgb(np.clip(x / scale, 0, 1)), scale
-
-    if info["kind"] == "lfm":
-        from texstream.fit.stages.export import lfm_atlas, lfm_unlit_radiance
-
-        model = info["lfm"]
-        img, s = rgb_scaled(grid[..., 0:3])
-        save("diffuse", img, f"view-independent term d (RGB, divided by {s:.4g}, the 99th percentile; sRGB)")
-        img, s = rgb_scaled(np.maximum(lfm_atlas(model, lfm_unlit_radiance(model)), 0.0))
-        save("unlit", img, "the exported unlit colour: d plus each term's cosine-weighted mean over view directions "
-             f"(divided by {s:.4g}; sRGB)")
-        amp = np.sqrt(np.sum(grid[..., 6:] ** 2, axis=-1))
-        a, sa = rgb_scaled(np.repeat(amp[..., None], 3, axis=2))
-        save("surface_maps", a, f"view dependence: |surface maps| over slots and terms (divided by {sa:.4g}; sRGB)")
-        from texstream.fit.stages.lfm_stage import tile_view_maps
-
-        views = tile_view_maps(np.asarray(model.params.H[:, 0]), model.view_res)
-        v, sv = rgb_scaled(np.abs(views))
-        save("view_k0", v, f"term 0's view maps |h|, one {model.view_res}x{model.view_res} tile per vertex "
-             f"(divided by {sv:.4g}; sRGB)")
-    elif info["kind"] in ("radiance", "view_radiance"):
-        img, s = rgb_scaled(grid[..., 0:3])
-        save("radiance", img, f"radiance (RGB, divided by {s:.4g}, the 99th percentile; sRGB)"
-             + (", seen along the normal" if info["kind"] == "view_radiance" else ""))
-        if info["kind"] == "view_radiance":
-            # how much the view changes the radiance: the coefficients' magnitude over the view terms
-            amp = np.sqrt(np.sum(grid[..., 3:18] ** 2, axis=-1))
-            a, sa = rgb_scaled(np.repeat(amp[..., None], 3, axis=2))
-            save("view_dependence", a, f"view dependence: |view-term coefficients| (divided by {sa:.4g}; sRGB)")
-    else:
-        save("rho_d", linear_to_srgb(np.clip(np.pi * grid[..., 0:3], 0, 1)),
-             "diffuse albedo pi * rho_d (RGB, clipped to 1; sRGB)")
-        lay = info["layout"]
-        for j in range(info["n_lobes"]):
-            o = lay.lobe_offset(j)
-            img, s = rgb_scaled(grid[..., o:o + 3])
-            save(f"lobe{j}_rho_s", img, f"lobe {j} specular albedo rho_s (RGB, 1/sr, divided by {s:.4g}; sRGB)")
-            names = ["c_x", "c_y", "c_z"] if lay.anisotropic else ["c_xy", "c_z"]
-            for k, cname in enumerate(names):
-                col = grid[..., o + 3 + k]
-                if np.ptp(col) == 0:
-                    continue  # held constant (the scale gauge, or c_z of a Phong lobe): said in the layout table
-                save(f"lobe{j}_{cname}", col, f"lobe {j} coefficient {cname}", cmap="viridis")
-            n = grid[..., o + lay.lobe_stride - 1]
-            save(f"lobe{j}_n", np.log10(np.maximum(n, 1e-6)), f"lobe {j} exponent n (log10)", cmap="viridis",
-                 colorbar_label="log10 n")
+    model.report_maps(save, seen)
     if seen is not None:
         save("seen", seen.reshape(seen.shape[0], seen.shape[1], -1)[..., 0], "texels some fitted photo saw (1) "
              "or none did (0: they keep default values)", cmap="gray", vmin=0, vmax=1)
@@ -621,8 +506,7 @@ def write_report(out_dir: str | Path, stages: list[dict], model_dir: str | Path,
     model_dir = Path(model_dir)
     mesh, grid, info, man = load_report_model(model_dir)
     trace = read_json(model_dir / "trace.json", what="fit trace") if (model_dir / "trace.json").is_file() else []
-    if not trace and info["kind"] == "lfm":
-        trace = man.get("trace") or []  # the LFM fit keeps its trace in model.json
+    trace = trace or man.get("trace") or []  # a fit with no trace.json may keep its trace in model.json
     seen = None
     if (model_dir / "seen.png").is_file():
         from texstream.capture.imageio import read_image
@@ -640,165 +524,20 @@ def write_report(out_dir: str | Path, stages: list[dict], model_dir: str | Path,
         os.chmod(tmp, 0o755)  # mkdtemp makes it 0700; a report is for reading
         (tmp / "maps").mkdir()
         (tmp / "views").mkdir()
-        sections = []
-
-        # ---- header and stages
         when = datetime.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
-        sections.append(f"<h1>{_e(title)}</h1><p class='meta'>{_e(when)} &middot; model {_e(model_dir.resolve())}"
-                        + (f" &middot; capture {_e(Path(capture_dir).resolve())}" if capture_dir else "") + "</p>")
-        sections.append("<h2>Stages</h2>" + _stages_html(stages))
+        sections = [f"<h1>{_e(title)}</h1><p class='meta'>{_e(when)} &middot; model {_e(model_dir.resolve())}"
+                    + (f" &middot; capture {_e(Path(capture_dir).resolve())}" if capture_dir else "") + "</p>",
+                    "<h2>Stages</h2>" + _stages_html(stages)]
         if man.get("warnings"):  # the fit's warnings (bounds, numerics), one line each
             sections.append("<h2>Warnings</h2><ul class='warnings'>"
                             + "".join(f"<li>{_e(w)}</li>" for w in man["warnings"]) + "</ul>")
-
-        # ---- fit
-        fin = man.get("final") or {}
-        atlas = man.get("atlas") or {}
-        if info["kind"] == "lfm":  # fit/lfm_stage.py's manifest
-            lf = man.get("lfm") or {}
-            fin = {"iteration": (man.get("method_info") or {}).get("iterations"), "time_s": man.get("fit_s"),
-                   "psnr_db": (man.get("sample_error") or {}).get("psnr_db")}
-            atlas = {"texels": lf.get("texels")}
-        lay_json = man.get("layout") or {}
-        lfm_desc = (f", K={lay_json.get('terms')}, {lay_json.get('view_res')}x{lay_json.get('view_res')} "
-                    f"{lay_json.get('view_map')} view maps, {lay_json.get('method')}, "
-                    f"{(man.get('lfm') or {}).get('vertices_welded')} vertices" if info["kind"] == "lfm" else "")
-        kp = [("model", f"{info['kind']}{lfm_desc}" + (f", {info['n_lobes']} lobe(s)" if info["n_lobes"] else "")
-               + (" anisotropic" if info["anisotropic"] else "")
-               + (f", lobe shape {man.get('layout', {}).get('lobe_shape')}" if info["n_lobes"] else "")),
-              ("texels", f"{atlas.get('texels', '?')} of {grid.shape[1]}x{grid.shape[0]}"
-               + (f", {atlas['unseen_texels']} unseen" if "unseen_texels" in atlas else "")),
-              ("photos", (f"{(man.get('photos') or {}).get('fitted', '?')} fitted, "
-                          f"{(man.get('photos') or {}).get('held_out', '?')} held out")),
-              ("iterations", _fmt(fin.get("iteration"))), ("fit time", f"{_fmt(fin.get('time_s'))} s"),
-              ("set-up time", f"{_fmt(man.get('setup_s'))} s"),
-              ("sample PSNR", f"{_fmt(fin.get('psnr_db'))} dB"), ("device", man.get("device", "?"))]
-        fit_html = ["<h2>Fit</h2><div>" + "".join(f"<span class='kpi'>{_e(k)}<b>{_e(v)}</b></span>" for k, v in kp)
-                    + "</div>"]
-        if trace:
-            plot_error_vs_time(trace, tmp / "error_vs_time.png")
-            fit_html.append(_fig("error_vs_time.png", "Objective and PSNR of the fitted samples against the fit's "
-                                 "run time (trace.json; set-up time not included)."))
-        else:
-            fit_html.append("<p class='note'>No trace.json in the model folder: no error-against-time plot.</p>")
-        sections.append("".join(fit_html))
-
-        # ---- held-out evaluation
-        k = _holdout_every(model_dir)
-        rows: list[dict] = []
-        held_names: set[str] = set()
-        source = ""
-        if capture is not None:
-            held = [f for i, f in enumerate(capture.frames) if k > 0 and i % k == k - 1]
-            held_names = {f.name for f in held}
-            if info["kind"] == "radiance":
-                source = "model.json render_eval (the renderer does not draw radiance models)"
-            else:
-                try:
-                    rows = evaluate_views(mesh, grid, info, capture, held, device)
-                    source = (f"rendered here for the {len(held)} photos held out of the fit "
-                              f"(every {k}th photo, fit_config.json)")
-                except TexstreamError as e:
-                    source = f"model.json render_eval (rendering here failed: {e})"
-                    rows = []
-        if not rows:
-            evals = [r for r in man.get("render_eval") or [] if r.get("held_out")]
-            for r in evals:
-                name = Path(r["frame"]).stem
-                row = {"frame": r["frame"], "name": name, "psnr_db": r["psnr_db"], "ape_percent": r.get("ape_percent"),
-                       "pixels": r.get("pixels")}
-                png = model_dir / "renders" / f"{name}_fit_vs_photo.png"
-                if png.is_file():
-                    row["_render"], row["_photo"] = _split_fit_vs_photo(png)
-                    row["_mask"] = None
-                rows.append(row)
-            if evals and not source:
-                source = "model.json render_eval (held-out views the fit rendered)"
-        ho = ["<h2>Held-out PSNR</h2>"]
-        if rows:
-            ps = [r["psnr_db"] for r in rows]
-            pooled = pooled_psnr(ps)
-            wi = int(np.nanargmin(ps))
-            summary.update({"heldout_views": len(rows), "heldout_pooled_psnr_db": pooled,
-                            "heldout_worst_psnr_db": float(ps[wi]), "heldout_worst_view": rows[wi]["name"],
-                            "heldout_mean_psnr_db": float(np.nanmean(ps))})
-            ho.append("<div>" + "".join(f"<span class='kpi'>{_e(a)}<b>{_e(b)}</b></span>" for a, b in (
-                ("pooled (PSNR of the mean MSE)", f"{pooled:.2f} dB"),
-                ("worst view", f"{ps[wi]:.2f} dB ({rows[wi]['name']})"),
-                ("mean of the views' PSNR", f"{np.nanmean(ps):.2f} dB"), ("views", len(rows)))) + "</div>")
-            ho.append(f"<p class='note'>Source: {_e(source)}. PSNR against peak 1 over foreground pixels (render "
-                      "coverage and the photo's mask), linear values with the frame's exposure.</p>")
-            plot_heldout_psnr(rows, pooled, tmp / "heldout_psnr.png")
-            ho.append(_fig("heldout_psnr.png", "PSNR per held-out view (worst in red); dashed: pooled."))
-            ho.append("<table><tr><th>view</th><th>PSNR (dB)</th><th>APE (%)</th><th>pixels</th></tr>" + "".join(
-                f"<tr{' class=worst' if i == wi else ''}><td>{_e(r['name'])}</td><td class='num'>{_fmt(r['psnr_db'])}</td>"
-                f"<td class='num'>{_fmt(r.get('ape_percent'))}</td><td class='num'>{_fmt(r.get('pixels'))}</td></tr>"
-                for i, r in enumerate(rows)) + "</table>")
-            order = [wi] + [i for i in range(len(rows)) if i != wi]
-            shown = [i for i in order if "_render" in rows[i]][:max(max_comparisons, 0)]
-            figs = []
-            for i in shown:
-                r = rows[i]
-                plot_comparison(r["_photo"], r["_render"], r.get("_mask"),
-                                f"{r['name']}: {r['psnr_db']:.2f} dB" + (" (worst)" if i == wi else ""),
-                                tmp / "views" / f"{r['name']}.png")
-                figs.append(_fig(f"views/{r['name']}.png", f"{r['name']}: photo, fitted render and error"
-                                 + (" (the worst held-out view)" if i == wi else "")))
-            if figs:
-                ho.append("<h3>Held-out photos beside the fitted renders</h3>" + "".join(figs))
-        else:
-            ho.append("<p class='note'>No held-out views: the fit held no photo out (fit_config.json holdout_every = "
-                      f"{k}) or no capture folder was given. Fitted-view renders follow.</p>")
-            renders = sorted((model_dir / "renders").glob("*_fit_vs_photo.png")) if (model_dir / "renders").is_dir() else []
-            for png in renders[:max(max_comparisons, 0)]:
-                name = png.name[: -len("_fit_vs_photo.png")]
-                rend, photo = _split_fit_vs_photo(png)
-                plot_comparison(photo, rend, None, f"{name} (fitted view)", tmp / "views" / f"{name}.png")
-                ho.append(_fig(f"views/{name}.png", f"{name} (a fitted view, not held out): photo, render, error"))
-        sections.append("".join(ho))
-
-        # ---- viewer
-        vframes: list[dict] = []
-        default = 0
-        if capture is not None:
-            from texstream.capture.imageio import read_image
-
-            frames = capture.frames[:MAX_VIEWER_FRAMES]
-            want = [f for f in frames if f.name in held_names][:max_photos]
-            want += [f for f in frames if f not in want][:max(0, max_photos - len(want))]
-            want_names = {f.name for f in want}
-            for f in frames:
-                photo = read_image(capture.image_path(f), channels=3) if f.name in want_names else None
-                vframes.append(viewer_frame(f, f.name in held_names, photo, photo_max_side))
-            default = next((i for i, vf in enumerate(vframes) if vf["held_out"] and vf["photo"]),
-                           next((i for i, vf in enumerate(vframes) if vf["photo"]), 0))
-        model_data = viewer_model_data(mesh, grid, info, vframes, seen, default)
-        kind_note = {"radiance": "Radiance model: unlit (view-independent radiance), the light controls do nothing.",
-                     "view_radiance": "View-dependent radiance model: unlit (radiance as a function of the view "
-                                      "direction), the light controls do nothing.",
-                     "lfm": "Light field mapping model: unlit, the view-independent term plus, per vertex of the "
-                            "texel's triangle and term, surface map times the vertex's view map looked up along the "
-                            "view direction in the vertex's frame (fit/lfm_stage.py LFMRenderer); 'diffuse' shows the "
-                            "view-independent term, 'specular' the view-dependent terms; the light controls do "
-                            "nothing."}.get(info["kind"], "")
-        sections.append(VIEWER_HTML.replace("%%KIND_NOTE%%", _e(kind_note)))
-
-        # ---- parameter maps
-        maps = param_map_figures(grid, info, seen, tmp / "maps", model_dir)
-        lay_html = ""
-        if info["layout"] is not None:
-            lay = info["layout"]
-            lay_html = ("<table><tr><th>parameter</th><th>unit</th><th>bounds</th><th>min</th><th>median</th><th>max</th>"
-                        "</tr>" + "".join(
-                            f"<tr><td>{_e(s.name)}</td><td>{_e(s.unit)}</td><td>[{_fmt(s.lower)}, {_fmt(s.upper)}]</td>"
-                            f"<td class='num'>{_fmt(float(grid[..., c].min()))}</td>"
-                            f"<td class='num'>{_fmt(float(np.median(grid[..., c])))}</td>"
-                            f"<td class='num'>{_fmt(float(grid[..., c].max()))}</td></tr>"
-                            for c, s in enumerate(lay.specs())) + "</table>")
-        sections.append("<h2>Parameter maps</h2><div class='grid'>" + "".join(_fig(a, b) for a, b in maps)
-                        + "</div>" + lay_html)
-
-        # ---- rig
+        sections.append(_fit_section(info["model"], grid, trace, tmp))
+        rows, source, k, held_names = _heldout_rows(info["model"], capture, model_dir, device)
+        sections.append(_heldout_section(rows, source, k, model_dir, tmp, max_comparisons, summary))
+        vframes, default = _viewer_frames(capture, held_names, max_photos, photo_max_side)
+        model_data = viewer_model_data(mesh, info, vframes, seen, default)
+        sections.append(VIEWER_HTML.replace("%%KIND_NOTE%%", _e(info["viewer"].note)))
+        sections.append(_maps_section(info, grid, seen, tmp, model_dir))
         if capture is not None:
             plot_rig(mesh, capture.frames, tmp / "rig.png")
             sections.append("<h2>Cameras and lights</h2>" + _fig(
@@ -813,3 +552,145 @@ def write_report(out_dir: str | Path, stages: list[dict], model_dir: str | Path,
     summary.update({"html": str(html_path), "seconds": time.perf_counter() - t0,
                     "html_bytes": html_path.stat().st_size})
     return StageResult(out_dir / "report", summary)
+
+
+def _fit_section(model, grid: np.ndarray, trace: list[dict], tmp: Path) -> str:
+    """The fit's figures (the plugin's ``report_facts`` replace or add rows) and its error against time."""
+    man = model.manifest
+    fin = man.get("final") or {}
+    atlas = man.get("atlas") or {}
+    kp = [("model", model.kind),
+          ("texels", f"{atlas.get('texels', '?')} of {grid.shape[1]}x{grid.shape[0]}"
+           + (f", {atlas['unseen_texels']} unseen" if "unseen_texels" in atlas else "")),
+          ("photos", (f"{(man.get('photos') or {}).get('fitted', '?')} fitted, "
+                      f"{(man.get('photos') or {}).get('held_out', '?')} held out")),
+          ("iterations", _fmt(fin.get("iteration"))), ("fit time", f"{_fmt(fin.get('time_s'))} s"),
+          ("set-up time", f"{_fmt(man.get('setup_s'))} s"),
+          ("sample PSNR", f"{_fmt(fin.get('psnr_db'))} dB"), ("device", man.get("device", "?"))]
+    facts = dict(model.report_facts())
+    kp = [(k, facts.pop(k, v)) for k, v in kp] + list(facts.items())
+    fit_html = ["<h2>Fit</h2><div>" + "".join(f"<span class='kpi'>{_e(k)}<b>{_e(v)}</b></span>" for k, v in kp)
+                + "</div>"]
+    if trace:
+        plot_error_vs_time(trace, tmp / "error_vs_time.png")
+        fit_html.append(_fig("error_vs_time.png", "Objective and PSNR of the fitted samples against the fit's "
+                             "run time (trace.json; set-up time not included)."))
+    else:
+        fit_html.append("<p class='note'>No trace.json in the model folder: no error-against-time plot.</p>")
+    return "".join(fit_html)
+
+
+def _heldout_rows(model, capture, model_dir: Path, device: str) -> tuple[list[dict], str, int, set[str]]:
+    """(rows, their source, holdout_every, held-out frame names): the held-out views rendered here with the
+    capture, else model.json's render_eval with the fit's renders/ images."""
+    k = _holdout_every(model_dir)
+    rows: list[dict] = []
+    held_names: set[str] = set()
+    source = ""
+    if capture is not None:
+        held = [f for i, f in enumerate(capture.frames) if k > 0 and i % k == k - 1]
+        held_names = {f.name for f in held}
+        try:
+            rows = evaluate_views(model, capture, held, device)
+            source = (f"rendered here for the {len(held)} photos held out of the fit "
+                      f"(every {k}th photo, fit_config.json)")
+        except TexstreamError as e:
+            source = f"model.json render_eval (rendering here failed: {e})"
+            rows = []
+    if not rows:
+        evals = [r for r in model.manifest.get("render_eval") or [] if r.get("held_out")]
+        for r in evals:
+            name = Path(r["frame"]).stem
+            row = {"frame": r["frame"], "name": name, "psnr_db": r["psnr_db"], "ape_percent": r.get("ape_percent"),
+                   "pixels": r.get("pixels")}
+            png = model_dir / "renders" / f"{name}_fit_vs_photo.png"
+            if png.is_file():
+                row["_render"], row["_photo"] = _split_fit_vs_photo(png)
+                row["_mask"] = None
+            rows.append(row)
+        if evals and not source:
+            source = "model.json render_eval (held-out views the fit rendered)"
+    return rows, source, k, held_names
+
+
+def _heldout_section(rows: list[dict], source: str, k: int, model_dir: Path, tmp: Path, max_comparisons: int,
+                     summary: dict) -> str:
+    """Held-out PSNR: figures (added to ``summary``), per-view table and plot, photo | render | error."""
+    ho = ["<h2>Held-out PSNR</h2>"]
+    if not rows:
+        ho.append("<p class='note'>No held-out views: the fit held no photo out (fit_config.json holdout_every = "
+                  f"{k}) or no capture folder was given. Fitted-view renders follow.</p>")
+        renders = sorted((model_dir / "renders").glob("*_fit_vs_photo.png")) if (model_dir / "renders").is_dir() else []
+        for png in renders[:max(max_comparisons, 0)]:
+            name = png.name[: -len("_fit_vs_photo.png")]
+            rend, photo = _split_fit_vs_photo(png)
+            plot_comparison(photo, rend, None, f"{name} (fitted view)", tmp / "views" / f"{name}.png")
+            ho.append(_fig(f"views/{name}.png", f"{name} (a fitted view, not held out): photo, render, error"))
+        return "".join(ho)
+    ps = [r["psnr_db"] for r in rows]
+    pooled = pooled_psnr(ps)
+    wi = int(np.nanargmin(ps))
+    summary.update({"heldout_views": len(rows), "heldout_pooled_psnr_db": pooled,
+                    "heldout_worst_psnr_db": float(ps[wi]), "heldout_worst_view": rows[wi]["name"],
+                    "heldout_mean_psnr_db": float(np.nanmean(ps))})
+    ho.append("<div>" + "".join(f"<span class='kpi'>{_e(a)}<b>{_e(b)}</b></span>" for a, b in (
+        ("pooled (PSNR of the mean MSE)", f"{pooled:.2f} dB"),
+        ("worst view", f"{ps[wi]:.2f} dB ({rows[wi]['name']})"),
+        ("mean of the views' PSNR", f"{np.nanmean(ps):.2f} dB"), ("views", len(rows)))) + "</div>")
+    ho.append(f"<p class='note'>Source: {_e(source)}. PSNR against peak 1 over foreground pixels (render "
+              "coverage and the photo's mask), linear values with the frame's exposure.</p>")
+    plot_heldout_psnr(rows, pooled, tmp / "heldout_psnr.png")
+    ho.append(_fig("heldout_psnr.png", "PSNR per held-out view (worst in red); dashed: pooled."))
+    ho.append("<table><tr><th>view</th><th>PSNR (dB)</th><th>APE (%)</th><th>pixels</th></tr>" + "".join(
+        f"<tr{' class=worst' if i == wi else ''}><td>{_e(r['name'])}</td><td class='num'>{_fmt(r['psnr_db'])}</td>"
+        f"<td class='num'>{_fmt(r.get('ape_percent'))}</td><td class='num'>{_fmt(r.get('pixels'))}</td></tr>"
+        for i, r in enumerate(rows)) + "</table>")
+    order = [wi] + [i for i in range(len(rows)) if i != wi]
+    shown = [i for i in order if "_render" in rows[i]][:max(max_comparisons, 0)]
+    figs = []
+    for i in shown:
+        r = rows[i]
+        plot_comparison(r["_photo"], r["_render"], r.get("_mask"),
+                        f"{r['name']}: {r['psnr_db']:.2f} dB" + (" (worst)" if i == wi else ""),
+                        tmp / "views" / f"{r['name']}.png")
+        figs.append(_fig(f"views/{r['name']}.png", f"{r['name']}: photo, fitted render and error"
+                         + (" (the worst held-out view)" if i == wi else "")))
+    if figs:
+        ho.append("<h3>Held-out photos beside the fitted renders</h3>" + "".join(figs))
+    return "".join(ho)
+
+
+def _viewer_frames(capture, held_names: set[str], max_photos: int, photo_max_side: int) -> tuple[list[dict], int]:
+    """The viewer's frames (every camera and light, photos for the held-out ones first) and the one it opens."""
+    if capture is None:
+        return [], 0
+    from texstream.capture.imageio import read_image
+
+    vframes = []
+    frames = capture.frames[:MAX_VIEWER_FRAMES]
+    want = [f for f in frames if f.name in held_names][:max_photos]
+    want += [f for f in frames if f not in want][:max(0, max_photos - len(want))]
+    want_names = {f.name for f in want}
+    for f in frames:
+        photo = read_image(capture.image_path(f), channels=3) if f.name in want_names else None
+        vframes.append(viewer_frame(f, f.name in held_names, photo, photo_max_side))
+    default = next((i for i, vf in enumerate(vframes) if vf["held_out"] and vf["photo"]),
+                   next((i for i, vf in enumerate(vframes) if vf["photo"]), 0))
+    return vframes, default
+
+
+def _maps_section(info: dict, grid: np.ndarray, seen, tmp: Path, model_dir: Path) -> str:
+    """The parameter maps' previews and, for a model with a parameter layout, its table of parameters."""
+    maps = param_map_figures(info["model"], seen, tmp / "maps", model_dir)
+    lay_html = ""
+    if info["layout"] is not None:
+        lay = info["layout"]
+        lay_html = ("<table><tr><th>parameter</th><th>unit</th><th>bounds</th><th>min</th><th>median</th><th>max</th>"
+                    "</tr>" + "".join(
+                        f"<tr><td>{_e(s.name)}</td><td>{_e(s.unit)}</td><td>[{_fmt(s.lower)}, {_fmt(s.upper)}]</td>"
+                        f"<td class='num'>{_fmt(float(grid[..., c].min()))}</td>"
+                        f"<td class='num'>{_fmt(float(np.median(grid[..., c])))}</td>"
+                        f"<td class='num'>{_fmt(float(grid[..., c].max()))}</td></tr>"
+                        for c, s in enumerate(lay.specs())) + "</table>")
+    return ("<h2>Parameter maps</h2><div class='grid'>" + "".join(_fig(a, b) for a, b in maps)
+            + "</div>" + lay_html)

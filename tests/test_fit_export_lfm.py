@@ -56,7 +56,7 @@ def test_unlit_equals_the_full_model_when_the_view_maps_are_constant(lfm_model, 
     import shutil
 
     from texstream.capture.capture_json import read_capture
-    from texstream.fit.stages.lfm_stage import load_lfm_model
+    from texstream.fit.models.lfm.model_folder import load_lfm_model
 
     model = tmp_path / "model"
     shutil.copytree(lfm_model, model)
@@ -78,7 +78,7 @@ def test_unlit_equals_the_full_model_when_the_view_maps_are_constant(lfm_model, 
 
 
 def test_lfm_exports_an_unlit_glb_and_obj_with_its_maps(lfm_model, tmp_path):
-    from texstream.fit.stages.lfm_stage import load_lfm_model
+    from texstream.fit.models.lfm.model_folder import load_lfm_model
     from test_fit_export import assert_srgb_codes, glb_images, trimesh  # pygltflib, trimesh, PIL or a skip
 
     out = tmp_path / "export"

@@ -67,7 +67,7 @@ def _view(model_dir, exposure=1.3):
     """A camera no photo has, and texstream's LFM render of it (8-bit sRGB codes, coverage)."""
     from texstream.capture.capture_json import Frame, Intrinsics
     from texstream.capture.conventions import look_at_w2c, w2c_cv_to_c2w_gl
-    from texstream.fit.stages.lfm_stage import load_lfm_model
+    from texstream.fit.models.lfm.model_folder import load_lfm_model
     from texstream.pipelines.report import _srgb8
 
     model = load_lfm_model(model_dir)
@@ -99,7 +99,7 @@ def test_lfm_report_loads_and_scores_the_held_out_views(lfm_report, tmp_path):
 def test_lfm_screenshot_matches_the_lfm_renderer(variant, lfm_report, tmp_path):
     from scipy.ndimage import binary_erosion
 
-    from texstream.fit.stages.export import lfm_unlit_renderer
+    from texstream.fit.models.lfm.export import lfm_unlit_renderer
     from texstream.pipelines.report import _srgb8
 
     v = lfm_report[variant]

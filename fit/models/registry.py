@@ -46,6 +46,10 @@ class ExportMaterial:
         ns: OBJ exponent.
         clipped: covered texels whose base colour was clipped at 1.
         label: what the base map holds, for file names and notes ("basecolor", "radiance").
+        name: the material's name in the files (glTF ``texstream_<name>``, export.json's ``kind``):
+            "lafortune", "diffuse" or "radiance".
+        extras: model-specific options the export records (export.json, the glTF material's extras),
+            e.g. how an LFM's unlit colour was made.
     """
 
     base: np.ndarray
@@ -56,6 +60,8 @@ class ExportMaterial:
     ns: float = 1.0
     clipped: int = 0
     label: str = "basecolor"
+    name: str = ""
+    extras: dict = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass
@@ -67,9 +73,15 @@ class ViewerModel:
         shader: GLSL (ES 3.0) source defining ``vec3 model_radiance(vec2 uv, vec3 pos, vec3 nrm, vec3 tng,
             vec3 eye, int part)``: the radiance toward ``eye`` at a surface point, lit by the viewer's light
             (uniforms ``u_lkind``, ``u_lpd``, ``u_lI``) where ``lit`` is true. The viewer supplies
-            ``P(ivec2 texel, int column)`` to read the grid.
+            ``P(ivec2 texel, int column)`` to read the grid, the grid's size ``u_W``, ``u_H``,
+            ``Taps texel_taps(vec2 uv)`` (the bilinear taps of fit/kernels/shading.py: x, y, x0, y0, fx, fy)
+            and ``mat3 surface_frame(vec3 nrm, vec3 tng)`` (columns tangent, bitangent, normal);
+            pipelines/report_assets/viewer.js has the prelude. A plugin ships it as viewer.glsl.
         lit: the light controls change the render.
-        data: extra arrays and values for the shader (model-specific), merged into the viewer's model data.
+        data: extra values for the shader, merged into the viewer's model data: ``uniforms`` {name: int}
+            (integer uniforms the shader declares) and ``textures``, a list of {name, width, height,
+            layers (a 2D array texture; absent: 2D), data (base64 little-endian float32 RGBA)}: float
+            textures bound to units 3, 4, ... and their sampler uniforms ``name``.
         note: one sentence for the viewer's caption (what the model shows, what the controls do).
         parts: names of the shading parts the viewer's "show" menu offers (part 0 is the full model).
     """

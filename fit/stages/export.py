@@ -4,83 +4,18 @@
 capture/conventions.py). Viewers and DCC tools read a PBR metallic-roughness glTF or a Phong-style
 OBJ/MTL instead, so this module converts (docs/export.md has the same text with the numbers):
 
-base colour
-    Diffuse albedo ``pi * rho_d`` (the Lambertian BRDF rho_d in 1/sr reflects ``pi * rho_d``),
-    clipped to [0, 1] and stored as an 8-bit sRGB PNG (glTF's baseColorTexture and OBJ's map_Kd are
-    sRGB). metallic = 0 (every texstream model is a dielectric-style diffuse + specular mix).
-
-specular colour (KHR_materials_specular, OBJ Ks / map_Ks)
-    Lobe j reflects ``a_j = rho_s,j * 2 pi / (n_j + 2)`` of light arriving along the normal (the
-    integral of ``rho_s max(s, 0)^n cos`` over the hemisphere with c_z = 1; the same quantity the
-    fit's energy bound caps, fit/models.py). ``F0 = min(sum_j a_j, 1)`` per channel is the glTF
-    dielectric F0 (energy matched, not peak matched: see :func:`lobe_conversion_table`). glTF makes
-    ``F0 = min(0.04 * specularColorFactor * specularColorTexture, 1) * specularFactor``, so the
-    texture holds ``F0 / s`` (s = the largest F0 over covered texels and channels: the texture uses
-    the whole 8-bit range), ``specularColorFactor = s / 0.04`` (may exceed 1, the extension allows it)
-    and ``specularFactor = 1``. A diffuse-only model writes ``specularFactor = 0``, which removes the
-    specular layer (a pure Lambertian material). OBJ: ``Ks = s`` and ``map_Ks`` = the same texture.
-
-roughness (glTF metallicRoughnessTexture G channel, OBJ Ns)
-    A Lafortune lobe with c_z = 1 is a Phong lobe ``cos^n`` about the mirror direction. GGX takes
-    ``alpha = roughness^2``. The default ("fitted") conversion is ``alpha = sqrt(0.72 / (n + 3))``:
-    0.72 is the minimax fit of GGX's peak-normalised in-plane lobe to ``cos^n`` for large n, the +3
-    keeps small exponents close to their own best fit. "blinn4" is the textbook chain, for reference:
-    Phong exponent n ~ Blinn-Phong 4n about the half vector, Walter et al. 2007's Beckmann
-    ``alpha = sqrt(2 / (n_bp + 2))``, GGX alpha taken equal to Beckmann alpha: ``alpha =
-    sqrt(2 / (4 n + 2))`` (treating n itself as a Blinn-Phong exponent, sqrt(2 / (n + 2)), makes
-    GGX's lobe 55% too wide at half maximum for n >= 100). With two lobes the texel's roughness
-    comes from the lobe with the larger albedo. OBJ has one Ns per material: the median dominant
-    exponent over covered texels, clipped to [1, 1000].
-
-    Errors, measured by :func:`lobe_conversion_table` (light along the normal; widths are full
-    widths at half maximum in the plane of incidence; "shape" is the largest difference of the
-    peak-normalised lobes; "albedo" is GGX's directional albedo with F0 = 1 (Lafortune's is 1 by
-    construction); "peak" is GGX's peak over Lafortune's with F0 = the lobe albedo):
-
-    ====== ====== ========= ========= ========= ====== ====== ====== =====
-    n      alpha  roughness FWHM Laf. FWHM GGX  width  shape  albedo peak
-    ====== ====== ========= ========= ========= ====== ====== ====== =====
-    fitted (the default)
-    1      0.424  0.651     120.0 deg 87.4 deg  -27%   0.44   0.76   0.93
-    10     0.235  0.485     42.2 deg  37.5 deg  -11%   0.094  0.93   0.75
-    100    0.0836 0.289     13.5 deg  12.4 deg  -7.6%  0.061  0.99   0.70
-    1000   0.0268 0.164     4.28 deg  3.95 deg  -7.6%  0.058  1.00   0.70
-    10000  0.0085 0.092     1.34 deg  1.25 deg  -6.7%  0.058  1.00   0.69
-    blinn4
-    10     0.218  0.467     42.2 deg  34.4 deg  -19%   0.13   0.94   0.88
-    100    0.0705 0.266     13.5 deg  10.5 deg  -22%   0.16   0.99   0.99
-    1000   0.0224 0.150     4.28 deg  3.30 deg  -23%   0.16   1.00   1.00
-    ====== ====== ========= ========= ========= ====== ====== ====== =====
-
-    With the light 45 degrees off the normal (fitted): shape 0.45 / 0.11 / 0.075 and width +5.8% /
-    -6.7% / -7.4% for n = 10 / 100 / 1000 (GGX's lobe leans and stretches towards grazing, the
-    Phong lobe stays round about the mirror direction). The fitted alpha is within 1% of the alpha
-    that minimises the shape difference for n >= 10 (n = 1: 0.424 against 0.377). Energy matching
-    leaves sharp GGX highlights 30% lower at their peak and wider in the tails than the Lafortune
-    lobe; matching the peak instead would add 45% to the reflected energy (environment-lit viewers
-    show energy, so the export matches it).
-
-    Not representable in glTF and dropped: c_z < 1 (off-specular shape: the lobe keeps its height
-    and width), the anisotropic c_y (the lobe is exported as if isotropic), a second lobe's own width, and the
-    missing Fresnel rise (glTF's dielectric reflects more towards grazing, f90 = specularFactor = 1;
-    it also darkens the diffuse layer by ``1 - max(F)``, i.e. by max(F0) along the normal).
-
-radiance models (``layout.kind == "radiance"``, grid columns 0:3: view-independent exitant
-radiance in photo units; ``"view_radiance"``: its radiance seen along the normal, columns 0:3, since
-neither glTF nor OBJ has a view-dependent colour; the view terms stay in the EXR maps)
-    ``radiance * radiance_scale`` clipped to [0, 1], 8-bit sRGB, as the baseColor of an unlit
-    material (``KHR_materials_unlit``, fallback metallic 0, roughness 0.9 as the extension suggests);
-    OBJ: map_Kd with ``illum 0``.
-
-light field mapping models (``layout.kind == "lfm"``, fit/lfm_stage.py: lfm.npz)
-    Exported unlit like the radiance models. Base colour per texel: the view-independent term d(s)
-    plus, for each of the texel's three vertex light fields and each term k, its surface map value
-    times the mean of the vertex's view map over view directions, cosine-weighted over the vertex's
-    hemisphere (``lfm_view_mean = "cosine"``: seen from viewpoints all around, a surface element
-    covers pixels in proportion to cos(theta_v), so this is the pixel-weighted average colour of the
-    element); ``"none"`` keeps d(s) alone. The mean uses the renderer's own view-map lookups
-    (``view_taps`` of fit/kernels/lfm.py at a 128 x 128 grid of disk-uniform directions). The exact
-    surface and view maps stay in ``maps/*.exr`` (diffuse, surface_k{k}_v{j}, view_k{k}).
+materials
+    Each model kind's plugin makes its material (fit/models/registry.py ``ExportMaterial``, from
+    ``FittedModel.export_material``), and this module writes it by its features alone: a lit material
+    (base colour = albedo, metallic 0) with a specular layer (``KHR_materials_specular``: F0 / s as the
+    texture, ``specularColorFactor = s / 0.04``; roughness in metallicRoughnessTexture G; OBJ ``Ks``,
+    ``map_Ks``, ``Ns``, ``illum 2``) or without one (``specularFactor = 0``, a pure Lambertian material;
+    OBJ ``Ks 0``, ``illum 1``), or an unlit colour (``KHR_materials_unlit``, fallback metallic 0,
+    roughness 0.9 as the extension suggests; OBJ map_Kd with ``illum 0``). The conversions are the
+    plugins': the Lafortune lobes' albedo and GGX roughness in fit/models/lafortune/export.py (with the
+    table of their errors), the radiance models' clipped radiance in fit/models/radiance/export.py, the
+    light field mapping models' unlit approximation in fit/models/lfm/export.py; docs/export.md has
+    them all.
 
 Geometry
     Positions, unit vertex normals, UVs. texstream UVs have v up (capture/conventions.py), glTF's
@@ -90,8 +25,9 @@ Geometry
     world frame, readers apply the node); OBJ has no node, so its vertices are rotated. The float
     EXR maps are copied into ``maps/`` beside the export.
 
-Like the rest of ``texstream.fit`` this module imports only numpy (and texstream.core) at module
-level; pygltflib and OpenImageIO (through capture.imageio) are imported inside the functions.
+Like the rest of ``texstream.fit`` this module imports only numpy (and texstream.core, the plugins'
+conversions) at module level; pygltflib and OpenImageIO (through capture.imageio) are imported inside
+the functions.
 """
 
 from __future__ import annotations
@@ -105,17 +41,18 @@ import numpy as np
 
 from texstream.core.config import option, save_config
 from texstream.core.errors import ConfigError, InputError
-from texstream.core.outputs import StageResult, atomic_output_dir, read_json, write_json_atomic
+from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
+from texstream.fit.models import registry
+# the plugins' conversions, documented with the export (docs/export.md) and its options' choices
+from texstream.fit.models.lafortune.export import (  # noqa: F401
+    ROUGHNESS_CONVERSIONS, albedo_from_rho_d, ggx_alpha_from_exponent, ggx_lobe_inplane, lobe_albedo,
+    lobe_conversion_table, roughness_from_exponent)
+from texstream.fit.models.lfm.export import (  # noqa: F401
+    LFM_VIEW_MEANS, cosine_directions, lfm_atlas, lfm_unlit_radiance, lfm_unlit_renderer, view_mean_weights)
 
 FORMATS = ("glb", "obj")
-ROUGHNESS_CONVERSIONS = ("fitted", "blinn4")
 UP_AXES = ("z", "y")
-LFM_VIEW_MEANS = ("cosine", "none")
-VIEW_MEAN_GRID = 128
-"""disk-uniform directions per side of the grid the LFM view-map means average over (12,868 in the disk)"""
 DIELECTRIC_F0 = 0.04  # ((ior - 1) / (ior + 1))^2 at glTF's default ior 1.5
-MTL_NS_MAX = 1000.0
-_MODEL_FIX = "give the folder `texstream fit` wrote (model.json, mesh.obj, bake.npz and the EXR maps)"
 
 # glTF enums
 _FLOAT, _UINT = 5126, 5125
@@ -141,327 +78,11 @@ class ExportConfig:
     lfm_view_mean: str = option("cosine", "light field mapping models: unlit base colour = the view-"
                                 "independent term plus each view-dependent term's mean over view "
                                 "directions, cosine-weighted over the hemisphere (cosine), or the "
-                                "view-independent term alone (none)", choices=("cosine", "none"))
-
-
-# ---------------------------------------------------------------------------------------------
-# conversions (numpy only)
-
-
-def albedo_from_rho_d(rho_d: np.ndarray) -> np.ndarray:
-    """Diffuse albedo of a Lambertian BRDF value rho_d (1/sr): ``pi * rho_d``."""
-    return np.pi * np.asarray(rho_d, dtype=np.float64)
-
-
-def lobe_albedo(rho_s: np.ndarray, n: np.ndarray) -> np.ndarray:
-    """Albedo of a Phong lobe ``rho_s max(s, 0)^n`` lit along the normal: ``rho_s * 2 pi / (n + 2)``.
-
-    ``rho_s`` (..., 3) and ``n`` (...) broadcast; returns (..., 3)."""
-    n = np.asarray(n, dtype=np.float64)
-    return np.asarray(rho_s, dtype=np.float64) * (2.0 * np.pi / (n + 2.0))[..., None]
-
-
-def ggx_alpha_from_exponent(n: np.ndarray, conversion: str = "fitted") -> np.ndarray:
-    """GGX alpha of a Lafortune / Phong exponent n (module doc): fitted ``sqrt(0.72 / (n + 3))``,
-    blinn4 ``sqrt(2 / (4 n + 2))``."""
-    n = np.maximum(np.asarray(n, dtype=np.float64), 0.0)
-    if conversion == "fitted":
-        return np.sqrt(0.72 / (n + 3.0))
-    if conversion == "blinn4":
-        return np.sqrt(2.0 / (4.0 * n + 2.0))
-    raise ConfigError(f"unknown roughness conversion {conversion!r}",
-                      fix=f"use one of {ROUGHNESS_CONVERSIONS}")
-
-
-def roughness_from_exponent(n: np.ndarray, conversion: str = "fitted") -> np.ndarray:
-    """glTF perceptual roughness (``alpha = roughness^2``) of a Lafortune exponent n."""
-    return np.sqrt(ggx_alpha_from_exponent(n, conversion))
-
-
-def ggx_lobe_inplane(alpha: float, incidence: float, view: np.ndarray) -> np.ndarray:
-    """GGX specular BRDF with F = 1 and Smith's separable G, light at polar angle ``incidence`` and
-    view at signed polar angles ``view`` (radians, > 0 on the mirror side) in the plane of incidence."""
-    view = np.asarray(view, dtype=np.float64)
-    lx, lz = -math.sin(incidence), math.cos(incidence)
-    vx, vz = np.sin(view), np.cos(view)
-    hx, hz = lx + vx, lz + vz
-    ch2 = hz * hz / (hx * hx + hz * hz)
-    a2 = alpha * alpha
-    d = a2 / (np.pi * ch2 * ch2 * (a2 + (1.0 - ch2) / ch2) ** 2)
-
-    def g1(c):
-        c2 = np.maximum(np.asarray(c, dtype=np.float64) ** 2, 1e-300)
-        return 2.0 / (1.0 + np.sqrt(1.0 + a2 * (1.0 - c2) / c2))
-
-    return d * g1(lz) * g1(vz) / (4.0 * lz * np.maximum(vz, 1e-300))
-
-
-def _trapezoid(y: np.ndarray, x: np.ndarray) -> float:
-    return float(np.sum(0.5 * (y[1:] + y[:-1]) * np.diff(x)))
-
-
-def lobe_conversion_table(exponents=(1, 10, 100, 1000, 10000), conversion: str = "fitted",
-                          incidence_deg: float = 0.0, samples: int = 20001) -> list[dict]:
-    """How well the GGX lobe of the exported roughness matches the Lafortune lobe (c_z = 1).
-
-    Both lobes are sampled in the plane of incidence for a light at ``incidence_deg`` from the
-    normal (view angles -90..90 degrees, ``samples`` points) and normalised to their peaks.
-
-    Returns one dict per exponent: ``n``, ``alpha``, ``roughness``, ``fwhm_lafortune_deg`` and
-    ``fwhm_ggx_deg`` (full width at half maximum: the measure of the view angles where the
-    peak-normalised lobe is >= 1/2), ``fwhm_error`` (GGX / Lafortune - 1), ``max_shape_diff`` (largest
-    difference of the peak-normalised lobes), and for a light along the normal ``ggx_albedo``
-    (GGX's directional albedo with F0 = 1; the Lafortune lobe scaled to albedo 1 has 1) and
-    ``peak_ratio`` (GGX peak / Lafortune peak when F0 is the lobe albedo, as exported).
-    """
-    ti = math.radians(incidence_deg)
-    phi = np.linspace(-np.pi / 2, np.pi / 2, samples)[1:-1]
-    step = math.degrees(float(phi[1] - phi[0]))
-    th = np.linspace(0.0, np.pi / 2, samples)[:-1]
-    rows = []
-    for n in exponents:
-        n = float(n)
-        alpha = float(ggx_alpha_from_exponent(n, conversion))
-        laf = np.maximum(np.cos(phi - ti), 0.0) ** n
-        ggx = ggx_lobe_inplane(alpha, ti, phi)
-        ggx = ggx / ggx.max()
-        fw_l, fw_g = step * float((laf >= 0.5).sum()), step * float((ggx >= 0.5).sum())
-        g0 = ggx_lobe_inplane(alpha, 0.0, th)
-        albedo = 2.0 * np.pi * _trapezoid(g0 * np.cos(th) * np.sin(th), th)
-        rows.append({"n": n, "alpha": alpha, "roughness": math.sqrt(alpha),
-                     "fwhm_lafortune_deg": fw_l, "fwhm_ggx_deg": fw_g, "fwhm_error": fw_g / fw_l - 1.0,
-                     "max_shape_diff": float(np.abs(ggx - laf).max()), "ggx_albedo": albedo,
-                     "peak_ratio": 1.0 / (2.0 * alpha * alpha * (n + 2.0))})
-    return rows
-
-
-# ---------------------------------------------------------------------------------------------
-# light field mapping: the unlit approximation
-
-
-def cosine_directions(n: int = VIEW_MEAN_GRID) -> np.ndarray:
-    """(D, 3) unit local directions (z = the normal) cosine-distributed over the hemisphere: the
-    centres of an n x n grid on [-1, 1]^2 inside the unit disk, lifted to z = sqrt(1 - x^2 - y^2)
-    (equal disk areas are equal projected solid angles, Nusselt's analog)."""
-    c = (np.arange(n) + 0.5) / n * 2.0 - 1.0
-    x, y = (a.reshape(-1) for a in np.meshgrid(c, c))
-    r2 = x * x + y * y
-    keep = r2 < 1.0
-    return np.stack([x[keep], y[keep], np.sqrt(1.0 - r2[keep])], 1)
-
-
-def view_mean_weights(res: int, mapping: str, lookup: str, device: str | None = None,
-                      n: int = VIEW_MEAN_GRID) -> np.ndarray:
-    """(R * R,) weights w (summing to 1) such that ``sum_q w[q] h[q]`` is the cosine-weighted mean over
-    view directions of a view map h looked up as the renderer does (mapping "disk" | "hemioct",
-    lookup "nearest" | "bilinear"): the average of ``view_taps`` over :func:`cosine_directions`, on
-    ``device`` (None: the CPU where Warp can compile for it, else Warp's preferred device)."""
-    import warp as wp
-
-    from texstream.fit.kernels import lfm as LK
-    from texstream.fit.kernels.lfm_lookup import direction_taps_kernel
-
-    if device is None:
-        device = "cpu" if wp.is_cpu_available() else str(wp.get_preferred_device())
-    dirs = cosine_directions(n)
-    d = wp.array(dirs, dtype=wp.vec3d, device=device)
-    idx = wp.zeros(len(dirs), dtype=wp.vec4i, device=device)
-    wt = wp.zeros(len(dirs), dtype=wp.vec4d, device=device)
-    code_map = int(LK.MAP_DISK if mapping == "disk" else LK.MAP_HEMIOCT)
-    code_lookup = int(LK.LOOKUP_NEAREST if lookup == "nearest" else LK.LOOKUP_BILINEAR)
-    wp.launch(direction_taps_kernel, dim=len(dirs), device=device,
-              inputs=[d, code_map, int(res), code_lookup], outputs=[idx, wt])
-    out = np.zeros(res * res)
-    np.add.at(out, idx.numpy().reshape(-1), wt.numpy().reshape(-1))
-    return out / out.sum()
-
-
-def lfm_unlit_radiance(model, view_mean: str = "cosine", device: str | None = None) -> np.ndarray:
-    """(N, 3) the unlit radiance of each compact texel of an LFM model (fit/lfm_stage.py
-    ``LFMModelFolder``): d(s) plus, with ``view_mean = "cosine"``, sum over the texel's slots j and terms
-    k of g_k(slot) times the cosine-weighted mean of h_k over the slot vertex's view directions."""
-    p = model.params
-    d = np.asarray(p.diffuse, np.float64)
-    if view_mean == "none":
-        return d.copy()
-    if view_mean != "cosine":
-        raise ConfigError(f"unknown lfm_view_mean {view_mean!r}", fix=f"use one of {LFM_VIEW_MEANS}")
-    w = view_mean_weights(model.view_res, model.cfg.view_map, model.cfg.lookup, device)
-    h_mean = np.einsum("vkmc,m->vkc", np.asarray(p.H, np.float64), w)     # (V, K, 3)
-    terms = (np.asarray(p.G, np.float64) * h_mean[model.geom.slot_vertex]).sum(axis=1)   # (3N, 3)
-    return d + terms.reshape(-1, 3, 3).sum(axis=1)
-
-
-def lfm_atlas(model, values: np.ndarray) -> np.ndarray:
-    """(H, W, C) float32 atlas of per-compact-texel ``values`` (N, C): each texel holds its own value or,
-    for padding, the value of the texel it copies (what the LFM renderer reads); 0 elsewhere."""
-    from texstream.fit.stages.lfm_stage import grid_source
-
-    b = model.bake
-    src = grid_source(b, model.grid_index)
-    v = np.asarray(values)
-    out = np.zeros((b.height * b.width, v.shape[1]), np.float32)
-    out[src >= 0] = v[src[src >= 0]]
-    return out.reshape(b.height, b.width, v.shape[1])
-
-
-def lfm_unlit_renderer(model, view_mean: str = "cosine", device: str = "cpu"):
-    """frame -> (image, coverage): the exported unlit approximation of an LFM model rendered by
-    texstream's radiance renderer (fit/render.py, bilinear atlas lookup, times the frame's exposure),
-    to score it against the full model or the photos."""
-    from texstream.fit.kernels.layout import ModelLayout
-    from texstream.fit.stages.stage import render_model
-
-    grid = lfm_atlas(model, lfm_unlit_radiance(model, view_mean, device))
-    layout = ModelLayout(kind="radiance")
-    mesh = model.mesh
-
-    def render(frame):
-        return render_model(mesh, grid, layout, frame, device)
-    return render
-
-
-# ---------------------------------------------------------------------------------------------
-# reading the model folder
-
-
-@dataclasses.dataclass
-class _Model:
-    folder: Path
-    mesh: object  # SurfaceMesh with normals and UVs
-    grid: np.ndarray  # (H, W, P)
-    layout: object  # ModelLayout (or anything with kind / n_lobes / lobe_offset / lobe_stride)
-    manifest: dict
-    covered: np.ndarray  # (H, W) bool: texels on the surface (all True without a usable bake.npz)
-
-
-def _read_model(model_dir, cfg: ExportConfig | None = None) -> _Model:
-    """Load and check a model folder; every problem is an InputError naming the file and the fix.
-    An LFM folder's grid is its unlit radiance (:func:`lfm_unlit_radiance`, ``cfg.lfm_view_mean``)."""
-    from texstream.fit.stages import stage
-
-    d = Path(model_dir)
-    if not d.is_dir():
-        raise InputError("model folder not found" if not d.exists() else "not a folder", d, _MODEL_FIX)
-    if not (d / "model.json").is_file():
-        raise InputError("not a model folder (no model.json)", d / "model.json", _MODEL_FIX)
-    man = read_json(d / "model.json", what="model manifest")
-    if not isinstance(man, dict) or not isinstance(man.get("layout"), dict) or "kind" not in man["layout"]:
-        raise InputError("model.json has no layout (kind, n_lobes, ...)", d / "model.json",
-                         "re-run `texstream fit`, which writes the layout")
-    if man["layout"]["kind"] == "lfm":
-        return _read_lfm_model(d, cfg or ExportConfig())
-    try:
-        mesh, grid, layout, man = stage.load_model(d)
-    except InputError as e:
-        if e.path and e.path.lower().endswith(".exr"):  # read_image's fix speaks of capture.json
-            raise InputError(f"parameter map: {e.message}", e.path, "restore the map, or re-run "
-                             "`texstream fit` to rewrite the model folder") from None
-        raise
-    except ConfigError as e:
-        raise InputError(f"model.json describes a model this texstream cannot read ({e.message})",
-                         d / "model.json", "re-run `texstream fit`, or update texstream") from None
-    except (KeyError, TypeError, ValueError) as e:
-        raise InputError(f"model.json or the parameter maps are inconsistent ({type(e).__name__}: {e})",
-                         d / "model.json", "re-run `texstream fit` to rewrite the model folder") from None
-    if mesh.uvs is None:
-        raise InputError("mesh has no texture coordinates", d / "mesh.obj",
-                         "export the mesh.obj the fit wrote (it carries the atlas UVs)")
-    need = 3 if layout.kind == "radiance" else layout.n_params
-    if grid.ndim != 3 or grid.shape[2] < need:
-        raise InputError(f"parameter maps hold {grid.shape[-1]} channels, the {layout.kind} layout "
-                         f"needs {need}", d, "re-run `texstream fit` to rewrite the maps")
-    covered = np.ones(grid.shape[:2], bool)
-    if (d / "bake.npz").is_file():
-        try:
-            with np.load(d / "bake.npz") as z:
-                if "covered" in z.files and z["covered"].shape == grid.shape[:2]:
-                    covered = z["covered"].astype(bool)
-        except (OSError, ValueError):
-            pass  # the bake only narrows the statistics (Ns, specular scale); all texels will do
-    if not covered.any():
-        covered[:] = True
-    return _Model(d, mesh, grid, layout, man, covered)
-
-
-@dataclasses.dataclass
-class _LFMLayout:
-    """What the export reads of an LFM model's layout (it has no per-texel parameter table)."""
-
-    kind: str = "lfm"
-    n_lobes: int = 0
-    view_mean: str = "cosine"
-
-
-def _read_lfm_model(d: Path, cfg: ExportConfig) -> _Model:
-    from texstream.fit.stages.lfm_stage import load_lfm_model
-
-    try:
-        model = load_lfm_model(d)
-    except (KeyError, TypeError, ValueError) as e:
-        why = f"model.json or lfm.npz are inconsistent ({type(e).__name__}: {e})"
-        raise InputError(why, d / "model.json",
-                         "re-run `texstream fit --model lfm` to rewrite the folder") from None
-    if model.mesh.uvs is None:
-        raise InputError("mesh has no texture coordinates", d / "mesh.obj",
-                         "export the mesh.obj the fit wrote (it carries the atlas UVs)")
-    grid = lfm_atlas(model, lfm_unlit_radiance(model, cfg.lfm_view_mean))
-    covered = np.asarray(model.bake.covered, bool)
-    return _Model(d, model.mesh, grid, _LFMLayout(view_mean=cfg.lfm_view_mean), model.manifest,
-                  covered if covered.any() else np.ones(grid.shape[:2], bool))
-
-
-def _map_files(m: _Model) -> list[Path]:
-    names = m.manifest.get("maps")
-    files = [m.folder / str(v) for v in names.values()] if isinstance(names, dict) else []
-    files = [f for f in files if f.is_file()]
-    return files or sorted(m.folder.glob("*.exr"))
+                                "view-independent term alone (none)", choices=LFM_VIEW_MEANS)
 
 
 # ---------------------------------------------------------------------------------------------
 # the material as images
-
-
-@dataclasses.dataclass
-class _Material:
-    kind: str  # "radiance", "diffuse" or "lafortune"
-    base: np.ndarray  # (H, W, 3) linear in [0, 1]: albedo, or clipped radiance
-    specular: np.ndarray | None  # (H, W, 3) F0 / specular_scale in [0, 1]
-    specular_scale: float  # largest F0 over covered texels (0: no specular layer)
-    roughness: np.ndarray | None  # (H, W) glTF roughness in [0, 1]
-    ns: float  # OBJ exponent
-    clipped: int  # covered texels whose base colour was clipped at 1
-
-
-def _material(m: _Model, cfg: ExportConfig) -> _Material:
-    g = m.grid.astype(np.float64)
-    lay = m.layout
-    if lay.kind in ("radiance", "view_radiance", "lfm"):
-        # glTF and OBJ have no view-dependent colour: the radiance seen along the normal (view_radiance),
-        # or the view-independent term plus the view terms' mean over directions (lfm, _read_lfm_model)
-        rad = g[..., 0:3] * float(cfg.radiance_scale)
-        clipped = int((rad.max(axis=-1)[m.covered] > 1.0).sum())
-        return _Material("radiance", np.clip(rad, 0.0, 1.0), None, 0.0, None, 1.0, clipped)
-    albedo = albedo_from_rho_d(g[..., 0:3])
-    clipped = int((albedo.max(axis=-1)[m.covered] > 1.0).sum())
-    base = np.clip(albedo, 0.0, 1.0)
-    if lay.n_lobes == 0:
-        return _Material("diffuse", base, None, 0.0, None, 1.0, clipped)
-    albedos, exps = [], []
-    for j in range(lay.n_lobes):
-        o = lay.lobe_offset(j)
-        n = np.maximum(g[..., o + lay.lobe_stride - 1], 0.0)
-        albedos.append(lobe_albedo(np.maximum(g[..., o:o + 3], 0.0), n))
-        exps.append(n)
-    f0 = np.clip(np.sum(albedos, axis=0), 0.0, 1.0)
-    dom = np.argmax(np.stack([a.mean(axis=-1) for a in albedos]), axis=0)
-    n_dom = np.take_along_axis(np.stack(exps), dom[None], axis=0)[0]
-    scale = float(f0[m.covered].max())
-    spec = f0 / scale if scale > 0 else np.zeros_like(f0)
-    rough = roughness_from_exponent(n_dom, cfg.roughness)
-    shiny = m.covered & (f0.max(axis=-1) > 0)
-    ns = float(np.median(n_dom[shiny if shiny.any() else m.covered]))
-    return _Material("lafortune", base, spec, scale, rough, float(np.clip(ns, 1.0, MTL_NS_MAX)), clipped)
 
 
 def _png_bytes(img: np.ndarray) -> bytes:
@@ -495,30 +116,29 @@ def _unit_normals(mesh) -> np.ndarray:
     return np.divide(n, ln, out=np.tile([0.0, 0.0, 1.0], (len(n), 1)), where=ln > 0)
 
 
-def _copy_maps(m: _Model, folder: Path) -> list[str]:
+def _copy_maps(m: registry.FittedModel, folder: Path) -> list[str]:
     from texstream.core.outputs import write_atomic_with
 
     out = []
-    for f in _map_files(m):
+    for f in m.map_files():
         data = f.read_bytes()
         write_atomic_with(folder / f.name, lambda fh, data=data: fh.write(data))
         out.append(f"maps/{f.name}")
     return out
 
 
-def _info(m: _Model, mat: _Material, cfg: ExportConfig) -> dict:
-    h, w = m.grid.shape[:2]
-    info = {"kind": mat.kind, "vertices": m.mesh.n_vertices, "faces": m.mesh.n_faces, "texture": [w, h],
+def _info(m: registry.FittedModel, mat: registry.ExportMaterial, cfg: ExportConfig) -> dict:
+    h, w = mat.base.shape[:2]
+    info = {"kind": mat.name, "vertices": m.mesh.n_vertices, "faces": m.mesh.n_faces, "texture": [w, h],
             "up_axis": cfg.up_axis, "base_colour_clipped_texels": mat.clipped}
-    if mat.kind == "lafortune":
+    if mat.specular is not None:
         info.update({"specular_scale": mat.specular_scale,
                      "specular_color_factor": mat.specular_scale / DIELECTRIC_F0,
                      "roughness_conversion": cfg.roughness, "mtl_ns": mat.ns})
-    if mat.kind == "radiance":
+    if mat.unlit:
         info["radiance_scale"] = cfg.radiance_scale
-    info["model_kind"] = m.layout.kind
-    if m.layout.kind == "lfm":
-        info["lfm_view_mean"] = cfg.lfm_view_mean
+    info["model_kind"] = m.kind
+    info.update(mat.extras)
     return info
 
 
@@ -527,7 +147,8 @@ def _check_config(cfg: ExportConfig) -> None:
     if bad or not cfg.formats:
         raise ConfigError(f"unknown export format(s) {bad or '(none)'}", fix=f"use some of {FORMATS}")
     _up_rotation(cfg.up_axis)
-    ggx_alpha_from_exponent(1.0, cfg.roughness)
+    if cfg.roughness not in ROUGHNESS_CONVERSIONS:
+        raise ConfigError(f"unknown roughness conversion {cfg.roughness!r}", fix=f"use one of {ROUGHNESS_CONVERSIONS}")
     if not (math.isfinite(cfg.radiance_scale) and cfg.radiance_scale > 0):
         raise ConfigError(f"radiance_scale must be > 0, got {cfg.radiance_scale}",
                           fix="pass a positive scale")
@@ -563,11 +184,11 @@ def export_gltf(model_dir, out_path, config: ExportConfig | None = None) -> dict
     """
     cfg = config or ExportConfig()
     _check_config(cfg)
-    return _export_gltf(_read_model(model_dir, cfg), cfg, Path(out_path))
+    m = registry.load_model_folder(model_dir)
+    return _export_gltf(m, m.export_material(cfg), cfg, Path(out_path))
 
 
-def _export_gltf(m: _Model, cfg: ExportConfig, out: Path) -> dict:
-    mat = _material(m, cfg)
+def _export_gltf(m: registry.FittedModel, mat: registry.ExportMaterial, cfg: ExportConfig, out: Path) -> dict:
     _write_glb(m, mat, cfg, out)
     info = _info(m, mat, cfg)
     info["path"] = str(out)
@@ -576,7 +197,7 @@ def _export_gltf(m: _Model, cfg: ExportConfig, out: Path) -> dict:
     return info
 
 
-def _write_glb(m: _Model, mat: _Material, cfg: ExportConfig, out: Path) -> None:
+def _write_glb(m: registry.FittedModel, mat: registry.ExportMaterial, cfg: ExportConfig, out: Path) -> None:
     import pygltflib as G
 
     from texstream.core.outputs import write_atomic_with
@@ -615,17 +236,15 @@ def _write_glb(m: _Model, mat: _Material, cfg: ExportConfig, out: Path) -> None:
         return len(textures) - 1
 
     units = "base colour = albedo (pi * rho_d) or clipped radiance; see docs/export.md"
-    extras = {"texstream": {"kind": mat.kind, "model_kind": m.layout.kind, "units": units}}
-    if m.layout.kind == "lfm":  # the unlit approximation of a light field (module doc)
-        extras["texstream"]["lfm_view_mean"] = cfg.lfm_view_mean
+    extras = {"texstream": {"kind": mat.name, "model_kind": m.kind, "units": units, **mat.extras}}
     pbr = G.PbrMetallicRoughness(baseColorFactor=[1.0, 1.0, 1.0, 1.0],
                                  baseColorTexture=G.TextureInfo(index=texture("base_color", mat.base)),
                                  metallicFactor=0.0)
-    if mat.kind == "radiance":
+    if mat.unlit:
         pbr.roughnessFactor = 0.9
         extensions = {"KHR_materials_unlit": {}}
         extras["texstream"]["radiance_scale"] = cfg.radiance_scale
-    elif mat.kind == "diffuse":
+    elif mat.specular is None:
         pbr.roughnessFactor = 1.0
         extensions = {"KHR_materials_specular": {"specularFactor": 0.0}}  # no specular layer: Lambertian
     else:
@@ -638,7 +257,7 @@ def _write_glb(m: _Model, mat: _Material, cfg: ExportConfig, out: Path) -> None:
         extensions = {"KHR_materials_specular": spec}
         extras["texstream"].update({"roughness_conversion": cfg.roughness,
                                     "specular_scale": mat.specular_scale})
-    material = G.Material(name=f"texstream_{mat.kind}", pbrMetallicRoughness=pbr, extensions=extensions,
+    material = G.Material(name=f"texstream_{mat.name}", pbrMetallicRoughness=pbr, extensions=extensions,
                           extras=extras, doubleSided=False)
     up = _up_rotation(cfg.up_axis)
     node = G.Node(mesh=0, name=cfg.name)
@@ -678,31 +297,29 @@ def export_obj(model_dir, out_dir, config: ExportConfig | None = None) -> dict:
     """
     cfg = config or ExportConfig()
     _check_config(cfg)
-    return _export_obj(_read_model(model_dir, cfg), cfg, Path(out_dir))
+    m = registry.load_model_folder(model_dir)
+    return _export_obj(m, m.export_material(cfg), cfg, Path(out_dir))
 
 
-def _export_obj(m: _Model, cfg: ExportConfig, out: Path) -> dict:
+def _export_obj(m: registry.FittedModel, mat: registry.ExportMaterial, cfg: ExportConfig, out: Path) -> dict:
     from texstream.capture.imageio import write_image
     from texstream.core.outputs import write_atomic_with
 
-    mat = _material(m, cfg)
     if out.exists() and not out.is_dir():
         raise InputError("output path exists and is not a folder", out, "choose another output folder")
     out.mkdir(parents=True, exist_ok=True)
     stem = cfg.name
-    kd = f"{stem}_{'radiance' if mat.kind == 'radiance' else 'basecolor'}.png"
+    kd = f"{stem}_{mat.label}.png"
     write_image(out / kd, mat.base, bits=8)
-    lines = [f"# texstream export: {mat.kind} model (conversions: docs/export.md)", "newmtl texstream",
+    lines = [f"# texstream export: {mat.name} model (conversions: docs/export.md)", "newmtl texstream",
              "Ka 0 0 0", "Kd 1 1 1", f"map_Kd {kd}"]
-    if mat.kind == "lafortune":
+    if mat.specular is not None:
         ks = f"{stem}_specular.png"
         write_image(out / ks, mat.specular, bits=8)
         s = mat.specular_scale
         lines += [f"Ks {s:.6g} {s:.6g} {s:.6g}", f"map_Ks {ks}", f"Ns {mat.ns:.6g}", "illum 2"]
-    elif mat.kind == "diffuse":
-        lines += ["Ks 0 0 0", "illum 1"]
     else:
-        lines += ["Ks 0 0 0", "illum 0"]
+        lines += ["Ks 0 0 0", "illum 0" if mat.unlit else "illum 1"]
     lines += ["d 1", ""]
     mtl = "\n".join(lines).encode()
     write_atomic_with(out / f"{stem}.mtl", lambda fh: fh.write(mtl))
@@ -747,16 +364,17 @@ def export_stage(model_dir, out_dir, config: ExportConfig | None = None) -> Stag
 
     cfg = config or ExportConfig()
     _check_config(cfg)
-    m = _read_model(model_dir, cfg)  # fail before touching out_dir
+    m = registry.load_model_folder(model_dir)  # fail before touching out_dir
+    mat = m.export_material(cfg)
     one = dataclasses.replace(cfg, copy_maps=False)
     with atomic_output_dir(out_dir) as tmp:
         written: dict = {}
         if "glb" in cfg.formats:
             with phase("export", f"glTF binary {cfg.name}.glb"):
-                written["glb"] = _export_gltf(m, one, tmp / f"{cfg.name}.glb")
+                written["glb"] = _export_gltf(m, mat, one, tmp / f"{cfg.name}.glb")
         if "obj" in cfg.formats:
             with phase("export", f"OBJ + MTL + PNG textures {cfg.name}.obj"):
-                written["obj"] = _export_obj(m, one, tmp)
+                written["obj"] = _export_obj(m, mat, one, tmp)
         maps = _copy_maps(m, tmp / "maps") if cfg.copy_maps else []
         for w in written.values():
             w["path"] = Path(w["path"]).name

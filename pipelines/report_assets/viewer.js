@@ -1,17 +1,16 @@
 /* texstream relightable viewer: WebGL2, no libraries.
  *
  * Renders a fitted model from its parameter textures with the fit's own shading
- * (fit/kernels/shading.py, fit/kernels/render.py): per pixel the surface frame (interpolated vertex
- * normal, tangent = dp/du of the triangle made orthogonal to it, bitangent = n x t), the light's
- * unit direction and irradiance (point: intensity / r^2, directional: intensity), the Lafortune
- * BRDF evaluated at the four texels around the hit and blended with the bilinear weights, and
- *     pixel = exposure * f_r * E * cos(theta_i)   (0 where cos <= 0)
- * sRGB-encoded for display. Model kind "radiance" is unlit: pixel = exposure * radiance; "view_radiance"
- * is unlit too, its radiance the biquadratic of the local view direction of fit/kernels/shading.py
- * view_radiance (clamped at 0 like fit/kernels/render.py). "lfm" (light field mapping) is unlit: each
- * of the four texels around the hit sums its view-independent term and, per vertex of its triangle and
- * term, surface map times the vertex's view map looked up along the view direction in the vertex's
- * frame (disk or hemi-octahedral mapping, nearest or bilinear), as fit/kernels/lfm.py render_lfm_kernel.
+ * (fit/kernels/shading.py, fit/kernels/render.py): the fragment shader is a common prelude (the
+ * parameter lookup P, the bilinear texel taps, the surface frame: interpolated vertex normal,
+ * tangent = dp/du of the triangle made orthogonal to it, bitangent = n x t; the light uniforms), the
+ * model's own GLSL from its plugin (M.shader, fit/models/<kind>/viewer.glsl) defining
+ *     vec3 model_radiance(vec2 uv, vec3 pos, vec3 nrm, vec3 tng, vec3 eye, int part)
+ * (the radiance toward the eye; part 0 = the full model, 1 and 2 = its diffuse and specular
+ * parts), and a common main():
+ *     pixel = exposure * model_radiance(...)
+ * sRGB-encoded for display, or the error, photo and unseen views. The plugin's integer uniforms
+ * (M.uniforms) and extra float textures (M.textures, units 3, 4, ...) come with the model data.
  * No cast shadows (the Warp renderer traces them; see docs/report.md).
  *
  * Cameras follow capture.json: camera_to_world 4x4 in OpenGL axes (x right, y up, looks down -z),
@@ -85,93 +84,41 @@
     '  v_pos = a_pos; v_nrm = a_nrm; v_uv = a_uv; v_tan = a_tan;',
     '}'].join('\n');
 
-  var FS = [
+  var FS_PRELUDE = [
     '#version 300 es',
     'precision highp float; precision highp int; precision highp sampler2DArray;',
     'precision highp sampler2D;',
     'uniform highp sampler2DArray u_params;  // RGBA32F layers: parameter k in layer k/4, channel k%4',
     'uniform sampler2D u_photo; uniform sampler2D u_seen;',
-    'uniform int u_W; uniform int u_H; uniform int u_kind; uniform int u_nlobes; uniform int u_aniso;',
+    'uniform int u_W; uniform int u_H;',
     'uniform int u_lkind; uniform vec3 u_lpd; uniform vec3 u_lI;',
     'uniform vec3 u_eye; uniform float u_exposure; uniform int u_mode; uniform float u_gain;',
     'uniform vec2 u_size; uniform int u_hasphoto;',
     'in vec3 v_pos; in vec3 v_nrm; in vec2 v_uv; in vec3 v_tan;',
     'out vec4 o_color;',
     'float P(ivec2 xy, int k) { return texelFetch(u_params, ivec3(xy, k / 4), 0)[k % 4]; }',
-    '// light field mapping (fit/kernels/lfm.py): per atlas texel d (params 0:3), its slots\' welded vertices',
-    '// (3:6, -1: no texel) and surface maps G[slot j, term k] at 6 + 3 (j K + k); view maps tiled per vertex',
-    '// in layer k of u_views; vertex frames (position, tangent, bitangent, normal) in u_vframe',
-    'uniform highp sampler2DArray u_views; uniform highp sampler2D u_vframe;',
-    'uniform int u_terms; uniform int u_vres; uniform int u_vmap; uniform int u_vlookup; uniform int u_vinterp;',
-    'uniform int u_vcols; uniform int u_fcols; uniform int u_slookup;',
-    'vec3 VF(int v, int i) { return texelFetch(u_vframe, ivec2(4 * (v % u_fcols) + i, v / u_fcols), 0).xyz; }',
-    'vec3 HV(int k, int v, int ix, int iy) {',
-    '  return texelFetch(u_views, ivec3((v % u_vcols) * u_vres + ix, (v / u_vcols) * u_vres + iy, k), 0).xyz;',
+    '// texel_coords + bilinear_taps of shading.py (row 0 at the top, v up): continuous texel coordinates',
+    '// (x, y), the top-left tap (x0, y0) of the four and the bilinear weights (fx, fy)',
+    'struct Taps { float x; float y; int x0; int y0; float fx; float fy; };',
+    'Taps texel_taps(vec2 uv) {',
+    '  Taps a;',
+    '  a.x = uv.x * float(u_W) - 0.5; a.y = (1.0 - uv.y) * float(u_H) - 0.5;',
+    '  float xc = clamp(a.x, 0.0, float(u_W - 1)), yc = clamp(a.y, 0.0, float(u_H - 1));',
+    '  a.x0 = max(min(int(floor(xc)), u_W - 2), 0); a.y0 = max(min(int(floor(yc)), u_H - 2), 0);',
+    '  a.fx = xc - float(a.x0); a.fy = yc - float(a.y0);',
+    '  return a;',
     '}',
-    '// view_map_coords: continuous view-map coordinates of a local direction (texel centres at i + 0.5)',
-    'vec2 view_map_coords(vec3 w) {',
-    '  vec3 q = vec3(w.x, w.y, max(w.z, 0.0));',
-    '  float len = length(q);',
-    '  if (len <= 0.0) return vec2(0.5 * float(u_vres));',
-    '  q /= len;',
-    '  vec2 uv = q.xy;',
-    '  if (u_vmap == 1) { float s = abs(q.x) + abs(q.y) + q.z; vec2 pp = q.xy / s; uv = vec2(pp.x + pp.y, pp.x - pp.y); }',
-    '  return (uv + 1.0) * 0.5 * float(u_vres);',
-    '}',
-    '// texel_radiance: d + sum over the three slots and K terms of g h(view direction in the vertex frame);',
-    '// part 1 = d only, 2 = the view-dependent terms only',
-    'vec3 lfm_texel(ivec2 xy, vec3 p, int part) {',
-    '  vec3 L = part == 2 ? vec3(0.0) : vec3(P(xy, 0), P(xy, 1), P(xy, 2));',
-    '  if (part == 1) return L;',
-    '  int hi = u_vres - 1;',
-    '  for (int j = 0; j < 3; j++) {',
-    '    int v = int(P(xy, 3 + j));',
-    '    vec3 src = u_vinterp != 0 ? p : VF(v, 0);',
-    '    vec3 d = normalize(u_eye - src);',
-    '    vec2 c = view_map_coords(vec3(dot(d, VF(v, 1)), dot(d, VF(v, 2)), dot(d, VF(v, 3))));',
-    '    ivec2 i0; ivec2 i1; float ax = 0.0, ay = 0.0;',
-    '    if (u_vlookup == 0) {',
-    '      i0 = clamp(ivec2(floor(c)), 0, hi); i1 = i0;',
-    '    } else {',
-    '      vec2 f = c - 0.5; vec2 f0 = floor(f);',
-    '      ax = f.x - f0.x; ay = f.y - f0.y;',
-    '      ivec2 b = ivec2(f0);',
-    '      i1 = clamp(b + 1, 0, hi); i0 = clamp(b, 0, hi);',
-    '    }',
-    '    for (int k = 0; k < u_terms; k++) {',
-    '      vec3 h = (1.0 - ax) * (1.0 - ay) * HV(k, v, i0.x, i0.y);',
-    '      if (u_vlookup != 0) h += ax * (1.0 - ay) * HV(k, v, i1.x, i0.y) + (1.0 - ax) * ay * HV(k, v, i0.x, i1.y)',
-    '                             + ax * ay * HV(k, v, i1.x, i1.y);',
-    '      int o = 6 + 3 * (j * u_terms + k);',
-    '      L += vec3(P(xy, o), P(xy, o + 1), P(xy, o + 2)) * h;',
-    '    }',
+    '// surface_frame: tangent = dp/du of the triangle (per face, from the model data), made orthogonal to n;',
+    '// columns t, b, n',
+    'mat3 surface_frame(vec3 nrm, vec3 tng) {',
+    '  vec3 n = normalize(nrm);',
+    '  vec3 T = tng - n * dot(n, tng);',
+    '  if (length(T) < 1e-12 * max(length(tng), 1e-30) || length(tng) == 0.0) {',
+    '    vec3 a = abs(n.x) > 0.9 ? vec3(0.0, 1.0, 0.0) : vec3(1.0, 0.0, 0.0);',
+    '    T = a - n * dot(n, a);',
     '  }',
-    '  return L;',
-    '}',
-    '// lafortune_brdf of fit/kernels/shading.py; part 0 = all, 1 = diffuse only, 2 = lobes only',
-    'vec3 brdf(ivec2 xy, vec3 u, vec3 v, int part) {',
-    '  vec3 f = vec3(0.0);',
-    '  if (part != 2) f = vec3(P(xy, 0), P(xy, 1), P(xy, 2));',
-    '  if (part == 1) return f;',
-    '  int stride = 6 + u_aniso;',
-    '  for (int j = 0; j < u_nlobes; j++) {',
-    '    int o = 3 + j * stride;',
-    '    vec3 c = vec3(P(xy, o + 3), P(xy, o + 3), P(xy, o + 4));',
-    '    if (u_aniso != 0) c = vec3(P(xy, o + 3), P(xy, o + 4), P(xy, o + 5));',
-    '    float n = P(xy, o + stride - 1);',
-    '    float s = c.x * u.x * v.x + c.y * u.y * v.y + c.z * u.z * v.z;',
-    '    float lobe = s <= 0.0 ? 0.0 : exp(min(n * log(s), 30.0));',
-    '    f += lobe * vec3(P(xy, o), P(xy, o + 1), P(xy, o + 2));',
-    '  }',
-    '  return f;',
-    '}',
-    'vec3 radiance_at(ivec2 xy) { return vec3(P(xy, 0), P(xy, 1), P(xy, 2)); }',
-    '// view_radiance of shading.py: L + sum_k a_k phi_k(v), phi = (vx, vy, vx^2, vx vy, vy^2)',
-    'vec3 view_radiance_at(ivec2 xy, vec3 v) {',
-    '  float phi[5] = float[5](v.x, v.y, v.x * v.x, v.x * v.y, v.y * v.y);',
-    '  vec3 L = radiance_at(xy);',
-    '  for (int k = 0; k < 5; k++) { int o = 3 + 3 * k; L += phi[k] * vec3(P(xy, o), P(xy, o + 1), P(xy, o + 2)); }',
-    '  return L;',
+    '  vec3 t = normalize(T);',
+    '  return mat3(t, cross(n, t), n);',
     '}',
     'vec3 srgb(vec3 x) {',
     '  x = clamp(x, 0.0, 1.0);',
@@ -179,66 +126,12 @@
     '}',
     'vec3 linear(vec3 x) {',
     '  return mix(x / 12.92, pow((x + 0.055) / 1.055, vec3(2.4)), step(vec3(0.04045), x));',
-    '}',
+    '}'].join('\n');
+
+  var FS_MAIN = [
     'void main() {',
-    '  // texel_coords + bilinear_taps of shading.py (row 0 at the top, v up)',
-    '  float x = v_uv.x * float(u_W) - 0.5, y = (1.0 - v_uv.y) * float(u_H) - 0.5;',
-    '  float xc = clamp(x, 0.0, float(u_W - 1)), yc = clamp(y, 0.0, float(u_H - 1));',
-    '  int x0 = max(min(int(floor(xc)), u_W - 2), 0), y0 = max(min(int(floor(yc)), u_H - 2), 0);',
-    '  float fx = xc - float(x0), fy = yc - float(y0);',
-    '  ivec2 t00 = ivec2(x0, y0), t10 = ivec2(x0 + 1, y0), t01 = ivec2(x0, y0 + 1), t11 = ivec2(x0 + 1, y0 + 1);',
-    '  vec3 L = vec3(0.0);',
-    '  if (u_kind == 3) {',
-    '    // render_lfm_kernel: the nearest texel, or the four texels\' models blended bilinearly (texels with',
-    '    // no model skipped, the weights renormalised); negative radiance clamped to 0',
-    '    int lpart = (u_mode == 1) ? 1 : ((u_mode == 2) ? 2 : 0);',
-    '    vec3 acc = vec3(0.0); float ws = 0.0;',
-    '    if (u_slookup == 0) {',
-    '      ivec2 nx = ivec2(clamp(int(floor(x + 0.5)), 0, u_W - 1), clamp(int(floor(y + 0.5)), 0, u_H - 1));',
-    '      if (P(nx, 3) >= 0.0) { acc = lfm_texel(nx, v_pos, lpart); ws = 1.0; }',
-    '    } else {',
-    '      for (int q = 0; q < 4; q++) {',
-    '        ivec2 tq = ivec2(x0 + q % 2, y0 + q / 2);',
-    '        float w = (q % 2 == 0 ? 1.0 - fx : fx) * (q / 2 == 0 ? 1.0 - fy : fy);',
-    '        if (w > 0.0 && P(tq, 3) >= 0.0) { acc += w * lfm_texel(tq, v_pos, lpart); ws += w; }',
-    '      }',
-    '    }',
-    '    if (ws > 0.0) L = max(acc / ws, vec3(0.0));',
-    '  } else if (u_kind == 1) {',
-    '    L = (1.0 - fx) * (1.0 - fy) * radiance_at(t00) + fx * (1.0 - fy) * radiance_at(t10)',
-    '      + (1.0 - fx) * fy * radiance_at(t01) + fx * fy * radiance_at(t11);',
-    '  } else {',
-    '    // surface_frame: tangent = dp/du of the triangle (per face, from the model data), made orthogonal to n',
-    '    vec3 n = normalize(v_nrm);',
-    '    vec3 T = v_tan - n * dot(n, v_tan);',
-    '    if (length(T) < 1e-12 * max(length(v_tan), 1e-30) || length(v_tan) == 0.0) {',
-    '      vec3 a = abs(n.x) > 0.9 ? vec3(0.0, 1.0, 0.0) : vec3(1.0, 0.0, 0.0);',
-    '      T = a - n * dot(n, a);',
-    '    }',
-    '    vec3 t = normalize(T);',
-    '    vec3 b = cross(n, t);',
-    '    if (u_kind == 2) {',
-    '      vec3 vw2 = normalize(u_eye - v_pos);',
-    '      vec3 vl2 = vec3(dot(vw2, t), dot(vw2, b), dot(vw2, n));',
-    '      L = max((1.0 - fx) * (1.0 - fy) * view_radiance_at(t00, vl2) + fx * (1.0 - fy) * view_radiance_at(t10, vl2)',
-    '        + (1.0 - fx) * fy * view_radiance_at(t01, vl2) + fx * fy * view_radiance_at(t11, vl2), vec3(0.0));',
-    '    } else {',
-    '    // incident_light',
-    '    vec3 l; vec3 E;',
-    '    if (u_lkind == 0) { vec3 d = u_lpd - v_pos; float r2 = dot(d, d); l = d / sqrt(r2); E = u_lI / r2; }',
-    '    else { l = -normalize(u_lpd); E = u_lI; }',
-    '    float cosi = dot(n, l);',
-    '    if (cosi > 0.0) {',
-    '      vec3 vw = normalize(u_eye - v_pos);',
-    '      vec3 ul = vec3(dot(l, t), dot(l, b), dot(l, n));',
-    '      vec3 vl = vec3(dot(vw, t), dot(vw, b), dot(vw, n));',
-    '      int part = (u_mode == 1) ? 1 : ((u_mode == 2) ? 2 : 0);',
-    '      vec3 f = (1.0 - fx) * (1.0 - fy) * brdf(t00, ul, vl, part) + fx * (1.0 - fy) * brdf(t10, ul, vl, part)',
-    '             + (1.0 - fx) * fy * brdf(t01, ul, vl, part) + fx * fy * brdf(t11, ul, vl, part);',
-    '      L = f * E * cosi;',
-    '    }',
-    '    }',
-    '  }',
+    '  int part = (u_mode == 1) ? 1 : ((u_mode == 2) ? 2 : 0);',
+    '  vec3 L = model_radiance(v_uv, v_pos, v_nrm, v_tan, u_eye, part);',
     '  vec3 pix = u_exposure * L;',
     '  vec3 outc = srgb(pix);',
     '  vec2 q = vec2(gl_FragCoord.x / u_size.x, 1.0 - gl_FragCoord.y / u_size.y);  // photo UV, row 0 at top',
@@ -247,7 +140,8 @@
     '  } else if (u_mode == 4) {  // the photo itself',
     '    outc = u_hasphoto != 0 ? texture(u_photo, q).rgb : vec3(0.5, 0.0, 0.5);',
     '  } else if (u_mode == 5) {  // texels no photo saw (nearest texel), magenta',
-    '    ivec2 nx = ivec2(clamp(int(floor(x + 0.5)), 0, u_W - 1), clamp(int(floor(y + 0.5)), 0, u_H - 1));',
+    '    Taps a = texel_taps(v_uv);',
+    '    ivec2 nx = ivec2(clamp(int(floor(a.x + 0.5)), 0, u_W - 1), clamp(int(floor(a.y + 0.5)), 0, u_H - 1));',
     '    if (texelFetch(u_seen, nx, 0).r < 0.5) outc = mix(outc, vec3(1.0, 0.0, 1.0), 0.7);',
     '  }',
     '  o_color = vec4(outc, 1.0);',
@@ -278,7 +172,7 @@
 
     var prog = gl.createProgram();
     gl.attachShader(prog, compile(gl, gl.VERTEX_SHADER, VS));
-    gl.attachShader(prog, compile(gl, gl.FRAGMENT_SHADER, FS));
+    gl.attachShader(prog, compile(gl, gl.FRAGMENT_SHADER, [FS_PRELUDE, M.shader, FS_MAIN].join('\n')));
     gl.bindAttribLocation(prog, 0, 'a_pos');
     gl.bindAttribLocation(prog, 1, 'a_nrm');
     gl.bindAttribLocation(prog, 2, 'a_uv');
@@ -287,10 +181,10 @@
     if (!gl.getProgramParameter(prog, gl.LINK_STATUS)) throw new Error('shader link: ' + gl.getProgramInfoLog(prog));
     V.prog = prog;
     var U = {};
-    ['u_R', 'u_t', 'u_K', 'u_size', 'u_nf', 'u_params', 'u_photo', 'u_seen', 'u_W', 'u_H', 'u_kind', 'u_nlobes',
-      'u_aniso', 'u_lkind', 'u_lpd', 'u_lI', 'u_eye', 'u_exposure', 'u_mode', 'u_gain', 'u_hasphoto',
-      'u_views', 'u_vframe', 'u_terms', 'u_vres', 'u_vmap', 'u_vlookup', 'u_vinterp', 'u_vcols', 'u_fcols', 'u_slookup'
-    ].forEach(function (k) { U[k] = gl.getUniformLocation(prog, k); });
+    ['u_R', 'u_t', 'u_K', 'u_size', 'u_nf', 'u_params', 'u_photo', 'u_seen', 'u_W', 'u_H',
+      'u_lkind', 'u_lpd', 'u_lI', 'u_eye', 'u_exposure', 'u_mode', 'u_gain', 'u_hasphoto'
+    ].concat(Object.keys(M.uniforms), M.textures.map(function (t) { return t.name; }))
+      .forEach(function (k) { U[k] = gl.getUniformLocation(prog, k); });
     V.U = U;
 
     // mesh
@@ -333,25 +227,17 @@
     V.photoTex = gl.createTexture();
     V.photoFor = null;
 
-    // light field mapping: view maps (unit 3) and vertex frames (unit 4); 1-texel stand-ins otherwise, so
-    // every sampler has a texture of its own type
-    var LF = M.lfm;
-    var views = gl.createTexture();
-    gl.activeTexture(gl.TEXTURE3);
-    gl.bindTexture(gl.TEXTURE_2D_ARRAY, views);
-    if (LF) gl.texImage3D(gl.TEXTURE_2D_ARRAY, 0, gl.RGBA32F, LF.views.width, LF.views.height, LF.views.layers, 0,
-      gl.RGBA, gl.FLOAT, f32(LF.views.data));
-    else gl.texImage3D(gl.TEXTURE_2D_ARRAY, 0, gl.RGBA32F, 1, 1, 1, 0, gl.RGBA, gl.FLOAT, new Float32Array(4));
-    gl.texParameteri(gl.TEXTURE_2D_ARRAY, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
-    gl.texParameteri(gl.TEXTURE_2D_ARRAY, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
-    var vframe = gl.createTexture();
-    gl.activeTexture(gl.TEXTURE4);
-    gl.bindTexture(gl.TEXTURE_2D, vframe);
-    if (LF) gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32F, LF.frames.width, LF.frames.height, 0, gl.RGBA, gl.FLOAT,
-      f32(LF.frames.data));
-    else gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32F, 1, 1, 0, gl.RGBA, gl.FLOAT, new Float32Array(4));
-    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
-    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
+    // the model's own float textures (RGBA32F, exact values, texelFetch): units 3, 4, ...; a 2D array where
+    // the texture has layers
+    M.textures.forEach(function (T, i) {
+      var t = gl.createTexture(), target = T.layers ? gl.TEXTURE_2D_ARRAY : gl.TEXTURE_2D;
+      gl.activeTexture(gl.TEXTURE3 + i);
+      gl.bindTexture(target, t);
+      if (T.layers) gl.texImage3D(target, 0, gl.RGBA32F, T.width, T.height, T.layers, 0, gl.RGBA, gl.FLOAT, f32(T.data));
+      else gl.texImage2D(target, 0, gl.RGBA32F, T.width, T.height, 0, gl.RGBA, gl.FLOAT, f32(T.data));
+      gl.texParameteri(target, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
+      gl.texParameteri(target, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
+    });
 
     var s0 = M.frames.length ? M.frames[M.default_frame || 0] : null;
     V.state = {
@@ -500,20 +386,8 @@
     gl.uniform1i(U.u_seen, 2);
     gl.uniform1i(U.u_W, M.texture.width);
     gl.uniform1i(U.u_H, M.texture.height);
-    gl.uniform1i(U.u_kind, { radiance: 1, view_radiance: 2, lfm: 3 }[M.kind] || 0);
-    gl.uniform1i(U.u_views, 3);
-    gl.uniform1i(U.u_vframe, 4);
-    var LF = M.lfm || { terms: 0, view_res: 1, tile_columns: 1, frames: { columns: 1 } };
-    gl.uniform1i(U.u_terms, LF.terms);
-    gl.uniform1i(U.u_vres, LF.view_res);
-    gl.uniform1i(U.u_vmap, LF.view_map === 'hemioct' ? 1 : 0);
-    gl.uniform1i(U.u_vlookup, LF.lookup === 'nearest' ? 0 : 1);
-    gl.uniform1i(U.u_vinterp, LF.render_view === 'vertex' ? 0 : 1);
-    gl.uniform1i(U.u_vcols, LF.tile_columns);
-    gl.uniform1i(U.u_fcols, LF.frames.columns);
-    gl.uniform1i(U.u_slookup, LF.surface_lookup === 'nearest' ? 0 : 1);
-    gl.uniform1i(U.u_nlobes, M.n_lobes);
-    gl.uniform1i(U.u_aniso, M.anisotropic ? 1 : 0);
+    M.textures.forEach(function (T, i) { gl.uniform1i(U[T.name], 3 + i); });
+    Object.keys(M.uniforms).forEach(function (k) { gl.uniform1i(U[k], M.uniforms[k]); });
     gl.uniform1i(U.u_lkind, S.light.type === 'point' ? 0 : 1);
     gl.uniform3fv(U.u_lpd, S.light.pos);
     gl.uniform3fv(U.u_lI, S.light.intensity);

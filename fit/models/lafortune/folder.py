@@ -4,8 +4,49 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from texstream.fit.models.registry import FittedModel
+import numpy as np
+
+from texstream.fit.models.per_texel.folder import PerTexelModel, load_per_texel
+from texstream.fit.models.registry import ExportMaterial, FittedModel, ViewerModel
+
+
+class LafortuneModel(PerTexelModel):
+    """Diffuse rho_d plus Lafortune lobes per texel (a diffuse model: no lobes)."""
+
+    def export_material(self, cfg) -> ExportMaterial:
+        from texstream.fit.models.lafortune.export import lafortune_material
+
+        return lafortune_material(self.grid, self.layout, self.covered, cfg.roughness)
+
+    def report_maps(self, save, seen) -> None:
+        from texstream.capture.imageio import linear_to_srgb
+
+        from texstream.fit.models.previews import rgb_scaled
+
+        grid, lay = self.grid, self.layout
+        save("rho_d", linear_to_srgb(np.clip(np.pi * grid[..., 0:3], 0, 1)),
+             "diffuse albedo pi * rho_d (RGB, clipped to 1; sRGB)")
+        for j in range(lay.n_lobes):
+            o = lay.lobe_offset(j)
+            img, s = rgb_scaled(grid[..., o:o + 3])
+            save(f"lobe{j}_rho_s", img, f"lobe {j} specular albedo rho_s (RGB, 1/sr, divided by {s:.4g}; sRGB)")
+            names = ["c_x", "c_y", "c_z"] if lay.anisotropic else ["c_xy", "c_z"]
+            for k, cname in enumerate(names):
+                col = grid[..., o + 3 + k]
+                if np.ptp(col) == 0:
+                    continue  # held constant (the scale gauge, or c_z of a Phong lobe): said in the layout table
+                save(f"lobe{j}_{cname}", col, f"lobe {j} coefficient {cname}", cmap="viridis")
+            n = grid[..., o + lay.lobe_stride - 1]
+            save(f"lobe{j}_n", np.log10(np.maximum(n, 1e-6)), f"lobe {j} exponent n (log10)", cmap="viridis",
+                 colorbar_label="log10 n")
+
+    def viewer(self) -> ViewerModel:
+        from texstream.fit.models.previews import read_shader
+
+        return ViewerModel(self.grid, read_shader(Path(__file__).parent), lit=True,
+                           data={"uniforms": {"u_nlobes": int(self.layout.n_lobes),
+                                              "u_aniso": int(bool(self.layout.anisotropic))}})
 
 
 def load(model_dir: Path, manifest: dict) -> FittedModel:
-    raise NotImplementedError("placeholder: the model-folder side of the lafortune plugin")
+    return load_per_texel(LafortuneModel, "lafortune", model_dir, manifest)
