@@ -147,8 +147,8 @@ def main() -> None:
     wp.config.log_level = wp.LOG_WARNING
     from texstream.capture.synth import SynthConfig, render_scene
     from texstream.fit.optim.fitter import FitConfig
-    from texstream.fit.models.lfm import LFMConfig, LFMProblem, PhotoSamples, fit_lfm
-    from texstream.fit.models.lfm_baselines import fit_nmf, fit_pca
+    from texstream.fit.models.lfm.problem import LFMConfig, LFMProblem, PhotoSamples, fit_lfm
+    from texstream.fit.models.lfm.baselines import fit_nmf, fit_pca
     from texstream.fit.models.lfm.model_folder import LFMRenderer, lfm_geometry
     from texstream.fit.stages.stage import build_problem, split_holdout
 

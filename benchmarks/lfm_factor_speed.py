@@ -22,7 +22,7 @@ def main() -> None:
     ap.add_argument("--shapes", default="3000x8,600x40,300x100,14x2168", help="comma list of VxR (M = 64)")
     ap.add_argument("--terms", type=int, default=1)
     a = ap.parse_args()
-    from texstream.fit.models.lfm_baselines import _truncated_svd
+    from texstream.fit.models.lfm.baselines import _truncated_svd
 
     rng = np.random.default_rng(0)
     for shape in a.shapes.split(","):

@@ -19,7 +19,7 @@ def lfm_model(tmp_path_factory):
     """A K = 1 LFM fit (20 CG iterations) of the fixed-light sphere."""
     pytest.importorskip("OpenImageIO")  # the synthetic photos are EXR files
     from texstream.fit.optim.fitter import FitConfig
-    from texstream.fit.models.lfm import LFMConfig
+    from texstream.fit.models.lfm.problem import LFMConfig
     from texstream.fit.stages.stage import FitStageConfig, fit_stage
 
     root = tmp_path_factory.mktemp("lfm_export")
@@ -33,7 +33,7 @@ def lfm_model(tmp_path_factory):
 @pytest.mark.parametrize("mapping", ["disk", "hemioct"])
 @pytest.mark.parametrize("lookup", ["bilinear", "nearest"])
 def test_view_mean_weights_average_the_renderers_lookups(device, mapping, lookup):
-    from texstream.fit.models.lfm import view_directions
+    from texstream.fit.models.lfm.problem import view_directions
 
     res = 32
     w = E.view_mean_weights(res, mapping, lookup, device)

@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 
-from texstream.fit.models.lfm import LFMConfig, LFMGeometry, LFMProblem, TableSamples, fit_lfm
+from texstream.fit.models.lfm.problem import LFMConfig, LFMGeometry, LFMProblem, TableSamples, fit_lfm
 
 
 def grid_mesh(n: int = 3, bump: float = 0.15):
@@ -123,7 +123,7 @@ def test_gradient_and_curvature_match_finite_differences(device, lookup, mapping
 
 def dense_reference(pr, samples, G, H):
     """Objective per patch and gradient by plain loops over photos, texels and slots (numpy)."""
-    from texstream.fit.models.lfm import view_mask  # noqa: F401  (the mask is the problem's)
+    from texstream.fit.models.lfm.problem import view_mask  # noqa: F401  (the mask is the problem's)
 
     geom = pr.geom
     f = np.zeros((pr.V, 3))
@@ -206,7 +206,7 @@ def rank_k_case(device, K: int, cfg: LFMConfig, seed: int = 1):
     """A flat patch seen by far cameras whose directions sit on distinct view-map texel centres: every
     vertex sees one photo along the same direction (nearest lookup, identical frames), and the light
     field d0(s) + sum_k a_k(s) b_k(view texel) is exactly rank K at the map resolution."""
-    from texstream.fit.models.lfm import view_directions
+    from texstream.fit.models.lfm.problem import view_directions
 
     rng = np.random.default_rng(seed)
     pts, faces, nrm = grid_mesh(3, bump=0.0)
@@ -300,7 +300,7 @@ def test_pca_and_nmf_baselines(device):
     """Chen et al.'s methods on the exactly rank-K light field: PCA recovers it (the nearest-view
     resampling copies a seen direction's column into the unseen ones, so the matrices stay rank K),
     NMF approximates it (non-negative after the minimum, but rank K + 1 then: approximate only)."""
-    from texstream.fit.models.lfm_baselines import fit_nmf, fit_pca
+    from texstream.fit.models.lfm.baselines import fit_nmf, fit_pca
 
     cfg = LFMConfig(terms=2, view_res=8, lookup="nearest", laplacian=0.0)
     pr = rank_k_case(device, 2, cfg)
@@ -326,7 +326,7 @@ def test_lbfgs_two_loop_equals_dense_reference(device):
     """The batched L-BFGS state (ring buffers, per patch and channel counts, rejected and
     curvature-failing pairs skipped) gives per patch the direction of a plain numpy two-loop
     recursion over that patch's own accepted pairs."""
-    from texstream.fit.models.lfm import PatchLBFGS
+    from texstream.fit.models.lfm.problem import PatchLBFGS
 
     cfg = LFMConfig(terms=2, view_res=5, lookup="bilinear", laplacian=0.3)
     pr, rng = tiny_problem(device, cfg, seed=5, photos=4)
@@ -420,7 +420,7 @@ def test_lbfgs_recovers_exact_rank_k(device, step, bar):
 def test_gram_truncated_svd_equals_numpy_svd(rows):
     """PCA's rank-K factorization through the smaller Gram matrix (r x r for short rings, M x M for
     long ones) gives numpy's thin-SVD rank-K approximation."""
-    from texstream.fit.models.lfm_baselines import _truncated_svd
+    from texstream.fit.models.lfm.baselines import _truncated_svd
 
     rng = np.random.default_rng(7)
     F = rng.normal(size=(4, 3, rows, 16))

@@ -41,7 +41,7 @@ def lfm_report(tmp_path_factory):
     """An LFM fit (K = 2, 30 CG iterations) of the fixed-light sphere, every 8th photo held out, and
     the report of each layout variant (the same parameters read with other lookups)."""
     from texstream.fit.optim.fitter import FitConfig
-    from texstream.fit.models.lfm import LFMConfig
+    from texstream.fit.models.lfm.problem import LFMConfig
     from texstream.fit.stages.stage import FitStageConfig, fit_stage
     from texstream.pipelines.report import write_report
 

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from texstream.core.errors import InputError
+from texstream.core.outputs import read_json
 
 from texstream.fit.optim.fitter import FitConfig, FitResult, run_fit
 from texstream.fit.common.model_folder import image_metrics
@@ -208,3 +209,14 @@ def data_jtj(problem, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     finally:
         problem.material_centre, problem.material_weights = held
 
+
+def load_model(model_dir: str | Path):
+    """(mesh, parameter grid (H, W, P), layout, model.json) of a model folder."""
+    from texstream.capture.synth import read_param_maps
+    from texstream.geometry.mesh_io import load_mesh
+
+    d = Path(model_dir)
+    man = read_json(d / "model.json", what="model manifest")
+    lay = ModelLayout.from_json(man["layout"])
+    grid = read_param_maps(d, lay)
+    return load_mesh(d / "mesh.obj").with_normals(), grid, lay, man

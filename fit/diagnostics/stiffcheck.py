@@ -306,9 +306,9 @@ def _run_fit_case(case: StiffCase, size: str, device: str, iterations: int) -> d
 
 def _run_lfm_case(case: StiffCase, size: str, device: str, iterations: int) -> dict:
     from texstream.fit.optim.fitter import FitConfig
-    from texstream.fit.models.lfm import LFMConfig, LFMProblem, PhotoSamples, fit_lfm
-    from texstream.fit.models.lfm_baselines import fit_pca
-    from texstream.fit.stages.lfm_stage import lfm_geometry
+    from texstream.fit.models.lfm.problem import LFMConfig, LFMProblem, PhotoSamples, fit_lfm
+    from texstream.fit.models.lfm.baselines import fit_pca
+    from texstream.fit.models.lfm.model_folder import lfm_geometry
     from texstream.fit.stream.problem import StreamConfig
     from texstream.fit.stages.stage import build_problem
 

@@ -19,7 +19,7 @@ import numpy as np
 
 from texstream.core.errors import InputError
 from texstream.core.config import check_config, option
-from texstream.core.outputs import StageResult, read_json, write_json_atomic
+from texstream.core.outputs import StageResult, write_json_atomic
 from texstream.core.progress import say
 
 from texstream.fit.optim.fitter import FitConfig
@@ -27,9 +27,8 @@ from texstream.fit.models import registry
 from texstream.fit.stages import choice
 from texstream.fit.models.materials import MaterialConfig
 from texstream.fit.common.model_folder import image_metrics, plot_trace  # noqa: F401  (re-exported: tests and benchmarks use them here)
-from texstream.fit.kernels.layout import ModelLayout
 from texstream.fit.common.inputs import load_geometry, load_photos, PHOTO_CACHE_FOLDER, photo_files, read_photos, split_holdout, check_capture_lights, check_seen_texels, FitInputs, load_fit_inputs, load_seams, bad_photo, set_up_skipping_bad_photos, check_output_path  # noqa: F401
-from texstream.fit.common.setup import build_problem, params_to_grid, render_model, heldout_psnr, SyntheticFit, fit_synthetic, run_fit_with_progress, Checkpoint, fill_unseen_texels, per_texel_objective, data_jtj  # noqa: F401
+from texstream.fit.common.setup import load_model, build_problem, params_to_grid, render_model, heldout_psnr, SyntheticFit, fit_synthetic, run_fit_with_progress, Checkpoint, fill_unseen_texels, per_texel_objective, data_jtj  # noqa: F401
 from texstream.fit.models.per_texel.lobes import lobe_shape_report, drop_unsupported_lobes, scale_lobes, lobes_in_use, TexelEvidence, texel_evidence, confirm_at_material_lobes, traced_polish_applies, traced_problem, traced_polish, fit_with_materials, model_grid, choose_materials, average_seams_in_bounds, _materials_manifest  # noqa: F401
 from texstream.fit.models.per_texel.fit import _fit_per_texel_model  # noqa: F401
 
@@ -126,18 +125,6 @@ def fit_model(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
         return plugin.fit(registry.FitRequest(Path(capture_dir), Path(mesh_path), Path(out_dir), cfg, progress))
 
 
-def load_model(model_dir: str | Path):
-    """(mesh, parameter grid (H, W, P), layout, model.json) of a model folder."""
-    from texstream.capture.synth import read_param_maps
-    from texstream.geometry.mesh_io import load_mesh
-
-    d = Path(model_dir)
-    man = read_json(d / "model.json", what="model manifest")
-    lay = ModelLayout.from_json(man["layout"])
-    grid = read_param_maps(d, lay)
-    return load_mesh(d / "mesh.obj").with_normals(), grid, lay, man
-
-
 def eval_stage(model_dir: str | Path, capture_dir: str | Path, device: str = "cpu",
                out_json: str | Path | None = None, holdout_every: int = 0) -> StageResult:
     """Render the model for the frames of a capture (all, or the held-out ones of the fit's split with
@@ -147,15 +134,7 @@ def eval_stage(model_dir: str | Path, capture_dir: str | Path, device: str = "cp
 
     from texstream.fit.common.model_folder import check_render, pooled_psnr
 
-    if read_json(Path(model_dir) / "model.json", what="model manifest").get("layout", {}).get("kind") == "lfm":
-        from texstream.fit.stages.lfm_stage import load_lfm_renderer
-
-        render = load_lfm_renderer(model_dir, device)
-    else:
-        mesh, grid, lay, _ = load_model(model_dir)
-
-        def render(f):
-            return render_model(mesh, grid, lay, f, device)
+    render = registry.load_model_folder(model_dir).renderer(device)
     capture = read_capture(capture_dir)
     frames = split_holdout(capture.frames, holdout_every)[1] if holdout_every > 0 else capture.frames
     if not frames:

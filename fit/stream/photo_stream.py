@@ -26,7 +26,6 @@ import concurrent.futures
 import contextlib
 import contextvars
 import dataclasses
-import math
 import os
 import queue
 import threading

@@ -21,7 +21,7 @@ from texstream.core.outputs import read_json
 
 
 def lfm_geometry(mesh, bake, texels):
-    from texstream.fit.models.lfm import LFMGeometry
+    from texstream.fit.models.lfm.problem import LFMGeometry
 
     gi = np.asarray(texels.grid_index, np.int64)
     return LFMGeometry.build(mesh.vertices, mesh.faces, mesh.vertex_normals(), bake.face.reshape(-1)[gi],
@@ -130,9 +130,9 @@ class LFMModelFolder:
         folder: the model folder.
         mesh: the mesh (with normals and UVs).
         bake: its TexelBake (atlas grid, padding sources).
-        geom: the :class:`texstream.fit.models.lfm.LFMGeometry` with the fit's exact vertex frames.
-        params: the fitted :class:`texstream.fit.models.lfm.LFMParams` (float64).
-        cfg: the :class:`texstream.fit.models.lfm.LFMConfig` the model was fitted with (lookups, mapping).
+        geom: the :class:`texstream.fit.models.lfm.problem.LFMGeometry` with the fit's exact vertex frames.
+        params: the fitted :class:`texstream.fit.models.lfm.problem.LFMParams` (float64).
+        cfg: the :class:`texstream.fit.models.lfm.problem.LFMConfig` the model was fitted with (lookups, mapping).
         grid_index: (N,) atlas index (y * W + x) of each compact texel.
         manifest: model.json.
     """
@@ -165,7 +165,7 @@ def load_lfm_model(model_dir) -> LFMModelFolder:
     from texstream.geometry.bake import TexelBake
     from texstream.geometry.mesh_io import load_mesh
 
-    from texstream.fit.models.lfm import LFMConfig, LFMGeometry, LFMParams
+    from texstream.fit.models.lfm.problem import LFMConfig, LFMGeometry, LFMParams
 
     d = Path(model_dir)
     man = read_json(d / "model.json", what="model manifest")

@@ -1,5 +1,5 @@
 """A per-texel model folder read back: the parameter maps (capture/synth.py ``read_param_maps``), the
-mesh and model.json, through fit/stages/stage.py ``load_model``; rendered by texstream's renderer
+mesh and model.json, through fit/common/setup.py ``load_model``; rendered by texstream's renderer
 (fit/stages/render.py). The kinds' folders subclass :class:`PerTexelModel` for their material, maps and
 viewer shading."""
 
@@ -27,7 +27,7 @@ class PerTexelModel(FittedModel):
         self.grid, self.layout = grid, layout
 
     def renderer(self, device: str = "cpu"):
-        from texstream.fit.stages import stage
+        from texstream.fit.common import setup as stage
 
         mesh, grid, lay = self.mesh, self.grid, self.layout
 
@@ -46,7 +46,7 @@ class PerTexelModel(FittedModel):
 def load_per_texel(model_class: type, kind: str, model_dir: Path, manifest: dict) -> PerTexelModel:
     """Read a per-texel model folder as ``model_class``; every problem is an InputError naming the file and
     the fix. ``covered``: bake.npz's covered texels (all, without a usable bake)."""
-    from texstream.fit.stages import stage
+    from texstream.fit.common import setup as stage
 
     d = Path(model_dir)
     try:

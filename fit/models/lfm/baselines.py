@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from texstream.fit.models.lfm import LFMParams, LFMProblem, view_directions, view_mask
+from texstream.fit.models.lfm.problem import LFMParams, LFMProblem, view_directions, view_mask
 
 
 def gather_samples(problem: LFMProblem) -> tuple[np.ndarray, np.ndarray]:
