@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from texstream.capture.synth import SynthConfig, render_scene
+from texstream.capture.synthetic.synth import SynthConfig, render_scene
 from texstream.fit.stream.problem import PhotoFrame, PhotoSet, StreamConfig
 from texstream.geometry.bake import bake_texels
 

@@ -21,8 +21,9 @@ from __future__ import annotations
 
 import warp as wp
 
-from texstream.fit.kernels.shading import incident_light
-from texstream.fit.kernels.stream import ImageInfo, depth_consistent
+from texstream.render.camera import ImageInfo
+from texstream.render.shading import incident_light
+from texstream.render.visibility import depth_consistent
 
 wp.set_module_options({"enable_backward": False})
 

@@ -23,7 +23,7 @@ from texstream.geometry import refine_kernels as rk
 @pytest.fixture(scope="module")
 def sphere(tmp_path_factory):
     from texstream.capture.capture_json import read_capture
-    from texstream.capture.synth import SynthConfig, synthesize
+    from texstream.capture.synthetic.synth import SynthConfig, synthesize
 
     root = tmp_path_factory.mktemp("refine") / "cap"
     synthesize("textured_sphere", root, SynthConfig(photos=24, image_size=128, progress=False, preview=False,

@@ -33,44 +33,13 @@ from typing import Any, NamedTuple
 import warp as wp
 
 from texstream.fit.kernels.lafortune_grad import lafortune_funcs, view_radiance_funcs
-from texstream.fit.kernels.shading import bilinear_taps, incident_light, lafortune_brdf, surface_frame, texel_coords, to_local
+from texstream.render.camera import ImageInfo
+from texstream.render.shading import bilinear_taps, incident_light, lafortune_brdf, surface_frame, texel_coords, to_local
+from texstream.render.visibility import depth_consistent
 
 # no kernel here is differentiated (the fit writes its own derivatives): skipping Warp's adjoint
 # code generation roughly halves compile time
 wp.set_module_options({"enable_backward": False})
-
-
-@wp.struct
-class ImageInfo:
-    """Per-photo camera, light and photometric constants (float32, world units)."""
-
-    rot: wp.mat33
-    trans: wp.vec3
-    center: wp.vec3
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-    exposure: float
-    saturation: float
-    light_kind: int
-    light_vec: wp.vec3
-    light_intensity: wp.vec3
-    has_shadow: int
-    sh_rot: wp.mat33
-    sh_trans: wp.vec3
-    sh_fx: float
-    sh_fy: float
-    sh_cx: float
-    sh_cy: float
-    sh_ortho: int
-    sh_size: int
-    depth_is_mask: int
-    """1: the photo has no geometry (single-view fits, fit/photometric_stereo.py); its depth map
-    holds 1 where the photo may be sampled and 0 where masked, and the depth test becomes a mask
-    test at the nearest pixel. 0 (the default of a zeroed struct): the depth test above."""
 
 
 @wp.struct
@@ -136,22 +105,6 @@ class SampleOptions:
     robust_scale: float
     """the robust loss's scale k in residual units (photo values in radiance space), read by the
     passes compiled with a robust loss (:func:`accumulate_kernel` ``robust``); ignored otherwise"""
-
-
-@wp.func
-def depth_consistent(depth: wp.array3d(dtype=wp.float32), k: int, x0: int, y0: int, z: float, tol: float,
-                     slack: float):
-    """All four bilinear taps see this surface (masked or empty pixels hold 0 and fail).
-
-    A tap may differ from the texel's depth by ``tol * z`` plus ``slack``, the depth change a tilted
-    surface shows across the bilinear footprint (see :func:`observe`)."""
-    ok = True
-    for dy in range(2):
-        for dx in range(2):
-            dz = depth[k, y0 + dy, x0 + dx]
-            if wp.abs(dz - z) > tol * z + slack:
-                ok = False
-    return ok
 
 
 @wp.func

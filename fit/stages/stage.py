@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from texstream.capture.capture_json import split_holdout
 from texstream.core.errors import InputError, StageError
 from texstream.core.config import check_config, option
 from texstream.core.outputs import StageResult, atomic_output_dir, read_json, write_json_atomic
@@ -256,7 +257,7 @@ def params_to_grid(result: FitResult, problem, bake) -> np.ndarray:
 
 
 def render_model(mesh, grid: np.ndarray, layout: ModelLayout, frame, device: str):
-    from texstream.fit.stages.render import Renderer
+    from texstream.render.renderer import Renderer
 
     rend = Renderer(mesh, grid, layout, device=device)
     res = rend.render_frame(frame)
@@ -346,14 +347,6 @@ class Checkpoint:
 
     def remove(self) -> None:
         self.path.unlink(missing_ok=True)
-
-
-def split_holdout(frames: list, every: int) -> tuple[list, list]:
-    """(fitted, held out): every ``every``-th frame (the 8th, 16th, ... for 8) is held out; 0 = none."""
-    if every <= 0:
-        return list(frames), []
-    held = [f for i, f in enumerate(frames) if i % every == every - 1]
-    return [f for i, f in enumerate(frames) if i % every != every - 1], held
 
 
 def check_capture_lights(capture, model: str, capture_dir: str | Path) -> None:
@@ -970,7 +963,7 @@ def check_output_path(out_dir: str | Path) -> None:
 
 def load_model(model_dir: str | Path):
     """(mesh, parameter grid (H, W, P), layout, model.json) of a model folder."""
-    from texstream.capture.synth import read_param_maps
+    from texstream.capture.synthetic.synth import read_param_maps
     from texstream.geometry.mesh_io import load_mesh
 
     d = Path(model_dir)
