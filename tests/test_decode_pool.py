@@ -11,7 +11,7 @@ from texstream.core.errors import InputError
 from texstream.core.progress import reporting
 from texstream.fit.stream import decode_pool
 from texstream.fit.stream.photo_stream import PhotoLoader
-from texstream.fit.stream.problem import PhotoFrame
+from texstream.render.camera import PhotoFrame
 
 pytest.importorskip("OpenImageIO", reason="decoding photo files needs OpenImageIO")
 

@@ -23,7 +23,8 @@ from texstream.capture.synthetic.synth import SynthConfig, render_scene
 from texstream.core.errors import InputError
 from texstream.fit.optim.fitter import FitConfig, run_fit
 from texstream.fit.kernels.layout import ModelLayout
-from texstream.fit.stream.problem import PhotoFrame, PhotoSet, StreamProblem, TexelSet, surface_derivatives
+from texstream.fit.stream.problem import PhotoSet, StreamProblem, TexelSet, surface_derivatives
+from texstream.render.camera import PhotoFrame
 from texstream.render.renderer import Renderer
 
 from conftest import SCENE_DEVICE

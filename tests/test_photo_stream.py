@@ -15,7 +15,8 @@ from texstream.core.errors import InputError
 from texstream.fit.optim.fitter import FitConfig, initial_guess, run_fit
 from texstream.render.visibility import depth_map_kernel
 from texstream.fit.stream.photo_stream import choose_residency
-from texstream.fit.stream.problem import PhotoFrame, PhotoSet, StreamConfig
+from texstream.fit.stream.problem import PhotoSet, StreamConfig
+from texstream.render.camera import PhotoFrame
 from texstream.fit.stages.stage import build_problem, photo_files
 
 # small maps and few photos keep the CPU ray casts of each test to a fraction of a second

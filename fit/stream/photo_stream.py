@@ -26,7 +26,6 @@ import concurrent.futures
 import contextlib
 import contextvars
 import dataclasses
-import math
 import os
 import queue
 import threading
@@ -34,8 +33,6 @@ from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
 import warp as wp
-
-from texstream.core.errors import InputError
 
 from texstream.fit.stream import decode_pool
 from texstream.render.camera import ImageInfo
