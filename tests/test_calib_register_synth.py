@@ -1,4 +1,4 @@
-"""Registration of a textured synthetic capture (capture/scenes/textured_sphere.json) against its known
+"""Registration of a textured synthetic capture (capture/synthetic/scenes/textured_sphere.json) against its known
 poses, and alignment of the registered model to a given mesh frame."""
 
 from __future__ import annotations

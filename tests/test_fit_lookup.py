@@ -1,7 +1,7 @@
 """The renderer's texture lookup in the fit (``StreamConfig.model_lookup`` "bilinear").
 
 A filtered sample's taps land around the texel's centre, where the renderer blends the BRDFs of
-the four texels around each tap (fit/kernels/render.py). With the lookup the fit's model does the
+the four texels around each tap (render/kernels.py). With the lookup the fit's model does the
 same, its neighbours held at the values of the last refresh, so each texel's objective stays its
 own: derivatives are checked per texel against finite differences in fp64 with the neighbours
 held at other values than the texel's parameters; the synthetic ornament checks that the truth

@@ -4,7 +4,7 @@
 photos against the clean renders)". Precisely, as measured here:
 
 - Photos: the sphere scene developed with Gaussian camera noise (sigma = 0.01 in linear units,
-  after exposure) and then quantised to 8-bit sRGB codes (capture/synth.py ``develop``); the
+  after exposure) and then quantised to 8-bit sRGB codes (capture/synthetic/synth.py ``develop``); the
   exposure (0.8) keeps every clean pixel below 1, so nothing clips and the floor is noise plus
   quantisation only. ``save_clean`` keeps the noise-free float renders.
 - Pixels: the foreground of every view, i.e. the photo's object mask intersected with the fitted

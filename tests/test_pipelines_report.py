@@ -1,7 +1,7 @@
 """The run report (pipelines/report.py) and its WebGL2 viewer, loaded by headless Chromium from disk.
 
 The viewer test compares Chromium's screenshot of the fitted model with texstream's own render
-(fit/render.py, shadows off: the viewer draws no cast shadows) of the same camera and light, in
+(render/renderer.py, shadows off: the viewer draws no cast shadows) of the same camera and light, in
 8-bit sRGB over the render's coverage less its 1-pixel silhouette band (where a rasteriser and a ray
 caster may legitimately disagree on coverage; that band is bounded separately). Threshold: PSNR > 50 dB
 (docs/report.md: measured 64.17 dB (fitted model) and 62.86 dB (ground truth), every interior pixel within

@@ -1,6 +1,6 @@
 """What every peer shares: the data set, the per-texel sample arrays, held-out scoring, traces, memory.
 
-Data: the synthetic ornament (capture/scenes/ornament.json) rendered by texstream at ``scale``,
+Data: the synthetic ornament (capture/synthetic/scenes/ornament.json) rendered by texstream at ``scale``,
 noise-free float photos ("clean") or 8-bit sRGB photos with Gaussian camera noise ("noisy8");
 every 8th photo is held out (:func:`texstream.fit.stages.stage.split_holdout`). Scores: the held-out
 PSNR of the pooled (mean over views) MSE on foreground pixels and the worst view's PSNR, both

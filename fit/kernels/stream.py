@@ -84,7 +84,7 @@ class TexelFrames:
     mesh_normals: wp.array(dtype=wp.vec3)
     mesh_uvs: wp.array(dtype=wp.vec2)
     shadow_eps: float
-    """the renderer's shadow-ray offset (1e-4 of the mesh's bounding-box diagonal, fit/render.py)"""
+    """the renderer's shadow-ray offset (1e-4 of the mesh's bounding-box diagonal, render/renderer.py)"""
     shadow_rays: int
     """1: traced taps cast shadow rays (``StreamConfig.shadow_map_size`` > 0, also for photos whose
     light sits inside the object's bounds and so has no shadow map); 0: cast shadows ignored"""
@@ -173,7 +173,7 @@ def ray_surface(ray: wp.vec3, cam: wp.vec3, p: wp.vec3, face_nrm: wp.vec3, plane
 def texel_blend(tex: TexelFrames, i: int, x: float, y: float, u: wp.vec3, v: wp.vec3):
     """The renderer's texture lookup at continuous texel coordinates (x, y) (``StreamConfig.model_lookup``
     "bilinear"): the BRDF there is the bilinear blend of the four atlas texels around (x, y)
-    (fit/kernels/render.py ``shade_texel_grid``). Returns (w_own, b): the weight of texel i's own
+    (render/kernels.py ``shade_texel_grid``). Returns (w_own, b): the weight of texel i's own
     BRDF (it may sit at several corners through padding copies) and the blend of the other corners'
     BRDFs at local directions (u, v), read from ``tex.lookup_params`` (held fixed)."""
     x0, y0, fx, fy = bilinear_taps(x, y, tex.grid_width, tex.grid_height)
@@ -205,7 +205,7 @@ def plane_texel_coords(tex: TexelFrames, i: int, q: wp.vec3):
 @wp.func
 def traced_tap(tex: TexelFrames, cam: wp.vec3, ray: wp.vec3, light_kind: int, light_vec: wp.vec3, shadows: int):
     """What a filtered tap's pixel ray sees (``StreamConfig.tap_geometry`` "mesh"), exactly as the
-    renderer (fit/kernels/render.py) sees it: the closest hit on the mesh, the surface frame there
+    renderer (render/kernels.py) sees it: the closest hit on the mesh, the surface frame there
     (:func:`surface_frame`: interpolated normal, the face's UV tangent) and, with ``shadows``
     (``TexelFrames.shadow_rays``), a shadow ray toward the light from the same offset start.
 

@@ -394,7 +394,7 @@ class PhotoSet:
         lo, hi = mesh_points.min(axis=0), mesh_points.max(axis=0)
         self.center = 0.5 * (lo + hi)
         self.radius = 0.5 * float(np.linalg.norm(hi - lo))
-        self.shadow_eps = SHADOW_EPS_REL * max(2.0 * self.radius, 1e-12)  # the renderer's (fit/render.py)
+        self.shadow_eps = SHADOW_EPS_REL * max(2.0 * self.radius, 1e-12)  # the renderer's (render/renderer.py)
         ssize = int(cfg.shadow_map_size)
         self.shadow_side = max(ssize, 2)
         self.sizes = sizes = np.array([[fr.height, fr.width] for fr in frames], np.int64)
