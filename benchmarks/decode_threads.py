@@ -84,9 +84,8 @@ def main() -> None:
     wp.config.quiet = True
     wp.init()
     from texstream.capture.capture_json import read_capture
-    from texstream.fit.kernels import stream
-    from texstream.fit.stream.photo_stream import PhotoLoader, crop_boxes, image_infos, struct_array
-    from texstream.fit.stream.problem import PhotoFrame
+    from texstream.fit.stream.photo_stream import PhotoLoader, crop_boxes
+    from texstream.render.camera import ImageInfo, PhotoFrame, image_infos, struct_array
     from texstream.fit.stages.stage import load_geometry, photo_files
 
     cap = Path(a.capture)
@@ -98,7 +97,7 @@ def main() -> None:
     infos = image_infos(pf, None, 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo)), 0)
     sizes = np.array([[f.height, f.width] for f in pf], np.int64)
     points = wp.array(np.asarray(mesh.vertices, np.float32), dtype=wp.vec3, device=a.device)
-    crops = crop_boxes(points, struct_array(infos, stream.ImageInfo, a.device), sizes[:, 1], sizes[:, 0], a.device)
+    crops = crop_boxes(points, struct_array(infos, ImageInfo, a.device), sizes[:, 1], sizes[:, 0], a.device)
     files = photo_files(capture, frames)
     n = len(frames)
     hmax, wmax = int(crops[:, 3].max()), int(crops[:, 2].max())

@@ -26,7 +26,7 @@ def run(device: str, out: Path, cases: list[str], photos_from: Path | None = Non
     import warp as wp
 
     wp.config.log_level = wp.LOG_WARNING
-    from texstream.capture.synth import SynthConfig, render_scene
+    from texstream.capture.synthetic.synth import SynthConfig, render_scene
     from texstream.fit.optim.fitter import FitConfig, run_fit
     from texstream.fit.stream.penalties import PenaltyConfig
     from texstream.fit.stream.problem import StreamConfig

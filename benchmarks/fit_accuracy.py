@@ -57,7 +57,7 @@ def main() -> None:
     import warp as wp
 
     wp.config.log_level = wp.LOG_WARNING
-    from texstream.capture.synth import SynthConfig, render_scene
+    from texstream.capture.synthetic.synth import SynthConfig, render_scene
     from texstream.fit.diagnostics.accuracy import highlight_counts, interior_texels, lobe_normal_peak, relative_errors
     from texstream.fit.optim.fitter import FitConfig
     from texstream.fit.optim.base import FitState

@@ -28,7 +28,7 @@ def main() -> None:
     import warp as wp
 
     wp.config.log_level = wp.LOG_WARNING
-    from texstream.capture.synth import SynthConfig, render_scene
+    from texstream.capture.synthetic.synth import SynthConfig, render_scene
     from texstream.fit.optim.fitter import FitConfig
     from texstream.fit.stream.penalties import PenaltyConfig
     from texstream.fit.stages.stage import fit_synthetic

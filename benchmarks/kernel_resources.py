@@ -70,7 +70,7 @@ def main() -> None:
     wp.config.log_level = wp.LOG_WARNING
     from pass_profile import time_passes
 
-    from texstream.capture.synth import SynthConfig, render_scene
+    from texstream.capture.synthetic.synth import SynthConfig, render_scene
     from texstream.fit.optim.fitter import FitConfig
     from texstream.fit.stream.problem import StreamConfig
     from texstream.fit.stages.stage import build_problem

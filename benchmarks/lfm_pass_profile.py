@@ -38,7 +38,7 @@ def main() -> None:
     import warp as wp
 
     wp.config.log_level = wp.LOG_WARNING
-    from texstream.capture.synth import SynthConfig, render_scene
+    from texstream.capture.synthetic.synth import SynthConfig, render_scene
     from texstream.fit.optim.fitter import FitConfig
     from texstream.fit.models.lfm.problem import LFMConfig, LFMProblem, PhotoSamples, fit_lfm
     from texstream.fit.models.lfm.model_folder import lfm_geometry

@@ -57,7 +57,7 @@ def main() -> None:
     import warp as wp
 
     wp.config.log_level = wp.LOG_WARNING
-    from texstream.capture.synth import SynthConfig, render_scene
+    from texstream.capture.synthetic.synth import SynthConfig, render_scene
     from texstream.fit.optim.fitter import FitConfig, run_fit
     from texstream.fit.stages.stage import build_problem
     from texstream.core.outputs import write_json_atomic

@@ -29,7 +29,7 @@ def main() -> None:
     ap.add_argument("--out", default=None)
     a = ap.parse_args()
     from texstream.capture.capture_json import read_capture
-    from texstream.capture.synth import load_ground_truth
+    from texstream.capture.synthetic.synth import load_ground_truth
     from texstream.fit.diagnostics.accuracy import highlight_counts, relative_errors
     from texstream.fit.stages.stage import load_model, split_holdout
 

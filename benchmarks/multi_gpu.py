@@ -71,7 +71,7 @@ def main() -> None:
 
     wp.config.quiet = True
     wp.init()
-    from texstream.capture.synth import SynthConfig, render_scene
+    from texstream.capture.synthetic.synth import SynthConfig, render_scene
     from texstream.fit.optim.fitter import FitConfig, run_fit
     from texstream.fit.stream.penalties import PenaltyConfig
     from texstream.fit.stream.problem import StreamConfig

@@ -123,7 +123,7 @@ def main() -> None:
     wp.config.log_level = wp.LOG_WARNING
     from fit_error_vs_time import measured_bandwidth, unique_bytes_per_pass
 
-    from texstream.capture.synth import SynthConfig, render_scene
+    from texstream.capture.synthetic.synth import SynthConfig, render_scene
     from texstream.fit.optim.fitter import FitConfig
     from texstream.fit.stream.problem import StreamConfig
     from texstream.fit.stages.stage import build_problem

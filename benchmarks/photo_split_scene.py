@@ -3,8 +3,9 @@
 
 from __future__ import annotations
 
-from texstream.capture.synth import SynthConfig, render_scene
-from texstream.fit.stream.problem import PhotoFrame, PhotoSet, StreamConfig
+from texstream.capture.synthetic.synth import SynthConfig, render_scene
+from texstream.fit.stream.problem import PhotoSet, StreamConfig
+from texstream.render.camera import PhotoFrame
 from texstream.geometry.bake import bake_texels
 
 

@@ -85,7 +85,7 @@ def child(a) -> dict:
         photos, masks = photo_files(capture, frames), None
         warm = photo_files(capture, frames[:2]), None
     else:
-        from texstream.capture.synth import SynthConfig, render_scene
+        from texstream.capture.synthetic.synth import SynthConfig, render_scene
 
         sc = render_scene(a.scene, SynthConfig(scale=a.scale, device=a.device, progress=False, photos=a.photos,
                                                image_size=a.image_size))
@@ -215,7 +215,7 @@ def main() -> None:
         results["write_capture_s"] = None  # written by an earlier run
         results["capture_bytes"] = sum(p.stat().st_size for p in (capture / "images").iterdir())
     elif a.source == "disk":
-        from texstream.capture.synth import SynthConfig, synthesize
+        from texstream.capture.synthetic.synth import SynthConfig, synthesize
 
         t0 = time.perf_counter()
         synthesize(a.scene, capture, SynthConfig(scale=a.scale, device=a.device, progress=False, preview=False,

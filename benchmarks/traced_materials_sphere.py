@@ -31,7 +31,7 @@ def main() -> None:
 
     from test_fit_materials import one_material_sphere
     from texstream.capture.capture_json import read_capture
-    from texstream.capture.synth import SynthConfig, load_ground_truth, synthesize
+    from texstream.capture.synthetic.synth import SynthConfig, load_ground_truth, synthesize
     from texstream.fit.diagnostics.accuracy import highlight_counts, relative_errors
     from texstream.fit.optim.fitter import FitConfig
     from texstream.fit.models.materials import MaterialConfig

@@ -286,3 +286,12 @@ def write_capture(capture: Capture, folder: str | os.PathLike | None = None) -> 
     path = root / CAPTURE_FILE
     write_json_atomic(path, capture_to_json(capture))
     return path
+
+
+def split_holdout(frames: list, every: int) -> tuple[list, list]:
+    """(fitted, held out): every ``every``-th frame (the 8th, 16th, ... for 8) is held out; 0 = none.
+    The one rule the fit, its evaluation and the photometric refinement hold photos out by."""
+    if every <= 0:
+        return list(frames), []
+    held = [f for i, f in enumerate(frames) if i % every == every - 1]
+    return [f for i, f in enumerate(frames) if i % every != every - 1], held

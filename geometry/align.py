@@ -14,7 +14,7 @@ import dataclasses
 
 import numpy as np
 
-from .mesh import SurfaceMesh
+from texstream.render.mesh import SurfaceMesh
 
 
 @dataclasses.dataclass

@@ -55,7 +55,7 @@ import numpy as np
 from texstream.core.errors import ConfigError, InputError
 from texstream.core.config import option
 
-from .mesh import SurfaceMesh
+from texstream.render.mesh import SurfaceMesh
 from .mesh_io import validate_mesh
 
 

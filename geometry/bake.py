@@ -24,7 +24,7 @@ Orphan faces
     its centroid). Faces still without a texel (every candidate taken) are listed in
     ``TexelBake.faces_without_texels``.
 
-The frame at each texel comes from :func:`texstream.fit.kernels.shading.surface_frame`, the same
+The frame at each texel comes from :func:`texstream.render.shading.surface_frame`, the same
 function the renderer and the fit use.
 """
 
@@ -37,10 +37,10 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-from texstream.fit.kernels.shading import surface_frame
+from texstream.render.shading import surface_frame
 from texstream.core.errors import InputError
 
-from .mesh import SurfaceMesh
+from texstream.render.mesh import SurfaceMesh
 from .mesh_io import write_npz_atomic
 
 # nothing here is differentiated: skipping Warp's adjoint code generation roughly halves

@@ -20,7 +20,7 @@ import numpy as np
 from texstream.core.errors import InputError
 from texstream.core.config import option
 
-from .mesh import SurfaceMesh
+from texstream.render.mesh import SurfaceMesh
 
 
 @dataclasses.dataclass

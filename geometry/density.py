@@ -17,7 +17,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .mesh import SurfaceMesh
+from texstream.render.mesh import SurfaceMesh
 from .visibility import depth_maps, visible_points
 
 

@@ -26,7 +26,7 @@ import warp as wp
 from texstream.core.errors import InputError, StageError
 from texstream.core.config import option
 
-from .mesh import SurfaceMesh
+from texstream.render.mesh import SurfaceMesh
 
 
 @dataclasses.dataclass

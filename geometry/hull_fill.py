@@ -30,7 +30,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .mesh import SurfaceMesh
+from texstream.render.mesh import SurfaceMesh
 
 
 def sample_surface(mesh: SurfaceMesh, spacing: float, max_samples: int = 200_000,

@@ -62,7 +62,7 @@ from texstream.core.config import option, save_config
 from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
 from texstream.core.progress import phase
 
-from .mesh import SurfaceMesh
+from texstream.render.mesh import SurfaceMesh
 from .mvs import MvsConfig
 
 POINTS_FILE = "points3D.ply"

@@ -1,4 +1,4 @@
-"""Mesh files to and from :class:`~texstream.geometry.mesh.SurfaceMesh`.
+"""Mesh files to and from :class:`~texstream.render.mesh.SurfaceMesh`.
 
 Reading
     * OBJ: texstream's own numpy parser. It keeps ``v``, ``vt`` and ``vn`` and unwelds each
@@ -32,7 +32,7 @@ import numpy as np
 from texstream.core.errors import InputError
 from texstream.core.outputs import write_atomic_with
 
-from .mesh import SurfaceMesh
+from texstream.render.mesh import SurfaceMesh
 
 READ_EXTENSIONS = (".obj", ".ply", ".stl", ".glb", ".gltf")
 WRITE_EXTENSIONS = (".obj", ".ply", ".glb")

@@ -20,7 +20,7 @@ import warp as wp
 from texstream.core.errors import InputError, StageError
 from texstream.core.config import option
 
-from .mesh import SurfaceMesh
+from texstream.render.mesh import SurfaceMesh
 
 
 @dataclasses.dataclass

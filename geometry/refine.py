@@ -136,7 +136,7 @@ def _gaussian(sigma: float) -> tuple[np.ndarray, int]:
 
 def weld_vertices(mesh) -> tuple[np.ndarray, np.ndarray]:
     """(weld index per vertex, welded positions): the vertices an atlas split along seams become one again
-    (:meth:`~texstream.geometry.mesh.SurfaceMesh.weld_key`)."""
+    (:meth:`~texstream.render.mesh.SurfaceMesh.weld_key`)."""
     key = mesh.weld_key()
     welded = np.zeros((int(key.max()) + 1 if key.size else 0, 3))
     welded[key] = np.asarray(mesh.vertices, np.float64)
@@ -210,10 +210,8 @@ class PhotometricRefinement:
 
     def __init__(self, capture, mesh, bake, cfg: RefineConfig, device: str = "cpu", log=None):
         from texstream.capture.imageio import read_image, read_mask
-        from texstream.fit.kernels.stream import ImageInfo
-        from texstream.fit.stream.photo_stream import image_infos, struct_array
-        from texstream.fit.stream.problem import PhotoFrame
-        from texstream.fit.stages.stage import split_holdout
+        from texstream.capture.capture_json import split_holdout
+        from texstream.render.camera import ImageInfo, PhotoFrame, image_infos, struct_array
 
         self.cfg, self.device, self.log = cfg, device, log or (lambda m: None)
         self.frames = list(capture.frames)
@@ -346,7 +344,7 @@ class PhotometricRefinement:
 
     def update_geometry(self) -> None:
         """Mesh vertices from the welded ones, the BVH, texel positions, and every photo's depth map."""
-        from texstream.fit.kernels.visibility import depth_maps_kernel
+        from texstream.render.visibility import depth_maps_kernel
 
         wp.launch(rk.scatter_points_kernel, dim=len(self.mesh.vertices), inputs=[self.welded_points, self.weld],
                   outputs=[self.points], device=self.device)

@@ -21,8 +21,9 @@ from __future__ import annotations
 
 import warp as wp
 
-from texstream.fit.kernels.shading import incident_light
-from texstream.fit.kernels.stream import ImageInfo, depth_consistent
+from texstream.render.camera import ImageInfo
+from texstream.render.shading import incident_light
+from texstream.render.visibility import depth_consistent
 
 wp.set_module_options({"enable_backward": False})
 
@@ -121,7 +122,7 @@ def observe(infos: wp.array(dtype=ImageInfo), images: wp.array3d(dtype=wp.vec3),
         return ob
     value, gx, gy = bilinear_with_gradient(images, k, x, y)
     shading = wp.vec3(info.exposure, info.exposure, info.exposure)
-    if info.light_kind != 2:  # a known light: Lambertian shading (fit/kernels/shading.py LIGHT_*)
+    if info.light_kind != 2:  # a known light: Lambertian shading (render/shading.py LIGHT_*)
         wi, irradiance, dist = incident_light(info.light_kind, info.light_vec, info.light_intensity, p)
         cos_light = wp.dot(n_shade, wi)
         if cos_light < 0.1:  # the fit's grazing-light rejection (StreamConfig.cos_light_min)

@@ -28,7 +28,7 @@ import warp as wp
 
 from texstream.core.errors import StageError
 
-from .mesh import SurfaceMesh
+from texstream.render.mesh import SurfaceMesh
 
 
 def robust_box(points: np.ndarray, percentile: float = 2.0, margin: float = 0.05) -> tuple[np.ndarray, np.ndarray]:

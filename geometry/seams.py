@@ -2,7 +2,7 @@
 
 A seam edge is a mesh edge whose two faces lie in different charts (or at different places of the
 same chart): its two copies have different UVs. The renderer textures a surface point by a
-bilinear lookup at the point's UV (:func:`texstream.fit.kernels.shading.bilinear_taps`; padding
+bilinear lookup at the point's UV (:func:`texstream.render.shading.bilinear_taps`; padding
 texels hold the value of their ``fill_source``), so a point on a seam edge reads four texels on
 side A and four on side B, and the model has a crack there unless the two lookups agree.
 
@@ -42,7 +42,7 @@ import numpy as np
 
 from texstream.core.errors import InputError
 
-from .mesh import SurfaceMesh
+from texstream.render.mesh import SurfaceMesh
 
 SEAMS_FILE = "seams.npz"
 
@@ -169,7 +169,7 @@ def _crossings(x0: np.ndarray, x1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def bilinear_stencil(uv: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
     """The renderer's bilinear lookup as (N, 4) flat texel indices and weights.
 
-    Mirrors :func:`texstream.fit.kernels.shading.texel_coords` and ``bilinear_taps``: texel
+    Mirrors :func:`texstream.render.shading.texel_coords` and ``bilinear_taps``: texel
     centres at integers, coordinates clamped to the atlas, taps (x0, y0), (x0+1, y0), (x0, y0+1),
     (x0+1, y0+1).
     """

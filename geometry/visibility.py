@@ -16,7 +16,7 @@ from typing import Sequence
 import numpy as np
 import warp as wp
 
-from .mesh import SurfaceMesh
+from texstream.render.mesh import SurfaceMesh
 
 
 @wp.kernel(enable_backward=False)

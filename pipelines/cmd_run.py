@@ -105,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     source = args.photos
     if source is None:
-        from texstream.capture.synth import SynthConfig, synthesize
+        from texstream.capture.synthetic.synth import SynthConfig, synthesize
 
         source = out / "capture"
         print(f"[synth] built-in synthetic capture set '{args.scene}' at scale {args.scale} -> {source}", flush=True)

@@ -1,7 +1,7 @@
 """``texstream synth SCENE -o DIR``: render a synthetic capture set with ground truth.
 
 SCENE is a built-in scene (sphere, flat_sample, bunny, ornament) or a scene JSON file; see
-:mod:`texstream.capture.synth` for the scene keys. Example:
+:mod:`texstream.capture.synthetic.synth` for the scene keys. Example:
 
     texstream synth ornament -o out/ornament --scale 0.05 --bits 8 --noise 0.005 --save-clean
 """
@@ -14,7 +14,7 @@ from texstream.pipelines.cli import add_config_arguments, config_from_args
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from texstream.capture.synth import SynthConfig, builtin_scenes
+    from texstream.capture.synthetic.synth import SynthConfig, builtin_scenes
 
     parser.add_argument("scene", help=f"built-in scene ({', '.join(builtin_scenes())}) or a scene JSON path")
     parser.add_argument("-o", "--out", required=True, help="output capture folder (replaced if it exists)")
@@ -24,7 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import warp as wp
 
-    from texstream.capture.synth import SynthConfig, synthesize
+    from texstream.capture.synthetic.synth import SynthConfig, synthesize
 
     wp.config.log_level = wp.LOG_WARNING  # the progress bar and the summary are the output (1.19: not `quiet`)
 

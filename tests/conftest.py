@@ -71,7 +71,7 @@ def pose_errors(got, truth):
 
 def tiny_sphere_capture(root: Path, photos: int, image_size: int = 40) -> Path:
     """A small synthetic sphere capture (``root/cap``, with its ground-truth atlas) for stage tests."""
-    from texstream.capture.synth import SynthConfig, synthesize
+    from texstream.capture.synthetic.synth import SynthConfig, synthesize
 
     synthesize("sphere", root / "cap", SynthConfig(scale=0.05, photos=photos, image_size=image_size, progress=False,
                                                    preview=False, device=SCENE_DEVICE))

@@ -14,7 +14,7 @@ def fixed_light_sphere_capture(root: Path, photos: int = 48, image_size: int = 3
     ``segments`` x ``segments / 2`` quads (few vertices: the LFM's view maps are per vertex) with a broad
     highlight (lobe exponent ``exponent``) from a fixed point light; capture.json has no light."""
     from texstream.capture.capture_json import read_capture, write_capture
-    from texstream.capture.synth import SynthConfig, load_scene, synthesize
+    from texstream.capture.synthetic.synth import SynthConfig, load_scene, synthesize
 
     scene = load_scene("sphere")
     scene["mesh"]["params"].update(n_segments=segments, n_rings=segments // 2)

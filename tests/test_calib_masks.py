@@ -23,7 +23,7 @@ def turntable(tmp_path_factory):
     """6 sRGB 8-bit photos (160 px) of the specular, banded ornament on a turntable ring, lit from the camera,
     composited onto a dark, slightly graded, noisy background; and the renderer's true masks."""
     from texstream.capture.imageio import write_image
-    from texstream.capture.synth import SynthConfig, load_scene, render_scene
+    from texstream.capture.synthetic.synth import SynthConfig, load_scene, render_scene
 
     sc = load_scene("ornament")
     sc["cameras"] = {"layout": "ring", "count": 6, "rings": [15.0], "distance": 5.0, "fov_deg": 30.0,

@@ -1,4 +1,4 @@
-"""Registration of a textured synthetic capture (capture/scenes/textured_sphere.json) against its known
+"""Registration of a textured synthetic capture (capture/synthetic/scenes/textured_sphere.json) against its known
 poses, and alignment of the registered model to a given mesh frame."""
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ pytest.importorskip("OpenImageIO")
 def sphere_capture(tmp_path_factory):
     """24 sRGB photos (256 px, two rings at 5 and 35 degrees elevation) of a noise-textured sphere, and the
     calibrated intrinsics file ``register`` accepts (the renderer's exact pinhole K)."""
-    from texstream.capture.synth import SynthConfig, synthesize
+    from texstream.capture.synthetic.synth import SynthConfig, synthesize
 
     root = tmp_path_factory.mktemp("synth_reg")
     cap = root / "sphere"
@@ -61,8 +61,8 @@ def test_textured_synthetic_capture_recovers_known_poses(sphere_capture, tmp_pat
 
 def _lumpy_mesh():
     """An icosphere pushed into an asymmetric potato (no symmetry the PCA start could confuse)."""
-    from texstream.capture.procedural import icosphere
-    from texstream.geometry.mesh import SurfaceMesh
+    from texstream.capture.synthetic.procedural import icosphere
+    from texstream.render.mesh import SurfaceMesh
 
     m = icosphere(1.0, 3)
     v = m.vertices
@@ -236,7 +236,7 @@ def test_self_calibration_keeps_a_pinhole_when_distortion_does_not_help(sphere_c
     length 8% long, at a 0.02% lower mean reprojection error: on an object in the middle of the frame the
     tracks do not tell a radial term from the focal length and the poses."""
     from texstream.calib.ingest import ingest
-    from texstream.capture.synth import write_photos_only
+    from texstream.capture.synthetic.synth import write_photos_only
 
     cap, _ = sphere_capture
     truth = read_capture(cap)

@@ -11,7 +11,7 @@ from texstream.core.errors import InputError
 from texstream.core.progress import reporting
 from texstream.fit.stream import decode_pool
 from texstream.fit.stream.photo_stream import PhotoLoader
-from texstream.fit.stream.problem import PhotoFrame
+from texstream.render.camera import PhotoFrame
 
 pytest.importorskip("OpenImageIO", reason="decoding photo files needs OpenImageIO")
 
@@ -22,7 +22,7 @@ SMALL = dict(scale=0.02, photos=10, image_size=40, progress=False)
 def capture_dir(tmp_path_factory):
     """The small ornament as a capture folder (float EXR photos with masks)."""
     from conftest import SCENE_DEVICE
-    from texstream.capture.synth import SynthConfig, synthesize
+    from texstream.capture.synthetic.synth import SynthConfig, synthesize
 
     out = tmp_path_factory.mktemp("ornament") / "capture"
     synthesize("ornament", out, SynthConfig(device=SCENE_DEVICE, preview=False, **SMALL))

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from texstream.capture.synth import SynthConfig, render_scene
+from texstream.capture.synthetic.synth import SynthConfig, render_scene
 from texstream.fit.diagnostics.accuracy import highlight_counts, interior_texels, relative_errors
 from texstream.fit.optim.fitter import FitConfig
 from texstream.fit.stream.penalties import PenaltyConfig

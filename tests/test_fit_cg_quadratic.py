@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from texstream.capture.synth import SynthConfig, load_scene, render_scene
+from texstream.capture.synthetic.synth import SynthConfig, load_scene, render_scene
 from texstream.fit.optim.fitter import FitConfig, make_optimizer
 from texstream.fit.optim.base import FitState
 from texstream.fit.optim.linesearch import LineSearchConfig, line_search

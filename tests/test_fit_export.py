@@ -21,13 +21,13 @@ import numpy as np
 import pytest
 
 from texstream.capture.imageio import linear_to_srgb
-from texstream.capture.procedural import flat_sample
-from texstream.capture.synth import write_param_maps
+from texstream.capture.synthetic.procedural import flat_sample
+from texstream.capture.synthetic.synth import write_param_maps
 from texstream.core.config import load_config
 from texstream.core.errors import ConfigError, InputError
 from texstream.fit.stages import export as E
 from texstream.fit.kernels.layout import MODEL_KINDS, ModelLayout
-from texstream.geometry.mesh import SurfaceMesh
+from texstream.render.mesh import SurfaceMesh
 from texstream.geometry.mesh_io import load_mesh, save_mesh
 
 trimesh = pytest.importorskip("trimesh")

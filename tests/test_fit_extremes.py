@@ -14,7 +14,7 @@ import copy
 import numpy as np
 import pytest
 
-from texstream.capture.synth import SynthConfig, load_scene, render_scene
+from texstream.capture.synthetic.synth import SynthConfig, load_scene, render_scene
 from texstream.fit.optim.fitter import FitConfig, run_fit
 from texstream.fit.stream.problem import StreamConfig
 from texstream.fit.stages.stage import build_problem

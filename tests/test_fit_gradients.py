@@ -8,7 +8,8 @@ import warp as wp
 
 from texstream.capture.conventions import look_at_w2c
 from texstream.fit.kernels.layout import ModelLayout
-from texstream.fit.stream.problem import PhotoFrame, PhotoSet, StreamConfig, StreamProblem, TexelSet
+from texstream.fit.stream.problem import PhotoSet, StreamConfig, StreamProblem, TexelSet
+from texstream.render.camera import PhotoFrame
 
 
 SAMPLINGS = ["filtered", "point", "bilinear"]

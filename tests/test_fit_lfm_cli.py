@@ -44,7 +44,7 @@ def test_star_mesh():
     outward faces, unit normals pointing out, points at radius 1.45 and half-thickness 0.5."""
     import numpy as np
 
-    from texstream.capture.procedural import star
+    from texstream.capture.synthetic.procedural import star
 
     m = star()
     assert m.n_faces == 6240 and m.uvs is not None

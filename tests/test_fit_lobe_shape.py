@@ -12,7 +12,7 @@ import pytest
 
 from texstream.fit.optim.fitter import FitConfig, choose_lobe_shape, light_view_angles
 from texstream.fit.kernels.layout import ModelLayout
-from texstream.fit.stream.problem import PhotoFrame
+from texstream.render.camera import PhotoFrame
 from texstream.core.errors import ConfigError
 
 

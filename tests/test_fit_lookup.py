@@ -1,7 +1,7 @@
 """The renderer's texture lookup in the fit (``StreamConfig.model_lookup`` "bilinear").
 
 A filtered sample's taps land around the texel's centre, where the renderer blends the BRDFs of
-the four texels around each tap (fit/kernels/render.py). With the lookup the fit's model does the
+the four texels around each tap (render/kernels.py). With the lookup the fit's model does the
 same, its neighbours held at the values of the last refresh, so each texel's objective stays its
 own: derivatives are checked per texel against finite differences in fp64 with the neighbours
 held at other values than the texel's parameters; the synthetic ornament checks that the truth
@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from texstream.capture.synth import SynthConfig, render_scene
+from texstream.capture.synthetic.synth import SynthConfig, render_scene
 from texstream.fit.optim.fitter import FitConfig, run_fit
 from texstream.fit.kernels.layout import ModelLayout
 from texstream.fit.optim.base import FitState

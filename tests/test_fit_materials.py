@@ -240,7 +240,7 @@ def test_contradicted_material_loses_its_lobe():
 def one_material_sphere() -> dict:
     """The built-in sphere with its gradient removed (one material, rho_s 0.6, n 60: the material's lobe
     is every texel's) and few photos, so most texels never see their highlight."""
-    from texstream.capture.synth import load_scene
+    from texstream.capture.synthetic.synth import load_scene
 
     scene = copy.deepcopy(load_scene("sphere"))
     mat = scene["materials"]["plastic"]
@@ -254,7 +254,7 @@ def sphere_fit(tmp_path_factory):
     """``fit_stage`` on the one-material sphere (160 photos of 48x48 on its own atlas, every 8th held out),
     materials on with one material: the model folder and its ground truth."""
     pytest.importorskip("OpenImageIO")
-    from texstream.capture.synth import SynthConfig, load_ground_truth, synthesize
+    from texstream.capture.synthetic.synth import SynthConfig, load_ground_truth, synthesize
     from texstream.fit.optim.fitter import FitConfig
     from texstream.fit.stages.stage import FitStageConfig, fit_stage
 
@@ -275,7 +275,7 @@ def test_unseen_highlight_texels_take_the_material_lobe(sphere_fit):
     does in 5 at this photo count) keep rho_s within 3% and n within 5%, the per-texel bounds of
     docs/accuracy.md (measured: 1.3% and 0.9%)."""
     from texstream.capture.capture_json import read_capture
-    from texstream.capture.synth import load_ground_truth
+    from texstream.capture.synthetic.synth import load_ground_truth
     from texstream.fit.diagnostics.accuracy import highlight_counts, relative_errors
     from texstream.fit.stages.stage import load_model, split_holdout
 

@@ -4,7 +4,7 @@
 photos against the clean renders)". Precisely, as measured here:
 
 - Photos: the sphere scene developed with Gaussian camera noise (sigma = 0.01 in linear units,
-  after exposure) and then quantised to 8-bit sRGB codes (capture/synth.py ``develop``); the
+  after exposure) and then quantised to 8-bit sRGB codes (capture/synthetic/synth.py ``develop``); the
   exposure (0.8) keeps every clean pixel below 1, so nothing clips and the floor is noise plus
   quantisation only. ``save_clean`` keeps the noise-free float renders.
 - Pixels: the foreground of every view, i.e. the photo's object mask intersected with the fitted
@@ -28,7 +28,7 @@ import math
 import numpy as np
 import pytest
 
-from texstream.capture.synth import SynthConfig, render_scene
+from texstream.capture.synthetic.synth import SynthConfig, render_scene
 from texstream.fit.optim.fitter import FitConfig, run_fit
 from texstream.fit.stream.penalties import PenaltyConfig
 from texstream.fit.stream.problem import StreamConfig

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from texstream.capture.synth import SynthConfig, render_scene
+from texstream.capture.synthetic.synth import SynthConfig, render_scene
 from texstream.fit.optim.fitter import FitConfig, run_fit
 from texstream.fit.optim.linesearch import LineSearchConfig
 from texstream.fit.stream.penalties import PenaltyConfig
@@ -23,7 +23,7 @@ def flat_scene():
 def fit(scene, device, **kw):
     cfg = FitConfig(**kw)
     tex = scene.bake
-    from texstream.capture.synth import render_scene as _  # noqa: F401  (scene already rendered)
+    from texstream.capture.synthetic.synth import render_scene as _  # noqa: F401  (scene already rendered)
 
     prob = build_problem(scene.mesh, tex, scene.frames, scene.images, scene.masks, cfg, device)
     return run_fit(prob, cfg), prob

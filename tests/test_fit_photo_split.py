@@ -26,7 +26,7 @@ STREAM = dict(shadow_map_size=48)  # small shadow maps: the CPU's ray casts take
 def scene():
     """(mesh, bake, frames, images, masks) of a small ornament rendered in memory."""
     from conftest import SCENE_DEVICE
-    from texstream.capture.synth import SynthConfig, render_scene
+    from texstream.capture.synthetic.synth import SynthConfig, render_scene
 
     sc = render_scene("ornament", SynthConfig(device=SCENE_DEVICE, **SMALL))
     return sc.mesh, sc.bake, sc.frames, sc.images, sc.masks
@@ -148,7 +148,7 @@ def test_split_over_two_gpus_equals_one_gpu_with_two_groups():
 
     if wp.get_cuda_device_count() < 2:
         pytest.skip("needs two GPUs")
-    from texstream.capture.synth import SynthConfig, render_scene
+    from texstream.capture.synthetic.synth import SynthConfig, render_scene
 
     sc = render_scene("ornament", SynthConfig(device="cuda:0", **SMALL))
     scene = (sc.mesh, sc.bake, sc.frames, sc.images, sc.masks)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from texstream.capture.synth import SynthConfig, render_scene
+from texstream.capture.synthetic.synth import SynthConfig, render_scene
 from texstream.fit.optim.fitter import FitConfig, run_fit
 from texstream.fit.kernels.layout import ModelLayout
 from texstream.fit.optim.linesearch import LineSearchConfig

@@ -19,12 +19,13 @@ import pytest
 import warp as wp
 
 from texstream.capture.capture_json import Light
-from texstream.capture.synth import SynthConfig, render_scene
+from texstream.capture.synthetic.synth import SynthConfig, render_scene
 from texstream.core.errors import InputError
 from texstream.fit.optim.fitter import FitConfig, run_fit
 from texstream.fit.kernels.layout import ModelLayout
-from texstream.fit.stream.problem import PhotoFrame, PhotoSet, StreamProblem, TexelSet, surface_derivatives
-from texstream.fit.stages.render import Renderer
+from texstream.fit.stream.problem import PhotoSet, StreamProblem, TexelSet, surface_derivatives
+from texstream.render.camera import PhotoFrame
+from texstream.render.renderer import Renderer
 
 from conftest import SCENE_DEVICE
 from test_fit_gradients import (SAMPLINGS, assert_full_dhd_matches_second_difference,
@@ -62,7 +63,7 @@ def test_layout_table_json_and_param_maps(tmp_path):
     assert lay.index("L.g") == 1
     assert ModelLayout.from_json(lay.to_json()) == lay
     pytest.importorskip("OpenImageIO")
-    from texstream.capture.synth import read_param_maps, write_param_maps
+    from texstream.capture.synthetic.synth import read_param_maps, write_param_maps
 
     grid = np.random.default_rng(0).uniform(0, 5, (6, 5, 3)).astype(np.float32)
     files = write_param_maps(tmp_path, grid, lay)
@@ -216,7 +217,7 @@ def test_reflectance_models_refuse_frames_without_a_light(device):
 def test_renderer_renders_radiance_without_a_light(device):
     """A constant radiance grid renders as that radiance wherever the mesh is hit, with or without a
     light (ignored); a reflectance model without a light is refused."""
-    from texstream.capture import procedural
+    from texstream.capture.synthetic import procedural
     from texstream.capture.conventions import look_at_w2c
 
     mesh = procedural.uv_sphere(1.0, n_segments=24, n_rings=12)

@@ -1,7 +1,7 @@
 """Single-view, many-light fits (fit/photometric_stereo.py): image grid = texel grid, no mesh.
 
 Ground truth: a hemisphere's normal map seen by one pinhole camera under 16 directional lights,
-rendered analytically in numpy with the Lafortune convention of fit/kernels/shading.py
+rendered analytically in numpy with the Lafortune convention of render/shading.py
 (pixel = exposure * E * cos(theta_i) * (rho_d + rho_s * max(s, 0)^n), s = c_xy (u_x v_x + u_y v_y)
 + c_z u_z v_z in the local frame) and written as a capture folder of float EXR photos.
 """
@@ -114,7 +114,7 @@ def write_set(folder, specular: bool, normals_ext: str = ".npy", shadow: bool = 
 
 
 def read_maps(model):
-    from texstream.capture.synth import read_param_maps
+    from texstream.capture.synthetic.synth import read_param_maps
     from texstream.fit.kernels.layout import ModelLayout
 
     man = json.loads((model / "model.json").read_text())

@@ -35,7 +35,7 @@ def stage_config(traced_polish: int = 5, **fit) -> FitStageConfig:
 
 @pytest.fixture(scope="module")
 def capture_and_atlas(tmp_path_factory):
-    from texstream.capture.synth import SynthConfig, synthesize
+    from texstream.capture.synthetic.synth import SynthConfig, synthesize
     from texstream.geometry.atlas import AtlasConfig, atlas_stage
 
     root = tmp_path_factory.mktemp("seams")
@@ -80,7 +80,7 @@ def test_fit_stage_writes_the_model_folder(fitted):
 
 def test_fitted_maps_agree_across_seams(fitted):
     root, _ = fitted
-    from texstream.capture.synth import read_param_maps
+    from texstream.capture.synthetic.synth import read_param_maps
 
     model = root / "model"
     man = json.loads((model / "model.json").read_text())
@@ -177,7 +177,7 @@ def fake_fit(make_params):
 def test_extreme_fitted_values_stay_in_bounds_through_the_seam_averaging(capture_and_atlas, monkeypatch):
     """Neighbouring texels at opposite ends of every parameter's range (what real photos under a
     guessed light produced): the written maps stay inside the bounds, every texel."""
-    from texstream.capture.synth import read_param_maps
+    from texstream.capture.synthetic.synth import read_param_maps
 
     root = capture_and_atlas
 
@@ -254,7 +254,7 @@ def test_lobes_no_photo_saw_are_dropped_and_the_seen_ones_kept(capture_and_atlas
     error a lot and stays; a lobe made negligible (rho_s 1e-9) explains nothing and is dropped, as is a
     true lobe whose highlight no photo caught."""
     from texstream.capture.capture_json import read_capture
-    from texstream.capture.synth import load_ground_truth
+    from texstream.capture.synthetic.synth import load_ground_truth
     from texstream.fit.optim.fitter import FitResult
     from texstream.fit.stages.stage import build_problem, drop_unsupported_lobes, load_photos
 
@@ -292,7 +292,7 @@ def test_a_second_lobe_stays_only_where_it_lowers_the_error(capture_and_atlas):
     second half lowers the texel's error and stays; a second lobe made negligible (rho_s 1e-9) is dropped
     on its own while the first lobe is untouched."""
     from texstream.capture.capture_json import read_capture
-    from texstream.capture.synth import load_ground_truth
+    from texstream.capture.synthetic.synth import load_ground_truth
     from texstream.fit.optim.fitter import FitResult, initial_guess
     from texstream.fit.stages.stage import build_problem, drop_unsupported_lobes, load_photos
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from texstream.capture.synth import SynthConfig, render_scene
+from texstream.capture.synthetic.synth import SynthConfig, render_scene
 from texstream.fit.optim.fitter import FitConfig
 from texstream.fit.kernels import optim_kernels as K
 from texstream.fit.kernels.layout import ModelLayout, energy_bound_numpy

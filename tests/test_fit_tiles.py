@@ -34,7 +34,7 @@ STREAM = dict(shadow_map_size=48, groups=1)
 def scene():
     """(mesh, bake, frames, images, masks) of a small ornament rendered in memory."""
     from conftest import SCENE_DEVICE
-    from texstream.capture.synth import SynthConfig, render_scene
+    from texstream.capture.synthetic.synth import SynthConfig, render_scene
 
     sc = render_scene("ornament", SynthConfig(device=SCENE_DEVICE, **SMALL))
     return sc.mesh, sc.bake, sc.frames, sc.images, sc.masks
@@ -183,7 +183,7 @@ def capture_dir(tmp_path_factory):
     """The small ornament written as a capture folder (float EXR photos, masks)."""
     pytest.importorskip("OpenImageIO", reason="writing and reading a capture folder needs OpenImageIO")
     from conftest import SCENE_DEVICE
-    from texstream.capture.synth import SynthConfig, synthesize
+    from texstream.capture.synthetic.synth import SynthConfig, synthesize
 
     out = tmp_path_factory.mktemp("ornament") / "capture"
     synthesize("ornament", out, SynthConfig(device=SCENE_DEVICE, preview=False, **SMALL))

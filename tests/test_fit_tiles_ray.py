@@ -27,7 +27,7 @@ def capture(tmp_path_factory):
     pytest.importorskip("OpenImageIO", reason="writing and reading a capture folder needs OpenImageIO")
     from conftest import SCENE_DEVICE
     from texstream.capture.capture_json import read_capture
-    from texstream.capture.synth import SynthConfig, synthesize
+    from texstream.capture.synthetic.synth import SynthConfig, synthesize
     from texstream.fit.stages.stage import load_geometry
 
     out = tmp_path_factory.mktemp("ornament") / "capture"

@@ -17,11 +17,12 @@ import numpy as np
 import pytest
 import warp as wp
 
-from texstream.capture.synth import VIEW_TERM_NAMES, SynthConfig, render_scene
+from texstream.capture.synthetic.synth import VIEW_TERM_NAMES, SynthConfig, render_scene
 from texstream.fit.optim.fitter import FitConfig, run_fit
 from texstream.fit.kernels.layout import VIEW_TERMS, ModelLayout
-from texstream.fit.stream.problem import PhotoFrame, PhotoSet, StreamProblem, TexelSet, surface_derivatives
-from texstream.fit.stages.render import Renderer
+from texstream.fit.stream.problem import PhotoSet, StreamProblem, TexelSet, surface_derivatives
+from texstream.render.camera import PhotoFrame
+from texstream.render.renderer import Renderer
 
 from conftest import SCENE_DEVICE
 from test_fit_gradients import SAMPLINGS, assert_gradient_matches_finite_differences, evaluate, plane_problem
@@ -45,7 +46,7 @@ def test_layout_table_json_and_param_maps(tmp_path):
     assert ModelLayout.from_json(VIEW.to_json()) == VIEW
     np.testing.assert_array_equal(VIEW.lower()[3:], -1000.0)
     pytest.importorskip("OpenImageIO")
-    from texstream.capture.synth import read_param_maps, write_param_maps
+    from texstream.capture.synthetic.synth import read_param_maps, write_param_maps
 
     grid = np.random.default_rng(0).normal(size=(6, 5, 18)).astype(np.float32)
     files = write_param_maps(tmp_path, grid, VIEW)

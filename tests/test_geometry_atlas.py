@@ -10,7 +10,7 @@ import pytest
 
 from texstream.geometry.atlas import AtlasConfig, atlas_stage, build_atlas, from_xatlas_uv
 from texstream.geometry.bake import bake_texels, claim_texels
-from texstream.geometry.mesh import SurfaceMesh
+from texstream.render.mesh import SurfaceMesh
 from texstream.core.errors import ConfigError, InputError
 
 

@@ -9,7 +9,7 @@ import pytest
 from texstream.capture.conventions import texel_center_uv
 from texstream.geometry.atlas import AtlasConfig, build_atlas
 from texstream.geometry.bake import TexelBake, bake_texels, claim_texels, padding_sources
-from texstream.geometry.mesh import SurfaceMesh
+from texstream.render.mesh import SurfaceMesh
 from texstream.core.errors import InputError
 
 from test_geometry_atlas import icosphere

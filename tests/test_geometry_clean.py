@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from texstream.geometry.clean import CleanConfig, clean_mesh, signed_volume, topology
-from texstream.geometry.mesh import SurfaceMesh
+from texstream.render.mesh import SurfaceMesh
 from texstream.core.errors import InputError
 
 from conftest import need_data

@@ -94,7 +94,7 @@ def ornament(tmp_path_factory):
     30-80 degrees elevation), rendered by the synth stage (~1.5 s each). Returns (mesh, far frames,
     close frames)."""
     from texstream.capture.capture_json import read_capture
-    from texstream.capture.synth import SynthConfig, load_scene, synthesize
+    from texstream.capture.synthetic.synth import SynthConfig, load_scene, synthesize
     from texstream.geometry.mesh_io import load_mesh
 
     tmp = tmp_path_factory.mktemp("ornament")
@@ -159,7 +159,7 @@ def sliver_sphere(radius: float = 0.1, n_split: int = 60, t: float = 1e-3):
     """An icosphere of 10 cm (scene units: metres) with ``n_split`` faces split at a point next to a
     corner into one near-whole face and two slivers of ~5e-8 m^2 (below float32 epsilon, which xatlas
     treats as zero area; their short edges, ~3e-5 m, are also below xatlas' UV weld distance)."""
-    from texstream.geometry.mesh import SurfaceMesh
+    from texstream.render.mesh import SurfaceMesh
 
     s = icosphere(3, radius)
     v, f = s.vertices, s.faces

@@ -24,7 +24,7 @@ TEMPLE_SFM_POINTS = 4215
 @pytest.fixture(scope="module")
 def sphere_capture(tmp_path_factory):
     from texstream.capture.capture_json import read_capture
-    from texstream.capture.synth import SynthConfig, synthesize
+    from texstream.capture.synthetic.synth import SynthConfig, synthesize
     from texstream.geometry.hull import load_masks
     from texstream.geometry.mesh_io import load_mesh
 

@@ -23,7 +23,7 @@ from texstream.geometry import refine_kernels as rk
 @pytest.fixture(scope="module")
 def sphere(tmp_path_factory):
     from texstream.capture.capture_json import read_capture
-    from texstream.capture.synth import SynthConfig, synthesize
+    from texstream.capture.synthetic.synth import SynthConfig, synthesize
 
     root = tmp_path_factory.mktemp("refine") / "cap"
     synthesize("textured_sphere", root, SynthConfig(photos=24, image_size=128, progress=False, preview=False,
@@ -139,8 +139,7 @@ def test_a_mesh_too_large_shrinks_to_the_sphere(sphere, tmp_path, device):
 def test_pose_gradient_matches_finite_differences(sphere, device):
     """J^T r of the pose system against central differences of the objective (inside the Huber threshold the
     objective is 1/2 sum w |r|^2, so its gradient is exactly sum w J^T r)."""
-    from texstream.fit.kernels.stream import ImageInfo
-    from texstream.fit.stream.photo_stream import struct_array
+    from texstream.render.camera import ImageInfo, struct_array
     from texstream.geometry.bake import TexelBake
     from texstream.geometry.mesh_io import load_mesh
     from texstream.geometry.refine import PhotometricRefinement, RefineConfig

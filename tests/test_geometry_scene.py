@@ -16,7 +16,7 @@ import pytest
 from texstream.capture.capture_json import Capture, Frame, Intrinsics, write_capture
 from texstream.capture.conventions import look_at_w2c
 from texstream.core.errors import StageError
-from texstream.geometry.mesh import SurfaceMesh
+from texstream.render.mesh import SurfaceMesh
 from texstream.geometry.scene import (camera_facing, cameras_enclosed, check_facing, classify_capture,
                                       genus_by_component, orient_to_cameras, robust_box)
 from texstream.geometry.visibility import depth_maps
@@ -279,7 +279,7 @@ def test_genus_by_component_counts_handles_and_boundaries():
 def test_a_shell_inside_the_body_is_removed():
     """Poisson can close a pocket inside an object's body: a closed component every vertex of which lies
     inside another component is seen by no camera and is dropped; a separate piece outside stays."""
-    from texstream.capture import procedural
+    from texstream.capture.synthetic import procedural
     from texstream.geometry.scene import drop_enclosed_components
 
     outer = procedural.uv_sphere(1.0, n_segments=24, n_rings=12)

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import warp as wp
 
-from texstream.capture.procedural import icosphere, uv_sphere
-from texstream.fit.kernels.shading import bilinear_taps, texel_coords
+from texstream.capture.synthetic.procedural import icosphere, uv_sphere
+from texstream.render.shading import bilinear_taps, texel_coords
 from texstream.geometry.atlas import AtlasConfig, atlas_stage, build_atlas
 from texstream.geometry.bake import bake_texels
 from texstream.geometry.seams import SEAMS_FILE, Seams, average_across_seams, find_seams, seam_edges, seam_gaps

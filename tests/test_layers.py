@@ -1,16 +1,29 @@
-"""The layer rule: which top-level folder may import which (the one place it is written down).
+"""The layer rule: which package may import which (the one place it is written down).
 
-    core       the spine (errors, config fields and their JSON, atomic outputs): imports no texstream folder
-    capture    \
-    calib       |  the stages: import core and each other (lazily where a stage needs another's
-    geometry    |  function), never pipelines
-    fit        /
-    pipelines  the CLI and the end-to-end run: may import everything
+The packages form an ordered list of layers, low to high (:data:`LAYERS`); a module may import
+modules of its own layer or of lower ones, never of a higher one:
 
-Every import counts, also one inside a function: a stage that imports the CLI package at call
-time inverts the layers as much as one that does so at import time. On top of the folder rule,
-``texstream.fit`` (the GPU side, which runs where only numpy and warp are installed) imports no
-third-party package but numpy and warp at module import time.
+    core               the spine (errors, config fields and their JSON, atomic outputs)
+    render             the camera struct, shading, depth maps, the renderer, SurfaceMesh
+    capture            the capture folder, conventions, image IO (not capture.synthetic)
+    calib              intrinsics, registration, ingest, lights
+    geometry           meshes, atlas, texel bake, photometric refinement
+    capture.synthetic  synthetic captures with ground truth (needs geometry's atlas and bake)
+    fit.kernels        the fit's Warp kernels and parameter layout (and modules directly in fit/)
+    fit.stream         the streaming problem and its photos
+    fit.optim          optimizers and the fit loop
+    fit.multi          fits split over tiles, devices, machines
+    fit.common         what every model plugin's fit uses (inputs, set-up, checkpoints, model folders)
+    fit.models         the appearance models
+    fit.stages         the fit / eval stages
+    fit.diagnostics    fpcheck, stiffcheck, accuracy
+    pipelines          the CLI and the end-to-end run
+
+Every import counts, also one inside a function: a module that imports a higher layer at call time
+inverts the layers as much as one that does so at import time. On top of the order, the module
+import graph (every import of a texstream module, inside functions too) has no cycle, and
+``texstream.fit`` and ``texstream.render`` (the GPU side, which runs where only numpy and warp are
+installed) import no third-party package but numpy and warp at module import time.
 """
 
 from __future__ import annotations
@@ -23,65 +36,222 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-STAGES = {"capture", "calib", "geometry", "fit"}
-ALLOWED: dict[str, set[str]] = {
-    "core": set(),
-    **{stage: {"core"} | STAGES for stage in STAGES},
-    "pipelines": {"core", "pipelines"} | STAGES,
-}
+LAYERS: list[tuple[str, ...]] = [
+    ("core",),
+    ("render",),
+    ("capture",),
+    ("calib",),
+    ("geometry",),
+    ("capture.synthetic",),
+    ("fit.kernels", "fit"),
+    ("fit.stream",),
+    ("fit.optim",),
+    ("fit.multi",),
+    ("fit.common",),
+    ("fit.models",),
+    ("fit.stages",),
+    ("fit.diagnostics",),
+    ("pipelines",),
+]
+"""module prefixes (below ``texstream``) of each layer, low to high; a module belongs to the layer of
+its longest matching prefix (so ``capture.synthetic.synth`` is not in ``capture``, and only modules
+directly in fit/ fall to the bare ``fit``)"""
 # what a GPU machine with only numpy and warp installed cannot import
 HEAVY = ("cv2", "OpenImageIO", "pycolmap", "pymeshlab", "xatlas", "matplotlib", "scipy", "tqdm", "pygltflib",
          "trimesh")
 
 
-def texstream_imports(source: str, own_folder: str) -> list[tuple[int, str]]:
-    """(line, folder) of every texstream folder a module's source imports (relative imports resolve
-    to ``own_folder``)."""
-    found = []
-    for node in ast.walk(ast.parse(source)):
-        if isinstance(node, ast.ImportFrom):
-            if node.level:  # relative: within the folder
-                found.append((node.lineno, own_folder))
-                continue
-            names = [node.module] if node.module else []
-        elif isinstance(node, ast.Import):
-            names = [a.name for a in node.names]
-        else:
-            continue
-        for name in names:
-            parts = name.split(".")
-            if parts[0] == "texstream" and len(parts) > 1:
-                found.append((node.lineno, parts[1]))
+def layer_of(module: str) -> int | None:
+    """Index in :data:`LAYERS` of a module (dotted, below ``texstream``); None for one in no layer."""
+    best, found = -1, None
+    for index, prefixes in enumerate(LAYERS):
+        for prefix in prefixes:
+            if (module == prefix or module.startswith(prefix + ".")) and len(prefix) > best:
+                best, found = len(prefix), index
     return found
 
 
-def layer_violations(root: Path = ROOT) -> list[str]:
-    """One line per import that breaks :data:`ALLOWED`."""
-    bad = []
-    for folder, allowed in ALLOWED.items():
+def layer_name(index: int | None) -> str:
+    return "no layer" if index is None else LAYERS[index][0]
+
+
+def package_modules(root: Path = ROOT) -> dict[str, Path]:
+    """Every module of the layer folders, dotted below ``texstream`` (a package by its folder's name)."""
+    modules = {}
+    for folder in sorted({prefixes[0].split(".")[0] for prefixes in LAYERS}):
         for path in sorted((root / folder).rglob("*.py")):
-            for line, target in texstream_imports(path.read_text(), folder):
-                if target != folder and target not in allowed:
-                    bad.append(f"{path.relative_to(root)}:{line}: {folder} imports {target}")
+            parts = path.relative_to(root).with_suffix("").parts
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            modules[".".join(parts)] = path
+    return modules
+
+
+def module_imports(module: str, path: Path, known: set[str]) -> list[tuple[int, str]]:
+    """(line, module) of every texstream module ``module``'s source imports, inside functions too.
+
+    ``from texstream.x import y`` is module ``x.y`` when that is a module, else ``x``; relative
+    imports resolve against the module's package."""
+    package = module.split(".") if path.name == "__init__.py" else module.split(".")[:-1]
+    found = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package[:len(package) - (node.level - 1)]
+                target = ".".join(base + (node.module.split(".") if node.module else []))
+            elif node.module and node.module.startswith("texstream."):
+                target = node.module[len("texstream."):]
+            else:
+                continue
+            subs = [f"{target}.{a.name}" for a in node.names if f"{target}.{a.name}" in known]
+            # the names that are not modules come from the package itself
+            if len(subs) < len(node.names):
+                found.append((node.lineno, target))
+            found += [(node.lineno, s) for s in subs]
+        elif isinstance(node, ast.Import):
+            found += [(node.lineno, a.name[len("texstream."):]) for a in node.names
+                      if a.name.startswith("texstream.")]
+    return found
+
+
+def import_graph(root: Path = ROOT) -> dict[str, list[tuple[int, str]]]:
+    """module -> (line, imported module) for every texstream import of every module of the package."""
+    modules = package_modules(root)
+    known = set(modules)
+    return {m: module_imports(m, p, known) for m, p in modules.items()}
+
+
+def layer_violations(root: Path = ROOT) -> list[str]:
+    """One line per import of a higher layer (or of, or from, a module in no layer)."""
+    modules = package_modules(root)
+    bad = []
+    for module, imports in import_graph(root).items():
+        mine = layer_of(module)
+        where = modules[module].relative_to(root)
+        for line, target in imports:
+            theirs = layer_of(target)
+            if mine is None or theirs is None or theirs > mine:
+                bad.append(f"{where}:{line}: {module} ({layer_name(mine)}) imports {target} ({layer_name(theirs)})")
     return bad
 
 
-def test_every_folder_keeps_the_layer_rule():
-    assert layer_violations() == []
+def import_cycles(root: Path = ROOT) -> list[list[str]]:
+    """The cycles of the module import graph: per strongly connected component, a shortest cycle
+    through each of its modules (each cycle once, starting at its smallest module)."""
+    graph = {m: sorted({t for _, t in imports if t != m}) for m, imports in import_graph(root).items()}
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    components = []
+
+    def connect(v: str) -> None:  # Tarjan; the package is small, recursion is shallow
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in graph.get(v, ()):
+            if w not in graph:
+                continue
+            if w not in index:
+                connect(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                components.append(set(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            connect(v)
+    cycles = []
+    for component in components:
+        for start in sorted(component):
+            # breadth-first within the component, back to start
+            parent, frontier, cycle = {start: None}, [start], None
+            while frontier and cycle is None:
+                nxt = []
+                for v in frontier:
+                    for w in graph[v]:
+                        if w == start:
+                            cycle = [v]
+                            while parent[cycle[-1]] is not None:
+                                cycle.append(parent[cycle[-1]])
+                            cycle.reverse()
+                            break
+                        if w in component and w not in parent:
+                            parent[w] = v
+                            nxt.append(w)
+                    if cycle is not None:
+                        break
+                frontier = nxt
+            i = cycle.index(min(cycle))
+            cycle = cycle[i:] + cycle[:i]
+            if cycle not in cycles:
+                cycles.append(cycle)
+    return cycles
 
 
-def test_the_check_catches_a_stage_importing_the_cli(tmp_path):
-    for folder in ALLOWED:
-        (tmp_path / folder).mkdir()
-    (tmp_path / "fit" / "bad.py").write_text("def f():\n    from texstream.pipelines.cli import main\n")
-    (tmp_path / "core" / "worse.py").write_text("import texstream.capture.imageio\n")
-    assert layer_violations(tmp_path) == ["core/worse.py:1: core imports capture",
-                                          "fit/bad.py:2: fit imports pipelines"]
+def test_every_module_keeps_the_layer_order():
+    bad = layer_violations()
+    print("\n".join(bad))
+    assert bad == []
+
+
+def test_the_module_import_graph_has_no_cycle():
+    cycles = import_cycles()
+    print("\n".join(" -> ".join(c + [c[0]]) for c in cycles))
+    assert cycles == []
+
+
+def _plant(root: Path, files: dict[str, str]) -> None:
+    for prefixes in LAYERS:
+        (root / prefixes[0].replace(".", "/")).mkdir(parents=True, exist_ok=True)
+    for name, text in files.items():
+        (root / name).write_text(text)
+
+
+def test_the_check_catches_a_lower_layer_importing_a_higher_one(tmp_path):
+    _plant(tmp_path, {
+        "fit/stages/stage.py": "",
+        "pipelines/cli.py": "",
+        "capture/synthetic/synth.py": "",
+        "geometry/bake.py": "",
+        # inside a function, through `from package import module`
+        "fit/kernels/bad.py": "def f():\n    from texstream.pipelines import cli\n",
+        "core/worse.py": "import texstream.render.mesh\n",
+        # capture.synthetic is above geometry, capture below it
+        "capture/io.py": "def f():\n    from texstream.capture.synthetic.synth import x\n",
+        "capture/synthetic/fine.py": "from texstream.geometry.bake import bake\nfrom . import synth\n",
+        "fit/__init__.py": "from texstream.fit.stream import problem\n",
+    })
+    assert layer_violations(tmp_path) == [
+        "capture/io.py:2: capture.io (capture) imports capture.synthetic.synth (capture.synthetic)",
+        "core/worse.py:1: core.worse (core) imports render.mesh (render)",
+        "fit/__init__.py:1: fit (fit.kernels) imports fit.stream (fit.stream)",
+        "fit/kernels/bad.py:2: fit.kernels.bad (fit.kernels) imports pipelines.cli (pipelines)",
+    ]
+
+
+def test_the_check_catches_a_two_module_cycle(tmp_path):
+    _plant(tmp_path, {
+        "geometry/a.py": "from texstream.geometry.b import g\n",
+        "geometry/b.py": "def g():\n    from texstream.geometry import a\n",
+        "geometry/c.py": "from . import a\n",
+    })
+    assert import_cycles(tmp_path) == [["geometry.a", "geometry.b"]]
 
 
 def test_fit_and_renderer_import_only_numpy_and_warp():
-    modules = [".".join(("texstream",) + p.relative_to(ROOT).with_suffix("").parts) for p in (ROOT / "fit").rglob("*.py")
-               if p.stem != "__init__"]
+    modules = [".".join(("texstream",) + p.relative_to(ROOT).with_suffix("").parts)
+               for folder in ("fit", "render") for p in (ROOT / folder).rglob("*.py") if p.stem != "__init__"]
     code = ("import importlib, sys\n"
             f"for m in {sorted(modules)!r}: importlib.import_module(m)\n"
             f"print(sorted(h for h in {HEAVY!r} if h in sys.modules))\n")
@@ -90,8 +260,11 @@ def test_fit_and_renderer_import_only_numpy_and_warp():
     assert out.stdout.strip().splitlines()[-1] == "[]"
 
 
-@pytest.mark.parametrize("folder", sorted(ALLOWED))
-def test_each_layer_folder_is_an_installed_package(folder):
-    """The rule covers every top-level package folder pyproject maps into ``texstream``."""
+@pytest.mark.parametrize("package", sorted(p for prefixes in LAYERS for p in prefixes))
+def test_each_layer_folder_is_an_installed_package(package):
+    """The rule covers every package pyproject maps into ``texstream``."""
+    folder = package.replace(".", "/")
+    if not (ROOT / folder).is_dir():
+        pytest.skip(f"{folder}/ does not exist yet")
     text = (ROOT / "pyproject.toml").read_text()
-    assert f'"texstream.{folder}" = "{folder}"' in text
+    assert f'"texstream.{package}" = "{folder}"' in text

@@ -13,9 +13,10 @@ import warp as wp
 
 from texstream.core.errors import InputError
 from texstream.fit.optim.fitter import FitConfig, initial_guess, run_fit
-from texstream.fit.kernels.visibility import depth_map_kernel
+from texstream.render.visibility import depth_map_kernel
 from texstream.fit.stream.photo_stream import choose_residency
-from texstream.fit.stream.problem import PhotoFrame, PhotoSet, StreamConfig
+from texstream.fit.stream.problem import PhotoSet, StreamConfig
+from texstream.render.camera import PhotoFrame
 from texstream.fit.stages.stage import build_problem, photo_files
 
 # small maps and few photos keep the CPU ray casts of each test to a fraction of a second
@@ -29,7 +30,7 @@ SMALL = dict(scale=0.02, photos=10, image_size=40, progress=False)
 def scene():
     """(mesh, bake, frames, images, masks) of a small ornament rendered in memory."""
     from conftest import SCENE_DEVICE
-    from texstream.capture.synth import SynthConfig, render_scene
+    from texstream.capture.synthetic.synth import SynthConfig, render_scene
 
     sc = render_scene("ornament", SynthConfig(device=SCENE_DEVICE, **SMALL))
     return sc.mesh, sc.bake, sc.frames, sc.images, sc.masks
@@ -40,7 +41,7 @@ def capture_dir(tmp_path_factory):
     """The small ornament written as a capture folder (float EXR photos, masks)."""
     pytest.importorskip("OpenImageIO", reason="writing and reading a capture folder needs OpenImageIO")
     from conftest import SCENE_DEVICE
-    from texstream.capture.synth import SynthConfig, synthesize
+    from texstream.capture.synthetic.synth import SynthConfig, synthesize
 
     out = tmp_path_factory.mktemp("ornament") / "capture"
     synthesize("ornament", out, SynthConfig(device=SCENE_DEVICE, preview=False, **SMALL))

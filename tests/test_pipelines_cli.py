@@ -11,7 +11,7 @@ import pytest
 
 from texstream.capture.capture_json import read_capture
 from texstream.capture.imageio import read_image, write_image
-from texstream.capture.synth import SynthConfig, synthesize
+from texstream.capture.synthetic.synth import SynthConfig, synthesize
 from texstream.pipelines.cli import main
 from texstream.core.errors import InputError
 

@@ -1,7 +1,7 @@
 """The run report (pipelines/report.py) and its WebGL2 viewer, loaded by headless Chromium from disk.
 
 The viewer test compares Chromium's screenshot of the fitted model with texstream's own render
-(fit/render.py, shadows off: the viewer draws no cast shadows) of the same camera and light, in
+(render/renderer.py, shadows off: the viewer draws no cast shadows) of the same camera and light, in
 8-bit sRGB over the render's coverage less its 1-pixel silhouette band (where a rasteriser and a ray
 caster may legitimately disagree on coverage; that band is bounded separately). Threshold: PSNR > 50 dB
 (docs/report.md: measured 64.17 dB (fitted model) and 62.86 dB (ground truth), every interior pixel within
@@ -105,7 +105,7 @@ def psnr8(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     """A tiny synthetic sphere capture, a 5-iteration LM fit holding every 3rd photo out, the report."""
-    from texstream.capture.synth import SynthConfig, synthesize
+    from texstream.capture.synthetic.synth import SynthConfig, synthesize
     from texstream.fit.optim.fitter import FitConfig
     from texstream.fit.stages.stage import FitStageConfig, fit_stage
     from texstream.pipelines.report import write_report
@@ -204,7 +204,7 @@ def _view_and_render(run, light_offset=(1.0, -3.0, 2.5), exposure=1.3):
     """A view no photo has (camera, intrinsics, point light), and texstream's render of it."""
     from texstream.capture.capture_json import Frame, Intrinsics, Light
     from texstream.capture.conventions import look_at_w2c, w2c_cv_to_c2w_gl
-    from texstream.fit.stages.render import Renderer
+    from texstream.render.renderer import Renderer
     from texstream.pipelines.report import _srgb8, load_report_model
 
     mesh, grid, info, _ = load_report_model(run["model"])
@@ -289,9 +289,9 @@ def test_view_dependent_radiance_matches_texstream_render(run, tmp_path):
     its screenshot of a view no photo has matches texstream's render of it (threshold as for the lobes)."""
     from scipy.ndimage import binary_erosion
 
-    from texstream.capture.synth import write_param_maps
+    from texstream.capture.synthetic.synth import write_param_maps
     from texstream.fit.kernels.layout import ModelLayout
-    from texstream.fit.stages.render import Renderer
+    from texstream.render.renderer import Renderer
     from texstream.pipelines.report import _srgb8, load_report_model, write_report
 
     layout = ModelLayout(kind="view_radiance")

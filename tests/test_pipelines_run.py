@@ -131,7 +131,7 @@ def test_turntable_object_under_unknown_lighting_to_a_valid_radiance_model(captu
 
     import numpy as np
 
-    from texstream.capture.synth import read_param_maps
+    from texstream.capture.synthetic.synth import read_param_maps
     from texstream.fit.kernels.layout import ModelLayout
 
     cap = tmp_path / "cap"
@@ -258,7 +258,7 @@ def _mirror_ball_capture(root, light_pos):
     from conftest import SCENE_DEVICE
     from test_calib_lights import make_ball_capture
     from texstream.capture.capture_json import read_capture, write_capture
-    from texstream.capture.synth import SynthConfig, load_scene, synthesize
+    from texstream.capture.synthetic.synth import SynthConfig, load_scene, synthesize
 
     scene = load_scene("sphere")
     scene["light"] = {"type": "point", "mode": "fixed", "position": list(light_pos), "intensity": 12.0}

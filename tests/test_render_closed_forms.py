@@ -7,12 +7,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from texstream.capture import procedural
+from texstream.capture.synthetic import procedural
 from texstream.capture.capture_json import Light
 from texstream.capture.conventions import look_at_w2c, uv_to_texel
 from texstream.fit.kernels.layout import ModelLayout
-from texstream.fit.stages.render import Renderer
-from texstream.geometry.mesh import SurfaceMesh
+from texstream.render.renderer import Renderer
+from texstream.render.mesh import SurfaceMesh
 
 # float32 renderer vs float64 reference: positions, normals and cosines carry ~1e-7 relative
 # round-off; 1e-4 relative (the bar) leaves two orders of magnitude of margin.

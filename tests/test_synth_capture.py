@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from conftest import need_data
 
-from texstream.capture import synth
+from texstream.capture.synthetic import synth
 from texstream.capture.capture_json import read_capture
 from texstream.capture.conventions import project
-from texstream.capture.synth import SynthConfig, render_scene, synthesize
+from texstream.capture.synthetic.synth import SynthConfig, render_scene, synthesize
 from texstream.core.errors import ConfigError, InputError
 
 TINY = dict(scale=0.02, progress=False, preview=False)

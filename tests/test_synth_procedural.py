@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from texstream.capture import procedural
+from texstream.capture.synthetic import procedural
 from texstream.core.errors import ConfigError
 
 

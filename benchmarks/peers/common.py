@@ -1,6 +1,6 @@
 """What every peer shares: the data set, the per-texel sample arrays, held-out scoring, traces, memory.
 
-Data: the synthetic ornament (capture/scenes/ornament.json) rendered by texstream at ``scale``,
+Data: the synthetic ornament (capture/synthetic/scenes/ornament.json) rendered by texstream at ``scale``,
 noise-free float photos ("clean") or 8-bit sRGB photos with Gaussian camera noise ("noisy8");
 every 8th photo is held out (:func:`texstream.fit.stages.stage.split_holdout`). Scores: the held-out
 PSNR of the pooled (mean over views) MSE on foreground pixels and the worst view's PSNR, both
@@ -44,7 +44,7 @@ class PeerData:
     """One data set: the rendered scene split into fitted and held-out views."""
 
     scene: Any
-    """the :class:`texstream.capture.synth.RenderedScene` (mesh, bake, ground truth)"""
+    """the :class:`texstream.capture.synthetic.synth.RenderedScene` (mesh, bake, ground truth)"""
     train_frames: list
     train_images: list
     train_masks: list
@@ -58,7 +58,7 @@ class PeerData:
 def load_data(dataset: str, scale: float, photos: int = 0, device: str = "cpu") -> PeerData:
     """Render the ornament at ``scale`` with ``photos`` photos (0: the scene's count x scale), clean
     float photos or 8-bit with ``NOISE_SIGMA`` noise, and split off every ``HOLDOUT_EVERY``-th photo."""
-    from texstream.capture.synth import SynthConfig, render_scene
+    from texstream.capture.synthetic.synth import SynthConfig, render_scene
 
     if dataset not in DATASETS:
         raise ValueError(f"dataset {dataset!r}: use one of {DATASETS}")

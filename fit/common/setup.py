@@ -74,7 +74,7 @@ def params_to_grid(result: FitResult, problem, bake) -> np.ndarray:
 
 
 def render_model(mesh, grid: np.ndarray, layout: ModelLayout, frame, device: str):
-    from texstream.fit.stages.render import Renderer
+    from texstream.render.renderer import Renderer
 
     rend = Renderer(mesh, grid, layout, device=device)
     res = rend.render_frame(frame)
@@ -212,7 +212,7 @@ def data_jtj(problem, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def load_model(model_dir: str | Path):
     """(mesh, parameter grid (H, W, P), layout, model.json) of a model folder."""
-    from texstream.capture.synth import read_param_maps
+    from texstream.capture.synthetic.synth import read_param_maps
     from texstream.geometry.mesh_io import load_mesh
 
     d = Path(model_dir)

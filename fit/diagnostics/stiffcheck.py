@@ -188,7 +188,7 @@ def default_cases() -> list[StiffCase]:
 
 
 def _render(case: StiffCase, size: str, device: str):
-    from texstream.capture.synth import SynthConfig, load_scene, render_scene
+    from texstream.capture.synthetic.synth import SynthConfig, load_scene, render_scene
 
     scene = copy.deepcopy(load_scene(case.scene))
     if case.edit is not None:

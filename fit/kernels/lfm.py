@@ -35,8 +35,8 @@ from typing import Any
 import warp as wp
 
 from texstream.fit.kernels import stream
-from texstream.fit.kernels.render import PinholeCamera
-from texstream.fit.kernels.shading import bilinear_taps, surface_frame, texel_coords
+from texstream.render.camera import ImageInfo
+from texstream.render.shading import bilinear_taps, surface_frame, texel_coords
 
 wp.set_module_options({"enable_backward": False})
 
@@ -612,7 +612,7 @@ observe_radiance = stream.observe_func(True)
 
 @wp.kernel
 def observe_kernel(tex: stream.TexelFrames, images: wp.array3d(dtype=wp.vec3), depth: wp.array3d(dtype=wp.float32),
-                   shadow: wp.array3d(dtype=wp.float32), infos: wp.array(dtype=stream.ImageInfo), k: int,
+                   shadow: wp.array3d(dtype=wp.float32), infos: wp.array(dtype=ImageInfo), k: int,
                    opt: stream.SampleOptions, obs_y: wp.array(dtype=wp.vec3d), obs_e: wp.array(dtype=wp.float64)):
     """The distribution step of one photo (fit/kernels/stream.py ``observe``, light-free): per texel
     the photo's value and the exposure, 0 where the texel is not seen (occluded, masked, grazing,
@@ -630,7 +630,7 @@ def observe_kernel(tex: stream.TexelFrames, images: wp.array3d(dtype=wp.vec3), d
 @wp.kernel
 def observe_batch_kernel(tex: stream.TexelFrames, images: wp.array3d(dtype=wp.vec3),
                          depth: wp.array3d(dtype=wp.float32), shadow: wp.array3d(dtype=wp.float32),
-                         infos: wp.array(dtype=stream.ImageInfo), p0: int, opt: stream.SampleOptions,
+                         infos: wp.array(dtype=ImageInfo), p0: int, opt: stream.SampleOptions,
                          obs_y: wp.array(dtype=wp.vec3), obs_e: wp.array(dtype=wp.float32)):
     """:func:`observe_kernel` for photos p0 + b, written at b * N + s in float32 (the distribution
     step's own precision: exact); dim = (n_batch, N)."""
@@ -653,7 +653,7 @@ def render_lfm_kernel(mesh_id: wp.uint64, points: wp.array(dtype=wp.vec3), indic
                       diffuse: wp.array(dtype=wp.vec3d), slot_vertex: wp.array(dtype=wp.int32),
                       G: wp.array2d(dtype=wp.vec3d), H: wp.array2d(dtype=wp.vec3d),
                       vpos: wp.array(dtype=wp.vec3d), vtan: wp.array(dtype=wp.vec3d), vbit: wp.array(dtype=wp.vec3d),
-                      vnrm: wp.array(dtype=wp.vec3d), cam: PinholeCamera, view_interp: int, n_terms: int,
+                      vnrm: wp.array(dtype=wp.vec3d), cam: ImageInfo, view_interp: int, n_terms: int,
                       mapping: int, res: int, lookup: int,
                       radiance: wp.array2d(dtype=wp.vec3), mask: wp.array2d(dtype=wp.uint8)):
     """Render an LFM model (radiance, no exposure); dim = (height, width). The atlas lookup reads the
@@ -662,8 +662,8 @@ def render_lfm_kernel(mesh_id: wp.uint64, points: wp.array(dtype=wp.vec3), indic
     none, skipped and the weights renormalised)."""
     j, i = wp.tid()
     d_cam = wp.vec3((float(i) + 0.5 - cam.cx) / cam.fx, (float(j) + 0.5 - cam.cy) / cam.fy, 1.0)
-    rt = wp.transpose(cam.R)
-    origin = -(rt @ cam.t)
+    rt = wp.transpose(cam.rot)
+    origin = -(rt @ cam.trans)
     d = wp.normalize(rt @ d_cam)
     radiance[j, i] = wp.vec3(0.0)
     mask[j, i] = wp.uint8(0)

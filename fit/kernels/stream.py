@@ -33,44 +33,13 @@ from typing import Any, NamedTuple
 import warp as wp
 
 from texstream.fit.kernels.lafortune_grad import lafortune_funcs, view_radiance_funcs
-from texstream.fit.kernels.shading import bilinear_taps, incident_light, lafortune_brdf, surface_frame, texel_coords, to_local
+from texstream.render.camera import ImageInfo
+from texstream.render.shading import bilinear_taps, incident_light, lafortune_brdf, surface_frame, texel_coords, to_local
+from texstream.render.visibility import depth_consistent
 
 # no kernel here is differentiated (the fit writes its own derivatives): skipping Warp's adjoint
 # code generation roughly halves compile time
 wp.set_module_options({"enable_backward": False})
-
-
-@wp.struct
-class ImageInfo:
-    """Per-photo camera, light and photometric constants (float32, world units)."""
-
-    rot: wp.mat33
-    trans: wp.vec3
-    center: wp.vec3
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-    exposure: float
-    saturation: float
-    light_kind: int
-    light_vec: wp.vec3
-    light_intensity: wp.vec3
-    has_shadow: int
-    sh_rot: wp.mat33
-    sh_trans: wp.vec3
-    sh_fx: float
-    sh_fy: float
-    sh_cx: float
-    sh_cy: float
-    sh_ortho: int
-    sh_size: int
-    depth_is_mask: int
-    """1: the photo has no geometry (single-view fits, fit/photometric_stereo.py); its depth map
-    holds 1 where the photo may be sampled and 0 where masked, and the depth test becomes a mask
-    test at the nearest pixel. 0 (the default of a zeroed struct): the depth test above."""
 
 
 @wp.struct
@@ -115,7 +84,7 @@ class TexelFrames:
     mesh_normals: wp.array(dtype=wp.vec3)
     mesh_uvs: wp.array(dtype=wp.vec2)
     shadow_eps: float
-    """the renderer's shadow-ray offset (1e-4 of the mesh's bounding-box diagonal, fit/render.py)"""
+    """the renderer's shadow-ray offset (1e-4 of the mesh's bounding-box diagonal, render/renderer.py)"""
     shadow_rays: int
     """1: traced taps cast shadow rays (``StreamConfig.shadow_map_size`` > 0, also for photos whose
     light sits inside the object's bounds and so has no shadow map); 0: cast shadows ignored"""
@@ -136,22 +105,6 @@ class SampleOptions:
     robust_scale: float
     """the robust loss's scale k in residual units (photo values in radiance space), read by the
     passes compiled with a robust loss (:func:`accumulate_kernel` ``robust``); ignored otherwise"""
-
-
-@wp.func
-def depth_consistent(depth: wp.array3d(dtype=wp.float32), k: int, x0: int, y0: int, z: float, tol: float,
-                     slack: float):
-    """All four bilinear taps see this surface (masked or empty pixels hold 0 and fail).
-
-    A tap may differ from the texel's depth by ``tol * z`` plus ``slack``, the depth change a tilted
-    surface shows across the bilinear footprint (see :func:`observe`)."""
-    ok = True
-    for dy in range(2):
-        for dx in range(2):
-            dz = depth[k, y0 + dy, x0 + dx]
-            if wp.abs(dz - z) > tol * z + slack:
-                ok = False
-    return ok
 
 
 @wp.func
@@ -220,7 +173,7 @@ def ray_surface(ray: wp.vec3, cam: wp.vec3, p: wp.vec3, face_nrm: wp.vec3, plane
 def texel_blend(tex: TexelFrames, i: int, x: float, y: float, u: wp.vec3, v: wp.vec3):
     """The renderer's texture lookup at continuous texel coordinates (x, y) (``StreamConfig.model_lookup``
     "bilinear"): the BRDF there is the bilinear blend of the four atlas texels around (x, y)
-    (fit/kernels/render.py ``shade_texel_grid``). Returns (w_own, b): the weight of texel i's own
+    (render/kernels.py ``shade_texel_grid``). Returns (w_own, b): the weight of texel i's own
     BRDF (it may sit at several corners through padding copies) and the blend of the other corners'
     BRDFs at local directions (u, v), read from ``tex.lookup_params`` (held fixed)."""
     x0, y0, fx, fy = bilinear_taps(x, y, tex.grid_width, tex.grid_height)
@@ -252,7 +205,7 @@ def plane_texel_coords(tex: TexelFrames, i: int, q: wp.vec3):
 @wp.func
 def traced_tap(tex: TexelFrames, cam: wp.vec3, ray: wp.vec3, light_kind: int, light_vec: wp.vec3, shadows: int):
     """What a filtered tap's pixel ray sees (``StreamConfig.tap_geometry`` "mesh"), exactly as the
-    renderer (fit/kernels/render.py) sees it: the closest hit on the mesh, the surface frame there
+    renderer (render/kernels.py) sees it: the closest hit on the mesh, the surface frame there
     (:func:`surface_frame`: interpolated normal, the face's UV tangent) and, with ``shadows``
     (``TexelFrames.shadow_rays``), a shadow ray toward the light from the same offset start.
 

@@ -7,7 +7,8 @@ from typing import Any
 
 import warp as wp
 
-from texstream.fit.kernels.stream import ImageInfo, SampleOptions, TexelFrames, observe_func
+from texstream.fit.kernels.stream import SampleOptions, TexelFrames, observe_func
+from texstream.render.camera import ImageInfo
 
 
 def tile_visibility_kernel_for(radiance: bool = False):

@@ -50,7 +50,7 @@ from texstream.core.outputs import StageResult, atomic_output_dir
 
 from texstream.fit.optim.fitter import FitConfig
 from texstream.fit.kernels import stream
-from texstream.fit.kernels.shading import incident_light, lafortune_brdf, to_local
+from texstream.render.shading import incident_light, lafortune_brdf, to_local
 from texstream.fit.kernels.layout import ModelLayout
 
 NORMAL_SPACES = ("opengl", "opencv", "world")

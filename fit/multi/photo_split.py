@@ -148,7 +148,7 @@ def build_device_photos(frames, images, mesh_points, mesh_faces, masks, config, 
     devices = devices[:len(bounds)]
     enable_peer_copies(devices)
     # the set-up's kernels loaded on every device first: two threads must not build one module at once
-    for module in ("texstream.fit.kernels.visibility", "texstream.fit.stream.photo_stream"):
+    for module in ("texstream.render.visibility", "texstream.fit.stream.photo_stream"):
         wp.load_module(module, device=sorted(set(devices)))
 
     def build(d: int):

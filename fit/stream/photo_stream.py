@@ -4,7 +4,7 @@ depth and shadow maps, chunked uploads, and photos decoded from disk in windows.
 :class:`texstream.fit.stream.problem.PhotoSet` holds the photos where the passes read them; this module
 holds what it builds them with, so that its set-up makes no host round trip per photo:
 
-- :func:`image_infos` fills every photo's :class:`~texstream.fit.kernels.stream.ImageInfo`
+- :func:`texstream.render.camera.image_infos` fills every photo's :class:`~texstream.render.camera.ImageInfo`
   (camera, light, shadow camera, crop) in one numpy structured array, uploaded in one copy;
 - :func:`crop_boxes` finds each photo's footprint of the object (the bounding box of the mesh's
   projection, one launch over photos x vertices); a photo is stored cropped to it and its camera
@@ -34,11 +34,8 @@ from collections.abc import Callable, Iterator, Sequence
 import numpy as np
 import warp as wp
 
-from texstream.capture.conventions import look_at_w2c_batch
-from texstream.core.errors import InputError
-
 from texstream.fit.stream import decode_pool
-from texstream.fit.kernels import stream
+from texstream.render.camera import ImageInfo
 
 RESIDENCIES = ("device", "host", "disk")
 """where a PhotoSet keeps its photos: all on the device; all in (pinned) host memory, uploaded a
@@ -58,14 +55,6 @@ ARRAY_COPY_THREADS = 4
 """default threads cropping photos given as arrays into the upload buffers (at most the CPU count): beside
 the thread issuing the copies, more croppers only contend for Python's lock; 4 beat 8 and 12 on a 32-core
 two-GPU host (docs/scale.md)"""
-
-LIGHT_KINDS = {"point": 0, "directional": 1, "none": 2}  # fit/kernels/shading.py LIGHT_*
-
-# shadow cameras are aimed at the bounding sphere from the light (fit/problem.py PhotoSet)
-_SHADOW_INSIDE = 1.05    # a point light closer than this many radii from the centre gets no shadow map
-_SHADOW_FOV_PAD = 1.05   # half-angle padding of a point light's frustum around the sphere
-_SHADOW_ORTHO_SPAN = 2.2  # an orthographic (directional) map spans this many radii
-
 
 @dataclasses.dataclass
 class PhotoFiles:
@@ -97,102 +86,8 @@ class PhotoFiles:
                           self.read_image, self.read_mask, self.cache_dir)
 
 
-def image_infos(frames, crops: np.ndarray | None, center: np.ndarray | None, radius: float,
-                shadow_size: int) -> np.ndarray:
-    """Every photo's kernel constants as a numpy structured array of ``ImageInfo.numpy_dtype()``.
-
-    Args:
-        frames: the photos' :class:`~texstream.fit.stream.problem.PhotoFrame`s.
-        crops: (n, 4) int (x0, y0, width, height) of each photo's stored crop (None: whole photos).
-            The camera becomes the crop's: cx, cy less x0, y0 in float32 (exact: an integer taken
-            from a float32 of larger magnitude), width and height the crop's.
-        center, radius: the object's bounding sphere, where shadow cameras aim (None: no maps).
-        shadow_size: shadow map side (0: no shadow cameras).
-    """
-    n = len(frames)
-    a = np.zeros(n, dtype=stream.ImageInfo.numpy_dtype())
-    if n == 0:
-        return a
-    f32 = np.float32
-    bad = sorted({fr.light_kind for fr in frames} - set(LIGHT_KINDS))
-    if bad:
-        raise InputError(f"light kind {bad[0]!r} unknown", fix=f"use one of {sorted(LIGHT_KINDS)}")
-    R = np.array([np.asarray(fr.R, np.float64) for fr in frames]).reshape(n, 3, 3)
-    t = np.array([np.asarray(fr.t, np.float64) for fr in frames]).reshape(n, 3)
-    a["rot"] = R.astype(f32)
-    a["trans"] = t.astype(f32)
-    a["center"] = (-np.einsum("nji,nj->ni", R, t)).astype(f32)   # camera centre -R^T t
-    a["light_vec"] = np.array([np.asarray(fr.light_vec, np.float64) for fr in frames]).reshape(n, 3).astype(f32)
-    a["light_intensity"] = np.array([np.asarray(fr.light_intensity, np.float64)
-                                     for fr in frames]).reshape(n, 3).astype(f32)
-    a["light_kind"] = [LIGHT_KINDS[fr.light_kind] for fr in frames]
-    a["fx"] = [fr.fx for fr in frames]
-    a["fy"] = [fr.fy for fr in frames]
-    a["cx"] = [fr.cx for fr in frames]
-    a["cy"] = [fr.cy for fr in frames]
-    a["width"] = [fr.width for fr in frames]
-    a["height"] = [fr.height for fr in frames]
-    a["exposure"] = [fr.exposure for fr in frames]
-    a["saturation"] = [min(fr.saturation, 3.0e38) for fr in frames]
-    if crops is not None:
-        crop_infos(a, crops)
-    if shadow_size > 0 and center is not None and n:
-        _shadow_cameras(a, frames, np.asarray(center, np.float64), radius, shadow_size)
-    return a
-
-
-def crop_infos(a: np.ndarray, crops: np.ndarray) -> None:
-    """Make records of :func:`image_infos` the cameras of the photos' crops (n, 4) (x0, y0, width,
-    height): cx, cy less x0, y0 in float32, exact (an integer taken from a float32 of larger
-    magnitude), and the crop's size."""
-    a["cx"] -= crops[:, 0].astype(np.float32)
-    a["cy"] -= crops[:, 1].astype(np.float32)
-    a["width"], a["height"] = crops[:, 2], crops[:, 3]
-
-
-def struct_array(records: np.ndarray, dtype, device: str) -> wp.array:
-    """A Warp array of structs from a numpy structured array of ``dtype.numpy_dtype()``, one memory
-    copy (``wp.array`` of a structured array converts record by record, ~70 us each)."""
-    out = wp.empty(len(records), dtype=dtype, device=device)
-    if len(records):
-        records = np.ascontiguousarray(records)
-        view = wp.array(ptr=records.ctypes.data, shape=(len(records),), dtype=dtype, device="cpu")
-        wp.copy(out, view)
-        wp.synchronize_device(device)  # ``records`` may go once the copy has read it
-    return out
-
-
-def _shadow_cameras(a: np.ndarray, frames, center: np.ndarray, radius: float, size: int) -> None:
-    """Aim each photo's shadow-map camera from its light at the object's bounding sphere (records of
-    :func:`image_infos`): perspective from a point light, orthographic along a directional one;
-    has_shadow stays 0 for no light and for a point light inside the bounds (no frustum covers it)."""
-    r = max(radius, 1e-9)
-    kinds = np.array([fr.light_kind for fr in frames])
-    light = np.array([np.asarray(fr.light_vec, float) for fr in frames], np.float64).reshape(-1, 3)
-    point, directional = kinds == "point", kinds == "directional"
-    dist = np.linalg.norm(light - center, axis=1)
-    point &= dist > _SHADOW_INSIDE * r
-    eye = light.copy()
-    d = light[directional] / np.linalg.norm(light[directional], axis=1, keepdims=True)
-    eye[directional] = center - 3.0 * r * d
-    has = point | directional
-    if not has.any():
-        return
-    rot, trans = look_at_w2c_batch(eye[has], center)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        half = np.arcsin(np.minimum(r / dist, 0.999)) * _SHADOW_FOV_PAD
-        f = np.where(point, 0.5 * size / np.tan(half), size / (_SHADOW_ORTHO_SPAN * r))
-    a["has_shadow"][has] = 1
-    a["sh_rot"][has] = rot.astype(np.float32)
-    a["sh_trans"][has] = trans.astype(np.float32)
-    a["sh_fx"][has] = a["sh_fy"][has] = f[has]
-    a["sh_cx"][has] = a["sh_cy"][has] = 0.5 * size
-    a["sh_ortho"][has] = directional[has]
-    a["sh_size"][has] = size
-
-
 @wp.kernel
-def _projected_bounds_kernel(points: wp.array(dtype=wp.vec3), infos: wp.array(dtype=stream.ImageInfo),
+def _projected_bounds_kernel(points: wp.array(dtype=wp.vec3), infos: wp.array(dtype=ImageInfo),
                              bounds: wp.array2d(dtype=wp.int32)):
     """Per photo, floor(min) and floor(max) of the mesh vertices' projections (pixel units) into
     bounds[k, 0:4] (x min, y min, x max, y max) and 1 in bounds[k, 4] when a vertex lies at or

@@ -27,12 +27,12 @@ from texstream.core.progress import say
 from texstream.fit.kernels import optim_kernels as K
 from texstream.fit.kernels import stream
 from texstream.fit.kernels.lafortune_grad import param_types
-from texstream.fit.kernels.shading import SHADOW_EPS_REL
-from texstream.fit.kernels.visibility import depth_maps_kernel, masked_depth_kernel, shadow_maps_kernel
+from texstream.render.shading import SHADOW_EPS_REL
+from texstream.render.visibility import depth_maps_kernel, masked_depth_kernel, shadow_maps_kernel
 from texstream.fit.kernels.layout import ModelLayout
-from texstream.fit.stream.photo_stream import (LIGHT_KINDS, PhotoCache, PhotoFiles, PhotoLoader,  # noqa: F401
-                           WindowSlots, choose_residency, crop_boxes, crop_infos, image_infos,
-                           keep_maps_on_device, struct_array, to_half_kernel, wait, window_size)
+from texstream.fit.stream.photo_stream import (PhotoCache, PhotoFiles, PhotoLoader, WindowSlots, choose_residency,
+                           crop_boxes, keep_maps_on_device, to_half_kernel, wait, window_size)
+from texstream.render.camera import ImageInfo, PhotoFrame, crop_infos, image_infos, struct_array
 
 PRECISIONS = {"fp16": wp.float16, "fp32": wp.float32, "fp64": wp.float64}
 MAX_LAUNCH_THREADS = 1 << 30
@@ -134,7 +134,7 @@ def surface_derivatives(points: np.ndarray, faces: np.ndarray, normals: np.ndarr
     on a face: N(p + dp) = N(p) + G dp with G = [n1 - n0, n2 - n0] E^+ (E = [p1 - p0, p2 - p0],
     E^+ its pseudo-inverse, so in-plane offsets map to barycentric changes). Returned divided by
     |N(p)|, so normalize(n + G' dp) is the renderer's unit shading normal at p + dp
-    (:func:`texstream.fit.kernels.shading.surface_frame`).
+    (:func:`texstream.render.shading.surface_frame`).
 
     Args:
         points, faces, normals: the mesh (V, 3), (F, 3) and the (V, 3) vertex normals the texel bake used.
@@ -182,7 +182,7 @@ def _face_pseudo_inverse(points: np.ndarray, faces: np.ndarray, face: np.ndarray
 def texel_coordinate_gradients(points: np.ndarray, faces: np.ndarray, uvs: np.ndarray, face: np.ndarray,
                                width: int, height: int) -> np.ndarray:
     """Per texel, the gradients along its face of the continuous texel coordinates (x, y) =
-    (u W - 1/2, (1 - v) H - 1/2) (:func:`texstream.fit.kernels.shading.texel_coords`).
+    (u W - 1/2, (1 - v) H - 1/2) (:func:`texstream.render.shading.texel_coords`).
 
     UVs are affine on a face, so (x, y)(p + dp) = (x, y)(p) + T E^+ dp with T the face's texel
     coordinate edges [t1 - t0, t2 - t0]: what the renderer's texture lookup reads at a point near
@@ -208,46 +208,6 @@ def no_light_error(n_unlit: int, n_total: int, kind: str) -> InputError:
                       "per photo (capture.json frames' 'light')",
                       fix="use --model radiance (view-independent radiance under the photos' fixed lighting), "
                           "or add a point or directional 'light' to every frame of capture.json")
-
-
-@dataclasses.dataclass
-class PhotoFrame:
-    """One photo as the fit needs it: pose (world-to-camera, OpenCV axes), intrinsics, light.
-
-    ``light_kind`` is "point", "directional" or "none" (fixed, unknown lighting: only the radiance
-    model fits such photos; ``light_vec`` and ``light_intensity`` are then zero)."""
-
-    R: np.ndarray
-    t: np.ndarray
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-    light_kind: str
-    light_vec: np.ndarray
-    light_intensity: np.ndarray
-    exposure: float = 1.0
-    saturation: float = math.inf
-
-    @staticmethod
-    def from_capture_frame(frame) -> "PhotoFrame":
-        """From a :class:`texstream.capture.capture_json.Frame` (no distortion); a frame without a
-        light becomes light_kind "none" (the radiance model's; reflectance models refuse it in
-        :class:`StreamProblem`)."""
-        intr = frame.intrinsics
-        if not intr.is_pinhole:
-            raise InputError(f"frame {frame.file_path} has lens distortion", fix="undistort the photos first (texstream register undistorts)")
-        if frame.light is None:
-            kind, lv, li = "none", np.zeros(3), np.zeros(3)
-        else:
-            kind = frame.light.type
-            lv = np.asarray(frame.light.position if kind == "point" else frame.light.direction, float)
-            li = np.asarray(frame.light.intensity, float)
-        return PhotoFrame(frame.R, frame.t, intr.fx, intr.fy, intr.cx, intr.cy, intr.width, intr.height,
-                          kind, lv, li,
-                          float(frame.exposure), math.inf if frame.saturation is None else float(frame.saturation))
 
 
 FP32_SAFE_TOLERANCE = 5e-6
@@ -434,13 +394,13 @@ class PhotoSet:
         lo, hi = mesh_points.min(axis=0), mesh_points.max(axis=0)
         self.center = 0.5 * (lo + hi)
         self.radius = 0.5 * float(np.linalg.norm(hi - lo))
-        self.shadow_eps = SHADOW_EPS_REL * max(2.0 * self.radius, 1e-12)  # the renderer's (fit/render.py)
+        self.shadow_eps = SHADOW_EPS_REL * max(2.0 * self.radius, 1e-12)  # the renderer's (render/renderer.py)
         ssize = int(cfg.shadow_map_size)
         self.shadow_side = max(ssize, 2)
         self.sizes = sizes = np.array([[fr.height, fr.width] for fr in frames], np.int64)
         infos = image_infos(frames, None, self.center, self.radius, ssize)
         if cfg.crop_photos:
-            full = struct_array(infos, stream.ImageInfo, device)
+            full = struct_array(infos, ImageInfo, device)
             self.crops = crop_boxes(self.mesh.points, full, sizes[:, 1], sizes[:, 0], device)
             crop_infos(infos, self.crops)
             self.hmax, self.wmax = int(self.crops[:, 3].max()), int(self.crops[:, 2].max())
@@ -450,7 +410,7 @@ class PhotoSet:
             self.hmax = max(int(im.shape[0]) for im in images)
             self.wmax = max(int(im.shape[1]) for im in images)
         self.infos_host = infos
-        self.infos = struct_array(infos, stream.ImageInfo, device)
+        self.infos = struct_array(infos, ImageInfo, device)
         fp16 = cfg.image_precision == "fp16"
         self.img_dtype = wp.vec3h if fp16 else wp.vec3
         pixels = self.hmax * self.wmax
@@ -644,7 +604,7 @@ class PhotoSet:
         self.images = wp.empty((w, self.hmax, self.wmax), dtype=self.img_dtype, device=dev)
         self.depth = wp.empty((w, self.hmax, self.wmax), dtype=wp.float32, device=dev)
         self.shadow = wp.empty((w, self.shadow_side, self.shadow_side), dtype=wp.float32, device=dev)
-        self.infos_window = wp.zeros(w, dtype=stream.ImageInfo, device=dev)
+        self.infos_window = wp.zeros(w, dtype=ImageInfo, device=dev)
         self.window_masks = self._masks_buffer(w, dev)
         if self.residency == "disk":
             # two slots the loader fills alternately (one decoding while the other's window is in use);
@@ -713,7 +673,7 @@ class PhotoSet:
         self.residency, self.residency_reason = "device", "single-view photos"
         self.shadow_side = 2
         self.infos_host = infos
-        self.infos = struct_array(infos, stream.ImageInfo, device)
+        self.infos = struct_array(infos, ImageInfo, device)
         self.img_dtype = wp.vec3h if fp16 else wp.vec3
         self.images = wp.array(stack, dtype=self.img_dtype, device=device)
         self.depth = wp.array(depth, dtype=wp.float32, device=device)
@@ -744,7 +704,7 @@ class PhotoSet:
         out.source = None if self.source is None else self.source.subset(idx)
         out.infos_host = self.infos_host[idx]
         out.crops = None if self.crops is None else self.crops[idx]
-        out.infos = struct_array(out.infos_host, stream.ImageInfo, dev)
+        out.infos = struct_array(out.infos_host, ImageInfo, dev)
         if dev != self.device:
             out.device = dev
             out.mesh = build_mesh(wp.clone(self.mesh.points, device=dev), wp.clone(self.mesh.indices, device=dev))

@@ -65,15 +65,11 @@ class LFMRenderer:
 
     def render_frame(self, frame, view_interp: str | None = None):
         from texstream.fit.kernels import lfm as LK
-        from texstream.fit.kernels.render import PinholeCamera
+        from texstream.render.camera import pinhole_camera
 
         wp = self.wp
         k = frame.intrinsics
-        cam = PinholeCamera()
-        cam.R = wp.mat33(*np.asarray(frame.R, np.float32).reshape(-1))
-        cam.t = wp.vec3(*np.asarray(frame.t, np.float32).reshape(3))
-        cam.fx, cam.fy, cam.cx, cam.cy = float(k.fx), float(k.fy), float(k.cx), float(k.cy)
-        cam.width, cam.height = int(k.width), int(k.height)
+        cam = pinhole_camera(frame.R, frame.t, k.fx, k.fy, k.cx, k.cy, k.width, k.height)
         rad = wp.zeros((k.height, k.width), dtype=wp.vec3, device=self.device)
         mask = wp.zeros((k.height, k.width), dtype=wp.uint8, device=self.device)
         interp = (view_interp or self.cfg.render_view) == "point"

@@ -13,7 +13,7 @@ coordinates and the four values are blended with the bilinear weights. At a texe
 exactly the BRDF the fit models at that texel. E comes from :func:`incident_light`; L is zero
 where the light is behind the shading normal or the shadow ray is blocked.
 
-The radiance model (fit/models.py) renders with a ``LIGHT_NONE`` light: L is the texels' radiance
+The radiance model (fit/models) renders with a ``LIGHT_NONE`` light: L is the texels' radiance
 columns looked up the same way (no light, cosine or shadow ray).
 
 Everything is float32 (the renderer makes ground truth at photo precision, not fit precision).
@@ -23,34 +23,9 @@ from __future__ import annotations
 
 import warp as wp
 
-from texstream.fit.kernels.shading import (LIGHT_NONE, bilinear_taps, incident_light, lafortune_brdf, surface_frame, texel_coords, to_local,
-                      view_radiance)
-
-
-@wp.struct
-class PinholeCamera:
-    """World-to-camera pose (OpenCV axes, x_cam = R x_world + t) and pinhole intrinsics (pixels,
-    capture convention: pixel centres at +0.5)."""
-
-    R: wp.mat33
-    t: wp.vec3
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-
-
-@wp.struct
-class RenderLight:
-    """kind: LIGHT_POINT (0), LIGHT_DIRECTIONAL (1) or LIGHT_NONE (2: the radiance model, whose
-    parameters are the radiance); pos_or_dir: position (point) or travel direction (directional);
-    intensity: RGB (see conventions)."""
-
-    kind: int
-    pos_or_dir: wp.vec3
-    intensity: wp.vec3
+from texstream.render.camera import ImageInfo
+from texstream.render.shading import (LIGHT_NONE, bilinear_taps, incident_light, lafortune_brdf, surface_frame, texel_coords,
+                                      to_local, view_radiance)
 
 
 @wp.func
@@ -90,7 +65,7 @@ def render_kernel(mesh_id: wp.uint64,
                   points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
                   normals: wp.array(dtype=wp.vec3), uvs: wp.array(dtype=wp.vec2),
                   params: wp.array2d(dtype=wp.float32), tex_w: int, tex_h: int, n_lobes: int, aniso: int,
-                  view_terms: int, cam: PinholeCamera, light: RenderLight, shadow_eps: float, shadows: int,
+                  view_terms: int, cam: ImageInfo, shadow_eps: float, shadows: int,
                   radiance: wp.array2d(dtype=wp.vec3), mask: wp.array2d(dtype=wp.uint8),
                   depth: wp.array2d(dtype=wp.float32), face_id: wp.array2d(dtype=wp.int32)):
     """Render one image; launch with dim = (height, width).
@@ -99,7 +74,9 @@ def render_kernel(mesh_id: wp.uint64,
     object), depth (camera z of the hit, i.e. the OpenCV Z coordinate, 0 off the object) and the
     hit face (-1 off the object).
 
-    Shadow rays start at the hit moved by ``shadow_eps`` (world units) along the geometric face
+    ``cam`` is the view's camera and light (``light_kind``, ``light_vec``: position of a point light or
+    travel direction of a directional one, ``light_intensity``; ``LIGHT_NONE`` for the radiance model,
+    whose parameters are the radiance). Shadow rays start at the hit moved by ``shadow_eps`` (world units) along the geometric face
     normal, on the light's side of the face, so a ray cannot re-hit its own triangle (acne);
     the renderer sets it to 1e-4 x the mesh's bounding-box diagonal. They end ``shadow_eps``
     short of a point light.
@@ -107,8 +84,8 @@ def render_kernel(mesh_id: wp.uint64,
     j, i = wp.tid()
     # primary ray: camera-space direction through the pixel centre, then to world
     d_cam = wp.vec3((float(i) + 0.5 - cam.cx) / cam.fx, (float(j) + 0.5 - cam.cy) / cam.fy, 1.0)
-    rt = wp.transpose(cam.R)
-    origin = -(rt @ cam.t)
+    rt = wp.transpose(cam.rot)
+    origin = -(rt @ cam.trans)
     inv_len = 1.0 / wp.length(d_cam)
     d = wp.normalize(rt @ d_cam)
 
@@ -125,14 +102,14 @@ def render_kernel(mesh_id: wp.uint64,
     face_id[j, i] = hit.face
 
     pos, uv, n, tg, bt = surface_frame(points, indices, normals, uvs, hit.face, hit.u, hit.v)
-    if light.kind == LIGHT_NONE:
+    if cam.light_kind == LIGHT_NONE:
         # radiance model: n_lobes = 0, so the blended "BRDF" is the texels' radiance L itself
         if view_terms > 0:
             radiance[j, i] = shade_view_texel_grid(params, tex_w, tex_h, uv, to_local(-d, tg, bt, n))
         else:
             radiance[j, i] = shade_texel_grid(params, tex_w, tex_h, n_lobes, aniso, uv, n, n)
         return
-    l, e, dist = incident_light(light.kind, light.pos_or_dir, light.intensity, pos)
+    l, e, dist = incident_light(cam.light_kind, cam.light_vec, cam.light_intensity, pos)
     cos_i = wp.dot(n, l)
     if cos_i <= 0.0:
         return  # light behind the shading normal

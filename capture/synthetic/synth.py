@@ -1,11 +1,11 @@
 """Synthetic capture sets with ground truth, rendered by texstream's Warp renderer.
 
-A *scene* is a small declarative JSON file (built-ins in ``capture/scenes/``: ``sphere``,
+A *scene* is a small declarative JSON file (built-ins in ``capture/synthetic/scenes/``: ``sphere``,
 ``flat_sample``, ``bunny``, ``ornament``, ``star`` (a fixed-light surface light field for light field
 mapping), ...); more scenes need no code. Keys (full-scale values):
 
 ``mesh``
-    ``{"procedural": NAME, "params": {...}}`` (:mod:`texstream.capture.procedural`, analytic UVs) or
+    ``{"procedural": NAME, "params": {...}}`` (:mod:`texstream.capture.synthetic.procedural`, analytic UVs) or
     ``{"file": PATH, "faces": N, "atlas": {AtlasConfig fields}}``: a mesh file (``$TEXSTREAM_DATA``
     is expanded; default ``../shared/data`` beside the repository), decimated to about N faces
     (pymeshlab, 0 = keep) and given a UV atlas (xatlas) unless it has usable UVs. Optional
@@ -78,9 +78,9 @@ from texstream.core.errors import ConfigError, InputError
 from texstream.core.config import option, save_config
 from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
 
-from . import procedural
-from .capture_json import Capture, Frame, Intrinsics, Light, write_capture
-from .conventions import look_at_w2c
+from texstream.capture.capture_json import Capture, Frame, Intrinsics, Light, write_capture
+from texstream.capture.conventions import look_at_w2c
+from texstream.capture.synthetic import procedural
 
 SCENES_DIR = Path(__file__).resolve().parent / "scenes"
 GROUND_TRUTH = "ground_truth"
@@ -116,7 +116,7 @@ class SynthConfig:
 
 
 def builtin_scenes() -> list[str]:
-    """Names of the scenes shipped in capture/scenes/."""
+    """Names of the scenes shipped in capture/synthetic/scenes/."""
     return sorted(p.stem for p in SCENES_DIR.glob("*.json"))
 
 
@@ -148,7 +148,7 @@ def load_scene(scene: str | os.PathLike | dict) -> dict:
 
 
 def _validate_scene(d: Any, where) -> None:
-    def bad(msg: str, fix: str = "see the key list in texstream.capture.synth's module doc"):
+    def bad(msg: str, fix: str = "see the key list in texstream.capture.synthetic.synth's module doc"):
         raise ConfigError(f"scene {msg}", where, fix)
 
     if not isinstance(d, dict):
@@ -189,7 +189,7 @@ def _validate_scene(d: Any, where) -> None:
 
 
 def _data_root() -> Path:
-    return Path(os.environ.get("TEXSTREAM_DATA", Path(__file__).resolve().parent.parent.parent / "shared" / "data"))
+    return Path(os.environ.get("TEXSTREAM_DATA", Path(__file__).resolve().parents[3] / "shared" / "data"))
 
 
 def _rotation(deg) -> np.ndarray:
@@ -224,7 +224,7 @@ def build_mesh(scene: dict, scale: float = 1.0):
     Returns:
         (SurfaceMesh, (width, height), info dict).
     """
-    from texstream.geometry.mesh import SurfaceMesh
+    from texstream.render.mesh import SurfaceMesh
 
     m = scene["mesh"]
     tex = _scaled_texture(scene, scale)
@@ -487,7 +487,7 @@ def develop(radiance: np.ndarray, exposure: float, p: dict, rng: np.random.Gener
         img = img + rng.normal(0.0, sigma, size=img.shape)
     bits = int(p["bits"])
     if bits == 8:
-        from .imageio import linear_to_srgb, srgb_to_linear
+        from texstream.capture.imageio import linear_to_srgb, srgb_to_linear
 
         codes = np.floor(np.clip(linear_to_srgb(np.clip(img, 0.0, 1.0)), 0.0, 1.0) * 255 + 0.5)
         return srgb_to_linear(codes / 255.0).astype(np.float32)
@@ -600,7 +600,7 @@ def _image_ext(bits: int) -> str:
 def iter_renders(sc: dict, mesh, params: np.ndarray, layout, frames: list[Frame], config: SynthConfig,
                  ) -> Iterator[tuple[int, Frame, np.ndarray, np.ndarray, np.ndarray]]:
     """Render and develop every frame: yields (index, frame, photo, mask, clean) one at a time."""
-    from texstream.fit.stages.render import Renderer
+    from texstream.render.renderer import Renderer
 
     rend = Renderer(mesh, params, layout, device=config.device, shadows=config.shadows)
     from texstream.core.progress import bar
@@ -651,7 +651,7 @@ def write_param_maps(folder: Path, params: np.ndarray, layout) -> dict[str, str]
     lobe{j}_shape.exr ([c_xy, c_z, n] or, anisotropic, RGBA [c_x, c_y, c_z, n]); a radiance
     layout (fit/models.py) writes radiance.exr (RGB L), and the view-dependent one also
     view_{term}.exr (RGB coefficient of each view term, e.g. view_vx.exr)."""
-    from .imageio import write_image
+    from texstream.capture.imageio import write_image
 
     if getattr(layout, "is_radiance", False):
         write_image(folder / "radiance.exr", params[..., 0:3], bits=32)
@@ -675,7 +675,7 @@ def write_param_maps(folder: Path, params: np.ndarray, layout) -> dict[str, str]
 
 def read_param_maps(folder: str | os.PathLike, layout) -> np.ndarray:
     """(H, W, P) float32 parameter grid from the EXR maps :func:`write_param_maps` wrote."""
-    from .imageio import read_image
+    from texstream.capture.imageio import read_image
 
     g = Path(folder)
     if getattr(layout, "is_radiance", False):
@@ -714,7 +714,7 @@ def load_ground_truth(folder: str | os.PathLike):
 
 
 def _write_previews(out: Path, params: np.ndarray, layout, bake) -> None:
-    from .imageio import write_image
+    from texstream.capture.imageio import write_image
 
     prev = out / "previews"
     # albedo-like views: pi * rho_d, and rho_s scaled to its maximum
@@ -725,7 +725,7 @@ def _write_previews(out: Path, params: np.ndarray, layout, bake) -> None:
         write_image(prev / "lobe0_rho_s.png", np.clip(rs / max(float(rs.max()), 1e-12), 0, 1), bits=8)
     write_image(prev / "bake_normals.png", bake.normal_preview(), bits=8)
     try:
-        from .preview import write_contact_sheet
+        from texstream.capture.preview import write_contact_sheet
     except ImportError:
         return
     write_contact_sheet(out, prev / "contact_sheet.png")
@@ -749,7 +749,7 @@ def synthesize(scene, out_dir: str | os.PathLike, config: SynthConfig | None = N
     """
     from texstream.geometry.mesh_io import save_mesh
 
-    from .imageio import write_image
+    from texstream.capture.imageio import write_image
 
     config = dataclasses.replace(config or SynthConfig(), scene=str(scene) if not isinstance(scene, dict) else "<dict>")
     sc, mesh, bake, layout, params, mid, names, info = prepare_scene(scene, config)
@@ -825,8 +825,8 @@ def write_photos_only(capture_dir: str | os.PathLike, out_dir: str | os.PathLike
     """A synthetic capture's photos as a camera leaves them: a folder of its images (same names, stored
     values unchanged) carrying the camera's EXIF focal length (:func:`camera_exif`), and nothing else (no
     capture.json, masks, poses or lights). Written atomically; returns the photo paths."""
-    from .capture_json import read_capture
-    from .imageio import copy_with_metadata
+    from texstream.capture.capture_json import read_capture
+    from texstream.capture.imageio import copy_with_metadata
 
     cap = read_capture(capture_dir)
     out_dir = Path(out_dir)

@@ -6,10 +6,12 @@ the same way, with no light (frames with or without one; the light is ignored).
 :class:`Renderer` uploads the mesh (BVH), the parameter grid and the layout once per
 (mesh, parameter grid, layout, device) and then renders any number of views with
 :meth:`Renderer.render` / :meth:`Renderer.render_frame`. The per-pixel radiance is the shared
-shading of :mod:`texstream.fit.kernels.shading`, so renderer and fit cannot disagree (see
-:mod:`texstream.fit.kernels.render`).
+shading of :mod:`texstream.render.shading`, so renderer and fit cannot disagree (see
+:mod:`texstream.render.kernels`).
 
-Imports only numpy and warp (plus numpy-only texstream spine modules).
+Imports only numpy, warp and texstream.core. The parameter layout (the fit's
+``texstream.fit.kernels.layout.ModelLayout``) and capture.json's frames and lights are read by their
+attributes, so the renderer sits below both.
 """
 
 from __future__ import annotations
@@ -19,12 +21,11 @@ import dataclasses
 import numpy as np
 import warp as wp
 
-from texstream.capture.capture_json import Frame, Light
-from texstream.fit.kernels.render import PinholeCamera, RenderLight, render_kernel
-from texstream.fit.kernels.shading import LIGHT_DIRECTIONAL, LIGHT_NONE, LIGHT_POINT, SHADOW_EPS_REL
-from texstream.fit.kernels.layout import ModelLayout
-from texstream.geometry.mesh import SurfaceMesh
 from texstream.core.errors import ConfigError, InputError
+from texstream.render.camera import pinhole_camera
+from texstream.render.kernels import render_kernel
+from texstream.render.mesh import SurfaceMesh
+from texstream.render.shading import LIGHT_DIRECTIONAL, LIGHT_NONE, LIGHT_POINT, SHADOW_EPS_REL
 
 
 @dataclasses.dataclass
@@ -54,13 +55,14 @@ class Renderer:
             (H * W, P) float32 already on ``device``; row = y * W + x with row 0 at the top of the
             texture (capture/conventions.py). Padding texels must already hold copies of their
             chart neighbours (TexelBake.fill_padding) so bilinear lookups do not bleed.
-        layout: the parameter column layout (P must equal ``layout.n_params``).
+        layout: the parameter column layout (a ``ModelLayout``; read: ``n_params`` (P must equal it),
+            ``n_lobes``, ``anisotropic``, ``view_terms``, ``is_radiance`` and ``kind``).
         device: Warp device, "cpu" or "cuda:N".
         tex_size: (W, H) of the texel grid; required only when ``params`` is a Warp array.
         shadows: trace shadow rays (cast shadows); off gives local shading only.
     """
 
-    def __init__(self, mesh: SurfaceMesh, params, layout: ModelLayout, device: str = "cpu",
+    def __init__(self, mesh: SurfaceMesh, params, layout, device: str = "cpu",
                  tex_size: tuple[int, int] | None = None, shadows: bool = True):
         if mesh.uvs is None:
             raise InputError("the mesh has no UVs", fix="build an atlas first (texstream atlas) or use a procedural mesh")
@@ -110,7 +112,7 @@ class Renderer:
         self._size = (width, height)
 
     def render(self, R, t, fx: float, fy: float, cx: float, cy: float, width: int, height: int,
-               light: Light) -> RenderResult:
+               light) -> RenderResult:
         """Render one view.
 
         Args:
@@ -118,7 +120,8 @@ class Renderer:
             t: (3,) world-to-camera translation.
             fx, fy, cx, cy: pinhole intrinsics in pixels (capture convention, centres at +0.5).
             width, height: image size in pixels.
-            light: a point or directional :class:`Light`; ignored (may be None) for a radiance model.
+            light: a point or directional light (a capture.json ``Light``: ``type``, ``position`` or
+                ``direction``, ``intensity``); ignored (may be None) for a radiance model.
 
         Returns:
             A :class:`RenderResult` of numpy arrays.
@@ -128,38 +131,33 @@ class Renderer:
                              fix="give every frame a point or directional light, or render a radiance model")
         width, height = int(width), int(height)
         self._outputs(width, height)
-        cam = PinholeCamera()
-        cam.R = wp.mat33(*np.asarray(R, dtype=np.float32).reshape(-1))
-        cam.t = wp.vec3(*np.asarray(t, dtype=np.float32).reshape(3))
-        cam.fx, cam.fy, cam.cx, cam.cy = float(fx), float(fy), float(cx), float(cy)
-        cam.width, cam.height = width, height
-        lt = RenderLight()
+        cam = pinhole_camera(R, t, fx, fy, cx, cy, width, height)
         if self.layout.is_radiance:
-            lt.kind = int(LIGHT_NONE)  # L itself: no light, cosine or shadow ray
+            cam.light_kind = int(LIGHT_NONE)  # L itself: no light, cosine or shadow ray
         elif light.type == "point":
-            lt.kind = int(LIGHT_POINT)
-            lt.pos_or_dir = wp.vec3(*np.asarray(light.position, dtype=np.float32))
+            cam.light_kind = int(LIGHT_POINT)
+            cam.light_vec = wp.vec3(*np.asarray(light.position, dtype=np.float32))
         elif light.type == "directional":
-            lt.kind = int(LIGHT_DIRECTIONAL)
-            lt.pos_or_dir = wp.vec3(*np.asarray(light.direction, dtype=np.float32))
+            cam.light_kind = int(LIGHT_DIRECTIONAL)
+            cam.light_vec = wp.vec3(*np.asarray(light.direction, dtype=np.float32))
         else:
             raise InputError(f"light type {light.type!r} is not 'point' or 'directional'")
         if not self.layout.is_radiance:
-            lt.intensity = wp.vec3(*np.asarray(light.intensity, dtype=np.float32))
+            cam.light_intensity = wp.vec3(*np.asarray(light.intensity, dtype=np.float32))
         wp.launch(render_kernel, dim=(height, width), device=self.device,
                   inputs=[self.mesh.id, self.points, self.indices, self.normals, self.uvs,
                           self.params, self.tex_w, self.tex_h, self.layout.n_lobes, int(self.layout.anisotropic),
                           int(self.layout.view_terms),
-                          cam, lt, self.shadow_eps, int(self.shadows)],
+                          cam, self.shadow_eps, int(self.shadows)],
                   outputs=[self._radiance, self._mask, self._depth, self._face])
         return RenderResult(radiance=self._radiance.numpy().reshape(height, width, 3).astype(np.float32, copy=True),
                             mask=self._mask.numpy().astype(bool),
                             depth=self._depth.numpy().copy(),
                             face=self._face.numpy().copy())
 
-    def render_frame(self, frame: Frame) -> RenderResult:
-        """Render the view of a capture :class:`Frame` (pose, pinhole intrinsics, light; a radiance
-        model needs no light).
+    def render_frame(self, frame) -> RenderResult:
+        """Render the view of a capture.json ``Frame`` (``R``, ``t``, ``intrinsics``, ``light``; a
+        radiance model needs no light).
 
         Lens distortion is not rendered: the frame must be a pinhole camera.
         """

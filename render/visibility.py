@@ -6,18 +6,35 @@ would cost far more than the sample's arithmetic. A depth map costs one ray per 
 and the per-sample test becomes a few texture reads, as in the seed's GPU implementation.
 Camera depth maps hold z in the camera frame (0 where masked or no surface); shadow maps are
 the same thing rendered from the light (a perspective camera at a point light aimed at the
-object, or an orthographic one along a directional light).
+object, or an orthographic one along a directional light). :func:`depth_consistent` is the depth
+test the fit's bilinear samples and the photometric refinement both make against a depth map.
 """
 
 from __future__ import annotations
 
 import warp as wp
 
-from texstream.fit.kernels.stream import ImageInfo
+from texstream.render.camera import ImageInfo
 
 # no kernel here is differentiated (the fit writes its own derivatives): skipping Warp's adjoint
 # code generation roughly halves compile time
 wp.set_module_options({"enable_backward": False})
+
+
+@wp.func
+def depth_consistent(depth: wp.array3d(dtype=wp.float32), k: int, x0: int, y0: int, z: float, tol: float,
+                     slack: float):
+    """All four bilinear taps see this surface (masked or empty pixels hold 0 and fail).
+
+    A tap may differ from the texel's depth by ``tol * z`` plus ``slack``, the depth change a tilted
+    surface shows across the bilinear footprint (see the fit's ``observe``, fit/kernels/stream.py)."""
+    ok = True
+    for dy in range(2):
+        for dx in range(2):
+            dz = depth[k, y0 + dy, x0 + dx]
+            if wp.abs(dz - z) > tol * z + slack:
+                ok = False
+    return ok
 
 
 @wp.func

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from texstream.geometry.mesh import SurfaceMesh
+from texstream.render.mesh import SurfaceMesh
 from texstream.core.errors import ConfigError
 
 
