@@ -10,7 +10,7 @@ shading of :mod:`texstream.render.shading`, so renderer and fit cannot disagree 
 :mod:`texstream.render.kernels`).
 
 Imports only numpy, warp and texstream.core. The parameter layout (the fit's
-``texstream.fit.kernels.layout.ModelLayout``) and capture.json's frames and lights are read by their
+``texstream.render.layout.ModelLayout``) and capture.json's frames and lights are read by their
 attributes, so the renderer sits below both.
 """
 

@@ -129,7 +129,7 @@ def surface_frame(points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.in
 def lafortune_brdf(params: wp.array2d(dtype=Any), row: int, n_lobes: int, aniso: int, u: Any, v: Any, one: Any):
     """BRDF (RGB, 1/sr) of texel ``row`` for local light direction ``u`` and view direction ``v``.
 
-    Column layout as in :class:`texstream.fit.kernels.layout.ModelLayout`: rho_d RGB, then per lobe
+    Column layout as in :class:`texstream.render.layout.ModelLayout`: rho_d RGB, then per lobe
     rho_s RGB, C (c_xy, c_z or c_x, c_y, c_z) and n. ``one`` is the scalar 1 of the compute
     type (float32 or float64): parameters stored in any float type are cast to it.
     """

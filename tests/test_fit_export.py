@@ -26,7 +26,7 @@ from texstream.capture.synthetic.synth import write_param_maps
 from texstream.core.config import load_config
 from texstream.core.errors import ConfigError, InputError
 from texstream.fit.stages import export as E
-from texstream.fit.kernels.layout import MODEL_KINDS, ModelLayout
+from texstream.render.layout import MODEL_KINDS, ModelLayout
 from texstream.render.mesh import SurfaceMesh
 from texstream.geometry.mesh_io import load_mesh, save_mesh
 

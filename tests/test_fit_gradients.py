@@ -7,7 +7,7 @@ import pytest
 import warp as wp
 
 from texstream.capture.conventions import look_at_w2c
-from texstream.fit.kernels.layout import ModelLayout
+from texstream.render.layout import ModelLayout
 from texstream.fit.stream.problem import PhotoSet, StreamConfig, StreamProblem, TexelSet
 from texstream.render.camera import PhotoFrame
 

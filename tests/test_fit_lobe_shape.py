@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from texstream.fit.optim.fitter import FitConfig, choose_lobe_shape, light_view_angles
-from texstream.fit.kernels.layout import ModelLayout
+from texstream.render.layout import ModelLayout
 from texstream.render.camera import PhotoFrame
 from texstream.core.errors import ConfigError
 

@@ -25,7 +25,7 @@ import warp as wp
 
 from texstream.fit.models.materials import (MaterialConfig, contradiction_test, find_materials, kmeans, lobe_columns,
                                      material_prior, reject_contradicted_lobes, texel_uncertainty)
-from texstream.fit.kernels.layout import ModelLayout
+from texstream.render.layout import ModelLayout
 
 from test_fit_gradients import (assert_full_dhd_matches_second_difference, assert_gradient_matches_finite_differences,
                                 evaluate, plane_problem, random_params)

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from texstream.fit.common.model_folder import start_plotter, stop_plotter, trace_plot, trace_plot_png, write_model_folder
-from texstream.fit.kernels.layout import ModelLayout
+from texstream.render.layout import ModelLayout
 
 
 @dataclasses.dataclass

@@ -8,7 +8,7 @@ import warp as wp
 
 from texstream.capture.synthetic.synth import SynthConfig, render_scene
 from texstream.fit.optim.fitter import FitConfig, run_fit
-from texstream.fit.kernels.layout import ModelLayout
+from texstream.render.layout import ModelLayout
 from texstream.fit.optim.linesearch import LineSearchConfig
 from texstream.fit.stages.stage import build_problem
 

@@ -22,7 +22,7 @@ from texstream.capture.capture_json import Light
 from texstream.capture.synthetic.synth import SynthConfig, render_scene
 from texstream.core.errors import InputError
 from texstream.fit.optim.fitter import FitConfig, run_fit
-from texstream.fit.kernels.layout import ModelLayout
+from texstream.render.layout import ModelLayout
 from texstream.fit.stream.problem import PhotoSet, StreamProblem, TexelSet, surface_derivatives
 from texstream.render.camera import PhotoFrame
 from texstream.render.renderer import Renderer

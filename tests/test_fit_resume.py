@@ -28,7 +28,7 @@ def config() -> FitStageConfig:
 
 def maps(model):
     from texstream.capture.synthetic.synth import read_param_maps
-    from texstream.fit.kernels.layout import ModelLayout
+    from texstream.render.layout import ModelLayout
 
     lay = ModelLayout.from_json(json.loads((model / "model.json").read_text())["layout"])
     return read_param_maps(model, lay)

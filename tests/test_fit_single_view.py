@@ -115,7 +115,7 @@ def write_set(folder, specular: bool, normals_ext: str = ".npy", shadow: bool = 
 
 def read_maps(model):
     from texstream.capture.synthetic.synth import read_param_maps
-    from texstream.fit.kernels.layout import ModelLayout
+    from texstream.render.layout import ModelLayout
 
     man = json.loads((model / "model.json").read_text())
     return read_param_maps(model, ModelLayout.from_json(man["layout"])), man

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from texstream.fit.optim.fitter import FitConfig
-from texstream.fit.kernels.layout import ModelLayout
+from texstream.render.layout import ModelLayout
 from texstream.fit.stages.stage import FitStageConfig, fit_stage
 from texstream.geometry.seams import SEAMS_FILE, Seams, seam_gaps
 from texstream.core.errors import InputError

@@ -19,7 +19,7 @@ import warp as wp
 
 from texstream.capture.synthetic.synth import VIEW_TERM_NAMES, SynthConfig, render_scene
 from texstream.fit.optim.fitter import FitConfig, run_fit
-from texstream.fit.kernels.layout import VIEW_TERMS, ModelLayout
+from texstream.render.layout import VIEW_TERMS, ModelLayout
 from texstream.fit.stream.problem import PhotoSet, StreamProblem, TexelSet, surface_derivatives
 from texstream.render.camera import PhotoFrame
 from texstream.render.renderer import Renderer

@@ -290,7 +290,7 @@ def test_view_dependent_radiance_matches_texstream_render(run, tmp_path):
     from scipy.ndimage import binary_erosion
 
     from texstream.capture.synthetic.synth import write_param_maps
-    from texstream.fit.kernels.layout import ModelLayout
+    from texstream.render.layout import ModelLayout
     from texstream.render.renderer import Renderer
     from texstream.pipelines.report import _srgb8, load_report_model, write_report
 

@@ -132,7 +132,7 @@ def test_turntable_object_under_unknown_lighting_to_a_valid_radiance_model(captu
     import numpy as np
 
     from texstream.capture.synthetic.synth import read_param_maps
-    from texstream.fit.kernels.layout import ModelLayout
+    from texstream.render.layout import ModelLayout
 
     cap = tmp_path / "cap"
     shutil.copytree(capture, cap, ignore=shutil.ignore_patterns("ground_truth"))

@@ -10,7 +10,7 @@ import pytest
 from texstream.capture.synthetic import procedural
 from texstream.capture.capture_json import Light
 from texstream.capture.conventions import look_at_w2c, uv_to_texel
-from texstream.fit.kernels.layout import ModelLayout
+from texstream.render.layout import ModelLayout
 from texstream.render.renderer import Renderer
 from texstream.render.mesh import SurfaceMesh
 

@@ -267,7 +267,7 @@ def projected_model(x: np.ndarray, layout, u: np.ndarray, v: np.ndarray, lobe_al
 
 def project(p: np.ndarray, layout, lobe_albedo_max: float) -> np.ndarray:
     """Box bounds of the layout, then texstream's energy bound (models.energy_bound_numpy)."""
-    from texstream.fit.kernels.layout import energy_bound_numpy
+    from texstream.render.layout import energy_bound_numpy
 
     return energy_bound_numpy(np.clip(p, layout.lower(), layout.upper()), layout, lobe_albedo_max)
 

@@ -561,7 +561,7 @@ def prepare_scene(scene, config: SynthConfig):
     Returns:
         (resolved scene, mesh, bake, layout, params (H, W, P), material ids, material names, info).
     """
-    from texstream.fit.kernels.layout import ModelLayout
+    from texstream.render.layout import ModelLayout
     from texstream.geometry.bake import bake_texels
 
     sc = resolve_scene(scene, config)
@@ -699,7 +699,7 @@ def load_ground_truth(folder: str | os.PathLike):
     Returns:
         (mesh, params (H, W, P) float32, ModelLayout, TexelBake, manifest dict).
     """
-    from texstream.fit.kernels.layout import ModelLayout
+    from texstream.render.layout import ModelLayout
     from texstream.geometry.bake import TexelBake
     from texstream.geometry.mesh_io import load_mesh
     from texstream.core.outputs import read_json

@@ -10,7 +10,7 @@ import numpy as np
 
 from texstream.core.errors import InputError, StageError
 from texstream.core.progress import say
-from texstream.fit.kernels.layout import layout_traits
+from texstream.render.layout import layout_traits
 
 
 from texstream.fit.common.setup import build_problem

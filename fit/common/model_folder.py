@@ -29,7 +29,7 @@ from texstream.core.config import save_config
 from texstream.core.errors import StageError
 from texstream.core.outputs import write_json_atomic
 
-from texstream.fit.kernels.layout import ModelLayout
+from texstream.render.layout import ModelLayout
 
 # relative slack on the bounds: float32 maps of float64 fits, and seam averaging's eps residual
 BOUND_SLACK = 1e-5

@@ -14,7 +14,7 @@ from texstream.core.outputs import read_json
 
 from texstream.fit.optim.fitter import FitConfig, FitResult, run_fit
 from texstream.fit.common.model_folder import image_metrics
-from texstream.fit.kernels.layout import ModelLayout
+from texstream.render.layout import ModelLayout
 
 
 

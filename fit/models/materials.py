@@ -48,7 +48,7 @@ import numpy as np
 from texstream.core.config import option
 from texstream.core.errors import ConfigError
 
-from texstream.fit.kernels.layout import ModelLayout
+from texstream.render.layout import ModelLayout
 
 MATERIAL_MODES = ("off", "auto", "on")
 VARIANTS = ("mixed", "shared")

@@ -51,7 +51,7 @@ from texstream.core.outputs import StageResult, atomic_output_dir
 from texstream.fit.optim.fitter import FitConfig
 from texstream.fit.kernels import stream
 from texstream.render.shading import incident_light, lafortune_brdf, to_local
-from texstream.fit.kernels.layout import ModelLayout
+from texstream.render.layout import ModelLayout
 
 NORMAL_SPACES = ("opengl", "opencv", "world")
 FLOAT_NORMAL_SUFFIXES = (".exr", ".hdr", ".pfm", ".npy")

@@ -30,7 +30,7 @@ import numpy as np
 
 from texstream.core.errors import ConfigError, InputError
 from texstream.core.outputs import read_json
-from texstream.fit.kernels.layout import LayoutTraits, register_layout_kind
+from texstream.render.layout import LayoutTraits, register_layout_kind
 
 
 @dataclasses.dataclass

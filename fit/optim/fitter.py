@@ -19,7 +19,7 @@ from texstream.core.config import option
 
 from texstream.fit.kernels import optim_kernels as K
 from texstream.fit.kernels import stream
-from texstream.fit.kernels.layout import ModelLayout, layout_traits
+from texstream.render.layout import ModelLayout, layout_traits
 from texstream.fit.optim.base import FitState
 from texstream.fit.optim.cg import ConjugateGradient
 from texstream.fit.optim.lbfgs import LBFGS

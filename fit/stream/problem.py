@@ -29,7 +29,7 @@ from texstream.fit.kernels import stream
 from texstream.fit.kernels.lafortune_grad import param_types
 from texstream.render.shading import SHADOW_EPS_REL
 from texstream.render.visibility import depth_maps_kernel, masked_depth_kernel, shadow_maps_kernel
-from texstream.fit.kernels.layout import ModelLayout
+from texstream.render.layout import ModelLayout
 from texstream.fit.stream.photo_stream import (PhotoCache, PhotoFiles, PhotoLoader, WindowSlots, choose_residency,
                            crop_boxes, keep_maps_on_device, to_half_kernel, wait, window_size)
 from texstream.render.camera import ImageInfo, PhotoFrame, crop_infos, image_infos, struct_array

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from texstream.fit.kernels.layout import LayoutTraits
+from texstream.render.layout import LayoutTraits
 from texstream.fit.models.registry import AppearanceModel, register
 
 from texstream.fit.models.lafortune import choice as choice_module

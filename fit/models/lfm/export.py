@@ -93,8 +93,8 @@ def lfm_unlit_renderer(model, view_mean: str = "cosine", device: str = "cpu"):
     """frame -> (image, coverage): the exported unlit approximation of an LFM model rendered by
     texstream's radiance renderer (fit/stages/render.py, bilinear atlas lookup, times the frame's exposure),
     to score it against the full model or the photos."""
-    from texstream.fit.kernels.layout import ModelLayout
-    from texstream.fit.stages.stage import render_model
+    from texstream.render.layout import ModelLayout
+    from texstream.fit.common.setup import render_model
 
     grid = lfm_atlas(model, lfm_unlit_radiance(model, view_mean, device))
     layout = ModelLayout(kind="radiance")

@@ -12,7 +12,7 @@ import numpy as np
 
 from texstream.fit.optim.fitter import FitConfig, FitResult, light_view_angles, run_fit
 from texstream.fit.models.materials import MaterialConfig
-from texstream.fit.kernels.layout import ModelLayout
+from texstream.render.layout import ModelLayout
 
 from texstream.fit.common.inputs import read_photos, FitInputs
 from texstream.fit.common.setup import params_to_grid, heldout_psnr, fill_unseen_texels, per_texel_objective, data_jtj

@@ -43,7 +43,7 @@ def load(model_dir: Path, manifest: dict) -> FittedModel:
 def _load_radiance_map(d: Path, man: dict) -> RadianceModel:
     from texstream.capture.imageio import read_image
     from texstream.core.errors import InputError
-    from texstream.fit.kernels.layout import ModelLayout
+    from texstream.render.layout import ModelLayout
     from texstream.geometry.mesh_io import load_mesh
 
     name = (man.get("maps") or {}).get("radiance", "radiance.exr")

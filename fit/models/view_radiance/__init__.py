@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from texstream.fit.kernels.layout import LayoutTraits, VIEW_TERMS
+from texstream.render.layout import LayoutTraits, VIEW_TERMS
 from texstream.fit.models.registry import AppearanceModel, register
 
 from texstream.fit.models.view_radiance import fit as fit_module
