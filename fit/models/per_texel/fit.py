@@ -1,5 +1,8 @@
 """The fit of a per-texel model (Lafortune, diffuse, radiance, view-dependent radiance): inputs, set-up, the
-streaming fit, the lobes and materials where the model has lobes, held-out renders and the model folder."""
+streaming fit, the lobes and materials where the model has lobes, held-out renders and the model folder.
+
+One function per phase; :func:`fit` (the plugins' ``fit``) runs them in order. Heavy packages (OpenImageIO through
+capture.imageio, the mesh writer) are imported inside the phases that write files."""
 
 from __future__ import annotations
 
@@ -10,64 +13,124 @@ from pathlib import Path
 
 import numpy as np
 
+from texstream.core.config import config_to_dict
 from texstream.core.outputs import StageResult, atomic_output_dir
-from texstream.core.progress import say
-
+from texstream.core.progress import phase, say
+from texstream.fit.common import model_folder
+from texstream.fit.common.inputs import FitInputs, load_fit_inputs, load_photos, set_up_skipping_bad_photos
+from texstream.fit.common.model_folder import (bound_report, check_model, pooled_psnr, render_comparisons, trace_plot,
+                                               write_model_folder)
+from texstream.fit.common.numerics import numerics_warnings
+from texstream.fit.common.setup import Checkpoint, fill_unseen_texels, params_to_grid, render_model, run_fit_with_progress
+from texstream.fit.models import registry
+from texstream.fit.models.per_texel.lobes import (_materials_manifest, average_seams_in_bounds, choose_materials,
+                                                  confirm_at_material_lobes, drop_unsupported_lobes, fit_with_materials,
+                                                  lobe_shape_report, lobes_in_use, texel_evidence, traced_polish,
+                                                  traced_polish_applies, traced_problem)
+from texstream.fit.multi.tiles import run_tiled_fit, tiled
 from texstream.fit.optim.fitter import resumable
 
-from texstream.fit.common import model_folder
-from texstream.fit.models import registry
-from texstream.fit.common.inputs import load_photos, load_fit_inputs, set_up_skipping_bad_photos
-from texstream.fit.common.setup import params_to_grid, render_model, run_fit_with_progress, Checkpoint, fill_unseen_texels
-from texstream.fit.models.per_texel.lobes import lobe_shape_report, drop_unsupported_lobes, lobes_in_use, texel_evidence, confirm_at_material_lobes, traced_polish_applies, traced_problem, traced_polish, fit_with_materials, choose_materials, average_seams_in_bounds, _materials_manifest
+MATERIAL_PALETTE = np.array([[0.9, 0.6, 0.1], [0.1, 0.6, 0.2], [0.8, 0.8, 0.8], [0.2, 0.3, 0.9],
+                             [0.8, 0.1, 0.1], [0.6, 0.2, 0.8], [0.1, 0.8, 0.8], [0.5, 0.4, 0.2]], np.float32)
+"""materials.png's colour per material label"""
+
+
+@dataclasses.dataclass
+class Lobes:
+    """What the lobes phase decided: the materials choice (None: no lobes, or materials off), the texels'
+    evidence, the borrowed materials (info, labels, result; None: per-texel lobes) and the texels whose lobes
+    were dropped."""
+
+    info: dict | None
+    evidence: object
+    borrowed: tuple | None
+    dropped: np.ndarray
+
+
+def fit(request) -> StageResult:
+    """A per-texel model's fit (registry.FitRequest): a child process draws the error-against-time plot while
+    the photos are read and fitted (it imports matplotlib meanwhile)."""
+    plotter = model_folder.start_plotter()  # through the module: tests replace it there
+    try:
+        return _fit_per_texel_model(request.capture_dir, request.mesh_path, request.out_dir, request.cfg,
+                                    request.progress, plotter)
+    finally:
+        model_folder.stop_plotter(plotter)
 
 
 def _fit_per_texel_model(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Path, cfg,
-                        progress: bool, plotter=None) -> StageResult:
-    """:func:`fit_stage` for the per-texel models (Lafortune, radiance): ``plotter`` draws the
+                         progress: bool, plotter=None) -> StageResult:
+    """The phases of a per-texel fit (``cfg``: the fit stage's FitStageConfig); ``plotter`` draws the
     error-against-time plot (:func:`~texstream.fit.common.model_folder.start_plotter`; None: a child started at
     the end does)."""
-    from texstream.capture.imageio import read_mask
-    from texstream.core.progress import phase
-    from texstream.geometry.mesh_io import save_mesh
-
-    from texstream.fit.common.model_folder import (bound_report, check_model, pooled_psnr, render_comparisons, trace_plot,
-                               write_model_folder)
-    from texstream.fit.common.numerics import numerics_warnings
-
     t0 = time.perf_counter()
     with phase("fit", f"{cfg.fit.model}: reading the photos and setting up the texels"):
         inputs = load_fit_inputs(capture_dir, mesh_path, cfg)
         t_inputs = time.perf_counter() - t0
-        capture, frames, held, mesh, bake = inputs.capture, inputs.frames, inputs.held, inputs.mesh, inputs.bake
         problem, seen_before, start, skipped = set_up_skipping_bad_photos(inputs, cfg, capture_dir)
-        frames = inputs.frames
     t_setup = time.perf_counter() - t0
-    from texstream.fit.multi.tiles import run_tiled_fit, tiled
+    ckpt, resume = _checkpoint(capture_dir, mesh_path, out_dir, cfg, problem)
+    result, tiles_report = _core_fit(problem, cfg, start, progress, ckpt, resume)
+    t_loop = time.perf_counter()
+    result, lobes = _lobes_and_materials(inputs, problem, result, cfg)
+    grid, filled, seams_info = _model_grid(inputs, problem, result, cfg)
+    t_fitted = time.perf_counter()
+    title = f"{result.layout.kind} fit, {cfg.fit.optimizer}, {cfg.device}"
+    with (atomic_output_dir(out_dir) as tmp, phase("fit", f"{cfg.fit.model}: held-out renders and the model folder"),
+          trace_plot(tmp, result.trace, title, plotter) as plot):  # drawn by the child while this one renders
+        evals = _write_geometry_and_renders(tmp, inputs, mesh_path, grid, result.layout, cfg)
+        seen = np.zeros(inputs.bake.height * inputs.bake.width, bool)
+        seen[problem.texels.grid_index] = result.samples > 0
+        _write_lobe_maps(tmp, inputs.bake, problem, result, lobes)
+        timings = {"inputs": t_inputs, "setup": t_setup - t_inputs, "fit": t_loop - t0 - t_setup,
+                   "after_fit": t_fitted - t_loop, "renders": time.perf_counter() - t_fitted}
+        manifest = _manifest(inputs, problem, result, lobes, cfg, evals,
+                             {"seen_before": seen_before, "filled": filled, "skipped": skipped, "tiles": tiles_report,
+                              "seams": seams_info, "setup_s": t_setup, "timings_s": timings})
+        write_model_folder(tmp, grid, result.layout, seen.reshape(inputs.bake.height, inputs.bake.width), result.trace,
+                           title, manifest, cfg, plot=plot)
+    if ckpt is not None:
+        ckpt.remove()
+    problem.photos.wait_for_cache()  # a photo cache written in the background is complete for the next fit
+    last = result.trace[-1]
+    return StageResult(Path(out_dir), {"psnr_db": last["psnr_db"], "iterations": last["iteration"],
+                                       "time_s": last["time_s"], "texels": problem.n, "photos": len(inputs.frames),
+                                       "resumed_from": None if resume is None else int(resume["iteration"]),
+                                       "skipped_photos": [p["file"] for p in skipped],
+                                       "render_eval": evals, "warnings": manifest["warnings"],
+                                       "heldout": manifest["heldout"], "materials": manifest["materials"]})
 
-    ckpt, resume, tiles_report = None, None, None
-    if cfg.checkpoint and resumable(cfg.fit) and not tiled(cfg.fit):
-        from texstream.core.config import config_to_dict
 
-        ckpt = Checkpoint(out_dir, {"capture": str(Path(capture_dir).resolve()), "mesh": str(Path(mesh_path).resolve()),
-                                    "config": config_to_dict(cfg), "texels": problem.n,
-                                    "capture_mtime": (Path(capture_dir) / "capture.json").stat().st_mtime_ns
-                                    if (Path(capture_dir) / "capture.json").exists() else 0})
-        resume = ckpt.load()
-    if tiled(cfg.fit):
-        with phase("fit", f"{cfg.fit.model}: tiles of texels ({cfg.fit.stream.tile_backend})"):
-            result, tiles_report = run_tiled_fit(problem, cfg.fit, start)
-        say("fit", f"tiles: {tiles_report['tiles']} on {','.join(tiles_report['devices'])} "
-                   f"({tiles_report['backend']}), photos per tile {min(tiles_report['photos_per_tile'])}.."
-                   f"{max(tiles_report['photos_per_tile'])} of {tiles_report['photos']}")
-    else:
+def _checkpoint(capture_dir, mesh_path, out_dir, cfg, problem) -> tuple[Checkpoint | None, dict | None]:
+    """The fit's checkpoint (LM fits that are not tiled) and the state it holds from an interrupted run."""
+    if not (cfg.checkpoint and resumable(cfg.fit) and not tiled(cfg.fit)):
+        return None, None
+    capture_json = Path(capture_dir) / "capture.json"
+    ckpt = Checkpoint(out_dir, {"capture": str(Path(capture_dir).resolve()), "mesh": str(Path(mesh_path).resolve()),
+                                "config": config_to_dict(cfg), "texels": problem.n,
+                                "capture_mtime": capture_json.stat().st_mtime_ns if capture_json.exists() else 0})
+    return ckpt, ckpt.load()
+
+
+def _core_fit(problem, cfg, start, progress: bool, ckpt, resume):
+    """(FitResult, tiles report or None): the streaming fit, tiled where asked."""
+    if not tiled(cfg.fit):
         result = run_fit_with_progress(problem, cfg.fit, progress, start=start,
                                        **({"checkpoint": ckpt.save, "resume": resume} if ckpt else {}))
-    t_loop = time.perf_counter()
-    lay = result.layout
-    materials_info, evidence, borrowed = None, None, None
-    materials_problem = problem
-    if lay.n_lobes and cfg.materials.mode != "off":
+        return result, None
+    with phase("fit", f"{cfg.fit.model}: tiles of texels ({cfg.fit.stream.tile_backend})"):
+        result, report = run_tiled_fit(problem, cfg.fit, start)
+    say("fit", f"tiles: {report['tiles']} on {','.join(report['devices'])} ({report['backend']}), photos per tile "
+               f"{min(report['photos_per_tile'])}..{max(report['photos_per_tile'])} of {report['photos']}")
+    return result, report
+
+
+def _lobes_and_materials(inputs: FitInputs, problem, result, cfg):
+    """(result, Lobes): for a model with lobes, the shared materials' choice and fit (texels whose highlight no
+    photo caught borrow their material's lobe), or the traced polish and the per-texel lobes no photo supports
+    dropped; a model without lobes passes through the latter unchanged."""
+    info, evidence, materials_problem = None, None, problem
+    if result.layout.n_lobes and cfg.materials.mode != "off":
         with phase("fit", "materials: per-texel or shared lobes, judged on a validation split of the fitted photos"):
             choice = choose_materials(inputs, problem, cfg)
             traced_extra = {}
@@ -81,127 +144,112 @@ def _fit_per_texel_model(capture_dir: str | Path, mesh_path: str | Path, out_dir
                 traced_extra = {"unconfirmed_at_material_lobe": dropped}
             else:
                 evidence = texel_evidence(problem, result, cfg.materials)
-        materials_info = {"mode": cfg.materials.mode, "traced": materials_problem is not problem, **traced_extra,
-                          **choice}
-    if materials_info is not None and materials_info["chosen"] != "per-texel":
-        with phase("fit", f"materials: {materials_info['reason']}"):
+        info = {"mode": cfg.materials.mode, "traced": materials_problem is not problem, **traced_extra, **choice}
+    if info is not None and info["chosen"] != "per-texel":
+        with phase("fit", f"materials: {info['reason']}"):
             # on traced taps the materials' fit is the polish (traced_polish does nothing more there)
-            res_m, info = fit_with_materials(materials_problem, result, evidence, materials_info["k"],
-                                             materials_info["chosen"], cfg, polish=True)
-        labels = info.pop("labels")
-        materials_info.update(info)
-        borrowed = (info, labels, res_m)
+            res_m, extra_info = fit_with_materials(materials_problem, result, evidence, info["k"], info["chosen"], cfg,
+                                                   polish=True)
+        labels = extra_info.pop("labels")
+        info.update(extra_info)
         t_end = result.trace[-1]["time_s"]
         extra = [{**r, "iteration": r["iteration"] + len(result.trace), "time_s": r["time_s"] + t_end,
                   "stage": r.get("stage", "materials")} for r in res_m.trace]
-        lobes_dropped = np.zeros(problem.n, bool)
         result = dataclasses.replace(res_m, trace=result.trace + extra)
-    else:
-        if traced_polish_applies(problem, cfg):
-            with phase("fit", f"traced polish: {cfg.traced_polish} iterations with taps traced to the mesh"):
-                result = traced_polish(problem, result, cfg)
-        params, lobes_dropped = drop_unsupported_lobes(problem, result, cfg.lobe_support)
-        result = dataclasses.replace(result, params=params)
-    title = f"{lay.kind} fit, {cfg.fit.optimizer}, {cfg.device}"
-    polish_iterations = max(0, sum(r.get("stage") == "traced polish" for r in result.trace) - 1)  # less its start row
-    grid, filled = params_to_grid(result, problem, bake), 0
+        return result, Lobes(info, evidence, (extra_info, labels, res_m), np.zeros(problem.n, bool))
+    if traced_polish_applies(problem, cfg):
+        with phase("fit", f"traced polish: {cfg.traced_polish} iterations with taps traced to the mesh"):
+            result = traced_polish(problem, result, cfg)
+    params, dropped = drop_unsupported_lobes(problem, result, cfg.lobe_support)
+    return dataclasses.replace(result, params=params), Lobes(info, evidence, None, dropped)
+
+
+def _model_grid(inputs: FitInputs, problem, result, cfg) -> tuple[np.ndarray, int, dict | None]:
+    """(parameter maps, texels filled from the nearest seen one, seams report), checked finite and in bounds."""
+    grid, filled = params_to_grid(result, problem, inputs.bake), 0
     if cfg.unseen == "nearest":
-        grid, filled = fill_unseen_texels(grid, problem, bake, result)
-    grid, seams_info = average_seams_in_bounds(grid, inputs.seams, lay)
-    check_model(grid, lay)  # before rendering it
+        grid, filled = fill_unseen_texels(grid, problem, inputs.bake, result)
+    grid, seams_info = average_seams_in_bounds(grid, inputs.seams, result.layout)
+    check_model(grid, result.layout)  # before rendering it
+    return grid, filled, seams_info
+
+
+def _write_geometry_and_renders(tmp: Path, inputs: FitInputs, mesh_path, grid, layout, cfg) -> list[dict]:
+    """mesh.obj, bake.npz and renders/ into the model folder; every held-out view scored (pooled and worst-view
+    PSNR), the first ``cfg.renders`` written as images."""
+    from texstream.capture.imageio import read_mask
+    from texstream.geometry.mesh_io import save_mesh
+
+    capture, mesh, bake = inputs.capture, inputs.mesh, inputs.bake
 
     def render(f):
-        image, coverage = render_model(mesh, grid, lay, f, cfg.device)
+        image, coverage = render_model(mesh, grid, layout, f, cfg.device)
         m = coverage.astype(bool)
         if capture.mask_path(f) is not None and capture.mask_path(f).exists():
             m &= read_mask(capture.mask_path(f), coverage.shape)
         return image, m
 
-    t_fitted = time.perf_counter()
-    with (atomic_output_dir(out_dir) as tmp, phase("fit", f"{cfg.fit.model}: held-out renders and the model folder"),
-          trace_plot(tmp, result.trace, title, plotter) as plot):  # drawn by the child while this one renders
-        save_mesh(tmp / "mesh.obj", mesh)
-        baked = Path(mesh_path) / "bake.npz"
-        if Path(mesh_path).is_dir() and baked.is_file():  # the bake the fit read (load_geometry): copied
-            shutil.copyfile(baked, tmp / "bake.npz")
-        else:
-            bake.save(tmp / "bake.npz")
-        # every held-out view is scored (pooled and worst-view PSNR); the first `renders` are written as images
-        show = held if held else frames[: max(cfg.renders, 0)]
-        evals = render_comparisons(tmp / "renders", show, load_photos(capture, show)[0] if show else [], held, render,
-                                   images=max(cfg.renders, 0))
-        seen = np.zeros(bake.height * bake.width, bool)
-        seen[problem.texels.grid_index] = result.samples > 0
-        if lay.n_lobes:
-            from texstream.capture.imageio import write_image
-
-            kept = np.zeros(bake.height * bake.width, np.float32)
-            kept[problem.texels.grid_index] = np.where(lobes_dropped, 0.5, (result.samples > 0).astype(np.float32))
-            if borrowed is not None:
-                # white: own lobe, grey: the material's lobe borrowed, dark grey: no lobe (material without one,
-                # or photos that contradict it), black: unseen or padding
-                prior_borrow, prior_none = borrowed[0]["borrow_mask"], borrowed[0]["no_lobe_mask"]
-                kept[problem.texels.grid_index] = np.where(result.samples > 0, np.where(
-                    prior_none, 0.25, np.where(prior_borrow, 0.5, 1.0)), 0.0).astype(np.float32)
-            # white: lobe kept, grey: lobe dropped (no photo saw its highlight), black: unseen or padding
-            write_image(tmp / "lobes.png", np.repeat(kept.reshape(bake.height, bake.width, 1), 3, axis=2), bits=8)
-        if evidence is not None:
-            from texstream.capture.imageio import write_image
-
-            unc = np.zeros((bake.height * bake.width, 3), np.float32)
-            unc[problem.texels.grid_index] = np.minimum(evidence.uncertainty, 1e6)
-            # relative std of rho_s, relative std of n, std of c_z; 1e6: not constrained at all
-            write_image(tmp / "uncertainty.exr", unc.reshape(bake.height, bake.width, 3), bits=32)
-            if borrowed is not None:
-                lab = np.full(bake.height * bake.width, -1, np.int64)
-                lab[problem.texels.grid_index] = borrowed[1]
-                palette = np.array([[0.9, 0.6, 0.1], [0.1, 0.6, 0.2], [0.8, 0.8, 0.8], [0.2, 0.3, 0.9],
-                                    [0.8, 0.1, 0.1], [0.6, 0.2, 0.8], [0.1, 0.8, 0.8], [0.5, 0.4, 0.2]], np.float32)
-                colours = np.where(lab[:, None] >= 0, palette[np.maximum(lab, 0) % len(palette)], 0.0)
-                write_image(tmp / "materials.png", colours.reshape(bake.height, bake.width, 3), bits=8)
-        last = result.trace[-1]
-        at_bounds, warnings = bound_report(result.params, lay, result.samples > 0)
-        warnings = numerics_warnings(cfg.fit.stream, len(frames), inputs.images, inputs.masks) + warnings
-        manifest = {"mesh": "mesh.obj", "bake": "bake.npz", "warnings": warnings, "at_bounds": at_bounds,
-                    "atlas": {"width": bake.width, "height": bake.height, "texels": int(problem.n),
-                              "unseen_texels": int((result.samples == 0).sum()), "seen_before_fit": seen_before,
-                              "unseen_filled_from_nearest": filled, "lobes_dropped": int(lobes_dropped.sum()),
-                              "texels_with_lobe": lobes_in_use(result.params, lay, result.samples > 0),
-                              "lobe_support": cfg.lobe_support},
-                    "photos": {"fitted": len(frames), "held_out": len(held), "skipped": skipped,
-                               "residency": problem.photos.residency,
-                               "residency_reason": problem.photos.residency_reason,
-                               "photos_per_window": problem.photos.window},
-                    "tiles": tiles_report,
-                    "traced_polish_iterations": polish_iterations,
-                    "final": {k: last[k] for k in ("iteration", "time_s", "objective", "psnr_db", "ape_percent")},
-                    "lobe_shape": lobe_shape_report(cfg.fit, lay, frames, problem.texels.position),
-                    "materials": _materials_manifest(materials_info, evidence, cfg.materials),
-                    "seams": seams_info, "setup_s": t_setup, "passes": result.passes, "device": cfg.device,
-                    "timings_s": {"inputs": t_inputs, "setup": t_setup - t_inputs, "fit": t_loop - t0 - t_setup,
-                                  "after_fit": t_fitted - t_loop, "renders": time.perf_counter() - t_fitted},
-                    "render_eval": evals, "heldout": pooled_psnr([e for e in evals if e["held_out"]]),
-                    "units": registry.get(lay.kind).units}
-        write_model_folder(tmp, grid, lay, seen.reshape(bake.height, bake.width), result.trace, title, manifest, cfg,
-                           plot=plot)
-    if ckpt is not None:
-        ckpt.remove()
-    problem.photos.wait_for_cache()  # a photo cache written in the background is complete for the next fit
-    return StageResult(Path(out_dir), {"psnr_db": last["psnr_db"], "iterations": last["iteration"],
-                                       "time_s": last["time_s"], "texels": problem.n, "photos": len(frames),
-                                       "resumed_from": None if resume is None else int(resume["iteration"]),
-                                       "skipped_photos": [p["file"] for p in skipped],
-                                       "render_eval": evals, "warnings": warnings,
-                                       "heldout": manifest["heldout"], "materials": manifest["materials"]})
+    save_mesh(tmp / "mesh.obj", mesh)
+    baked = Path(mesh_path) / "bake.npz"
+    if Path(mesh_path).is_dir() and baked.is_file():  # the bake the fit read (load_geometry): copied
+        shutil.copyfile(baked, tmp / "bake.npz")
+    else:
+        bake.save(tmp / "bake.npz")
+    show = inputs.held if inputs.held else inputs.frames[: max(cfg.renders, 0)]
+    return render_comparisons(tmp / "renders", show, load_photos(capture, show)[0] if show else [], inputs.held,
+                              render, images=max(cfg.renders, 0))
 
 
+def _write_lobe_maps(tmp: Path, bake, problem, result, lobes: Lobes) -> None:
+    """lobes.png (which texels kept, dropped or borrowed a lobe), uncertainty.exr and materials.png."""
+    from texstream.capture.imageio import write_image
 
-def fit(request) -> StageResult:
-    """A per-texel model's fit (registry.FitRequest): a child process draws the error-against-time plot while
-    the photos are read and fitted (it imports matplotlib meanwhile)."""
-    plotter = model_folder.start_plotter()  # through the module: tests replace it there
-    try:
-        return _fit_per_texel_model(request.capture_dir, request.mesh_path, request.out_dir, request.cfg,
-                                    request.progress, plotter)
-    finally:
-        model_folder.stop_plotter(plotter)
+    size, index = bake.height * bake.width, problem.texels.grid_index
+    if result.layout.n_lobes:
+        kept = np.zeros(size, np.float32)
+        # white: lobe kept, grey: lobe dropped (no photo saw its highlight), black: unseen or padding
+        kept[index] = np.where(lobes.dropped, 0.5, (result.samples > 0).astype(np.float32))
+        if lobes.borrowed is not None:
+            # white: own lobe, grey: the material's lobe borrowed, dark grey: no lobe (material without one,
+            # or photos that contradict it), black: unseen or padding
+            prior_borrow, prior_none = lobes.borrowed[0]["borrow_mask"], lobes.borrowed[0]["no_lobe_mask"]
+            kept[index] = np.where(result.samples > 0, np.where(
+                prior_none, 0.25, np.where(prior_borrow, 0.5, 1.0)), 0.0).astype(np.float32)
+        write_image(tmp / "lobes.png", np.repeat(kept.reshape(bake.height, bake.width, 1), 3, axis=2), bits=8)
+    if lobes.evidence is None:
+        return
+    unc = np.zeros((size, 3), np.float32)
+    # relative std of rho_s, relative std of n, std of c_z; 1e6: not constrained at all
+    unc[index] = np.minimum(lobes.evidence.uncertainty, 1e6)
+    write_image(tmp / "uncertainty.exr", unc.reshape(bake.height, bake.width, 3), bits=32)
+    if lobes.borrowed is not None:
+        lab = np.full(size, -1, np.int64)
+        lab[index] = lobes.borrowed[1]
+        colours = np.where(lab[:, None] >= 0, MATERIAL_PALETTE[np.maximum(lab, 0) % len(MATERIAL_PALETTE)], 0.0)
+        write_image(tmp / "materials.png", colours.reshape(bake.height, bake.width, 3), bits=8)
+
+
+def _manifest(inputs: FitInputs, problem, result, lobes: Lobes, cfg, evals: list[dict], run: dict) -> dict:
+    """model.json of a per-texel fit (``run``: seen_before, filled, skipped, tiles, seams, setup_s, timings_s)."""
+    lay, last, frames = result.layout, result.trace[-1], inputs.frames
+    at_bounds, warnings = bound_report(result.params, lay, result.samples > 0)
+    warnings = numerics_warnings(cfg.fit.stream, len(frames), inputs.images, inputs.masks) + warnings
+    polish_iterations = max(0, sum(r.get("stage") == "traced polish" for r in result.trace) - 1)  # less its start row
+    return {"mesh": "mesh.obj", "bake": "bake.npz", "warnings": warnings, "at_bounds": at_bounds,
+            "atlas": {"width": inputs.bake.width, "height": inputs.bake.height, "texels": int(problem.n),
+                      "unseen_texels": int((result.samples == 0).sum()), "seen_before_fit": run["seen_before"],
+                      "unseen_filled_from_nearest": run["filled"], "lobes_dropped": int(lobes.dropped.sum()),
+                      "texels_with_lobe": lobes_in_use(result.params, lay, result.samples > 0),
+                      "lobe_support": cfg.lobe_support},
+            "photos": {"fitted": len(frames), "held_out": len(inputs.held), "skipped": run["skipped"],
+                       "residency": problem.photos.residency, "residency_reason": problem.photos.residency_reason,
+                       "photos_per_window": problem.photos.window},
+            "tiles": run["tiles"],
+            "traced_polish_iterations": polish_iterations,
+            "final": {k: last[k] for k in ("iteration", "time_s", "objective", "psnr_db", "ape_percent")},
+            "lobe_shape": lobe_shape_report(cfg.fit, lay, frames, problem.texels.position),
+            "materials": _materials_manifest(lobes.info, lobes.evidence, cfg.materials),
+            "seams": run["seams"], "setup_s": run["setup_s"], "passes": result.passes, "device": cfg.device,
+            "timings_s": run["timings_s"],
+            "render_eval": evals, "heldout": pooled_psnr([e for e in evals if e["held_out"]]),
+            "units": registry.get(lay.kind).units}
