@@ -4,7 +4,9 @@
 from __future__ import annotations
 
 from texstream.capture.synth import SynthConfig, render_scene
-from texstream.fit.stream.problem import PhotoFrame, PhotoSet, StreamConfig
+from texstream.fit.stream.config import StreamConfig
+from texstream.fit.stream.photo_set import PhotoSet
+from texstream.fit.stream.problem import PhotoFrame
 from texstream.geometry.bake import bake_texels
 
 

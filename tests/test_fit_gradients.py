@@ -8,7 +8,10 @@ import warp as wp
 
 from texstream.capture.conventions import look_at_w2c
 from texstream.fit.kernels.layout import ModelLayout
-from texstream.fit.stream.problem import PhotoFrame, PhotoSet, StreamConfig, StreamProblem, TexelSet
+from texstream.fit.stream.config import StreamConfig
+from texstream.fit.stream.photo_set import PhotoSet
+from texstream.fit.stream.problem import PhotoFrame, StreamProblem
+from texstream.fit.stream.texels import TexelSet
 
 
 SAMPLINGS = ["filtered", "point", "bilinear"]

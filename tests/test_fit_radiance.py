@@ -23,7 +23,9 @@ from texstream.capture.synth import SynthConfig, render_scene
 from texstream.core.errors import InputError
 from texstream.fit.optim.fitter import FitConfig, run_fit
 from texstream.fit.kernels.layout import ModelLayout
-from texstream.fit.stream.problem import PhotoFrame, PhotoSet, StreamProblem, TexelSet, surface_derivatives
+from texstream.fit.stream.photo_set import PhotoSet
+from texstream.fit.stream.problem import PhotoFrame, StreamProblem
+from texstream.fit.stream.texels import TexelSet, surface_derivatives
 from texstream.fit.stages.render import Renderer
 
 from conftest import SCENE_DEVICE

@@ -13,7 +13,7 @@ from texstream.core.errors import ConfigError
 from texstream.fit.optim.fitter import FitConfig, initial_guess, run_fit
 from texstream.fit.optim.linesearch import LineSearchConfig
 from texstream.fit.stream.penalties import PenaltyConfig
-from texstream.fit.stream.problem import StreamConfig
+from texstream.fit.stream.config import StreamConfig
 from texstream.fit.stages.stage import build_problem
 from texstream.fit.multi.tiles import plan_tiles, run_tiled_fit, split_texels, texel_range
 

@@ -12,7 +12,7 @@ import pytest
 from texstream.core.errors import ConfigError
 from texstream.fit.optim.fitter import FitConfig, run_fit
 from texstream.fit.stream.penalties import PenaltyConfig
-from texstream.fit.stream.problem import StreamConfig
+from texstream.fit.stream.config import StreamConfig
 from texstream.fit.stages.stage import build_problem, photo_files
 from texstream.fit.multi.tiles import run_tiled_fit
 

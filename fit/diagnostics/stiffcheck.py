@@ -231,7 +231,7 @@ def _fit_record(res, t: float, prob) -> dict:
 
 def _run_fit_case(case: StiffCase, size: str, device: str, iterations: int) -> dict:
     from texstream.fit.optim.fitter import FitConfig, initial_guess, run_fit
-    from texstream.fit.stream.problem import StreamConfig
+    from texstream.fit.stream.config import StreamConfig
     from texstream.fit.stages.stage import build_problem, params_to_grid, render_model
 
     sc = _render(case, size, device)
@@ -308,7 +308,7 @@ def _run_lfm_case(case: StiffCase, size: str, device: str, iterations: int) -> d
     from texstream.fit.models.lfm import LFMConfig, LFMProblem, PhotoSamples, fit_lfm
     from texstream.fit.models.lfm_baselines import fit_pca
     from texstream.fit.stages.lfm_stage import lfm_geometry
-    from texstream.fit.stream.problem import StreamConfig
+    from texstream.fit.stream.config import StreamConfig
     from texstream.fit.stages.stage import build_problem
 
     sc = _render(case, size, device)
@@ -343,7 +343,7 @@ def _run_accumulation_case(case: StiffCase, size: str, device: str, iterations: 
     redrawn to 10^6 photos per texel and summed as a pass sums them."""
     from texstream.fit.optim.fitter import FitConfig
     from texstream.fit.kernels.summation import streamed_sums
-    from texstream.fit.stream.problem import FP32_SAFE_PHOTOS, StreamConfig, resolve_accumulate
+    from texstream.fit.stream.config import FP32_SAFE_PHOTOS, StreamConfig, resolve_accumulate
     from texstream.fit.stages.stage import fit_synthetic, render_model
 
     sc = _render(case, size, device)
@@ -492,7 +492,7 @@ def numerics_warnings(stream, photos: int, images=None, masks=None) -> list[str]
     - float16 photos (``image_precision`` fp16) with foreground values above float16's largest (they
       become Inf and are dropped as clipped) or more than 1% of them subnormal in float16.
     """
-    from texstream.fit.stream.problem import FP32_SAFE_PHOTOS
+    from texstream.fit.stream.config import FP32_SAFE_PHOTOS
 
     out = []
     if stream.accumulate == "fp32" and not stream.kahan and photos > FP32_SAFE_PHOTOS:

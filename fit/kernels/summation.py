@@ -1,5 +1,5 @@
 """Streamed sums as the fit's passes accumulate them, for the summation study (benchmarks/summation.py)
-and the automatic accumulation choice (``StreamConfig.accumulate`` "auto", fit/problem.py).
+and the automatic accumulation choice (``StreamConfig.accumulate`` "auto", fit/stream/config.py).
 
 A pass's thread adds one texel's terms photo after photo in registers (fit/kernels/stream.py
 ``accumulate_kernel``): a serial sum in the accumulate precision, optionally Kahan-compensated with the

@@ -178,7 +178,7 @@ class TableSamples:
 
 
 class PhotoSamples:
-    """The photos of a :class:`texstream.fit.stream.problem.PhotoSet` streamed through the distribution step
+    """The photos of a :class:`texstream.fit.stream.photo_set.PhotoSet` streamed through the distribution step
     (fit/kernels/stream.py ``observe``, light free, bilinear photo sampling at the texel centre)."""
 
     def __init__(self, problem, frames):

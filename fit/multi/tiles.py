@@ -33,7 +33,9 @@ from texstream.core.errors import ConfigError
 from texstream.fit.optim.fitter import (FitConfig, FitResult, FitRun, converged, start_arrays, robust_scale_from_stats, stop_test_due,
                      trace_rows)
 from texstream.fit.kernels.tiles import gather_rows_kernel, scatter_rows_kernel, tile_visibility_kernel, tile_visibility_radiance_kernel
-from texstream.fit.stream.problem import MAX_LAUNCH_THREADS, StreamProblem, TexelSet, exposure_mean_square
+from texstream.fit.stream.photo_set import MAX_LAUNCH_THREADS
+from texstream.fit.stream.problem import StreamProblem, exposure_mean_square
+from texstream.fit.stream.texels import TexelSet
 
 
 @dataclasses.dataclass

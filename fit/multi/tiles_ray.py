@@ -37,7 +37,9 @@ class TileActor:
     def __init__(self, spec: dict):
         import warp as wp
 
-        from texstream.fit.stream.problem import PhotoSet, StreamProblem
+        from texstream.fit.stream.photo_set import PhotoSet
+
+        from texstream.fit.stream.problem import StreamProblem
 
         wp.config.quiet = True
         wp.init()

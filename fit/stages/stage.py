@@ -181,7 +181,11 @@ def build_problem(mesh, bake, frames, images, masks, cfg: FitConfig, device: str
     import concurrent.futures
     import contextvars
 
-    from texstream.fit.stream.problem import PhotoFrame, PhotoSet, StreamProblem, TexelSet, surface_derivatives, texel_coordinate_gradients
+    from texstream.fit.stream.photo_set import PhotoSet
+
+    from texstream.fit.stream.problem import PhotoFrame, StreamProblem
+
+    from texstream.fit.stream.texels import TexelSet, surface_derivatives, texel_coordinate_gradients
     from texstream.fit.multi.tiles import parse_devices, split_photos
 
     photo_frames = [PhotoFrame.from_capture_frame(f) for f in frames]

@@ -1,7 +1,7 @@
 """Getting photos to the passes: per-photo constants in one array, crops to the object, batched
 depth and shadow maps, chunked uploads, and photos decoded from disk in windows.
 
-:class:`texstream.fit.stream.problem.PhotoSet` holds the photos where the passes read them; this module
+:class:`texstream.fit.stream.photo_set.PhotoSet` holds the photos where the passes read them; this module
 holds what it builds them with, so that its set-up makes no host round trip per photo:
 
 - :func:`image_infos` fills every photo's :class:`~texstream.fit.kernels.stream.ImageInfo`
@@ -62,7 +62,7 @@ two-GPU host (docs/scale.md)"""
 
 LIGHT_KINDS = {"point": 0, "directional": 1, "none": 2}  # fit/kernels/shading.py LIGHT_*
 
-# shadow cameras are aimed at the bounding sphere from the light (fit/problem.py PhotoSet)
+# shadow cameras are aimed at the bounding sphere from the light (fit/stream/photo_set.py PhotoSet)
 _SHADOW_INSIDE = 1.05    # a point light closer than this many radii from the centre gets no shadow map
 _SHADOW_FOV_PAD = 1.05   # half-angle padding of a point light's frustum around the sphere
 _SHADOW_ORTHO_SPAN = 2.2  # an orthographic (directional) map spans this many radii
