@@ -6,7 +6,7 @@ photos in one pipeline, each chunk copied to its device while the next is croppe
 makes its own photos' maps), and streams
 it over every texel. A pass is then one launch per device into that device's per-group partial
 sums; the first device copies the others' partials after its own and adds all of them in the fixed
-order of :func:`~texstream.fit.kernels.stream.reduce_partials_kernel`, then steps every texel
+order of :func:`~texstream.fit.kernels.accumulate.reduce_partials_kernel`, then steps every texel
 itself (:class:`~texstream.fit.stream.problem.StreamProblem` ``peers``). Between devices only the
 parameters (to the others, before a pass) and the partial sums (back) travel, device to device (peer
 copies over NVLink where there is one). A copy runs on its source device's stream, and that device

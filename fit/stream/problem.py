@@ -3,7 +3,7 @@
 
 A :class:`StreamProblem` owns every device buffer the passes need, allocated once. Each pass
 (:meth:`StreamProblem.evaluate` or :meth:`StreamProblem.evaluate_lm`) streams all photos through
-:mod:`texstream.fit.kernels.stream` and leaves per-texel objective, gradient and curvature on the
+:mod:`texstream.fit.kernels.accumulate` and leaves per-texel objective, gradient and curvature on the
 device. Imports only numpy and warp (plus numpy-only spine modules).
 """
 
@@ -17,6 +17,7 @@ import warp as wp
 
 from texstream.core.errors import ConfigError, InputError
 
+from texstream.fit.kernels import accumulate
 from texstream.fit.kernels import optim_kernels as K
 from texstream.fit.kernels import stream
 from texstream.fit.kernels.lafortune_grad import param_types
@@ -113,9 +114,9 @@ class StreamProblem:
         unlit = sum(k == "none" for k in kinds)
         if unlit and not layout.is_radiance:
             raise no_light_error(unlit, len(kinds), layout.kind)
-        # the light-free passes: 1 the radiance model, 2 the view-dependent one (stream.layout_funcs)
+        # the light-free passes: 1 the radiance model, 2 the view-dependent one (accumulate.layout_funcs)
         self.radiance = 2 if layout.view_terms else int(layout.is_radiance)
-        self.robust = stream.ROBUST_NONE
+        self.robust = accumulate.ROBUST_NONE
         self.robust_scale = 0.0
         self.view_prior = None  # the view terms' ridge prior (set_view_prior): (centre, weights), one row each
         self.material_centre = self.material_weights = None  # the shared materials' prior (set_material_prior)
@@ -181,16 +182,16 @@ class StreamProblem:
     def set_robust_loss(self, kind: str, scale: float = 1.0) -> None:
         """The data term's loss per channel residual r: "none" (r^2 / 2, least squares), "huber" or
         "cauchy" with scale ``scale`` > 0 in residual units (photo values in radiance space), applied
-        in the passes as iteratively reweighted least squares (fit/kernels/stream.py
+        in the passes as iteratively reweighted least squares (fit/kernels/accumulate.py
         ``accumulate_kernel``; each loss compiles its own passes). The fit sets it from
         ``FitConfig.robust_loss``; a new problem starts with "none"."""
-        if kind not in stream.ROBUST_LOSSES:
-            raise ConfigError(f"robust loss {kind!r} unknown", fix=f"use one of {sorted(stream.ROBUST_LOSSES)}")
-        code = stream.ROBUST_LOSSES[kind]
-        if code != stream.ROBUST_NONE and not (math.isfinite(scale) and scale > 0):
+        if kind not in accumulate.ROBUST_LOSSES:
+            raise ConfigError(f"robust loss {kind!r} unknown", fix=f"use one of {sorted(accumulate.ROBUST_LOSSES)}")
+        code = accumulate.ROBUST_LOSSES[kind]
+        if code != accumulate.ROBUST_NONE and not (math.isfinite(scale) and scale > 0):
             raise ConfigError(f"robust loss scale {scale} invalid", fix="use a positive scale in residual units")
         self.robust = code
-        self.robust_scale = float(scale) if code != stream.ROBUST_NONE else 0.0
+        self.robust_scale = float(scale) if code != accumulate.ROBUST_NONE else 0.0
         self.opt.robust_scale = self.robust_scale
         for peer in self.peers:
             peer.set_robust_loss(kind, scale)
@@ -317,7 +318,7 @@ class StreamProblem:
         precision) until the next call, or move the held values ``relaxation`` of the way there
         (``FitConfig.lookup_relaxation``); on the device, no host round trip. No-op when off."""
         if self.lookup:
-            wp.launch(stream.hold_lookup_params_kernel, dim=(self.n, self.layout.n_params), device=self.device,
+            wp.launch(accumulate.hold_lookup_params_kernel, dim=(self.n, self.layout.n_params), device=self.device,
                       inputs=[params, float(relaxation)], outputs=[self.tex.lookup_params])
             # a buffer of its own on the peer: the passes' "params" buffer is rewritten every pass
             for peer, mirrored in zip(self.peers, self._to_peers(lookup_params=params)):
@@ -373,7 +374,7 @@ class StreamProblem:
         """
         lay = self.layout
         # arguments normalised so one pass kind maps to one cached (compiled) kernel
-        kernel = stream.accumulate_kernel(lay.n_lobes, int(lay.anisotropic), bool(self.cfg.kahan), diag is not None,
+        kernel = accumulate.accumulate_kernel(lay.n_lobes, int(lay.anisotropic), bool(self.cfg.kahan), diag is not None,
                                           direction is not None, bool(full_hessian and direction is not None),
                                           self.max_registers, self.lookup, self.traced, self.radiance, self.robust)
         if direction is not None and direction.dtype != params.dtype:
@@ -394,11 +395,11 @@ class StreamProblem:
         partials = ["pf", "pg", "ph", "pst"] + (["pdiag"] if diag is not None else [])
         first = True
         for rows in self._launch_passes(launch, partials, params=params, direction=direction, active=active):
-            wp.launch(stream.reduce_partials_kernel, dim=self.n, device=self.device,
+            wp.launch(accumulate.reduce_partials_kernel, dim=self.n, device=self.device,
                       inputs=[self.pf, self.pg, self.ph, self.pst, rows, 0 if first else 1],
                       outputs=[f, g, h_out, stats])
             if diag is not None:
-                wp.launch(stream.reduce_vec_partials_kernel, dim=self.n, device=self.device,
+                wp.launch(accumulate.reduce_vec_partials_kernel, dim=self.n, device=self.device,
                           inputs=[self.pdiag, rows, 0 if first else 1], outputs=[diag])
             first = False
         act = self.all_active if active is None else active
@@ -504,7 +505,7 @@ class StreamProblem:
                     active: wp.array | None = None) -> None:
         """One streaming pass accumulating f, J^T r and J^T J per texel (Gauss-Newton / LM)."""
         lay = self.layout
-        kernel = stream.accumulate_lm_kernel(lay.n_lobes, int(lay.anisotropic), self.max_registers, self.lookup,
+        kernel = accumulate.accumulate_lm_kernel(lay.n_lobes, int(lay.anisotropic), self.max_registers, self.lookup,
                                              self.traced, self.radiance, self.robust)
 
         def launch(pr: StreamProblem, inputs: dict, window) -> None:
@@ -519,7 +520,7 @@ class StreamProblem:
 
         first = True
         for rows in self._launch_passes(launch, ["pf", "pg", "pm", "pst"], params=params, active=active):
-            wp.launch(stream.reduce_partials_kernel, dim=self.n, device=self.device,
+            wp.launch(accumulate.reduce_partials_kernel, dim=self.n, device=self.device,
                       inputs=[self.pf, self.pg, self.pm, self.pst, rows, 0 if first else 1],
                       outputs=[f, g, jtj, stats])
             first = False
