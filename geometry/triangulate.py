@@ -143,7 +143,7 @@ def triangulate_capture(capture, config: TriangulateConfig | None = None,
     import pycolmap
 
     from texstream.calib.colmap_io import intrinsics_to_colmap
-    from texstream.calib.register import colmap_quiet, quiet_colmap_log
+    from texstream.calib.colmap_log import colmap_quiet, quiet_colmap_log
 
     quiet_colmap_log()
 
