@@ -15,7 +15,8 @@ from texstream.fit.optim.linesearch import LineSearchConfig
 from texstream.fit.stream.penalties import PenaltyConfig
 from texstream.fit.stream.config import StreamConfig
 from texstream.fit.stages.stage import build_problem
-from texstream.fit.multi.tiles import plan_tiles, run_tiled_fit, split_texels, texel_range
+from texstream.fit.multi.tile_plan import split_texels, texel_range
+from texstream.fit.multi.tiles import plan_tiles, run_tiled_fit
 
 from conftest import DEVICES
 
