@@ -53,7 +53,7 @@ def problem(capture, cfg):
 @pytest.mark.parametrize("smooth", [0.0, 0.05])
 def test_ray_tiles_equal_the_one_process_fit(capture, local_cluster, smooth, monkeypatch):
     """With LM's smoothness the actors' halos go through the object store after every iteration."""
-    import texstream.fit.multi.tiles as tiles
+    import texstream.fit.multi.tile_plan as tiles
 
     monkeypatch.setattr(tiles, "ALL_PHOTOS_FRACTION", 2.0)  # each actor reads only the photos that see its tile
     # one photo group and a fixed iteration count: the conditions of the exact comparison (test_fit_tiles.py)
