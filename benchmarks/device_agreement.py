@@ -29,7 +29,7 @@ def run(device: str, out: Path, cases: list[str], photos_from: Path | None = Non
     from texstream.capture.synthetic.synth import SynthConfig, render_scene
     from texstream.fit.optim.fitter import FitConfig, run_fit
     from texstream.fit.stream.penalties import PenaltyConfig
-    from texstream.fit.stream.problem import StreamConfig
+    from texstream.fit.stream.config import StreamConfig
     from texstream.fit.stages.stage import build_problem
 
     sc = render_scene("flat_sample", SynthConfig(scale=0.3, photos=24, image_size=48, progress=False, device=device))

@@ -62,7 +62,7 @@ def main() -> None:
     from texstream.fit.optim.fitter import FitConfig
     from texstream.fit.optim.base import FitState
     from texstream.fit.stream.penalties import PenaltyConfig
-    from texstream.fit.stream.problem import StreamConfig
+    from texstream.fit.stream.config import StreamConfig
     from texstream.fit.stages.stage import fit_synthetic, lobe_shape_report
 
     base = dict(scale=a.scale, photos=a.photos, image_size=a.image_size, progress=False, device=a.device)

@@ -138,7 +138,7 @@ def main() -> None:
     wp.config.log_level = wp.LOG_WARNING
     from texstream.capture.synthetic.synth import SynthConfig, render_scene
     from texstream.fit.optim.fitter import FitConfig, run_fit
-    from texstream.fit.stream.problem import StreamConfig
+    from texstream.fit.stream.config import StreamConfig
     from texstream.fit.stages.stage import build_problem
 
     out = Path(a.out)

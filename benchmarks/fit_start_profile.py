@@ -16,7 +16,7 @@ import warp as wp
 
 from photo_split_scene import OrnamentAt4x
 from texstream.fit.optim.fitter import FitConfig, FitRun, fit_start
-from texstream.fit.stream.problem import StreamConfig
+from texstream.fit.stream.config import StreamConfig
 from texstream.fit.stages.stage import build_problem
 
 wp.config.quiet = True

@@ -1,5 +1,5 @@
 """How fast the host can move photos into pinned buffers, by method and thread count: the bound on the photos'
-upload (fit/problem.py upload_photo_sets). Photos as the renderer gives them (one float32 (H, W, 3) array and
+upload (fit/stream/photo_set.py upload_photo_sets). Photos as the renderer gives them (one float32 (H, W, 3) array and
 one bool mask per photo), cropped to a fixed box:
 
 - ``crop``: the upload's own crop (decode_pool.place_photo: the box's pixels, zero padding, the mask);

@@ -60,9 +60,9 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=2, help="timed repeats of each run (the fastest is reported)")
     ap.add_argument("--splits", default="tiles,photos", help="how the devices share the fit: tiles, photos or both")
     ap.add_argument("--decode-threads", type=int, default=0, help="StreamConfig.decode_threads (0: the default)")
-    ap.add_argument("--upload-slots", type=int, default=0, help="fit.problem.UPLOAD_SLOTS (0: the default)")
+    ap.add_argument("--upload-slots", type=int, default=0, help="fit.stream.photo_set.UPLOAD_SLOTS (0: the default)")
     ap.add_argument("--upload-chunk-mib", type=float, default=0,
-                    help="fit.problem.ARRAY_UPLOAD_CHUNK_BYTES in MiB (0: the default)")
+                    help="fit.stream.photo_set.ARRAY_UPLOAD_CHUNK_BYTES in MiB (0: the default)")
     ap.add_argument("--out", required=True)
     a = ap.parse_args()
 
@@ -74,12 +74,12 @@ def main() -> None:
     from texstream.capture.synthetic.synth import SynthConfig, render_scene
     from texstream.fit.optim.fitter import FitConfig, run_fit
     from texstream.fit.stream.penalties import PenaltyConfig
-    from texstream.fit.stream.problem import StreamConfig
+    from texstream.fit.stream.config import StreamConfig
     from texstream.fit.stages.stage import build_problem
     from texstream.fit.multi.tiles import parse_devices, run_tiled_fit
     from texstream.geometry.bake import bake_texels
 
-    import texstream.fit.stream.problem as fit_problem
+    import texstream.fit.stream.photo_set as fit_problem
 
     if a.upload_slots:
         fit_problem.UPLOAD_SLOTS = a.upload_slots

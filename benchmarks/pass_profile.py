@@ -125,7 +125,7 @@ def main() -> None:
 
     from texstream.capture.synthetic.synth import SynthConfig, render_scene
     from texstream.fit.optim.fitter import FitConfig
-    from texstream.fit.stream.problem import StreamConfig
+    from texstream.fit.stream.config import StreamConfig
     from texstream.fit.stages.stage import build_problem
     from texstream.core.outputs import write_json_atomic
 

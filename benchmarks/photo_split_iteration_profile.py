@@ -16,10 +16,10 @@ import time
 
 import warp as wp
 
-import texstream.fit.stream.problem as P
+import texstream.fit.stream.photo_set as P
 from photo_split_scene import OrnamentAt4x
 from texstream.fit.optim.fitter import FitConfig, FitRun
-from texstream.fit.stream.problem import StreamConfig
+from texstream.fit.stream.config import StreamConfig
 from texstream.fit.stages.stage import build_problem
 
 wp.config.quiet = True

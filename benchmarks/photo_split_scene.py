@@ -4,8 +4,9 @@
 from __future__ import annotations
 
 from texstream.capture.synthetic.synth import SynthConfig, render_scene
-from texstream.fit.stream.problem import PhotoSet, StreamConfig
-from texstream.render.camera import PhotoFrame
+from texstream.fit.stream.config import StreamConfig
+from texstream.fit.stream.photo_set import PhotoSet
+from texstream.fit.stream.problem import PhotoFrame
 from texstream.geometry.bake import bake_texels
 
 

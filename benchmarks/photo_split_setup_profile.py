@@ -14,11 +14,12 @@ import time
 
 import warp as wp
 
-import texstream.fit.stream.problem as P
+import texstream.fit.stream.photo_set as P
+from texstream.fit.kernels import accumulate
 from photo_split_scene import OrnamentAt4x
 from texstream.fit.optim.fitter import FitConfig, FitRun
 from texstream.fit.stream.photo_stream import PhotoLoader
-from texstream.fit.stream.problem import StreamConfig
+from texstream.fit.stream.config import StreamConfig
 from texstream.fit.stages.stage import build_problem
 
 wp.config.quiet = True
@@ -155,7 +156,7 @@ for name, prob in (("part0", pr), ("part1", pr.peers[0])):
         "active": None,
     }
 
-    kernel = P.stream.accumulate_lm_kernel(
+    kernel = accumulate.accumulate_lm_kernel(
         pr.layout.n_lobes,
         int(pr.layout.anisotropic),
         pr.max_registers,

@@ -56,11 +56,11 @@ def child(a) -> dict:
     wp.config.quiet = True
     wp.init()
     if a.recompute_maps:
-        import texstream.fit.stream.problem as problem
+        import texstream.fit.stream.photo_set as problem
 
         problem.keep_maps_on_device = lambda *args, **kw: False
     from texstream.fit.optim.fitter import FitConfig, run_fit
-    from texstream.fit.stream.problem import StreamConfig
+    from texstream.fit.stream.config import StreamConfig
     from texstream.fit.stages.stage import build_problem
 
     def stream_config(**kw):

@@ -104,7 +104,7 @@ def main() -> None:
 
     wp.config.quiet = True
     from texstream.core.outputs import write_atomic_with, write_json_atomic
-    from texstream.fit.stream.problem import FP32_SAFE_PHOTOS, FP32_SAFE_TOLERANCE
+    from texstream.fit.stream.config import FP32_SAFE_PHOTOS, FP32_SAFE_TOLERANCE
 
     sizes = [n for n in SIZES if n <= a.max_terms]
     rows = measure(sizes, a.trials, a.device)

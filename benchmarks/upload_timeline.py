@@ -1,4 +1,4 @@
-"""Where the photos' upload spends its time (fit/problem.py upload_photo_sets, one GPU): the pinned buffers'
+"""Where the photos' upload spends its time (fit/stream/photo_set.py upload_photo_sets, one GPU): the pinned buffers'
 allocation, the main thread waiting for each chunk's crops and for each buffer's last copy, and the final
 synchronisation, per pipeline shape (buffers, chunk size, crop threads, the interpreter's switch interval).
 The full ornament's 1,760 photos of 430x430 (rendered in memory), the fastest of 3 set-ups per shape; writes
@@ -16,7 +16,7 @@ import time
 
 import warp as wp
 
-import texstream.fit.stream.problem as P
+import texstream.fit.stream.photo_set as P
 from gitinfo import commit
 from photo_split_scene import OrnamentAt4x
 

@@ -183,6 +183,136 @@ def _auto_masks(entries: list, cfg: IngestConfig, tmp: Path) -> dict:
     return summary
 
 
+def _read_photos(files: list[Path], dropped: list[dict]) -> list[dict]:
+    """Each photo read once (sRGB codes as stored), with its EXIF, bit depth and upright size; duplicates (same
+    bytes) and unreadable files go to ``dropped``."""
+    import OpenImageIO as oiio
+
+    from texstream.capture.imageio import read_image
+
+    infos: list[dict] = []
+    hashes: dict[str, str] = {}
+    for f in bar(files, "ingest: read", unit="photo"):
+        digest = hashlib.sha1(f.read_bytes()).hexdigest()
+        if digest in hashes:
+            dropped.append({"image": f.name, "reason": f"duplicate of {hashes[digest]}"})
+            continue
+        try:
+            img = read_image(f, channels=3, linear=False)
+        except TexstreamError as e:
+            dropped.append({"image": f.name, "reason": f"unreadable ({e.message})"})
+            continue
+        hashes[digest] = f.name
+        inp = oiio.ImageInput.open(str(f))
+        spec = inp.spec()
+        fmt = spec.format
+        inp.close()
+        eight_bit = fmt == oiio.UINT8
+        sixteen_bit = fmt == oiio.UINT16
+        exif = _exif(f)
+        infos.append({"path": f, "exif": exif, "eight_bit": eight_bit, "sixteen_bit": sixteen_bit, "img": img,
+                      "size": (img.shape[1], img.shape[0]) if int(exif.get("orientation", 1) or 1) < 5
+                      else (img.shape[0], img.shape[1])})
+    return infos
+
+
+def _write_view(members: list[dict], lead: dict, name: str, orient: int, tmp: Path,
+                cfg: IngestConfig) -> tuple[Path, float | None, np.ndarray]:
+    """A view's image into ``tmp/images``: a bracket merged to HDR (radiance per second, scaled to the middle
+    exposure's level), else the photo copied (upright, re-encoded only when turned or of another format).
+    Returns (its path in the capture, its saturation in linear units or None, the stored photo upright as
+    automatic masks see it: 8-bit sRGB codes, else linear)."""
+    from texstream.capture.imageio import srgb_to_linear, write_image
+
+    sat = None
+    if len(members) > 1:
+        if any(m["exif"].get("exposure_time") is None for m in members):
+            raise InputError("bracket without exposure times", lead["path"], "set --bracket-size 1")
+        t = [float(m["exif"]["exposure_time"]) for m in members]
+        if all(m["eight_bit"] for m in members):
+            codes = [np.clip(np.round(m["img"] * 255), 0, 255).astype(np.uint8) for m in members]
+            resp = calibrate_response(codes, t, cfg.hdr_method)
+            hdr = merge_brackets_8bit(codes, t, resp, cfg.hdr_method)
+        else:
+            lin = [srgb_to_linear(m["img"]) if m["eight_bit"] else m["img"] for m in members]
+            hdr = merge_brackets_linear(lin, t)
+        # Radiance per second: scale so the middle exposure's level is kept (pixel ~ original).
+        t_mid = float(lead["exif"]["exposure_time"])
+        img = apply_orientation(hdr * t_mid, orient)
+        rel = Path("images") / (name + ".exr")
+        write_image(tmp / rel, img, bits=32)
+    else:
+        img_code = lead["img"]
+        if orient != 1 or lead["path"].suffix.lower() not in (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr"):
+            rot = apply_orientation(img_code, orient)
+            if lead["eight_bit"]:
+                rel = Path("images") / (name + ".png")
+                write_image(tmp / rel, np.clip(np.round(rot * 255), 0, 255).astype(np.uint8), bits=8)
+            else:
+                rel = Path("images") / (name + ".exr")
+                write_image(tmp / rel, rot, bits=32)
+        else:
+            rel = Path("images") / lead["path"].name
+            shutil.copy2(lead["path"], tmp / rel)
+        # Saturation in linear units of the stored image: the top code (clipped sensor).
+        if lead["eight_bit"]:
+            sat = float(srgb_to_linear(np.float32(254.5 / 255)))
+        elif lead["sixteen_bit"]:
+            sat = 65534.5 / 65535
+    return rel, sat, img if len(members) > 1 else apply_orientation(lead["img"], orient)
+
+
+def _write_mask(mask_dir: Path, lead: dict, name: str, orient: int, size: tuple[int, int], tmp: Path,
+                cfg: IngestConfig, dropped: list[dict]) -> Path | None:
+    """A view's mask into ``tmp/masks`` (its path in the capture, or None): the mask file beside the photos
+    (oriented like the photo; one that does not fit goes to ``dropped``), else the photo's alpha
+    (``alpha_masks``)."""
+    from texstream.capture.imageio import read_alpha, read_mask, write_image
+
+    w, h = size
+    mask_rel = None
+    mp = _find_mask(mask_dir, lead["path"]) if mask_dir.is_dir() else None
+    if mp is not None:
+        try:
+            m = read_mask(mp)
+            m = m.reshape(m.shape[0], m.shape[1])
+            if m.shape != (h, w):
+                # A mask drawn on the file's stored pixels: orient it like the photo.
+                m = apply_orientation(m[..., None], orient)[..., 0]
+            if m.shape != (h, w):
+                raise InputError(f"mask is {m.shape[1]}x{m.shape[0]}, photo is {w}x{h}", mp, "resize the mask")
+            mask_rel = Path("masks") / (name + ".png")
+            (tmp / "masks").mkdir(exist_ok=True)
+            write_image(tmp / mask_rel, (m > 0).astype(np.uint8) * 255, bits=8)
+        except TexstreamError as e:
+            dropped.append({"image": mp.name, "reason": f"mask not used: {e.message}"})
+    elif cfg.alpha_masks:
+        a = read_alpha(lead["path"])
+        if a is not None:
+            a = apply_orientation(a.reshape(a.shape[0], a.shape[1], 1), orient)[..., 0]
+            mask_rel = Path("masks") / (name + ".png")
+            (tmp / "masks").mkdir(exist_ok=True)
+            write_image(tmp / mask_rel, (a > 0.5).astype(np.uint8) * 255, bits=8)
+    return mask_rel
+
+
+def _view_intrinsics(lead: dict, w: int, h: int, cams, cfg: IngestConfig, sources: set) -> Intrinsics:
+    """A view's intrinsics: the calibrated ones of its size (``cams``), else from the EXIF focal length, else
+    COLMAP's guess; where they came from is added to ``sources``."""
+    if cams is not None:
+        from .intrinsics import intrinsics_for_size
+
+        intr = intrinsics_for_size(cams, w, h, cfg.intrinsics)
+        sources.add("calibrated")
+    else:
+        f_px = _focal_px(lead["exif"], w, h)
+        sources.add("exif" if f_px else "guess")
+        # COLMAP's default guess when EXIF has no focal length: 1.2 x the longest side.
+        f_px = f_px or 1.2 * max(w, h)
+        intr = Intrinsics(width=w, height=h, fx=f_px, fy=f_px, cx=w / 2, cy=h / 2)
+    return intr
+
+
 def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConfig | None = None) -> StageResult:
     """Read a raw photo folder into a capture folder (see the module doc).
 
@@ -199,8 +329,6 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
         InputError: missing/empty folder, bad intrinsics or lights file. StageError: no usable photo
         (partial report at ``OUT.failed_report.json``).
     """
-    from texstream.capture.imageio import read_alpha, read_image, read_mask, srgb_to_linear, write_image
-
     cfg = config or IngestConfig()
     photos, out = Path(photos), Path(out)
     if out.exists() and not cfg.overwrite:
@@ -208,31 +336,7 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
     files = list_images(photos)
     mask_dir = Path(cfg.masks) if cfg.masks else photos / "masks"
     dropped: list[dict] = []
-    infos: list[dict] = []
-    hashes: dict[str, str] = {}
-    for f in bar(files, "ingest: read", unit="photo"):
-        digest = hashlib.sha1(f.read_bytes()).hexdigest()
-        if digest in hashes:
-            dropped.append({"image": f.name, "reason": f"duplicate of {hashes[digest]}"})
-            continue
-        try:
-            img = read_image(f, channels=3, linear=False)
-        except TexstreamError as e:
-            dropped.append({"image": f.name, "reason": f"unreadable ({e.message})"})
-            continue
-        hashes[digest] = f.name
-        import OpenImageIO as oiio
-
-        inp = oiio.ImageInput.open(str(f))
-        spec = inp.spec()
-        fmt = spec.format
-        inp.close()
-        eight_bit = fmt == oiio.UINT8
-        sixteen_bit = fmt == oiio.UINT16
-        exif = _exif(f)
-        infos.append({"path": f, "exif": exif, "eight_bit": eight_bit, "sixteen_bit": sixteen_bit, "img": img,
-                      "size": (img.shape[1], img.shape[0]) if int(exif.get("orientation", 1) or 1) < 5
-                      else (img.shape[0], img.shape[1])})
+    infos = _read_photos(files, dropped)
     report: dict[str, Any] = {"input": str(photos), "found": len(files), "dropped": dropped}
     if not infos:
         report["frames"] = []
@@ -255,7 +359,7 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
     groups, decisions = _decide_brackets(candidates, infos, cfg)
     cams = None
     if cfg.intrinsics:
-        from .intrinsics import intrinsics_for_size, load_intrinsics
+        from .intrinsics import load_intrinsics
 
         cams = load_intrinsics(cfg.intrinsics)
     default_light, frame_lights = load_lights_file(cfg.lights) if cfg.lights else (None, {})
@@ -270,78 +374,11 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
             name = lead["path"].stem
             orient = int(lead["exif"].get("orientation", 1) or 1)
             w, h = lead["size"]
-            sat = None
-            if len(members) > 1:
-                if any(m["exif"].get("exposure_time") is None for m in members):
-                    raise InputError("bracket without exposure times", lead["path"], "set --bracket-size 1")
-                t = [float(m["exif"]["exposure_time"]) for m in members]
-                if all(m["eight_bit"] for m in members):
-                    codes = [np.clip(np.round(m["img"] * 255), 0, 255).astype(np.uint8) for m in members]
-                    resp = calibrate_response(codes, t, cfg.hdr_method)
-                    hdr = merge_brackets_8bit(codes, t, resp, cfg.hdr_method)
-                else:
-                    lin = [srgb_to_linear(m["img"]) if m["eight_bit"] else m["img"] for m in members]
-                    hdr = merge_brackets_linear(lin, t)
-                # Radiance per second: scale so the middle exposure's level is kept (pixel ~ original).
-                t_mid = float(lead["exif"]["exposure_time"])
-                img = apply_orientation(hdr * t_mid, orient)
-                rel = Path("images") / (name + ".exr")
-                write_image(tmp / rel, img, bits=32)
-                kind = "hdr"
-            else:
-                img_code = lead["img"]
-                if orient != 1 or lead["path"].suffix.lower() not in (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr"):
-                    rot = apply_orientation(img_code, orient)
-                    if lead["eight_bit"]:
-                        rel = Path("images") / (name + ".png")
-                        write_image(tmp / rel, np.clip(np.round(rot * 255), 0, 255).astype(np.uint8), bits=8)
-                    else:
-                        rel = Path("images") / (name + ".exr")
-                        write_image(tmp / rel, rot, bits=32)
-                else:
-                    rel = Path("images") / lead["path"].name
-                    shutil.copy2(lead["path"], tmp / rel)
-                # Saturation in linear units of the stored image: the top code (clipped sensor).
-                if lead["eight_bit"]:
-                    sat = float(srgb_to_linear(np.float32(254.5 / 255)))
-                elif lead["sixteen_bit"]:
-                    sat = 65534.5 / 65535
-                kind = "photo"
-            mask_rel = None
+            rel, sat, mask_view = _write_view(members, lead, name, orient, tmp, cfg)
             # What automatic masks see: the stored photo, upright (8-bit: sRGB codes; else linear).
-            mask_src = (img if len(members) > 1 else apply_orientation(lead["img"], orient),
-                        len(members) == 1 and lead["eight_bit"])
-            mp = _find_mask(mask_dir, lead["path"]) if mask_dir.is_dir() else None
-            if mp is not None:
-                try:
-                    m = read_mask(mp)
-                    m = m.reshape(m.shape[0], m.shape[1])
-                    if m.shape != (h, w):
-                        # A mask drawn on the file's stored pixels: orient it like the photo.
-                        m = apply_orientation(m[..., None], orient)[..., 0]
-                    if m.shape != (h, w):
-                        raise InputError(f"mask is {m.shape[1]}x{m.shape[0]}, photo is {w}x{h}", mp, "resize the mask")
-                    mask_rel = Path("masks") / (name + ".png")
-                    (tmp / "masks").mkdir(exist_ok=True)
-                    write_image(tmp / mask_rel, (m > 0).astype(np.uint8) * 255, bits=8)
-                except TexstreamError as e:
-                    dropped.append({"image": mp.name, "reason": f"mask not used: {e.message}"})
-            elif cfg.alpha_masks:
-                a = read_alpha(lead["path"])
-                if a is not None:
-                    a = apply_orientation(a.reshape(a.shape[0], a.shape[1], 1), orient)[..., 0]
-                    mask_rel = Path("masks") / (name + ".png")
-                    (tmp / "masks").mkdir(exist_ok=True)
-                    write_image(tmp / mask_rel, (a > 0.5).astype(np.uint8) * 255, bits=8)
-            if cams is not None:
-                intr = intrinsics_for_size(cams, w, h, cfg.intrinsics)
-                sources.add("calibrated")
-            else:
-                f_px = _focal_px(lead["exif"], w, h)
-                sources.add("exif" if f_px else "guess")
-                # COLMAP's default guess when EXIF has no focal length: 1.2 x the longest side.
-                f_px = f_px or 1.2 * max(w, h)
-                intr = Intrinsics(width=w, height=h, fx=f_px, fy=f_px, cx=w / 2, cy=h / 2)
+            mask_src = (mask_view, len(members) == 1 and lead["eight_bit"])
+            mask_rel = _write_mask(mask_dir, lead, name, orient, (w, h), tmp, cfg, dropped)
+            intr = _view_intrinsics(lead, w, h, cams, cfg, sources)
             ex = lead["exif"]
             gain = None
             if ex.get("exposure_time"):

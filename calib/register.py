@@ -14,9 +14,9 @@ Pipeline (what COLMAP's automatic reconstructor does, with capture-folder plumbi
    where it lowers the reprojection error (``--min-self-calibration-gain``), else the cameras are
    made pinhole and re-adjusted: an unneeded distortion term bends the focal length and the poses;
 5. optional Sim3 alignment to known camera centres (``--align-to capture.json``, pycolmap RANSAC) or
-   into a given mesh's frame (``--align-mesh MESH``: the similarity of
-   :func:`texstream.geometry.align.align_to_points` (PCA start, trimmed scaled ICP of the mesh onto
-   the SfM points), inverted, so cameras and points land on the mesh);
+   into a given mesh's frame (``--align-mesh MESH``: :mod:`texstream.geometry.mesh_frame`, which the
+   caller passes in as ``mesh_alignment``: the similarity of the mesh onto the SfM points, inverted, so
+   cameras and points land on the mesh);
 6. undistortion of registered photos and masks to pinhole, conversion to ``capture.json``.
 
 Outputs (atomically): ``capture.json``, ``images/``, ``masks/``, ``sparse/0``, ``points3D.ply``,
@@ -26,17 +26,14 @@ Outputs (atomically): ``capture.json``, ``images/``, ``masks/``, ``sparse/0``, `
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import os
-import re
 import shutil
-import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
-from collections.abc import Iterator
-from typing import Any, TextIO
+from typing import Any
 
 import numpy as np
 
@@ -46,8 +43,10 @@ from texstream.core.config import option, save_config
 from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
 from texstream.core.progress import bar, phase, say
 
+from .colmap_log import colmap_quiet, quiet_colmap_log
 from .colmap_io import intrinsics_to_colmap, opencv_distortion, reconstruction_frames
 from .files import list_images, write_failure_report
+from .photo_groups import check_groups, match_groups
 from .lights import colocated_light
 
 REPORT_FILE = "registration_report.json"
@@ -458,62 +457,6 @@ def align_to_centres(rec: Any, centres: dict[str, np.ndarray], max_error_frac: f
     return {"kind": "centres", "scale": float(sim.scale), "common": len(names), "rmse": rmse, "extent": extent}
 
 
-def mesh_frame_transform(mesh: Any, points: np.ndarray, seed: int = 0) -> tuple[float, np.ndarray, np.ndarray, dict]:
-    """The similarity taking SfM-frame points into a given mesh's frame: x_mesh = s R x + t.
-
-    :func:`texstream.geometry.align.align_to_points` finds the mesh -> points similarity (PCA
-    start over the proper axis sign choices, trimmed scaled ICP); this is its inverse. A mesh with
-    a symmetry (sphere, surface of revolution) leaves the rotation about it undetermined.
-
-    Args:
-        mesh: the given SurfaceMesh (its frame is the target frame).
-        points: (N, 3) SfM points, N >= 10.
-        seed: unused by the deterministic ICP; kept for a uniform signature with the RANSAC aligner.
-
-    Returns:
-        (s, R (3, 3), t (3,), info) with info ``rms_fraction`` (trimmed RMS point-to-mesh-sample
-        distance over the points' bbox diagonal), ``rms`` (mesh units) and ``iterations``.
-    """
-    from texstream.geometry.align import align_to_points
-
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    if len(pts) < 10:
-        raise StageError(f"only {len(pts)} SfM point(s) to align to the mesh; at least 10 are needed",
-                         fix="register more photos, or use --align-to with known camera centres")
-    al = align_to_points(mesh, pts)
-    s = 1.0 / al.scale
-    r = al.R.T
-    t = -s * (r @ al.t)
-    return s, r, t, {"rms_fraction": float(al.rms_fraction), "rms": float(al.rms * s), "iterations": int(al.iterations)}
-
-
-def align_to_mesh(rec: Any, mesh: Any, max_rms_frac: float) -> dict:
-    """Bring a reconstruction in place into a mesh's frame (scaled ICP of its points onto the mesh).
-
-    Args:
-        rec: pycolmap.Reconstruction (modified in place).
-        mesh: SurfaceMesh in the target frame.
-        max_rms_frac: accepted trimmed RMS point-to-mesh distance as a fraction of the points' extent.
-
-    Returns:
-        dict with ``scale``, ``rms`` (mesh units), ``rms_fraction``, ``points`` (points used).
-
-    Raises:
-        StageError: too few points, or the fit's residual above ``max_rms_frac`` (wrong mesh / object).
-    """
-    import pycolmap
-
-    pts = np.array([p.xyz for p in rec.points3D.values()], dtype=np.float64).reshape(-1, 3)
-    s, r, t, info = mesh_frame_transform(mesh, pts)
-    if not info["rms_fraction"] <= max_rms_frac:
-        raise StageError(f"the SfM points do not fit the mesh (RMS {info['rms_fraction']:.3g} of their extent, "
-                         f"accepted {max_rms_frac:g})",
-                         fix="check that --align-mesh is this object's mesh, or raise --align-mesh-max-rms")
-    rec.transform(pycolmap.Sim3d(s, pycolmap.Rotation3d(r), t))
-    return {"scale": float(s), "rms": info["rms"], "rms_fraction": info["rms_fraction"], "points": int(len(pts)),
-            "kind": "mesh"}
-
-
 def _photometric_gains(rec: Any, photos: list[_Photo], mask_dir: Path | None, report: dict) -> dict[str, np.ndarray]:
     """Per-photo RGB gains from the model's shared points (see :mod:`.photometric`); {} when too few."""
     from texstream.capture.imageio import read_image, read_mask
@@ -570,176 +513,6 @@ def _undistort(src: Path, dst: Path, intr: Intrinsics, nearest: bool = False) ->
     o.close()
 
 
-def quiet_colmap_log() -> None:
-    """COLMAP's own log lines (thousands per registration) only with ``TEXSTREAM_COLMAP_LOG=1``; the stages
-    print what they found, and errors still come through."""
-    import pycolmap
-
-    if os.environ.get("TEXSTREAM_COLMAP_LOG") != "1":
-        pycolmap.logging.minloglevel = 2  # 0 info, 1 warning, 2 error
-
-
-# a glog record: severity letter, date, time, thread, file:line] (after an optional colour code)
-_GLOG_LINE = re.compile(r"^(?:\x1b\[[0-9;]*m)*([IWEF])\d{8} ")
-_ANSI = re.compile(r"\x1b\[[0-9;]*m")
-
-
-@contextlib.contextmanager
-def colmap_quiet() -> Iterator[TextIO]:
-    """Hide COLMAP's log lines during a pycolmap call unless ``TEXSTREAM_COLMAP_LOG=1``; its error records
-    and anything else written to stderr are shown after the call. Yields a stream on the real stderr
-    for progress bars.
-
-    Why at the file-descriptor level and not only glog's ``minloglevel``: pycolmap 4.2.1's
-    ``bundle_adjustment`` sets ``minloglevel`` back to 0 on every call (set to 2 before the call, it
-    reads 0 after it, and the call prints its ``=== Global bundle adjustment ===`` and report INFO
-    lines); COLMAP's C++ threads write to file descriptor 2 directly, past Python's ``sys.stderr``.
-    """
-    if os.environ.get("TEXSTREAM_COLMAP_LOG") == "1":
-        yield sys.stderr
-        return
-    import pycolmap
-
-    pycolmap.logging.minloglevel = 2
-    sys.stderr.flush()
-    saved = os.dup(2)
-    with tempfile.TemporaryFile() as sink, os.fdopen(os.dup(saved), "w", buffering=1) as term:
-        os.dup2(sink.fileno(), 2)
-        try:
-            yield term
-        finally:
-            sys.stderr.flush()
-            os.dup2(saved, 2)
-            os.close(saved)
-            pycolmap.logging.minloglevel = 2
-            sink.seek(0)
-            _replay_errors(sink.read().decode("utf-8", "replace"))
-
-
-def _replay_errors(text: str) -> None:
-    """Print what COLMAP wrote but its INFO and WARNING records (and their continuation lines)."""
-    shown, keep = [], True
-    for line in text.splitlines():
-        m = _GLOG_LINE.match(line)
-        if m:  # a record's continuation lines (the bundle-adjustment report) follow its severity
-            keep = m.group(1) in "EF"
-        if keep and line.strip():
-            shown.append(_ANSI.sub("", line))
-    if shown:
-        print("\n".join(shown), file=sys.stderr, flush=True)
-
-
-def match_groups(db: Path, min_inliers: int) -> list[list[str]]:
-    """The photos of a COLMAP database joined by verified matches (at least ``min_inliers`` inlier
-    matches per pair, COLMAP's own bar for a verified pair): connected groups of names, largest first."""
-    import pycolmap
-
-    database = pycolmap.Database.open(str(db))
-    try:
-        names = {int(im.image_id): im.name for im in database.read_all_images()}
-        pair_ids, inliers = database.read_two_view_geometry_num_inliers()
-    finally:
-        database.close()
-    parent = {i: i for i in names}
-
-    def root(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    for pid, n in zip(pair_ids, inliers):
-        if n >= min_inliers:
-            a, b = (int(x) for x in pycolmap.pair_id_to_image_pair(int(pid)))
-            if a in parent and b in parent:
-                parent[root(a)] = root(b)
-    groups: dict[int, list[str]] = {}
-    for i, name in names.items():
-        groups.setdefault(root(i), []).append(name)
-    return sorted((sorted(g) for g in groups.values()), key=lambda g: (-len(g), g[0]))
-
-
-def _few(names: list[str], n: int = 3) -> str:
-    return ", ".join(names[:n]) + (f" and {len(names) - n} more" if len(names) > n else "")
-
-
-def _colour_signature(photo: _Photo) -> np.ndarray:
-    """Square root of a photo's brightness-weighted chromaticity histogram (12 x 12 bins of r and g over
-    r+g+b; inside its mask when it has one): dark background pixels weigh little, exposure cancels."""
-    from texstream.capture.imageio import read_image, read_mask
-
-    img = read_image(photo.path, channels=3)
-    keep = np.ones(img.shape[:2], bool)
-    if photo.mask is not None:
-        keep = read_mask(photo.mask).reshape(img.shape[:2]) > 0
-    step = max(1, int(np.sqrt(img.shape[0] * img.shape[1] / 65536)))  # ~65k pixels are plenty for 144 bins
-    px = img[::step, ::step][keep[::step, ::step]].reshape(-1, 3).astype(np.float64)
-    s = px.sum(1)
-    c = px[:, :2] / np.maximum(s, 1e-9)[:, None]
-    h, _ = np.histogramdd(c, bins=(12, 12), range=((0, 1), (0, 1)), weights=s)
-    return np.sqrt(h.ravel() / max(h.sum(), 1e-30))
-
-
-def groups_look_different(groups: list[list[str]], photos: list[_Photo]) -> tuple[bool, dict]:
-    """Whether match groups show different objects: for some two groups, the mean Hellinger distance
-    between their photos' colour signatures is above 0.3 and twice the larger mean distance within them.
-
-    Measured on the Middlebury sparse rings mixed in one folder: the temple's 16 photos and the dino's
-    two groups of 7 (the untextured dino's photos form two groups without a verified match between them)
-    lie 0.88 apart; within the groups 0.17, 0.06 and 0.09, and the dino's two groups 0.12 from each
-    other: one object."""
-    by_name = {p.name: p for p in photos}
-    sig = {n: _colour_signature(by_name[n]) for g in groups for n in g}
-
-    def mean_dist(a: list[str], b: list[str]) -> float:
-        d = [np.linalg.norm(sig[x] - sig[y]) / np.sqrt(2) for x in a for y in b if x != y]
-        return float(np.mean(d)) if d else 0.0
-
-    within = [mean_dist(g, g) for g in groups]
-    pairs = {(i, j): mean_dist(groups[i], groups[j]) for i in range(len(groups)) for j in range(i + 1, len(groups))}
-    different = any(d > 0.3 and d > 2 * max(within[i], within[j]) for (i, j), d in pairs.items())
-    return different, {"colour_distance_within": [round(w, 3) for w in within],
-                       "colour_distance_between": {f"{i + 1}-{j + 1}": round(d, 3) for (i, j), d in pairs.items()}}
-
-
-def check_groups(groups: list[list[str]], photos: list[_Photo], folder: Path, out: Path, cfg: RegisterConfig,
-                 report: dict) -> None:
-    """Stop before mapping when the photos split into two or more sizeable groups that share no verified
-    match and look like different objects (``cfg.disconnected``: auto; error stops whatever they look
-    like, largest never). A group counts when it holds at least a fifth of the photos (and
-    ``min_model_size``): a single object's stray photos (a blurred one, a close-up) form small groups
-    of their own and only go unregistered."""
-    import math
-
-    report["match_groups"] = [len(g) for g in groups]
-    big = [g for g in groups if len(g) >= max(cfg.min_model_size, math.ceil(0.2 * len(photos)))]
-    if len(big) < 2:
-        return
-    info: dict[str, Any] = {"groups": big, "mode": cfg.disconnected}
-    report["disconnected"] = info
-    sizes = ", ".join(str(len(g)) for g in big)
-    if cfg.disconnected == "auto":
-        different, stats = groups_look_different(big, photos)
-        info.update(stats)
-        if not different:
-            info["decision"] = "similar colours: one object with too little overlap between the groups"
-            say("register", f"{len(big)} groups of photos ({sizes}) share no features but look alike: one object "
-                            "seen from views that do not overlap; the largest group is registered")
-            return
-        info["decision"] = "different colours: photos of different objects"
-    elif cfg.disconnected == "largest":
-        info["decision"] = "largest group registered (disconnected = largest)"
-        say("register", f"{len(big)} groups of photos ({sizes}) share no features; the largest is registered")
-        return
-    report["registered"], report["unregistered"] = [], [n for g in groups for n in g]
-    path = write_failure_report(out, report)
-    desc = "; ".join(f"group {k + 1}, {len(g)} photos: {_few(g)}" for k, g in enumerate(big))
-    raise InputError(f"the photos form {len(big)} groups that share no features, photos of different objects? "
-                     f"({desc}; every group in {path})", folder,
-                     "put each object's photos in a folder of its own and run once per folder, or keep the largest "
-                     "group with --disconnected largest (texstream run: [register] disconnected = \"largest\")")
-
-
 def _median_object_distance(rec, posed: dict) -> float:
     """Median distance from the registered cameras to the median SfM point (scene units)."""
     pts = np.array([p.xyz for p in rec.points3D.values()], dtype=np.float64).reshape(-1, 3)
@@ -748,13 +521,18 @@ def _median_object_distance(rec, posed: dict) -> float:
     return float(np.median([np.linalg.norm(c - centre) for c in centres])) if centres else 1.0
 
 
-def register(capture: str | os.PathLike, out: str | os.PathLike, config: RegisterConfig | None = None) -> StageResult:
+def register(capture: str | os.PathLike, out: str | os.PathLike, config: RegisterConfig | None = None,
+             mesh_alignment: Callable[[str], Callable[[Any, float], dict]] | None = None) -> StageResult:
     """Register the photos of a capture folder (or plain photo folder) with pycolmap.
 
     Args:
         capture: ingest output (``capture.json`` + images) or a folder of photos (masks in ``masks/``).
         out: posed capture folder to write (see the module doc).
         config: options.
+        mesh_alignment: for ``config.align_mesh``, the mesh path -> ``align(rec, max_rms_frac)`` that brings a
+            reconstruction into the mesh's frame and returns the report's ``alignment``
+            (:func:`texstream.geometry.mesh_frame.mesh_alignment`: the geometry stage's, which the callers,
+            above both stages, pass in).
 
     Returns:
         StageResult; summary has ``registered``, ``unregistered`` (names), ``dropped``, ``models``
@@ -785,10 +563,10 @@ def register(capture: str | os.PathLike, out: str | os.PathLike, config: Registe
     centres = _known_centres(cfg.align_to) if cfg.align_to else None
     align_mesh = None
     if cfg.align_mesh:
-        from texstream.geometry.mesh_io import load_mesh, validate_mesh
-
-        align_mesh = load_mesh(cfg.align_mesh)
-        validate_mesh(align_mesh, cfg.align_mesh)
+        if mesh_alignment is None:
+            raise ConfigError("--align-mesh needs the mesh alignment of the geometry stage, which was not given",
+                              cfg.align_mesh, "run the registration through the texstream command")
+        align_mesh = mesh_alignment(cfg.align_mesh)
     timings: dict[str, float] = {}
     out.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix=".register.", dir=out.parent if out.parent.exists() else None) as w:
@@ -812,78 +590,19 @@ def register(capture: str | os.PathLike, out: str | os.PathLike, config: Registe
         if centres is not None:
             report["alignment"] = align_to_centres(rec, centres, cfg.align_max_error, cfg.seed)
         elif align_mesh is not None:
-            report["alignment"] = align_to_mesh(rec, align_mesh, cfg.align_mesh_max_rms)
+            report["alignment"] = align_mesh(rec, cfg.align_mesh_max_rms)
         posed = {name: (r, t, intr) for name, r, t, intr in reconstruction_frames(rec)}
         gains = _photometric_gains(rec, photos, mask_dir, report) if cfg.photometric != "off" else {}
-        coloc = cfg.colocated_light
-        offset = [0.0, 0.0, 0.0]
-        if coloc is None and cap is not None and isinstance(cap.extra.get("colocated_light"), dict):
-            coloc = cap.extra["colocated_light"].get("intensity")
-            offset = cap.extra["colocated_light"].get("offset", offset)
-        if coloc is not None and centres is None and align_mesh is None:
-            # an unaligned reconstruction has an arbitrary scale; a point light's irradiance falls as 1/r^2
-            # in it, so the flash intensity is taken as the irradiance at the median camera-to-object
-            # distance: the fitted albedos then do not depend on the scale SfM happened to pick
-            d = _median_object_distance(rec, posed)
-            coloc = (np.asarray(coloc, np.float64) * d * d).tolist() if np.ndim(coloc) else float(coloc) * d * d
-            report["colocated_light"] = {"median_object_distance": d, "intensity_scaled_by": d * d,
-                                         "why": "unaligned SfM scale: intensity means irradiance at the object"}
+        aligned_to = "centres" if centres is not None else ("mesh" if align_mesh is not None else None)
+        coloc, offset = _colocated_light(cfg, cap, rec, posed, aligned_to is not None, report)
         report["registered"] = sorted(posed)
         report["unregistered"] = [p.name for p in photos if p.name not in posed]
         with atomic_output_dir(out) as tmp:
             t0 = time.perf_counter()
-            frames = []
-            for p in photos:
-                if p.name not in posed:
-                    continue
-                r, t, intr = posed[p.name]
-                dst_rel = Path("images") / p.name
-                mask_rel = None
-                distorted = bool(intr.distortion) and any(abs(v) > 0 for v in intr.distortion.values())
-                if cfg.undistort and distorted:
-                    _undistort(p.path, tmp / dst_rel, intr)
-                    if p.mask is not None:
-                        mask_rel = Path("masks") / (Path(p.name).stem + ".png")
-                        _undistort(mask_dir / (p.name + ".png"), tmp / mask_rel, intr, nearest=True)
-                    intr = dataclasses.replace(intr, camera_model="PINHOLE", distortion={})
-                else:
-                    (tmp / dst_rel).parent.mkdir(parents=True, exist_ok=True)
-                    shutil.copy2(p.path, tmp / dst_rel)
-                    if p.mask is not None:
-                        mask_rel = Path("masks") / (Path(p.name).stem + p.mask.suffix)
-                        (tmp / mask_rel).parent.mkdir(parents=True, exist_ok=True)
-                        shutil.copy2(p.mask, tmp / mask_rel)
-                base = p.frame
-                light = base.light if base else None
-                if coloc is not None:
-                    light = colocated_light(r, t, coloc, offset)
-                extra = dict(base.extra) if base else {}
-                exposure = base.exposure if base else 1.0
-                if p.name in gains:
-                    g = gains[p.name]
-                    extra["photometric_gain"] = [float(x) for x in g]
-                    if cfg.photometric == "apply":
-                        exposure *= float(np.mean(g))
-                frames.append(Frame(file_path=str(dst_rel), R=r, t=t, intrinsics=intr, light=light, exposure=exposure,
-                                    mask_path=None if mask_rel is None else str(mask_rel),
-                                    saturation=base.saturation if base else None, extra=extra))
+            frames = [_posed_frame(p, posed[p.name], tmp, mask_dir, cfg, coloc, offset, gains)
+                      for p in photos if p.name in posed]
             timings["undistort_s"] = time.perf_counter() - t0
-            extra = dict(cap.extra) if cap is not None else {}
-            extra.pop("posed", None)
-            extra.pop("colocated_light", None)
-            if not fixed:
-                # Bundle adjustment estimated the intrinsics: say so, and keep where they started.
-                extra["intrinsics_prior"] = extra.get("intrinsics_source") or ("guess" if cap is None else "unknown")
-                extra["intrinsics_source"] = "sfm"
-                extra["intrinsics_refined"] = ["focal_length"] + (
-                    ["distortion"] if report["distortion"].get("kept") == "distortion" else []) + (
-                    ["principal_point"] if report["principal_point"].get("refined") else [])
-            elif cfg.intrinsics:
-                extra["intrinsics_source"] = "calibrated"
-            extra["registration"] = {"registered": len(frames), "unregistered": report["unregistered"],
-                                     "aligned": centres is not None or align_mesh is not None,
-                                     "aligned_to": "centres" if centres is not None else
-                                     ("mesh" if align_mesh is not None else None)}
+            extra = _capture_extra(cap, cfg, fixed, report, len(frames), aligned_to)
             write_capture(Capture(root=tmp, frames=frames, extra=extra), tmp)
             (tmp / "sparse" / "0").mkdir(parents=True)
             rec.write(str(tmp / "sparse" / "0"))
@@ -899,3 +618,81 @@ def register(capture: str | os.PathLike, out: str | os.PathLike, config: Registe
     summary["principal_point"] = report.get("principal_point")
     summary["distortion"] = report.get("distortion")
     return StageResult(output=out, summary=summary)
+
+
+def _colocated_light(cfg: RegisterConfig, cap: Capture | None, rec, posed: dict, aligned: bool,
+                     report: dict) -> tuple[Any, list]:
+    """The colocated light's (intensity, offset) for the posed frames (None: none): the option's, else the
+    capture's; for an unaligned reconstruction scaled to mean irradiance at the object (said in ``report``)."""
+    coloc = cfg.colocated_light
+    offset = [0.0, 0.0, 0.0]
+    if coloc is None and cap is not None and isinstance(cap.extra.get("colocated_light"), dict):
+        coloc = cap.extra["colocated_light"].get("intensity")
+        offset = cap.extra["colocated_light"].get("offset", offset)
+    if coloc is not None and not aligned:
+        # an unaligned reconstruction has an arbitrary scale; a point light's irradiance falls as 1/r^2
+        # in it, so the flash intensity is taken as the irradiance at the median camera-to-object
+        # distance: the fitted albedos then do not depend on the scale SfM happened to pick
+        d = _median_object_distance(rec, posed)
+        coloc = (np.asarray(coloc, np.float64) * d * d).tolist() if np.ndim(coloc) else float(coloc) * d * d
+        report["colocated_light"] = {"median_object_distance": d, "intensity_scaled_by": d * d,
+                                     "why": "unaligned SfM scale: intensity means irradiance at the object"}
+    return coloc, offset
+
+
+def _posed_frame(p: _Photo, pose: tuple, tmp: Path, mask_dir: Path, cfg: RegisterConfig, coloc, offset: list,
+                 gains: dict) -> Frame:
+    """A registered photo's frame of the output capture, its photo and mask written into ``tmp`` (undistorted
+    when ``cfg.undistort`` and the camera has distortion, else copied)."""
+    r, t, intr = pose
+    dst_rel = Path("images") / p.name
+    mask_rel = None
+    distorted = bool(intr.distortion) and any(abs(v) > 0 for v in intr.distortion.values())
+    if cfg.undistort and distorted:
+        _undistort(p.path, tmp / dst_rel, intr)
+        if p.mask is not None:
+            mask_rel = Path("masks") / (Path(p.name).stem + ".png")
+            _undistort(mask_dir / (p.name + ".png"), tmp / mask_rel, intr, nearest=True)
+        intr = dataclasses.replace(intr, camera_model="PINHOLE", distortion={})
+    else:
+        (tmp / dst_rel).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(p.path, tmp / dst_rel)
+        if p.mask is not None:
+            mask_rel = Path("masks") / (Path(p.name).stem + p.mask.suffix)
+            (tmp / mask_rel).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(p.mask, tmp / mask_rel)
+    base = p.frame
+    light = base.light if base else None
+    if coloc is not None:
+        light = colocated_light(r, t, coloc, offset)
+    extra = dict(base.extra) if base else {}
+    exposure = base.exposure if base else 1.0
+    if p.name in gains:
+        g = gains[p.name]
+        extra["photometric_gain"] = [float(x) for x in g]
+        if cfg.photometric == "apply":
+            exposure *= float(np.mean(g))
+    return Frame(file_path=str(dst_rel), R=r, t=t, intrinsics=intr, light=light, exposure=exposure,
+                 mask_path=None if mask_rel is None else str(mask_rel),
+                 saturation=base.saturation if base else None, extra=extra)
+
+
+def _capture_extra(cap: Capture | None, cfg: RegisterConfig, fixed: bool, report: dict, registered: int,
+                   aligned_to: str | None) -> dict:
+    """The output capture.json's extra: the input capture's, with where the intrinsics came from and what
+    the registration did."""
+    extra = dict(cap.extra) if cap is not None else {}
+    extra.pop("posed", None)
+    extra.pop("colocated_light", None)
+    if not fixed:
+        # Bundle adjustment estimated the intrinsics: say so, and keep where they started.
+        extra["intrinsics_prior"] = extra.get("intrinsics_source") or ("guess" if cap is None else "unknown")
+        extra["intrinsics_source"] = "sfm"
+        extra["intrinsics_refined"] = ["focal_length"] + (
+            ["distortion"] if report["distortion"].get("kept") == "distortion" else []) + (
+            ["principal_point"] if report["principal_point"].get("refined") else [])
+    elif cfg.intrinsics:
+        extra["intrinsics_source"] = "calibrated"
+    extra["registration"] = {"registered": registered, "unregistered": report["unregistered"],
+                             "aligned": aligned_to is not None, "aligned_to": aligned_to}
+    return extra

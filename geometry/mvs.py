@@ -467,36 +467,11 @@ def dense_points(frames: Sequence, images: Sequence[np.ndarray], masks: Sequence
         ConfigError: an even window.
     """
     cfg = config or MvsConfig()
-    if cfg.window % 2 == 0 or cfg.normal_window % 2 == 0:
-        raise ConfigError(f"--mvs.window {cfg.window} / --mvs.normal-window {cfg.normal_window}: windows "
-                          "must have odd sides", fix="use an odd number such as 5 or 7")
-    if not 1 <= cfg.neighbours <= MAX_NEIGHBOURS:
-        raise ConfigError(f"--mvs.neighbours {cfg.neighbours} is out of range [1, {MAX_NEIGHBOURS}]",
-                          fix=f"give 1 to {MAX_NEIGHBOURS}")
+    _check_inputs(frames, images, masks, cfg)
     n = len(frames)
-    if n < 2 or len(images) != n or (masks is not None and len(masks) != n):
-        raise InputError(f"dense stereo needs at least 2 photos with one image (and mask) each; got {n} frames, "
-                         f"{len(images)} images, {'no' if masks is None else len(masks)} masks",
-                         fix="give every frame its photo and mask")
     t0 = time.perf_counter()
-    hmax = max(f.intrinsics.height for f in frames)
-    wmax = max(f.intrinsics.width for f in frames)
-    grey = np.zeros((n, hmax, wmax), np.float32)
-    mask = np.zeros((n, hmax, wmax), np.uint8)
-    for c, (f, img) in enumerate(zip(frames, images)):
-        hw = (f.intrinsics.height, f.intrinsics.width)
-        if np.asarray(img).shape[:2] != hw:
-            raise InputError(f"photo of {f.file_path} is {np.asarray(img).shape[:2]}, its camera {hw}",
-                             fix="give photos at the camera's resolution (undistorted)")
-        grey[c, :hw[0], :hw[1]] = grey_for_matching(img)
-        if masks is None:
-            mask[c, :hw[0], :hw[1]] = 1
-        else:
-            m = np.asarray(masks[c])
-            if m.shape[:2] != hw:
-                raise InputError(f"mask of {f.file_path} is {m.shape[:2]}, its photo {hw}", f.mask_path,
-                                 "write masks at the image resolution")
-            mask[c, :hw[0], :hw[1]] = (m.reshape(hw) != 0)
+    grey, mask = _matching_stack(frames, images, masks)
+    hmax, wmax = grey.shape[1:]
     lo, hi = (np.asarray(b, np.float64) for b in bounds)
     centres = np.array([f.center for f in frames])
     target = 0.5 * (lo + hi)
@@ -586,6 +561,48 @@ def dense_points(frames: Sequence, images: Sequence[np.ndarray], masks: Sequence
               "seconds": {"sweep": round(t_sweep, 2), "consistency_and_fusion": round(t_fuse, 2),
                           "total": round(time.perf_counter() - t0, 2)}}
     return DensePoints(pts, nrm, kept_depths, report)
+
+
+def _check_inputs(frames: Sequence, images: Sequence, masks: Sequence | None, cfg: MvsConfig) -> None:
+    """Refuse even windows, a neighbour count out of range, and fewer than 2 photos or a missing image or mask."""
+    if cfg.window % 2 == 0 or cfg.normal_window % 2 == 0:
+        raise ConfigError(f"--mvs.window {cfg.window} / --mvs.normal-window {cfg.normal_window}: windows "
+                          "must have odd sides", fix="use an odd number such as 5 or 7")
+    if not 1 <= cfg.neighbours <= MAX_NEIGHBOURS:
+        raise ConfigError(f"--mvs.neighbours {cfg.neighbours} is out of range [1, {MAX_NEIGHBOURS}]",
+                          fix=f"give 1 to {MAX_NEIGHBOURS}")
+    n = len(frames)
+    if n < 2 or len(images) != n or (masks is not None and len(masks) != n):
+        raise InputError(f"dense stereo needs at least 2 photos with one image (and mask) each; got {n} frames, "
+                         f"{len(images)} images, {'no' if masks is None else len(masks)} masks",
+                         fix="give every frame its photo and mask")
+
+
+def _matching_stack(frames: Sequence, images: Sequence[np.ndarray],
+                    masks: Sequence[np.ndarray] | None) -> tuple[np.ndarray, np.ndarray]:
+    """(grey (n, hmax, wmax) float32 for matching, mask (n, hmax, wmax) uint8): each photo at the top left,
+    zero padded; every pixel of a photo without masks. Refuses an image or mask of another size than its
+    frame's camera."""
+    n = len(frames)
+    hmax = max(f.intrinsics.height for f in frames)
+    wmax = max(f.intrinsics.width for f in frames)
+    grey = np.zeros((n, hmax, wmax), np.float32)
+    mask = np.zeros((n, hmax, wmax), np.uint8)
+    for c, (f, img) in enumerate(zip(frames, images)):
+        hw = (f.intrinsics.height, f.intrinsics.width)
+        if np.asarray(img).shape[:2] != hw:
+            raise InputError(f"photo of {f.file_path} is {np.asarray(img).shape[:2]}, its camera {hw}",
+                             fix="give photos at the camera's resolution (undistorted)")
+        grey[c, :hw[0], :hw[1]] = grey_for_matching(img)
+        if masks is None:
+            mask[c, :hw[0], :hw[1]] = 1
+        else:
+            m = np.asarray(masks[c])
+            if m.shape[:2] != hw:
+                raise InputError(f"mask of {f.file_path} is {m.shape[:2]}, its photo {hw}", f.mask_path,
+                                 "write masks at the image resolution")
+            mask[c, :hw[0], :hw[1]] = (m.reshape(hw) != 0)
+    return grey, mask
 
 
 def _sweep(r: int, nbs: list[int], frames: Sequence, rots: np.ndarray, transl: np.ndarray, d_grey: wp.array,

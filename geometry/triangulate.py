@@ -142,8 +142,7 @@ def triangulate_capture(capture, config: TriangulateConfig | None = None,
     """
     import pycolmap
 
-    from texstream.calib.colmap_io import intrinsics_to_colmap
-    from texstream.calib.register import colmap_quiet, quiet_colmap_log
+    from texstream.calib.colmap_log import colmap_quiet, quiet_colmap_log
 
     quiet_colmap_log()
 
@@ -166,30 +165,7 @@ def triangulate_capture(capture, config: TriangulateConfig | None = None,
         db = work / "database.db"
         if db.exists():
             db.unlink()
-        eo = pycolmap.FeatureExtractionOptions()
-        eo.sift.max_num_features = cfg.max_features
-        eo.sift.peak_threshold = cfg.peak_threshold
-        # One extraction thread by default: in parallel, COLMAP gives the images their ids in the order
-        # their features finish, and the ids order the matching and triangulation: the temple gave
-        # 4210 to 4215 points and a different mesh and atlas from run to run (on one thread: the
-        # same 4215 points, mesh and atlas in every run). On the 2-core dev box one thread is no
-        # slower: extraction 6.1-7.6 s (9 runs) against 4.3-8.4 s (10 runs) on two.
-        eo.num_threads = cfg.extraction_threads
-        # one COLMAP camera per distinct intrinsics, fixed (never refined)
-        groups: dict[tuple, list[int]] = {}
-        for i, f in enumerate(capture.frames):
-            groups.setdefault(_intrinsics_key(f.intrinsics), []).append(i)
-        for idx in groups.values():
-            model, params = intrinsics_to_colmap(capture.frames[idx[0]].intrinsics)
-            ro = pycolmap.ImageReaderOptions()
-            ro.camera_model = model
-            ro.camera_params = ",".join(f"{x:.12g}" for x in params)
-            if mask_dir is not None:
-                ro.mask_path = str(mask_dir)
-            with colmap_quiet():
-                pycolmap.extract_features(db, img_dir, image_names=[names[i] for i in idx],
-                                          camera_mode=pycolmap.CameraMode.SINGLE, reader_options=ro,
-                                          extraction_options=eo, device=pycolmap.Device.cpu)
+        groups = _extract_features(capture, db, img_dir, mask_dir, names, cfg)
         t_extract = time.perf_counter() - t0
         mo = pycolmap.FeatureMatchingOptions()
         mo.num_threads = cfg.num_threads
@@ -200,28 +176,7 @@ def triangulate_capture(capture, config: TriangulateConfig | None = None,
             pycolmap.match_exhaustive(db, matching_options=mo, verification_options=vo, device=pycolmap.Device.cpu)
         t_match = time.perf_counter() - t0 - t_extract
 
-        rec = pycolmap.Reconstruction()
-        cam_ids = {}
-        for cid, (key, idx) in enumerate(groups.items(), start=1):
-            intr = capture.frames[idx[0]].intrinsics
-            model, params = intrinsics_to_colmap(intr)
-            rec.add_camera_with_trivial_rig(pycolmap.Camera(model=model, width=intr.width, height=intr.height,
-                                                            params=params, camera_id=cid))
-            for i in idx:
-                cam_ids[i] = cid
-        database = pycolmap.Database.open(str(db))
-        try:
-            db_images = database.read_all_images()
-        finally:
-            database.close()
-        index = {n: i for i, n in enumerate(names)}
-        for im in db_images:
-            i = index[im.name]
-            f = capture.frames[i]
-            pose = pycolmap.Rigid3d(pycolmap.Rotation3d(np.asarray(f.R, np.float64)),
-                                    np.asarray(f.t, np.float64).reshape(3))
-            rec.add_image_with_trivial_frame(pycolmap.Image(name=im.name, camera_id=cam_ids[i], image_id=im.image_id),
-                                             pose)
+        rec, db_images, index = _posed_reconstruction(capture, db, groups, names)
         op = pycolmap.IncrementalPipelineOptions()
         op.num_threads = cfg.num_threads
         op.triangulation.ignore_two_view_tracks = not cfg.two_view_tracks
@@ -270,6 +225,74 @@ def triangulate_capture(capture, config: TriangulateConfig | None = None,
                    "seconds": {"extract": round(t_extract, 2), "match": round(t_match, 2),
                                "triangulate": round(t_tri, 2), "total": round(time.perf_counter() - t0, 2)}})
     return TriangulatedPoints(xyz, nrm, tl, err, report)
+
+
+def _extract_features(capture, db: Path, img_dir: Path, mask_dir: Path | None, names: list[str],
+                      cfg: TriangulateConfig) -> dict[tuple, list[int]]:
+    """SIFT features of the staged photos into the database ``db``, one COLMAP camera per distinct intrinsics
+    (fixed, never refined). Returns the frames of each intrinsics (key: :func:`_intrinsics_key`)."""
+    import pycolmap
+
+    from texstream.calib.colmap_io import intrinsics_to_colmap
+    from texstream.calib.colmap_log import colmap_quiet
+
+    eo = pycolmap.FeatureExtractionOptions()
+    eo.sift.max_num_features = cfg.max_features
+    eo.sift.peak_threshold = cfg.peak_threshold
+    # One extraction thread by default: in parallel, COLMAP gives the images their ids in the order
+    # their features finish, and the ids order the matching and triangulation: the temple gave
+    # 4210 to 4215 points and a different mesh and atlas from run to run (on one thread: the
+    # same 4215 points, mesh and atlas in every run). On the 2-core dev box one thread is no
+    # slower: extraction 6.1-7.6 s (9 runs) against 4.3-8.4 s (10 runs) on two.
+    eo.num_threads = cfg.extraction_threads
+    # one COLMAP camera per distinct intrinsics, fixed (never refined)
+    groups: dict[tuple, list[int]] = {}
+    for i, f in enumerate(capture.frames):
+        groups.setdefault(_intrinsics_key(f.intrinsics), []).append(i)
+    for idx in groups.values():
+        model, params = intrinsics_to_colmap(capture.frames[idx[0]].intrinsics)
+        ro = pycolmap.ImageReaderOptions()
+        ro.camera_model = model
+        ro.camera_params = ",".join(f"{x:.12g}" for x in params)
+        if mask_dir is not None:
+            ro.mask_path = str(mask_dir)
+        with colmap_quiet():
+            pycolmap.extract_features(db, img_dir, image_names=[names[i] for i in idx],
+                                      camera_mode=pycolmap.CameraMode.SINGLE, reader_options=ro,
+                                      extraction_options=eo, device=pycolmap.Device.cpu)
+    return groups
+
+
+def _posed_reconstruction(capture, db: Path, groups: dict[tuple, list[int]], names: list[str]):
+    """A reconstruction holding the capture's cameras (one per intrinsics group) and known poses, its images
+    the database's (their ids). Returns (reconstruction, the database's images, staged name -> frame)."""
+    import pycolmap
+
+    from texstream.calib.colmap_io import intrinsics_to_colmap
+
+    rec = pycolmap.Reconstruction()
+    cam_ids = {}
+    for cid, (key, idx) in enumerate(groups.items(), start=1):
+        intr = capture.frames[idx[0]].intrinsics
+        model, params = intrinsics_to_colmap(intr)
+        rec.add_camera_with_trivial_rig(pycolmap.Camera(model=model, width=intr.width, height=intr.height,
+                                                        params=params, camera_id=cid))
+        for i in idx:
+            cam_ids[i] = cid
+    database = pycolmap.Database.open(str(db))
+    try:
+        db_images = database.read_all_images()
+    finally:
+        database.close()
+    index = {n: i for i, n in enumerate(names)}
+    for im in db_images:
+        i = index[im.name]
+        f = capture.frames[i]
+        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(np.asarray(f.R, np.float64)),
+                                np.asarray(f.t, np.float64).reshape(3))
+        rec.add_image_with_trivial_frame(pycolmap.Image(name=im.name, camera_id=cam_ids[i], image_id=im.image_id),
+                                         pose)
+    return rec, db_images, index
 
 
 def inside_masks(points: np.ndarray, frames: Sequence, masks: Sequence[np.ndarray], margin: int = 2,

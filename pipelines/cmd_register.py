@@ -18,11 +18,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from texstream.calib.register import RegisterConfig, register
+    from texstream.geometry.mesh_frame import mesh_alignment
 
     cfg = config_from_args(RegisterConfig, args)
     cap = Path(args.capture)
     out = Path(args.out) if args.out else cap.parent / f"{cap.name}_posed"
-    res = register(cap, out, cfg)
+    res = register(cap, out, cfg, mesh_alignment=mesh_alignment)
     s = res.summary
     n_reg, n_un = len(s["registered"]), len(s["unregistered"])
     print(f"registered {n_reg} of {n_reg + n_un} photo(s) (models: {s['models']}); "

@@ -303,6 +303,7 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
         pipe.skip("register", "cameras known (every frame has a pose)", cap_dir)
     else:
         from texstream.calib.register import register
+        from texstream.geometry.mesh_frame import mesh_alignment
 
         posed_dir = out / "posed"
         reg_cfg, why_reg = cfg.register, "cameras unknown: structure from motion (pycolmap)"
@@ -313,7 +314,8 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
             reg_cfg = dataclasses.replace(reg_cfg, photometric="apply")
             why_reg += "; fixed unknown lighting: per-photo exposure gains from the SfM points applied"
         pipe.run("register", posed_dir, [pipe.stamp_of("ingest"), _files_hash(cap_dir) if kind == "capture" else "",
-                                         config_to_dict(reg_cfg)], why_reg, lambda: register(cap_dir, posed_dir, reg_cfg))
+                                         config_to_dict(reg_cfg)], why_reg,
+                 lambda: register(cap_dir, posed_dir, reg_cfg, mesh_alignment=mesh_alignment))
     capture = read_capture(posed_dir)
 
     # mesh and atlas

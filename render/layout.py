@@ -29,7 +29,7 @@ Units: rho_d, rho_s are BRDF values (1/sr; see capture/conventions.py), C and n 
 
 Radiance (kind "radiance"): a view-independent exitant radiance L (RGB) per texel, for photos
 under one fixed, unknown lighting (capture.json frames without a ``light``). A sample predicts
-``exposure * L``: no light, no cosine, no shadow test (fit/kernels/stream.py compiles the light-free
+``exposure * L``: no light, no cosine, no shadow test (fit/kernels/accumulate.py compiles the light-free
 path per layout). It shares the diffuse model's kernels (no lobes, m_c = p_c); only the weight
 W = exposure replaces exposure * E * cos(theta_i). L is in photo value / exposure units.
 

@@ -139,7 +139,7 @@ def test_colmap_log_lines_are_hidden_and_its_errors_still_shown(capfd, monkeypat
     (``=== Global bundle adjustment ===``) came through the flag; colmap_quiet holds them at the fd level."""
     import pycolmap
 
-    from texstream.calib.register import colmap_quiet
+    from texstream.calib.colmap_log import colmap_quiet
 
     monkeypatch.delenv("TEXSTREAM_COLMAP_LOG", raising=False)
     with colmap_quiet():
@@ -155,7 +155,8 @@ def test_colmap_log_lines_are_hidden_and_its_errors_still_shown(capfd, monkeypat
 
 def test_photos_of_two_objects_stop_before_mapping_with_one_line(data_dir, tmp_path, capsys):
     """The temple's and the dino's photos in one folder: one line naming the groups and the fix, no output."""
-    from texstream.calib.register import _Photo, groups_look_different
+    from texstream.calib.photo_groups import groups_look_different
+    from texstream.calib.register import _Photo
     from texstream.pipelines.cli import main
 
     temple, dino = need_data(data_dir, "middlebury_temple_sparse"), need_data(data_dir, "middlebury_dino_sparse")

@@ -76,7 +76,7 @@ def _rotation(seed):
 
 
 def test_mesh_frame_transform_brings_sfm_points_and_cameras_onto_the_mesh():
-    from texstream.calib.register import mesh_frame_transform
+    from texstream.geometry.mesh_frame import mesh_frame_transform
     from texstream.geometry.align import sample_mesh
 
     mesh = _lumpy_mesh()
@@ -103,7 +103,7 @@ def test_mesh_frame_transform_brings_sfm_points_and_cameras_onto_the_mesh():
 
 
 def test_align_to_mesh_rejects_the_wrong_mesh():
-    from texstream.calib.register import align_to_mesh
+    from texstream.geometry.mesh_frame import align_to_mesh
     from texstream.core.errors import StageError
 
     class _Pt:

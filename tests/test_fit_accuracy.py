@@ -16,7 +16,7 @@ from texstream.capture.synthetic.synth import SynthConfig, render_scene
 from texstream.fit.diagnostics.accuracy import highlight_counts, interior_texels, relative_errors
 from texstream.fit.optim.fitter import FitConfig
 from texstream.fit.stream.penalties import PenaltyConfig
-from texstream.fit.stream.problem import StreamConfig
+from texstream.fit.stream.config import StreamConfig
 from texstream.fit.stages.stage import build_problem, fit_synthetic
 
 from conftest import SCENE_DEVICE

@@ -28,7 +28,7 @@ from texstream.fit.optim.fitter import FitConfig, make_optimizer
 from texstream.fit.optim.base import FitState
 from texstream.fit.optim.linesearch import LineSearchConfig, line_search
 from texstream.fit.stream.penalties import Penalties
-from texstream.fit.stream.problem import StreamConfig
+from texstream.fit.stream.config import StreamConfig
 from texstream.fit.stages.stage import build_problem
 
 from conftest import SCENE_DEVICE

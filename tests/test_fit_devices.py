@@ -8,7 +8,7 @@ import pytest
 from texstream.capture.synthetic.synth import SynthConfig, render_scene
 from texstream.fit.optim.fitter import FitConfig, run_fit
 from texstream.fit.stream.penalties import PenaltyConfig
-from texstream.fit.stream.problem import StreamConfig
+from texstream.fit.stream.config import StreamConfig
 from texstream.fit.stages.stage import build_problem
 
 from conftest import DEVICES, SCENE_DEVICE, cuda_device_or_skip

@@ -16,7 +16,7 @@ import pytest
 
 from texstream.capture.synthetic.synth import SynthConfig, load_scene, render_scene
 from texstream.fit.optim.fitter import FitConfig, run_fit
-from texstream.fit.stream.problem import StreamConfig
+from texstream.fit.stream.config import StreamConfig
 from texstream.fit.stages.stage import build_problem
 
 from conftest import SCENE_DEVICE

@@ -8,8 +8,10 @@ import warp as wp
 
 from texstream.capture.conventions import look_at_w2c
 from texstream.render.layout import ModelLayout
-from texstream.fit.stream.problem import PhotoSet, StreamConfig, StreamProblem, TexelSet
-from texstream.render.camera import PhotoFrame
+from texstream.fit.stream.config import StreamConfig
+from texstream.fit.stream.photo_set import PhotoSet
+from texstream.fit.stream.problem import PhotoFrame, StreamProblem
+from texstream.fit.stream.texels import TexelSet
 
 
 SAMPLINGS = ["filtered", "point", "bilinear"]

@@ -20,7 +20,8 @@ from texstream.capture.synthetic.synth import SynthConfig, render_scene
 from texstream.fit.optim.fitter import FitConfig, run_fit
 from texstream.render.layout import ModelLayout
 from texstream.fit.optim.base import FitState
-from texstream.fit.stream.problem import StreamConfig, StreamProblem
+from texstream.fit.stream.config import StreamConfig
+from texstream.fit.stream.problem import StreamProblem
 from texstream.fit.stages.stage import build_problem
 from texstream.core.errors import ConfigError
 

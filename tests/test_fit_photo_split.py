@@ -13,7 +13,7 @@ from texstream.core.errors import ConfigError
 from texstream.fit.optim.fitter import FitConfig, initial_guess, run_fit
 from texstream.fit.stream.penalties import PenaltyConfig
 from texstream.fit.multi.photo_split import DevicePhotos, split_bounds
-from texstream.fit.stream.problem import StreamConfig
+from texstream.fit.stream.config import StreamConfig
 from texstream.fit.stages.stage import build_problem
 
 from conftest import DEVICES

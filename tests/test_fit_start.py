@@ -12,7 +12,7 @@ from texstream.fit.optim.fitter import FitConfig
 from texstream.fit.kernels import optim_kernels as K
 from texstream.render.layout import ModelLayout, energy_bound_numpy
 from texstream.fit.optim.base import FitState
-from texstream.fit.stream.problem import StreamConfig
+from texstream.fit.stream.config import StreamConfig
 from texstream.fit.stages.stage import build_problem
 
 from conftest import SCENE_DEVICE

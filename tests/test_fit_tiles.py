@@ -13,9 +13,10 @@ from texstream.core.errors import ConfigError
 from texstream.fit.optim.fitter import FitConfig, initial_guess, run_fit
 from texstream.fit.optim.linesearch import LineSearchConfig
 from texstream.fit.stream.penalties import PenaltyConfig
-from texstream.fit.stream.problem import StreamConfig
+from texstream.fit.stream.config import StreamConfig
 from texstream.fit.stages.stage import build_problem
-from texstream.fit.multi.tiles import plan_tiles, run_tiled_fit, split_texels, texel_range
+from texstream.fit.multi.tile_plan import split_texels, texel_range
+from texstream.fit.multi.tiles import plan_tiles, run_tiled_fit
 
 from conftest import DEVICES
 
@@ -55,7 +56,7 @@ def problem(scene, cfg, device):
 @pytest.mark.parametrize("optimizer,model", [("lm", "lafortune"), ("cg", "lafortune"), ("lbfgs", "diffuse"),
                                              ("sd", "diffuse"), ("lm", "radiance")])
 def test_tiled_fit_equals_the_untiled_fit_to_the_bit(scene, device, optimizer, model, monkeypatch):
-    import texstream.fit.multi.tiles as tiles
+    import texstream.fit.multi.tile_plan as tiles
 
     monkeypatch.setattr(tiles, "ALL_PHOTOS_FRACTION", 2.0)  # every tile streams only the photos that see it
     cfg = fit_config(optimizer, model)
@@ -98,7 +99,7 @@ def test_stopping_test_sums_the_tiles(scene, device):
 def test_each_tile_gets_every_photo_that_samples_it(scene, device, monkeypatch):
     """The tiles' photo lists hold every photo with a sample of their texels: each tile's own initial-guess
     pass (sample counts, per-texel percentiles) equals the untiled one's for its texels."""
-    import texstream.fit.multi.tiles as tiles
+    import texstream.fit.multi.tile_plan as tiles
 
     monkeypatch.setattr(tiles, "ALL_PHOTOS_FRACTION", 2.0)
     cfg = fit_config(tiles=5)
@@ -241,7 +242,7 @@ def test_tiles_on_two_gpus_equal_the_untiled_fit(scene, smooth):
 
 
 def test_visibility_launched_in_chunks_of_photos_equals_one_launch(scene, monkeypatch):
-    import texstream.fit.multi.tiles as tiles
+    import texstream.fit.multi.tile_plan as tiles
 
     cfg = fit_config(tiles=4)
     whole = problem(scene, cfg, ANY)

@@ -12,7 +12,7 @@ import pytest
 from texstream.core.errors import ConfigError
 from texstream.fit.optim.fitter import FitConfig, run_fit
 from texstream.fit.stream.penalties import PenaltyConfig
-from texstream.fit.stream.problem import StreamConfig
+from texstream.fit.stream.config import StreamConfig
 from texstream.fit.stages.stage import build_problem, photo_files
 from texstream.fit.multi.tiles import run_tiled_fit
 
@@ -53,7 +53,7 @@ def problem(capture, cfg):
 @pytest.mark.parametrize("smooth", [0.0, 0.05])
 def test_ray_tiles_equal_the_one_process_fit(capture, local_cluster, smooth, monkeypatch):
     """With LM's smoothness the actors' halos go through the object store after every iteration."""
-    import texstream.fit.multi.tiles as tiles
+    import texstream.fit.multi.tile_plan as tiles
 
     monkeypatch.setattr(tiles, "ALL_PHOTOS_FRACTION", 2.0)  # each actor reads only the photos that see its tile
     # one photo group and a fixed iteration count: the conditions of the exact comparison (test_fit_tiles.py)

@@ -20,8 +20,9 @@ import warp as wp
 from texstream.capture.synthetic.synth import VIEW_TERM_NAMES, SynthConfig, render_scene
 from texstream.fit.optim.fitter import FitConfig, run_fit
 from texstream.render.layout import VIEW_TERMS, ModelLayout
-from texstream.fit.stream.problem import PhotoSet, StreamProblem, TexelSet, surface_derivatives
-from texstream.render.camera import PhotoFrame
+from texstream.fit.stream.photo_set import PhotoSet
+from texstream.fit.stream.problem import PhotoFrame, StreamProblem
+from texstream.fit.stream.texels import TexelSet, surface_derivatives
 from texstream.render.renderer import Renderer
 
 from conftest import SCENE_DEVICE

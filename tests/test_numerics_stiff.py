@@ -44,7 +44,7 @@ def test_each_regime_is_exercised():
 def test_fit_warns_where_the_suite_found_the_precision_unsafe():
     import numpy as np
 
-    from texstream.fit.stream.problem import FP32_SAFE_PHOTOS, StreamConfig
+    from texstream.fit.stream.config import FP32_SAFE_PHOTOS, StreamConfig
     from texstream.fit.diagnostics.stiffcheck import numerics_warnings
 
     assert numerics_warnings(StreamConfig(), 10 * FP32_SAFE_PHOTOS) == []  # auto: fp64 sums there
@@ -73,7 +73,7 @@ def test_fit_stage_records_the_numerics_warning(tmp_path):
     cfg.fit.max_iterations = 2
     cfg.fit.stream.accumulate = "fp32"
     cfg.materials.mode = "off"
-    with mock.patch("texstream.fit.stream.problem.FP32_SAFE_PHOTOS", 3):
+    with mock.patch("texstream.fit.stream.config.FP32_SAFE_PHOTOS", 3):
         res = fit_stage(cap, cap / "ground_truth", tmp_path / "model", cfg, progress=False)
     man = json.loads((tmp_path / "model" / "model.json").read_text())
     assert any(w.startswith("numerics: float32 sums") for w in man["warnings"])

@@ -18,7 +18,7 @@ from conftest import DEVICES
 
 from texstream.core.errors import ConfigError
 from texstream.fit.kernels.summation import ERROR_SUMS, streamed_sums, study_terms
-from texstream.fit.stream.problem import FP32_SAFE_PHOTOS, FP32_SAFE_TOLERANCE, StreamConfig, resolve_accumulate
+from texstream.fit.stream.config import FP32_SAFE_PHOTOS, FP32_SAFE_TOLERANCE, StreamConfig, resolve_accumulate
 
 ROOT = Path(__file__).resolve().parent.parent
 STUDY = ROOT / "benchmarks" / "results" / "summation_cpu" / "summation.json"

@@ -15,8 +15,9 @@ from texstream.core.errors import InputError
 from texstream.fit.optim.fitter import FitConfig, initial_guess, run_fit
 from texstream.render.visibility import depth_map_kernel
 from texstream.fit.stream.photo_stream import choose_residency
-from texstream.fit.stream.problem import PhotoSet, StreamConfig
-from texstream.render.camera import PhotoFrame
+from texstream.fit.stream.config import StreamConfig
+from texstream.fit.stream.photo_set import PhotoSet
+from texstream.fit.stream.problem import PhotoFrame
 from texstream.fit.stages.stage import build_problem, photo_files
 
 # small maps and few photos keep the CPU ray casts of each test to a fraction of a second
@@ -284,7 +285,7 @@ def test_subsets_of_a_disk_stream_interleave_with_it(disk_scene, device, keep_ma
             out.append(f.numpy())
         return out
 
-    import texstream.fit.stream.problem as problem
+    import texstream.fit.stream.photo_set as problem
 
     monkeypatch.setattr(problem, "keep_maps_on_device", lambda *a: keep_maps)
     disk, _ = fit(disk_scene, True, device, photo_residency="disk", photos_per_window=3)
@@ -302,7 +303,7 @@ def test_staged_upload_gives_the_cropped_photos(scene, device, precision, slots,
     nearest even as numpy does, so the bits are numpy's; the depth and shadow maps equal the set's. So
     do two sets uploaded together through the same buffers (the photo split's upload), with any number of
     buffers (more than the chunks, too)."""
-    import texstream.fit.stream.problem as problem
+    import texstream.fit.stream.photo_set as problem
 
     monkeypatch.setattr(problem, "UPLOAD_SLOTS", slots)
 
@@ -350,7 +351,7 @@ def test_staged_upload_fails_on_a_bad_photo_with_nothing_left_running(scene, dev
     photos: photo 4 fails in the second chunk while the third chunk's crops (slowed to 0.2 s each) run."""
     import time
 
-    import texstream.fit.stream.problem as problem
+    import texstream.fit.stream.photo_set as problem
 
     ref = photo_set(scene, device)
     assert ref.n >= 9
@@ -388,7 +389,7 @@ def test_staged_upload_fails_on_a_bad_photo_with_nothing_left_running(scene, dev
 
 def test_maps_launched_in_chunks_equal_one_launch(scene, device, monkeypatch):
     """Sets too large for one launch (MAX_LAUNCH_THREADS) make their maps a few photos at a time."""
-    import texstream.fit.stream.problem as problem
+    import texstream.fit.stream.photo_set as problem
 
     one = photo_set(scene, device)
     monkeypatch.setattr(problem, "MAX_LAUNCH_THREADS", 3 * one.hmax * one.wmax)
@@ -417,7 +418,7 @@ def test_fit_stage_streams_a_capture_from_disk_and_records_it(capture_dir, tmp_p
 def test_disk_stream_with_maps_kept_on_the_device_equals_recomputing_them(disk_scene, device, monkeypatch):
     """On CUDA, photos streamed from disk keep every depth and shadow map on the device when there is
     room (made once, masked per window); the maps are the recomputed ones, so the fit is the same."""
-    import texstream.fit.stream.problem as problem
+    import texstream.fit.stream.photo_set as problem
 
     monkeypatch.setattr(problem, "keep_maps_on_device", lambda *a: False)
     again, r_again = fit(disk_scene, True, device, photo_residency="disk", photos_per_window=4)
@@ -434,7 +435,7 @@ def test_uploads_at_once_share_the_short_switch_interval_and_restore_it():
     (not the first upload's short value left behind by the second)."""
     import threading
 
-    import texstream.fit.stream.problem as problem
+    import texstream.fit.stream.photo_set as problem
 
     before = sys.getswitchinterval()
     first_in, second_done = threading.Event(), threading.Event()

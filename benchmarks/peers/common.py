@@ -86,7 +86,7 @@ def fit_config(data: PeerData, photo_sampling: str = "filtered", **kw):
     (:func:`shadow_map_size`); what every Lafortune peer shares of it: the model layout (lobes, lobe
     shape), bounds, initial guess and the distribution step's options."""
     from texstream.fit.optim.fitter import FitConfig
-    from texstream.fit.stream.problem import StreamConfig
+    from texstream.fit.stream.config import StreamConfig
 
     return FitConfig(stream=StreamConfig(photo_sampling=photo_sampling, shadow_map_size=shadow_map_size(data)), **kw)
 

@@ -28,7 +28,10 @@ def build_problem(mesh, bake, frames, images, masks, cfg: FitConfig, device: str
     import concurrent.futures
     import contextvars
 
-    from texstream.fit.stream.problem import PhotoFrame, PhotoSet, StreamProblem, TexelSet, surface_derivatives, texel_coordinate_gradients
+    from texstream.fit.stream.photo_set import PhotoSet
+    from texstream.fit.stream.problem import StreamProblem
+    from texstream.fit.stream.texels import TexelSet, surface_derivatives, texel_coordinate_gradients
+    from texstream.render.camera import PhotoFrame
     from texstream.fit.multi.tiles import parse_devices, split_photos
 
     photo_frames = [PhotoFrame.from_capture_frame(f) for f in frames]

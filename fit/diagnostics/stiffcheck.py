@@ -232,7 +232,7 @@ def _fit_record(res, t: float, prob) -> dict:
 
 def _run_fit_case(case: StiffCase, size: str, device: str, iterations: int) -> dict:
     from texstream.fit.optim.fitter import FitConfig, initial_guess, run_fit
-    from texstream.fit.stream.problem import StreamConfig
+    from texstream.fit.stream.config import StreamConfig
     from texstream.fit.stages.stage import build_problem, params_to_grid, render_model
 
     sc = _render(case, size, device)
@@ -309,7 +309,7 @@ def _run_lfm_case(case: StiffCase, size: str, device: str, iterations: int) -> d
     from texstream.fit.models.lfm.problem import LFMConfig, LFMProblem, PhotoSamples, fit_lfm
     from texstream.fit.models.lfm.baselines import fit_pca
     from texstream.fit.models.lfm.model_folder import lfm_geometry
-    from texstream.fit.stream.problem import StreamConfig
+    from texstream.fit.stream.config import StreamConfig
     from texstream.fit.stages.stage import build_problem
 
     sc = _render(case, size, device)
@@ -344,7 +344,7 @@ def _run_accumulation_case(case: StiffCase, size: str, device: str, iterations: 
     redrawn to 10^6 photos per texel and summed as a pass sums them."""
     from texstream.fit.optim.fitter import FitConfig
     from texstream.fit.kernels.summation import streamed_sums
-    from texstream.fit.stream.problem import FP32_SAFE_PHOTOS, StreamConfig, resolve_accumulate
+    from texstream.fit.stream.config import FP32_SAFE_PHOTOS, StreamConfig, resolve_accumulate
     from texstream.fit.stages.stage import fit_synthetic, render_model
 
     sc = _render(case, size, device)

@@ -54,7 +54,7 @@ class LafortuneFuncs(NamedTuple):
     dL_j/dC_j,k (isotropic: d/dc_xy, d/dc_z), f[o + stride - 1] = dL_j/dn_j; other entries 0.
     m and J are linear in f (:func:`model_value`, ``jacobian_row``), so a weighted mean of
     features over several directions gives the weighted mean model and Jacobian exactly (the
-    filtered photo sampling of fit/kernels/stream.py)."""
+    filtered photo sampling of fit/kernels/accumulate.py)."""
     dhd: Any
     """``dhd(p, d, u, v, one)``: d^T (Hess m_c) d for c = r, g, b (the part the Gauss-Newton
     approximation drops)."""

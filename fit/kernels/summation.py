@@ -1,7 +1,7 @@
 """Streamed sums as the fit's passes accumulate them, for the summation study (benchmarks/summation.py)
-and the automatic accumulation choice (``StreamConfig.accumulate`` "auto", fit/problem.py).
+and the automatic accumulation choice (``StreamConfig.accumulate`` "auto", fit/stream/config.py).
 
-A pass's thread adds one texel's terms photo after photo in registers (fit/kernels/stream.py
+A pass's thread adds one texel's terms photo after photo in registers (fit/kernels/accumulate.py
 ``accumulate_kernel``): a serial sum in the accumulate precision, optionally Kahan-compensated with the
 pass's own :func:`stream.kahan_add`. These kernels do the same to rows of float32 terms, one row per
 thread: naive float32, Kahan float32, float64, and a pairwise (tree) float32 sum for comparison.

@@ -269,7 +269,9 @@ def load_single_view(capture_dir: str | Path, normals_path: str | Path | None, c
 
 def build_single_view_problem(geo: SingleViewGeometry, frames, images, masks, cfg: FitConfig, device: str):
     """A :class:`StreamProblem` over the covered pixels, photos without geometry (no depth test)."""
-    from texstream.fit.stream.problem import PhotoFrame, PhotoSet, StreamProblem, TexelSet
+    from texstream.fit.stream.photo_set import PhotoSet
+    from texstream.fit.stream.problem import PhotoFrame, StreamProblem
+    from texstream.fit.stream.texels import TexelSet
 
     texels = TexelSet.from_grid(geo.covered, geo.position, geo.normal, geo.tangent, geo.bitangent)
     photo_frames = [PhotoFrame.from_capture_frame(f) for f in frames]

@@ -1,12 +1,12 @@
 """Photos split over several devices (``StreamConfig.device_split`` "photos").
 
 Each device holds a share of the photos, a run of consecutive ones with their depth and shadow maps
-(a :class:`~texstream.fit.stream.problem.PhotoSet` of its own on its device; the host crops every part's
+(a :class:`~texstream.fit.stream.photo_set.PhotoSet` of its own on its device; the host crops every part's
 photos in one pipeline, each chunk copied to its device while the next is cropped, and each device
 makes its own photos' maps), and streams
 it over every texel. A pass is then one launch per device into that device's per-group partial
 sums; the first device copies the others' partials after its own and adds all of them in the fixed
-order of :func:`~texstream.fit.kernels.stream.reduce_partials_kernel`, then steps every texel
+order of :func:`~texstream.fit.kernels.accumulate.reduce_partials_kernel`, then steps every texel
 itself (:class:`~texstream.fit.stream.problem.StreamProblem` ``peers``). Between devices only the
 parameters (to the others, before a pass) and the partial sums (back) travel, device to device (peer
 copies over NVLink where there is one). A copy runs on its source device's stream, and that device
@@ -68,7 +68,7 @@ def check_split_devices(devices: list[str], fit_device: str) -> None:
 
 
 class DevicePhotos:
-    """A capture's photos split over devices: ``parts`` (one :class:`~texstream.fit.stream.problem.PhotoSet`
+    """A capture's photos split over devices: ``parts`` (one :class:`~texstream.fit.stream.photo_set.PhotoSet`
     per device, photos ``bounds[d]``), presented as one set where a fit reads what concerns all photos
     (count, exposures, light kinds, frames). Passes never stream it directly (:meth:`windows` refuses):
     a :class:`~texstream.fit.stream.problem.StreamProblem` over it streams each part on its device."""
@@ -132,11 +132,11 @@ def build_device_photos(frames, images, mesh_points, mesh_faces, masks, config, 
     """The photos split over ``devices`` (:func:`split_bounds`): every part set up at once on a thread of its
     own (mesh, crops, device buffers), then all parts' photos cropped by the host once, one part after the
     other, each chunk copied to its part's device while the next is cropped, and mapped there
-    (:func:`~texstream.fit.stream.problem.upload_photo_sets`: the host's copies, which bound the upload, are not
+    (:func:`~texstream.fit.stream.photo_set.upload_photo_sets`: the host's copies, which bound the upload, are not
     made to compete). The photos stay on the devices (``photo_residency`` device or auto; a part that does
     not fit fails)."""
     from texstream.fit.stream.photo_stream import PhotoFiles
-    from texstream.fit.stream.problem import PhotoSet, upload_photo_sets
+    from texstream.fit.stream.photo_set import PhotoSet, upload_photo_sets
 
     check_split_devices(devices, devices[0])  # the fit's device: the caller's check
     if config.photo_residency not in ("auto", "device"):

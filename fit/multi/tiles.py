@@ -22,7 +22,6 @@ smooth fit is exact too (Ray actors exchange through the object store). The othe
 from __future__ import annotations
 
 import concurrent.futures
-import dataclasses
 import time
 
 import numpy as np
@@ -30,59 +29,13 @@ import warp as wp
 
 from texstream.core.errors import ConfigError
 
-from texstream.fit.optim.fitter import (FitConfig, FitResult, FitRun, converged, start_arrays, robust_scale_from_stats, stop_test_due,
-                     trace_rows)
-from texstream.fit.kernels.tiles import gather_rows_kernel, scatter_rows_kernel, tile_visibility_kernel, tile_visibility_radiance_kernel
-from texstream.fit.stream.problem import MAX_LAUNCH_THREADS, StreamProblem, TexelSet, exposure_mean_square
-
-
-@dataclasses.dataclass
-class TilePlan:
-    """How a fit is split: per tile its texel range, device slot and photos.
-
-    Attributes:
-        bounds: (T, 2) int64 [begin, end) compact texel indices of each tile.
-        devices: the device of each worker slot (a device may appear twice: two threads on it).
-        slots: (T,) int64 worker slot of each tile (tile t on slot t mod the slot count).
-        photos: per tile, the (P_t,) int64 indices of the photos that see it, ascending.
-        halo: per tile, the (H_t,) int64 texels of other tiles its own texels' smoothness reads
-            (ascending; empty without smoothness). A tile's problem holds its own texels, then these.
-    """
-
-    bounds: np.ndarray
-    devices: list[str]
-    slots: np.ndarray
-    photos: list[np.ndarray]
-    halo: list[np.ndarray]
-
-    def texels(self, t: int) -> np.ndarray:
-        """Tile t's texels (global indices) in its problem's order: its own range, then its halo."""
-        b, e = self.bounds[t]
-        return np.concatenate([np.arange(b, e, dtype=np.int64), self.halo[t]])
-
-    def report(self, n_photos: int) -> dict:
-        """A plain summary for model.json and benchmarks."""
-        return {"tiles": int(len(self.bounds)), "devices": list(self.devices),
-                "texels_per_tile": [int(e - b) for b, e in self.bounds],
-                "photos_per_tile": [int(p.size) for p in self.photos],
-                "photos_streamed_per_tile": [int(tile_photos(self, t, n_photos).size) for t in range(len(self.photos))],
-                "photos": int(n_photos)}
-
-
-def parse_devices(devices: str, default: str) -> list[str]:
-    """The worker devices of ``StreamConfig.devices`` ("cuda:0,cuda:1"; empty: ``default``)."""
-    names = [d.strip() for d in str(devices).split(",") if d.strip()]
-    if not names:
-        return [default]
-    for d in names:
-        if d != "cpu" and not d.startswith("cuda"):
-            raise ConfigError(f"device {d!r} in stream.devices unknown", fix="use cpu or cuda:N, comma separated")
-        try:
-            wp.get_device(d)
-        except Exception as e:  # warp raises RuntimeError / ValueError for a device it lacks
-            raise ConfigError(f"device {d!r} in stream.devices is not available ({e})",
-                              fix="list devices this machine has (warp.get_cuda_device_count())") from None
-    return names
+from texstream.fit.optim.fitter import FitConfig, FitResult, start_arrays
+from texstream.fit.kernels.tiles import gather_rows_kernel, scatter_rows_kernel
+from texstream.fit.multi.lockstep import TileWorker, lockstep
+from texstream.fit.multi.tile_plan import (TilePlan, assemble, halo_pairs, plan_tiles, texel_subset, tile_config,
+                                           tile_photos, tile_start)
+from texstream.fit.multi.tile_plan import parse_devices  # noqa: F401  (re-exported: the fit stage's import)
+from texstream.fit.stream.problem import StreamProblem, exposure_mean_square
 
 
 def tiled(cfg: FitConfig) -> bool:
@@ -107,112 +60,6 @@ def split_photos(cfg: FitConfig) -> bool:
     return len([d for d in s.devices.split(",") if d.strip()]) > 1
 
 
-def check_tileable(cfg: FitConfig) -> None:
-    """Refuse options that couple texels across tiles without a halo exchange (LM's smoothness has one),
-    naming the option."""
-    coupled = []
-    if cfg.penalties.laplacian_weight > 0:
-        coupled.append("penalties.laplacian_weight (the Laplacian over neighbouring texels)")
-    if cfg.stream.model_lookup == "bilinear":
-        coupled.append("stream.model_lookup bilinear (neighbours' held values)")
-    if cfg.linesearch.acceptance == "global":
-        coupled.append("linesearch.acceptance global (one step for all texels)")
-    if coupled:
-        raise ConfigError("a tiled fit needs texels that are fitted independently (or LM's smoothness, whose "
-                          "halo the threads exchange), and " + "; ".join(coupled) + " couple them",
-                          fix="set stream.tiles to 0 with one device, or turn those options off")
-
-
-def split_texels(n: int, tiles: int) -> np.ndarray:
-    """(T, 2) [begin, end) ranges of ``tiles`` near-equal runs of consecutive texels (fewer when n < tiles)."""
-    tiles = max(1, min(int(tiles), max(n, 1)))
-    edges = np.linspace(0, n, tiles + 1).round().astype(np.int64)
-    return np.stack([edges[:-1], edges[1:]], axis=1)
-
-
-def texel_range(texels: TexelSet, begin: int, end: int) -> TexelSet:
-    """Texels begin..end-1 as a TexelSet of their own (:func:`texel_subset`)."""
-    return texel_subset(texels, np.arange(begin, end, dtype=np.int64))
-
-
-def texel_subset(texels: TexelSet, indices: np.ndarray) -> TexelSet:
-    """Texels ``indices`` (in that order) as a TexelSet of their own: neighbours and padding sources map to
-    their positions in ``indices``, or -1 (none) outside it."""
-    idx = np.asarray(indices, np.int64)
-    where = -np.ones(texels.n + 1, np.int64)  # row n: the -1 of a missing neighbour maps to -1
-    where[idx] = np.arange(idx.size)
-
-    def cut(a):
-        return None if a is None else np.ascontiguousarray(a[idx])
-
-    def local(ids):
-        ids = np.asarray(ids, np.int64)
-        return where[np.where(ids >= 0, ids, texels.n)]
-
-    source = None if texels.grid_source is None else local(texels.grid_source)
-    return TexelSet(cut(texels.position), cut(texels.normal), cut(texels.tangent), cut(texels.bitangent),
-                    cut(texels.grid_index), local(texels.neighbors[idx]).astype(np.int32),
-                    texels.width, texels.height, cut(texels.face_normal), cut(texels.normal_jacobian),
-                    cut(texels.coordinate_gradients), source)
-
-
-def halo_texels(texels: TexelSet, begin: int, end: int) -> np.ndarray:
-    """The texels outside begin..end-1 that are grid neighbours of texels inside it (ascending)."""
-    nb = np.asarray(texels.neighbors[begin:end], np.int64).reshape(-1)
-    return np.unique(nb[(nb >= 0) & ((nb < begin) | (nb >= end))])
-
-
-def tile_photo_visibility(problem: StreamProblem, bounds: np.ndarray) -> np.ndarray:
-    """(T, photos) bool: whether photo k has a sample of any texel of tile t (one launch over photos x
-    texels per window of photos; the acceptance test of the passes, fit/kernels/tiles.py)."""
-    n, dev, photos = problem.n, problem.device, problem.photos
-    sizes = (bounds[:, 1] - bounds[:, 0]).astype(np.int64)
-    tile_of = wp.array(np.repeat(np.arange(len(bounds), dtype=np.int32), sizes), dtype=wp.int32, device=dev)
-    seen = wp.zeros((len(bounds), photos.n), dtype=wp.int32, device=dev)
-    kernel = tile_visibility_radiance_kernel if problem.radiance else tile_visibility_kernel
-    offset = 0
-    step = max(1, MAX_LAUNCH_THREADS // max(n, 1))  # a launch's size stays within Warp's 32-bit bounds
-    for images, depth, shadow, infos, b, e in photos.windows():
-        for k0 in range(b, e, step):
-            wp.launch(kernel, dim=(min(step, e - k0), n), device=dev,
-                      inputs=[problem.tex, images, depth, shadow, infos, k0, offset - b, problem.opt, tile_of],
-                      outputs=[seen])
-        offset += e - b
-    return seen.numpy() > 0
-
-
-def plan_tiles(problem: StreamProblem, cfg: FitConfig) -> TilePlan:
-    """Tiles (``StreamConfig.tiles``, 0: one per device), their devices and their photos."""
-    check_tileable(cfg)
-    devices = parse_devices(cfg.stream.devices, problem.device)
-    # streamed photos share one set of window buffers: only one thread on the fit's device may stream them
-    if (len(devices) > 1 or devices[0] != problem.device) and problem.photos.residency != "device":
-        raise ConfigError(f"fitting on {','.join(devices)} needs the photos resident on the device, and they are "
-                          f"{problem.photos.residency} ({problem.photos.residency_reason})",
-                          fix="set stream.photo_residency device (and a memory cap that holds them), or fit on "
-                              "the one device")
-    bounds = split_texels(problem.n, cfg.stream.tiles or len(devices))
-    seen = tile_photo_visibility(problem, bounds)
-    # a tile no photo sees keeps photo 0: its texels stay unseen (no sample passes the same test), as untiled
-    photos = [np.flatnonzero(row) if row.any() else np.zeros(1, np.int64) for row in seen]
-    smooth = cfg.penalties.smooth_weight > 0
-    halo = [halo_texels(problem.texels, int(b), int(e)) if smooth else np.zeros(0, np.int64) for b, e in bounds]
-    return TilePlan(bounds, devices, np.arange(len(bounds)) % len(devices), photos, halo)
-
-
-ALL_PHOTOS_FRACTION = 0.75
-"""a tile that sees at least this fraction of the photos streams them all: the others add only samples the
-distribution step rejects (cheaply, at the projection or the depth test), and the tile then needs no copy of
-its photos on the parent's device (one device-to-device copy of the arrays elsewhere) instead of a gather
-through the host"""
-
-
-def tile_photos(plan: TilePlan, t: int, n_photos: int) -> np.ndarray:
-    """The photos tile t streams: those that see it, or all of them past :data:`ALL_PHOTOS_FRACTION`."""
-    idx = plan.photos[t]
-    return np.arange(n_photos) if idx.size >= ALL_PHOTOS_FRACTION * n_photos else idx
-
-
 def tile_problem(problem: StreamProblem, plan: TilePlan, t: int, cfg: FitConfig) -> StreamProblem:
     """Tile ``t``'s StreamProblem on its device: its texels, and its photos (:func:`tile_photos`) with their
     maps (the parent's own when it takes every photo on the parent's device, else a copy,
@@ -224,23 +71,6 @@ def tile_problem(problem: StreamProblem, plan: TilePlan, t: int, cfg: FitConfig)
         photos = photos.subset(idx, device=dev)
     return StreamProblem(texel_subset(problem.texels, plan.texels(t)), photos, problem.layout, cfg.stream,
                          device=dev)
-
-
-def tile_start(plan: TilePlan, t: int, guess: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Tile t's starting (parameters, sample counts): its halo starts where its owners do, counted as unseen
-    (never stepped, never in the trace's sums)."""
-    idx = plan.texels(t)
-    c = counts[idx].copy()
-    c[plan.bounds[t][1] - plan.bounds[t][0]:] = 0
-    return guess[idx], c
-
-
-def tile_config(problem: StreamProblem, cfg: FitConfig) -> FitConfig:
-    """The tiles' config: the accumulate precision resolved for all the photos (a tile sees fewer, and
-    ``auto`` would pick by its own count) and the untiled problem's photo groups (automatic groups follow
-    the texel count; the same groups over the same photos sum each texel in the same order)."""
-    return dataclasses.replace(cfg, stream=dataclasses.replace(cfg.stream, accumulate=problem.accumulate,
-                                                                groups=problem.groups))
 
 
 class SlotPool:
@@ -267,146 +97,6 @@ class SlotPool:
 
     def close(self) -> None:
         self.pool.shutdown()
-
-
-def lockstep(workers, pool_map, cfg: FitConfig, combine_stats, progress=None, first_in_order: bool = True,
-             exchange=None):
-    """Drive tile workers (:class:`TileWorker` or look-alikes) through the fit in lockstep: a segment of
-    iterations up to each stopping test on every worker (``pool_map(fn, workers)`` runs them, concurrently
-    where it can), then one test on the summed trace. ``combine_stats``: the tiles' scale-pass statistics
-    into one array in the untiled texel order (np.concatenate for tiles of consecutive texels). ``exchange()``, when given, runs after every
-    iteration's step on every worker, before their trace rows (a halo exchange: segments of one iteration).
-    ``first_in_order``: tile 0 starts, and steps its first iteration, alone before the others (Warp builds a
-    kernel's code at its first launch, which two threads must not do at once; every kernel of the fit is
-    launched by then). Returns (summed trace rows, times, last iteration, robust scale)."""
-    t0 = time.time()  # the tiles' trace rows carry time.time() stamps (comparable across processes)
-
-    def first_map(fn, items):
-        """pool_map, tile 0 first on its own when ``first_in_order`` (its launches build every kernel)."""
-        if not first_in_order:
-            return pool_map(fn, items)
-        first = fn(0, items[0])
-        return pool_map(lambda t, w: first if t == 0 else fn(t, w), items)
-
-    scale = None
-    if workers and pool_map(lambda t, w: w.needs_scale_pass(), workers)[0]:
-        stats = first_map(lambda t, w: w.scale_pass_stats(), workers)
-        scale = robust_scale_from_stats(combine_stats(stats), cfg)
-    rows0 = first_map(lambda t, w: w.begin(scale), workers)
-    sums = np.zeros((cfg.max_iterations + 1, 8))
-    sums[0] = np.sum(rows0, axis=0)
-    times = [max(s[0] for s in pool_map(lambda t, w: w.stamps(0, 0), workers)) - t0]
-    last_obj, it, it_done = None, 1, 0
-    while it <= cfg.max_iterations:
-        end = it
-        while not stop_test_due(end, cfg):
-            end += 1
-        if exchange is not None:
-            per_iteration = []
-            for k in range(it, end + 1):
-                step_map = first_map if k == 1 else pool_map
-                step_map(lambda t, w: w.step(k), workers)
-                exchange()
-                per_iteration.append(step_map(lambda t, w: w.finish(k), workers))
-            rows = [np.stack([r[t] for r in per_iteration]) for t in range(len(workers))]
-        elif it == 1 and first_in_order:  # tile 0's first iteration alone, then the rest concurrently
-            first = workers[0].run_iterations(1, 1)
-            rows = pool_map(lambda t, w: w.run_iterations(1, end) if t else
-                            np.concatenate([first, w.run_iterations(2, end) if end > 1 else first[:0]]), workers)
-        else:
-            rows = pool_map(lambda t, w: w.run_iterations(it, end), workers)
-        sums[it:end + 1] = np.sum(rows, axis=0)
-        # an iteration's time: when its last tile recorded it
-        stamps = pool_map(lambda t, w: w.stamps(it, end), workers)
-        times.extend(np.max(stamps, axis=0) - t0)
-        now = times[-1]
-        if progress is not None:
-            for k in range(it, end + 1):
-                progress(k)
-        it_done = end
-        obj = float(sums[end, 0])
-        if converged(last_obj, obj, cfg):
-            break
-        last_obj = obj
-        if cfg.time_budget_s > 0 and now >= cfg.time_budget_s:
-            break
-        it = end + 1
-    return sums[:it_done + 1], times, it_done, scale
-
-
-class TileWorker:
-    """One tile's fit (a :class:`~texstream.fit.optim.fitter.FitRun`) behind the calls :func:`lockstep` makes;
-    the same object runs on a local thread or inside a Ray actor."""
-
-    def __init__(self, problem: StreamProblem, cfg: FitConfig, start: tuple[np.ndarray, np.ndarray],
-                 view_mean_sq: float, own: int | None = None):
-        """``own``: the tile's own texels, the first of the problem's (the rest: its halo; None: all)."""
-        self.problem, self.cfg, self.view_mean_sq = problem, cfg, view_mean_sq
-        self.own = problem.n if own is None else int(own)
-        self.run = FitRun(problem, cfg, start=start)
-
-    def needs_scale_pass(self) -> bool:
-        return self.run.needs_scale_pass()
-
-    def scale_pass_stats(self) -> np.ndarray:
-        """The scale pass's per-texel statistics of the tile's own texels."""
-        return self.run.scale_pass_stats()[:self.own]
-
-    def stamps(self, first: int, last: int) -> list[float]:
-        """The wall-clock times (time.time) trace rows first..last were recorded."""
-        return [self.run.stamps[row] for row in range(first, last + 1)]
-
-    def step(self, it: int) -> None:
-        """Iteration ``it``'s step (its trace row comes from :meth:`finish`, after a halo exchange)."""
-        self.run.step(it)
-
-    def finish(self, it: int) -> np.ndarray:
-        """Iteration ``it``'s trace row, the reported objective recomputed with the exchanged halo."""
-        self.run.refresh_totals()
-        self.run.record(it)
-        return self.run.trace_buf.numpy()[it]
-
-    def begin(self, robust_scale: float | None) -> np.ndarray:
-        """Start the fit; returns trace row 0 (8 sums over this tile's texels)."""
-        self.run.begin(robust_scale, self.view_mean_sq)
-        return self.run.trace_buf.numpy()[0]
-
-    def run_iterations(self, first: int, last: int) -> np.ndarray:
-        """Iterations first..last; returns their trace rows ((last - first + 1, 8) sums over this tile)."""
-        for it in range(first, last + 1):
-            self.run.iterate(it)
-        return self.run.trace_buf.numpy()[first:last + 1]
-
-    def halo_values(self, rows: np.ndarray) -> np.ndarray:
-        """Parameters (``state.p``) of the tile's texels ``rows``, that another tile holds as halo (through
-        the host: the Ray backend's exchange)."""
-        return self.run.state.p.numpy()[rows]
-
-    def set_halo(self, rows: np.ndarray, values: np.ndarray) -> None:
-        """Write ``values`` into ``state.p`` at the halo texels ``rows`` (one upload and a scatter launch)."""
-        p = self.run.state.p
-        wp.launch(scatter_rows_kernel, dim=len(rows), device=p.device,
-                  inputs=[wp.array(values, dtype=p.dtype, device=p.device),
-                          wp.array(np.asarray(rows, np.int32), dtype=wp.int32, device=p.device)], outputs=[p])
-
-    def params(self) -> tuple[np.ndarray, int, float]:
-        """(fitted (N_t, n_params) parameters, passes streamed, robust scale)."""
-        return (self.run.state.params_numpy()[:self.own], int(self.problem.passes),
-                float(self.problem.robust_scale))
-
-
-def halo_pairs(plan: TilePlan) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
-    """(owner u, receiver t, rows of u's texels, rows of t's halo) for every pair of tiles with a halo between
-    them: what an exchange copies, in the tiles' problems' texel order."""
-    owner = np.searchsorted(plan.bounds[:, 1], np.arange(plan.bounds[-1, 1]), side="right")
-    pairs = []
-    for t, halo in enumerate(plan.halo):
-        own_t = int(plan.bounds[t, 1] - plan.bounds[t, 0])
-        for u in np.unique(owner[halo]):
-            pick = np.flatnonzero(owner[halo] == u)
-            pairs.append((int(u), t, (halo[pick] - plan.bounds[u, 0]).astype(np.int32),
-                          (own_t + pick).astype(np.int32)))
-    return pairs
 
 
 class HaloExchange:
@@ -488,13 +178,3 @@ def run_tiled_fit(problem: StreamProblem, cfg: FitConfig, start=None,
               "halo_texels": [int(h.size) for h in plan.halo],
               "fit_s": times[-1]}
     return result, report
-
-
-def assemble(problem: StreamProblem, cfg: FitConfig, counts: np.ndarray, parts: list, sums: np.ndarray,
-             times: list, it_done: int) -> FitResult:
-    """The tiles' (parameters, passes, robust scale) as one FitResult in the untiled texel order."""
-    passes = max(p[1] for p in parts)
-    problem.passes += passes  # the passes each photo streamed through, as an untiled fit counts them
-    return FitResult(params=np.concatenate([p[0] for p in parts]), samples=counts,
-                     trace=trace_rows(sums, times[:it_done + 1], cfg), layout=problem.layout, passes=problem.passes,
-                     robust_loss=cfg.loss(problem.layout), robust_scale=parts[0][2])

@@ -4,7 +4,7 @@ Each tile is a Ray actor that builds its own problem: its texels (shipped, small
 from the capture's files (paths on storage every worker reads), cropped, with their depth and shadow
 maps made on the actor's device, as the one-process set-up makes them photo by photo (same crops, same
 rays: the same values). The driver plans the tiles (fit/tiles.py: visibility from its own set-up) and
-drives the actors in lockstep (:func:`texstream.fit.multi.tiles.lockstep`), so a Ray fit gives the
+drives the actors in lockstep (:func:`texstream.fit.multi.lockstep.lockstep`), so a Ray fit gives the
 one-process fit's parameters to the last bit under the conditions of fit/tiles.py. Ray is imported
 here only: ``texstream.fit`` itself still imports only numpy and warp.
 
@@ -26,18 +26,21 @@ from texstream.core.errors import ConfigError, TexstreamError
 
 from texstream.fit.optim.fitter import start_arrays
 from texstream.fit.stream.problem import exposure_mean_square
-from texstream.fit.multi.tiles import (TileWorker, assemble, check_tileable, halo_pairs, lockstep, plan_tiles, texel_subset, tile_config,
-                    tile_photos, tile_start)
+from texstream.fit.multi.lockstep import TileWorker, lockstep
+from texstream.fit.multi.tile_plan import (assemble, check_tileable, halo_pairs, plan_tiles, texel_subset, tile_config,
+                                           tile_photos, tile_start)
 
 
 class TileActor:
-    """A tile's :class:`~texstream.fit.multi.tiles.TileWorker`, built inside the actor's process from ``spec``
+    """A tile's :class:`~texstream.fit.multi.lockstep.TileWorker`, built inside the actor's process from ``spec``
     (frames, photo files, mesh arrays, texels, layout, config, start, device)."""
 
     def __init__(self, spec: dict):
         import warp as wp
 
-        from texstream.fit.stream.problem import PhotoSet, StreamProblem
+        from texstream.fit.stream.photo_set import PhotoSet
+
+        from texstream.fit.stream.problem import StreamProblem
 
         wp.config.quiet = True
         wp.init()

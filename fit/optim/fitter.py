@@ -28,7 +28,8 @@ from texstream.fit.optim.lm import LevenbergMarquardt
 from texstream.fit.optim.steepest import SteepestDescent
 from texstream.fit.stream.penalties import PenaltyConfig, Penalties
 from texstream.fit.optim.lfm_config import LFMConfig
-from texstream.fit.stream.problem import StreamConfig, StreamProblem, no_light_error
+from texstream.fit.stream.config import StreamConfig
+from texstream.fit.stream.problem import StreamProblem, no_light_error
 
 OPTIMIZERS = ("sd", "cg", "lbfgs", "lm")
 TRACE_CHUNKS = 4096

@@ -42,6 +42,7 @@ import warp as wp
 from texstream.core.errors import ConfigError, InputError
 
 from texstream.fit.kernels import lfm as LK
+from texstream.fit.kernels import lfm_lbfgs as LB
 from texstream.fit.optim.lfm_config import LOOKUPS, OPTIMIZERS, VIEW_MAPS, LFMConfig  # noqa: F401  (re-exported)
 from texstream.fit.stream.problem import exposure_mean_square
 
@@ -178,7 +179,7 @@ class TableSamples:
 
 
 class PhotoSamples:
-    """The photos of a :class:`texstream.fit.stream.problem.PhotoSet` streamed through the distribution step
+    """The photos of a :class:`texstream.fit.stream.photo_set.PhotoSet` streamed through the distribution step
     (fit/kernels/stream.py ``observe``, light free, bilinear photo sampling at the texel centre)."""
 
     def __init__(self, problem, frames):
@@ -515,7 +516,7 @@ class LFMResult:
 
 
 class PatchLBFGS:
-    """L-BFGS state of every (vertex, channel) patch on the device (fit/kernels/lfm.py): ring buffers
+    """L-BFGS state of every (vertex, channel) patch on the device (fit/kernels/lfm_lbfgs.py): ring buffers
     of the last ``memory`` (s, y) pairs over the whole parameter vector, with per patch and channel
     the pair count, 1 / s.y per pair and the initial scaling gamma. The two-loop recursion runs as
     2 x memory gathers over the patches (a Python loop over the history's ages, never over patches)."""
@@ -540,16 +541,16 @@ class PatchLBFGS:
         pr = self.pr
         self.count.zero_()
         pr.patch_dot(gG, gG, gH, gH, self.gg)
-        wp.launch(LK.lbfgs_gamma_start_kernel, dim=pr.V, device=pr.device, inputs=[self.gg], outputs=[self.gamma])
+        wp.launch(LB.lbfgs_gamma_start_kernel, dim=pr.V, device=pr.device, inputs=[self.gg], outputs=[self.gamma])
 
     def push(self, G, TG, gG, tgG, H, TH, gH, tgH, accepted, alpha) -> None:
         """Record the pair of this iteration's accepted trials (before they are adopted)."""
         pr, dev = self.pr, self.pr.device
-        wp.launch(LK.lbfgs_push_G_kernel, dim=(pr.S, pr.K), device=dev,
+        wp.launch(LB.lbfgs_push_G_kernel, dim=(pr.S, pr.K), device=dev,
                   inputs=[G, TG, gG, tgG, accepted, self.count, pr.slot_vertex, self.m], outputs=[self.s_G, self.y_G])
-        wp.launch(LK.lbfgs_push_H_kernel, dim=(pr.V * pr.K, pr.M), device=dev,
+        wp.launch(LB.lbfgs_push_H_kernel, dim=(pr.V * pr.K, pr.M), device=dev,
                   inputs=[H, TH, gH, tgH, accepted, self.count, pr.K, self.m], outputs=[self.s_H, self.y_H])
-        wp.launch(LK.lbfgs_finish_push_kernel, dim=pr.V, device=dev,
+        wp.launch(LB.lbfgs_finish_push_kernel, dim=pr.V, device=dev,
                   inputs=[pr.ring_start, pr.ring_slots, self.s_G, self.s_H, self.y_G, self.y_H, accepted, alpha, pr.K,
                           pr.M, self.m], outputs=[self.count, self.rho, self.gamma])
 
@@ -560,22 +561,22 @@ class PatchLBFGS:
         wp.copy(DH, gH)
         for first, ages in ((1, range(m)), (0, range(m - 1, -1, -1))):
             if not first:
-                wp.launch(LK.lbfgs_scale_G_kernel, dim=(pr.S, pr.K), device=dev,
+                wp.launch(LB.lbfgs_scale_G_kernel, dim=(pr.S, pr.K), device=dev,
                           inputs=[self.gamma, pr.slot_vertex], outputs=[DG])
-                wp.launch(LK.lbfgs_scale_H_kernel, dim=(pr.V * pr.K, pr.M), device=dev,
+                wp.launch(LB.lbfgs_scale_H_kernel, dim=(pr.V * pr.K, pr.M), device=dev,
                           inputs=[self.gamma, pr.K, pr.mask], outputs=[DH])
             dot_G, dot_H = (self.s_G, self.s_H) if first else (self.y_G, self.y_H)
             add_G, add_H = (self.y_G, self.y_H) if first else (self.s_G, self.s_H)
             for age in ages:
-                wp.launch(LK.lbfgs_coef_kernel, dim=pr.V, device=dev,
+                wp.launch(LB.lbfgs_coef_kernel, dim=pr.V, device=dev,
                           inputs=[pr.ring_start, pr.ring_slots, dot_G, dot_H, DG, DH, self.count, self.rho, age, m,
                                   pr.K, pr.M, int(not first)], outputs=[self.alpha, self.coef])
-                wp.launch(LK.lbfgs_axpy_G_kernel, dim=(pr.S, pr.K), device=dev,
+                wp.launch(LB.lbfgs_axpy_G_kernel, dim=(pr.S, pr.K), device=dev,
                           inputs=[add_G, self.count, self.coef, age, m, pr.slot_vertex], outputs=[DG])
-                wp.launch(LK.lbfgs_axpy_H_kernel, dim=(pr.V * pr.K, pr.M), device=dev,
+                wp.launch(LB.lbfgs_axpy_H_kernel, dim=(pr.V * pr.K, pr.M), device=dev,
                           inputs=[add_H, self.count, self.coef, age, m, pr.K], outputs=[DH])
-        wp.launch(LK.negate_kernel, dim=(pr.S, pr.K), device=dev, inputs=[DG])
-        wp.launch(LK.negate_kernel, dim=(pr.V * pr.K, pr.M), device=dev, inputs=[DH])
+        wp.launch(LB.negate_kernel, dim=(pr.S, pr.K), device=dev, inputs=[DG])
+        wp.launch(LB.negate_kernel, dim=(pr.V * pr.K, pr.M), device=dev, inputs=[DH])
 
 
 def fit_lfm(problem: LFMProblem, max_iterations: int | None = None, time_budget_s: float = 0.0,
@@ -644,11 +645,8 @@ def fit_lfm(problem: LFMProblem, max_iterations: int | None = None, time_budget_
     full_evaluate()
     first_direction()
     f0 = pr.total(f)
-    trace = [{"iteration": 0, "time_s": 0.0, "objective": f0}]
-    if callback:
-        callback(0, f0)
-    if snapshot:
-        snapshot(0, G, H)
+    trace = []
+    _record(trace, 0, 0.0, f0, callback, snapshot, G, H)
     last = f0
     it = 0
     for it in range(1, iters + 1):
@@ -656,10 +654,7 @@ def fit_lfm(problem: LFMProblem, max_iterations: int | None = None, time_budget_
             pr.evaluate(G, H, f_dummy, DG=DG, DH=DH, dhd=dhd, gn=gn)
         pr.patch_dot(gG, DG, gH, DH, slope)
         wp.launch(LK.step_kernel, dim=pr.V, device=dev, inputs=[f, slope, dhd, gn, scale, hessian], outputs=[alpha])
-        wp.launch(LK.trial_G_kernel, dim=shape_G, device=dev,
-                  inputs=[G, DG, alpha, pr.slot_vertex, pr.lower, pr.upper], outputs=[TG])
-        wp.launch(LK.trial_H_kernel, dim=shape_H, device=dev,
-                  inputs=[H, DH, alpha, K, pr.mask, pr.lower, pr.upper], outputs=[TH])
+        _trial_point(pr, G, H, DG, DH, alpha, TG, TH)
         pr.evaluate(TG, TH, f_trial, tgG, tgH)
         wp.launch(LK.accept_kernel, dim=pr.V, device=dev, inputs=[f, f_trial, alpha, unit_cap],
                   outputs=[accepted, scale, f])
@@ -668,10 +663,8 @@ def fit_lfm(problem: LFMProblem, max_iterations: int | None = None, time_budget_
         else:
             wp.copy(oG, gG)
             wp.copy(oH, gH)
-        wp.launch(LK.adopt_G_kernel, dim=shape_G, device=dev, inputs=[TG, accepted, pr.slot_vertex], outputs=[G])
-        wp.launch(LK.adopt_H_kernel, dim=shape_H, device=dev, inputs=[TH, accepted, K], outputs=[H])
-        wp.launch(LK.adopt_G_kernel, dim=shape_G, device=dev, inputs=[tgG, accepted, pr.slot_vertex], outputs=[gG])
-        wp.launch(LK.adopt_H_kernel, dim=shape_H, device=dev, inputs=[tgH, accepted, K], outputs=[gH])
+        _adopt_accepted(pr, accepted, (TG, G), (TH, H))  # the parameters, then their gradient
+        _adopt_accepted(pr, accepted, (tgG, gG), (tgH, gH))
         if lbfgs is not None:
             lbfgs.direction(gG, gH, DG, DH)
         else:
@@ -685,11 +678,7 @@ def fit_lfm(problem: LFMProblem, max_iterations: int | None = None, time_budget_
             wp.copy(gg_old, gg_new)
         if it % cfg.sync_every == 0 or it == iters:
             obj = pr.total(f)
-            trace.append({"iteration": it, "time_s": time.perf_counter() - t0, "objective": obj})
-            if callback:
-                callback(it, obj)
-            if snapshot:
-                snapshot(it, G, H)
+            _record(trace, it, time.perf_counter() - t0, obj, callback, snapshot, G, H)
             if last - obj <= cfg.rel_tol * max(abs(last), 1e-300):
                 break
             last = obj
@@ -707,7 +696,39 @@ def fit_lfm(problem: LFMProblem, max_iterations: int | None = None, time_budget_
         trace.append({"iteration": it, "time_s": time.perf_counter() - t0, "objective": pr.total(f)})
     fit_s = time.perf_counter() - t0
     state = [G, H, TG, TH, gG, gH, tgG, tgH, oG, oH, DG, DH] + ([PG, PH, zG, zH] if jacobi else [])
+    return LFMResult(pr.params(G, H), trace, it, pr.passes, fit_s, f"stream-{cfg.optimizer}-{cfg.step}",
+                     _state_bytes(pr, state, lbfgs))
+
+
+def _record(trace: list, iteration: int, time_s: float, objective: float, callback, snapshot, G, H) -> None:
+    """An objective read: into the trace, to ``callback``, and the parameters to ``snapshot`` (see :func:`fit_lfm`)."""
+    trace.append({"iteration": iteration, "time_s": time_s, "objective": objective})
+    if callback:
+        callback(iteration, objective)
+    if snapshot:
+        snapshot(iteration, G, H)
+
+
+def _trial_point(pr: LFMProblem, G, H, DG, DH, alpha, TG, TH) -> None:
+    """The trial parameters (TG, TH) = (G, H) + alpha D per patch, clamped to the bounds."""
+    wp.launch(LK.trial_G_kernel, dim=(pr.S, pr.K), device=pr.device,
+              inputs=[G, DG, alpha, pr.slot_vertex, pr.lower, pr.upper], outputs=[TG])
+    wp.launch(LK.trial_H_kernel, dim=(pr.V * pr.K, pr.M), device=pr.device,
+              inputs=[H, DH, alpha, pr.K, pr.mask, pr.lower, pr.upper], outputs=[TH])
+
+
+def _adopt_accepted(pr: LFMProblem, accepted, surface: tuple, view: tuple) -> None:
+    """Copy the trial surface maps (``surface`` = (trial, current)) and view maps (``view`` likewise) of the
+    patches whose trial step was ``accepted`` into the current ones."""
+    wp.launch(LK.adopt_G_kernel, dim=(pr.S, pr.K), device=pr.device, inputs=[surface[0], accepted, pr.slot_vertex],
+              outputs=[surface[1]])
+    wp.launch(LK.adopt_H_kernel, dim=(pr.V * pr.K, pr.M), device=pr.device, inputs=[view[0], accepted, pr.K],
+              outputs=[view[1]])
+
+
+def _state_bytes(pr: LFMProblem, state: list, lbfgs: PatchLBFGS | None) -> int:
+    """Device bytes the fit held: the problem's, the fit's arrays ``state`` (None: not allocated) and the
+    L-BFGS history."""
     if lbfgs is not None:
-        state += [a for a in vars(lbfgs).values() if isinstance(a, wp.array)]
-    state_bytes = pr.state_bytes() + sum(int(a.capacity) for a in state if a is not None)
-    return LFMResult(pr.params(G, H), trace, it, pr.passes, fit_s, f"stream-{cfg.optimizer}-{cfg.step}", state_bytes)
+        state = state + [a for a in vars(lbfgs).values() if isinstance(a, wp.array)]
+    return pr.state_bytes() + sum(int(a.capacity) for a in state if a is not None)
