@@ -91,10 +91,17 @@ def module_imports(module: str, path: Path, known: set[str]) -> list[tuple[int, 
     """(line, module) of every texstream module ``module``'s source imports, inside functions too.
 
     ``from texstream.x import y`` is module ``x.y`` when that is a module, else ``x``; relative
-    imports resolve against the module's package."""
+    imports resolve against the module's package. Imports under ``if TYPE_CHECKING:`` are left out: they
+    name a type for the checkers, run no code and order nothing at run time."""
     package = module.split(".") if path.name == "__init__.py" else module.split(".")[:-1]
+    tree = ast.parse(path.read_text())
+    typing_only = {id(n) for block in ast.walk(tree) if isinstance(block, ast.If)
+                   and ast.unparse(block.test) in ("TYPE_CHECKING", "typing.TYPE_CHECKING")
+                   for stmt in block.body for n in ast.walk(stmt)}
     found = []
-    for node in ast.walk(ast.parse(path.read_text())):
+    for node in ast.walk(tree):
+        if id(node) in typing_only:
+            continue
         if isinstance(node, ast.ImportFrom):
             if node.level:
                 base = package[:len(package) - (node.level - 1)]

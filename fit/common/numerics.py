@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from texstream.fit.stream import problem as stream_problem  # read at call time: tests lower the threshold there
+from texstream.fit.stream import config as stream_config  # read at call time: tests lower the threshold there
 
 FP16_MAX = 65504.0
 FP16_MIN_NORMAL = 2.0 ** -14
@@ -20,7 +20,7 @@ def numerics_warnings(stream, photos: int, images=None, masks=None) -> list[str]
     - float16 photos (``image_precision`` fp16) with foreground values above float16's largest (they
       become Inf and are dropped as clipped) or more than 1% of them subnormal in float16.
     """
-    FP32_SAFE_PHOTOS = stream_problem.FP32_SAFE_PHOTOS
+    FP32_SAFE_PHOTOS = stream_config.FP32_SAFE_PHOTOS
     out = []
     if stream.accumulate == "fp32" and not stream.kahan and photos > FP32_SAFE_PHOTOS:
         out.append(f"numerics: float32 sums over {photos} photos lose accuracy (relative error of the objective "
