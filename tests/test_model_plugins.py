@@ -176,3 +176,11 @@ def test_an_unregistered_kind_fails_with_the_known_kinds(tmp_path):
     cfg.fit.model = "no_such_model"
     with pytest.raises(ConfigError, match="lafortune"):
         fit_stage(tmp_path, tmp_path, tmp_path / "out", cfg, progress=False)
+
+
+def test_every_plugin_folder_is_an_installed_package():
+    """A wheel carries only the packages pyproject lists: a plugin folder left out would vanish on install."""
+    text = (ROOT / "pyproject.toml").read_text()
+    for folder in sorted(p for p in PLUGINS.iterdir() if (p / "__init__.py").is_file()):
+        rel = folder.relative_to(ROOT).as_posix()
+        assert f'"texstream.{rel.replace("/", ".")}" = "{rel}"' in text, rel
