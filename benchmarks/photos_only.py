@@ -5,7 +5,7 @@ the true cameras and mesh (JSON).
 
 Renders the ``textured_sphere`` scene (a noise-textured matte sphere, a flash at each camera, 8-bit
 photos), writes only its images into a folder as a camera leaves them (the same pixels with the
-camera's EXIF focal length, :func:`texstream.capture.synthetic.synth.write_photos_only`; no capture.json, no masks,
+camera's EXIF focal length, :func:`texstream.capture.synthetic.photos_only.write_photos_only`; no capture.json, no masks,
 no cameras), and runs the end-to-end pipeline with ``--colocated-light``: ingest (masks from the dark
 background, the EXIF focal length as the prior), pycolmap registration with self-calibration, a mesh from the SfM points and masks, an atlas and the Lafortune
 fit, every 8th photo held out. The reference runs the same pipeline and options on the capture with the
@@ -43,7 +43,8 @@ def main() -> None:
     import warp as wp
 
     from texstream.capture.capture_json import read_capture
-    from texstream.capture.synthetic.synth import SynthConfig, synthesize, write_photos_only
+    from texstream.capture.synthetic.photos_only import write_photos_only
+    from texstream.capture.synthetic.synth import SynthConfig, synthesize
     from texstream.pipelines.run import RunConfig, run_pipeline
 
     # the code that runs, read before the run (a commit made while it runs must not be named)

@@ -23,7 +23,8 @@ Held-out photos (every ``holdout_every``-th, as the fit splits them) move neithe
 new photo is registered to a model), so their held-out scores measure the model rather than the camera
 registration; the report says so.
 
-Kernels in geometry/refine_kernels.py; imports only numpy and warp at import time.
+Kernels in geometry/refine_kernels.py (the shading normals' in geometry/refine_normal_kernels.py); imports only
+numpy and warp at import time.
 """
 
 from __future__ import annotations
@@ -42,6 +43,7 @@ from texstream.core.config import option
 from texstream.core.errors import ConfigError, InputError
 
 from . import refine_kernels as rk
+from . import refine_normal_kernels as rnk
 
 
 @dataclasses.dataclass
@@ -626,7 +628,7 @@ class ShadingNormals:
         self.shade = wp.array(base.astype(np.float32), **vec3)
         self.tilt = wp.zeros(n, dtype=wp.vec2, device=dev)
         self.saved, self.x_a, self.x_b = (wp.zeros_like(self.tilt) for _ in range(3))
-        self.system = wp.zeros((n, rk.NORMAL_TERMS), dtype=wp.float64, device=dev)
+        self.system = wp.zeros((n, rnk.NORMAL_TERMS), dtype=wp.float64, device=dev)
         self.before = wp.zeros((n, 2), dtype=wp.float64, device=dev)
         self.after = wp.zeros_like(self.before)
         self.mean = wp.zeros(2, dtype=wp.float64, device=dev)
@@ -646,13 +648,13 @@ class ShadingNormals:
     def texel_normals(self) -> None:
         """The texels' shading normals from the vertices'."""
         j = self.job
-        wp.launch(rk.texel_normals_kernel, dim=j.n_texels, outputs=[j.t_shade], device=j.device,
+        wp.launch(rnk.texel_normals_kernel, dim=j.n_texels, outputs=[j.t_shade], device=j.device,
                   inputs=[j.t_face, j.t_bary, j.faces, self.shade, j.weld])
 
     def set_tilt(self, tilt) -> None:
         """Tilts (welded vertices, 2) from the host (tests)."""
         self.tilt.assign(np.asarray(tilt, np.float32))
-        wp.launch(rk.tilted_normals_kernel, dim=self.job.n_welded, outputs=[self.shade],
+        wp.launch(rnk.tilted_normals_kernel, dim=self.job.n_welded, outputs=[self.shade],
                   inputs=[self.base, self.tu, self.tv, self.tilt], device=self.job.device)
         self.texel_normals()
 
@@ -668,15 +670,15 @@ class ShadingNormals:
         state = [j.t_p, j.t_n, j.t_shade, self.shade, self.base, self.tu, self.tv, self.tilt, j.colour,
                  j.known, cfg.cos_view_min, cfg.depth_tol]
         head = [j.infos, j.blurred, j.depth, j.roles, j.t_face, j.t_bary, j.faces, j.weld]
-        wp.launch(rk.patch_residual_kernel, dim=samples, device=j.device,
+        wp.launch(rnk.patch_residual_kernel, dim=samples, device=j.device,
                   inputs=[*head, *state, int(with_system)],
                   outputs=[self.patch_w, self.patch_r, self.patch_ju, self.patch_jv])
-        wp.launch(rk.patch_system_kernel, dim=(len(j.frames), j.n_welded), device=j.device,
+        wp.launch(rnk.patch_system_kernel, dim=(len(j.frames), j.n_welded), device=j.device,
                   inputs=[self.patch_w, self.patch_r, self.patch_ju, self.patch_jv, j.huber,
                           int(with_system)],
                   outputs=[self.system, out, self.back])
         if with_system:
-            wp.launch(rk.normal_gradient_kernel, dim=samples, device=j.device,
+            wp.launch(rnk.normal_gradient_kernel, dim=samples, device=j.device,
                       inputs=[*head, *state, self.back], outputs=[self.system])
 
     def iterate(self, history) -> None:
@@ -687,24 +689,24 @@ class ShadingNormals:
         self.evaluate(self.before, with_system=True)
         wp.launch(rk.vertex_total_kernel, dim=n, inputs=[self.before], outputs=[history], device=dev)
         self.mean.zero_()
-        wp.launch(rk.mean_tilt_curvature_kernel, dim=n, inputs=[self.system], outputs=[self.mean], device=dev)
+        wp.launch(rnk.mean_tilt_curvature_kernel, dim=n, inputs=[self.system], outputs=[self.mean], device=dev)
         priors = [j.offsets, j.neighbours, self.base, self.tu, self.tv, self.mean, cfg.normal_smoothness,
                   cfg.normal_prior]
-        wp.launch(rk.tilt_prior_kernel, dim=n, inputs=[self.tilt, *priors], outputs=[self.prior_before],
+        wp.launch(rnk.tilt_prior_kernel, dim=n, inputs=[self.tilt, *priors], outputs=[self.prior_before],
                   device=dev)
         wp.copy(self.x_a, self.tilt)
         src, dst = self.x_a, self.x_b
         for _ in range(20):  # Jacobi sweeps: the priors spread a step over a few rings
-            wp.launch(rk.tilt_sweep_kernel, dim=n, device=dev,
+            wp.launch(rnk.tilt_sweep_kernel, dim=n, device=dev,
                       inputs=[self.tilt, self.system, *priors, self.damping, src], outputs=[dst])
             src, dst = dst, src
-        wp.launch(rk.apply_tilt_kernel, dim=n, inputs=[src, self.max_step, self.max_total], device=dev,
+        wp.launch(rnk.apply_tilt_kernel, dim=n, inputs=[src, self.max_step, self.max_total], device=dev,
                   outputs=[self.tilt, self.saved, self.base, self.tu, self.tv, self.shade])
         self.texel_normals()
         self.evaluate(self.after, with_system=False)
-        wp.launch(rk.tilt_prior_kernel, dim=n, inputs=[self.tilt, *priors], outputs=[self.prior_after],
+        wp.launch(rnk.tilt_prior_kernel, dim=n, inputs=[self.tilt, *priors], outputs=[self.prior_after],
                   device=dev)
-        wp.launch(rk.tilt_accept_kernel, dim=n, device=dev,
+        wp.launch(rnk.tilt_accept_kernel, dim=n, device=dev,
                   inputs=[self.before, self.after, self.prior_before, self.prior_after, self.saved],
                   outputs=[self.tilt, self.base, self.tu, self.tv, self.shade, self.damping, self.accepted])
         self.texel_normals()

@@ -236,7 +236,7 @@ def test_self_calibration_keeps_a_pinhole_when_distortion_does_not_help(sphere_c
     length 8% long, at a 0.02% lower mean reprojection error: on an object in the middle of the frame the
     tracks do not tell a radial term from the focal length and the poses."""
     from texstream.calib.ingest import ingest
-    from texstream.capture.synthetic.synth import write_photos_only
+    from texstream.capture.synthetic.photos_only import write_photos_only
 
     cap, _ = sphere_capture
     truth = read_capture(cap)

@@ -2,7 +2,7 @@
 
 Each test builds a tiny model folder (a 2 x 2-quad flat sample with UVs, 8 x 8 parameter maps in
 four quadrants of known values, model.json with the layout, a bake.npz ``covered`` mask) through the
-project's own writers (geometry.mesh_io.save_mesh, capture.synth.write_param_maps); no fit, no Warp
+project's own writers (geometry.mesh_io.save_mesh, capture.synthetic.param_maps.write_param_maps); no fit, no Warp
 kernels, CPU only.
 
 Texture tolerance: the exporter sRGB-encodes float32 values and rounds them to the nearest 8-bit
@@ -22,7 +22,7 @@ import pytest
 
 from texstream.capture.imageio import linear_to_srgb
 from texstream.capture.synthetic.procedural import flat_sample
-from texstream.capture.synthetic.synth import write_param_maps
+from texstream.capture.synthetic.param_maps import write_param_maps
 from texstream.core.config import load_config
 from texstream.core.errors import ConfigError, InputError
 from texstream.fit.stages import export as E

@@ -64,7 +64,7 @@ def test_layout_table_json_and_param_maps(tmp_path):
     assert lay.index("L.g") == 1
     assert ModelLayout.from_json(lay.to_json()) == lay
     pytest.importorskip("OpenImageIO")
-    from texstream.capture.synthetic.synth import read_param_maps, write_param_maps
+    from texstream.capture.synthetic.param_maps import read_param_maps, write_param_maps
 
     grid = np.random.default_rng(0).uniform(0, 5, (6, 5, 3)).astype(np.float32)
     files = write_param_maps(tmp_path, grid, lay)

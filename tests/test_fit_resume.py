@@ -27,7 +27,7 @@ def config() -> FitStageConfig:
 
 
 def maps(model):
-    from texstream.capture.synthetic.synth import read_param_maps
+    from texstream.capture.synthetic.param_maps import read_param_maps
     from texstream.render.layout import ModelLayout
 
     lay = ModelLayout.from_json(json.loads((model / "model.json").read_text())["layout"])

@@ -114,7 +114,7 @@ def write_set(folder, specular: bool, normals_ext: str = ".npy", shadow: bool = 
 
 
 def read_maps(model):
-    from texstream.capture.synthetic.synth import read_param_maps
+    from texstream.capture.synthetic.param_maps import read_param_maps
     from texstream.render.layout import ModelLayout
 
     man = json.loads((model / "model.json").read_text())

@@ -80,7 +80,7 @@ def test_fit_stage_writes_the_model_folder(fitted):
 
 def test_fitted_maps_agree_across_seams(fitted):
     root, _ = fitted
-    from texstream.capture.synthetic.synth import read_param_maps
+    from texstream.capture.synthetic.param_maps import read_param_maps
 
     model = root / "model"
     man = json.loads((model / "model.json").read_text())
@@ -177,7 +177,7 @@ def fake_fit(make_params):
 def test_extreme_fitted_values_stay_in_bounds_through_the_seam_averaging(capture_and_atlas, monkeypatch):
     """Neighbouring texels at opposite ends of every parameter's range (what real photos under a
     guessed light produced): the written maps stay inside the bounds, every texel."""
-    from texstream.capture.synthetic.synth import read_param_maps
+    from texstream.capture.synthetic.param_maps import read_param_maps
 
     root = capture_and_atlas
 

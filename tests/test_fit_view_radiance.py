@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 import warp as wp
 
-from texstream.capture.synthetic.synth import VIEW_TERM_NAMES, SynthConfig, render_scene
+from texstream.capture.synthetic.param_maps import VIEW_TERM_NAMES
+from texstream.capture.synthetic.synth import SynthConfig, render_scene
 from texstream.fit.optim.fitter import FitConfig, run_fit
 from texstream.render.layout import VIEW_TERMS, ModelLayout
 from texstream.fit.stream.photo_set import PhotoSet
@@ -47,7 +48,7 @@ def test_layout_table_json_and_param_maps(tmp_path):
     assert ModelLayout.from_json(VIEW.to_json()) == VIEW
     np.testing.assert_array_equal(VIEW.lower()[3:], -1000.0)
     pytest.importorskip("OpenImageIO")
-    from texstream.capture.synthetic.synth import read_param_maps, write_param_maps
+    from texstream.capture.synthetic.param_maps import read_param_maps, write_param_maps
 
     grid = np.random.default_rng(0).normal(size=(6, 5, 18)).astype(np.float32)
     files = write_param_maps(tmp_path, grid, VIEW)

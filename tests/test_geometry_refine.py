@@ -17,7 +17,7 @@ import pytest
 import warp as wp
 
 from conftest import DEVICES, SCENE_DEVICE
-from texstream.geometry import refine_kernels as rk
+from texstream.geometry import refine_normal_kernels as rk
 
 
 @pytest.fixture(scope="module")

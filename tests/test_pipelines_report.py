@@ -289,7 +289,7 @@ def test_view_dependent_radiance_matches_texstream_render(run, tmp_path):
     its screenshot of a view no photo has matches texstream's render of it (threshold as for the lobes)."""
     from scipy.ndimage import binary_erosion
 
-    from texstream.capture.synthetic.synth import write_param_maps
+    from texstream.capture.synthetic.param_maps import write_param_maps
     from texstream.render.layout import ModelLayout
     from texstream.render.renderer import Renderer
     from texstream.pipelines.report import _srgb8, load_report_model, write_report

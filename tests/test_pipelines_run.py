@@ -131,7 +131,7 @@ def test_turntable_object_under_unknown_lighting_to_a_valid_radiance_model(captu
 
     import numpy as np
 
-    from texstream.capture.synthetic.synth import read_param_maps
+    from texstream.capture.synthetic.param_maps import read_param_maps
     from texstream.render.layout import ModelLayout
 
     cap = tmp_path / "cap"

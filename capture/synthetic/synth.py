@@ -58,7 +58,9 @@ so texel count x s; the mesh is unchanged. A
 pixel's value is ``exposure * radiance + noise``, then clipped / quantised (see ``photo``).
 
 :func:`render_scene` renders in memory (no OpenImageIO needed; no xatlas / pymeshlab for
-procedural meshes), :func:`synthesize` writes a capture folder plus ``ground_truth/``.
+procedural meshes), :func:`synthesize` writes a capture folder plus ``ground_truth/`` (its parameter
+maps: :mod:`~texstream.capture.synthetic.param_maps`; the texels' materials:
+:mod:`~texstream.capture.synthetic.materials`).
 """
 
 from __future__ import annotations
@@ -81,6 +83,8 @@ from texstream.core.outputs import StageResult, atomic_output_dir, write_json_at
 from texstream.capture.capture_json import Capture, Frame, Intrinsics, Light, write_capture
 from texstream.capture.conventions import look_at_w2c
 from texstream.capture.synthetic import procedural
+from texstream.capture.synthetic.materials import material_params
+from texstream.capture.synthetic.param_maps import read_param_maps, write_param_maps
 
 SCENES_DIR = Path(__file__).resolve().parent / "scenes"
 GROUND_TRUTH = "ground_truth"
@@ -273,122 +277,6 @@ def build_mesh(scene: dict, scale: float = 1.0):
     if mesh.normals is None:
         mesh = mesh.with_normals()
     return mesh, (int(tex["width"]), int(tex["height"])), info
-
-
-def _axis_coord(axis: str, bake, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """(H, W) coordinate s in [0, 1] of every texel along a named axis."""
-    h, w = bake.height, bake.width
-    if axis in ("x", "y", "z"):
-        k = "xyz".index(axis)
-        ext = max(hi[k] - lo[k], 1e-12)
-        return np.clip((bake.position[..., k] - lo[k]) / ext, 0.0, 1.0)
-    if axis == "u":
-        return np.broadcast_to((np.arange(w) + 0.5) / w, (h, w))
-    if axis == "v":
-        return np.broadcast_to(1.0 - (np.arange(h)[:, None] + 0.5) / h, (h, w))
-    raise ConfigError(f"unknown axis {axis!r}", fix="use x, y, z, u or v")
-
-
-def value_noise(u: np.ndarray, v: np.ndarray, cells, octaves: int = 3, seed: int = 0) -> np.ndarray:
-    """Multi-octave value noise in [-1, 1] at UV points (periodic in u; smoothstep interpolation).
-
-    Args:
-        u, v: (N,) coordinates in [0, 1].
-        cells: int or (cu, cv), grid cells of the coarsest octave.
-        octaves: octave count; octave o has 2**o times the cells and half the previous amplitude.
-        seed: random seed of the lattice values.
-
-    Returns:
-        (N,) float64 noise values.
-    """
-    cu0, cv0 = (cells, cells) if isinstance(cells, (int, float)) else cells
-    rng = np.random.default_rng([int(seed), 11])
-    total, norm = np.zeros(np.shape(u)), 0.0
-    for o in range(max(1, int(octaves))):
-        cu, cv = max(1, int(cu0) << o), max(1, int(cv0) << o)
-        lat = rng.uniform(-1.0, 1.0, size=(cv + 1, cu))
-        x, y = np.clip(u, 0.0, 1.0) * cu, np.clip(v, 0.0, 1.0) * cv
-        i0, j0 = np.minimum(np.floor(x).astype(int), cu), np.minimum(np.floor(y).astype(int), cv - 1)
-        fx, fy = x - i0, y - j0
-        fx, fy = fx * fx * (3 - 2 * fx), fy * fy * (3 - 2 * fy)  # smoothstep: no visible lattice creases
-        ia, ib = i0 % cu, (i0 + 1) % cu  # periodic in u
-        val = ((lat[j0, ia] * (1 - fx) + lat[j0, ib] * fx) * (1 - fy)
-               + (lat[j0 + 1, ia] * (1 - fx) + lat[j0 + 1, ib] * fx) * fy)
-        amp = 0.5 ** o
-        total += amp * val
-        norm += amp
-    return total / norm
-
-
-def material_params(scene: dict, layout, mesh, bake) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """Per-texel parameters from the scene's materials and assignment rule.
-
-    Returns:
-        params (H, W, P) float32 (padding filled from chart neighbours; texels off the surface
-        and beyond the padding hold rho = 0 and the default lobe shape), material id (H, W)
-        int32 (-1 off the surface) and the material names.
-    """
-    names = list(scene["materials"])
-    lo, hi = mesh.bbox()
-    h, w = bake.height, bake.width
-    a = scene["assignment"]
-    if a["rule"] == "uniform":
-        mid = np.full((h, w), names.index(a["material"]), dtype=np.int32)
-    elif a["rule"] == "bands":
-        s = _axis_coord(a.get("axis", "z"), bake, lo, hi)
-        mid = np.full((h, w), names.index(a["bands"][-1][1]), dtype=np.int32)
-        for upper, name in reversed(a["bands"]):
-            mid[s < float(upper)] = names.index(name)
-    else:  # checker
-        cells = a.get("cells", [4, 4])
-        cu, cv = (cells, cells) if isinstance(cells, (int, float)) else cells
-        su = _axis_coord("u", bake, lo, hi) if a.get("space", "uv") == "uv" else _axis_coord("x", bake, lo, hi)
-        sv = _axis_coord("v", bake, lo, hi) if a.get("space", "uv") == "uv" else _axis_coord("y", bake, lo, hi)
-        parity = (np.floor(su * cu).astype(int) + np.floor(sv * cv).astype(int)) % 2
-        mats = [names.index(x) for x in a["materials"]]
-        mid = np.where(parity == 0, mats[0], mats[1]).astype(np.int32)
-    mid[~bake.covered] = -1
-
-    out = np.zeros((h, w, layout.n_params), dtype=np.float64)
-    base = layout.pack(np.zeros(3), [{"rho_s": np.zeros(3), "n": layout.defaults()[layout.lobe_offset(j) + layout.lobe_stride - 1]}
-                                     for j in range(layout.n_lobes)])
-    out[:] = base
-    for k, name in enumerate(names):
-        mat = scene["materials"][name]
-        sel = mid == k
-        if not sel.any():
-            continue
-        g = mat.get("gradient")
-        f_rho = np.ones(int(sel.sum()))
-        f_n = np.ones(int(sel.sum()))
-        if g:
-            s = _axis_coord(g.get("axis", "x"), bake, lo, hi)[sel]
-            f_rho = 1.0 + float(g.get("amount", 0.0)) * (2 * s - 1)
-            f_n = 1.0 + float(g.get("n_amount", 0.0)) * (2 * s - 1)
-        out[sel, 0:3] = np.asarray(mat["rho_d"], dtype=np.float64)[None] * f_rho[:, None]
-        if mat.get("noise"):
-            nz = mat["noise"]
-            su, sv = _axis_coord("u", bake, lo, hi)[sel], _axis_coord("v", bake, lo, hi)[sel]
-            val = value_noise(su, sv, nz.get("cells", 16), int(nz.get("octaves", 3)), int(nz.get("seed", 0)))
-            k = float(nz.get("sharpness", 0.0))
-            if k > 0:  # tanh contrast: blotches with sharp edges (corners and blobs at many scales)
-                val = np.tanh(k * val) / math.tanh(k)
-            f_tex = np.maximum(0.0, 1.0 + float(nz.get("amount", 0.5)) * val)
-            out[sel, 0:3] *= f_tex[:, None]
-        lobes = mat.get("lobes", [])
-        if len(lobes) > layout.n_lobes:
-            raise ConfigError(f"material {name!r} has {len(lobes)} lobes, the model {layout.n_lobes}",
-                              fix="raise model.n_lobes or drop lobes")
-        for j, lobe in enumerate(lobes):
-            o = layout.lobe_offset(j)
-            out[sel, o:o + 3] = np.asarray(lobe["rho_s"], dtype=np.float64)[None] * f_rho[:, None]
-            if layout.anisotropic:
-                out[sel, o + 3:o + 6] = [-1.0, float(lobe.get("c_y", -1.0)), float(lobe.get("c_z", 1.0))]
-            else:
-                out[sel, o + 3:o + 5] = [-1.0, float(lobe.get("c_z", 1.0))]
-            out[sel, o + layout.lobe_stride - 1] = float(lobe["n"]) * f_n
-    out = bake.fill_padding(out)
-    return out.astype(np.float32), mid, names
 
 
 def camera_poses(cams: dict, count: int) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -643,53 +531,6 @@ def render_scene(scene, config: SynthConfig | None = None) -> RenderedScene:
 # ---------------------------------------------------------------------------------- ground truth
 
 
-VIEW_TERM_NAMES = ("vx", "vy", "vxx", "vxy", "vyy")  # fit/models.py VIEW_TERMS (capture/ imports no fit/)
-
-
-def write_param_maps(folder: Path, params: np.ndarray, layout) -> dict[str, str]:
-    """Parameter maps as float EXR: rho_d.exr (RGB), per lobe lobe{j}_rho_s.exr (RGB) and
-    lobe{j}_shape.exr ([c_xy, c_z, n] or, anisotropic, RGBA [c_x, c_y, c_z, n]); a radiance
-    layout (fit/models.py) writes radiance.exr (RGB L), and the view-dependent one also
-    view_{term}.exr (RGB coefficient of each view term, e.g. view_vx.exr)."""
-    from texstream.capture.imageio import write_image
-
-    if getattr(layout, "is_radiance", False):
-        write_image(folder / "radiance.exr", params[..., 0:3], bits=32)
-        files = {"radiance": "radiance.exr"}
-        for k in range(getattr(layout, "view_terms", 0)):
-            name = f"view_{VIEW_TERM_NAMES[k]}"
-            o = layout.view_offset(k)
-            write_image(folder / f"{name}.exr", params[..., o:o + 3], bits=32)
-            files[name] = f"{name}.exr"
-        return files
-    files = {"rho_d": "rho_d.exr"}
-    write_image(folder / "rho_d.exr", params[..., 0:3], bits=32)
-    for j in range(layout.n_lobes):
-        o = layout.lobe_offset(j)
-        write_image(folder / f"lobe{j}_rho_s.exr", params[..., o:o + 3], bits=32)
-        write_image(folder / f"lobe{j}_shape.exr", params[..., o + 3:o + layout.lobe_stride], bits=32)
-        files[f"lobe{j}_rho_s"] = f"lobe{j}_rho_s.exr"
-        files[f"lobe{j}_shape"] = f"lobe{j}_shape.exr"
-    return files
-
-
-def read_param_maps(folder: str | os.PathLike, layout) -> np.ndarray:
-    """(H, W, P) float32 parameter grid from the EXR maps :func:`write_param_maps` wrote."""
-    from texstream.capture.imageio import read_image
-
-    g = Path(folder)
-    if getattr(layout, "is_radiance", False):
-        maps = [read_image(g / "radiance.exr", channels=3)]
-        maps += [read_image(g / f"view_{VIEW_TERM_NAMES[k]}.exr", channels=3)
-                 for k in range(getattr(layout, "view_terms", 0))]
-        return np.concatenate(maps, axis=-1).astype(np.float32)
-    maps = [read_image(g / "rho_d.exr", channels=3)]
-    for j in range(layout.n_lobes):
-        maps.append(read_image(g / f"lobe{j}_rho_s.exr", channels=3))
-        maps.append(read_image(g / f"lobe{j}_shape.exr", channels=layout.lobe_stride - 3))
-    return np.concatenate(maps, axis=-1).astype(np.float32)
-
-
 def load_ground_truth(folder: str | os.PathLike):
     """Read a synthetic set's ground truth back.
 
@@ -804,33 +645,3 @@ def synthesize(scene, out_dir: str | os.PathLike, config: SynthConfig | None = N
         if config.preview:
             _write_previews(tmp, params, layout, bake)
     return StageResult(output=out_dir, summary=counts)
-
-
-SENSOR_WIDTH_MM = 36.0  # the synthetic camera's sensor: full frame, so the 35 mm equivalent is the focal length
-
-
-def camera_exif(intrinsics: Intrinsics) -> dict:
-    """The EXIF fields a camera writes about its lens for a pinhole of these intrinsics, as OpenImageIO names
-    them: the focal length in mm on a full-frame sensor (36 mm over the image's longer side), its 35 mm
-    equivalent (an integer, as cameras store it) and the sensor's pixels per mm (focal plane resolution)."""
-    px_per_mm = max(intrinsics.width, intrinsics.height) / SENSOR_WIDTH_MM
-    focal_mm = float(intrinsics.fx) / px_per_mm
-    return {"Make": "texstream", "Model": "synthetic pinhole camera", "Exif:FocalLength": focal_mm,
-            "Exif:FocalLengthIn35mmFilm": round(focal_mm * 36.0 / SENSOR_WIDTH_MM),
-            "Exif:FocalPlaneXResolution": px_per_mm, "Exif:FocalPlaneYResolution": px_per_mm,
-            "Exif:FocalPlaneResolutionUnit": 4}  # 4: millimetres
-
-
-def write_photos_only(capture_dir: str | os.PathLike, out_dir: str | os.PathLike) -> list[Path]:
-    """A synthetic capture's photos as a camera leaves them: a folder of its images (same names, stored
-    values unchanged) carrying the camera's EXIF focal length (:func:`camera_exif`), and nothing else (no
-    capture.json, masks, poses or lights). Written atomically; returns the photo paths."""
-    from texstream.capture.capture_json import read_capture
-    from texstream.capture.imageio import copy_with_metadata
-
-    cap = read_capture(capture_dir)
-    out_dir = Path(out_dir)
-    with atomic_output_dir(out_dir) as tmp:
-        for f in cap.frames:
-            copy_with_metadata(cap.image_path(f), tmp / Path(f.file_path).name, camera_exif(f.intrinsics))
-    return [out_dir / Path(f.file_path).name for f in cap.frames]

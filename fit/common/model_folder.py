@@ -1,6 +1,6 @@
 """The model folder: one writer for every fit stage, and the checks a model passes before it is written.
 
-A model folder holds the parameter maps (EXR, :func:`texstream.capture.synthetic.synth.write_param_maps`),
+A model folder holds the parameter maps (EXR, :func:`texstream.capture.synthetic.param_maps.write_param_maps`),
 ``seen.png`` (texels no photo saw keep their defaults and are flagged here), ``trace.json`` and
 ``error_vs_time.png`` (error against run time), ``renders/`` (fitted renders beside photos),
 ``model.json`` (kind, parameter layout, figures) and the stage's resolved config. Stages add their
@@ -275,7 +275,7 @@ def write_model_folder(folder: Path, grid: np.ndarray, layout: ModelLayout, seen
         The map files by name (as model.json lists them).
     """
     from texstream.capture.imageio import write_image
-    from texstream.capture.synthetic.synth import write_param_maps
+    from texstream.capture.synthetic.param_maps import write_param_maps
 
     check_model(grid, layout)
     files = write_param_maps(folder, grid, layout)

@@ -215,7 +215,7 @@ def data_jtj(problem, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def load_model(model_dir: str | Path):
     """(mesh, parameter grid (H, W, P), layout, model.json) of a model folder."""
-    from texstream.capture.synthetic.synth import read_param_maps
+    from texstream.capture.synthetic.param_maps import read_param_maps
     from texstream.geometry.mesh_io import load_mesh
 
     d = Path(model_dir)

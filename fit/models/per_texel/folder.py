@@ -1,4 +1,4 @@
-"""A per-texel model folder read back: the parameter maps (capture/synth.py ``read_param_maps``), the
+"""A per-texel model folder read back: the parameter maps (capture/synthetic/param_maps.py ``read_param_maps``), the
 mesh and model.json, through fit/common/setup.py ``load_model``; rendered by texstream's renderer
 (fit/stages/render.py). The kinds' folders subclass :class:`PerTexelModel` for their material, maps and
 viewer shading."""
