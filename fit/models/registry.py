@@ -157,6 +157,8 @@ class Candidate:
     name: str
     kind: str
     overrides: dict = dataclasses.field(default_factory=dict)
+    label: str = ""
+    """how logs name it ("the two-lobe Lafortune"); the name when empty"""
 
 
 @dataclasses.dataclass

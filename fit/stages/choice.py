@@ -90,7 +90,7 @@ def plan_choice(capture, requested: str, cfg) -> ChoicePlan:
     cands = plugin.candidates(capture, cfg)
     if len(cands) < 2:
         return ChoicePlan(kind, why, [])
-    also = " and ".join(c.name for c in cands[1:])
+    also = " and ".join(c.label or c.name for c in cands[1:])
     if plugin.escalate is not None:
         also += plugin.escalate(None, cfg)[1]
     return ChoicePlan(kind, why, cands, also)

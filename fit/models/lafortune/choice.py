@@ -12,5 +12,5 @@ TWO_LOBES = "lafortune_2lobes"
 def candidates(capture, cfg) -> list[Candidate]:
     out = [Candidate("lafortune", "lafortune"), Candidate("diffuse", "diffuse")]
     if cfg.choice.second_lobe and cfg.fit.lobes == 1:
-        out.append(Candidate(TWO_LOBES, "lafortune", {"lobes": 2}))
+        out.append(Candidate(TWO_LOBES, "lafortune", {"lobes": 2}, label="the two-lobe Lafortune"))
     return out
