@@ -9,7 +9,7 @@ geometry (a mesh and bake, or a normal map) beside these.
 Nothing out of bounds or non-finite is ever written: :func:`check_model` runs on the maps and on
 the renders before the folder is moved into place, and fails with the count and the cause.
 
-numpy at module level; OpenImageIO (through capture.imageio) and matplotlib inside functions
+numpy at module level; OpenImageIO (inside capture.imageio's functions) and matplotlib inside functions
 (the fit stage draws the plot in a child process, :func:`trace_plot`).
 """
 

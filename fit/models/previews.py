@@ -1,5 +1,5 @@
 """Helpers the plugins share for the report's previews of their maps (fit/models/registry.py
-``FittedModel.report_maps``). numpy at module level; capture.imageio inside the functions."""
+``FittedModel.report_maps``)."""
 
 from __future__ import annotations
 

@@ -25,9 +25,8 @@ Geometry
     world frame, readers apply the node); OBJ has no node, so its vertices are rotated. The float
     EXR maps are copied into ``maps/`` beside the export.
 
-Like the rest of ``texstream.fit`` this module imports only numpy (and texstream.core, the plugins'
-conversions) at module level; pygltflib and OpenImageIO (through capture.imageio) are imported inside
-the functions.
+Like the rest of ``texstream.fit`` this module imports no third-party package but numpy at module level;
+pygltflib is imported inside the functions, OpenImageIO inside capture.imageio's.
 """
 
 from __future__ import annotations

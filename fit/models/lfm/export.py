@@ -9,7 +9,8 @@ element); ``"none"`` keeps d(s) alone. The mean uses the renderer's own view-map
 (``view_taps`` of fit/kernels/lfm.py at a 128 x 128 grid of disk-uniform directions). The exact
 surface and view maps stay in ``maps/*.exr`` (diffuse, surface_k{k}_v{j}, view_k{k}).
 
-Imports only numpy at module level (warp and the renderer inside the functions).
+Imports numpy and warp (through the LFM kernels) at module level; the unlit renderer is the per-texel one
+(fit/common/setup.py ``render_model``).
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """The fit of a per-texel model (Lafortune, diffuse, radiance, view-dependent radiance): inputs, set-up, the
 streaming fit, the lobes and materials where the model has lobes, held-out renders and the model folder.
 
-One function per phase; :func:`fit` (the plugins' ``fit``) runs them in order. Heavy packages (OpenImageIO through
-capture.imageio, the mesh writer) are imported inside the phases that write files."""
+One function per phase; :func:`fit` (the plugins' ``fit``) runs them in order. Heavy packages (OpenImageIO in
+capture.imageio, pymeshlab in the mesh writer) are imported inside the functions that write files."""
 
 from __future__ import annotations
 
