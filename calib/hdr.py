@@ -13,6 +13,7 @@ from typing import Sequence
 
 import numpy as np
 
+from texstream.capture.imageio import linear_to_srgb
 from texstream.core.errors import ConfigError
 
 HDR_METHODS = ("debevec", "robertson")
@@ -152,8 +153,6 @@ def bracket_alignment(images: Sequence[np.ndarray], times: Sequence[float], tol_
         ``reason`` (one line).
     """
     import cv2
-
-    from texstream.capture.imageio import linear_to_srgb
 
     n = len(images)
     if n < 2:

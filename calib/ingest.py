@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from texstream.capture.capture_json import Capture, Frame, Intrinsics, write_capture
+from texstream.capture.imageio import read_alpha, read_image, read_mask, srgb_to_linear, write_image
 from texstream.core.errors import InputError, StageError, TexstreamError
 from texstream.core.config import option, save_config
 from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
@@ -37,9 +38,10 @@ from texstream.core.progress import bar
 
 from .files import list_images, write_failure_report
 from .lights import load_lights_file
-from .masks import MASK_MODES, MaskConfig
+from .masks import MASK_MODES, MaskConfig, masks_for_images, write_mask_preview
 from .hdr import (BRACKET_MODES, HDR_METHODS, bracket_alignment, calibrate_response, group_brackets, is_exif_bracket,
                   merge_brackets_8bit, merge_brackets_linear)
+from .intrinsics import intrinsics_for_size, load_intrinsics
 
 REPORT_FILE = "ingest_report.json"
 
@@ -134,8 +136,6 @@ def _decide_brackets(candidates: list[list[int]], infos: list[dict], cfg: Ingest
     """Which candidate groups (same size, distinct exposure times) are merged: EXIF auto bracketing (or
     ``brackets="on"``) and one viewpoint (:func:`.hdr.bracket_alignment`); the others become single
     photos. Returns (groups, one decision {images, merged, reason} per candidate of 2+ photos)."""
-    from texstream.capture.imageio import srgb_to_linear
-
     groups: list[list[int]] = []
     decisions: list[dict] = []
     for g in candidates:
@@ -165,10 +165,6 @@ def _decide_brackets(candidates: list[list[int]], infos: list[dict], cfg: Ingest
 
 def _auto_masks(entries: list, cfg: IngestConfig, tmp: Path) -> dict:
     """Automatic masks (calib/masks.py) for the frames without one; sets their ``mask_path``."""
-    from texstream.capture.imageio import write_image
-
-    from .masks import masks_for_images
-
     todo = [(fr, src) for fr, _, src in entries if fr.mask_path is None]
     if not todo:
         return {"mode": "none", "decision": "every frame has a mask file or alpha", "masks": 0}
@@ -187,8 +183,6 @@ def _read_photos(files: list[Path], dropped: list[dict]) -> list[dict]:
     """Each photo read once (sRGB codes as stored), with its EXIF, bit depth and upright size; duplicates (same
     bytes) and unreadable files go to ``dropped``."""
     import OpenImageIO as oiio
-
-    from texstream.capture.imageio import read_image
 
     infos: list[dict] = []
     hashes: dict[str, str] = {}
@@ -222,8 +216,6 @@ def _write_view(members: list[dict], lead: dict, name: str, orient: int, tmp: Pa
     exposure's level), else the photo copied (upright, re-encoded only when turned or of another format).
     Returns (its path in the capture, its saturation in linear units or None, the stored photo upright as
     automatic masks see it: 8-bit sRGB codes, else linear)."""
-    from texstream.capture.imageio import srgb_to_linear, write_image
-
     sat = None
     if len(members) > 1:
         if any(m["exif"].get("exposure_time") is None for m in members):
@@ -267,8 +259,6 @@ def _write_mask(mask_dir: Path, lead: dict, name: str, orient: int, size: tuple[
     """A view's mask into ``tmp/masks`` (its path in the capture, or None): the mask file beside the photos
     (oriented like the photo; one that does not fit goes to ``dropped``), else the photo's alpha
     (``alpha_masks``)."""
-    from texstream.capture.imageio import read_alpha, read_mask, write_image
-
     w, h = size
     mask_rel = None
     mp = _find_mask(mask_dir, lead["path"]) if mask_dir.is_dir() else None
@@ -300,8 +290,6 @@ def _view_intrinsics(lead: dict, w: int, h: int, cams, cfg: IngestConfig, source
     """A view's intrinsics: the calibrated ones of its size (``cams``), else from the EXIF focal length, else
     COLMAP's guess; where they came from is added to ``sources``."""
     if cams is not None:
-        from .intrinsics import intrinsics_for_size
-
         intr = intrinsics_for_size(cams, w, h, cfg.intrinsics)
         sources.add("calibrated")
     else:
@@ -359,8 +347,6 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
     groups, decisions = _decide_brackets(candidates, infos, cfg)
     cams = None
     if cfg.intrinsics:
-        from .intrinsics import load_intrinsics
-
         cams = load_intrinsics(cfg.intrinsics)
     default_light, frame_lights = load_lights_file(cfg.lights) if cfg.lights else (None, {})
     frames: list[Frame] = []
@@ -411,8 +397,6 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
         write_json_atomic(tmp / REPORT_FILE, report)
         save_config(cfg, tmp / "ingest_config.json")
         if auto.get("masks"):
-            from .masks import write_mask_preview
-
             write_mask_preview(tmp)
     summary = {"found": len(files), "frames": len(frames), "brackets": len(report["brackets"]), "dropped": dropped,
                "bracket_decisions": decisions,

@@ -32,10 +32,13 @@ from typing import Any
 
 import numpy as np
 
-from texstream.capture.capture_json import Frame, Intrinsics, Light
+from texstream.capture.capture_json import (Capture, Frame, Intrinsics, Light, _light_from, read_capture,
+                                            write_capture)
+from texstream.capture.imageio import read_image, read_mask
 from texstream.core.errors import ConfigError, InputError, StageError
-from texstream.core.config import option
-from texstream.core.outputs import StageResult
+from texstream.core.config import option, save_config
+from texstream.core.outputs import StageResult, atomic_output_dir, read_json, write_json_atomic
+from .colmap_io import opencv_distortion
 
 LIGHTS_FILE = "lights.json"
 REPORT_FILE = "lights_report.json"
@@ -43,9 +46,6 @@ REPORT_FILE = "lights_report.json"
 
 def load_lights_file(path: str | os.PathLike) -> tuple[Light | None, dict[str, Light]]:
     """Read a lights file (or a 'texstream lights' output folder): (default light or None, {frame name or stem: light})."""
-    from texstream.capture.capture_json import _light_from
-    from texstream.core.outputs import read_json
-
     p = Path(path)
     if p.is_dir():  # the output folder of 'texstream lights'
         p = p / LIGHTS_FILE
@@ -131,8 +131,6 @@ def pixel_rays(intr: Intrinsics, uv: np.ndarray) -> np.ndarray:
     uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
     if intr.distortion and any(abs(v) > 0 for v in intr.distortion.values()):
         import cv2
-
-        from .colmap_io import opencv_distortion
 
         k, d = opencv_distortion(intr)
         pts = (uv - 0.5).reshape(-1, 1, 2)
@@ -415,11 +413,6 @@ def estimate_lights(capture: str | os.PathLike, out: str | os.PathLike,
         InputError: missing capture / photo / ball mask, a ball without a highlight. ConfigError:
         no ball given. StageError: no usable view, or a point light that cannot be triangulated.
     """
-    from texstream.capture.capture_json import read_capture
-    from texstream.capture.imageio import read_image, read_mask
-    from texstream.core.config import save_config
-    from texstream.core.outputs import atomic_output_dir, write_json_atomic
-
     cfg = config or LightsConfig()
     capture = Path(capture)
     if not cfg.sphere and not cfg.ball_masks:
@@ -472,8 +465,6 @@ def lit_capture(posed_dir: Path, out: Path, lcfg: LightsConfig) -> StageResult:
     """The run's lights stage: estimate the light from the ball photos (``OUT/lights.json``, report) and
     write ``OUT/capture.json``: the posed capture's other photos, every one with that light (image paths
     relative to ``OUT``, so no image is copied)."""
-    from texstream.capture.capture_json import Capture, _light_from, read_capture, write_capture
-
     cap = read_capture(posed_dir)
     balls = set(lcfg.frames or ())
     keep = [f for f in cap.frames if not ({f.name, Path(f.file_path).name} & balls)]

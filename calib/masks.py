@@ -39,9 +39,13 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from texstream.capture.capture_json import read_capture, write_capture
+from texstream.capture.imageio import linear_to_srgb, read_image, write_image
+from texstream.capture.preview import write_contact_sheet
 from texstream.core.config import option
 from texstream.core.errors import ConfigError, InputError
 from texstream.core.outputs import StageResult, write_json_atomic
+from texstream.core.progress import bar
 
 MASK_MODES = ("auto", "none", "border", "grabcut")
 REPORT_FILE = "masks_report.json"
@@ -83,8 +87,6 @@ class MaskConfig:
 def display_image(img: np.ndarray, eight_bit_codes: bool = False) -> np.ndarray:
     """(H, W, 3) float32 sRGB-encoded in [0, 1] from a linear photo; HDR photos are scaled so their
     99.5th percentile is 1 first. ``eight_bit_codes``: the input is already sRGB in [0, 1]."""
-    from texstream.capture.imageio import linear_to_srgb
-
     a = np.asarray(img, dtype=np.float32)
     if a.ndim == 2:
         a = a[:, :, None]
@@ -324,7 +326,6 @@ def masks_for_images(images: Sequence[np.ndarray], cfg: MaskConfig | None = None
         summary["decision"] = f"mode {mode} requested"
     summary["mode"] = mode
     out: list[np.ndarray | None] = []
-    from texstream.core.progress import bar
 
     # a bar on a terminal only: GrabCut takes most of a second per photo
     for i, img in enumerate(bar(images, "masks", unit="photo")):
@@ -403,9 +404,6 @@ def make_masks(capture_dir: str | os.PathLike, config: MaskConfig | None = None,
     Raises:
         InputError: unreadable capture.json or photo.
     """
-    from texstream.capture.capture_json import read_capture, write_capture
-    from texstream.capture.imageio import read_image, write_image
-
     cfg = config or MaskConfig()
     cfg.validate()
     root = Path(capture_dir)
@@ -449,8 +447,6 @@ def make_masks(capture_dir: str | os.PathLike, config: MaskConfig | None = None,
 
 def write_mask_preview(root: str | os.PathLike) -> Path:
     """Contact sheet of the capture with every mask's outline (and its outside dimmed)."""
-    from texstream.capture.preview import write_contact_sheet
-
     return write_contact_sheet(root, Path(root) / PREVIEW_FILE, mask_style="both")
 
 

@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from texstream.capture.imageio import read_image, read_mask
 from texstream.core.errors import InputError
 from texstream.core.progress import say
 
@@ -56,8 +57,6 @@ def _few(names: list[str], n: int = 3) -> str:
 def _colour_signature(photo: _Photo) -> np.ndarray:
     """Square root of a photo's brightness-weighted chromaticity histogram (12 x 12 bins of r and g over
     r+g+b; inside its mask when it has one): dark background pixels weigh little, exposure cancels."""
-    from texstream.capture.imageio import read_image, read_mask
-
     img = read_image(photo.path, channels=3)
     keep = np.ones(img.shape[:2], bool)
     if photo.mask is not None:

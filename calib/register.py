@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from texstream.capture.capture_json import CAPTURE_FILE, Capture, Frame, Intrinsics, read_capture, write_capture
+from texstream.capture.imageio import image_size, linear_to_srgb, read_image, read_mask, write_image
 from texstream.core.errors import ConfigError, InputError, StageError
 from texstream.core.config import option, save_config
 from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
@@ -46,8 +47,10 @@ from texstream.core.progress import bar, phase, say
 from .colmap_log import colmap_quiet, quiet_colmap_log
 from .colmap_io import intrinsics_to_colmap, opencv_distortion, reconstruction_frames
 from .files import list_images, write_failure_report
+from .intrinsics import intrinsics_for_size, load_intrinsics
 from .photo_groups import check_groups, match_groups
 from .lights import colocated_light
+from .photometric import estimate_gains, observations_from_model
 
 REPORT_FILE = "registration_report.json"
 
@@ -120,8 +123,6 @@ class _Photo:
 
 def _image_size(path: Path) -> tuple[int, int] | None:
     try:
-        from texstream.capture.imageio import image_size
-
         w, h, _ = image_size(path)
         return int(w), int(h)
     except Exception:  # noqa: BLE001 - unreadable/corrupt: reported by the caller
@@ -179,8 +180,6 @@ def _is_8bit_colmap_readable(path: Path) -> bool:
 
 def _stage_images(photos: list[_Photo], work: Path) -> tuple[Path, Path | None]:
     """Image and mask folders COLMAP reads: 8-bit files linked as they are, others as 8-bit sRGB proxies."""
-    from texstream.capture.imageio import linear_to_srgb, read_image, read_mask, write_image
-
     img_dir = work / "images"
     img_dir.mkdir(parents=True)
     mask_dir = None
@@ -215,8 +214,6 @@ def _camera_groups(photos: list[_Photo], cfg: RegisterConfig, source: str) -> li
     ``source`` is the capture's ``intrinsics_source`` (ingest): ``calibrated`` frames' intrinsics are
     used as given; ``exif`` focal lengths seed COLMAP's estimate of ``cfg.camera_model``.
     """
-    from .intrinsics import intrinsics_for_size, load_intrinsics
-
     cams = load_intrinsics(cfg.intrinsics) if cfg.intrinsics else None
     groups: dict[tuple[int, int], list[_Photo]] = {}
     for p in photos:
@@ -459,10 +456,6 @@ def align_to_centres(rec: Any, centres: dict[str, np.ndarray], max_error_frac: f
 
 def _photometric_gains(rec: Any, photos: list[_Photo], mask_dir: Path | None, report: dict) -> dict[str, np.ndarray]:
     """Per-photo RGB gains from the model's shared points (see :mod:`.photometric`); {} when too few."""
-    from texstream.capture.imageio import read_image, read_mask
-
-    from .photometric import estimate_gains, observations_from_model
-
     t0 = time.perf_counter()
     images, masks, sat = {}, {}, {}
     for p in photos:

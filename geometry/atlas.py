@@ -52,12 +52,20 @@ import math
 
 import numpy as np
 
+from texstream.capture.capture_json import read_capture
+from texstream.capture.imageio import write_image
 from texstream.core.errors import ConfigError, InputError
-from texstream.core.config import option
+from texstream.core.config import config_to_dict, option, save_config
+from texstream.core.outputs import StageResult, atomic_output_dir, read_json, write_json_atomic
+from texstream.core.progress import phase
 
 from .atlas_density import _density_charts, _scale_charts, _uv_areas
 from texstream.render.mesh import SurfaceMesh
-from .mesh_io import validate_mesh
+from .bake import _claim_orphans, _texel_vertex_coords, bake_texels, claim_texels
+from .density import density_face_weights, texel_size_spread
+from .mesh_io import load_mesh, save_mesh, validate_mesh
+from .seams import SEAMS_FILE, find_seams
+from .visibility import depth_maps
 
 
 @dataclasses.dataclass
@@ -208,8 +216,6 @@ def _check_weights(w: np.ndarray | None, n_faces: int) -> np.ndarray | None:
 
 def _uvs_usable(mesh: SurfaceMesh, config: AtlasConfig) -> tuple[bool, str]:
     """Whether the mesh's own UVs can serve as the fitting atlas, and why not."""
-    from .bake import claim_texels
-
     uv = np.asarray(mesh.uvs, dtype=np.float64)
     if uv.min() < -1e-6 or uv.max() > 1 + 1e-6:
         return False, "UVs leave [0, 1] (tiled or wrapped textures)"
@@ -263,8 +269,6 @@ def _keep_uvs(mesh: SurfaceMesh, config: AtlasConfig,
 def _coverage(mesh: SurfaceMesh, width: int, height: int, return_owned: bool = False):
     """(covered texels, faces with no texel centre inside, faces still without a texel after
     the orphan rule), as the bake will find them; with ``return_owned`` also (F,) texels per face."""
-    from .bake import _claim_orphans, _texel_vertex_coords, claim_texels
-
     face = claim_texels(mesh, width, height, claim_orphans=False).reshape(-1)
     n_orphan = mesh.n_faces - len(np.unique(face[face >= 0]))
     tx, ty = _texel_vertex_coords(mesh, width, height)
@@ -626,23 +630,11 @@ def atlas_stage(mesh_path, out, config: AtlasConfig | None = None, face_weights:
     """
     from pathlib import Path
 
-    from texstream.core.config import config_to_dict, save_config
-    from texstream.core.outputs import StageResult, atomic_output_dir, read_json, write_json_atomic
-    from texstream.core.progress import phase
-
-    from .bake import bake_texels
-    from .mesh_io import load_mesh, save_mesh
-
     config = config or AtlasConfig()
     out = Path(out)
     mesh = load_mesh(mesh_path)
     frames = depths = None
     if capture is not None:
-        from texstream.capture.capture_json import read_capture
-
-        from .density import density_face_weights
-        from .visibility import depth_maps
-
         frames = read_capture(capture).frames
         with phase("atlas", f"texel density from {len(frames)} photos"):
             depths = depth_maps(mesh, frames, device)
@@ -663,7 +655,6 @@ def atlas_stage(mesh_path, out, config: AtlasConfig | None = None, face_weights:
         atlas_mesh, info = build_atlas(mesh, config, face_weights)
     with phase("atlas", f"texel bake ({info.width}x{info.height})"):
         bake = bake_texels(atlas_mesh, info.width, info.height, device=device, padding=config.padding)
-    from .seams import SEAMS_FILE, find_seams
 
     with phase("atlas", "seams"):
         seams = find_seams(atlas_mesh, info.width, info.height, bake.fill_source)
@@ -673,8 +664,6 @@ def atlas_stage(mesh_path, out, config: AtlasConfig | None = None, face_weights:
                "bake_faces_without_texels": bake.faces_without_texels.tolist()[:100],
                "bake_coverage": bake.coverage, "input": fp}
     if frames is not None:
-        from .density import texel_size_spread
-
         summary["texel_size_px"] = texel_size_spread(atlas_mesh, info.width, info.height, frames, device, depths)
     with atomic_output_dir(out) as tmp:
         save_mesh(tmp / "mesh.obj", atlas_mesh)
@@ -688,7 +677,5 @@ def atlas_stage(mesh_path, out, config: AtlasConfig | None = None, face_weights:
 
 def _write_preview(path, bake) -> None:
     """Normals as colours (already display codes, so written unencoded as 8-bit)."""
-    from texstream.capture.imageio import write_image
-
     img = np.clip(np.rint(bake.normal_preview() * 255.0), 0, 255).astype(np.uint8)
     write_image(path, img, bits=8)

@@ -23,10 +23,15 @@ from typing import Sequence
 import numpy as np
 import warp as wp
 
+from texstream.capture.capture_json import Frame, Intrinsics
+from texstream.capture.conventions import look_at_w2c
+from texstream.capture.imageio import read_mask
 from texstream.core.errors import InputError, StageError
 from texstream.core.config import option
 
 from texstream.render.mesh import SurfaceMesh
+from .clean import CleanConfig, clean_mesh
+from .scene import genus_by_component
 
 
 @dataclasses.dataclass
@@ -297,20 +302,14 @@ def visual_hull(frames: Sequence, masks: Sequence[np.ndarray], config: HullConfi
                          fix="check the poses and masks, or use --from sfm or --from scan.obj")
     f = np.clip(f, -10 * step[0], 10 * step[0])  # clamp the 1e30 sentinels before interpolation
     if report is not None and cfg.closing > 0:
-        from .scene import genus_by_component
-
         report["genus_before_closing"] = genus_by_component(_extract(f, lo, step, device))["total"]
     f = close_field(f, cfg.closing)
     f[0, :, :] = f[-1, :, :] = f[:, 0, :] = f[:, -1, :] = f[:, :, 0] = f[:, :, -1] = -10 * step[0]
     mesh = _extract(f, lo, step, device)
     if report is not None:
-        from .scene import genus_by_component
-
         report["closing_cells"] = int(cfg.closing)
         report["genus"] = genus_by_component(mesh)["total"]
     if cfg.clean:
-        from .clean import CleanConfig, clean_mesh
-
         mesh, _ = clean_mesh(mesh, CleanConfig(hausdorff=False, max_hole_edges=0))
     return mesh
 
@@ -329,8 +328,6 @@ def load_masks(capture) -> list[np.ndarray]:
     Raises:
         InputError: a frame has no mask_path, or its mask is unreadable or not the photo's size.
     """
-    from texstream.capture.imageio import read_mask
-
     masks = []
     for f in capture.frames:
         p = capture.mask_path(f)
@@ -357,9 +354,6 @@ def orbit_frames(center, radius: float, n_azimuth: int = 8, elevations_deg: Sequ
     Returns:
         list of :class:`texstream.capture.capture_json.Frame`.
     """
-    from texstream.capture.capture_json import Frame, Intrinsics
-    from texstream.capture.conventions import look_at_w2c
-
     center = np.asarray(center, np.float64)
     up = np.asarray(up, np.float64) / np.linalg.norm(up)
     a = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])

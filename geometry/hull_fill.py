@@ -31,6 +31,10 @@ from collections.abc import Sequence
 import numpy as np
 
 from texstream.render.mesh import SurfaceMesh
+from .hull import visual_hull
+from .reconstruct import estimate_normals
+from .scene import point_spacing
+from .visibility import depth_maps, visible_points
 
 
 def sample_surface(mesh: SurfaceMesh, spacing: float, max_samples: int = 200_000,
@@ -51,8 +55,6 @@ def well_seen_views(points: np.ndarray, normals: np.ndarray, hull: SurfaceMesh, 
                     max_angle_deg: float, device: str = "cpu") -> np.ndarray:
     """(N,) number of cameras that see each hull point unoccluded by the hull and within ``max_angle_deg``
     of its normal."""
-    from .visibility import depth_maps, visible_points
-
     cos_min = np.cos(np.radians(max_angle_deg))
     count = np.zeros(len(points), np.int32)
     diag = hull.bbox_diagonal()
@@ -122,10 +124,6 @@ def poisson_points_with_hull_fill(frames: Sequence, masks: Sequence[np.ndarray],
     Returns:
         (points, normals, report): the SfM points first, then the kept hull samples.
     """
-    from .hull import visual_hull
-    from .reconstruct import estimate_normals
-    from .scene import point_spacing
-
     p = np.asarray(points, np.float64).reshape(-1, 3)
     centres = np.array([np.asarray(f.center, np.float64).reshape(3) for f in frames])
     n = estimate_normals(p, centres, normal_neighbours) if normals is None else np.asarray(normals, np.float64)

@@ -57,13 +57,24 @@ from pathlib import Path
 
 import numpy as np
 
-from texstream.core.errors import ConfigError, InputError
+from texstream.capture.capture_json import read_capture
+from texstream.core.errors import ConfigError, InputError, StageError
 from texstream.core.config import option, save_config
 from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
 from texstream.core.progress import phase
 
 from texstream.render.mesh import SurfaceMesh
-from .mvs import MvsConfig
+from .align import align_to_points, transform_mesh
+from .clean import CleanConfig, clean_mesh
+from .hull import HullConfig, hull_bounds, load_masks, visual_hull
+from .hull_fill import poisson_points_with_hull_fill
+from .mesh_io import load_mesh, save_mesh
+from .mvs import MvsConfig, capture_dense_points
+from .reconstruct import PoissonConfig, poisson_reconstruct, read_points, trim_by_masks
+from .scene import (Facing, camera_facing, cameras_enclosed, check_facing, classify_capture, crop_to_box,
+                    drop_enclosed_components, genus_by_component, orient_to_cameras, point_spacing,
+                    robust_box, trim_far_from_points)
+from .triangulate import triangulate_capture, write_points
 
 POINTS_FILE = "points3D.ply"
 DENSE_POINTS_FILE = "dense_points.ply"
@@ -244,10 +255,6 @@ def check_in_view(mesh: SurfaceMesh, capture, path=None) -> float:
 def make_mesh(capture_dir: str | os.PathLike | None, out: str | os.PathLike,
               config: MeshConfig | None = None) -> StageResult:
     """Run the mesh stage (module doc). Returns a StageResult whose summary is the report."""
-    from texstream.capture.capture_json import read_capture
-
-    from .clean import CleanConfig, clean_mesh
-
     cfg = config or MeshConfig()
     if cfg.faces < 0:
         raise ConfigError(f"--faces {cfg.faces} is negative", fix="give a face count, or 0 to keep all")
@@ -258,13 +265,9 @@ def make_mesh(capture_dir: str | os.PathLike | None, out: str | os.PathLike,
     masks = None
     new_points = None
     if capture is not None and _has_masks(capture) and source in ("sfm", "hull"):
-        from .hull import load_masks
-
         with phase("mesh", f"reading {len(capture.frames)} masks"):
             masks = load_masks(capture)
     if source == "scan":
-        from .mesh_io import load_mesh
-
         mesh = load_mesh(cfg.mesh)
         mesh = SurfaceMesh(mesh.vertices, mesh.faces)
         if capture is not None:
@@ -273,8 +276,6 @@ def make_mesh(capture_dir: str | os.PathLike | None, out: str | os.PathLike,
     elif source == "sfm":
         mesh, new_points = _from_sfm(capture, cfg, masks, report)
     else:
-        from .hull import visual_hull
-
         with phase("mesh", f"visual hull: carving {len(masks)} masks (resolution {cfg.hull_resolution})"):
             mesh = visual_hull(capture.frames, masks, _hull_config(cfg), cfg.device, bounds=_capture_bounds(capture),
                                report=report.setdefault("hull", {}))
@@ -285,25 +286,19 @@ def make_mesh(capture_dir: str | os.PathLike | None, out: str | os.PathLike,
                                         path=cfg.mesh or capture_dir)
     report["clean"] = clean_rep.to_json()
     if capture is not None:
-        from .scene import drop_enclosed_components
-
         # a shell inside the body (Poisson closes pockets the points leave inside an object) is seen by no
         # camera: it only takes atlas space and splits the surface into components
         cleaned, report["enclosed_components_removed"] = drop_enclosed_components(cleaned)
         with phase("mesh", f"orienting the surface towards {len(capture.frames)} cameras"):
             cleaned = _check_against_cameras(cleaned, capture, cfg, report, cfg.mesh or capture_dir)
-    from .scene import genus_by_component
 
     report["genus"] = genus_by_component(cleaned)
     report["summary"] = clean_rep.summary() + _facing_summary(report)
     report["seconds"] = round(time.perf_counter() - t0, 3)
-    from .mesh_io import save_mesh
 
     with atomic_output_dir(out) as tmp:
         save_mesh(tmp / "mesh.ply", cleaned)
         if new_points is not None:
-            from .triangulate import write_points
-
             name = DENSE_POINTS_FILE if report.get("dense", {}).get("used") else POINTS_FILE
             write_points(tmp / name, *new_points)
         write_json_atomic(tmp / "mesh_report.json", report)
@@ -312,15 +307,11 @@ def make_mesh(capture_dir: str | os.PathLike | None, out: str | os.PathLike,
 
 
 def _hull_config(cfg: MeshConfig):
-    from .hull import HullConfig
-
     return HullConfig(resolution=cfg.hull_resolution, fill_holes=cfg.fill_holes, closing=cfg.closing)
 
 
 def _capture_kind(cfg: MeshConfig, pts: np.ndarray, centres: np.ndarray) -> dict:
     """The scene / object decision (geometry/scene.py) with its reason, as JSON."""
-    from .scene import classify_capture
-
     ck = classify_capture(pts, centres, cfg.crop_percentile, cfg.crop_margin).to_json()
     if cfg.scene_kind != "auto":
         ck["detected"] = ck["kind"]
@@ -331,8 +322,6 @@ def _capture_kind(cfg: MeshConfig, pts: np.ndarray, centres: np.ndarray) -> dict
 
 def _crop_scene(mesh: SurfaceMesh, pts: np.ndarray, cfg: MeshConfig, pcfg, report: dict) -> SurfaceMesh:
     """The Poisson surface of a scene cropped to the points' robust box and trimmed to where points are."""
-    from .scene import crop_to_box, point_spacing, robust_box, trim_far_from_points
-
     lo, hi = robust_box(pts, cfg.crop_percentile, cfg.crop_margin)
     inside = pts[np.all((pts >= lo) & (pts <= hi), axis=1)]
     faces0 = mesh.n_faces
@@ -347,8 +336,6 @@ def _crop_scene(mesh: SurfaceMesh, pts: np.ndarray, cfg: MeshConfig, pcfg, repor
                             "after_box": cropped, "after_trim": mesh.n_faces, "point_spacing": spacing,
                             "trim_distance": dist}
     if mesh.n_faces == 0:
-        from texstream.core.errors import StageError
-
         raise StageError("nothing of the Poisson surface lies near the SfM points inside their robust extent",
                          fix="check the points (points3D.ply), or raise --trim-spacing")
     return mesh
@@ -357,10 +344,6 @@ def _crop_scene(mesh: SurfaceMesh, pts: np.ndarray, cfg: MeshConfig, pcfg, repor
 def _check_against_cameras(mesh: SurfaceMesh, capture, cfg: MeshConfig, report: dict, path) -> SurfaceMesh:
     """Orient components towards the cameras that see them; fix or reject a surface enclosing an object's cameras;
     fail when camera rays still hit back faces (geometry/scene.py)."""
-    from texstream.core.errors import StageError
-
-    from .scene import camera_facing, cameras_enclosed, check_facing, orient_to_cameras
-
     centres = np.array([f.center for f in capture.frames])
     # objects (SfM points with cameras around them, or a hull) must not enclose a camera; scenes and scans may
     kind = report.get("capture_kind", {}).get("kind", "object" if report["source"] == "hull" else "unknown")
@@ -378,8 +361,6 @@ def _check_against_cameras(mesh: SurfaceMesh, capture, cfg: MeshConfig, report: 
 
 
 def _facing_of(rep: dict):
-    from .scene import Facing
-
     b = rep["after"]
     return Facing(np.array([b["hits"] - b["back_hits"]]), np.array([b["back_hits"]]), b["rays"])
 
@@ -395,15 +376,11 @@ def _facing_summary(report: dict) -> str:
 
 
 def _place_scan(mesh: SurfaceMesh, capture, cfg: MeshConfig) -> tuple[SurfaceMesh, dict]:
-    from .align import align_to_points, transform_mesh
-
     if cfg.matrix:
         m = _read_matrix(cfg.matrix)
         return transform_mesh(mesh, m), {"method": "matrix", "matrix": m.tolist()}
     pts_path = capture.root / POINTS_FILE
     if cfg.align and pts_path.is_file():
-        from .reconstruct import read_points
-
         pts, _ = read_points(pts_path)
         if len(pts) >= 20:
             al = align_to_points(mesh, pts)
@@ -429,14 +406,9 @@ def _dense_bounds(capture, cfg: MeshConfig, masks) -> tuple[tuple[np.ndarray, np
         pad = 0.02 * float(np.linalg.norm(hi - lo))  # a tight box: surface points lie on its faces
         return (lo - pad, hi + pad), "the capture's bounding box"
     if masks is not None:
-        from .hull import hull_bounds
-
         return hull_bounds(capture.frames, masks, _hull_config(cfg), cfg.device), "the coarse visual hull"
     pts_path = capture.root / POINTS_FILE
     if pts_path.is_file():
-        from .reconstruct import read_points
-        from .scene import robust_box
-
         pts, _ = read_points(pts_path)
         if len(pts) >= MIN_SFM_POINTS:
             return robust_box(pts, cfg.crop_percentile, cfg.crop_margin), "the SfM points' robust box"
@@ -447,8 +419,6 @@ def _dense_bounds(capture, cfg: MeshConfig, masks) -> tuple[tuple[np.ndarray, np
 
 def _dense_points(capture, cfg: MeshConfig, masks, report: dict) -> tuple[np.ndarray, np.ndarray] | None:
     """Dense stereo points and normals (geometry/mvs.py), or None (with the reason in the report) when too few."""
-    from .mvs import capture_dense_points
-
     bounds, where = _dense_bounds(capture, cfg, masks)
     dp = capture_dense_points(capture, masks, bounds, cfg.mvs, cfg.device)
     rep = {"reason": ("on (--dense on)" if cfg.dense == "on" else
@@ -467,8 +437,6 @@ def _dense_points(capture, cfg: MeshConfig, masks, report: dict) -> tuple[np.nda
 
 def _hull_instead(capture, cfg: MeshConfig, masks, report: dict, n_points: int) -> SurfaceMesh:
     """The visual hull of the masks when the SfM points are too few (a textureless object)."""
-    from .hull import visual_hull
-
     report["source"] = "hull"
     report["reason"] = f"too few SfM points ({n_points}) for Poisson; the capture has masks, so the visual hull"
     return visual_hull(capture.frames, masks, _hull_config(cfg), cfg.device, bounds=_capture_bounds(capture),
@@ -477,8 +445,6 @@ def _hull_instead(capture, cfg: MeshConfig, masks, report: dict, n_points: int) 
 
 def _from_sfm(capture, cfg: MeshConfig, masks, report: dict) -> tuple[SurfaceMesh, tuple | None]:
     """Poisson (+ hull) from the capture's SfM points; returns (mesh, (points, normals) triangulated here or None)."""
-    from .reconstruct import PoissonConfig, poisson_reconstruct, read_points, trim_by_masks
-
     pts_path = capture.root / POINTS_FILE
     new_points = None
     dense = _dense_points(capture, cfg, masks, report) if _will_dense(cfg, capture) else None
@@ -489,8 +455,6 @@ def _from_sfm(capture, cfg: MeshConfig, masks, report: dict) -> tuple[SurfaceMes
     elif pts_path.is_file():
         pts, nrm = read_points(pts_path)
     else:
-        from .triangulate import triangulate_capture
-
         with phase("mesh", f"triangulating SfM points from {len(capture.frames)} photos and their known cameras"):
             tp = triangulate_capture(capture, masks=masks)
         pts, nrm = tp.points, tp.normals
@@ -513,16 +477,12 @@ def _from_sfm(capture, cfg: MeshConfig, masks, report: dict) -> tuple[SurfaceMes
         # Poisson over the points inside their robust box only, in a tight cube: far outliers would stretch
         # the octree (3x the scene's extent halved the resolution of the synthetic scene's surface), and the
         # room the default scale leaves for a closed surface is what makes the balloon
-        from .scene import robust_box
-
         lo, hi = robust_box(pts, cfg.crop_percentile, cfg.crop_margin)
         keep = np.all((pts >= lo) & (pts <= hi), axis=1)
         report["points_outside_robust_box"] = int((~keep).sum())
         pts, nrm = pts[keep], (nrm[keep] if nrm is not None else None)
         pcfg.scale = 1.1
     if intersect and cfg.hull_fill:
-        from .hull_fill import poisson_points_with_hull_fill
-
         pts, nrm, report["hull_fill"] = poisson_points_with_hull_fill(
             capture.frames, masks, pts, nrm, _hull_config(cfg), cfg.hull_fill_distance, cfg.hull_fill_angle,
             pcfg.normal_neighbours, cfg.device, _capture_bounds(capture))
@@ -537,8 +497,6 @@ def _from_sfm(capture, cfg: MeshConfig, masks, report: dict) -> tuple[SurfaceMes
     if scene:
         return _crop_scene(mesh, pts, cfg, pcfg, report), new_points
     if not intersect:
-        from .scene import cameras_enclosed
-
         enclosed = int(cameras_enclosed(mesh, centres).sum())
         if enclosed:
             # the closed Poisson surface balloons round the cameras: the fix is the scene treatment
@@ -547,8 +505,6 @@ def _from_sfm(capture, cfg: MeshConfig, masks, report: dict) -> tuple[SurfaceMes
             mesh = _crop_scene(mesh, pts, cfg, pcfg, report)
     if masks is not None:
         if intersect:
-            from .hull import visual_hull
-
             lo, hi = mesh.bbox()
             box = _capture_bounds(capture)
             if box is not None:

@@ -14,13 +14,12 @@ import numpy as np
 
 from texstream.core.errors import StageError
 from texstream.geometry.align import align_to_points
+from texstream.geometry.mesh_io import load_mesh, validate_mesh
 
 
 def mesh_alignment(path: str) -> Callable[[Any, float], dict]:
     """The mesh at ``path`` loaded and checked, as ``align(rec, max_rms_frac)``: :func:`align_to_mesh` onto it
     (``texstream.calib.register.register``'s ``mesh_alignment``, called where it needs the mesh)."""
-    from texstream.geometry.mesh_io import load_mesh, validate_mesh
-
     mesh = load_mesh(path)
     validate_mesh(mesh, path)
 

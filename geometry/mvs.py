@@ -46,6 +46,7 @@ from typing import Sequence
 import numpy as np
 import warp as wp
 
+from texstream.capture.imageio import read_image
 from texstream.core.config import option
 from texstream.core.errors import ConfigError, InputError
 
@@ -687,8 +688,6 @@ def capture_dense_points(capture, masks: Sequence[np.ndarray] | None, bounds: tu
     Raises:
         InputError: a photo is missing or unreadable, or has lens distortion (undistort it first).
     """
-    from texstream.capture.imageio import read_image
-
     images = []
     for f in capture.frames:
         p = capture.image_path(f)

@@ -21,6 +21,8 @@ from texstream.core.errors import InputError, StageError
 from texstream.core.config import option
 
 from texstream.render.mesh import SurfaceMesh
+from .clean import signed_volume
+from .visibility import depth_maps, visible_points
 
 
 @dataclasses.dataclass
@@ -147,7 +149,6 @@ def poisson_reconstruct(points: np.ndarray, normals: np.ndarray | None = None,
         keep_v = q >= np.quantile(q, cfg.density_quantile)
         f = f[keep_v[f].all(axis=1)]
     mesh = _compact(SurfaceMesh(v, f))
-    from .clean import signed_volume
 
     if signed_volume(mesh.vertices, mesh.faces) < 0:
         mesh = SurfaceMesh(mesh.vertices, mesh.faces[:, ::-1].copy())
@@ -161,8 +162,6 @@ def trim_by_masks(mesh: SurfaceMesh, frames: Sequence, masks: Sequence[np.ndarra
     Visibility is by ray-cast depth maps (:mod:`.visibility`), so a face hidden in a view is not
     judged by that view's mask.
     """
-    from .visibility import depth_maps, visible_points
-
     cen = mesh.vertices[mesh.faces].mean(axis=1)
     depths = depth_maps(mesh, frames, device)
     outside_votes = np.zeros(len(cen), np.int32)

@@ -39,11 +39,19 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-from texstream.core.config import option
+from texstream.capture.capture_json import Capture, Light, read_capture, split_holdout, write_capture
+from texstream.capture.imageio import read_image, read_mask
+from texstream.core.config import option, save_config
 from texstream.core.errors import ConfigError, InputError
+from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
+from texstream.core.progress import bar, phase
+from texstream.render.camera import ImageInfo, PhotoFrame, image_infos, struct_array
+from texstream.render.visibility import depth_maps_kernel
 
 from . import refine_kernels as rk
 from . import refine_normal_kernels as rnk
+from .bake import TexelBake, bake_texels
+from .mesh_io import load_mesh, save_mesh
 
 
 @dataclasses.dataclass
@@ -211,10 +219,6 @@ class PhotometricRefinement:
     """The refinement's device state: photos, masks, depth maps, poses, mesh, texels (see the module)."""
 
     def __init__(self, capture, mesh, bake, cfg: RefineConfig, device: str = "cpu", log=None):
-        from texstream.capture.imageio import read_image, read_mask
-        from texstream.capture.capture_json import split_holdout
-        from texstream.render.camera import ImageInfo, PhotoFrame, image_infos, struct_array
-
         self.cfg, self.device, self.log = cfg, device, log or (lambda m: None)
         self.frames = list(capture.frames)
         n = len(self.frames)
@@ -346,8 +350,6 @@ class PhotometricRefinement:
 
     def update_geometry(self) -> None:
         """Mesh vertices from the welded ones, the BVH, texel positions, and every photo's depth map."""
-        from texstream.render.visibility import depth_maps_kernel
-
         wp.launch(rk.scatter_points_kernel, dim=len(self.mesh.vertices), inputs=[self.welded_points, self.weld],
                   outputs=[self.points], device=self.device)
         self.bvh.refit()
@@ -438,8 +440,6 @@ class PhotometricRefinement:
 
     def run(self) -> RefineResult:
         """Every level's iterations (colours, pose steps, displacement steps), then the summary."""
-        from texstream.core.progress import bar
-
         cfg = self.cfg
         t0 = time.perf_counter()
         self.update_geometry()
@@ -719,8 +719,6 @@ class ShadingNormals:
 def refined_capture(capture, result: RefineResult, out: Path):
     """The capture with refined poses (lights fixed to a camera moved with it), its files referenced from
     ``out``."""
-    from texstream.capture.capture_json import Capture, Light
-
     frames = []
     attached, offset = camera_attached_lights(capture.frames)
     for i, f in enumerate(capture.frames):
@@ -751,14 +749,6 @@ def refine_stage(capture_dir: str | Path, geometry: str | Path, out: str | Path,
         cfg: options (defaults when None).
         device: Warp device.
     """
-    from texstream.capture.capture_json import read_capture, write_capture
-    from texstream.core.config import save_config
-    from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
-    from texstream.core.progress import phase
-
-    from .bake import TexelBake, bake_texels
-    from .mesh_io import load_mesh, save_mesh
-
     cfg = cfg or RefineConfig()
     cfg.levels()
     cfg.smoothing_rounds()

@@ -43,6 +43,7 @@ import numpy as np
 from texstream.core.errors import InputError
 
 from texstream.render.mesh import SurfaceMesh
+from .mesh_io import write_npz_atomic
 
 SEAMS_FILE = "seams.npz"
 
@@ -103,8 +104,6 @@ class Seams:
 
     def save(self, path: str | os.PathLike) -> None:
         """Write ``seams.npz`` (compressed) atomically."""
-        from .mesh_io import write_npz_atomic
-
         write_npz_atomic(path, width=np.int64(self.width), height=np.int64(self.height),
                          **{k: getattr(self, k) for k in self._ARRAYS})
 

@@ -33,8 +33,13 @@ from typing import Sequence
 
 import numpy as np
 
+from texstream.calib.colmap_io import intrinsics_to_colmap
+from texstream.calib.colmap_log import colmap_quiet, quiet_colmap_log
+from texstream.capture.imageio import linear_to_srgb, read_image, read_mask, write_image
 from texstream.core.errors import InputError
 from texstream.core.config import option
+from .hull import load_masks
+from .reconstruct import estimate_normals
 
 _COLMAP_8BIT = (".png", ".jpg", ".jpeg")
 
@@ -83,8 +88,6 @@ class TriangulatedPoints:
 
 def _stage_photos(capture, work: Path) -> tuple[Path, Path | None, list[str]]:
     """COLMAP image and mask folders for the capture's frames; returns (images, masks, names)."""
-    from texstream.capture.imageio import linear_to_srgb, read_image, read_mask, write_image
-
     img_dir = work / "images"
     mask_dir = work / "masks"
     names = []
@@ -142,11 +145,7 @@ def triangulate_capture(capture, config: TriangulateConfig | None = None,
     """
     import pycolmap
 
-    from texstream.calib.colmap_log import colmap_quiet, quiet_colmap_log
-
     quiet_colmap_log()
-
-    from .reconstruct import estimate_normals
 
     cfg = config or TriangulateConfig()
     if len(capture.frames) < 2:
@@ -202,8 +201,6 @@ def triangulate_capture(capture, config: TriangulateConfig | None = None,
     keep = np.isfinite(xyz).all(axis=1) & (err <= cfg.max_reproj_error)
     report["after_reprojection_filter"] = int(keep.sum())
     if masks is None and all(f.mask_path for f in capture.frames):
-        from .hull import load_masks
-
         masks = load_masks(capture)
     if masks is not None and keep.any():
         keep &= inside_masks(xyz, capture.frames, masks, cfg.mask_margin, cfg.outside_is_background)
@@ -232,9 +229,6 @@ def _extract_features(capture, db: Path, img_dir: Path, mask_dir: Path | None, n
     """SIFT features of the staged photos into the database ``db``, one COLMAP camera per distinct intrinsics
     (fixed, never refined). Returns the frames of each intrinsics (key: :func:`_intrinsics_key`)."""
     import pycolmap
-
-    from texstream.calib.colmap_io import intrinsics_to_colmap
-    from texstream.calib.colmap_log import colmap_quiet
 
     eo = pycolmap.FeatureExtractionOptions()
     eo.sift.max_num_features = cfg.max_features
@@ -267,8 +261,6 @@ def _posed_reconstruction(capture, db: Path, groups: dict[tuple, list[int]], nam
     """A reconstruction holding the capture's cameras (one per intrinsics group) and known poses, its images
     the database's (their ids). Returns (reconstruction, the database's images, staged name -> frame)."""
     import pycolmap
-
-    from texstream.calib.colmap_io import intrinsics_to_colmap
 
     rec = pycolmap.Reconstruction()
     cam_ids = {}

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import argparse
 
+from texstream.geometry.atlas import AtlasConfig, atlas_stage
+from texstream.pipelines.cli import add_config_arguments, config_from_args
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from texstream.geometry.atlas import AtlasConfig
-    from texstream.pipelines.cli import add_config_arguments
-
     parser.add_argument("mesh", help="input mesh (OBJ, PLY, STL, GLB or glTF)")
     parser.add_argument("-o", "--out", required=True, help="output folder")
     parser.add_argument("--capture", default=None,
@@ -19,9 +19,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from texstream.geometry.atlas import AtlasConfig, atlas_stage
-    from texstream.pipelines.cli import config_from_args
-
     config = config_from_args(AtlasConfig, args)
     res = atlas_stage(args.mesh, args.out, config, device=args.device, force=args.force, capture=args.capture)
     s = res.summary

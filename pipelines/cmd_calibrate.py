@@ -5,12 +5,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from texstream.calib.intrinsics import CalibrateConfig, calibrate
 from texstream.pipelines.cli import add_config_arguments, config_from_args
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from texstream.calib.intrinsics import CalibrateConfig
-
     parser.add_argument("photos", help="folder of board photos")
     parser.add_argument("-o", "--out", default=None,
                         help="output folder for intrinsics.json and the report (default: PHOTOS_calib)")
@@ -18,8 +17,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from texstream.calib.intrinsics import CalibrateConfig, calibrate
-
     cfg = config_from_args(CalibrateConfig, args)
     photos = Path(args.photos)
     out = Path(args.out) if args.out else photos.parent / f"{photos.name}_calib"

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from texstream.fit.stages.stage import eval_stage
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("model", help="model folder written by texstream fit")
@@ -16,8 +18,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import warp as wp
-
-    from texstream.fit.stages.stage import eval_stage
 
     wp.config.log_level = wp.LOG_WARNING
     res = eval_stage(args.model, args.capture, device=args.device, out_json=args.out, holdout_every=args.holdout_every)

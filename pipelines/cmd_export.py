@@ -5,20 +5,17 @@ from __future__ import annotations
 
 import argparse
 
+from texstream.fit.stages.export import ExportConfig, export_stage
+from texstream.pipelines.cli import add_config_arguments, config_from_args
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from texstream.fit.stages.export import ExportConfig
-    from texstream.pipelines.cli import add_config_arguments
-
     parser.add_argument("model", help="model folder written by texstream fit or texstream run")
     parser.add_argument("-o", "--out", required=True, help="export folder to write (replaced if it exists)")
     add_config_arguments(parser, ExportConfig)
 
 
 def run(args: argparse.Namespace) -> int:
-    from texstream.fit.stages.export import ExportConfig, export_stage
-    from texstream.pipelines.cli import config_from_args
-
     res = export_stage(args.model, args.out, config_from_args(ExportConfig, args))
     files = res.summary.get("files", res.summary)
     print(f"wrote {res.output}: {files}")

@@ -16,11 +16,17 @@ from __future__ import annotations
 
 import argparse
 
+from texstream.core.errors import InputError
+from texstream.core.progress import reporting
+from texstream.fit.models.materials import MaterialConfig
+from texstream.fit.models.photometric_stereo import SingleViewConfig, fit_single_view_stage
+from texstream.fit.optim.fitter import FitConfig
+from texstream.fit.stages.choice import ModelChoiceConfig
+from texstream.fit.stages.stage import FitStageConfig, fit_stage
+from texstream.pipelines.cli import add_config_arguments, config_from_args
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from texstream.fit.optim.fitter import FitConfig
-    from texstream.pipelines.cli import add_config_arguments
-
     parser.add_argument("capture", help="capture folder (capture.json with per-frame lights)")
     parser.add_argument("--mesh", help="atlas folder (mesh.obj + bake.npz) or mesh file (multi-view fits)")
     parser.add_argument("--normals", help="normal map (.png RGB-encoded, .exr, .npy) of a single-view capture: "
@@ -56,8 +62,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "taps first, and find and fit the materials on traced taps too (helps sub-pixel texels "
                              "that saw narrow highlights; can keep wrong lobes on texels that never saw theirs: "
                              "docs/accuracy.md)")
-    from texstream.fit.models.materials import MaterialConfig
-    from texstream.fit.stages.choice import ModelChoiceConfig
 
     add_config_arguments(parser, MaterialConfig, prefix="materials.")  # shared materials (fit/materials.py)
     add_config_arguments(parser, ModelChoiceConfig, prefix="choice.")  # --model auto (fit/stages/choice.py)
@@ -70,11 +74,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import warp as wp
 
-    from texstream.fit.optim.fitter import FitConfig
-    from texstream.fit.stages.stage import FitStageConfig, fit_stage
-    from texstream.pipelines.cli import config_from_args
-    from texstream.core.errors import InputError
-
     wp.config.log_level = wp.LOG_WARNING
     fit_cfg = config_from_args(FitConfig, args)
     if (args.mesh is None) == (getattr(args, "normals", None) is None):
@@ -82,9 +81,6 @@ def run(args: argparse.Namespace) -> int:
                          args.capture, "add --mesh ATLAS_OR_MESH or --normals NORMAL_MAP")
     if args.normals is not None:
         return _run_single_view(args, fit_cfg)
-    from texstream.fit.models.materials import MaterialConfig
-
-    from texstream.fit.stages.choice import ModelChoiceConfig
 
     cfg = FitStageConfig(fit=fit_cfg, materials=config_from_args(MaterialConfig, args, prefix="materials."),
                          choice=config_from_args(ModelChoiceConfig, args, prefix="choice."),
@@ -92,7 +88,6 @@ def run(args: argparse.Namespace) -> int:
                                                           "renders", "min_seen_fraction", "skip_bad_photos",
                                                           "traced_polish", "traced_materials")
                             if hasattr(args, k)})
-    from texstream.core.progress import reporting
 
     # the stage's phase lines, as texstream run prints them
     with reporting(lambda line: print(line, flush=True)):
@@ -118,8 +113,6 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run_single_view(args: argparse.Namespace, fit_cfg) -> int:
-    from texstream.fit.models.photometric_stereo import SingleViewConfig, fit_single_view_stage
-
     cfg = SingleViewConfig(fit=fit_cfg, **{k: getattr(args, k) for k in ("device", "holdout_every", "renders",
                                                                           "normal_space", "depth")})
     res = fit_single_view_stage(args.capture, args.normals, args.out, cfg)

@@ -6,11 +6,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from texstream.fit.diagnostics.fpcheck import FpcheckConfig, fpcheck, write_report
+from texstream.pipelines.cli import add_config_arguments, config_from_args
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from texstream.fit.diagnostics.fpcheck import FpcheckConfig
-    from texstream.pipelines.cli import add_config_arguments
-
     parser.add_argument("-o", "--out", default=None,
                         help="output folder for fpcheck.json and fpcheck.md (default: fpcheck-DEVICE)")
     add_config_arguments(parser, FpcheckConfig)
@@ -18,9 +18,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import warp as wp
-
-    from texstream.fit.diagnostics.fpcheck import FpcheckConfig, fpcheck, write_report
-    from texstream.pipelines.cli import config_from_args
 
     wp.config.log_level = wp.LOG_WARNING  # Warp 1.19: the init banner and module loads are info
     cfg = config_from_args(FpcheckConfig, args)

@@ -11,7 +11,9 @@ import argparse
 import importlib
 from types import ModuleType
 
+from texstream.capture.middlebury import MiddleburyImportConfig, import_middlebury
 from texstream.core.errors import TexstreamError
+from texstream.pipelines.cli import add_config_arguments, config_from_args
 
 FORMATS = ("middlebury", "colmap", "nerfstudio")
 # format -> (function name, config class name) in texstream.calib.colmap_io
@@ -29,9 +31,6 @@ def _colmap_io() -> ModuleType | None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from texstream.capture.middlebury import MiddleburyImportConfig
-    from texstream.pipelines.cli import add_config_arguments
-
     parser.add_argument("format", choices=FORMATS, help="source format")
     parser.add_argument("src", help="source folder (Middlebury set, COLMAP project or sparse model, "
                                     "nerfstudio folder)")
@@ -48,11 +47,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from texstream.pipelines.cli import config_from_args
-
     if args.format == "middlebury":
-        from texstream.capture.middlebury import MiddleburyImportConfig, import_middlebury
-
         result = import_middlebury(args.src, args.out, config_from_args(MiddleburyImportConfig, args))
     else:
         fn_name, cls_name = _COLMAP_IO[args.format]

@@ -5,20 +5,17 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from texstream.calib.ingest import IngestConfig, ingest
 from texstream.pipelines.cli import add_config_arguments, config_from_args
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from texstream.calib.ingest import IngestConfig
-
     parser.add_argument("photos", help="folder of photos (JPEG/PNG/TIFF/EXR; optional masks/ inside)")
     parser.add_argument("-o", "--out", required=True, help="capture folder to write")
     add_config_arguments(parser, IngestConfig)
 
 
 def run(args: argparse.Namespace) -> int:
-    from texstream.calib.ingest import IngestConfig, ingest
-
     res = ingest(Path(args.photos), Path(args.out), config_from_args(IngestConfig, args))
     s = res.summary
     print(f"found {s['found']} file(s): {s['frames']} frame(s) ({s['brackets']} merged bracket(s)), "

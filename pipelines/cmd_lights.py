@@ -5,12 +5,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from texstream.calib.lights import LightsConfig, estimate_lights
 from texstream.pipelines.cli import add_config_arguments, config_from_args
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from texstream.calib.lights import LightsConfig
-
     parser.add_argument("capture", help="posed capture folder (capture.json with camera poses) holding the ball photos")
     parser.add_argument("-o", "--out", required=True,
                         help="output folder: lights.json (for 'texstream ingest --lights'), lights_report.json")
@@ -18,8 +17,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from texstream.calib.lights import LightsConfig, estimate_lights
-
     res = estimate_lights(Path(args.capture), Path(args.out), config_from_args(LightsConfig, args))
     s = res.summary
     lt = s["light"]

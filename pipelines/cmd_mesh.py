@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import argparse
 
+from texstream.geometry.make_mesh import MeshConfig, make_mesh
+from texstream.pipelines.cli import add_config_arguments, config_from_args
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from texstream.geometry.make_mesh import MeshConfig
-    from texstream.pipelines.cli import add_config_arguments
-
     parser.add_argument("capture", nargs="?", default=None, help="capture folder (optional with --from MESH)")
     parser.add_argument("-o", "--out", required=True, help="output folder (mesh.ply, mesh_report.json)")
     parser.add_argument("--from", dest="from_", default="auto", metavar="SOURCE",
@@ -22,9 +22,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from texstream.geometry.make_mesh import MeshConfig, make_mesh
-    from texstream.pipelines.cli import config_from_args
-
     overrides = {}
     if args.from_ in ("auto", "sfm", "hull"):
         if args.from_ != "auto":

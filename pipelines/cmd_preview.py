@@ -5,6 +5,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from texstream.capture.preview import write_contact_sheet
+from texstream.core.errors import ConfigError
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("capture", help="capture folder (capture.json or nerfstudio transforms.json)")
@@ -19,9 +22,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from texstream.capture.preview import write_contact_sheet
-    from texstream.core.errors import ConfigError
-
     exposure: float | str = args.exposure
     if exposure != "auto":
         try:

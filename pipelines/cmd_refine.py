@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import argparse
 
+from texstream.geometry.refine import RefineConfig, refine_stage
+from texstream.pipelines.cli import add_config_arguments, config_from_args
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from texstream.geometry.refine import RefineConfig
-    from texstream.pipelines.cli import add_config_arguments
-
     parser.add_argument("capture", help="posed capture folder (texstream register, import, or a capture.json)")
     parser.add_argument("atlas", help="atlas folder of the mesh (texstream atlas: mesh.obj, bake.npz, seams.npz)")
     parser.add_argument("-o", "--out", required=True,
@@ -20,9 +20,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from texstream.geometry.refine import RefineConfig, refine_stage
-    from texstream.pipelines.cli import config_from_args
-
     config = config_from_args(RefineConfig, args)
     res = refine_stage(args.capture, args.atlas, args.out, config, device=args.device, log=print)
     s = res.summary

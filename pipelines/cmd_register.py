@@ -5,21 +5,18 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from texstream.calib.register import RegisterConfig, register
+from texstream.geometry.mesh_frame import mesh_alignment
 from texstream.pipelines.cli import add_config_arguments, config_from_args
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from texstream.calib.register import RegisterConfig
-
     parser.add_argument("capture", help="capture folder from 'texstream ingest', or a folder of photos")
     parser.add_argument("-o", "--out", default=None, help="posed capture folder to write (default: CAPTURE_posed)")
     add_config_arguments(parser, RegisterConfig)
 
 
 def run(args: argparse.Namespace) -> int:
-    from texstream.calib.register import RegisterConfig, register
-    from texstream.geometry.mesh_frame import mesh_alignment
-
     cfg = config_from_args(RegisterConfig, args)
     cap = Path(args.capture)
     out = Path(args.out) if args.out else cap.parent / f"{cap.name}_posed"

@@ -12,10 +12,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from texstream.capture.synthetic.synth import SynthConfig, synthesize
+from texstream.core.errors import ConfigError
+from texstream.core.toml import read_toml
+from texstream.pipelines.run import (LFM_CANDIDATE, RunConfig, STAGES, model_choices, run_config_from_dict,
+                                     run_pipeline)
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from texstream.pipelines.run import LFM_CANDIDATE, STAGES, model_choices
-
     parser.add_argument("photos", nargs="?", default=None,
                         help="photos, capture, transforms.json or COLMAP folder (default: the built-in synthetic set)")
     parser.add_argument("-o", "--out", default="out/demo", help="output folder (default: out/demo)")
@@ -49,12 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _config(args: argparse.Namespace):
     import dataclasses
 
-    from texstream.core.toml import read_toml
-    from texstream.pipelines.run import RunConfig, run_config_from_dict
-
     if args.config:
-        from texstream.core.errors import ConfigError
-
         try:
             cfg = run_config_from_dict(read_toml(args.config))
         except ConfigError as e:
@@ -74,8 +73,6 @@ def _config(args: argparse.Namespace):
         cfg.fit.fit = dataclasses.replace(cfg.fit.fit, **fit)
     lights = {}
     if args.mirror_ball is not None:
-        from texstream.core.errors import ConfigError
-
         try:
             ball = tuple(float(x) for x in args.mirror_ball.replace(" ", "").split(",") if x)
         except ValueError:
@@ -89,8 +86,6 @@ def _config(args: argparse.Namespace):
     if lights:
         cfg.lights = dataclasses.replace(cfg.lights, **lights)
     if cfg.fit.fit.max_iterations < 1:
-        from texstream.core.errors import ConfigError
-
         raise ConfigError(f"--iterations {cfg.fit.fit.max_iterations} must be at least 1", fix="pass --iterations 30")
     return cfg
 
@@ -98,15 +93,11 @@ def _config(args: argparse.Namespace):
 def run(args: argparse.Namespace) -> int:
     import warp as wp
 
-    from texstream.pipelines.run import run_pipeline
-
     wp.config.log_level = wp.LOG_WARNING
     cfg = _config(args)
     out = Path(args.out)
     source = args.photos
     if source is None:
-        from texstream.capture.synthetic.synth import SynthConfig, synthesize
-
         source = out / "capture"
         print(f"[synth] built-in synthetic capture set '{args.scene}' at scale {args.scale} -> {source}", flush=True)
         s = synthesize(args.scene, source, SynthConfig(scale=args.scale, device=cfg.device)).summary

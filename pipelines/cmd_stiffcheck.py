@@ -7,11 +7,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from texstream.core.errors import InputError
+from texstream.fit.diagnostics.stiffcheck import StiffcheckConfig, run_suite, select_cases, write_report
+from texstream.pipelines.cli import add_config_arguments, config_from_args
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from texstream.fit.diagnostics.stiffcheck import StiffcheckConfig
-    from texstream.pipelines.cli import add_config_arguments
-
     parser.add_argument("-o", "--out", default=None,
                         help="output folder for stiffcheck.json and stiffcheck.md (default: stiffcheck-DEVICE-SIZE)")
     add_config_arguments(parser, StiffcheckConfig)
@@ -20,16 +21,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import warp as wp
 
-    from texstream.fit.diagnostics.stiffcheck import StiffcheckConfig, run_suite, select_cases, write_report
-    from texstream.pipelines.cli import config_from_args
-
     wp.config.log_level = wp.LOG_WARNING  # Warp 1.19: the init banner and module loads are info
     cfg = config_from_args(StiffcheckConfig, args)
     select_cases([n.strip() for n in cfg.cases.split(",") if n.strip()])  # unknown names fail before any work
     out = Path(args.out) if args.out else Path(f"stiffcheck-{cfg.device.replace(':', '')}-{cfg.size}")
     if out.exists() and not out.is_dir():
-        from texstream.core.errors import InputError
-
         raise InputError("output path exists and is not a folder", out, "choose another -o folder")
 
     def log(r: dict) -> None:

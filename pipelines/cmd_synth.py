@@ -10,12 +10,11 @@ from __future__ import annotations
 
 import argparse
 
+from texstream.capture.synthetic.synth import SynthConfig, builtin_scenes, synthesize
 from texstream.pipelines.cli import add_config_arguments, config_from_args
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from texstream.capture.synthetic.synth import SynthConfig, builtin_scenes
-
     parser.add_argument("scene", help=f"built-in scene ({', '.join(builtin_scenes())}) or a scene JSON path")
     parser.add_argument("-o", "--out", required=True, help="output capture folder (replaced if it exists)")
     add_config_arguments(parser, SynthConfig)
@@ -23,8 +22,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import warp as wp
-
-    from texstream.capture.synthetic.synth import SynthConfig, synthesize
 
     wp.config.log_level = wp.LOG_WARNING  # the progress bar and the summary are the output (1.19: not `quiet`)
 

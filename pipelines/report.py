@@ -32,8 +32,14 @@ from typing import Any
 
 import numpy as np
 
+from texstream.capture.capture_json import read_capture
+from texstream.capture.conventions import w2c_cv_to_c2w_gl
+from texstream.capture.imageio import linear_to_srgb, read_image, read_mask
 from texstream.core.errors import ConfigError, InputError, TexstreamError
 from texstream.core.outputs import StageResult, atomic_output_dir, read_json
+from texstream.core.progress import bar
+from texstream.fit.models import registry
+from texstream.fit.stages.stage import image_metrics
 
 ASSETS = Path(__file__).with_name("report_assets")
 STAGE_STATUSES = ("ran", "skipped")
@@ -51,8 +57,6 @@ def load_report_model(model_dir: str | Path):
     ``info``: kind, layout (the per-texel ModelLayout, or None for a model without one), model (the
     FittedModel) and viewer (its ViewerModel, whose grid the viewer grid is).
     """
-    from texstream.fit.models import registry
-
     d = Path(model_dir)
     man = read_json(d / "model.json", what="model manifest")
     model = registry.get((man.get("layout") or {}).get("kind") or man.get("kind")).load(d, man)
@@ -67,8 +71,6 @@ def _b64(a: np.ndarray, dtype: str) -> str:
 
 def _srgb8(linear: np.ndarray) -> np.ndarray:
     """Linear -> sRGB 8-bit codes (clip, encode, round half up), as capture.imageio writes PNGs."""
-    from texstream.capture.imageio import linear_to_srgb
-
     return np.floor(np.clip(linear_to_srgb(np.clip(linear, 0.0, 1.0)), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
 
@@ -76,8 +78,6 @@ def viewer_frame(frame, held_out: bool = False, photo: np.ndarray | None = None,
     """A capture frame as the viewer takes it: camera_to_world (capture.json's OpenGL axes),
     pinhole intrinsics (pixels, centres at +0.5), light, exposure; ``photo`` (linear, H x W x 3)
     is embedded as sRGB 8-bit, downscaled to at most ``photo_max_side`` pixels."""
-    from texstream.capture.conventions import w2c_cv_to_c2w_gl
-
     k = frame.intrinsics
     out = {"name": frame.name, "camera_to_world": w2c_cv_to_c2w_gl(frame.R, frame.t).tolist(),
            "fx": float(k.fx), "fy": float(k.fy), "cx": float(k.cx), "cy": float(k.cy),
@@ -176,10 +176,6 @@ def _holdout_every(model_dir: Path) -> int:
 def evaluate_views(model, capture, frames, device: str) -> list[dict]:
     """Render the model (its plugin's renderer) for each frame; foreground = render coverage and the photo's
     mask."""
-    from texstream.capture.imageio import read_image, read_mask
-    from texstream.core.progress import bar
-    from texstream.fit.stages.stage import image_metrics
-
     rows = []
     render_frame = model.renderer(device)
     for f in bar(frames, "report: held-out renders", unit="view"):
@@ -196,8 +192,6 @@ def evaluate_views(model, capture, frames, device: str) -> list[dict]:
 
 def _split_fit_vs_photo(path: Path):
     """(render, photo) linear from a renders/*_fit_vs_photo.png (render | photo side by side)."""
-    from texstream.capture.imageio import read_image
-
     img = read_image(path, channels=3)
     w = img.shape[1] // 2
     return img[:, :w], img[:, w:2 * w]
@@ -260,7 +254,6 @@ def plot_heldout_psnr(rows: list[dict], pooled: float, path: Path) -> None:
 def plot_comparison(photo: np.ndarray, render: np.ndarray, mask: np.ndarray | None, title: str, path: Path) -> None:
     """Photo | fitted render | error (per-pixel RMS over RGB of render - photo, linear)."""
     plt = _plt()
-    from texstream.capture.imageio import linear_to_srgb
 
     err = np.sqrt(np.mean((render.astype(np.float64) - photo) ** 2, axis=2))
     if mask is not None:
@@ -306,16 +299,12 @@ def param_map_figures(model, seen: np.ndarray | None, folder: Path, model_dir: P
         save("seen", seen.reshape(seen.shape[0], seen.shape[1], -1)[..., 0], "texels some fitted photo saw (1) "
              "or none did (0: they keep default values)", cmap="gray", vmin=0, vmax=1)
     if model_dir is not None and (Path(model_dir) / "uncertainty.exr").is_file():
-        from texstream.capture.imageio import read_image
-
         unc = read_image(Path(model_dir) / "uncertainty.exr", channels=3)
         save("uncertainty_n", np.log10(np.clip(unc[..., 1], 1e-4, 1e6)),
              "how well the photos constrain each texel's lobe exponent: log10 of the relative standard deviation "
              "of n from J^T J (above -1, i.e. 10%: the texel borrows its material's lobe; 6: not seen at all)",
              cmap="magma", vmin=-4, vmax=2, colorbar_label="log10 std(n) / n")
     if model_dir is not None and (Path(model_dir) / "materials.png").is_file():
-        from texstream.capture.imageio import read_image
-
         lobes = (read_image(Path(model_dir) / "lobes.png", channels=3) if (Path(model_dir) / "lobes.png").is_file()
                  else None)
         save("materials", read_image(Path(model_dir) / "materials.png", channels=3, linear=False),
@@ -509,13 +498,9 @@ def write_report(out_dir: str | Path, stages: list[dict], model_dir: str | Path,
     trace = trace or man.get("trace") or []  # a fit with no trace.json may keep its trace in model.json
     seen = None
     if (model_dir / "seen.png").is_file():
-        from texstream.capture.imageio import read_image
-
         seen = read_image(model_dir / "seen.png", channels=1, linear=False)[..., 0]
     capture = None
     if capture_dir is not None:
-        from texstream.capture.capture_json import read_capture
-
         capture = read_capture(capture_dir)
 
     out_dir = Path(out_dir)
@@ -664,7 +649,6 @@ def _viewer_frames(capture, held_names: set[str], max_photos: int, photo_max_sid
     """The viewer's frames (every camera and light, photos for the held-out ones first) and the one it opens."""
     if capture is None:
         return [], 0
-    from texstream.capture.imageio import read_image
 
     vframes = []
     frames = capture.frames[:MAX_VIEWER_FRAMES]

@@ -28,12 +28,30 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
+from texstream.calib.colmap_io import import_colmap
+from texstream.calib.files import IMAGE_EXTS
+from texstream.calib.ingest import IngestConfig, ingest
+from texstream.calib.lights import LightsConfig, _world_balls, lit_capture
+from texstream.calib.register import RegisterConfig, register
+from texstream.capture.capture_json import read_capture
 from texstream.core.config import check_config, config_from_dict, config_to_dict, option
 from texstream.core.errors import ConfigError, InputError
 from texstream.core.outputs import write_atomic_with, write_json_atomic
+from texstream.core.progress import reporting
+from texstream.core.toml import dumps
+from texstream.fit.common.model_folder import json_safe
 from texstream.fit.models import registry
+from texstream.fit.optim.fitter import FitConfig
+from texstream.fit.optim.lfm_config import LFMConfig
 from texstream.fit.stages.choice import ModelChoiceConfig, fit_choice, plan_choice
-from texstream.fit.stages.stage import fit_model, fit_stage
+from texstream.fit.stages.export import export_stage
+from texstream.fit.stages.stage import FitStageConfig, fit_model, fit_stage
+from texstream.geometry.atlas import AtlasConfig, atlas_stage
+from texstream.geometry.make_mesh import MeshConfig, make_mesh
+from texstream.geometry.mesh_frame import mesh_alignment
+from texstream.geometry.mesh_io import load_mesh
+from texstream.geometry.refine import RefineConfig, refine_stage
+from texstream.pipelines.report import write_report
 
 STAGES = ("ingest", "register", "mesh", "atlas", "lights", "refine", "fit", "export", "report")
 STAMP = ".texstream_stage.json"
@@ -50,21 +68,7 @@ def model_choices() -> list[str]:
 
 
 def _fit_stage_config():
-    from texstream.fit.optim.fitter import FitConfig
-    from texstream.fit.optim.lfm_config import LFMConfig
-    from texstream.fit.stages.stage import FitStageConfig
-
     return FitStageConfig(holdout_every=8, fit=FitConfig(lfm=LFMConfig(iterations=RUN_LFM_ITERATIONS)))
-
-
-def _default(factory: str) -> Callable[[], Any]:
-    """A default_factory importing the stage's config class only when a RunConfig is made."""
-    def make():
-        module, name = factory.rsplit(".", 1)
-        import importlib
-
-        return getattr(importlib.import_module(module), name)()
-    return make
 
 
 @dataclasses.dataclass
@@ -93,29 +97,29 @@ class RunConfig:
                                          "with usable UVs it also skips the atlas")
     progress: bool = option(True, "progress bars over photos and iterations (shown on a terminal only); the stages' "
                                   "phase lines go to the run's log either way")
-    ingest: Any = option(default_factory=_default("texstream.calib.ingest.IngestConfig"), help="ingest")
-    register: Any = option(default_factory=_default("texstream.calib.register.RegisterConfig"), help="registration")
-    mesh: Any = option(default_factory=_default("texstream.geometry.make_mesh.MeshConfig"), help="mesh")
-    atlas: Any = option(default_factory=_default("texstream.geometry.atlas.AtlasConfig"), help="atlas")
-    lights: Any = option(default_factory=_default("texstream.calib.lights.LightsConfig"),
-                         help="mirror-ball lights: with sphere (or ball_masks) the run estimates one light from the "
-                              "ball photos (frames: those photos, left out of the fit) and gives it to every photo")
-    refine: Any = option(default_factory=_default("texstream.geometry.refine.RefineConfig"),
-                         help="photometric refinement of registered cameras and a reconstructed mesh (its "
-                              "holdout_every follows the fit's)")
-    fit: Any = option(default_factory=_fit_stage_config, help="fit (holdout_every 8: every 8th photo is held out)")
+    ingest: IngestConfig = option(default_factory=IngestConfig, help="ingest")
+    register: RegisterConfig = option(default_factory=RegisterConfig, help="registration")
+    mesh: MeshConfig = option(default_factory=MeshConfig, help="mesh")
+    atlas: AtlasConfig = option(default_factory=AtlasConfig, help="atlas")
+    lights: LightsConfig = option(default_factory=LightsConfig,
+                                  help="mirror-ball lights: with sphere (or ball_masks) the run estimates one light "
+                                       "from the ball photos (frames: those photos, left out of the fit) and gives it "
+                                       "to every photo")
+    refine: RefineConfig = option(default_factory=RefineConfig,
+                                  help="photometric refinement of registered cameras and a reconstructed mesh (its "
+                                       "holdout_every follows the fit's)")
+    fit: FitStageConfig = option(default_factory=_fit_stage_config,
+                                 help="fit (holdout_every 8: every 8th photo is held out)")
 
 
-SUBCONFIGS = {"ingest": "texstream.calib.ingest.IngestConfig", "register": "texstream.calib.register.RegisterConfig",
-              "mesh": "texstream.geometry.make_mesh.MeshConfig", "atlas": "texstream.geometry.atlas.AtlasConfig",
-              "lights": "texstream.calib.lights.LightsConfig", "refine": "texstream.geometry.refine.RefineConfig",
-              "fit": "texstream.fit.stages.stage.FitStageConfig"}
+SUBCONFIGS: dict[str, type] = {"ingest": IngestConfig, "register": RegisterConfig, "mesh": MeshConfig,
+                               "atlas": AtlasConfig, "lights": LightsConfig, "refine": RefineConfig,
+                               "fit": FitStageConfig}
+"""the run's tables that are a stage's config"""
 
 
 def run_config_from_dict(data: dict) -> RunConfig:
     """A RunConfig from plain data (a TOML file); unknown fields are a ConfigError naming them."""
-    import importlib
-
     names = {f.name for f in dataclasses.fields(RunConfig)}
     unknown = sorted(set(data) - names - {"_type"})
     if unknown:
@@ -127,8 +131,7 @@ def run_config_from_dict(data: dict) -> RunConfig:
         if k in SUBCONFIGS:
             if not isinstance(v, dict):
                 raise ConfigError(f"[{k}] must be a table, got {v!r}", fix=f"write it as a [{k}] section")
-            module, name = SUBCONFIGS[k].rsplit(".", 1)
-            kwargs[k] = config_from_dict(getattr(importlib.import_module(module), name), v)
+            kwargs[k] = config_from_dict(SUBCONFIGS[k], v)
         else:
             kwargs[k] = v
     cfg = RunConfig(**kwargs)
@@ -232,8 +235,6 @@ class Pipeline:
 
 
 def _summary_safe(summary: dict) -> dict:
-    from texstream.fit.common.model_folder import json_safe
-
     return json.loads(json.dumps(json_safe(summary), default=str))
 
 
@@ -244,8 +245,6 @@ def run_pipeline(source: str | Path, out: str | Path, config: RunConfig | None =
     Returns the run summary written to ``OUT/run.json``. The stages' phase lines go to ``log`` and
     their bars show on a terminal when ``config.progress`` (:mod:`texstream.core.progress`).
     """
-    from texstream.core.progress import reporting
-
     cfg = config or RunConfig()
     with reporting(log, bars=cfg.progress):
         return _run_pipeline(source, out, cfg, from_stage, log)
@@ -253,9 +252,6 @@ def run_pipeline(source: str | Path, out: str | Path, config: RunConfig | None =
 
 def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stage: str | None,
                   log: Callable[[str], None]) -> dict:
-    from texstream.capture.capture_json import read_capture
-    from texstream.core.toml import dumps
-
     check_config(cfg)
     src, out = Path(source), Path(out)
     if from_stage is not None and from_stage not in STAGES:
@@ -273,21 +269,16 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
 
     # ingest: photos -> capture folder; a capture or COLMAP folder is read as it is
     if kind == "photos":
-        from texstream.calib.files import IMAGE_EXTS
-
         n_photos = sum(1 for f in src.iterdir() if f.is_file() and f.suffix.lower() in IMAGE_EXTS)
         if n_photos < MIN_PHOTOS:
             raise InputError(f"{n_photos} photo(s) found; registering cameras needs at least {MIN_PHOTOS}", src,
                              "add overlapping photos of the object (20 or more from all sides is typical)")
-        from texstream.calib.ingest import ingest
 
         cap_dir = out / "capture"
         pipe.run("ingest", cap_dir, [_files_hash(src), config_to_dict(cfg.ingest)],
                  f"photos in {src} -> capture folder (EXIF, masks, exposure)",
                  lambda: ingest(src, cap_dir, cfg.ingest))
     elif kind == "colmap":
-        from texstream.calib.colmap_io import import_colmap
-
         cap_dir = out / "capture"
         pipe.run("ingest", cap_dir, [_files_hash(src)], f"COLMAP model in {src} -> capture folder",
                  lambda: import_colmap(src, cap_dir))
@@ -302,9 +293,6 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
         posed_dir = cap_dir
         pipe.skip("register", "cameras known (every frame has a pose)", cap_dir)
     else:
-        from texstream.calib.register import register
-        from texstream.geometry.mesh_frame import mesh_alignment
-
         posed_dir = out / "posed"
         reg_cfg, why_reg = cfg.register, "cameras unknown: structure from motion (pycolmap)"
         fixed_light = not capture.has_lights and not capture.extra.get("colocated_light")
@@ -323,8 +311,6 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
     mesh_path = Path(cfg.mesh_file) if cfg.mesh_file else None
     atlas_needed = True
     if mesh_path is not None:
-        from texstream.geometry.mesh_io import load_mesh
-
         if not mesh_path.exists():
             raise InputError("mesh file not found", mesh_path, "check --mesh-file")
         pipe.skip("mesh", f"mesh given ({mesh_path})", mesh_path)
@@ -335,16 +321,12 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
         else:
             atlas_needed = load_mesh(mesh_path).uvs is None
     else:
-        from texstream.geometry.make_mesh import make_mesh
-
         pipe.run("mesh", mesh_dir, [pipe.stamp_of("register") if not posed else _files_hash(posed_dir),
                                     pipe.stamp_of("ingest"), config_to_dict(cfg.mesh)],
                  "mesh from the photos (dense stereo or SfM points, and masks)",
                  lambda: make_mesh(posed_dir, mesh_dir, cfg.mesh))
         mesh_path = mesh_dir / "mesh.ply"
     if atlas_needed:
-        from texstream.geometry.atlas import atlas_stage
-
         pipe.run("atlas", atlas_dir, [pipe.stamp_of("mesh"), str(mesh_path), config_to_dict(cfg.atlas), cfg.device],
                  "UV atlas (xatlas) and texel bake", lambda: atlas_stage(mesh_path, atlas_dir, cfg.atlas, device=cfg.device))
         fit_geometry = atlas_dir
@@ -362,8 +344,6 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
     if refine_cfg is None:
         pipe.skip("refine", why_refine)
     else:
-        from texstream.geometry.refine import refine_stage
-
         refine_dir = out / "refine"
         pipe.run("refine", refine_dir, [pipe.stamp_of("atlas"), pipe.stamp_of("mesh"), pipe.stamp_of("register"),
                                         pipe.stamp_of("lights"), _files_hash(posed_dir) if posed else "",
@@ -454,7 +434,6 @@ def _mirror_ball_lights(pipe: Pipeline, out: Path, posed_dir: Path, posed: bool,
                "no light known and no mirror ball given (--mirror-ball X,Y,Z,R)")
         pipe.skip("lights", why)
         return posed_dir, {}
-    from texstream.calib.lights import _world_balls, lit_capture
 
     if lcfg.sphere:
         _world_balls(lcfg)  # a bad ball fails here, before any long work
@@ -504,20 +483,10 @@ def _heldout(model_dir: Path) -> dict:
 
 
 def _export_and_report(pipe: Pipeline, out: Path, model_dir: Path, capture_dir: Path) -> None:
-    """Exports (glTF binary, OBJ+MTL) and the HTML report, when those stages are installed."""
-    try:
-        from texstream.fit.stages.export import export_stage
-    except ImportError:
-        pipe.skip("export", "the export module is not available")
-    else:
-        export_dir = out / "export"
-        pipe.run("export", export_dir, [pipe.stamp_of("fit")], "glTF binary and OBJ+MTL",
-                 lambda: export_stage(model_dir, export_dir))
-    try:
-        from texstream.pipelines.report import write_report
-    except ImportError:
-        pipe.skip("report", "the report module is not available")
-        return
+    """Exports (glTF binary, OBJ+MTL) and the HTML report."""
+    export_dir = out / "export"
+    pipe.run("export", export_dir, [pipe.stamp_of("fit")], "glTF binary and OBJ+MTL",
+             lambda: export_stage(model_dir, export_dir))
     t0 = time.perf_counter()
     stages = [dataclasses.asdict(r) for r in pipe.records]
     write_report(out, stages, model_dir, capture_dir)

@@ -24,6 +24,11 @@ inverts the layers as much as one that does so at import time. On top of the ord
 import graph (every import of a texstream module, inside functions too) has no cycle, and
 ``texstream.fit`` and ``texstream.render`` (the GPU side, which runs where only numpy and warp are
 installed) import no third-party package but numpy and warp at module import time.
+
+Texstream's own modules are imported at the top of the module that uses them, never inside a function
+(a dependency a reader should see at the top, and one a layer or cycle check would otherwise meet only
+at call time); the few exceptions, each with its reason, are :data:`FUNCTION_IMPORTS_ALLOWED`.
+Third-party packages are another matter: heavy or optional ones stay inside the functions that use them.
 """
 
 from __future__ import annotations
@@ -59,6 +64,20 @@ directly in fit/ fall to the bare ``fit``)"""
 # what a GPU machine with only numpy and warp installed cannot import
 HEAVY = ("cv2", "OpenImageIO", "pycolmap", "pymeshlab", "xatlas", "matplotlib", "scipy", "tqdm", "pygltflib",
          "trimesh")
+FUNCTION_IMPORTS_ALLOWED: set[tuple[str, str]] = {
+    # the CLI's dispatch: the decoding pool starts only for the commands that decode photos (fit, run), so
+    # `texstream --help` and the other commands load no numpy (the subcommand modules themselves are loaded
+    # by name, importlib, when their command runs)
+    ("pipelines.cli", "fit.stream.decode_pool"),
+    # being split in another branch
+    *(("capture.synthetic.synth", m) for m in (
+        "capture.capture_json", "capture.imageio", "capture.preview", "core.outputs", "core.progress",
+        "geometry.atlas", "geometry.bake", "geometry.clean", "geometry.mesh_io", "render.layout", "render.mesh",
+        "render.renderer")),
+}
+"""(module, texstream module it imports inside a function): the only imports of texstream modules that
+are not at a module's top. A module whose top-level import would make ``texstream.fit`` or
+``texstream.render`` load a :data:`HEAVY` package would be one (none is, today)."""
 
 
 def layer_of(module: str) -> int | None:
@@ -87,8 +106,10 @@ def package_modules(root: Path = ROOT) -> dict[str, Path]:
     return modules
 
 
-def module_imports(module: str, path: Path, known: set[str]) -> list[tuple[int, str]]:
-    """(line, module) of every texstream module ``module``'s source imports, inside functions too.
+def module_imports(module: str, path: Path, known: set[str],
+                   in_functions_only: bool = False) -> list[tuple[int, str]]:
+    """(line, module) of every texstream module ``module``'s source imports, inside functions too
+    (``in_functions_only``: only those).
 
     ``from texstream.x import y`` is module ``x.y`` when that is a module, else ``x``; relative
     imports resolve against the module's package. Imports under ``if TYPE_CHECKING:`` are left out: they
@@ -98,9 +119,11 @@ def module_imports(module: str, path: Path, known: set[str]) -> list[tuple[int, 
     typing_only = {id(n) for block in ast.walk(tree) if isinstance(block, ast.If)
                    and ast.unparse(block.test) in ("TYPE_CHECKING", "typing.TYPE_CHECKING")
                    for stmt in block.body for n in ast.walk(stmt)}
+    in_functions = {id(n) for f in ast.walk(tree) if isinstance(f, (ast.FunctionDef, ast.AsyncFunctionDef))
+                    for n in ast.walk(f)}
     found = []
     for node in ast.walk(tree):
-        if id(node) in typing_only:
+        if id(node) in typing_only or (in_functions_only and id(node) not in in_functions):
             continue
         if isinstance(node, ast.ImportFrom):
             if node.level:
@@ -140,6 +163,22 @@ def layer_violations(root: Path = ROOT) -> list[str]:
             if mine is None or theirs is None or theirs > mine:
                 bad.append(f"{where}:{line}: {module} ({layer_name(mine)}) imports {target} ({layer_name(theirs)})")
     return bad
+
+
+def function_imports(root: Path = ROOT,
+                     allowed: set[tuple[str, str]] = FUNCTION_IMPORTS_ALLOWED) -> tuple[list[str], list[tuple[str, str]]]:
+    """(one line per import of a texstream module inside a function that ``allowed`` does not list,
+    the entries of ``allowed`` that no such import uses any more)."""
+    modules = package_modules(root)
+    known = set(modules)
+    bad, used = [], set()
+    for module, path in modules.items():
+        for line, target in module_imports(module, path, known, in_functions_only=True):
+            if (module, target) in allowed:
+                used.add((module, target))
+            else:
+                bad.append(f"{path.relative_to(root)}:{line}: {module} imports {target} inside a function")
+    return bad, sorted(allowed - used)
 
 
 def import_cycles(root: Path = ROOT) -> list[list[str]]:
@@ -254,6 +293,32 @@ def test_the_check_catches_a_two_module_cycle(tmp_path):
         "geometry/c.py": "from . import a\n",
     })
     assert import_cycles(tmp_path) == [["geometry.a", "geometry.b"]]
+
+
+def test_texstream_modules_are_imported_at_the_top():
+    bad, unused = function_imports()
+    print("\n".join(bad))
+    assert bad == [], "move these imports to the module's top (or list them, with the reason, in FUNCTION_IMPORTS_ALLOWED)"
+    assert unused == [], "these allowed function-level imports are gone: drop them from FUNCTION_IMPORTS_ALLOWED"
+
+
+def test_the_check_catches_an_import_inside_a_function(tmp_path):
+    _plant(tmp_path, {
+        "core/errors.py": "",
+        "core/outputs.py": "",
+        "render/mesh.py": "",
+        "geometry/fine.py": "from texstream.core.errors import E\nfrom . import mvs\n",
+        "geometry/mvs.py": "",
+        # a relative import in a method, an absolute one in a nested function, one allowed
+        "geometry/bad.py": ("class C:\n    def f(self):\n        from .mvs import x\n"
+                            "def g():\n    def h():\n        import texstream.render.mesh\n"
+                            "def k():\n    from texstream.core import outputs\n"),
+    })
+    allowed = {("geometry.bad", "core.outputs"), ("geometry.gone", "core.errors")}
+    assert function_imports(tmp_path, allowed) == (
+        ["geometry/bad.py:3: geometry.bad imports geometry.mvs inside a function",
+         "geometry/bad.py:6: geometry.bad imports render.mesh inside a function"],
+        [("geometry.gone", "core.errors")])
 
 
 def test_fit_and_renderer_import_only_numpy_and_warp():

@@ -79,7 +79,7 @@ def test_problem_uses_the_resolved_precision(monkeypatch):
 
     from test_fit_gradients import plane_problem
 
-    from texstream.fit.stream import problem as problem_module
+    from texstream.fit.stream import config as problem_module  # the threshold resolve_accumulate reads
     from texstream.render.layout import ModelLayout
 
     monkeypatch.setattr(problem_module, "FP32_SAFE_PHOTOS", 2)  # a threshold small photo sets cross

@@ -8,21 +8,27 @@ from pathlib import Path
 
 import numpy as np
 
+from texstream.capture.capture_json import read_capture
+from texstream.capture.imageio import read_image, read_mask
 from texstream.core.errors import InputError, StageError
 from texstream.core.progress import say
 from texstream.render.layout import layout_traits
 
 
 from texstream.fit.common.setup import build_problem
+from texstream.fit.optim.fitter import fit_start
+from texstream.fit.stream.photo_stream import PhotoFiles
+from texstream.geometry.atlas import AtlasConfig, build_atlas
+from texstream.geometry.bake import TexelBake, bake_texels
+from texstream.geometry.density import texture_side_for
+from texstream.geometry.mesh_io import load_mesh
+from texstream.geometry.seams import Seams
 
 
 def load_geometry(mesh_path: str | Path, texture_size: int, device: str, frames=None, texel_pixels: float = 3.0):
     """(mesh with UVs, TexelBake) from an atlas folder, or a mesh file baked at ``texture_size`` (0: the side
     :func:`texstream.geometry.density.texture_side_for` picks from ``frames`` and ``texel_pixels``; 256 without
     frames)."""
-    from texstream.geometry.bake import TexelBake, bake_texels
-    from texstream.geometry.mesh_io import load_mesh
-
     p = Path(mesh_path)
     if p.is_dir():
         mfile = next((p / n for n in ("mesh.obj", "mesh.ply") if (p / n).exists()), None)
@@ -34,24 +40,18 @@ def load_geometry(mesh_path: str | Path, texture_size: int, device: str, frames=
     else:
         mesh = load_mesh(p)
     if mesh.uvs is None:
-        from texstream.geometry.atlas import AtlasConfig, build_atlas
-
         mesh, _ = build_atlas(mesh, AtlasConfig(resolution=texture_size or 1024))
     mesh = mesh.with_normals()
     side = texture_size
     if side == 0:
         side = 256
         if frames:
-            from texstream.geometry.density import texture_side_for
-
             side = texture_side_for(mesh, frames, texel_pixels)[0]
     return mesh, bake_texels(mesh, side, side, device=device)
 
 
 def load_photos(capture, frames, device: str | None = None):
     """Images (linear, H x W x 3) and masks of the given frames."""
-    from texstream.capture.imageio import read_image, read_mask
-
     images, masks = [], []
     for f in frames:
         images.append(read_image(capture.image_path(f), channels=3))
@@ -69,10 +69,6 @@ def photo_files(capture, frames):
     """The frames' photos and masks as files (:class:`texstream.fit.stream.photo_stream.PhotoFiles`), decoded
     by the fit's PhotoSet on a pool of threads or processes: all at set-up when they stay in memory, or a window
     per pass when streamed from disk (``StreamConfig.photo_residency``)."""
-    from texstream.capture.imageio import read_image, read_mask
-
-    from texstream.fit.stream.photo_stream import PhotoFiles
-
     masks = []
     for f in frames:
         mp = capture.mask_path(f)
@@ -85,8 +81,6 @@ def photo_files(capture, frames):
 def read_photos(photos, masks, indices):
     """Images and masks (all-true where none) of ``indices`` of ``photos`` (a list of arrays with a
     list of masks or None, or a PhotoFiles, which names its masks)."""
-    from texstream.fit.stream.photo_stream import PhotoFiles
-
     images, masks = [], []
     for i in indices:
         if isinstance(photos, PhotoFiles):
@@ -121,8 +115,6 @@ def check_seen_texels(problem, cfg, capture_dir: str | Path) -> tuple:
     """Count the texels some photo sees and fail before fitting when almost none are: a mesh facing away
     from the cameras or in another frame than the capture's. The count comes from the fit's starting
     pass (:func:`fit_start`), returned for the fit to reuse."""
-    from texstream.fit.optim.fitter import fit_start
-
     start = fit_start(problem, cfg.fit)
     seen = int((start.counts.numpy() > 0).sum())
     if seen < cfg.min_seen_fraction * problem.n:
@@ -151,8 +143,6 @@ class FitInputs:
 
 def load_fit_inputs(capture_dir: str | Path, mesh_path: str | Path, cfg) -> FitInputs:
     """Read and check everything a fit needs, before any long work starts."""
-    from texstream.capture.capture_json import read_capture
-
     capture = read_capture(capture_dir)
     check_capture_lights(capture, cfg.fit.model, capture_dir)
     frames, held = split_holdout(capture.frames, cfg.holdout_every)
@@ -219,7 +209,6 @@ def load_seams(mesh_path: str | Path, bake):
     p = Path(mesh_path)
     if not p.is_dir() or not (p / "seams.npz").is_file():
         return None
-    from texstream.geometry.seams import Seams
 
     seams = Seams.load(p / "seams.npz")
     n = bake.height * bake.width

@@ -9,7 +9,7 @@ geometry (a mesh and bake, or a normal map) beside these.
 Nothing out of bounds or non-finite is ever written: :func:`check_model` runs on the maps and on
 the renders before the folder is moved into place, and fails with the count and the cause.
 
-numpy at module level; OpenImageIO (through capture.imageio) and matplotlib inside functions
+numpy at module level; OpenImageIO (inside capture.imageio's functions) and matplotlib inside functions
 (the fit stage draws the plot in a child process, :func:`trace_plot`).
 """
 
@@ -25,6 +25,8 @@ from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
+from texstream.capture.imageio import write_image
+from texstream.capture.synthetic.param_maps import write_param_maps
 from texstream.core.config import save_config
 from texstream.core.errors import StageError
 from texstream.core.outputs import write_json_atomic
@@ -241,8 +243,6 @@ def render_comparisons(folder: Path, frames: Sequence, photos: Sequence[np.ndarr
     import concurrent.futures
     import os
 
-    from texstream.capture.imageio import write_image
-
     folder.mkdir(exist_ok=True)
     rows = []
     with concurrent.futures.ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as writers:
@@ -274,9 +274,6 @@ def write_model_folder(folder: Path, grid: np.ndarray, layout: ModelLayout, seen
     Returns:
         The map files by name (as model.json lists them).
     """
-    from texstream.capture.imageio import write_image
-    from texstream.capture.synthetic.param_maps import write_param_maps
-
     check_model(grid, layout)
     files = write_param_maps(folder, grid, layout)
     write_image(folder / "seen.png", np.repeat(seen.astype(np.float32)[..., None], 3, axis=2), bits=8)

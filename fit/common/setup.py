@@ -9,12 +9,22 @@ from pathlib import Path
 
 import numpy as np
 
+from texstream.capture.synthetic.param_maps import read_param_maps
 from texstream.core.errors import InputError
 from texstream.core.outputs import read_json
+from texstream.core.progress import bar, bars_enabled
 
 from texstream.fit.optim.fitter import FitConfig, FitResult, run_fit
 from texstream.fit.common.model_folder import image_metrics
+from texstream.fit.multi.photo_split import build_device_photos, check_split_devices
+from texstream.fit.multi.tiles import parse_devices, split_photos
+from texstream.fit.stream.photo_set import PhotoSet
+from texstream.fit.stream.problem import StreamProblem
+from texstream.fit.stream.texels import TexelSet, surface_derivatives, texel_coordinate_gradients
+from texstream.geometry.mesh_io import load_mesh, write_npz_atomic
+from texstream.render.camera import PhotoFrame
 from texstream.render.layout import ModelLayout
+from texstream.render.renderer import Renderer
 
 
 
@@ -28,12 +38,6 @@ def build_problem(mesh, bake, frames, images, masks, cfg: FitConfig, device: str
     import concurrent.futures
     import contextvars
 
-    from texstream.fit.stream.photo_set import PhotoSet
-    from texstream.fit.stream.problem import StreamProblem
-    from texstream.fit.stream.texels import TexelSet, surface_derivatives, texel_coordinate_gradients
-    from texstream.render.camera import PhotoFrame
-    from texstream.fit.multi.tiles import parse_devices, split_photos
-
     photo_frames = [PhotoFrame.from_capture_frame(f) for f in frames]
     normals = mesh.vertex_normals()  # computed anew on each call for a mesh without stored normals
 
@@ -41,8 +45,6 @@ def build_problem(mesh, bake, frames, images, masks, cfg: FitConfig, device: str
 
     def make_photos():
         if split:
-            from texstream.fit.multi.photo_split import build_device_photos, check_split_devices
-
             devices = parse_devices(cfg.stream.devices, device)
             check_split_devices(devices, device)
             return build_device_photos(photo_frames, images, mesh.vertices, mesh.faces, masks, cfg.stream, devices,
@@ -77,8 +79,6 @@ def params_to_grid(result: FitResult, problem, bake) -> np.ndarray:
 
 
 def render_model(mesh, grid: np.ndarray, layout: ModelLayout, frame, device: str):
-    from texstream.render.renderer import Renderer
-
     rend = Renderer(mesh, grid, layout, device=device)
     res = rend.render_frame(frame)
     return res.radiance * np.float32(frame.exposure), res.mask
@@ -124,8 +124,6 @@ def fit_synthetic(train, held, cfg: FitConfig, device: str, photos=None) -> Synt
 
 def run_fit_with_progress(problem, fit: FitConfig, progress: bool, **kw) -> FitResult:
     """run_fit with a tqdm bar over iterations when ``progress`` (``kw``: checkpoint, resume)."""
-    from texstream.core.progress import bar, bars_enabled
-
     if not (progress and bars_enabled()):
         return run_fit(problem, fit, **kw)
     start = int(kw["resume"]["iteration"]) if kw.get("resume") else 0
@@ -159,8 +157,6 @@ class Checkpoint:
         return {k: (v.item() if v.ndim == 0 else v) for k, v in data.items()}
 
     def save(self, state: dict) -> None:
-        from texstream.geometry.mesh_io import write_npz_atomic
-
         # uncompressed: written every sync_every iterations and removed at the end
         write_npz_atomic(self.path, compress=False, key=np.array(self.key),
                          **{k: np.asarray(v) for k, v in state.items()})
@@ -215,9 +211,6 @@ def data_jtj(problem, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def load_model(model_dir: str | Path):
     """(mesh, parameter grid (H, W, P), layout, model.json) of a model folder."""
-    from texstream.capture.synthetic.param_maps import read_param_maps
-    from texstream.geometry.mesh_io import load_mesh
-
     d = Path(model_dir)
     man = read_json(d / "model.json", what="model manifest")
     lay = ModelLayout.from_json(man["layout"])

@@ -31,8 +31,10 @@ from typing import Any
 
 import numpy as np
 
-from texstream.core.config import option
-from texstream.core.errors import ConfigError
+from texstream.core.config import check_config, option
+from texstream.core.errors import ConfigError, InputError
+from texstream.core.outputs import write_atomic_with, write_json_atomic
+from texstream.fit.kernels.fparith import FP_OPS_KERNELS, OPERATIONS
 
 DTYPES = ("float16", "float32", "float64")
 SCHRYER_PATTERNS = ("1.00..010..", "1.10..010..", "1.11..101..", "1.00..01..", "1.10..01..", "1.11..10..")
@@ -335,8 +337,6 @@ def run_operations(a: np.ndarray, b: np.ndarray, dtype: str, device: str) -> np.
     """(8, n) results of :data:`fparith.OPERATIONS` on the device, as float64 (exact widening)."""
     import warp as wp
 
-    from texstream.fit.kernels.fparith import FP_OPS_KERNELS
-
     wdt = {"float16": wp.float16, "float32": wp.float32, "float64": wp.float64}[dtype]
     n = len(a)
     wa = wp.array(np.ascontiguousarray(a), dtype=wdt, device=device)
@@ -424,8 +424,6 @@ def _operands(fmt: FloatFormat, cfg: FpcheckConfig, rng: np.random.Generator) ->
 def measure_dtype(dtype: str, cfg: FpcheckConfig) -> dict:
     """Every measurement of one dtype on ``cfg.device``: per operation and operand source the ULP
     statistics (and rounding for + - * /), the Paranoia-style checks and the denormal checks."""
-    from texstream.fit.kernels.fparith import OPERATIONS
-
     fmt = FORMATS[dtype]
     rng = np.random.default_rng(cfg.seed)
     ops = _operands(fmt, cfg, rng)
@@ -505,8 +503,6 @@ def device_description(device: str) -> dict:
 def fpcheck(cfg: FpcheckConfig) -> dict:
     """Measure the dtype(s) of ``cfg`` on ``cfg.device``: a dict with the device's description and, per
     dtype, :func:`measure_dtype`'s results."""
-    from texstream.core.config import check_config
-
     check_config(cfg)
     desc = device_description(cfg.device)
     dtypes = DTYPES if cfg.dtype == "all" else (cfg.dtype,)
@@ -535,7 +531,6 @@ def markdown_report(result: dict) -> str:
              "(computed - exact) / ulp(exact); correctly rounded results lie in [-0.5, 0.5].", "",
              "## Error in ULPs (Table A.2 layout): all operands (Table A.1 patterns and random)", "",
              "| operation | " + " | ".join(dts) + " |", "| --- |" + " --- |" * len(dts)]
-    from texstream.fit.kernels.fparith import OPERATIONS
 
     for op in OPERATIONS:
         lines.append(f"| {op} | " + " | ".join(_span(result["dtypes"][dt]["operations"][op]["all"])
@@ -582,12 +577,8 @@ def write_report(result: dict, out_dir) -> tuple:
     """``fpcheck.json`` and ``fpcheck.md`` in ``out_dir``, each written atomically."""
     from pathlib import Path
 
-    from texstream.core.outputs import write_atomic_with, write_json_atomic
-
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
-        from texstream.core.errors import InputError
-
         raise InputError("output path exists and is not a folder", out, "choose another -o folder")
     write_json_atomic(out / "fpcheck.json", result)
     text = markdown_report(result)

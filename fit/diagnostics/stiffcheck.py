@@ -23,9 +23,18 @@ from typing import Callable
 
 import numpy as np
 
+from texstream.capture.synthetic.synth import SynthConfig, load_scene, render_scene
 from texstream.core.config import option
-from texstream.core.errors import ConfigError
+from texstream.core.errors import ConfigError, InputError
+from texstream.core.outputs import write_atomic_with, write_json_atomic
 from texstream.fit.common.numerics import FP16_MAX, FP16_MIN_NORMAL, numerics_warnings  # noqa: F401
+from texstream.fit.kernels.summation import streamed_sums
+from texstream.fit.models.lfm.baselines import fit_pca
+from texstream.fit.models.lfm.model_folder import lfm_geometry
+from texstream.fit.models.lfm.problem import LFMConfig, LFMProblem, PhotoSamples, fit_lfm
+from texstream.fit.optim.fitter import FitConfig, initial_guess, run_fit
+from texstream.fit.stages.stage import build_problem, fit_synthetic, params_to_grid, render_model
+from texstream.fit.stream.config import FP32_SAFE_PHOTOS, StreamConfig, resolve_accumulate
 
 SIZES = ("ci", "full")
 
@@ -188,8 +197,6 @@ def default_cases() -> list[StiffCase]:
 
 
 def _render(case: StiffCase, size: str, device: str):
-    from texstream.capture.synthetic.synth import SynthConfig, load_scene, render_scene
-
     scene = copy.deepcopy(load_scene(case.scene))
     if case.edit is not None:
         case.edit(scene)
@@ -231,10 +238,6 @@ def _fit_record(res, t: float, prob) -> dict:
 
 
 def _run_fit_case(case: StiffCase, size: str, device: str, iterations: int) -> dict:
-    from texstream.fit.optim.fitter import FitConfig, initial_guess, run_fit
-    from texstream.fit.stream.config import StreamConfig
-    from texstream.fit.stages.stage import build_problem, params_to_grid, render_model
-
     sc = _render(case, size, device)
     fitted = list(range(len(sc.frames)))
     frames = [sc.frames[i] for i in fitted]
@@ -305,13 +308,6 @@ def _run_fit_case(case: StiffCase, size: str, device: str, iterations: int) -> d
 
 
 def _run_lfm_case(case: StiffCase, size: str, device: str, iterations: int) -> dict:
-    from texstream.fit.optim.fitter import FitConfig
-    from texstream.fit.models.lfm.problem import LFMConfig, LFMProblem, PhotoSamples, fit_lfm
-    from texstream.fit.models.lfm.baselines import fit_pca
-    from texstream.fit.models.lfm.model_folder import lfm_geometry
-    from texstream.fit.stream.config import StreamConfig
-    from texstream.fit.stages.stage import build_problem
-
     sc = _render(case, size, device)
     cfg = FitConfig(model="radiance", stream=StreamConfig(shadow_map_size=128))
     sp = build_problem(sc.mesh, sc.bake, sc.frames, sc.images, sc.masks, cfg, device)
@@ -342,11 +338,6 @@ def _run_lfm_case(case: StiffCase, size: str, device: str, iterations: int) -> d
 def _run_accumulation_case(case: StiffCase, size: str, device: str, iterations: int) -> dict:
     """The residual terms r^2 / 2 of a converged fit (its renders against its photos, every channel),
     redrawn to 10^6 photos per texel and summed as a pass sums them."""
-    from texstream.fit.optim.fitter import FitConfig
-    from texstream.fit.kernels.summation import streamed_sums
-    from texstream.fit.stream.config import FP32_SAFE_PHOTOS, StreamConfig, resolve_accumulate
-    from texstream.fit.stages.stage import fit_synthetic, render_model
-
     sc = _render(case, size, device)
     cfg = FitConfig(max_iterations=iterations, stream=StreamConfig(shadow_map_size=128))
     fit = fit_synthetic(sc, sc, cfg, device)
@@ -464,9 +455,6 @@ def run_suite(cfg: StiffcheckConfig, log=None) -> dict:
 def write_report(result: dict, out_dir) -> tuple:
     """``stiffcheck.json`` and ``stiffcheck.md`` in ``out_dir``, each written atomically."""
     from pathlib import Path
-
-    from texstream.core.errors import InputError
-    from texstream.core.outputs import write_atomic_with, write_json_atomic
 
     out = Path(out_dir)
     if out.exists() and not out.is_dir():

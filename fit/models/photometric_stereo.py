@@ -44,12 +44,20 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
+from texstream.capture.capture_json import read_capture
+from texstream.capture.imageio import read_image, read_mask, write_image
 from texstream.core.errors import InputError
 from texstream.core.config import check_config, option
 from texstream.core.outputs import StageResult, atomic_output_dir
+from texstream.fit.common.inputs import check_output_path
+from texstream.fit.common.model_folder import check_model, pooled_psnr, render_comparisons, write_model_folder
+from texstream.fit.common.setup import run_fit_with_progress
 
 from texstream.fit.optim.fitter import FitConfig
 from texstream.fit.kernels import stream
+from texstream.fit.stream.photo_set import PhotoSet
+from texstream.fit.stream.problem import PhotoFrame, StreamProblem
+from texstream.fit.stream.texels import TexelSet
 from texstream.render.shading import incident_light, lafortune_brdf, to_local
 from texstream.render.layout import ModelLayout
 
@@ -112,8 +120,6 @@ def read_normal_map(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
                              "save an (H, W, 3) float array of unit normals")
         n = n[..., :3].astype(np.float32)
     else:
-        from texstream.capture.imageio import read_image
-
         encoded = p.suffix.lower() not in FLOAT_NORMAL_SUFFIXES
         n = read_image(p, channels=3, linear=not encoded)
         if encoded:
@@ -139,8 +145,6 @@ def _read_plane(path: Path, shape: tuple[int, int], what: str) -> np.ndarray:
         if a.ndim == 3:
             a = a[..., 0]
     else:
-        from texstream.capture.imageio import read_image
-
         a = read_image(path, channels=1, linear=False)[..., 0]
     if a.shape != tuple(shape):
         raise InputError(f"{what} is {a.shape[1]}x{a.shape[0]} but the normal map is {shape[1]}x{shape[0]}", path,
@@ -223,9 +227,6 @@ def find_normal_map(capture_dir: str | Path) -> Path:
 
 def load_single_view(capture_dir: str | Path, normals_path: str | Path | None, cfg: SingleViewConfig):
     """(capture, fitted frames, held-out frames, geometry, images, masks) of a single-view capture."""
-    from texstream.capture.capture_json import read_capture
-    from texstream.capture.imageio import read_image, read_mask
-
     capture = read_capture(capture_dir)
     if normals_path is None:
         normals_path = find_normal_map(capture.root)
@@ -269,10 +270,6 @@ def load_single_view(capture_dir: str | Path, normals_path: str | Path | None, c
 
 def build_single_view_problem(geo: SingleViewGeometry, frames, images, masks, cfg: FitConfig, device: str):
     """A :class:`StreamProblem` over the covered pixels, photos without geometry (no depth test)."""
-    from texstream.fit.stream.photo_set import PhotoSet
-    from texstream.fit.stream.problem import PhotoFrame, StreamProblem
-    from texstream.fit.stream.texels import TexelSet
-
     texels = TexelSet.from_grid(geo.covered, geo.position, geo.normal, geo.tangent, geo.bitangent)
     photo_frames = [PhotoFrame.from_capture_frame(f) for f in frames]
     photos = PhotoSet(photo_frames, images, None, None, masks=masks, config=cfg.stream, device=device)
@@ -306,8 +303,6 @@ def render_texels_kernel(pos: wp.array(dtype=wp.vec3), nrm: wp.array(dtype=wp.ve
 
 def render_single_view(problem, params: np.ndarray, layout: ModelLayout, frame) -> np.ndarray:
     """Render fitted per-texel ``params`` (N, P) for a capture frame; returns (H, W, 3) float32."""
-    from texstream.fit.stream.problem import PhotoFrame
-
     fr = PhotoFrame.from_capture_frame(frame)
     info = stream.ImageInfo()
     info.center = wp.vec3(*(-np.asarray(fr.R).T @ np.asarray(fr.t)).astype(np.float32))
@@ -340,12 +335,6 @@ def fit_single_view_stage(capture_dir: str | Path, normals_path: str | Path | No
         out_dir: model folder to write (replaced only when the fit succeeds).
         config: options; progress: show a progress bar.
     """
-    from texstream.capture.imageio import read_image, read_mask, write_image
-
-    from texstream.fit.common.model_folder import check_model, pooled_psnr, render_comparisons, write_model_folder
-    from texstream.fit.common.inputs import check_output_path
-    from texstream.fit.common.setup import run_fit_with_progress
-
     cfg = config or SingleViewConfig()
     check_config(cfg)
     if cfg.normal_space not in NORMAL_SPACES:

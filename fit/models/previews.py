@@ -1,16 +1,16 @@
 """Helpers the plugins share for the report's previews of their maps (fit/models/registry.py
-``FittedModel.report_maps``). numpy at module level; capture.imageio inside the functions."""
+``FittedModel.report_maps``)."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from texstream.capture.imageio import linear_to_srgb
+
 
 def rgb_scaled(x: np.ndarray) -> tuple[np.ndarray, float]:
     """(sRGB image of ``x / s`` clipped to [0, 1], s): ``s`` the 99th percentile of the texels' largest
     channel (1 where that is not positive), so a few bright texels do not darken the preview."""
-    from texstream.capture.imageio import linear_to_srgb
-
     scale = float(np.percentile(x.max(axis=2), 99))
     scale = scale if scale > 0 else 1.0
     return linear_to_srgb(np.clip(x / scale, 0, 1)), scale

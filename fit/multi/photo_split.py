@@ -34,6 +34,8 @@ import warp as wp
 
 from texstream.core.errors import ConfigError
 from texstream.core.progress import say
+from texstream.fit.stream.photo_set import PhotoSet, upload_photo_sets
+from texstream.fit.stream.photo_stream import PhotoFiles
 
 
 def split_bounds(n: int, parts: int) -> list[tuple[int, int]]:
@@ -135,9 +137,6 @@ def build_device_photos(frames, images, mesh_points, mesh_faces, masks, config, 
     (:func:`~texstream.fit.stream.photo_set.upload_photo_sets`: the host's copies, which bound the upload, are not
     made to compete). The photos stay on the devices (``photo_residency`` device or auto; a part that does
     not fit fails)."""
-    from texstream.fit.stream.photo_stream import PhotoFiles
-    from texstream.fit.stream.photo_set import PhotoSet, upload_photo_sets
-
     check_split_devices(devices, devices[0])  # the fit's device: the caller's check
     if config.photo_residency not in ("auto", "device"):
         raise ConfigError(f"photos split over devices stay on the devices, not photo_residency "

@@ -35,6 +35,7 @@ from texstream.fit.multi.lockstep import TileWorker, lockstep
 from texstream.fit.multi.tile_plan import (TilePlan, assemble, halo_pairs, plan_tiles, texel_subset, tile_config,
                                            tile_photos, tile_start)
 from texstream.fit.multi.tile_plan import parse_devices  # noqa: F401  (re-exported: the fit stage's import)
+from texstream.fit.multi.tiles_ray import run_ray_tiled_fit
 from texstream.fit.stream.problem import StreamProblem, exposure_mean_square
 
 
@@ -145,8 +146,6 @@ def run_tiled_fit(problem: StreamProblem, cfg: FitConfig, start=None,
 
     ``start``: :func:`~texstream.fit.optim.fitter.fit_start`'s start (or its arrays) over all texels when already streamed."""
     if cfg.stream.tile_backend == "ray":
-        from texstream.fit.multi.tiles_ray import run_ray_tiled_fit
-
         return run_ray_tiled_fit(problem, cfg, start, progress)
     t0 = time.perf_counter()
     guess, counts = start_arrays(start, problem, cfg)

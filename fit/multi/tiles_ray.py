@@ -25,10 +25,11 @@ import numpy as np
 from texstream.core.errors import ConfigError, TexstreamError
 
 from texstream.fit.optim.fitter import start_arrays
-from texstream.fit.stream.problem import exposure_mean_square
+from texstream.fit.stream.problem import StreamProblem, exposure_mean_square
 from texstream.fit.multi.lockstep import TileWorker, lockstep
 from texstream.fit.multi.tile_plan import (assemble, check_tileable, halo_pairs, plan_tiles, texel_subset, tile_config,
                                            tile_photos, tile_start)
+from texstream.fit.stream.photo_set import PhotoSet
 
 
 class TileActor:
@@ -37,10 +38,6 @@ class TileActor:
 
     def __init__(self, spec: dict):
         import warp as wp
-
-        from texstream.fit.stream.photo_set import PhotoSet
-
-        from texstream.fit.stream.problem import StreamProblem
 
         wp.config.quiet = True
         wp.init()

@@ -25,9 +25,8 @@ Geometry
     world frame, readers apply the node); OBJ has no node, so its vertices are rotated. The float
     EXR maps are copied into ``maps/`` beside the export.
 
-Like the rest of ``texstream.fit`` this module imports only numpy (and texstream.core, the plugins'
-conversions) at module level; pygltflib and OpenImageIO (through capture.imageio) are imported inside
-the functions.
+Like the rest of ``texstream.fit`` this module imports no third-party package but numpy at module level;
+pygltflib is imported inside the functions, OpenImageIO inside capture.imageio's.
 """
 
 from __future__ import annotations
@@ -39,9 +38,12 @@ from pathlib import Path
 
 import numpy as np
 
+from texstream.capture.imageio import write_image
+from texstream.core import outputs  # write_atomic_with through it: a test makes it fail there (full disk)
 from texstream.core.config import option, save_config
 from texstream.core.errors import ConfigError, InputError
 from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
+from texstream.core.progress import phase
 from texstream.fit.models import registry
 # the plugins' conversions, documented with the export (docs/export.md) and its options' choices
 from texstream.fit.models.lafortune.export import (  # noqa: F401
@@ -87,8 +89,6 @@ class ExportConfig:
 
 def _png_bytes(img: np.ndarray) -> bytes:
     """8-bit PNG of a linear image (sRGB-encoded by capture.imageio) or of uint8 codes (stored as is)."""
-    from texstream.capture.imageio import write_image
-
     with tempfile.TemporaryDirectory(prefix="texstream_export_") as t:
         p = write_image(Path(t) / "tex.png", img, bits=8)
         return p.read_bytes()
@@ -117,12 +117,10 @@ def _unit_normals(mesh) -> np.ndarray:
 
 
 def _copy_maps(m: registry.FittedModel, folder: Path) -> list[str]:
-    from texstream.core.outputs import write_atomic_with
-
     out = []
     for f in m.map_files():
         data = f.read_bytes()
-        write_atomic_with(folder / f.name, lambda fh, data=data: fh.write(data))
+        outputs.write_atomic_with(folder / f.name, lambda fh, data=data: fh.write(data))
         out.append(f"maps/{f.name}")
     return out
 
@@ -200,8 +198,6 @@ def _export_gltf(m: registry.FittedModel, mat: registry.ExportMaterial, cfg: Exp
 def _write_glb(m: registry.FittedModel, mat: registry.ExportMaterial, cfg: ExportConfig, out: Path) -> None:
     import pygltflib as G
 
-    from texstream.core.outputs import write_atomic_with
-
     mesh = m.mesh
     pos = np.ascontiguousarray(mesh.vertices, dtype="<f4")
     nrm = np.ascontiguousarray(_unit_normals(mesh), dtype="<f4")
@@ -275,7 +271,7 @@ def _write_glb(m: registry.FittedModel, mat: registry.ExportMaterial, cfg: Expor
                    materials=[material], extensionsUsed=sorted(extensions))
     gltf.set_binary_blob(bytes(blob))
     data = b"".join(gltf.save_to_bytes())
-    write_atomic_with(out, lambda fh: fh.write(data))
+    outputs.write_atomic_with(out, lambda fh: fh.write(data))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -302,9 +298,6 @@ def export_obj(model_dir, out_dir, config: ExportConfig | None = None) -> dict:
 
 
 def _export_obj(m: registry.FittedModel, mat: registry.ExportMaterial, cfg: ExportConfig, out: Path) -> dict:
-    from texstream.capture.imageio import write_image
-    from texstream.core.outputs import write_atomic_with
-
     if out.exists() and not out.is_dir():
         raise InputError("output path exists and is not a folder", out, "choose another output folder")
     out.mkdir(parents=True, exist_ok=True)
@@ -322,7 +315,7 @@ def _export_obj(m: registry.FittedModel, mat: registry.ExportMaterial, cfg: Expo
         lines += ["Ks 0 0 0", "illum 0" if mat.unlit else "illum 1"]
     lines += ["d 1", ""]
     mtl = "\n".join(lines).encode()
-    write_atomic_with(out / f"{stem}.mtl", lambda fh: fh.write(mtl))
+    outputs.write_atomic_with(out / f"{stem}.mtl", lambda fh: fh.write(mtl))
 
     up = _up_rotation(cfg.up_axis)
     v = np.asarray(m.mesh.vertices, dtype=np.float64) @ up.T
@@ -334,7 +327,7 @@ def _export_obj(m: registry.FittedModel, mat: registry.ExportMaterial, cfg: Expo
              _rows(v, "v", "%.9g"), _rows(np.asarray(m.mesh.uvs, np.float64), "vt", "%.9g"),
              _rows(n, "vn", "%.7g"), "usemtl texstream\n", _rows(np.repeat(f, 3, axis=1), "f", "%d/%d/%d")]
     obj = "".join(parts).encode()
-    write_atomic_with(out / f"{stem}.obj", lambda fh: fh.write(obj))
+    outputs.write_atomic_with(out / f"{stem}.obj", lambda fh: fh.write(obj))
     info = _info(m, mat, cfg)
     info["path"] = str(out / f"{stem}.obj")
     if cfg.copy_maps:
@@ -360,8 +353,6 @@ def export_stage(model_dir, out_dir, config: ExportConfig | None = None) -> Stag
     EXR maps), ``export.json`` (what was written and the conversion factors) and
     ``export_config.json`` (the resolved options).
     """
-    from texstream.core.progress import phase
-
     cfg = config or ExportConfig()
     _check_config(cfg)
     m = registry.load_model_folder(model_dir)  # fail before touching out_dir

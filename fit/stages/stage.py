@@ -17,10 +17,12 @@ from pathlib import Path
 
 import numpy as np
 
+from texstream.capture.capture_json import read_capture
+from texstream.capture.imageio import read_image, read_mask
 from texstream.core.errors import InputError
 from texstream.core.config import check_config, option
 from texstream.core.outputs import StageResult, write_json_atomic
-from texstream.core.progress import say
+from texstream.core.progress import bar, say
 
 from texstream.fit.optim.fitter import FitConfig
 from texstream.fit.models import registry
@@ -28,9 +30,11 @@ from texstream.fit.stages import choice
 from texstream.fit.models.materials import MaterialConfig
 from texstream.fit.common.model_folder import image_metrics, plot_trace  # noqa: F401  (re-exported: tests and benchmarks use them here)
 from texstream.fit.common.inputs import load_geometry, load_photos, PHOTO_CACHE_FOLDER, photo_files, read_photos, split_holdout, check_capture_lights, check_seen_texels, FitInputs, load_fit_inputs, load_seams, bad_photo, set_up_skipping_bad_photos, check_output_path  # noqa: F401
+from texstream.fit.common.model_folder import check_render, pooled_psnr
 from texstream.fit.common.setup import load_model, build_problem, params_to_grid, render_model, heldout_psnr, SyntheticFit, fit_synthetic, run_fit_with_progress, Checkpoint, fill_unseen_texels, per_texel_objective, data_jtj  # noqa: F401
 from texstream.fit.models.per_texel.lobes import lobe_shape_report, drop_unsupported_lobes, scale_lobes, lobes_in_use, TexelEvidence, texel_evidence, confirm_at_material_lobes, traced_polish_applies, traced_problem, traced_polish, fit_with_materials, model_grid, choose_materials, average_seams_in_bounds, _materials_manifest  # noqa: F401
 from texstream.fit.models.per_texel.fit import _fit_per_texel_model  # noqa: F401
+from texstream.fit.stream.photo_stream import loaders_closed_after
 
 
 @dataclasses.dataclass
@@ -99,7 +103,6 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     if cfg.fit.model != choice.AUTO:
         registry.get(cfg.fit.model)  # an unknown kind fails before any work
         return fit_model(capture_dir, mesh_path, out_dir, cfg, progress)
-    from texstream.capture.capture_json import read_capture
 
     capture = read_capture(capture_dir)
     plan = choice.plan_choice(capture, choice.AUTO, cfg)
@@ -115,8 +118,6 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
 def fit_model(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Path, cfg: FitStageConfig,
               progress: bool = True) -> StageResult:
     """One model kind's fit, by its plugin (``cfg.fit.model`` a registered kind)."""
-    from texstream.fit.stream.photo_stream import loaders_closed_after
-
     plugin = registry.get(cfg.fit.model)
     if plugin.fit_overrides:
         cfg = dataclasses.replace(cfg, fit=dataclasses.replace(cfg.fit, **plugin.fit_overrides))
@@ -129,18 +130,12 @@ def eval_stage(model_dir: str | Path, capture_dir: str | Path, device: str = "cp
                out_json: str | Path | None = None, holdout_every: int = 0) -> StageResult:
     """Render the model for the frames of a capture (all, or the held-out ones of the fit's split with
     ``holdout_every``); PSNR / APE on foreground pixels, pooled over the views and the worst view."""
-    from texstream.capture.capture_json import read_capture
-    from texstream.capture.imageio import read_image, read_mask
-
-    from texstream.fit.common.model_folder import check_render, pooled_psnr
-
     render = registry.load_model_folder(model_dir).renderer(device)
     capture = read_capture(capture_dir)
     frames = split_holdout(capture.frames, holdout_every)[1] if holdout_every > 0 else capture.frames
     if not frames:
         raise InputError(f"no frame is held out with --holdout-every {holdout_every}", Path(capture_dir) / "capture.json",
                          "use a smaller --holdout-every, or 0 for every frame")
-    from texstream.core.progress import bar
 
     rows = []
     for f in bar(frames, "eval", unit="view"):

@@ -19,7 +19,8 @@ The automatic choice uses processes only under those commands, where the workers
 their imports) is hidden behind the command's own; from Python, processes are used when asked for
 (``StreamConfig.photo_decoder = "processes"``).
 
-Imports only numpy and the standard library; the workers import the readers they are given.
+Imports numpy, the standard library, ``texstream.core.errors`` and ``texstream.capture.imageio`` (the
+readers' module, so a worker has it before its first task); the workers import the readers they are given.
 """
 
 from __future__ import annotations
@@ -33,6 +34,10 @@ import threading
 import weakref
 
 import numpy as np
+
+from texstream.capture import imageio  # noqa: F401 - the readers' module (see above)
+from texstream.core import errors
+from texstream.core.errors import TexstreamError
 
 MIN_CPUS = 16
 """the automatic choice decodes in processes on machines with at least this many CPUs: on a 16-core GPU host 8
@@ -206,8 +211,6 @@ def serve(from_parent: int, to_parent: int, reader_threads: int) -> None:
     parent closes the pipe."""
     from multiprocessing.connection import Connection
 
-    import texstream.capture.imageio  # noqa: F401 - the readers' modules, imported before the first task
-
     try:
         import OpenImageIO as oiio
 
@@ -319,8 +322,6 @@ def decode_batch(staging: tuple, with_masks: bool, jobs: list, read_image, read_
     """(In a worker.) Decode ``jobs`` ((path, mask path or None, (H, W), crop or None) each) into the
     slots of a staging block (:meth:`Staging.task`). Returns None, or (j, error class name, message,
     path, fix) of the first photo that failed with a user error; the batch's later photos are left."""
-    from texstream.core.errors import TexstreamError
-
     path, token, nbytes, offset, slot_shape, dtype, per_block = staging
     buf = _mapped.get(token)
     if buf is None:
@@ -341,8 +342,6 @@ def decode_batch(staging: tuple, with_masks: bool, jobs: list, read_image, read_
 
 def user_error(failure: tuple) -> Exception:
     """The :class:`~texstream.core.errors.TexstreamError` a worker reported (:func:`decode_batch`)."""
-    from texstream.core import errors
-
     _, name, message, path, fix = failure
     cls = getattr(errors, name, errors.InputError)
     return cls(message, path, fix)

@@ -34,6 +34,7 @@ from collections.abc import Callable, Iterator, Sequence
 import numpy as np
 import warp as wp
 
+from texstream.core.progress import say
 from texstream.fit.stream import decode_pool
 from texstream.render.camera import ImageInfo
 
@@ -424,7 +425,6 @@ class PhotoLoader:
     def _pool_failed(self, error: Exception) -> None:
         if self.processes:
             self.processes = 0
-            from texstream.core.progress import say
 
             say("fit", f"photo decoding processes failed ({type(error).__name__}: {error}); decoding in threads")
 

@@ -6,7 +6,10 @@ from pathlib import Path
 
 import numpy as np
 
+from texstream.capture.imageio import linear_to_srgb
+from texstream.fit.models.lafortune.export import lafortune_material
 from texstream.fit.models.per_texel.folder import PerTexelModel, load_per_texel
+from texstream.fit.models.previews import read_shader, rgb_scaled
 from texstream.fit.models.registry import ExportMaterial, FittedModel, ViewerModel
 
 
@@ -14,15 +17,9 @@ class LafortuneModel(PerTexelModel):
     """Diffuse rho_d plus Lafortune lobes per texel (a diffuse model: no lobes)."""
 
     def export_material(self, cfg) -> ExportMaterial:
-        from texstream.fit.models.lafortune.export import lafortune_material
-
         return lafortune_material(self.grid, self.layout, self.covered, cfg.roughness)
 
     def report_maps(self, save, seen) -> None:
-        from texstream.capture.imageio import linear_to_srgb
-
-        from texstream.fit.models.previews import rgb_scaled
-
         grid, lay = self.grid, self.layout
         save("rho_d", linear_to_srgb(np.clip(np.pi * grid[..., 0:3], 0, 1)),
              "diffuse albedo pi * rho_d (RGB, clipped to 1; sRGB)")
@@ -41,8 +38,6 @@ class LafortuneModel(PerTexelModel):
                  colorbar_label="log10 n")
 
     def viewer(self) -> ViewerModel:
-        from texstream.fit.models.previews import read_shader
-
         return ViewerModel(self.grid, read_shader(Path(__file__).parent), lit=True,
                            data={"uniforms": {"u_nlobes": int(self.layout.n_lobes),
                                               "u_aniso": int(bool(self.layout.anisotropic))}})

@@ -9,7 +9,8 @@ element); ``"none"`` keeps d(s) alone. The mean uses the renderer's own view-map
 (``view_taps`` of fit/kernels/lfm.py at a 128 x 128 grid of disk-uniform directions). The exact
 surface and view maps stay in ``maps/*.exr`` (diffuse, surface_k{k}_v{j}, view_k{k}).
 
-Imports only numpy at module level (warp and the renderer inside the functions).
+Imports numpy and warp (through the LFM kernels) at module level; the unlit renderer is the per-texel one
+(fit/common/setup.py ``render_model``).
 """
 
 from __future__ import annotations
@@ -17,6 +18,11 @@ from __future__ import annotations
 import numpy as np
 
 from texstream.core.errors import ConfigError
+from texstream.fit.common.setup import render_model
+from texstream.fit.kernels import lfm as LK
+from texstream.fit.kernels.lfm_lookup import direction_taps_kernel
+from texstream.fit.models.lfm.model_folder import grid_source
+from texstream.render.layout import ModelLayout
 
 LFM_VIEW_MEANS = ("cosine", "none")
 VIEW_MEAN_GRID = 128
@@ -41,9 +47,6 @@ def view_mean_weights(res: int, mapping: str, lookup: str, device: str | None = 
     lookup "nearest" | "bilinear"): the average of ``view_taps`` over :func:`cosine_directions`, on
     ``device`` (None: the CPU where Warp can compile for it, else Warp's preferred device)."""
     import warp as wp
-
-    from texstream.fit.kernels import lfm as LK
-    from texstream.fit.kernels.lfm_lookup import direction_taps_kernel
 
     if device is None:
         device = "cpu" if wp.is_cpu_available() else str(wp.get_preferred_device())
@@ -79,8 +82,6 @@ def lfm_unlit_radiance(model, view_mean: str = "cosine", device: str | None = No
 def lfm_atlas(model, values: np.ndarray) -> np.ndarray:
     """(H, W, C) float32 atlas of per-compact-texel ``values`` (N, C): each texel holds its own value or,
     for padding, the value of the texel it copies (what the LFM renderer reads); 0 elsewhere."""
-    from texstream.fit.models.lfm.model_folder import grid_source
-
     b = model.bake
     src = grid_source(b, model.grid_index)
     v = np.asarray(values)
@@ -93,9 +94,6 @@ def lfm_unlit_renderer(model, view_mean: str = "cosine", device: str = "cpu"):
     """frame -> (image, coverage): the exported unlit approximation of an LFM model rendered by
     texstream's radiance renderer (fit/stages/render.py, bilinear atlas lookup, times the frame's exposure),
     to score it against the full model or the photos."""
-    from texstream.render.layout import ModelLayout
-    from texstream.fit.common.setup import render_model
-
     grid = lfm_atlas(model, lfm_unlit_radiance(model, view_mean, device))
     layout = ModelLayout(kind="radiance")
     mesh = model.mesh

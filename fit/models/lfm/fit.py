@@ -10,10 +10,19 @@ from pathlib import Path
 
 import numpy as np
 
+from texstream.capture.imageio import read_mask
+from texstream.core.config import config_to_dict
 from texstream.core.errors import ConfigError, InputError
-from texstream.core.outputs import StageResult, atomic_output_dir
+from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
+from texstream.core.progress import phase
+from texstream.fit.common.inputs import load_fit_inputs, load_photos
+from texstream.fit.common.model_folder import pooled_psnr, render_comparisons
+from texstream.fit.common.setup import build_problem
+from texstream.fit.models.lfm.baselines import fit_nmf, fit_pca
 from texstream.fit.models.lfm.model_folder import LFMRenderer, lfm_geometry, write_lfm_maps
+from texstream.fit.models.lfm.problem import LFMParams, LFMProblem, PhotoSamples, fit_lfm
 from texstream.fit.multi.tiles import split_photos, tiled
+from texstream.geometry.mesh_io import save_mesh
 
 
 def fit(request) -> StageResult:
@@ -28,19 +37,6 @@ def fit(request) -> StageResult:
 
 def lfm_fit_stage(capture_dir, mesh_path, out_dir, cfg, progress: bool = True) -> StageResult:
     """Fit an LFM model (streaming, PCA or NMF per ``cfg.fit.lfm.method``) and write the model folder."""
-    from texstream.capture.imageio import read_mask
-    from texstream.core.config import config_to_dict
-    from texstream.core.progress import phase
-    from texstream.geometry.mesh_io import save_mesh
-
-    from texstream.fit.models.lfm.problem import LFMParams, LFMProblem, PhotoSamples, fit_lfm
-    from texstream.fit.models.lfm.baselines import fit_nmf, fit_pca
-    from texstream.fit.common.model_folder import pooled_psnr, render_comparisons
-    from texstream.core.outputs import write_json_atomic
-
-    from texstream.fit.common.inputs import load_fit_inputs, load_photos
-    from texstream.fit.common.setup import build_problem
-
     lcfg = cfg.fit.lfm
     lcfg.check()
     t0 = time.perf_counter()

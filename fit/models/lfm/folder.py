@@ -13,6 +13,10 @@ from pathlib import Path
 import numpy as np
 
 from texstream.core.errors import InputError
+from texstream.fit.models.lfm.export import lfm_atlas, lfm_unlit_radiance
+from texstream.fit.models.lfm.model_folder import load_lfm_model, tile_view_maps
+from texstream.fit.models.previews import magnitude_preview, read_shader, rgb_scaled
+from texstream.fit.models.radiance.export import radiance_material
 from texstream.fit.models.registry import ExportMaterial, FittedModel, ViewerModel
 
 FRAME_COLUMNS = 512
@@ -34,9 +38,6 @@ class LFMModel(FittedModel):
         return self.lfm.renderer(device).render_frame
 
     def export_material(self, cfg) -> ExportMaterial:
-        from texstream.fit.models.lfm.export import lfm_atlas, lfm_unlit_radiance
-        from texstream.fit.models.radiance.export import radiance_material
-
         grid = lfm_atlas(self.lfm, lfm_unlit_radiance(self.lfm, cfg.lfm_view_mean))
         mat = radiance_material(grid, self.covered, cfg.radiance_scale)
         mat.extras = {"lfm_view_mean": cfg.lfm_view_mean}  # the unlit approximation of a light field
@@ -49,10 +50,6 @@ class LFMModel(FittedModel):
         return self._viewer_grid
 
     def report_maps(self, save, seen) -> None:
-        from texstream.fit.models.lfm.export import lfm_atlas, lfm_unlit_radiance
-        from texstream.fit.models.lfm.model_folder import tile_view_maps
-        from texstream.fit.models.previews import magnitude_preview, rgb_scaled
-
         model, grid = self.lfm, self.viewer_grid
         img, s = rgb_scaled(grid[..., 0:3])
         save("diffuse", img, f"view-independent term d (RGB, divided by {s:.4g}, the 99th percentile; sRGB)")
@@ -78,8 +75,6 @@ class LFMModel(FittedModel):
                 ("sample PSNR", f"{_fmt((man.get('sample_error') or {}).get('psnr_db'))} dB")]
 
     def viewer(self) -> ViewerModel:
-        from texstream.fit.models.previews import read_shader
-
         note = ("Light field mapping model: unlit, the view-independent term plus, per vertex of the texel's "
                 "triangle and term, surface map times the vertex's view map looked up along the view direction in "
                 "the vertex's frame (fit/lfm_stage.py LFMRenderer); 'diffuse' shows the view-independent term, "
@@ -100,8 +95,6 @@ def viewer_grid(model) -> np.ndarray:
     itself or, for padding, the texel it copies): the view-independent term d (0:3), the welded vertex
     of each of its three slots (3:6, -1: no texel), and the surface maps G[slot j, term k] at
     6 + 3 (j K + k) (fit/kernels/lfm.py ``texel_radiance``)."""
-    from texstream.fit.models.lfm.export import lfm_atlas
-
     p = model.params
     n, k = p.diffuse.shape[0], model.terms
     per_texel = np.concatenate([p.diffuse, model.geom.slot_vertex.reshape(n, 3).astype(np.float64),
@@ -117,8 +110,6 @@ def viewer_data(model) -> dict:
     v's R x R tile at tile column v % cols, row v // cols: model_folder.py ``tile_view_maps``) and the
     welded vertices' positions and frames (texels 4 (v % FRAME_COLUMNS) + [0: position, 1: tangent,
     2: bitangent, 3: normal], row v // FRAME_COLUMNS), with the lookup options as the shader's integers."""
-    from texstream.fit.models.lfm.model_folder import tile_view_maps
-
     p, g, res = model.params, model.geom, model.view_res
     tiles = np.stack([tile_view_maps(np.asarray(p.H[:, k]), res) for k in range(model.terms)])  # (K, h, w, 3)
     views = np.zeros((*tiles.shape[:3], 4), np.float32)
@@ -145,8 +136,6 @@ def _b64(a: np.ndarray) -> str:
 
 
 def load(model_dir: Path, manifest: dict) -> FittedModel:
-    from texstream.fit.models.lfm.model_folder import load_lfm_model
-
     d = Path(model_dir)
     try:
         model = load_lfm_model(d)

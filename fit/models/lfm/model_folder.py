@@ -16,13 +16,17 @@ from pathlib import Path
 
 import numpy as np
 
+from texstream.capture.imageio import write_image
 from texstream.core.errors import InputError
 from texstream.core.outputs import read_json
+from texstream.fit.kernels import lfm as LK
+from texstream.fit.models.lfm.problem import LFMConfig, LFMGeometry, LFMParams
+from texstream.geometry.bake import TexelBake
+from texstream.geometry.mesh_io import load_mesh
+from texstream.render.camera import pinhole_camera
 
 
 def lfm_geometry(mesh, bake, texels):
-    from texstream.fit.models.lfm.problem import LFMGeometry
-
     gi = np.asarray(texels.grid_index, np.int64)
     return LFMGeometry.build(mesh.vertices, mesh.faces, mesh.vertex_normals(), bake.face.reshape(-1)[gi],
                              bake.bary.reshape(-1, 3)[gi], texels.position)
@@ -43,8 +47,6 @@ class LFMRenderer:
     def __init__(self, mesh, bake, geom, params, cfg, grid_index: np.ndarray, device: str = "cpu"):
         import warp as wp
 
-        from texstream.fit.kernels import lfm as LK  # noqa: F401  (compiled on first launch)
-
         self.wp, self.cfg, self.device = wp, cfg, device
         d = device
         self.points = wp.array(np.asarray(mesh.vertices, np.float32), dtype=wp.vec3, device=d)
@@ -64,9 +66,6 @@ class LFMRenderer:
         self.vframe = [wp.array(a, dtype=wp.vec3d, device=d) for a in (geom.vpos, geom.vtan, geom.vbit, geom.vnrm)]
 
     def render_frame(self, frame, view_interp: str | None = None):
-        from texstream.fit.kernels import lfm as LK
-        from texstream.render.camera import pinhole_camera
-
         wp = self.wp
         k = frame.intrinsics
         cam = pinhole_camera(frame.R, frame.t, k.fx, k.fy, k.cx, k.cy, k.width, k.height)
@@ -95,8 +94,6 @@ def tile_view_maps(H: np.ndarray, res: int) -> np.ndarray:
 
 
 def write_lfm_maps(folder: Path, params, bake, grid_index: np.ndarray, res: int) -> dict:
-    from texstream.capture.imageio import write_image
-
     files = {}
 
     def atlas(values):
@@ -158,11 +155,6 @@ class LFMModelFolder:
 def load_lfm_model(model_dir) -> LFMModelFolder:
     """Read an LFM model folder (model.json, mesh.obj, bake.npz, lfm.npz); InputError naming the file
     when one is missing or they disagree."""
-    from texstream.geometry.bake import TexelBake
-    from texstream.geometry.mesh_io import load_mesh
-
-    from texstream.fit.models.lfm.problem import LFMConfig, LFMGeometry, LFMParams
-
     d = Path(model_dir)
     man = read_json(d / "model.json", what="model manifest")
     lay = dict(man["layout"])

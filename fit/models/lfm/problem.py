@@ -43,6 +43,7 @@ from texstream.core.errors import ConfigError, InputError
 
 from texstream.fit.kernels import lfm as LK
 from texstream.fit.kernels import lfm_lbfgs as LB
+from texstream.fit.kernels import stream
 from texstream.fit.optim.lfm_config import LOOKUPS, OPTIMIZERS, VIEW_MAPS, LFMConfig  # noqa: F401  (re-exported)
 from texstream.fit.stream.problem import exposure_mean_square
 
@@ -185,8 +186,6 @@ class PhotoSamples:
     def __init__(self, problem, frames):
         """``problem``: a radiance :class:`texstream.fit.stream.problem.StreamProblem` over the texels and
         photos (it holds the texel frames and sample options the distribution step reads)."""
-        from texstream.fit.kernels import stream
-
         photos = problem.photos
         if getattr(photos, "streamed", False):
             raise ConfigError(f"the LFM fit keeps every photo on the device, and these stream from "

@@ -1,8 +1,8 @@
 """The fit of a per-texel model (Lafortune, diffuse, radiance, view-dependent radiance): inputs, set-up, the
 streaming fit, the lobes and materials where the model has lobes, held-out renders and the model folder.
 
-One function per phase; :func:`fit` (the plugins' ``fit``) runs them in order. Heavy packages (OpenImageIO through
-capture.imageio, the mesh writer) are imported inside the phases that write files."""
+One function per phase; :func:`fit` (the plugins' ``fit``) runs them in order. Heavy packages (OpenImageIO in
+capture.imageio, pymeshlab in the mesh writer) are imported inside the functions that write files."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from texstream.capture.imageio import read_mask, write_image
 from texstream.core.config import config_to_dict
 from texstream.core.outputs import StageResult, atomic_output_dir
 from texstream.core.progress import phase, say
@@ -29,6 +30,7 @@ from texstream.fit.models.per_texel.lobes import (_materials_manifest, average_s
                                                   traced_polish_applies, traced_problem)
 from texstream.fit.multi.tiles import run_tiled_fit, tiled
 from texstream.fit.optim.fitter import resumable
+from texstream.geometry.mesh_io import save_mesh
 
 MATERIAL_PALETTE = np.array([[0.9, 0.6, 0.1], [0.1, 0.6, 0.2], [0.8, 0.8, 0.8], [0.2, 0.3, 0.9],
                              [0.8, 0.1, 0.1], [0.6, 0.2, 0.8], [0.1, 0.8, 0.8], [0.5, 0.4, 0.2]], np.float32)
@@ -177,9 +179,6 @@ def _model_grid(inputs: FitInputs, problem, result, cfg) -> tuple[np.ndarray, in
 def _write_geometry_and_renders(tmp: Path, inputs: FitInputs, mesh_path, grid, layout, cfg) -> list[dict]:
     """mesh.obj, bake.npz and renders/ into the model folder; every held-out view scored (pooled and worst-view
     PSNR), the first ``cfg.renders`` written as images."""
-    from texstream.capture.imageio import read_mask
-    from texstream.geometry.mesh_io import save_mesh
-
     capture, mesh, bake = inputs.capture, inputs.mesh, inputs.bake
 
     def render(f):
@@ -202,8 +201,6 @@ def _write_geometry_and_renders(tmp: Path, inputs: FitInputs, mesh_path, grid, l
 
 def _write_lobe_maps(tmp: Path, bake, problem, result, lobes: Lobes) -> None:
     """lobes.png (which texels kept, dropped or borrowed a lobe), uncertainty.exr and materials.png."""
-    from texstream.capture.imageio import write_image
-
     size, index = bake.height * bake.width, problem.texels.grid_index
     if result.layout.n_lobes:
         kept = np.zeros(size, np.float32)

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from texstream.core.errors import ConfigError, InputError
+from texstream.fit.common import setup as stage
 from texstream.fit.models.registry import FittedModel
 
 
@@ -27,8 +28,6 @@ class PerTexelModel(FittedModel):
         self.grid, self.layout = grid, layout
 
     def renderer(self, device: str = "cpu"):
-        from texstream.fit.common import setup as stage
-
         mesh, grid, lay = self.mesh, self.grid, self.layout
 
         def render(frame):
@@ -46,8 +45,6 @@ class PerTexelModel(FittedModel):
 def load_per_texel(model_class: type, kind: str, model_dir: Path, manifest: dict) -> PerTexelModel:
     """Read a per-texel model folder as ``model_class``; every problem is an InputError naming the file and
     the fix. ``covered``: bake.npz's covered texels (all, without a usable bake)."""
-    from texstream.fit.common import setup as stage
-
     d = Path(model_dir)
     try:
         mesh, grid, layout, man = stage.load_model(d)

@@ -11,17 +11,20 @@ import numpy as np
 
 
 from texstream.fit.optim.fitter import FitConfig, FitResult, light_view_angles, run_fit
-from texstream.fit.models.materials import MaterialConfig
+from texstream.fit.models.materials import (MaterialConfig, contradiction_test, find_materials,
+                                            material_lobes_on, material_prior, reject_contradicted_lobes,
+                                            residual_variance, texel_uncertainty)
 from texstream.render.layout import ModelLayout
 
 from texstream.fit.common.inputs import read_photos, FitInputs
 from texstream.fit.common.setup import params_to_grid, heldout_psnr, fill_unseen_texels, per_texel_objective, data_jtj
+from texstream.fit.multi.tiles import tiled
+from texstream.fit.stream.problem import PhotoFrame, StreamProblem
+from texstream.geometry.seams import average_across_seams, seam_gaps
 
 
 def lobe_shape_report(cfg: FitConfig, layout, frames, positions: np.ndarray) -> dict:
     """What model.json records of the lobe-shape choice (fit/models.py "Lobe shape")."""
-    from texstream.fit.stream.problem import PhotoFrame
-
     if layout.n_lobes == 0:
         return {"requested": cfg.lobe_shape, "fitted": None, "light_view_angle_deg": None}  # no lobe to shape
     angles = light_view_angles([PhotoFrame.from_capture_frame(f) for f in frames], positions.mean(axis=0))
@@ -83,8 +86,6 @@ class TexelEvidence:
 
 def texel_evidence(problem, result: FitResult, mcfg: MaterialConfig) -> TexelEvidence:
     """J^T J, residual variance and uncertainty of a per-texel fit's lobes, and which are constrained."""
-    from texstream.fit.models.materials import residual_variance, texel_uncertainty
-
     jtj, stats = data_jtj(problem, result.params)
     sigma2 = residual_variance(stats[result.samples > 0])
     unc = texel_uncertainty(jtj, result.params, result.layout, sigma2)
@@ -101,8 +102,6 @@ def confirm_at_material_lobes(traced, evidence: TexelEvidence, plane: TexelEvide
     at its peak) passes the test at its own lobe; at the material's lobe those samples see almost no lobe
     and it fails. A texel that saw its (even sub-pixel) highlight passes both. Returns (the evidence, how
     many constrained texels the second test took away)."""
-    from texstream.fit.models.materials import find_materials, material_lobes_on, texel_uncertainty
-
     lay = traced.layout
     seen = plane.samples > 0
     mats = find_materials(plane.params, seen, plane.constrained, lay, k, mcfg.min_lobe_share, mcfg.spread_floor)
@@ -117,8 +116,6 @@ def confirm_at_material_lobes(traced, evidence: TexelEvidence, plane: TexelEvide
 def traced_polish_applies(problem, cfg) -> bool:
     """Whether the fit ends with :func:`traced_polish`: a model with specular lobes, fitted with filtered plane
     taps on a mesh (an atlas fit, not a single view), untiled."""
-    from texstream.fit.multi.tiles import tiled
-
     s = problem.cfg
     return (cfg.traced_polish > 0 and problem.layout.n_lobes > 0 and s.photo_sampling == "filtered"
             and s.tap_geometry == "plane" and problem.photos.mesh_normals is not None
@@ -127,8 +124,6 @@ def traced_polish_applies(problem, cfg) -> bool:
 
 def traced_problem(problem):
     """``problem``'s texels and photos with every filtered tap traced to the mesh (``tap_geometry`` mesh)."""
-    from texstream.fit.stream.problem import StreamProblem
-
     return StreamProblem(problem.texels, problem.photos, problem.layout,
                          dataclasses.replace(problem.cfg, tap_geometry="mesh"), problem.device)
 
@@ -157,9 +152,6 @@ def fit_with_materials(problem, result: FitResult, evidence: TexelEvidence, k: i
     """The materials model with ``k`` materials (fit/materials.py): cluster, prior, Levenberg-Marquardt from
     the per-texel fit ``result``, then (``polish``) :func:`traced_polish` with the prior on. Returns the fit
     and what model.json records of it."""
-    from texstream.fit.models.materials import (contradiction_test, find_materials, material_lobes_on, material_prior,
-                            reject_contradicted_lobes)
-
     mcfg = cfg.materials
     lay = result.layout
     seen = evidence.samples > 0
@@ -207,8 +199,6 @@ def choose_materials(inputs: "FitInputs", problem, cfg, log=None) -> dict:
     PSNR; ties within 0.05 dB go to the simpler model). The fit's own held-out photos play no part.
     Returns the choice and every candidate's score, or {"chosen": "per-texel", "reason": ...} when the
     fitted photos are too few to split."""
-    from texstream.fit.stream.problem import StreamProblem
-
     mcfg = cfg.materials
     every = mcfg.validation_every
     n = len(inputs.frames)
@@ -261,7 +251,6 @@ def average_seams_in_bounds(grid: np.ndarray, seams, layout: ModelLayout) -> tup
     bounds; returns the maps and what model.json records of the seams."""
     if seams is None:
         return grid, None
-    from texstream.geometry.seams import average_across_seams, seam_gaps
 
     # the view terms' coefficients live in each chart's own tangent frame, so two sides of a seam do
     # not share them: only the radiance along the normal (columns 0:3) is tied there

@@ -6,8 +6,14 @@ from pathlib import Path
 
 import numpy as np
 
+from texstream.capture.imageio import read_image
+from texstream.core.errors import InputError
 from texstream.fit.models.per_texel.folder import PerTexelModel, checked, load_per_texel
+from texstream.fit.models.previews import read_shader, rgb_scaled
+from texstream.fit.models.radiance.export import radiance_material
 from texstream.fit.models.registry import ExportMaterial, FittedModel, ViewerModel
+from texstream.geometry.mesh_io import load_mesh
+from texstream.render.layout import ModelLayout
 
 
 class RadianceModel(PerTexelModel):
@@ -18,19 +24,13 @@ class RadianceModel(PerTexelModel):
     shader_folder = Path(__file__).parent  # the viewer.glsl beside the kind's plugin
 
     def export_material(self, cfg) -> ExportMaterial:
-        from texstream.fit.models.radiance.export import radiance_material
-
         return radiance_material(self.grid, self.covered, cfg.radiance_scale)
 
     def report_maps(self, save, seen) -> None:
-        from texstream.fit.models.previews import rgb_scaled
-
         img, s = rgb_scaled(self.grid[..., 0:3])
         save("radiance", img, f"radiance (RGB, divided by {s:.4g}, the 99th percentile; sRGB)" + self.radiance_caption)
 
     def viewer(self) -> ViewerModel:
-        from texstream.fit.models.previews import read_shader
-
         return ViewerModel(self.grid, read_shader(self.shader_folder), lit=False, note=self.note)
 
 
@@ -41,11 +41,6 @@ def load(model_dir: Path, manifest: dict) -> FittedModel:
 
 
 def _load_radiance_map(d: Path, man: dict) -> RadianceModel:
-    from texstream.capture.imageio import read_image
-    from texstream.core.errors import InputError
-    from texstream.render.layout import ModelLayout
-    from texstream.geometry.mesh_io import load_mesh
-
     name = (man.get("maps") or {}).get("radiance", "radiance.exr")
     if not (d / name).is_file():
         raise InputError("radiance model has no radiance map", d / name, "re-run the fit that wrote this folder")

@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from texstream.fit.models.per_texel.folder import load_per_texel
+from texstream.fit.models.previews import magnitude_preview
 from texstream.fit.models.radiance.folder import RadianceModel
 from texstream.fit.models.registry import FittedModel
 
@@ -19,8 +20,6 @@ class ViewRadianceModel(RadianceModel):
     shader_folder = Path(__file__).parent
 
     def report_maps(self, save, seen) -> None:
-        from texstream.fit.models.previews import magnitude_preview
-
         super().report_maps(save, seen)
         # how much the view changes the radiance: the coefficients' magnitude over the view terms
         a, sa = magnitude_preview(self.grid[..., 3:18])
