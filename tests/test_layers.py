@@ -69,11 +69,6 @@ FUNCTION_IMPORTS_ALLOWED: set[tuple[str, str]] = {
     # `texstream --help` and the other commands load no numpy (the subcommand modules themselves are loaded
     # by name, importlib, when their command runs)
     ("pipelines.cli", "fit.stream.decode_pool"),
-    # being split in another branch
-    *(("capture.synthetic.synth", m) for m in (
-        "capture.capture_json", "capture.imageio", "capture.preview", "core.outputs", "core.progress",
-        "geometry.atlas", "geometry.bake", "geometry.clean", "geometry.mesh_io", "render.layout", "render.mesh",
-        "render.renderer")),
 }
 """(module, texstream module it imports inside a function): the only imports of texstream modules that
 are not at a module's top. A module whose top-level import would make ``texstream.fit`` or

@@ -7,6 +7,7 @@ import os
 from pathlib import Path
 
 import numpy as np
+from texstream.capture.imageio import read_image, write_image
 
 
 VIEW_TERM_NAMES = ("vx", "vy", "vxx", "vxy", "vyy")  # fit/models.py VIEW_TERMS (capture/ imports no fit/)
@@ -17,7 +18,6 @@ def write_param_maps(folder: Path, params: np.ndarray, layout) -> dict[str, str]
     lobe{j}_shape.exr ([c_xy, c_z, n] or, anisotropic, RGBA [c_x, c_y, c_z, n]); a radiance
     layout (fit/models.py) writes radiance.exr (RGB L), and the view-dependent one also
     view_{term}.exr (RGB coefficient of each view term, e.g. view_vx.exr)."""
-    from texstream.capture.imageio import write_image
 
     if getattr(layout, "is_radiance", False):
         write_image(folder / "radiance.exr", params[..., 0:3], bits=32)
@@ -41,7 +41,6 @@ def write_param_maps(folder: Path, params: np.ndarray, layout) -> dict[str, str]
 
 def read_param_maps(folder: str | os.PathLike, layout) -> np.ndarray:
     """(H, W, P) float32 parameter grid from the EXR maps :func:`write_param_maps` wrote."""
-    from texstream.capture.imageio import read_image
 
     g = Path(folder)
     if getattr(layout, "is_radiance", False):

@@ -9,6 +9,8 @@ from pathlib import Path
 from texstream.core.outputs import atomic_output_dir
 
 from texstream.capture.capture_json import Intrinsics
+from texstream.capture.capture_json import read_capture
+from texstream.capture.imageio import copy_with_metadata
 
 
 SENSOR_WIDTH_MM = 36.0  # the synthetic camera's sensor: full frame, so the 35 mm equivalent is the focal length
@@ -30,8 +32,6 @@ def write_photos_only(capture_dir: str | os.PathLike, out_dir: str | os.PathLike
     """A synthetic capture's photos as a camera leaves them: a folder of its images (same names, stored
     values unchanged) carrying the camera's EXIF focal length (:func:`camera_exif`), and nothing else (no
     capture.json, masks, poses or lights). Written atomically; returns the photo paths."""
-    from texstream.capture.capture_json import read_capture
-    from texstream.capture.imageio import copy_with_metadata
 
     cap = read_capture(capture_dir)
     out_dir = Path(out_dir)

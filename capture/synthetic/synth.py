@@ -85,6 +85,17 @@ from texstream.capture.conventions import look_at_w2c
 from texstream.capture.synthetic import procedural
 from texstream.capture.synthetic.materials import material_params
 from texstream.capture.synthetic.param_maps import read_param_maps, write_param_maps
+from texstream.capture.imageio import linear_to_srgb, srgb_to_linear, write_image
+from texstream.capture.preview import write_contact_sheet
+from texstream.core.outputs import read_json
+from texstream.core.progress import bar
+from texstream.geometry import atlas  # called through the module: a test replaces build_atlas there
+from texstream.geometry.bake import TexelBake, bake_texels
+from texstream.geometry.clean import CleanConfig, clean_mesh
+from texstream.geometry.mesh_io import load_mesh, save_mesh
+from texstream.render.layout import ModelLayout
+from texstream.render.mesh import SurfaceMesh
+from texstream.render.renderer import Renderer
 
 SCENES_DIR = Path(__file__).resolve().parent / "scenes"
 GROUND_TRUTH = "ground_truth"
@@ -228,7 +239,6 @@ def build_mesh(scene: dict, scale: float = 1.0):
     Returns:
         (SurfaceMesh, (width, height), info dict).
     """
-    from texstream.render.mesh import SurfaceMesh
 
     m = scene["mesh"]
     tex = _scaled_texture(scene, scale)
@@ -237,7 +247,6 @@ def build_mesh(scene: dict, scale: float = 1.0):
         mesh = procedural.make(m["procedural"], **m.get("params", {}))
         info["source"] = f"procedural:{m['procedural']}"
     else:
-        from texstream.geometry.mesh_io import load_mesh
 
         path = Path(os.path.expandvars(str(m["file"]).replace("$TEXSTREAM_DATA", str(_data_root()))))
         if not path.is_file():
@@ -246,7 +255,6 @@ def build_mesh(scene: dict, scale: float = 1.0):
         mesh = load_mesh(path)
         info["source"] = str(path)
         if int(m.get("faces", 0)) > 0 and mesh.n_faces > int(m["faces"]):
-            from texstream.geometry.clean import CleanConfig, clean_mesh
 
             mesh, rep = clean_mesh(mesh, CleanConfig(target_faces=int(m["faces"]), hausdorff=False), path=path)
             info["clean"] = rep.summary()
@@ -261,12 +269,11 @@ def build_mesh(scene: dict, scale: float = 1.0):
         lo, hi = mesh.bbox()
         mesh.vertices = (mesh.vertices - (lo + hi) / 2) / (np.linalg.norm(hi - lo) / 2)
     if mesh.uvs is None or "resolution" in tex:
-        from texstream.geometry.atlas import AtlasConfig, build_atlas
 
-        cfg = AtlasConfig(**{**m.get("atlas", {}), "resolution": int(tex.get("resolution", 512)),
+        cfg = atlas.AtlasConfig(**{**m.get("atlas", {}), "resolution": int(tex.get("resolution", 512)),
                              "padding": int(tex.get("padding", 2))})
         try:
-            mesh, ainfo = build_atlas(mesh, cfg)
+            mesh, ainfo = atlas.build_atlas(mesh, cfg)
         except ConfigError as e:
             # the atlas' own fix names `texstream atlas` options; synth sets them from the scene and --scale
             raise ConfigError(f"scene {scene.get('name', '')!r} at scale {scale:g}: {e.message}",
@@ -375,7 +382,6 @@ def develop(radiance: np.ndarray, exposure: float, p: dict, rng: np.random.Gener
         img = img + rng.normal(0.0, sigma, size=img.shape)
     bits = int(p["bits"])
     if bits == 8:
-        from texstream.capture.imageio import linear_to_srgb, srgb_to_linear
 
         codes = np.floor(np.clip(linear_to_srgb(np.clip(img, 0.0, 1.0)), 0.0, 1.0) * 255 + 0.5)
         return srgb_to_linear(codes / 255.0).astype(np.float32)
@@ -449,8 +455,6 @@ def prepare_scene(scene, config: SynthConfig):
     Returns:
         (resolved scene, mesh, bake, layout, params (H, W, P), material ids, material names, info).
     """
-    from texstream.render.layout import ModelLayout
-    from texstream.geometry.bake import bake_texels
 
     sc = resolve_scene(scene, config)
     md = sc["model"]
@@ -488,10 +492,8 @@ def _image_ext(bits: int) -> str:
 def iter_renders(sc: dict, mesh, params: np.ndarray, layout, frames: list[Frame], config: SynthConfig,
                  ) -> Iterator[tuple[int, Frame, np.ndarray, np.ndarray, np.ndarray]]:
     """Render and develop every frame: yields (index, frame, photo, mask, clean) one at a time."""
-    from texstream.render.renderer import Renderer
 
     rend = Renderer(mesh, params, layout, device=config.device, shadows=config.shadows)
-    from texstream.core.progress import bar
 
     for i in bar(range(len(frames)), f"synth {sc.get('name', '')}", unit="photo", enabled=config.progress):
         f = frames[i]
@@ -540,10 +542,6 @@ def load_ground_truth(folder: str | os.PathLike):
     Returns:
         (mesh, params (H, W, P) float32, ModelLayout, TexelBake, manifest dict).
     """
-    from texstream.render.layout import ModelLayout
-    from texstream.geometry.bake import TexelBake
-    from texstream.geometry.mesh_io import load_mesh
-    from texstream.core.outputs import read_json
 
     g = Path(folder)
     if (g / GROUND_TRUTH).is_dir():
@@ -555,7 +553,6 @@ def load_ground_truth(folder: str | os.PathLike):
 
 
 def _write_previews(out: Path, params: np.ndarray, layout, bake) -> None:
-    from texstream.capture.imageio import write_image
 
     prev = out / "previews"
     # albedo-like views: pi * rho_d, and rho_s scaled to its maximum
@@ -565,10 +562,7 @@ def _write_previews(out: Path, params: np.ndarray, layout, bake) -> None:
         rs = params[..., o:o + 3]
         write_image(prev / "lobe0_rho_s.png", np.clip(rs / max(float(rs.max()), 1e-12), 0, 1), bits=8)
     write_image(prev / "bake_normals.png", bake.normal_preview(), bits=8)
-    try:
-        from texstream.capture.preview import write_contact_sheet
-    except ImportError:
-        return
+
     write_contact_sheet(out, prev / "contact_sheet.png")
 
 
@@ -588,9 +582,7 @@ def synthesize(scene, out_dir: str | os.PathLike, config: SynthConfig | None = N
     Returns:
         StageResult with counts in ``summary``.
     """
-    from texstream.geometry.mesh_io import save_mesh
 
-    from texstream.capture.imageio import write_image
 
     config = dataclasses.replace(config or SynthConfig(), scene=str(scene) if not isinstance(scene, dict) else "<dict>")
     sc, mesh, bake, layout, params, mid, names, info = prepare_scene(scene, config)
