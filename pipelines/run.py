@@ -267,46 +267,87 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
     t_start = time.perf_counter()
     pipe = Pipeline(out, from_stage, log)
 
-    # ingest: photos -> capture folder; a capture or COLMAP folder is read as it is
+    cap_dir = _ingest(pipe, src, kind, out, cfg)
+    posed, posed_dir = _register(pipe, cap_dir, kind, out, cfg)
+    capture = read_capture(posed_dir)
+    fit_geometry = _mesh_and_atlas(pipe, posed, posed_dir, out, cfg)
+
+    # lights: from mirror-ball photos when a ball is given
+    posed_dir, lights_summary = _mirror_ball_lights(pipe, out, posed_dir, posed, capture, cfg)
+    capture = read_capture(posed_dir)
+
+    # refine: cameras registered here and a mesh made here, moved until the photos agree
+    refine_cfg, why_refine = refine_decision(cfg, registered=not posed, mesh_made=cfg.mesh_file is None,
+                                             atlas_folder=Path(fit_geometry).is_dir())
+    if refine_cfg is None:
+        pipe.skip("refine", why_refine)
+    else:
+        refine_dir = out / "refine"
+        pipe.run("refine", refine_dir, [pipe.stamp_of("atlas"), pipe.stamp_of("mesh"), pipe.stamp_of("register"),
+                                        pipe.stamp_of("lights"), _files_hash(posed_dir) if posed else "",
+                                        str(fit_geometry), config_to_dict(refine_cfg), cfg.device], why_refine,
+                 lambda: refine_stage(posed_dir, fit_geometry, refine_dir, refine_cfg, device=cfg.device, log=pipe.log))
+        posed_dir = fit_geometry = refine_dir
+        capture = read_capture(posed_dir)
+
+    model_dir = out / "model"
+    fit_rec, model_kind, why = _fit(pipe, capture, posed, posed_dir, fit_geometry, model_dir, cfg, lights_summary)
+
+    _export_and_report(pipe, out, model_dir, posed_dir)
+    heldout = _heldout(model_dir)
+    summary = {"source": str(src), "source_kind": kind, "model": model_kind, "model_reason": why,
+               "total_s": time.perf_counter() - t_start,
+               "heldout": heldout, "stages": [dataclasses.asdict(r) for r in pipe.records],
+               "lights": lights_summary or {"source": _lights_source(capture)},
+               "fit": fit_rec.summary, "warnings": run_warnings(pipe.records, heldout, fit_rec.summary)}
+    write_json_atomic(out / "run.json", _summary_safe(summary))
+    return summary
+
+
+def _ingest(pipe: Pipeline, src: Path, kind: str, out: Path, cfg: RunConfig) -> Path:
+    """The capture folder: photos ingested, a COLMAP model imported, or a capture folder read as it is."""
     if kind == "photos":
         n_photos = sum(1 for f in src.iterdir() if f.is_file() and f.suffix.lower() in IMAGE_EXTS)
         if n_photos < MIN_PHOTOS:
             raise InputError(f"{n_photos} photo(s) found; registering cameras needs at least {MIN_PHOTOS}", src,
                              "add overlapping photos of the object (20 or more from all sides is typical)")
-
         cap_dir = out / "capture"
         pipe.run("ingest", cap_dir, [_files_hash(src), config_to_dict(cfg.ingest)],
                  f"photos in {src} -> capture folder (EXIF, masks, exposure)",
                  lambda: ingest(src, cap_dir, cfg.ingest))
-    elif kind == "colmap":
+        return cap_dir
+    if kind == "colmap":
         cap_dir = out / "capture"
         pipe.run("ingest", cap_dir, [_files_hash(src)], f"COLMAP model in {src} -> capture folder",
                  lambda: import_colmap(src, cap_dir))
-    else:
-        cap_dir = src
-        pipe.skip("ingest", f"{src} is a capture folder already", src)
+        return cap_dir
+    pipe.skip("ingest", f"{src} is a capture folder already", src)
+    return src
 
-    # register: skipped when every frame has a pose
+
+def _register(pipe: Pipeline, cap_dir: Path, kind: str, out: Path, cfg: RunConfig) -> tuple[bool, Path]:
+    """(cameras given, the posed capture folder): registration skipped when every frame has a pose."""
     capture = read_capture(cap_dir)
     posed = capture.extra.get("posed", True) is not False and kind != "photos"  # ingest writes posed: false
     if posed:
-        posed_dir = cap_dir
         pipe.skip("register", "cameras known (every frame has a pose)", cap_dir)
-    else:
-        posed_dir = out / "posed"
-        reg_cfg, why_reg = cfg.register, "cameras unknown: structure from motion (pycolmap)"
-        fixed_light = not capture.has_lights and not capture.extra.get("colocated_light")
-        if fixed_light and reg_cfg.photometric == "export":
-            # one fixed lighting: an SfM point looks the same in every photo but for the photo's exposure and
-            # white balance, so the gains the registration measures are the photos' (not so under a flash)
-            reg_cfg = dataclasses.replace(reg_cfg, photometric="apply")
-            why_reg += "; fixed unknown lighting: per-photo exposure gains from the SfM points applied"
-        pipe.run("register", posed_dir, [pipe.stamp_of("ingest"), _files_hash(cap_dir) if kind == "capture" else "",
-                                         config_to_dict(reg_cfg)], why_reg,
-                 lambda: register(cap_dir, posed_dir, reg_cfg, mesh_alignment=mesh_alignment))
-    capture = read_capture(posed_dir)
+        return True, cap_dir
+    posed_dir = out / "posed"
+    reg_cfg, why_reg = cfg.register, "cameras unknown: structure from motion (pycolmap)"
+    fixed_light = not capture.has_lights and not capture.extra.get("colocated_light")
+    if fixed_light and reg_cfg.photometric == "export":
+        # one fixed lighting: an SfM point looks the same in every photo but for the photo's exposure and
+        # white balance, so the gains the registration measures are the photos' (not so under a flash)
+        reg_cfg = dataclasses.replace(reg_cfg, photometric="apply")
+        why_reg += "; fixed unknown lighting: per-photo exposure gains from the SfM points applied"
+    pipe.run("register", posed_dir, [pipe.stamp_of("ingest"), _files_hash(cap_dir) if kind == "capture" else "",
+                                     config_to_dict(reg_cfg)], why_reg,
+             lambda: register(cap_dir, posed_dir, reg_cfg, mesh_alignment=mesh_alignment))
+    return False, posed_dir
 
-    # mesh and atlas
+
+def _mesh_and_atlas(pipe: Pipeline, posed: bool, posed_dir: Path, out: Path, cfg: RunConfig) -> Path:
+    """The fit's geometry: an atlas folder made here, the given atlas folder, or the given mesh with UVs."""
     mesh_dir, atlas_dir = out / "mesh", out / "atlas"
     mesh_path = Path(cfg.mesh_file) if cfg.mesh_file else None
     atlas_needed = True
@@ -329,32 +370,16 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
     if atlas_needed:
         pipe.run("atlas", atlas_dir, [pipe.stamp_of("mesh"), str(mesh_path), config_to_dict(cfg.atlas), cfg.device],
                  "UV atlas (xatlas) and texel bake", lambda: atlas_stage(mesh_path, atlas_dir, cfg.atlas, device=cfg.device))
-        fit_geometry = atlas_dir
-    else:
-        pipe.skip("atlas", "the given mesh has UVs" if mesh_path.is_file() else "an atlas folder is given", mesh_path)
-        fit_geometry = mesh_path
+        return atlas_dir
+    pipe.skip("atlas", "the given mesh has UVs" if mesh_path.is_file() else "an atlas folder is given", mesh_path)
+    return mesh_path
 
-    # lights: from mirror-ball photos when a ball is given
-    posed_dir, lights_summary = _mirror_ball_lights(pipe, out, posed_dir, posed, capture, cfg)
-    capture = read_capture(posed_dir)
 
-    # refine: cameras registered here and a mesh made here, moved until the photos agree
-    refine_cfg, why_refine = refine_decision(cfg, registered=not posed, mesh_made=cfg.mesh_file is None,
-                                             atlas_folder=Path(fit_geometry).is_dir())
-    if refine_cfg is None:
-        pipe.skip("refine", why_refine)
-    else:
-        refine_dir = out / "refine"
-        pipe.run("refine", refine_dir, [pipe.stamp_of("atlas"), pipe.stamp_of("mesh"), pipe.stamp_of("register"),
-                                        pipe.stamp_of("lights"), _files_hash(posed_dir) if posed else "",
-                                        str(fit_geometry), config_to_dict(refine_cfg), cfg.device], why_refine,
-                 lambda: refine_stage(posed_dir, fit_geometry, refine_dir, refine_cfg, device=cfg.device, log=pipe.log))
-        posed_dir = fit_geometry = refine_dir
-        capture = read_capture(posed_dir)
-
-    # fit: the model the scene needs (fit/stages/choice.py: with held-out photos, the candidates it calls for
-    # judged on them: with known lights a specular lobe only where it generalises; under one fixed unknown
-    # lighting view dependence only where it does)
+def _fit(pipe: Pipeline, capture, posed: bool, posed_dir: Path, fit_geometry: Path, model_dir: Path,
+         cfg: RunConfig, lights_summary: dict | None):
+    """(the fit stage's record, the kept model's kind, why): the model the scene needs (fit/stages/choice.py:
+    with held-out photos, the candidates it calls for judged on them: with known lights a specular lobe only
+    where it generalises; under one fixed unknown lighting view dependence only where it does)."""
     fit_cfg = dataclasses.replace(cfg.fit, device=cfg.device, fit=dataclasses.replace(cfg.fit.fit, model=cfg.model),
                                   choice=ModelChoiceConfig(second_lobe=cfg.second_lobe, lfm=cfg.lfm,
                                                            lfm_min_gain_db=cfg.lfm_min_gain_db))
@@ -362,7 +387,6 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
     model_kind, why = plan.base, plan.reason
     if lights_summary:
         why += f" (from the mirror ball: {lights_summary['kind']} light, {lights_summary['views']} ball view(s))"
-    model_dir = out / "model"
     escalates = plan.compare and registry.get(plan.base).escalate is not None
 
     def fit_work():
@@ -383,16 +407,7 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
             model_kind = chosen["chosen_kind"]
             key = registry.get(plan.base).escalation_key
             why = f"{why}; " + (f"{chosen[key]}; " if chosen.get(key) else "") + chosen["reason"]
-
-    _export_and_report(pipe, out, model_dir, posed_dir)
-    heldout = _heldout(model_dir)
-    summary = {"source": str(src), "source_kind": kind, "model": model_kind, "model_reason": why,
-               "total_s": time.perf_counter() - t_start,
-               "heldout": heldout, "stages": [dataclasses.asdict(r) for r in pipe.records],
-               "lights": lights_summary or {"source": _lights_source(capture)},
-               "fit": fit_rec.summary, "warnings": run_warnings(pipe.records, heldout, fit_rec.summary)}
-    write_json_atomic(out / "run.json", _summary_safe(summary))
-    return summary
+    return fit_rec, model_kind, why
 
 
 def refine_decision(cfg: RunConfig, registered: bool, mesh_made: bool, atlas_folder: bool):
