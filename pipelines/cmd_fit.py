@@ -5,11 +5,13 @@ mesh file (baked at ``--texture-size``; given an xatlas atlas if it has no UVs).
 
     texstream fit out/sphere --mesh out/sphere/ground_truth -o out/sphere_model --optimizer lm
 
-Single view, many lights (photometric-stereo style; fit/photometric_stereo.py): ``--normals``
+Single view, many lights (photometric-stereo style; fit/stages/single_view.py): ``--normals``
 instead of ``--mesh`` fits every pixel of one camera's photos as a texel, geometry from a normal
 map (PNG RGB-encoded, or float EXR / NPY), no mesh or atlas:
 
     texstream fit out/bust --normals out/bust/normals.exr -o out/bust_model --model diffuse
+
+Both take part in the automatic model choice (``--model auto``, the default) and the shared materials.
 """
 
 from __future__ import annotations
@@ -19,9 +21,9 @@ import argparse
 from texstream.core.errors import InputError
 from texstream.core.progress import reporting
 from texstream.fit.models.materials import MaterialConfig
-from texstream.fit.models.photometric_stereo import SingleViewConfig, fit_single_view_stage
 from texstream.fit.optim.fitter import FitConfig
 from texstream.fit.stages.choice import ModelChoiceConfig
+from texstream.fit.stages.single_view import SingleViewConfig, fit_single_view_stage
 from texstream.fit.stages.stage import FitStageConfig, fit_stage
 from texstream.pipelines.cli import add_config_arguments, config_from_args
 
@@ -97,6 +99,12 @@ def run(args: argparse.Namespace) -> int:
           f"{s['time_s']:.1f} s, sample PSNR {s['psnr_db']:.2f} dB")
     for f in s.get("skipped_photos", []):
         print(f"  skipped photo {f}: unreadable (--skip-bad-photos; model.json photos.skipped says why)")
+    _print_evaluation(s)
+    return 0
+
+
+def _print_evaluation(s: dict) -> None:
+    """The renders' scores, the held-out summary, the model choice's and the materials' reasons and warnings."""
     for e in s["render_eval"]:
         print(f"  {e['frame']}{' (held out)' if e['held_out'] else ''}: render PSNR {e['psnr_db']:.2f} dB, APE {e['ape_percent']:.2f}%")
     h = s.get("heldout") or {}
@@ -109,16 +117,17 @@ def run(args: argparse.Namespace) -> int:
         print(f"  materials: {m['reason']}")
     for w in s.get("warnings", []):
         print(f"  warning: {w}")
-    return 0
 
 
 def _run_single_view(args: argparse.Namespace, fit_cfg) -> int:
-    cfg = SingleViewConfig(fit=fit_cfg, **{k: getattr(args, k) for k in ("device", "holdout_every", "renders",
-                                                                          "normal_space", "depth")})
-    res = fit_single_view_stage(args.capture, args.normals, args.out, cfg)
+    cfg = SingleViewConfig(fit=fit_cfg, materials=config_from_args(MaterialConfig, args, prefix="materials."),
+                           choice=config_from_args(ModelChoiceConfig, args, prefix="choice."),
+                           **{k: getattr(args, k) for k in ("device", "holdout_every", "renders", "normal_space",
+                                                            "depth")})
+    with reporting(lambda line: print(line, flush=True)):
+        res = fit_single_view_stage(args.capture, args.normals, args.out, cfg)
     s = res.summary
     print(f"wrote {res.output}: {s['texels']} pixel texels ({s['unseen_texels']} unseen) from {s['photos']} photos, "
           f"{s['iterations']} iterations in {s['time_s']:.1f} s, sample PSNR {s['psnr_db']:.2f} dB")
-    for e in s["render_eval"]:
-        print(f"  {e['frame']}{' (held out)' if e['held_out'] else ''}: render PSNR {e['psnr_db']:.2f} dB, APE {e['ape_percent']:.2f}%")
+    _print_evaluation(s)
     return 0

@@ -60,7 +60,7 @@ class ImageInfo:
     sh_ortho: int
     sh_size: int
     depth_is_mask: int
-    """1: the photo has no geometry (single-view fits, fit/photometric_stereo.py); its depth map
+    """1: the photo has no geometry (single-view fits, fit/common/single_view.py); its depth map
     holds 1 where the photo may be sampled and 0 where masked, and the depth test becomes a mask
     test at the nearest pixel. 0 (the default of a zeroed struct): the depth test above."""
 

@@ -1,4 +1,4 @@
-"""Single-view, many-light fits (fit/photometric_stereo.py): image grid = texel grid, no mesh.
+"""Single-view, many-light fits (fit/stages/single_view.py, fit/common/single_view.py): image grid = texel grid, no mesh.
 
 Ground truth: a hemisphere's normal map seen by one pinhole camera under 16 directional lights,
 rendered analytically in numpy with the Lafortune convention of render/shading.py
@@ -18,7 +18,8 @@ pytest.importorskip("OpenImageIO", reason="single-view stage tests need OpenImag
 
 from texstream.capture.capture_json import Capture, Frame, Intrinsics, Light, write_capture
 from texstream.fit.optim.fitter import FitConfig
-from texstream.fit.models.photometric_stereo import SingleViewConfig, fit_single_view_stage, read_normal_map
+from texstream.fit.common.single_view import read_normal_map
+from texstream.fit.stages.single_view import SingleViewConfig, fit_single_view_stage
 from texstream.core.errors import InputError
 
 SIZE = 40  # image side: ~900 texels inside the hemisphere, a few seconds per fit on one CPU core
@@ -226,7 +227,7 @@ def test_bad_inputs_are_one_line_input_errors(tmp_path, capsys):
 
 def test_normal_spaces_and_texel_positions_agree():
     from texstream.capture.conventions import look_at_w2c, project
-    from texstream.fit.models.photometric_stereo import single_view_geometry
+    from texstream.fit.common.single_view import single_view_geometry
 
     intr, n_gl, inside, _, _, _, depth = scene(False)
     R, t = look_at_w2c(np.array([1.0, -2.0, 0.5]), np.zeros(3))  # a camera that is not the world frame

@@ -81,7 +81,7 @@ def photo_files(capture, frames):
 def read_photos(photos, masks, indices):
     """Images and masks (all-true where none) of ``indices`` of ``photos`` (a list of arrays with a
     list of masks or None, or a PhotoFiles, which names its masks)."""
-    images, masks = [], []
+    out_images, out_masks = [], []
     for i in indices:
         if isinstance(photos, PhotoFiles):
             im = photos.read_image(photos.paths[i])
@@ -89,9 +89,9 @@ def read_photos(photos, masks, indices):
             mk = None if mp is None else photos.read_mask(mp, im.shape[:2])
         else:
             im, mk = photos[i], None if masks is None else masks[i]
-        images.append(im)
-        masks.append(np.ones(im.shape[:2], bool) if mk is None else mk)
-    return images, masks
+        out_images.append(im)
+        out_masks.append(np.ones(im.shape[:2], bool) if mk is None else mk)
+    return out_images, out_masks
 
 
 def split_holdout(frames: list, every: int) -> tuple[list, list]:

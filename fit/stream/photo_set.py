@@ -76,7 +76,7 @@ class PhotoSet:
                  mesh_uvs: np.ndarray | None = None, defer_upload: bool = False):
         """``images``: a list of (H, W, >=3) linear arrays, or a :class:`~texstream.fit.stream.photo_stream.PhotoFiles`
         to read them from (masks then come from its mask paths). ``mesh_points=None`` (no geometry:
-        single-view fits, fit/photometric_stereo.py) builds no depth or shadow maps: each photo's depth
+        single-view fits, fit/common/single_view.py) builds no depth or shadow maps: each photo's depth
         map holds its mask (1 = sample, 0 = masked) and ``ImageInfo.depth_is_mask`` tells the kernels
         to test only that. Per-vertex ``mesh_normals`` and ``mesh_uvs`` serve traced taps
         (``StreamConfig.tap_geometry``).

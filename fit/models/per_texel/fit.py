@@ -83,7 +83,7 @@ def _fit_per_texel_model(capture_dir: str | Path, mesh_path: str | Path, out_dir
         evals = _write_geometry_and_renders(tmp, inputs, mesh_path, grid, result.layout, cfg)
         seen = np.zeros(inputs.bake.height * inputs.bake.width, bool)
         seen[problem.texels.grid_index] = result.samples > 0
-        _write_lobe_maps(tmp, inputs.bake, problem, result, lobes)
+        write_lobe_maps(tmp, inputs.bake, problem, result, lobes)
         timings = {"inputs": t_inputs, "setup": t_setup - t_inputs, "fit": t_loop - t0 - t_setup,
                    "after_fit": t_fitted - t_loop, "renders": time.perf_counter() - t_fitted}
         manifest = _manifest(inputs, problem, result, lobes, cfg, evals,
@@ -199,8 +199,9 @@ def _write_geometry_and_renders(tmp: Path, inputs: FitInputs, mesh_path, grid, l
                               render, images=max(cfg.renders, 0))
 
 
-def _write_lobe_maps(tmp: Path, bake, problem, result, lobes: Lobes) -> None:
-    """lobes.png (which texels kept, dropped or borrowed a lobe), uncertainty.exr and materials.png."""
+def write_lobe_maps(tmp: Path, bake, problem, result, lobes: Lobes) -> None:
+    """lobes.png (which texels kept, dropped or borrowed a lobe), uncertainty.exr and materials.png; ``bake``:
+    what gives the texel grid's ``height`` and ``width`` (the atlas's bake, a single view's TexelSet)."""
     size, index = bake.height * bake.width, problem.texels.grid_index
     if result.layout.n_lobes:
         kept = np.zeros(size, np.float32)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from typing import Callable
 
 import numpy as np
 
@@ -192,30 +193,49 @@ def model_grid(params: np.ndarray, result: FitResult, problem, bake, cfg, seams=
     return grid
 
 
-def choose_materials(inputs: "FitInputs", problem, cfg, log=None) -> dict:
+def validation_split(n: int, every: int) -> tuple[list[int], list[int]]:
+    """(fitted, validation) indices of ``n`` fitted photos for the materials choice: every ``every``-th is a
+    validation photo."""
+    return [i for i in range(n) if i % every != every - 1], [i for i in range(n) if i % every == every - 1]
+
+
+def mesh_view_scores(inputs: "FitInputs", val: list[int], cfg) -> Callable:
+    """The materials choice's default scorer: ``score_views(params, result, sub_problem)`` -> the PSNR of each
+    validation photo ``val`` (indices of ``inputs.frames``) against the mesh's render of compact ``params``, made
+    into maps as the stage writes them (padding, unseen texels, seams)."""
+    frames = [inputs.frames[i] for i in val]
+    images, masks = read_photos(inputs.images, inputs.masks, val)
+
+    def score_views(params, result, sub) -> list[float]:
+        grid = model_grid(params, result, sub, inputs.bake, cfg, inputs.seams)
+        return heldout_psnr(inputs.mesh, grid, result.layout, frames, images, masks, cfg.device)[0]
+
+    return score_views
+
+
+def choose_materials(inputs: "FitInputs", problem, cfg, log=None, score_views: Callable | None = None) -> dict:
     """Pick the per-texel or a materials model (variant and K) on a validation split of the fitted photos:
-    every ``materials.validation_every``-th fitted photo is held back, the per-texel fit and every
-    candidate are fitted to the rest and scored by their renders of the validation photos (pooled
+    every ``materials.validation_every``-th fitted photo is held back (:func:`validation_split`), the per-texel
+    fit and every candidate are fitted to the rest and scored by their renders of the validation photos (pooled
     PSNR; ties within 0.05 dB go to the simpler model). The fit's own held-out photos play no part.
-    Returns the choice and every candidate's score, or {"chosen": "per-texel", "reason": ...} when the
-    fitted photos are too few to split."""
+    ``score_views(params, result, sub_problem)``: the validation photos' PSNRs of compact ``params`` (fitted on
+    ``sub_problem`` from ``result``); None: the mesh's renders (:func:`mesh_view_scores`). Returns the choice
+    and every candidate's score, or {"chosen": "per-texel", "reason": ...} when the fitted photos are too few
+    to split."""
     mcfg = cfg.materials
     every = mcfg.validation_every
     n = len(inputs.frames)
-    val = [i for i in range(n) if i % every == every - 1]
-    train = [i for i in range(n) if i % every != every - 1]
+    train, val = validation_split(n, every)
     if len(val) < 2 or len(train) < 2:
         return {"chosen": "per-texel", "reason": f"{n} fitted photos are too few for a validation split of every "
                                                  f"{every}th"}
     t0 = time.perf_counter()
     sub = StreamProblem(problem.texels, problem.photos.subset(train), problem.layout, problem.cfg, problem.device)
     res = run_fit(sub, cfg.fit)
-    frames = [inputs.frames[i] for i in val]
-    images, masks = read_photos(inputs.images, inputs.masks, val)
+    score_views = score_views or mesh_view_scores(inputs, val, cfg)
 
     def score(params) -> dict:
-        grid = model_grid(params, res, sub, inputs.bake, cfg, inputs.seams)
-        views, _ = heldout_psnr(inputs.mesh, grid, res.layout, frames, images, masks, cfg.device)
+        views = score_views(params, res, sub)
         pooled = float(-10 * np.log10(np.mean([10 ** (-v / 10) for v in views])))
         return {"pooled_psnr_db": pooled, "worst_psnr_db": float(min(views))}
 

@@ -1,4 +1,6 @@
-"""Single-view, many-light fits (photometric-stereo style): the image grid is the texel grid.
+"""Single-view, many-light fits (photometric-stereo style): the image grid is the texel grid. This module
+holds their geometry, problem and renders; the stage (the model choice, shared materials, the model folder)
+is fit/stages/single_view.py.
 
 One camera, one photo per known light, and the geometry as a per-pixel normal map instead of a
 mesh: no SfM, no mesh, no atlas. Each pixel inside the object mask is a texel of the SAME
@@ -8,7 +10,7 @@ streaming fit as ``texstream fit --mesh`` (fit/kernels/stream.py, fit/fitter.py)
   depth map (``depth.npy`` / ``depth.exr`` beside capture.json) or a nominal ``depth``. With
   directional lights only the view direction matters, and that is the ray's direction whatever
   z is; point lights need real depths (a depth map, or the right nominal depth).
-- normal: from the normal map, in the space ``normal_space`` names (see SingleViewConfig).
+- normal: from the normal map, in the space ``normal_space`` names (see the stage's SingleViewConfig).
 - tangent: the camera's x axis made orthogonal to the normal; bitangent = normal x tangent.
   Isotropic lobes (the default) depend only on u.v and u_z v_z, which no rotation of the tangent
   frame about the normal changes; anisotropic lobes are then aligned with the image's x axis.
@@ -29,30 +31,20 @@ Folder layout::
     CAPTURE/mask.png        optional object mask (else: pixels with a valid normal)
     CAPTURE/depth.(npy|exr) optional depth map (camera z, world units)
 
-Model folder: parameter maps (EXR, image resolution), seen.png, normals.exr (world-space
-normals of the texels), model.json, trace.json, error_vs_time.png, renders/ and
-fit_config.json. Like fit/stage.py, this module imports OpenImageIO and matplotlib
-inside its functions (it is a stage).
+OpenImageIO (capture.imageio) is imported inside the functions that read files.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import time
 from pathlib import Path
 
 import numpy as np
 import warp as wp
 
 from texstream.capture.capture_json import read_capture
-from texstream.capture.imageio import read_image, read_mask, write_image
+from texstream.capture.imageio import read_image, read_mask
 from texstream.core.errors import InputError
-from texstream.core.config import check_config, option
-from texstream.core.outputs import StageResult, atomic_output_dir
-from texstream.fit.common.inputs import check_output_path
-from texstream.fit.common.model_folder import check_model, pooled_psnr, render_comparisons, write_model_folder
-from texstream.fit.common.setup import run_fit_with_progress
-
 from texstream.fit.optim.fitter import FitConfig
 from texstream.fit.kernels import stream
 from texstream.fit.stream.photo_set import PhotoSet
@@ -63,21 +55,6 @@ from texstream.render.layout import ModelLayout
 
 NORMAL_SPACES = ("opengl", "opencv", "world")
 FLOAT_NORMAL_SUFFIXES = (".exr", ".hdr", ".pfm", ".npy")
-
-
-@dataclasses.dataclass
-class SingleViewConfig:
-    """Options of the single-view fit (``texstream fit CAPTURE --normals N -o MODEL``)."""
-
-    device: str = option("cpu", "Warp device: cpu or cuda:N")
-    normal_space: str = option("opengl", "frame of the normal map: opengl (camera space, x right, y up, z towards "
-                               "the viewer: DiLiGenT, most normal-map files), opencv (camera space, x right, y down, "
-                               "z into the scene) or world (capture.json's world frame)", choices=NORMAL_SPACES)
-    depth: float = option(1.0, "nominal camera depth (z, world units) of every texel when the capture has no "
-                          "depth map; irrelevant for directional lights")
-    holdout_every: int = option(0, "hold out every k-th photo from the fit for evaluation (0 = none)")
-    renders: int = option(4, "photos rendered beside the fitted model in renders/")
-    fit: FitConfig = option(default_factory=FitConfig, help="the fit", flat=True)
 
 
 @dataclasses.dataclass
@@ -225,8 +202,9 @@ def find_normal_map(capture_dir: str | Path) -> Path:
                      "put the normal map there or pass its path (--normals)")
 
 
-def load_single_view(capture_dir: str | Path, normals_path: str | Path | None, cfg: SingleViewConfig):
-    """(capture, fitted frames, held-out frames, geometry, images, masks) of a single-view capture."""
+def load_single_view(capture_dir: str | Path, normals_path: str | Path | None, cfg):
+    """(capture, fitted frames, held-out frames, geometry, images, masks) of a single-view capture (``cfg``: the
+    stage's SingleViewConfig: normal_space, depth, holdout_every)."""
     capture = read_capture(capture_dir)
     if normals_path is None:
         normals_path = find_normal_map(capture.root)
@@ -320,70 +298,3 @@ def render_single_view(problem, params: np.ndarray, layout: ModelLayout, frame) 
     img = np.zeros((tx.height * tx.width, 3), np.float32)
     img[tx.grid_index] = out.numpy()
     return img.reshape(tx.height, tx.width, 3)
-
-
-# --------------------------------------------------------------------------- the stage
-
-
-def fit_single_view_stage(capture_dir: str | Path, normals_path: str | Path | None, out_dir: str | Path,
-                          config: SingleViewConfig | None = None, progress: bool = True) -> StageResult:
-    """Fit ``config.fit``'s model per pixel of a single-view capture; write the model folder atomically.
-
-    Args:
-        capture_dir: folder with capture.json (one camera, a light per frame), see the module doc.
-        normals_path: the normal map; None: normals.(exr|npy|png) beside capture.json.
-        out_dir: model folder to write (replaced only when the fit succeeds).
-        config: options; progress: show a progress bar.
-    """
-    cfg = config or SingleViewConfig()
-    check_config(cfg)
-    if cfg.normal_space not in NORMAL_SPACES:
-        raise InputError(f"normal space {cfg.normal_space!r} unknown", fix=f"use one of {NORMAL_SPACES}")
-    check_output_path(out_dir)
-    t0 = time.perf_counter()
-    capture, frames, held, geo, images, masks = load_single_view(capture_dir, normals_path, cfg)
-    geo_source = normals_path if normals_path is not None else find_normal_map(capture.root)
-    problem = build_single_view_problem(geo, frames, images, masks, cfg.fit, cfg.device)
-    t_setup = time.perf_counter() - t0
-    result = run_fit_with_progress(problem, cfg.fit, progress)
-    lay = result.layout
-    h, w = geo.covered.shape
-    grid = np.tile(lay.defaults().astype(np.float32), (h * w, 1))
-    grid[problem.texels.grid_index] = result.params
-    grid = grid.reshape(h, w, -1)
-    check_model(grid, lay)  # before rendering it
-    seen = np.zeros(h * w, bool)
-    seen[problem.texels.grid_index] = result.samples > 0
-    seen = seen.reshape(h, w)
-    show = (held or frames)[: max(cfg.renders, 0)]
-    photos = [read_image(capture.image_path(f), channels=3) for f in show]
-    for f, photo in zip(show, photos):
-        if photo.shape[:2] != (h, w):
-            raise InputError(f"photo is {photo.shape[1]}x{photo.shape[0]} but the normal map is {w}x{h}",
-                             capture.image_path(f), "give photos and normal map of one size")
-
-    def render(f):
-        m = seen.copy()  # texels no photo saw keep defaults: flagged, not scored
-        mp = capture.mask_path(f)
-        if mp is not None and mp.exists():
-            m &= read_mask(mp, m.shape)
-        return render_single_view(problem, result.params, lay, f), m
-
-    with atomic_output_dir(out_dir) as tmp:
-        write_image(tmp / "normals.exr", np.where(geo.covered[..., None], geo.normal, 0.0).astype(np.float32))
-        evals = render_comparisons(tmp / "renders", show, photos, held, render)
-        last = result.trace[-1]
-        manifest = {"geometry": {"type": "normal_map", "normals": "normals.exr", "normal_space_in": cfg.normal_space,
-                                 "normals_out": "world", "source": str(geo_source)},
-                    "image": {"width": w, "height": h, "texels": int(problem.n),
-                              "unseen_texels": int((result.samples == 0).sum())},
-                    "photos": {"fitted": len(frames), "held_out": len(held)},
-                    "final": {k: last[k] for k in ("iteration", "time_s", "objective", "psnr_db", "ape_percent")},
-                    "setup_s": t_setup, "passes": result.passes, "device": cfg.device, "render_eval": evals,
-                    "heldout": pooled_psnr([e for e in evals if e["held_out"]]),
-                    "units": "BRDF values in 1/sr (capture/conventions.py)"}
-        write_model_folder(tmp, grid, lay, seen, result.trace,
-                           f"single-view {lay.kind} fit, {cfg.fit.optimizer}, {cfg.device}", manifest, cfg)
-    return StageResult(Path(out_dir), {"psnr_db": last["psnr_db"], "iterations": last["iteration"],
-                                       "time_s": last["time_s"], "texels": problem.n, "photos": len(frames),
-                                       "unseen_texels": int((result.samples == 0).sum()), "render_eval": evals})
