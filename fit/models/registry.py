@@ -83,7 +83,6 @@ class ViewerModel:
             layers (a 2D array texture; absent: 2D), data (base64 little-endian float32 RGBA)}: float
             textures bound to units 3, 4, ... and their sampler uniforms ``name``.
         note: one sentence for the viewer's caption (what the model shows, what the controls do).
-        parts: names of the shading parts the viewer's "show" menu offers (part 0 is the full model).
     """
 
     grid: np.ndarray
@@ -91,7 +90,6 @@ class ViewerModel:
     lit: bool
     data: dict = dataclasses.field(default_factory=dict)
     note: str = ""
-    parts: tuple[str, ...] = ("full model",)
 
 
 class FittedModel:
