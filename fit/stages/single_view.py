@@ -34,9 +34,9 @@ from texstream.fit.common.single_view import (NORMAL_SPACES, build_single_view_p
                                               load_single_view, render_single_view, shared_camera)
 from texstream.fit.models import registry
 from texstream.fit.models.materials import MaterialConfig
-from texstream.fit.models.per_texel.fit import Lobes, write_lobe_maps
+from texstream.fit.models.per_texel.fit import Lobes, fit_chosen_materials, write_lobe_maps
 from texstream.fit.models.per_texel.lobes import (_materials_manifest, choose_materials, drop_unsupported_lobes,
-                                                  fit_with_materials, lobes_in_use, texel_evidence, validation_split)
+                                                  lobes_in_use, texel_evidence, validation_split)
 from texstream.fit.optim.fitter import FitConfig, FitResult
 from texstream.fit.stages import choice
 
@@ -127,7 +127,7 @@ def fit_single_view_model(capture_dir: str | Path, normals_path: str | Path | No
     # every held-out photo is scored (the model choice reads them pooled), the first `renders` drawn
     show = held if held else frames[: max(cfg.renders, 0)]
     photos = [read_image(capture.image_path(f), channels=3) for f in show]
-    for f, photo in zip(show, photos):
+    for f, photo in zip(show, photos, strict=True):
         if photo.shape[:2] != (h, w):
             raise InputError(f"photo is {photo.shape[1]}x{photo.shape[0]} but the normal map is {w}x{h}",
                              capture.image_path(f), "give photos and normal map of one size")
@@ -182,15 +182,7 @@ def _lobes_and_materials(inputs: FitInputs, problem, result: FitResult, cfg: Sin
     if picked["chosen"] == "per-texel":
         params, dropped = drop_unsupported_lobes(problem, result, cfg.lobe_support)
         return dataclasses.replace(result, params=params), Lobes(info, evidence, None, dropped)
-    with phase("fit", f"materials: {info['reason']}"):
-        res_m, extra_info = fit_with_materials(problem, result, evidence, info["k"], info["chosen"], cfg)
-    labels = extra_info.pop("labels")
-    info.update(extra_info)
-    t_end = result.trace[-1]["time_s"]
-    extra = [{**r, "iteration": r["iteration"] + len(result.trace), "time_s": r["time_s"] + t_end,
-              "stage": r.get("stage", "materials")} for r in res_m.trace]
-    result = dataclasses.replace(res_m, trace=result.trace + extra)
-    return result, Lobes(info, evidence, (extra_info, labels, res_m), np.zeros(problem.n, bool))
+    return fit_chosen_materials(problem, result, evidence, info, cfg)
 
 
 def pixel_view_scores(inputs: FitInputs, val: list[int]):
@@ -206,6 +198,6 @@ def pixel_view_scores(inputs: FitInputs, val: list[int]):
         seen[tx.grid_index] = result.samples > 0
         seen = seen.reshape(tx.height, tx.width)
         return [image_metrics(render_single_view(sub, params, result.layout, f), photo, seen & mask)["psnr_db"]
-                for f, photo, mask in zip(frames, images, masks)]
+                for f, photo, mask in zip(frames, images, masks, strict=True)]
 
     return score_views

@@ -148,22 +148,28 @@ def _lobes_and_materials(inputs: FitInputs, problem, result, cfg):
                 evidence = texel_evidence(problem, result, cfg.materials)
         info = {"mode": cfg.materials.mode, "traced": materials_problem is not problem, **traced_extra, **choice}
     if info is not None and info["chosen"] != "per-texel":
-        with phase("fit", f"materials: {info['reason']}"):
-            # on traced taps the materials' fit is the polish (traced_polish does nothing more there)
-            res_m, extra_info = fit_with_materials(materials_problem, result, evidence, info["k"], info["chosen"], cfg,
-                                                   polish=True)
-        labels = extra_info.pop("labels")
-        info.update(extra_info)
-        t_end = result.trace[-1]["time_s"]
-        extra = [{**r, "iteration": r["iteration"] + len(result.trace), "time_s": r["time_s"] + t_end,
-                  "stage": r.get("stage", "materials")} for r in res_m.trace]
-        result = dataclasses.replace(res_m, trace=result.trace + extra)
-        return result, Lobes(info, evidence, (extra_info, labels, res_m), np.zeros(problem.n, bool))
+        # on traced taps the materials' fit is the polish (traced_polish does nothing more there)
+        return fit_chosen_materials(materials_problem, result, evidence, info, cfg, polish=True)
     if traced_polish_applies(problem, cfg):
         with phase("fit", f"traced polish: {cfg.traced_polish} iterations with taps traced to the mesh"):
             result = traced_polish(problem, result, cfg)
     params, dropped = drop_unsupported_lobes(problem, result, cfg.lobe_support)
     return dataclasses.replace(result, params=params), Lobes(info, evidence, None, dropped)
+
+
+def fit_chosen_materials(problem, result, evidence, info: dict, cfg, polish: bool = False):
+    """(result, Lobes) of the materials model the choice ``info`` picked (variant and K), fitted from ``result``;
+    its iterations appended to the trace (stage "materials")."""
+    with phase("fit", f"materials: {info['reason']}"):
+        res_m, extra_info = fit_with_materials(problem, result, evidence, info["k"], info["chosen"], cfg,
+                                               polish=polish)
+    labels = extra_info.pop("labels")
+    info.update(extra_info)
+    t_end = result.trace[-1]["time_s"]
+    extra = [{**r, "iteration": r["iteration"] + len(result.trace), "time_s": r["time_s"] + t_end,
+              "stage": r.get("stage", "materials")} for r in res_m.trace]
+    result = dataclasses.replace(res_m, trace=result.trace + extra)
+    return result, Lobes(info, evidence, (extra_info, labels, res_m), np.zeros(problem.n, bool))
 
 
 def _model_grid(inputs: FitInputs, problem, result, cfg) -> tuple[np.ndarray, int, dict | None]:
