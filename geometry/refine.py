@@ -513,7 +513,7 @@ class PhotometricRefinement:
         angle = np.degrees(np.arccos(np.clip(np.sum(normals * job.start, axis=1), -1.0, 1.0)))
         return normals, {
             "normal_iterations": cfg.normal_iterations, "intensity_iterations": cfg.intensity_iterations,
-            "patch_rms": [float(math.sqrt(2.0 * a / c)) if c > 0 else float("nan") for a, c in hist],
+            "patch_rms": [float(math.sqrt(2.0 * a / c)) if c > 0 else None for a, c in hist],
             "intensity_rms": [self._per_role(h) for h in inten],
             "vertex_steps_kept": int(job.accepted.numpy()[0]),
             "tilt_deg": {"median": float(np.median(angle)), "p90": float(np.percentile(angle, 90)),
@@ -544,7 +544,7 @@ class PhotometricRefinement:
             self.objective(self.blurred, self.obj_after)
             scores[r] = self._per_role(self.obj_after.numpy())["fit_rms"]
         wp.copy(self.direction, kept)
-        best = min(rounds, key=lambda r: (scores[r], r))
+        best = min(rounds, key=lambda r: (math.inf if scores[r] is None else scores[r], r))
         return best, candidates[best], {str(r): v for r, v in scores.items()}
 
     # ------------------------------------------------------------------------------------------ results
@@ -554,7 +554,8 @@ class PhotometricRefinement:
             sel = self.roles_host == role
             if sel.any():
                 s, c = obj[sel, 0].sum(), obj[sel, 1].sum()
-                out[f"{name}_rms"] = float(math.sqrt(2.0 * s / c)) if c > 0 else float("nan")
+                # None: no sample of that role this pass (a photo too small to see a texel), no residual to give
+                out[f"{name}_rms"] = float(math.sqrt(2.0 * s / c)) if c > 0 else None
         return out
 
     def _score(self) -> dict:

@@ -24,8 +24,14 @@ def run(args: argparse.Namespace) -> int:
     res = refine_stage(args.capture, args.atlas, args.out, config, device=args.device, log=print)
     s = res.summary
     before, after = s["residual_before"], s["residual_after"]
-    held = f"; held-out photos aligned {before['align_rms']:.4f} -> {after['align_rms']:.4f}" if "align_rms" in after else ""
-    print(f"refine: photo residual (RMS) {before['fit_rms']:.4f} -> {after['fit_rms']:.4f}{held}; cameras turned "
+    held = f"; held-out photos aligned {_rms(before, 'align')} -> {_rms(after, 'align')}" if "align_rms" in after else ""
+    print(f"refine: photo residual (RMS) {_rms(before, 'fit')} -> {_rms(after, 'fit')}{held}; cameras turned "
           f"{s['camera_rotation_deg']['median']:.3f} deg (median), vertices moved "
           f"{100 * s['displacement']['median_abs']:.3f}% of the diagonal (median) in {s['seconds']:.1f} s -> {res.output}")
     return 0
+
+
+def _rms(residual: dict, role: str) -> str:
+    """A role's RMS residual, or "n/a" where no photo of that role had a sample."""
+    value = residual.get(f"{role}_rms")
+    return "n/a" if value is None else f"{value:.4f}"

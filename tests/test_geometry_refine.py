@@ -426,3 +426,20 @@ def test_bumped_sphere_comes_back_with_its_shading_normals(sphere, tmp_path, dev
     assert np.median(np.abs(offset[band])) > 0.0015 and own_deg > 0.55
     assert dr < 0.5 * dr_proxy, (dr, dr_proxy)
     assert deg < 0.8 * deg_proxy and deg < 0.5 * own_deg, (deg, deg_proxy, own_deg)
+
+
+def test_a_role_without_samples_is_recorded_as_null_not_nan(tmp_path):
+    """Issue 41's tiny sphere (8 photos of 24x24, scale 0.02): the held-out photo sees no texel, so its role has
+    no residual. refine.json records null there (JSON has no NaN; it used to fail writing it) and the stage ends."""
+    import json
+    import math
+
+    from texstream.capture.synthetic.synth import SynthConfig, synthesize
+    from texstream.geometry.refine import RefineConfig, refine_stage
+
+    cap = tmp_path / "cap"
+    synthesize("sphere", cap, SynthConfig(scale=0.02, photos=8, image_size=24, progress=False, preview=False))
+    refine_stage(cap, cap / "ground_truth", tmp_path / "refined", RefineConfig(holdout_every=8))
+    record = json.loads((tmp_path / "refined" / "refine.json").read_text())
+    assert record["residual_after"]["align_rms"] is None
+    assert math.isfinite(record["residual_after"]["fit_rms"])
