@@ -184,3 +184,4 @@ def test_every_plugin_folder_is_an_installed_package():
     for folder in sorted(p for p in PLUGINS.iterdir() if (p / "__init__.py").is_file()):
         rel = folder.relative_to(ROOT).as_posix()
         assert f'"texstream.{rel.replace("/", ".")}" = "{rel}"' in text, rel
+

@@ -106,3 +106,12 @@ def test_console_script_exits_with_main_s_code_and_flushed_output(tmp_path):
                         capture_output=True, text=True)
     assert ok.returncode == 0 and ok.stdout.strip().splitlines()[-1].startswith("wrote ")
     assert (tmp_path / "cap" / "capture.json").is_file()
+
+
+def test_eval_refuses_a_negative_holdout_every_before_reading_anything(tmp_path):
+    """Issue 41: ``eval --holdout-every -1`` scored every frame without a word."""
+    from texstream.core.errors import ConfigError
+    from texstream.fit.stages.stage import eval_stage
+
+    with pytest.raises(ConfigError, match="negative"):
+        eval_stage(tmp_path / "no model", tmp_path / "no capture", holdout_every=-1)

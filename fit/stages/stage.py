@@ -19,7 +19,7 @@ import numpy as np
 
 from texstream.capture.capture_json import read_capture
 from texstream.capture.imageio import read_image, read_mask
-from texstream.core.errors import InputError
+from texstream.core.errors import ConfigError, InputError
 from texstream.core.config import check_config, option
 from texstream.core.outputs import StageResult, write_json_atomic
 from texstream.core.progress import bar, say
@@ -130,6 +130,9 @@ def eval_stage(model_dir: str | Path, capture_dir: str | Path, device: str = "cp
                out_json: str | Path | None = None, holdout_every: int = 0) -> StageResult:
     """Render the model for the frames of a capture (all, or the held-out ones of the fit's split with
     ``holdout_every``); PSNR / APE on foreground pixels, pooled over the views and the worst view."""
+    if holdout_every < 0:
+        raise ConfigError(f"--holdout-every {holdout_every} is negative",
+                          fix="use 0 (every frame) or k >= 1 (the frames a fit with that --holdout-every held out)")
     render = registry.load_model_folder(model_dir).renderer(device)
     capture = read_capture(capture_dir)
     frames = split_holdout(capture.frames, holdout_every)[1] if holdout_every > 0 else capture.frames
