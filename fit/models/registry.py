@@ -181,8 +181,6 @@ class AppearanceModel:
         layout_traits: what the kind's name means for the per-texel parameter table and kernels
             (fit/kernels/layout.py LayoutTraits), or None: the model has no per-texel table of its own (light field
             mapping).
-        fit_overrides: FitConfig fields the model's fit sets (e.g. its own default optimizer), applied before
-            the fit.
     """
 
     kind: str
@@ -196,7 +194,6 @@ class AppearanceModel:
     auto_rank: int = 100
     escalation_key: str = "escalation"
     layout_traits: LayoutTraits | None = None
-    fit_overrides: dict = dataclasses.field(default_factory=dict)
 
 
 _REGISTRY: dict[str, AppearanceModel] = {}

@@ -104,8 +104,6 @@ def fit_single_view_model(capture_dir: str | Path, normals_path: str | Path | No
         raise ConfigError(f"--model {cfg.fit.model} cannot fit a single view: the per-pixel fit renders each pixel "
                           "under its photo's known light with a per-texel reflectance model",
                           fix="use a reflectance model (--model auto, lafortune or diffuse)")
-    if plugin.fit_overrides:
-        cfg = dataclasses.replace(cfg, fit=dataclasses.replace(cfg.fit, **plugin.fit_overrides))
     check_output_path(out_dir)
     t0 = time.perf_counter()
     capture, frames, held, geo, images, masks = load_single_view(capture_dir, normals_path, cfg)

@@ -6,8 +6,9 @@ folder: mesh.obj, bake.npz, parameter maps (EXR), seen.png (texels no photo saw 
 default values and are flagged here), model.json, trace.json, error_vs_time.png, renders/ (fitted
 render beside each of a few photos) and fit_config.json.
 
-Unlike the rest of fit/, this module imports OpenImageIO (through capture.imageio) and
-matplotlib inside its functions: it is a stage, not the GPU-side core.
+The fit itself is the model plugin's (fit/models/registry.py); ``--model auto`` goes through the model choice
+(fit/stages/choice.py). Heavy packages (OpenImageIO, through capture.imageio) load inside the functions that
+read and write files.
 """
 
 from __future__ import annotations
@@ -28,12 +29,13 @@ from texstream.fit.optim.fitter import FitConfig
 from texstream.fit.models import registry
 from texstream.fit.stages import choice
 from texstream.fit.models.materials import MaterialConfig
-from texstream.fit.common.model_folder import image_metrics, plot_trace  # noqa: F401  (re-exported: tests and benchmarks use them here)
-from texstream.fit.common.inputs import load_geometry, load_photos, PHOTO_CACHE_FOLDER, photo_files, read_photos, split_holdout, check_capture_lights, check_seen_texels, FitInputs, load_fit_inputs, load_seams, bad_photo, set_up_skipping_bad_photos, check_output_path  # noqa: F401
-from texstream.fit.common.model_folder import check_render, pooled_psnr
-from texstream.fit.common.setup import load_model, build_problem, params_to_grid, render_model, heldout_psnr, SyntheticFit, fit_synthetic, run_fit_with_progress, Checkpoint, fill_unseen_texels, per_texel_objective, data_jtj  # noqa: F401
-from texstream.fit.models.per_texel.lobes import lobe_shape_report, drop_unsupported_lobes, scale_lobes, lobes_in_use, TexelEvidence, texel_evidence, confirm_at_material_lobes, traced_polish_applies, traced_problem, traced_polish, fit_with_materials, model_grid, choose_materials, average_seams_in_bounds, _materials_manifest  # noqa: F401
-from texstream.fit.models.per_texel.fit import _fit_per_texel_model  # noqa: F401
+from texstream.fit.common.inputs import check_output_path, split_holdout
+from texstream.fit.common.model_folder import check_render, image_metrics, pooled_psnr
+# the shared helpers of a fit, where tests and benchmarks import them beside the stages
+from texstream.fit.common.inputs import load_geometry, load_photos, photo_files  # noqa: F401
+from texstream.fit.common.setup import (build_problem, fit_synthetic, heldout_psnr, load_model,  # noqa: F401
+                                        params_to_grid, render_model)
+from texstream.fit.models.per_texel.lobes import drop_unsupported_lobes, lobe_shape_report  # noqa: F401
 from texstream.fit.stream.photo_stream import loaders_closed_after
 
 
@@ -119,8 +121,6 @@ def fit_model(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
               progress: bool = True) -> StageResult:
     """One model kind's fit, by its plugin (``cfg.fit.model`` a registered kind)."""
     plugin = registry.get(cfg.fit.model)
-    if plugin.fit_overrides:
-        cfg = dataclasses.replace(cfg, fit=dataclasses.replace(cfg.fit, **plugin.fit_overrides))
     check_output_path(out_dir)
     with loaders_closed_after():  # photos streamed from disk: their loaders' threads end with the stage
         return plugin.fit(registry.FitRequest(Path(capture_dir), Path(mesh_path), Path(out_dir), cfg, progress))
