@@ -135,7 +135,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     debug = "--debug" in argv or os.environ.get("TEXSTREAM_DEBUG") == "1"
     decoding = command in DECODING_COMMANDS and not threads_asked_for(argv)
     if decoding:
-        # the photo decoders start while this process imports Warp and reads the capture (fit/decode_pool.py)
+        # the photo decoders start while this process imports Warp and reads the capture (fit/stream/decode_pool.py)
         from texstream.fit.stream import decode_pool
 
         decode_pool.start_in_background()

@@ -65,7 +65,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "that saw narrow highlights; can keep wrong lobes on texels that never saw theirs: "
                              "docs/accuracy.md)")
 
-    add_config_arguments(parser, MaterialConfig, prefix="materials.")  # shared materials (fit/materials.py)
+    add_config_arguments(parser, MaterialConfig, prefix="materials.")  # shared materials (fit/models/materials.py)
     add_config_arguments(parser, ModelChoiceConfig, prefix="choice.")  # --model auto (fit/stages/choice.py)
     add_config_arguments(parser, FitConfig)  # with the four above: the fields of FitStageConfig
     # the command's default is the model choice (a capture with lights gets its reflectance model, one without

@@ -1,5 +1,5 @@
 """``texstream fpcheck [--device cpu|cuda:0] [--dtype float16|float32|float64] [-o DIR]``: floating-point error
-of the device's operations as Warp compiles them (the dissertation's appendix A; fit/fpcheck.py)."""
+of the device's operations as Warp compiles them (the dissertation's appendix A; fit/diagnostics/fpcheck.py)."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """``texstream stiffcheck [--device cpu|cuda:0] [--size ci|full] [--cases a,b] [-o DIR]``: the stiff and extreme
-fitting suite (fit/stiffcheck.py): each case fitted in the fit's own precision and in float64, with
+fitting suite (fit/diagnostics/stiffcheck.py): each case fitted in the fit's own precision and in float64, with
 convergence, the shortfall against float64, NaN/Inf and out-of-bounds counts and the safeguard named."""
 
 from __future__ import annotations

@@ -98,7 +98,7 @@ def viewer_frame(frame, held_out: bool = False, photo: np.ndarray | None = None,
 
 def face_tangents(vertices: np.ndarray, faces: np.ndarray, uvs: np.ndarray) -> np.ndarray:
     """(F, 3) dp/du of each face's UV mapping (zero where the UVs are degenerate), as surface_frame in
-    fit/kernels/shading.py computes it before making it orthogonal to the shading normal."""
+    render/shading.py computes it before making it orthogonal to the shading normal."""
     p = np.asarray(vertices, np.float64)[faces]
     t = np.asarray(uvs, np.float64)[faces]
     e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
@@ -429,7 +429,7 @@ VIEWER_HTML = """
 <section id="viewer-section">
 <h2>Interactive relightable viewer</h2>
 <p class="note">The fitted model rendered by WebGL2 from its parameter textures with the fit's shading
-(Lafortune BRDF of fit/kernels/shading.py, evaluated at the four texels around each pixel and blended
+(Lafortune BRDF of render/shading.py, evaluated at the four texels around each pixel and blended
 bilinearly; pixel = exposure &times; f<sub>r</sub> &times; E &times; cos&theta;<sub>i</sub>, sRGB for display).
 Drag to orbit, wheel to zoom, shift-drag (or right-drag) to move the light. No cast shadows.
 %%KIND_NOTE%%</p>

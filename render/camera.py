@@ -119,7 +119,7 @@ class PhotoFrame:
 
 LIGHT_KINDS = {"point": 0, "directional": 1, "none": 2}  # render/shading.py LIGHT_*
 
-# shadow cameras are aimed at the bounding sphere from the light (fit/stream/problem.py PhotoSet)
+# shadow cameras are aimed at the bounding sphere from the light (fit/stream/photo_set.py PhotoSet)
 _SHADOW_INSIDE = 1.05    # a point light closer than this many radii from the centre gets no shadow map
 _SHADOW_FOV_PAD = 1.05   # half-angle padding of a point light's frustum around the sphere
 _SHADOW_ORTHO_SPAN = 2.2  # an orthographic (directional) map spans this many radii

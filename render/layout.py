@@ -16,14 +16,14 @@ one redundant degree of freedom. texstream fixes it by normalisation: c_xy (or c
 -1 (frozen: lower bound == upper bound), which keeps the lobe forward-reflective (seed 8.1) and
 makes s = -(u_x v_x + u_y v_y) + c_z u_z v_z; with c_z = 1 this is the Phong cosine between the
 mirrored light and the view. c_z then controls the off-specular shape and rho_s the lobe's
-height, both identifiable. Freeing c_xy requires a penalty (see fit/penalties.py).
+height, both identifiable. Freeing c_xy requires a penalty (see fit/stream/penalties.py).
 
 Lobe shape (``ModelLayout.lobe_shape``). c_z is identifiable only when the photos see highlights at
 several incidence angles: at the mirror direction s = sin^2(theta_h) + c_z cos^2(theta_h), so photos
 whose light rides beside the camera (one half-angle theta_h for every highlight) fix the lobe's
 height rho_s s^n there but not rho_s and c_z apart (n = 200: a 0.4% drift of c_z scales rho_s 2.2x).
 "free" fits c_z in [0, 1]; "phong" holds it at 1 (the Phong lobe about the mirror direction), which
-makes rho_s that height. The fit chooses per capture (fit/fitter.py ``choose_lobe_shape``).
+makes rho_s that height. The fit chooses per capture (fit/optim/fitter.py ``choose_lobe_shape``).
 
 Units: rho_d, rho_s are BRDF values (1/sr; see capture/conventions.py), C and n are unitless.
 

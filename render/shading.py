@@ -21,7 +21,7 @@ LIGHT_POINT = wp.constant(0)
 LIGHT_DIRECTIONAL = wp.constant(1)
 LIGHT_NONE = wp.constant(2)
 """No light (a photo under fixed, unknown lighting, capture.json frames without ``light``): only the
-radiance model (fit/models.py) fits or renders it, its model term being the radiance itself."""
+radiance model (render/layout.py) fits or renders it, its model term being the radiance itself."""
 
 # Shadow-ray offset relative to the mesh's bounding-box diagonal (the renderer's, and the fit's
 # traced taps): large enough to clear float32 round-off of the hit position (~1e-7 x the scene
@@ -149,7 +149,7 @@ def lafortune_brdf(params: wp.array2d(dtype=Any), row: int, n_lobes: int, aniso:
 @wp.func
 def view_radiance(params: wp.array2d(dtype=Any), row: int, v: Any, one: Any):
     """Radiance (RGB) of texel ``row`` of the view-dependent radiance model for local view ``v``:
-    L_c + sum_k a_k,c phi_k(v), phi = (v_x, v_y, v_x^2, v_x v_y, v_y^2) (fit/models.py)."""
+    L_c + sum_k a_k,c phi_k(v), phi = (v_x, v_y, v_x^2, v_x v_y, v_y^2) (render/layout.py)."""
     phi = wp.vector(v[0], v[1], v[0] * v[0], v[0] * v[1], v[1] * v[1])
     out = type(v)(type(one)(params[row, 0]), type(one)(params[row, 1]), type(one)(params[row, 2]))
     for k in range(5):

@@ -10,13 +10,13 @@ import numpy as np
 from texstream.capture.imageio import read_image, write_image
 
 
-VIEW_TERM_NAMES = ("vx", "vy", "vxx", "vxy", "vyy")  # fit/models.py VIEW_TERMS (capture/ imports no fit/)
+VIEW_TERM_NAMES = ("vx", "vy", "vxx", "vxy", "vyy")  # render/layout.py VIEW_TERMS (capture/ imports no fit/)
 
 
 def write_param_maps(folder: Path, params: np.ndarray, layout) -> dict[str, str]:
     """Parameter maps as float EXR: rho_d.exr (RGB), per lobe lobe{j}_rho_s.exr (RGB) and
     lobe{j}_shape.exr ([c_xy, c_z, n] or, anisotropic, RGBA [c_x, c_y, c_z, n]); a radiance
-    layout (fit/models.py) writes radiance.exr (RGB L), and the view-dependent one also
+    layout (render/layout.py) writes radiance.exr (RGB L), and the view-dependent one also
     view_{term}.exr (RGB coefficient of each view term, e.g. view_vx.exr)."""
 
     if getattr(layout, "is_radiance", False):

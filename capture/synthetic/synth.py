@@ -15,7 +15,7 @@ mapping), ...); more scenes need no code. Keys (full-scale values):
     ``{"width": W, "height": H, "padding": 2}`` for meshes with UVs, or ``{"resolution": N}`` (the
     atlas' largest side) for atlas meshes.
 ``model``
-    ``{"kind": "lafortune" | "diffuse", "n_lobes": K, "anisotropic": false}`` (fit/models.py).
+    ``{"kind": "lafortune" | "diffuse", "n_lobes": K, "anisotropic": false}`` (render/layout.py).
 ``materials``
     name -> ``{"rho_d": [r, g, b], "lobes": [{"rho_s": [r, g, b], "c_z": 1.0, "c_y": -1.0, "n": 60}],
     "gradient": {"axis": "x"|"y"|"z"|"u"|"v", "amount": a, "n_amount": b}}``: BRDF values in 1/sr

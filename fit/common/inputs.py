@@ -73,7 +73,7 @@ def photo_files(capture, frames):
     for f in frames:
         mp = capture.mask_path(f)
         masks.append(mp if mp is not None and mp.exists() else None)
-    # module functions, not closures: worker processes receive them (fit/decode_pool.py)
+    # module functions, not closures: worker processes receive them (fit/stream/decode_pool.py)
     return PhotoFiles([capture.image_path(f) for f in frames], masks, read_image, read_mask,
                       cache_dir=Path(capture.root) / PHOTO_CACHE_FOLDER)
 

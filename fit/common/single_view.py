@@ -4,7 +4,7 @@ is fit/stages/single_view.py.
 
 One camera, one photo per known light, and the geometry as a per-pixel normal map instead of a
 mesh: no SfM, no mesh, no atlas. Each pixel inside the object mask is a texel of the SAME
-streaming fit as ``texstream fit --mesh`` (fit/kernels/stream.py, fit/fitter.py):
+streaming fit as ``texstream fit --mesh`` (fit/kernels/stream.py, fit/optim/fitter.py):
 
 - position: the point on the pixel-centre ray at depth z (camera z, OpenCV axes) given by a
   depth map (``depth.npy`` / ``depth.exr`` beside capture.json) or a nominal ``depth``. With

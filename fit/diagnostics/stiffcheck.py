@@ -175,7 +175,7 @@ def default_cases() -> list[StiffCase]:
                   edit=_few_photos, synth={"ci": {"photos": 3, "image_size": 48}, "full": {"photos": 3, "image_size": 128}},
                   tolerance_db=0.5),
         StiffCase("scale_redundancy", "light beside the camera: rho_s and c_z trade off (one half-angle per highlight)",
-                  "the scale gauge c_xy = -1 and c_z in [0, 1] (fit/models.py); lobe_shape auto holds c_z = 1 "
+                  "the scale gauge c_xy = -1 and c_z in [0, 1] (render/layout.py); lobe_shape auto holds c_z = 1 "
                   "here (this case forces free to exercise the redundancy); LM damping",
                   edit=_light_at_camera, synth=fine, fit={"lobe_shape": "free"}),
         StiffCase("fp16_storage", "parameters stored in float16 between passes (sums in fp32)",

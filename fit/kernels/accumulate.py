@@ -14,7 +14,7 @@ Residuals (per colour channel c, radiance-space weight w_c = exposure * E_c * co
     radiance space   : r_c = w_c m_c - y_c
     reflectance space: r_c = m_c - y_c / w_c       (the seed's choice; needs cos(theta_i) >= 0.1)
 Both are r_c = s_c (m_c - y_c / w_c) with s_c = w_c or 1, so J_r = s_c J_m and
-d^T H_r d = s_c d^T H_m d. The radiance model (fit/models.py) has w_c = exposure: its passes are
+d^T H_r d = s_c d^T H_m d. The radiance model (render/layout.py) has w_c = exposure: its passes are
 compiled without the light (:func:`~texstream.fit.kernels.stream.observe_func`, ``layout_funcs(radiance=True)``).
 
 The data term is sum rho(r_c) with rho(r) = r^2 / 2 (least squares) or a robust loss (Huber, Cauchy;

@@ -188,7 +188,7 @@ def lafortune_funcs(n_lobes: int, anisotropic: int) -> LafortuneFuncs:
 
 @functools.cache
 def view_radiance_funcs() -> LafortuneFuncs:
-    """The model functions of the view-dependent radiance (fit/models.py, kind "view_radiance").
+    """The model functions of the view-dependent radiance (render/layout.py, kind "view_radiance").
 
     m_c = p_c + sum_k p_(3 + 3k + c) phi_k(v), phi = (v_x, v_y, v_x^2, v_x v_y, v_y^2) of the local
     view direction v (``u``, the light, is unused). Features: f[3 + 3k + c] = phi_k(v) for every

@@ -1,6 +1,6 @@
-"""Warp kernels of light field mapping (LFM) fitted by image streaming (fit/lfm.py).
+"""Warp kernels of light field mapping (LFM) fitted by image streaming (fit/models/lfm/problem.py).
 
-Layout (fit/lfm.py ``LFMGeometry``): N compact atlas texels; each texel s owns three *slots*
+Layout (fit/models/lfm/problem.py ``LFMGeometry``): N compact atlas texels; each texel s owns three *slots*
 3 s + j, one per vertex j of its owner face (the surface maps g_k^{(t, v_j)} laid out in the
 atlas); V (welded) vertices, each with a view map of M = R x R texels per term. Parameters, all
 float64 with the three colour channels in one ``vec3d`` (the channels are independent problems):
@@ -127,7 +127,7 @@ def lookup_h(H: wp.array2d(dtype=wp.vec3d), row: int, idx: wp.vec4i, wt: wp.vec4
     return wt[0] * H[row, idx[0]] + wt[1] * H[row, idx[1]] + wt[2] * H[row, idx[2]] + wt[3] * H[row, idx[3]]
 
 
-# ---- batched photo passes (fit/lfm.py ``LFMProblem.evaluate``): a batch of B photos per launch.
+# ---- batched photo passes (fit/models/lfm/problem.py ``LFMProblem.evaluate``): a batch of B photos per launch.
 # Per-photo scratch is flat: observations obs[b * N + s], slot residuals slot_res[slot * B + b] (the
 # photos of one slot adjacent: the gather's threads (v, b) read them coalesced), gathered sums
 # gathered[(v K + k) * B + b]; the view-map taps of every photo, computed once, taps[p * V + v].

@@ -1,4 +1,4 @@
-"""Warp kernels of the light field mapping fit's L-BFGS optimizer (fit/lfm.py ``fit_lfm``, optimizer lbfgs).
+"""Warp kernels of the light field mapping fit's L-BFGS optimizer (fit/models/lfm/problem.py ``fit_lfm``, optimizer lbfgs).
 
 Beside the steepest-descent and conjugate-gradient kernels of :mod:`texstream.fit.kernels.lfm`: every
 (vertex, channel) patch keeps its own history of the last m pairs (s, y) = (step, gradient change) of its

@@ -627,7 +627,7 @@ def centred_prior_kernel(params: wp.array2d(dtype=Any), direction: wp.array2d(dt
     """Adds the prior P_i = 1/2 sum_k w_ik (p_ik - c_ik)^2 to texel i's objective, w_i (p_i - c_i) to its
     gradient, (``want_dhd``) sum_k w_ik d_k^2 to its d^T H d and (``want_diag``) w_i to its Gauss-Newton
     diagonal (the Jacobi preconditioner); inactive texels are left as they are. ``centre`` and ``weights``
-    hold a row per texel (the shared materials' prior, fit/materials.py) or one row for every texel (the
+    hold a row per texel (the shared materials' prior, fit/models/materials.py) or one row for every texel (the
     view terms' ridge prior, centre 0)."""
     i = wp.tid()
     if active[i] == 0:

@@ -20,9 +20,9 @@ from typing import Any
 
 import warp as wp
 
-from texstream.render.camera import ImageInfo  # noqa: F401  (the passes' camera struct, read as stream.ImageInfo)
+from texstream.render.camera import ImageInfo
 from texstream.render.shading import bilinear_taps, incident_light, lafortune_brdf, surface_frame, texel_coords, to_local
-from texstream.render.visibility import depth_consistent  # noqa: F401
+from texstream.render.visibility import depth_consistent
 
 # no kernel here is differentiated (the fit writes its own derivatives): skipping Warp's adjoint
 # code generation roughly halves compile time
@@ -73,7 +73,7 @@ class TexelFrames:
     mesh_normals: wp.array(dtype=wp.vec3)
     mesh_uvs: wp.array(dtype=wp.vec2)
     shadow_eps: float
-    """the renderer's shadow-ray offset (1e-4 of the mesh's bounding-box diagonal, fit/render.py)"""
+    """the renderer's shadow-ray offset (1e-4 of the mesh's bounding-box diagonal, render/renderer.py)"""
     shadow_rays: int
     """1: traced taps cast shadow rays (``StreamConfig.shadow_map_size`` > 0, also for photos whose
     light sits inside the object's bounds and so has no shadow map); 0: cast shadows ignored"""
@@ -164,7 +164,7 @@ def ray_surface(ray: wp.vec3, cam: wp.vec3, p: wp.vec3, face_nrm: wp.vec3, plane
 def texel_blend(tex: TexelFrames, i: int, x: float, y: float, u: wp.vec3, v: wp.vec3):
     """The renderer's texture lookup at continuous texel coordinates (x, y) (``StreamConfig.model_lookup``
     "bilinear"): the BRDF there is the bilinear blend of the four atlas texels around (x, y)
-    (fit/kernels/render.py ``shade_texel_grid``). Returns (w_own, b): the weight of texel i's own
+    (render/kernels.py ``shade_texel_grid``). Returns (w_own, b): the weight of texel i's own
     BRDF (it may sit at several corners through padding copies) and the blend of the other corners'
     BRDFs at local directions (u, v), read from ``tex.lookup_params`` (held fixed)."""
     x0, y0, fx, fy = bilinear_taps(x, y, tex.grid_width, tex.grid_height)
@@ -196,7 +196,7 @@ def plane_texel_coords(tex: TexelFrames, i: int, q: wp.vec3):
 @wp.func
 def traced_tap(tex: TexelFrames, cam: wp.vec3, ray: wp.vec3, light_kind: int, light_vec: wp.vec3, shadows: int):
     """What a filtered tap's pixel ray sees (``StreamConfig.tap_geometry`` "mesh"), exactly as the
-    renderer (fit/kernels/render.py) sees it: the closest hit on the mesh, the surface frame there
+    renderer (render/kernels.py) sees it: the closest hit on the mesh, the surface frame there
     (:func:`surface_frame`: interpolated normal, the face's UV tangent) and, with ``shadows``
     (``TexelFrames.shadow_rays``), a shadow ray toward the light from the same offset start.
 
@@ -261,7 +261,7 @@ def pixel_point(infos: wp.array(dtype=ImageInfo), k: int, tex: TexelFrames, i: i
 def observe_func(radiance: bool = False):
     """:func:`observe` specialised to the model's light handling when it compiles: reflectance
     models (``radiance`` False) take each photo's light (the cosine and shadow tests, weight
-    exposure * E * cos(theta_i)); the radiance model (fit/models.py) ignores any light (no cosine or
+    exposure * E * cos(theta_i)); the radiance model (render/layout.py) ignores any light (no cosine or
     shadow test, weight = exposure). Camera visibility, masks, saturation and grazing-view
     rejection are the same for both. The reflectance path does the arithmetic it did before the option."""
     no_light = bool(radiance)

@@ -1,4 +1,4 @@
-"""Which photos see which tile of texels (fit/tiles.py): the distribution step's acceptance test per
+"""Which photos see which tile of texels (fit/multi/tiles.py): the distribution step's acceptance test per
 (photo, texel), reduced to a flag per (tile, photo)."""
 
 from __future__ import annotations

@@ -56,7 +56,7 @@ VARIANTS = ("mixed", "shared")
 
 @dataclasses.dataclass
 class MaterialConfig:
-    """Shared materials (fit/materials.py): what is tried and how it is judged."""
+    """Shared materials (fit/models/materials.py): what is tried and how it is judged."""
 
     mode: str = option("auto", "shared materials for the Lafortune model: off (per-texel lobes only), auto (also fit "
                                "the materials and keep whichever predicts a validation split of the fitted photos "

@@ -74,7 +74,7 @@ class ViewerModel:
             vec3 eye, int part)``: the radiance toward ``eye`` at a surface point, lit by the viewer's light
             (uniforms ``u_lkind``, ``u_lpd``, ``u_lI``) where ``lit`` is true. The viewer supplies
             ``P(ivec2 texel, int column)`` to read the grid, the grid's size ``u_W``, ``u_H``,
-            ``Taps texel_taps(vec2 uv)`` (the bilinear taps of fit/kernels/shading.py: x, y, x0, y0, fx, fy)
+            ``Taps texel_taps(vec2 uv)`` (the bilinear taps of render/shading.py: x, y, x0, y0, fx, fy)
             and ``mat3 surface_frame(vec3 nrm, vec3 tng)`` (columns tangent, bitangent, normal);
             pipelines/report_assets/viewer.js has the prelude. A plugin ships it as viewer.glsl.
         lit: the light controls change the render.
@@ -179,7 +179,7 @@ class AppearanceModel:
             under ``escalation_key``.
         auto_rank: the base model for a capture with lights (needs_light) or without: lowest rank wins.
         layout_traits: what the kind's name means for the per-texel parameter table and kernels
-            (fit/kernels/layout.py LayoutTraits), or None: the model has no per-texel table of its own (light field
+            (render/layout.py LayoutTraits), or None: the model has no per-texel table of its own (light field
             mapping).
     """
 

@@ -1,5 +1,5 @@
 """Tiled fits: the atlas's texels split into tiles, each fitted over only the photos that see it, on one
-device or several (one thread per device), or as Ray actors (fit/tiles_ray.py).
+device or several (one thread per device), or as Ray actors (fit/multi/tiles_ray.py).
 
 A tile is a range of consecutive texels (the compact texel order is the atlas's row order: a band of
 atlas rows). Its photos are those in which any of its texels has a sample, from the distribution step's

@@ -3,9 +3,9 @@
 Each tile is a Ray actor that builds its own problem: its texels (shipped, small) and its photos read
 from the capture's files (paths on storage every worker reads), cropped, with their depth and shadow
 maps made on the actor's device, as the one-process set-up makes them photo by photo (same crops, same
-rays: the same values). The driver plans the tiles (fit/tiles.py: visibility from its own set-up) and
+rays: the same values). The driver plans the tiles (fit/multi/tiles.py: visibility from its own set-up) and
 drives the actors in lockstep (:func:`texstream.fit.multi.lockstep.lockstep`), so a Ray fit gives the
-one-process fit's parameters to the last bit under the conditions of fit/tiles.py. Ray is imported
+one-process fit's parameters to the last bit under the conditions of fit/multi/tiles.py. Ray is imported
 here only: ``texstream.fit`` itself still imports only numpy and warp.
 
 The cluster: the one this process is connected to (``ray.init`` called before), else ``RAY_ADDRESS``'s,

@@ -56,7 +56,7 @@ class FitConfig:
     anisotropic: bool = option(False, "general C_x, C_y, C_z lobes instead of isotropic C_xy, C_z")
     lobe_shape: str = option("auto", "free fits each lobe's c_z, phong holds it at 1; auto picks phong when every "
                                      "photo's light-view angle lies within lobe_shape_spread_deg of the others "
-                                     "(a light beside the camera: c_z and rho_s cannot be told apart, fit/models.py)",
+                                     "(a light beside the camera: c_z and rho_s cannot be told apart, render/layout.py)",
                              choices=("auto", "free", "phong"))
     lobe_shape_spread_deg: float = option(10.0, "auto lobe shape: the spread of light-view angles below which c_z is held")
     optimizer: str = option("lm", "sd, cg, lbfgs or lm (per-texel Levenberg-Marquardt)", choices=OPTIMIZERS)
@@ -165,7 +165,7 @@ def choose_lobe_shape(frames, centre, spread_deg: float) -> str:
 
     Every highlight is then seen at about one half-angle theta_h, where the lobe's height is
     rho_s (sin^2 theta_h + c_z cos^2 theta_h)^n: the photos fix that height, not rho_s and c_z apart
-    (fit/models.py), and a free c_z lets rho_s wander by factors along it. Holding c_z at 1 keeps
+    (render/layout.py), and a free c_z lets rho_s wander by factors along it. Holding c_z at 1 keeps
     every prediction at the captured geometry and makes rho_s the height.
     """
     angles = light_view_angles(frames, centre)
@@ -366,7 +366,7 @@ def trace_rows(tb: np.ndarray, times, cfg: FitConfig) -> list[dict]:
 class FitRun:
     """One problem's fit between iterations: state, optimizer and the trace buffer on the device.
 
-    :func:`run_fit` drives one; a tiled fit (fit/tiles.py) drives one per tile in lockstep and sums their
+    :func:`run_fit` drives one; a tiled fit (fit/multi/tiles.py) drives one per tile in lockstep and sums their
     trace rows (every column of a row is a sum over texels) for one stopping test over all texels.
     Call :meth:`begin` once (after :meth:`scale_pass_stats` when :meth:`needs_scale_pass`), then
     :meth:`iterate` for iterations ``first``, ``first + 1``, ...
@@ -433,7 +433,7 @@ class FitRun:
                   outputs=[self.trace_buf])
         wp.synchronize_device(dev)
         self.times.append(time.perf_counter() - self.t_start)
-        self.stamps[row] = time.time()  # comparable across processes (a tiled fit's tiles, fit/tiles.py)
+        self.stamps[row] = time.time()  # comparable across processes (a tiled fit's tiles, fit/multi/tiles.py)
 
     def evaluate_current(self) -> None:
         """f, g (and LM's J^T J) at the current parameters, as each optimizer starts from them."""
@@ -490,7 +490,7 @@ class FitRun:
 
     def refresh_totals(self) -> None:
         """Recompute the reported objective of LM's smoothness (each texel's half share of its pair terms)
-        after neighbours held in ``state.p`` changed (a tile's halo, fit/tiles.py); no-op otherwise."""
+        after neighbours held in ``state.p`` changed (a tile's halo, fit/multi/tiles.py); no-op otherwise."""
         if isinstance(self.opt, LevenbergMarquardt) and self.opt.smooth:
             self.opt._report_totals(self.state)
 

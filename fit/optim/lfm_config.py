@@ -1,5 +1,5 @@
 """Light field mapping options (``--model lfm``): a module of its own, without kernels, so that every fit's
-config (fit/fitter.py ``FitConfig.lfm``) reads them without building the LFM kernels (fit/lfm.py)."""
+config (fit/optim/fitter.py ``FitConfig.lfm``) reads them without building the LFM kernels (fit/models/lfm/problem.py)."""
 
 from __future__ import annotations
 

@@ -45,12 +45,14 @@ from texstream.core.errors import ConfigError, InputError
 from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
 from texstream.core.progress import phase
 from texstream.fit.models import registry
-# the plugins' conversions, documented with the export (docs/export.md) and its options' choices
-from texstream.fit.models.lafortune.export import (  # noqa: F401
-    ROUGHNESS_CONVERSIONS, albedo_from_rho_d, ggx_alpha_from_exponent, ggx_lobe_inplane, lobe_albedo,
-    lobe_conversion_table, roughness_from_exponent)
-from texstream.fit.models.lfm.export import (  # noqa: F401
-    LFM_VIEW_MEANS, cosine_directions, lfm_atlas, lfm_unlit_radiance, lfm_unlit_renderer, view_mean_weights)
+# the options' choices; the other names are the plugins' conversions that docs/export.md and the export tests
+# read beside the export
+from texstream.fit.models.lafortune.export import ROUGHNESS_CONVERSIONS
+from texstream.fit.models.lafortune.export import (ggx_alpha_from_exponent, ggx_lobe_inplane, lobe_albedo,  # noqa: F401
+                                                   lobe_conversion_table, roughness_from_exponent)
+from texstream.fit.models.lfm.export import LFM_VIEW_MEANS
+from texstream.fit.models.lfm.export import (lfm_atlas, lfm_unlit_radiance, lfm_unlit_renderer,  # noqa: F401
+                                             view_mean_weights)
 
 FORMATS = ("glb", "obj")
 UP_AXES = ("z", "y")

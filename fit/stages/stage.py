@@ -88,7 +88,7 @@ class FitStageConfig:
                                               help="the automatic model choice (--model auto)")
     materials: MaterialConfig = option(default_factory=MaterialConfig,
                                        help="shared materials: texels whose lobe no photo constrained borrow their "
-                                            "material's (fit/materials.py)")
+                                            "material's (fit/models/materials.py)")
     fit: FitConfig = option(default_factory=FitConfig, help="the fit", flat=True)
 
 

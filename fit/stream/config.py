@@ -90,17 +90,17 @@ class StreamConfig:
                                       "for repeated fits of one capture); off: never read or written",
                               choices=("auto", "on", "off"))
     tiles: int = option(0, "split the atlas's texels into this many tiles of consecutive texels, each fitted over "
-                           "only the photos that see it (fit/tiles.py; the untiled fit's result: texels are fitted "
+                           "only the photos that see it (fit/multi/tiles.py; the untiled fit's result: texels are fitted "
                            "independently, LM's smoothness by a halo exchange; the Laplacian penalty, bilinear "
                            "model_lookup and global line search are refused); 0: one tile per device, i.e. "
                            "untiled on one device", min=0)
     devices: str = option("", "comma-separated devices that share the fit (e.g. cuda:0,cuda:1; empty: the fit's "
                               "device), as device_split says; several devices need photo_residency device")
     device_split: str = option("tiles", "how several devices share the fit: tiles (each fits tiles of texels "
-                                        "over every photo that sees them, one thread per device; fit/tiles.py) "
+                                        "over every photo that sees them, one thread per device; fit/multi/tiles.py) "
                                         "or photos (each holds a run of the photos, built on it at once, and "
                                         "streams them over every texel; the first device, the fit's, adds "
-                                        "their sums each pass and steps every texel; fit/photo_split.py)",
+                                        "their sums each pass and steps every texel; fit/multi/photo_split.py)",
                                choices=("tiles", "photos"))
     tile_backend: str = option("threads", "where the tiles run: threads (one per device in this process) or ray "
                                           "(one Ray actor per tile; needs texstream[distributed] and the photos "

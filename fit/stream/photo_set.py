@@ -68,7 +68,7 @@ class PhotoSet:
     host memory uploaded a window per pass, or decoded from the capture's files a window per pass
     (``residency``; ``StreamConfig.photo_residency``). Set-up makes no host round trip per photo:
     per-photo constants in one array, photos uploaded in chunks through pinned buffers, depth and
-    shadow maps in one launch over photos x pixels (fit/photo_stream.py)."""
+    shadow maps in one launch over photos x pixels (fit/stream/photo_stream.py)."""
 
     def __init__(self, frames: list[PhotoFrame], images, mesh_points: np.ndarray | None,
                  mesh_faces: np.ndarray | None, masks: list[np.ndarray | None] | None = None,
@@ -88,7 +88,7 @@ class PhotoSet:
         open; :func:`upload_photo_sets` fills them together with other devices' sets (the photo split)."""
         self.mesh_normals = self.mesh_uvs = None
         self.frames = list(frames)
-        """the photos' :class:`PhotoFrame`s (a tile's actor builds its own set from them, fit/tiles_ray.py)"""
+        """the photos' :class:`PhotoFrame`s (a tile's actor builds its own set from them, fit/multi/tiles_ray.py)"""
         self.source = images if isinstance(images, PhotoFiles) else None
         """the photos' files when given as a PhotoFiles (paths only: nothing decoded is held), else None"""
         self.light_kinds = [fr.light_kind for fr in frames]
@@ -108,7 +108,7 @@ class PhotoSet:
         cfg = config or StreamConfig()
         self.files = isinstance(images, PhotoFiles)
         self.mesh_arrays = (mesh_points, mesh_faces, mesh_normals, mesh_uvs)
-        """the mesh as given (another process builds the same set from them, fit/tiles_ray.py)"""
+        """the mesh as given (another process builds the same set from them, fit/multi/tiles_ray.py)"""
         self.mesh = build_mesh(wp.array(np.asarray(mesh_points, np.float32), dtype=wp.vec3, device=device),
                                wp.array(np.asarray(mesh_faces, np.int32).reshape(-1), dtype=wp.int32, device=device))
         if mesh_normals is not None and mesh_uvs is not None:
@@ -117,7 +117,7 @@ class PhotoSet:
         lo, hi = mesh_points.min(axis=0), mesh_points.max(axis=0)
         self.center = 0.5 * (lo + hi)
         self.radius = 0.5 * float(np.linalg.norm(hi - lo))
-        self.shadow_eps = SHADOW_EPS_REL * max(2.0 * self.radius, 1e-12)  # the renderer's (fit/render.py)
+        self.shadow_eps = SHADOW_EPS_REL * max(2.0 * self.radius, 1e-12)  # the renderer's (render/renderer.py)
         ssize = int(cfg.shadow_map_size)
         self.shadow_side = max(ssize, 2)
         self.sizes = sizes = np.array([[fr.height, fr.width] for fr in frames], np.int64)
@@ -406,7 +406,7 @@ class PhotoSet:
     def subset(self, indices, device: str | None = None) -> "PhotoSet":
         """The photos ``indices`` of this set (with their depth and shadow maps, mesh and window size) as a
         PhotoSet of their own, without loading or rendering anything again: e.g. a fit on part of the
-        photos judged on the rest (fit/materials.py), or a tile's photos (fit/tiles.py). One copy through
+        photos judged on the rest (fit/models/materials.py), or a tile's photos (fit/multi/tiles.py). One copy through
         the host, at set-up (device to device when ``device``, another device, takes every photo).
         ``device``: where the subset lives (default: this set's); another device needs this set's photos
         resident on its device (``residency`` device)."""

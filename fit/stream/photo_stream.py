@@ -342,7 +342,7 @@ class PhotoLoader:
         default = FILE_DECODE_THREADS if self.files else ARRAY_COPY_THREADS
         self.requested_threads = threads
         self.threads = threads if threads > 0 else min(default, os.cpu_count() or 1)
-        # files decoded in worker processes (fit/decode_pool.py): one thread here per worker, each sending a
+        # files decoded in worker processes (fit/stream/decode_pool.py): one thread here per worker, each sending a
         # batch and copying its slots from the staging buffer
         self.processes = decode_pool.processes_for(decoder, threads) if self.files else 0
         self.staging: dict = {}

@@ -161,7 +161,7 @@ class StreamProblem:
 
     def set_view_prior(self, weight: float, mean_sq: float | None = None) -> None:
         """The view-dependent radiance's ridge prior: lam / 2 sum_k a_k^2 per texel over its view-term
-        coefficients (fit/models.py), with lam = ``weight`` x the photos' mean squared exposure so that
+        coefficients (render/layout.py), with lam = ``weight`` x the photos' mean squared exposure so that
         ``weight`` counts in samples of the radiance-space residual (a sample's residual scales with its
         exposure; ``mean_sq``: that mean when this problem's photos are part of the fit's, e.g. a tile's).
         Added to every pass's objective, gradient, d^T H d, Jacobi diagonal and J^T J (the centred prior's
@@ -182,7 +182,7 @@ class StreamProblem:
         self.view_prior = (self.new_vec(np.zeros((1, lay.n_params))), self.new_vec(w))
 
     def set_material_prior(self, centre: np.ndarray | None, weights: np.ndarray | None = None) -> None:
-        """The shared materials' prior (fit/materials.py): 1/2 sum_k w_ik (p_ik - c_ik)^2 per texel, a
+        """The shared materials' prior (fit/models/materials.py): 1/2 sum_k w_ik (p_ik - c_ik)^2 per texel, a
         quadratic pull of each texel's parameters towards a centre of its own (its material's lobe)
         with weights of its own (zero on the columns it leaves free), both (N, n_params), in objective
         units per squared parameter unit. Added to every pass's objective, gradient, d^T H d, Jacobi
@@ -393,7 +393,7 @@ class StreamProblem:
         """Per peer, ``arrays`` (this device's; None passes through) as that peer reads them: the same arrays
         on the same device, else copies on its device. A copy runs on this (the source) device's stream,
         after the work that wrote the array, and this device is synchronised before the peers' launches
-        read it (the tiles' halo exchange, fit/tiles.py, orders its copies by host synchronisations too)."""
+        read it (the tiles' halo exchange, fit/multi/tiles.py, orders its copies by host synchronisations too)."""
         out, copied = [], False
         for peer in self.peers:
             if self._same_device(peer):

@@ -1,7 +1,7 @@
 /* texstream relightable viewer: WebGL2, no libraries.
  *
  * Renders a fitted model from its parameter textures with the fit's own shading
- * (fit/kernels/shading.py, fit/kernels/render.py): the fragment shader is a common prelude (the
+ * (render/shading.py, render/kernels.py): the fragment shader is a common prelude (the
  * parameter lookup P, the bilinear texel taps, the surface frame: interpolated vertex normal,
  * tangent = dp/du of the triangle made orthogonal to it, bitangent = n x t; the light uniforms), the
  * model's own GLSL from its plugin (M.shader, fit/models/<kind>/viewer.glsl) defining

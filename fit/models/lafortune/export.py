@@ -12,7 +12,7 @@ base colour
 specular colour (KHR_materials_specular, OBJ Ks / map_Ks)
     Lobe j reflects ``a_j = rho_s,j * 2 pi / (n_j + 2)`` of light arriving along the normal (the
     integral of ``rho_s max(s, 0)^n cos`` over the hemisphere with c_z = 1; the same quantity the
-    fit's energy bound caps, fit/models.py). ``F0 = min(sum_j a_j, 1)`` per channel is the glTF
+    fit's energy bound caps, render/layout.py). ``F0 = min(sum_j a_j, 1)`` per channel is the glTF
     dielectric F0 (energy matched, not peak matched: see :func:`lobe_conversion_table`). glTF makes
     ``F0 = min(0.04 * specularColorFactor * specularColorTexture, 1) * specularFactor``, so the
     texture holds ``F0 / s`` (s = the largest F0 over covered texels and channels: the texture uses

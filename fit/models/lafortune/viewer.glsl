@@ -1,4 +1,4 @@
-// Lafortune SBRDF (fit/kernels/shading.py lafortune_brdf), lit by the viewer's light: the BRDF at the
+// Lafortune SBRDF (render/shading.py lafortune_brdf), lit by the viewer's light: the BRDF at the
 // four texels around the hit blended with the bilinear weights, times the irradiance and cos(theta_i)
 uniform int u_nlobes; uniform int u_aniso;
 // part 0 = all, 1 = diffuse only, 2 = lobes only

@@ -3,7 +3,7 @@ light field into a matrix (ring texel slots x the discrete view directions of th
 PCA (truncated SVD of the matrix after the per-texel mean is subtracted) or NMF (Lee-Seung
 multiplicative updates after the per-texel minimum is subtracted).
 
-Same model, map sizes, diffuse term and error metric as the streaming fit (fit/lfm.py): the result
+Same model, map sizes, diffuse term and error metric as the streaming fit (fit/models/lfm/problem.py): the result
 is an :class:`LFMParams` rendered and scored the same way. The resampling: every photo's sample of a
 texel is placed at that photo's view direction in the vertex's frame, and each discrete direction
 (view-map texel centre, :func:`view_directions`) takes the sample of the photo nearest to it in

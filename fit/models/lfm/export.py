@@ -92,7 +92,7 @@ def lfm_atlas(model, values: np.ndarray) -> np.ndarray:
 
 def lfm_unlit_renderer(model, view_mean: str = "cosine", device: str = "cpu"):
     """frame -> (image, coverage): the exported unlit approximation of an LFM model rendered by
-    texstream's radiance renderer (fit/stages/render.py, bilinear atlas lookup, times the frame's exposure),
+    texstream's radiance renderer (render/renderer.py, bilinear atlas lookup, times the frame's exposure),
     to score it against the full model or the photos."""
     grid = lfm_atlas(model, lfm_unlit_radiance(model, view_mean, device))
     layout = ModelLayout(kind="radiance")

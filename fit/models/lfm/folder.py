@@ -77,7 +77,7 @@ class LFMModel(FittedModel):
     def viewer(self) -> ViewerModel:
         note = ("Light field mapping model: unlit, the view-independent term plus, per vertex of the texel's "
                 "triangle and term, surface map times the vertex's view map looked up along the view direction in "
-                "the vertex's frame (fit/lfm_stage.py LFMRenderer); 'diffuse' shows the view-independent term, "
+                "the vertex's frame (fit/models/lfm/model_folder.py LFMRenderer); 'diffuse' shows the view-independent term, "
                 "'specular' the view-dependent terms; the light controls do nothing.")
         return ViewerModel(self.viewer_grid, read_shader(Path(__file__).parent), lit=False, data=viewer_data(self.lfm),
                            note=note)

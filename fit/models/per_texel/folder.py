@@ -1,6 +1,6 @@
 """A per-texel model folder read back: the parameter maps (capture/synthetic/param_maps.py ``read_param_maps``), the
 mesh and model.json, through fit/common/setup.py ``load_model``; rendered by texstream's renderer
-(fit/stages/render.py). The kinds' folders subclass :class:`PerTexelModel` for their material, maps and
+(render/renderer.py). The kinds' folders subclass :class:`PerTexelModel` for their material, maps and
 viewer shading."""
 
 from __future__ import annotations
@@ -10,8 +10,9 @@ from pathlib import Path
 import numpy as np
 
 from texstream.core.errors import ConfigError, InputError
-from texstream.fit.common import setup as stage
+from texstream.fit.common import setup
 from texstream.fit.models.registry import FittedModel
+from texstream.render.renderer import Renderer
 
 
 class PerTexelModel(FittedModel):
@@ -19,7 +20,7 @@ class PerTexelModel(FittedModel):
 
     Attributes (beside :class:`FittedModel`'s):
         grid: (H, W, P) float32 parameters per atlas texel (padding filled).
-        layout: its ModelLayout (fit/kernels/layout.py).
+        layout: its ModelLayout (render/layout.py).
     """
 
     def __init__(self, kind: str, folder: Path, mesh, manifest: dict, covered: np.ndarray, grid: np.ndarray,
@@ -28,10 +29,13 @@ class PerTexelModel(FittedModel):
         self.grid, self.layout = grid, layout
 
     def renderer(self, device: str = "cpu"):
-        mesh, grid, lay = self.mesh, self.grid, self.layout
+        """Frame -> (image times the frame's exposure, coverage), as ``render_model``, with the mesh, its BVH and
+        the maps uploaded once for every frame."""
+        rend = Renderer(self.mesh, self.grid, self.layout, device=device)
 
         def render(frame):
-            return stage.render_model(mesh, grid, lay, frame, device)
+            res = rend.render_frame(frame)
+            return res.radiance * np.float32(frame.exposure), res.mask
         return render
 
     def report_facts(self) -> list[tuple[str, str]]:
@@ -47,7 +51,7 @@ def load_per_texel(model_class: type, kind: str, model_dir: Path, manifest: dict
     the fix. ``covered``: bake.npz's covered texels (all, without a usable bake)."""
     d = Path(model_dir)
     try:
-        mesh, grid, layout, man = stage.load_model(d)
+        mesh, grid, layout, man = setup.load_model(d)
     except InputError as e:
         if e.path and e.path.lower().endswith(".exr"):  # read_image's fix speaks of capture.json
             raise InputError(f"parameter map: {e.message}", e.path, "restore the map, or re-run "

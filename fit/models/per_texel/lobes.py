@@ -25,7 +25,7 @@ from texstream.geometry.seams import average_across_seams, seam_gaps
 
 
 def lobe_shape_report(cfg: FitConfig, layout, frames, positions: np.ndarray) -> dict:
-    """What model.json records of the lobe-shape choice (fit/models.py "Lobe shape")."""
+    """What model.json records of the lobe-shape choice (render/layout.py "Lobe shape")."""
     if layout.n_lobes == 0:
         return {"requested": cfg.lobe_shape, "fitted": None, "light_view_angle_deg": None}  # no lobe to shape
     angles = light_view_angles([PhotoFrame.from_capture_frame(f) for f in frames], positions.mean(axis=0))
@@ -74,7 +74,7 @@ def lobes_in_use(params: np.ndarray, layout: ModelLayout, seen: np.ndarray) -> l
 
 @dataclasses.dataclass
 class TexelEvidence:
-    """What a per-texel fit's photos say about each texel's lobe (fit/materials.py steps 1-2)."""
+    """What a per-texel fit's photos say about each texel's lobe (fit/models/materials.py steps 1-2)."""
 
     params: np.ndarray
     samples: np.ndarray
@@ -150,7 +150,7 @@ def traced_polish(problem, result: FitResult, cfg, prior=None) -> FitResult:
 
 def fit_with_materials(problem, result: FitResult, evidence: TexelEvidence, k: int, variant: str,
                        cfg, polish: bool = False) -> tuple[FitResult, dict]:
-    """The materials model with ``k`` materials (fit/materials.py): cluster, prior, Levenberg-Marquardt from
+    """The materials model with ``k`` materials (fit/models/materials.py): cluster, prior, Levenberg-Marquardt from
     the per-texel fit ``result``, then (``polish``) :func:`traced_polish` with the prior on. Returns the fit
     and what model.json records of it."""
     mcfg = cfg.materials

@@ -1,6 +1,6 @@
-// view-dependent radiance, unlit: view_radiance of fit/kernels/shading.py, L + sum_k a_k phi_k(v) with
+// view-dependent radiance, unlit: view_radiance of render/shading.py, L + sum_k a_k phi_k(v) with
 // phi = (vx, vy, vx^2, vx vy, vy^2) of the local view direction, blended bilinearly at the four texels and
-// clamped at 0 like fit/kernels/render.py
+// clamped at 0 like render/kernels.py
 vec3 view_radiance_at(ivec2 xy, vec3 v) {
   float phi[5] = float[5](v.x, v.y, v.x * v.x, v.x * v.y, v.y * v.y);
   vec3 L = vec3(P(xy, 0), P(xy, 1), P(xy, 2));
