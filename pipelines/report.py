@@ -57,9 +57,7 @@ def load_report_model(model_dir: str | Path):
     ``info``: kind, layout (the per-texel ModelLayout, or None for a model without one), model (the
     FittedModel) and viewer (its ViewerModel, whose grid the viewer grid is).
     """
-    d = Path(model_dir)
-    man = read_json(d / "model.json", what="model manifest")
-    model = registry.get((man.get("layout") or {}).get("kind") or man.get("kind")).load(d, man)
+    model = registry.load_model_folder(model_dir)
     vm = model.viewer()
     return model.mesh, vm.grid, {"kind": model.kind, "layout": getattr(model, "layout", None), "model": model,
                                  "viewer": vm}, model.manifest

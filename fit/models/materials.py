@@ -102,7 +102,7 @@ class MaterialConfig:
         bad = [v for v in out if v not in VARIANTS]
         if not out or bad:
             raise ConfigError(f"materials variants {self.variants!r} unknown",
-                              fix=f"use mixed, shared or mixed,shared")
+                              fix="use mixed, shared or mixed,shared")
         return out
 
 

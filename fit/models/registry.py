@@ -245,14 +245,17 @@ def kind_of_folder(model_dir: str | Path) -> tuple[str, dict]:
     if not (d / "model.json").is_file():
         raise InputError("not a model folder (no model.json)", d / "model.json", fix)
     man = read_json(d / "model.json", what="model manifest")
-    if not isinstance(man, dict) or not isinstance(man.get("layout"), dict) or "kind" not in man["layout"]:
-        raise InputError("model.json has no layout (kind, n_lobes, ...)", d / "model.json",
-                         "re-run `texstream fit`, which writes the layout")
-    return str(man["layout"]["kind"]), man
+    if isinstance(man, dict) and isinstance(man.get("layout"), dict) and "kind" in man["layout"]:
+        return str(man["layout"]["kind"]), man
+    if isinstance(man, dict) and isinstance(man.get("kind"), str):  # a folder without a layout (a map and a mesh)
+        return man["kind"], man
+    raise InputError("model.json has no layout (kind, n_lobes, ...)", d / "model.json",
+                     "re-run `texstream fit`, which writes the layout")
 
 
 def load_model_folder(model_dir: str | Path) -> FittedModel:
-    """The model folder read back by its plugin (found by model.json's ``layout.kind``)."""
+    """The model folder read back by its plugin (found by model.json's ``layout.kind``, or ``kind`` for a
+    folder without a layout)."""
     kind, man = kind_of_folder(model_dir)
     load_plugins()
     if kind not in _REGISTRY:

@@ -232,7 +232,7 @@ def serve(from_parent: int, to_parent: int, reader_threads: int) -> None:
             reply = (False, e)
         try:
             outbox.send(reply)
-        except Exception as e:  # noqa: BLE001 - an exception that cannot be pickled
+        except Exception:  # noqa: BLE001 - an exception that cannot be pickled
             outbox.send((False, RuntimeError(f"{type(reply[1]).__name__}: {reply[1]}")))
 
 
