@@ -399,6 +399,13 @@ def _check_stages(stages) -> list[dict]:
     return out
 
 
+def _inputs_html(inputs: dict) -> str:
+    rows = "".join(f"<tr><td>{_e(k)}</td><td>{_e(v.get('source', ''))}</td><td>{_e(v.get('why', ''))}</td></tr>"
+                   for k, v in inputs.items())
+    return ("<h2>What the model was built from</h2><table><tr><th>input</th><th>source</th><th>why</th></tr>"
+            + rows + "</table>")
+
+
 def _stages_html(stages: list[dict]) -> str:
     if not stages:
         return "<p class='note'>No stage list was given.</p>"
@@ -468,7 +475,8 @@ def _page(title: str, body: str, model_data: dict) -> str:
 
 
 def write_report(out_dir: str | Path, stages: list[dict], model_dir: str | Path, capture_dir: str | Path | None = None,
-                 *, device: str = "cpu", title: str = "texstream run report", max_comparisons: int = 4,
+                 *, device: str = "cpu", inputs: dict | None = None, title: str = "texstream run report",
+                 max_comparisons: int = 4,
                  max_photos: int = 8, photo_max_side: int = 512) -> StageResult:
     """Write ``out_dir/report/`` (index.html plus its PNG figures) atomically.
 
@@ -481,6 +489,7 @@ def write_report(out_dir: str | Path, stages: list[dict], model_dir: str | Path,
             a few photos, and the rig is plotted. Without it the report uses model.json's render_eval
             and renders/ images.
         device: Warp device for the held-out renders.
+        inputs: what the model was built from, {input: {source, why}} (pipelines/provenance.py).
         max_comparisons: held-out views shown as photo | render | error (the worst first).
         max_photos: photos embedded in the viewer (held-out first) for its error view.
         photo_max_side: embedded photos are downscaled to at most this many pixels.
@@ -510,7 +519,7 @@ def write_report(out_dir: str | Path, stages: list[dict], model_dir: str | Path,
         when = datetime.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
         sections = [f"<h1>{_e(title)}</h1><p class='meta'>{_e(when)} &middot; model {_e(model_dir.resolve())}"
                     + (f" &middot; capture {_e(Path(capture_dir).resolve())}" if capture_dir else "") + "</p>",
-                    "<h2>Stages</h2>" + _stages_html(stages)]
+                    *([_inputs_html(inputs)] if inputs else []), "<h2>Stages</h2>" + _stages_html(stages)]
         if man.get("warnings"):  # the fit's warnings (bounds, numerics), one line each
             sections.append("<h2>Warnings</h2><ul class='warnings'>"
                             + "".join(f"<li>{_e(w)}</li>" for w in man["warnings"]) + "</ul>")

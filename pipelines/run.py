@@ -51,6 +51,7 @@ from texstream.geometry.make_mesh import MeshConfig, make_mesh
 from texstream.geometry.mesh_frame import mesh_alignment
 from texstream.geometry.mesh_io import load_mesh
 from texstream.geometry.refine import RefineConfig, refine_stage
+from texstream.pipelines.provenance import inputs_lines, run_inputs
 from texstream.pipelines.report import write_report
 
 STAGES = ("ingest", "register", "mesh", "atlas", "lights", "refine", "fit", "export", "report")
@@ -293,9 +294,12 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
     model_dir = out / "model"
     fit_rec, model_kind, why = _fit(pipe, capture, posed, posed_dir, fit_geometry, model_dir, cfg, lights_summary)
 
-    _export_and_report(pipe, out, model_dir, posed_dir)
+    inputs = run_inputs(pipe.records, kind, capture, cfg.mesh_file)
+    for line in inputs_lines(inputs):
+        log(f"[inputs] {line}")
+    _export_and_report(pipe, out, model_dir, posed_dir, cfg.device, inputs)
     heldout = _heldout(model_dir)
-    summary = {"source": str(src), "source_kind": kind, "model": model_kind, "model_reason": why,
+    summary = {"source": str(src), "source_kind": kind, "model": model_kind, "model_reason": why, "inputs": inputs,
                "total_s": time.perf_counter() - t_start,
                "heldout": heldout, "stages": [dataclasses.asdict(r) for r in pipe.records],
                "lights": lights_summary or {"source": _lights_source(capture)},
@@ -483,9 +487,6 @@ def run_warnings(records: list[StageRecord], heldout: dict, fit_summary: dict) -
     return out
 
 
-"""The candidate name of the two-lobe Lafortune model in the run's selection (``RunConfig.second_lobe``)."""
-
-
 def _db(value) -> str:
     return "n/a" if value is None else f"{value:.2f} dB"
 
@@ -497,14 +498,15 @@ def _heldout(model_dir: Path) -> dict:
         return {}
 
 
-def _export_and_report(pipe: Pipeline, out: Path, model_dir: Path, capture_dir: Path) -> None:
-    """Exports (glTF binary, OBJ+MTL) and the HTML report."""
+def _export_and_report(pipe: Pipeline, out: Path, model_dir: Path, capture_dir: Path, device: str,
+                       inputs: dict) -> None:
+    """Exports (glTF binary, OBJ+MTL) and the HTML report (its held-out renders on the run's device)."""
     export_dir = out / "export"
     pipe.run("export", export_dir, [pipe.stamp_of("fit")], "glTF binary and OBJ+MTL",
              lambda: export_stage(model_dir, export_dir))
     t0 = time.perf_counter()
     stages = [dataclasses.asdict(r) for r in pipe.records]
-    write_report(out, stages, model_dir, capture_dir)
+    write_report(out, stages, model_dir, capture_dir, device=device, inputs=inputs)
     pipe.records.append(StageRecord("report", "ran", "HTML report with the relightable viewer",
                                     time.perf_counter() - t0, str(out / "report")))
     pipe.log(f"[report] {out / 'report' / 'index.html'}")

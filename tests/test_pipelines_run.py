@@ -50,6 +50,11 @@ def test_known_cameras_and_atlas_skip_their_stages_and_a_rerun_skips_everything(
         assert (out / f"model_{other}" / "model.json").is_file()
     reasons = {s["name"]: s["reason"] for s in first["stages"]}
     assert "cameras known" in reasons["register"]
+    # what the model was built from, said once per input (run.json and the report)
+    inputs = first["inputs"]
+    assert inputs["cameras"]["source"] == "given" and inputs["mesh"]["source"] == "given"
+    assert inputs["masks"]["source"] == "given" and "16 of 16" in inputs["masks"]["why"], inputs["masks"]
+    assert "What the model was built from" in (out / "report" / "index.html").read_text()
     assert st["refine"] == "skipped" and "cameras and mesh given" in reasons["refine"]
     # held-out error as users meet it: every 8th of 16 photos, pooled and worst view
     assert first["heldout"]["views"] == 2 and first["heldout"]["pooled_psnr_db"] > 20
@@ -153,6 +158,9 @@ def test_turntable_object_under_unknown_lighting_to_a_valid_radiance_model(captu
     # no light: the shading normals (smoothing or photometric) stay out
     assert refine["summary"]["shading_normals"] == {"smoothing_rounds": 0, "intensity_rms_by_rounds": {}}
     mesh = next(s for s in summary["stages"] if s["name"] == "mesh")["summary"]
+    assert summary["inputs"]["mesh"]["source"] in ("visual hull", "Poisson of SfM points",
+                                                   "Poisson of dense stereo points"), summary["inputs"]["mesh"]
+    assert "faces" in summary["inputs"]["mesh"]["why"]
     assert mesh["facing"]["after"]["back_fraction"] < 0.01  # the stage itself fails above 5%
     model = tmp_path / "out" / "model"
     lay = ModelLayout.from_json(json.loads((model / "model.json").read_text())["layout"])
