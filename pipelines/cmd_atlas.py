@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from texstream.geometry.atlas import AtlasConfig, atlas_stage
+from texstream.core.devices import DEVICE_HELP, resolve_device
 from texstream.pipelines.cli import add_config_arguments, config_from_args
 
 
@@ -13,14 +14,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-o", "--out", required=True, help="output folder")
     parser.add_argument("--capture", default=None,
                         help="capture folder: texel density follows how large each face appears in its photos")
-    parser.add_argument("--device", default="cpu", help="Warp device for the bake (cpu, cuda:0, ...)")
+    parser.add_argument("--device", default="auto", help=DEVICE_HELP + " (default: auto)")
     parser.add_argument("--force", action="store_true", help="recompute even if OUT is up to date")
     add_config_arguments(parser, AtlasConfig)
 
 
 def run(args: argparse.Namespace) -> int:
     config = config_from_args(AtlasConfig, args)
-    res = atlas_stage(args.mesh, args.out, config, device=args.device, force=args.force, capture=args.capture)
+    res = atlas_stage(args.mesh, args.out, config, device=resolve_device(args.device), force=args.force, capture=args.capture)
     s = res.summary
     if res.skipped:
         print(f"atlas: skipped, {res.reason} ({res.output})")

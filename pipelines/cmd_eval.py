@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import argparse
 
+from texstream.core.devices import DEVICE_HELP
 from texstream.fit.stages.stage import eval_stage
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("model", help="model folder written by texstream fit")
     parser.add_argument("capture", help="capture folder to evaluate on")
-    parser.add_argument("--device", default="cpu", help="Warp device (default: cpu)")
+    parser.add_argument("--device", default="auto", help=DEVICE_HELP + " (default: auto)")
     parser.add_argument("--holdout-every", dest="holdout_every", type=int, default=0,
                         help="score only the frames a fit with this --holdout-every held out (default: 0 = every frame)")
     parser.add_argument("-o", "--out", default=None, help="JSON report (default: MODEL/eval_<capture>.json)")

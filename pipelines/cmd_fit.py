@@ -25,6 +25,7 @@ from texstream.fit.optim.fitter import FitConfig
 from texstream.fit.stages.choice import ModelChoiceConfig
 from texstream.fit.stages.single_view import SingleViewConfig, fit_single_view_stage
 from texstream.fit.stages.stage import FitStageConfig, fit_stage
+from texstream.core.devices import DEVICE_HELP
 from texstream.pipelines.cli import add_config_arguments, config_from_args
 
 
@@ -41,7 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="with --normals: nominal camera depth of the texels when the capture has no depth map "
                              "(irrelevant for directional lights; default: 1.0)")
     parser.add_argument("-o", "--out", required=True, help="model folder to write (replaced if it exists)")
-    parser.add_argument("--device", default="cpu", help="Warp device: cpu or cuda:N (default: cpu)")
+    parser.add_argument("--device", default="auto", help=DEVICE_HELP + " (default: auto)")
     parser.add_argument("--texture-size", dest="texture_size", type=int, default=256,
                         help="atlas side when the mesh has UVs but no bake (default: 256; 0 = automatic, the power "
                              "of two whose texels are about --texel-pixels of the photos' pixels wide)")

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 
 from texstream.geometry.refine import RefineConfig, refine_stage
+from texstream.core.devices import DEVICE_HELP, resolve_device
 from texstream.pipelines.cli import add_config_arguments, config_from_args
 
 
@@ -15,13 +16,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-o", "--out", required=True,
                         help="output folder: capture.json with refined poses and an atlas folder of the moved mesh, "
                              "to give texstream fit as its capture and --mesh")
-    parser.add_argument("--device", default="cpu", help="Warp device (cpu, cuda:0, ...)")
+    parser.add_argument("--device", default="auto", help=DEVICE_HELP + " (default: auto)")
     add_config_arguments(parser, RefineConfig)
 
 
 def run(args: argparse.Namespace) -> int:
     config = config_from_args(RefineConfig, args)
-    res = refine_stage(args.capture, args.atlas, args.out, config, device=args.device, log=print)
+    res = refine_stage(args.capture, args.atlas, args.out, config, device=resolve_device(args.device), log=print)
     s = res.summary
     before, after = s["residual_before"], s["residual_after"]
     held = f"; held-out photos aligned {_rms(before, 'align')} -> {_rms(after, 'align')}" if "align_rms" in after else ""

@@ -13,6 +13,7 @@ import argparse
 from pathlib import Path
 
 from texstream.capture.synthetic.synth import SynthConfig, synthesize
+from texstream.core.devices import DEVICE_HELP, resolve_device
 from texstream.core.errors import ConfigError
 from texstream.core.toml import read_toml
 from texstream.pipelines.run import (LFM_CANDIDATE, RunConfig, STAGES, model_choices, run_config_from_dict,
@@ -42,7 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "photo shows it beside the object)")
     parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                         help="progress bars on a terminal (default: on)")
-    parser.add_argument("--device", default=None, help="Warp device (default: cpu)")
+    parser.add_argument("--device", default=None, help=DEVICE_HELP + " (default: auto)")
     parser.add_argument("--iterations", type=int, default=None, help="fit iteration cap (default: 30)")
     parser.add_argument("--optimizer", default=None, choices=("sd", "cg", "lbfgs", "lm"), help="fit method (default: lm)")
     parser.add_argument("--scene", default="ornament", help="built-in synthetic scene without PHOTOS (default: ornament)")
@@ -100,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
     if source is None:
         source = out / "capture"
         print(f"[synth] built-in synthetic capture set '{args.scene}' at scale {args.scale} -> {source}", flush=True)
-        s = synthesize(args.scene, source, SynthConfig(scale=args.scale, device=cfg.device)).summary
+        s = synthesize(args.scene, source, SynthConfig(scale=args.scale, device=resolve_device(cfg.device))).summary
         print(f"        {s['photos']} photos {s['image_width']}x{s['image_height']}, {s['covered_texels']} texels",
               flush=True)
         if cfg.mesh_file is None:

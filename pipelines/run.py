@@ -35,6 +35,7 @@ from texstream.calib.lights import LightsConfig, _world_balls, lit_capture
 from texstream.calib.register import RegisterConfig, register
 from texstream.capture.capture_json import read_capture
 from texstream.core.config import check_config, config_from_dict, config_to_dict, option
+from texstream.core.devices import DEVICE_HELP, resolve_device
 from texstream.core.errors import ConfigError, InputError
 from texstream.core.outputs import write_atomic_with, write_json_atomic
 from texstream.core.progress import reporting
@@ -76,7 +77,7 @@ def _fit_stage_config():
 class RunConfig:
     """Every option of ``texstream run``, one table per stage (``--config run.toml`` reads it back)."""
 
-    device: str = option("cpu", "Warp device for the mesh, atlas and fit: cpu or cuda:N")
+    device: str = option("auto", DEVICE_HELP + "; every stage of the run uses it (mesh, atlas, refine, fit, report)")
     model: str = option("auto", "appearance model: auto (lafortune when every photo has a known light, radiance "
                                 "when the lighting is fixed and unknown; with held-out photos the diffuse or the "
                                 "view-dependent radiance model too, the better held-out one kept, and light field "
@@ -266,6 +267,11 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
     text = dumps(config_to_dict(cfg), header="texstream run: the resolved options (texstream run --config this file)")
     write_atomic_with(out / "run_config.toml", lambda fh: fh.write(text.encode()))
     t_start = time.perf_counter()
+    # run_config.toml keeps the option as asked (auto); every stage gets the device it resolves to
+    asked = cfg.device
+    cfg = dataclasses.replace(cfg, device=resolve_device(asked))
+    log(f"[run] device {cfg.device}" + (f" ({asked}: the first CUDA device Warp sees, else the CPU)"
+                                        if asked != cfg.device and asked.strip().lower() == "auto" else ""))
     pipe = Pipeline(out, from_stage, log)
 
     cap_dir = _ingest(pipe, src, kind, out, cfg)
@@ -299,7 +305,7 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
         log(f"[inputs] {line}")
     _export_and_report(pipe, out, model_dir, posed_dir, cfg.device, inputs)
     heldout = _heldout(model_dir)
-    summary = {"source": str(src), "source_kind": kind, "model": model_kind, "model_reason": why, "inputs": inputs,
+    summary = {"source": str(src), "source_kind": kind, "device": cfg.device, "model": model_kind, "model_reason": why, "inputs": inputs,
                "total_s": time.perf_counter() - t_start,
                "heldout": heldout, "stages": [dataclasses.asdict(r) for r in pipe.records],
                "lights": lights_summary or {"source": _lights_source(capture)},
@@ -367,9 +373,9 @@ def _mesh_and_atlas(pipe: Pipeline, posed: bool, posed_dir: Path, out: Path, cfg
             atlas_needed = load_mesh(mesh_path).uvs is None
     else:
         pipe.run("mesh", mesh_dir, [pipe.stamp_of("register") if not posed else _files_hash(posed_dir),
-                                    pipe.stamp_of("ingest"), config_to_dict(cfg.mesh)],
+                                    pipe.stamp_of("ingest"), config_to_dict(cfg.mesh), cfg.device],
                  "mesh from the photos (dense stereo or SfM points, and masks)",
-                 lambda: make_mesh(posed_dir, mesh_dir, cfg.mesh))
+                 lambda: make_mesh(posed_dir, mesh_dir, dataclasses.replace(cfg.mesh, device=cfg.device)))
         mesh_path = mesh_dir / "mesh.ply"
     if atlas_needed:
         pipe.run("atlas", atlas_dir, [pipe.stamp_of("mesh"), str(mesh_path), config_to_dict(cfg.atlas), cfg.device],

@@ -23,6 +23,7 @@ import numpy as np
 from texstream.capture.capture_json import read_capture
 from texstream.capture.imageio import read_image, read_mask, write_image
 from texstream.core.config import check_config, option
+from texstream.core.devices import DEVICE_HELP, resolve_device
 from texstream.core.errors import ConfigError, InputError
 from texstream.core.outputs import StageResult, atomic_output_dir
 from texstream.core.progress import phase, say
@@ -45,7 +46,7 @@ from texstream.fit.stages import choice
 class SingleViewConfig:
     """Options of the single-view fit (``texstream fit CAPTURE --normals N -o MODEL``)."""
 
-    device: str = option("cpu", "Warp device: cpu or cuda:N")
+    device: str = option("auto", DEVICE_HELP)
     normal_space: str = option("opengl", "frame of the normal map: opengl (camera space, x right, y up, z towards "
                                "the viewer: DiLiGenT, most normal-map files), opencv (camera space, x right, y down, "
                                "z into the scene) or world (capture.json's world frame)", choices=NORMAL_SPACES)
@@ -79,6 +80,7 @@ def fit_single_view_stage(capture_dir: str | Path, normals_path: str | Path | No
     """
     cfg = config or SingleViewConfig()
     check_config(cfg)
+    cfg = dataclasses.replace(cfg, device=resolve_device(cfg.device))
     check_output_path(out_dir)
     if cfg.fit.model != choice.AUTO:
         return fit_single_view_model(capture_dir, normals_path, out_dir, cfg, progress)

@@ -22,6 +22,7 @@ from texstream.capture.capture_json import read_capture
 from texstream.capture.imageio import read_image, read_mask
 from texstream.core.errors import ConfigError, InputError
 from texstream.core.config import check_config, option
+from texstream.core.devices import DEVICE_HELP, resolve_device
 from texstream.core.outputs import StageResult, write_json_atomic
 from texstream.core.progress import bar, say
 
@@ -43,7 +44,7 @@ from texstream.fit.stream.photo_stream import loaders_closed_after
 class FitStageConfig:
     """Options of ``texstream fit`` around the numerical FitConfig."""
 
-    device: str = option("cpu", "Warp device: cpu or cuda:N")
+    device: str = option("auto", DEVICE_HELP)
     texture_size: int = option(256, "atlas side in texels when the mesh has UVs but no bake; 0: automatic, the "
                                     "power of two whose texels are about texel_pixels of the photos' pixels wide",
                                min=0, max=16384)
@@ -102,6 +103,7 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     cfg = config or FitStageConfig()
     check_config(cfg)
     check_output_path(out_dir)
+    cfg = dataclasses.replace(cfg, device=resolve_device(cfg.device))  # the model.json names the device used
     if cfg.fit.model != choice.AUTO:
         registry.get(cfg.fit.model)  # an unknown kind fails before any work
         return fit_model(capture_dir, mesh_path, out_dir, cfg, progress)
@@ -122,6 +124,7 @@ def fit_model(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     """One model kind's fit, by its plugin (``cfg.fit.model`` a registered kind)."""
     plugin = registry.get(cfg.fit.model)
     check_output_path(out_dir)
+    cfg = dataclasses.replace(cfg, device=resolve_device(cfg.device))
     with loaders_closed_after():  # photos streamed from disk: their loaders' threads end with the stage
         return plugin.fit(registry.FitRequest(Path(capture_dir), Path(mesh_path), Path(out_dir), cfg, progress))
 
@@ -133,7 +136,7 @@ def eval_stage(model_dir: str | Path, capture_dir: str | Path, device: str = "cp
     if holdout_every < 0:
         raise ConfigError(f"--holdout-every {holdout_every} is negative",
                           fix="use 0 (every frame) or k >= 1 (the frames a fit with that --holdout-every held out)")
-    render = registry.load_model_folder(model_dir).renderer(device)
+    render = registry.load_model_folder(model_dir).renderer(resolve_device(device))
     capture = read_capture(capture_dir)
     frames = split_holdout(capture.frames, holdout_every)[1] if holdout_every > 0 else capture.frames
     if not frames:
