@@ -35,6 +35,9 @@ from .colmap_io import _copy_file
 from .files import IMAGE_EXTS
 from .lights import colocated_light
 
+FLOAT_EXTS = (".exr", ".hdr", ".pfm")
+"""photo formats that store linear floats (no clipping level); the others store integers, which clip at 1"""
+
 SKEW_TOLERANCE = 1e-6
 """|skew| / fx below which a skew is taken as 0 (a millionth of the focal length moves no pixel of any photo)."""
 
@@ -206,7 +209,8 @@ def write_posed_capture(tmp: Path, photos: list[PosedPhoto], *, undistort: bool,
             intr = p.lens.pinhole() if undistort else p.lens.opencv_intrinsics(f"camera {p.label}")
             _copy_file(p.photo, tmp / rel, copy_mode)
         light = None if colocated is None else colocated_light(p.r, p.t, float(colocated))
-        frames.append(Frame(file_path=str(rel), R=p.r, t=p.t, intrinsics=intr, light=light,
+        saturation = None if p.photo.suffix.lower() in FLOAT_EXTS else 1.0
+        frames.append(Frame(file_path=str(rel), R=p.r, t=p.t, intrinsics=intr, light=light, saturation=saturation,
                             extra={"label": p.label, "sensor": p.sensor} if p.sensor else {"label": p.label}))
     write_capture(Capture(root=tmp, frames=frames, extra=extra), tmp)
     return frames
