@@ -50,12 +50,15 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=15)
     ap.add_argument("--intensity", type=float, default=12.0)
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--control", default="on", choices=("on", "off"),
+                    help="also run the Metashape capture with the distortion ignored")
     args = ap.parse_args()
 
     import warp as wp
 
     from texstream.calib.metashape import MetashapeImportConfig, import_metashape
     from texstream.calib.realitycapture import RealityCaptureImportConfig, import_realitycapture
+    from texstream.capture.capture_json import read_capture, write_capture
     from texstream.capture.synthetic.camera_exports import (render_export_set, write_metashape,
                                                             write_realitycapture, write_truth)
     from texstream.pipelines.cmd_import import transform_mesh_file
@@ -96,6 +99,17 @@ def main() -> None:
     result["metashape"] = {"import": {**imp.summary, "seconds": import_s}, "imported": _heldout(run, run_s),
                            "true_cameras_and_mesh": _heldout(ref, ref_s),
                            "gap_db": ref["heldout"]["pooled_psnr_db"] - run["heldout"]["pooled_psnr_db"]}
+    if args.control == "on":  # the same capture with the photos as taken: their distortion not undone
+        ctl = out / "metashape_control"
+        shutil.copytree(out / "metashape_capture", ctl)
+        cap = read_capture(ctl)
+        for f in cap.frames:
+            (ctl / f.file_path).unlink()
+            f.file_path = f"images/{f.extra['label']}.JPG"
+            shutil.copy2(out / "metashape" / "photos" / f"{f.extra['label']}.JPG", ctl / f.file_path)
+        write_capture(cap, ctl)
+        run, run_s = timed_run(ctl, out / "metashape_control_run", None)
+        result["metashape"]["distortion_ignored"] = _heldout(run, run_s)
     # RealityCapture: XMPs + photos, the true mesh given to the run
     es = render_export_set(scene, args.photos, args.width, args.height, skew_free=True, device=args.device)
     info = write_realitycapture(es, out / "realitycapture")
@@ -113,7 +127,9 @@ def main() -> None:
     for k in ("metashape", "realitycapture"):
         r = result[k]
         print(f"{k}: imported {r['imported']['pooled_psnr_db']:.2f} dB, true cameras and mesh "
-              f"{r['true_cameras_and_mesh']['pooled_psnr_db']:.2f} dB (gap {r['gap_db']:.2f} dB)")
+              f"{r['true_cameras_and_mesh']['pooled_psnr_db']:.2f} dB (gap {r['gap_db']:.2f} dB)"
+              + (f"; distortion ignored {r['distortion_ignored']['pooled_psnr_db']:.2f} dB"
+                 if "distortion_ignored" in r else ""))
 
 
 if __name__ == "__main__":

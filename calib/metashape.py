@@ -20,6 +20,13 @@ own pixel convention. So (:class:`~texstream.calib.posed_import.LensCamera` name
 - ``k1..k4 = K1..K4``; **OpenCV's p1 is Metashape's P2 and OpenCV's p2 is Metashape's P1**: OpenCV puts p2 on
   x's (r2 + 2 x^2) term and p1 on its 2 x y term, Metashape the other way round.
 
+Sources: the tangential order as the Metashape 2.3 manual states it is quoted in nerfstudio's issue #3714 and
+pull request #3779 (Metashape's P1 on x's (r2 + 2 x^2) term, so nerfstudio swaps P1 and P2 into OpenCV's); the
+manual's own appendix pages could not be read here beyond their tables of contents, so the projection above
+(in particular B1 on x and B2 as skew, and cx, cy centre-relative, as nerfstudio's reader also takes them) is
+written from the manual as we know it; the import was not checked against a file Metashape wrote, only against
+that formula (tests/test_camera_imports.py) and synthetic exports of it.
+
 Poses: a camera's ``<transform>`` (16 numbers, row-major) is camera-to-chunk; a camera of a component
 (``component_id``, Metashape 2.x) is first taken through the component's ``<transform>``; the chunk's
 ``<transform>`` (``<rotation>`` 3x3 row-major, ``<translation>``, ``<scale>``) takes chunk to world:
@@ -207,6 +214,9 @@ def read_metashape(path: str | os.PathLike) -> MetashapeChunk:
                                        enabled=cam.get("enabled", "true").lower() not in ("false", "0"),
                                        transform=None if m is None else m.reshape(4, 4)))
     for cam in cameras:
+        if cam.component_id is not None and cam.component_id not in components:
+            raise InputError(f"camera {cam.label!r} names component {cam.component_id!r}, which the file lacks",
+                             path, FIX_EXPORT)
         if cam.sensor_id not in sensors:
             raise InputError(f"camera {cam.label!r} names sensor {cam.sensor_id!r}, which the file lacks", path,
                              FIX_EXPORT)

@@ -3,20 +3,23 @@
 ``texstream import realitycapture XMP_FOLDER PHOTOS -o OUT``: one ``NAME.xmp`` per photo (Alignment > Export >
 Registration > Metadata (XMP)), in PHOTOS or in a folder of their own; the photo is found by the XMP's name.
 
-The conventions (RealityCapture's support article "RealityCapture XMP Camera Math", and where it is silent,
-the XMP readers and writers of EasyVolcap (``rc_utils.py``), camorph and AliceVision's ``importKnownPoses``,
-which agree):
+The conventions. RealityCapture's support article "RealityCapture XMP Camera Math" (its opening, the part we
+could read) gives the pose and the frame of the image coordinates; the rest comes from public XMP readers and
+writers, and is NOT verified against a file RealityCapture wrote:
 
 - ``xcr:Rotation``: 3x3 row-major world-to-camera rotation R; ``xcr:Position``: the camera centre C in world
-  coordinates, so t = -R C (the article: x = [R | t] X). Camera axes: x right, y down, z forward (OpenCV).
+  coordinates, so t = -R C (the article: x = [R | t] X). Camera axes: x right, y down, z forward (OpenCV;
+  camorph reads them so).
 - intrinsics in units of the image's larger side (the article: image coordinates in <-0.5, 0.5>): focal length
-  ``f = FocalLength35mm / 36`` of it, the principal point ``(PrincipalPointU, PrincipalPointV)`` offsets from
-  the image centre in the same unit: ``fx = fy = f * max(w, h)``, ``cx = w / 2 + U * max(w, h)``,
-  ``cy = h / 2 + V * max(w, h)``. Being relative, they hold for the photos at any export size.
+  ``f = FocalLength35mm / 36`` of it (nerfstudio's and EasyVolcap's readers), the principal point
+  ``(PrincipalPointU, PrincipalPointV)`` an offset from the image centre in the same unit (camorph and a
+  Meshroom XMP reader; EasyVolcap's writer divides V by the height instead, which differs for V on non-square
+  photos): ``fx = fy = f * max(w, h)``, ``cx = w / 2 + U * max(w, h)``, ``cy = h / 2 + V * max(w, h)``. Being
+  relative, they hold for the photos at any export size.
 - ``xcr:DistortionModel`` / ``xcr:DistortionCoeficients`` (sic): six slots ``k1 k2 k3 k4 t1 t2`` on the
   normalized coordinates x/z, y/z. ``brown3`` (k1..k3), ``brown4`` (k1..k4), ``brown3t2`` / ``brown4t2`` (with
   tangential terms), ``perspective`` (none). Like Metashape, the photogrammetric Brown order puts t1 on x's
-  (r2 + 2 x^2) term: **OpenCV p1 = t2, p2 = t1** (EasyVolcap and camorph swap them the same way).
+  (r2 + 2 x^2) term: **OpenCV p1 = t2, p2 = t1** (EasyVolcap's and camorph's converters swap them so).
 - ``xcr:Skew`` other than 0, ``xcr:AspectRatio`` other than 1 and the ``division`` model with a nonzero
   coefficient are refused: their exact use is not documented where we could read it.
 - An XMP without ``Rotation`` or ``Position`` (a calibration-only sidecar, or a camera that did not align) is
