@@ -27,11 +27,16 @@ import time
 from pathlib import Path
 
 
-def _scene(intensity: float) -> dict:
+def _scene(name: str, intensity: float) -> dict:
+    """The scene with its light at the camera; ``textured_sphere`` (diffuse noise albedo, a sharper test of the
+    cameras) with its texture at 256 x 128 and noise cells of about 3 pixels of a 128 x 96 photo, for the CPU."""
     from texstream.capture.synthetic.synth import load_scene
 
-    sc = load_scene("sphere")
+    sc = load_scene(name)
     sc["light"] = {"type": "point", "mode": "camera", "offset": [0.0, 0.0, 0.0], "intensity": intensity}
+    if name == "textured_sphere":
+        sc["texture"] = {"width": 256, "height": 128, "padding": 2}
+        sc["materials"]["noisy"]["noise"]["cells"] = [48, 24]
     return sc
 
 
@@ -44,6 +49,7 @@ def _heldout(run: dict, seconds: float) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="out/camera_import")
+    ap.add_argument("--scene", default="sphere", choices=("sphere", "textured_sphere"))
     ap.add_argument("--photos", type=int, default=24)
     ap.add_argument("--width", type=int, default=128)
     ap.add_argument("--height", type=int, default=96)
@@ -71,7 +77,7 @@ def main() -> None:
     shutil.rmtree(out, ignore_errors=True)
     cfg = RunConfig(device=args.device, model="lafortune", second_lobe=False, progress=False)
     cfg.fit = dataclasses.replace(cfg.fit, fit=dataclasses.replace(cfg.fit.fit, max_iterations=args.iterations))
-    scene = _scene(args.intensity)
+    scene = _scene(args.scene, args.intensity)
 
     def timed_run(src: Path, dst: Path, mesh: Path | None) -> tuple[dict, float]:
         t0 = time.perf_counter()
@@ -79,10 +85,11 @@ def main() -> None:
                            log=lambda m: print(m, flush=True))
         return run, time.perf_counter() - t0
 
-    result: dict = {"scene": "sphere, light at the camera", "photos": args.photos,
+    result: dict = {"scene": f"{args.scene}, light at the camera", "photos": args.photos,
                     "photo_size": [args.width, args.height], "device": args.device,
                     "machine": f"{platform.node()} ({os.cpu_count()} cores)", "commit": commit,
-                    "command": f"python benchmarks/camera_import.py --photos {args.photos} --width {args.width} "
+                    "command": f"python benchmarks/camera_import.py --scene {args.scene} --photos {args.photos} "
+                               f"--width {args.width} "
                                f"--height {args.height} --iterations {args.iterations}"}
     # Metashape: cameras.xml + photos + the mesh in chunk coordinates
     es = render_export_set(scene, args.photos, args.width, args.height, device=args.device)
