@@ -109,7 +109,7 @@ def test_metashape_undistorted_photos_are_the_pinhole_views(ms_set, ms_export, t
         inner = (slice(8, H - 8), slice(8, W - 8))  # border pixels whose rays left the render are black
         err = np.abs(read_image(cap.image_path(f))[inner] - want[inner]).mean()
         raw = np.abs(read_image(root / "photos" / f"{f.extra['label']}.JPG")[inner] - want[inner]).mean()
-        # JPEG (quality 95) and two bilinear resamplings leave about 0.3 8-bit codes on average (0.0012 measured);
+        # JPEG (quality 95) and two bicubic resamplings leave about 0.3 8-bit codes on average (0.0012 measured);
         # the photo as taken, its distortion not undone (1-3 pixels at the corners), is off by half as much again
         # along the sphere's silhouette (0.0018 measured)
         assert err < 0.002 and err < 0.8 * raw, (f.file_path, err, raw)

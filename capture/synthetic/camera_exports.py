@@ -17,8 +17,9 @@ different focal lengths, principal points and Brown distortion), and written as 
 How the photos get their distortion: each view is rendered by the pinhole renderer (the lens's fx, fy, cx, cy,
 no distortion); every pixel of the distorted photo is then traced back through the exact inverse of the lens
 model (fixed-point iteration to 1e-12 of the normalized coordinates) to the pinhole render, and sampled there
-bilinearly (cv2.remap). So the photos are distorted exactly as the written coefficients say, up to the bilinear
-resampling; pixels whose ray leaves the render are black (the background).
+bicubically (cv2.remap). So the photos are distorted exactly as the written coefficients say, up to the
+resampling (bilinear sampling here and in the import cost a noise-textured view about 4 dB more than bicubic);
+pixels whose ray leaves the render are black (the background).
 """
 
 from __future__ import annotations
@@ -106,7 +107,7 @@ def distort_image(render: np.ndarray, lens: LensCamera) -> np.ndarray:
     x, y = undistort_normalized(lens, xd, yd)
     map_x = (lens.fx * x + lens.cx - 0.5).astype(np.float32)
     map_y = (lens.fy * y + lens.cy - 0.5).astype(np.float32)
-    return cv2.remap(np.ascontiguousarray(render, dtype=np.float32), map_x, map_y, cv2.INTER_LINEAR,
+    return cv2.remap(np.ascontiguousarray(render, dtype=np.float32), map_x, map_y, cv2.INTER_CUBIC,
                      borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
