@@ -277,6 +277,7 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
     cap_dir = _ingest(pipe, src, kind, out, cfg)
     posed, posed_dir = _register(pipe, cap_dir, kind, out, cfg)
     capture = read_capture(posed_dir)
+    cfg = _capture_mesh(cfg, capture, posed, posed_dir, log)
     fit_geometry = _mesh_and_atlas(pipe, posed, posed_dir, out, cfg)
 
     # lights: from mirror-ball photos when a ball is given
@@ -354,6 +355,20 @@ def _register(pipe: Pipeline, cap_dir: Path, kind: str, out: Path, cfg: RunConfi
                                      config_to_dict(reg_cfg)], why_reg,
              lambda: register(cap_dir, posed_dir, reg_cfg, mesh_alignment=mesh_alignment))
     return False, posed_dir
+
+
+def _capture_mesh(cfg: RunConfig, capture, posed: bool, posed_dir: Path, log: Callable[[str], None]) -> RunConfig:
+    """The run's config with the mesh a posed capture carries (capture.json ``mesh``: an imported Metashape mesh,
+    already in the cameras' frame) as its mesh file, unless one is given; it is used as it is, not aligned."""
+    rel = capture.extra.get("mesh")
+    if cfg.mesh_file is not None or not posed or not rel:
+        return cfg
+    path = posed_dir / str(rel)
+    if not path.is_file():
+        raise InputError(f"the capture names the mesh {rel}, which is missing", posed_dir / "capture.json",
+                         "restore the file, or remove 'mesh' from capture.json to make a mesh from the photos")
+    log(f"mesh: the capture's own ({path}), in its cameras' frame")
+    return dataclasses.replace(cfg, mesh_file=str(path))
 
 
 def _mesh_and_atlas(pipe: Pipeline, posed: bool, posed_dir: Path, out: Path, cfg: RunConfig) -> Path:
