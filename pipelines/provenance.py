@@ -34,11 +34,12 @@ def _cameras(records: list, source_kind: str, capture) -> dict:
         if reg.get("alignment"):
             why += "; aligned to the known camera centres"
         return {"source": "registered", "why": why}
-    imported = (capture.extra.get("imported_from") if capture is not None else None) or {}
-    if imported:
-        return {"source": f"imported ({imported.get('format', 'unknown format')})",
-                "why": f"cameras read from {imported.get('file', 'the export')}"
-                       + (f"; {imported['skipped']} skipped" if imported.get("skipped") else "")}
+    imported = (capture.extra.get("source") if capture is not None else None) or {}
+    if isinstance(imported, dict) and imported.get("format"):
+        exported = imported.get("cameras") or imported.get("xmp") or "the export"
+        return {"source": f"imported ({imported['format']})",
+                "why": f"cameras read from {exported}"
+                       + ("; photos undistorted to pinhole cameras" if capture.extra.get("undistorted") else "")}
     if source_kind == "colmap":
         return {"source": "imported (COLMAP model)", "why": "the input is a COLMAP model"}
     return {"source": "given", "why": "every frame of the capture folder has a pose"}
@@ -74,8 +75,12 @@ def _masks(records: list, capture) -> dict:
     return {"source": "none", "why": "the capture has no masks"}
 
 
-def _mesh(records: list, mesh_file: str | None) -> dict:
+def _mesh(records: list, mesh_file: str | None, capture) -> dict:
     status, mesh = _summary(records, "mesh")
+    carried = capture.extra.get("mesh_source") if capture is not None else None
+    if mesh_file and isinstance(carried, dict) and Path(mesh_file).name == Path(str(capture.extra.get("mesh"))).name:
+        return {"source": "imported with the cameras",
+                "why": f"{carried.get('file')} ({carried.get('frame')} frame), used as it is"}
     if mesh_file:
         return {"source": "given", "why": f"--mesh-file {mesh_file}"}
     if status is None:
@@ -98,7 +103,7 @@ def run_inputs(records: list, source_kind: str, capture, mesh_file: str | Path |
     ``records``: the run's StageRecords (name, status, summary); ``capture``: the capture the fit read.
     """
     return {"cameras": _cameras(records, source_kind, capture), "intrinsics": _intrinsics(records, capture),
-            "masks": _masks(records, capture), "mesh": _mesh(records, str(mesh_file) if mesh_file else None)}
+            "masks": _masks(records, capture), "mesh": _mesh(records, str(mesh_file) if mesh_file else None, capture)}
 
 
 def inputs_lines(inputs: dict) -> list[str]:

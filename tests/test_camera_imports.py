@@ -189,6 +189,12 @@ def test_metashape_mesh_taken_into_the_world_frame(ms_set, ms_export, tmp_path):
     cap = read_capture(tmp_path / "cap")
     cfg = _capture_mesh(RunConfig(), cap, True, tmp_path / "cap", lambda *_: None)
     assert cfg.mesh_file == str(tmp_path / "cap" / "mesh.obj")
+    # the run says where its cameras and mesh came from
+    from texstream.pipelines.provenance import run_inputs
+
+    used = run_inputs([], "capture", cap, cfg.mesh_file)
+    assert used["cameras"]["source"] == "imported (metashape)" and "cameras.xml" in used["cameras"]["why"]
+    assert used["mesh"]["source"] == "imported with the cameras" and "chunk frame" in used["mesh"]["why"]
 
 
 def test_metashape_photos_by_label_case_insensitive(ms_set, tmp_path):
