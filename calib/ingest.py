@@ -34,7 +34,7 @@ from texstream.capture.imageio import read_alpha, read_image, read_mask, srgb_to
 from texstream.core.errors import InputError, StageError, TexstreamError
 from texstream.core.config import option, save_config
 from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
-from texstream.core.progress import bar
+from texstream.core.progress import bar, say
 
 from .files import list_images, write_failure_report
 from .lights import load_lights_file
@@ -42,6 +42,7 @@ from .masks import MASK_MODES, MaskConfig, masks_for_images, write_mask_preview
 from .hdr import (BRACKET_MODES, HDR_METHODS, bracket_alignment, calibrate_response, group_brackets, is_exif_bracket,
                   merge_brackets_8bit, merge_brackets_linear)
 from .intrinsics import intrinsics_for_size, load_intrinsics
+from .sensors import focal_prior
 
 REPORT_FILE = "ingest_report.json"
 
@@ -96,7 +97,8 @@ def _exif(path: Path) -> dict[str, Any]:
                           ("Exif:ExposureMode", "exposure_mode"),
                           ("Make", "make"), ("Model", "model"),
                           ("Exif:FocalPlaneXResolution", "focal_plane_xres"),
-                          ("Exif:FocalPlaneResolutionUnit", "focal_plane_unit")):
+                          ("Exif:FocalPlaneResolutionUnit", "focal_plane_unit"),
+                          ("Exif:PixelXDimension", "pixel_x"), ("Exif:PixelYDimension", "pixel_y")):
             v = spec.getattribute(key)
             if v is not None and name not in out:
                 out[name] = v if isinstance(v, str) else float(np.ravel(v)[0])
@@ -112,17 +114,6 @@ def apply_orientation(img: np.ndarray, orientation: int) -> np.ndarray:
            5: lambda a: a.swapaxes(0, 1), 6: lambda a: np.rot90(a, -1), 7: lambda a: a.swapaxes(0, 1)[::-1, ::-1],
            8: lambda a: np.rot90(a, 1)}
     return np.ascontiguousarray(ops.get(o, ops[1])(img))
-
-
-def _focal_px(exif: dict, w: int, h: int) -> float | None:
-    """Focal length in pixels from EXIF: 35 mm equivalent, else focal plane resolution."""
-    if exif.get("focal_35mm"):
-        return float(exif["focal_35mm"]) / 36.0 * max(w, h)
-    unit = {2: 25.4, 3: 10.0, 4: 1.0}.get(int(exif.get("focal_plane_unit", 0) or 0))
-    if exif.get("focal_mm") and exif.get("focal_plane_xres") and unit:
-        # Pixels per mm on the sensor (for the original resolution; may be off for resized copies).
-        return float(exif["focal_mm"]) * float(exif["focal_plane_xres"]) / unit
-    return None
 
 
 def _find_mask(mask_dir: Path, photo: Path) -> Path | None:
@@ -286,19 +277,28 @@ def _write_mask(mask_dir: Path, lead: dict, name: str, orient: int, size: tuple[
     return mask_rel
 
 
-def _view_intrinsics(lead: dict, w: int, h: int, cams, cfg: IngestConfig, sources: set) -> Intrinsics:
-    """A view's intrinsics: the calibrated ones of its size (``cams``), else from the EXIF focal length, else
-    COLMAP's guess; where they came from is added to ``sources``."""
+def _view_intrinsics(lead: dict, w: int, h: int, cams, cfg: IngestConfig, sources: set,
+                     focal_decisions: dict) -> Intrinsics:
+    """A view's intrinsics: the calibrated ones of its size (``cams``), else the EXIF focal length cross-checked
+    across its sources (:func:`.sensors.focal_prior`), else COLMAP's guess; where they came from is added to
+    ``sources``, and each distinct focal decision to ``focal_decisions`` (decision -> entry, printed once)."""
     if cams is not None:
-        intr = intrinsics_for_size(cams, w, h, cfg.intrinsics)
         sources.add("calibrated")
-    else:
-        f_px = _focal_px(lead["exif"], w, h)
-        sources.add("exif" if f_px else "guess")
-        # COLMAP's default guess when EXIF has no focal length: 1.2 x the longest side.
-        f_px = f_px or 1.2 * max(w, h)
-        intr = Intrinsics(width=w, height=h, fx=f_px, fy=f_px, cx=w / 2, cy=h / 2)
-    return intr
+        return intrinsics_for_size(cams, w, h, cfg.intrinsics)
+    prior = focal_prior(lead["exif"], w, h)
+    f_px = prior["focal_px"]
+    sources.add("exif" if f_px else "guess")
+    entry = focal_decisions.get(prior["decision"])
+    if entry is None:
+        entry = focal_decisions[prior["decision"]] = {k: prior[k] for k in ("decision", "focal_px", "candidates",
+                                                                            "used", "notes", "checked")}
+        entry.update(size=f"{w}x{h}", images=[])
+        if len(prior["candidates"]) > 1 or not f_px or "scaled" in prior["notes"].get("focal_plane", ""):
+            say("ingest", f"focal length: {prior['decision']}")
+    entry["images"].append(lead["path"].name)
+    # COLMAP's default guess when EXIF has no usable focal length: 1.2 x the longest side.
+    f_px = f_px or 1.2 * max(w, h)
+    return Intrinsics(width=w, height=h, fx=f_px, fy=f_px, cx=w / 2, cy=h / 2)
 
 
 def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConfig | None = None) -> StageResult:
@@ -350,7 +350,8 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
         cams = load_intrinsics(cfg.intrinsics)
     default_light, frame_lights = load_lights_file(cfg.lights) if cfg.lights else (None, {})
     frames: list[Frame] = []
-    sources = set()
+    sources: set[str] = set()
+    focal_decisions: dict[str, dict] = {}
     with atomic_output_dir(out) as tmp:
         (tmp / "images").mkdir()
         entries = []
@@ -364,7 +365,7 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
             # What automatic masks see: the stored photo, upright (8-bit: sRGB codes; else linear).
             mask_src = (mask_view, len(members) == 1 and lead["eight_bit"])
             mask_rel = _write_mask(mask_dir, lead, name, orient, (w, h), tmp, cfg, dropped)
-            intr = _view_intrinsics(lead, w, h, cams, cfg, sources)
+            intr = _view_intrinsics(lead, w, h, cams, cfg, sources, focal_decisions)
             ex = lead["exif"]
             gain = None
             if ex.get("exposure_time"):
@@ -394,6 +395,7 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
         report["bracket_decisions"] = decisions
         report["camera_sizes"] = sorted({f"{f.intrinsics.width}x{f.intrinsics.height}" for f in frames})
         report["auto_masks"] = auto
+        report["focal_prior"] = list(focal_decisions.values())
         write_json_atomic(tmp / REPORT_FILE, report)
         save_config(cfg, tmp / "ingest_config.json")
         if auto.get("masks"):
@@ -402,5 +404,6 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
                "bracket_decisions": decisions,
                "masks": sum(1 for f in frames if f.mask_path), "intrinsics_source": extra_top["intrinsics_source"],
                "camera_sizes": report["camera_sizes"],
+               "focal_prior": [d["decision"] for d in focal_decisions.values()],
                "auto_masks": {k: auto.get(k) for k in ("mode", "decision", "masks")}}
     return StageResult(output=out, summary=summary)

@@ -212,7 +212,9 @@ def _camera_groups(photos: list[_Photo], cfg: RegisterConfig, source: str) -> li
     """Group photos into COLMAP cameras by image size: (photos, model, params string or '').
 
     ``source`` is the capture's ``intrinsics_source`` (ingest): ``calibrated`` frames' intrinsics are
-    used as given; ``exif`` focal lengths seed COLMAP's estimate of ``cfg.camera_model``.
+    used as given; ``exif`` focal lengths (ingest's cross-checked prior) and ``guess`` ones (1.2 x the longer
+    side, where ingest dropped a doubtful prior) seed COLMAP's estimate of ``cfg.camera_model``: given
+    explicitly, so COLMAP does not read the photos' EXIF again (it would take the stale focal-plane tags).
     """
     cams = load_intrinsics(cfg.intrinsics) if cfg.intrinsics else None
     groups: dict[tuple[int, int], list[_Photo]] = {}
@@ -226,7 +228,7 @@ def _camera_groups(photos: list[_Photo], cfg: RegisterConfig, source: str) -> li
         elif source == "calibrated" and ps[0].frame is not None:
             model, params = intrinsics_to_colmap(ps[0].frame.intrinsics)
             out.append((ps, model, ",".join(f"{x:.10g}" for x in params)))
-        elif source == "exif" and ps[0].frame is not None:
+        elif source in ("exif", "guess") and ps[0].frame is not None:
             i0 = ps[0].frame.intrinsics
             n_extra = {"SIMPLE_PINHOLE": 0, "PINHOLE": 0, "SIMPLE_RADIAL": 1, "RADIAL": 2, "OPENCV": 4}[cfg.camera_model]
             f = [i0.fx] if cfg.camera_model.startswith("SIMPLE") or cfg.camera_model == "RADIAL" else [i0.fx, i0.fy]
@@ -287,29 +289,109 @@ def _run_colmap(photos: list[_Photo], img_dir: Path, mask_dir: Path | None, work
     timings["match_s"] = time.perf_counter() - t0
     groups = match_groups(db, vo.min_num_inliers)
     check_groups(groups, photos, capture_root, out, cfg, report)
+    fixed = bool(cfg.intrinsics or source == "calibrated") and not cfg.refine_intrinsics
     t0 = time.perf_counter()
+    recs = _map(db, img_dir, work / "sparse", len(photos), cfg, fixed)
+    timings["map_s"] = time.perf_counter() - t0
+    if timings["map_s"] >= 1.0:
+        say("register", f"incremental mapping: {timings['map_s']:.1f} s")
+    if source == "exif" and not fixed:
+        recs = _check_focal_prior(recs, db, img_dir, work, len(photos), cfg, report)
+    return recs
+
+
+def _map(db: Path, img_dir: Path, sparse: Path, n_photos: int, cfg: RegisterConfig, fixed: bool) -> dict[int, Any]:
+    """COLMAP's incremental mapping of the database's photos (intrinsics held when ``fixed``)."""
+    import pycolmap
+
     op = pycolmap.IncrementalPipelineOptions()
     op.num_threads = cfg.num_threads
     op.random_seed = cfg.seed
     op.min_model_size = cfg.min_model_size
-    if (cfg.intrinsics or source == "calibrated") and not cfg.refine_intrinsics:
+    if fixed:
         op.ba_refine_focal_length = False
         op.ba_refine_principal_point = False
         op.ba_refine_extra_params = False
         op.mapper.abs_pose_refine_focal_length = False
         op.mapper.abs_pose_refine_extra_params = False
-    say("register", f"incremental mapping of {len(photos)} photos")
-    with colmap_quiet() as term, bar(total=len(photos), desc="register: mapping", unit="photo", file=term) as b:
+    say("register", f"incremental mapping of {n_photos} photos")
+    with colmap_quiet() as term, bar(total=n_photos, desc="register: mapping", unit="photo", file=term) as b:
         def step(k: int) -> None:  # photos registered, counted over every model the mapper starts
-            b.update(min(k, max(0, len(photos) - b.n)))
+            b.update(min(k, max(0, n_photos - b.n)))
 
-        recs = pycolmap.incremental_mapping(db, img_dir, work / "sparse", options=op,
+        return pycolmap.incremental_mapping(db, img_dir, sparse, options=op,
                                             initial_image_pair_callback=lambda: step(2),
                                             next_image_callback=lambda: step(1))
-    timings["map_s"] = time.perf_counter() - t0
-    if timings["map_s"] >= 1.0:
-        say("register", f"incremental mapping: {timings['map_s']:.1f} s")
-    return recs
+
+
+def _model_quality(recs: dict[int, Any]) -> tuple[int, float]:
+    """(registered photos of the largest model, minus its mean reprojection error): larger is better."""
+    if not recs:
+        return 0, -np.inf
+    rec = max(recs.values(), key=lambda r: r.num_reg_images())
+    return rec.num_reg_images(), -float(rec.compute_mean_reprojection_error())
+
+
+def _check_focal_prior(recs: dict[int, Any], db: Path, img_dir: Path, work: Path, n_photos: int,
+                       cfg: RegisterConfig, report: dict) -> dict[int, Any]:
+    """Mapping again without the EXIF focal prior when the mapping with it looks wrong; the better model kept.
+
+    A prior several times too long (stale focal-plane tags no cross-check caught) leaves the mapper stuck:
+    the textured sphere with a 6x prior registered 2 of 20 photos at 5.9x the true focal length. It looks
+    wrong when photos are left out, or the focal length ends more than 25% from the prior (bundle adjustment
+    pulled it away: the prior was off) or within 10% of the mapper's bounds (``min/max_focal_length_ratio``
+    of the longer side). The second mapping starts from COLMAP's default guess (1.2 x the longer side) with
+    no prior; the model with more registered photos, then the lower mean reprojection error, is kept.
+    """
+    import pycolmap
+
+    op = pycolmap.IncrementalPipelineOptions()
+    lo, hi = op.mapper.min_focal_length_ratio, op.mapper.max_focal_length_ratio
+    database = pycolmap.Database.open(str(db))
+    try:
+        priors = {cid: c for cid, c in ((c.camera_id, c) for c in database.read_all_cameras())}
+    finally:
+        database.close()
+    n_reg, _ = _model_quality(recs)
+    why = []
+    if n_reg < n_photos:
+        why.append(f"{n_reg} of {n_photos} photos registered")
+    if recs:
+        rec = max(recs.values(), key=lambda r: r.num_reg_images())
+        for cid, cam in rec.cameras.items():
+            prior = priors.get(cid)
+            size = max(cam.width, cam.height)
+            f, f0 = float(cam.mean_focal_length()), float(prior.mean_focal_length()) if prior else None
+            if f0 and not 0.8 <= f / f0 <= 1.25:
+                why.append(f"camera {cid}'s focal length went from the prior {f0:.0f} px to {f:.0f} px")
+            if f < 1.1 * lo * size or f > hi * size / 1.1:
+                why.append(f"camera {cid}'s focal length {f:.0f} px is at the mapper's bound")
+    info: dict[str, Any] = {"prior_focal_px": {str(k): round(float(c.mean_focal_length()), 2) for k, c in priors.items()}}
+    report["focal_prior"] = info
+    if not why:
+        info.update(retried=False, reason="the mapping with the EXIF prior registered every photo and kept its focal length")
+        return recs
+    database = pycolmap.Database.open(str(db))
+    try:
+        for cam in priors.values():
+            guess = 1.2 * max(cam.width, cam.height)
+            cam.params = [guess if i in cam.focal_length_idxs() else float(v) for i, v in enumerate(cam.params)]
+            cam.has_prior_focal_length = False
+            database.update_camera(cam)
+    finally:
+        database.close()
+    say("register", f"EXIF focal prior doubtful ({'; '.join(why)}): mapping again from COLMAP's guess, no prior")
+    t0 = time.perf_counter()
+    again = _map(db, img_dir, work / "sparse_no_prior", n_photos, cfg, fixed=False)
+    q0, q1 = _model_quality(recs), _model_quality(again)
+    keep = "no_prior" if q1 > q0 else "prior"
+    line = (f"focal prior: kept the mapping {'without' if keep == 'no_prior' else 'with'} the EXIF prior "
+            f"(with: {q0[0]} photos, {-q0[1]:.3f} px; without: {q1[0]} photos, {-q1[1]:.3f} px)")
+    say("register", line)
+    info.update(retried=True, reason="; ".join(why), kept=keep, decision=line, retry_s=round(time.perf_counter() - t0, 2),
+                with_prior={"registered": q0[0], "reprojection_error": -q0[1]},
+                without_prior={"registered": q1[0], "reprojection_error": -q1[1]})
+    return again if keep == "no_prior" else recs
 
 
 PINHOLE_OF = {"SIMPLE_RADIAL": ("SIMPLE_PINHOLE", 3), "RADIAL": ("SIMPLE_PINHOLE", 3),
