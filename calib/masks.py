@@ -23,6 +23,16 @@ way an eye does):
 ``auto`` decides from the data: masks are made (with GrabCut) only when most photos have a uniform
 border and show something distinct from it; otherwise none, and the reason is recorded.
 
+**Judged, and undone when doubtful.** A dark object in a dim room passes the border test (its walls look
+like a plain background) and what is distinct from that background is the lit wall, a window and the
+flash highlights: masks that keep the background and drop the object. So every mask is judged against what
+the data say (:func:`doubt`): a mask holding much of the photo's border strip, or nearly the whole photo,
+or lying mostly at one near-white patch (a highlight or a window), or (with SfM points) missing most of
+the outline of the photo's object points is doubtful; and the masks' areas varying across the photos far
+more than an object's silhouette does make them all doubtful. More than ``max_doubtful`` of them
+doubtful: no automatic masks at all (what misled those is in the others too); fewer: those photos go
+without. The decision and its reason are printed in one line and recorded (``doubtful`` per photo).
+
 :func:`masks_for_images` works on arrays (ingest calls it); :func:`make_masks` runs on an existing
 capture folder (after registration it seeds GrabCut with the SfM points of ``sparse/0``) and writes
 ``masks/NAME.png``, each frame's ``mask_path``, ``masks_report.json`` and a reviewable contact sheet
@@ -81,8 +91,8 @@ class MaskConfig:
     max_highlight_fraction: float = option(0.5, help="a mask whose pixels lie mostly near its largest near-white patch "
                                            "(sRGB 0.95 or more in a channel; within 1.5 radii of its area) is "
                                            "doubtful: the flash highlight of a dark object or a window, not the object")
-    min_points_inside: float = option(0.5, help="with SfM points: a mask holding fewer than this fraction of the "
-                                      "photo's object points is doubtful")
+    min_points_inside: float = option(0.5, help="with SfM points: a mask holding less than this fraction of the "
+                                      "outline (convex hull) of the photo's object points is doubtful")
     max_area_variation: float = option(0.5, help="the masks' areas (fraction of the photo) varying across the "
                                        "photos by more than this coefficient of variation make them all doubtful: "
                                        "an object seen all round keeps its size within about 2x (0.3), a window "
@@ -232,8 +242,9 @@ def _grabcut(disp: np.ndarray, gc: np.ndarray, d: np.ndarray, thr: float, cfg: M
 
 def _judge_metrics(mask: np.ndarray, disp: np.ndarray, info: dict, cfg: MaskConfig, points: np.ndarray | None) -> None:
     """What :func:`doubt` judges a mask by, into ``info``: ``border_fraction`` (of the photo's border strip
-    inside the mask), ``highlight_fraction`` (of the mask's pixels near its largest near-white patch), ``points_inside``
-    (of the photo's SfM object points, when given)."""
+    inside the mask), ``highlight_fraction`` (of the mask's pixels near its largest near-white patch),
+    ``points_inside`` (of the outline (convex hull) of the photo's SfM object points inside the mask, when
+    given)."""
     import cv2
 
     h, w = mask.shape
@@ -249,11 +260,14 @@ def _judge_metrics(mask: np.ndarray, disp: np.ndarray, info: dict, cfg: MaskConf
         dist = cv2.distanceTransform((~core).astype(np.uint8), cv2.DIST_L2, 3)
         radius = float(np.sqrt(core.sum() / np.pi))
         info["highlight_fraction"] = round(float((dist[mask] <= 1.5 * radius + 1.0).mean()), 4)
-    if points is not None and len(points):
-        ij = np.floor(points).astype(int)
-        ok = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
-        if ok.any():
-            info["points_inside"] = round(float(mask[ij[ok, 1], ij[ok, 0]].mean()), 4)
+    if points is not None and len(points) >= 3:
+        # the outline of the photo's object points, not the points themselves: they seed GrabCut as sure
+        # object, so they are inside any mask; their outline is the object's (less the gaps of a concave one)
+        hull = np.zeros((h, w), np.uint8)
+        cv2.fillConvexPoly(hull, cv2.convexHull(np.round(points).astype(np.int32)), 1)
+        hull = hull > 0
+        if hull.sum() >= 16:
+            info["points_inside"] = round(float(mask[hull].mean()), 4)
 
 
 def doubt(info: dict, cfg: MaskConfig) -> str | None:
@@ -267,7 +281,7 @@ def doubt(info: dict, cfg: MaskConfig) -> str | None:
         return (f"{100 * info['highlight_fraction']:.0f}% of the mask lies at its largest near-white patch: a "
                 "highlight or a window, not the object (a dark object on a dark background?)")
     if info.get("points_inside", 1.0) < cfg.min_points_inside:
-        return f"only {100 * info['points_inside']:.0f}% of the photo's SfM object points fall inside the mask"
+        return f"the mask holds only {100 * info['points_inside']:.0f}% of the outline of the photo's SfM object points"
     return None
 
 
