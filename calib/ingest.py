@@ -15,7 +15,11 @@ Output: ``CAPTURE/images`` (8-bit photos copied as they are so COLMAP still sees
 rotated or merged photos rewritten: 8-bit PNG or float EXR), ``masks/``, ``capture.json`` with
 identity poses and ``"posed": false`` (``texstream register`` poses it), ``ingest_report.json``
 (found / used / dropped and why), ``ingest_config.json``. Intrinsics come from ``--intrinsics``
-(calibrated, fixed in registration), EXIF (a prior) or COLMAP's default guess.
+(calibrated, fixed in registration), EXIF (a prior) or COLMAP's default guess. The EXIF focal length is
+cross-checked across its sources (:func:`.sensors.focal_prior`: the focal-plane resolution scaled to the
+photo's size, the camera body's sensor width, the 35 mm equivalent); a prior they disagree on is outvoted
+or dropped, with one line saying which and why (the report's ``focal_prior``). Automatic masks that look
+wrong (keeping the border, a highlight, sizes jumping across photos) are undone with their reason.
 """
 
 from __future__ import annotations
@@ -55,7 +59,8 @@ class IngestConfig:
                                "nonzero = object")
     auto_masks: str = option("auto", help="automatic object masks for photos without a mask file or alpha: auto "
                              "(GrabCut masks only when the photos' borders show a uniform background, e.g. an "
-                             "object on black; the decision and its reason go to the summary), none, border "
+                             "object on black, and undone when they look wrong; the decision and its reason go "
+                             "to the summary), none, border "
                              "(threshold against the border colour), grabcut (threshold refined by GrabCut)",
                              choices=MASK_MODES)
     alpha_masks: bool = option(True, help="use a photo's alpha channel as its mask when it has one and no mask file")

@@ -9,7 +9,9 @@ Pipeline (what COLMAP's automatic reconstructor does, with capture-folder plumbi
    camera models), with calibrated intrinsics (``--intrinsics``, fixed unless
    ``--refine-intrinsics``) or COLMAP's own focal guess;
 3. exhaustive matching (sequential or vocabulary tree for large or video-like sets);
-4. incremental mapping; the largest model is kept and unregistered photos are reported; with
+4. incremental mapping; with an EXIF focal prior that looks wrong after it (photos left out, the focal
+   length pulled far from the prior or to the mapper's bound), mapping again from COLMAP's default guess
+   without the prior, the better model kept; the largest model is kept and unregistered photos are reported; with
    estimated intrinsics, the lens distortion (and an auto-refined principal point) is kept only
    where it lowers the reprojection error (``--min-self-calibration-gain``), else the cameras are
    made pinhole and re-adjusted: an unneeded distortion term bends the focal length and the poses;
@@ -692,6 +694,7 @@ def register(capture: str | os.PathLike, out: str | os.PathLike, config: Registe
     summary["alignment"] = report.get("alignment")
     summary["principal_point"] = report.get("principal_point")
     summary["distortion"] = report.get("distortion")
+    summary["focal_prior"] = report.get("focal_prior")
     return StageResult(output=out, summary=summary)
 
 
