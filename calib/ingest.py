@@ -282,17 +282,15 @@ def _write_mask(mask_dir: Path, lead: dict, name: str, orient: int, size: tuple[
     return mask_rel
 
 
-def _view_intrinsics(lead: dict, w: int, h: int, cams, cfg: IngestConfig, sources: set,
-                     focal_decisions: dict) -> Intrinsics:
-    """A view's intrinsics: the calibrated ones of its size (``cams``), else the EXIF focal length cross-checked
-    across its sources (:func:`.sensors.focal_prior`), else COLMAP's guess; where they came from is added to
-    ``sources``, and each distinct focal decision to ``focal_decisions`` (decision -> entry, printed once)."""
+def _view_intrinsics(lead: dict, w: int, h: int, cams, cfg: IngestConfig,
+                     focal_decisions: dict) -> tuple[Intrinsics, str]:
+    """A view's intrinsics and where they came from: the calibrated ones of its size (``cams``), else the EXIF
+    focal length cross-checked across its sources (:func:`.sensors.focal_prior`), else COLMAP's guess; each
+    distinct focal decision goes to ``focal_decisions`` (decision -> entry, printed once)."""
     if cams is not None:
-        sources.add("calibrated")
-        return intrinsics_for_size(cams, w, h, cfg.intrinsics)
+        return intrinsics_for_size(cams, w, h, cfg.intrinsics), "calibrated"
     prior = focal_prior(lead["exif"], w, h)
     f_px = prior["focal_px"]
-    sources.add("exif" if f_px else "guess")
     entry = focal_decisions.get(prior["decision"])
     if entry is None:
         entry = focal_decisions[prior["decision"]] = {k: prior[k] for k in ("decision", "focal_px", "candidates",
@@ -302,8 +300,8 @@ def _view_intrinsics(lead: dict, w: int, h: int, cams, cfg: IngestConfig, source
             say("ingest", f"focal length: {prior['decision']}")
     entry["images"].append(lead["path"].name)
     # COLMAP's default guess when EXIF has no usable focal length: 1.2 x the longest side.
-    f_px = f_px or 1.2 * max(w, h)
-    return Intrinsics(width=w, height=h, fx=f_px, fy=f_px, cx=w / 2, cy=h / 2)
+    f = f_px or 1.2 * max(w, h)
+    return Intrinsics(width=w, height=h, fx=f, fy=f, cx=w / 2, cy=h / 2), "exif" if f_px else "guess"
 
 
 def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConfig | None = None) -> StageResult:
@@ -370,14 +368,16 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
             # What automatic masks see: the stored photo, upright (8-bit: sRGB codes; else linear).
             mask_src = (mask_view, len(members) == 1 and lead["eight_bit"])
             mask_rel = _write_mask(mask_dir, lead, name, orient, (w, h), tmp, cfg, dropped)
-            intr = _view_intrinsics(lead, w, h, cams, cfg, sources, focal_decisions)
+            intr, source = _view_intrinsics(lead, w, h, cams, cfg, focal_decisions)
+            sources.add(source)
             ex = lead["exif"]
             gain = None
             if ex.get("exposure_time"):
                 # Sensor exposure ~ t * ISO / N^2 (N = 1 and ISO 100 when unknown: only ratios matter).
                 gain = float(ex["exposure_time"]) * float(ex.get("iso", 100.0)) / 100.0 / float(ex.get("f_number", 1.0)) ** 2
             light = frame_lights.get(name) or frame_lights.get(lead["path"].name) or default_light
-            extra = {"source_images": [m["path"].name for m in members]}
+            # per frame too: registration gives an EXIF prior as one, a guess as none
+            extra = {"source_images": [m["path"].name for m in members], "focal_prior": source}
             if ex:
                 extra["exif"] = {k: v for k, v in ex.items() if k in ("exposure_time", "iso", "f_number", "focal_mm",
                                                                         "focal_35mm", "orientation", "make", "model")}

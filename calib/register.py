@@ -210,13 +210,16 @@ def _stage_images(photos: list[_Photo], work: Path) -> tuple[Path, Path | None]:
     return img_dir, mask_dir
 
 
-def _camera_groups(photos: list[_Photo], cfg: RegisterConfig, source: str) -> list[tuple[list[_Photo], str, str]]:
-    """Group photos into COLMAP cameras by image size: (photos, model, params string or '').
+def _camera_groups(photos: list[_Photo], cfg: RegisterConfig,
+                   source: str) -> list[tuple[list[_Photo], str, str, bool | None]]:
+    """Group photos into COLMAP cameras by image size: (photos, model, params string or '', whether the focal
+    length is a prior: None when COLMAP decides or the intrinsics are given).
 
-    ``source`` is the capture's ``intrinsics_source`` (ingest): ``calibrated`` frames' intrinsics are
-    used as given; ``exif`` focal lengths (ingest's cross-checked prior) and ``guess`` ones (1.2 x the longer
-    side, where ingest dropped a doubtful prior) seed COLMAP's estimate of ``cfg.camera_model``: given
-    explicitly, so COLMAP does not read the photos' EXIF again (it would take the stale focal-plane tags).
+    ``source`` is the capture's ``intrinsics_source`` (ingest), or the frame's own ``focal_prior`` when it
+    has one: ``calibrated`` frames' intrinsics are used as given; ``exif`` focal lengths (ingest's
+    cross-checked prior) and ``guess`` ones (1.2 x the longer side, where EXIF had none or ingest dropped a
+    doubtful one: no prior) seed COLMAP's estimate of ``cfg.camera_model``, given explicitly so COLMAP does
+    not read the photos' EXIF again (it would take the stale focal-plane tags).
     """
     cams = load_intrinsics(cfg.intrinsics) if cfg.intrinsics else None
     groups: dict[tuple[int, int], list[_Photo]] = {}
@@ -224,21 +227,38 @@ def _camera_groups(photos: list[_Photo], cfg: RegisterConfig, source: str) -> li
         groups.setdefault((p.width, p.height), []).append(p)
     out = []
     for (w, h), ps in sorted(groups.items(), key=lambda kv: -len(kv[1])):
+        kind = ps[0].frame.extra.get("focal_prior", source) if ps[0].frame is not None else None
         if cams is not None:
             model, params = intrinsics_to_colmap(intrinsics_for_size(cams, w, h, cfg.intrinsics))
-            out.append((ps, model, ",".join(f"{x:.10g}" for x in params)))
+            out.append((ps, model, ",".join(f"{x:.10g}" for x in params), None))
         elif source == "calibrated" and ps[0].frame is not None:
             model, params = intrinsics_to_colmap(ps[0].frame.intrinsics)
-            out.append((ps, model, ",".join(f"{x:.10g}" for x in params)))
-        elif source in ("exif", "guess") and ps[0].frame is not None:
+            out.append((ps, model, ",".join(f"{x:.10g}" for x in params), None))
+        elif kind in ("exif", "guess"):
             i0 = ps[0].frame.intrinsics
             n_extra = {"SIMPLE_PINHOLE": 0, "PINHOLE": 0, "SIMPLE_RADIAL": 1, "RADIAL": 2, "OPENCV": 4}[cfg.camera_model]
             f = [i0.fx] if cfg.camera_model.startswith("SIMPLE") or cfg.camera_model == "RADIAL" else [i0.fx, i0.fy]
             params = f + [i0.cx, i0.cy] + [0.0] * n_extra
-            out.append((ps, cfg.camera_model, ",".join(f"{x:.10g}" for x in params)))
+            out.append((ps, cfg.camera_model, ",".join(f"{x:.10g}" for x in params), kind == "exif"))
         else:
-            out.append((ps, cfg.camera_model, ""))
+            out.append((ps, cfg.camera_model, "", None))
     return out
+
+
+def _drop_focal_priors(db: Path, names: list[str]) -> None:
+    """Mark the cameras of these images as having no focal-length prior (COLMAP marks explicitly given
+    parameters as one; a guess is not)."""
+    import pycolmap
+
+    database = pycolmap.Database.open(str(db))
+    try:
+        ids = {im.camera_id for im in database.read_all_images() if im.name in set(names)}
+        for cam in database.read_all_cameras():
+            if cam.camera_id in ids:
+                cam.has_prior_focal_length = False
+                database.update_camera(cam)
+    finally:
+        database.close()
 
 
 def _run_colmap(photos: list[_Photo], img_dir: Path, mask_dir: Path | None, work: Path, cfg: RegisterConfig,
@@ -251,7 +271,8 @@ def _run_colmap(photos: list[_Photo], img_dir: Path, mask_dir: Path | None, work
     eo.sift.max_num_features = cfg.max_num_features
     eo.max_image_size = cfg.max_image_size
     eo.num_threads = cfg.extraction_threads  # reproducible image ids (geometry/triangulate.py says why)
-    for ps, model, params in _camera_groups(photos, cfg, source):
+    cameras = _camera_groups(photos, cfg, source)
+    for ps, model, params, _ in cameras:
         ro = pycolmap.ImageReaderOptions()
         ro.camera_model = model
         if params:
@@ -264,6 +285,9 @@ def _run_colmap(photos: list[_Photo], img_dir: Path, mask_dir: Path | None, work
                                       camera_mode=pycolmap.CameraMode.SINGLE, reader_options=ro,
                                       extraction_options=eo, device=pycolmap.Device.cpu)
     timings["extract_s"] = time.perf_counter() - t0
+    guessed = [p.name for ps, _, _, prior in cameras if prior is False for p in ps]
+    if guessed:
+        _drop_focal_priors(db, guessed)
     t0 = time.perf_counter()
     mo = pycolmap.FeatureMatchingOptions()
     mo.num_threads = cfg.num_threads
@@ -297,7 +321,7 @@ def _run_colmap(photos: list[_Photo], img_dir: Path, mask_dir: Path | None, work
     timings["map_s"] = time.perf_counter() - t0
     if timings["map_s"] >= 1.0:
         say("register", f"incremental mapping: {timings['map_s']:.1f} s")
-    if source == "exif" and not fixed:
+    if any(prior for _, _, _, prior in cameras) and not fixed:
         recs = _check_focal_prior(recs, db, img_dir, work, len(photos), cfg, report)
     return recs
 
@@ -351,7 +375,7 @@ def _check_focal_prior(recs: dict[int, Any], db: Path, img_dir: Path, work: Path
     lo, hi = op.mapper.min_focal_length_ratio, op.mapper.max_focal_length_ratio
     database = pycolmap.Database.open(str(db))
     try:
-        priors = {cid: c for cid, c in ((c.camera_id, c) for c in database.read_all_cameras())}
+        priors = {c.camera_id: c for c in database.read_all_cameras() if c.has_prior_focal_length}
     finally:
         database.close()
     n_reg, _ = _model_quality(recs)
