@@ -286,7 +286,7 @@ def _view_intrinsics(lead: dict, w: int, h: int, cams, cfg: IngestConfig,
                      focal_decisions: dict) -> tuple[Intrinsics, str]:
     """A view's intrinsics and where they came from: the calibrated ones of its size (``cams``), else the EXIF
     focal length cross-checked across its sources (:func:`.sensors.focal_prior`), else COLMAP's guess; each
-    distinct focal decision goes to ``focal_decisions`` (decision -> entry, printed once)."""
+    distinct focal decision goes to ``focal_decisions`` (decision -> entry) and is printed once."""
     if cams is not None:
         return intrinsics_for_size(cams, w, h, cfg.intrinsics), "calibrated"
     prior = focal_prior(lead["exif"], w, h)
@@ -296,8 +296,7 @@ def _view_intrinsics(lead: dict, w: int, h: int, cams, cfg: IngestConfig,
         entry = focal_decisions[prior["decision"]] = {k: prior[k] for k in ("decision", "focal_px", "candidates",
                                                                             "used", "notes", "checked")}
         entry.update(size=f"{w}x{h}", images=[])
-        if len(prior["candidates"]) > 1 or not f_px or "scaled" in prior["notes"].get("focal_plane", ""):
-            say("ingest", f"focal length: {prior['decision']}")
+        say("ingest", f"focal length: {prior['decision']}")
     entry["images"].append(lead["path"].name)
     # COLMAP's default guess when EXIF has no usable focal length: 1.2 x the longest side.
     f = f_px or 1.2 * max(w, h)

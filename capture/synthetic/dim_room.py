@@ -64,8 +64,8 @@ def _room_radiance(origin: np.ndarray, dirs: np.ndarray, half: float, flash: flo
 
 
 def dim_room_photos(count: int = 8, size: int | tuple[int, int] = 160, seed: int = 0, device: str = "cpu") -> DimRoom:
-    """``count`` photos (``size``: width and height, or one side of a square; a ring at 15 degrees elevation) of the dark glossy ornament in the
-    dim room, with the renderer's object masks."""
+    """``count`` photos (``size``: width and height, or one side of a square; a ring at 15 degrees
+    elevation) of the dark glossy ornament in the dim room, with the renderer's object masks."""
     sc = load_scene("ornament")
     sc["materials"] = {"bronze": {"rho_d": [0.012, 0.009, 0.006],
                                   "lobes": [{"rho_s": [0.9, 0.75, 0.5], "c_z": 1.0, "n": 40}]}}
