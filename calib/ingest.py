@@ -391,6 +391,8 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
                 fr.exposure = g / ref
             frames.append(fr)
         extra_top: dict[str, Any] = {"posed": False, "intrinsics_source": "+".join(sorted(sources))}
+        if focal_decisions:
+            extra_top["focal_prior"] = [d["decision"] for d in focal_decisions.values()]
         if cfg.colocated_light is not None:
             extra_top["colocated_light"] = {"intensity": [float(cfg.colocated_light)] * 3, "offset": [0.0, 0.0, 0.0]}
         write_capture(Capture(root=tmp, frames=frames, extra=extra_top), tmp)

@@ -702,6 +702,8 @@ def _capture_extra(cap: Capture | None, cfg: RegisterConfig, fixed: bool, report
     extra = dict(cap.extra) if cap is not None else {}
     extra.pop("posed", None)
     extra.pop("colocated_light", None)
+    if (report.get("focal_prior") or {}).get("retried"):
+        extra["focal_prior_registration"] = report["focal_prior"]["decision"]
     if not fixed:
         # Bundle adjustment estimated the intrinsics: say so, and keep where they started.
         extra["intrinsics_prior"] = extra.get("intrinsics_source") or ("guess" if cap is None else "unknown")

@@ -115,3 +115,4 @@ def test_registration_recovers_from_a_prior_six_times_too_long(tmp_path):
     assert fx == pytest.approx(made["focal_px"], rel=0.02)
     report = json.loads((tmp_path / "reg" / "registration_report.json").read_text())
     assert report["focal_prior"]["retried"] and report["focal_prior"]["kept"] == "no_prior"
+    assert "without the EXIF prior" in read_capture(tmp_path / "reg").extra["focal_prior_registration"]
