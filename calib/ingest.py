@@ -15,7 +15,11 @@ Output: ``CAPTURE/images`` (8-bit photos copied as they are so COLMAP still sees
 rotated or merged photos rewritten: 8-bit PNG or float EXR), ``masks/``, ``capture.json`` with
 identity poses and ``"posed": false`` (``texstream register`` poses it), ``ingest_report.json``
 (found / used / dropped and why), ``ingest_config.json``. Intrinsics come from ``--intrinsics``
-(calibrated, fixed in registration), EXIF (a prior) or COLMAP's default guess.
+(calibrated, fixed in registration), EXIF (a prior) or COLMAP's default guess. The EXIF focal length is
+cross-checked across its sources (:func:`.sensors.focal_prior`: the focal-plane resolution scaled to the
+photo's size, the camera body's sensor width, the 35 mm equivalent); a prior they disagree on is outvoted
+or dropped, with one line saying which and why (the report's ``focal_prior``). Automatic masks that look
+wrong (keeping the border, a highlight, sizes jumping across photos) are undone with their reason.
 """
 
 from __future__ import annotations
@@ -34,7 +38,7 @@ from texstream.capture.imageio import read_alpha, read_image, read_mask, srgb_to
 from texstream.core.errors import InputError, StageError, TexstreamError
 from texstream.core.config import option, save_config
 from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
-from texstream.core.progress import bar
+from texstream.core.progress import bar, say
 
 from .files import list_images, write_failure_report
 from .lights import load_lights_file
@@ -42,6 +46,7 @@ from .masks import MASK_MODES, MaskConfig, masks_for_images, write_mask_preview
 from .hdr import (BRACKET_MODES, HDR_METHODS, bracket_alignment, calibrate_response, group_brackets, is_exif_bracket,
                   merge_brackets_8bit, merge_brackets_linear)
 from .intrinsics import intrinsics_for_size, load_intrinsics
+from .sensors import focal_prior
 
 REPORT_FILE = "ingest_report.json"
 
@@ -54,7 +59,8 @@ class IngestConfig:
                                "nonzero = object")
     auto_masks: str = option("auto", help="automatic object masks for photos without a mask file or alpha: auto "
                              "(GrabCut masks only when the photos' borders show a uniform background, e.g. an "
-                             "object on black; the decision and its reason go to the summary), none, border "
+                             "object on black, and undone when they look wrong; the decision and its reason go "
+                             "to the summary), none, border "
                              "(threshold against the border colour), grabcut (threshold refined by GrabCut)",
                              choices=MASK_MODES)
     alpha_masks: bool = option(True, help="use a photo's alpha channel as its mask when it has one and no mask file")
@@ -96,7 +102,8 @@ def _exif(path: Path) -> dict[str, Any]:
                           ("Exif:ExposureMode", "exposure_mode"),
                           ("Make", "make"), ("Model", "model"),
                           ("Exif:FocalPlaneXResolution", "focal_plane_xres"),
-                          ("Exif:FocalPlaneResolutionUnit", "focal_plane_unit")):
+                          ("Exif:FocalPlaneResolutionUnit", "focal_plane_unit"),
+                          ("Exif:PixelXDimension", "pixel_x"), ("Exif:PixelYDimension", "pixel_y")):
             v = spec.getattribute(key)
             if v is not None and name not in out:
                 out[name] = v if isinstance(v, str) else float(np.ravel(v)[0])
@@ -112,17 +119,6 @@ def apply_orientation(img: np.ndarray, orientation: int) -> np.ndarray:
            5: lambda a: a.swapaxes(0, 1), 6: lambda a: np.rot90(a, -1), 7: lambda a: a.swapaxes(0, 1)[::-1, ::-1],
            8: lambda a: np.rot90(a, 1)}
     return np.ascontiguousarray(ops.get(o, ops[1])(img))
-
-
-def _focal_px(exif: dict, w: int, h: int) -> float | None:
-    """Focal length in pixels from EXIF: 35 mm equivalent, else focal plane resolution."""
-    if exif.get("focal_35mm"):
-        return float(exif["focal_35mm"]) / 36.0 * max(w, h)
-    unit = {2: 25.4, 3: 10.0, 4: 1.0}.get(int(exif.get("focal_plane_unit", 0) or 0))
-    if exif.get("focal_mm") and exif.get("focal_plane_xres") and unit:
-        # Pixels per mm on the sensor (for the original resolution; may be off for resized copies).
-        return float(exif["focal_mm"]) * float(exif["focal_plane_xres"]) / unit
-    return None
 
 
 def _find_mask(mask_dir: Path, photo: Path) -> Path | None:
@@ -286,19 +282,25 @@ def _write_mask(mask_dir: Path, lead: dict, name: str, orient: int, size: tuple[
     return mask_rel
 
 
-def _view_intrinsics(lead: dict, w: int, h: int, cams, cfg: IngestConfig, sources: set) -> Intrinsics:
-    """A view's intrinsics: the calibrated ones of its size (``cams``), else from the EXIF focal length, else
-    COLMAP's guess; where they came from is added to ``sources``."""
+def _view_intrinsics(lead: dict, w: int, h: int, cams, cfg: IngestConfig,
+                     focal_decisions: dict) -> tuple[Intrinsics, str]:
+    """A view's intrinsics and where they came from: the calibrated ones of its size (``cams``), else the EXIF
+    focal length cross-checked across its sources (:func:`.sensors.focal_prior`), else COLMAP's guess; each
+    distinct focal decision goes to ``focal_decisions`` (decision -> entry) and is printed once."""
     if cams is not None:
-        intr = intrinsics_for_size(cams, w, h, cfg.intrinsics)
-        sources.add("calibrated")
-    else:
-        f_px = _focal_px(lead["exif"], w, h)
-        sources.add("exif" if f_px else "guess")
-        # COLMAP's default guess when EXIF has no focal length: 1.2 x the longest side.
-        f_px = f_px or 1.2 * max(w, h)
-        intr = Intrinsics(width=w, height=h, fx=f_px, fy=f_px, cx=w / 2, cy=h / 2)
-    return intr
+        return intrinsics_for_size(cams, w, h, cfg.intrinsics), "calibrated"
+    prior = focal_prior(lead["exif"], w, h)
+    f_px = prior["focal_px"]
+    entry = focal_decisions.get(prior["decision"])
+    if entry is None:
+        entry = focal_decisions[prior["decision"]] = {k: prior[k] for k in ("decision", "focal_px", "candidates",
+                                                                            "used", "notes", "checked")}
+        entry.update(size=f"{w}x{h}", images=[])
+        say("ingest", f"focal length: {prior['decision']}")
+    entry["images"].append(lead["path"].name)
+    # COLMAP's default guess when EXIF has no usable focal length: 1.2 x the longest side.
+    f = f_px or 1.2 * max(w, h)
+    return Intrinsics(width=w, height=h, fx=f, fy=f, cx=w / 2, cy=h / 2), "exif" if f_px else "guess"
 
 
 def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConfig | None = None) -> StageResult:
@@ -350,7 +352,8 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
         cams = load_intrinsics(cfg.intrinsics)
     default_light, frame_lights = load_lights_file(cfg.lights) if cfg.lights else (None, {})
     frames: list[Frame] = []
-    sources = set()
+    sources: set[str] = set()
+    focal_decisions: dict[str, dict] = {}
     with atomic_output_dir(out) as tmp:
         (tmp / "images").mkdir()
         entries = []
@@ -364,14 +367,16 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
             # What automatic masks see: the stored photo, upright (8-bit: sRGB codes; else linear).
             mask_src = (mask_view, len(members) == 1 and lead["eight_bit"])
             mask_rel = _write_mask(mask_dir, lead, name, orient, (w, h), tmp, cfg, dropped)
-            intr = _view_intrinsics(lead, w, h, cams, cfg, sources)
+            intr, source = _view_intrinsics(lead, w, h, cams, cfg, focal_decisions)
+            sources.add(source)
             ex = lead["exif"]
             gain = None
             if ex.get("exposure_time"):
                 # Sensor exposure ~ t * ISO / N^2 (N = 1 and ISO 100 when unknown: only ratios matter).
                 gain = float(ex["exposure_time"]) * float(ex.get("iso", 100.0)) / 100.0 / float(ex.get("f_number", 1.0)) ** 2
             light = frame_lights.get(name) or frame_lights.get(lead["path"].name) or default_light
-            extra = {"source_images": [m["path"].name for m in members]}
+            # per frame too: registration gives an EXIF prior as one, a guess as none
+            extra = {"source_images": [m["path"].name for m in members], "focal_prior": source}
             if ex:
                 extra["exif"] = {k: v for k, v in ex.items() if k in ("exposure_time", "iso", "f_number", "focal_mm",
                                                                         "focal_35mm", "orientation", "make", "model")}
@@ -386,6 +391,8 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
                 fr.exposure = g / ref
             frames.append(fr)
         extra_top: dict[str, Any] = {"posed": False, "intrinsics_source": "+".join(sorted(sources))}
+        if focal_decisions:
+            extra_top["focal_prior"] = [d["decision"] for d in focal_decisions.values()]
         if cfg.colocated_light is not None:
             extra_top["colocated_light"] = {"intensity": [float(cfg.colocated_light)] * 3, "offset": [0.0, 0.0, 0.0]}
         write_capture(Capture(root=tmp, frames=frames, extra=extra_top), tmp)
@@ -394,6 +401,7 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
         report["bracket_decisions"] = decisions
         report["camera_sizes"] = sorted({f"{f.intrinsics.width}x{f.intrinsics.height}" for f in frames})
         report["auto_masks"] = auto
+        report["focal_prior"] = list(focal_decisions.values())
         write_json_atomic(tmp / REPORT_FILE, report)
         save_config(cfg, tmp / "ingest_config.json")
         if auto.get("masks"):
@@ -402,5 +410,6 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
                "bracket_decisions": decisions,
                "masks": sum(1 for f in frames if f.mask_path), "intrinsics_source": extra_top["intrinsics_source"],
                "camera_sizes": report["camera_sizes"],
+               "focal_prior": [d["decision"] for d in focal_decisions.values()],
                "auto_masks": {k: auto.get(k) for k in ("mode", "decision", "masks")}}
     return StageResult(output=out, summary=summary)

@@ -9,7 +9,9 @@ Pipeline (what COLMAP's automatic reconstructor does, with capture-folder plumbi
    camera models), with calibrated intrinsics (``--intrinsics``, fixed unless
    ``--refine-intrinsics``) or COLMAP's own focal guess;
 3. exhaustive matching (sequential or vocabulary tree for large or video-like sets);
-4. incremental mapping; the largest model is kept and unregistered photos are reported; with
+4. incremental mapping; with an EXIF focal prior that looks wrong after it (photos left out, the focal
+   length pulled far from the prior or to the mapper's bound), mapping again from COLMAP's default guess
+   without the prior, the better model kept; the largest model is kept and unregistered photos are reported; with
    estimated intrinsics, the lens distortion (and an auto-refined principal point) is kept only
    where it lowers the reprojection error (``--min-self-calibration-gain``), else the cameras are
    made pinhole and re-adjusted: an unneeded distortion term bends the focal length and the poses;
@@ -45,6 +47,7 @@ from texstream.core.outputs import StageResult, atomic_output_dir, write_json_at
 from texstream.core.progress import bar, phase, say
 
 from .colmap_log import colmap_quiet, quiet_colmap_log
+from .focal_check import check_focal_prior, drop_focal_priors
 from .colmap_io import intrinsics_to_colmap, opencv_distortion, reconstruction_frames
 from .files import list_images, write_failure_report
 from .intrinsics import intrinsics_for_size, load_intrinsics
@@ -208,11 +211,16 @@ def _stage_images(photos: list[_Photo], work: Path) -> tuple[Path, Path | None]:
     return img_dir, mask_dir
 
 
-def _camera_groups(photos: list[_Photo], cfg: RegisterConfig, source: str) -> list[tuple[list[_Photo], str, str]]:
-    """Group photos into COLMAP cameras by image size: (photos, model, params string or '').
+def _camera_groups(photos: list[_Photo], cfg: RegisterConfig,
+                   source: str) -> list[tuple[list[_Photo], str, str, bool | None]]:
+    """Group photos into COLMAP cameras by image size: (photos, model, params string or '', whether the focal
+    length is a prior: None when COLMAP decides or the intrinsics are given).
 
-    ``source`` is the capture's ``intrinsics_source`` (ingest): ``calibrated`` frames' intrinsics are
-    used as given; ``exif`` focal lengths seed COLMAP's estimate of ``cfg.camera_model``.
+    ``source`` is the capture's ``intrinsics_source`` (ingest), or the frame's own ``focal_prior`` when it
+    has one: ``calibrated`` frames' intrinsics are used as given; ``exif`` focal lengths (ingest's
+    cross-checked prior) and ``guess`` ones (1.2 x the longer side, where EXIF had none or ingest dropped a
+    doubtful one: no prior) seed COLMAP's estimate of ``cfg.camera_model``, given explicitly so COLMAP does
+    not read the photos' EXIF again (it would take the stale focal-plane tags).
     """
     cams = load_intrinsics(cfg.intrinsics) if cfg.intrinsics else None
     groups: dict[tuple[int, int], list[_Photo]] = {}
@@ -220,20 +228,21 @@ def _camera_groups(photos: list[_Photo], cfg: RegisterConfig, source: str) -> li
         groups.setdefault((p.width, p.height), []).append(p)
     out = []
     for (w, h), ps in sorted(groups.items(), key=lambda kv: -len(kv[1])):
+        kind = ps[0].frame.extra.get("focal_prior", source) if ps[0].frame is not None else None
         if cams is not None:
             model, params = intrinsics_to_colmap(intrinsics_for_size(cams, w, h, cfg.intrinsics))
-            out.append((ps, model, ",".join(f"{x:.10g}" for x in params)))
+            out.append((ps, model, ",".join(f"{x:.10g}" for x in params), None))
         elif source == "calibrated" and ps[0].frame is not None:
             model, params = intrinsics_to_colmap(ps[0].frame.intrinsics)
-            out.append((ps, model, ",".join(f"{x:.10g}" for x in params)))
-        elif source == "exif" and ps[0].frame is not None:
+            out.append((ps, model, ",".join(f"{x:.10g}" for x in params), None))
+        elif kind in ("exif", "guess"):
             i0 = ps[0].frame.intrinsics
             n_extra = {"SIMPLE_PINHOLE": 0, "PINHOLE": 0, "SIMPLE_RADIAL": 1, "RADIAL": 2, "OPENCV": 4}[cfg.camera_model]
             f = [i0.fx] if cfg.camera_model.startswith("SIMPLE") or cfg.camera_model == "RADIAL" else [i0.fx, i0.fy]
             params = f + [i0.cx, i0.cy] + [0.0] * n_extra
-            out.append((ps, cfg.camera_model, ",".join(f"{x:.10g}" for x in params)))
+            out.append((ps, cfg.camera_model, ",".join(f"{x:.10g}" for x in params), kind == "exif"))
         else:
-            out.append((ps, cfg.camera_model, ""))
+            out.append((ps, cfg.camera_model, "", None))
     return out
 
 
@@ -247,7 +256,8 @@ def _run_colmap(photos: list[_Photo], img_dir: Path, mask_dir: Path | None, work
     eo.sift.max_num_features = cfg.max_num_features
     eo.max_image_size = cfg.max_image_size
     eo.num_threads = cfg.extraction_threads  # reproducible image ids (geometry/triangulate.py says why)
-    for ps, model, params in _camera_groups(photos, cfg, source):
+    cameras = _camera_groups(photos, cfg, source)
+    for ps, model, params, _ in cameras:
         ro = pycolmap.ImageReaderOptions()
         ro.camera_model = model
         if params:
@@ -260,6 +270,9 @@ def _run_colmap(photos: list[_Photo], img_dir: Path, mask_dir: Path | None, work
                                       camera_mode=pycolmap.CameraMode.SINGLE, reader_options=ro,
                                       extraction_options=eo, device=pycolmap.Device.cpu)
     timings["extract_s"] = time.perf_counter() - t0
+    guessed = [p.name for ps, _, _, prior in cameras if prior is False for p in ps]
+    if guessed:
+        drop_focal_priors(db, guessed)
     t0 = time.perf_counter()
     mo = pycolmap.FeatureMatchingOptions()
     mo.num_threads = cfg.num_threads
@@ -287,29 +300,40 @@ def _run_colmap(photos: list[_Photo], img_dir: Path, mask_dir: Path | None, work
     timings["match_s"] = time.perf_counter() - t0
     groups = match_groups(db, vo.min_num_inliers)
     check_groups(groups, photos, capture_root, out, cfg, report)
+    fixed = bool(cfg.intrinsics or source == "calibrated") and not cfg.refine_intrinsics
     t0 = time.perf_counter()
+    recs = _map(db, img_dir, work / "sparse", len(photos), cfg, fixed)
+    timings["map_s"] = time.perf_counter() - t0
+    if timings["map_s"] >= 1.0:
+        say("register", f"incremental mapping: {timings['map_s']:.1f} s")
+    if any(prior for _, _, _, prior in cameras) and not fixed:
+        recs = check_focal_prior(recs, db, len(photos), report,
+                                 lambda: _map(db, img_dir, work / "sparse_no_prior", len(photos), cfg, fixed=False))
+    return recs
+
+
+def _map(db: Path, img_dir: Path, sparse: Path, n_photos: int, cfg: RegisterConfig, fixed: bool) -> dict[int, Any]:
+    """COLMAP's incremental mapping of the database's photos (intrinsics held when ``fixed``)."""
+    import pycolmap
+
     op = pycolmap.IncrementalPipelineOptions()
     op.num_threads = cfg.num_threads
     op.random_seed = cfg.seed
     op.min_model_size = cfg.min_model_size
-    if (cfg.intrinsics or source == "calibrated") and not cfg.refine_intrinsics:
+    if fixed:
         op.ba_refine_focal_length = False
         op.ba_refine_principal_point = False
         op.ba_refine_extra_params = False
         op.mapper.abs_pose_refine_focal_length = False
         op.mapper.abs_pose_refine_extra_params = False
-    say("register", f"incremental mapping of {len(photos)} photos")
-    with colmap_quiet() as term, bar(total=len(photos), desc="register: mapping", unit="photo", file=term) as b:
+    say("register", f"incremental mapping of {n_photos} photos")
+    with colmap_quiet() as term, bar(total=n_photos, desc="register: mapping", unit="photo", file=term) as b:
         def step(k: int) -> None:  # photos registered, counted over every model the mapper starts
-            b.update(min(k, max(0, len(photos) - b.n)))
+            b.update(min(k, max(0, n_photos - b.n)))
 
-        recs = pycolmap.incremental_mapping(db, img_dir, work / "sparse", options=op,
+        return pycolmap.incremental_mapping(db, img_dir, sparse, options=op,
                                             initial_image_pair_callback=lambda: step(2),
                                             next_image_callback=lambda: step(1))
-    timings["map_s"] = time.perf_counter() - t0
-    if timings["map_s"] >= 1.0:
-        say("register", f"incremental mapping: {timings['map_s']:.1f} s")
-    return recs
 
 
 PINHOLE_OF = {"SIMPLE_RADIAL": ("SIMPLE_PINHOLE", 3), "RADIAL": ("SIMPLE_PINHOLE", 3),
@@ -610,6 +634,7 @@ def register(capture: str | os.PathLike, out: str | os.PathLike, config: Registe
     summary["alignment"] = report.get("alignment")
     summary["principal_point"] = report.get("principal_point")
     summary["distortion"] = report.get("distortion")
+    summary["focal_prior"] = report.get("focal_prior")
     return StageResult(output=out, summary=summary)
 
 
@@ -677,6 +702,8 @@ def _capture_extra(cap: Capture | None, cfg: RegisterConfig, fixed: bool, report
     extra = dict(cap.extra) if cap is not None else {}
     extra.pop("posed", None)
     extra.pop("colocated_light", None)
+    if (report.get("focal_prior") or {}).get("retried"):
+        extra["focal_prior_registration"] = report["focal_prior"]["decision"]
     if not fixed:
         # Bundle adjustment estimated the intrinsics: say so, and keep where they started.
         extra["intrinsics_prior"] = extra.get("intrinsics_source") or ("guess" if cap is None else "unknown")

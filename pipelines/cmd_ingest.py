@@ -22,5 +22,8 @@ def run(args: argparse.Namespace) -> int:
           f"{s['masks']} mask(s), cameras {', '.join(s['camera_sizes'])}, intrinsics: {s['intrinsics_source']}")
     for d in s["dropped"]:
         print(f"  dropped: {d['image']} ({d['reason']})")
+    for line in s.get("focal_prior", []):
+        print(f"  focal length: {line}")
+    print(f"  masks: {s['auto_masks']['decision']}")
     print(f"wrote {res.output}")
     return 0

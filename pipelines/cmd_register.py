@@ -36,5 +36,7 @@ def run(args: argparse.Namespace) -> int:
                   f"({100 * a['rms_fraction']:.2f}% of the extent)")
         else:
             print(f"aligned to {a['common']} known centres: scale {a['scale']:.4g}, centre RMSE {a['rmse']:.4g}")
+    if (s.get("focal_prior") or {}).get("retried"):
+        print(f"  {s['focal_prior']['decision']} ({s['focal_prior']['reason']})")
     print(f"wrote {out}")
     return 0

@@ -119,10 +119,11 @@ def test_ingest_folder(tmp_path):
     assert cap.image_path(fr["a1"]).suffix == ".exr" and fr["a1"].saturation is None
     scale = np.median(rad * 0.25 / hdr)
     assert np.percentile(np.abs(hdr * scale / (rad * 0.25) - 1), 95) < 0.03  # 3 brackets only: 3%
-    # Rotated photo: stored upright (64x48 -> 48x64), mask rotated with it, focal from 35 mm equivalent.
+    # Rotated photo: stored upright (64x48 -> 48x64), mask rotated with it, focal from the 35 mm equivalent.
     b = fr["b"]
     assert (b.intrinsics.width, b.intrinsics.height) == (48, 64)
-    assert b.intrinsics.fx == pytest.approx(64.0)  # 36 mm equivalent on a 36 mm frame = longest side
+    # 36 mm equivalent: the 35 mm frame's diagonal (43.27 mm, CIPA's convention) over the photo's (80 px)
+    assert b.intrinsics.fx == pytest.approx(36.0 / np.hypot(36.0, 24.0) * 80.0)
     from texstream.capture.imageio import read_mask
 
     m = read_mask(cap.mask_path(b))
