@@ -50,11 +50,11 @@ def _intrinsics(records: list, capture) -> dict:
     _, reg = _summary(records, "register")
     src = ing.get("intrinsics_source") or (capture.extra.get("intrinsics_source") if capture is not None else None)
     why_parts = []
-    prior = ing.get("focal_prior") or {}
-    if prior.get("decision"):
-        why_parts.append(str(prior["decision"]))
-    if reg.get("focal") and isinstance(reg["focal"], dict) and reg["focal"].get("decision"):
-        why_parts.append(str(reg["focal"]["decision"]))
+    prior = ing.get("focal_prior") or []  # ingest: one decision per distinct EXIF case (calib/sensors.py)
+    why_parts += [str(d) for d in (prior if isinstance(prior, list) else [prior])]
+    mapped = reg.get("focal_prior") or {}  # registration: mapped again without a doubtful prior? (focal_check)
+    if isinstance(mapped, dict) and (mapped.get("decision") or mapped.get("retried")):
+        why_parts.append(str(mapped.get("decision") or mapped.get("reason")))
     if reg.get("registered") is not None:
         why_parts.append("refined by bundle adjustment")
     if not src:
