@@ -19,6 +19,7 @@ Called by :func:`texstream.calib.register.register` when incremental mapping lea
 from __future__ import annotations
 
 import dataclasses
+import shutil
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -29,6 +30,7 @@ from texstream.capture.imageio import read_mask
 from texstream.core.config import option
 from texstream.core.progress import say
 
+from .colmap_log import colmap_quiet
 from .silhouettes import SilhouetteSet
 from .turntable import RingFit, merge_models, photo_indices
 
@@ -43,6 +45,7 @@ class RingConfig:
                                         "focal length, 2.6 deg at a third of it)")
     min_iou: float = option(0.7, help="smallest IoU of a placed photo's mask with the visual hull of the others, "
                             "projected, for the placement to be kept (the dino's true cameras give 0.80-0.96)")
+    silhouette_resolution: int = option(96, help="voxels along the side of the grid the silhouettes are checked on")
     focal_grid: tuple = option((0.6, 0.9, 1.35, 2.0, 3.0, 4.5, 6.75, 10.0, 15.0),
                                help="focal lengths tried, in image widths, when the intrinsics are estimated")
 
@@ -175,11 +178,12 @@ def place_on_ring(recs: list, photos: list, posed: dict, intrinsics_of: Callable
     i0 = intr[kept[0].name]
     masks = [read_mask(p.mask, (p.height, p.width)) for p in kept]
     sil = SilhouetteSet((i0.fx, i0.fy, i0.cx, i0.cy), masks, [cams[p.name][0] for p in kept],
-                        [-cams[p.name][0].T @ cams[p.name][1] for p in kept])
+                        [-cams[p.name][0].T @ cams[p.name][1] for p in kept], resolution=cfg.silhouette_resolution)
     # the silhouettes check, not move: a coordinate search of small turns raising each photo's IoU against the
     # others' hull moved the dino's cameras 0.3-2.4 deg and doubled their median rotation error (0.26 -> 0.43 deg
     # against the calibration); the photometric refinement of the run's refine stage moves them instead
-    per_photo = {p.name: {"iou": round(sil.iou(i), 4)} for i, p in enumerate(kept)}
+    ious, _ = sil.consistent_ious(cfg.min_iou)
+    per_photo = {p.name: {"iou": round(ious[i], 4)} for i, p in enumerate(kept)}
     out = {}
     placed, dropped = 0, []
     for i, p in enumerate(kept):
@@ -206,11 +210,7 @@ def place_on_ring(recs: list, photos: list, posed: dict, intrinsics_of: Callable
 
 def map_at_focal(work: Path, img_dir: Path, focal: float, threads: int, seed: int, min_model_size: int) -> dict:
     """Incremental mapping again over the matches in ``work/database.db``, the focal length fixed at ``focal``."""
-    import shutil
-
     import pycolmap
-
-    from .colmap_log import colmap_quiet
 
     set_focal(work / "database.db", focal)
     op = pycolmap.IncrementalPipelineOptions()

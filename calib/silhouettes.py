@@ -14,7 +14,7 @@ import numpy as np
 
 
 
-def _nearest_point_to_axes(rotations, centres) -> np.ndarray:
+def nearest_point_to_axes(rotations, centres) -> np.ndarray:
     """The point nearest (least squares) to every camera's optical axis."""
     a, b = np.zeros((3, 3)), np.zeros(3)
     for r, c in zip(rotations, centres):
@@ -48,7 +48,7 @@ class SilhouetteSet:
         self.masks = [cv2.resize(m.astype(np.uint8), (m.shape[1] // downscale, m.shape[0] // downscale),
                                  interpolation=cv2.INTER_AREA) > 0 for m in masks]
         h, w = masks[0].shape
-        middle = _nearest_point_to_axes(self.rotations, self.centres)
+        middle = nearest_point_to_axes(self.rotations, self.centres)
         dist = float(np.median([np.linalg.norm(c - middle) for c in self.centres]))
         half = dist * 0.5 * max(w / fx, h / fy)
         axis = np.linspace(-half, half, resolution)
@@ -77,10 +77,42 @@ class SilhouetteSet:
         out[inside] = ~m[vi[inside], ui[inside]]
         return out
 
-    def hull_without(self, i: int) -> np.ndarray:
-        """Voxel centres of the visual hull of every camera but ``i``."""
-        others = self.rejects.sum(0) - self.rejects[i]
-        return self.points[others == 0]
+    def hull_without(self, i: int, excluded=()) -> np.ndarray:
+        """Voxel centres of the visual hull of every camera but ``i`` and the ``excluded`` ones."""
+        return self.points[self._carved_by(list(excluded) + [i]) == 0]
+
+    def _carved_by(self, excluded) -> np.ndarray:
+        """How many of the cameras not ``excluded`` carve each voxel."""
+        keep = [j for j in range(len(self.masks)) if j not in excluded]
+        return self.rejects[keep].sum(0, dtype=np.int32)
+
+    def _ious(self, excluded) -> list[float]:
+        counts = self._carved_by(excluded)
+        # i's own carving taken off the count: a voxel is in the hull of the others when none of them carves it
+        return [self.iou(i, hull=self.points[counts == (self.rejects[i] & (i not in excluded))])
+                for i in range(len(self.masks))]
+
+    def consistent_ious(self, bar: float) -> tuple[list[float], list[int]]:
+        """Every camera's IoU against the hull of the others. One wrong camera or mask carves the hull all the
+        others see (an empty mask carves it all), so while some camera is under ``bar``, the one whose leaving
+        out of the hulls raises the others' mean IoU most is left out (greedy; n^2 projections a round).
+        Returns (the IoUs, the cameras left out)."""
+        n = len(self.masks)
+        excluded: list[int] = []
+        ious = self._ious(excluded)
+        while len(excluded) + 4 <= n:  # a hull needs a few cameras that agree
+            under = [i for i in range(n) if ious[i] < bar and i not in excluded]
+            if not under:
+                break
+            trials = {}
+            for j in range(n):
+                if j not in excluded:
+                    trial = self._ious(excluded + [j])
+                    trials[j] = (float(np.mean([v for i, v in enumerate(trial) if i != j and i not in excluded])), trial)
+            j = max(trials, key=lambda c: trials[c][0])
+            excluded.append(j)
+            ious = trials[j][1]
+        return ious, excluded
 
     def iou(self, i: int, r: np.ndarray | None = None, hull: np.ndarray | None = None) -> float:
         """IoU of camera ``i``'s mask with the projection of the others' hull (camera rotation ``r`` if given)."""
