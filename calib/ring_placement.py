@@ -45,6 +45,9 @@ class RingConfig:
                                         "focal length, 2.6 deg at a third of it)")
     min_iou: float = option(0.7, help="smallest IoU of a placed photo's mask with the visual hull of the others, "
                             "projected, for the placement to be kept (the dino's true cameras give 0.80-0.96)")
+    max_first_misfit_deg: float = option(10.0, help="the focal length is searched only when the first mapping's "
+                                         "cameras fit a ring within this (the dino's, at SfM's 517 px for 3310, "
+                                         "fit one within 3.6 deg)")
     silhouette_resolution: int = option(96, help="voxels along the side of the grid the silhouettes are checked on")
     focal_grid: tuple = option((0.6, 0.9, 1.35, 2.0, 3.0, 4.5, 6.75, 10.0, 15.0),
                                help="focal lengths tried, in image widths, when the intrinsics are estimated")
@@ -108,37 +111,51 @@ def focal_by_ring(recs: dict, remap: Callable[[float], dict], names: list[str], 
     """
     t0 = time.perf_counter()
 
-    def score(rs) -> tuple[int, float, RingFit | None]:
+    def score(rs) -> tuple[bool, int, float]:
+        """(fits a ring within the bar, cameras on it, -misfit): the larger the better."""
         ring, merged, _ = ring_of(list(rs.values()), names)
         if ring is None:
-            return 0, np.inf, None
-        return len(merged), max(ring.rotation_rms_deg, ring.step_rms_deg), ring
+            return False, 0, -np.inf
+        misfit = max(ring.rotation_rms_deg, ring.step_rms_deg)
+        return misfit <= cfg.max_ring_misfit_deg, len(merged), -misfit
 
+    first = score(recs)
+    largest = max(recs.values(), key=lambda r: r.num_reg_images())
+    alone = score({0: largest})  # the other models, in a wrong focal length's frames, may merge badly
+    why_not = None
+    if largest.num_reg_images() >= 0.75 * len(names):
+        why_not = (f"the largest model holds {largest.num_reg_images()} of {len(names)} photos (3/4 or more: not "
+                   "worth mapping again)")
+    elif -alone[2] > cfg.max_first_misfit_deg:
+        why_not = (f"the registered cameras are far from a ring (misfit {-alone[2]:.1f} deg > "
+                   f"{cfg.max_first_misfit_deg:g}) even before the focal length is changed")
+    if why_not:
+        report["ring_focal"] = {"focal": None, "decision": f"focal length not searched: {why_not}"}
+        return recs, None
     tried: dict[float, tuple] = {}
-    best_recs, best_key, best_focal = recs, score(recs)[:2], None
+    best_key, best_focal = first, None
     grid = [width * g for g in cfg.focal_grid]
-    for rnd in range(2):
+    for _ in range(2):
         for f in grid:
-            if round(f, 1) in tried:
-                continue
-            rs = remap(f)
-            n, misfit, _ = tried[round(f, 1)] = score(rs)
-            if (n, -misfit) > (best_key[0], -best_key[1]):
-                best_recs, best_key, best_focal = rs, (n, misfit), f
+            if round(f, 1) not in tried:
+                key = tried[round(f, 1)] = score(remap(f))
+                if key > best_key:
+                    best_key, best_focal = key, f
         if best_focal is None:
             break
         grid = [best_focal * g for g in (0.8, 0.9, 1.1, 1.25)]  # second round: around the best
-    if best_focal is not None and best_key[1] <= cfg.max_ring_misfit_deg:
-        remap(best_focal)  # the database and the models of the kept focal length
-        verdict = f"focal length {best_focal:.0f} px: its cameras fit a ring within {best_key[1]:.2f} deg"
+    if best_focal is not None and best_key[0]:
+        recs = remap(best_focal)  # the database and the models of the kept focal length (the same seed)
+        verdict = f"focal length {best_focal:.0f} px: its cameras fit a ring within {-best_key[2]:.2f} deg"
     else:
-        best_recs, best_focal = recs, None
+        best_focal = None
         verdict = "no focal length gave cameras on a ring: the first mapping's models kept"
+    tried = {k: (v[1], -v[2]) for k, v in tried.items()}
     report["ring_focal"] = {"tried": {str(f): {"cameras": v[0], "ring_misfit_deg": None if not np.isfinite(v[1])
                                                else round(v[1], 3)} for f, v in sorted(tried.items())},
                             "focal": best_focal, "decision": verdict, "seconds": time.perf_counter() - t0}
     say("register", verdict)
-    return best_recs, best_focal
+    return recs, best_focal
 
 
 def place_on_ring(recs: list, photos: list, posed: dict, intrinsics_of: Callable[[Any], Any], cfg: RingConfig,
