@@ -13,6 +13,9 @@ Pipeline (what COLMAP's automatic reconstructor does, with capture-folder plumbi
    estimated intrinsics, the lens distortion (and an auto-refined principal point) is kept only
    where it lowers the reprojection error (``--min-self-calibration-gain``), else the cameras are
    made pinhole and re-adjusted: an unneeded distortion term bends the focal length and the poses;
+   photos it leaves out are placed on a turntable's ring when the registered cameras lie on one
+   (``--ring``, :mod:`.ring_placement`: the focal length by the ring's fit, the other models merged, the
+   left-out photos at their ring angles, checked by their silhouettes);
 5. optional Sim3 alignment to known camera centres (``--align-to capture.json``, pycolmap RANSAC) or
    into a given mesh's frame (``--align-mesh MESH``: :mod:`texstream.geometry.mesh_frame`, which the
    caller passes in as ``mesh_alignment``: the similarity of the mesh onto the SfM points, inverted, so
