@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from texstream.calib.ring_placement import RingConfig, place_on_ring
+from texstream.calib.ring_placement import RingConfig, focal_by_ring, place_on_ring
 from texstream.calib.silhouettes import SilhouetteSet, nearest_point_to_axes
 from texstream.calib.turntable import (fit_ring, merge_models, nearest_rotation, photo_indices, rotation_about,
                                        rotation_angle_deg, similarity_onto, transform_cameras)
@@ -154,6 +154,44 @@ def test_silhouettes_check_placements():
     assert sil.iou(3, off) < 0.5  # measured 0.28
 
 
+def _fake_model(cams: dict) -> SimpleNamespace:
+    """A stand-in for a pycolmap reconstruction holding the cameras index -> (R, C) as photos pNN.jpg."""
+    def image(n):
+        r, c = cams[n]
+        pose = SimpleNamespace(rotation=SimpleNamespace(matrix=lambda: r))
+        return SimpleNamespace(name=f"p{n:02d}.jpg", has_pose=True, cam_from_world=lambda: pose,
+                               projection_center=lambda: c)
+
+    return SimpleNamespace(images={n: image(n) for n in cams}, num_reg_images=lambda: len(cams))
+
+
+def test_focal_by_ring_keeps_the_focal_length_whose_cameras_fit_a_ring():
+    """Mapping at a focal length f gives cameras off the ring by 2 deg per doubling of f away from the true
+    600 px (random turns), and one more model of 4 photos from 300 px on (the dino's behaviour): the search
+    keeps the grid's focal length nearest the truth on a log scale (the grid's second round steps by 10%)."""
+    cams = _ring()
+    rng = np.random.default_rng(5)
+    names = [f"p{n:02d}.jpg" for n in range(1, N + 1)]
+
+    def models(f: float) -> dict:
+        err = 2.0 * abs(np.log2(f / 600.0))
+        bent = {n: (rotation_about(rng.normal(size=3) / np.sqrt(3), np.radians(err * rng.normal())) @ r, c)
+                for n, (r, c) in cams.items()}
+        out = {0: _fake_model({n: bent[n] for n in range(7, 13)})}
+        if f >= 300:
+            out[1] = _fake_model({n: bent[n] for n in (1, 2, 3, 4)})
+        return out
+
+    report: dict = {}
+    recs, focal = focal_by_ring(models(160.0), models, names, 160, RingConfig(), report)
+    assert focal == pytest.approx(600.0, rel=0.15) and len(recs) == 2
+    assert "fit a ring" in report["ring_focal"]["decision"]
+    report = {}
+    recs, focal = focal_by_ring({0: _fake_model({n: cams[n] for n in range(1, 14)})}, models, names, 160,
+                                RingConfig(), report)
+    assert focal is None and "13 of 16" in report["ring_focal"]["decision"]  # 3/4 registered: no search
+
+
 def test_place_on_ring_places_and_drops(tmp_path: Path):
     """The registration hook on fake SfM models: 6 registered photos of a sphere ring, 10 left out; every left-out
     photo gets its ring camera, except one whose mask is empty (dropped, with its IoU in the reason)."""
@@ -168,14 +206,7 @@ def test_place_on_ring_places_and_drops(tmp_path: Path):
         write_image(tmp_path / f"p{n:02d}.png", m.astype(np.uint8) * 255, bits=8)
         photos.append(SimpleNamespace(name=f"p{n:02d}.jpg", mask=tmp_path / f"p{n:02d}.png", width=160, height=120))
     intr = Intrinsics(fx=k[0], fy=k[1], cx=k[2], cy=k[3], width=160, height=120)
-
-    def image(n):
-        r, c = cams[n]
-        pose = SimpleNamespace(rotation=SimpleNamespace(matrix=lambda: r))
-        return SimpleNamespace(name=f"p{n:02d}.jpg", has_pose=True, cam_from_world=lambda: pose,
-                               projection_center=lambda: c)
-
-    rec = SimpleNamespace(images={n: image(n) for n in range(7, 13)}, num_reg_images=lambda: 6)
+    rec = _fake_model({n: cams[n] for n in range(7, 13)})
     posed = {f"p{n:02d}.jpg": (cams[n][0], -cams[n][0] @ cams[n][1], intr) for n in range(7, 13)}
     report: dict = {}
     out = place_on_ring([rec], photos, posed, lambda p: intr, RingConfig(silhouette_resolution=48), report)
