@@ -15,6 +15,9 @@ Pipeline (what COLMAP's automatic reconstructor does, with capture-folder plumbi
    estimated intrinsics, the lens distortion (and an auto-refined principal point) is kept only
    where it lowers the reprojection error (``--min-self-calibration-gain``), else the cameras are
    made pinhole and re-adjusted: an unneeded distortion term bends the focal length and the poses;
+   photos it leaves out are placed on a turntable's ring when the registered cameras lie on one
+   (``--ring``, :mod:`.ring_placement`: the focal length by the ring's fit, the other models merged, the
+   left-out photos at their ring angles, checked by their silhouettes);
 5. optional Sim3 alignment to known camera centres (``--align-to capture.json``, pycolmap RANSAC) or
    into a given mesh's frame (``--align-mesh MESH``: :mod:`texstream.geometry.mesh_frame`, which the
    caller passes in as ``mesh_alignment``: the similarity of the mesh onto the SfM points, inverted, so
@@ -54,6 +57,7 @@ from .intrinsics import intrinsics_for_size, load_intrinsics
 from .photo_groups import check_groups, match_groups
 from .lights import colocated_light
 from .photometric import estimate_gains, observations_from_model
+from .ring_placement import RingConfig, focal_by_ring, map_at_focal, place_on_ring
 
 REPORT_FILE = "registration_report.json"
 
@@ -111,6 +115,10 @@ class RegisterConfig:
                                              "but not reproducible (COLMAP numbers the images in the order "
                                              "they finish, and matching and mapping depend on that order)")
     seed: int = option(0, help="random seed of COLMAP's RANSAC and mapper (reproducible runs)")
+    ring: str = option("auto", help="photos mapping leaves out: auto (when the registered cameras lie on an evenly "
+                       "stepped ring, as on a turntable: the focal length chosen by the ring's fit when it is "
+                       "estimated, the left-out photos placed on the ring and checked by their silhouettes; "
+                       "calib/ring_placement.py), off (reported unregistered)", choices=("auto", "off"))
     overwrite: bool = option(True, help="replace an existing output folder")
 
 
@@ -591,6 +599,11 @@ def register(capture: str | os.PathLike, out: str | os.PathLike, config: Registe
         img_dir, mask_dir = _stage_images(photos, work)
         source = str(cap.extra.get("intrinsics_source", "")) if cap is not None else ""
         recs = _run_colmap(photos, img_dir, mask_dir, work, cfg, timings, source, capture, out, report)
+        left_out = cfg.ring == "auto" and recs and max(r.num_reg_images() for r in recs.values()) < len(photos)
+        if left_out and not (cfg.intrinsics or source == "calibrated") and len({p.width for p in photos}) == 1:
+            recs, _ = focal_by_ring(recs, lambda f: map_at_focal(work, img_dir, f, cfg.num_threads, cfg.seed,
+                                                                 cfg.min_model_size),
+                                    [p.name for p in photos], photos[0].width, RingConfig(), report)
         sizes = sorted((r.num_reg_images() for r in recs.values()), reverse=True)
         report["models"] = sizes
         if not recs:
@@ -609,10 +622,17 @@ def register(capture: str | os.PathLike, out: str | os.PathLike, config: Registe
         elif align_mesh is not None:
             report["alignment"] = align_mesh(rec, cfg.align_mesh_max_rms)
         posed = {name: (r, t, intr) for name, r, t, intr in reconstruction_frames(rec)}
+        if left_out:
+            largest = max(recs.values(), key=lambda r: r.num_reg_images())  # the one ``rec`` was made from
+            others = [r for r in recs.values() if r is not largest]
+            posed = place_on_ring([rec] + others, photos, posed, lambda p: _intrinsics_of_size(posed, p),
+                                  RingConfig(), report)
         gains = _photometric_gains(rec, photos, mask_dir, report) if cfg.photometric != "off" else {}
         aligned_to = "centres" if centres is not None else ("mesh" if align_mesh is not None else None)
         coloc, offset = _colocated_light(cfg, cap, rec, posed, aligned_to is not None, report)
         report["registered"] = sorted(posed)
+        report["placed"] = sorted(n for n, e in report.get("ring", {}).get("photos", {}).items()
+                                  if e["method"] == "ring" and n in posed)
         report["unregistered"] = [p.name for p in photos if p.name not in posed]
         with atomic_output_dir(out) as tmp:
             t0 = time.perf_counter()
@@ -629,13 +649,20 @@ def register(capture: str | os.PathLike, out: str | os.PathLike, config: Registe
             report["points3D"] = int(rec.num_points3D())
             write_json_atomic(tmp / REPORT_FILE, report)
             save_config(cfg, tmp / "register_config.json")
-    summary = {k: report[k] for k in ("registered", "unregistered", "dropped", "models", "mean_reprojection_error",
-                                      "points3D", "timings")}
+    summary = {k: report[k] for k in ("registered", "placed", "unregistered", "dropped", "models",
+                                      "mean_reprojection_error", "points3D", "timings")}
+    summary["ring"] = report.get("ring", {}).get("decision")
     summary["alignment"] = report.get("alignment")
     summary["principal_point"] = report.get("principal_point")
     summary["distortion"] = report.get("distortion")
     summary["focal_prior"] = report.get("focal_prior")
     return StageResult(output=out, summary=summary)
+
+
+def _intrinsics_of_size(posed: dict, photo: _Photo) -> Intrinsics | None:
+    """The intrinsics of a registered photo of ``photo``'s size (None: none registered)."""
+    return next((intr for _, _, intr in posed.values() if (intr.width, intr.height) == (photo.width, photo.height)),
+                None)
 
 
 def _colocated_light(cfg: RegisterConfig, cap: Capture | None, rec, posed: dict, aligned: bool,

@@ -25,6 +25,10 @@ def run(args: argparse.Namespace) -> int:
     n_reg, n_un = len(s["registered"]), len(s["unregistered"])
     print(f"registered {n_reg} of {n_reg + n_un} photo(s) (models: {s['models']}); "
           f"{s['points3D']} points, mean reprojection error {s['mean_reprojection_error']:.3f} px")
+    if s.get("ring"):
+        print(f"  turntable ring: {s['ring']}")
+    for name in s.get("placed") or []:
+        print(f"  placed on the ring: {name}")
     for name in s["unregistered"]:
         print(f"  unregistered: {name}")
     for d in s["dropped"]:
