@@ -111,7 +111,8 @@ def check_groups(groups: list[list[str]], photos: list[_Photo], folder: Path, ou
         if not different:
             info["decision"] = "similar colours: one object with too little overlap between the groups"
             say("register", f"{len(big)} groups of photos ({sizes}) share no features but look alike: one object "
-                            "seen from views that do not overlap; the largest group is registered")
+                            "seen from views that do not overlap; every group is mapped, and photos the largest model leaves out "
+                            "may be placed on a turntable ring (ring auto)")
             return
         info["decision"] = "different colours: photos of different objects"
     elif cfg.disconnected == "largest":

@@ -25,12 +25,14 @@ def _summary(records: list, name: str) -> tuple[str | None, dict]:
 def _cameras(records: list, source_kind: str, capture) -> dict:
     status, reg = _summary(records, "register")
     if status is not None and reg.get("registered") is not None:
-        n_reg = len(reg.get("registered") or [])
-        n_all = n_reg + len(reg.get("unregistered") or [])
-        placed = reg.get("placed") or {}
-        why = f"{n_reg} of {n_all} photos registered by structure from motion (pycolmap)"
-        if placed.get("count"):
-            why += f"; {placed['count']} more placed ({placed.get('method', 'by the registered ones')})"
+        n_posed = len(reg.get("registered") or [])  # the photos placed on a ring are among them
+        n_all = n_posed + len(reg.get("unregistered") or [])
+        placed = len(reg.get("placed") or [])
+        why = f"{n_posed - placed} of {n_all} photos registered by structure from motion (pycolmap)"
+        if placed:
+            why += f"; {placed} more placed on the turntable ring the registered cameras lie on"
+        if reg.get("ring"):
+            why += f" (ring: {reg['ring']})"
         if reg.get("alignment"):
             why += "; aligned to the known camera centres"
         return {"source": "registered", "why": why}
