@@ -68,3 +68,46 @@ def test_view_scores_equal_renders_copied_back(scene, device):
             render, cover = render_model(scene.mesh, grid, scene.layout, fr, device)
             want.append(image_metrics(render, photo, cover.astype(bool) & mask)["psnr_db"])
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-6)
+
+
+def test_scaled_inverse_diagonal_equals_the_eigenvalue_route():
+    """The uncertainty's inverse diagonals through Cholesky (where the eigenvalue floor cannot act) equal those
+    through eigenvalues with the floor, also for blocks that are singular or nearly so (taken by eigenvalues,
+    or by Cholesky when the floor still cannot act). Tolerance 1e-9 relative: both are exact inverses in exact
+    arithmetic, and rounding differs by the block's condition number (up to 1e11 here) times 1e-16."""
+    from texstream.fit.models import materials
+
+    rng = np.random.default_rng(1)
+    a = rng.normal(size=(300, 6, 9))
+    a[:20, 4] = a[:20, 3] * (1 + 1e-7)  # nearly singular: condition ~1e13, the floor acts
+    a[20:40, 5] = a[20:40, 2]  # singular to rounding
+    h = a @ a.transpose(0, 2, 1)
+    d = np.sqrt(np.einsum("nii->ni", h))
+    hs = h / (d[:, :, None] * d[:, None, :])
+    w, v = np.linalg.eigh(hs)
+    w = np.maximum(w, 1e-12 * np.maximum(w[:, -1:], 1e-300))
+    want = np.einsum("nij,nj,nij->ni", v, 1.0 / w, v)
+    old = materials.UNCERTAINTY_CHUNK
+    try:
+        materials.UNCERTAINTY_CHUNK = 64  # several batches, some with a block Cholesky refuses
+        got = materials.scaled_inverse_diagonal(hs)
+    finally:
+        materials.UNCERTAINTY_CHUNK = old
+    np.testing.assert_allclose(got[40:], want[40:], rtol=1e-9)
+    # the floored blocks: the eigenvalue route's own values (taken by it), or within the floor's reach
+    np.testing.assert_allclose(got[:40], want[:40], rtol=1e-3)
+
+
+def test_distinct_rows_counts_as_unique_does():
+    from texstream.fit.models.materials import distinct_rows
+
+    rng = np.random.default_rng(2)
+    cases = [rng.integers(0, 3, size=(50, 2)).astype(float), np.zeros((4, 3)), np.array([[np.nan, 1.0], [np.nan, 1.0]])]
+    for x in cases:
+        for k in (1, 2, 3, 5, 12):
+            assert unique_count(x, k) == distinct_rows(x, k), (x[:3], k)
+
+
+def unique_count(x: np.ndarray, k: int) -> int:
+    """min(k, distinct rows) as kmeans counted them before (np.unique of every row)."""
+    return int(min(k, len(np.unique(x, axis=0))))
