@@ -5,7 +5,8 @@ What :func:`~texstream.fit.common.setup.heldout_psnr` does per view (a renderer 
 error summed by numpy), with the renderer (the mesh's BVH, normals, output buffers) built once, the photos and
 masks uploaded once, and each view's error summed where it was rendered (fit/kernels/view_error.py): for the
 full ornament's 220 validation views of 430x430, 4 candidates made 880 BVH builds and copied 3.4 GB of renders
-back. The per-view PSNRs equal heldout_psnr's to float rounding (the rows summed in another order).
+back: 8.7 s of the materials choice's 18 s on an H200, 0.5 s this way. The per-view PSNRs equal heldout_psnr's to
+float rounding (the rows summed in another order).
 """
 
 from __future__ import annotations

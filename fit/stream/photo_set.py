@@ -64,9 +64,10 @@ def build_mesh(points: wp.array, indices: wp.array) -> wp.Mesh:
 
 
 def gather_rows(src: wp.array, rows: np.ndarray) -> wp.array:
-    """Rows ``rows`` (increasing) of a contiguous (n, ...) array as a new array on its device: one copy per run
+    """Rows ``rows`` of a contiguous (n, ...) array, in that order, as a new array on its device: one copy per run
     of consecutive rows, on the device (a subset of the photos for a validation split: no trip through the
-    host, which for the full ornament's 1,540 photos and maps was 2.7 GB each way)."""
+    host, which for the full ornament's 1,540 photos and their maps, 4 GiB each way, took 5.1 s of the
+    materials choice's 18 s on an H200)."""
     per = int(np.prod(src.shape[1:], dtype=np.int64))
     out = wp.empty((len(rows), *src.shape[1:]), dtype=src.dtype, device=src.device)
     cuts = [0, *(np.flatnonzero(np.diff(rows) != 1) + 1).tolist(), len(rows)]

@@ -214,13 +214,12 @@ def mesh_view_scores(inputs: "FitInputs", val: list[int], cfg) -> Callable:
     on one sub-problem, with one set of samples."""
     frames = [inputs.frames[i] for i in val]
     reading = concurrent.futures.ThreadPoolExecutor(1)
-    photos = reading.submit(read_photos, inputs.images, inputs.masks, val)
+    kept: dict = {"photos": reading.submit(read_photos, inputs.images, inputs.masks, val)}
     reading.shutdown(wait=False)
-    kept: dict = {}
 
     def score_views(params, result, sub) -> list[float]:
-        if "views" not in kept:
-            kept["views"] = ViewScores(inputs.mesh, result.layout, frames, *photos.result(), cfg.device)
+        if "views" not in kept:  # the photos uploaded, the host's copies let go
+            kept["views"] = ViewScores(inputs.mesh, result.layout, frames, *kept.pop("photos").result(), cfg.device)
             kept["unseen"] = unseen_sources(sub, result) if cfg.unseen == "nearest" else None
         return kept["views"].psnr(model_grid(params, result, sub, inputs.bake, cfg, inputs.seams,
                                              unseen=kept["unseen"]))
