@@ -126,6 +126,17 @@ class Renderer:
         Returns:
             A :class:`RenderResult` of numpy arrays.
         """
+        radiance, mask = self.render_on_device(R, t, fx, fy, cx, cy, width, height, light)
+        height, width = radiance.shape
+        return RenderResult(radiance=radiance.numpy().reshape(height, width, 3).astype(np.float32, copy=True),
+                            mask=mask.numpy().astype(bool),
+                            depth=self._depth.numpy().copy(),
+                            face=self._face.numpy().copy())
+
+    def render_on_device(self, R, t, fx: float, fy: float, cx: float, cy: float, width: int, height: int,
+                         light) -> tuple[wp.array, wp.array]:
+        """:meth:`render`'s launch alone: the (height, width) radiance and coverage mask left on the device, in
+        buffers the next render overwrites (a scorer that compares them there copies nothing back)."""
         if light is None and not self.layout.is_radiance:
             raise InputError(f"the frame has no light, which a {self.layout.kind} model needs to render",
                              fix="give every frame a point or directional light, or render a radiance model")
@@ -150,10 +161,14 @@ class Renderer:
                           int(self.layout.view_terms),
                           cam, self.shadow_eps, int(self.shadows)],
                   outputs=[self._radiance, self._mask, self._depth, self._face])
-        return RenderResult(radiance=self._radiance.numpy().reshape(height, width, 3).astype(np.float32, copy=True),
-                            mask=self._mask.numpy().astype(bool),
-                            depth=self._depth.numpy().copy(),
-                            face=self._face.numpy().copy())
+        return self._radiance, self._mask
+
+    def frame_on_device(self, frame) -> tuple[wp.array, wp.array]:
+        """:meth:`render_on_device` of a capture.json ``Frame`` (as :meth:`render_frame`)."""
+        k = frame.intrinsics
+        if not k.is_pinhole:
+            raise InputError(f"frame {frame.file_path} has lens distortion", fix="render pinhole frames only")
+        return self.render_on_device(frame.R, frame.t, k.fx, k.fy, k.cx, k.cy, k.width, k.height, frame.light)
 
     def render_frame(self, frame) -> RenderResult:
         """Render the view of a capture.json ``Frame`` (``R``, ``t``, ``intrinsics``, ``light``; a

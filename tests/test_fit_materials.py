@@ -307,6 +307,11 @@ def test_stage_records_choice_and_uncertainty(sphere_fit):
     mat = man["materials"]
     assert mat["chosen"] in ("mixed", "shared") and mat["k"] == 1 and mat["mode"] == "on"
     assert [c["model"] for c in mat["candidates"]] == ["per-texel", "mixed"]
+    # the time each part took (issue 40): the shared set-up, the validation fit, each candidate's fit and score
+    assert set(mat["seconds_by_part"]) == {"setup", "validation_fit", "evidence"}
+    assert all(c["seconds"]["fit"] > 0 and c["seconds"]["score"] > 0 and c["iterations"] > 0
+               for c in mat["candidates"])
+    assert mat["seconds"] >= sum(mat["seconds_by_part"].values()) and mat["chosen_fit_seconds"] > 0
     assert mat["borrowed_texels"] > 0 and mat["materials"][0]["has_lobe"]
     assert mat["uncertainty"]["map"] == "uncertainty.exr"
     unc = read_image(model / "uncertainty.exr", channels=3)

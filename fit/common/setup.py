@@ -84,12 +84,42 @@ def render_model(mesh, grid: np.ndarray, layout: ModelLayout, frame, device: str
     return res.radiance * np.float32(frame.exposure), res.mask
 
 
-def heldout_psnr(mesh, grid: np.ndarray, layout: ModelLayout, frames, photos, masks, device: str) -> tuple[list, float]:
+class ModelRenders:
+    """Renders of per-texel maps on one mesh, frame after frame and maps after maps: the renderer (the mesh's
+    BVH, normals and output buffers) built once and each new grid copied into its maps, the renders
+    :func:`render_model` gives (which builds one per frame: for the materials choice's 4 candidates x 220
+    validation views of the full ornament, 880 BVH builds)."""
+
+    def __init__(self, mesh, layout: ModelLayout, device: str):
+        self.mesh, self.layout, self.device = mesh, layout, device
+        self.renderer: Renderer | None = None
+
+    def set_grid(self, grid: np.ndarray) -> None:
+        """Render ``grid`` (H, W, P) from now on."""
+        r = self.renderer
+        if r is None or grid.shape != (r.tex_h, r.tex_w, self.layout.n_params):
+            self.renderer = Renderer(self.mesh, grid, self.layout, device=self.device)
+            return
+        if not np.all(np.isfinite(grid)):
+            raise InputError("params grid holds NaN or Inf", fix="fill every texel (fill_padding)")
+        r.params.assign(np.ascontiguousarray(grid.reshape(-1, self.layout.n_params), dtype=np.float32))
+
+    def render(self, frame) -> tuple[np.ndarray, np.ndarray]:
+        """(image times the frame's exposure, coverage) of ``frame``."""
+        res = self.renderer.render_frame(frame)
+        return res.radiance * np.float32(frame.exposure), res.mask
+
+
+def heldout_psnr(mesh, grid: np.ndarray, layout: ModelLayout, frames, photos, masks, device: str,
+                 renders: ModelRenders | None = None) -> tuple[list, float]:
     """Per-view PSNR of the model's renders against ``photos`` (foreground: photo mask and render
-    coverage) and the PSNR of the views' pooled mean squared error."""
+    coverage) and the PSNR of the views' pooled mean squared error; ``renders``: a renderer of ``mesh`` to
+    reuse (its maps set to ``grid`` here)."""
+    renders = renders or ModelRenders(mesh, layout, device)
+    renders.set_grid(grid)
     views = []
     for fr, photo, mask in zip(frames, photos, masks):
-        render, rmask = render_model(mesh, grid, layout, fr, device)
+        render, rmask = renders.render(fr)
         views.append(image_metrics(render, photo, rmask.astype(bool) & mask)["psnr_db"])
     pooled = float(-10 * np.log10(np.mean([10 ** (-v / 10) for v in views])))
     return views, pooled
@@ -165,21 +195,32 @@ class Checkpoint:
         self.path.unlink(missing_ok=True)
 
 
-def fill_unseen_texels(grid: np.ndarray, problem, bake, result: FitResult) -> tuple[np.ndarray, int]:
+def fill_unseen_texels(grid: np.ndarray, problem, bake, result: FitResult,
+                       sources: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, int]:
     """Give texels no photo saw the parameters of the nearest seen texel in 3D (their defaults would
     show as a foreign colour wherever a new view sees them, and bleed into seen neighbours through
-    the renderer's bilinear lookup). Returns the maps and the number of texels filled."""
-    seen = result.samples > 0
-    if seen.all() or not seen.any():
+    the renderer's bilinear lookup). Returns the maps and the number of texels filled. ``sources``:
+    :func:`unseen_sources` of the same problem and samples, when the caller fills several grids."""
+    targets, nearest = unseen_sources(problem, result) if sources is None else sources
+    if not len(targets):
         return grid, 0
+    flat = grid.reshape(-1, grid.shape[-1]).copy()
+    flat[targets] = flat[nearest]
+    return bake.fill_padding(flat.reshape(grid.shape)), int(len(targets))
+
+
+def unseen_sources(problem, result: FitResult) -> tuple[np.ndarray, np.ndarray]:
+    """(grid rows of the texels no photo saw, grid rows of the nearest seen texel of each); empty when every
+    texel or none was seen."""
+    seen = result.samples > 0
+    idx = problem.texels.grid_index
+    if seen.all() or not seen.any():
+        return idx[:0], idx[:0]
     from scipy.spatial import cKDTree  # only when needed: the import is a large share of a short fit's run
 
     pos = problem.texels.position
     _, nearest = cKDTree(pos[seen]).query(pos[~seen])
-    flat = grid.reshape(-1, grid.shape[-1]).copy()
-    idx = problem.texels.grid_index
-    flat[idx[~seen]] = flat[idx[seen][nearest]]
-    return bake.fill_padding(flat.reshape(grid.shape)), int((~seen).sum())
+    return idx[~seen], idx[seen][nearest]
 
 
 def per_texel_objective(problem, params: np.ndarray) -> np.ndarray:

@@ -96,6 +96,13 @@ class MaterialConfig:
                                   min=-1.0, max=1.0)
     iterations: int = option(20, "Levenberg-Marquardt iterations of a materials fit (it starts from the per-texel "
                                  "fit)", min=1)
+    choice_rel_tol: float = option(0.0, "0: the choice's fits (the validation split's per-texel fit and each "
+                                        "candidate's) stop by the fit's own rule (fit.rel_tol every fit.sync_every "
+                                        "iterations), as the fits of the model kept do; > 0: they stop when their "
+                                        "objective falls by less than this, relative, over 2 iterations (faster, but "
+                                        "a per-texel candidate stopped earlier than the per-texel fit it stands for "
+                                        "is judged on another model: on a small ornament it validated 9.6 dB higher)",
+                                   min=0.0)
 
     def variant_list(self) -> tuple:
         out = tuple(v.strip() for v in str(self.variants).split(",") if v.strip())
@@ -145,9 +152,7 @@ def texel_uncertainty(jtj: np.ndarray, params: np.ndarray, layout: ModelLayout, 
     hs = h / (s[:, :, None] * s[:, None, :])
     hs[dead] = 0.0
     hs = np.where(dead[:, :, None] | dead[:, None, :], np.eye(len(free))[None], hs)
-    w, v = np.linalg.eigh(hs)
-    w = np.maximum(w, 1e-12 * np.maximum(w[:, -1:], 1e-300))
-    var_s = np.einsum("nij,nj,nij->ni", v, 1.0 / w, v)          # diag of (Hs)^-1
+    var_s = scaled_inverse_diagonal(hs)
     var = sigma2 * var_s / (s * s)
     var[dead] = np.inf
     full = np.full((n, lay.n_params), 0.0)
@@ -166,13 +171,61 @@ def texel_uncertainty(jtj: np.ndarray, params: np.ndarray, layout: ModelLayout, 
     return np.nan_to_num(out, nan=np.inf, posinf=np.inf)
 
 
+UNCERTAINTY_CHUNK = 4096
+"""texels per Cholesky batch of :func:`scaled_inverse_diagonal` (a batch with a block that is not positive
+definite is taken by eigenvalues)"""
+
+
+def scaled_inverse_diagonal(hs: np.ndarray) -> np.ndarray:
+    """(N, m) diagonals of the inverses of (N, m, m) symmetric blocks of unit diagonal, eigenvalues floored at
+    1e-12 of the largest. Blocks whose Cholesky factor shows the floor cannot act (their smallest eigenvalue is
+    at least 1 / ||L^-1||_F^2, their largest at most m, the trace) are inverted through it, the others through
+    their eigenvalues: the same diagonals to rounding (3e-13 relative at most on 95,136 random blocks of 8 x 8,
+    the full ornament's count), in a quarter of the time or less (0.39 s against 1.4-3.6 s by eigenvalues alone
+    on the 2-core dev box)."""
+    n, m = hs.shape[:2]
+    out = np.empty((n, m))
+    floored = np.ones(n, bool)
+    for b in range(0, n, UNCERTAINTY_CHUNK):
+        block = hs[b:b + UNCERTAINTY_CHUNK]
+        try:
+            chol = np.linalg.cholesky(block)
+        except np.linalg.LinAlgError:
+            continue  # a block not positive definite: by eigenvalues
+        inv = np.zeros_like(chol)  # L^-1, row by row (forward substitution for every block at once)
+        for i in range(m):
+            inv[:, i, i] = 1.0
+            inv[:, i] -= np.einsum("nk,nkj->nj", chol[:, i, :i], inv[:, :i])
+            inv[:, i] /= chol[:, i, i, None]
+        frob = (inv * inv).sum(axis=(1, 2))
+        out[b:b + len(block)] = (inv * inv).sum(axis=1)  # diag of L^-T L^-1
+        floored[b:b + len(block)] = ~(frob * 1e-12 * m <= 1.0)
+    if floored.any():
+        w, v = np.linalg.eigh(hs[floored])
+        w = np.maximum(w, 1e-12 * np.maximum(w[:, -1:], 1e-300))
+        out[floored] = np.einsum("nij,nj,nij->ni", v, 1.0 / w, v)
+    return out
+
+
+def distinct_rows(x: np.ndarray, k: int) -> int:
+    """min(k, the number of distinct rows of ``x``), found row by row (k passes, not a sort of every row: for the
+    full ornament's 95,136 texels the sort was two thirds of a k-means)."""
+    found = []
+    rest = np.ones(len(x), bool)
+    while len(found) < k and rest.any():
+        i = int(np.argmax(rest))
+        found.append(x[i])
+        rest &= np.any(x != x[i], axis=1)
+        rest[i] = False  # a row with NaN differs even from itself (as in np.unique)
+    return len(found)
+
+
 def kmeans(x: np.ndarray, k: int, seed: int = 0, iterations: int = 100) -> tuple[np.ndarray, np.ndarray]:
     """(labels (M,), centres (k', D)) of Lloyd's k-means with k-means++ seeding from a fixed seed
     (deterministic); k' <= k when there are fewer distinct points. Empty clusters are dropped."""
     x = np.asarray(x, np.float64)
     rng = np.random.default_rng(seed)
-    distinct = np.unique(x, axis=0)
-    k = int(min(k, len(distinct)))
+    k = distinct_rows(x, k)
     if k <= 0:
         return np.zeros(len(x), int), np.zeros((0, x.shape[1]))
     centres = [x[rng.integers(len(x))]]

@@ -63,6 +63,19 @@ def build_mesh(points: wp.array, indices: wp.array) -> wp.Mesh:
     return mesh
 
 
+def gather_rows(src: wp.array, rows: np.ndarray) -> wp.array:
+    """Rows ``rows`` of a contiguous (n, ...) array, in that order, as a new array on its device: one copy per run
+    of consecutive rows, on the device (a subset of the photos for a validation split: no trip through the
+    host, which for the full ornament's 1,540 photos and their maps, 4 GiB each way, took 5.1 s of the
+    materials choice's 18 s on an H200)."""
+    per = int(np.prod(src.shape[1:], dtype=np.int64))
+    out = wp.empty((len(rows), *src.shape[1:]), dtype=src.dtype, device=src.device)
+    cuts = [0, *(np.flatnonzero(np.diff(rows) != 1) + 1).tolist(), len(rows)]
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        wp.copy(out, src, a * per, int(rows[a]) * per, (b - a) * per)
+    return out
+
+
 class PhotoSet:
     """Photos, depth maps and shadow maps where the passes read them: on the device, in (pinned)
     host memory uploaded a window per pass, or decoded from the capture's files a window per pass
@@ -406,8 +419,8 @@ class PhotoSet:
     def subset(self, indices, device: str | None = None) -> "PhotoSet":
         """The photos ``indices`` of this set (with their depth and shadow maps, mesh and window size) as a
         PhotoSet of their own, without loading or rendering anything again: e.g. a fit on part of the
-        photos judged on the rest (fit/models/materials.py), or a tile's photos (fit/multi/tiles.py). One copy through
-        the host, at set-up (device to device when ``device``, another device, takes every photo).
+        photos judged on the rest (fit/models/materials.py), or a tile's photos (fit/multi/tiles.py). Photos held on
+        the device are copied there (:func:`gather_rows`); photos held on the host, one copy there.
         ``device``: where the subset lives (default: this set's); another device needs this set's photos
         resident on its device (``residency`` device)."""
         idx = np.asarray(indices, np.int64).reshape(-1)
@@ -451,17 +464,19 @@ class PhotoSet:
             out.maps_on_device = False  # the kept maps are the whole set's: a subset's windows make their own
             out.image_bytes = self.image_bytes // self.n * out.n
             return out
-        src = (self.host_images, self.host_depth, self.host_shadow) if self.streamed else (self.images, self.depth, self.shadow)
+        if not self.streamed:  # photos on the device: copied there, run by run, the same bytes as through the host
+            out.images, out.depth, out.shadow = (gather_rows(a, idx) if dev == self.device else
+                                                 wp.clone(gather_rows(a, idx), device=dev)
+                                                 for a in (self.images, self.depth, self.shadow))
+            out.image_bytes = self.image_bytes // self.n * out.n
+            return out
+        src = (self.host_images, self.host_depth, self.host_shadow)
         images, depth, shadow = (np.ascontiguousarray(a.numpy()[idx]) for a in src)
-        if out.streamed:  # the window buffers are shared: the two sets are never streamed at once
-            pinned = dev != "cpu"
-            out.host_images = wp.array(images, dtype=self.images.dtype, device="cpu", pinned=pinned)
-            out.host_depth = wp.array(depth, dtype=wp.float32, device="cpu", pinned=pinned)
-            out.host_shadow = wp.array(shadow, dtype=wp.float32, device="cpu", pinned=pinned)
-        else:
-            out.images = wp.array(images, dtype=self.images.dtype, device=dev)
-            out.depth = wp.array(depth, dtype=wp.float32, device=dev)
-            out.shadow = wp.array(shadow, dtype=wp.float32, device=dev)
+        # the window buffers are shared: the two sets are never streamed at once
+        pinned = dev != "cpu"
+        out.host_images = wp.array(images, dtype=self.images.dtype, device="cpu", pinned=pinned)
+        out.host_depth = wp.array(depth, dtype=wp.float32, device="cpu", pinned=pinned)
+        out.host_shadow = wp.array(shadow, dtype=wp.float32, device="cpu", pinned=pinned)
         out.image_bytes = int(images.nbytes)
         return out
 

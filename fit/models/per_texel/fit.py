@@ -22,7 +22,8 @@ from texstream.fit.common.inputs import FitInputs, load_fit_inputs, load_photos,
 from texstream.fit.common.model_folder import (bound_report, check_model, pooled_psnr, render_comparisons, trace_plot,
                                                write_model_folder)
 from texstream.fit.common.numerics import numerics_warnings
-from texstream.fit.common.setup import Checkpoint, fill_unseen_texels, params_to_grid, render_model, run_fit_with_progress
+from texstream.fit.common.setup import (Checkpoint, ModelRenders, fill_unseen_texels, params_to_grid,
+                                        run_fit_with_progress)
 from texstream.fit.models import registry
 from texstream.fit.models.per_texel.lobes import (_materials_manifest, average_seams_in_bounds, choose_materials,
                                                   confirm_at_material_lobes, drop_unsupported_lobes, fit_with_materials,
@@ -160,11 +161,13 @@ def _lobes_and_materials(inputs: FitInputs, problem, result, cfg):
 def fit_chosen_materials(problem, result, evidence, info: dict, cfg, polish: bool = False):
     """(result, Lobes) of the materials model the choice ``info`` picked (variant and K), fitted from ``result``;
     its iterations appended to the trace (stage "materials")."""
+    t0 = time.perf_counter()
     with phase("fit", f"materials: {info['reason']}"):
         res_m, extra_info = fit_with_materials(problem, result, evidence, info["k"], info["chosen"], cfg,
                                                polish=polish)
     labels = extra_info.pop("labels")
     info.update(extra_info)
+    info["chosen_fit_seconds"] = time.perf_counter() - t0  # beside the choice's "seconds"
     t_end = result.trace[-1]["time_s"]
     extra = [{**r, "iteration": r["iteration"] + len(result.trace), "time_s": r["time_s"] + t_end,
               "stage": r.get("stage", "materials")} for r in res_m.trace]
@@ -187,8 +190,11 @@ def _write_geometry_and_renders(tmp: Path, inputs: FitInputs, mesh_path, grid, l
     PSNR), the first ``cfg.renders`` written as images."""
     capture, mesh, bake = inputs.capture, inputs.mesh, inputs.bake
 
+    renders = ModelRenders(mesh, layout, cfg.device)  # one renderer, its BVH built once, for every frame
+    renders.set_grid(grid)
+
     def render(f):
-        image, coverage = render_model(mesh, grid, layout, f, cfg.device)
+        image, coverage = renders.render(f)
         m = coverage.astype(bool)
         if capture.mask_path(f) is not None and capture.mask_path(f).exists():
             m &= read_mask(capture.mask_path(f), coverage.shape)

@@ -4,6 +4,7 @@ material's lobe); seams averaged within bounds."""
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import time
 from typing import Callable
@@ -18,7 +19,9 @@ from texstream.fit.models.materials import (MaterialConfig, contradiction_test, 
 from texstream.render.layout import ModelLayout
 
 from texstream.fit.common.inputs import read_photos, FitInputs
-from texstream.fit.common.setup import params_to_grid, heldout_psnr, fill_unseen_texels, per_texel_objective, data_jtj
+from texstream.fit.common.setup import (data_jtj, fill_unseen_texels, params_to_grid, per_texel_objective,
+                                        unseen_sources)
+from texstream.fit.common.view_scores import ViewScores
 from texstream.fit.multi.tiles import tiled
 from texstream.fit.stream.problem import PhotoFrame, StreamProblem
 from texstream.geometry.seams import average_across_seams, seam_gaps
@@ -149,10 +152,11 @@ def traced_polish(problem, result: FitResult, cfg, prior=None) -> FitResult:
 
 
 def fit_with_materials(problem, result: FitResult, evidence: TexelEvidence, k: int, variant: str,
-                       cfg, polish: bool = False) -> tuple[FitResult, dict]:
+                       cfg, polish: bool = False, fit_cfg: FitConfig | None = None) -> tuple[FitResult, dict]:
     """The materials model with ``k`` materials (fit/models/materials.py): cluster, prior, Levenberg-Marquardt from
     the per-texel fit ``result``, then (``polish``) :func:`traced_polish` with the prior on. Returns the fit
-    and what model.json records of it."""
+    and what model.json records of it. ``fit_cfg``: the fit's stopping rule (default ``cfg.fit``'s; the choice's
+    candidates stop by :func:`choice_fit_config`'s)."""
     mcfg = cfg.materials
     lay = result.layout
     seen = evidence.samples > 0
@@ -170,7 +174,7 @@ def fit_with_materials(problem, result: FitResult, evidence: TexelEvidence, k: i
                            evidence.sigma2, contradicted, mcfg, variant)
     problem.set_material_prior(prior.centre, prior.weights)
     try:
-        fit = dataclasses.replace(cfg.fit, max_iterations=mcfg.iterations, optimizer="lm")
+        fit = dataclasses.replace(fit_cfg or cfg.fit, max_iterations=mcfg.iterations, optimizer="lm")
         res = run_fit(problem, fit, start=(prior.start, evidence.samples))
     finally:
         problem.set_material_prior(None)
@@ -183,12 +187,14 @@ def fit_with_materials(problem, result: FitResult, evidence: TexelEvidence, k: i
     return res, info
 
 
-def model_grid(params: np.ndarray, result: FitResult, problem, bake, cfg, seams=None) -> np.ndarray:
-    """(H, W, P) maps of compact ``params`` as the stage writes them: padding, unseen texels, seams."""
+def model_grid(params: np.ndarray, result: FitResult, problem, bake, cfg, seams=None,
+               unseen: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """(H, W, P) maps of compact ``params`` as the stage writes them: padding, unseen texels, seams.
+    ``unseen``: :func:`unseen_sources` of ``problem`` and ``result`` (computed here when None)."""
     res = dataclasses.replace(result, params=params)
     grid = params_to_grid(res, problem, bake)
     if cfg.unseen == "nearest":
-        grid, _ = fill_unseen_texels(grid, problem, bake, res)
+        grid, _ = fill_unseen_texels(grid, problem, bake, res, sources=unseen)
     grid, _ = average_seams_in_bounds(grid, seams, result.layout)
     return grid
 
@@ -202,15 +208,30 @@ def validation_split(n: int, every: int) -> tuple[list[int], list[int]]:
 def mesh_view_scores(inputs: "FitInputs", val: list[int], cfg) -> Callable:
     """The materials choice's default scorer: ``score_views(params, result, sub_problem)`` -> the PSNR of each
     validation photo ``val`` (indices of ``inputs.frames``) against the mesh's render of compact ``params``, made
-    into maps as the stage writes them (padding, unseen texels, seams)."""
+    into maps as the stage writes them (padding, unseen texels, seams). The validation photos are read on a
+    thread from here on (beside the validation fit); one renderer (the mesh's BVH), the photos on the device
+    (fit/common/view_scores.py) and the unseen texels' nearest seen ones serve every candidate: all are fitted
+    on one sub-problem, with one set of samples."""
     frames = [inputs.frames[i] for i in val]
-    images, masks = read_photos(inputs.images, inputs.masks, val)
+    reading = concurrent.futures.ThreadPoolExecutor(1)
+    kept: dict = {"photos": reading.submit(read_photos, inputs.images, inputs.masks, val)}
+    reading.shutdown(wait=False)
 
     def score_views(params, result, sub) -> list[float]:
-        grid = model_grid(params, result, sub, inputs.bake, cfg, inputs.seams)
-        return heldout_psnr(inputs.mesh, grid, result.layout, frames, images, masks, cfg.device)[0]
+        if "views" not in kept:  # the photos uploaded, the host's copies let go
+            kept["views"] = ViewScores(inputs.mesh, result.layout, frames, *kept.pop("photos").result(), cfg.device)
+            kept["unseen"] = unseen_sources(sub, result) if cfg.unseen == "nearest" else None
+        return kept["views"].psnr(model_grid(params, result, sub, inputs.bake, cfg, inputs.seams,
+                                             unseen=kept["unseen"]))
 
     return score_views
+
+
+def choice_fit_config(cfg) -> FitConfig:
+    """The stopping rule of the materials choice's fits (the validation split's per-texel fit, each candidate's):
+    ``materials.choice_rel_tol`` tested every 2 iterations, or the fit's own rule where that is 0."""
+    tol = cfg.materials.choice_rel_tol
+    return cfg.fit if tol <= 0 else dataclasses.replace(cfg.fit, rel_tol=tol, sync_every=2)
 
 
 def choose_materials(inputs: "FitInputs", problem, cfg, log=None, score_views: Callable | None = None) -> dict:
@@ -218,6 +239,9 @@ def choose_materials(inputs: "FitInputs", problem, cfg, log=None, score_views: C
     every ``materials.validation_every``-th fitted photo is held back (:func:`validation_split`), the per-texel
     fit and every candidate are fitted to the rest and scored by their renders of the validation photos (pooled
     PSNR; ties within 0.05 dB go to the simpler model). The fit's own held-out photos play no part.
+    The candidates share one set-up: the sub-problem's photos are the fit's own, copied on the device
+    (PhotoSet.subset: nothing decoded or shadow-mapped again), and one scorer. Each candidate's seconds (fit,
+    score) and iterations, and the set-up's and validation fit's, are recorded.
     ``score_views(params, result, sub_problem)``: the validation photos' PSNRs of compact ``params`` (fitted on
     ``sub_problem`` from ``result``); None: the mesh's renders (:func:`mesh_view_scores`). Returns the choice
     and every candidate's score, or {"chosen": "per-texel", "reason": ...} when the fitted photos are too few
@@ -229,28 +253,33 @@ def choose_materials(inputs: "FitInputs", problem, cfg, log=None, score_views: C
     if len(val) < 2 or len(train) < 2:
         return {"chosen": "per-texel", "reason": f"{n} fitted photos are too few for a validation split of every "
                                                  f"{every}th"}
-    t0 = time.perf_counter()
-    sub = StreamProblem(problem.texels, problem.photos.subset(train), problem.layout, problem.cfg, problem.device)
-    res = run_fit(sub, cfg.fit)
+    clock = _Clock()
     score_views = score_views or mesh_view_scores(inputs, val, cfg)
+    sub = StreamProblem(problem.texels, problem.photos.subset(train), problem.layout, problem.cfg, problem.device)
+    seconds = {"setup": clock.lap()}
+    fit_cfg = choice_fit_config(cfg)
+    res = run_fit(sub, fit_cfg)
+    seconds["validation_fit"] = clock.lap()
 
-    def score(params) -> dict:
+    def score(params, fitted: float) -> dict:
         views = score_views(params, res, sub)
         pooled = float(-10 * np.log10(np.mean([10 ** (-v / 10) for v in views])))
-        return {"pooled_psnr_db": pooled, "worst_psnr_db": float(min(views))}
+        return {"pooled_psnr_db": pooled, "worst_psnr_db": float(min(views)),
+                "seconds": {"fit": fitted, "score": clock.lap()}}
 
-    cands = []
     params, _ = drop_unsupported_lobes(sub, res, cfg.lobe_support)
-    cands.append({"model": "per-texel", **score(params)})
+    cands = [{"model": "per-texel", "iterations": len(res.trace) - 1, **score(params, clock.lap())}]
     if mcfg.mode == "on":
         cands[0]["excluded"] = "materials mode on"
     evidence = texel_evidence(sub, res, mcfg)
+    seconds["evidence"] = clock.lap()
     for variant in mcfg.variant_list():
         for k in range(1, mcfg.max_materials + 1):
-            r, info = fit_with_materials(sub, res, evidence, k, variant, cfg)
+            r, info = fit_with_materials(sub, res, evidence, k, variant, cfg, fit_cfg=fit_cfg)
             if info["k"] < k:
                 break  # fewer distinct albedos than k: no new model
-            cands.append({"model": variant, "k": info["k"], **score(r.params)})
+            cands.append({"model": variant, "k": info["k"], "iterations": len(r.trace) - 1,
+                          **score(r.params, clock.lap())})
             if log is not None:
                 log(f"[fit] validation: {variant} K={k}: pooled {cands[-1]['pooled_psnr_db']:.2f} dB, "
                     f"worst {cands[-1]['worst_psnr_db']:.2f} dB")
@@ -261,9 +290,25 @@ def choose_materials(inputs: "FitInputs", problem, cfg, log=None, score_views: C
             best = c
     name = best["model"] + (f" K={best['k']}" if "k" in best else "")
     return {"chosen": best["model"], "k": best.get("k"), "validation_photos": len(val), "fitted_on": len(train),
-            "candidates": cands, "seconds": time.perf_counter() - t0,
+            "candidates": cands, "seconds": clock.total(), "seconds_by_part": seconds,
+            "stopping": {"rel_tol": fit_cfg.rel_tol, "sync_every": fit_cfg.sync_every},
             "reason": f"{name}: best pooled PSNR on {len(val)} validation photos (every {every}th fitted photo), "
                       f"{best['pooled_psnr_db']:.2f} dB against per-texel {cands[0]['pooled_psnr_db']:.2f} dB"}
+
+
+class _Clock:
+    """Seconds since the last lap, and since the start."""
+
+    def __init__(self):
+        self.start = self.last = time.perf_counter()
+
+    def lap(self) -> float:
+        now = time.perf_counter()
+        out, self.last = now - self.last, now
+        return out
+
+    def total(self) -> float:
+        return time.perf_counter() - self.start
 
 
 def average_seams_in_bounds(grid: np.ndarray, seams, layout: ModelLayout) -> tuple[np.ndarray, dict | None]:

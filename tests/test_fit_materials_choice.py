@@ -1,0 +1,113 @@
+"""The materials choice's shared set-up (issue 40): the validation split's photos are the fit's own, copied on
+the device (PhotoSet.subset), and every candidate is scored by one renderer against photos uploaded once
+(fit/common/view_scores.py). A fit on the shared set-up gives the parameters of a set-up of its own to the bit
+(the arithmetic is the same), and the device scores equal the per-view renders copied back."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from texstream.fit.common.model_folder import image_metrics
+from texstream.fit.common.setup import build_problem, render_model
+from texstream.fit.common.view_scores import ViewScores
+from texstream.fit.models.per_texel.lobes import validation_split
+from texstream.fit.optim.fitter import FitConfig, run_fit
+from texstream.fit.stream.config import StreamConfig
+from texstream.fit.stream.problem import StreamProblem
+
+# a small ornament: 16 photos of 40x40 keep each CPU fit to a fraction of a second
+SMALL = dict(scale=0.02, photos=16, image_size=40, progress=False)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    from conftest import SCENE_DEVICE
+    from texstream.capture.synthetic.synth import SynthConfig, render_scene
+
+    return render_scene("ornament", SynthConfig(device=SCENE_DEVICE, **SMALL))
+
+
+def test_validation_subset_fits_like_a_set_up_of_its_own(scene, device):
+    """The choice's sub-problem (the fitted photos of the split, copied from the whole set on the device) holds
+    exactly their photos and maps, and its fit gives the parameters, sample counts and trace of a problem set up
+    from those photos alone, to the bit: the same samples in the same order."""
+    cfg = FitConfig(max_iterations=6, stream=StreamConfig(shadow_map_size=48))
+    whole = build_problem(scene.mesh, scene.bake, scene.frames, scene.images, scene.masks, cfg, device)
+    assert whole.photos.residency == "device"
+    train, _ = validation_split(len(scene.frames), 4)  # gaps in the rows: runs of 3 photos
+    sub_photos = whole.photos.subset(train)
+    for name in ("images", "depth", "shadow"):
+        np.testing.assert_array_equal(getattr(sub_photos, name).numpy(), getattr(whole.photos, name).numpy()[train],
+                                      err_msg=name)
+    shared = StreamProblem(whole.texels, sub_photos, whole.layout, whole.cfg, device)
+    own = build_problem(scene.mesh, scene.bake, [scene.frames[i] for i in train], [scene.images[i] for i in train],
+                        [scene.masks[i] for i in train], cfg, device)
+    a, b = run_fit(shared, cfg), run_fit(own, cfg)
+    np.testing.assert_array_equal(a.params, b.params)
+    np.testing.assert_array_equal(a.samples, b.samples)
+    assert [r["objective"] for r in a.trace] == [r["objective"] for r in b.trace]
+
+
+def test_view_scores_equal_renders_copied_back(scene, device):
+    """One ViewScores scores two parameter maps in turn (the renderer's maps replaced, its BVH kept) as a new
+    renderer per view with the render copied back and numpy's metrics do. Tolerance 1e-6 dB: the squared errors
+    are summed in another order, and the render's exposure product may be fused with the difference (FMA) in
+    the kernel; both change only the last bits of a view's error."""
+    views = list(range(0, len(scene.frames), 3))
+    frames = [scene.frames[i] for i in views]
+    photos = [scene.images[i] for i in views]
+    masks = [scene.masks[i] for i in views]
+    scores = ViewScores(scene.mesh, scene.layout, frames, photos, masks, device)
+    dimmer = scene.params.copy()
+    dimmer[..., :3] *= 0.9  # a different model: lower diffuse albedo
+    for grid in (scene.params, dimmer, scene.params):
+        got = scores.psnr(grid)
+        want = []
+        for fr, photo, mask in zip(frames, photos, masks):
+            render, cover = render_model(scene.mesh, grid, scene.layout, fr, device)
+            want.append(image_metrics(render, photo, cover.astype(bool) & mask)["psnr_db"])
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-6)
+
+
+def test_scaled_inverse_diagonal_equals_the_eigenvalue_route():
+    """The uncertainty's inverse diagonals through Cholesky (where the eigenvalue floor cannot act) equal those
+    through eigenvalues with the floor, also for blocks that are singular or nearly so (taken by eigenvalues,
+    or by Cholesky when the floor still cannot act). Tolerance 1e-9 relative: both are exact inverses in exact
+    arithmetic, and rounding differs by the block's condition number (up to 1e11 here) times 1e-16."""
+    from texstream.fit.models import materials
+
+    rng = np.random.default_rng(1)
+    a = rng.normal(size=(300, 6, 9))
+    a[:20, 4] = a[:20, 3] * (1 + 1e-7)  # nearly singular: condition ~1e13, the floor acts
+    a[20:40, 5] = a[20:40, 2]  # singular to rounding
+    h = a @ a.transpose(0, 2, 1)
+    d = np.sqrt(np.einsum("nii->ni", h))
+    hs = h / (d[:, :, None] * d[:, None, :])
+    w, v = np.linalg.eigh(hs)
+    w = np.maximum(w, 1e-12 * np.maximum(w[:, -1:], 1e-300))
+    want = np.einsum("nij,nj,nij->ni", v, 1.0 / w, v)
+    old = materials.UNCERTAINTY_CHUNK
+    try:
+        materials.UNCERTAINTY_CHUNK = 64  # several batches, some with a block Cholesky refuses
+        got = materials.scaled_inverse_diagonal(hs)
+    finally:
+        materials.UNCERTAINTY_CHUNK = old
+    np.testing.assert_allclose(got[40:], want[40:], rtol=1e-9)
+    # the floored blocks: the eigenvalue route's own values (taken by it), or within the floor's reach
+    np.testing.assert_allclose(got[:40], want[:40], rtol=1e-3)
+
+
+def test_distinct_rows_counts_as_unique_does():
+    from texstream.fit.models.materials import distinct_rows
+
+    rng = np.random.default_rng(2)
+    cases = [rng.integers(0, 3, size=(50, 2)).astype(float), np.zeros((4, 3)), np.array([[np.nan, 1.0], [np.nan, 1.0]])]
+    for x in cases:
+        for k in (1, 2, 3, 5, 12):
+            assert unique_count(x, k) == distinct_rows(x, k), (x[:3], k)
+
+
+def unique_count(x: np.ndarray, k: int) -> int:
+    """min(k, distinct rows) as kmeans counted them before (np.unique of every row)."""
+    return int(min(k, len(np.unique(x, axis=0))))
