@@ -96,13 +96,20 @@ class MaterialConfig:
                                   min=-1.0, max=1.0)
     iterations: int = option(20, "Levenberg-Marquardt iterations of a materials fit (it starts from the per-texel "
                                  "fit)", min=1)
-    choice_rel_tol: float = option(0.0, "0: the choice's fits (the validation split's per-texel fit and each "
-                                        "candidate's) stop by the fit's own rule (fit.rel_tol every fit.sync_every "
-                                        "iterations), as the fits of the model kept do; > 0: they stop when their "
-                                        "objective falls by less than this, relative, over 2 iterations (faster, but "
-                                        "a per-texel candidate stopped earlier than the per-texel fit it stands for "
-                                        "is judged on another model: on a small ornament it validated 9.6 dB higher)",
+    choice_rel_tol: float = option(1e-4, "the candidates' fits in the choice (each materials model on the validation "
+                                         "split) stop when their objective falls by less than this, relative, over 2 "
+                                         "iterations: a candidate is only scored, and the one chosen is fitted again "
+                                         "to every fitted photo by the fit's own rule. The split's per-texel fit "
+                                         "always stops by the fit's own rule (fit.rel_tol every fit.sync_every "
+                                         "iterations): stopped earlier it is judged on another model than the "
+                                         "per-texel fit it stands for (on a small ornament it validated 9.6 dB "
+                                         "higher). 0: the candidates too stop by the fit's own rule",
                                    min=0.0)
+    fit_from_validation: bool = option(True, "the choice runs before the fit of every fitted photo, and that fit starts "
+                                             "from the validation split's per-texel fit (7/8 of the same photos: it "
+                                             "then needs a few iterations, not a fit's worth; texels no fitted photo "
+                                             "of the split saw start from the fit's own guess); the choice is the "
+                                             "same either way. Not with tiles or a resumed checkpoint")
 
     def variant_list(self) -> tuple:
         out = tuple(v.strip() for v in str(self.variants).split(",") if v.strip())

@@ -6,6 +6,7 @@ capture.imageio, pymeshlab in the mesh writer) are imported inside the functions
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import shutil
 import time
@@ -73,9 +74,11 @@ def _fit_per_texel_model(capture_dir: str | Path, mesh_path: str | Path, out_dir
         problem, seen_before, start, skipped = set_up_skipping_bad_photos(inputs, cfg, capture_dir)
     t_setup = time.perf_counter() - t0
     ckpt, resume = _checkpoint(capture_dir, mesh_path, out_dir, cfg, problem)
-    result, tiles_report = _core_fit(problem, cfg, start, progress, ckpt, resume)
+    choice, p0 = _choice_before_fit(inputs, problem, cfg, start, resume)
+    t_choice = time.perf_counter() - t0 - t_setup
+    result, tiles_report = _core_fit(problem, cfg, start, progress, ckpt, resume, p0)
     t_loop = time.perf_counter()
-    result, lobes = _lobes_and_materials(inputs, problem, result, cfg)
+    result, lobes = _lobes_and_materials(inputs, problem, result, cfg, choice)
     grid, filled, seams_info = _model_grid(inputs, problem, result, cfg)
     t_fitted = time.perf_counter()
     title = f"{result.layout.kind} fit, {cfg.fit.optimizer}, {cfg.device}"
@@ -85,7 +88,7 @@ def _fit_per_texel_model(capture_dir: str | Path, mesh_path: str | Path, out_dir
         seen = np.zeros(inputs.bake.height * inputs.bake.width, bool)
         seen[problem.texels.grid_index] = result.samples > 0
         write_lobe_maps(tmp, inputs.bake, problem, result, lobes)
-        timings = {"inputs": t_inputs, "setup": t_setup - t_inputs, "fit": t_loop - t0 - t_setup,
+        timings = {"inputs": t_inputs, "setup": t_setup - t_inputs, "choice_before_fit": t_choice, "fit": t_loop - t0 - t_setup - t_choice,
                    "after_fit": t_fitted - t_loop, "renders": time.perf_counter() - t_fitted}
         manifest = _manifest(inputs, problem, result, lobes, cfg, evals,
                              {"seen_before": seen_before, "filled": filled, "skipped": skipped, "tiles": tiles_report,
@@ -115,10 +118,31 @@ def _checkpoint(capture_dir, mesh_path, out_dir, cfg, problem) -> tuple[Checkpoi
     return ckpt, ckpt.load()
 
 
-def _core_fit(problem, cfg, start, progress: bool, ckpt, resume):
-    """(FitResult, tiles report or None): the streaming fit, tiled where asked."""
+def _choice_before_fit(inputs: FitInputs, problem, cfg, start, resume) -> tuple[dict | None, np.ndarray | None]:
+    """(the materials choice, the fit's starting parameters) where the choice runs before the fit of every
+    fitted photo (``materials.fit_from_validation``): that fit then starts from the validation split's
+    per-texel fit, which saw 7/8 of its photos, on every texel the split saw (the fit's own guess ``start`` on
+    the rest), and needs a few iterations instead of a fit's worth. The choice never reads the full fit, so it
+    is the same either way. (None, None) where the choice runs after the fit (no lobes, materials off, tiles,
+    a resumed checkpoint); (choice, None) where the photos were too few to split."""
+    m = cfg.materials
+    if not (m.fit_from_validation and problem.layout.n_lobes and m.mode != "off" and resume is None
+            and not tiled(cfg.fit)):
+        return None, None
+    kept = {}
+    with phase("fit", "materials: per-texel or shared lobes, judged on a validation split of the fitted photos"):
+        choice = choose_materials(inputs, problem, cfg, on_validation_fit=lambda res: kept.update(fit=res))
+    if "fit" not in kept:
+        return choice, None
+    split = kept["fit"]
+    return choice, np.where((split.samples > 0)[:, None], split.params, start.params.numpy())
+
+
+def _core_fit(problem, cfg, start, progress: bool, ckpt, resume, p0: np.ndarray | None = None):
+    """(FitResult, tiles report or None): the streaming fit, tiled where asked; ``p0``: its starting parameters
+    (None: the initial guess ``start``'s)."""
     if not tiled(cfg.fit):
-        result = run_fit_with_progress(problem, cfg.fit, progress, start=start,
+        result = run_fit_with_progress(problem, cfg.fit, progress, start=start, p0=p0,
                                        **({"checkpoint": ckpt.save, "resume": resume} if ckpt else {}))
         return result, None
     with phase("fit", f"{cfg.fit.model}: tiles of texels ({cfg.fit.stream.tile_backend})"):
@@ -128,14 +152,16 @@ def _core_fit(problem, cfg, start, progress: bool, ckpt, resume):
     return result, report
 
 
-def _lobes_and_materials(inputs: FitInputs, problem, result, cfg):
-    """(result, Lobes): for a model with lobes, the shared materials' choice and fit (texels whose highlight no
-    photo caught borrow their material's lobe), or the traced polish and the per-texel lobes no photo supports
-    dropped; a model without lobes passes through the latter unchanged."""
+def _lobes_and_materials(inputs: FitInputs, problem, result, cfg, choice: dict | None = None):
+    """(result, Lobes): for a model with lobes, the shared materials' choice (``choice``: made before the fit,
+    :func:`_choice_before_fit`) and fit (texels whose highlight no photo caught borrow their material's lobe), or
+    the traced polish and the per-texel lobes no photo supports dropped; a model without lobes passes through
+    the latter unchanged."""
     info, evidence, materials_problem = None, None, problem
     if result.layout.n_lobes and cfg.materials.mode != "off":
-        with phase("fit", "materials: per-texel or shared lobes, judged on a validation split of the fitted photos"):
-            choice = choose_materials(inputs, problem, cfg)
+        with (phase("fit", "materials: per-texel or shared lobes, judged on a validation split of the fitted photos")
+              if choice is None else contextlib.nullcontext()):
+            choice = choice or choose_materials(inputs, problem, cfg)
             traced_extra = {}
             if cfg.traced_materials and choice["chosen"] != "per-texel" and traced_polish_applies(problem, cfg):
                 plane_evidence = texel_evidence(problem, result, cfg.materials)

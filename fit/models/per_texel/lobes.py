@@ -228,13 +228,14 @@ def mesh_view_scores(inputs: "FitInputs", val: list[int], cfg) -> Callable:
 
 
 def choice_fit_config(cfg) -> FitConfig:
-    """The stopping rule of the materials choice's fits (the validation split's per-texel fit, each candidate's):
-    ``materials.choice_rel_tol`` tested every 2 iterations, or the fit's own rule where that is 0."""
+    """The stopping rule of the materials choice's candidates (each materials model fitted to the validation
+    split): ``materials.choice_rel_tol`` tested every 2 iterations, or the fit's own rule where that is 0."""
     tol = cfg.materials.choice_rel_tol
     return cfg.fit if tol <= 0 else dataclasses.replace(cfg.fit, rel_tol=tol, sync_every=2)
 
 
-def choose_materials(inputs: "FitInputs", problem, cfg, log=None, score_views: Callable | None = None) -> dict:
+def choose_materials(inputs: "FitInputs", problem, cfg, log=None, score_views: Callable | None = None,
+                     on_validation_fit: Callable[[FitResult], None] | None = None) -> dict:
     """Pick the per-texel or a materials model (variant and K) on a validation split of the fitted photos:
     every ``materials.validation_every``-th fitted photo is held back (:func:`validation_split`), the per-texel
     fit and every candidate are fitted to the rest and scored by their renders of the validation photos (pooled
@@ -243,7 +244,9 @@ def choose_materials(inputs: "FitInputs", problem, cfg, log=None, score_views: C
     (PhotoSet.subset: nothing decoded or shadow-mapped again), and one scorer. Each candidate's seconds (fit,
     score) and iterations, and the set-up's and validation fit's, are recorded.
     ``score_views(params, result, sub_problem)``: the validation photos' PSNRs of compact ``params`` (fitted on
-    ``sub_problem`` from ``result``); None: the mesh's renders (:func:`mesh_view_scores`). Returns the choice
+    ``sub_problem`` from ``result``); None: the mesh's renders (:func:`mesh_view_scores`).
+    ``on_validation_fit(result)``: given the validation split's per-texel fit as soon as it is there (the
+    fit of every photo starts from it: ``materials.fit_from_validation``). Returns the choice
     and every candidate's score, or {"chosen": "per-texel", "reason": ...} when the fitted photos are too few
     to split."""
     mcfg = cfg.materials
@@ -258,8 +261,10 @@ def choose_materials(inputs: "FitInputs", problem, cfg, log=None, score_views: C
     sub = StreamProblem(problem.texels, problem.photos.subset(train), problem.layout, problem.cfg, problem.device)
     seconds = {"setup": clock.lap()}
     fit_cfg = choice_fit_config(cfg)
-    res = run_fit(sub, fit_cfg)
+    res = run_fit(sub, cfg.fit)  # the fit's own rule: the per-texel model it stands for, and the full fit's start
     seconds["validation_fit"] = clock.lap()
+    if on_validation_fit is not None:
+        on_validation_fit(res)
 
     def score(params, fitted: float) -> dict:
         views = score_views(params, res, sub)
@@ -291,7 +296,8 @@ def choose_materials(inputs: "FitInputs", problem, cfg, log=None, score_views: C
     name = best["model"] + (f" K={best['k']}" if "k" in best else "")
     return {"chosen": best["model"], "k": best.get("k"), "validation_photos": len(val), "fitted_on": len(train),
             "candidates": cands, "seconds": clock.total(), "seconds_by_part": seconds,
-            "stopping": {"rel_tol": fit_cfg.rel_tol, "sync_every": fit_cfg.sync_every},
+            "stopping": {"validation_fit": {"rel_tol": cfg.fit.rel_tol, "sync_every": cfg.fit.sync_every},
+                         "candidates": {"rel_tol": fit_cfg.rel_tol, "sync_every": fit_cfg.sync_every}},
             "reason": f"{name}: best pooled PSNR on {len(val)} validation photos (every {every}th fitted photo), "
                       f"{best['pooled_psnr_db']:.2f} dB against per-texel {cands[0]['pooled_psnr_db']:.2f} dB"}
 
