@@ -6,8 +6,17 @@
 # model.json), a cProfile of one run of each, and the dense ornament's held-out figures (scale 0.01, 1,760
 # photos of 160x160, the fit's own 256 atlas, every 8th photo held out) before and after.
 #   usage: NEW=DIR WHEELS=DIR bash benchmarks/fit_defaults_gpu.sh OUT     (warp in /root/site)
-# VARIANT_ARGS: extra `texstream fit` arguments of a third code path measured beside ("after" with them).
+# VARIANT_ARGS: extra `texstream fit` arguments of a third code path measured beside ("after" with them);
+# VARIANTS: several, separated by ';' (runs and dense fits named variant1, variant2, ...; VARIANT_ARGS alone: variant).
+# PROFILE_OLD=0: no cProfile of the code before (its profile from an earlier call stands).
 set -u
+declare -a vnames=() vargs=()
+if [ -n "${VARIANTS:-}" ]; then
+  IFS=';' read -r -a vargs <<< "$VARIANTS"
+  for i in "${!vargs[@]}"; do vnames+=("variant$((i + 1))"); done
+elif [ -n "${VARIANT_ARGS:-}" ]; then
+  vnames=(variant); vargs=("$VARIANT_ARGS")
+fi
 out=$1
 before=${BEFORE:-$PWD}
 work=/root/w
@@ -34,6 +43,7 @@ timeline() {  # name code [fit args...]
       --texstream /root/bin/ts-$code -- "$@" | tail -n 1
   cp "$work/$name/fit_cli_timeline.json" "$work/json/$name.json"
   cp "$work/$name/model_0/model.json" "$work/json/$name.model.json" 2>/dev/null
+  cp "$work/$name/model_0/trace.json" "$work/json/$name.trace.json" 2>/dev/null
 }
 mkdir -p "$work/json"
 echo "== cold (fresh kernel cache): after, then before"
@@ -43,10 +53,10 @@ echo "== warm, alternating"
 for r in 1 2; do
   timeline warm_old_$r old
   timeline warm_new_$r new
-  [ -n "${VARIANT_ARGS:-}" ] && timeline warm_variant_$r new $VARIANT_ARGS
+  for i in "${!vnames[@]}"; do timeline "warm_${vnames[$i]}_$r" new ${vargs[$i]}; done
 done
 echo "== profiles"
-for v in old new; do
+for v in $([ "${PROFILE_OLD:-1}" = 0 ] || echo old) new; do
   PYTHONPATH=/root/$v:/root/site:/root/oiio python3 -c "
 import cProfile, pstats, sys
 sys.argv = ['texstream', 'fit', '/root/sd/capture', '--mesh', '/root/sd/capture/ground_truth', '-o', '$work/prof_$v']
@@ -64,11 +74,12 @@ dense() {  # name code [fit args...]
       --model lafortune "$@" > "$work/json/$name.log" 2>&1 || { echo "$name: fit failed"; tail -n 5 "$work/json/$name.log"; return; }
   echo "$name: fit $(python3 -c "print(round($(stamp) - $s, 1))") s"
   cp "$work/$name/model.json" "$work/json/$name.model.json"
+  cp "$work/$name/trace.json" "$work/json/$name.trace.json"
   /root/bin/ts-$code eval "$work/$name" /root/dense --holdout-every 8 -o "$work/json/$name.eval.json" 2>&1 | tail -n 1
 }
 dense dense_new new
 dense dense_old old
-[ -n "${VARIANT_ARGS:-}" ] && dense dense_variant new $VARIANT_ARGS
+for i in "${!vnames[@]}"; do dense "dense_${vnames[$i]}" new ${vargs[$i]}; done
 (cd "$work" && tar czf "$out/results.tgz" json)
 python3 "$SUMMARY" "$work/json" > "$out/summary.txt" 2>&1
 cat "$out/summary.txt"

@@ -24,10 +24,20 @@ def materials_line(m: dict | None) -> str:
             + f"; validation: {cands}")
 
 
+def stages_line(trace: Path) -> str:
+    """Trace rows per stage of a fit (the fit of every photo: "fit"; then "materials", "traced polish")."""
+    if not trace.is_file():
+        return "trace: none"
+    rows: dict = {}
+    for r in json.loads(trace.read_text()):
+        rows[r.get("stage", "fit")] = rows.get(r.get("stage", "fit"), 0) + 1
+    return "trace rows " + json.dumps(rows)
+
+
 def main() -> None:
     d = Path(sys.argv[1])
     for p in sorted(d.glob("*.json")):
-        if p.name.endswith(".model.json") or p.name.endswith(".eval.json"):
+        if p.name.endswith((".model.json", ".eval.json", ".trace.json")):
             continue
         doc = json.loads(p.read_text())
         for r in doc["runs"]:
@@ -37,11 +47,13 @@ def main() -> None:
         man = d / f"{p.stem}.model.json"
         if man.is_file():
             print("   ", materials_line(json.loads(man.read_text()).get("materials")))
+        print("   ", stages_line(d / f"{p.stem}.trace.json"))
     for p in sorted(d.glob("*.eval.json")):
         e = json.loads(p.read_text())
         m = json.loads((d / p.name.replace(".eval.json", ".model.json")).read_text())
         print(f"{p.name}: held out pooled {e.get('pooled_psnr_db')}, worst {e.get('worst_psnr_db')} "
-              f"({e.get('worst_view')}); {materials_line(m.get('materials'))}; trace rows {m['final']['iteration']}")
+              f"({e.get('worst_view')}); {materials_line(m.get('materials'))}; trace rows {m['final']['iteration']}; "
+              f"{stages_line(d / p.name.replace('.eval.json', '.trace.json'))}")
 
 
 if __name__ == "__main__":

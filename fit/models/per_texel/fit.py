@@ -88,8 +88,9 @@ def _fit_per_texel_model(capture_dir: str | Path, mesh_path: str | Path, out_dir
         seen = np.zeros(inputs.bake.height * inputs.bake.width, bool)
         seen[problem.texels.grid_index] = result.samples > 0
         write_lobe_maps(tmp, inputs.bake, problem, result, lobes)
-        timings = {"inputs": t_inputs, "setup": t_setup - t_inputs, "choice_before_fit": t_choice, "fit": t_loop - t0 - t_setup - t_choice,
-                   "after_fit": t_fitted - t_loop, "renders": time.perf_counter() - t_fitted}
+        timings = {"inputs": t_inputs, "setup": t_setup - t_inputs, "choice_before_fit": t_choice,
+                   "fit": t_loop - t0 - t_setup - t_choice, "after_fit": t_fitted - t_loop,
+                   "renders": time.perf_counter() - t_fitted}
         manifest = _manifest(inputs, problem, result, lobes, cfg, evals,
                              {"seen_before": seen_before, "filled": filled, "skipped": skipped, "tiles": tiles_report,
                               "seams": seams_info, "setup_s": t_setup, "timings_s": timings})
