@@ -105,11 +105,11 @@ class MaterialConfig:
                                          "per-texel fit it stands for (on a small ornament it validated 9.6 dB "
                                          "higher). 0: the candidates too stop by the fit's own rule",
                                    min=0.0)
-    fit_from_validation: bool = option(True, "the choice runs before the fit of every fitted photo, and that fit starts "
-                                             "from the validation split's per-texel fit (7/8 of the same photos: it "
-                                             "then needs a few iterations, not a fit's worth; texels no fitted photo "
-                                             "of the split saw start from the fit's own guess); the choice is the "
-                                             "same either way. Not with tiles or a resumed checkpoint")
+    fit_from_validation: bool = option(True, "the choice runs before the fit of every fitted photo, and that fit "
+                                             "starts from the validation split's per-texel fit (7/8 of the same "
+                                             "photos: it then needs fewer iterations; texels no fitted photo of the "
+                                             "split saw start from the fit's own guess); the choice is the same "
+                                             "either way. Not with tiles or a resumed checkpoint")
 
     def variant_list(self) -> tuple:
         out = tuple(v.strip() for v in str(self.variants).split(",") if v.strip())
