@@ -60,6 +60,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="Levenberg-Marquardt iterations that end a fit with specular lobes with taps traced to "
                              "the mesh (stream.tap_geometry mesh): highlights narrower than a pixel fitted as the "
                              "photos filtered them (default: 5; 0 = off)")
+    parser.add_argument("--traced-polish-rel-tol", dest="traced_polish_rel_tol", type=float, default=1e-5,
+                        help="the traced polish stops after an iteration that lowers its objective by less than this, "
+                             "relative (default: 1e-5; 0 = every iteration runs)")
     parser.add_argument("--traced-materials", dest="traced_materials", action="store_true",
                         help="with the traced polish and shared materials chosen: polish the per-texel fit on traced "
                              "taps first, and find and fit the materials on traced taps too (helps sub-pixel texels "
@@ -89,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
                          choice=config_from_args(ModelChoiceConfig, args, prefix="choice."),
                          **{k: getattr(args, k) for k in ("device", "texture_size", "texel_pixels", "holdout_every",
                                                           "renders", "min_seen_fraction", "skip_bad_photos",
-                                                          "traced_polish", "traced_materials")
+                                                          "traced_polish", "traced_polish_rel_tol", "traced_materials")
                             if hasattr(args, k)})
 
     # the stage's phase lines, as texstream run prints them

@@ -1,7 +1,9 @@
 """The materials choice's shared set-up (issue 40): the validation split's photos are the fit's own, copied on
 the device (PhotoSet.subset), and every candidate is scored by one renderer against photos uploaded once
 (fit/common/view_scores.py). A fit on the shared set-up gives the parameters of a set-up of its own to the bit
-(the arithmetic is the same), and the device scores equal the per-view renders copied back."""
+(the arithmetic is the same), and the device scores equal the per-view renders copied back. The choice made before
+the fit of every photo (which then starts from the split's fit) is the same choice; the traced polish stops when
+its objective settles."""
 
 from __future__ import annotations
 
@@ -13,10 +15,13 @@ import pytest
 from texstream.fit.common.model_folder import image_metrics
 from texstream.fit.common.setup import build_problem, render_model
 from texstream.fit.common.view_scores import ViewScores
+from texstream.fit.models.materials import MaterialConfig
 from texstream.fit.models.per_texel.lobes import validation_split
 from texstream.fit.optim.fitter import FitConfig, run_fit
 from texstream.fit.stream.config import StreamConfig
 from texstream.fit.stream.problem import StreamProblem
+
+from conftest import SCENE_DEVICE
 
 # a small ornament: 16 photos of 40x40 keep each CPU fit to a fraction of a second
 SMALL = dict(scale=0.02, photos=16, image_size=40, progress=False)
@@ -24,7 +29,6 @@ SMALL = dict(scale=0.02, photos=16, image_size=40, progress=False)
 
 @pytest.fixture(scope="module")
 def scene():
-    from conftest import SCENE_DEVICE
     from texstream.capture.synthetic.synth import SynthConfig, render_scene
 
     return render_scene("ornament", SynthConfig(device=SCENE_DEVICE, **SMALL))
@@ -119,7 +123,6 @@ def unique_count(x: np.ndarray, k: int) -> int:
 def small_capture(tmp_path_factory):
     """The small ornament written as a capture folder (float EXRs, masks, its true atlas)."""
     pytest.importorskip("OpenImageIO")
-    from conftest import SCENE_DEVICE
     from texstream.capture.synthetic.synth import SynthConfig, synthesize
 
     root = tmp_path_factory.mktemp("choice_first")
@@ -129,8 +132,6 @@ def small_capture(tmp_path_factory):
 
 def stage_fit(root, name: str, fit_from_validation: bool) -> dict:
     """model.json of ``fit_stage`` on ``small_capture`` with shared materials on (one candidate, K = 1)."""
-    from conftest import SCENE_DEVICE
-    from texstream.fit.models.materials import MaterialConfig
     from texstream.fit.stages.stage import FitStageConfig, fit_stage
 
     cfg = FitStageConfig(device=SCENE_DEVICE, renders=0, traced_polish=0, checkpoint=False,
@@ -159,3 +160,24 @@ def test_fit_from_validation_keeps_the_choice_and_the_optimum(small_capture):
     core = lambda m: sum(1 for r in json.loads((small_capture / m / "trace.json").read_text()) if "stage" not in r)
     assert core("warm") < 0.8 * core("cold")  # here 145 against 240: the split saw 14 of the 16 photos
     assert warm["final"]["objective"] == pytest.approx(cold["final"]["objective"], rel=5e-3)
+
+
+def test_traced_polish_stops_when_settled_with_the_full_polish_iterations(small_capture):
+    """``traced_polish_rel_tol``: the polish stops after the first iteration that lowers its objective by less than
+    the tolerance, relative; the iterations it ran are those of the full polish to the bit (only the host reads
+    of the trace buffer differ). Tolerance 1.0 stops at the first test that has a previous objective (iteration
+    2); 0 runs all 4."""
+    from texstream.fit.stages.stage import FitStageConfig, fit_stage
+
+    def polish_rows(name: str, tol: float) -> list[float]:
+        cfg = FitStageConfig(device=SCENE_DEVICE, renders=0, traced_polish=4, traced_polish_rel_tol=tol,
+                             checkpoint=False, materials=MaterialConfig(mode="off"),
+                             fit=FitConfig(max_iterations=8, stream=StreamConfig(shadow_map_size=48)))
+        fit_stage(small_capture / "cap", small_capture / "cap" / "ground_truth", small_capture / name, cfg,
+                  progress=False)
+        trace = json.loads((small_capture / name / "trace.json").read_text())
+        return [r["objective"] for r in trace if r.get("stage") == "traced polish"]
+
+    full, settled = polish_rows("polish_full", 0.0), polish_rows("polish_settled", 1.0)
+    assert len(full) == 5 and len(settled) == 3  # the start row and the iterations
+    assert settled == full[:3]

@@ -68,6 +68,11 @@ class FitStageConfig:
                                     "narrower than a pixel is then fitted as the photos filtered it, not as a "
                                     "broad, weak lobe new views contradict (docs/accuracy.md); a traced pass costs "
                                     "~7-20x a plane one; 0: off", min=0)
+    traced_polish_rel_tol: float = option(1e-5, "the traced polish stops after an iteration that lowers its objective "
+                                                "by less than this, relative (tested every iteration: on the full "
+                                                "ornament the polish settles after its first iteration, 2e-6 from the "
+                                                "second on, while on the dense ornament each iteration still gains "
+                                                "1-8%); 0: every iteration runs", min=0.0)
     traced_materials: bool = option(False, "with the traced polish and shared materials chosen: polish the "
                                             "per-texel fit on traced taps first, and find the materials' evidence, "
                                             "contradictions and fit on traced taps too. It helps texels narrower "

@@ -134,16 +134,19 @@ def traced_problem(problem):
 
 def traced_polish(problem, result: FitResult, cfg, prior=None) -> FitResult:
     """``cfg.traced_polish`` Levenberg-Marquardt iterations from ``result`` on the same texels and photos with
-    traced taps (``StreamConfig.tap_geometry`` mesh), the materials' ``prior`` (centre, weights) kept on; the
-    trace continues ``result``'s (its first row: the start, evaluated with traced taps). Returns ``result``
-    unchanged where :func:`traced_polish_applies` says no."""
+    traced taps (``StreamConfig.tap_geometry`` mesh), the materials' ``prior`` (centre, weights) kept on, fewer
+    where one lowers the objective by less than ``cfg.traced_polish_rel_tol`` (a traced pass costs 7-20x a plane
+    one; the iterations before the stop are those of the full polish, to the bit); the trace continues
+    ``result``'s (its first row: the start, evaluated with traced taps). Returns ``result`` unchanged where
+    :func:`traced_polish_applies` says no."""
 
     if not traced_polish_applies(problem, cfg):
         return result
     traced = traced_problem(problem)
     if prior is not None:
         traced.set_material_prior(*prior)
-    fit = dataclasses.replace(cfg.fit, max_iterations=cfg.traced_polish, optimizer="lm")
+    fit = dataclasses.replace(cfg.fit, max_iterations=cfg.traced_polish, optimizer="lm",
+                              rel_tol=cfg.traced_polish_rel_tol, sync_every=1)
     res = run_fit(traced, fit, start=(result.params, result.samples))
     t_end = result.trace[-1]["time_s"] if result.trace else 0.0
     extra = [{**r, "iteration": r["iteration"] + len(result.trace), "time_s": r["time_s"] + t_end,
