@@ -75,7 +75,7 @@ from .reconstruct import PoissonConfig, poisson_reconstruct, read_points, trim_b
 from .scene import (Facing, camera_facing, cameras_enclosed, check_facing, classify_capture, crop_to_box,
                     drop_enclosed_components, genus_by_component, orient_to_cameras, point_spacing,
                     robust_box, trim_far_from_points)
-from .triangulate import triangulate_capture, write_points
+from .triangulate import TriangulateConfig, triangulate_capture, write_points
 
 POINTS_FILE = "points3D.ply"
 DENSE_POINTS_FILE = "dense_points.ply"
@@ -433,15 +433,18 @@ def _dense_points(capture, cfg: MeshConfig, masks, report: dict,
     Without masks the depth range of each photo and the region it is matched over come from the SfM
     points ``sparse`` (geometry/posed_dense.py)."""
     ranges = regions = None
+    scene = False
     if masks is None and sparse is not None and len(sparse[0]) >= MIN_SFM_POINTS:
         pts = sparse[0]
         bounds = robust_box(pts, cfg.crop_percentile, cfg.crop_margin)
-        ranges, range_rep = depth_ranges_from_points(capture.frames, pts, cfg.posed)
-        regions = coverage_masks(capture.frames, pts, cfg.posed.grow, cfg.posed.min_points)
+        scene = _capture_kind(cfg, pts, np.array([f.center for f in capture.frames]))["kind"] == "scene"
+        ranges, range_rep = depth_ranges_from_points(capture.frames, pts, cfg.posed, scene)
+        regions = coverage_masks(capture.frames, pts, -1.0 if scene else cfg.posed.grow, cfg.posed.min_points)
         where = (f"the {len(pts)} SfM points "
                  + ("triangulated here with the given cameras" if "triangulation" in report else "of points3D.ply")
                  + f" (per photo: their depths' {cfg.posed.percentile:g}-{100 - cfg.posed.percentile:g} percentiles "
-                 f"+ {100 * cfg.posed.margin:g}% of the span each side)")
+                 f"+ {100 * cfg.posed.margin:g}% of the span each side"
+                 + (f", then / and x {cfg.posed.scene_factor:g}: a scene" if scene else "") + ")")
     elif masks is None:
         raise InputError(f"dense stereo without masks needs SfM points to know where the surface is; the capture "
                          f"has {0 if sparse is None else len(sparse[0])} (need {MIN_SFM_POINTS})",
@@ -456,8 +459,9 @@ def _dense_points(capture, cfg: MeshConfig, masks, report: dict,
                                   ranges)
     why = ("on (--dense on)" if cfg.dense == "on" else "auto: the capture has known cameras, pinhole photos and "
            + ("masks" if masks is not None else "SfM points but no masks"))
-    rep = {"reason": why, "masks": "the capture's" if masks is not None else "none (matched over the convex hull "
-           f"of the SfM points' projections, grown {100 * cfg.posed.grow:g}%)",
+    rep = {"reason": why, "masks": "the capture's" if masks is not None else "none: matched over every pixel (a "
+           "scene)" if scene else f"none: matched over the convex hull of the SfM points' projections, grown "
+           f"{100 * cfg.posed.grow:g}%",
            "depth_range_from": where, "bounds": [bounds[0].tolist(), bounds[1].tolist()], **dp.report}
     if ranges is not None:
         for v, r in zip(rep["views"], range_rep):
@@ -485,7 +489,9 @@ def _sparse_points(capture, cfg: MeshConfig, masks, report: dict, new_points: di
         return np.zeros((0, 3)), None
     with phase("mesh", f"triangulating SfM points from {len(capture.frames)} photos and their given cameras"
                        + ("" if masks is not None else " (no masks)")):
-        tp = triangulate_capture(capture, masks=masks)
+        tcfg = TriangulateConfig(max_features=cfg.posed.features) if masks is None and _will_dense(cfg, capture) \
+            else None
+        tp = triangulate_capture(capture, tcfg, masks=masks)
     report["triangulation"] = tp.report
     new_points[POINTS_FILE] = (tp.points, tp.normals)
     return tp.points, tp.normals
