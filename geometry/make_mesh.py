@@ -11,7 +11,9 @@ Sources (``MeshConfig.source``):
     ``auto``: a given mesh if one is named; otherwise Poisson intersected with the hull when the
         capture has SfM points (or photos with known cameras to triangulate them from) and masks,
         Poisson alone with points but no masks, the hull when it only has masks. The choice and
-        its reason go into the report.
+        its reason go into the report. A capture with known cameras and nothing else (no masks,
+        no points3D.ply: a Metashape or RealityCapture export) gets points triangulated with those
+        cameras and dense stereo without masks (below).
 
 Why Poisson intersected with the hull is the default when both exist: the hull cannot see
 concavities (on the Middlebury temple only 67% of the SfM points lie within 1% of the bounding-box
@@ -28,7 +30,19 @@ masks, else the SfM points' robust box. On the Middlebury temple the sparse poin
 leave the steps, columns and beams to the hull and Poisson's smoothing; the dense ones (about
 560,000 before fusion) follow them. When dense stereo finds fewer than ``MIN_DENSE_POINTS`` points or
 confirms depths on less than ``MIN_DENSE_FILL`` of the mask pixels on average (a textureless object)
-the sparse path runs instead, and the report says so. The report's ``dense``
+the sparse path runs instead, and the report says so.
+
+Dense stereo without masks (:mod:`.posed_dense`): when the capture has known cameras and pinhole
+photos but no masks, the SfM points (points3D.ply, or triangulated here with the given cameras, at
+``posed.features`` SIFT features a photo) give each photo its depth range (robust percentiles of the
+depths of the points it sees, with a margin; a scene's range widened further, the sparse points miss
+the ground a facade's photos see at grazing angles) and its matched region (an object's: the convex
+hull of the points' projections, grown; a scene's: every pixel). Measured (benchmarks/posed_mesh.py,
+2-core CPU dev box): a glossy textured sphere from 24 cameras-only photos of 192 pixels, and the
+synthetic facade (capture/synthetic/facade.py) from 11 of 640 x 480, both within 0.1% of the true
+bounding-box diagonal (median, both ways); before, the first failed ("neither SfM points nor masks").
+The report's ``dense`` entry says which masks (``masks``) and which depth range source
+(``depth_range_from``, and per photo ``depth_range_source``) were used. The report's ``dense``
 entry holds the point counts, per-photo neighbours, depth range and fill (kept depths over mask
 pixels), timings and the reason.
 
