@@ -112,11 +112,13 @@ class MeshConfig:
     hull_resolution: int = option(128, help="visual hull grid nodes along the longest side")
     intersect_hull: bool = option(True, help="intersect the Poisson surface with the visual hull when masks exist")
     triangulate: str = option("auto", help="SfM points from the photos and known cameras when the capture has no "
-                                           "points3D.ply: auto (when it has masks and its photos), on, off",
+                                           "points3D.ply: auto (when it has its photos: the points Poisson meshes, "
+                                           "or the depth ranges of dense stereo without masks), on, off",
                               choices=("auto", "on", "off"))
     dense: str = option("auto", help="dense multi-view stereo points (geometry/mvs.py) for Poisson instead of the "
                                      "sparse SfM points: auto (when the capture has known cameras, its pinhole "
-                                     "photos and masks), on, off", choices=("auto", "on", "off"))
+                                     "photos, and masks or SfM points given or triangulated), on, off",
+                        choices=("auto", "on", "off"))
     mvs: MvsConfig = option(default_factory=MvsConfig, help="dense stereo options")
     posed: PosedDenseConfig = option(default_factory=PosedDenseConfig, help="dense stereo without masks: depth "
                                      "ranges and matched regions from the SfM points (geometry/posed_dense.py)")
@@ -467,8 +469,9 @@ def _dense_points(capture, cfg: MeshConfig, masks, report: dict,
         bounds, where = _dense_bounds(capture, cfg, masks)
     n_photos = len(capture.frames)
     with phase("mesh", f"dense stereo of {n_photos} photos "
-                       + ("inside their masks" if masks is not None else "without masks, over the region the SfM "
-                          "points cover") + f", depth range from {where.split(' (')[0]}"):
+                       + ("inside their masks" if masks is not None else "without masks, over every pixel (a "
+                          "scene)" if scene else "without masks, over the region the SfM points cover")
+                       + f", depth range from {where.split(' (')[0]}"):
         dp = capture_dense_points(capture, masks if masks is not None else regions, bounds, cfg.mvs, cfg.device,
                                   ranges)
     why = ("on (--dense on)" if cfg.dense == "on" else "auto: the capture has known cameras, pinhole photos and "
