@@ -173,9 +173,19 @@ def _decimate(ms, faces: int) -> None:
 
 
 def orient_outwards(mesh: SurfaceMesh) -> tuple[SurfaceMesh, bool]:
-    """Faces made coherent by pymeshlab and flipped when the signed volume is negative."""
+    """Faces made coherent by pymeshlab and flipped when the signed volume is negative. A mesh that is not
+    2-manifold (decimation can pinch a cropped scene surface's thin strips) first loses its non-manifold
+    edges' faces and vertices, as cleanup does before decimation."""
+    import pymeshlab as ml
+
     ms = to_meshset(mesh)
-    ms.meshing_re_orient_faces_coherently()
+    try:
+        ms.meshing_re_orient_faces_coherently()
+    except ml.PyMeshLabException:
+        ms.meshing_repair_non_manifold_edges(method="Remove Faces")
+        ms.meshing_repair_non_manifold_vertices()
+        ms.meshing_remove_unreferenced_vertices()
+        ms.meshing_re_orient_faces_coherently()
     m = from_ml(ms.current_mesh())
     if signed_volume(m.vertices, m.faces) < 0:
         return dataclasses.replace(m, faces=m.faces[:, ::-1].copy()), True
@@ -200,8 +210,11 @@ def clean_mesh(mesh: SurfaceMesh, config: CleanConfig | None = None, path: Any =
 
     cfg = config or CleanConfig()
     check_mesh(mesh, path)
+    # the input's topology from a copy: pymeshlab's topological measures leave the mesh set in a state where a later
+    # quadric decimation collapses almost nothing (the synthetic facade's cropped Poisson surface kept 145,162 of
+    # 145,301 faces against a target of 20,000; 20,000 when measured on a copy)
+    before = topology(mesh)
     ms = to_meshset(mesh)
-    before = _topo_from(ms, ms.get_topological_measures())
     steps: list[dict] = []
 
     def step(name: str) -> None:

@@ -11,7 +11,9 @@ Sources (``MeshConfig.source``):
     ``auto``: a given mesh if one is named; otherwise Poisson intersected with the hull when the
         capture has SfM points (or photos with known cameras to triangulate them from) and masks,
         Poisson alone with points but no masks, the hull when it only has masks. The choice and
-        its reason go into the report.
+        its reason go into the report. A capture with known cameras and nothing else (no masks,
+        no points3D.ply: a Metashape or RealityCapture export) gets points triangulated with those
+        cameras and dense stereo without masks (below).
 
 Why Poisson intersected with the hull is the default when both exist: the hull cannot see
 concavities (on the Middlebury temple only 67% of the SfM points lie within 1% of the bounding-box
@@ -28,7 +30,19 @@ masks, else the SfM points' robust box. On the Middlebury temple the sparse poin
 leave the steps, columns and beams to the hull and Poisson's smoothing; the dense ones (about
 560,000 before fusion) follow them. When dense stereo finds fewer than ``MIN_DENSE_POINTS`` points or
 confirms depths on less than ``MIN_DENSE_FILL`` of the mask pixels on average (a textureless object)
-the sparse path runs instead, and the report says so. The report's ``dense``
+the sparse path runs instead, and the report says so.
+
+Dense stereo without masks (:mod:`.posed_dense`): when the capture has known cameras and pinhole
+photos but no masks, the SfM points (points3D.ply, or triangulated here with the given cameras, at
+``posed.features`` SIFT features a photo) give each photo its depth range (robust percentiles of the
+depths of the points it sees, with a margin; a scene's range widened further, the sparse points miss
+the ground a facade's photos see at grazing angles) and its matched region (an object's: the convex
+hull of the points' projections, grown; a scene's: every pixel). Measured (benchmarks/posed_mesh.py,
+2-core CPU dev box): a glossy textured sphere from 24 cameras-only photos of 192 pixels, and the
+synthetic facade (capture/synthetic/facade.py) from 11 of 640 x 480, both within 0.1% of the true
+bounding-box diagonal (median, both ways); before, the first failed ("neither SfM points nor masks").
+The report's ``dense`` entry says which masks (``masks``) and which depth range source
+(``depth_range_from``, and per photo ``depth_range_source``) were used. The report's ``dense``
 entry holds the point counts, per-photo neighbours, depth range and fill (kept depths over mask
 pixels), timings and the reason.
 
@@ -70,11 +84,12 @@ from .hull import HullConfig, hull_bounds, load_masks, visual_hull
 from .hull_fill import poisson_points_with_hull_fill
 from .mesh_io import load_mesh, save_mesh
 from .mvs import MvsConfig, capture_dense_points
+from .posed_dense import PosedDenseConfig, coverage_masks, depth_ranges_from_points
 from .reconstruct import PoissonConfig, poisson_reconstruct, read_points, trim_by_masks
 from .scene import (Facing, camera_facing, cameras_enclosed, check_facing, classify_capture, crop_to_box,
                     drop_enclosed_components, genus_by_component, orient_to_cameras, point_spacing,
                     robust_box, trim_far_from_points)
-from .triangulate import triangulate_capture, write_points
+from .triangulate import TriangulateConfig, triangulate_capture, write_points
 
 POINTS_FILE = "points3D.ply"
 DENSE_POINTS_FILE = "dense_points.ply"
@@ -97,12 +112,16 @@ class MeshConfig:
     hull_resolution: int = option(128, help="visual hull grid nodes along the longest side")
     intersect_hull: bool = option(True, help="intersect the Poisson surface with the visual hull when masks exist")
     triangulate: str = option("auto", help="SfM points from the photos and known cameras when the capture has no "
-                                           "points3D.ply: auto (when it has masks and its photos), on, off",
+                                           "points3D.ply: auto (when it has its photos: the points Poisson meshes, "
+                                           "or the depth ranges of dense stereo without masks), on, off",
                               choices=("auto", "on", "off"))
     dense: str = option("auto", help="dense multi-view stereo points (geometry/mvs.py) for Poisson instead of the "
                                      "sparse SfM points: auto (when the capture has known cameras, its pinhole "
-                                     "photos and masks), on, off", choices=("auto", "on", "off"))
+                                     "photos, and masks or SfM points given or triangulated), on, off",
+                        choices=("auto", "on", "off"))
     mvs: MvsConfig = option(default_factory=MvsConfig, help="dense stereo options")
+    posed: PosedDenseConfig = option(default_factory=PosedDenseConfig, help="dense stereo without masks: depth "
+                                     "ranges and matched regions from the SfM points (geometry/posed_dense.py)")
     device: str = option("cpu", help="Warp device for hull carving, dense stereo and depth maps (cpu, cuda:0)")
     scene_kind: str = option("auto", help="SfM points of a scene (cameras inside the points' extent: crop Poisson to "
                                           "it) or of an object (cameras around it: closed surface); auto decides "
@@ -157,19 +176,24 @@ def _will_dense(config: MeshConfig, capture) -> bool:
         return False
     if config.dense == "on":
         return True
-    return (_has_masks(capture) and _has_photos(capture)
-            and all(f.intrinsics.is_pinhole for f in capture.frames))
+    if not (_has_photos(capture) and all(f.intrinsics.is_pinhole for f in capture.frames)):
+        return False
+    # without masks the depth range and the matched region come from SfM points (given or triangulated here)
+    return _has_masks(capture) or (capture.root / POINTS_FILE).is_file() or config.triangulate != "off"
+
+
+def _dense_without_masks(config: MeshConfig, capture) -> bool:
+    return _will_dense(config, capture) and not _has_masks(capture)
 
 
 def _will_triangulate(config: MeshConfig, capture) -> bool:
-    """Whether SfM points are triangulated from the known cameras (no points3D.ply in the capture)."""
-    if _will_dense(config, capture):
-        return False
+    """Whether SfM points are triangulated from the known cameras (no points3D.ply in the capture): as the
+    points Poisson meshes, or as the depth range of dense stereo without masks."""
     if capture is None or (capture.root / POINTS_FILE).is_file() or config.triangulate == "off":
         return False
-    if config.triangulate == "on":
-        return True
-    return _has_masks(capture) and _has_photos(capture)
+    if _will_dense(config, capture) and not _dense_without_masks(config, capture):
+        return False  # dense stereo with masks takes its depth range from the hull
+    return config.triangulate == "on" or _has_photos(capture)
 
 
 def choose_source(config: MeshConfig, capture) -> tuple[str, str]:
@@ -192,7 +216,10 @@ def choose_source(config: MeshConfig, capture) -> tuple[str, str]:
             raise InputError(f"no SfM points ({POINTS_FILE}) in the capture", capture.root,
                              "run 'texstream register' first" + (", or use --from hull (the capture has masks)"
                                                                  if has_masks else ", or give --from scan.obj"))
-        why = ("the capture has photos with known cameras (dense stereo points from them)" if dense
+        why = ("the capture has photos with known cameras (dense stereo points from them"
+               + (", without masks: depth ranges and matched regions from the SfM points"
+                  + (" triangulated with those cameras)" if triangulate else " of points3D.ply)")
+                  if not has_masks else ")") if dense
                else "the capture has photos with known cameras (SfM points triangulated from them)" if triangulate
                else "the capture has SfM points")
         if has_masks and config.intersect_hull:
@@ -298,9 +325,8 @@ def make_mesh(capture_dir: str | os.PathLike | None, out: str | os.PathLike,
 
     with atomic_output_dir(out) as tmp:
         save_mesh(tmp / "mesh.ply", cleaned)
-        if new_points is not None:
-            name = DENSE_POINTS_FILE if report.get("dense", {}).get("used") else POINTS_FILE
-            write_points(tmp / name, *new_points)
+        for name, (p, n) in (new_points or {}).items():
+            write_points(tmp / name, p, n)
         write_json_atomic(tmp / "mesh_report.json", report)
         save_config(cfg, tmp / "mesh_config.json")
     return StageResult(output=Path(out), summary=report)
@@ -417,22 +443,75 @@ def _dense_bounds(capture, cfg: MeshConfig, masks) -> tuple[tuple[np.ndarray, np
                      "add masks, run 'texstream register' (SfM points), or use --dense off")
 
 
-def _dense_points(capture, cfg: MeshConfig, masks, report: dict) -> tuple[np.ndarray, np.ndarray] | None:
-    """Dense stereo points and normals (geometry/mvs.py), or None (with the reason in the report) when too few."""
-    bounds, where = _dense_bounds(capture, cfg, masks)
-    dp = capture_dense_points(capture, masks, bounds, cfg.mvs, cfg.device)
-    rep = {"reason": ("on (--dense on)" if cfg.dense == "on" else
-                      "auto: the capture has known cameras, pinhole photos and masks"),
+def _dense_points(capture, cfg: MeshConfig, masks, report: dict,
+                  sparse: tuple[np.ndarray, np.ndarray | None] | None) -> tuple[np.ndarray, np.ndarray] | None:
+    """Dense stereo points and normals (geometry/mvs.py), or None (with the reason in the report) when too few.
+    Without masks the depth range of each photo and the region it is matched over come from the SfM
+    points ``sparse`` (geometry/posed_dense.py)."""
+    ranges = regions = None
+    scene = False
+    if masks is None and sparse is not None and len(sparse[0]) >= MIN_SFM_POINTS:
+        pts = sparse[0]
+        bounds = robust_box(pts, cfg.crop_percentile, cfg.crop_margin)
+        scene = _capture_kind(cfg, pts, np.array([f.center for f in capture.frames]))["kind"] == "scene"
+        ranges, range_rep = depth_ranges_from_points(capture.frames, pts, cfg.posed, scene)
+        regions = coverage_masks(capture.frames, pts, -1.0 if scene else cfg.posed.grow, cfg.posed.min_points)
+        where = (f"the {len(pts)} SfM points "
+                 + ("triangulated here with the given cameras" if "triangulation" in report else "of points3D.ply")
+                 + f" (per photo: their depths' {cfg.posed.percentile:g}-{100 - cfg.posed.percentile:g} percentiles "
+                 f"+ {100 * cfg.posed.margin:g}% of the span each side"
+                 + (f", then / and x {cfg.posed.scene_factor:g}: a scene" if scene else "") + ")")
+    elif masks is None:
+        raise InputError(f"dense stereo without masks needs SfM points to know where the surface is; the capture "
+                         f"has {0 if sparse is None else len(sparse[0])} (need {MIN_SFM_POINTS})",
+                         capture.root / "capture.json", "add masks, run 'texstream register', or use --dense off")
+    else:
+        bounds, where = _dense_bounds(capture, cfg, masks)
+    n_photos = len(capture.frames)
+    with phase("mesh", f"dense stereo of {n_photos} photos "
+                       + ("inside their masks" if masks is not None else "without masks, over every pixel (a "
+                          "scene)" if scene else "without masks, over the region the SfM points cover")
+                       + f", depth range from {where.split(' (')[0]}"):
+        dp = capture_dense_points(capture, masks if masks is not None else regions, bounds, cfg.mvs, cfg.device,
+                                  ranges)
+    why = ("on (--dense on)" if cfg.dense == "on" else "auto: the capture has known cameras, pinhole photos and "
+           + ("masks" if masks is not None else "SfM points but no masks"))
+    rep = {"reason": why, "masks": "the capture's" if masks is not None else "none: matched over every pixel (a "
+           "scene)" if scene else f"none: matched over the convex hull of the SfM points' projections, grown "
+           f"{100 * cfg.posed.grow:g}%",
            "depth_range_from": where, "bounds": [bounds[0].tolist(), bounds[1].tolist()], **dp.report}
+    if ranges is not None:
+        for v, r in zip(rep["views"], range_rep):
+            v["depth_range_source"] = r["source"]
     report["dense"] = rep
     if len(dp.points) < MIN_DENSE_POINTS or dp.report["mean_fill"] < MIN_DENSE_FILL:
         rep["used"] = False
         rep["fallback"] = (f"too few dense points ({len(dp.points)}, need {MIN_DENSE_POINTS}) or too little of the "
-                           f"masks filled ({100 * dp.report['mean_fill']:.0f}%, need {100 * MIN_DENSE_FILL:.0f}%): "
+                           f"{'masks' if masks is not None else 'matched regions'} filled "
+                           f"({100 * dp.report['mean_fill']:.0f}%, need {100 * MIN_DENSE_FILL:.0f}%): "
                            "too little texture or misaligned cameras; the sparse SfM points instead")
         return None
     rep["used"] = True
     return dp.points, dp.normals
+
+
+def _sparse_points(capture, cfg: MeshConfig, masks, report: dict, new_points: dict
+                   ) -> tuple[np.ndarray, np.ndarray | None]:
+    """The capture's SfM points (points3D.ply), or points triangulated here with its known cameras (none with
+    --triangulate off)."""
+    pts_path = capture.root / POINTS_FILE
+    if pts_path.is_file():
+        return read_points(pts_path)
+    if cfg.triangulate == "off":
+        return np.zeros((0, 3)), None
+    with phase("mesh", f"triangulating SfM points from {len(capture.frames)} photos and their given cameras"
+                       + ("" if masks is not None else " (no masks)")):
+        tcfg = TriangulateConfig(max_features=cfg.posed.features) if masks is None and _will_dense(cfg, capture) \
+            else None
+        tp = triangulate_capture(capture, tcfg, masks=masks)
+    report["triangulation"] = tp.report
+    new_points[POINTS_FILE] = (tp.points, tp.normals)
+    return tp.points, tp.normals
 
 
 def _hull_instead(capture, cfg: MeshConfig, masks, report: dict, n_points: int) -> SurfaceMesh:
@@ -444,22 +523,20 @@ def _hull_instead(capture, cfg: MeshConfig, masks, report: dict, n_points: int) 
 
 
 def _from_sfm(capture, cfg: MeshConfig, masks, report: dict) -> tuple[SurfaceMesh, tuple | None]:
-    """Poisson (+ hull) from the capture's SfM points; returns (mesh, (points, normals) triangulated here or None)."""
+    """Poisson (+ hull) from the capture's SfM or dense points; returns (mesh, {file name: (points, normals)} made
+    here)."""
     pts_path = capture.root / POINTS_FILE
-    new_points = None
-    dense = _dense_points(capture, cfg, masks, report) if _will_dense(cfg, capture) else None
+    new_points: dict = {}  # file name -> (points, normals) made here
+    will_dense = _will_dense(cfg, capture)
+    # dense stereo with masks takes its depth range from the hull; without, from the sparse points
+    sparse = _sparse_points(capture, cfg, masks, report, new_points) if masks is None or not will_dense else None
+    dense = _dense_points(capture, cfg, masks, report, sparse) if will_dense else None
     if dense is not None:
         pts, nrm = dense
-        new_points = dense
-        pts_path = capture.root / "capture.json"  # messages name what the points came from
-    elif pts_path.is_file():
-        pts, nrm = read_points(pts_path)
+        new_points[DENSE_POINTS_FILE] = dense
     else:
-        with phase("mesh", f"triangulating SfM points from {len(capture.frames)} photos and their known cameras"):
-            tp = triangulate_capture(capture, masks=masks)
-        pts, nrm = tp.points, tp.normals
-        report["triangulation"] = tp.report
-        new_points = (pts, nrm)
+        pts, nrm = sparse if sparse is not None else _sparse_points(capture, cfg, masks, report, new_points)
+    if new_points:
         pts_path = capture.root / "capture.json"  # messages name what the points came from
     if dense is None and len(pts) < MIN_SFM_POINTS and masks is not None and cfg.source != "sfm":
         return _hull_instead(capture, cfg, masks, report, len(pts)), new_points

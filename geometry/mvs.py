@@ -449,16 +449,19 @@ def _kvec(frame) -> wp.vec4:
 
 def dense_points(frames: Sequence, images: Sequence[np.ndarray], masks: Sequence[np.ndarray] | None,
                  bounds: tuple[np.ndarray, np.ndarray], config: MvsConfig | None = None,
-                 device: str = "cpu") -> DensePoints:
+                 device: str = "cpu", depth_ranges: Sequence[tuple[float, float] | None] | None = None) -> DensePoints:
     """Dense points of an object seen by posed pinhole photos (module doc).
 
     Args:
         frames: frames with R, t, intrinsics (world-to-camera, OpenCV axes), undistorted.
         images: one photo per frame, (H, W) or (H, W, C), linear or encoded (matched by NCC).
         masks: one (H, W) object mask per frame (nonzero = object), or None (every pixel).
-        bounds: (lo, hi) world box holding the object: the depth range of every photo.
+        bounds: (lo, hi) world box holding the object: the depth range of every photo (unless given), the
+            centre the neighbours are chosen around, the size the fusion voxel is relative to.
         config: options.
         device: Warp device.
+        depth_ranges: per photo (near, far), or None (no depths): overrides the box's range (e.g. from
+            the points triangulated with the cameras, :mod:`.posed_dense`).
 
     Returns:
         The fused :class:`DensePoints`.
@@ -493,7 +496,7 @@ def dense_points(frames: Sequence, images: Sequence[np.ndarray], masks: Sequence
         rep = {"photo": frames[r].name, "neighbours": [frames[c].name for c in neighbours[r]]}
         per_view.append(rep)
         ys, xs = np.nonzero(mask[r])
-        rng = _depth_range(frames[r], lo, hi)
+        rng = _depth_range(frames[r], lo, hi) if depth_ranges is None else depth_ranges[r]
         if not neighbours[r] or len(ys) == 0 or rng is None:
             rep["skipped"] = ("no neighbour photo within the angle range" if not neighbours[r]
                               else "empty mask" if len(ys) == 0 else "the object box is behind the camera")
@@ -682,7 +685,8 @@ def voxel_merge(points: np.ndarray, normals: np.ndarray, size: float) -> tuple[n
 
 
 def capture_dense_points(capture, masks: Sequence[np.ndarray] | None, bounds: tuple[np.ndarray, np.ndarray],
-                         config: MvsConfig | None = None, device: str = "cpu") -> DensePoints:
+                         config: MvsConfig | None = None, device: str = "cpu",
+                         depth_ranges: Sequence[tuple[float, float] | None] | None = None) -> DensePoints:
     """:func:`dense_points` of a capture folder's photos (read with OpenImageIO).
 
     Raises:
@@ -698,4 +702,4 @@ def capture_dense_points(capture, masks: Sequence[np.ndarray] | None, bounds: tu
             raise InputError(f"photo {f.file_path} has lens distortion; dense stereo needs pinhole photos",
                              capture.root / "capture.json", "undistort with 'texstream register', or use --dense off")
         images.append(read_image(p, channels=3))
-    return dense_points(capture.frames, images, masks, bounds, config, device)
+    return dense_points(capture.frames, images, masks, bounds, config, device, depth_ranges)

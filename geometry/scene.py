@@ -41,6 +41,12 @@ def robust_box(points: np.ndarray, percentile: float = 2.0, margin: float = 0.05
     return lo - pad, hi + pad
 
 
+# cameras whose mean unit direction from the points' centre is at least this long stand on one side of them:
+# an arc of 130 degrees at the points' height gives 0.8 (sin(x) / x at half the arc), a full ring about 0, a
+# dome from 0 to 90 degrees of elevation 0.5, the synthetic facade's 70-degree street arc 0.95
+ONE_SIDED = 0.8
+
+
 @dataclasses.dataclass
 class CaptureKind:
     """What :func:`classify_capture` decided, and from which numbers."""
@@ -52,6 +58,7 @@ class CaptureKind:
     flatness: float  # smallest over middle principal extent of the points
     box_lo: list
     box_hi: list
+    one_side: float = 0.0  # length of the mean unit direction from the points' centre to the cameras
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
@@ -64,7 +71,8 @@ def classify_capture(points: np.ndarray, camera_centers: np.ndarray, percentile:
     A capture is a scene when at least half the cameras stand inside the points' robust box
     (:func:`robust_box`), or when the points are flat (smallest principal extent under half the
     middle one: ground, facade) and at least half the cameras stand over their footprint (aerial
-    captures above the box). Otherwise it is an object.
+    captures above the box), or when every camera looks from one side (:data:`ONE_SIDED`: a facade from
+    the street; closing the surface behind the points would only invent a back). Otherwise it is an object.
     """
     p = np.asarray(points, np.float64).reshape(-1, 3)
     c = np.asarray(camera_centers, np.float64).reshape(-1, 3)
@@ -83,6 +91,11 @@ def classify_capture(points: np.ndarray, camera_centers: np.ndarray, percentile:
     qc = (c - mu) @ vt.T
     over = float(np.mean(np.all((qc[:, :2] >= qlo[:2]) & (qc[:, :2] <= qhi[:2]), axis=1))) if len(c) else 0.0
     n = len(c)
+    # one-sidedness: the mean of the unit directions from the points' centre to the cameras (1: all cameras in
+    # one direction; a full ring about 0, a ring 30 degrees up 0.5)
+    toward = c - mu
+    toward /= np.maximum(np.linalg.norm(toward, axis=1, keepdims=True), 1e-12)
+    one_side = float(np.linalg.norm(toward.mean(axis=0))) if n else 0.0
     if in_box >= 0.5:
         kind = "scene"
         reason = (f"{round(in_box * n)} of {n} cameras stand inside the SfM points' robust bounding box "
@@ -93,12 +106,18 @@ def classify_capture(points: np.ndarray, camera_centers: np.ndarray, percentile:
         reason = (f"the SfM points are flat (smallest principal extent {flat:.2f} of the middle one) and "
                   f"{round(over * n)} of {n} cameras stand over their footprint: a scene seen from above; the "
                   "Poisson surface is cropped to the points' robust box and trimmed to the points")
+    elif one_side >= ONE_SIDED:
+        kind = "scene"
+        reason = (f"the {n} cameras all look from one side (mean direction from the points' centre to them "
+                  f"{one_side:.2f} long, {ONE_SIDED:g} or more: a facade or a relief seen from the street, not an "
+                  "object seen from round it); the Poisson surface is cropped to the points' robust box and trimmed "
+                  "to the points rather than closed behind them")
     else:
         kind = "object"
         reason = (f"{n - round(in_box * n)} of {n} cameras stand outside the SfM points' robust bounding box "
                   f"(percentiles {percentile:g}-{100 - percentile:g} + {100 * margin:g}% margin): an object seen "
                   "from around it; its closed surface must not enclose any camera")
-    return CaptureKind(kind, reason, in_box, over, flat, lo.tolist(), hi.tolist())
+    return CaptureKind(kind, reason, in_box, over, flat, lo.tolist(), hi.tolist(), one_side)
 
 
 def _compact(mesh: SurfaceMesh, keep_faces: np.ndarray) -> SurfaceMesh:

@@ -37,9 +37,12 @@ def run(args: argparse.Namespace) -> int:
               f"(median reprojection error {t['median_reprojection_error_px']:.2f} px)")
     if "dense" in s:
         d = s["dense"]
+        masked = d.get("masks", "the capture's") == "the capture's"
         print(f"dense stereo: {d['points']} points ({d['pixel_points']} consistent depths) from "
-              f"{len(d['views'])} photos, mean fill {100 * d['mean_fill']:.0f}% of the masks, "
-              f"{d['seconds']['total']:.1f} s" + ("" if d["used"] else f"; {d['fallback']}"))
+              f"{len(d['views'])} photos, mean fill {100 * d['mean_fill']:.0f}% of the "
+              f"{'masks' if masked else 'matched regions'}, {d['seconds']['total']:.1f} s"
+              + ("" if masked else f"; masks {d['masks']}; depth range from {d['depth_range_from']}")
+              + ("" if d["used"] else f"; {d['fallback']}"))
     print(f"mesh from {s['source']} ({s['reason']}): {s['summary']}; wrote {res.output / 'mesh.ply'} "
           f"in {s['seconds']:.1f} s")
     return 0
