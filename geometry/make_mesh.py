@@ -74,6 +74,7 @@ import numpy as np
 from texstream.capture.capture_json import read_capture
 from texstream.core.errors import ConfigError, InputError, StageError
 from texstream.core.config import option, save_config
+from texstream.core.devices import DEVICE_HELP, resolve_device
 from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
 from texstream.core.progress import phase
 
@@ -122,7 +123,7 @@ class MeshConfig:
     mvs: MvsConfig = option(default_factory=MvsConfig, help="dense stereo options")
     posed: PosedDenseConfig = option(default_factory=PosedDenseConfig, help="dense stereo without masks: depth "
                                      "ranges and matched regions from the SfM points (geometry/posed_dense.py)")
-    device: str = option("cpu", help="Warp device for hull carving, dense stereo and depth maps (cpu, cuda:0)")
+    device: str = option("auto", help=DEVICE_HELP + "; for hull carving, dense stereo and depth maps")
     scene_kind: str = option("auto", help="SfM points of a scene (cameras inside the points' extent: crop Poisson to "
                                           "it) or of an object (cameras around it: closed surface); auto decides "
                                           "from where the cameras stand (geometry/scene.py)",
@@ -285,6 +286,7 @@ def make_mesh(capture_dir: str | os.PathLike | None, out: str | os.PathLike,
     cfg = config or MeshConfig()
     if cfg.faces < 0:
         raise ConfigError(f"--faces {cfg.faces} is negative", fix="give a face count, or 0 to keep all")
+    cfg = dataclasses.replace(cfg, device=resolve_device(cfg.device))
     t0 = time.perf_counter()
     capture = read_capture(capture_dir) if capture_dir is not None else None
     source, reason = choose_source(cfg, capture)

@@ -94,6 +94,10 @@ def _mesh(records: list, mesh_file: str | None, capture) -> dict:
     source = {"hull": "visual hull", "scan": "given mesh file"}.get(source, source)
     faces = ((mesh.get("clean") or {}).get("after") or {}).get("faces")
     why = str(mesh.get("reason", ""))
+    if dense.get("used"):
+        why += f"; dense stereo masks: {dense.get('masks')}; depth range from {dense.get('depth_range_from')}"
+    elif dense.get("fallback"):
+        why += f"; dense stereo not used: {dense['fallback']}"
     if faces:
         why += f" ({faces:,} faces)"
     return {"source": source, "why": why}
