@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import os
 import platform
 import shutil
@@ -49,6 +50,27 @@ def _heldout(run: dict, seconds: float) -> dict:
     h = run["heldout"]
     return {"pooled_psnr_db": h.get("pooled_psnr_db"), "worst_psnr_db": h.get("worst_psnr_db"),
             "views": h.get("views"), "model": run["model"], "seconds": seconds}
+
+
+def heldout_photos_vs_pristine(capture_dir: Path, truth_dir: Path, every: int) -> dict:
+    """The held-out photos of an imported capture against the pristine ones of the same views (pooled PSNR over
+    the pixels the capture's masks keep where the pristine photo is not background black): the error of the
+    reference the imported run is scored against, which no model can remove."""
+    from texstream.capture.capture_json import read_capture, split_holdout
+    from texstream.capture.imageio import read_image, read_mask
+
+    cap, truth = read_capture(capture_dir), read_capture(truth_dir)
+    views = {f.extra["label"]: f for f in split_holdout(cap.frames, every)[1]}
+    sq, n = 0.0, 0
+    for f in split_holdout(truth.frames, every)[1]:
+        g = views[Path(f.file_path).stem]
+        pristine = read_image(truth.image_path(f), channels=3)
+        keep = pristine.max(-1) > 0
+        if g.mask_path is not None:
+            keep &= read_mask(cap.mask_path(g), keep.shape)
+        d = read_image(cap.image_path(g), channels=3)[keep] - pristine[keep]
+        sq, n = sq + float((d * d).sum()), n + d.size
+    return {"pooled_psnr_db": -10.0 * math.log10(sq / n), "views": len(views)}
 
 
 def main() -> None:
@@ -136,7 +158,9 @@ def main() -> None:
                      truth / "mesh.obj")
     ref = timed_run(truth, out / "metashape_reference", truth / "mesh.obj")
     result["metashape"] = {"import": {**imp.summary, "seconds": import_s}, **compare(run, run_s, same, ref),
-                           "imported_model_on_pristine_photos": on_truth(out / "metashape_run", truth)}
+                           "imported_model_on_pristine_photos": on_truth(out / "metashape_run", truth),
+                           "heldout_photos_vs_pristine": heldout_photos_vs_pristine(
+                               out / "metashape_capture", truth, cfg.fit.holdout_every)}
     if args.control == "on":  # the same capture with the photos as taken: their distortion not undone
         ctl = out / "metashape_control"
         shutil.copytree(out / "metashape_capture", ctl)
@@ -163,7 +187,9 @@ def main() -> None:
                      out / "realitycapture_true_cameras_run", truth / "mesh.obj")
     ref = timed_run(truth, out / "realitycapture_reference", truth / "mesh.obj")
     result["realitycapture"] = {"import": {**imp.summary, "seconds": import_s}, **compare(run, run_s, same, ref),
-                                "imported_model_on_pristine_photos": on_truth(out / "realitycapture_run", truth)}
+                                "imported_model_on_pristine_photos": on_truth(out / "realitycapture_run", truth),
+                                "heldout_photos_vs_pristine": heldout_photos_vs_pristine(
+                                    out / "realitycapture_capture", truth, cfg.fit.holdout_every)}
     (out / "camera_import.json").write_text(json.dumps(result, indent=2, default=str))
     for k in ("metashape", "realitycapture"):
         r = result[k]
@@ -171,6 +197,7 @@ def main() -> None:
               f"{r['true_cameras_same_photos']['pooled_psnr_db']:.2f} dB (gap {r['gap_to_true_cameras_db']:.2f}), "
               f"pristine photos {r['pristine_photos']['pooled_psnr_db']:.2f} dB (gap {r['gap_to_pristine_db']:.2f})"
               f"; imported model on the pristine photos {r['imported_model_on_pristine_photos']['pooled_psnr_db']:.2f}"
+              f"; held-out photos vs pristine {r['heldout_photos_vs_pristine']['pooled_psnr_db']:.2f} dB"
               + (f"; distortion ignored {r['distortion_ignored']['pooled_psnr_db']:.2f} dB"
                  if "distortion_ignored" in r else ""))
 
