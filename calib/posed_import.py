@@ -164,9 +164,10 @@ def undistort_photo(src: Path, dst: Path, lens: LensCamera) -> np.ndarray | None
     range).
 
     Returns the pixels that saw the photo ((H, W) bool), or None when all did. A pinhole pixel whose ray lands
-    outside the photo (the corners of a pincushion lens's photo, whose pinhole camera of the same focal length
-    sees further out) has no value: it is written black and left out of the mask, so that the fit and its
-    scoring skip it instead of fitting the black. Kept: the pixels whose source lies between the photo's
+    outside the photo (along the frame's edges and corners for a pincushion lens: the pinhole camera of the same
+    focal length sees further out than the photo) has no value: it is written black and left out of the mask, so
+    that the fit and its scoring skip it instead of fitting the black (on the noise-textured sphere of
+    benchmarks/camera_import.py, 4.4 dB of held-out PSNR). Kept: the pixels whose source lies between the photo's
     outermost pixel centres (interpolated, not extrapolated; the bicubic taps beyond the edge repeat it)."""
     import cv2
     import OpenImageIO as oiio
