@@ -29,7 +29,7 @@ from typing import Callable
 
 import numpy as np
 
-from texstream.capture.capture_json import Capture, Frame, Intrinsics, write_capture
+from texstream.capture.capture_json import MASK_KIND_KEY, VALID_PIXELS, Capture, Frame, Intrinsics, write_capture
 from texstream.capture.imageio import write_image
 from texstream.core.errors import InputError, StageError
 
@@ -231,6 +231,9 @@ def write_posed_capture(tmp: Path, photos: list[PosedPhoto], *, undistort: bool,
         saturation = None if p.photo.suffix.lower() in FLOAT_EXTS else 1.0
         frames.append(Frame(file_path=str(rel), R=p.r, t=p.t, intrinsics=intr, light=light, saturation=saturation, mask_path=mask,
                             extra={"label": p.label, "sensor": p.sensor} if p.sensor else {"label": p.label}))
+    if any(f.mask_path for f in frames):
+        # these masks mark the pixels that have data, not the object: the mesh stage must not carve a hull from them
+        extra = {**extra, MASK_KIND_KEY: VALID_PIXELS}
     write_capture(Capture(root=tmp, frames=frames, extra=extra), tmp)
     return frames
 

@@ -8,7 +8,9 @@ in OpenGL axes. texstream adds optional per-frame fields (DESIGN.md):
 - ``light``: ``{"type": "point", "position": [x,y,z], "intensity": [r,g,b]}`` or
   ``{"type": "directional", "direction": [x,y,z], "intensity": [r,g,b]}``
 - ``exposure``: linear scale, pixel = exposure * radiance (default 1)
-- ``mask_path``: mask image, nonzero = object (default none)
+- ``mask_path``: mask image, nonzero = object (default none); when the top-level ``mask_kind`` is
+  ``"valid_pixels"`` (photos undistorted by an import) nonzero means only "this pixel has data": the fit and
+  stereo use such masks, the visual hull does not (:func:`masks_are_silhouettes`)
 - ``saturation``: pixel value at or above which a sample is clipped (default none)
 
 Unknown keys are kept and written back, so nerfstudio's own fields survive a round trip.
@@ -30,6 +32,8 @@ from texstream.core.outputs import read_json, write_json_atomic
 from .conventions import c2w_gl_to_w2c_cv, camera_center, is_rotation, w2c_cv_to_c2w_gl
 
 CAPTURE_FILE = "capture.json"
+MASK_KIND_KEY = "mask_kind"
+VALID_PIXELS = "valid_pixels"
 _INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
 _DIST_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 CAMERA_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV", "SIMPLE_RADIAL", "RADIAL", "OPENCV_FISHEYE")
@@ -286,6 +290,12 @@ def write_capture(capture: Capture, folder: str | os.PathLike | None = None) -> 
     path = root / CAPTURE_FILE
     write_json_atomic(path, capture_to_json(capture))
     return path
+
+
+def masks_are_silhouettes(capture: "Capture") -> bool:
+    """Whether the capture's masks outline the object (a visual hull may be carved from them), not merely the
+    pixels that have data (``mask_kind`` ``valid_pixels``, module doc)."""
+    return capture.extra.get(MASK_KIND_KEY) != VALID_PIXELS
 
 
 def split_holdout(frames: list, every: int) -> tuple[list, list]:

@@ -71,7 +71,7 @@ from pathlib import Path
 
 import numpy as np
 
-from texstream.capture.capture_json import read_capture
+from texstream.capture.capture_json import masks_are_silhouettes, read_capture
 from texstream.core.errors import ConfigError, InputError, StageError
 from texstream.core.config import option, save_config
 from texstream.core.devices import DEVICE_HELP, resolve_device
@@ -163,7 +163,8 @@ def _capture_bounds(capture):
 
 
 def _has_masks(capture) -> bool:
-    return capture is not None and all(f.mask_path for f in capture.frames)
+    """Every frame has a silhouette (masks of the pixels with data, an import's undistortion, do not count)."""
+    return capture is not None and masks_are_silhouettes(capture) and all(f.mask_path for f in capture.frames)
 
 
 def _has_photos(capture) -> bool:

@@ -35,6 +35,7 @@ import numpy as np
 
 from texstream.calib.colmap_io import intrinsics_to_colmap
 from texstream.calib.colmap_log import colmap_quiet, quiet_colmap_log
+from texstream.capture.capture_json import masks_are_silhouettes
 from texstream.capture.imageio import linear_to_srgb, read_image, read_mask, write_image
 from texstream.core.errors import InputError
 from texstream.core.config import option
@@ -200,8 +201,8 @@ def triangulate_capture(capture, config: TriangulateConfig | None = None,
     report = {"triangulated": int(len(xyz))}
     keep = np.isfinite(xyz).all(axis=1) & (err <= cfg.max_reproj_error)
     report["after_reprojection_filter"] = int(keep.sum())
-    if masks is None and all(f.mask_path for f in capture.frames):
-        masks = load_masks(capture)
+    if masks is None and masks_are_silhouettes(capture) and all(f.mask_path for f in capture.frames):
+        masks = load_masks(capture)  # silhouettes only: a point outside one is background
     if masks is not None and keep.any():
         keep &= inside_masks(xyz, capture.frames, masks, cfg.mask_margin, cfg.outside_is_background)
         report["after_mask_filter"] = int(keep.sum())

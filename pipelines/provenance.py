@@ -11,6 +11,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from texstream.capture.capture_json import masks_are_silhouettes
+
 INPUTS = ("cameras", "intrinsics", "masks", "mesh")
 
 
@@ -72,6 +74,9 @@ def _masks(records: list, capture) -> dict:
     if status is not None and auto.get("decision"):
         source = f"automatic ({auto.get('mode')})" if auto.get("masks") else "none"
         return {"source": source, "why": str(auto["decision"]) + (f" ({n} of {total} photos)" if n else "")}
+    if n and capture is not None and not masks_are_silhouettes(capture):
+        return {"source": "pixels with data only", "why": f"{n} of {total} undistorted photos have pixels outside "
+                                                           "the original photo, masked out; no object masks"}
     if n:
         return {"source": "given", "why": f"{n} of {total} photos have a mask in the capture folder"}
     return {"source": "none", "why": "the capture has no masks"}

@@ -120,6 +120,7 @@ def test_metashape_undistorted_photos_are_the_pinhole_views(ms_set, ms_export, t
         assert err < 0.002 and err < 0.8 * raw, (f.file_path, err, raw)
         assert f.saturation == 1.0
     assert masked == sum(ms_set.sensor_of[ms_set.labels.index(f.extra["label"])] == 1 for f in cap.frames)
+    assert cap.extra["mask_kind"] == "valid_pixels"  # these masks are no silhouettes (test below)
 
 
 def test_undistort_photo_without_distortion_is_the_identity(tmp_path):
@@ -308,3 +309,24 @@ def test_read_metashape_reports_sensors(ms_export):
     chunk = read_metashape(ms_export[0] / "cameras.xml")
     assert len(chunk.sensors) == 2 and all(s.calibration_class == "adjusted" for s in chunk.sensors.values())
     assert sum(c.transform is None for c in chunk.cameras) == 1 and sum(not c.enabled for c in chunk.cameras) == 1
+
+
+def test_masks_of_the_pixels_with_data_are_no_silhouettes(tmp_path):
+    """An import's undistortion masks mark the pixels that have data, not the object: the mesh stage must not
+    carve a visual hull from them, triangulation must not call a point outside one background, and the run
+    must not call them the object's masks."""
+    from texstream.capture.capture_json import VALID_PIXELS, Capture, Frame, Intrinsics, masks_are_silhouettes
+    from texstream.geometry.make_mesh import MeshConfig, choose_source
+    from texstream.pipelines.provenance import run_inputs
+
+    intr = Intrinsics(W, H, 100.0, 100.0, W / 2, H / 2)
+    frames = [Frame(file_path=f"images/{i}.png", R=np.eye(3), t=np.array([0.0, 0.0, 3.0 + i]), intrinsics=intr,
+                    mask_path=f"masks/{i}.png") for i in range(3)]
+    silhouettes = Capture(root=tmp_path, frames=frames, extra={})
+    data_only = Capture(root=tmp_path, frames=frames, extra={"mask_kind": VALID_PIXELS})
+    assert masks_are_silhouettes(silhouettes) and not masks_are_silhouettes(data_only)
+    no_points = MeshConfig(triangulate="off", dense="off")
+    assert choose_source(no_points, silhouettes)[0] == "hull"
+    with pytest.raises(InputError, match="neither SfM points nor masks"):
+        choose_source(no_points, data_only)
+    assert run_inputs([], "capture", data_only)["masks"]["source"] == "pixels with data only"
