@@ -29,6 +29,7 @@ from texstream.fit.models.per_texel.lobes import (_materials_manifest, average_s
                                                   confirm_at_material_lobes, drop_unsupported_lobes, fit_with_materials,
                                                   lobe_shape_report, lobes_in_use, texel_evidence, traced_polish,
                                                   traced_polish_applies, traced_problem)
+from texstream.fit.multi.cpu_threads import cpu_threads, threaded_config
 from texstream.fit.multi.tiles import run_tiled_fit, tiled
 from texstream.fit.optim.fitter import resumable
 from texstream.geometry.mesh_io import save_mesh
@@ -116,13 +117,17 @@ def _checkpoint(capture_dir, mesh_path, out_dir, cfg, problem) -> tuple[Checkpoi
 
 
 def _core_fit(problem, cfg, start, progress: bool, ckpt, resume):
-    """(FitResult, tiles report or None): the streaming fit, tiled where asked."""
-    if not tiled(cfg.fit):
+    """(FitResult, tiles report or None): the streaming fit, tiled where asked or on the CPU's cores (threads:
+    the same result, no checkpoint written)."""
+    threads, why = cpu_threads(problem, cfg.fit, resuming=resume is not None)
+    if not tiled(cfg.fit) and threads == 1:
         result = run_fit_with_progress(problem, cfg.fit, progress, start=start,
                                        **({"checkpoint": ckpt.save, "resume": resume} if ckpt else {}))
         return result, None
-    with phase("fit", f"{cfg.fit.model}: tiles of texels ({cfg.fit.stream.tile_backend})"):
-        result, report = run_tiled_fit(problem, cfg.fit, start)
+    fit_cfg = threaded_config(cfg.fit, threads) if threads > 1 else cfg.fit
+    with phase("fit", f"{cfg.fit.model}: tiles of texels ({cfg.fit.stream.tile_backend}"
+                      + (f", {threads} CPU threads: {why})" if threads > 1 else ")")):
+        result, report = run_tiled_fit(problem, fit_cfg, start)
     say("fit", f"tiles: {report['tiles']} on {','.join(report['devices'])} ({report['backend']}), photos per tile "
                f"{min(report['photos_per_tile'])}..{max(report['photos_per_tile'])} of {report['photos']}")
     return result, report
