@@ -169,8 +169,26 @@ def main() -> None:
                                                           "loadavg_before")}), flush=True)
             for n in threads[1:]:
                 checks.append({"mode": mode, "repeat": rep, "threads": n, **compare(done[threads[0]], done[n])})
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    result = {"commit": commit(), "machine": platform.platform(), "cpus": os.cpu_count(), "capture": str(capture),
+              "args": vars(a), "runs": runs, "checks": checks, "summary": summarise(runs, threads)}
+    (out / "cpu_threads.json").write_text(json.dumps(result, indent=1))
+    print(json.dumps({"summary": result["summary"], "checks": checks}, indent=1))
+
+
+def own_core_loop_s(run: dict) -> float:
+    """The loop's time were every thread on a core of its own: its CPU time outside the kernels (host work,
+    under the GIL: one after another) plus the busiest thread's kernel time."""
+    return run["fit_loop_cpu_s"] - run["kernel_cpu_s"] + max(run["kernel_cpu_s_per_thread"], default=0.0)
+
+
+def summarise(runs: list[dict], threads: list[int]) -> dict:
+    """Per materials mode: the fastest command and loop per thread count, their speed-ups over the first
+    count, and the speed-ups that cores of their own would give (:func:`own_core_loop_s`, from CPU times:
+    what the load of other jobs hides)."""
     summary = {}
-    for mode in {r["mode"] for r in runs}:
+    for mode in sorted({r["mode"] for r in runs}):
         by = {n: [r for r in runs if r["mode"] == mode and r["threads"] == n] for n in threads}
         best = {n: {"command_s": min(r["command_s"] for r in by[n]), "fit_loop_s": min(r["fit_loop_s"] for r in by[n])}
                 for n in threads}
@@ -178,16 +196,23 @@ def main() -> None:
         summary[mode] = {"fastest": best, "kernel_share_of_loop_cpu_one_thread": f,
                          "amdahl_speedup_2": 1.0 / ((1.0 - f) + f / 2.0),
                          "speedup_fit_loop": {n: best[threads[0]]["fit_loop_s"] / best[n]["fit_loop_s"] for n in threads},
-                         "speedup_command": {n: best[threads[0]]["command_s"] / best[n]["command_s"] for n in threads}}
-    out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "cpu_threads.json").write_text(json.dumps({
-        "commit": commit(), "machine": platform.platform(), "cpus": os.cpu_count(), "capture": str(capture),
-        "args": vars(a), "runs": runs, "checks": checks, "summary": summary}, indent=1))
-    print(json.dumps({"summary": summary, "checks": checks}, indent=1))
+                         "speedup_command": {n: best[threads[0]]["command_s"] / best[n]["command_s"] for n in threads},
+                         "loop_cpu_s_one_thread": min(r["fit_loop_cpu_s"] for r in by[threads[0]]),
+                         "own_core_loop_s": {n: min(own_core_loop_s(r) for r in by[n]) for n in threads},
+                         "loadavg_1min": [r["loadavg_before"][0] for r in runs if r["mode"] == mode]}
+        own = summary[mode]["own_core_loop_s"]
+        summary[mode]["own_core_speedup_fit_loop"] = {n: own[threads[0]] / own[n] for n in threads}
+    return summary
 
 
 if __name__ == "__main__":
     if len(sys.argv) > 2 and sys.argv[1] == "--child":
         sys.exit(child(sys.argv[2], sys.argv[4:]))
+    if len(sys.argv) > 2 and sys.argv[1] == "--summarise":  # a JSON of this script's, summarised again
+        path = Path(sys.argv[2])
+        data = json.loads(path.read_text())
+        data["summary"] = summarise(data["runs"], [int(t) for t in data["args"]["threads"].split(",")])
+        path.write_text(json.dumps(data, indent=1))
+        print(json.dumps(data["summary"], indent=1))
+        sys.exit(0)
     main()

@@ -110,7 +110,7 @@ class StreamConfig:
                                  "tiled fit's result to the bit; fit/multi/cpu_threads.py). 0: one per CPU core "
                                  "(at most 8, each with 2,000 texels or more) where the fit can be tiled (photos "
                                  "resident, no stream.tiles or devices given, no checkpoint to resume), else one; "
-                                 "1: one thread", min=0)
+                                 "1: one thread (a fit on threads writes no checkpoint; 1 keeps LM's)", min=0)
     cuda_block_dim: int = option(128, "threads per CUDA block of the accumulation kernels (128 fits three blocks "
                                       "per SM at the register cap; docs/gpu-performance.md)", min=32, max=1024)
     cuda_max_registers: int = option(-1, "registers per CUDA thread of the accumulation kernels: 0 uncapped, -1 "
