@@ -53,7 +53,8 @@ def cpu_threads(problem: StreamProblem, cfg: FitConfig, resuming: bool = False) 
     if s.cpu_threads > 1:
         return min(s.cpu_threads, max(problem.n, 1)), "stream.cpu_threads"
     n = min(usable_cpus(), MAX_AUTO_THREADS, problem.n // MIN_TEXELS_PER_THREAD)
-    return max(n, 1), f"{usable_cpus()} CPU cores, {problem.n:,} texels"
+    return max(n, 1), (f"{usable_cpus()} CPU cores, {problem.n:,} texels ({MIN_TEXELS_PER_THREAD:,} or more a "
+                       "thread)")
 
 
 def threaded_config(cfg: FitConfig, threads: int) -> FitConfig:
