@@ -3,8 +3,11 @@ fit/multi/cpu_threads.py): the command's wall time, the core fit loop's, how muc
 runs inside Warp's kernels (the part threads share out: the launches release the GIL) and whether the models
 are equal to the bit; writes JSON.
 
-    python benchmarks/cpu_threads.py --scale 0.1 --modes off,defaults --repeats 2 \\
-        --out benchmarks/results/cpu_threads_cpu
+    python benchmarks/cpu_threads.py --scale 0.1 --modes off,defaults --repeats 2 --out DIR
+
+writes DIR/cpu_threads.json (``--summarise FILE`` recomputes a file's summary). In
+benchmarks/results/cpu_threads_cpu/: ``quiet_off.json`` and ``quiet_defaults.json`` (the 2-core box with no
+other job running), ``loaded_off_defaults.json`` (the same box with other jobs holding about one core).
 
 The demo capture (``texstream synth ornament --scale S``, 176 photos of 136x136 at 0.1) is made under
 ``--work`` unless ``--capture`` names one. Each repeat runs every thread count once per materials mode,
