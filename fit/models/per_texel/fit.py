@@ -30,6 +30,7 @@ from texstream.fit.models.per_texel.lobes import (_materials_manifest, average_s
                                                   confirm_at_material_lobes, drop_unsupported_lobes, fit_with_materials,
                                                   lobe_shape_report, lobes_in_use, texel_evidence, traced_polish,
                                                   traced_polish_applies, traced_problem)
+from texstream.fit.multi.cpu_threads import cpu_threads, threaded_config
 from texstream.fit.multi.tiles import run_tiled_fit, tiled
 from texstream.fit.optim.fitter import resumable
 from texstream.geometry.mesh_io import save_mesh
@@ -140,14 +141,22 @@ def _choice_before_fit(inputs: FitInputs, problem, cfg, start, resume) -> tuple[
 
 
 def _core_fit(problem, cfg, start, progress: bool, ckpt, resume, p0: np.ndarray | None = None):
-    """(FitResult, tiles report or None): the streaming fit, tiled where asked; ``p0``: its starting parameters
-    (None: the initial guess ``start``'s)."""
-    if not tiled(cfg.fit):
+    """(FitResult, tiles report or None): the streaming fit, tiled where asked or on the CPU's cores
+    (``stream.cpu_threads``: the same maps, no checkpoint written, and it starts from the initial guess
+    ``start``); ``p0``: its starting parameters (None: ``start``'s)."""
+    threads, why = cpu_threads(problem, cfg.fit, resuming=resume is not None)
+    if threads > 1 and cfg.fit.stream.cpu_threads == 0 and (ckpt is not None or p0 is not None):
+        # auto keeps what a one-thread fit gives: the checkpoint a Ctrl-C or a killed run resumes from, and the
+        # warm start from the validation split's fit; threads are taken when asked for (--stream.cpu-threads N)
+        threads, why = 1, "auto: a checkpointed or warm-started fit stays on one thread"
+    if not tiled(cfg.fit) and threads == 1:
         result = run_fit_with_progress(problem, cfg.fit, progress, start=start, p0=p0,
                                        **({"checkpoint": ckpt.save, "resume": resume} if ckpt else {}))
         return result, None
-    with phase("fit", f"{cfg.fit.model}: tiles of texels ({cfg.fit.stream.tile_backend})"):
-        result, report = run_tiled_fit(problem, cfg.fit, start)
+    fit_cfg = threaded_config(cfg.fit, threads) if threads > 1 else cfg.fit
+    with phase("fit", f"{cfg.fit.model}: tiles of texels ({cfg.fit.stream.tile_backend}"
+                      + (f", {threads} CPU threads: {why})" if threads > 1 else ")")):
+        result, report = run_tiled_fit(problem, fit_cfg, start)
     say("fit", f"tiles: {report['tiles']} on {','.join(report['devices'])} ({report['backend']}), photos per tile "
                f"{min(report['photos_per_tile'])}..{max(report['photos_per_tile'])} of {report['photos']}")
     return result, report
