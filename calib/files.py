@@ -6,7 +6,9 @@ import os
 from pathlib import Path
 from typing import Any
 
-from texstream.core.errors import InputError
+import numpy as np
+
+from texstream.core.errors import InputError, StageError
 from texstream.core.outputs import write_json_atomic
 
 # Formats OpenImageIO / OpenCV read that cameras and tools produce.
@@ -42,3 +44,36 @@ def write_failure_report(out: str | os.PathLike, report: dict[str, Any]) -> Path
     path = failure_report_path(out)
     write_json_atomic(path, report)
     return path
+
+
+def read_stored_pixels(path: Path, what: str = "image") -> tuple[np.ndarray, Any]:
+    """(pixels (H, W, C) in the file's own format, its OpenImageIO spec): what a resampling writes back in the
+    same format and bit depth. An unreadable file is an InputError naming it."""
+    import OpenImageIO as oiio
+
+    buf = oiio.ImageBuf(str(path))
+    spec = buf.spec()
+    px = buf.get_pixels(spec.format if spec.format != oiio.UNKNOWN else oiio.FLOAT)
+    if px is None or px.size == 0:
+        raise InputError(f"cannot read the {what} ({oiio.geterror() or 'no pixels'})", path, "replace the file")
+    return px, spec
+
+
+def remap_channels(px: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, interpolation: int, **border) -> np.ndarray:
+    """``cv2.remap`` of each channel of ``px`` (OpenCV remaps at most 4 channels of some formats at once)."""
+    import cv2
+
+    return np.stack([cv2.remap(np.ascontiguousarray(px[..., c]), map_x, map_y, interpolation, **border)
+                     for c in range(px.shape[2])], -1)
+
+
+def write_stored_pixels(path: Path, px: np.ndarray, spec: Any, what: str = "image") -> None:
+    """Write ``px`` with OpenImageIO ``spec`` (format, bit depth, metadata) to ``path``; a StageError names it."""
+    import OpenImageIO as oiio
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    out = oiio.ImageOutput.create(str(path))
+    if out is None or not out.open(str(path), spec):
+        raise StageError(f"cannot write the {what} ({oiio.geterror()})", path)
+    out.write_image(px)
+    out.close()

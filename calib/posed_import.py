@@ -23,7 +23,6 @@ included, which OpenCV's five coefficients cannot carry. With
 from __future__ import annotations
 
 import dataclasses
-import os
 from pathlib import Path
 from typing import Callable
 
@@ -34,7 +33,7 @@ from texstream.capture.imageio import write_image
 from texstream.core.errors import InputError, StageError
 
 from .colmap_io import _copy_file
-from .files import IMAGE_EXTS
+from .files import IMAGE_EXTS, read_stored_pixels, remap_channels, write_stored_pixels
 from .lights import colocated_light
 
 FLOAT_EXTS = (".exr", ".hdr", ".pfm")
@@ -172,11 +171,7 @@ def undistort_photo(src: Path, dst: Path, lens: LensCamera) -> np.ndarray | None
     import cv2
     import OpenImageIO as oiio
 
-    buf = oiio.ImageBuf(str(src))
-    spec = buf.spec()
-    px = buf.get_pixels(spec.format if spec.format != oiio.UNKNOWN else oiio.FLOAT)
-    if px is None or px.size == 0:
-        raise InputError(f"cannot read the photo ({oiio.geterror() or 'no pixels'})", src, "replace the file")
+    px, spec = read_stored_pixels(src, "photo")
     if (spec.width, spec.height) != (lens.width, lens.height):
         raise StageError(f"photo is {spec.width}x{spec.height}, its camera {lens.width}x{lens.height}", src)
     u, v = np.meshgrid(np.arange(lens.width) + 0.5, np.arange(lens.height) + 0.5)
@@ -186,17 +181,10 @@ def undistort_photo(src: Path, dst: Path, lens: LensCamera) -> np.ndarray | None
     map_y = (lens.fy * yd + lens.cy - 0.5).astype(np.float32)
     valid = (map_x >= 0) & (map_x <= lens.width - 1) & (map_y >= 0) & (map_y <= lens.height - 1)
     # bicubic: a textured photo resampled bilinearly loses about 4 dB more (PSNR against the pinhole view)
-    chans = [cv2.remap(np.ascontiguousarray(px[..., c]), map_x, map_y, cv2.INTER_CUBIC,
-                       borderMode=cv2.BORDER_REPLICATE) for c in range(px.shape[2])]
-    out = np.stack(chans, -1)
+    out = remap_channels(px, map_x, map_y, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
     out[~valid] = 0
-    ospec = oiio.ImageSpec(spec.width, spec.height, spec.nchannels, spec.format)
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    o = oiio.ImageOutput.create(str(dst))
-    if o is None or not o.open(str(dst), ospec):
-        raise StageError(f"cannot write the undistorted photo ({oiio.geterror()})", dst)
-    o.write_image(out)
-    o.close()
+    write_stored_pixels(dst, out, oiio.ImageSpec(spec.width, spec.height, spec.nchannels, spec.format),
+                        "undistorted photo")
     return None if valid.all() else valid
 
 

@@ -52,7 +52,8 @@ from texstream.core.progress import bar, phase, say
 from .colmap_log import colmap_quiet, quiet_colmap_log
 from .focal_check import check_focal_prior, drop_focal_priors
 from .colmap_io import intrinsics_to_colmap, opencv_distortion, reconstruction_frames
-from .files import list_images, write_failure_report
+from .files import (list_images, read_stored_pixels, remap_channels, write_failure_report,
+                    write_stored_pixels)
 from .intrinsics import intrinsics_for_size, load_intrinsics
 from .photo_groups import check_groups, match_groups
 from .lights import colocated_light
@@ -514,11 +515,7 @@ def _undistort(src: Path, dst: Path, intr: Intrinsics, nearest: bool = False) ->
     import cv2
     import OpenImageIO as oiio
 
-    buf = oiio.ImageBuf(str(src))
-    spec = buf.spec()
-    px = buf.get_pixels(spec.format if spec.format != oiio.UNKNOWN else oiio.FLOAT)
-    if px is None or px.size == 0:
-        raise InputError("cannot read image for undistortion", src, "replace the file")
+    px, spec = read_stored_pixels(src, "image to undistort")
     k, d = opencv_distortion(intr)
     size = (intr.width, intr.height)
     if intr.camera_model == "OPENCV_FISHEYE":
@@ -526,16 +523,8 @@ def _undistort(src: Path, dst: Path, intr: Intrinsics, nearest: bool = False) ->
     else:
         m1, m2 = cv2.initUndistortRectifyMap(k, d, None, k, size, cv2.CV_32FC1)
     interp = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
-    chans = [cv2.remap(np.ascontiguousarray(px[..., c]), m1, m2, interp, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-             for c in range(px.shape[2])]
-    out = np.stack(chans, -1)
-    ospec = oiio.ImageSpec(spec)
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    o = oiio.ImageOutput.create(str(dst))
-    if o is None or not o.open(str(dst), ospec):
-        raise StageError(f"cannot write undistorted image ({oiio.geterror()})", dst)
-    o.write_image(out)
-    o.close()
+    out = remap_channels(px, m1, m2, interp, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    write_stored_pixels(dst, out, oiio.ImageSpec(spec), "undistorted image")
 
 
 def _median_object_distance(rec, posed: dict) -> float:
