@@ -124,18 +124,35 @@ def texel_size_spread(mesh: SurfaceMesh, width: int, height: int, frames: Sequen
             "log2_std": float(np.sqrt(np.average((lg - mean) ** 2, weights=w))), "faces_seen": int(ok.sum())}
 
 
-def pixel_footprint(mesh: SurfaceMesh, frames: Sequence) -> float:
-    """The median, over ``frames``, of the surface length one pixel spans at the mesh's median depth in
-    that photo (scene units per pixel; the object's centre, seen head-on)."""
-    sizes = []
-    for fr in frames:
+def pixel_footprints(mesh: SurfaceMesh, frames: Sequence) -> np.ndarray:
+    """Per frame, the surface length one pixel spans at the mesh's median depth in that photo (scene units
+    per pixel; the object's centre, seen head-on); NaN for a frame that sees no vertex in front of it."""
+    sizes = np.full(len(frames), np.nan)
+    for k, fr in enumerate(frames):
         pc = mesh.vertices @ np.asarray(fr.R, np.float64).T + np.asarray(fr.t, np.float64).reshape(1, 3)
         z = pc[:, 2][pc[:, 2] > 0]
         if z.size:
-            sizes.append(float(np.median(z)) / float(fr.intrinsics.fx))
-    if not sizes:
+            sizes[k] = float(np.median(z)) / float(fr.intrinsics.fx)
+    return sizes
+
+
+def pixel_footprint(mesh: SurfaceMesh, frames: Sequence) -> float:
+    """The median of :func:`pixel_footprints` over the frames that see the mesh."""
+    sizes = pixel_footprints(mesh, frames)
+    if not np.isfinite(sizes).any():
         raise ValueError("no frame sees the mesh in front of its camera")
-    return float(np.median(sizes))
+    return float(np.median(sizes[np.isfinite(sizes)]))
+
+
+def texel_unit(mesh: SurfaceMesh) -> float:
+    """The side, in scene units, of a texel of an atlas one texel wide (``texel_unit / side`` for a side):
+    sqrt(surface area / UV area), the UV layout's mean scale."""
+    if mesh.uvs is None:
+        raise ValueError("the mesh has no UVs")
+    uv = np.asarray(mesh.uvs, np.float64)
+    a, b, c = uv[mesh.faces[:, 0]], uv[mesh.faces[:, 1]], uv[mesh.faces[:, 2]]
+    uv_area = float(0.5 * np.abs((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])).sum())
+    return float(np.sqrt(float(mesh.face_areas().sum()) / max(uv_area, 1e-12)))
 
 
 def texture_side_for(mesh: SurfaceMesh, frames: Sequence, texel_pixels: float, smallest: int = 32,
@@ -146,16 +163,33 @@ def texture_side_for(mesh: SurfaceMesh, frames: Sequence, texel_pixels: float, s
     Returns:
         (side, info) with the pixel footprint, the texel size at that side and its width in pixels.
     """
-    if mesh.uvs is None:
-        raise ValueError("the mesh has no UVs")
-    uv = np.asarray(mesh.uvs, np.float64)
-    a, b, c = uv[mesh.faces[:, 0]], uv[mesh.faces[:, 1]], uv[mesh.faces[:, 2]]
-    uv_area = float(0.5 * np.abs((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])).sum())
-    surface = float(mesh.face_areas().sum())
+    unit = texel_unit(mesh)  # a side S gives texels of unit / S scene units
     pixel = pixel_footprint(mesh, frames)
-    # a side S gives texels of sqrt(surface / (uv_area S^2)) scene units
-    unit = np.sqrt(surface / max(uv_area, 1e-12))
     want = unit / (texel_pixels * pixel)
     side = int(2 ** np.clip(np.round(np.log2(max(want, 1.0))), np.log2(smallest), np.log2(largest)))
     return side, {"pixel_footprint": pixel, "texel_size": unit / side, "texel_pixels": unit / side / pixel,
-                  "uv_area": uv_area}
+                  "texel_unit": unit}
+
+
+def photo_level_for(mesh: SurfaceMesh, frames: Sequence, side: int, min_texel_pixels: float = 2.0,
+                    quantile: float = 0.1, smallest_photo: int = 16) -> tuple[int, dict]:
+    """The pyramid level (0: the photos as they are, L: 2^L x 2^L pixel boxes averaged) at which the fit streams
+    the photos of an atlas ``side`` texels wide: the coarsest whose texels stay at least ``min_texel_pixels``
+    of its pixels wide in the ``quantile`` of the photos that see them smallest. A texel's samples are taken
+    at its centre (seed ch. 4), so the pixels between texel centres add decoding, upload and depth-map work but
+    no sample; averaging them into the coarser level's pixels keeps their light as a box filter does.
+
+    Returns:
+        (level, info): ``texel_pixels`` (that quantile, at full resolution) and ``level_texel_pixels`` (at the
+        level).
+    """
+    per_frame = texel_unit(mesh) / side / pixel_footprints(mesh, frames)
+    seen = per_frame[np.isfinite(per_frame)]
+    if not seen.size:
+        return 0, {"texel_pixels": None, "level_texel_pixels": None}
+    texel_px = float(np.quantile(seen, quantile))
+    level = int(np.floor(np.log2(max(texel_px / min_texel_pixels, 1.0))))
+    short = min(min(int(f.intrinsics.width), int(f.intrinsics.height)) for f in frames)
+    while level > 0 and short >> level < smallest_photo:  # a photo too small to see the object in
+        level -= 1
+    return level, {"texel_pixels": texel_px, "level_texel_pixels": texel_px / 2 ** level}

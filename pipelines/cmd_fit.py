@@ -48,6 +48,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "of two whose texels are about --texel-pixels of the photos' pixels wide)")
     parser.add_argument("--texel-pixels", dest="texel_pixels", type=float, default=3.0,
                         help="--texture-size 0: the texel width to aim at, in photo pixels (default: 3)")
+    parser.add_argument("--photo-level", dest="photo_level", type=int, default=-1,
+                        help="pyramid level the fitted photos stream at (L: 2^L x 2^L pixels averaged; default: -1 = "
+                             "automatic, the coarsest whose texels stay 2 of its pixels wide; 0 = full resolution)")
     parser.add_argument("--holdout-every", dest="holdout_every", type=int, default=0,
                         help="hold out every k-th photo for evaluation (default: 0 = none)")
     parser.add_argument("--renders", type=int, default=4, help="photos rendered beside the fit (default: 4)")
@@ -90,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = FitStageConfig(fit=fit_cfg, materials=config_from_args(MaterialConfig, args, prefix="materials."),
                          choice=config_from_args(ModelChoiceConfig, args, prefix="choice."),
-                         **{k: getattr(args, k) for k in ("device", "texture_size", "texel_pixels", "holdout_every",
+                         **{k: getattr(args, k) for k in ("device", "texture_size", "texel_pixels", "photo_level", "holdout_every",
                                                           "renders", "min_seen_fraction", "skip_bad_photos",
                                                           "traced_polish", "traced_polish_rel_tol", "traced_materials")
                             if hasattr(args, k)})

@@ -15,12 +15,13 @@ from texstream.core.progress import say
 from texstream.render.layout import layout_traits
 
 
+from texstream.fit.common.photo_levels import LevelImageReader, LevelMaskReader, frame_at_level
 from texstream.fit.common.setup import build_problem
 from texstream.fit.optim.fitter import fit_start
 from texstream.fit.stream.photo_stream import PhotoFiles
 from texstream.geometry.atlas import AtlasConfig, build_atlas
 from texstream.geometry.bake import TexelBake, bake_texels
-from texstream.geometry.density import texture_side_for
+from texstream.geometry.density import photo_level_for, texture_side_for
 from texstream.geometry.mesh_io import load_mesh
 from texstream.geometry.seams import Seams
 
@@ -65,17 +66,39 @@ PHOTO_CACHE_FOLDER = ".texstream-cache"
 (:class:`~texstream.fit.stream.photo_stream.PhotoCache`)"""
 
 
-def photo_files(capture, frames):
+def photo_files(capture, frames, level: int = 0):
     """The frames' photos and masks as files (:class:`texstream.fit.stream.photo_stream.PhotoFiles`), decoded
     by the fit's PhotoSet on a pool of threads or processes: all at set-up when they stay in memory, or a window
-    per pass when streamed from disk (``StreamConfig.photo_residency``)."""
+    per pass when streamed from disk (``StreamConfig.photo_residency``); at pyramid level ``level``
+    (fit/common/photo_levels.py; 0: as they are)."""
     masks = []
     for f in frames:
         mp = capture.mask_path(f)
         masks.append(mp if mp is not None and mp.exists() else None)
-    # module functions, not closures: worker processes receive them (fit/stream/decode_pool.py)
-    return PhotoFiles([capture.image_path(f) for f in frames], masks, read_image, read_mask,
+    # module functions or module classes, not closures: worker processes receive them (fit/stream/decode_pool.py)
+    image_reader, mask_reader = ((read_image, read_mask) if level == 0 else
+                                 (LevelImageReader(read_image, level), LevelMaskReader(read_mask, level)))
+    return PhotoFiles([capture.image_path(f) for f in frames], masks, image_reader, mask_reader,
                       cache_dir=Path(capture.root) / PHOTO_CACHE_FOLDER)
+
+
+PHOTO_LEVEL_MIN_TEXEL_PIXELS = 2.0
+"""``photo_level`` auto: the coarsest level whose texels stay at least this many of its pixels wide in the tenth
+of the photos that see them smallest. At 2 the default atlas (texels about 3 photo pixels wide, texel_pixels)
+keeps the photos as they are; an atlas 4x coarser than its photos streams them at a quarter of the pixels"""
+
+
+def choose_photo_level(mesh, bake, frames, requested: int) -> tuple[int, dict]:
+    """(level, why) for the fitted photos: ``requested`` when >= 0, else
+    :func:`texstream.geometry.density.photo_level_for` at the bake's size."""
+    side = float(np.sqrt(bake.width * bake.height))
+    level, info = photo_level_for(mesh, frames, side, PHOTO_LEVEL_MIN_TEXEL_PIXELS)
+    if requested >= 0:
+        level, info = requested, dict(info, level_texel_pixels=None if info["texel_pixels"] is None
+                                      else info["texel_pixels"] / 2 ** requested)
+    first = frames[0].intrinsics
+    return level, dict(info, level=level, requested=requested,
+                       size=[int(first.width) >> level, int(first.height) >> level])
 
 
 def read_photos(photos, masks, indices):
@@ -139,6 +162,14 @@ class FitInputs:
     """the fitted frames' photos: a :class:`texstream.fit.stream.photo_stream.PhotoFiles` (decoded by the fit's
     PhotoSet) or a list of arrays"""
     masks: list | None
+    full_frames: list | None = None
+    """the fitted frames at full resolution (``frames`` are at ``photo_level``); None: the same as ``frames``"""
+    photo_level: dict | None = None
+    """the pyramid level the fitted photos stream at, and why (:func:`choose_photo_level`)"""
+
+    def frames_as_photographed(self) -> list:
+        """The fitted frames at the photos' own resolution (what renders beside the photos use)."""
+        return self.frames if self.full_frames is None else self.full_frames
 
 
 def load_fit_inputs(capture_dir: str | Path, mesh_path: str | Path, cfg) -> FitInputs:
@@ -151,7 +182,13 @@ def load_fit_inputs(capture_dir: str | Path, mesh_path: str | Path, cfg) -> FitI
                          "lower --holdout-every or add photos")
     mesh, bake = load_geometry(mesh_path, cfg.texture_size, cfg.device, frames, cfg.texel_pixels)
     seams = load_seams(mesh_path, bake)
-    return FitInputs(capture, frames, held, mesh, bake, seams, photo_files(capture, frames), None)
+    level, why = choose_photo_level(mesh, bake, frames, cfg.photo_level)
+    if level:
+        say("fit", f"photos streamed at level {level} ({why['size'][0]}x{why['size'][1]} pixels, 1/{2 ** level} "
+                   f"of their side): the texels are {why['texel_pixels']:.1f} photo pixels wide "
+                   f"(--photo-level 0 keeps full resolution)")
+    return FitInputs(capture, [frame_at_level(f, level) for f in frames], held, mesh, bake, seams,
+                     photo_files(capture, frames, level), None, full_frames=list(frames), photo_level=why)
 
 
 def bad_photo(error: InputError, images) -> int | None:
@@ -193,6 +230,8 @@ def set_up_skipping_bad_photos(inputs: FitInputs, cfg, capture_dir: str | Path):
                 raise InputError("every photo of the capture is unreadable", Path(capture_dir) / "capture.json",
                                  "check the images (model.json lists none: nothing was fitted)") from None
             inputs.frames = [inputs.frames[j] for j in keep]
+            if inputs.full_frames is not None:
+                inputs.full_frames = [inputs.full_frames[j] for j in keep]
             inputs.images = inputs.images.subset(keep)
 
 

@@ -52,6 +52,10 @@ class FitStageConfig:
                                       "than a pixel or two share their pixels with their neighbours and fit the "
                                       "photos' filtered highlights as broad, weak lobes that new views contradict; "
                                       "wider ones lose detail: docs/accuracy.md)", min=0.25)
+    photo_level: int = option(-1, "the pyramid level the fitted photos stream at (L: 2^L x 2^L pixel boxes "
+                                  "averaged): -1 automatic, the coarsest whose texels stay at least 2 of its "
+                                  "pixels wide (fit/common/photo_levels.py); 0 the photos as they are. Held-out "
+                                  "views are scored at full resolution", min=-1, max=8)
     holdout_every: int = option(0, "hold out every k-th photo from the fit for evaluation (0 = none)", min=0)
     renders: int = option(4, "photos rendered beside the fitted model in renders/", min=0)
     unseen: str = option("nearest", "texels no photo saw: nearest (the value of the nearest seen texel on the "

@@ -195,7 +195,9 @@ class PhotoCache:
         key = json.dumps({"images": [stamp(p) for p in files.paths],
                           "masks": [stamp(p) for p in files.mask_paths],
                           "crops": None if crops is None else np.asarray(crops).tolist(),
-                          "shape": [hmax, wmax], "dtype": self.dtype.str}, sort_keys=True)
+                          "shape": [hmax, wmax], "dtype": self.dtype.str,
+                          # a reader that resamples (a pyramid level, fit/common/photo_levels.py) names itself
+                          "reader": getattr(files.read_image, "cache_key", None)}, sort_keys=True)
         self.path = self.folder / f"photos-{hashlib.sha256(key.encode()).hexdigest()[:20]}.bin"
         self.fd = None
         self.writing = False

@@ -88,7 +88,7 @@ def lfm_fit_stage(capture_dir, mesh_path, out_dir, cfg, progress: bool = True) -
         np.savez_compressed(tmp / "lfm.npz", diffuse=params.diffuse, G=params.G, H=params.H, grid_index=grid_index,
                             vpos=geom.vpos, vnrm=geom.vnrm, vtan=geom.vtan, vbit=geom.vbit)
         files = write_lfm_maps(tmp, params, bake, grid_index, problem.R)
-        show = held if held else frames[: max(cfg.renders, 0)]
+        show = held if held else inputs.frames_as_photographed()[: max(cfg.renders, 0)]
         evals = render_comparisons(tmp / "renders", show, load_photos(capture, show)[0] if show else [], held, render,
                                    images=max(cfg.renders, 0))
         manifest = {"layout": {"kind": "lfm", **dataclasses.asdict(lcfg)}, "mesh": "mesh.obj", "bake": "bake.npz",

@@ -242,7 +242,7 @@ def _write_geometry_and_renders(tmp: Path, inputs: FitInputs, mesh_path, grid, l
         shutil.copyfile(baked, tmp / "bake.npz")
     else:
         bake.save(tmp / "bake.npz")
-    show = inputs.held if inputs.held else inputs.frames[: max(cfg.renders, 0)]
+    show = inputs.held if inputs.held else inputs.frames_as_photographed()[: max(cfg.renders, 0)]
     return render_comparisons(tmp / "renders", show, load_photos(capture, show)[0] if show else [], inputs.held,
                               render, images=max(cfg.renders, 0))
 
@@ -289,7 +289,7 @@ def _manifest(inputs: FitInputs, problem, result, lobes: Lobes, cfg, evals: list
                       "lobe_support": cfg.lobe_support},
             "photos": {"fitted": len(frames), "held_out": len(inputs.held), "skipped": run["skipped"],
                        "residency": problem.photos.residency, "residency_reason": problem.photos.residency_reason,
-                       "photos_per_window": problem.photos.window},
+                       "photos_per_window": problem.photos.window, "resolution": inputs.photo_level},
             "tiles": run["tiles"],
             "traced_polish_iterations": polish_iterations,
             "final": {k: last[k] for k in ("iteration", "time_s", "objective", "psnr_db", "ape_percent")},
