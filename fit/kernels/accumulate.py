@@ -522,7 +522,7 @@ def accumulate_lm_kernel(n_lobes: int, anisotropic: int, max_registers: int = 0,
                      cuda_max_registers=max_registers or None)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False, module="unique")
 def hold_lookup_params_kernel(params: wp.array2d(dtype=Any), relaxation: float, held: wp.array2d(dtype=wp.float32)):
     """``held[i, k] += relaxation * (params[i, k] - held[i, k])`` in float32 (1: ``held = params``):
     the values the renderer's lookup reads for texel i's neighbours until the next refresh (rows
@@ -532,7 +532,7 @@ def hold_lookup_params_kernel(params: wp.array2d(dtype=Any), relaxation: float, 
     held[i, k] = h + relaxation * (wp.float32(params[i, k]) - h)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False, module="unique")
 def reduce_partials_kernel(pf: wp.array2d(dtype=Any), pg: wp.array2d(dtype=Any), ph: wp.array2d(dtype=Any),
                            pst: wp.array2d(dtype=wp.vec4d), n_groups: int, accumulate: int,
                            f: wp.array(dtype=Any), g: wp.array(dtype=Any), h: wp.array(dtype=Any),
@@ -560,7 +560,7 @@ def reduce_partials_kernel(pf: wp.array2d(dtype=Any), pg: wp.array2d(dtype=Any),
     st[i] = s
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False, module="unique")
 def reduce_vec_partials_kernel(pv: wp.array2d(dtype=Any), n_groups: int, accumulate: int, v: wp.array(dtype=Any)):
     """Sum one per-group vector output (the Gauss-Newton diagonal) over groups in a fixed order,
     like :func:`reduce_partials_kernel`; a separate launch so passes without it read nothing."""

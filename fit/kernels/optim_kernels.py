@@ -35,7 +35,7 @@ def energy_bound(t: Any, n_lobes: int, lobe_stride: int, albedo_max: float):
     return out
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False, module="unique")
 def trial_kernel(p: wp.array(dtype=Any), d: wp.array(dtype=Any), alpha: wp.array(dtype=Any),
                  lower: Any, upper: Any, free: Any, active: wp.array(dtype=wp.int32), n_params: int,
                  n_lobes: int, lobe_stride: int, albedo_max: float,
@@ -80,7 +80,7 @@ def guess_from_samples_kernel(low: wp.array(dtype=wp.vec3), high: wp.array(dtype
                 guess[i, 3 + j * lobe_stride + c] = excess / wp.float64(j + 1)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False, module="unique")
 def start_point_kernel(guess: wp.array2d(dtype=wp.float64), lower: wp.array(dtype=wp.float64),
                        upper: wp.array(dtype=wp.float64), n_lobes: int, lobe_stride: int,
                        albedo_max: wp.float64, two_pi: wp.float64, count: wp.array(dtype=wp.int32),
@@ -104,7 +104,7 @@ def start_point_kernel(guess: wp.array2d(dtype=wp.float64), lower: wp.array(dtyp
     valid[i] = wp.where(count[i] > 0, 1, 0)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False, module="unique")
 def accept_kernel(p: wp.array(dtype=Any), f: wp.array(dtype=Any), g: wp.array(dtype=Any),
                   d: wp.array(dtype=Any), trial: wp.array(dtype=Any), f_trial: wp.array(dtype=Any),
                   g_trial: wp.array(dtype=Any), alpha: wp.array(dtype=Any), active: wp.array(dtype=wp.int32),
@@ -179,7 +179,7 @@ def jacobi_inverse(diag: Any, free: Any, n_params: int, rel_floor: Any):
     return out
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False, module="unique")
 def steepest_direction_kernel(g: wp.array(dtype=Any), free: Any, precondition: int, diag: wp.array(dtype=Any),
                               n_params: int, rel_floor: Any, d: wp.array(dtype=Any)):
     """d = -g, or the scaled gradient d = -M^-1 g with M from the current point's diagonal."""
@@ -190,7 +190,7 @@ def steepest_direction_kernel(g: wp.array(dtype=Any), free: Any, precondition: i
         d[i] = -masked(g[i], free)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False, module="unique")
 def cg_direction_kernel(g: wp.array(dtype=Any), g_prev: wp.array(dtype=Any), d_prev: wp.array(dtype=Any),
                         restart: wp.array(dtype=wp.int32), polak_ribiere: int, eps: Any, free: Any,
                         precondition: int, diag: wp.array(dtype=Any), minv: wp.array(dtype=Any),
@@ -262,7 +262,7 @@ def unbound(p: Any, g: Any, lower: Any, upper: Any, free: Any, n_params: int):
     return out
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False, module="unique")
 def lbfgs_direction_kernel(g: wp.array(dtype=Any), s_hist: wp.array2d(dtype=Any), y_hist: wp.array2d(dtype=Any),
                            rho: wp.array2d(dtype=Any), count: wp.array(dtype=wp.int32), head: wp.array(dtype=wp.int32),
                            m: int, eps: Any, free: Any, precondition: int, diag: wp.array(dtype=Any),
@@ -324,7 +324,7 @@ def lbfgs_direction_kernel(g: wp.array(dtype=Any), s_hist: wp.array2d(dtype=Any)
     d[i] = di
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False, module="unique")
 def lbfgs_update_kernel(p_old: wp.array(dtype=Any), g_old: wp.array(dtype=Any), p: wp.array(dtype=Any),
                         g: wp.array(dtype=Any), accepted: wp.array(dtype=wp.int32), m: int, free: Any,
                         s_hist: wp.array2d(dtype=Any), y_hist: wp.array2d(dtype=Any), rho: wp.array2d(dtype=Any),
@@ -352,7 +352,7 @@ def lbfgs_update_kernel(p_old: wp.array(dtype=Any), g_old: wp.array(dtype=Any), 
         count[i] = wp.min(count[i] + 1, m)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False, module="unique")
 def hessian_alpha_kernel(g: wp.array(dtype=Any), d: wp.array(dtype=Any), dhd: wp.array(dtype=Any),
                          fallback: wp.array(dtype=Any), free: Any, alpha: wp.array(dtype=Any)):
     """One-sided quadratic step (3.13) alpha = -g.d / d^T H d, guarded: a non-positive or
@@ -369,7 +369,7 @@ def hessian_alpha_kernel(g: wp.array(dtype=Any), d: wp.array(dtype=Any), dhd: wp
     alpha[i] = a
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False, module="unique")
 def initial_alpha_kernel(g: wp.array(dtype=Any), d: wp.array(dtype=Any), prev_alpha: wp.array(dtype=Any),
                          prev_slope: wp.array(dtype=Any), first: int, alpha0: Any, free: Any,
                          alpha: wp.array(dtype=Any), slope: wp.array(dtype=Any)):
@@ -386,7 +386,7 @@ def initial_alpha_kernel(g: wp.array(dtype=Any), d: wp.array(dtype=Any), prev_al
     slope[i] = sl
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False, module="unique")
 def lm_solve_kernel(jtj: wp.array(dtype=Any), jtr: wp.array(dtype=Any), lam: wp.array(dtype=Any),
                     n_params: int, free: Any, like: Any, p: wp.array(dtype=Any), lower: Any, upper: Any,
                     step: wp.array(dtype=Any), pred: wp.array(dtype=Any)):
@@ -447,7 +447,7 @@ def lm_solve_kernel(jtj: wp.array(dtype=Any), jtr: wp.array(dtype=Any), lam: wp.
     pred[i] = -(gx + type(zero)(0.5) * wp.dot(x, jtj[i] * x))
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False, module="unique")
 def lm_accept_kernel(p: wp.array(dtype=Any), f: wp.array(dtype=Any), g: wp.array(dtype=Any),
                      jtj: wp.array(dtype=Any), trial: wp.array(dtype=Any), f_trial: wp.array(dtype=Any),
                      g_trial: wp.array(dtype=Any), jtj_trial: wp.array(dtype=Any), f_cmp: wp.array(dtype=Any),
@@ -478,7 +478,7 @@ def lm_accept_kernel(p: wp.array(dtype=Any), f: wp.array(dtype=Any), g: wp.array
         lam[i] = wp.min(lam[i] * type(ft)(4.0), type(ft)(1.0e12))
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False, module="unique")
 def smooth_local_kernel(p: wp.array(dtype=Any), p_nb: wp.array(dtype=Any), neighbors: wp.array(dtype=wp.vec4i),
                         edge_w: wp.array(dtype=wp.vec4), weights: Any, lam: Any, f_scale: Any,
                         f_in: wp.array(dtype=Any), g_in: wp.array(dtype=Any), h_in: wp.array(dtype=Any),
@@ -529,7 +529,7 @@ def parity_active_kernel(valid: wp.array(dtype=wp.int32), parity: wp.array(dtype
         active[i] = 1
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False, module="unique")
 def bounds_penalty_kernel(p: wp.array(dtype=Any), d: wp.array(dtype=Any), lower: Any, upper: Any,
                           mu: Any, free: Any, want_dhd: int, n_params: int, f: wp.array(dtype=Any),
                           g: wp.array(dtype=Any), dhd: wp.array(dtype=Any)):
@@ -557,7 +557,7 @@ def bounds_penalty_kernel(p: wp.array(dtype=Any), d: wp.array(dtype=Any), lower:
         dhd[i] = dhd[i] + mu * h
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False, module="unique")
 def laplacian_kernel(x: wp.array(dtype=Any), neighbors: wp.array(dtype=wp.vec4i), out: wp.array(dtype=Any)):
     """(L x)_i with the masked 5-point stencil of Alg. 7: centre weight = number of valid neighbours."""
     i = wp.tid()
@@ -572,7 +572,7 @@ def laplacian_kernel(x: wp.array(dtype=Any), neighbors: wp.array(dtype=wp.vec4i)
     out[i] = acc + type(x[i][0])(float(w)) * x[i]
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False, module="unique")
 def laplacian_penalty_kernel(lp: wp.array(dtype=Any), llp: wp.array(dtype=Any), ld: wp.array(dtype=Any),
                              weights: Any, lam: Any, want_dhd: int, f: wp.array(dtype=Any),
                              g: wp.array(dtype=Any), dhd: wp.array(dtype=Any)):
@@ -588,7 +588,7 @@ def laplacian_penalty_kernel(lp: wp.array(dtype=Any), llp: wp.array(dtype=Any), 
         dhd[i] = dhd[i] + two * lam * wp.dot(b, ld[i])
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False, module="unique")
 def chunk_sums_kernel(f: wp.array(dtype=Any), g: wp.array(dtype=Any), st: wp.array(dtype=wp.vec4d),
                       accepted: wp.array(dtype=wp.int32), valid: wp.array(dtype=wp.int32), n: int, chunk: int,
                       out: wp.array2d(dtype=wp.float64)):
@@ -619,7 +619,7 @@ def final_sums_kernel(partial: wp.array2d(dtype=wp.float64), n_chunks: int, row:
     trace[row, k] = s
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False, module="unique")
 def centred_prior_kernel(params: wp.array2d(dtype=Any), direction: wp.array2d(dtype=Any), centre: wp.array(dtype=Any),
                          weights: wp.array(dtype=Any), active: wp.array(dtype=wp.int32), n_params: int, want_dhd: int,
                          want_diag: int, f: wp.array(dtype=Any), g: wp.array(dtype=Any), dhd: wp.array(dtype=Any),
@@ -653,7 +653,7 @@ def centred_prior_kernel(params: wp.array2d(dtype=Any), direction: wp.array2d(dt
         diag[i] = diag[i] + w
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False, module="unique")
 def centred_prior_diag_kernel(weights: wp.array(dtype=Any), active: wp.array(dtype=wp.int32), n_params: int,
                               jtj: wp.array(dtype=Any)):
     """Adds the centred prior's Hessian diag(w_i) to texel i's Gauss-Newton matrix (:func:`centred_prior_kernel`;
