@@ -26,6 +26,7 @@ from texstream.core.devices import DEVICE_HELP, resolve_device
 from texstream.core.outputs import StageResult, write_json_atomic
 from texstream.core.progress import bar, say
 
+from texstream.fit.kernels.build_notice import announce_kernel_build, mark_kernels_built
 from texstream.fit.optim.fitter import FitConfig
 from texstream.fit.models import registry
 from texstream.fit.stages import choice
@@ -134,8 +135,11 @@ def fit_model(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     plugin = registry.get(cfg.fit.model)
     check_output_path(out_dir)
     cfg = dataclasses.replace(cfg, device=resolve_device(cfg.device))
+    announce_kernel_build("fit", cfg.device)
     with loaders_closed_after():  # photos streamed from disk: their loaders' threads end with the stage
-        return plugin.fit(registry.FitRequest(Path(capture_dir), Path(mesh_path), Path(out_dir), cfg, progress))
+        result = plugin.fit(registry.FitRequest(Path(capture_dir), Path(mesh_path), Path(out_dir), cfg, progress))
+    mark_kernels_built(cfg.device)
+    return result
 
 
 def eval_stage(model_dir: str | Path, capture_dir: str | Path, device: str = "cpu",

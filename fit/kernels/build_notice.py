@@ -1,0 +1,76 @@
+"""Say so when a fit will compile its Warp kernels (issue 40: a cold start was 90 s of silence on a fresh GPU).
+
+Warp compiles a module on its first launch and keeps the binary in its kernel cache
+(``wp.config.kernel_cache_dir``); later runs load it in milliseconds. Warp has no hook before a compile, so
+texstream keeps its own marker beside the cache: one file per (texstream kernel sources, Warp version,
+device kind), written after a fit on that device succeeded. A fit that finds no marker prints one line saying
+the kernels are being built and where they are cached. The first ``python3 scripts/dev.py demo`` (or any
+first fit) warms the cache for the CPU or GPU it ran on.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+from pathlib import Path
+
+import warp as wp
+
+from texstream.core.progress import say
+
+KERNEL_FOLDERS = ("render", "fit", "geometry")
+"""the texstream folders whose modules hold Warp kernels (their sources make the marker's key)"""
+
+COLD_SECONDS = {"cpu": "2-4 min on 2 CPU cores", "cuda": "about 1 min on a GPU"}
+"""what a cold build of a default fit's kernels takes, as the notice says it (docs/scale.md, issue 40)"""
+
+
+@functools.cache
+def kernel_sources_key() -> str:
+    """A hash of the texstream sources that define kernels and of Warp's version: another texstream or Warp
+    compiles again."""
+    root = Path(__file__).resolve().parents[2]
+    h = hashlib.sha256(wp.config.version.encode())
+    for folder in KERNEL_FOLDERS:
+        for path in sorted((root / folder).rglob("*.py")):
+            h.update(path.relative_to(root).as_posix().encode())
+            h.update(path.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def _marker(device: str) -> Path:
+    wp.init()  # sets the kernel cache folder
+    kind = "cuda" if str(device).startswith("cuda") else "cpu"
+    if kind == "cuda":  # binaries are per GPU architecture
+        kind += f"-sm{wp.get_device(device).arch}"
+    return Path(wp.config.kernel_cache_dir or "") / f"texstream-{kernel_sources_key()}-{kind}.warm"
+
+
+_ANNOUNCED: set = set()
+
+
+def announce_kernel_build(stage: str, device: str) -> None:
+    """One line, once per process and device, when this texstream's kernels were never built on this device
+    kind in Warp's cache."""
+    if device in _ANNOUNCED:
+        return
+    _ANNOUNCED.add(device)
+    try:
+        cold = not _marker(device).exists()
+    except OSError:
+        return
+    if cold:
+        kind = "cuda" if str(device).startswith("cuda") else "cpu"
+        say(stage, f"first fit of this texstream on {device}: compiling its Warp kernels ({COLD_SECONDS[kind]}); "
+                   f"they are kept in {wp.config.kernel_cache_dir} and later runs start at once")
+
+
+def mark_kernels_built(device: str) -> None:
+    """Record that a fit on ``device`` succeeded, so its kernels are in the cache (best effort: a cache folder
+    that cannot be written only means the notice shows again)."""
+    try:
+        marker = _marker(device)
+        marker.parent.mkdir(parents=True, exist_ok=True)
+        marker.touch()
+    except OSError:
+        pass
