@@ -1,0 +1,38 @@
+#!/usr/bin/env bash
+# The README's main command on a fresh GPU machine (issue 40): `texstream run` on the built-in synthetic set
+# with an empty Warp kernel cache (cold), then again (warm), each run's stage times and held-out figures from
+# its run.json; then the CUDA tests named in CUDA_TESTS (pytest -k cuda). Warp in /root/site (the two-call
+# recipe of ../shared/tools/device/README.md), OpenImageIO's wheel in .whl/.
+#   usage: CUDA_TESTS="tests/a.py tests/b.py" bash benchmarks/cold_start_gpu.sh OUT
+set -u
+out=$1
+mkdir -p "$out"
+nvidia-smi --query-gpu=name,memory.total --format=csv,noheader | tee "$out/machine.txt"
+nproc | tee -a "$out/machine.txt"
+git rev-parse --short HEAD 2>/dev/null | tee "$out/commit.txt"
+python3 -m pip install -q --no-index --no-deps --no-compile --target /root/oiio .whl/*.whl || exit 1
+export PYTHONPATH=/root/site:/root/oiio
+python3 -m pip install -q --no-deps --no-build-isolation -e . >/dev/null 2>&1 || exit 1
+export WARP_CACHE_PATH=/root/warp-cache-cold  # empty: the cold run compiles every kernel it launches
+rm -rf "$WARP_CACHE_PATH"
+for run in cold warm; do
+  s=$(date +%s.%N)
+  texstream run --out "/root/demo_$run" > "$out/run_$run.log" 2>&1
+  rc=$?
+  e=$(date +%s.%N)
+  python3 - "$run" "$rc" "$s" "$e" "/root/demo_$run/run.json" "$out/run_$run.json" <<'EOF'
+import json, sys
+run, rc, s, e, src, dst = sys.argv[1:]
+r = json.load(open(src)) if rc == "0" else {}
+row = {"run": run, "rc": int(rc), "wall_s": float(e) - float(s), "device": r.get("device"),
+       "total_s": r.get("total_s"), "heldout": r.get("heldout"),
+       "stages": {st["name"]: st["seconds"] for st in r.get("stages", [])}}
+json.dump(row, open(dst, "w"), indent=1)
+print(json.dumps(row))
+EOF
+done
+grep -h "compiling its Warp kernels" "$out"/run_*.log | head -2
+if [ -n "${CUDA_TESTS:-}" ]; then
+  python3 -m pytest -q -p no:cacheprovider $CUDA_TESTS -k cuda > "$out/cuda_tests.log" 2>&1
+  echo "cuda tests rc=$?"; tail -n 15 "$out/cuda_tests.log"
+fi
