@@ -101,3 +101,41 @@ def test_photos_finer_than_the_texels_stream_at_a_coarser_level_and_lose_under_a
     # the issue's bound: the texels' centre samples see box-averaged light at the coarse level, the same light
     # point-sampled at full resolution; the held-out views are scored at full resolution in both
     assert auto["heldout"]["pooled_psnr_db"] >= full["heldout"]["pooled_psnr_db"] - 0.2
+
+
+def _maps(folder):
+    from texstream.capture.imageio import read_image
+
+    return {p.name: read_image(p, channels=3) for p in sorted(folder.glob("*.exr"))}
+
+
+def test_a_fit_on_the_previous_candidates_photo_set_gives_the_same_model(fine_capture, tmp_path, capsys):
+    """The model choice's candidates share one photo set (fit/common/inputs.py SharedPhotoSet): the Lafortune fit
+    after a diffuse fit of the same capture, on the diffuse fit's photos and maps, equals a Lafortune fit that
+    built its own, to the bit (the same arithmetic on the same bytes)."""
+    from texstream.fit.common.inputs import SharedPhotoSet
+    from texstream.fit.stages.stage import FitStageConfig, fit_model
+    from texstream.fit.models.materials import MaterialConfig
+    from texstream.fit.optim.fitter import FitConfig
+
+    def cfg(model):  # materials and polish off: they add fits, not another use of the photo set
+        return FitStageConfig(device=SCENE_DEVICE, texture_size=16, holdout_every=4, renders=0, traced_polish=0,
+                              materials=MaterialConfig(mode="off"), fit=FitConfig(model=model, max_iterations=4))
+
+    mesh = fine_capture / "ground_truth" / "mesh.obj"
+    SharedPhotoSet.release()
+    fit_model(fine_capture, mesh, tmp_path / "alone", cfg("lafortune"), progress=False)
+    SharedPhotoSet.release()
+    fit_model(fine_capture, mesh, tmp_path / "diffuse", cfg("diffuse"), progress=False)
+    assert SharedPhotoSet.photos is not None
+    from texstream.core.progress import reporting
+
+    said = []
+    with reporting(said.append):
+        fit_model(fine_capture, mesh, tmp_path / "shared", cfg("lafortune"), progress=False)
+    SharedPhotoSet.release()
+    assert any("shared with the previous fit" in line for line in said)
+    alone, shared = _maps(tmp_path / "alone"), _maps(tmp_path / "shared")
+    assert alone.keys() == shared.keys() and alone
+    for name in alone:
+        np.testing.assert_array_equal(shared[name], alone[name], err_msg=name)

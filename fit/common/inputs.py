@@ -18,6 +18,7 @@ from texstream.render.layout import layout_traits
 from texstream.fit.common.photo_levels import LevelImageReader, LevelMaskReader, frame_at_level
 from texstream.fit.common.setup import build_problem
 from texstream.fit.optim.fitter import fit_start
+from texstream.fit.stream.photo_set import PhotoSet
 from texstream.fit.stream.photo_stream import PhotoFiles
 from texstream.geometry.atlas import AtlasConfig, build_atlas
 from texstream.geometry.bake import TexelBake, bake_texels
@@ -204,6 +205,58 @@ def bad_photo(error: InputError, images) -> int | None:
     return None
 
 
+class SharedPhotoSet:
+    """The photo set (photos on the device with their depth and shadow maps) of the last fit in this process,
+    handed to the next fit of the same photos, frames, mesh, stream options and device: the candidates of the
+    model choice (``texstream run``: Lafortune, diffuse, two lobes) differ only in their parameters, and the photo
+    set was most of each one's set-up (issue 40: 7 s of the demo's 48 s Lafortune fit, each candidate again).
+    The set is built the same way every time, so a fit on a shared one gives the parameters of a fit on its
+    own (tests/test_fit_photo_levels.py). Sets streamed from disk (their loaders close with the stage) and photos
+    split over devices are not kept. One set at most: the next fit's replaces it, :meth:`release` drops it."""
+
+    key: str | None = None
+    photos = None
+
+    @classmethod
+    def key_for(cls, inputs: FitInputs, cfg) -> str | None:
+        import hashlib
+        import json
+
+        from texstream.core.config import config_to_dict
+
+        paths = getattr(inputs.images, "paths", None)
+        if paths is None:  # photos given as arrays: not a capture's files
+            return None
+        h = hashlib.sha256(json.dumps({"device": str(cfg.device), "stream": config_to_dict(cfg.fit.stream),
+                                       "photos": [str(p) for p in paths],
+                                       "masks": [None if m is None else str(m) for m in inputs.images.mask_paths],
+                                       "reader": getattr(inputs.images.read_image, "cache_key", None)},
+                                      sort_keys=True, default=str).encode())
+        for f in inputs.frames:
+            i = f.intrinsics
+            h.update(np.asarray([*np.ravel(f.R), *np.ravel(f.t), i.fx, i.fy, i.cx, i.cy, i.width, i.height,
+                                 f.exposure], np.float64).tobytes())
+            h.update(repr(None if f.light is None else f.light.to_json()).encode())
+        for a in (inputs.mesh.vertices, inputs.mesh.faces):
+            h.update(np.ascontiguousarray(a).tobytes())
+        return h.hexdigest()
+
+    @classmethod
+    def take(cls, key: str | None):
+        return cls.photos if key is not None and key == cls.key else None
+
+    @classmethod
+    def keep(cls, key: str | None, photos) -> None:
+        if key is None or not isinstance(photos, PhotoSet) or photos.residency == "disk":
+            cls.release()
+            return
+        cls.key, cls.photos = key, photos
+
+    @classmethod
+    def release(cls) -> None:
+        cls.key, cls.photos = None, None
+
+
 def set_up_skipping_bad_photos(inputs: FitInputs, cfg, capture_dir: str | Path):
     """The fit's problem and its starting pass (:func:`check_seen_texels`); every photo is decoded there, so
     an unreadable one fails here, before the fit and before anything is written, with one line naming it.
@@ -212,8 +265,13 @@ def set_up_skipping_bad_photos(inputs: FitInputs, cfg, capture_dir: str | Path):
     skipped = []
     while True:
         try:
+            key = SharedPhotoSet.key_for(inputs, cfg)
+            shared = SharedPhotoSet.take(key)
+            if shared is not None:
+                say("fit", "photos and their maps shared with the previous fit of this capture")
             problem = build_problem(inputs.mesh, inputs.bake, inputs.frames, inputs.images, inputs.masks, cfg.fit,
-                                    cfg.device)
+                                    cfg.device, photos=shared)
+            SharedPhotoSet.keep(key, problem.photos)
             seen, start = check_seen_texels(problem, cfg, capture_dir)
             return problem, seen, start, skipped
         except InputError as e:

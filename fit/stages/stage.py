@@ -31,7 +31,7 @@ from texstream.fit.optim.fitter import FitConfig
 from texstream.fit.models import registry
 from texstream.fit.stages import choice
 from texstream.fit.models.materials import MaterialConfig
-from texstream.fit.common.inputs import check_output_path, split_holdout
+from texstream.fit.common.inputs import SharedPhotoSet, check_output_path, split_holdout
 from texstream.fit.common.model_folder import check_render, image_metrics, pooled_psnr
 # the shared helpers of a fit, where tests and benchmarks import them beside the stages
 from texstream.fit.common.inputs import load_geometry, load_photos, photo_files  # noqa: F401
@@ -110,7 +110,13 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     """Fit the appearance model of ``config.fit.model`` to a capture and write the model folder atomically; with
     ``auto``, the model choice (fit/stages/choice.py) fits the candidates the capture calls for and keeps the
     best held-out one (its summary's ``selection`` says which and why)."""
-    cfg = config or FitStageConfig()
+    try:
+        return _fit_stage(capture_dir, mesh_path, out_dir, config or FitStageConfig(), progress)
+    finally:
+        SharedPhotoSet.release()  # the candidates' shared photos and maps, freed with the stage
+
+
+def _fit_stage(capture_dir, mesh_path, out_dir, cfg: FitStageConfig, progress: bool) -> StageResult:
     check_config(cfg)
     check_output_path(out_dir)
     cfg = dataclasses.replace(cfg, device=resolve_device(cfg.device))  # the model.json names the device used
