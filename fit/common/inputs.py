@@ -4,12 +4,15 @@ its texel bake, and the checks that fail before any work (lights, seen texels, b
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 from pathlib import Path
 
 import numpy as np
 
 from texstream.capture.capture_json import read_capture
 from texstream.capture.imageio import read_image, read_mask
+from texstream.core.config import config_to_dict
 from texstream.core.errors import InputError, StageError
 from texstream.core.progress import say
 from texstream.render.layout import layout_traits
@@ -219,11 +222,6 @@ class SharedPhotoSet:
 
     @classmethod
     def key_for(cls, inputs: FitInputs, cfg) -> str | None:
-        import hashlib
-        import json
-
-        from texstream.core.config import config_to_dict
-
         paths = getattr(inputs.images, "paths", None)
         if paths is None:  # photos given as arrays: not a capture's files
             return None
