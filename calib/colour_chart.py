@@ -1,0 +1,172 @@
+"""A ColorChecker in view: find it (OpenCV contrib's ``mcc`` module) and recover the photos' response from its
+patches (issue 39), so that exported, tone-mapped JPEGs become linear radiance again.
+
+Photos exported from raw go through a tone curve: the fit's reflectance model needs radiance linear in the light.
+The chart's 24 patches have known reflectances (:data:`COLORCHECKER_SRGB8`, the X-Rite ColorChecker Classic's
+published sRGB values after 2014, linearised), so each photo that sees the chart gives 24 x 3 pairs (code value,
+known reflectance times that photo's unknown light and white balance). :func:`fit_response` solves for one
+monotone inverse response shared by the channels and photos (the camera's tone curve) and a gain per photo and
+channel (its exposure, flash distance and white balance), in the log domain as Debevec and Malik do (SIGGRAPH
+1997), with the curve piecewise linear in log radiance over knots in code value.
+
+OpenCV (``cv2``) is imported inside the functions that need it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+from texstream.core.errors import InputError
+
+COLORCHECKER_SRGB8 = np.array([
+    [115, 82, 68], [194, 150, 130], [98, 122, 157], [87, 108, 67], [133, 128, 177], [103, 189, 170],
+    [214, 126, 44], [80, 91, 166], [193, 90, 99], [94, 60, 108], [157, 188, 64], [224, 163, 46],
+    [56, 61, 150], [70, 148, 73], [175, 54, 60], [231, 199, 31], [187, 86, 149], [8, 133, 161],
+    [243, 243, 242], [200, 200, 200], [160, 160, 160], [122, 122, 121], [85, 85, 85], [52, 52, 52]], np.float64)
+"""ColorChecker Classic patches in row-major order from dark skin to black, sRGB 8-bit (X-Rite, after 2014); the
+same order as ``cv2.mcc``'s MCC24 chart"""
+
+RESPONSE_KNOTS = np.unique(np.concatenate([np.geomspace(0.02, 0.5, 10), np.linspace(0.5, 1.0, 8)]))
+"""code values where the inverse response's log radiance is a parameter, linear in log code between them (a power
+law, as sRGB's encoding nearly is, is then exact): spaced by ratio in the shadows, where log radiance bends with
+log code, and evenly towards white, where tone curves put their shoulder"""
+USABLE_CODES = (0.03, 0.97)
+"""patch code values used for the response: darker ones are mostly noise and quantisation, brighter ones may
+be clipped"""
+
+
+def srgb_to_linear(v: np.ndarray) -> np.ndarray:
+    v = np.asarray(v, np.float64)
+    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+
+
+def chart_reflectance() -> np.ndarray:
+    """(24, 3) linear reflectance of the chart's patches (sRGB primaries, D65 white)."""
+    return srgb_to_linear(COLORCHECKER_SRGB8 / 255.0)
+
+
+@dataclasses.dataclass
+class ChartSighting:
+    """One chart found in one photo: its corners in the photo's pixels, its patches' mean code values (24, 3) in
+    [0, 1] (RGB), their standard deviations, and the detector's cost (lower is a better match)."""
+
+    corners: np.ndarray
+    patches: np.ndarray
+    patch_std: np.ndarray
+    cost: float
+
+
+def find_chart(rgb_codes: np.ndarray) -> ChartSighting | None:
+    """The ColorChecker Classic in a photo (H, W, 3 RGB code values in [0, 1], as stored, not linearised), or None.
+    ``cv2.mcc`` finds the chart's patch grid by its squares and checks the colours' order, so a chart turned
+    upside down reads in the same patch order."""
+    import cv2
+
+    bgr8 = np.ascontiguousarray(np.clip(np.round(rgb_codes[..., ::-1] * 255.0), 0, 255).astype(np.uint8))
+    detector = cv2.mcc.CCheckerDetector_create()
+    detector.setColorChartType(cv2.mcc.MCC24)
+    if not detector.process(bgr8, 1):
+        return None
+    best = detector.getBestColorChecker()
+    stats = np.asarray(best.getChartsRGB(), np.float64).reshape(24, 3, -1)  # per patch and channel: count, mean, std, ...
+    return ChartSighting(np.asarray(best.getBox(), np.float64), stats[:, :, 1] / 255.0, stats[:, :, 2] / 255.0,
+                         float(best.getCost()))
+
+
+@dataclasses.dataclass
+class Response:
+    """The photos' inverse response: code value (in [0, 1]) to linear radiance, shared by the channels, as log
+    radiance at the :data:`RESPONSE_KNOTS` (linear in log code between them); 1.0 maps to radiance 1. ``gains`` (photos, 3):
+    each fitted photo's light times white balance, in the response's units; ``residual_percent``: the RMS relative
+    error of the linearised patches against reflectance x gain."""
+
+    knots: np.ndarray
+    log_radiance: np.ndarray
+    gains: np.ndarray
+    residual_percent: float
+    patches_used: int
+
+    def linearise(self, codes: np.ndarray) -> np.ndarray:
+        """Linear radiance of code values (any shape), through the curve; below the first knot the first segment's
+        power law continues down to 0."""
+        c = np.clip(np.asarray(codes, np.float64), 0.0, 1.0)
+        x, lk = np.log(np.maximum(c, 1e-12)), np.log(self.knots)
+        slope = (self.log_radiance[1] - self.log_radiance[0]) / (lk[1] - lk[0])
+        log_r = np.where(x < lk[0], self.log_radiance[0] + slope * (x - lk[0]), np.interp(x, lk, self.log_radiance))
+        return np.where(c > 0, np.exp(log_r), 0.0)
+
+    def to_json(self) -> dict:
+        return {"knots": self.knots.tolist(), "log_radiance": self.log_radiance.tolist(),
+                "gains": self.gains.tolist(), "residual_percent": self.residual_percent,
+                "patches_used": self.patches_used}
+
+
+def fit_response(sightings: list[ChartSighting], smoothness: float = 1e-3) -> Response:
+    """The inverse response and per-photo gains that make every sighting's patches reflectance x gain.
+
+    Least squares in the log domain: log g(v) - log k_(photo, channel) = log r_(patch, channel), g piecewise linear
+    at the knots (its value at a patch's code interpolated between the two nearest knots), the curve's second
+    differences damped by ``smoothness`` (knots between the patches' codes follow their neighbours), g(1) = 1 fixing
+    the scale the gains absorb. A curve that comes out decreasing anywhere is an error: the patches disagree with
+    any camera response (a wrong chart, or clipped photos)."""
+    if not sightings:
+        raise InputError("no photo shows a colour chart", fix="photograph a ColorChecker Classic beside the object, "
+                                                             "or leave the response alone")
+    knots, n_knots = RESPONSE_KNOTS, len(RESPONSE_KNOTS)
+    log_knots = np.log(knots)
+    refl = np.log(chart_reflectance())
+    rows, cols, vals, rhs = [], [], [], []
+    n_photos = len(sightings)
+    gain_col = n_knots  # then one column per (photo, channel)
+    r = 0
+    for p, s in enumerate(sightings):
+        for i in range(24):
+            for ch in range(3):
+                v = float(s.patches[i, ch])
+                if not USABLE_CODES[0] <= v <= USABLE_CODES[1]:
+                    continue
+                k0 = int(np.clip(np.searchsorted(knots, v) - 1, 0, n_knots - 2))
+                w = (np.log(v) - log_knots[k0]) / (log_knots[k0 + 1] - log_knots[k0])
+                rows += [r, r, r]
+                cols += [k0, k0 + 1, gain_col + 3 * p + ch]
+                vals += [1.0 - w, w, -1.0]
+                rhs.append(refl[i, ch])
+                r += 1
+    used = r
+    if used < 2 * n_knots:
+        raise InputError(f"the colour chart's patches give {used} usable values, too few for a response",
+                         fix="photograph the chart larger, exposed so its patches are neither black nor clipped")
+    n_cols = gain_col + 3 * n_photos
+    a = np.zeros((used + n_knots - 2 + 1, n_cols))
+    a[rows, cols] = vals
+    b = np.zeros(a.shape[0])
+    b[:used] = rhs
+    weight = np.sqrt(smoothness * used)
+    for k in range(1, n_knots - 1):  # second differences of log g in log code, for unequal steps
+        h0, h1 = log_knots[k] - log_knots[k - 1], log_knots[k + 1] - log_knots[k]
+        a[used + k - 1, k - 1:k + 2] = weight * np.array([1.0 / h0, -(1.0 / h0 + 1.0 / h1), 1.0 / h1]) * h1
+    a[-1, n_knots - 1] = 1e3  # g(1) = 1
+    x, *_ = np.linalg.lstsq(a, b, rcond=None)
+    log_g, log_k = x[:n_knots], x[gain_col:].reshape(n_photos, 3)
+    if np.any(np.diff(log_g) <= 0):
+        raise InputError("the colour chart's patches do not follow one increasing camera response",
+                         fix="check that the chart is a ColorChecker Classic (24 patches) and that its patches "
+                             "are not clipped")
+    resid = (a[:used] @ x - b[:used])
+    return Response(knots, log_g, np.exp(log_k), float(100.0 * np.sqrt(np.mean(np.expm1(resid) ** 2))), used)
+
+
+def response_from_photos(paths: list[Path], read_codes) -> tuple[Response | None, list[dict]]:
+    """Find the chart in each photo (``read_codes(path)``: its stored code values in [0, 1]) and fit the response
+    to those that show it. Returns (response or None when no photo shows the chart, per photo {"photo", "found",
+    "cost"})."""
+    sightings, report = [], []
+    for path in paths:
+        s = find_chart(read_codes(path))
+        report.append({"photo": str(path), "found": s is not None, "cost": None if s is None else s.cost})
+        if s is not None:
+            sightings.append(s)
+    return (fit_response(sightings) if sightings else None), report
