@@ -170,3 +170,32 @@ def response_from_photos(paths: list[Path], read_codes) -> tuple[Response | None
         if s is not None:
             sightings.append(s)
     return (fit_response(sightings) if sightings else None), report
+
+
+def read_codes(path) -> np.ndarray:
+    """A photo's stored code values in [0, 1] (8- or 16-bit files as stored; no decoding to linear)."""
+    from texstream.capture.imageio import read_image
+
+    return read_image(path, channels=3, linear=False)
+
+
+def chart_response(photos: str | Path, out: str | Path) -> dict:
+    """``texstream chart PHOTOS -o OUT``: the chart in each photo of the folder, the response fitted to them,
+    OUT/response.json (the curve and per-photo gains) and OUT/chart_report.json (per photo: found, cost), written
+    atomically. Returns the summary."""
+    from texstream.calib.files import list_images
+    from texstream.core.outputs import atomic_output_dir, write_json_atomic
+
+    files = list_images(photos)
+    response, report = response_from_photos(files, read_codes)
+    if response is None:
+        raise InputError(f"none of the {len(files)} photos shows a ColorChecker Classic", Path(photos),
+                         "photograph the chart (24 patches) in view, unobstructed, at least ~150 pixels wide")
+    found = [r for r in report if r["found"]]
+    summary = {"photos": len(files), "charts_found": len(found), "residual_percent": response.residual_percent,
+               "patches_used": response.patches_used,
+               "gains": {r["photo"]: g.tolist() for r, g in zip(found, response.gains)}}
+    with atomic_output_dir(out) as tmp:
+        write_json_atomic(tmp / "response.json", {"kind": "colour_chart", **response.to_json()})
+        write_json_atomic(tmp / "chart_report.json", {**summary, "per_photo": report})
+    return summary

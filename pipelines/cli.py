@@ -26,6 +26,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "calibrate": ("texstream.pipelines.cmd_calibrate", "camera intrinsics from chessboard / ChArUco photos"),
     "register": ("texstream.pipelines.cmd_register", "recover camera poses with COLMAP (pycolmap)"),
     "lights": ("texstream.pipelines.cmd_lights", "light position / direction from mirror-ball photos"),
+    "chart": ("texstream.pipelines.cmd_chart", "the photos' response (tone curve) from a ColorChecker in view"),
     "import": ("texstream.pipelines.cmd_import", "convert Middlebury / COLMAP / nerfstudio / Metashape / RealityCapture cameras to a capture folder"),
     "synth": ("texstream.pipelines.cmd_synth", "render a synthetic capture set with ground truth"),
     "mesh": ("texstream.pipelines.cmd_mesh", "make, clean and simplify the mesh"),

@@ -67,3 +67,24 @@ def test_a_photo_without_the_chart_is_told_apart():
     assert find_chart(wall) is None
     with pytest.raises(InputError, match="no photo shows a colour chart"):
         fit_response([])
+
+
+def test_texstream_chart_writes_the_response_of_a_folder(tmp_path, capsys):
+    from texstream.capture.imageio import write_image
+    from texstream.pipelines.cli import main
+
+    rng = np.random.default_rng(3)
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for k in range(2):
+        write_image(photos / f"p{k}.png", np.round(_photo(k, rng) * 255).astype(np.uint8), bits=8)
+    wall = np.round(filmic_codes(np.full((200, 300, 3), 0.2)) * 255).astype(np.uint8)
+    write_image(photos / "wall.png", wall, bits=8)
+    assert main(["chart", str(photos), "-o", str(tmp_path / "out")]) == 0
+    assert "chart found in 2 of 3 photos" in capsys.readouterr().out
+    import json
+
+    report = json.loads((tmp_path / "out" / "chart_report.json").read_text())
+    assert [r["found"] for r in report["per_photo"]] == [True, True, False]
+    response = json.loads((tmp_path / "out" / "response.json").read_text())
+    assert len(response["gains"]) == 2 and response["residual_percent"] < 1.0
