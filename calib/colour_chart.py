@@ -19,7 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
+from texstream.capture.imageio import read_image
 from texstream.core.errors import InputError
+from texstream.core.outputs import atomic_output_dir, write_json_atomic
+
+from .files import list_images
 
 COLORCHECKER_SRGB8 = np.array([
     [115, 82, 68], [194, 150, 130], [98, 122, 157], [87, 108, 67], [133, 128, 177], [103, 189, 170],
@@ -174,8 +178,6 @@ def response_from_photos(paths: list[Path], read_codes) -> tuple[Response | None
 
 def read_codes(path) -> np.ndarray:
     """A photo's stored code values in [0, 1] (8- or 16-bit files as stored; no decoding to linear)."""
-    from texstream.capture.imageio import read_image
-
     return read_image(path, channels=3, linear=False)
 
 
@@ -183,9 +185,6 @@ def chart_response(photos: str | Path, out: str | Path) -> dict:
     """``texstream chart PHOTOS -o OUT``: the chart in each photo of the folder, the response fitted to them,
     OUT/response.json (the curve and per-photo gains) and OUT/chart_report.json (per photo: found, cost), written
     atomically. Returns the summary."""
-    from texstream.calib.files import list_images
-    from texstream.core.outputs import atomic_output_dir, write_json_atomic
-
     files = list_images(photos)
     response, report = response_from_photos(files, read_codes)
     if response is None:

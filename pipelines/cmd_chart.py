@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from texstream.calib.colour_chart import chart_response
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("photos", help="folder of photos (JPEG, PNG, TIFF as exported), some showing a ColorChecker "
@@ -14,8 +16,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from texstream.calib.colour_chart import chart_response
-
     s = chart_response(args.photos, args.out)
     print(f"chart found in {s['charts_found']} of {s['photos']} photos; response from {s['patches_used']} patch "
           f"values, linearised patches within {s['residual_percent']:.2f}% (RMS) of reflectance x gain; "
