@@ -69,9 +69,10 @@ class IngestConfig:
                            "off; in every case only when the photos align (same viewpoint), else each photo "
                            "stands alone with its exposure normalised", choices=BRACKET_MODES)
     bracket_align_px: float = option(2.0, help="largest image-corner displacement (pixels, after exposure "
-                                     "normalisation and ECC alignment) for photos to count as one viewpoint")
+                                     "normalisation and ECC alignment) for photos to count as one viewpoint",
+                                     min=0.0)
     bracket_size: int = option(0, help="photos per exposure bracket: 0 = auto (consecutive photos with different "
-                               "exposure times), 1 = no brackets")
+                               "exposure times), 1 = no brackets", min=0, max=64)
     hdr_method: str = option("debevec", help="response calibration and merge for 8-bit brackets", choices=HDR_METHODS)
     normalize_exposure: bool = option(True, help="set each frame's exposure from EXIF (t * ISO / N^2, median = 1)")
     intrinsics: str | None = option(None, help="intrinsics.json from 'texstream calibrate' (fixed during registration)")
@@ -80,7 +81,8 @@ class IngestConfig:
     lights: str | None = option(None, help="lights file (JSON): per-photo or default point/directional lights")
     colocated_light: float | None = option(None, help="light fixed to the camera (flash) with this intensity, a point "
                                            "light at each camera centre; when SfM's scale is arbitrary (no "
-                                           "alignment) it is the irradiance at the median object distance")
+                                           "alignment) it is the irradiance at the median object distance",
+                                           min=1e-12)
     overwrite: bool = option(True, help="replace an existing output folder")
 
 

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from texstream.geometry.atlas import AtlasConfig, atlas_stage
 from texstream.core.devices import DEVICE_HELP, resolve_device
+from texstream.core.outputs import OutputTarget
 from texstream.pipelines.cli import add_config_arguments, config_from_args
+from texstream.pipelines.estimates import atlas_bytes
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -17,6 +20,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default="auto", help=DEVICE_HELP + " (default: auto)")
     parser.add_argument("--force", action="store_true", help="recompute even if OUT is up to date")
     add_config_arguments(parser, AtlasConfig)
+
+
+def output_target(args: argparse.Namespace) -> OutputTarget:
+    resolution = getattr(args, "resolution", AtlasConfig.resolution)
+    return OutputTarget(Path(args.out), estimated_bytes=atlas_bytes(args.mesh, resolution), what="the atlas")
 
 
 def run(args: argparse.Namespace) -> int:

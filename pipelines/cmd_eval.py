@@ -4,7 +4,11 @@ from __future__ import annotations
 
 import argparse
 
+from pathlib import Path
+
+from texstream.core.config import Number
 from texstream.core.devices import DEVICE_HELP
+from texstream.core.outputs import OutputTarget
 from texstream.fit.stages.stage import eval_stage
 
 
@@ -12,9 +16,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("model", help="model folder written by texstream fit")
     parser.add_argument("capture", help="capture folder to evaluate on")
     parser.add_argument("--device", default="auto", help=DEVICE_HELP + " (default: auto)")
-    parser.add_argument("--holdout-every", dest="holdout_every", type=int, default=0,
+    parser.add_argument("--holdout-every", dest="holdout_every", type=Number(int, "--holdout-every", min=0), default=0,
                         help="score only the frames a fit with this --holdout-every held out (default: 0 = every frame)")
     parser.add_argument("-o", "--out", default=None, help="JSON report (default: MODEL/eval_<capture>.json)")
+
+
+def output_target(args: argparse.Namespace) -> OutputTarget:
+    """The JSON report (eval_stage's default name inside the model folder); a small file."""
+    out = Path(args.out) if args.out else Path(args.model) / f"eval_{Path(args.capture).resolve().name}.json"
+    return OutputTarget(out, folder=False, estimated_bytes=1 << 20, what="the evaluation report")
 
 
 def run(args: argparse.Namespace) -> int:

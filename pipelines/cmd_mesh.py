@@ -7,9 +7,12 @@ Without a capture it only cleans and simplifies the given mesh. The stage is
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
+from texstream.core.outputs import OutputTarget
 from texstream.geometry.make_mesh import MeshConfig, make_mesh
 from texstream.pipelines.cli import add_config_arguments, config_from_args
+from texstream.pipelines.estimates import mesh_stage_bytes
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -19,6 +22,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="a mesh file (OBJ/PLY/STL/GLB), 'sfm' (Poisson of the SfM points), 'hull' "
                              "(visual hull of the masks) or 'auto' (choose from what the capture has)")
     add_config_arguments(parser, MeshConfig)
+
+
+def output_target(args: argparse.Namespace) -> OutputTarget:
+    given = None if args.from_ in ("auto", "sfm", "hull") else args.from_
+    return OutputTarget(Path(args.out), estimated_bytes=mesh_stage_bytes(given, getattr(args, "faces", MeshConfig.faces)),
+                        what="the mesh")
 
 
 def run(args: argparse.Namespace) -> int:

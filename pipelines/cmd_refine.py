@@ -4,10 +4,13 @@ photos agree (photometric Gauss-Newton on one shared texture; geometry/refine.py
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from texstream.geometry.refine import RefineConfig, refine_stage
 from texstream.core.devices import DEVICE_HELP, resolve_device
+from texstream.core.outputs import OutputTarget
 from texstream.pipelines.cli import add_config_arguments, config_from_args
+from texstream.pipelines.estimates import refine_bytes
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -18,6 +21,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "to give texstream fit as its capture and --mesh")
     parser.add_argument("--device", default="auto", help=DEVICE_HELP + " (default: auto)")
     add_config_arguments(parser, RefineConfig)
+
+
+def output_target(args: argparse.Namespace) -> OutputTarget:
+    return OutputTarget(Path(args.out), estimated_bytes=refine_bytes(args.capture, args.atlas), what="the refined capture")
 
 
 def run(args: argparse.Namespace) -> int:
