@@ -49,7 +49,7 @@ from texstream.core.config import option, save_config
 from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
 from texstream.core.progress import bar, phase, say
 
-from .colmap_log import colmap_quiet, quiet_colmap_log
+from .colmap_log import colmap_errors_held, colmap_quiet, quiet_colmap_log
 from .focal_check import check_focal_prior, drop_focal_priors
 from .colmap_io import intrinsics_to_colmap, opencv_distortion, reconstruction_frames
 from .files import (list_images, read_stored_pixels, remap_channels, write_failure_report,
@@ -541,6 +541,7 @@ def _median_object_distance(rec, posed: dict) -> float:
     return float(np.median([np.linalg.norm(c - centre) for c in centres])) if centres else 1.0
 
 
+@colmap_errors_held()
 def register(capture: str | os.PathLike, out: str | os.PathLike, config: RegisterConfig | None = None,
              mesh_alignment: Callable[[str], Callable[[Any, float], dict]] | None = None) -> StageResult:
     """Register the photos of a capture folder (or plain photo folder) with pycolmap.

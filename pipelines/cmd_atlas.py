@@ -28,6 +28,9 @@ def output_target(args: argparse.Namespace) -> OutputTarget:
 
 
 def run(args: argparse.Namespace) -> int:
+    import warp as wp
+
+    wp.config.log_level = wp.LOG_WARNING  # Warp 1.19: the init banner is info; one line on an error
     config = config_from_args(AtlasConfig, args)
     res = atlas_stage(args.mesh, args.out, config, device=resolve_device(args.device), force=args.force, capture=args.capture)
     s = res.summary

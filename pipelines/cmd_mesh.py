@@ -31,6 +31,9 @@ def output_target(args: argparse.Namespace) -> OutputTarget:
 
 
 def run(args: argparse.Namespace) -> int:
+    import warp as wp
+
+    wp.config.log_level = wp.LOG_WARNING  # Warp 1.19: the init banner is info; one line on an error
     overrides = {}
     if args.from_ in ("auto", "sfm", "hull"):
         if args.from_ != "auto":

@@ -28,6 +28,9 @@ def output_target(args: argparse.Namespace) -> OutputTarget:
 
 
 def run(args: argparse.Namespace) -> int:
+    import warp as wp
+
+    wp.config.log_level = wp.LOG_WARNING  # Warp 1.19: the init banner is info; one line on an error
     config = config_from_args(RefineConfig, args)
     res = refine_stage(args.capture, args.atlas, args.out, config, device=resolve_device(args.device), log=print)
     s = res.summary
