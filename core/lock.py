@@ -170,8 +170,10 @@ def acquire(output: str | os.PathLike, command: str, log: Callable[[str], None])
                            "output": str(out)})
         os.ftruncate(fd, 0)
         os.pwrite(fd, text.encode(), 0)
-    except BaseException:
+    except BaseException as e:
         os.close(fd)
+        if isinstance(e, OSError) and not e.filename:  # a full disk: the CLI's line names the lock file
+            e.filename = str(path)
         raise
     return fd
 

@@ -21,8 +21,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-o", "--out", default=None, help="JSON report (default: MODEL/eval_<capture>.json)")
 
 
-def output_target(args: argparse.Namespace) -> OutputTarget:
-    """The JSON report (eval_stage's default name inside the model folder); a small file."""
+def output_target(args: argparse.Namespace) -> OutputTarget | None:
+    """The JSON report (eval_stage's default name inside the model folder); a small file. None for the default
+    name of a model folder that is not there: the stage says so, and no folder is made for the lock."""
+    if args.out is None and not Path(args.model).is_dir():
+        return None
     out = Path(args.out) if args.out else Path(args.model) / f"eval_{Path(args.capture).resolve().name}.json"
     return OutputTarget(out, folder=False, estimated_bytes=1 << 20, what="the evaluation report")
 

@@ -89,7 +89,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def output_target(args: argparse.Namespace) -> OutputTarget:
     """The model folder, with room for the model (and an automatic choice's candidates, estimates.py)."""
-    size = fit_bytes(args.capture, args.mesh, args.texture_size, args.renders, getattr(args, "model", "auto") == "auto")
+    # the automatic choice fits candidates only when photos are held out to judge them (fit/stages/choice.py)
+    candidates = getattr(args, "model", "auto") == "auto" and args.holdout_every > 0
+    size = fit_bytes(args.capture, args.mesh, args.texture_size, args.renders, candidates)
     return OutputTarget(Path(args.out), estimated_bytes=size, what="the model")
 
 
