@@ -16,7 +16,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("model", help="model folder written by texstream fit")
     parser.add_argument("capture", help="capture folder to evaluate on")
     parser.add_argument("--device", default="auto", help=DEVICE_HELP + " (default: auto)")
-    parser.add_argument("--holdout-every", dest="holdout_every", type=Number(int, "--holdout-every", min=0), default=0,
+    parser.add_argument("--holdout-every", dest="holdout_every", default=0,
+                        type=Number(int, "--holdout-every", min=0),
                         help="score only the frames a fit with this --holdout-every held out (default: 0 = every frame)")
     parser.add_argument("-o", "--out", default=None, help="JSON report (default: MODEL/eval_<capture>.json)")
 

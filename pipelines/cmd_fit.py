@@ -52,19 +52,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="atlas side when the mesh has UVs but no bake, 8 to 16384 texels "
                              "(default: 256; 0 = automatic, the power of two whose texels are about --texel-pixels "
                              "of the photos' pixels wide)")
-    parser.add_argument("--texel-pixels", dest="texel_pixels", type=Number.of(FitStageConfig, "texel_pixels", "--texel-pixels"),
+    parser.add_argument("--texel-pixels", dest="texel_pixels",
+                        type=Number.of(FitStageConfig, "texel_pixels", "--texel-pixels"),
                         default=3.0,
                         help="--texture-size 0: the texel width to aim at, in photo pixels (default: 3)")
-    parser.add_argument("--holdout-every", dest="holdout_every", type=Number.of(FitStageConfig, "holdout_every", "--holdout-every"), default=0,
+    parser.add_argument("--holdout-every", dest="holdout_every", default=0,
+                        type=Number.of(FitStageConfig, "holdout_every", "--holdout-every"),
                         help="hold out every k-th photo for evaluation (default: 0 = none)")
-    parser.add_argument("--renders", type=Number.of(FitStageConfig, "renders", "--renders"), default=4, help="photos rendered beside the fit (default: 4)")
+    parser.add_argument("--renders", type=Number.of(FitStageConfig, "renders", "--renders"), default=4,
+                        help="photos rendered beside the fit (default: 4)")
     parser.add_argument("--min-seen-fraction", dest="min_seen_fraction", default=0.01,
                         type=Number.of(FitStageConfig, "min_seen_fraction", "--min-seen-fraction"),
                         help="fail before fitting when fewer than this fraction of texels is seen (default: 0.01)")
     parser.add_argument("--skip-bad-photos", dest="skip_bad_photos", action="store_true",
                         help="leave out photos that cannot be read (corrupt, truncated, wrong size) instead of "
                              "failing; each is printed and listed in model.json's photos.skipped")
-    parser.add_argument("--traced-polish", dest="traced_polish", type=Number.of(FitStageConfig, "traced_polish", "--traced-polish"),
+    parser.add_argument("--traced-polish", dest="traced_polish",
+                        type=Number.of(FitStageConfig, "traced_polish", "--traced-polish"),
                         default=5,
                         help="Levenberg-Marquardt iterations that end a fit with specular lobes with taps traced to "
                              "the mesh (stream.tap_geometry mesh): highlights narrower than a pixel fitted as the "

@@ -26,8 +26,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def output_target(args: argparse.Namespace) -> OutputTarget:
     given = None if args.from_ in ("auto", "sfm", "hull") else args.from_
-    return OutputTarget(Path(args.out), estimated_bytes=mesh_stage_bytes(given, getattr(args, "faces", MeshConfig.faces)),
-                        what="the mesh")
+    faces = getattr(args, "faces", MeshConfig.faces)
+    return OutputTarget(Path(args.out), estimated_bytes=mesh_stage_bytes(given, faces), what="the mesh")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -15,8 +15,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("capture", help="capture folder (capture.json or nerfstudio transforms.json)")
     parser.add_argument("-o", "--out", default=None,
                         help="output PNG (default: CAPTURE/contact_sheet.png)")
-    parser.add_argument("--max-images", type=Number(int, "--max-images", min=1, max=10000), default=64, help="at most this many frames, evenly spaced")
-    parser.add_argument("--thumb", type=Number(int, "--thumb", min=8, max=4096), default=160, help="thumbnail size in pixels")
+    parser.add_argument("--max-images", type=Number(int, "--max-images", min=1, max=10000), default=64,
+                        help="at most this many frames, evenly spaced (1 to 10000)")
+    parser.add_argument("--thumb", type=Number(int, "--thumb", min=8, max=4096), default=160,
+                        help="thumbnail size in pixels (8 to 4096)")
     parser.add_argument("--exposure", default="auto",
                         help="'auto' (99th percentile -> 0.9) or a linear scale for the sheet")
     parser.add_argument("--no-labels", action="store_true", help="do not draw frame indices")

@@ -24,7 +24,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def output_target(args: argparse.Namespace) -> OutputTarget:
-    return OutputTarget(Path(args.out), estimated_bytes=refine_bytes(args.capture, args.atlas), what="the refined capture")
+    return OutputTarget(Path(args.out), estimated_bytes=refine_bytes(args.capture, args.atlas),
+                        what="the refined capture")
 
 
 def run(args: argparse.Namespace) -> int:

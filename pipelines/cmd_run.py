@@ -102,8 +102,8 @@ def _config(args: argparse.Namespace):
 
 def output_target(args: argparse.Namespace) -> OutputTarget:
     """The run's folder (its stages' folders inside it), with room for every stage's output (estimates.py)."""
-    return OutputTarget(Path(args.out), estimated_bytes=run_bytes(args.photos, AtlasConfig.resolution, MeshConfig.faces),
-                        what="the run")
+    size = run_bytes(args.photos, AtlasConfig.resolution, MeshConfig.faces)
+    return OutputTarget(Path(args.out), estimated_bytes=size, what="the run")
 
 
 def run(args: argparse.Namespace) -> int:

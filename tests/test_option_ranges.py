@@ -89,7 +89,8 @@ def test_every_numeric_config_field_has_a_documented_range():
 
 
 @pytest.mark.parametrize("argv,message", [
-    (["fit", "cap", "--mesh", "m", "-o", "o", "--texture-size", "7"], "--texture-size 7 is out of range [8, 16384] (or 0)"),
+    (["fit", "cap", "--mesh", "m", "-o", "o", "--texture-size", "7"],
+     "--texture-size 7 is out of range [8, 16384] (or 0)"),
     (["eval", "model", "cap", "--holdout-every", "-1"], "--holdout-every -1 is out of range [0, inf]"),
     (["run", "--iterations", "0"], "--iterations 0 is out of range [1, inf]"),
     (["synth", "sphere", "-o", "o", "--image-size", "4"], "--image-size 4 is out of range [8, 16384] (or 0)"),
