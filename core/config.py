@@ -62,9 +62,14 @@ def check_range(name: str, v: Any, lo: float | None, hi: float | None, also: tup
     if v in also:
         return
     if (lo is not None and v < lo) or (hi is not None and v > hi) or not math.isfinite(v):
-        span = f"[{'-inf' if lo is None else lo}, {'inf' if hi is None else hi}]"
-        extra = f" (or {', '.join(map(str, also))})" if also else ""
-        raise ConfigError(f"{name} {v} is out of range {span}{extra}", fix=f"give a value in {span}{extra}")
+        span = range_text(lo, hi, also)
+        raise ConfigError(f"{name} {v} is out of range {span}", fix=f"give a value in {span}")
+
+
+def range_text(lo: float | None, hi: float | None, also: tuple = ()) -> str:
+    """``[8, 16384] (or 0)``: a range as the errors and ``--help`` print it."""
+    extra = f" (or {', '.join(map(str, also))})" if also else ""
+    return f"[{'-inf' if lo is None else lo}, {'inf' if hi is None else hi}]{extra}"
 
 
 class Number:
@@ -86,6 +91,9 @@ class Number:
         kind = typing.get_type_hints(config)[field]
         meta = f.metadata or {}
         return cls(int if kind is int else float, name, meta.get("min"), meta.get("max"), meta.get("also", ()))
+
+    def span(self) -> str:
+        return f"range {range_text(self.min, self.max, self.also)}"
 
     def __call__(self, text: str) -> Any:
         try:

@@ -85,9 +85,11 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type, prefix: str
             kw["type"] = t
         else:
             kw["type"] = str
+        span = ""
         if kw["type"] in (int, float) and (meta.get("min") is not None or meta.get("max") is not None):
             kw["type"] = Number(kw["type"], name, meta.get("min"), meta.get("max"), meta.get("also", ()))
-        parser.add_argument(name, help=f"{help_text} (default: {default})", **kw)
+            span = f"; {kw['type'].span()}"
+        parser.add_argument(name, help=f"{help_text} (default: {default}{span})", **kw)
 
 
 def config_from_args(cls: type, args: argparse.Namespace, prefix: str = "", **overrides: Any) -> Any:
