@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import json
 import math
 import os
@@ -85,9 +86,18 @@ def write_atomic_with(p: Path, write) -> None:
     except BaseException as e:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
-        if isinstance(e, OSError) and not e.filename:
-            e.filename = str(p)
+        _name_write_error(e, p)
         raise
+
+
+_WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EIO)
+"""errors of a write that the system reports without a file name (a full disk, a quota, a failing disk)"""
+
+
+def _name_write_error(e: BaseException, path: Path) -> None:
+    """Give a nameless write error the output's path, so the CLI's one line says where (cli.os_error_line)."""
+    if isinstance(e, OSError) and not e.filename and e.errno in _WRITE_ERRNOS:
+        e.filename = str(path)
 
 
 def _chmod_like_open(path: str) -> None:
@@ -129,8 +139,7 @@ def atomic_output_dir(out: str | os.PathLike, overwrite: bool = True) -> Iterato
         yield tmp
     except BaseException as e:
         shutil.rmtree(tmp, ignore_errors=True)
-        if isinstance(e, OSError) and not e.filename:  # a write into tmp that named no file (a full disk)
-            e.filename = str(out)
+        _name_write_error(e, out)  # a write into tmp that named no file
         raise
     old = None
     if out.exists():
