@@ -170,8 +170,11 @@ def acquire(output: str | os.PathLike, command: str, log: Callable[[str], None])
                            "output": str(out)})
         os.ftruncate(fd, 0)
         os.pwrite(fd, text.encode(), 0)
+    except OutputLocked:
+        os.close(fd)  # another host's lock: left as it is
+        raise
     except BaseException as e:
-        os.close(fd)
+        release(out, fd)  # Ctrl-C or a full disk while taking it: no lock file left behind
         if isinstance(e, OSError) and not e.filename:  # a full disk: the CLI's line names the lock file
             e.filename = str(path)
         raise

@@ -54,6 +54,13 @@ def _dead_pid() -> int:
     return proc.pid  # reaped: no process has it (pids are not reused this soon)
 
 
+def _holds_text(path) -> bool:
+    try:
+        return '"pid"' in path.read_text()
+    except FileNotFoundError:
+        return False
+
+
 def _write_lock(out, **info):
     now = datetime.datetime.now(datetime.timezone.utc)
     info = {"pid": os.getpid(), "host": socket.gethostname(), "command": "texstream fit ... -o model",
@@ -144,3 +151,46 @@ def test_two_locks_in_one_process_exclude_each_other(tmp_path):
             with output_lock(out, "second", log=print):
                 pass
     assert not lock_path(out).exists()
+
+
+def test_every_command_that_writes_is_refused_on_a_held_output(tmp_path, capsys):
+    """Each command's output (cmd_*.output_target) is locked before its work: with another process holding
+    it, every command fails with the holder's line and writes nothing."""
+    out = tmp_path / "out"
+    t = str(tmp_path)
+    commands = {
+        "run": ["run", t], "ingest": ["ingest", t], "calibrate": ["calibrate", t], "register": ["register", t],
+        "lights": ["lights", t], "import": ["import", "colmap", t], "synth": ["synth", "sphere"],
+        "mesh": ["mesh", t], "atlas": ["atlas", t], "refine": ["refine", t, t], "fit": ["fit", t, "--mesh", t],
+        "export": ["export", t], "eval": ["eval", t, t], "preview": ["preview", t], "fpcheck": ["fpcheck"],
+        "stiffcheck": ["stiffcheck"],
+    }
+    holder = _holder(out)
+    try:
+        for name, argv in commands.items():
+            assert main([*argv, "-o", str(out)]) == 1, name
+            err = capsys.readouterr().err.strip().splitlines()
+            assert len(err) == 1 and f"another texstream command is writing this output: pid {holder.pid}" in err[0], \
+                (name, err)
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait()
+    assert not out.exists()
+    from texstream.pipelines.cli import SUBCOMMANDS
+
+    assert set(commands) == set(SUBCOMMANDS)  # every subcommand writes an output, and each was tried
+
+
+def test_ctrl_c_of_a_running_command_releases_its_lock(tmp_path):
+    """A real SIGINT to the console script while it holds the lock: exit 130, no lock file, no output."""
+    import time
+
+    out = tmp_path / "cap"
+    proc = subprocess.Popen([sys.executable, "-m", "texstream.pipelines.cli", "synth", "sphere", "-o", str(out),
+                             "--scale", "0.05"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    while proc.poll() is None and not _holds_text(lock_path(out)):
+        time.sleep(0.01)  # until the command holds its lock
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130 and "interrupted" in err, err
+    assert not lock_path(out).exists() and not out.exists()
