@@ -11,6 +11,8 @@ import tempfile
 from collections.abc import Iterator
 from typing import TextIO
 
+from texstream.core.errors import TexstreamError
+
 
 def quiet_colmap_log() -> None:
     """COLMAP's own log lines (thousands per registration) only with ``TEXSTREAM_COLMAP_LOG=1``; the stages
@@ -58,8 +60,36 @@ def colmap_quiet() -> Iterator[TextIO]:
             _replay_errors(sink.read().decode("utf-8", "replace"))
 
 
+_held: list[str] | None = None
+"""COLMAP's error records of the stage running under :func:`colmap_errors_held`, not yet printed"""
+
+
+@contextlib.contextmanager
+def colmap_errors_held() -> Iterator[None]:
+    """Hold COLMAP's error records until the stage ends (a decorator of the stage function): a stage that
+    fails with its own one-line error (a TexstreamError: "no model: none of the 4 photos could be registered
+    ... Fix: ...") has said what COLMAP's "Failed to create any sparse model" says, so they are dropped and
+    the error stays one line (``TEXSTREAM_COLMAP_LOG=1`` shows COLMAP's whole log); after a success or an
+    unexpected error they are printed, as :func:`colmap_quiet` prints them without a stage around it."""
+    global _held
+    if _held is not None:  # an outer stage holds them
+        yield
+        return
+    _held = []
+    try:
+        yield
+    except TexstreamError:
+        _held = None
+        raise
+    finally:
+        held, _held = _held, None
+        if held:
+            print("\n".join(held), file=sys.stderr, flush=True)
+
+
 def _replay_errors(text: str) -> None:
-    """Print what COLMAP wrote but its INFO and WARNING records (and their continuation lines)."""
+    """Print what COLMAP wrote but its INFO and WARNING records (and their continuation lines); under
+    :func:`colmap_errors_held`, keep them for the end of the stage."""
     shown, keep = [], True
     for line in text.splitlines():
         m = _GLOG_LINE.match(line)
@@ -67,5 +97,7 @@ def _replay_errors(text: str) -> None:
             keep = m.group(1) in "EF"
         if keep and line.strip():
             shown.append(_ANSI.sub("", line))
-    if shown:
+    if shown and _held is not None:
+        _held.extend(shown)
+    elif shown:
         print("\n".join(shown), file=sys.stderr, flush=True)

@@ -49,6 +49,10 @@ from .intrinsics import intrinsics_for_size, load_intrinsics
 from .sensors import focal_prior
 
 REPORT_FILE = "ingest_report.json"
+MIN_PHOTO_SIDE = 16
+"""the shortest photo side ingest takes, in pixels: a smaller photo holds too few pixels for a feature
+(COLMAP's SIFT needs a 16-pixel window around each keypoint) or for the fit's filtered taps and mask border;
+1x1 photos used to fail only at registration"""
 
 
 @dataclasses.dataclass
@@ -69,9 +73,10 @@ class IngestConfig:
                            "off; in every case only when the photos align (same viewpoint), else each photo "
                            "stands alone with its exposure normalised", choices=BRACKET_MODES)
     bracket_align_px: float = option(2.0, help="largest image-corner displacement (pixels, after exposure "
-                                     "normalisation and ECC alignment) for photos to count as one viewpoint")
+                                     "normalisation and ECC alignment) for photos to count as one viewpoint",
+                                     min=0.0)
     bracket_size: int = option(0, help="photos per exposure bracket: 0 = auto (consecutive photos with different "
-                               "exposure times), 1 = no brackets")
+                               "exposure times), 1 = no brackets", min=0, max=64)
     hdr_method: str = option("debevec", help="response calibration and merge for 8-bit brackets", choices=HDR_METHODS)
     normalize_exposure: bool = option(True, help="set each frame's exposure from EXIF (t * ISO / N^2, median = 1)")
     intrinsics: str | None = option(None, help="intrinsics.json from 'texstream calibrate' (fixed during registration)")
@@ -80,7 +85,8 @@ class IngestConfig:
     lights: str | None = option(None, help="lights file (JSON): per-photo or default point/directional lights")
     colocated_light: float | None = option(None, help="light fixed to the camera (flash) with this intensity, a point "
                                            "light at each camera centre; when SfM's scale is arbitrary (no "
-                                           "alignment) it is the irradiance at the median object distance")
+                                           "alignment) it is the irradiance at the median object distance",
+                                           min=1e-12)
     overwrite: bool = option(True, help="replace an existing output folder")
 
 
@@ -193,6 +199,11 @@ def _read_photos(files: list[Path], dropped: list[dict]) -> list[dict]:
             dropped.append({"image": f.name, "reason": f"unreadable ({e.message})"})
             continue
         hashes[digest] = f.name
+        if min(img.shape[:2]) < MIN_PHOTO_SIDE:
+            dropped.append({"image": f.name, "reason": f"too small: {img.shape[1]}x{img.shape[0]} pixels, fewer than "
+                                                       f"{MIN_PHOTO_SIDE} on its short side (registration and the fit "
+                                                       "need more)"})
+            continue
         inp = oiio.ImageInput.open(str(f))
         spec = inp.spec()
         fmt = spec.format
@@ -331,8 +342,10 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
     if not infos:
         report["frames"] = []
         path = write_failure_report(out, report)
-        raise StageError(f"no usable photo among {len(files)} file(s) ({len(dropped)} dropped); partial report {path}",
-                         photos, "check that the files are images OpenImageIO can read")
+        first = f": {dropped[0]['image']} {dropped[0]['reason']}" if dropped else ""
+        raise StageError(f"no usable photo among {len(files)} file(s) ({len(dropped)} dropped{first}); partial "
+                         f"report {path}", photos / dropped[0]["image"] if len(files) == 1 and dropped else photos,
+                         f"use photos OpenImageIO can read, at least {MIN_PHOTO_SIDE} pixels on their short side")
     sizes = [i["size"] for i in infos]
     common = max(set(sizes), key=sizes.count)
     if cfg.single_camera:

@@ -53,11 +53,13 @@ class CalibrateConfig:
                         choices=tuple(DISTORTION_MODELS))
     fix_aspect_ratio: bool = option(False, help="estimate one focal length (fx = fy)")
     fix_principal_point: bool = option(False, help="keep the principal point at the image centre")
-    reject_factor: float = option(3.0, help="reject views whose RMS exceeds this times the median view RMS")
-    reject_min_px: float = option(1.0, help="never reject a view whose RMS is below this many pixels")
+    reject_factor: float = option(3.0, help="reject views whose RMS exceeds this times the median view RMS",
+                                  min=1.0)
+    reject_min_px: float = option(1.0, help="never reject a view whose RMS is below this many pixels",
+                                  min=0.0)
     reject_outliers: bool = option(True, help="drop views with outlying RMS and recalibrate (off: use every detection)")
-    min_views: int = option(3, help="fewest views with a detected board needed to calibrate a camera")
-    min_corners: int = option(6, help="fewest ChArUco corners for a view to count")
+    min_views: int = option(3, help="fewest views with a detected board needed to calibrate a camera", min=1)
+    min_corners: int = option(6, help="fewest ChArUco corners for a view to count", min=4)
 
 
 def _flags(cfg: CalibrateConfig) -> int:

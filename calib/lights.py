@@ -79,20 +79,21 @@ class LightsConfig:
     ball_masks: str | None = option(None, help="folder of ball masks NAME.png (one ball per photo, white on black) "
                                     "when the ball's position is not known")
     ball_radius: float | None = option(None, help="ball radius in world units for --ball-masks (needed for a point "
-                                       "light; without it only a direction is found)")
+                                       "light; without it only a direction is found)", min=1e-12)
     frames: tuple[str, ...] | None = option(None, help="names or stems of the photos that show the ball (default: all)")
     kind: str = option("auto", help="light to estimate: point (triangulated), directional (mean reflected ray), "
                        "auto (point when the rays converge with enough parallax, else directional)",
                        choices=("auto", "point", "directional"))
-    min_parallax_deg: float = option(2.0, help="smallest angle between reflected rays that triangulates a point light")
+    min_parallax_deg: float = option(2.0, help="smallest angle between reflected rays that triangulates a point light",
+                                     min=0.0, max=180.0)
     threshold: float = option(0.5, help="highlight blob: pixels above this fraction of the peak luminance, "
-                              "connected to the peak")
+                              "connected to the peak", min=0.0, max=1.0)
     min_contrast: float = option(4.0, help="a highlight's peak must exceed this multiple of the ball's median "
-                                 "luminance (else the photo is reported as having no highlight)")
+                                 "luminance (else the photo is reported as having no highlight)", min=0.0)
     rim_margin: float = option(0.03, help="ignore this fraction of the ball's angular radius at its rim "
-                               "(grazing reflections of the background)")
+                               "(grazing reflections of the background)", min=0.0, max=1.0)
     intensity: tuple[float, ...] = option((1.0,), help="intensity written for the light (one value or RGB); a "
-                                          "mirror ball gives its position, not its strength")
+                                          "mirror ball gives its position, not its strength", min=0.0)
 
 
 @dataclasses.dataclass

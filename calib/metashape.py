@@ -72,7 +72,8 @@ class MetashapeImportConfig:
     copy_mode: str = option("copy", help="how photos that need no resampling reach the capture folder",
                             choices=("copy", "hardlink", "symlink"))
     colocated_light: float | None = option(None, help="photos lit by a flash at the camera: its intensity (a point "
-                                                      "light at each camera centre, in the chunk's world units)")
+                                                      "light at each camera centre, in the chunk's world units)",
+                                                      min=1e-12)
     mesh: str | None = option(None, help="a mesh Metashape exported (OBJ/PLY): written into the capture, and "
                                          "'texstream run' uses it as the mesh")
     mesh_frame: str = option("chunk", help="the frame the mesh is in: chunk (Metashape's default export) or world "

@@ -64,7 +64,8 @@ class RealityCaptureImportConfig:
     copy_mode: str = option("copy", help="how photos that need no resampling reach the capture folder",
                             choices=("copy", "hardlink", "symlink"))
     colocated_light: float | None = option(None, help="photos lit by a flash at the camera: its intensity (a point "
-                                                      "light at each camera centre, in the export's world units)")
+                                                      "light at each camera centre, in the export's world units)",
+                                                      min=1e-12)
     overwrite: bool = option(True, help="replace an existing output folder")
 
 

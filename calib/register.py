@@ -49,7 +49,7 @@ from texstream.core.config import option, save_config
 from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
 from texstream.core.progress import bar, phase, say
 
-from .colmap_log import colmap_quiet, quiet_colmap_log
+from .colmap_log import colmap_errors_held, colmap_quiet, quiet_colmap_log
 from .focal_check import check_focal_prior, drop_focal_priors
 from .colmap_io import intrinsics_to_colmap, opencv_distortion, reconstruction_frames
 from .files import (list_images, read_stored_pixels, remap_channels, write_failure_report,
@@ -71,9 +71,11 @@ class RegisterConfig:
                           "sequential (ordered photos / video), vocab_tree (large sets; needs --vocab-tree)",
                           choices=("auto", "exhaustive", "sequential", "vocab_tree"))
     vocab_tree: str | None = option(None, help="COLMAP vocabulary tree file for --matcher vocab_tree")
-    sequential_overlap: int = option(10, help="neighbours matched per photo by the sequential matcher")
-    max_num_features: int = option(8192, help="SIFT features kept per photo")
-    max_image_size: int = option(3200, help="photos are downscaled to this longest side for features")
+    sequential_overlap: int = option(10, help="neighbours matched per photo by the sequential matcher",
+                                     min=1, max=10000)
+    max_num_features: int = option(8192, help="SIFT features kept per photo", min=64, max=1000000)
+    max_image_size: int = option(3200, help="photos are downscaled to this longest side for features",
+                                 min=16, max=100000)
     camera_model: str = option("SIMPLE_RADIAL", help="COLMAP camera model estimated when no intrinsics are given",
                                choices=("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"))
     intrinsics: str | None = option(None, help="intrinsics.json from 'texstream calibrate' (matched by image size)")
@@ -90,7 +92,7 @@ class RegisterConfig:
         "the focal length and the poses (the synthetic sphere, a perfect pinhole, came out with k = -0.12 and the "
         "focal length 8% long at a 0.02% lower error); 0 keeps every estimate", min=0.0, max=1.0)
     use_masks: bool = option(True, help="pass masks to feature extraction (no features on the background)")
-    min_model_size: int = option(3, help="smallest model (registered photos) kept by the mapper")
+    min_model_size: int = option(3, help="smallest model (registered photos) kept by the mapper", min=2)
     disconnected: str = option("auto", help="when the photos fall into two or more groups (each at least a fifth of "
                                "the photos) that share no verified match: auto (stop before mapping, naming the groups, "
                                "when their colours say they are different objects; else register the largest group), "
@@ -101,21 +103,25 @@ class RegisterConfig:
     align_mesh: str | None = option(None, help="mesh file (OBJ / PLY / ...) whose frame and scale the capture is brought "
                                     "into: scaled ICP of the SfM points onto the mesh (not with --align-to)")
     align_mesh_max_rms: float = option(0.01, help="largest accepted RMS distance of the SfM points to the aligned mesh, "
-                                       "as a fraction of the points' bounding-box diagonal")
+                                       "as a fraction of the points' bounding-box diagonal", min=0.0, max=1.0)
     align_max_error: float = option(0.02, help="RANSAC inlier threshold of the alignment, as a fraction of the "
-                                    "extent of the known centres")
+                                    "extent of the known centres", min=0.0, max=1.0)
     colocated_light: float | None = option(None, help="light fixed to the camera (flash) with this intensity, a point "
                                            "light at each camera centre; when SfM's scale is arbitrary (no "
-                                           "alignment) it is the irradiance at the median object distance")
+                                           "alignment) it is the irradiance at the median object distance",
+                                           min=1e-12)
     photometric: str = option("export", help="per-photo exposure / white-balance gains from shared SfM points: off, "
                               "export (frame 'photometric_gain'), apply (also multiply frame exposure)",
                               choices=("off", "export", "apply"))
     undistort: bool = option(True, help="undistort registered photos and masks to pinhole cameras")
-    num_threads: int = option(-1, help="CPU threads for COLMAP matching and mapping (-1: all)")
+    num_threads: int = option(-1, help="CPU threads for COLMAP matching and mapping (-1: all)",
+                              min=-1, max=4096)
     extraction_threads: int = option(1, help="CPU threads for SIFT extraction; more is faster on many cores "
                                              "but not reproducible (COLMAP numbers the images in the order "
-                                             "they finish, and matching and mapping depend on that order)")
-    seed: int = option(0, help="random seed of COLMAP's RANSAC and mapper (reproducible runs)")
+                                             "they finish, and matching and mapping depend on that order)",
+                                             min=1, max=4096)
+    seed: int = option(0, help="random seed of COLMAP's RANSAC and mapper (reproducible runs)",
+                       min=0, max=2147483647)
     ring: str = option("auto", help="photos mapping leaves out: auto (when the registered cameras lie on an evenly "
                        "stepped ring, as on a turntable: the focal length chosen by the ring's fit when it is "
                        "estimated, the left-out photos placed on the ring and checked by their silhouettes; "
@@ -535,6 +541,7 @@ def _median_object_distance(rec, posed: dict) -> float:
     return float(np.median([np.linalg.norm(c - centre) for c in centres])) if centres else 1.0
 
 
+@colmap_errors_held()
 def register(capture: str | os.PathLike, out: str | os.PathLike, config: RegisterConfig | None = None,
              mesh_alignment: Callable[[str], Callable[[Any, float], dict]] | None = None) -> StageResult:
     """Register the photos of a capture folder (or plain photo folder) with pycolmap.

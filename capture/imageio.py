@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from texstream.core.errors import ConfigError, InputError
+from texstream.core.errors import ConfigError, InputError, StageError
 
 # IEC 61966-2-1 piecewise sRGB transfer function constants.
 _SRGB_DECODE_THRESHOLD = 0.04045
@@ -337,6 +337,20 @@ def _quantise(x: np.ndarray, maxval: int, dtype) -> np.ndarray:
     return np.floor(np.clip(x, 0.0, 1.0) * maxval + 0.5).astype(dtype)
 
 
+def _refuse_nonfinite(a: np.ndarray, path: Path, integer: bool) -> None:
+    """No NaN or Inf reaches a file: a float format would store it for every reader to trip on, an integer
+    one cannot store NaN (Inf clips to the format's range, as any bright value does). The error names the
+    file and the first bad pixel, so the stage that made it can be found."""
+    bad = np.isnan(a) if integer else ~np.isfinite(a)
+    if not bad.any():
+        return
+    y, x, ch = (int(i) for i in np.argwhere(bad)[0])
+    n = int(bad.any(axis=2).sum())
+    raise StageError(f"image holds {n} pixel(s) with {'NaN' if integer else 'NaN or Inf'} (first: x={x}, y={y}, "
+                     f"channel {ch} is {a[y, x, ch]}); nothing was written", path,
+                     "report this with the command that made it; --debug shows where it came from")
+
+
 def write_image(path: str | os.PathLike, img: np.ndarray, *, bits: int | None = None,
                 metadata: dict | None = None) -> Path:
     """Write a linear image; the format comes from the extension.
@@ -399,9 +413,8 @@ def write_image(path: str | os.PathLike, img: np.ndarray, *, bits: int | None = 
     c = a.shape[2]
     has_alpha = c in (2, 4)
 
-    if not codes and bits in (8, 16) and fmt_name != "openexr" and np.isnan(a).any():
-        raise ConfigError("image array holds NaN, which an integer format cannot store", path,
-                          "write EXR/HDR/float TIFF, or replace the NaNs first")
+    if not codes:
+        _refuse_nonfinite(a, path, integer=bits in (8, 16) and fmt_name != "openexr")
     if codes:
         data = a
         oformat = "uint8" if bits == 8 else "uint16"

@@ -47,10 +47,11 @@ class MiddleburyImportConfig:
     par_file: str | None = option(None, help="camera file inside SRC (default: the only *_par.txt there)")
     make_masks: bool = option(True, help="write object masks by thresholding the black background")
     mask_threshold: int = option(
-        40, help="8-bit code above which a pixel's brightest channel counts as object")
+        40, help="8-bit code above which a pixel's brightest channel counts as object", min=0, max=255)
     mask_clip_to_bbox: bool = option(
         True, help="keep mask pixels only inside the projected README bounding box")
-    mask_margin: int = option(4, help="pixels the projected bounding box is grown by before clipping masks")
+    mask_margin: int = option(4, help="pixels the projected bounding box is grown by before clipping masks",
+                              min=0)
     overwrite: bool = option(True, help="replace an existing output folder")
 
 

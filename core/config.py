@@ -8,6 +8,7 @@ turns it into ``--help`` and :func:`save_config` writes the resolved values as p
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import typing
 from pathlib import Path
@@ -21,11 +22,12 @@ T = TypeVar("T")
 
 def option(default: Any = dataclasses.MISSING, help: str = "", *, choices: tuple | None = None,
            default_factory: Any = dataclasses.MISSING, cli: bool = True, min: float | None = None,
-           max: float | None = None, flat: bool = False) -> Any:
-    """A dataclass field with help text, optional choices and an optional range [min, max], used by
-    the CLI, the docs and :func:`check_config`. ``flat``: a nested config whose options the CLI
-    spells without this field's name (``--max-iterations``, not ``--fit.max-iterations``)."""
-    meta = {"help": help, "choices": choices, "cli": cli, "min": min, "max": max, "flat": flat}
+           max: float | None = None, also: tuple = (), flat: bool = False) -> Any:
+    """A dataclass field with help text, optional choices and an optional range [min, max] (``also``: values
+    allowed outside it, such as 0 for "automatic"), used by the CLI (checked as the command line is
+    parsed), the docs and :func:`check_config`. ``flat``: a nested config whose options the CLI spells
+    without this field's name (``--max-iterations``, not ``--fit.max-iterations``)."""
+    meta = {"help": help, "choices": choices, "cli": cli, "min": min, "max": max, "also": tuple(also), "flat": flat}
     if default_factory is not dataclasses.MISSING:
         return dataclasses.field(default_factory=default_factory, metadata=meta)
     return dataclasses.field(default=default, metadata=meta)
@@ -47,11 +49,60 @@ def check_config(cfg: Any, prefix: str = "") -> None:
                               fix=f"use one of {', '.join(map(str, meta['choices']))}")
         lo, hi = meta.get("min"), meta.get("max")
         if (lo is not None or hi is not None) and v is not None:
-            if isinstance(v, bool) or not isinstance(v, (int, float)):
-                raise ConfigError(f"{name} must be a number, got {v!r}", fix="give a number")
-            if (lo is not None and v < lo) or (hi is not None and v > hi) or v != v:
-                span = f"[{'-inf' if lo is None else lo}, {'inf' if hi is None else hi}]"
-                raise ConfigError(f"{name} {v} is out of range {span}", fix=f"give a value in {span}")
+            values = v if isinstance(v, (list, tuple)) else (v,)
+            for x in values:
+                check_range(name, x, lo, hi, meta.get("also", ()))
+
+
+def check_range(name: str, v: Any, lo: float | None, hi: float | None, also: tuple = ()) -> None:
+    """ConfigError unless ``v`` is a finite number in [lo, hi] (either end open when None) or one of ``also``;
+    NaN and Inf are never in range (no option means anything by them)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise ConfigError(f"{name} must be a number, got {v!r}", fix="give a number")
+    if v in also:
+        return
+    if (lo is not None and v < lo) or (hi is not None and v > hi) or not math.isfinite(v):
+        span = range_text(lo, hi, also)
+        raise ConfigError(f"{name} {v} is out of range {span}", fix=f"give a value in {span}")
+
+
+def range_text(lo: float | None, hi: float | None, also: tuple = ()) -> str:
+    """``[8, 16384] (or 0)``: a range as the errors and ``--help`` print it."""
+    extra = f" (or {', '.join(map(str, also))})" if also else ""
+    return f"[{'-inf' if lo is None else lo}, {'inf' if hi is None else hi}]{extra}"
+
+
+class Number:
+    """An argparse ``type=`` that converts to ``kind`` and checks the range at parse time, so a bad value
+    fails before any work with the one-line ConfigError :func:`check_config` gives (the CLI prints it).
+    Plain options of the commands use it as ``type=Number(int, "--renders", min=0)``; config fields get it
+    from their ``option(min=, max=)``. ``min`` and ``max`` stay readable for the docs and the tests."""
+
+    def __init__(self, kind: type, name: str, min: float | None = None, max: float | None = None,
+                 also: tuple = ()):
+        self.kind, self.name, self.min, self.max, self.also = kind, name, min, max, tuple(also)
+        self.__name__ = kind.__name__  # argparse names the type in "invalid int value" messages
+
+    @classmethod
+    def of(cls, config: type, field: str, name: str) -> "Number":
+        """The parse-time check of a config field's ``option`` range, for a command's plain option that
+        fills it (``--texture-size`` of FitStageConfig.texture_size): one range, kept by the field."""
+        f = next(f for f in dataclasses.fields(config) if f.name == field)
+        kind = typing.get_type_hints(config)[field]
+        meta = f.metadata or {}
+        return cls(int if kind is int else float, name, meta.get("min"), meta.get("max"), meta.get("also", ()))
+
+    def span(self) -> str:
+        return f"range {range_text(self.min, self.max, self.also)}"
+
+    def __call__(self, text: str) -> Any:
+        try:
+            v = self.kind(text)
+        except ValueError:
+            raise ConfigError(f"{self.name} {text!r} is not {'an integer' if self.kind is int else 'a number'}",
+                              fix=f"give {'an integer' if self.kind is int else 'a number'}") from None
+        check_range(self.name, v, self.min, self.max, self.also)
+        return v
 
 
 def config_to_dict(cfg: Any) -> dict:

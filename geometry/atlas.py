@@ -73,38 +73,45 @@ class AtlasConfig:
     """How the texture atlas is made (xatlas charting and packing)."""
 
     resolution: int = option(1024, help="largest atlas side in texels; with texels_per_unit 0 the "
-                                        "density is chosen to fill this size")
+                                        "density is chosen to fill this size", min=8, max=16384)
     texels_per_unit: float = option(0.0, help="texel density in texels per scene unit (at face weight 1); "
-                                              "0 derives it from resolution")
-    padding: int = option(2, help="empty texels between charts (also the padding fill radius of the bake)")
+                                              "0 derives it from resolution", min=0.0)
+    padding: int = option(2, help="empty texels between charts (also the padding fill radius of the bake)",
+                          min=0, max=64)
     bilinear: bool = option(True, help="reserve a one-texel border around charts so bilinear lookups "
                                        "inside a chart never read another chart")
     max_chart_area: float = option(0.0, help="largest chart surface area in scene units^2 (0: no limit); "
-                                             "smaller charts let face weights vary more finely")
+                                             "smaller charts let face weights vary more finely", min=0.0)
     max_boundary_length: float = option(0.0, help="largest chart boundary length in scene units "
-                                                  "(0: no limit)")
+                                                  "(0: no limit)", min=0.0)
     max_cost: float = option(2.0, help="xatlas chart growth cost threshold: lower gives more, flatter charts "
-                                       "with less stretch")
-    max_iterations: int = option(1, help="xatlas chart growing iterations (more: better charts, slower)")
+                                       "with less stretch", min=0.0)
+    max_iterations: int = option(1, help="xatlas chart growing iterations (more: better charts, slower)",
+                                 min=1, max=100)
     normal_deviation_weight: float = option(2.0, help="xatlas cost weight of normal deviation from "
-                                                      "the chart's average normal")
-    roundness_weight: float = option(0.01, help="xatlas cost weight favouring round charts")
-    straightness_weight: float = option(6.0, help="xatlas cost weight favouring straight chart boundaries")
+                                                      "the chart's average normal", min=0.0)
+    roundness_weight: float = option(0.01, help="xatlas cost weight favouring round charts", min=0.0)
+    straightness_weight: float = option(6.0, help="xatlas cost weight favouring straight chart boundaries",
+                                        min=0.0)
     normal_seam_weight: float = option(4.0, help="xatlas cost weight keeping hard normal edges on chart "
-                                                 "boundaries")
+                                                 "boundaries", min=0.0)
     texture_seam_weight: float = option(0.5, help="xatlas cost weight keeping existing UV seams on chart "
-                                                  "boundaries")
+                                                  "boundaries", min=0.0)
     rotate_charts: bool = option(True, help="let the packer rotate charts for a tighter fit")
     brute_force: bool = option(False, help="slower, tighter packing (xatlas bruteForce)")
     block_align: bool = option(False, help="align charts to 4x4 texel blocks (for block-compressed textures)")
     density_bands: float = option(0.5, help="with face weights: split charts where the weight changes by more "
-                                             "than this many octaves (0: one weight per xatlas chart)")
+                                             "than this many octaves (0: one weight per xatlas chart)",
+                                             min=0.0, max=16.0)
     density_smoothing: int = option(1, help="with density bands: smoothing steps of the log face weights over "
-                                            "neighbouring faces before banding (noisy weights shatter charts)")
+                                            "neighbouring faces before banding (noisy weights shatter charts)",
+                                            min=0, max=100)
     min_face_texels: float = option(1.0, help="with face weights: raise the weight of faces that would get fewer "
-                                              "texels than this (faces still without one get a chart of their own)")
+                                              "texels than this (faces still without one get a chart of their own)",
+                                              min=0.0)
     min_piece_texels: float = option(64.0, help="with density bands: pieces smaller than about this many texels "
-                                                "are merged into a neighbouring piece of their chart")
+                                                "are merged into a neighbouring piece of their chart",
+                                                min=0.0)
     keep_existing_uvs: bool = option(True, help="use the mesh's own UVs when they are usable (in [0, 1], "
                                                 "not degenerate, not overlapping) instead of a new atlas")
 

@@ -103,14 +103,14 @@ class MeshConfig:
     source: str = option("auto", help="where the mesh comes from: auto, scan (needs --mesh), sfm, hull",
                          choices=("auto", "scan", "sfm", "hull"))
     mesh: str = option("", help="given mesh file (OBJ/PLY/STL/GLB); implies source scan")
-    faces: int = option(20000, help="decimate to this many faces (0: keep)")
+    faces: int = option(20000, help="decimate to this many faces (0: keep)", min=0, max=100000000)
     matrix: str = option("", help="4x4 world matrix (JSON or whitespace text) taking the given mesh into the "
                                   "capture frame; empty: align to the SfM points when the capture has them")
     align: bool = option(True, help="align a given mesh to the capture's SfM points by Sim3 + ICP")
     remesh: bool = option(False, help="isotropic remeshing after decimation")
-    max_hole_edges: int = option(30, help="close holes bounded by at most this many edges")
-    poisson_depth: int = option(8, help="screened Poisson octree depth")
-    hull_resolution: int = option(128, help="visual hull grid nodes along the longest side")
+    max_hole_edges: int = option(30, help="close holes bounded by at most this many edges", min=0)
+    poisson_depth: int = option(8, help="screened Poisson octree depth", min=1, max=16)
+    hull_resolution: int = option(128, help="visual hull grid nodes along the longest side", min=8, max=2048)
     intersect_hull: bool = option(True, help="intersect the Poisson surface with the visual hull when masks exist")
     triangulate: str = option("auto", help="SfM points from the photos and known cameras when the capture has no "
                                            "points3D.ply: auto (when it has its photos: the points Poisson meshes, "
@@ -129,19 +129,24 @@ class MeshConfig:
                                           "from where the cameras stand (geometry/scene.py)",
                              choices=("auto", "scene", "object"))
     crop_percentile: float = option(2.0, help="robust extent of the SfM points: this percentile to 100 minus it on "
-                                              "each axis (outliers do not stretch it)")
-    crop_margin: float = option(0.05, help="margin around the robust extent, fraction of its diagonal")
+                                              "each axis (outliers do not stretch it)", min=0.0, max=49.0)
+    crop_margin: float = option(0.05, help="margin around the robust extent, fraction of its diagonal",
+                                min=0.0, max=10.0)
     trim_spacing: float = option(4.0, help="scene: drop surface farther from every SfM point than this many times "
-                                           "the points' spacing (median 8th-neighbour distance) or one Poisson cell")
-    facing_rays: int = option(48, help="camera rays along the longer image side for the facing check")
+                                           "the points' spacing (median 8th-neighbour distance) or one Poisson cell",
+                                           min=0.0)
+    facing_rays: int = option(48, help="camera rays along the longer image side for the facing check",
+                              min=1, max=100000)
     max_back_faces: float = option(0.05, help="fail when more than this fraction of camera rays hit back faces after "
                                               "orientation (a closed mesh seen from outside has none; open scene "
-                                              "surfaces and grazing rays along thin parts give a few)")
-    fill_holes: float = option(0.01, help="hull: fill mask holes smaller than this fraction of the object area")
+                                              "surfaces and grazing rays along thin parts give a few)",
+                                              min=0.0, max=1.0)
+    fill_holes: float = option(0.01, help="hull: fill mask holes smaller than this fraction of the object area",
+                               min=0.0, max=1.0)
     closing: int = option(0, help="hull: morphological closing radius in grid cells (0: off). 1 closes voxel-scale "
                                   "tunnels (Middlebury temple genus 10 -> 3 after hole filling; 133 with neither) but "
                                   "there the density atlas then evens texel size less (p90/p10 1.14 -> 1.71), not "
-                                  "yet understood; off by default until it is")
+                                  "yet understood; off by default until it is", min=0, max=64)
     hull_fill: bool = option(True, help="objects with masks: add visual-hull samples to the Poisson points where the "
                                         "SfM points leave the surface open and no two cameras see it well (an "
                                         "underside seen only at grazing angles; geometry/hull_fill.py)")

@@ -286,6 +286,14 @@ def _obj_bytes(mesh: SurfaceMesh) -> bytes:
 # PLY / STL (pymeshlab)
 
 
+def _meshlab_reason(e: Exception) -> str:
+    """pymeshlab's error text on one line: its "Error details" (e.g. "Header not found") without the lines
+    around them that repeat the file name."""
+    text = str(e).strip()
+    details = [ln.split(":", 1)[1].strip() for ln in text.splitlines() if ln.strip().startswith("Error details:")]
+    return details[0] if details and details[0] else " ".join(text.split()) or type(e).__name__
+
+
 def _read_meshlab(p: Path) -> SurfaceMesh:
     import pymeshlab  # heavy; only for these formats
 
@@ -293,7 +301,7 @@ def _read_meshlab(p: Path) -> SurfaceMesh:
     try:
         ms.load_new_mesh(str(p))
     except Exception as e:  # pymeshlab raises its own PyMeshLabException
-        raise InputError(f"cannot read mesh ({str(e).strip() or type(e).__name__})", p,
+        raise InputError(f"cannot read mesh ({_meshlab_reason(e)})", p,
                          "check that the file is a valid mesh, or re-export it") from None
     m = ms.current_mesh()
     v = np.asarray(m.vertex_matrix(), dtype=np.float64)

@@ -13,11 +13,15 @@ import argparse
 import dataclasses
 import importlib
 import os
+import shlex
 import sys
 import typing
 from typing import Any, Sequence
 
+from texstream.core.config import Number
 from texstream.core.errors import TexstreamError
+from texstream.core.lock import output_lock
+from texstream.core.outputs import check_output, check_room
 
 # name -> (module, one-line help). The order is the pipeline's order.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
@@ -82,7 +86,11 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type, prefix: str
             kw["type"] = t
         else:
             kw["type"] = str
-        parser.add_argument(name, help=f"{help_text} (default: {default})", **kw)
+        span = ""
+        if kw["type"] in (int, float) and (meta.get("min") is not None or meta.get("max") is not None):
+            kw["type"] = Number(kw["type"], name, meta.get("min"), meta.get("max"), meta.get("also", ()))
+            span = f"; {kw['type'].span()}"
+        parser.add_argument(name, help=f"{help_text} (default: {default}{span})", **kw)
 
 
 def config_from_args(cls: type, args: argparse.Namespace, prefix: str = "", **overrides: Any) -> Any:
@@ -112,14 +120,22 @@ def threads_asked_for(argv: Sequence[str]) -> bool:
     return any(a == f"{flag}=threads" or (a == flag and argv[i + 1:i + 2] == ["threads"]) for i, a in enumerate(argv))
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with its errors (an unknown option, a missing argument, a bad choice) on one line naming
+    the fix, as every other error of the CLI, instead of the usage block above the message."""
+
+    def error(self, message: str) -> typing.NoReturn:
+        self.exit(2, f"{self.prog}: error: {message}. Fix: see '{self.prog} --help'.\n")
+
+
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="texstream",
         description="Photos to textured appearance models by image-streaming nonlinear optimization.")
     parser.add_argument("--debug", action="store_true", help="show tracebacks for errors")
     # --debug also after the subcommand (`texstream synth ... --debug`); SUPPRESS keeps a subparser
     # that did not see it from resetting the top-level value to False
-    common = argparse.ArgumentParser(add_help=False)
+    common = OneLineParser(add_help=False)
     common.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
                         help="show tracebacks for errors")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -147,7 +163,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             parser.print_help()
             return 2
         module = importlib.import_module(SUBCOMMANDS[args.command][0])
-        return int(module.run(args) or 0)
+        return run_with_output_checks(module, args, " ".join(shlex.quote(a) for a in ["texstream", *argv]))
     except TexstreamError as e:
         if debug:
             raise
@@ -166,6 +182,21 @@ def main(argv: Sequence[str] | None = None) -> int:
             from texstream.fit.stream import decode_pool
 
             decode_pool.shutdown(wait=False)  # the workers exit at the end of their input; nothing waits for it
+
+
+def run_with_output_checks(module, args: argparse.Namespace, command_line: str) -> int:
+    """Run a subcommand with its output checked and locked first: the command's ``output_target(args)``
+    (absent or None: it writes nothing to check) must be writable (a probe file), is locked for the run
+    (:mod:`texstream.core.lock`: a second command on it fails at once) and needs room on its disk for the
+    command's estimate, all before any long work."""
+    target_of = getattr(module, "output_target", None)
+    target = target_of(args) if target_of is not None else None
+    if target is None:
+        return int(module.run(args) or 0)
+    check_output(target.path, folder=target.folder)
+    with output_lock(target.path, command_line, log=lambda line: print(line, file=sys.stderr, flush=True)):
+        check_room(target.path, target.estimated_bytes, target.what)
+        return int(module.run(args) or 0)
 
 
 def console_main() -> None:

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from texstream.geometry.atlas import AtlasConfig, atlas_stage
 from texstream.core.devices import DEVICE_HELP, resolve_device
+from texstream.core.outputs import OutputTarget
 from texstream.pipelines.cli import add_config_arguments, config_from_args
+from texstream.pipelines.estimates import atlas_bytes
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -19,7 +22,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_config_arguments(parser, AtlasConfig)
 
 
+def output_target(args: argparse.Namespace) -> OutputTarget:
+    resolution = getattr(args, "resolution", AtlasConfig.resolution)
+    return OutputTarget(Path(args.out), estimated_bytes=atlas_bytes(args.mesh, resolution), what="the atlas")
+
+
 def run(args: argparse.Namespace) -> int:
+    import warp as wp
+
+    wp.config.log_level = wp.LOG_WARNING  # Warp 1.19: the init banner is info; one line on an error
     config = config_from_args(AtlasConfig, args)
     res = atlas_stage(args.mesh, args.out, config, device=resolve_device(args.device), force=args.force, capture=args.capture)
     s = res.summary

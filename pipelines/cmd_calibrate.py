@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from texstream.calib.intrinsics import CalibrateConfig, calibrate
+from texstream.core.outputs import OutputTarget
 from texstream.pipelines.cli import add_config_arguments, config_from_args
 
 
@@ -16,10 +17,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_config_arguments(parser, CalibrateConfig)
 
 
+def output_target(args: argparse.Namespace) -> OutputTarget:
+    photos = Path(args.photos)
+    return OutputTarget(Path(args.out) if args.out else photos.parent / f"{photos.name}_calib")
+
+
 def run(args: argparse.Namespace) -> int:
     cfg = config_from_args(CalibrateConfig, args)
     photos = Path(args.photos)
-    out = Path(args.out) if args.out else photos.parent / f"{photos.name}_calib"
+    out = output_target(args).path
     res = calibrate(photos, out, cfg)
     s = res.summary
     for c in s["cameras"]:

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from texstream.calib.colour_chart import chart_response
+from texstream.core.outputs import OutputTarget
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -13,6 +15,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-o", "--out", required=True,
                         help="output folder: response.json (code value to linear radiance, per-photo gains), "
                              "chart_report.json (which photos showed the chart)")
+
+
+def output_target(args: argparse.Namespace) -> OutputTarget:
+    return OutputTarget(Path(args.out))
 
 
 def run(args: argparse.Namespace) -> int:

@@ -17,8 +17,11 @@ Both take part in the automatic model choice (``--model auto``, the default) and
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
+from texstream.core.config import Number
 from texstream.core.errors import InputError
+from texstream.core.outputs import OutputTarget
 from texstream.core.progress import reporting
 from texstream.fit.models.materials import MaterialConfig
 from texstream.fit.optim.fitter import FitConfig
@@ -27,6 +30,7 @@ from texstream.fit.stages.single_view import SingleViewConfig, fit_single_view_s
 from texstream.fit.stages.stage import FitStageConfig, fit_stage
 from texstream.core.devices import DEVICE_HELP
 from texstream.pipelines.cli import add_config_arguments, config_from_args
+from texstream.pipelines.estimates import fit_bytes
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -38,32 +42,43 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         choices=("opengl", "opencv", "world"),
                         help="frame of --normals: opengl camera axes (x right, y up, z to the viewer), opencv "
                              "camera axes or world (default: opengl)")
-    parser.add_argument("--depth", type=float, default=1.0,
+    parser.add_argument("--depth", type=Number.of(SingleViewConfig, "depth", "--depth"), default=1.0,
                         help="with --normals: nominal camera depth of the texels when the capture has no depth map "
                              "(irrelevant for directional lights; default: 1.0)")
     parser.add_argument("-o", "--out", required=True, help="model folder to write (replaced if it exists)")
     parser.add_argument("--device", default="auto", help=DEVICE_HELP + " (default: auto)")
-    parser.add_argument("--texture-size", dest="texture_size", type=int, default=256,
-                        help="atlas side when the mesh has UVs but no bake (default: 256; 0 = automatic, the power "
-                             "of two whose texels are about --texel-pixels of the photos' pixels wide)")
-    parser.add_argument("--texel-pixels", dest="texel_pixels", type=float, default=3.0,
+    parser.add_argument("--texture-size", dest="texture_size", default=256,
+                        type=Number.of(FitStageConfig, "texture_size", "--texture-size"),
+                        help="atlas side when the mesh has UVs but no bake, 8 to 16384 texels "
+                             "(default: 256; 0 = automatic, the power of two whose texels are about --texel-pixels "
+                             "of the photos' pixels wide)")
+    parser.add_argument("--texel-pixels", dest="texel_pixels",
+                        type=Number.of(FitStageConfig, "texel_pixels", "--texel-pixels"),
+                        default=3.0,
                         help="--texture-size 0: the texel width to aim at, in photo pixels (default: 3)")
-    parser.add_argument("--photo-level", dest="photo_level", type=int, default=-1,
+    parser.add_argument("--photo-level", dest="photo_level", default=-1,
+                        type=Number.of(FitStageConfig, "photo_level", "--photo-level"),
                         help="pyramid level the fitted photos stream at (L: 2^L x 2^L pixels averaged; default: -1 = "
                              "automatic, the coarsest whose texels stay 2 of its pixels wide; 0 = full resolution)")
-    parser.add_argument("--holdout-every", dest="holdout_every", type=int, default=0,
+    parser.add_argument("--holdout-every", dest="holdout_every", default=0,
+                        type=Number.of(FitStageConfig, "holdout_every", "--holdout-every"),
                         help="hold out every k-th photo for evaluation (default: 0 = none)")
-    parser.add_argument("--renders", type=int, default=4, help="photos rendered beside the fit (default: 4)")
-    parser.add_argument("--min-seen-fraction", dest="min_seen_fraction", type=float, default=0.01,
+    parser.add_argument("--renders", type=Number.of(FitStageConfig, "renders", "--renders"), default=4,
+                        help="photos rendered beside the fit (default: 4)")
+    parser.add_argument("--min-seen-fraction", dest="min_seen_fraction", default=0.01,
+                        type=Number.of(FitStageConfig, "min_seen_fraction", "--min-seen-fraction"),
                         help="fail before fitting when fewer than this fraction of texels is seen (default: 0.01)")
     parser.add_argument("--skip-bad-photos", dest="skip_bad_photos", action="store_true",
                         help="leave out photos that cannot be read (corrupt, truncated, wrong size) instead of "
                              "failing; each is printed and listed in model.json's photos.skipped")
-    parser.add_argument("--traced-polish", dest="traced_polish", type=int, default=5,
+    parser.add_argument("--traced-polish", dest="traced_polish",
+                        type=Number.of(FitStageConfig, "traced_polish", "--traced-polish"),
+                        default=5,
                         help="Levenberg-Marquardt iterations that end a fit with specular lobes with taps traced to "
                              "the mesh (stream.tap_geometry mesh): highlights narrower than a pixel fitted as the "
                              "photos filtered them (default: 5; 0 = off)")
-    parser.add_argument("--traced-polish-rel-tol", dest="traced_polish_rel_tol", type=float, default=1e-5,
+    parser.add_argument("--traced-polish-rel-tol", dest="traced_polish_rel_tol", default=1e-5,
+                        type=Number.of(FitStageConfig, "traced_polish_rel_tol", "--traced-polish-rel-tol"),
                         help="the traced polish stops after an iteration that lowers its objective by less than this, "
                              "relative (default: 1e-5; 0 = every iteration runs)")
     parser.add_argument("--traced-materials", dest="traced_materials", action="store_true",
@@ -78,6 +93,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     # the command's default is the model choice (a capture with lights gets its reflectance model, one without
     # its radiance model; with --holdout-every the candidates are judged on the held-out photos)
     parser.set_defaults(model="auto")
+
+
+def output_target(args: argparse.Namespace) -> OutputTarget:
+    """The model folder, with room for the model (and an automatic choice's candidates, estimates.py)."""
+    # the automatic choice fits candidates only when photos are held out to judge them (fit/stages/choice.py)
+    candidates = getattr(args, "model", "auto") == "auto" and args.holdout_every > 0
+    size = fit_bytes(args.capture, args.mesh, args.texture_size, args.renders, candidates)
+    return OutputTarget(Path(args.out), estimated_bytes=size, what="the model")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -23,6 +23,7 @@ from texstream.calib.metashape import MetashapeImportConfig, import_metashape
 from texstream.calib.realitycapture import RealityCaptureImportConfig, import_realitycapture
 from texstream.capture.middlebury import MiddleburyImportConfig, import_middlebury
 from texstream.core.errors import InputError, TexstreamError
+from texstream.core.outputs import OutputTarget
 from texstream.geometry.mesh_io import load_mesh, save_mesh
 from texstream.pipelines.cli import add_config_arguments, config_from_args
 
@@ -71,6 +72,10 @@ def transform_mesh_file(src: Path, dst: Path, m: np.ndarray) -> None:
     rot = a / np.cbrt(np.linalg.det(a))
     normals = None if mesh.normals is None else mesh.normals @ rot.T
     save_mesh(dst, dataclasses.replace(mesh, vertices=mesh.vertices @ a.T + np.asarray(m)[:3, 3], normals=normals))
+
+
+def output_target(args: argparse.Namespace) -> OutputTarget:
+    return OutputTarget(Path(args.out))
 
 
 def run(args: argparse.Namespace) -> int:

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from texstream.calib.ingest import IngestConfig, ingest
+from texstream.core.outputs import OutputTarget
 from texstream.pipelines.cli import add_config_arguments, config_from_args
 
 
@@ -13,6 +14,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("photos", help="folder of photos (JPEG/PNG/TIFF/EXR; optional masks/ inside)")
     parser.add_argument("-o", "--out", required=True, help="capture folder to write")
     add_config_arguments(parser, IngestConfig)
+
+
+def output_target(args: argparse.Namespace) -> OutputTarget:
+    return OutputTarget(Path(args.out))
 
 
 def run(args: argparse.Namespace) -> int:

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from texstream.calib.lights import LightsConfig, estimate_lights
+from texstream.core.outputs import OutputTarget
 from texstream.pipelines.cli import add_config_arguments, config_from_args
 
 
@@ -14,6 +15,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-o", "--out", required=True,
                         help="output folder: lights.json (for 'texstream ingest --lights'), lights_report.json")
     add_config_arguments(parser, LightsConfig)
+
+
+def output_target(args: argparse.Namespace) -> OutputTarget:
+    return OutputTarget(Path(args.out))
 
 
 def run(args: argparse.Namespace) -> int:

@@ -7,9 +7,12 @@ Without a capture it only cleans and simplifies the given mesh. The stage is
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
+from texstream.core.outputs import OutputTarget
 from texstream.geometry.make_mesh import MeshConfig, make_mesh
 from texstream.pipelines.cli import add_config_arguments, config_from_args
+from texstream.pipelines.estimates import mesh_stage_bytes
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -21,7 +24,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_config_arguments(parser, MeshConfig)
 
 
+def output_target(args: argparse.Namespace) -> OutputTarget:
+    given = None if args.from_ in ("auto", "sfm", "hull") else args.from_
+    faces = getattr(args, "faces", MeshConfig.faces)
+    return OutputTarget(Path(args.out), estimated_bytes=mesh_stage_bytes(given, faces), what="the mesh")
+
+
 def run(args: argparse.Namespace) -> int:
+    import warp as wp
+
+    wp.config.log_level = wp.LOG_WARNING  # Warp 1.19: the init banner is info; one line on an error
     overrides = {}
     if args.from_ in ("auto", "sfm", "hull"):
         if args.from_ != "auto":

@@ -4,10 +4,13 @@ photos agree (photometric Gauss-Newton on one shared texture; geometry/refine.py
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from texstream.geometry.refine import RefineConfig, refine_stage
 from texstream.core.devices import DEVICE_HELP, resolve_device
+from texstream.core.outputs import OutputTarget
 from texstream.pipelines.cli import add_config_arguments, config_from_args
+from texstream.pipelines.estimates import refine_bytes
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -20,7 +23,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_config_arguments(parser, RefineConfig)
 
 
+def output_target(args: argparse.Namespace) -> OutputTarget:
+    return OutputTarget(Path(args.out), estimated_bytes=refine_bytes(args.capture, args.atlas),
+                        what="the refined capture")
+
+
 def run(args: argparse.Namespace) -> int:
+    import warp as wp
+
+    wp.config.log_level = wp.LOG_WARNING  # Warp 1.19: the init banner is info; one line on an error
     config = config_from_args(RefineConfig, args)
     res = refine_stage(args.capture, args.atlas, args.out, config, device=resolve_device(args.device), log=print)
     s = res.summary

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from texstream.calib.register import RegisterConfig, register
+from texstream.core.outputs import OutputTarget
 from texstream.geometry.mesh_frame import mesh_alignment
 from texstream.pipelines.cli import add_config_arguments, config_from_args
 
@@ -16,10 +17,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_config_arguments(parser, RegisterConfig)
 
 
+def output_target(args: argparse.Namespace) -> OutputTarget:
+    cap = Path(args.capture)
+    return OutputTarget(Path(args.out) if args.out else cap.parent / f"{cap.name}_posed")
+
+
 def run(args: argparse.Namespace) -> int:
     cfg = config_from_args(RegisterConfig, args)
     cap = Path(args.capture)
-    out = Path(args.out) if args.out else cap.parent / f"{cap.name}_posed"
+    out = output_target(args).path
     res = register(cap, out, cfg, mesh_alignment=mesh_alignment)
     s = res.summary
     n_reg, n_un = len(s["registered"]), len(s["unregistered"])

@@ -13,9 +13,16 @@ import argparse
 from pathlib import Path
 
 from texstream.capture.synthetic.synth import SynthConfig, synthesize
+from texstream.calib.ingest import IngestConfig
+from texstream.core.config import Number
 from texstream.core.devices import DEVICE_HELP, resolve_device
 from texstream.core.errors import ConfigError
+from texstream.core.outputs import OutputTarget
+from texstream.fit.optim.fitter import FitConfig
+from texstream.geometry.atlas import AtlasConfig
+from texstream.geometry.make_mesh import MeshConfig
 from texstream.core.toml import read_toml
+from texstream.pipelines.estimates import run_bytes
 from texstream.pipelines.run import (LFM_CANDIDATE, RunConfig, STAGES, model_choices, run_config_from_dict,
                                      run_pipeline)
 
@@ -31,7 +38,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="fixed unknown lighting, model auto: also fit light field mapping when view dependence "
                              "matters (auto, the default), always, or never")
     parser.add_argument("--mesh-file", dest="mesh_file", default=None, help="use this mesh instead of one from the photos")
-    parser.add_argument("--colocated-light", dest="colocated_light", type=float, default=None,
+    parser.add_argument("--colocated-light", dest="colocated_light", default=None,
+                        type=Number.of(IngestConfig, "colocated_light", "--colocated-light"),
                         help="photos lit by a flash at the camera: its irradiance at the object (the albedos' scale)")
     parser.add_argument("--lights", default=None, help="lights file (JSON) for the photos (texstream ingest --lights)")
     parser.add_argument("--mirror-ball", dest="mirror_ball", default=None, metavar="X,Y,Z,R",
@@ -44,10 +52,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                         help="progress bars on a terminal (default: on)")
     parser.add_argument("--device", default=None, help=DEVICE_HELP + " (default: auto)")
-    parser.add_argument("--iterations", type=int, default=None, help="fit iteration cap (default: 30)")
+    parser.add_argument("--iterations", type=Number.of(FitConfig, "max_iterations", "--iterations"), default=None,
+                        help="fit iteration cap (default: 30)")
     parser.add_argument("--optimizer", default=None, choices=("sd", "cg", "lbfgs", "lm"), help="fit method (default: lm)")
     parser.add_argument("--scene", default="ornament", help="built-in synthetic scene without PHOTOS (default: ornament)")
-    parser.add_argument("--scale", type=float, default=0.1,
+    parser.add_argument("--scale", type=Number.of(SynthConfig, "scale", "--scale"), default=0.1,
                         help="synthetic scene scale (default: 0.1: 176 photos of 136x136, 154 fitted and 22 held out)")
 
 
@@ -89,6 +98,12 @@ def _config(args: argparse.Namespace):
     if cfg.fit.fit.max_iterations < 1:
         raise ConfigError(f"--iterations {cfg.fit.fit.max_iterations} must be at least 1", fix="pass --iterations 30")
     return cfg
+
+
+def output_target(args: argparse.Namespace) -> OutputTarget:
+    """The run's folder (its stages' folders inside it), with room for every stage's output (estimates.py)."""
+    size = run_bytes(args.photos, AtlasConfig.resolution, MeshConfig.faces)
+    return OutputTarget(Path(args.out), estimated_bytes=size, what="the run")
 
 
 def run(args: argparse.Namespace) -> int:

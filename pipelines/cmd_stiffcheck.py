@@ -7,7 +7,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from texstream.core.errors import InputError
+from texstream.core.outputs import OutputTarget
 from texstream.fit.diagnostics.stiffcheck import StiffcheckConfig, run_suite, select_cases, write_report
 from texstream.pipelines.cli import add_config_arguments, config_from_args
 
@@ -18,15 +18,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_config_arguments(parser, StiffcheckConfig)
 
 
+def output_target(args: argparse.Namespace) -> OutputTarget:
+    device, size = getattr(args, "device", StiffcheckConfig.device), getattr(args, "size", StiffcheckConfig.size)
+    return OutputTarget(Path(args.out) if args.out else Path(f"stiffcheck-{device.replace(':', '')}-{size}"))
+
+
 def run(args: argparse.Namespace) -> int:
     import warp as wp
 
     wp.config.log_level = wp.LOG_WARNING  # Warp 1.19: the init banner and module loads are info
     cfg = config_from_args(StiffcheckConfig, args)
     select_cases([n.strip() for n in cfg.cases.split(",") if n.strip()])  # unknown names fail before any work
-    out = Path(args.out) if args.out else Path(f"stiffcheck-{cfg.device.replace(':', '')}-{cfg.size}")
-    if out.exists() and not out.is_dir():
-        raise InputError("output path exists and is not a folder", out, "choose another -o folder")
+    out = output_target(args).path  # checked by the CLI before the suite runs (a folder, writable)
 
     def log(r: dict) -> None:
         verdict = "ok" if r["ok"] else "FAILED: " + "; ".join(r["failures"])

@@ -9,8 +9,10 @@ SCENE is a built-in scene (sphere, flat_sample, bunny, ornament) or a scene JSON
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from texstream.capture.synthetic.synth import SynthConfig, builtin_scenes, synthesize
+from texstream.core.outputs import OutputTarget
 from texstream.pipelines.cli import add_config_arguments, config_from_args
 
 
@@ -18,6 +20,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("scene", help=f"built-in scene ({', '.join(builtin_scenes())}) or a scene JSON path")
     parser.add_argument("-o", "--out", required=True, help="output capture folder (replaced if it exists)")
     add_config_arguments(parser, SynthConfig)
+
+
+def output_target(args: argparse.Namespace) -> OutputTarget:
+    return OutputTarget(Path(args.out))
 
 
 def run(args: argparse.Namespace) -> int:

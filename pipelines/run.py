@@ -90,7 +90,7 @@ class RunConfig:
                               "dependence matters: view_radiance's held-out pooled PSNR at least lfm_min_gain_db above "
                               "radiance's), always, or never", choices=LFM_CANDIDATE)
     lfm_min_gain_db: float = option(0.5, "lfm auto: the held-out gain (dB) of view_radiance over radiance from which "
-                                         "view dependence counts as mattering")
+                                         "view dependence counts as mattering", min=-60.0, max=60.0)
     second_lobe: bool = option(True, "known lights, model auto, held-out photos: also fit a two-lobe Lafortune "
                                      "model (the second lobe kept per texel only where it lowers the texel's error "
                                      "on the fitted photos, fit lobe_support) and keep it only when its held-out "

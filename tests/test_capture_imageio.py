@@ -19,6 +19,32 @@ def _smooth(h: int = 24, w: int = 32, c: int = 3) -> np.ndarray:
     return np.stack(chans[:c], axis=2).astype(np.float32)
 
 
+def _write_exr_unchecked(path, img: np.ndarray):
+    """A float EXR written by OpenImageIO itself: write_image refuses NaN and Inf, a camera or another
+    program's file need not."""
+    import OpenImageIO as oiio
+
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), oiio.ImageSpec(img.shape[1], img.shape[0], img.shape[2], "float"))
+    assert out.write_image(np.ascontiguousarray(img, np.float32))
+    out.close()
+    return path
+
+
+def test_write_image_refuses_nan_and_inf_naming_the_file_and_a_pixel(tmp_path):
+    """Issue 41: no non-finite number reaches a file."""
+    from texstream.core.errors import StageError
+
+    img = _smooth()
+    for bad, ext, bits in ((np.inf, "exr", 32), (np.nan, "exr", 16), (-np.inf, "tif", 32), (np.nan, "png", 8)):
+        img[3, 5, 1] = bad
+        with pytest.raises(StageError, match=rf"bad.{ext}: image holds 1 pixel.*x=5, y=3, channel 1 is"):
+            write_image(tmp_path / f"bad.{ext}", img, bits=bits)
+        assert list(tmp_path.iterdir()) == []  # nothing written, no temporary file left
+    img[3, 5, 1] = np.inf  # an integer format clips a bright value, infinite ones too
+    assert write_image(tmp_path / "bright.png", img, bits=8).is_file()
+
+
 # ---------------------------------------------------------------- sRGB curve
 
 
@@ -192,7 +218,7 @@ def test_garbage_jpg_and_empty(tmp_path):
 def test_nan_in_exr(tmp_path, bad):
     img = _smooth()
     img[3, 5, 1] = bad
-    p = write_image(tmp_path / "nan.exr", img, bits=32)
+    p = _write_exr_unchecked(tmp_path / "nan.exr", img)
     with pytest.raises(InputError, match=r"nan.exr.*NaN/Inf.*x=5, y=3"):
         read_image(p)
 
@@ -231,7 +257,7 @@ def test_rows_of_a_tiled_exr(tmp_path):
 def test_rows_check_the_size_first_and_nan_only_in_them(tmp_path):
     img = _smooth(40, 28)
     img[2, 3, 0] = np.nan  # outside the rows read: never decoded, never a sample
-    p = write_image(tmp_path / "photo.exr", img, bits=32)
+    p = _write_exr_unchecked(tmp_path / "photo.exr", img)
     with pytest.raises(InputError, match=r"photo.exr: image is 28x40 but 30x40 is expected.*capture.json"):
         read_image(p, rows=(5, 10), size=(40, 30))
     assert np.isfinite(read_image(p, rows=(5, 10))).all()

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from texstream.capture.capture_json import read_capture
-from texstream.capture.imageio import read_image, write_image
+from texstream.capture.imageio import read_image
 from texstream.capture.synthetic.synth import SynthConfig, synthesize
 from texstream.pipelines.cli import main
 from texstream.core.errors import InputError
@@ -30,7 +30,12 @@ def nan_capture(tmp_path):
     bad = read_capture(cap).image_path(frames[1])
     img = read_image(bad)
     img[3, 5] = np.nan
-    write_image(bad, img, bits=32)
+    import OpenImageIO as oiio  # write_image refuses NaN (issue 41); a photo from elsewhere need not
+
+    out = oiio.ImageOutput.create(str(bad))
+    assert out.open(str(bad), oiio.ImageSpec(img.shape[1], img.shape[0], img.shape[2], "float"))
+    assert out.write_image(np.ascontiguousarray(img, np.float32))
+    out.close()
     return cap, bad
 
 

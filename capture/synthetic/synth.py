@@ -108,18 +108,25 @@ class SynthConfig:
     scene: str = option("ornament", help="built-in scene name (sphere, flat_sample, bunny, ornament, star, ...) or "
                                          "a scene JSON path",
                         cli=False)
-    scale: float = option(1.0, help="shrink the scene: photos x s, image sides and texture sides x sqrt(s)")
+    scale: float = option(1.0, help="shrink the scene: photos x s, image sides and texture sides x sqrt(s)",
+                          min=0.001, max=16)
     device: str = option("cpu", help="Warp device for baking and rendering: cpu or cuda:N")
-    seed: int = option(0, help="random seed for noise and per-photo exposure")
-    noise: float | None = option(None, help="Gaussian camera noise sigma in linear units (None: the scene's)")
+    seed: int = option(0, help="random seed for noise and per-photo exposure", min=0)
+    noise: float | None = option(None, help="Gaussian camera noise sigma in linear units (None: the scene's)",
+                                 min=0.0, max=1.0)
     bits: int | None = option(None, help="photo bit depth: 8 (sRGB PNG), 16 (linear PNG), 32 (float EXR); "
                                          "None: the scene's", choices=(8, 16, 32))
-    exposure: float | None = option(None, help="one linear exposure for every photo (None: the scene's)")
-    saturation: float | None = option(None, help="float photos: clip at this value (integer photos clip at 1)")
-    photos: int = option(0, help="photo count after scaling (0: the scene's count x scale)")
+    exposure: float | None = option(None, help="one linear exposure for every photo (None: the scene's)",
+                                    min=1e-6, max=1e6)
+    saturation: float | None = option(None, help="float photos: clip at this value (integer photos clip at 1)",
+                                      min=1e-6)
+    photos: int = option(0, help="photo count after scaling (0: the scene's count x scale)",
+                         min=0, max=100000)
     azimuth_offset: float = option(0.0, help="turn every camera this many degrees about the target's vertical "
-                                             "axis (e.g. held-out views between the training views)")
-    image_size: int = option(0, help="image width and height in pixels after scaling (0: the scene's x sqrt(scale))")
+                                             "axis (e.g. held-out views between the training views)",
+                                             min=-360.0, max=360.0)
+    image_size: int = option(0, help="image width and height in pixels after scaling (0: the scene's x sqrt(scale))",
+                             min=8, max=16384, also=(0,))
     save_clean: bool = option(False, help="also write the noise-free float renders to ground_truth/clean/ "
                                           "(for the noise-floor PSNR)")
     shadows: bool = option(True, help="render cast shadows")

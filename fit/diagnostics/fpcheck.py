@@ -85,7 +85,7 @@ class FpcheckConfig:
     random_pairs: int = option(20000, "random operand pairs for + - * / and sqrt", min=0)
     random_transcendental: int = option(4000, "random operands for exp, log and pow (references in mpmath)",
                                         min=0)
-    seed: int = option(0, "random seed of the random operands")
+    seed: int = option(0, "random seed of the random operands", min=0)
 
 
 # ---------------------------------------------------------------------------------------------------

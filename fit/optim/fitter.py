@@ -58,10 +58,11 @@ class FitConfig:
                                      "photo's light-view angle lies within lobe_shape_spread_deg of the others "
                                      "(a light beside the camera: c_z and rho_s cannot be told apart, render/layout.py)",
                              choices=("auto", "free", "phong"))
-    lobe_shape_spread_deg: float = option(10.0, "auto lobe shape: the spread of light-view angles below which c_z is held")
+    lobe_shape_spread_deg: float = option(10.0, "auto lobe shape: the spread of light-view angles below which c_z is held",
+                                          min=0.0, max=180.0)
     optimizer: str = option("lm", "sd, cg, lbfgs or lm (per-texel Levenberg-Marquardt)", choices=OPTIMIZERS)
     cg_variant: str = option("pr", "conjugate gradient beta: pr (Polak-Ribiere+) or fr (Fletcher-Reeves)", choices=("pr", "fr"))
-    cg_restart_every: int = option(0, "steepest-descent restart every m CG iterations (0 = never)")
+    cg_restart_every: int = option(0, "steepest-descent restart every m CG iterations (0 = never)", min=0)
     lbfgs_history: int = option(5, "L-BFGS history pairs m", min=1)
     precondition: str = option("jacobi", "sd, cg and lbfgs: jacobi scales the gradient by the inverse Gauss-Newton "
                                          "diagonal diag(J^T J) of each texel (accumulated in the gradient pass; "
@@ -72,26 +73,31 @@ class FitConfig:
                                                   "iteration", choices=("restart", "iteration"))
     precondition_floor: float = option(1e-10, "Jacobi preconditioner M = D + this * mean(D over free columns): "
                                               "guards columns no sample constrains; keep it tiny, the exponent's "
-                                              "D is ~1e-7 of the albedos'")
+                                              "D is ~1e-7 of the albedos'", min=0.0, max=1.0)
     lm_lambda0: float = option(1e-3, "initial Levenberg-Marquardt damping", min=0.0)
     lookup_refresh_every: int = option(0, "stream.model_lookup bilinear: hold the neighbours at the current "
                                           "parameters again every k iterations (each refresh costs a pass and "
-                                          "restarts CG / L-BFGS memory); 0 = 1 for lm, 10 for the others")
+                                          "restarts CG / L-BFGS memory); 0 = 1 for lm, 10 for the others",
+                                          min=0)
     lookup_relaxation: float = option(1.0, "stream.model_lookup bilinear: a refresh moves the held neighbours this "
                                            "fraction of the way to the current parameters (damped Jacobi: texels a "
                                            "pixel or less wide, whose taps read their neighbours as much as "
-                                           "themselves, oscillate at 1: use 0.5; docs/accuracy.md)")
+                                           "themselves, oscillate at 1: use 0.5; docs/accuracy.md)",
+                                           min=1e-6, max=1.0)
     max_iterations: int = option(100, "iteration cap", min=1)
     time_budget_s: float = option(0.0, "stop after this many seconds (0 = no limit)", min=0.0)
-    rel_tol: float = option(1e-7, "stop when the objective's relative decrease over sync_every iterations is below this")
+    rel_tol: float = option(1e-7, "stop when the objective's relative decrease over sync_every iterations is below this",
+                            min=0.0, max=1.0)
     sync_every: int = option(5, "iterations between reads of the trace buffer (stopping tests)", min=1)
-    diffuse_free_iterations: int = option(-1, "seed's schedule: diffuse free for the first k iterations then fixed (-1 = always free)")
+    diffuse_free_iterations: int = option(-1, "seed's schedule: diffuse free for the first k iterations then fixed (-1 = always free)",
+                                          min=-1)
     init: str = option("percentile", "initial guess: percentile (McAllister low percentile diffuse) or defaults",
                        choices=("percentile", "defaults"))
-    init_rank: int = option(1, "which smallest reflectance sample (0..3) estimates the diffuse part", min=0, max=3)
+    init_rank: int = option(1, "which smallest reflectance sample (0..3) estimates the diffuse part",
+                            min=0, max=3)
     lobe_albedo_max: float = option(1.0, "energy bound: each lobe's rho_s <= this * (n + 2) / (2 pi), the largest "
                                           "albedo a normalised lobe may have (stops one highlight sample from "
-                                          "producing a broad, enormously bright lobe); 0 = off")
+                                          "producing a broad, enormously bright lobe); 0 = off", min=0.0)
     robust_loss: str = option("auto", "loss of each channel residual r: none (least squares, r^2 / 2), huber or "
                                       "cauchy (robust, iteratively reweighted in the passes); auto: cauchy for the "
                                       "radiance model (a highlight or other outlier seen in a few photos hardly "
@@ -101,12 +107,12 @@ class FitConfig:
     robust_scale: float = option(0.0, "the robust loss's scale k in residual units (photo values in radiance "
                                        "space): residuals well below k are least squares, above it down-weighted; "
                                        "0 = auto: robust_scale_fraction x the mean photo value the texels see "
-                                       "(read once before the iterations)")
+                                       "(read once before the iterations)", min=0.0)
     robust_scale_fraction: float = option(0.1, "robust_scale 0: the scale as a fraction of the mean sampled photo "
                                                "value (0.1: noise and shading a radiance model cannot express, a few "
                                                "percent, stay least squares; a highlight twice the diffuse level "
-                                               "weighs ~1/100 under cauchy)")
-    psnr_peak: float = option(1.0, "peak pixel value for the trace's PSNR")
+                                               "weighs ~1/100 under cauchy)", min=0.0)
+    psnr_peak: float = option(1.0, "peak pixel value for the trace's PSNR", min=1e-12)
     linesearch: LineSearchConfig = option(default_factory=LineSearchConfig, help="line search")
     penalties: PenaltyConfig = option(default_factory=PenaltyConfig, help="penalties")
     stream: StreamConfig = option(default_factory=StreamConfig, help="streaming and numerics")

@@ -40,7 +40,7 @@ class ModelChoiceConfig:
                               "auto (only when view dependence matters: view_radiance's held-out pooled PSNR at least "
                               "lfm_min_gain_db above radiance's), always, or never", choices=LFM_CANDIDATE)
     lfm_min_gain_db: float = option(0.5, "lfm auto: the held-out gain (dB) of view_radiance over radiance from "
-                                         "which view dependence counts as mattering")
+                                         "which view dependence counts as mattering", min=-60.0, max=60.0)
 
 
 @dataclasses.dataclass

@@ -77,7 +77,7 @@ class ExportConfig:
     roughness: str = option("fitted", "Lafortune exponent n -> GGX alpha: fitted sqrt(0.72/(n+3)) or "
                             "blinn4 sqrt(2/(4n+2)) (docs/export.md)", choices=ROUGHNESS_CONVERSIONS)
     radiance_scale: float = option(1.0, "radiance models: multiply the radiance by this before clipping "
-                                   "to [0, 1] (1 = photo units, where 1 is the photo's white)")
+                                   "to [0, 1] (1 = photo units, where 1 is the photo's white)", min=1e-12)
     copy_maps: bool = option(True, "copy the float EXR parameter maps into maps/ (the exact fitted values)")
     lfm_view_mean: str = option("cosine", "light field mapping models: unlit base colour = the view-"
                                 "independent term plus each view-dependent term's mean over view "

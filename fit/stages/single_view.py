@@ -51,9 +51,9 @@ class SingleViewConfig:
                                "the viewer: DiLiGenT, most normal-map files), opencv (camera space, x right, y down, "
                                "z into the scene) or world (capture.json's world frame)", choices=NORMAL_SPACES)
     depth: float = option(1.0, "nominal camera depth (z, world units) of every texel when the capture has no "
-                          "depth map; irrelevant for directional lights")
-    holdout_every: int = option(0, "hold out every k-th photo from the fit for evaluation (0 = none)")
-    renders: int = option(4, "photos rendered beside the fitted model in renders/")
+                          "depth map; irrelevant for directional lights", min=1e-9)
+    holdout_every: int = option(0, "hold out every k-th photo from the fit for evaluation (0 = none)", min=0)
+    renders: int = option(4, "photos rendered beside the fitted model in renders/", min=0)
     lobe_support: float = option(0.02, "per pixel, drop the specular lobes (rho_s = 0; flagged in lobes.png and "
                                        "model.json) that lower the pixel's error on the fitted photos by less than "
                                        "this fraction: no photo saw their highlight; 0 keeps every lobe",

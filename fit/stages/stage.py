@@ -47,12 +47,13 @@ class FitStageConfig:
 
     device: str = option("auto", DEVICE_HELP)
     texture_size: int = option(256, "atlas side in texels when the mesh has UVs but no bake; 0: automatic, the "
-                                    "power of two whose texels are about texel_pixels of the photos' pixels wide",
-                               min=0, max=16384)
+                                    "power of two whose texels are about texel_pixels of the photos' pixels wide; at least 8, the "
+                                    "smallest the atlas packs (geometry/atlas.py)",
+                                    min=8, max=16384, also=(0,))
     texel_pixels: float = option(3.0, "texture_size 0: the texel width to aim at, in photo pixels (texels narrower "
                                       "than a pixel or two share their pixels with their neighbours and fit the "
                                       "photos' filtered highlights as broad, weak lobes that new views contradict; "
-                                      "wider ones lose detail: docs/accuracy.md)", min=0.25)
+                                      "wider ones lose detail: docs/accuracy.md)", min=0.25, max=1024.0)
     photo_level: int = option(-1, "the pyramid level the fitted photos stream at (L: 2^L x 2^L pixel boxes "
                                   "averaged): -1 automatic, the coarsest whose texels stay at least 2 of its "
                                   "pixels wide (fit/common/photo_levels.py); 0 the photos as they are. Held-out "
@@ -77,7 +78,7 @@ class FitStageConfig:
                                                 "by less than this, relative (tested every iteration: on the full "
                                                 "ornament the polish settles after its first iteration, 2e-6 from the "
                                                 "second on, while on the dense ornament each iteration still gains "
-                                                "1-8%); 0: every iteration runs", min=0.0)
+                                                "1-8%); 0: every iteration runs", min=0.0, max=1.0)
     traced_materials: bool = option(False, "with the traced polish and shared materials chosen: polish the "
                                             "per-texel fit on traced taps first, and find the materials' evidence, "
                                             "contradictions and fit on traced taps too. It helps texels narrower "

@@ -23,20 +23,23 @@ from texstream.fit.kernels import optim_kernels as K
 class PenaltyConfig:
     """Penalty weights (saved with the fit config)."""
 
-    bounds_weight: float = option(0.0, "mu of the quadratic bounds penalty (3.19); 0 = hard bounds by projection only")
-    laplacian_weight: float = option(0.0, "lambda of the Laplacian penalty (4.12) for sd, cg and lbfgs; 0 = off")
+    bounds_weight: float = option(0.0, "mu of the quadratic bounds penalty (3.19); 0 = hard bounds by projection only",
+                                  min=0.0)
+    laplacian_weight: float = option(0.0, "lambda of the Laplacian penalty (4.12) for sd, cg and lbfgs; 0 = off",
+                                     min=0.0)
     laplacian_params: str = option("all", "which parameters the Laplacian regularises",
                                    choices=("all", "diffuse", "specular"))
     smooth_weight: float = option(0.0, "lm only: weight of the edge-aware membrane smoothness between neighbouring "
                                        "texels, sum over neighbour pairs of e_ij sum_k w_k (p_ik - p_jk)^2, in the "
-                                       "objective's units; 0 = off (texels independent)")
+                                       "objective's units; 0 = off (texels independent)", min=0.0)
     smooth_params: str = option("shape", "which parameters the smoothness term couples: shape (the lobes' C and "
                                          "n), specular (also rho_s), diffuse or all",
                                 choices=("shape", "specular", "diffuse", "all"))
     smooth_edge_sigma: float = option(0.1, "edge stopping: e_ij = exp(-(d_ij / sigma)^2), d_ij the relative "
-                                           "difference of the initial diffuse albedos; 0 = no edge stopping")
+                                           "difference of the initial diffuse albedos; 0 = no edge stopping",
+                                           min=0.0)
     smooth_exponent_scale: float = option(50.0, "the exponent n enters the smoothness as n / this (its typical "
-                                                "spread), so it weighs like an albedo")
+                                                "spread), so it weighs like an albedo", min=1e-9)
 
     def parameter_weights(self, layout, which: str) -> np.ndarray:
         """(n_params,) column weights of a penalty for ``which`` parameters of ``layout``."""
