@@ -68,11 +68,15 @@ roughness (glTF metallicRoughnessTexture G channel, OBJ Ns)
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 
 import numpy as np
 
-from texstream.core.errors import ConfigError
+from texstream.capture.capture_json import read_capture, split_holdout
+from texstream.core.errors import ConfigError, InputError
+from texstream.fit.models.lafortune.gltf_core import DirectionSamples, capture_samples, fit_core_material, flash_samples
 from texstream.fit.models.registry import ExportMaterial
 
 ROUGHNESS_CONVERSIONS = ("fitted", "blinn4")
@@ -166,18 +170,52 @@ def lobe_conversion_table(exponents=(1, 10, 100, 1000, 10000), conversion: str =
     return rows
 
 
-def lafortune_material(grid: np.ndarray, layout, covered: np.ndarray, roughness: str) -> ExportMaterial:
-    """The exported material of a Lafortune parameter grid (H, W, P): base colour the clipped albedo; with
-    lobes, F0 the summed lobe albedos (normalised by their largest value over ``covered`` texels), the
-    roughness of the dominant lobe's exponent (``roughness``: the conversion) and OBJ's Ns their median;
-    without, no specular layer (a diffuse material)."""
+def core_samples(model_dir: Path, capture: str) -> tuple[DirectionSamples, np.ndarray | None]:
+    """The directions the glTF core material is fitted over (gltf_core.py) and bake.npz's ``fill_source``:
+    with ``capture`` (a posed capture folder), the photos the model was fitted on (the model folder's
+    fit_config.json ``holdout_every`` leaves the held-out ones out) seen from each texel's baked point;
+    without, the flash set."""
+    bake_path = Path(model_dir) / "bake.npz"
+    bake = dict(np.load(bake_path)) if bake_path.is_file() else {}
+    fill = bake.get("fill_source")
+    if not capture:
+        return flash_samples(), fill
+    need = ("position", "normal", "tangent", "bitangent")
+    if any(k not in bake for k in need):
+        raise InputError(f"bake.npz lacks the texels' surface points ({', '.join(need)}), which the glTF core "
+                         "material's fit over the capture's directions needs", bake_path,
+                         "re-run `texstream fit`, or export without --capture (the flash set)")
+    cap = read_capture(capture)
+    every = 0
+    cfg_path = Path(model_dir) / "fit_config.json"
+    if cfg_path.is_file():
+        every = int(json.loads(cfg_path.read_text()).get("holdout_every", 0) or 0)
+    frames = [f for f in split_holdout(cap.frames, every)[0] if f.light is not None]
+    if not frames:
+        raise InputError("no fitted photo of the capture has a light", Path(capture) / "capture.json",
+                         "pass the capture the model was fitted to, or export without --capture (the flash set)")
+    return capture_samples(bake, frames), fill
+
+
+def lafortune_material(grid: np.ndarray, layout, covered: np.ndarray, roughness: str,
+                       samples: DirectionSamples | None = None, fill_source: np.ndarray | None = None) -> ExportMaterial:
+    """The exported material of a Lafortune parameter grid (H, W, P).
+
+    OBJ (and the fields ``base``, ``specular``, ``roughness``): base colour the clipped albedo; with lobes, F0 the
+    summed lobe albedos (normalised by their largest value over ``covered`` texels), the roughness of the
+    dominant lobe's exponent (``roughness``: the conversion) and Ns their median; without, no specular layer.
+    glTF (``pbr``): the core metallic-roughness material fitted to the model over ``samples`` (None: the flash
+    set; gltf_core.py), padding texels taking their ``fill_source``'s, and KHR_materials_specular's F0 on top."""
     g = grid.astype(np.float64)
     lay = layout
     albedo = albedo_from_rho_d(g[..., 0:3])
     clipped = int((albedo.max(axis=-1)[covered] > 1.0).sum())
     base = np.clip(albedo, 0.0, 1.0)
+    samples = samples or flash_samples()
     if lay.n_lobes == 0:
-        return ExportMaterial(base, clipped=clipped, name="diffuse")
+        before = (base, np.zeros_like(base), np.ones(base.shape[:2]))
+        return ExportMaterial(base, clipped=clipped, name="diffuse",
+                              pbr=fit_core_material(g, lay, samples, fill_source, before))
     albedos, exps = [], []
     for j in range(lay.n_lobes):
         o = lay.lobe_offset(j)
@@ -192,5 +230,6 @@ def lafortune_material(grid: np.ndarray, layout, covered: np.ndarray, roughness:
     rough = roughness_from_exponent(n_dom, roughness)
     shiny = covered & (f0.max(axis=-1) > 0)
     ns = float(np.median(n_dom[shiny if shiny.any() else covered]))
+    pbr = fit_core_material(g, lay, samples, fill_source, (base, np.maximum(f0, 0.0), np.maximum(rough, 0.04)))
     return ExportMaterial(base, specular=spec, specular_scale=scale, roughness=rough,
-                          ns=float(np.clip(ns, 1.0, MTL_NS_MAX)), clipped=clipped, name="lafortune")
+                          ns=float(np.clip(ns, 1.0, MTL_NS_MAX)), clipped=clipped, name="lafortune", pbr=pbr)
