@@ -47,7 +47,7 @@ METALLIC_STEPS = 101
 ROUGHNESS_STEPS = 24
 ROUGHNESS_REFINE = (0.95, 0.975, 1.025, 1.05)
 TEXEL_CHUNK = 1024
-FLASH_SHARE = 0.25  # the flash set's share of a texel's weight beside the photos' directions (module doc)
+FLASH_SHARE = 0.5  # the flash set's share of a texel's weight beside the photos' directions (module doc)
 
 
 @dataclasses.dataclass
@@ -71,7 +71,7 @@ class DirectionSamples:
 class CoreMaterial:
     """The fitted glTF material per texel: base_color (H, W, 3) linear in [0, 1], metallic (H, W), roughness
     (H, W) in [0.04, 1], specular_f0 (H, W, 3): KHR_materials_specular's dielectric F0 in [0, 1]; ``fit``: the
-    directions' source and the relative RMS radiance errors over the samples (each texel weighted alike): core,
+    directions' source and the median over texels of the relative RMS radiance error over the samples: core,
     core + extension, and the export before (b = albedo, metallic 0, roughness from the exponent, the lobe energy
     in the extension alone) without and with the extension."""
 
@@ -259,7 +259,7 @@ def fit_core_material(grid: np.ndarray, layout, samples: DirectionSamples, fill_
     flash = flash_samples()
     base, metallic = np.zeros((len(rows), 3)), np.zeros(len(rows))
     rough, f0d = np.ones(len(rows)), np.full((len(rows), 3), DIELECTRIC_F0)
-    sums = np.zeros(5)  # weighted squared errors: core, core + extension, before (core, extension); weighted y^2
+    rel = np.zeros((4, len(rows)))  # per texel relative RMS: core, core + extension, before (core, extension)
     old_b, old_f0, old_r = (np.asarray(a, np.float64).reshape(len(rows), -1) for a in old)
     for lo in range(0, len(todo), TEXEL_CHUNK):
         idx = todo[lo:lo + TEXEL_CHUNK]
@@ -268,15 +268,15 @@ def fit_core_material(grid: np.ndarray, layout, samples: DirectionSamples, fill_
         b, m, r, f = _fit_chunk(y, wt, light, view)
         base[idx], metallic[idx], rough[idx], f0d[idx] = b, m, r, f
         zero = np.zeros(len(idx))
+        yy = np.maximum(np.einsum("ts,tsc->t", wt, y * y), 1e-300)
         for k, pred in enumerate((core_brdf(b, m, r, light, view), core_brdf(b, m, r, light, view, f),
                                   core_brdf(old_b[idx], zero, old_r[idx, 0], light, view),
                                   core_brdf(old_b[idx], zero, old_r[idx, 0], light, view, old_f0[idx]))):
-            sums[k] += float(np.einsum("ts,tsc->", wt, (pred - y) ** 2))
-        sums[4] += float(np.einsum("ts,tsc->", wt, y * y))
-    rel = np.sqrt(sums[:4] / max(sums[4], 1e-300))
-    fit = {"directions": samples.source, "relative_rms_core": float(rel[0]),
-           "relative_rms_with_specular_extension": float(rel[1]), "relative_rms_before_core": float(rel[2]),
-           "relative_rms_before_with_specular_extension": float(rel[3]),
+            rel[k, idx] = np.sqrt(np.einsum("ts,tsc->t", wt, (pred - y) ** 2) / yy)
+    med = np.median(rel[:, todo], axis=1)
+    fit = {"directions": samples.source, "relative_rms_core": float(med[0]),
+           "relative_rms_with_specular_extension": float(med[1]), "relative_rms_before_core": float(med[2]),
+           "relative_rms_before_with_specular_extension": float(med[3]),
            "metallic_median": float(np.median(metallic[todo])), "roughness_median": float(np.median(rough[todo]))}
     return CoreMaterial(base[own].reshape(h, w_, 3), metallic[own].reshape(h, w_), rough[own].reshape(h, w_),
                         f0d[own].reshape(h, w_, 3), fit)
@@ -284,17 +284,19 @@ def fit_core_material(grid: np.ndarray, layout, samples: DirectionSamples, fill_
 
 def _chunk_samples(samples: DirectionSamples, flash: DirectionSamples, idx: np.ndarray):
     """(light, view, weight) of texels ``idx``: the capture's samples with weights summing to 1 - FLASH_SHARE and
-    the flash set's to FLASH_SHARE (all of it for a texel the photos never saw); the flash set alone when
-    ``samples`` is it."""
+    the flash set's to FLASH_SHARE (all of it for a texel the photos never saw); a set shared by every texel
+    (the flash set) alone."""
     t = len(idx)
 
     def norm(w):
         s = w.sum(axis=1, keepdims=True)
         return np.where(s > 0, w / np.where(s > 0, s, 1.0), 0.0)
 
+    if len(samples.weight) == 1:
+        flash = samples
     fw = np.broadcast_to(norm(flash.weight), (t, flash.weight.shape[1]))
     fl, fv = (np.broadcast_to(a, (t,) + a.shape[1:]) for a in (flash.light, flash.view))
-    if samples is flash:
+    if flash is samples:
         return fl, fv, fw
     cw = norm(samples.weight[idx])
     seen = cw.sum(axis=1, keepdims=True) > 0
