@@ -58,6 +58,67 @@ import numpy as np
 THREE = Path("/usr/share/javascript/three")
 VARIANTS = ("linear", "gamma22", "r111_defaults", "legacy_lights", "shadows", "no_mipmaps")
 
+BLENDER_SCRIPT = r"""
+import json, math, sys
+import bpy
+import addon_utils  # Blender's own module, importable once bpy is
+from mathutils import Matrix
+p = json.loads(open(sys.argv[-1]).read())
+bpy.ops.wm.read_factory_settings(use_empty=True)
+addon_utils.enable("io_scene_gltf2")
+sc = bpy.context.scene
+sc.render.engine = "CYCLES"
+sc.cycles.device = "CPU"
+sc.cycles.samples = p["samples"]
+sc.cycles.use_denoising = False
+sc.cycles.max_bounces = 0  # direct light only, as texstream's renderer
+sc.cycles.filter_width = 0.01  # samples at the pixel centre, as texstream's one ray per pixel
+sc.render.resolution_x, sc.render.resolution_y, sc.render.resolution_percentage = p["width"], p["height"], 100
+sc.render.film_transparent = True
+sc.view_settings.view_transform = "Standard"
+sc.world = bpy.data.worlds.new("black")
+sc.world.color = (0.0, 0.0, 0.0)
+if sc.world.node_tree is not None:  # a new world may come with a grey background node: no ambient light here
+    for n in sc.world.node_tree.nodes:
+        if n.type == "BACKGROUND":
+            n.inputs["Strength"].default_value = 0.0
+if p["scene"] == "calibration":  # a Lambertian plane of albedo 0.5 (specular off) at the origin, facing +z
+    bpy.ops.mesh.primitive_plane_add(size=p["plane_size"])
+    mat = bpy.data.materials.new("lambert")
+    mat.use_nodes = True
+    bsdf = mat.node_tree.nodes["Principled BSDF"]
+    bsdf.inputs["Base Color"].default_value = (0.5, 0.5, 0.5, 1.0)
+    bsdf.inputs["Roughness"].default_value = 1.0
+    bsdf.inputs["Specular IOR Level"].default_value = 0.0
+    bpy.context.object.data.materials.append(mat)
+else:
+    bpy.ops.import_scene.gltf(filepath=p["glb"])  # glTF's +y up back to Blender's +z: texstream's world frame
+    for m in bpy.data.materials:
+        for n in m.node_tree.nodes:
+            if n.type == "BSDF_PRINCIPLED":
+                n.distribution = p["distribution"]
+cam = bpy.data.cameras.new("cam")
+cam.sensor_fit, cam.sensor_width = "HORIZONTAL", 36.0
+cam.lens = p["fx"] * 36.0 / p["width"]
+cam.shift_x = (p["width"] / 2 - p["cx"]) / p["width"]
+cam.shift_y = (p["cy"] - p["height"] / 2) / p["width"]
+cam.clip_start, cam.clip_end = p["near"], p["far"]
+cam_obj = bpy.data.objects.new("cam", cam)
+cam_obj.matrix_world = Matrix([p["camera_to_world"][4 * i:4 * i + 4] for i in range(4)])
+sc.collection.objects.link(cam_obj)
+sc.camera = cam_obj
+light = bpy.data.lights.new("flash", "POINT")
+light.energy, light.color = p["light_watts"], p["light_color"]
+light.shadow_soft_size = 0.0
+light_obj = bpy.data.objects.new("flash", light)
+light_obj.location = p["light_position"]
+sc.collection.objects.link(light_obj)
+sc.render.image_settings.file_format = "OPEN_EXR"
+sc.render.image_settings.color_depth = "32"
+sc.render.filepath = p["out"]
+bpy.ops.render.render(write_still=True)
+"""
+
 PAGE = r"""<!doctype html><html><head><meta charset="utf-8"></head><body>
 <script src="three.js"></script><script src="GLTFLoader.js"></script>
 <script>
@@ -215,6 +276,51 @@ def render_in_chromium(glb: Path, params: dict, chromium: str = "chromium", time
     return res
 
 
+def render_in_blender(python: str, params: dict, timeout_s: float = 600.0) -> np.ndarray:
+    """Render with Blender's Cycles through ``python`` (an interpreter with PyPI's ``bpy``; params as
+    :func:`blender_params`); returns the (H, W, 4) linear RGBA image."""
+    from texstream.capture.imageio import read_image
+
+    with tempfile.TemporaryDirectory(prefix="gltf_blender_") as t:
+        script, args = Path(t) / "render.py", Path(t) / "params.json"
+        script.write_text(BLENDER_SCRIPT)
+        out = Path(t) / "render.exr"
+        args.write_text(json.dumps({**params, "out": str(out)}))
+        subprocess.run([python, str(script), str(args)], check=True, timeout=timeout_s,
+                       stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        return read_image(out, channels=4).astype(np.float64)
+
+
+def blender_params(frame, near: float, far: float, watts_per_candela: float, samples: int) -> dict:
+    """Blender's camera (texstream world frame, the glb's node undone by the importer) and point light of a frame;
+    the light's power in watts is its intensity times ``watts_per_candela`` (from :func:`blender_calibration`)."""
+    from texstream.capture.conventions import w2c_cv_to_c2w_gl
+
+    k = frame.intrinsics
+    inten = np.asarray(frame.light.intensity, np.float64)
+    peak = float(inten.max())
+    return {"width": int(k.width), "height": int(k.height), "fx": k.fx, "cx": k.cx, "cy": k.cy,
+            "camera_to_world": w2c_cv_to_c2w_gl(frame.R, frame.t).reshape(-1).tolist(), "near": near, "far": far,
+            "light_position": [float(x) for x in frame.light.position], "light_watts": peak * watts_per_candela,
+            "light_color": (inten / peak).tolist(), "samples": samples}
+
+
+def blender_calibration(python: str) -> float:
+    """Watts per candela of Blender's point light, measured (a check of the 4 pi the renders use: Cycles gives a
+    point light's power in watts, radiant intensity = power / (4 pi)): a Lambertian plane of albedo 0.5 lit from
+    2 m straight above by 1000 W, seen from above; radiance = 0.5 / pi * I / r^2 at the centre."""
+    from texstream.capture.capture_json import Frame, Intrinsics, Light
+    from texstream.render.pose import look_at_w2c
+
+    r, t = look_at_w2c(np.array([0.0, 0.0, 2.0]), np.zeros(3), up=(0.0, 1.0, 0.0))
+    fr = Frame("calibration", r, t, Intrinsics(32, 32, 64.0, 64.0, 16.0, 16.0), Light.point([0.0, 0.0, 2.0], [1.0] * 3))
+    p = blender_params(fr, 0.1, 10.0, 1000.0, 64)
+    img = render_in_blender(python, {**p, "scene": "calibration", "plane_size": 1.0})
+    centre = float(img[15:17, 15:17, :3].mean())
+    intensity = centre / (0.5 / math.pi / 4.0)  # radiance = albedo / pi * I / r^2, r = 2
+    return 1000.0 / intensity
+
+
 def srgb_to_linear(c: np.ndarray) -> np.ndarray:
     return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
 
@@ -233,6 +339,9 @@ def main(argv=None) -> int:
     ap.add_argument("--variants", default=",".join(VARIANTS))
     ap.add_argument("--up-axis", default="z", help="the export's up_axis (export_config.json)")
     ap.add_argument("--label", default="", help="what this glb is, for the JSON")
+    ap.add_argument("--blender", default=None, help="a Python with PyPI's bpy: also render with Blender's Cycles, "
+                    "whose glTF importer reads KHR_materials_specular (Principled BSDF's Specular Tint)")
+    ap.add_argument("--blender-samples", type=int, default=256)
     ap.add_argument("--out", default=None, help="folder for <label or frame>.json and .png (default: print only)")
     a = ap.parse_args(argv)
 
@@ -285,6 +394,25 @@ def main(argv=None) -> int:
                   f"mean / photo's {row['mean_ratio_to_photo']:.3f}", flush=True)
             if name in ("linear", "gamma22", "r111_defaults"):
                 panels.append(lin)
+    if a.blender:
+        t0 = time.perf_counter()
+        wpc = 4 * math.pi  # Cycles' point light: intensity = power / (4 pi) per steradian
+        out["blender_calibration_watts_per_candela"] = blender_calibration(a.blender)
+        for dist in ("MULTI_GGX", "GGX"):
+            img = render_in_blender(a.blender, {**blender_params(frame, near, far, wpc, a.blender_samples),
+                                                "scene": "glb", "glb": str(Path(a.glb).resolve()),
+                                                "distribution": dist})
+            m = fg & (img[..., 3] > 0.5)
+            name = f"blender_cycles_{dist.lower()}"
+            row = out["variants"][name] = {
+                "vs_photo_db": psnr(img[..., :3], photo, m), "vs_texstream_db": psnr(img[..., :3], ours, m),
+                "mean_ratio_to_photo": float(img[..., :3][m].mean() / photo[m].mean()),
+                "viewer_missed_pixels": int((fg & ~m).sum()),
+                "samples": a.blender_samples, "seconds": time.perf_counter() - t0}
+            print(f"{name:16s} vs photo {row['vs_photo_db']:.2f} dB, vs texstream {row['vs_texstream_db']:.2f} dB, "
+                  f"mean / photo's {row['mean_ratio_to_photo']:.3f}", flush=True)
+            if dist == "MULTI_GGX":
+                panels.append(img[..., :3])
     print(f"texstream vs photo {out['texstream_vs_photo_db']:.2f} dB over {out['pixels']} pixels")
     if a.out:
         d = Path(a.out)
