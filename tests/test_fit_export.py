@@ -145,7 +145,7 @@ def test_glb_reads_back_with_pygltflib_and_trimesh(tmp_path):
     grid, covered, mesh = make_model(tmp_path / "model")
     info = E.export_gltf(tmp_path / "model", tmp_path / "out" / "model.glb")
     assert (info["vertices"], info["faces"]) == (9, 8)
-    f0, scale = expected_f0(grid, covered)
+    _, scale = expected_f0(grid, covered)
     assert 0 < scale < 1  # the uncovered texel (F0 clipped to 1) is left out
     assert info["specular_scale"] == pytest.approx(scale, rel=1e-6)
     assert info["base_colour_clipped_texels"] == 16  # the bottom-right quadrant: pi * 0.35 > 1
@@ -162,7 +162,7 @@ def test_glb_reads_back_with_pygltflib_and_trimesh(tmp_path):
     s = float(pbr.specular_f0[covered].max())
     assert spec["specularFactor"] == 1.0
     assert spec["specularColorFactor"] == pytest.approx([s / 0.04] * 3)
-    assert info["gltf_material"]["directions"] == "flash set"
+    assert info["gltf_material"]["directions"].startswith("flash set")
     assert gl.nodes[0].rotation == pytest.approx([-math.sqrt(0.5), 0, 0, math.sqrt(0.5)])
     assert_srgb_codes(images["base_color"], pbr.base_color)
     assert_srgb_codes(images["specular_color"], pbr.specular_f0 / s)

@@ -6,16 +6,18 @@ OBJ/MTL instead, so this module converts (docs/export.md has the same text with 
 
 materials
     Each model kind's plugin makes its material (fit/models/registry.py ``ExportMaterial``, from
-    ``FittedModel.export_material``), and this module writes it by its features alone: a lit material
-    (base colour = albedo, metallic 0) with a specular layer (``KHR_materials_specular``: F0 / s as the
-    texture, ``specularColorFactor = s / 0.04``; roughness in metallicRoughnessTexture G; OBJ ``Ks``,
-    ``map_Ks``, ``Ns``, ``illum 2``) or without one (``specularFactor = 0``, a pure Lambertian material;
-    OBJ ``Ks 0``, ``illum 1``), or an unlit colour (``KHR_materials_unlit``, fallback metallic 0,
-    roughness 0.9 as the extension suggests; OBJ map_Kd with ``illum 0``). The conversions are the
-    plugins': the Lafortune lobes' albedo and GGX roughness in fit/models/lafortune/export.py (with the
-    table of their errors), the radiance models' clipped radiance in fit/models/radiance/export.py, the
-    light field mapping models' unlit approximation in fit/models/lfm/export.py; docs/export.md has
-    them all.
+    ``FittedModel.export_material``), and this module writes it by its features alone. A lit model's glTF
+    material is the core metallic-roughness material fitted to the model (``ExportMaterial.pbr``: base colour,
+    metallic and roughness chosen by least squares so that core viewers, which ignore extensions, render the
+    model under a point light as texstream does; fit/models/lafortune/gltf_core.py) with
+    ``KHR_materials_specular`` on top (its dielectric F0 fitted given the core maps: F0 / s as the texture,
+    ``specularColorFactor = s / 0.04``); OBJ keeps the albedo (``map_Kd``) and the lobe energy (``Ks``,
+    ``map_Ks``, ``Ns``, ``illum 2``; a diffuse model ``Ks 0``, ``illum 1``). An unlit colour is written with
+    ``KHR_materials_unlit`` (fallback metallic 0, roughness 0.9 as the extension suggests; OBJ map_Kd with
+    ``illum 0``). The conversions are the plugins': the Lafortune lobes' in fit/models/lafortune/export.py and
+    gltf_core.py, the radiance models' clipped radiance in fit/models/radiance/export.py, the light field
+    mapping models' unlit approximation in fit/models/lfm/export.py; docs/export.md has them all, with the
+    glb's scores in three.js and Blender (benchmarks/gltf_viewer_check.py).
 
 Geometry
     Positions, unit vertex normals, UVs. texstream UVs have v up (capture/conventions.py), glTF's
@@ -79,10 +81,6 @@ class ExportConfig:
     radiance_scale: float = option(1.0, "radiance models: multiply the radiance by this before clipping "
                                    "to [0, 1] (1 = photo units, where 1 is the photo's white)")
     copy_maps: bool = option(True, "copy the float EXR parameter maps into maps/ (the exact fitted values)")
-    capture: str = option("", "posed capture folder the model was fitted to: the glTF core material (base colour, "
-                          "metallic, roughness) is fitted to the model over the light and view directions of its "
-                          "fitted photos; empty: over a flash set (a light beside the camera over the view "
-                          "hemisphere; docs/export.md)")
     lfm_view_mean: str = option("cosine", "light field mapping models: unlit base colour = the view-"
                                 "independent term plus each view-dependent term's mean over view "
                                 "directions, cosine-weighted over the hemisphere (cosine), or the "
@@ -182,8 +180,8 @@ def _check_config(cfg: ExportConfig) -> None:
 def export_gltf(model_dir, out_path, config: ExportConfig | None = None) -> dict:
     """Write a model folder as one glTF 2.0 binary (``.glb``) with embedded PNG textures.
 
-    Lafortune / diffuse models get a PBR metallic-roughness material (base colour = albedo, metallic
-    0, roughness from the lobe exponent) with ``KHR_materials_specular`` (the lobe albedo as F0);
+    Lafortune / diffuse models get the core metallic-roughness material fitted to the model (base colour,
+    metallic and roughness textures) with ``KHR_materials_specular`` on top (its F0 fitted given them);
     radiance models an unlit base colour (``KHR_materials_unlit``). The module doc gives the
     conversions. With ``config.copy_maps`` the EXR maps are copied into ``maps/`` beside the file.
 

@@ -2,7 +2,11 @@
 
 texstream fits per-texel Lafortune parameters (BRDF values in 1/sr, capture/conventions.py). Viewers
 and DCC tools read a PBR metallic-roughness glTF or a Phong-style OBJ/MTL instead, so the export
-converts (docs/export.md has the same text with the numbers):
+converts (docs/export.md has the same text with the numbers). The glTF material is the core
+metallic-roughness material fitted to the model by least squares (gltf_core.py; ``ExportMaterial.pbr``),
+with KHR_materials_specular's F0 fitted on top; what follows is the OBJ's material and the analytic
+conversions the fit is compared with (the export before it: base colour = albedo, metallic 0, the lobes'
+energy in KHR_materials_specular alone, which core viewers ignore):
 
 base colour
     Diffuse albedo ``pi * rho_d`` (the Lambertian BRDF rho_d in 1/sr reflects ``pi * rho_d``),
@@ -68,15 +72,13 @@ roughness (glTF metallicRoughnessTexture G channel, OBJ Ns)
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
 import numpy as np
 
-from texstream.capture.capture_json import read_capture, split_holdout
-from texstream.core.errors import ConfigError, InputError
-from texstream.fit.models.lafortune.gltf_core import DirectionSamples, capture_samples, fit_core_material, flash_samples
+from texstream.core.errors import ConfigError
+from texstream.fit.models.lafortune.gltf_core import DirectionSamples, fit_core_material, flash_samples
 from texstream.fit.models.registry import ExportMaterial
 
 ROUGHNESS_CONVERSIONS = ("fitted", "blinn4")
@@ -170,31 +172,13 @@ def lobe_conversion_table(exponents=(1, 10, 100, 1000, 10000), conversion: str =
     return rows
 
 
-def core_samples(model_dir: Path, capture: str) -> tuple[DirectionSamples, np.ndarray | None]:
-    """The directions the glTF core material is fitted over (gltf_core.py) and bake.npz's ``fill_source``:
-    with ``capture`` (a posed capture folder), the photos the model was fitted on (the model folder's
-    fit_config.json ``holdout_every`` leaves the held-out ones out) seen from each texel's baked point;
-    without, the flash set."""
-    bake_path = Path(model_dir) / "bake.npz"
-    bake = dict(np.load(bake_path)) if bake_path.is_file() else {}
-    fill = bake.get("fill_source")
-    if not capture:
-        return flash_samples(), fill
-    need = ("position", "normal", "tangent", "bitangent")
-    if any(k not in bake for k in need):
-        raise InputError(f"bake.npz lacks the texels' surface points ({', '.join(need)}), which the glTF core "
-                         "material's fit over the capture's directions needs", bake_path,
-                         "re-run `texstream fit`, or export without --capture (the flash set)")
-    cap = read_capture(capture)
-    every = 0
-    cfg_path = Path(model_dir) / "fit_config.json"
-    if cfg_path.is_file():
-        every = int(json.loads(cfg_path.read_text()).get("holdout_every", 0) or 0)
-    frames = [f for f in split_holdout(cap.frames, every)[0] if f.light is not None]
-    if not frames:
-        raise InputError("no fitted photo of the capture has a light", Path(capture) / "capture.json",
-                         "pass the capture the model was fitted to, or export without --capture (the flash set)")
-    return capture_samples(bake, frames), fill
+def bake_fill_source(model_dir: Path) -> np.ndarray | None:
+    """bake.npz's ``fill_source`` (the covered texel each padding texel copies), or None without one."""
+    path = Path(model_dir) / "bake.npz"
+    if not path.is_file():
+        return None
+    with np.load(path) as bake:
+        return bake["fill_source"] if "fill_source" in bake.files else None
 
 
 def lafortune_material(grid: np.ndarray, layout, covered: np.ndarray, roughness: str,
