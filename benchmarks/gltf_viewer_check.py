@@ -1,9 +1,12 @@
-"""An exported glb as a core glTF viewer shows it: three.js (Debian's libjs-three, r111) in headless Chromium,
-with a photo's camera and point light, scored against the photo and against texstream's own render (JSON + PNG).
+"""An exported glb as independent viewers show it: three.js (Debian's libjs-three, r111) in headless Chromium, and
+optionally Blender's Cycles (PyPI's bpy), with a photo's camera and point light, scored against the photo and
+against texstream's own render (JSON + a side-by-side PNG: photo, texstream, three.js linear / gamma 2.2 / r111
+defaults, Blender).
 
     apt-get install -y libjs-three          # /usr/share/javascript/three; chromium at /usr/bin/chromium
+    python3 -m venv V && V/bin/pip install bpy                    # optional: Blender 5 as a Python module
     python benchmarks/gltf_viewer_check.py EXPORT/model.glb CAPTURE MODEL --frame frame_00007 \\
-        --out benchmarks/results/gltf_viewer_cpu
+        --blender V/bin/python --out benchmarks/results/gltf_viewer_cpu
 
 Why this is an independent check: the page is three.js's GLTFLoader and MeshStandardMaterial, nothing of
 texstream's; three.js r111 reads the core metallic-roughness material and ignores KHR_materials_specular (a core-only
@@ -23,8 +26,8 @@ Renders (``--variants``):
   in 8 bits and decoded with the same power; scored twice more as ``gamma22_as_srgb``: the same bytes decoded
   as an sRGB display shows them.
 - ``r111_defaults``: the canvas with r111's default output (linear values written to the canvas, no encoding),
-  decoded as sRGB, as a display shows them: the scene set up as newer three.js documents it
-  (``outputEncoding = sRGBEncoding``, ignored by r111).
+  decoded as sRGB, as a display shows them: what a page written for newer three.js gets from r111
+  (``renderer.outputEncoding = sRGBEncoding`` does not exist there).
 - ``legacy_lights``: ``linear`` without physicallyCorrectLights (r111's default: irradiance multiplied by pi and
   no 1/r^2 falloff for a light of distance 0): the light units a viewer's default gives.
 - ``shadows``: ``linear`` with a shadow-casting point light (cube shadow map), as texstream's renderer casts
@@ -32,10 +35,14 @@ Renders (``--variants``):
 - ``no_mipmaps``: ``linear`` with every texture's minification filter linear without mipmaps (r111 resizes a
   non-power-of-two texture to the power of two below when mipmaps are asked for, WebGL 1).
 
+With ``--blender PY`` (a Python with PyPI's ``bpy``): Blender's Cycles, whose glTF importer reads
+KHR_materials_specular (Principled BSDF's Specular Tint), renders the glb in a subprocess (direct light only, no
+world light, a point light of radius 0 and 4 pi x intensity watts, checked on a Lambertian plane by
+:func:`blender_calibration`), with Principled's multiple-scattering GGX and with single-scattering GGX.
+
 Scores (PSNR, peak 1, over the foreground: texstream's render coverage, the photo's mask and the viewer's
 coverage): against the photo, and against texstream's render of the model folder (render/renderer.py, shadows
-on). A second viewer that reads KHR_materials_specular is not run: none ships in Debian bookworm or PyPI that
-renders headless without new dependencies (docs/export.md says which were looked at).
+on). docs/export.md has the README demo's numbers.
 """
 
 from __future__ import annotations
