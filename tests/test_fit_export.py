@@ -145,7 +145,7 @@ def test_glb_reads_back_with_pygltflib_and_trimesh(tmp_path):
     grid, covered, mesh = make_model(tmp_path / "model")
     info = E.export_gltf(tmp_path / "model", tmp_path / "out" / "model.glb")
     assert (info["vertices"], info["faces"]) == (9, 8)
-    f0, scale = expected_f0(grid, covered)
+    _, scale = expected_f0(grid, covered)
     assert 0 < scale < 1  # the uncovered texel (F0 clipped to 1) is left out
     assert info["specular_scale"] == pytest.approx(scale, rel=1e-6)
     assert info["base_colour_clipped_texels"] == 16  # the bottom-right quadrant: pi * 0.35 > 1
@@ -153,22 +153,24 @@ def test_glb_reads_back_with_pygltflib_and_trimesh(tmp_path):
     gl, images = glb_images(tmp_path / "out" / "model.glb")
     assert gl.extensionsUsed == ["KHR_materials_specular"]
     mat = gl.materials[0]
-    assert mat.pbrMetallicRoughness.metallicFactor == 0.0
+    # the core material fitted to the model (tests/test_gltf_core_material.py renders it): metallic and roughness
+    # in the texture (B, G; linear), the factors 1; KHR_materials_specular's F0 on top
+    pbr = E.registry.load_model_folder(tmp_path / "model").export_material(E.ExportConfig()).pbr
+    assert mat.pbrMetallicRoughness.metallicFactor == 1.0
     assert mat.pbrMetallicRoughness.roughnessFactor == 1.0
     spec = mat.extensions["KHR_materials_specular"]
+    s = float(pbr.specular_f0[covered].max())
     assert spec["specularFactor"] == 1.0
-    assert spec["specularColorFactor"] == pytest.approx([scale / 0.04] * 3)
+    assert spec["specularColorFactor"] == pytest.approx([s / 0.04] * 3)
+    assert info["gltf_material"]["directions"].startswith("flash set")
     assert gl.nodes[0].rotation == pytest.approx([-math.sqrt(0.5), 0, 0, math.sqrt(0.5)])
-    # textures: base colour = sRGB(pi rho_d), roughness (G, linear) from the exponent, F0 / scale (sRGB)
-    assert_srgb_codes(images["base_color"], np.pi * grid[..., 0:3])
-    assert_srgb_codes(images["specular_color"], f0 / scale)
-    rough = E.roughness_from_exponent(grid[..., 8])
-    assert np.abs(images["metallic_roughness"][..., 1] / 255 - rough).max() <= HALF_CODE
-    assert (images["metallic_roughness"][..., 2] == 0).all()  # metalness
-    documented = {10.0: 0.485, 100.0: 0.289, 1000.0: 0.164, 1.0: 0.651}
-    for (by, bx), n in EXPONENT.items():
-        code = images["metallic_roughness"][by * 4 + 1, bx * 4 + 1, 1]
-        assert code / 255 == pytest.approx(documented[n], abs=0.003)
+    assert_srgb_codes(images["base_color"], pbr.base_color)
+    assert_srgb_codes(images["specular_color"], pbr.specular_f0 / s)
+    assert np.abs(images["metallic_roughness"][..., 1] / 255 - pbr.roughness).max() <= HALF_CODE
+    assert np.abs(images["metallic_roughness"][..., 2] / 255 - pbr.metallic).max() <= HALF_CODE
+    # sharper lobes, smoother surfaces
+    rough = {n: images["metallic_roughness"][by * 4 + 1, bx * 4 + 1, 1] for (by, bx), n in EXPONENT.items()}
+    assert rough[10.0] > rough[100.0] > rough[1000.0]
 
     scene = trimesh.load(tmp_path / "out" / "model.glb")
     tm = scene.to_geometry()  # node transform applied
@@ -177,13 +179,13 @@ def test_glb_reads_back_with_pygltflib_and_trimesh(tmp_path):
     assert np.allclose(tm.vertex_normals, [0, 1, 0], atol=1e-6)  # +z (the sample's normal) is now up
     np.testing.assert_allclose(tm.visual.uv, mesh.uvs, atol=1e-6)  # trimesh flips glTF's v back to v up
     mat_t = tm.visual.material
-    assert mat_t.metallicFactor == 0.0
+    assert mat_t.metallicFactor == 1.0
     np.testing.assert_array_equal(np.asarray(mat_t.baseColorTexture.convert("RGB")), images["base_color"])
     # orientation: the vertex at UV (0, 1) (top-left of the image, v up) shows the top-left quadrant, etc.
     corners = np.array([[0.0, 1.0], [1.0, 1.0], [0.0, 0.0], [1.0, 0.0]])
     got = trimesh.visual.color.uv_to_color(corners, mat_t.baseColorTexture)[:, :3]
     for c, q in zip(got, [(0, 0), (0, 1), (1, 0), (1, 1)]):
-        assert_srgb_codes(c, np.pi * np.asarray(RHO_D[q]))
+        assert_srgb_codes(c, pbr.base_color[q[0] * 4 + 1, q[1] * 4 + 1])
     maps = sorted(p.name for p in (tmp_path / "out" / "maps").iterdir())
     assert maps == ["lobe0_rho_s.exr", "lobe0_shape.exr", "rho_d.exr"]
 
@@ -195,29 +197,38 @@ def test_glb_of_two_lobes_sums_albedos_and_takes_the_dominant_width(tmp_path):
              {"rho_s": np.full((H, W, 3), 0.17), "n": np.full((H, W), 5.0)}]
     grid = lay.pack(quadrant_map(RHO_D, 3), lobes)
     write_param_maps(tmp_path / "model", grid.astype(np.float32), lay)
-    E.export_gltf(tmp_path / "model", tmp_path / "m.glb", E.ExportConfig(copy_maps=False))
-    _, images = glb_images(tmp_path / "m.glb")
+    E.export_obj(tmp_path / "model", tmp_path / "obj", E.ExportConfig(copy_maps=False))
     f0, scale = expected_f0(grid, covered, 2)
-    assert_srgb_codes(images["specular_color"], f0 / scale)
+    assert_srgb_codes(np.asarray(PIL_Image.open(tmp_path / "obj" / "model_specular.png").convert("RGB")), f0 / scale)
+    m = E.registry.load_model_folder(tmp_path / "model").export_material(E.ExportConfig())
     a0 = E.lobe_albedo(grid[..., 3:6], grid[..., 8]).mean(-1)
     a1 = E.lobe_albedo(grid[..., 9:12], grid[..., 14]).mean(-1)
     assert (a1 > a0).any() and (a0 > a1).any()  # each lobe dominates somewhere
     n_dominant = np.where(a1 > a0, grid[..., 14], grid[..., 8])
-    assert np.abs(images["metallic_roughness"][..., 1] / 255 - E.roughness_from_exponent(n_dominant)).max() \
-        <= HALF_CODE
+    assert np.abs(m.roughness - E.roughness_from_exponent(n_dominant)).max() < 1e-12  # OBJ's Ns and the table
+    # glTF: the core material fitted to both lobes together (its error below the export before's)
+    fit = m.pbr.fit
+    assert fit["relative_rms_core"] < fit["relative_rms_before_core"]
     assert not (tmp_path / "maps").exists()
 
 
-def test_diffuse_only_model_has_no_specular_layer(tmp_path):
-    grid, _, _ = make_model(tmp_path / "model", kind="diffuse", n_lobes=0)
+def test_diffuse_only_model_gets_the_core_material_closest_to_lambert(tmp_path):
+    """A core viewer always adds a GGX layer of F0 >= 0.04; the fit darkens the base colour for it (by at most 0.04,
+    that layer's reflectance along the normal) and keeps metallic near 0. OBJ keeps the albedo."""
+    grid, covered, _ = make_model(tmp_path / "model", kind="diffuse", n_lobes=0)
     E.export_gltf(tmp_path / "model", tmp_path / "d.glb")
     gl, images = glb_images(tmp_path / "d.glb")
-    mat = gl.materials[0]
     assert gl.extensionsUsed == ["KHR_materials_specular"]
-    assert mat.extensions["KHR_materials_specular"] == {"specularFactor": 0.0}
-    assert mat.pbrMetallicRoughness.metallicRoughnessTexture is None
-    assert sorted(images) == ["base_color"]
-    assert_srgb_codes(images["base_color"], np.pi * grid[..., 0:3])
+    pbr = E.registry.load_model_folder(tmp_path / "model").export_material(E.ExportConfig()).pbr
+    assert_srgb_codes(images["base_color"], pbr.base_color)
+    albedo = np.clip(np.pi * grid[..., 0:3], 0, 1)
+    lit = covered[..., None] & (albedo > 0.05) & (albedo < 0.95)
+    assert np.all(np.abs(pbr.base_color - albedo)[lit] <= 0.04)
+    assert np.median(pbr.metallic[covered]) <= 0.05
+    assert pbr.fit["relative_rms_core"] <= pbr.fit["relative_rms_before_core"]
+    E.export_obj(tmp_path / "model", tmp_path / "obj", E.ExportConfig(copy_maps=False))
+    mtl = (tmp_path / "obj" / "model.mtl").read_text().split("\n")
+    assert "Ks 0 0 0" in mtl and "illum 1" in mtl
 
 
 def radiance_model(folder, monkeypatch):

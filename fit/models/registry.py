@@ -50,6 +50,9 @@ class ExportMaterial:
             "lafortune", "diffuse" or "radiance".
         extras: model-specific options the export records (export.json, the glTF material's extras),
             e.g. how an LFM's unlit colour was made.
+        pbr: the glTF material when it differs from the fields above (a lit model's core metallic-roughness
+            fit, fit/models/lafortune/gltf_core.py ``CoreMaterial``: base colour, metallic, roughness and
+            KHR_materials_specular's F0 per texel); None: the glTF material is base (+ specular) as above.
     """
 
     base: np.ndarray
@@ -62,6 +65,7 @@ class ExportMaterial:
     label: str = "basecolor"
     name: str = ""
     extras: dict = dataclasses.field(default_factory=dict)
+    pbr: Any = None
 
 
 @dataclasses.dataclass

@@ -6,16 +6,18 @@ OBJ/MTL instead, so this module converts (docs/export.md has the same text with 
 
 materials
     Each model kind's plugin makes its material (fit/models/registry.py ``ExportMaterial``, from
-    ``FittedModel.export_material``), and this module writes it by its features alone: a lit material
-    (base colour = albedo, metallic 0) with a specular layer (``KHR_materials_specular``: F0 / s as the
-    texture, ``specularColorFactor = s / 0.04``; roughness in metallicRoughnessTexture G; OBJ ``Ks``,
-    ``map_Ks``, ``Ns``, ``illum 2``) or without one (``specularFactor = 0``, a pure Lambertian material;
-    OBJ ``Ks 0``, ``illum 1``), or an unlit colour (``KHR_materials_unlit``, fallback metallic 0,
-    roughness 0.9 as the extension suggests; OBJ map_Kd with ``illum 0``). The conversions are the
-    plugins': the Lafortune lobes' albedo and GGX roughness in fit/models/lafortune/export.py (with the
-    table of their errors), the radiance models' clipped radiance in fit/models/radiance/export.py, the
-    light field mapping models' unlit approximation in fit/models/lfm/export.py; docs/export.md has
-    them all.
+    ``FittedModel.export_material``), and this module writes it by its features alone. A lit model's glTF
+    material is the core metallic-roughness material fitted to the model (``ExportMaterial.pbr``: base colour,
+    metallic and roughness chosen by least squares so that core viewers, which ignore extensions, render the
+    model under a point light as texstream does; fit/models/lafortune/gltf_core.py) with
+    ``KHR_materials_specular`` on top (its dielectric F0 fitted given the core maps: F0 / s as the texture,
+    ``specularColorFactor = s / 0.04``); OBJ keeps the albedo (``map_Kd``) and the lobe energy (``Ks``,
+    ``map_Ks``, ``Ns``, ``illum 2``; a diffuse model ``Ks 0``, ``illum 1``). An unlit colour is written with
+    ``KHR_materials_unlit`` (fallback metallic 0, roughness 0.9 as the extension suggests; OBJ map_Kd with
+    ``illum 0``). The conversions are the plugins': the Lafortune lobes' in fit/models/lafortune/export.py and
+    gltf_core.py, the radiance models' clipped radiance in fit/models/radiance/export.py, the light field
+    mapping models' unlit approximation in fit/models/lfm/export.py; docs/export.md has them all, with the
+    glb's scores in three.js and Blender (benchmarks/gltf_viewer_check.py).
 
 Geometry
     Positions, unit vertex normals, UVs. texstream UVs have v up (capture/conventions.py), glTF's
@@ -96,12 +98,25 @@ def _png_bytes(img: np.ndarray) -> bytes:
         return p.read_bytes()
 
 
-def _roughness_codes(rough: np.ndarray) -> np.ndarray:
-    """glTF metallicRoughnessTexture (linear, not sRGB): R unused (255), G roughness, B metalness 0."""
+def _roughness_codes(rough: np.ndarray, metallic: np.ndarray | None = None) -> np.ndarray:
+    """glTF metallicRoughnessTexture (linear, not sRGB): R unused (255), G roughness, B metalness (None: 0)."""
     out = np.zeros((*rough.shape, 3), np.uint8)
     out[..., 0] = 255
     out[..., 1] = np.floor(np.clip(rough, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    if metallic is not None:
+        out[..., 2] = np.floor(np.clip(metallic, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
     return out
+
+
+def _pbr_specular(mat: registry.ExportMaterial, covered: np.ndarray) -> tuple[np.ndarray | None, dict]:
+    """KHR_materials_specular of a fitted core material: the dielectric F0 over s (s = its largest value over the
+    covered texels, so the sRGB texture spans the 8-bit range) and specularColorFactor s / 0.04; F0 = 0
+    everywhere: specularFactor 0 (no specular layer). Returns (texture or None, the factors)."""
+    f0 = mat.pbr.specular_f0
+    s = float(f0[covered].max()) if covered.any() else 0.0
+    if s <= 0:
+        return None, {"specular_factor": 0.0, "specular_color_factor": 0.0}
+    return f0 / s, {"specular_factor": 1.0, "specular_color_factor": s / DIELECTRIC_F0}
 
 
 def _up_rotation(up_axis: str) -> np.ndarray:
@@ -132,9 +147,9 @@ def _info(m: registry.FittedModel, mat: registry.ExportMaterial, cfg: ExportConf
     info = {"kind": mat.name, "vertices": m.mesh.n_vertices, "faces": m.mesh.n_faces, "texture": [w, h],
             "up_axis": cfg.up_axis, "base_colour_clipped_texels": mat.clipped}
     if mat.specular is not None:
-        info.update({"specular_scale": mat.specular_scale,
-                     "specular_color_factor": mat.specular_scale / DIELECTRIC_F0,
-                     "roughness_conversion": cfg.roughness, "mtl_ns": mat.ns})
+        info.update({"specular_scale": mat.specular_scale, "roughness_conversion": cfg.roughness, "mtl_ns": mat.ns})
+    if mat.pbr is not None:
+        info["gltf_material"] = {**_pbr_specular(mat, m.covered)[1], **mat.pbr.fit}
     if mat.unlit:
         info["radiance_scale"] = cfg.radiance_scale
     info["model_kind"] = m.kind
@@ -165,8 +180,8 @@ def _check_config(cfg: ExportConfig) -> None:
 def export_gltf(model_dir, out_path, config: ExportConfig | None = None) -> dict:
     """Write a model folder as one glTF 2.0 binary (``.glb``) with embedded PNG textures.
 
-    Lafortune / diffuse models get a PBR metallic-roughness material (base colour = albedo, metallic
-    0, roughness from the lobe exponent) with ``KHR_materials_specular`` (the lobe albedo as F0);
+    Lafortune / diffuse models get the core metallic-roughness material fitted to the model (base colour,
+    metallic and roughness textures) with ``KHR_materials_specular`` on top (its F0 fitted given them);
     radiance models an unlit base colour (``KHR_materials_unlit``). The module doc gives the
     conversions. With ``config.copy_maps`` the EXR maps are copied into ``maps/`` beside the file.
 
@@ -233,15 +248,29 @@ def _write_glb(m: registry.FittedModel, mat: registry.ExportMaterial, cfg: Expor
         textures.append(G.Texture(sampler=0, source=len(images) - 1, name=name))
         return len(textures) - 1
 
-    units = "base colour = albedo (pi * rho_d) or clipped radiance; see docs/export.md"
+    units = ("base colour, metallic, roughness: the core material fitted to the model; KHR_materials_specular on "
+             "top" if mat.pbr is not None else "base colour = albedo (pi * rho_d) or clipped radiance") + \
+        "; see docs/export.md"
     extras = {"texstream": {"kind": mat.name, "model_kind": m.kind, "units": units, **mat.extras}}
-    pbr = G.PbrMetallicRoughness(baseColorFactor=[1.0, 1.0, 1.0, 1.0],
-                                 baseColorTexture=G.TextureInfo(index=texture("base_color", mat.base)),
-                                 metallicFactor=0.0)
+    pbr_mat = mat.pbr
+    pbr = G.PbrMetallicRoughness(baseColorFactor=[1.0, 1.0, 1.0, 1.0], metallicFactor=0.0,
+                                 baseColorTexture=G.TextureInfo(index=texture(
+                                     "base_color", mat.base if pbr_mat is None else pbr_mat.base_color)))
     if mat.unlit:
         pbr.roughnessFactor = 0.9
         extensions = {"KHR_materials_unlit": {}}
         extras["texstream"]["radiance_scale"] = cfg.radiance_scale
+    elif pbr_mat is not None:
+        pbr.metallicFactor = pbr.roughnessFactor = 1.0
+        pbr.metallicRoughnessTexture = G.TextureInfo(index=texture(
+            "metallic_roughness", _roughness_codes(pbr_mat.roughness, pbr_mat.metallic)))
+        spec_img, spec = _pbr_specular(mat, m.covered)
+        extensions = {"KHR_materials_specular": {"specularFactor": spec["specular_factor"]}}
+        if spec_img is not None:
+            extensions["KHR_materials_specular"].update({
+                "specularColorFactor": [spec["specular_color_factor"]] * 3,
+                "specularColorTexture": {"index": texture("specular_color", spec_img)}})
+        extras["texstream"].update({"roughness_conversion": cfg.roughness, **pbr_mat.fit})
     elif mat.specular is None:
         pbr.roughnessFactor = 1.0
         extensions = {"KHR_materials_specular": {"specularFactor": 0.0}}  # no specular layer: Lambertian

@@ -2,7 +2,11 @@
 
 texstream fits per-texel Lafortune parameters (BRDF values in 1/sr, capture/conventions.py). Viewers
 and DCC tools read a PBR metallic-roughness glTF or a Phong-style OBJ/MTL instead, so the export
-converts (docs/export.md has the same text with the numbers):
+converts (docs/export.md has the same text with the numbers). The glTF material is the core
+metallic-roughness material fitted to the model by least squares (gltf_core.py; ``ExportMaterial.pbr``),
+with KHR_materials_specular's F0 fitted on top; what follows is the OBJ's material and the analytic
+conversions the fit is compared with (the export before it: base colour = albedo, metallic 0, the lobes'
+energy in KHR_materials_specular alone, which core viewers ignore):
 
 base colour
     Diffuse albedo ``pi * rho_d`` (the Lambertian BRDF rho_d in 1/sr reflects ``pi * rho_d``),
@@ -69,10 +73,12 @@ roughness (glTF metallicRoughnessTexture G channel, OBJ Ns)
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 
 from texstream.core.errors import ConfigError
+from texstream.fit.models.lafortune.gltf_core import DirectionSamples, fit_core_material, flash_samples
 from texstream.fit.models.registry import ExportMaterial
 
 ROUGHNESS_CONVERSIONS = ("fitted", "blinn4")
@@ -166,18 +172,34 @@ def lobe_conversion_table(exponents=(1, 10, 100, 1000, 10000), conversion: str =
     return rows
 
 
-def lafortune_material(grid: np.ndarray, layout, covered: np.ndarray, roughness: str) -> ExportMaterial:
-    """The exported material of a Lafortune parameter grid (H, W, P): base colour the clipped albedo; with
-    lobes, F0 the summed lobe albedos (normalised by their largest value over ``covered`` texels), the
-    roughness of the dominant lobe's exponent (``roughness``: the conversion) and OBJ's Ns their median;
-    without, no specular layer (a diffuse material)."""
+def bake_fill_source(model_dir: Path) -> np.ndarray | None:
+    """bake.npz's ``fill_source`` (the covered texel each padding texel copies), or None without one."""
+    path = Path(model_dir) / "bake.npz"
+    if not path.is_file():
+        return None
+    with np.load(path) as bake:
+        return bake["fill_source"] if "fill_source" in bake.files else None
+
+
+def lafortune_material(grid: np.ndarray, layout, covered: np.ndarray, roughness: str,
+                       samples: DirectionSamples | None = None, fill_source: np.ndarray | None = None) -> ExportMaterial:
+    """The exported material of a Lafortune parameter grid (H, W, P).
+
+    OBJ (and the fields ``base``, ``specular``, ``roughness``): base colour the clipped albedo; with lobes, F0 the
+    summed lobe albedos (normalised by their largest value over ``covered`` texels), the roughness of the
+    dominant lobe's exponent (``roughness``: the conversion) and Ns their median; without, no specular layer.
+    glTF (``pbr``): the core metallic-roughness material fitted to the model over ``samples`` (None: the flash
+    set; gltf_core.py), padding texels taking their ``fill_source``'s, and KHR_materials_specular's F0 on top."""
     g = grid.astype(np.float64)
     lay = layout
     albedo = albedo_from_rho_d(g[..., 0:3])
     clipped = int((albedo.max(axis=-1)[covered] > 1.0).sum())
     base = np.clip(albedo, 0.0, 1.0)
+    samples = samples or flash_samples()
     if lay.n_lobes == 0:
-        return ExportMaterial(base, clipped=clipped, name="diffuse")
+        before = (base, np.zeros_like(base), np.ones(base.shape[:2]))
+        return ExportMaterial(base, clipped=clipped, name="diffuse",
+                              pbr=fit_core_material(g, lay, samples, fill_source, before))
     albedos, exps = [], []
     for j in range(lay.n_lobes):
         o = lay.lobe_offset(j)
@@ -192,5 +214,6 @@ def lafortune_material(grid: np.ndarray, layout, covered: np.ndarray, roughness:
     rough = roughness_from_exponent(n_dom, roughness)
     shiny = covered & (f0.max(axis=-1) > 0)
     ns = float(np.median(n_dom[shiny if shiny.any() else covered]))
+    pbr = fit_core_material(g, lay, samples, fill_source, (base, np.maximum(f0, 0.0), np.maximum(rough, 0.04)))
     return ExportMaterial(base, specular=spec, specular_scale=scale, roughness=rough,
-                          ns=float(np.clip(ns, 1.0, MTL_NS_MAX)), clipped=clipped, name="lafortune")
+                          ns=float(np.clip(ns, 1.0, MTL_NS_MAX)), clipped=clipped, name="lafortune", pbr=pbr)

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from texstream.capture.imageio import linear_to_srgb
-from texstream.fit.models.lafortune.export import lafortune_material
+from texstream.fit.models.lafortune.export import bake_fill_source, lafortune_material
 from texstream.fit.models.per_texel.folder import PerTexelModel, load_per_texel
 from texstream.fit.models.previews import read_shader, rgb_scaled
 from texstream.fit.models.registry import ExportMaterial, FittedModel, ViewerModel
@@ -17,7 +17,8 @@ class LafortuneModel(PerTexelModel):
     """Diffuse rho_d plus Lafortune lobes per texel (a diffuse model: no lobes)."""
 
     def export_material(self, cfg) -> ExportMaterial:
-        return lafortune_material(self.grid, self.layout, self.covered, cfg.roughness)
+        return lafortune_material(self.grid, self.layout, self.covered, cfg.roughness,
+                                  fill_source=bake_fill_source(self.folder))
 
     def report_maps(self, save, seen) -> None:
         grid, lay = self.grid, self.layout
