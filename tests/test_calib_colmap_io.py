@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 
@@ -12,9 +13,6 @@ from texstream.calib.colmap_io import (camera_to_intrinsics, import_colmap, impo
 from texstream.capture.capture_json import read_capture
 from texstream.capture.conventions import w2c_cv_to_c2w_gl
 from texstream.core.errors import InputError
-
-pytest.importorskip("pycolmap")
-cv2 = pytest.importorskip("cv2")
 
 
 def _colmap_project(root):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import time
 
+import cv2
 import numpy as np
 import pytest
 
@@ -12,8 +13,6 @@ from conftest import need_data
 from texstream.calib.boards import parse_board
 from texstream.calib.intrinsics import CalibrateConfig, calibrate, intrinsics_for_size, load_intrinsics
 from texstream.core.errors import ConfigError, InputError, StageError
-
-cv2 = pytest.importorskip("cv2")
 
 
 def _plain_opencv(folder):

@@ -14,8 +14,6 @@ from texstream.capture.capture_json import Capture, Frame, Intrinsics, read_capt
 from texstream.capture.conventions import look_at_w2c
 from texstream.core.errors import ConfigError, InputError
 
-pytest.importorskip("OpenImageIO")
-
 W = H = 160
 FOV = 22.0
 LIGHT_RADIANCE = 40.0

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 
@@ -13,9 +14,6 @@ from texstream.calib.masks import MaskConfig, compute_mask, make_masks, mask_iou
 from texstream.capture.capture_json import read_capture
 
 from conftest import need_data
-
-cv2 = pytest.importorskip("cv2")
-pytest.importorskip("OpenImageIO")
 
 
 @pytest.fixture(scope="module")

@@ -6,6 +6,7 @@ import json
 import shutil
 import time
 
+import cv2
 import numpy as np
 import pytest
 
@@ -13,9 +14,6 @@ from conftest import need_data, pose_errors
 from texstream.calib.register import RegisterConfig, register
 from texstream.capture.capture_json import read_capture
 from texstream.core.errors import StageError
-
-pytest.importorskip("pycolmap")
-cv2 = pytest.importorskip("cv2")
 
 # The temple's published K (templeSR_par.txt), in the capture convention (cx, cy + 0.5).
 TEMPLE_K = {"w": 640, "h": 480, "fl_x": 1520.4, "fl_y": 1525.9, "cx": 302.82, "cy": 247.37}

@@ -128,16 +128,10 @@ def test_import_formats_share_option_names_only_with_equal_types():
     import dataclasses
     import typing
 
+    from texstream.calib.colmap_io import ColmapImportConfig, NerfstudioImportConfig
     from texstream.capture.middlebury import MiddleburyImportConfig
 
-    classes = [MiddleburyImportConfig]
-    try:
-        from texstream.calib import colmap_io
-    except ModuleNotFoundError:
-        colmap_io = None
-    for name in ("ColmapImportConfig", "NerfstudioImportConfig"):
-        if colmap_io is not None and hasattr(colmap_io, name):
-            classes.append(getattr(colmap_io, name))
+    classes = [MiddleburyImportConfig, ColmapImportConfig, NerfstudioImportConfig]
     seen: dict[str, tuple[object, str]] = {}
     for cls in classes:
         hints = typing.get_type_hints(cls)

@@ -17,7 +17,6 @@ from texstream.fit.stages import export as E
 @pytest.fixture(scope="module")
 def lfm_model(tmp_path_factory):
     """A K = 1 LFM fit (20 CG iterations) of the fixed-light sphere."""
-    pytest.importorskip("OpenImageIO")  # the synthetic photos are EXR files
     from texstream.fit.optim.fitter import FitConfig
     from texstream.fit.models.lfm.problem import LFMConfig
     from texstream.fit.stages.stage import FitStageConfig, fit_stage

@@ -28,7 +28,7 @@ from texstream.fit.models.materials import (MaterialConfig, contradiction_test, 
 from texstream.render.layout import ModelLayout
 
 from test_fit_gradients import (assert_full_dhd_matches_second_difference, assert_gradient_matches_finite_differences,
-                                evaluate, plane_problem, random_params)
+                                plane_problem, random_params)
 from conftest import SCENE_DEVICE
 
 LAYOUT = ModelLayout()
@@ -253,8 +253,7 @@ def one_material_sphere() -> dict:
 def sphere_fit(tmp_path_factory):
     """``fit_stage`` on the one-material sphere (160 photos of 48x48 on its own atlas, every 8th held out),
     materials on with one material: the model folder and its ground truth."""
-    pytest.importorskip("OpenImageIO")
-    from texstream.capture.synthetic.synth import SynthConfig, load_ground_truth, synthesize
+    from texstream.capture.synthetic.synth import SynthConfig, synthesize
     from texstream.fit.optim.fitter import FitConfig
     from texstream.fit.stages.stage import FitStageConfig, fit_stage
 

@@ -122,7 +122,6 @@ def unique_count(x: np.ndarray, k: int) -> int:
 @pytest.fixture(scope="module")
 def small_capture(tmp_path_factory):
     """The small ornament written as a capture folder (float EXRs, masks, its true atlas)."""
-    pytest.importorskip("OpenImageIO")
     from texstream.capture.synthetic.synth import SynthConfig, synthesize
 
     root = tmp_path_factory.mktemp("choice_first")

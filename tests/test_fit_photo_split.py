@@ -166,7 +166,6 @@ def test_fit_stage_with_split_photos(tmp_path):
     held-out photos) with the photos split over two parts: the model of the unsplit stage, to float
     rounding of the sums' order (the photos are few: float32 sums; a texel's step accepted or not near a
     tie can differ, so the maps are compared by their fit, 0.01 dB)."""
-    pytest.importorskip("OpenImageIO")
     import json
 
     from conftest import SCENE_DEVICE, tiny_sphere_capture

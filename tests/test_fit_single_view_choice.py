@@ -13,8 +13,6 @@ import json
 import numpy as np
 import pytest
 
-pytest.importorskip("OpenImageIO", reason="single-view stage tests need OpenImageIO for photo files")
-
 from test_fit_single_view import write_set
 
 from texstream.core.errors import ConfigError

@@ -22,8 +22,6 @@ from texstream.fit.stages.stage import FitStageConfig, fit_stage
 from texstream.geometry.seams import SEAMS_FILE, Seams, seam_gaps
 from texstream.core.errors import InputError
 
-pytest.importorskip("OpenImageIO")  # the stage reads and writes EXR / PNG files
-
 # the stage's default Warp device is cpu; the GPU machine's warp has no CPU compiler
 from conftest import SCENE_DEVICE  # noqa: E402
 

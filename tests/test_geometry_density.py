@@ -11,7 +11,6 @@ import pytest
 
 from texstream.geometry.density import _projected_areas, density_face_weights, face_pixel_density, texel_size_spread
 from texstream.geometry.hull import orbit_frames
-from texstream.geometry.visibility import depth_maps
 from test_geometry_clean import icosphere
 
 
