@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import time
 
 import cv2
 import numpy as np
@@ -87,7 +86,6 @@ def test_charuco_synthetic_recovers_intrinsics(tmp_path):
     k = np.array([[700.0, 0, 330.0], [0, 705.0, 235.0], [0, 0, 1]])
     dist = np.array([-0.12, 0.05, 0.001, -0.0005])
     size = (640, 480)
-    t0 = time.time()
     spec = _render_charuco_set(tmp_path / "board", k, dist, size)
     res = calibrate(tmp_path / "board", tmp_path / "cal", CalibrateConfig(board=spec, model="opencv"))
     cam = res.summary["cameras"][0]
@@ -102,8 +100,6 @@ def test_charuco_synthetic_recovers_intrinsics(tmp_path):
     d_est = np.array(doc["opencv_dist"])[:4]
     err = np.abs(_distortion_field(k, dist, size) - _distortion_field(k_est, d_est, size)).max()
     assert err < 0.3, err
-    # Render + calibrate budget on a 2-core box.
-    assert time.time() - t0 < 30
 
 
 def test_calibrate_bad_inputs(tmp_path, data_dir):
