@@ -43,8 +43,9 @@ def test_the_scanner_finds_each_way_of_hiding_a_missing_package():
              'from pytest import importorskip\nimportorskip("ray", reason="optional")',
              'try:\n    import trimesh\nexcept ImportError:\n    trimesh = None',
              'try:\n    import ray\nexcept (OSError, ModuleNotFoundError):\n    pass',
-             'import importlib.util\nimport pytest\n'
-             '@pytest.mark.skipif(importlib.util.find_spec("torch") is None, reason="no torch")\ndef test(): pass']
+             ('import importlib.util\nimport pytest\n'
+              '@pytest.mark.skipif(importlib.util.find_spec("torch") is None, reason="no torch")\n'
+              'def test(): pass')]
     for source in cases:
         assert len(hidden_skips(source, "case.py")) == 1, source
     assert hidden_skips('try:\n    x = 1 / 0\nexcept ZeroDivisionError:\n    pass', "case.py") == []
@@ -85,7 +86,8 @@ def test_every_package_a_test_imports_is_declared():
     """A test may import the standard library, texstream, the test helpers beside it (and the peers of
     benchmarks/peers/, which test_peers_quick.py puts on the path), and declared packages only."""
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
-    declared = {distribution_key(r) for r in project["dependencies"] + project["optional-dependencies"]["test"]}
+    requirements = project["dependencies"] + project["optional-dependencies"]["test"]
+    declared = {distribution_key(r) for r in requirements}
     local = {p.stem for p in TEST_FILES} | {p.stem for p in (ROOT / "benchmarks" / "peers").glob("*.py")}
     installed = importlib.metadata.packages_distributions()
     undeclared = {}
@@ -95,5 +97,5 @@ def test_every_package_a_test_imports_is_declared():
             if not dists & declared:
                 undeclared.setdefault(top, []).append(path.name)
     assert "cv2" not in local and "warp" not in local  # the local names are the helpers, not packages
-    assert not undeclared, (f"imported by tests but neither a dependency nor in the test extra (or not "
+    assert not undeclared, ("imported by tests but neither a dependency nor in the test extra (or not "
                             f"installed): {undeclared}")
