@@ -300,6 +300,7 @@ def test_unseen_highlight_texels_take_the_material_lobe(sphere_fit):
 
 def test_stage_records_choice_and_uncertainty(sphere_fit):
     from texstream.capture.imageio import read_image
+    from texstream.fit.models.per_texel.fit import MATERIAL_PALETTE
 
     model = sphere_fit / "model"
     man = json.loads((model / "model.json").read_text())
@@ -316,7 +317,13 @@ def test_stage_records_choice_and_uncertainty(sphere_fit):
     unc = read_image(model / "uncertainty.exr", channels=3)
     assert unc.shape[:2] == (man["atlas"]["height"], man["atlas"]["width"])
     assert np.isfinite(unc).all() and (unc >= 0).all()
-    assert (model / "materials.png").is_file()
+    # materials.png: every texel of the one material in its colour, black elsewhere (within half an 8-bit
+    # sRGB code: at most 0.0045 in linear near 0.9)
+    colours = read_image(model / "materials.png", channels=3)
+    assert colours.shape == unc.shape
+    on = colours.reshape(-1, 3).max(axis=1) > 0
+    assert on.sum() == mat["materials"][0]["texels"] > 0
+    assert np.abs(colours.reshape(-1, 3)[on] - MATERIAL_PALETTE[0]).max() < 0.01
 
 
 def test_traced_materials_option_runs_the_materials_step_on_traced_taps(sphere_fit):
