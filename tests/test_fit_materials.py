@@ -339,10 +339,12 @@ def test_traced_materials_option_runs_the_materials_step_on_traced_taps(sphere_f
     fit_stage(root / "cap", root / "cap" / "ground_truth", root / "model_traced", cfg, progress=False)
     man = json.loads((root / "model_traced" / "model.json").read_text())
     assert man["materials"]["traced"] is True and man["materials"]["chosen"] != "per-texel"
-    # the traced test is confirmed at the materials' lobes: the texels it took away are recorded beside the rest
+    # the traced test is confirmed at the materials' lobes: the texels it took away are recorded beside the rest.
+    # On this sphere it takes none (measured): every texel whose lobe the traced fit constrains saw its
+    # material's highlight too; a count here means the traced evidence or the second test changed
     unc = man["materials"]["uncertainty"]
-    assert 0 <= man["materials"]["unconfirmed_at_material_lobe"]
-    assert unc["constrained_texels"] + man["materials"]["unconfirmed_at_material_lobe"] <= unc["seen_texels"]
+    assert man["materials"]["unconfirmed_at_material_lobe"] == 0
+    assert 0 < unc["constrained_texels"] < unc["seen_texels"]  # the lobe constrained where a photo saw it only
     stages = [r.get("stage") for r in json.loads((root / "model_traced" / "trace.json").read_text())]
     first_polish, first_materials = stages.index("traced polish"), stages.index("materials")
     assert first_polish < first_materials  # the per-texel fit polished before the materials' evidence
