@@ -119,7 +119,7 @@ def test_the_cpu_reproduces_its_recording(recording, case):
     recorded it reproduces the recording bitwise. Another x86 CPU or C library may round exp / log / pow
     (or fuse a multiply-add) differently in the last digit of a float32 residual: that is one of the two
     causes of the CUDA differences below (the other, the order of float32 sums, is the same on every CPU),
-    so the bounds are a tenth of CUDA's; a change of the fit's arithmetic (another step, sum, start or
+    so the bounds are a tenth of CUDA's or less; a change of the fit (another step, start, penalty or
     model) moves the objective by far more than 1e-6."""
     if "cpu" not in DEVICES:
         pytest.skip("this Warp has no CPU compiler (the GPU machine's): the CPU side runs on CI")
@@ -130,15 +130,16 @@ def test_the_cpu_reproduces_its_recording(recording, case):
 @pytest.mark.cuda
 @pytest.mark.parametrize("case", CASES)
 def test_cuda_fits_match_the_cpu_recording(recording, case):
-    """CUDA against the CPU, same photos (measured on the flat sample at 24 photos of 48 pixels, H100,
-    docs/devices.md): the objective within 1.5e-6 relative (LM fp32; float32 partial sums added in another
-    order on the GPU, and exp / log / pow differing in the last digit), parameters at the 99th percentile
-    within 2.4e-5, single parameters up to 4e-3 but only on texels with at most 6 samples. The bounds
-    leave a factor of about 7 on the objective and 4 on the percentile, and 1e-3 on each well-sampled
-    parameter."""
+    """CUDA against the CPU, same photos (measured on a larger flat sample, 2,809 texels seen by 24 photos
+    of 48 pixels, H100 against this CPU, docs/devices.md): the objective within 1.5e-6 relative (LM fp32:
+    float32 partial sums added in another order on the GPU, and exp / log / pow differing in the last
+    digit), parameters within 2.4e-5 at the 99th percentile, and every parameter off by more than 1e-3 on
+    a texel of at most 6 samples (up to 4e-3 for LM, and 1.0 for CG: a lobe the photos do not fix). The
+    bounds leave a factor of about 7 on the objective, 4 on the percentile and 5 on each parameter of a
+    well-sampled texel. Not yet run against this recording: the GPU machine runs it (``-k cuda``)."""
     device = cuda_device_or_skip()
     compare(recording, case, fit_recorded_inputs(recording, case, device),
-            objective_rtol=1e-5, params_rtol=1e-3, params_p99=1e-4)
+            objective_rtol=1e-5, params_rtol=5e-3, params_p99=1e-4)
 
 
 BLOCKED = ("OpenImageIO", "cv2", "pycolmap", "pymeshlab", "xatlas")
