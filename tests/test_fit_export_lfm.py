@@ -78,7 +78,7 @@ def test_unlit_equals_the_full_model_when_the_view_maps_are_constant(lfm_model, 
 
 def test_lfm_exports_an_unlit_glb_and_obj_with_its_maps(lfm_model, tmp_path):
     from texstream.fit.models.lfm.model_folder import load_lfm_model
-    from test_fit_export import assert_srgb_codes, glb_images, trimesh  # pygltflib, trimesh, PIL or a skip
+    from test_fit_export import assert_srgb_codes, glb_images, trimesh  # the independent readers (test extra)
 
     out = tmp_path / "export"
     res = E.export_stage(lfm_model, out)
