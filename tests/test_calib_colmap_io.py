@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import json
 
+import cv2
 import numpy as np
+import pycolmap
 import pytest
 
 from texstream.calib.colmap_io import (camera_to_intrinsics, import_colmap, import_nerfstudio,
@@ -12,9 +14,6 @@ from texstream.calib.colmap_io import (camera_to_intrinsics, import_colmap, impo
 from texstream.capture.capture_json import read_capture
 from texstream.capture.conventions import w2c_cv_to_c2w_gl
 from texstream.core.errors import InputError
-
-pytest.importorskip("pycolmap")
-cv2 = pytest.importorskip("cv2")
 
 
 def _colmap_project(root):
@@ -43,7 +42,10 @@ def test_import_colmap_text_model(tmp_path):
     np.testing.assert_allclose(b.R, [[c, 0, c], [0, 1, 0], [-c, 0, c]], atol=1e-6)
     assert a.intrinsics.camera_model == "OPENCV" and a.intrinsics.cx == 32.5
     assert a.intrinsics.distortion == {"k1": 0.01, "k2": -0.002, "p1": 0.001, "p2": 0.0005}
-    assert (tmp_path / "cap" / "images" / "b.png").is_file() and (tmp_path / "cap" / "sparse" / "0").is_dir()
+    # the photos and the model travel with the capture: b.png's pixels, the model's two images
+    assert np.array_equal(cv2.imread(str(tmp_path / "cap" / "images" / "b.png")), np.full((48, 64, 3), 100, np.uint8))
+    model = pycolmap.Reconstruction(str(tmp_path / "cap" / "sparse" / "0"))
+    assert sorted(im.name for im in model.images.values()) == ["a.png", "b.png"]
     # An image missing from the folder is reported, not fatal.
     (tmp_path / "proj" / "images" / "b.png").unlink()
     res = import_colmap(tmp_path / "proj", tmp_path / "cap2")
@@ -78,8 +80,6 @@ def test_import_nerfstudio(tmp_path):
     ("OPENCV_FISHEYE", [100, 101, 32, 24, 0.1, -0.01, 0.001, 0.002])])
 def test_camera_model_round_trip(model, params):
     """COLMAP camera -> capture intrinsics -> COLMAP camera projects identically (same distortion)."""
-    import pycolmap
-
     intr = camera_to_intrinsics(model, np.array(params, float), 64, 48)
     m2, p2 = intrinsics_to_colmap(intr)
     c1 = pycolmap.Camera(model=model, width=64, height=48, params=params)

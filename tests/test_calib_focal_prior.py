@@ -94,7 +94,6 @@ def test_registration_recovers_from_a_prior_six_times_too_long(tmp_path):
     """24 JPEGs (480 x 320) of the textured sphere whose EXIF says the full sensor's focal-plane resolution
     (6x the exported pixels per mm) with the tags that would expose it (PixelXDimension, Make, Model) left
     out: ingest cannot catch it, the mapping with it registers 3 of 24 photos, the one without a prior all."""
-    pytest.importorskip("pycolmap")
     from texstream.calib.ingest import ingest
     from texstream.calib.register import RegisterConfig, register
     from texstream.capture.capture_json import read_capture

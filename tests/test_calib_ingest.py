@@ -4,16 +4,15 @@ from __future__ import annotations
 
 import json
 
+import cv2
 import numpy as np
+import OpenImageIO as oiio
 import pytest
 
 from texstream.calib.hdr import calibrate_response, group_brackets, merge_brackets_8bit, merge_brackets_linear
 from texstream.calib.ingest import IngestConfig, apply_orientation, ingest
 from texstream.capture.capture_json import read_capture
 from texstream.core.errors import InputError, StageError
-
-oiio = pytest.importorskip("OpenImageIO")
-cv2 = pytest.importorskip("cv2")
 
 
 def _write(path, codes, **attrs):

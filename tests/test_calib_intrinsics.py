@@ -3,17 +3,16 @@
 from __future__ import annotations
 
 import json
-import time
 
+import cv2
 import numpy as np
 import pytest
 
 from conftest import need_data
 from texstream.calib.boards import parse_board
 from texstream.calib.intrinsics import CalibrateConfig, calibrate, intrinsics_for_size, load_intrinsics
+from texstream.core.config import load_config
 from texstream.core.errors import ConfigError, InputError, StageError
-
-cv2 = pytest.importorskip("cv2")
 
 
 def _plain_opencv(folder):
@@ -36,7 +35,8 @@ def test_chessboard_matches_opencv(data_dir, tmp_path):
     photos = need_data(data_dir, "opencv_chessboard")
     ref_rms, ref_k = _plain_opencv(photos)
     # Same views, same 5-coefficient model as plain calibrateCamera: no outlier rejection.
-    res = calibrate(photos, tmp_path / "cal", CalibrateConfig(board="chessboard:9x6", reject_outliers=False))
+    cfg = CalibrateConfig(board="chessboard:9x6", reject_outliers=False)
+    res = calibrate(photos, tmp_path / "cal", cfg)
     cam = res.summary["cameras"][0]
     assert res.summary["found"] == 13 and not res.summary["not_found"]
     # Done-when: RMS within 0.1 px of OpenCV's own result on the same corners.
@@ -47,7 +47,7 @@ def test_chessboard_matches_opencv(data_dir, tmp_path):
     assert abs(cam["cx"] - (ref_k[0, 2] + 0.5)) < 2.0
     intr = load_intrinsics(tmp_path / "cal")
     assert intr[0].width == 640 and intr[0].camera_model == "OPENCV" and "k3" in intr[0].distortion
-    assert (tmp_path / "cal" / "calibrate_config.json").exists()
+    assert load_config(CalibrateConfig, tmp_path / "cal" / "calibrate_config.json") == cfg  # what made it
 
     # Default: outlier rejection drops left02 (its view RMS ~1.2 px vs a ~0.2 px median) and lowers RMS.
     res2 = calibrate(photos, tmp_path / "cal2", CalibrateConfig(board="chessboard:9x6"))
@@ -88,7 +88,6 @@ def test_charuco_synthetic_recovers_intrinsics(tmp_path):
     k = np.array([[700.0, 0, 330.0], [0, 705.0, 235.0], [0, 0, 1]])
     dist = np.array([-0.12, 0.05, 0.001, -0.0005])
     size = (640, 480)
-    t0 = time.time()
     spec = _render_charuco_set(tmp_path / "board", k, dist, size)
     res = calibrate(tmp_path / "board", tmp_path / "cal", CalibrateConfig(board=spec, model="opencv"))
     cam = res.summary["cameras"][0]
@@ -103,8 +102,6 @@ def test_charuco_synthetic_recovers_intrinsics(tmp_path):
     d_est = np.array(doc["opencv_dist"])[:4]
     err = np.abs(_distortion_field(k, dist, size) - _distortion_field(k_est, d_est, size)).max()
     assert err < 0.3, err
-    # Render + calibrate budget on a 2-core box.
-    assert time.time() - t0 < 30
 
 
 def test_calibrate_bad_inputs(tmp_path, data_dir):

@@ -12,9 +12,8 @@ from texstream.calib.lights import (LightsConfig, estimate_lights, light_from_vi
                                     reflect_at_sphere, triangulate_rays)
 from texstream.capture.capture_json import Capture, Frame, Intrinsics, read_capture, write_capture
 from texstream.capture.conventions import look_at_w2c
+from texstream.core.config import config_to_dict
 from texstream.core.errors import ConfigError, InputError
-
-pytest.importorskip("OpenImageIO")
 
 W = H = 160
 FOV = 22.0
@@ -133,7 +132,8 @@ def _point_bound(dist, baseline, ray_deg=0.25):
 
 def test_point_light_from_a_known_ball_in_four_photos(tmp_path):
     cap = make_ball_capture(tmp_path / "cap", [BALL], ("point", POINT, 0.15), [-100, -60, -10, 40])
-    res = estimate_lights(cap, tmp_path / "lights", LightsConfig(sphere=(0.0, 0.0, 0.0, 0.25), intensity=(5.0,)))
+    cfg = LightsConfig(sphere=(0.0, 0.0, 0.0, 0.25), intensity=(5.0,))
+    res = estimate_lights(cap, tmp_path / "lights", cfg)
     s = res.summary
     assert s["kind"] == "point" and s["views"] == 4
     err = np.linalg.norm(np.array(s["light"]["position"]) - POINT)
@@ -142,7 +142,9 @@ def test_point_light_from_a_known_ball_in_four_photos(tmp_path):
     default, _ = load_lights_file(tmp_path / "lights")  # the folder itself is a lights file for ingest
     assert default.type == "point" and list(default.intensity) == [5.0, 5.0, 5.0]
     rep = json.loads((tmp_path / "lights" / "lights_report.json").read_text())
-    assert len(rep["observations"]) == 4 and (tmp_path / "lights" / "lights_config.json").is_file()
+    assert len(rep["observations"]) == 4
+    saved = json.loads((tmp_path / "lights" / "lights_config.json").read_text())
+    assert saved == json.loads(json.dumps(config_to_dict(cfg)))  # the options that made it
     print(f"point light from 4 views: error {err:.4f} units ({100 * err / np.linalg.norm(POINT):.3f}% of distance)")
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 
@@ -13,9 +14,6 @@ from texstream.calib.masks import MaskConfig, compute_mask, make_masks, mask_iou
 from texstream.capture.capture_json import read_capture
 
 from conftest import need_data
-
-cv2 = pytest.importorskip("cv2")
-pytest.importorskip("OpenImageIO")
 
 
 @pytest.fixture(scope="module")
@@ -43,7 +41,7 @@ def turntable(tmp_path_factory):
 
 def test_auto_masks_match_the_renderers_masks(turntable, tmp_path):
     from texstream.calib.ingest import IngestConfig, ingest
-    from texstream.capture.imageio import read_mask
+    from texstream.capture.imageio import read_image, read_mask
 
     src, truth = turntable
     res = ingest(src, tmp_path / "cap", IngestConfig(auto_masks="auto"))
@@ -54,7 +52,15 @@ def test_auto_masks_match_the_renderers_masks(turntable, tmp_path):
     # Done-when: IoU >= 0.98 per photo. Measured 0.990-0.991: what is left is the one-pixel rim where the
     # surface turns away from the camera light (as dark as the background, sRGB ~0.05).
     assert min(ious) >= 0.98, ious
-    assert (tmp_path / "cap" / "previews" / "masks.png").is_file()
+    # previews/masks.png: the 6 photos as 160 px tiles (3 x 2, 2 px gaps), each with its mask's outline
+    # drawn in pure green (codes 0, 255, 0): 372 pixels in each tile measured, the object's silhouette at
+    # 160 px; a missing or empty mask draws none
+    sheet = read_image(tmp_path / "cap" / "previews" / "masks.png", linear=False)
+    assert sheet.shape == (2 * 162 + 2, 3 * 162 + 2, 3)
+    green = np.all(sheet == (0.0, 1.0, 0.0), axis=2)
+    for k in range(6):
+        r, c = divmod(k, 3)
+        assert green[2 + r * 162:2 + r * 162 + 160, 2 + c * 162:2 + c * 162 + 160].sum() > 200, k
     rep = json.loads((tmp_path / "cap" / "ingest_report.json").read_text())
     assert set(rep["auto_masks"]["photos"]) == {f"view{i:02d}" for i in range(6)}
 

@@ -14,9 +14,6 @@ from texstream.capture.capture_json import read_capture
 
 from conftest import pose_errors
 
-pytest.importorskip("pycolmap")
-pytest.importorskip("OpenImageIO")
-
 
 @pytest.fixture(scope="module")
 def sphere_capture(tmp_path_factory):

@@ -17,9 +17,6 @@ import shutil
 import numpy as np
 import pytest
 
-pytest.importorskip("cv2")
-pytest.importorskip("OpenImageIO")
-
 from texstream.calib.metashape import MetashapeImportConfig, import_metashape, read_metashape  # noqa: E402
 from texstream.calib.posed_import import LensCamera, undistort_photo  # noqa: E402
 from texstream.calib.realitycapture import RealityCaptureImportConfig, import_realitycapture  # noqa: E402

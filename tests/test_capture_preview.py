@@ -62,7 +62,14 @@ def test_contact_sheet_bad_input(tmp_path):
 def test_cli_preview(tmp_path, capsys):
     cap = _capture(tmp_path / "cap", n=3)
     assert main(["preview", str(cap), "--thumb", "24"]) == 0
-    assert (cap / "contact_sheet.png").exists()
+    # the 3 photos as tiles of 24 px (2 x 2 grid, 2 px gaps), auto exposure taking the brightest (0.3) to 0.9:
+    # each tile's median (clear of its label) at 0.3, 0.6, 0.9 within half an 8-bit sRGB code
+    sheet = read_image(cap / "contact_sheet.png")
+    assert sheet.shape == (2 * 26 + 2, 2 * 26 + 2, 3)
+    for k in range(3):
+        r, c = divmod(k, 2)
+        tile = sheet[2 + r * 26:2 + r * 26 + 24, 2 + c * 26:2 + c * 26 + 24, 0]
+        assert np.median(tile) == pytest.approx(0.3 * (k + 1), abs=5e-3), k
     assert main(["preview", str(tmp_path / "missing")]) == 1
     err = capsys.readouterr().err
     assert "missing" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
@@ -128,16 +135,10 @@ def test_import_formats_share_option_names_only_with_equal_types():
     import dataclasses
     import typing
 
+    from texstream.calib.colmap_io import ColmapImportConfig, NerfstudioImportConfig
     from texstream.capture.middlebury import MiddleburyImportConfig
 
-    classes = [MiddleburyImportConfig]
-    try:
-        from texstream.calib import colmap_io
-    except ModuleNotFoundError:
-        colmap_io = None
-    for name in ("ColmapImportConfig", "NerfstudioImportConfig"):
-        if colmap_io is not None and hasattr(colmap_io, name):
-            classes.append(getattr(colmap_io, name))
+    classes = [MiddleburyImportConfig, ColmapImportConfig, NerfstudioImportConfig]
     seen: dict[str, tuple[object, str]] = {}
     for cls in classes:
         hints = typing.get_type_hints(cls)

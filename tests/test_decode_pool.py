@@ -13,8 +13,6 @@ from texstream.fit.stream import decode_pool
 from texstream.fit.stream.photo_stream import PhotoLoader
 from texstream.render.camera import PhotoFrame
 
-pytest.importorskip("OpenImageIO", reason="decoding photo files needs OpenImageIO")
-
 SMALL = dict(scale=0.02, photos=10, image_size=40, progress=False)
 
 

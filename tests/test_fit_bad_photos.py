@@ -17,7 +17,6 @@ SMALL = dict(scale=0.02, photos=10, image_size=40, progress=False)
 @pytest.fixture(scope="module")
 def broken_capture(tmp_path_factory):
     """The small ornament's capture folder with its 6th photo truncated (a valid header, no pixel data)."""
-    pytest.importorskip("OpenImageIO", reason="writing and reading a capture folder needs OpenImageIO")
     from conftest import SCENE_DEVICE
     from texstream.capture.capture_json import read_capture
     from texstream.capture.synthetic.synth import SynthConfig, synthesize

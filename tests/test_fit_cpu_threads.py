@@ -56,7 +56,6 @@ def test_threaded_config_tiles_on_the_cpu():
 @pytest.fixture(scope="module")
 def capture_dir(tmp_path_factory):
     """A small ornament written as a capture folder (float EXR photos, masks)."""
-    pytest.importorskip("OpenImageIO", reason="writing and reading a capture folder needs OpenImageIO")
     from conftest import DEVICES, SCENE_DEVICE
     from texstream.capture.synthetic.synth import SynthConfig, synthesize
 

@@ -18,7 +18,10 @@ import math
 import types
 
 import numpy as np
+import PIL.Image as PIL_Image
+import pygltflib
 import pytest
+import trimesh
 
 from texstream.capture.imageio import linear_to_srgb
 from texstream.capture.synthetic.procedural import flat_sample
@@ -29,10 +32,6 @@ from texstream.fit.stages import export as E
 from texstream.render.layout import MODEL_KINDS, ModelLayout
 from texstream.render.mesh import SurfaceMesh
 from texstream.geometry.mesh_io import load_mesh, save_mesh
-
-trimesh = pytest.importorskip("trimesh")
-pygltflib = pytest.importorskip("pygltflib")
-PIL_Image = pytest.importorskip("PIL.Image")
 
 H = W = 8
 HALF_CODE = 0.5 / 255 + 1e-6  # nearest-code rounding (+ float32 encode)

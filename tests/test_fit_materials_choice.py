@@ -122,7 +122,6 @@ def unique_count(x: np.ndarray, k: int) -> int:
 @pytest.fixture(scope="module")
 def small_capture(tmp_path_factory):
     """The small ornament written as a capture folder (float EXRs, masks, its true atlas)."""
-    pytest.importorskip("OpenImageIO")
     from texstream.capture.synthetic.synth import SynthConfig, synthesize
 
     root = tmp_path_factory.mktemp("choice_first")
@@ -156,7 +155,8 @@ def test_fit_from_validation_keeps_the_choice_and_the_optimum(small_capture):
                       for c in m["materials"]["candidates"]]
     assert pick(warm) == pick(cold)
     assert warm["materials"]["chosen"] == cold["materials"]["chosen"]
-    assert warm["timings_s"]["choice_before_fit"] > cold["timings_s"]["choice_before_fit"]  # cold: none, ~0 s
+    # the choice ran first and the full fit started from the validation split's fit (no clock needed: a fit
+    # from the initial guess takes as many iterations as the cold one)
     core = lambda m: sum(1 for r in json.loads((small_capture / m / "trace.json").read_text()) if "stage" not in r)
     assert core("warm") < 0.8 * core("cold")  # here 145 against 240: the split saw 14 of the 16 photos
     assert warm["final"]["objective"] == pytest.approx(cold["final"]["objective"], rel=5e-3)

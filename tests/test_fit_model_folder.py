@@ -30,7 +30,9 @@ def test_child_draws_the_plot_the_stage_would(tmp_path):
     drawn = (tmp_path / "error_vs_time.png").read_bytes()
     # same code and matplotlib in both processes; the trace read back from JSON has None for inf
     assert drawn == trace_plot_png(TRACE, "title")
-    assert (tmp_path / "trace.json").is_file()
+    # the trace the child drew from, as JSON allows it (inf is not a JSON number)
+    assert json.loads((tmp_path / "trace.json").read_text()) == [dict(r, psnr_db=None) if k == 0 else r
+                                                                  for k, r in enumerate(TRACE)]
 
 
 def test_a_failing_stage_stops_the_child(tmp_path):

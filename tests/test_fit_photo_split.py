@@ -12,7 +12,8 @@ import pytest
 from texstream.core.errors import ConfigError
 from texstream.fit.optim.fitter import FitConfig, initial_guess, run_fit
 from texstream.fit.stream.penalties import PenaltyConfig
-from texstream.fit.multi.photo_split import DevicePhotos, split_bounds
+from texstream.fit.common import setup
+from texstream.fit.multi.photo_split import DevicePhotos, check_split_devices, split_bounds
 from texstream.fit.stream.config import StreamConfig
 from texstream.fit.stages.stage import build_problem
 
@@ -135,11 +136,19 @@ def test_split_photos_subset_and_refusals(scene, device):
         problem(scene, split(fit_config(photo_residency="host"), f"{device},{device}"), device)
 
 
-def test_split_photos_need_the_fit_device_first(scene):
-    if len(DEVICES) < 2:
-        pytest.skip("needs a second device kind (CPU and CUDA) to list another device first")
-    with pytest.raises(ConfigError, match="not the fit's device"):
-        problem(scene, split(fit_config(), f"{DEVICES[1]},{DEVICES[0]}"), DEVICES[0])
+def test_split_photos_need_the_fit_device_first_and_one_device_kind(scene, device, monkeypatch):
+    """The device list's refusals, on any machine: the list is checked by name before any device is used
+    (the set-up is then told that the machine has the devices listed, which it checks first)."""
+    with pytest.raises(ConfigError, match="starts with cuda:1, not the fit's device cuda:0"):
+        check_split_devices(["cuda:1", "cuda:0"], "cuda:0")
+    with pytest.raises(ConfigError, match="mixes the CPU and CUDA devices"):
+        check_split_devices(["cpu", "cuda:0"], "cpu")
+    check_split_devices(["cuda:0", "cuda:1"], "cuda:0")
+    check_split_devices(["cpu", "cpu"], "cpu")
+    other = "cuda:0" if device == "cpu" else "cpu"
+    monkeypatch.setattr(setup, "parse_devices", lambda devices, default: [d.strip() for d in devices.split(",")])
+    with pytest.raises(ConfigError, match=f"starts with {other}, not the fit's device {device}"):
+        problem(scene, split(fit_config(), f"{other},{device}"), device)
 
 
 @pytest.mark.skipif(sum(d.startswith("cuda") for d in DEVICES) < 1, reason="needs CUDA")
@@ -166,7 +175,6 @@ def test_fit_stage_with_split_photos(tmp_path):
     held-out photos) with the photos split over two parts: the model of the unsplit stage, to float
     rounding of the sums' order (the photos are few: float32 sums; a texel's step accepted or not near a
     tie can differ, so the maps are compared by their fit, 0.01 dB)."""
-    pytest.importorskip("OpenImageIO")
     import json
 
     from conftest import SCENE_DEVICE, tiny_sphere_capture

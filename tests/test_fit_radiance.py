@@ -63,7 +63,6 @@ def test_layout_table_json_and_param_maps(tmp_path):
     np.testing.assert_array_equal(lay.upper(), 1000.0)
     assert lay.index("L.g") == 1
     assert ModelLayout.from_json(lay.to_json()) == lay
-    pytest.importorskip("OpenImageIO")
     from texstream.capture.synthetic.param_maps import read_param_maps, write_param_maps
 
     grid = np.random.default_rng(0).uniform(0, 5, (6, 5, 3)).astype(np.float32)

@@ -11,8 +11,6 @@ import pytest
 from texstream.fit.optim.fitter import FitConfig
 from texstream.fit.stages.stage import FitStageConfig, fit_stage
 
-pytest.importorskip("OpenImageIO")
-
 from conftest import SCENE_DEVICE, tiny_sphere_capture  # noqa: E402
 
 

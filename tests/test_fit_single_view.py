@@ -13,9 +13,6 @@ import json
 import numpy as np
 import pytest
 
-# the stage reads and writes photo files: OpenImageIO (absent on the GPU machine, present on CI)
-pytest.importorskip("OpenImageIO", reason="single-view stage tests need OpenImageIO for photo files")
-
 from texstream.capture.capture_json import Capture, Frame, Intrinsics, Light, write_capture
 from texstream.fit.optim.fitter import FitConfig
 from texstream.fit.common.single_view import read_normal_map

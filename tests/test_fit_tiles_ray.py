@@ -8,6 +8,7 @@ import os
 
 import numpy as np
 import pytest
+import ray
 
 from texstream.core.errors import ConfigError
 from texstream.fit.optim.fitter import FitConfig, run_fit
@@ -16,15 +17,12 @@ from texstream.fit.stream.config import StreamConfig
 from texstream.fit.stages.stage import build_problem, photo_files
 from texstream.fit.multi.tiles import run_tiled_fit
 
-ray = pytest.importorskip("ray", reason="Ray is the optional extra texstream[distributed] (also in the test extra)")
-
 SMALL = dict(scale=0.02, photos=10, image_size=40, progress=False)
 
 
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory):
     """(capture, mesh, bake) of the small ornament written as a capture folder (float EXR photos, masks)."""
-    pytest.importorskip("OpenImageIO", reason="writing and reading a capture folder needs OpenImageIO")
     from conftest import SCENE_DEVICE
     from texstream.capture.capture_json import read_capture
     from texstream.capture.synthetic.synth import SynthConfig, synthesize

@@ -47,7 +47,6 @@ def test_layout_table_json_and_param_maps(tmp_path):
     assert VIEW.index("view.vyy.b") == VIEW.view_offset(4) + 2 == 17
     assert ModelLayout.from_json(VIEW.to_json()) == VIEW
     np.testing.assert_array_equal(VIEW.lower()[3:], -1000.0)
-    pytest.importorskip("OpenImageIO")
     from texstream.capture.synthetic.param_maps import read_param_maps, write_param_maps
 
     grid = np.random.default_rng(0).normal(size=(6, 5, 18)).astype(np.float32)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -12,6 +14,7 @@ from texstream.geometry.make_mesh import MeshConfig, make_mesh
 from texstream.geometry.mesh_io import load_mesh, save_mesh
 from texstream.geometry.visibility import depth_maps
 from texstream.pipelines.cli import main
+from texstream.core.config import load_config
 from texstream.core.errors import InputError
 from test_geometry_clean import icosphere
 from test_geometry_poisson import sample_surface
@@ -40,13 +43,16 @@ def _capture(tmp_path, masks=True, n_points=0):
 
 def test_auto_picks_hull_when_only_masks(tmp_path):
     root, sphere = _capture(tmp_path)
-    res = make_mesh(root, tmp_path / "out", MeshConfig(faces=2000, hull_resolution=64))
+    cfg = MeshConfig(faces=2000, hull_resolution=64)
+    res = make_mesh(root, tmp_path / "out", cfg)
     assert res.summary["source"] == "hull" and "masks" in res.summary["reason"]
     mesh = load_mesh(tmp_path / "out" / "mesh.ply")
     # 64-node grid: step ~0.04 on a radius-1 sphere; the hull lies outside the sphere by < 3 steps
     r = np.linalg.norm(mesh.vertices, axis=1)
     assert abs(np.median(r) - 1) < 0.05 and mesh.n_faces <= 2000
-    assert (tmp_path / "out" / "mesh_config.json").is_file()
+    # the options that made it, the device resolved ("auto": cuda:0 where there is one, else cpu)
+    saved = load_config(MeshConfig, tmp_path / "out" / "mesh_config.json")
+    assert saved.device in ("cpu", "cuda:0") and dataclasses.replace(saved, device=cfg.device) == cfg
 
 
 def test_too_few_points_fall_back_to_hull_and_say_so(tmp_path):

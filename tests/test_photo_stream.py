@@ -40,7 +40,6 @@ def scene():
 @pytest.fixture(scope="module")
 def capture_dir(tmp_path_factory):
     """The small ornament written as a capture folder (float EXR photos, masks)."""
-    pytest.importorskip("OpenImageIO", reason="writing and reading a capture folder needs OpenImageIO")
     from conftest import SCENE_DEVICE
     from texstream.capture.synthetic.synth import SynthConfig, synthesize
 

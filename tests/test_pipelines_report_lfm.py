@@ -18,8 +18,6 @@ import shutil
 import numpy as np
 import pytest
 
-pytest.importorskip("OpenImageIO")
-
 from conftest import SCENE_DEVICE  # noqa: E402
 from lfm_scenes import fixed_light_sphere_capture  # noqa: E402
 from test_pipelines_report import (H, PSNR_THRESHOLD_DB, SILHOUETTE_MISMATCH_MAX, W, psnr8,  # noqa: E402

@@ -12,8 +12,6 @@ import pytest
 from texstream.core.errors import ConfigError, InputError
 from texstream.pipelines.run import RunConfig, detect_source, run_config_from_dict, run_pipeline
 
-pytest.importorskip("OpenImageIO")
-
 from conftest import SCENE_DEVICE, tiny_sphere_capture  # noqa: E402
 
 

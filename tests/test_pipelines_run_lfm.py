@@ -9,8 +9,6 @@ import json
 
 import pytest
 
-pytest.importorskip("OpenImageIO")
-
 from conftest import SCENE_DEVICE  # noqa: E402
 from lfm_scenes import fixed_light_sphere_capture  # noqa: E402
 
