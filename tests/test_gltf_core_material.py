@@ -19,7 +19,9 @@ import json
 import math
 
 import numpy as np
+import pygltflib
 import pytest
+from PIL import Image as PIL_Image
 
 from texstream.capture.capture_json import Frame, Intrinsics, Light
 from texstream.capture.imageio import linear_to_srgb
@@ -32,8 +34,6 @@ from texstream.render.layout import ModelLayout
 from texstream.render.pose import look_at_w2c
 from texstream.render.renderer import Renderer
 
-pygltflib = pytest.importorskip("pygltflib")
-PIL_Image = pytest.importorskip("PIL.Image")
 
 N = 8  # texels a side
 SIZE = 48  # pixels a side
