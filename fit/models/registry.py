@@ -50,6 +50,8 @@ class ExportMaterial:
             "lafortune", "diffuse" or "radiance".
         extras: model-specific options the export records (export.json, the glTF material's extras),
             e.g. how an LFM's unlit colour was made.
+        emissive: (H, W, 3) linear radiance the surface sends whatever the light (a reflectance model's fitted
+            ambient radiance, the room's light baked in, render/layout.py ``ModelLayout.ambient``), or None.
     """
 
     base: np.ndarray
@@ -62,6 +64,7 @@ class ExportMaterial:
     label: str = "basecolor"
     name: str = ""
     extras: dict = dataclasses.field(default_factory=dict)
+    emissive: np.ndarray | None = None
 
 
 @dataclasses.dataclass
