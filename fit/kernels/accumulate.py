@@ -17,6 +17,33 @@ Both are r_c = s_c (m_c - y_c / w_c) with s_c = w_c or 1, so J_r = s_c J_m and
 d^T H_r d = s_c d^T H_m d. The radiance model (render/layout.py) has w_c = exposure: its passes are
 compiled without the light (:func:`~texstream.fit.kernels.stream.observe_func`, ``layout_funcs(radiance=True)``).
 
+One sample's model (:func:`_sample_model_func`). The residual is W M + N - y (radiance space), M
+the model of the features f (``lafortune_funcs``). Bilinear and point sampling: W = w, f the texel's features at
+(u, v) and N = 0. Filtered sampling: the photo's bilinear filter applied to the model, W = sum_t b_t w_t and M =
+sum_t b_t w_t m_t / W over the four taps t (bilinear weights b_t, each tap's own surface point, light and view),
+so W M is the filtered radiance. w_t is the light's RGB intensity times a scalar a_t (exposure, cosine,
+falloff), so M = sum_t omega_t m_t with omega_t = b_t a_t / sum b a the same for every channel: the taps'
+features are averaged, and M and its Jacobian follow from the mean exactly.
+
+With the renderer's lookup (``lookup``, filtered sampling only) a tap's BRDF is o_t m_t + n_t, o_t the texel's
+own bilinear weight there and n_t its neighbours' blended BRDFs at their held values (:func:`texel_blend`): the
+taps' features are averaged with weights b_t a_t o_t into W M, and N = L sum_t b_t a_t n_t is a constant of the
+texel's parameters. A sample whose taps all miss the texel (o_t = 0) is not usable.
+
+A tap's surface point, normal (and tangent) come from the texel's face plane (:func:`ray_surface`, the
+interpolated normal extended to first order, texel coordinates extended linearly: no mesh access) or, with
+``traced``, from the tap's pixel ray traced to the mesh (:func:`traced_tap`: the point, frame, UV and cast
+shadow the renderer sees, so a tap that leaves the texel's face, e.g. on curved or coarse geometry, lands where
+the photo's pixel looks).
+
+The radiance model (``radiance``) has no light: w_t = b_t exposure (times 1 or 0 for a traced tap that hits the
+mesh or misses, :func:`traced_texel`), W = sum_t w_t and N the neighbours' blended radiance sum_t w_t n_t.
+
+The ambient radiance (``ambient``) adds exposure A to every tap whatever its light (sum_t b_t = 1): its feature is
+a_c = exposure / W_c (fit/kernels/lafortune_grad.py), with the lookup exposure sum_t b_t o_t / W_c and the
+neighbours' blended ambient exposure sum_t b_t n^A_t added to N. Samples whose taps are all unlit stay unusable
+(the observation already rejects shadowed and grazing texel centres): the flash-lit samples fit A.
+
 The data term is sum rho(r_c) with rho(r) = r^2 / 2 (least squares) or a robust loss (Huber, Cauchy;
 ``accumulate_kernel``'s ``robust``), applied per sample as iteratively reweighted least squares.
 """
@@ -178,34 +205,9 @@ def _direction_funcs(anisotropic: int):
 
 def _sample_model_func(lf, frame_directions, lobe_directions, blend: bool, trace: bool, no_light: bool,
                        ambient: bool = False):
-    """The model side of one sample (``sample_model``; ``blend``, ``trace`` and ``no_light`` are
-    :func:`layout_funcs`'s ``lookup``, ``traced`` and ``radiance``). The residual is W M + N - y (radiance space), M
-    the model of the features f (``lafortune_funcs``). Bilinear and point sampling: W = w, f the texel's features at
-    (u, v) and N = 0. Filtered sampling: the photo's bilinear filter applied to the model, W = sum_t b_t w_t and M =
-    sum_t b_t w_t m_t / W over the four taps t (bilinear weights b_t, each tap's own surface point, light and view),
-    so W M is the filtered radiance. w_t is the light's RGB intensity times a scalar a_t (exposure, cosine,
-    falloff), so M = sum_t omega_t m_t with omega_t = b_t a_t / sum b a the same for every channel: the taps'
-    features are averaged, and M and its Jacobian follow from the mean exactly.
-
-    With the renderer's lookup (``lookup``, filtered sampling only) a tap's BRDF is o_t m_t + n_t, o_t the texel's
-    own bilinear weight there and n_t its neighbours' blended BRDFs at their held values (:func:`texel_blend`): the
-    taps' features are averaged with weights b_t a_t o_t into W M, and N = L sum_t b_t a_t n_t is a constant of the
-    texel's parameters. A sample whose taps all miss the texel (o_t = 0) is not usable.
-
-    A tap's surface point, normal (and tangent) come from the texel's face plane (:func:`ray_surface`, the
-    interpolated normal extended to first order, texel coordinates extended linearly: no mesh access) or, with
-    ``traced``, from the tap's pixel ray traced to the mesh (:func:`traced_tap`: the point, frame, UV and cast
-    shadow the renderer sees, so a tap that leaves the texel's face, e.g. on curved or coarse geometry, lands where
-    the photo's pixel looks).
-
-    The radiance model (``radiance``) has no light: w_t = b_t exposure (times 1 or 0 for a traced tap that hits the
-    mesh or misses, :func:`traced_texel`), W = sum_t w_t and N the neighbours' blended radiance sum_t w_t n_t.
-
-    The ambient radiance (``ambient``) adds exposure A to every tap whatever its light (sum_t b_t = 1): its feature is
-    a_c = exposure / W_c (fit/kernels/lafortune_grad.py), with the lookup exposure sum_t b_t o_t / W_c and the
-    neighbours' blended ambient exposure sum_t b_t n^A_t added to N. Samples whose taps are all unlit stay unusable
-    (the observation already rejects shadowed and grazing texel centres): the flash-lit samples fit A.
-    """
+    """The model side of one sample (``sample_model``; ``blend``, ``trace``, ``no_light`` and ``ambient`` are
+    :func:`layout_funcs`'s ``lookup``, ``traced``, ``radiance`` and ``ambient``), as the module doc's "One
+    sample's model" says."""
 
     @wp.func
     def sample_model(pv: Any, dv: Any, infos: wp.array(dtype=ImageInfo), k: int, tex: TexelFrames, i: int, xs: float,
@@ -219,12 +221,7 @@ def _sample_model_func(lf, frame_directions, lobe_directions, blend: bool, trace
             if want_hm != 0:
                 hm = lf.dhd(pv, dv, uc, vc, one)
             wc0 = to_compute3(w, one)
-            feat0 = lf.features(pv, uc, vc, one)
-            if wp.static(ambient):
-                ex = type(one)(infos[k].exposure)
-                tiny0 = type(one)(1.0e-30)
-                feat0 = lf.set_ambient(feat0, type(uc)(ex / wp.max(wc0[0], tiny0), ex / wp.max(wc0[1], tiny0),
-                                                       ex / wp.max(wc0[2], tiny0)))
+            feat0 = lf.set_ambient(lf.features(pv, uc, vc, one), type(one)(infos[k].exposure), wc0)
             return True, wc0, feat0, hm, wp.vec3(0.0)
         x0 = int(xs)
         y0 = int(ys)
@@ -314,14 +311,9 @@ def _sample_model_func(lf, frame_directions, lobe_directions, blend: bool, trace
         if wp.static(blend):
             offset = wp.cw_mul(infos[k].light_intensity, nsum)
         weight = to_compute3(infos[k].light_intensity * asum, one)
-        feat = feat * inv
         if wp.static(ambient):
             offset = offset + exposure * amb_other
-            ea = type(one)(exposure * own_b)
-            tiny = type(one)(1.0e-30)
-            feat = lf.set_ambient(feat, type(uc)(ea / wp.max(weight[0], tiny), ea / wp.max(weight[1], tiny),
-                                                 ea / wp.max(weight[2], tiny)))
-        return asum > 0.0, weight, feat, hsum * inv, offset
+        return asum > 0.0, weight, lf.set_ambient(feat * inv, type(one)(exposure * own_b), weight), hsum * inv, offset
 
     return sample_model
 

@@ -74,12 +74,13 @@ class LafortuneFuncs(NamedTuple):
     dm_c/dp, t < ``row_nonzeros``: t = 0 rho_d,c; 1..K rho_s,j,c; then the lobes' C and n."""
     row_nonzeros: int
     set_ambient: Any
-    """``set_ambient(f, a)``: the features ``f`` with the ambient ones f[A_c] = a_c (a: the sample's exposure over
-    its weight per channel, see the module doc); ``f`` unchanged for a layout without ambient."""
+    """``set_ambient(f, share, weight)``: the features ``f`` with the ambient ones f[A_c] = share / W_c (share: the
+    sample's exposure times texel i's share of its taps, W: the sample's weight, see the module doc); ``f``
+    unchanged for a layout without ambient."""
 
 
 @wp.func
-def no_ambient(f: Any, a: Any):
+def no_ambient(f: Any, share: Any, weight: Any):
     return f
 
 
@@ -207,10 +208,11 @@ def lafortune_funcs(n_lobes: int, anisotropic: int, ambient: bool = False) -> La
         return out
 
     @wp.func
-    def set_ambient(f: Any, a: Any):
+    def set_ambient(f: Any, share: Any, weight: Any):
+        tiny = share - share + type(share)(1.0e-30)  # a weight of 0 (an unlit channel): no inf
         out = f
         for c in range(3):
-            out[wp.static(amb) + c] = a[c]
+            out[wp.static(amb) + c] = share / wp.max(weight[c], tiny)
         return out
 
     return LafortuneFuncs(features, dhd, model_value, jacobian_row, row_entry, row_nonzeros,
