@@ -71,7 +71,8 @@ class LafortuneFuncs(NamedTuple):
     and the lobes' shape columns)."""
     row_entry: Any
     """``row_entry(p, f, c, t)``: (column, value) of the t-th structurally non-zero entry of
-    dm_c/dp, t < ``row_nonzeros``: t = 0 rho_d,c; 1..K rho_s,j,c; then the lobes' C and n."""
+    dm_c/dp, t < ``row_nonzeros``: t = 0 rho_d,c; 1..K rho_s,j,c; then the lobes' C and n; last the ambient's A_c
+    (a layout with it)."""
     row_nonzeros: int
     set_ambient: Any
     """``set_ambient(f, share, weight)``: the features ``f`` with the ambient ones f[A_c] = share / W_c (share: the
