@@ -13,6 +13,9 @@ coordinates and the four values are blended with the bilinear weights. At a texe
 exactly the BRDF the fit models at that texel. E comes from :func:`incident_light`; L is zero
 where the light is behind the shading normal or the shadow ray is blocked.
 
+A layout with an ambient radiance A (render/layout.py ``ModelLayout.ambient``) adds A, looked up bilinearly the
+same way, to every pixel on the object, lit by the flash or not (the room lights the shadows too).
+
 The radiance model (fit/models) renders with a ``LIGHT_NONE`` light: L is the texels' radiance
 columns looked up the same way (no light, cosine or shadow ray).
 
@@ -60,12 +63,27 @@ def shade_view_texel_grid(params: wp.array2d(dtype=wp.float32), tex_w: int, tex_
     return wp.max(out, wp.vec3(0.0))
 
 
+@wp.func
+def ambient_texel_grid(params: wp.array2d(dtype=wp.float32), tex_w: int, tex_h: int, uv: wp.vec2, col: int):
+    """Bilinear blend of the ambient radiance (columns ``col``..``col + 2``) of the four texels around ``uv``."""
+    x, y = texel_coords(uv, tex_w, tex_h)
+    x0, y0, fx, fy = bilinear_taps(x, y, tex_w, tex_h)
+    out = wp.vec3(0.0)
+    for corner in range(4):
+        cx = corner % 2
+        cy = corner // 2
+        b = (fx * float(cx) + (1.0 - fx) * float(1 - cx)) * (fy * float(cy) + (1.0 - fy) * float(1 - cy))
+        row = (y0 + cy) * tex_w + x0 + cx
+        out = out + b * wp.vec3(params[row, col], params[row, col + 1], params[row, col + 2])
+    return out
+
+
 @wp.kernel(enable_backward=False)
 def render_kernel(mesh_id: wp.uint64,
                   points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
                   normals: wp.array(dtype=wp.vec3), uvs: wp.array(dtype=wp.vec2),
                   params: wp.array2d(dtype=wp.float32), tex_w: int, tex_h: int, n_lobes: int, aniso: int,
-                  view_terms: int, cam: ImageInfo, shadow_eps: float, shadows: int,
+                  view_terms: int, ambient_col: int, cam: ImageInfo, shadow_eps: float, shadows: int,
                   radiance: wp.array2d(dtype=wp.vec3), mask: wp.array2d(dtype=wp.uint8),
                   depth: wp.array2d(dtype=wp.float32), face_id: wp.array2d(dtype=wp.int32)):
     """Render one image; launch with dim = (height, width).
@@ -79,7 +97,7 @@ def render_kernel(mesh_id: wp.uint64,
     whose parameters are the radiance). Shadow rays start at the hit moved by ``shadow_eps`` (world units) along the geometric face
     normal, on the light's side of the face, so a ray cannot re-hit its own triangle (acne);
     the renderer sets it to 1e-4 x the mesh's bounding-box diagonal. They end ``shadow_eps``
-    short of a point light.
+    short of a point light. ``ambient_col`` >= 0: the layout's ambient columns, added everywhere on the object.
     """
     j, i = wp.tid()
     # primary ray: camera-space direction through the pixel centre, then to world
@@ -109,6 +127,10 @@ def render_kernel(mesh_id: wp.uint64,
         else:
             radiance[j, i] = shade_texel_grid(params, tex_w, tex_h, n_lobes, aniso, uv, n, n)
         return
+    ambient = wp.vec3(0.0)
+    if ambient_col >= 0:
+        ambient = ambient_texel_grid(params, tex_w, tex_h, uv, ambient_col)
+        radiance[j, i] = ambient
     l, e, dist = incident_light(cam.light_kind, cam.light_vec, cam.light_intensity, pos)
     cos_i = wp.dot(n, l)
     if cos_i <= 0.0:
@@ -125,4 +147,4 @@ def render_kernel(mesh_id: wp.uint64,
     u_local = to_local(l, tg, bt, n)
     v_local = to_local(-d, tg, bt, n)
     f = shade_texel_grid(params, tex_w, tex_h, n_lobes, aniso, uv, u_local, v_local)
-    radiance[j, i] = wp.cw_mul(f, e) * cos_i
+    radiance[j, i] = ambient + wp.cw_mul(f, e) * cos_i

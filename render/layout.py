@@ -42,6 +42,11 @@ mesh make view-dependent (a sheen, the parallax of geometry the mesh misses) whi
 per texel averages away. The a_k are pulled towards 0 by a ridge prior (``FitConfig.view_prior``):
 a texel seen from few directions falls back to the view-independent L. Linear in its parameters, so
 Gauss-Newton is exact; same light-free weight W = exposure as "radiance".
+
+Ambient (``ModelLayout.ambient``, reflectance kinds whose traits allow it): a per-texel radiance A (RGB) that
+the room's own light adds to the flash-lit reflectance, seen the same from every view and under every light
+position. A sample predicts ``exposure * (f_r E cos(theta_i) + A)``; its columns ``<kind>.ambient.{r,g,b}``
+come last, in photo value / exposure units like the radiance model's L, with a lower bound 0.
 """
 
 from __future__ import annotations
@@ -67,12 +72,15 @@ class LayoutTraits:
         lobes: the kind carries specular lobes (n_lobes > 0 allowed); False forces n_lobes = 0.
         view_terms: view-direction terms phi_k per channel (the first ``view_terms`` of VIEW_TERMS).
         robust_loss: the fit's robust loss under ``robust_loss auto`` (fit/optim/fitter.py).
+        ambient: the kind may carry a per-texel ambient radiance beside the lit reflectance (``ModelLayout.ambient``,
+            the fit's ``ambient`` option); a light-free kind never does (its radiance is all the light there is).
     """
 
     lit: bool = True
     lobes: bool = True
     view_terms: int = 0
     robust_loss: str = "none"
+    ambient: bool = False
 
 
 _KIND_TRAITS: dict[str, LayoutTraits] = {}
@@ -159,17 +167,22 @@ class ModelLayout:
         n_lobes: number of specular lobes K (0..MAX_LOBES).
         anisotropic: general C_x, C_y, C_z instead of the isotropic C_xy, C_z.
         lobe_shape: "free" (c_z fitted) or "phong" (c_z held at 1; see the module doc).
+        ambient: a per-texel ambient radiance A (RGB) in the last three columns (see the module doc); kinds whose
+            traits do not allow it (``LayoutTraits.ambient``) have none.
     """
 
     kind: str = "lafortune"
     n_lobes: int = 1
     anisotropic: bool = False
     lobe_shape: str = "free"
+    ambient: bool = False
 
     def __post_init__(self) -> None:
         traits = layout_traits(self.kind)
         if not traits.lobes and self.n_lobes != 0:
             object.__setattr__(self, "n_lobes", 0)
+        if self.ambient and not (traits.ambient and traits.lit):
+            object.__setattr__(self, "ambient", False)
         if not traits.lit:  # no lobes: nothing anisotropic, no lobe shape
             object.__setattr__(self, "anisotropic", False)
             object.__setattr__(self, "lobe_shape", "free")
@@ -198,7 +211,12 @@ class ModelLayout:
 
     @property
     def n_params(self) -> int:
-        return 3 + self.n_lobes * self.lobe_stride + 3 * self.view_terms
+        return 3 + self.n_lobes * self.lobe_stride + 3 * self.view_terms + 3 * int(self.ambient)
+
+    @property
+    def ambient_offset(self) -> int:
+        """First column (channel r) of the ambient radiance; -1 without one."""
+        return self.n_params - 3 if self.ambient else -1
 
     def lobe_offset(self, j: int) -> int:
         return 3 + j * self.lobe_stride
@@ -231,6 +249,10 @@ class ModelLayout:
             else:
                 out += [ParamSpec(f"{p}.c_z", "", 0.0, 1.0, 1.0, "normal coefficient in [0, 1]: keeps s <= 1, so the lobe peaks at rho_s and cannot blow up in unobserved directions")]
             out += [ParamSpec(f"{p}.n", "", 1.0, 1.0e4, 10.0, "exponent; >= 1 keeps the objective C1")]
+        if self.ambient:
+            out += [ParamSpec(f"{self.kind}.ambient.{c}", "photo value / exposure", 0.0, 1000.0, 0.0,
+                              "ambient radiance: what the room's light adds, the same from every view and under "
+                              "every light; a sample predicts exposure * (f_r E cos + A)") for c in "rgb"]
         return out
 
     @property
@@ -277,10 +299,11 @@ class ModelLayout:
         return {"kind": self.kind, "n_lobes": self.n_lobes, "anisotropic": self.anisotropic, "lobe_shape": self.lobe_shape,
                 "n_params": self.n_params, "names": self.names,
                 "units": [s.unit for s in self.specs()],
-                "lower": self.lower().tolist(), "upper": self.upper().tolist()}
+                "lower": self.lower().tolist(), "upper": self.upper().tolist(),
+                **({"ambient": True} if self.ambient else {})}  # absent: none (the manifests written before it)
 
     @staticmethod
     def from_json(d: dict) -> "ModelLayout":
-        # model folders written before lobe_shape existed fitted c_z freely
+        # model folders written before lobe_shape existed fitted c_z freely; before ambient, had none
         return ModelLayout(kind=d["kind"], n_lobes=int(d["n_lobes"]), anisotropic=bool(d["anisotropic"]),
-                           lobe_shape=d.get("lobe_shape", "free"))
+                           lobe_shape=d.get("lobe_shape", "free"), ambient=bool(d.get("ambient", False)))

@@ -56,7 +56,8 @@ class Renderer:
             texture (capture/conventions.py). Padding texels must already hold copies of their
             chart neighbours (TexelBake.fill_padding) so bilinear lookups do not bleed.
         layout: the parameter column layout (a ``ModelLayout``; read: ``n_params`` (P must equal it),
-            ``n_lobes``, ``anisotropic``, ``view_terms``, ``is_radiance`` and ``kind``).
+            ``n_lobes``, ``anisotropic``, ``view_terms``, ``is_radiance``, ``kind`` and, where it has one, the
+            ambient radiance's first column ``ambient_offset``).
         device: Warp device, "cpu" or "cuda:N".
         tex_size: (W, H) of the texel grid; required only when ``params`` is a Warp array.
         shadows: trace shadow rays (cast shadows); off gives local shading only.
@@ -158,7 +159,7 @@ class Renderer:
         wp.launch(render_kernel, dim=(height, width), device=self.device,
                   inputs=[self.mesh.id, self.points, self.indices, self.normals, self.uvs,
                           self.params, self.tex_w, self.tex_h, self.layout.n_lobes, int(self.layout.anisotropic),
-                          int(self.layout.view_terms),
+                          int(self.layout.view_terms), int(getattr(self.layout, "ambient_offset", -1)),
                           cam, self.shadow_eps, int(self.shadows)],
                   outputs=[self._radiance, self._mask, self._depth, self._face])
         return self._radiance, self._mask

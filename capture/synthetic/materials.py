@@ -1,6 +1,6 @@
 """A synthetic scene's per-texel material parameters: its materials (BRDF values, smooth gradients, value-noise
-albedo) laid on the texels by its assignment rule (the ``materials`` and ``assignment`` keys of
-:mod:`texstream.capture.synthetic.synth`'s module doc)."""
+albedo) laid on the texels by its assignment rule, and the room's light they reflect (the ``materials``,
+``assignment`` and ``room_light`` keys of :mod:`texstream.capture.synthetic.synth`'s module doc)."""
 
 from __future__ import annotations
 
@@ -125,3 +125,26 @@ def material_params(scene: dict, layout, mesh, bake) -> tuple[np.ndarray, np.nda
             out[sel, o + layout.lobe_stride - 1] = float(lobe["n"]) * f_n
     out = bake.fill_padding(out)
     return out.astype(np.float32), mid, names
+
+
+def room_irradiance(room: dict, mesh, bake) -> np.ndarray:
+    """(H, W, 3) irradiance the room's light casts on every texel: ``irradiance`` (a number or RGB) times
+    1 + a (2 s - 1) along ``gradient``'s axis (s in [0, 1], as the materials' gradient; a = 0: uniform)."""
+    e = np.broadcast_to(np.asarray(room.get("irradiance", 0.0), np.float64), (3,))
+    g = room.get("gradient") or {}
+    lo, hi = mesh.bbox()
+    s = _axis_coord(g.get("axis", "z"), bake, lo, hi) if g else np.full((bake.height, bake.width), 0.5)
+    factor = 1.0 + float(g.get("amount", 0.0)) * (2 * s - 1)
+    if np.any(e < 0) or np.any(factor < 0):
+        raise ConfigError(f"room_light {room} makes a negative irradiance", fix="use irradiance >= 0 and |amount| <= 1")
+    return e[None, None, :] * factor[..., None]
+
+
+def add_room_light(params: np.ndarray, layout, room: dict, mesh, bake) -> np.ndarray:
+    """``params`` with the ambient columns (render/layout.py ``ambient_offset``) holding what a Lambertian texel
+    sends back of the room's light: A = rho_d E_room (rho_d in 1/sr is the BRDF, so radiance = BRDF x irradiance;
+    the lobes' share of a diffuse room light is left out: the term is the diffuse one)."""
+    out = np.array(params, np.float32, copy=True)
+    o = layout.ambient_offset
+    out[..., o:o + 3] = (params[..., 0:3] * room_irradiance(room, mesh, bake)).astype(np.float32)
+    return out

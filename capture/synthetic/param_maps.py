@@ -17,7 +17,8 @@ def write_param_maps(folder: Path, params: np.ndarray, layout) -> dict[str, str]
     """Parameter maps as float EXR: rho_d.exr (RGB), per lobe lobe{j}_rho_s.exr (RGB) and
     lobe{j}_shape.exr ([c_xy, c_z, n] or, anisotropic, RGBA [c_x, c_y, c_z, n]); a radiance
     layout (render/layout.py) writes radiance.exr (RGB L), and the view-dependent one also
-    view_{term}.exr (RGB coefficient of each view term, e.g. view_vx.exr)."""
+    view_{term}.exr (RGB coefficient of each view term, e.g. view_vx.exr); a layout with an ambient radiance
+    (``ambient_offset`` >= 0) also ambient.exr (RGB)."""
 
     if getattr(layout, "is_radiance", False):
         write_image(folder / "radiance.exr", params[..., 0:3], bits=32)
@@ -36,6 +37,10 @@ def write_param_maps(folder: Path, params: np.ndarray, layout) -> dict[str, str]
         write_image(folder / f"lobe{j}_shape.exr", params[..., o + 3:o + layout.lobe_stride], bits=32)
         files[f"lobe{j}_rho_s"] = f"lobe{j}_rho_s.exr"
         files[f"lobe{j}_shape"] = f"lobe{j}_shape.exr"
+    o = getattr(layout, "ambient_offset", -1)
+    if o >= 0:
+        write_image(folder / "ambient.exr", params[..., o:o + 3], bits=32)
+        files["ambient"] = "ambient.exr"
     return files
 
 
@@ -52,4 +57,6 @@ def read_param_maps(folder: str | os.PathLike, layout) -> np.ndarray:
     for j in range(layout.n_lobes):
         maps.append(read_image(g / f"lobe{j}_rho_s.exr", channels=3))
         maps.append(read_image(g / f"lobe{j}_shape.exr", channels=layout.lobe_stride - 3))
+    if getattr(layout, "ambient_offset", -1) >= 0:
+        maps.append(read_image(g / "ambient.exr", channels=3))
     return np.concatenate(maps, axis=-1).astype(np.float32)

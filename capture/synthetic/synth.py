@@ -28,6 +28,12 @@ mapping), ...); more scenes need no code. Keys (full-scale values):
     periodic in u (no edge at a surface of revolution's seam); h > 0 sharpens it to
     tanh(h N) / tanh(h) (blotches with crisp edges). A high-frequency albedo texture gives SIFT
     features for registration tests (calib/register.py).
+``room_light``
+    optional ``{"irradiance": E or [r, g, b], "gradient": {"axis": "z", "amount": a}}``: the room's own light
+    beside the scene's ``light`` (a flash), a diffuse irradiance E (1 + a (2 s - 1)) on every texel, seen from
+    every view and by every photo alike: each texel adds an ambient radiance rho_d E (render/layout.py
+    ``ModelLayout.ambient``; the model gets its ambient columns, the ground truth its ambient.exr).
+    ``SynthConfig.room_light`` overrides E (0: no room light).
 ``assignment``
     which material each texel gets: ``{"rule": "uniform", "material": NAME}``,
     ``{"rule": "bands", "axis": "z", "bands": [[upper_s, NAME], ..., [1.0, NAME]]}`` (the first band
@@ -83,7 +89,7 @@ from texstream.core.outputs import StageResult, atomic_output_dir, write_json_at
 from texstream.capture.capture_json import Capture, Frame, Intrinsics, Light, write_capture
 from texstream.capture.conventions import look_at_w2c
 from texstream.capture.synthetic import procedural
-from texstream.capture.synthetic.materials import material_params
+from texstream.capture.synthetic.materials import add_room_light, material_params
 from texstream.capture.synthetic.param_maps import read_param_maps, write_param_maps
 from texstream.capture.imageio import linear_to_srgb, srgb_to_linear, write_image
 from texstream.capture.preview import write_contact_sheet
@@ -130,6 +136,10 @@ class SynthConfig:
     save_clean: bool = option(False, help="also write the noise-free float renders to ground_truth/clean/ "
                                           "(for the noise-floor PSNR)")
     shadows: bool = option(True, help="render cast shadows")
+    room_light: float | None = option(None, help="the room's irradiance beside the scene's light, the same on every "
+                                                 "texel up to the scene's room_light gradient (0: none; None: the "
+                                                 "scene's): each texel adds an ambient radiance rho_d x this",
+                                      min=0.0)
     preview: bool = option(True, help="write previews/contact_sheet.png and parameter map previews")
     progress: bool = option(True, help="show a progress bar while rendering")
 
@@ -453,6 +463,10 @@ def resolve_scene(scene, config: SynthConfig) -> dict:
     sc["cameras"] = cams
     sc["photo"] = _photo_settings(sc, config)
     sc["scale"] = config.scale
+    if config.room_light is not None:
+        sc["room_light"] = {**sc.get("room_light", {}), "irradiance": float(config.room_light)}
+    if not np.any(np.asarray(sc.get("room_light", {}).get("irradiance", 0.0)) > 0):
+        sc.pop("room_light", None)  # no room light: no ambient columns
     return sc
 
 
@@ -465,11 +479,14 @@ def prepare_scene(scene, config: SynthConfig):
 
     sc = resolve_scene(scene, config)
     md = sc["model"]
-    layout = ModelLayout(md.get("kind", "lafortune"), int(md.get("n_lobes", 1)), bool(md.get("anisotropic", False)))
+    layout = ModelLayout(md.get("kind", "lafortune"), int(md.get("n_lobes", 1)), bool(md.get("anisotropic", False)),
+                         ambient="room_light" in sc)
     mesh, (tw, th), info = build_mesh(sc, config.scale)
     pad = int(sc["texture"].get("padding", 2))
     bake = bake_texels(mesh, tw, th, device=config.device, padding=pad)
     params, mid, names = material_params(sc, layout, mesh, bake)
+    if layout.ambient:
+        params = add_room_light(params, layout, sc["room_light"], mesh, bake)
     sc["texture"] = {**sc["texture"], "width": tw, "height": th}
     return sc, mesh, bake, layout, params, mid, names, info
 

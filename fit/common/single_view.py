@@ -44,7 +44,7 @@ import warp as wp
 
 from texstream.capture.capture_json import read_capture
 from texstream.capture.imageio import read_image, read_mask
-from texstream.core.errors import InputError
+from texstream.core.errors import ConfigError, InputError
 from texstream.fit.optim.fitter import FitConfig
 from texstream.fit.kernels import stream
 from texstream.fit.stream.photo_set import PhotoSet
@@ -252,6 +252,8 @@ def build_single_view_problem(geo: SingleViewGeometry, frames, images, masks, cf
     photo_frames = [PhotoFrame.from_capture_frame(f) for f in frames]
     photos = PhotoSet(photo_frames, images, None, None, masks=masks, config=cfg.stream, device=device)
     layout = cfg.layout(photo_frames, texels.position.mean(axis=0))
+    if layout.ambient:  # its per-pixel render (render_single_view) has no ambient term
+        raise ConfigError("the single-view fit (--normals) has no ambient term", fix="use --ambient off or auto")
     return StreamProblem(texels, photos, layout, cfg.stream, device=device)
 
 

@@ -17,6 +17,33 @@ Both are r_c = s_c (m_c - y_c / w_c) with s_c = w_c or 1, so J_r = s_c J_m and
 d^T H_r d = s_c d^T H_m d. The radiance model (render/layout.py) has w_c = exposure: its passes are
 compiled without the light (:func:`~texstream.fit.kernels.stream.observe_func`, ``layout_funcs(radiance=True)``).
 
+One sample's model (:func:`_sample_model_func`). The residual is W M + N - y (radiance space), M
+the model of the features f (``lafortune_funcs``). Bilinear and point sampling: W = w, f the texel's features at
+(u, v) and N = 0. Filtered sampling: the photo's bilinear filter applied to the model, W = sum_t b_t w_t and M =
+sum_t b_t w_t m_t / W over the four taps t (bilinear weights b_t, each tap's own surface point, light and view),
+so W M is the filtered radiance. w_t is the light's RGB intensity times a scalar a_t (exposure, cosine,
+falloff), so M = sum_t omega_t m_t with omega_t = b_t a_t / sum b a the same for every channel: the taps'
+features are averaged, and M and its Jacobian follow from the mean exactly.
+
+With the renderer's lookup (``lookup``, filtered sampling only) a tap's BRDF is o_t m_t + n_t, o_t the texel's
+own bilinear weight there and n_t its neighbours' blended BRDFs at their held values (:func:`texel_blend`): the
+taps' features are averaged with weights b_t a_t o_t into W M, and N = L sum_t b_t a_t n_t is a constant of the
+texel's parameters. A sample whose taps all miss the texel (o_t = 0) is not usable.
+
+A tap's surface point, normal (and tangent) come from the texel's face plane (:func:`ray_surface`, the
+interpolated normal extended to first order, texel coordinates extended linearly: no mesh access) or, with
+``traced``, from the tap's pixel ray traced to the mesh (:func:`traced_tap`: the point, frame, UV and cast
+shadow the renderer sees, so a tap that leaves the texel's face, e.g. on curved or coarse geometry, lands where
+the photo's pixel looks).
+
+The radiance model (``radiance``) has no light: w_t = b_t exposure (times 1 or 0 for a traced tap that hits the
+mesh or misses, :func:`traced_texel`), W = sum_t w_t and N the neighbours' blended radiance sum_t w_t n_t.
+
+The ambient radiance (``ambient``) adds exposure A to every tap whatever its light (sum_t b_t = 1): its feature is
+a_c = exposure / W_c (fit/kernels/lafortune_grad.py), with the lookup exposure sum_t b_t o_t / W_c and the
+neighbours' blended ambient exposure sum_t b_t n^A_t added to N. Samples whose taps are all unlit stay unusable
+(the observation already rejects shadowed and grazing texel centres): the flash-lit samples fit A.
+
 The data term is sum rho(r_c) with rho(r) = r^2 / 2 (least squares) or a robust loss (Huber, Cauchy;
 ``accumulate_kernel``'s ``robust``), applied per sample as iteratively reweighted least squares.
 """
@@ -32,7 +59,7 @@ from texstream.fit.kernels.lafortune_grad import lafortune_funcs, view_radiance_
 from texstream.render.shading import incident_light, to_local
 from texstream.fit.kernels.stream import (SAMPLING_FILTERED, ImageInfo, SampleOptions, TexelFrames, kahan_add,
                                           observe_func, plane_texel_coords, ray_surface, tangent_frame, texel_blend,
-                                          to_compute3, trace_stats, traced_tap, traced_texel)
+                                          texel_blend_ambient, to_compute3, trace_stats, traced_tap, traced_texel)
 
 # no kernel here is differentiated (the fit writes its own derivatives): skipping Warp's adjoint
 # code generation roughly halves compile time
@@ -101,21 +128,23 @@ class LayoutFuncs(NamedTuple):
 
 @functools.cache
 def layout_funcs(n_lobes: int, anisotropic: int, lookup: bool = False, traced: bool = False,
-                 radiance: bool = False) -> LayoutFuncs:
+                 radiance: bool = False, ambient: bool = False) -> LayoutFuncs:
     """The sample functions the accumulation kernels share, specialised to one model layout
     (loops over lobes and columns with compile-time trip counts, see ``lafortune_funcs``), to
     the model's texture lookup (``lookup``: the renderer's bilinear blend with the neighbours, see
     ``sample_model``), to the filtered taps' geometry (``traced``: each tap's ray traced to the
     mesh, :func:`traced_tap`; else the texel's face plane, :func:`ray_surface`) and to the light
     (``radiance``: 1 the radiance model, no lobes, no light, W = exposure, :func:`observe_func`; 2 the
-    view-dependent radiance, the same with ``view_radiance_funcs`` of the local view direction)."""
+    view-dependent radiance, the same with ``view_radiance_funcs`` of the local view direction) and to the
+    ambient radiance (``ambient``: a lit model's per-texel A, render/layout.py, its columns last)."""
     view = int(radiance) == 2
-    lf = view_radiance_funcs() if view else lafortune_funcs(n_lobes, anisotropic)
-    n_params = 18 if view else 3 + int(n_lobes) * (6 + int(anisotropic))
+    ambient = bool(ambient) and not radiance
+    lf = view_radiance_funcs() if view else lafortune_funcs(n_lobes, anisotropic, ambient)
+    n_params = 18 if view else 3 + int(n_lobes) * (6 + int(anisotropic)) + 3 * int(ambient)
     load_params, channel_residual = _parameter_funcs(lf, n_params)
     frame_directions, lobe_directions = _direction_funcs(anisotropic)
     sample_model = _sample_model_func(lf, frame_directions, lobe_directions, bool(lookup), bool(traced),
-                                      bool(radiance))
+                                      bool(radiance), ambient)
     sample = _sample_func(observe_func(bool(radiance)), sample_model, bool(lookup))
     return LayoutFuncs(lf, load_params, sample, channel_residual, n_params)
 
@@ -174,30 +203,11 @@ def _direction_funcs(anisotropic: int):
     return frame_directions, lobe_directions
 
 
-def _sample_model_func(lf, frame_directions, lobe_directions, blend: bool, trace: bool, no_light: bool):
-    """The model side of one sample (``sample_model``; ``blend``, ``trace`` and ``no_light`` are
-    :func:`layout_funcs`'s ``lookup``, ``traced`` and ``radiance``). The residual is W M + N - y (radiance space), M
-    the model of the features f (``lafortune_funcs``). Bilinear and point sampling: W = w, f the texel's features at
-    (u, v) and N = 0. Filtered sampling: the photo's bilinear filter applied to the model, W = sum_t b_t w_t and M =
-    sum_t b_t w_t m_t / W over the four taps t (bilinear weights b_t, each tap's own surface point, light and view),
-    so W M is the filtered radiance. w_t is the light's RGB intensity times a scalar a_t (exposure, cosine,
-    falloff), so M = sum_t omega_t m_t with omega_t = b_t a_t / sum b a the same for every channel: the taps'
-    features are averaged, and M and its Jacobian follow from the mean exactly.
-
-    With the renderer's lookup (``lookup``, filtered sampling only) a tap's BRDF is o_t m_t + n_t, o_t the texel's
-    own bilinear weight there and n_t its neighbours' blended BRDFs at their held values (:func:`texel_blend`): the
-    taps' features are averaged with weights b_t a_t o_t into W M, and N = L sum_t b_t a_t n_t is a constant of the
-    texel's parameters. A sample whose taps all miss the texel (o_t = 0) is not usable.
-
-    A tap's surface point, normal (and tangent) come from the texel's face plane (:func:`ray_surface`, the
-    interpolated normal extended to first order, texel coordinates extended linearly: no mesh access) or, with
-    ``traced``, from the tap's pixel ray traced to the mesh (:func:`traced_tap`: the point, frame, UV and cast
-    shadow the renderer sees, so a tap that leaves the texel's face, e.g. on curved or coarse geometry, lands where
-    the photo's pixel looks).
-
-    The radiance model (``radiance``) has no light: w_t = b_t exposure (times 1 or 0 for a traced tap that hits the
-    mesh or misses, :func:`traced_texel`), W = sum_t w_t and N the neighbours' blended radiance sum_t w_t n_t.
-    """
+def _sample_model_func(lf, frame_directions, lobe_directions, blend: bool, trace: bool, no_light: bool,
+                       ambient: bool = False):
+    """The model side of one sample (``sample_model``; ``blend``, ``trace``, ``no_light`` and ``ambient`` are
+    :func:`layout_funcs`'s ``lookup``, ``traced``, ``radiance`` and ``ambient``), as the module doc's "One
+    sample's model" says."""
 
     @wp.func
     def sample_model(pv: Any, dv: Any, infos: wp.array(dtype=ImageInfo), k: int, tex: TexelFrames, i: int, xs: float,
@@ -210,7 +220,9 @@ def _sample_model_func(lf, frame_directions, lobe_directions, blend: bool, trace
             hm = type(uc)(zero, zero, zero)
             if want_hm != 0:
                 hm = lf.dhd(pv, dv, uc, vc, one)
-            return True, to_compute3(w, one), lf.features(pv, uc, vc, one), hm, wp.vec3(0.0)
+            wc0 = to_compute3(w, one)
+            feat0 = lf.set_ambient(lf.features(pv, uc, vc, one), type(one)(infos[k].exposure), wc0)
+            return True, wc0, feat0, hm, wp.vec3(0.0)
         x0 = int(xs)
         y0 = int(ys)
         fx = xs - float(x0)
@@ -219,6 +231,9 @@ def _sample_model_func(lf, frame_directions, lobe_directions, blend: bool, trace
         nsum = wp.vec3(0.0)
         feat = pv * zero
         hsum = type(uc)(zero, zero, zero)
+        ambient_col = 3 + tex.n_lobes * (6 + tex.anisotropic)  # the layout's ambient columns (lookup_params)
+        own_b = float(0.0)  # sum_t b_t o_t: texel i's share of the taps' ambient (1 without the lookup)
+        amb_other = wp.vec3(0.0)  # sum_t b_t n^A_t: the neighbours' (the lookup's)
         # a run-time trip count (4 here): Warp unrolls loops over literal ranges, and four inlined
         # copies of the tap (lobe features, optionally d^T H d) made the CPU kernels compile 30% slower
         n_taps = opt.sampling + 2
@@ -276,6 +291,11 @@ def _sample_model_func(lf, frame_directions, lobe_directions, blend: bool, trace
                 own, other = texel_blend(tex, i, tx, ty, ul, vl)
                 nsum = nsum + a * other
                 a = a * own
+                if wp.static(ambient):
+                    own_b = own_b + b * own
+                    amb_other = amb_other + b * texel_blend_ambient(tex, i, tx, ty, ambient_col)
+            elif wp.static(ambient):
+                own_b = own_b + b
             ac = type(one)(a)
             feat = feat + ac * lf.features(pv, ut, vt, one)
             if want_hm != 0:
@@ -290,7 +310,10 @@ def _sample_model_func(lf, frame_directions, lobe_directions, blend: bool, trace
             return asum > 0.0, to_compute3(wp.vec3(asum), one), feat * inv, hsum * inv, offset
         if wp.static(blend):
             offset = wp.cw_mul(infos[k].light_intensity, nsum)
-        return asum > 0.0, to_compute3(infos[k].light_intensity * asum, one), feat * inv, hsum * inv, offset
+        weight = to_compute3(infos[k].light_intensity * asum, one)
+        if wp.static(ambient):
+            offset = offset + exposure * amb_other
+        return asum > 0.0, weight, lf.set_ambient(feat * inv, type(one)(exposure * own_b), weight), hsum * inv, offset
 
     return sample_model
 
@@ -325,7 +348,7 @@ def _sample_func(observe_sample, sample_model, blend: bool):
 @functools.cache
 def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, dhd: bool, full_hessian: bool,
                       max_registers: int = 0, lookup: bool = False, traced: bool = False, radiance: bool = False,
-                      robust: int = ROBUST_NONE):
+                      robust: int = ROBUST_NONE, ambient: bool = False):
     """The objective / gradient pass of one model layout and pass kind.
 
     What a pass accumulates beside f and the gradient is fixed when the kernel compiles rather
@@ -335,8 +358,8 @@ def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, d
     with literal indices (``LafortuneFuncs.jacobian_row``), so they stay in registers.
     ``max_registers`` caps registers per CUDA thread (0: none); ``lookup`` selects the renderer's
     texture lookup, ``traced`` the traced tap geometry and ``radiance`` the light-free radiance
-    model (``layout_funcs``). Each kernel lives in a module of its own, so compiling one does not
-    recompile the others.
+    model and ``ambient`` the ambient radiance (``layout_funcs``). Each kernel lives in a module of its own, so
+    compiling one does not recompile the others.
 
     ``robust`` (``ROBUST_LOSSES``) replaces each channel's r^2 / 2 by a robust loss rho(r) of scale
     ``opt.robust_scale``, as iteratively reweighted least squares: objective rho(r), gradient
@@ -345,7 +368,7 @@ def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, d
     exact second derivative. The weights follow the current residuals in every pass (no host
     round trip); ``ROBUST_NONE`` compiles the least-squares pass unchanged.
     """
-    fn = layout_funcs(n_lobes, anisotropic, lookup, traced, radiance)
+    fn = layout_funcs(n_lobes, anisotropic, lookup, traced, radiance, ambient)
     lf, load_params, sample, channel_residual = fn.lf, fn.load_params, fn.sample, fn.channel_residual
     use_kahan, want_diag, want_dhd, want_full = bool(kahan), bool(diag), bool(dhd), bool(dhd and full_hessian)
     robust_on = int(robust) != ROBUST_NONE
@@ -432,7 +455,7 @@ def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, d
                     + [flag for flag, on in (("kahan", use_kahan), ("diag", want_diag), ("dhd", want_dhd),
                                              ("full", want_full), ("lookup", bool(lookup)),
                                              ("traced", bool(traced)), ("radiance", bool(radiance)),
-                                             ("view", int(radiance) == 2)) if on]
+                                             ("view", int(radiance) == 2), ("ambient", bool(ambient))) if on]
                     + ([_robust_name(robust)] if robust_on else []))
     if max_registers:
         name += f"_maxreg{max_registers}"
@@ -442,7 +465,8 @@ def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, d
 
 @functools.cache
 def accumulate_lm_kernel(n_lobes: int, anisotropic: int, max_registers: int = 0, lookup: bool = False,
-                         traced: bool = False, radiance: bool = False, robust: int = ROBUST_NONE):
+                         traced: bool = False, radiance: bool = False, robust: int = ROBUST_NONE,
+                         ambient: bool = False):
     """The Gauss-Newton / LM pass of one model layout: f, J^T r and J^T J per (photo group, texel).
 
     J^T J is summed over the structurally non-zero entries of each channel's Jacobian row only
@@ -453,7 +477,7 @@ def accumulate_lm_kernel(n_lobes: int, anisotropic: int, max_registers: int = 0,
     J^T W J with the IRLS weights W = psi(r) / r (iteratively reweighted least squares: every
     pass reweights at its own point).
     """
-    fn = layout_funcs(n_lobes, anisotropic, lookup, traced, radiance)
+    fn = layout_funcs(n_lobes, anisotropic, lookup, traced, radiance, ambient)
     lf, load_params, sample, channel_residual = fn.lf, fn.load_params, fn.sample, fn.channel_residual
     n_params = fn.n_params
     row_nonzeros = lf.row_nonzeros
@@ -515,7 +539,7 @@ def accumulate_lm_kernel(n_lobes: int, anisotropic: int, max_registers: int = 0,
     name = "_".join(["accumulate_lm", f"{int(n_lobes)}lobes", "aniso" if anisotropic else "iso"]
                     + (["lookup"] if lookup else []) + (["traced"] if traced else [])
                     + (["radiance"] if radiance else []) + (["view"] if int(radiance) == 2 else [])
-                    + ([_robust_name(robust)] if robust_on else []))
+                    + ([_robust_name(robust)] if robust_on else []) + (["ambient"] if ambient else []))
     if max_registers:
         name += f"_maxreg{max_registers}"
     return wp.kernel(accumulate_lm, name=name, enable_backward=False, module="unique",

@@ -15,6 +15,12 @@ Second directional derivative along d (da = d rho_s, ds = dC . w, dn):
     L'' = L (n ds/s + dn ln s)^2 + L (2 dn ds/s - n ds^2/s^2)
     d^T (Hess m_c) d = sum_j 2 da_c L' + rho_s,c L''
 For s <= 0 the lobe and all its derivatives are 0 (n >= 1 makes the objective C1 there).
+
+With an ambient radiance A (render/layout.py ``ModelLayout.ambient``, its columns last) a sample predicts
+W m_c with m_c = (the above) + A_c a_c, a_c = exposure / W_c (the sample's flash weight W_c = exposure E_c cos
+per unit BRDF, so W m_c = W (rho_d + lobes) + exposure A_c). a_c is a property of the sample, not of a direction,
+so it is not a per-direction feature: the sample sets it once its weight is known (``set_ambient``).
+    dm_c/dA_c = a_c, and m is linear in A: no second-derivative term.
 """
 
 from __future__ import annotations
@@ -65,8 +71,18 @@ class LafortuneFuncs(NamedTuple):
     and the lobes' shape columns)."""
     row_entry: Any
     """``row_entry(p, f, c, t)``: (column, value) of the t-th structurally non-zero entry of
-    dm_c/dp, t < ``row_nonzeros``: t = 0 rho_d,c; 1..K rho_s,j,c; then the lobes' C and n."""
+    dm_c/dp, t < ``row_nonzeros``: t = 0 rho_d,c; 1..K rho_s,j,c; then the lobes' C and n; last the ambient's A_c
+    (a layout with it)."""
     row_nonzeros: int
+    set_ambient: Any
+    """``set_ambient(f, share, weight)``: the features ``f`` with the ambient ones f[A_c] = share / W_c (share: the
+    sample's exposure times texel i's share of its taps, W: the sample's weight, see the module doc); ``f``
+    unchanged for a layout without ambient."""
+
+
+@wp.func
+def no_ambient(f: Any, share: Any, weight: Any):
+    return f
 
 
 def jacobian_row_func(row_entry: Any, row_nonzeros: int):
@@ -85,8 +101,9 @@ def jacobian_row_func(row_entry: Any, row_nonzeros: int):
 
 
 @functools.cache
-def lafortune_funcs(n_lobes: int, anisotropic: int) -> LafortuneFuncs:
-    """The model functions specialised to one layout (K = ``n_lobes``, isotropic or not).
+def lafortune_funcs(n_lobes: int, anisotropic: int, ambient: bool = False) -> LafortuneFuncs:
+    """The model functions specialised to one layout (K = ``n_lobes``, isotropic or not, with or without the
+    ambient radiance, whose columns follow the lobes).
 
     Every loop over lobes and columns has a compile-time trip count, so Warp unrolls it and
     every vector index is a literal: the parameter, feature and Jacobian vectors stay in
@@ -98,7 +115,10 @@ def lafortune_funcs(n_lobes: int, anisotropic: int) -> LafortuneFuncs:
     aniso = int(anisotropic)
     stride = 6 + aniso
     n_shape = stride - 3  # C columns and n
-    row_nonzeros = 1 + n_lobes + n_lobes * n_shape
+    lobe_nonzeros = 1 + n_lobes + n_lobes * n_shape
+    with_ambient = bool(ambient)
+    amb = 3 + n_lobes * stride  # the ambient columns (when the layout has them)
+    row_nonzeros = lobe_nonzeros + int(with_ambient)
 
     @wp.func
     def lobe_base(p: Any, o: int, w: Any):
@@ -144,12 +164,17 @@ def lafortune_funcs(n_lobes: int, anisotropic: int) -> LafortuneFuncs:
         for j in range(wp.static(n_lobes)):
             o = 3 + j * wp.static(stride)
             m = m + p[o + c] * f[o]
+        if wp.static(with_ambient):
+            m = m + p[wp.static(amb) + c] * f[wp.static(amb) + c]
         return m
 
     @wp.func
     def row_entry(p: Any, f: Any, c: int, t: int):
         if t == 0:
             return c, p[0] - p[0] + type(p[0])(1.0)
+        if wp.static(with_ambient):
+            if t == wp.static(lobe_nonzeros):
+                return wp.static(amb) + c, f[wp.static(amb) + c]
         if t <= wp.static(n_lobes):
             o = 3 + (t - 1) * wp.static(stride)
             return o + c, f[o]
@@ -183,7 +208,16 @@ def lafortune_funcs(n_lobes: int, anisotropic: int) -> LafortuneFuncs:
                     out = out + (one + one) * l1 * da + l2 * a
         return out
 
-    return LafortuneFuncs(features, dhd, model_value, jacobian_row, row_entry, row_nonzeros)
+    @wp.func
+    def set_ambient(f: Any, share: Any, weight: Any):
+        tiny = share - share + type(share)(1.0e-30)  # a weight of 0 (an unlit channel): no inf
+        out = f
+        for c in range(3):
+            out[wp.static(amb) + c] = share / wp.max(weight[c], tiny)
+        return out
+
+    return LafortuneFuncs(features, dhd, model_value, jacobian_row, row_entry, row_nonzeros,
+                          set_ambient if with_ambient else no_ambient)
 
 
 @functools.cache
@@ -231,4 +265,4 @@ def view_radiance_funcs() -> LafortuneFuncs:
         zero = one - one
         return type(u)(zero, zero, zero)
 
-    return LafortuneFuncs(features, dhd, model_value, jacobian_row, row_entry, row_nonzeros)
+    return LafortuneFuncs(features, dhd, model_value, jacobian_row, row_entry, row_nonzeros, no_ambient)

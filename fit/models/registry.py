@@ -53,6 +53,8 @@ class ExportMaterial:
         pbr: the glTF material when it differs from the fields above (a lit model's core metallic-roughness
             fit, fit/models/lafortune/gltf_core.py ``CoreMaterial``: base colour, metallic, roughness and
             KHR_materials_specular's F0 per texel); None: the glTF material is base (+ specular) as above.
+        emissive: (H, W, 3) linear radiance the surface sends whatever the light (a reflectance model's fitted
+            ambient radiance, the room's light baked in, render/layout.py ``ModelLayout.ambient``), or None.
     """
 
     base: np.ndarray
@@ -66,6 +68,7 @@ class ExportMaterial:
     name: str = ""
     extras: dict = dataclasses.field(default_factory=dict)
     pbr: Any = None
+    emissive: np.ndarray | None = None
 
 
 @dataclasses.dataclass

@@ -58,6 +58,11 @@ class FitConfig:
                                      "photo's light-view angle lies within lobe_shape_spread_deg of the others "
                                      "(a light beside the camera: c_z and rho_s cannot be told apart, render/layout.py)",
                              choices=("auto", "free", "phong"))
+    ambient: str = option("off", "a per-texel ambient radiance beside the lit reflectance (lafortune, diffuse: the "
+                                 "room's light, seen the same from every view, render/layout.py): off, on, or auto "
+                                 "(fitted with and without it on a validation split of the fitted photos, "
+                                 "materials.validation_every, and kept where it predicts them better; "
+                                 "fit/models/per_texel/ambient.py)", choices=("off", "on", "auto"))
     lobe_shape_spread_deg: float = option(10.0, "auto lobe shape: the spread of light-view angles below which c_z is held",
                                           min=0.0, max=180.0)
     optimizer: str = option("lm", "sd, cg, lbfgs or lm (per-texel Levenberg-Marquardt)", choices=OPTIMIZERS)
@@ -146,7 +151,7 @@ class FitConfig:
                 raise ConfigError("lobe_shape auto needs the photos to decide", fix="pass frames, or set free or phong")
             shape = choose_lobe_shape(frames, centre, self.lobe_shape_spread_deg)
         return ModelLayout(kind=self.model, n_lobes=self.lobes if traits.lobes else 0,
-                           anisotropic=self.anisotropic, lobe_shape=shape)
+                           anisotropic=self.anisotropic, lobe_shape=shape, ambient=self.ambient == "on")
 
 
 def light_view_angles(frames, centre) -> np.ndarray:

@@ -286,6 +286,14 @@ def _write_glb(m: registry.FittedModel, mat: registry.ExportMaterial, cfg: Expor
                                     "specular_scale": mat.specular_scale})
     material = G.Material(name=f"texstream_{mat.name}", pbrMetallicRoughness=pbr, extensions=extensions,
                           extras=extras, doubleSided=False)
+    if mat.emissive is not None and mat.emissive.max() > 0:
+        # the fitted ambient radiance (the room's light): emissive texture / factor in [0, 1], the rest of its
+        # peak in KHR_materials_emissive_strength
+        peak = float(mat.emissive.max())
+        material.emissiveTexture = G.TextureInfo(index=texture("emissive", mat.emissive / peak))
+        material.emissiveFactor = [min(peak, 1.0)] * 3
+        if peak > 1.0:
+            extensions["KHR_materials_emissive_strength"] = {"emissiveStrength": peak}
     up = _up_rotation(cfg.up_axis)
     node = G.Node(mesh=0, name=cfg.name)
     if not np.allclose(up, np.eye(3)):

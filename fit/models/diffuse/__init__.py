@@ -15,5 +15,5 @@ PLUGIN = register(AppearanceModel(
     units="BRDF values in 1/sr (capture/conventions.py)",
     fit=fit_module.fit,
     load=folder_module.load,
-    layout_traits=LayoutTraits(lit=True, lobes=False),
+    layout_traits=LayoutTraits(lit=True, lobes=False, ambient=True),
 ))

@@ -16,7 +16,7 @@ PLUGIN = register(AppearanceModel(
     units="BRDF values in 1/sr (capture/conventions.py)",
     fit=fit_module.fit,
     load=folder_module.load,
-    layout_traits=LayoutTraits(lit=True, lobes=True),
+    layout_traits=LayoutTraits(lit=True, lobes=True, ambient=True),
     candidates=choice_module.candidates,
     auto_rank=0,
 ))

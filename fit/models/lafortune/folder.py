@@ -17,8 +17,12 @@ class LafortuneModel(PerTexelModel):
     """Diffuse rho_d plus Lafortune lobes per texel (a diffuse model: no lobes)."""
 
     def export_material(self, cfg) -> ExportMaterial:
-        return lafortune_material(self.grid, self.layout, self.covered, cfg.roughness,
-                                  fill_source=bake_fill_source(self.folder))
+        mat = lafortune_material(self.grid, self.layout, self.covered, cfg.roughness,
+                                 fill_source=bake_fill_source(self.folder))
+        if self.layout.ambient:  # the room's light, the same from every view: an emissive term for viewers
+            o = self.layout.ambient_offset
+            mat.emissive = np.maximum(self.grid[..., o:o + 3], 0.0).astype(np.float32)
+        return mat
 
     def report_maps(self, save, seen) -> None:
         grid, lay = self.grid, self.layout
@@ -37,11 +41,23 @@ class LafortuneModel(PerTexelModel):
             n = grid[..., o + lay.lobe_stride - 1]
             save(f"lobe{j}_n", np.log10(np.maximum(n, 1e-6)), f"lobe {j} exponent n (log10)", cmap="viridis",
                  colorbar_label="log10 n")
+        if lay.ambient:
+            img, s = rgb_scaled(grid[..., lay.ambient_offset:lay.ambient_offset + 3])
+            save("ambient", img, f"ambient radiance A, the room's light (RGB, photo value / exposure, divided by "
+                                 f"{s:.4g}; sRGB)")
+
+    def report_facts(self) -> list[tuple[str, str]]:
+        rows = super().report_facts()
+        amb = self.manifest.get("ambient")
+        if isinstance(amb, dict):
+            rows.append(("ambient term", f"{amb.get('chosen')} ({amb.get('mode')}): {amb.get('reason')}"))
+        return rows
 
     def viewer(self) -> ViewerModel:
         return ViewerModel(self.grid, read_shader(Path(__file__).parent), lit=True,
                            data={"uniforms": {"u_nlobes": int(self.layout.n_lobes),
-                                              "u_aniso": int(bool(self.layout.anisotropic))}})
+                                              "u_aniso": int(bool(self.layout.anisotropic)),
+                                              "u_ambient": int(self.layout.ambient_offset)}})
 
 
 def load(model_dir: Path, manifest: dict) -> FittedModel:

@@ -1,6 +1,9 @@
 // Lafortune SBRDF (render/shading.py lafortune_brdf), lit by the viewer's light: the BRDF at the
 // four texels around the hit blended with the bilinear weights, times the irradiance and cos(theta_i)
 uniform int u_nlobes; uniform int u_aniso;
+// first column of the ambient radiance (render/layout.py ModelLayout.ambient), -1: none; added lit or not
+uniform int u_ambient;
+vec3 ambient_at(ivec2 xy) { return vec3(P(xy, u_ambient), P(xy, u_ambient + 1), P(xy, u_ambient + 2)); }
 // part 0 = all, 1 = diffuse only, 2 = lobes only
 vec3 brdf(ivec2 xy, vec3 u, vec3 v, int part) {
   vec3 f = vec3(0.0);
@@ -24,16 +27,20 @@ vec3 model_radiance(vec2 uv, vec3 pos, vec3 nrm, vec3 tng, vec3 eye, int part) {
   float fx = a.fx, fy = a.fy;
   mat3 F = surface_frame(nrm, tng);
   vec3 t = F[0], b = F[1], n = F[2];
+  vec3 amb = vec3(0.0);
+  if (u_ambient >= 0 && part != 2)
+    amb = (1.0 - fx) * (1.0 - fy) * ambient_at(t00) + fx * (1.0 - fy) * ambient_at(t10)
+        + (1.0 - fx) * fy * ambient_at(t01) + fx * fy * ambient_at(t11);
   // incident_light
   vec3 l; vec3 E;
   if (u_lkind == 0) { vec3 d = u_lpd - pos; float r2 = dot(d, d); l = d / sqrt(r2); E = u_lI / r2; }
   else { l = -normalize(u_lpd); E = u_lI; }
   float cosi = dot(n, l);
-  if (cosi <= 0.0) return vec3(0.0);
+  if (cosi <= 0.0) return amb;
   vec3 vw = normalize(eye - pos);
   vec3 ul = vec3(dot(l, t), dot(l, b), dot(l, n));
   vec3 vl = vec3(dot(vw, t), dot(vw, b), dot(vw, n));
   vec3 f = (1.0 - fx) * (1.0 - fy) * brdf(t00, ul, vl, part) + fx * (1.0 - fy) * brdf(t10, ul, vl, part)
          + (1.0 - fx) * fy * brdf(t01, ul, vl, part) + fx * fy * brdf(t11, ul, vl, part);
-  return f * E * cosi;
+  return amb + f * E * cosi;
 }

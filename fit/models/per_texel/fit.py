@@ -26,6 +26,7 @@ from texstream.fit.common.numerics import numerics_warnings
 from texstream.fit.common.setup import (Checkpoint, ModelRenders, fill_unseen_texels, params_to_grid,
                                         run_fit_with_progress)
 from texstream.fit.models import registry
+from texstream.fit.models.per_texel.ambient import resolve_ambient
 from texstream.fit.models.per_texel.lobes import (_materials_manifest, average_seams_in_bounds, choose_materials,
                                                   confirm_at_material_lobes, drop_unsupported_lobes, fit_with_materials,
                                                   lobe_shape_report, lobes_in_use, texel_evidence, traced_polish,
@@ -73,6 +74,7 @@ def _fit_per_texel_model(capture_dir: str | Path, mesh_path: str | Path, out_dir
         inputs = load_fit_inputs(capture_dir, mesh_path, cfg)
         t_inputs = time.perf_counter() - t0
         problem, seen_before, start, skipped = set_up_skipping_bad_photos(inputs, cfg, capture_dir)
+    problem, start, cfg, ambient = resolve_ambient(inputs, problem, start, cfg)  # auto: by a validation split
     t_setup = time.perf_counter() - t0
     ckpt, resume = _checkpoint(capture_dir, mesh_path, out_dir, cfg, problem)
     choice, p0 = _choice_before_fit(inputs, problem, cfg, start, resume)
@@ -94,7 +96,7 @@ def _fit_per_texel_model(capture_dir: str | Path, mesh_path: str | Path, out_dir
                    "renders": time.perf_counter() - t_fitted}
         manifest = _manifest(inputs, problem, result, lobes, cfg, evals,
                              {"seen_before": seen_before, "filled": filled, "skipped": skipped, "tiles": tiles_report,
-                              "seams": seams_info, "setup_s": t_setup, "timings_s": timings})
+                              "seams": seams_info, "setup_s": t_setup, "timings_s": timings, "ambient": ambient})
         write_model_folder(tmp, grid, result.layout, seen.reshape(inputs.bake.height, inputs.bake.width), result.trace,
                            title, manifest, cfg, plot=plot)
     if ckpt is not None:
@@ -126,10 +128,12 @@ def _choice_before_fit(inputs: FitInputs, problem, cfg, start, resume) -> tuple[
     per-texel fit, which saw 7/8 of its photos, on every texel the split saw (the fit's own guess ``start`` on
     the rest), and needs a few iterations instead of a fit's worth. The choice never reads the full fit, so it
     is the same either way. (None, None) where the choice runs after the fit (no lobes, materials off, tiles,
-    a resumed checkpoint); (choice, None) where the photos were too few to split."""
+    a resumed checkpoint, a layout with the ambient term: from the split's fit the flash-only sphere's fit stopped
+    on a plateau, 50.5 dB held out against 53.9 dB from its initial guess, benchmarks/ambient_term.py); (choice,
+    None) where the photos were too few to split."""
     m = cfg.materials
     if not (m.fit_from_validation and problem.layout.n_lobes and m.mode != "off" and resume is None
-            and not tiled(cfg.fit)):
+            and not tiled(cfg.fit) and not problem.layout.ambient):
         return None, None
     kept = {}
     with phase("fit", "materials: per-texel or shared lobes, judged on a validation split of the fitted photos"):
@@ -276,7 +280,8 @@ def write_lobe_maps(tmp: Path, bake, problem, result, lobes: Lobes) -> None:
 
 
 def _manifest(inputs: FitInputs, problem, result, lobes: Lobes, cfg, evals: list[dict], run: dict) -> dict:
-    """model.json of a per-texel fit (``run``: seen_before, filled, skipped, tiles, seams, setup_s, timings_s)."""
+    """model.json of a per-texel fit (``run``: seen_before, filled, skipped, tiles, seams, setup_s, timings_s, and
+    the ambient option's report, ambient.py ``resolve_ambient``)."""
     lay, last, frames = result.layout, result.trace[-1], inputs.frames
     at_bounds, warnings = bound_report(result.params, lay, result.samples > 0)
     warnings = numerics_warnings(cfg.fit.stream, len(frames), inputs.images, inputs.masks) + warnings
@@ -295,6 +300,7 @@ def _manifest(inputs: FitInputs, problem, result, lobes: Lobes, cfg, evals: list
             "final": {k: last[k] for k in ("iteration", "time_s", "objective", "psnr_db", "ape_percent")},
             "lobe_shape": lobe_shape_report(cfg.fit, lay, frames, problem.texels.position),
             "materials": _materials_manifest(lobes.info, lobes.evidence, cfg.materials),
+            **({"ambient": run["ambient"]} if run["ambient"] is not None else {}),
             "seams": run["seams"], "setup_s": run["setup_s"], "passes": result.passes, "device": cfg.device,
             "timings_s": run["timings_s"],
             "render_eval": evals, "heldout": pooled_psnr([e for e in evals if e["held_out"]]),
