@@ -2,7 +2,7 @@
 # The README's main command on a fresh GPU machine (issue 40): `texstream run` on the built-in synthetic set
 # with an empty Warp kernel cache (cold), then again (warm), each run's stage times and held-out figures from
 # its run.json; then the CUDA tests named in CUDA_TESTS (pytest -k cuda). Warp in /root/site (the two-call
-# recipe of ../shared/tools/device/README.md), OpenImageIO's wheel in .whl/.
+# recipe of ../shared/tools/device/README.md), OpenImageIO's wheel in WHEELS (default .whl/).
 #   usage: CUDA_TESTS="tests/a.py tests/b.py" bash benchmarks/cold_start_gpu.sh OUT
 set -u
 out=$1
@@ -10,7 +10,7 @@ mkdir -p "$out"
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader | tee "$out/machine.txt"
 nproc | tee -a "$out/machine.txt"
 git rev-parse --short HEAD 2>/dev/null | tee "$out/commit.txt"
-python3 -m pip install -q --no-index --no-deps --no-compile --target /root/oiio .whl/*.whl || exit 1
+python3 -m pip install -q --no-index --no-deps --no-compile --target /root/oiio "${WHEELS:-.whl}"/*.whl || exit 1
 export PYTHONPATH=/root/site:/root/oiio
 python3 -m pip install -q --no-deps --no-build-isolation -e . >/dev/null 2>&1 || exit 1
 export WARP_CACHE_PATH=/root/warp-cache-cold  # empty: the cold run compiles every kernel it launches
