@@ -213,27 +213,19 @@ def damaged_json_texts(doc: dict) -> dict[str, str]:
 
 
 def colmap_model(folder: Path, n_images: int = 3, text: bool = False) -> Path:
-    """A small valid COLMAP sparse model (one PINHOLE camera, ``n_images`` posed images, a few points)."""
+    """A small valid COLMAP sparse model: one PINHOLE camera and ``n_images`` posed images written as COLMAP
+    documents the text format (identity rotations stepped along x), converted to binary unless ``text``."""
     import pycolmap
 
-    rec = pycolmap.Reconstruction()
-    rec.add_camera(pycolmap.Camera(model="PINHOLE", width=32, height=24, params=[30, 30, 16, 12], camera_id=1))
-    doc = valid_capture_doc(n_images)
-    for i, fr in enumerate(doc["frames"]):
-        m = np.array(fr["transform_matrix"])
-        r_gl = m[:3, :3]
-        r_cv = r_gl @ np.diag([1.0, -1.0, -1.0])
-        r_w2c = r_cv.T
-        t_w2c = -r_w2c @ m[:3, 3]
-        image = pycolmap.Image(name=f"photo_{i:02d}.png", camera_id=1, image_id=i + 1,
-                               cam_from_world=pycolmap.Rigid3d(pycolmap.Rotation3d(r_w2c), t_w2c))
-        rec.add_image(image)
-        rec.register_image(i + 1) if hasattr(rec, "register_image") else None
     folder.mkdir(parents=True, exist_ok=True)
-    if text:
-        rec.write_text(str(folder))
-    else:
-        rec.write(str(folder))
+    (folder / "cameras.txt").write_text("1 PINHOLE 32 24 30 30 16 12\n")
+    (folder / "images.txt").write_text("".join(f"{i + 1} 1 0 0 0 {0.2 * i} 0 3 1 photo_{i:02d}.png\n\n"
+                                               for i in range(n_images)))
+    (folder / "points3D.txt").write_text("")
+    if not text:
+        pycolmap.Reconstruction(str(folder)).write(str(folder))
+        for name in ("cameras.txt", "images.txt", "points3D.txt"):
+            (folder / name).unlink()
     return folder
 
 
