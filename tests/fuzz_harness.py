@@ -361,3 +361,169 @@ def count_writes(argv: Sequence[str], root: Path, stub: bool = False) -> tuple[i
     counter = FaultInjector(root, at=None)
     outcome = run_cli(argv, stub=stub, faults=counter)
     return counter.count, outcome
+
+
+# --------------------------------------------------------------------------- options
+
+
+CONFIG_CLASSES: dict[str, tuple[tuple[str, str, str], ...]] = {
+    "ingest": (("texstream.calib.ingest", "IngestConfig", ""),),
+    "calibrate": (("texstream.calib.intrinsics", "CalibrateConfig", ""),),
+    "register": (("texstream.calib.register", "RegisterConfig", ""),),
+    "import": (("texstream.capture.middlebury", "MiddleburyImportConfig", ""),
+               ("texstream.calib.metashape", "MetashapeImportConfig", ""),
+               ("texstream.calib.realitycapture", "RealityCaptureImportConfig", ""),
+               ("texstream.calib.colmap_io", "ColmapImportConfig", ""),
+               ("texstream.calib.colmap_io", "NerfstudioImportConfig", "")),
+    "synth": (("texstream.capture.synthetic.synth", "SynthConfig", ""),),
+    "mesh": (("texstream.geometry.make_mesh", "MeshConfig", ""),),
+    "atlas": (("texstream.geometry.atlas", "AtlasConfig", ""),),
+    "refine": (("texstream.geometry.refine", "RefineConfig", ""),),
+    "fit": (("texstream.fit.models.materials", "MaterialConfig", "materials."),
+            ("texstream.fit.stages.choice", "ModelChoiceConfig", "choice."),
+            ("texstream.fit.optim.fitter", "FitConfig", ""),
+            ("texstream.fit.stages.stage", "FitStageConfig", "")),  # its plain fields are the command's own options
+    "export": (("texstream.fit.stages.export", "ExportConfig", ""),),
+}
+"""per command, the stage configs whose fields become its options (cmd_<name>.py's add_config_arguments)"""
+
+PLAIN_RANGES: dict[tuple[str, str], tuple] = {
+    ("fit", "depth"): (0.0, None, True), ("fit", "texel_pixels"): (0.0, None, True),
+    ("fit", "min_seen_fraction"): (0.0, 1.0, False), ("fit", "traced_polish_rel_tol"): (0.0, None, False),
+    ("fit", "traced_polish"): (0, None, False), ("eval", "holdout_every"): (0, None, False),
+    ("run", "iterations"): (1, None, False), ("run", "scale"): (0.0, None, True),
+    ("run", "colocated_light"): (0.0, None, True),
+}
+"""documented ranges (lo, hi, lo excluded) of the plain argparse options, from their help texts"""
+
+EXTRA_BAD: dict[tuple[str, str], tuple] = {("fit", "texture_size"): (7, -1), ("eval", "holdout_every"): (-1,)}
+"""values issue 41 saw accepted without a word (``fit --texture-size 7``, ``eval --holdout-every -1``)"""
+
+
+@dataclasses.dataclass
+class OptionSpec:
+    """One option of one command, as its parser defines it, with its documented range."""
+
+    command: str
+    flag: str
+    dest: str
+    kind: str  # "int", "float", "str", "bool", "choice", "list"
+    choices: tuple = ()
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+
+    def names(self) -> list[str]:
+        """How an error line may name this option."""
+        field = self.dest.split("__")[-1]
+        return [self.flag, self.flag.lstrip("-"), field, field.replace("_", "-"), self.dest.replace("__", ".")]
+
+    def out_of_range(self) -> list:
+        """Values the option must refuse: outside its range, NaN for any float, the values issue 41 saw."""
+        bad: list = list(EXTRA_BAD.get((self.command, self.dest), ()))
+        step = 1 if self.kind == "int" else 0.5
+        if self.lo is not None:
+            bad.append(self.lo if self.lo_open else self.lo - step)
+            bad.append(self.lo - 1000)
+        if self.hi is not None:
+            bad.append(self.hi + step)
+            bad.append(self.hi * 1000 + 1000)
+        if self.kind == "float":
+            bad.append(float("nan"))
+            if self.hi is not None:
+                bad.append(float("inf"))
+            if self.lo is not None:
+                bad.append(float("-inf"))
+        return list(dict.fromkeys(bad))
+
+
+def _config_ranges(command: str) -> dict[str, tuple]:
+    """dest -> (min, max) of the command's config fields (nested configs under their dotted prefixes)."""
+    import importlib
+    import typing
+
+    out: dict[str, tuple] = {}
+
+    def walk(cls: type, prefix: str) -> None:
+        hints = typing.get_type_hints(cls)
+        for f in dataclasses.fields(cls):
+            t = hints[f.name]
+            inner = [a for a in typing.get_args(t) if a is not type(None)] or [t]
+            if dataclasses.is_dataclass(inner[0]):
+                walk(inner[0], prefix + f.name + ".")
+                continue
+            meta = f.metadata or {}
+            if meta.get("min") is not None or meta.get("max") is not None:
+                out[(prefix + f.name).replace(".", "__")] = (meta.get("min"), meta.get("max"))
+    for module, name, prefix in CONFIG_CLASSES.get(command, ()):
+        walk(getattr(importlib.import_module(module), name), prefix)
+    return out
+
+
+def option_specs(command: str) -> list[OptionSpec]:
+    """Every option of ``texstream COMMAND`` (not -h, --debug, -o/--out or positionals)."""
+    import argparse
+
+    from texstream.pipelines import cli
+
+    parser = cli.build_parser(only=command)
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[command]
+    ranges = _config_ranges(command)
+    specs = []
+    for a in sub._actions:
+        if not a.option_strings or a.dest in ("help", "debug", "out"):
+            continue
+        flag = max(a.option_strings, key=len)
+        if isinstance(a, argparse.BooleanOptionalAction) or a.nargs == 0:
+            kind = "bool"
+        elif a.choices:
+            kind = "choice"
+        elif a.nargs in ("+", "*"):
+            kind = "list"
+        else:
+            kind = {int: "int", float: "float"}.get(a.type, "str")
+        lo, hi = ranges.get(a.dest, (None, None))
+        lo_open = False
+        if (command, a.dest) in PLAIN_RANGES:
+            lo, hi, lo_open = PLAIN_RANGES[(command, a.dest)]
+        specs.append(OptionSpec(command, flag, a.dest, kind, tuple(a.choices or ()), lo, hi, lo_open))
+    return specs
+
+
+def base_argv(command: str, fx: dict[str, Path]) -> list[str]:
+    """A command line of ``command`` whose inputs exist (``fx``: the fixture paths, see
+    :func:`option_fixtures`), to which a case adds one option."""
+    out = str(fx["root"] / f"out_{command}")
+    return {"run": ["run", str(fx["capture"]), "-o", out],
+            "ingest": ["ingest", str(fx["photos"]), "-o", out],
+            "register": ["register", str(fx["capture"]), "-o", out],
+            "mesh": ["mesh", str(fx["capture"]), "-o", out],
+            "atlas": ["atlas", str(fx["mesh"]), "-o", out],
+            "refine": ["refine", str(fx["capture"]), str(fx["atlas"]), "-o", out],
+            "fit": ["fit", str(fx["capture"]), "--mesh", str(fx["atlas"]), "-o", out],
+            "eval": ["eval", str(fx["model"]), str(fx["capture"])],
+            "export": ["export", str(fx["model"]), "-o", out],
+            "calibrate": ["calibrate", str(fx["photos"]), "-o", out],
+            "import": ["import", "nerfstudio", str(fx["capture"]), "-o", out],
+            "synth": ["synth", "sphere", "-o", out]}[command]
+
+
+def option_fixtures(root: Path) -> dict[str, Path]:
+    """Paths that exist for :func:`base_argv` (the stage is stubbed: their content is not read)."""
+    root.mkdir(parents=True, exist_ok=True)
+    fx = {"root": root}
+    for name in ("capture", "photos", "atlas", "model"):
+        fx[name] = root / name
+        fx[name].mkdir(exist_ok=True)
+    fx["mesh"] = root / "mesh.obj"
+    fx["mesh"].write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    return fx
+
+
+def format_value(v: Any) -> list[str]:
+    """The command-line words of a value (a list: one word each)."""
+    if isinstance(v, (list, tuple)):
+        return [format_value(x)[0] for x in v]
+    if isinstance(v, float) and v != v:
+        return ["nan"]
+    return [str(v)]
