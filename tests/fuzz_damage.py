@@ -320,3 +320,5 @@ TOML_CASES: dict[str, str] = {
     "device_number": "device = 3\n",
     "nested_unknown_table": "[fit.fit.nowhere]\nx = 1\n",
 }
+TOML_MAY_PASS = ("inf_float", "huge_int")
+"""values a run may take as they are (an infinite gain threshold: never; holding out every 10^17th photo: none)"""

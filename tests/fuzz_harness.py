@@ -65,6 +65,11 @@ TEMP_NAME = re.compile(r"^\..*(\.partial|\.tmp[^/]*|\.old\.\d+\.\d+)$")
 """names the atomic writers give their temporary files and folders (core/outputs.py, capture/imageio.py)"""
 
 
+ENVIRONMENT_LINE = re.compile(r"^Warp CUDA warning: Could not find or load the NVIDIA CUDA driver")
+"""what Warp prints once per process at its start on a machine without a GPU driver (CI, this dev box):
+the machine's, not the command's; not counted as a line of the command's error"""
+
+
 class ReachedStage(Exception):
     """Raised by a stubbed stage function: the command got past its checks to the work."""
 
@@ -85,7 +90,7 @@ class Outcome:
 
     @property
     def stderr_lines(self) -> list[str]:
-        return [ln for ln in self.stderr.splitlines() if ln.strip()]
+        return [ln for ln in self.stderr.splitlines() if ln.strip() and not ENVIRONMENT_LINE.match(ln)]
 
     def form(self) -> str:
         """'ok' (exit 0), 'line' (one error line), 'argparse', 'interrupted' or 'bad' (anything else)."""
@@ -291,6 +296,8 @@ class FaultInjector:
         self.count = 0
         self.fired = False
         self.where: str | None = None
+        self.site: str | None = None
+        """where the fault fired: "open" (a file opened for writing), "mkdir" or "replace" (a rename)"""
         self._saved: list = []
 
     def _under_root(self, path: Any) -> bool:
@@ -300,7 +307,7 @@ class FaultInjector:
             return False
         return p == self.root or p.startswith(self.root + os.sep)
 
-    def _event(self, path: Any, create: Callable[[], None] | None = None) -> None:
+    def _event(self, path: Any, create: Callable[[], None] | None = None, site: str = "open") -> None:
         if not self._under_root(path):
             return
         self.count += 1
@@ -308,6 +315,7 @@ class FaultInjector:
             return
         self.fired = True
         self.where = os.fsdecode(path)
+        self.site = site
         if FAULTS[self.kind] is None:
             raise KeyboardInterrupt
         code, text = FAULTS[self.kind]
@@ -333,15 +341,16 @@ class FaultInjector:
             return real_os_open(path, flags, *args, **kwargs)
 
         def fake_mkdir(path, *args, **kwargs):
-            self._event(path)
+            if not os.path.exists(path):  # makedirs(exist_ok=True) tries existing folders and ignores the error
+                self._event(path, site="mkdir")
             return real_mkdir(path, *args, **kwargs)
 
         def fake_replace(src, dst, *args, **kwargs):
-            self._event(dst)
+            self._event(dst, site="replace")
             return real_replace(src, dst, *args, **kwargs)
 
         def fake_rename(src, dst, *args, **kwargs):
-            self._event(dst)
+            self._event(dst, site="replace")
             return real_rename(src, dst, *args, **kwargs)
 
         for obj, name, fn in ((builtins, "open", fake_open), (io, "open", fake_open), (os, "open", fake_os_open),
@@ -527,3 +536,27 @@ def format_value(v: Any) -> list[str]:
     if isinstance(v, float) and v != v:
         return ["nan"]
     return [str(v)]
+
+
+# --------------------------------------------------------------------------- known failures, by owner
+
+KNOWN_H1: frozenset = frozenset()
+"""(command, what) cases that fail in files engineer H1 owns (option ranges at parse time, output writes,
+mesh loading): counted apart until H1's branch is merged, then this list is cleared (scripts/fuzz.py reports
+the entries that pass by then as ``known_now_passing``)"""
+
+KNOWN_H4: frozenset = frozenset()
+"""the same for engineer H4's files (geometry/refine.py, resume after a kill)"""
+
+
+def known_owner(key: tuple) -> str | None:
+    """'H1' / 'H4' when a case's key matches an entry of their known list (each element a pattern: ``*``
+    matches anything), else None."""
+    import fnmatch
+
+    key = tuple(map(str, key))
+    for owner, known in (("H1", KNOWN_H1), ("H4", KNOWN_H4)):
+        for entry in known:
+            if len(entry) == len(key) and all(fnmatch.fnmatchcase(k, e) for k, e in zip(key, entry)):
+                return owner
+    return None
