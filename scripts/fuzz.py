@@ -133,7 +133,9 @@ def main(argv=None) -> int:
         log(f"faults in {command}: {n}")
     signals = F.signal_cases(inputs, root / "signals", args.signals, args.seed, log) if args.signals else []
     result = tally.result()
-    result["signals"] = {"runs": len(signals), "violations": sum(len(s["violations"]) for s in signals)}
+    result["signals"] = {"runs": len(signals), "violations": sum(len(s["violations"]) for s in signals),
+                         "temporary_folders_left_by_sigkill": sum(s.get("temporary_left", 0) for s in signals),
+                         "runs_detail": signals}
     for s in signals:
         for v in s["violations"]:
             result[kind_of(v)] += 1

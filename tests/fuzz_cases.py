@@ -57,6 +57,7 @@ def run_case(case: Case) -> tuple[list[str], H.Outcome]:
     if case.pre is not None:
         case.pre()
     before = {Path(p): H.tree_digest(Path(p)) for p in case.outputs}
+    left_before = H.leftovers(case.root) if case.root is not None and Path(case.root).exists() else []
     faults = None
     if case.call is not None:
         outcome = _call(case)
@@ -64,7 +65,7 @@ def run_case(case: Case) -> tuple[list[str], H.Outcome]:
         faults = H.FaultInjector(case.root, *case.fault) if case.fault else None
         outcome = H.run_cli(case.argv, stub=case.stub, faults=faults)
     found = H.violations(outcome, names=case.names, root=case.root, outputs=before, must_fail=case.must_fail,
-                         valid=case.valid)
+                         valid=case.valid, left_before=left_before)
     if case.fault and outcome.fault_fired:  # the key says where it fired (KNOWN_H1 lists the renames into place)
         case.key = (case.key[0], f"{case.fault[1]}@{faults.site}")
     if case.fault and outcome.fault_fired and outcome.rc == 0:

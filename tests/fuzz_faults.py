@@ -147,10 +147,12 @@ def signal_cases(inputs: dict, root: Path, count: int, seed: int, log=print) -> 
             problems.append(f"exit {o.rc} after {sig.name}: {o.stderr.strip()[-300:]}")
         if o.rc == 130 and not o.stderr.strip().splitlines()[-1].startswith("texstream: interrupted"):
             problems.append(f"SIGINT gave more than the one interrupted line: {o.stderr.strip()[-300:]}")
-        if H.leftovers(out):
-            problems.append(f"half-written: temporary files left: {H.leftovers(out)[:3]}")
+        litter = H.leftovers(out)
+        if litter and sig != signal.SIGKILL:  # after SIGKILL nothing can remove them: litter, not an output
+            problems.append(f"half-written: temporary files left: {litter[:3]}")
         problems += rerun_check(run_argv, out, reference, subprocess_cwd=root)
         results.append({"case": f"{sig.name} at {after:.2f} s of {duration:.1f} s", "exit": o.rc, "violations": problems,
+                        "temporary_left": len(litter),
                         "reproduction": " ".join(run_argv) + f"  # {sig.name} after {after:.2f} s"})
         log(f"signal {i}: {results[-1]['case']}: exit {o.rc}, {len(problems)} violation(s)")
     return results
