@@ -110,7 +110,8 @@ def _valid_result(result: Any) -> str | None:
     if frames is not None:
         for f in frames:
             k = f.intrinsics
-            if not (isinstance(f.file_path, str) and f.file_path and (f.mask_path is None or isinstance(f.mask_path, str))):
+            paths_ok = isinstance(f.file_path, str) and f.file_path and isinstance(f.mask_path, (str, type(None)))
+            if not paths_ok:
                 return f"frame paths {f.file_path!r} / {f.mask_path!r}"
             if not (0 < k.width <= 1 << 20 and 0 < k.height <= 1 << 20 and k.fx > 0 and k.fy > 0):
                 return f"intrinsics {k}"
@@ -130,13 +131,14 @@ def option_cases(fx: dict, commands=H.COMMANDS) -> Iterator[Case]:
     for command in commands:
         for spec in H.option_specs(command):
             for v in spec.out_of_range():
-                yield Case("option_range", (command, spec.dest), H.base_argv(command, fx) + [spec.flag, *H.format_value(v)],
-                           stub=True, must_fail=True, names=tuple(spec.names()))
+                argv = H.base_argv(command, fx) + [spec.flag, *H.format_value(v)]
+                yield Case("option_range", (command, spec.dest), argv, stub=True, must_fail=True,
+                           names=tuple(spec.names()))
 
 
 def in_range(spec: H.OptionSpec, v: Any) -> bool:
-    if isinstance(v, float) and not math.isfinite(v) and (spec.kind == "float" and (v != v or spec.lo is not None or spec.hi is not None)):
-        return False
+    if isinstance(v, float) and (v != v or (math.isinf(v) and (spec.lo is not None or spec.hi is not None))):
+        return False  # NaN never; an infinity where a bound is documented
     if not isinstance(v, (int, float)) or isinstance(v, bool):
         return True
     if v in H.EXTRA_BAD.get((spec.command, spec.dest), ()):
@@ -160,9 +162,11 @@ def random_value(spec: H.OptionSpec, rng: random.Random) -> Any:
         near = [b for b in (spec.lo, spec.hi) if b is not None]
         if near and r < 0.5:
             return float(rng.choice(near)) + rng.choice([-1e-9, 0.0, 1e-9, -0.5, 0.5])
-        return rng.choice([float("nan"), float("inf"), -float("inf"), 0.0, -0.0, 1e308, -1e-308, rng.uniform(-1e3, 1e3)])
+        return rng.choice([float("nan"), float("inf"), -float("inf"), 0.0, -0.0, 1e308, -1e-308,
+                           rng.uniform(-1e3, 1e3)])
     if spec.kind == "choice":
-        return rng.choice([*spec.choices, "nonsense", spec.choices[0].upper() if isinstance(spec.choices[0], str) else -1])
+        first = spec.choices[0]
+        return rng.choice([*spec.choices, "nonsense", first.upper() if isinstance(first, str) else -1])
     if spec.kind == "list":
         return [random_value(dataclasses.replace(spec, kind="float"), rng) for _ in range(rng.randint(0, 4))] or ["x"]
     if spec.kind == "bool":
@@ -175,7 +179,7 @@ def generated_option_case(fx: dict, rng: random.Random, seed: int) -> Case:
     command = rng.choice(H.COMMANDS)
     specs = H.option_specs(command)
     argv = H.base_argv(command, fx)
-    must_fail, names = False, []
+    refused, names = [], []
     for spec in rng.sample(specs, min(len(specs), rng.randint(1, 3))):
         v = random_value(spec, rng)
         if spec.kind == "bool":
@@ -183,10 +187,12 @@ def generated_option_case(fx: dict, rng: random.Random, seed: int) -> Case:
             continue
         argv += [spec.flag, *H.format_value(v)]
         if not in_range(spec, v):
-            must_fail = True
+            refused.append(spec.dest)
             names += spec.names()
-    return Case("option_generated", (command, "generated"), argv, stub=True, must_fail=must_fail,
-                names=tuple(names), seed=seed)
+    # keyed by an out-of-range option, one not on a known list first (the command must refuse that one)
+    refused.sort(key=lambda dest: H.known_owner((command, dest)) is not None)
+    return Case("option_generated", (command, refused[0] if refused else "generated"), argv, stub=True,
+                must_fail=bool(refused), names=tuple(names), seed=seed)
 
 
 def contradiction_cases(fx: dict) -> Iterator[Case]:
@@ -194,7 +200,8 @@ def contradiction_cases(fx: dict) -> Iterator[Case]:
     root, cap, atlas = fx["root"], str(fx["capture"]), str(fx["atlas"])
     nowhere = str(root / "nowhere")
     table = [
-        (("fit", "mesh_and_normals"), ["fit", cap, "--mesh", atlas, "--normals", str(fx["mesh"]), "-o", str(root / "o")], True),
+        (("fit", "mesh_and_normals"), ["fit", cap, "--mesh", atlas, "--normals", str(fx["mesh"]), "-o",
+                                       str(root / "o")], True),
         (("fit", "neither_mesh_nor_normals"), ["fit", cap, "-o", str(root / "o")], True),
         (("import", "metashape_without_photos"), ["import", "metashape", str(fx["mesh"]), "-o", str(root / "o")], True),
         (("import", "colmap_with_photos"), ["import", "colmap", cap, str(fx["photos"]), "-o", str(root / "o")], True),
@@ -327,7 +334,8 @@ def nerfstudio_cases(root: Path, limit: int = 12, seed: int = 0) -> Iterator[Cas
             name, text = texts[i]
         else:
             path = rng.choice(paths)
-            name, text = f"{'.'.join(map(str, path))}={i}", json.dumps(D.mutate(doc, path, "set", rng.choice(D.BAD_VALUES)))
+            name = f"{'.'.join(map(str, path))}={i}"
+            text = json.dumps(D.mutate(doc, path, "set", rng.choice(D.BAD_VALUES)))
         folder = root / "ns" / f"case{i}"
         D.write_capture_folder(folder, text, name="transforms.json")
         out = root / "ns_out" / f"case{i}"
@@ -340,7 +348,8 @@ def _capture_valid(out: Path) -> str | None:
     from texstream.capture.capture_json import read_capture
 
     cap = read_capture(out)
-    return _valid_result(cap) or next((f"{f.file_path} missing" for f in cap.frames if not cap.image_path(f).is_file()), None)
+    missing = [f.file_path for f in cap.frames if not cap.image_path(f).is_file()]
+    return _valid_result(cap) or (f"{missing[0]} missing" if missing else None)
 
 
 def colmap_cases(root: Path) -> Iterator[Case]:
@@ -367,7 +376,8 @@ def mesh_cases(root: Path) -> Iterator[Case]:
         p = build(d)
         for command in ("atlas", "mesh"):
             out = root / "mesh_out" / f"{command}_{name}"
-            argv = ["atlas", str(p), "-o", str(out)] if command == "atlas" else ["mesh", "-o", str(out), "--from", str(p)]
+            argv = (["atlas", str(p), "-o", str(out)] if command == "atlas"
+                    else ["mesh", "-o", str(out), "--from", str(p)])
             yield Case("mesh", (command, name), argv, must_fail=name != "degenerate_faces_obj", names=(p.name,),
                        root=root / "mesh_out", outputs=(out,))
 
@@ -379,8 +389,9 @@ def toml_cases(root: Path, capture: Path) -> Iterator[Case]:
     for name, text in D.TOML_CASES.items():
         p = folder / f"{name}.toml"
         p.write_text(text)
-        yield Case("toml", ("run", f"toml:{name}"), ["run", str(capture), "-o", str(root / "toml_out"), "--config", str(p)],
-                   stub=True, must_fail=name not in D.TOML_MAY_PASS, names=(p.name,))
+        argv = ["run", str(capture), "-o", str(root / "toml_out"), "--config", str(p)]
+        yield Case("toml", ("run", f"toml:{name}"), argv, stub=True, must_fail=name not in D.TOML_MAY_PASS,
+                   names=(p.name,))
 
 
 def generated_toml_case(root: Path, rng: random.Random, seed: int, capture: Path) -> Case:
@@ -409,5 +420,5 @@ def generated_toml_case(root: Path, rng: random.Random, seed: int, capture: Path
     p = root / "toml_gen" / f"{seed}.toml"
     p.parent.mkdir(parents=True, exist_ok=True)
     p.write_text(text)
-    return Case("toml_generated", ("run", "toml_generated"), ["run", str(capture), "-o", str(root / "toml_out"),
-                                                              "--config", str(p)], stub=True, seed=seed, names=(p.name,))
+    argv = ["run", str(capture), "-o", str(root / "toml_out"), "--config", str(p)]
+    return Case("toml_generated", ("run", "toml_generated"), argv, stub=True, seed=seed, names=(p.name,))

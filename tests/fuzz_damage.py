@@ -35,7 +35,8 @@ def textured(h: int, w: int, seed: int = 0) -> np.ndarray:
     """A smooth random linear RGB image in [0.05, 0.95] (photos that registration could match)."""
     rng = np.random.default_rng(seed)
     y, x = np.mgrid[0:h, 0:w] / max(h, w)
-    img = np.stack([0.5 + 0.4 * np.sin(6.28 * (x * rng.uniform(1, 3) + y * rng.uniform(1, 3)) + c) for c in range(3)], -1)
+    img = np.stack([0.5 + 0.4 * np.sin(6.28 * (x * rng.uniform(1, 3) + y * rng.uniform(1, 3)) + c)
+                    for c in range(3)], -1)
     return img.astype(np.float32)
 
 
@@ -92,15 +93,20 @@ PHOTO_CASES: dict[str, tuple[Callable[[Path], Path], str]] = {
     "inf_exr": (lambda d: _write(d / "inf.exr", _with(textured(8, 8), (5, 1), np.inf), bits=32), "fail"),
     "one_by_one_png": (lambda d: _write(d / "one.png", textured(1, 1)), "read"),
     "png16": (lambda d: _write(d / "deep.png", textured(12, 10), bits=16), "read"),
-    "grey_alpha_png": (lambda d: _write(d / "ga.png", np.concatenate([textured(8, 8)[..., :1], np.ones((8, 8, 1), np.float32)], -1)), "read"),
-    "rgba_exr_half": (lambda d: _write(d / "rgba.exr", np.concatenate([textured(8, 8), np.ones((8, 8, 1), np.float32)], -1)), "read"),
+    "grey_alpha_png": (lambda d: _write(d / "ga.png", _with_alpha(textured(8, 8)[..., :1])), "read"),
+    "rgba_exr_half": (lambda d: _write(d / "rgba.exr", _with_alpha(textured(8, 8))), "read"),
     "cmyk_jpeg": (lambda d: _raw(d / "cmyk.jpg", CMYK_JPEG), "read"),
     "cmyk_tiff": (lambda d: _cmyk_tiff(d / "cmyk.tif"), "read"),
     "exif_rotated_jpeg": (lambda d: _write(d / "rot6.jpg", textured(12, 20), metadata={"Orientation": 6}), "read"),
-    "exif_bad_orientation_jpeg": (lambda d: _write(d / "rot99.jpg", textured(12, 20), metadata={"Orientation": 99}), "read"),
+    "exif_bad_orientation_jpeg": (lambda d: _write(d / "rot99.jpg", textured(12, 20), metadata={"Orientation": 99}),
+                                  "read"),
     "png_named_jpg": (lambda d: _renamed(_write(d / "p.png", textured(8, 8)), d / "really_png.jpg"), "read"),
     "float_tiff": (lambda d: _write(d / "float.tif", textured(8, 8) * 3.0, bits=32), "read"),
 }
+
+
+def _with_alpha(img: np.ndarray) -> np.ndarray:
+    return np.concatenate([img, np.ones(img.shape[:2] + (1,), np.float32)], -1)
 
 
 def _bytes(path: Path, n: int, seed: int = 0) -> Path:

@@ -151,8 +151,8 @@ def signal_cases(inputs: dict, root: Path, count: int, seed: int, log=print) -> 
         if litter and sig != signal.SIGKILL:  # after SIGKILL nothing can remove them: litter, not an output
             problems.append(f"half-written: temporary files left: {litter[:3]}")
         problems += rerun_check(run_argv, out, reference, subprocess_cwd=root)
-        results.append({"case": f"{sig.name} at {after:.2f} s of {duration:.1f} s", "exit": o.rc, "violations": problems,
-                        "temporary_left": len(litter),
+        results.append({"case": f"{sig.name} at {after:.2f} s of {duration:.1f} s", "exit": o.rc,
+                        "violations": problems, "temporary_left": len(litter),
                         "reproduction": " ".join(run_argv) + f"  # {sig.name} after {after:.2f} s"})
         log(f"signal {i}: {results[-1]['case']}: exit {o.rc}, {len(problems)} violation(s)")
     return results

@@ -54,9 +54,10 @@ STAGE_FUNCTIONS: dict[str, tuple[tuple[str, str], ...]] = {
     "eval": (("texstream.pipelines.cmd_eval", "eval_stage"),),
     "export": (("texstream.pipelines.cmd_export", "export_stage"),),
     "calibrate": (("texstream.pipelines.cmd_calibrate", "calibrate"),),
-    "import": (("texstream.pipelines.cmd_import", "import_middlebury"), ("texstream.pipelines.cmd_import", "import_metashape"),
-               ("texstream.pipelines.cmd_import", "import_realitycapture"), ("texstream.calib.colmap_io", "import_colmap"),
-               ("texstream.calib.colmap_io", "import_nerfstudio")),
+    "import": (("texstream.pipelines.cmd_import", "import_middlebury"),
+               ("texstream.pipelines.cmd_import", "import_metashape"),
+               ("texstream.pipelines.cmd_import", "import_realitycapture"),
+               ("texstream.calib.colmap_io", "import_colmap"), ("texstream.calib.colmap_io", "import_nerfstudio")),
     "synth": (("texstream.pipelines.cmd_synth", "synthesize"),),
 }
 """per command, the stage functions its ``run(args)`` calls (replaced by a sentinel with ``stub=True``)"""
@@ -99,7 +100,8 @@ class Outcome:
         if self.rc == 0:
             return "ok"
         lines = self.stderr_lines
-        if self.rc == 2 and lines and lines[0].startswith("usage:") and re.match(r"^texstream( \S+)?: error: ", lines[-1]):
+        argparse_form = lines and lines[0].startswith("usage:") and re.match(r"^texstream( \S+)?: error: ", lines[-1])
+        if self.rc == 2 and argparse_form:
             return "argparse"
         if len(lines) != 1:
             return "bad"

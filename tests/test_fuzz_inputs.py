@@ -115,7 +115,8 @@ def test_damaged_capture_texts(tmp_path):
 _JSON_VALUES = st.one_of(st.none(), st.booleans(), st.integers(), st.floats(allow_nan=True, allow_infinity=True),
                          st.text(max_size=8), st.lists(st.floats(allow_nan=True), max_size=5),
                          st.lists(st.lists(st.floats(allow_nan=True, allow_infinity=True), min_size=4, max_size=4),
-                                  min_size=3, max_size=4), st.dictionaries(st.text(max_size=4), st.integers(), max_size=2))
+                                  min_size=3, max_size=4),
+                         st.dictionaries(st.text(max_size=4), st.integers(), max_size=2))
 
 
 def test_generated_capture_json(tmp_path):
