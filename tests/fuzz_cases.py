@@ -186,9 +186,9 @@ def generated_option_case(fx: dict, rng: random.Random, seed: int) -> Case:
             argv.append(spec.flag if rng.random() < 0.5 else spec.flag.replace("--", "--no-", 1))
             continue
         argv += [spec.flag, *H.format_value(v)]
+        names += spec.names()  # the command may refuse any of them first (a word where a number goes)
         if not in_range(spec, v):
             refused.append(spec.dest)
-            names += spec.names()
     # keyed by an out-of-range option, one not on a known list first (the command must refuse that one)
     refused.sort(key=lambda dest: H.known_owner((command, dest)) is not None)
     return Case("option_generated", (command, refused[0] if refused else "generated"), argv, stub=True,
