@@ -8,7 +8,8 @@ configs), then generated option and TOML cases (seeded) until ``--cases`` cases 
 injected faults (ENOSPC, EACCES, EROFS, Ctrl-C at the Nth write of synth, import, ingest, export, eval,
 atlas, fit and run) and ``--signals`` runs of ``texstream run`` killed by SIGINT or SIGKILL at a random time.
 Writes the counts as JSON: cases run, per family and per command, tracebacks, half-written outputs, silent
-acceptances, message-form violations, the ones KNOWN_H1 / KNOWN_H4 list apart, and each failing case's
+acceptances, message-form violations, the ones KNOWN_H1 / KNOWN_H4 / KNOWN_UNASSIGNED list apart (and the
+entries no case failed on any more: ``known_now_passing``), and each failing case's
 reproduction (command line, fault and seed). Exit status 1 when a violation outside the known lists was
 found.
 """
@@ -55,13 +56,14 @@ class Tally:
         self.counts["faults" if case.family == "fault" else "cases"] += 1
         self.families[case.family] += 1
         self.commands[case.key[0]] += 1
-        owner = H.known_owner(case.key)
-        if owner:
-            self.known_seen.add(case.key)
+        match = H.known_entry(case.key)
+        owner = match[0] if match else None
+        if match:
+            self.known_seen.add(match[1])
         for v in found:
             if owner:
                 self.known[f"{owner}:{kind_of(v)}"] += 1
-                self.known_failing.add(case.key)
+                self.known_failing.add(match[1])
                 continue
             self.counts[kind_of(v)] += 1
         if found and not owner:
@@ -110,7 +112,7 @@ def main(argv=None) -> int:
     fixed = [("option_range", C.option_cases(fx)), ("contradiction", C.contradiction_cases(fx)),
              ("photo_reader", C.photo_reader_cases(root)), ("photo_ingest", C.ingest_cases(root)),
              ("capture_json", C.capture_reader_cases(root)), ("nerfstudio", C.nerfstudio_cases(root, 24, args.seed)),
-             ("colmap", C.colmap_cases(root)), ("mesh", C.mesh_cases(root)),
+             ("colmap", C.colmap_cases(root)), ("mesh", C.mesh_cases(root)), ("register", C.register_cases(root)),
              ("toml", C.toml_cases(root, inputs["capture"]))]
     for name, cases in fixed:
         run_all(cases, tally, log, deadline)

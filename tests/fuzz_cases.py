@@ -169,7 +169,7 @@ def random_value(spec: H.OptionSpec, rng: random.Random) -> Any:
         return rng.choice([*spec.choices, "nonsense", first.upper() if isinstance(first, str) else -1])
     if spec.kind == "list":
         return [random_value(dataclasses.replace(spec, kind="float"), rng) for _ in range(rng.randint(0, 4))] or ["x"]
-    if spec.kind == "bool":
+    if spec.kind in ("bool", "switch"):
         return None
     return rng.choice(["x", "", "/nonexistent/path", "a" * 300, "../../etc", "cpu", "cuda:9"])
 
@@ -182,8 +182,9 @@ def generated_option_case(fx: dict, rng: random.Random, seed: int) -> Case:
     refused, names = [], []
     for spec in rng.sample(specs, min(len(specs), rng.randint(1, 3))):
         v = random_value(spec, rng)
-        if spec.kind == "bool":
-            argv.append(spec.flag if rng.random() < 0.5 else spec.flag.replace("--", "--no-", 1))
+        if spec.kind in ("bool", "switch"):
+            negate = spec.kind == "bool" and rng.random() < 0.5
+            argv.append(spec.flag.replace("--", "--no-", 1) if negate else spec.flag)
             continue
         argv += [spec.flag, *H.format_value(v)]
         names += spec.names()  # the command may refuse any of them first (a word where a number goes)
@@ -287,15 +288,26 @@ def _ingest_valid(out: Path, photo: Path, expect: str) -> str | None:
     names = [Path(f.file_path).stem for f in cap.frames]
     report = json.loads((out / "ingest_report.json").read_text())
     dropped = [d["image"] for d in report.get("dropped", [])]
-    if expect == "fail" and photo.stem in names:
-        return f"the damaged {photo.name} became a frame"
-    if expect == "fail" and not any(photo.name in d for d in dropped):
-        return f"the damaged {photo.name} is neither a frame nor listed as dropped"
+    if expect in ("fail", "unusable") and photo.stem in names:
+        return f"the {'damaged' if expect == 'fail' else 'unusable'} {photo.name} became a frame"
+    if expect in ("fail", "unusable") and not any(photo.name in d for d in dropped):
+        return f"the {'damaged' if expect == 'fail' else 'unusable'} {photo.name} is neither a frame nor dropped"
     for f in cap.frames:
         img = read_image(cap.image_path(f))
         if img.shape[:2] != (f.intrinsics.height, f.intrinsics.width):
             return f"{f.file_path} is {img.shape[:2]}, its camera {f.intrinsics.height}x{f.intrinsics.width}"
     return None
+
+
+def register_cases(root: Path) -> Iterator[Case]:
+    """``texstream register`` on three photos with nothing to match (smooth gradients): one error line."""
+    photos = root / "register" / "photos"
+    D.good_photos(photos, n=3)
+    cap, out = root / "register" / "capture", root / "register" / "posed"
+    yield Case("register", ("register", "ingest_for_it"),
+               ["ingest", str(photos), "-o", str(cap), "--auto-masks", "none"])
+    yield Case("register", ("register", "unusable_photos"), ["register", str(cap), "-o", str(out)], must_fail=True,
+               names=(str(cap),), root=root / "register", outputs=(out,))
 
 
 def capture_reader_cases(root: Path, rng: random.Random | None = None, limit: int | None = None) -> Iterator[Case]:

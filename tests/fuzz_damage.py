@@ -79,7 +79,8 @@ def _bomb_png(path: Path) -> Path:
 
 
 # name -> (builder(folder) -> path, expectation): "read" = an odd but valid photo, read as (H, W, 3) finite
-# linear values; "fail" = damaged, an InputError naming the file
+# linear values; "fail" = damaged, an InputError naming the file; "unusable" = read, but no photo to fit or
+# register (ingest must drop it with its reason or refuse it: issue 41 saw a 1x1 photo accepted)
 PHOTO_CASES: dict[str, tuple[Callable[[Path], Path], str]] = {
     "truncated_jpeg": (lambda d: _truncated(_write(d / "t.jpg", textured(32, 32)), d / "truncated.jpg", 0.5), "fail"),
     "truncated_png": (lambda d: _truncated(_write(d / "t.png", textured(32, 32)), d / "truncated.png", 0.5), "fail"),
@@ -91,7 +92,7 @@ PHOTO_CASES: dict[str, tuple[Callable[[Path], Path], str]] = {
     "bomb_png": (lambda d: _bomb_png(d / "bomb.png"), "fail"),
     "nan_exr": (lambda d: _write(d / "nan.exr", _with(textured(8, 8), (2, 3), np.nan), bits=32), "fail"),
     "inf_exr": (lambda d: _write(d / "inf.exr", _with(textured(8, 8), (5, 1), np.inf), bits=32), "fail"),
-    "one_by_one_png": (lambda d: _write(d / "one.png", textured(1, 1)), "read"),
+    "one_by_one_png": (lambda d: _write(d / "one.png", textured(1, 1)), "unusable"),
     "png16": (lambda d: _write(d / "deep.png", textured(12, 10), bits=16), "read"),
     "grey_alpha_png": (lambda d: _write(d / "ga.png", _with_alpha(textured(8, 8)[..., :1])), "read"),
     "rgba_exr_half": (lambda d: _write(d / "rgba.exr", _with_alpha(textured(8, 8))), "read"),

@@ -62,6 +62,8 @@ def _value_strategy(spec: H.OptionSpec):
         return st.lists(st.floats(allow_nan=True, allow_infinity=True), min_size=1, max_size=4)
     if spec.kind == "bool":
         return st.sampled_from([spec.flag, spec.flag.replace("--", "--no-", 1)])
+    if spec.kind == "switch":
+        return st.just(spec.flag)
     return st.text(alphabet=st.characters(blacklist_categories=("Cs",), blacklist_characters="\x00"), max_size=12)
 
 
@@ -71,7 +73,7 @@ def _option_case(draw, fx):
     spec = draw(st.sampled_from(H.option_specs(command)))
     value = draw(_value_strategy(spec))
     argv = H.base_argv(command, fx)
-    if spec.kind == "bool":
+    if spec.kind in ("bool", "switch"):
         return C.Case("option_generated", (command, spec.dest), argv + [value], stub=True)
     must_fail = not C.in_range(spec, value)
     return C.Case("option_generated", (command, spec.dest), argv + [spec.flag, *H.format_value(value)], stub=True,
@@ -104,6 +106,10 @@ def test_ingest_with_one_damaged_or_odd_photo(tmp_path):
     """ingest on three good photos and one damaged or odd one: the odd one a frame of its true size, the
     damaged one dropped and listed, or one error line naming it."""
     assert _unexpected(C.ingest_cases(tmp_path)) == []
+
+
+def test_register_on_photos_with_nothing_to_match(tmp_path):
+    assert _unexpected(C.register_cases(tmp_path)) == []
 
 
 def test_damaged_capture_texts(tmp_path):
