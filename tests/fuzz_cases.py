@@ -34,6 +34,8 @@ class Case:
     """a reader called directly (instead of a command line)"""
     stub: bool = False
     must_fail: bool = False
+    must_pass: bool = False
+    """a valid input: refusing it is a violation too"""
     names: tuple = ()
     root: Path | None = None
     outputs: tuple = ()
@@ -74,6 +76,8 @@ def run_case(case: Case) -> tuple[list[str], H.Outcome]:
         where = Path(faults.where)
         if where.name not in outcome.stderr_lines[-1] and str(where.parent) not in outcome.stderr_lines[-1]:
             found.append(f"the full-disk / read-only error does not name {where}: {outcome.stderr_lines[-1][:200]!r}")
+    if case.must_pass and outcome.rc != 0 and outcome.form() != "bad":
+        found.append(f"refused a valid input: {outcome.stderr_lines[-1][:200] if outcome.stderr_lines else outcome.rc}")
     if case.post is not None:
         found += case.post()
     return found, outcome
@@ -250,9 +254,9 @@ def photo_reader_cases(root: Path) -> Iterator[Case]:
             if name in ("empty_png", "random_bytes_jpeg", "text_as_png", "bomb_png"):
                 must_fail = True
             yield Case("photo_reader", ("read", f"{name}:{reader.__name__}"), call=lambda r=reader, p=p: r(p),
-                       must_fail=must_fail, names=(p.name,))
+                       must_fail=must_fail, must_pass=expect != "fail", names=(p.name,))
     # the CMYK files must read as the colours they hold, not their inks
-    yield Case("photo_reader", ("read", "cmyk_colours"), call=lambda: _cmyk_check(root / "photos"))
+    yield Case("photo_reader", ("read", "cmyk_colours"), call=lambda: _cmyk_check(root / "photos"), must_pass=True)
 
 
 def _cmyk_check(folder: Path) -> np.ndarray:
@@ -276,7 +280,7 @@ def ingest_cases(root: Path) -> Iterator[Case]:
         p = build(folder)
         out = root / "ingest_out" / name
         yield Case("photo_ingest", ("ingest", name), ["ingest", str(folder), "-o", str(out), "--auto-masks", "none"],
-                   names=(p.name, str(folder)), root=root / "ingest_out", outputs=(out,),
+                   names=(p.name, str(folder)), root=root / "ingest_out", outputs=(out,), must_pass=expect == "read",
                    valid=lambda out=out, p=p, expect=expect: _ingest_valid(out, p, expect))
 
 
@@ -370,6 +374,9 @@ def colmap_cases(root: Path) -> Iterator[Case]:
         base = root / f"colmap_{'txt' if text else 'bin'}"
         D.colmap_model(base / "sparse" / "0", text=text)
         D.good_photos(base / "images", n=3)
+        intact = root / "colmap_out" / f"intact_{'txt' if text else 'bin'}"  # the checks refuse no good model
+        yield Case("colmap", ("import", "intact"), ["import", "colmap", str(base), "-o", str(intact)],
+                   root=root / "colmap_out", must_pass=True, valid=lambda out=intact: _capture_valid(out))
         for name in D.colmap_damages(base / "sparse" / "0"):
             case = root / "colmap" / f"{name}_{'txt' if text else 'bin'}"
             if not case.exists():
