@@ -51,9 +51,11 @@ class Tally:
         self.failures: list[dict] = []
         self.known_seen: set = set()
         self.known_failing: set = set()
+        self.known_examples: dict = {}
 
-    def add(self, case: C.Case, found: list[str]) -> None:
+    def add(self, case: C.Case, found: list[str], fired: bool = False) -> None:
         self.counts["faults" if case.family == "fault" else "cases"] += 1
+        self.counts["faults_fired"] += fired
         self.families[case.family] += 1
         self.commands[case.key[0]] += 1
         match = H.known_entry(case.key)
@@ -64,6 +66,7 @@ class Tally:
             if owner:
                 self.known[f"{owner}:{kind_of(v)}"] += 1
                 self.known_failing.add(match[1])
+                self.known_examples.setdefault(" ".join(match[1]), f"{case.reproduction()}: {v}"[:400])
                 continue
             self.counts[kind_of(v)] += 1
         if found and not owner:
@@ -72,10 +75,12 @@ class Tally:
 
     def result(self) -> dict:
         return {"cases": self.counts["cases"], "faults": self.counts["faults"],
+                "faults_fired": self.counts["faults_fired"],
                 "tracebacks": self.counts["tracebacks"], "half_written": self.counts["half_written"],
                 "silent_acceptances": self.counts["silent_acceptances"], "message_form": self.counts["message_form"],
                 "per_family": dict(self.families), "per_command": dict(self.commands), "known": dict(self.known),
                 "known_now_passing": sorted(map(list, self.known_seen - self.known_failing)),
+                "known_examples": self.known_examples,
                 "failures": self.failures}
 
 
@@ -84,8 +89,8 @@ def run_all(cases, tally: Tally, log, deadline: float) -> None:
         if time.monotonic() > deadline:
             log("time budget spent: stopping this family")
             return
-        found, _ = C.run_case(case)
-        tally.add(case, found)
+        found, outcome = C.run_case(case)
+        tally.add(case, found, fired=bool(case.fault) and outcome.fault_fired)
         if found and not H.known_owner(case.key):
             log(f"FAIL {case.family} {case.key}: {found[0][:200]}")
 

@@ -159,4 +159,5 @@ def signal_cases(inputs: dict, root: Path, count: int, seed: int, log=print) -> 
 
 
 def summary_line(results: dict) -> str:
-    return json.dumps({k: results[k] for k in ("cases", "faults", "tracebacks", "half_written", "silent_acceptances")})
+    return json.dumps({k: results[k] for k in ("cases", "faults", "faults_fired", "tracebacks", "half_written",
+                                                "silent_acceptances", "message_form")})
