@@ -50,7 +50,7 @@ def fault_target(command: str, inputs: dict, root: Path) -> tuple[list[str], Pat
             "ingest": ["ingest", str(inputs["photos"]), "-o", str(out), "--auto-masks", "none"],
             "export": ["export", str(model), "-o", str(out)],
             "eval": ["eval", str(model), str(cap), "-o", str(out / "eval.json")],
-            "atlas": ["atlas", str(cap / "ground_truth" / "mesh.obj"), "-o", str(out)],
+            "atlas": ["atlas", str(cap / "ground_truth" / "mesh.obj"), "-o", str(out), "--force"],
             "fit": ["fit", str(cap), "--mesh", str(cap / "ground_truth"), "-o", str(out), "--model", "diffuse",
                     "--max-iterations", "2", "--renders", "1"],
             "run": ["run", str(cap), "-o", str(out), "--model", "diffuse", "--iterations", "2",
@@ -60,7 +60,8 @@ def fault_target(command: str, inputs: dict, root: Path) -> tuple[list[str], Pat
 
 def fault_cases(inputs: dict, root: Path, per_command: dict[str, int], seed: int) -> Iterator[C.Case]:
     """Per command, ``per_command[command]`` faults at writes drawn from its clean run's writes (every write
-    once before any twice), kinds in turn; each case's folder starts with the clean run's output in place."""
+    once before any twice), kinds in turn; each case's folder starts with the clean run's output in place
+    (``run`` starts from none: it keeps finished stages, and a rerun is judged instead)."""
     rng = random.Random(seed)
     for command, n_faults in per_command.items():
         if n_faults <= 0:
@@ -69,6 +70,8 @@ def fault_cases(inputs: dict, root: Path, per_command: dict[str, int], seed: int
         folder.mkdir(parents=True, exist_ok=True)
         argv, out = fault_target(command, inputs, folder)
         n_writes, clean = H.count_writes(argv, folder)
+        if command != "run" and clean.rc == 0:  # the faulted runs find the output in place: count those writes
+            n_writes, clean = H.count_writes(argv, folder)
         if clean.rc != 0 or n_writes == 0:
             yield C.Case("fault_setup", (command, "clean run"), argv, must_fail=False,
                          valid=lambda clean=clean: f"the clean run failed: {clean.stderr.strip()[-300:]}")

@@ -51,7 +51,7 @@ def test_faults_at_writes(inputs, tmp_path, command, n_faults):
         fired += outcome.fault_fired
         if found and not H.known_owner(case.key):
             bad.append(f"{case.reproduction()}: {found}")
-    assert fired == n_faults, "every drawn write exists in the faulted run too"
+    assert fired == n_faults, "every drawn write happens in the faulted run too"
     assert bad == []
     # the output the faults were injected around is still the clean run's, and readable
     argv, out = F.fault_target(command, inputs, tmp_path / command)
