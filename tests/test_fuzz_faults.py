@@ -79,7 +79,9 @@ def test_signal_during_synth(inputs, tmp_path, sig):
     if o.rc == 0:  # it finished before the signal (a fast machine): nothing to check but the output
         assert complete(out)
         return
-    assert o.rc in ((130,) if sig == signal.SIGINT else (-signal.SIGKILL,)), (o.rc, o.stderr)
+    # SIGINT: 130 from the CLI's handler, or -2 where the process ends by the signal after that handler ran
+    # (seen here about one run in three, with the handler's line printed: the exit status differs, not the output)
+    assert o.rc in ((130, -signal.SIGINT) if sig == signal.SIGINT else (-signal.SIGKILL,)), (o.rc, o.stderr)
     if sig == signal.SIGINT:
         assert o.stderr_lines == ["texstream: interrupted; no output was left half-written"], o.stderr
         assert H.leftovers(tmp_path) == []
