@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import shutil
+import struct
 from pathlib import Path
 from typing import Any
 
@@ -53,6 +54,11 @@ def camera_to_intrinsics(model: str, params: np.ndarray, width: int, height: int
         raise InputError(f"camera model {model} with {len(params)} parameters is not supported{where}",
                          fix=f"use one of {sorted(COLMAP_PARAMS)} (e.g. re-run COLMAP with OPENCV)")
     p = dict(zip(names, (float(x) for x in params)))
+    if not (np.all(np.isfinite(list(p.values()))) and int(width) > 0 and int(height) > 0
+            and p.get("fx", p.get("f", 0.0)) > 0 and p.get("fy", p.get("f", 0.0)) > 0):
+        raise InputError(f"camera {model} {int(width)}x{int(height)} with parameters {[round(v, 6) for v in p.values()]} "
+                         f"is not a camera (sizes and focal lengths must be positive, every parameter finite){where}",
+                         fix="re-export the COLMAP model (the cameras file is damaged)")
     fx = p.get("fx", p.get("f"))
     fy = p.get("fy", p.get("f"))
     dist = {k: p[k] for k in ("k1", "k2", "k3", "k4", "p1", "p2") if k in p}
@@ -108,9 +114,100 @@ def reconstruction_frames(rec: Any) -> list[tuple[str, np.ndarray, np.ndarray, I
         pose = image.cam_from_world()
         intr = camera_to_intrinsics(cam.model.name, np.asarray(cam.params), cam.width, cam.height,
                                     f" (image {image.name})")
+        quat, t = np.asarray(pose.rotation.quat, dtype=np.float64), np.asarray(pose.translation, dtype=np.float64)
+        if not (np.all(np.isfinite(quat)) and abs(np.linalg.norm(quat) - 1.0) < 1e-3 and np.all(np.isfinite(t))):
+            raise InputError(f"image {image.name} has the pose quaternion {quat.tolist()} and translation {t.tolist()} "
+                             "(a rotation needs a finite unit quaternion)",
+                             fix="re-export the COLMAP model (the images file is damaged)")
         out.append((image.name, np.asarray(pose.rotation.matrix(), dtype=np.float64),
                     np.asarray(pose.translation, dtype=np.float64).reshape(3), intr))
     return sorted(out, key=lambda x: x[0])
+
+
+COLMAP_MODEL_IDS: dict[int, int] = {0: 3, 1: 4, 2: 4, 3: 5, 4: 8, 5: 8, 6: 12, 7: 5, 8: 4, 9: 5, 10: 12}
+"""COLMAP's camera model id -> its number of parameters (src/colmap/sensor/models.h), to walk cameras.bin"""
+_MIN_RECORD = {"cameras.bin": 4 + 4 + 8 + 8 + 8, "images.bin": 4 + 32 + 24 + 4 + 1 + 8,
+               "points3D.bin": 8 + 24 + 3 + 8 + 8}
+"""the smallest record of each binary model file (COLMAP's src/colmap/scene/reconstruction_io.cc)"""
+_MODEL_FIX = "re-export the model from COLMAP (File > Export model), or pass a folder with an intact one"
+
+
+def _check_binary_model(model_dir: Path) -> None:
+    """Refuse damaged binary model files before pycolmap reads them: pycolmap reads a truncated cameras.bin
+    without a word (the missing bytes as zeros) and spends minutes on a points3D.bin of junk claiming
+    billions of points. Each file's count must fit its size; cameras.bin and images.bin are walked to
+    their exact end (seeks only: a large images.bin is not read)."""
+    for name, min_record in _MIN_RECORD.items():
+        p = model_dir / name
+        if not p.is_file():
+            continue
+        size = p.stat().st_size
+        with open(p, "rb") as fh:
+            head = fh.read(8)
+            if len(head) < 8:
+                raise InputError(f"COLMAP {name} is truncated ({size} bytes)", p, _MODEL_FIX)
+            (count,) = struct.unpack("<Q", head)
+            if count * min_record > size - 8:
+                raise InputError(f"COLMAP {name} claims {count} records but has {size} bytes (truncated or not a "
+                                 "COLMAP file)", p, _MODEL_FIX)
+            end = _walk_cameras(fh, count) if name == "cameras.bin" else (
+                _walk_images(fh, count, size) if name == "images.bin" else None)
+        if end is not None and end != size:
+            raise InputError(f"COLMAP {name} ends at byte {size}, its {count} records at byte {end} (truncated, or "
+                             "not a COLMAP file)", p, _MODEL_FIX)
+
+
+def _walk_cameras(fh, count: int) -> int | None:
+    """The byte where cameras.bin's records end (None when a camera model id is unknown here)."""
+    pos = 8
+    for _ in range(count):
+        fh.seek(pos)
+        rec = fh.read(24)
+        if len(rec) < 24:
+            return pos + len(rec)
+        n_params = COLMAP_MODEL_IDS.get(struct.unpack("<iiQQ", rec)[1])
+        if n_params is None:
+            return None
+        pos += 24 + 8 * n_params
+    return pos
+
+
+def _walk_images(fh, count: int, size: int) -> int:
+    """The byte where images.bin's records end (at most ``size``)."""
+    pos = 8
+    for _ in range(count):
+        fh.seek(pos + 64)
+        name_len = 0
+        while True:
+            chunk = fh.read(256)
+            if not chunk:
+                return size + 1
+            k = chunk.find(b"\0")
+            if k >= 0:
+                name_len += k + 1
+                break
+            name_len += len(chunk)
+        fh.seek(pos + 64 + name_len)
+        n2d = fh.read(8)
+        if len(n2d) < 8:
+            return size + 1
+        pos += 64 + name_len + 8 + 24 * struct.unpack("<Q", n2d)[0]
+        if pos > size:
+            return pos
+    return pos
+
+
+def read_reconstruction(model_dir: str | os.PathLike):
+    """A COLMAP model folder as a ``pycolmap.Reconstruction``; a damaged one is an InputError naming it."""
+    import pycolmap
+
+    model_dir = Path(model_dir)
+    _check_binary_model(model_dir)
+    try:
+        return pycolmap.Reconstruction(str(model_dir))
+    except Exception as e:  # noqa: BLE001 - pycolmap raises plain RuntimeError/ValueError on bad files
+        why = str(e).strip().splitlines()[0][:200] if str(e).strip() else type(e).__name__
+        raise InputError(f"cannot read COLMAP model ({why})", model_dir, _MODEL_FIX) from None
 
 
 def _overwrite_guard(out: Path, overwrite: bool) -> None:
@@ -144,8 +241,6 @@ class ColmapImportConfig:
 
 
 def _find_model(src: Path, cfg: ColmapImportConfig) -> Path:
-    import pycolmap
-
     if cfg.model:
         cand = [src / cfg.model]
     elif any((src / f).exists() for f in ("cameras.bin", "cameras.txt")):
@@ -163,8 +258,8 @@ def _find_model(src: Path, cfg: ColmapImportConfig) -> Path:
     sizes = []
     for c in cand:
         try:
-            sizes.append(pycolmap.Reconstruction(str(c)).num_reg_images())
-        except Exception:  # noqa: BLE001 - an unreadable model is just not chosen
+            sizes.append(read_reconstruction(c).num_reg_images())
+        except InputError:  # an unreadable model is just not chosen
             sizes.append(-1)
     return cand[int(np.argmax(sizes))]
 
@@ -181,8 +276,6 @@ def import_colmap(src: str | os.PathLike, out: str | os.PathLike, config: Colmap
     Returns:
         StageResult with counts of imported and missing images.
     """
-    import pycolmap
-
     cfg = config or ColmapImportConfig()
     src = Path(src)
     out = Path(out)
@@ -190,16 +283,16 @@ def import_colmap(src: str | os.PathLike, out: str | os.PathLike, config: Colmap
         raise InputError("COLMAP source not found", src, "check the path")
     _overwrite_guard(out, cfg.overwrite)
     model_dir = _find_model(src, cfg)
-    try:
-        rec = pycolmap.Reconstruction(str(model_dir))
-    except Exception as e:  # noqa: BLE001 - pycolmap raises plain RuntimeError/ValueError on bad files
-        raise InputError(f"cannot read COLMAP model ({e})", model_dir, "check the .bin/.txt files") from None
+    rec = read_reconstruction(model_dir)
     if cfg.images:
         img_dir = Path(cfg.images)
     else:
         tries = [src / "images", model_dir.parent.parent / "images", model_dir.parent / "images"]
         img_dir = next((t for t in tries if t.is_dir()), tries[0])
-    frames_in = reconstruction_frames(rec)
+    try:
+        frames_in = reconstruction_frames(rec)
+    except InputError as e:  # a damaged camera or pose: name the model folder it came from
+        raise InputError(e.message, e.path or model_dir, e.fix) from None
     if not frames_in:
         raise InputError("COLMAP model has no registered images", model_dir, "run COLMAP mapping first")
     missing = [n for n, *_ in frames_in if not (img_dir / n).is_file()]

@@ -37,6 +37,10 @@ VALID_PIXELS = "valid_pixels"
 _INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
 _DIST_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 CAMERA_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV", "SIMPLE_RADIAL", "RADIAL", "OPENCV_FISHEYE")
+"""the camera models a capture may name (read case-insensitively); another (nerfstudio's EQUIRECTANGULAR, ...)
+would be read as a pinhole camera and fitted wrong, so it is refused"""
+MAX_IMAGE_SIDE = 1 << 20
+"""the largest w or h accepted (a million pixels a side: above any camera; a larger value is a broken file)"""
 
 
 @dataclasses.dataclass
@@ -165,18 +169,24 @@ def _intrinsics_from(d: dict, fallback: Intrinsics | None, where: str, path: Pat
     if missing:
         raise InputError(f"{where} lacks intrinsics field(s) {missing}", path,
                          "give fl_x, fl_y, cx, cy, w, h at the top level or in every frame")
-    try:
-        intr = Intrinsics(width=int(merged["w"]), height=int(merged["h"]), fx=float(merged["fl_x"]),
-                          fy=float(merged["fl_y"]), cx=float(merged["cx"]), cy=float(merged["cy"]),
-                          camera_model=str(merged.get("camera_model", "OPENCV" if any(k in merged for k in _DIST_KEYS) else "PINHOLE")),
-                          distortion={k: float(merged[k]) for k in _DIST_KEYS if k in merged})
-    except (TypeError, ValueError) as e:
-        raise InputError(f"{where} has a non-numeric intrinsics value ({e})", path, "write numbers") from None
-    if not all(np.isfinite([intr.fx, intr.fy, intr.cx, intr.cy, *intr.distortion.values()])):
-        raise InputError(f"{where} has a non-finite intrinsics value", path, "check the intrinsics")
-    if intr.width <= 0 or intr.height <= 0 or not (intr.fx > 0 and intr.fy > 0):
-        raise InputError(f"{where} has non-positive w/h/fl_x/fl_y", path, "check the intrinsics")
-    return intr
+    values = {k: _number(merged[k]) for k in (*_INTRINSIC_KEYS, *_DIST_KEYS) if k in merged}
+    bad = [k for k, v in values.items() if not np.isfinite(v)]
+    if bad:
+        listed = ", ".join(f"{k}={merged[k]!r}" for k in bad)
+        raise InputError(f"{where} has non-numeric or non-finite intrinsics {listed}", path, "write finite numbers")
+    size = [k for k in ("w", "h") if not (values[k] == int(values[k]) and 0 < values[k] <= MAX_IMAGE_SIDE)]
+    if size or not (values["fl_x"] > 0 and values["fl_y"] > 0):
+        wrong = ", ".join(f"{k}={merged[k]!r}" for k in size + [k for k in ("fl_x", "fl_y") if not values[k] > 0])
+        raise InputError(f"{where} has non-positive or invalid {wrong}: w and h must be whole numbers in "
+                         f"1..{MAX_IMAGE_SIDE}, fl_x and fl_y positive", path, "check the intrinsics")
+    default_model = "OPENCV" if any(k in merged for k in _DIST_KEYS) else "PINHOLE"
+    model = merged.get("camera_model", default_model)
+    if not isinstance(model, str) or model.upper() not in CAMERA_MODELS:
+        raise InputError(f"{where} camera_model {model!r} is not one of {list(CAMERA_MODELS)}", path,
+                         "undistort the photos to a pinhole camera, or write one of these models")
+    return Intrinsics(width=int(values["w"]), height=int(values["h"]), fx=values["fl_x"], fy=values["fl_y"],
+                      cx=values["cx"], cy=values["cy"], camera_model=model.upper(),
+                      distortion={k: values[k] for k in _DIST_KEYS if k in values})
 
 
 def _light_from(d: Any, where: str, path: Path) -> Light:
@@ -222,6 +232,11 @@ def read_capture(folder: str | os.PathLike) -> Capture:
         where = f"frames[{i}]"
         if not isinstance(fd, dict) or "file_path" not in fd:
             raise InputError(f"{where} lacks 'file_path'", path, "give each frame its image path")
+        for key in ("file_path", "mask_path"):
+            value = fd.get(key)
+            if not (isinstance(value, str) and value.strip()) and (key == "file_path" or value is not None):
+                raise InputError(f"{where} {key} {value!r} is not a path", path,
+                                 f"write the {'image' if key == 'file_path' else 'mask'} path relative to the folder")
         if "transform_matrix" not in fd:
             raise InputError(f"{where} lacks 'transform_matrix'", path, "give each frame a 4x4 camera-to-world matrix")
         try:

@@ -154,6 +154,8 @@ def _read_raw(path: Path, rows: tuple[int, int] | None = None, size: tuple[int, 
             fmt = "uint16"
         else:
             fmt = "float"
+        if inp.format_name() == "png" and not _png_complete(path):
+            raise InputError("PNG file is truncated (it has no end chunk)", path, _READ_FIX)
         if rows is not None and not (0 <= rows[0] < rows[1] <= spec.height):
             raise InputError(f"rows {rows[0]}..{rows[1]} lie outside the image's {spec.height}", path,
                              "report this with the command that made it")
@@ -173,10 +175,36 @@ def _read_raw(path: Path, rows: tuple[int, int] | None = None, size: tuple[int, 
             px = px[0]
         if whole and rows is not None:
             px = px[rows[0]:rows[1]]
+        if _is_cmyk(spec):
+            px = _cmyk_to_rgb(px)
         return px, spec
     finally:
         inp.close()
         oiio.geterror()  # clear the global error buffer so nothing is reported at exit
+
+
+def _png_complete(path: Path) -> bool:
+    """Whether a PNG file holds its end chunk (IEND) near its end: a truncated PNG does not, and decoding one
+    makes libpng print its error on stderr besides the one-line error."""
+    with open(path, "rb") as fh:
+        fh.seek(max(0, path.stat().st_size - 4096))
+        return b"IEND\xaeB`\x82" in fh.read()
+
+
+def _is_cmyk(spec) -> bool:
+    """A TIFF of inks (PhotometricInterpretation 5, separated) with C, M, Y, K first: OpenImageIO returns its
+    four ink channels as they are (labelled RGBA), where a CMYK JPEG comes back converted to RGB."""
+    return spec.nchannels >= 4 and spec.getattribute("tiff:PhotometricInterpretation") == 5
+
+
+def _cmyk_to_rgb(px: np.ndarray) -> np.ndarray:
+    """Stored ink amounts (0 = no ink) -> RGB codes as OpenImageIO converts CMYK JPEGs: R = (1 - C)(1 - K);
+    channels after K (alpha) kept."""
+    full = 1.0 if px.dtype.kind == "f" else float(np.iinfo(px.dtype).max)
+    ink = px[..., :4].astype(np.float64) / full
+    rgb = (1.0 - ink[..., :3]) * (1.0 - ink[..., 3:4]) * full
+    rgb = rgb.astype(px.dtype) if px.dtype.kind == "f" else np.round(rgb).astype(px.dtype)
+    return np.concatenate([rgb, px[..., 4:]], axis=-1)
 
 
 def _gamma_from_colorspace(name: str | None) -> float | None:

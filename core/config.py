@@ -138,8 +138,37 @@ def config_from_dict(cls: type[T], data: dict) -> T:
             v = config_from_dict(t, v)
         elif typing.get_origin(t) is tuple and isinstance(v, list):
             v = tuple(v)
+        if t is not None and not dataclasses.is_dataclass(v) and not _of_type(v, t):
+            raise ConfigError(f"{f.name} = {v!r} is not {_type_name(t)}", fix=f"write {f.name} as {_type_name(t)}")
         kwargs[f.name] = v
     return cls(**kwargs)
+
+
+def _of_type(v: Any, t: Any) -> bool:
+    """Whether a value read from a config file fits its field's annotation (int for float fields too; NaN
+    never: a config file's NaN is a typo, not a setting)."""
+    if t is Any or isinstance(t, TypeVar):
+        return True
+    origin, args = typing.get_origin(t), typing.get_args(t)
+    if origin is typing.Union or str(origin) == "<class 'types.UnionType'>":
+        return any(_of_type(v, a) for a in args)
+    if t is type(None):
+        return v is None
+    if origin in (tuple, list):
+        if not isinstance(v, (tuple, list)):
+            return False
+        if len(args) == 2 and args[1] is Ellipsis:
+            args = (args[0],) * len(v)
+        return (not args or len(args) == len(v)) and all(_of_type(x, a) for x, a in zip(v, args))
+    if t is float:
+        return isinstance(v, (int, float)) and not isinstance(v, bool) and v == v
+    if t is int:
+        return isinstance(v, int) and not isinstance(v, bool)
+    return isinstance(v, t) if isinstance(t, type) else True
+
+
+def _type_name(t: Any) -> str:
+    return {int: "a whole number", float: "a number", str: "a string", bool: "true or false"}.get(t, str(t))
 
 
 def save_config(cfg: Any, path: str | os.PathLike) -> None:

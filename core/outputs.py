@@ -29,7 +29,7 @@ def read_json(path: str | os.PathLike, what: str = "JSON file") -> Any:
         raise InputError(f"{what} not found", p, "check the path")
     try:
         return json.loads(p.read_text())
-    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as e:  # RecursionError: nested too deep
         raise InputError(f"{what} is not valid JSON ({e})", p, "repair or regenerate the file") from None
 
 

@@ -134,9 +134,10 @@ def run_config_from_dict(data: dict) -> RunConfig:
             if not isinstance(v, dict):
                 raise ConfigError(f"[{k}] must be a table, got {v!r}", fix=f"write it as a [{k}] section")
             kwargs[k] = config_from_dict(SUBCONFIGS[k], v)
-        else:
-            kwargs[k] = v
-    cfg = RunConfig(**kwargs)
+    # the top-level options read as config_from_dict reads a table (their types checked)
+    cfg = config_from_dict(RunConfig, {k: v for k, v in data.items() if k not in SUBCONFIGS})
+    cfg = dataclasses.replace(cfg, **kwargs)
+    check_config(cfg)  # ranges and choices here, where the caller names the file
     if cfg.model not in model_choices():
         raise ConfigError(f"model {cfg.model!r} unknown", fix=f"use one of {model_choices()}")
     if cfg.lfm not in LFM_CANDIDATE:
