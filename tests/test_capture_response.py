@@ -178,3 +178,20 @@ def test_one_chart_falls_back_to_srgb_and_a_file_response_is_used(captured, tmp_
     assert capture.response.knots == response.knots and "response.json" in capture.response.source
     np.testing.assert_allclose(read_image(capture.image_path(capture.frames[3]), response=capture.response),
                                response.linearise(codes[3] / 255.0), rtol=1e-6)
+
+
+def test_run_passes_the_response_to_ingest_and_says_which_was_used(captured):
+    import argparse
+    import types
+
+    from texstream.pipelines.cmd_run import _config, add_arguments
+    from texstream.pipelines.run import _response_input
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    assert _config(parser.parse_args(["photos", "--response", "auto"])).ingest.response == "auto"
+    assert _config(parser.parse_args(["photos"])).ingest.response == "srgb"
+    cap_dir, _, _, summary = captured
+    ingested = types.SimpleNamespace(records=[types.SimpleNamespace(name="ingest", summary=summary)])
+    said = _response_input(ingested, read_capture(cap_dir))
+    assert said["source"] == "colour chart" and "found in 3 of 4 photos" in said["why"]
