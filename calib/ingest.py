@@ -384,7 +384,7 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
 
     Returns:
         StageResult; summary has ``found``, ``frames``, ``brackets`` (merged groups), ``dropped``
-        (list of {image, reason}), ``masks``, ``intrinsics_source``.
+        (list of {image, reason}), ``masks``, ``intrinsics_source``, ``response`` (used, why).
 
     Raises:
         InputError: missing/empty folder, bad intrinsics or lights file. StageError: no usable photo
