@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from texstream.capture.imageio import read_image
+from texstream.capture.response import PhotoResponse, linearise_codes
 from texstream.core.errors import InputError
 from texstream.core.outputs import atomic_output_dir, write_json_atomic
 
@@ -95,12 +96,14 @@ class Response:
 
     def linearise(self, codes: np.ndarray) -> np.ndarray:
         """Linear radiance of code values (any shape), through the curve; below the first knot the first segment's
-        power law continues down to 0."""
-        c = np.clip(np.asarray(codes, np.float64), 0.0, 1.0)
-        x, lk = np.log(np.maximum(c, 1e-12)), np.log(self.knots)
-        slope = (self.log_radiance[1] - self.log_radiance[0]) / (lk[1] - lk[0])
-        log_r = np.where(x < lk[0], self.log_radiance[0] + slope * (x - lk[0]), np.interp(x, lk, self.log_radiance))
-        return np.where(c > 0, np.exp(log_r), 0.0)
+        power law continues down to 0 (:func:`texstream.capture.response.linearise_codes`, what the readers of a
+        capture with this response use)."""
+        return linearise_codes(self.knots, self.log_radiance, codes)
+
+    def photo_response(self, source: str) -> PhotoResponse:
+        """The curve as a capture records it (capture.json's ``response``), ``source`` saying where it came from."""
+        return PhotoResponse(tuple(float(v) for v in self.knots), tuple(float(v) for v in self.log_radiance),
+                             "colour_chart", source)
 
     def to_json(self) -> dict:
         return {"knots": self.knots.tolist(), "log_radiance": self.log_radiance.tolist(),

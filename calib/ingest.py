@@ -20,6 +20,9 @@ cross-checked across its sources (:func:`.sensors.focal_prior`: the focal-plane 
 photo's size, the camera body's sensor width, the 35 mm equivalent); a prior they disagree on is outvoted
 or dropped, with one line saying which and why (the report's ``focal_prior``). Automatic masks that look
 wrong (keeping the border, a highlight, sizes jumping across photos) are undone with their reason.
+``--response`` records how the 8- and 16-bit photos' codes become linear radiance (capture.json's ``response``,
+:mod:`texstream.capture.response`): sRGB (the default), a ``texstream chart`` response.json, or ``auto``, the
+curve fitted to a colour checker found in the photos themselves (:mod:`.colour_chart`).
 """
 
 from __future__ import annotations
@@ -35,11 +38,13 @@ import numpy as np
 
 from texstream.capture.capture_json import Capture, Frame, Intrinsics, write_capture
 from texstream.capture.imageio import read_alpha, read_image, read_mask, srgb_to_linear, write_image
+from texstream.capture.response import RESPONSE_KEY, response_from_json
 from texstream.core.errors import InputError, StageError, TexstreamError
 from texstream.core.config import option, save_config
-from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
+from texstream.core.outputs import StageResult, atomic_output_dir, read_json, write_json_atomic
 from texstream.core.progress import bar, say
 
+from .colour_chart import response_from_photos
 from .files import list_images, write_failure_report
 from .lights import load_lights_file
 from .masks import MASK_MODES, MaskConfig, masks_for_images, write_mask_preview
@@ -87,7 +92,58 @@ class IngestConfig:
                                            "light at each camera centre; when SfM's scale is arbitrary (no "
                                            "alignment) it is the irradiance at the median object distance",
                                            min=1e-12)
+    response: str = option("srgb", help="how the 8- and 16-bit photos' codes become linear radiance (the "
+                           "fit's input): srgb (decoded as sRGB), auto (the curve fitted to a ColorChecker Classic "
+                           "found in the photos, when it is found in at least 2 of them; else srgb, saying why), or "
+                           "a response.json from 'texstream chart'; float photos (EXR) are radiance already")
     overwrite: bool = option(True, help="replace an existing output folder")
+
+
+RESPONSE_MIN_CHARTS = 2
+"""``--response auto`` uses the chart's curve only when at least this many photos show the chart: one photo's
+24 patches pin the curve only at their own codes, and a second, under another light, fills the codes between
+them and checks the first (a chart mistaken in one photo then shows as a large residual)"""
+
+
+def _decide_response(infos: list[dict], cfg: IngestConfig):
+    """(PhotoResponse or None for sRGB, the report's entry {"used", "why", ...}) for ``cfg.response``."""
+    if cfg.response == "srgb":
+        return None, {"used": "srgb", "why": "--response srgb (the default)"}
+    if cfg.response != "auto":
+        path = Path(cfg.response)
+        if not path.is_file():
+            raise InputError("response file not found", path, "pass a response.json from 'texstream chart', auto "
+                                                              "or srgb to --response")
+        response = response_from_json(read_json(path, what="response file"), path)
+        response = dataclasses.replace(response, source=f"file {path}")
+        say("ingest", f"photo response: {path} (--response)")
+        return response, {"used": "colour_chart", "why": f"--response {path}", "source": response.source}
+    coded = [i for i in infos if i["eight_bit"] or i["sixteen_bit"]]
+    if not coded:
+        return None, {"used": "none", "why": "every photo is float (radiance already): no response applies"}
+    by_path = {str(i["path"]): i["img"] for i in coded}
+    fitted, per_photo = None, []
+    try:
+        fitted, per_photo = response_from_photos([i["path"] for i in coded], lambda p: by_path[str(p)])
+    except InputError as e:  # the patches fit no camera curve: sRGB, with the reason
+        found = []
+        why = f"colour chart found but its patches gave no response ({e.message}): photos decoded as sRGB"
+    else:
+        found = [Path(r["photo"]).name for r in per_photo if r["found"]]
+        if len(found) < RESPONSE_MIN_CHARTS:
+            fitted = None
+            why = (f"colour chart found in {len(found)} of {len(coded)} photos, fewer than {RESPONSE_MIN_CHARTS}: "
+                   "photos decoded as sRGB")
+        else:
+            why = (f"colour chart found in {len(found)} of {len(coded)} photos ({', '.join(found)}); its patches "
+                   f"fit the curve to {fitted.residual_percent:.2f}% RMS")
+    entry = {"used": "srgb" if fitted is None else "colour_chart", "why": why, "charts_found": found,
+             "per_photo": [{**r, "photo": Path(r["photo"]).name} for r in per_photo]}
+    say("ingest", f"photo response: {why}")
+    if fitted is None:
+        return None, entry
+    entry.update(residual_percent=fitted.residual_percent, patches_used=fitted.patches_used)
+    return fitted.photo_response(f"colour chart in {len(found)} of {len(coded)} photos"), entry
 
 
 def _exif(path: Path) -> dict[str, Any]:
@@ -218,9 +274,10 @@ def _read_photos(files: list[Path], dropped: list[dict]) -> list[dict]:
 
 
 def _write_view(members: list[dict], lead: dict, name: str, orient: int, tmp: Path,
-                cfg: IngestConfig) -> tuple[Path, float | None, np.ndarray]:
+                cfg: IngestConfig, response=None) -> tuple[Path, float | None, np.ndarray]:
     """A view's image into ``tmp/images``: a bracket merged to HDR (radiance per second, scaled to the middle
-    exposure's level), else the photo copied (upright, re-encoded only when turned or of another format).
+    exposure's level), else the photo copied (upright, re-encoded only when turned or of another format), its
+    saturation in the units its readers decode it to (through ``response`` when given, else sRGB).
     Returns (its path in the capture, its saturation in linear units or None, the stored photo upright as
     automatic masks see it: 8-bit sRGB codes, else linear)."""
     sat = None
@@ -254,10 +311,13 @@ def _write_view(members: list[dict], lead: dict, name: str, orient: int, tmp: Pa
             rel = Path("images") / lead["path"].name
             shutil.copy2(lead["path"], tmp / rel)
         # Saturation in linear units of the stored image: the top code (clipped sensor).
-        if lead["eight_bit"]:
-            sat = float(srgb_to_linear(np.float32(254.5 / 255)))
+        top = 254.5 / 255 if lead["eight_bit"] else 65534.5 / 65535 if lead["sixteen_bit"] else None
+        if top is not None and response is not None:
+            sat = float(response.linearise(top))
+        elif lead["eight_bit"]:
+            sat = float(srgb_to_linear(np.float32(top)))
         elif lead["sixteen_bit"]:
-            sat = 65534.5 / 65535
+            sat = top
     return rel, sat, img if len(members) > 1 else apply_orientation(lead["img"], orient)
 
 
@@ -324,7 +384,7 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
 
     Returns:
         StageResult; summary has ``found``, ``frames``, ``brackets`` (merged groups), ``dropped``
-        (list of {image, reason}), ``masks``, ``intrinsics_source``.
+        (list of {image, reason}), ``masks``, ``intrinsics_source``, ``response`` (used, why).
 
     Raises:
         InputError: missing/empty folder, bad intrinsics or lights file. StageError: no usable photo
@@ -360,6 +420,7 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
     times = [i["exif"].get("exposure_time") for i in infos]
     candidates = group_brackets(times, [i["size"] for i in infos], cfg.bracket_size)
     groups, decisions = _decide_brackets(candidates, infos, cfg)
+    response, response_entry = _decide_response(infos, cfg)
     cams = None
     if cfg.intrinsics:
         cams = load_intrinsics(cfg.intrinsics)
@@ -376,7 +437,7 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
             name = lead["path"].stem
             orient = int(lead["exif"].get("orientation", 1) or 1)
             w, h = lead["size"]
-            rel, sat, mask_view = _write_view(members, lead, name, orient, tmp, cfg)
+            rel, sat, mask_view = _write_view(members, lead, name, orient, tmp, cfg, response)
             # What automatic masks see: the stored photo, upright (8-bit: sRGB codes; else linear).
             mask_src = (mask_view, len(members) == 1 and lead["eight_bit"])
             mask_rel = _write_mask(mask_dir, lead, name, orient, (w, h), tmp, cfg, dropped)
@@ -408,7 +469,10 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
             extra_top["focal_prior"] = [d["decision"] for d in focal_decisions.values()]
         if cfg.colocated_light is not None:
             extra_top["colocated_light"] = {"intensity": [float(cfg.colocated_light)] * 3, "offset": [0.0, 0.0, 0.0]}
+        if response is not None:
+            extra_top[RESPONSE_KEY] = response.to_json()
         write_capture(Capture(root=tmp, frames=frames, extra=extra_top), tmp)
+        report["response"] = response_entry
         report["frames"] = [f.file_path for f in frames]
         report["brackets"] = [[infos[i]["path"].name for i in g] for g in groups if len(g) > 1]
         report["bracket_decisions"] = decisions
@@ -424,5 +488,6 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
                "masks": sum(1 for f in frames if f.mask_path), "intrinsics_source": extra_top["intrinsics_source"],
                "camera_sizes": report["camera_sizes"],
                "focal_prior": [d["decision"] for d in focal_decisions.values()],
-               "auto_masks": {k: auto.get(k) for k in ("mode", "decision", "masks")}}
+               "auto_masks": {k: auto.get(k) for k in ("mode", "decision", "masks")},
+               "response": {k: response_entry[k] for k in ("used", "why")}}
     return StageResult(output=out, summary=summary)

@@ -13,6 +13,9 @@ in OpenGL axes. texstream adds optional per-frame fields (DESIGN.md):
   stereo use such masks, the visual hull does not (:func:`masks_are_silhouettes`)
 - ``saturation``: pixel value at or above which a sample is clipped (default none)
 
+and an optional top-level ``response``: the inverse response of the 8- and 16-bit photos (code value to linear
+radiance, from a colour checker; :mod:`texstream.capture.response`); absent, they are decoded as sRGB.
+
 Unknown keys are kept and written back, so nerfstudio's own fields survive a round trip.
 Conventions are in :mod:`texstream.capture.conventions`. This module imports only numpy.
 """
@@ -30,6 +33,7 @@ from texstream.core.errors import InputError
 from texstream.core.outputs import read_json, write_json_atomic
 
 from .conventions import c2w_gl_to_w2c_cv, camera_center, is_rotation, w2c_cv_to_c2w_gl
+from .response import RESPONSE_KEY, PhotoResponse, response_from_json
 
 CAPTURE_FILE = "capture.json"
 MASK_KIND_KEY = "mask_kind"
@@ -140,6 +144,13 @@ class Capture:
     @property
     def has_lights(self) -> bool:
         return bool(self.frames) and all(f.light is not None for f in self.frames)
+
+    @property
+    def response(self) -> PhotoResponse | None:
+        """The integer photos' response (``extra["response"]``, kept there so that every stage copying a
+        capture's extra keeps it), or None: sRGB."""
+        d = self.extra.get(RESPONSE_KEY)
+        return None if d is None else response_from_json(d, self.root / CAPTURE_FILE)
 
 
 def _vec3(v) -> np.ndarray:
@@ -269,6 +280,8 @@ def read_capture(folder: str | os.PathLike) -> Capture:
                             saturation=None if sat is None else float(sat),
                             extra={k: v for k, v in fd.items() if k not in known}))
     extra = {k: v for k, v in data.items() if k != "frames" and k not in (*_INTRINSIC_KEYS, *_DIST_KEYS, "camera_model")}
+    if extra.get(RESPONSE_KEY) is not None:
+        response_from_json(extra[RESPONSE_KEY], path)  # bad values fail here, naming the file, not in a reader
     return Capture(root=path.parent, frames=frames, extra=extra)
 
 

@@ -9,6 +9,10 @@ top, values linear. On read:
 - 16-bit integer files are linear: value / 65535.
 - Float files (EXR, HDR, float TIFF) are returned as stored.
 
+A capture with a photo response (``capture.json``'s ``response``, :mod:`texstream.capture.response`) decodes
+its 8- and 16-bit photos through that curve instead (``read_image(..., response=)``, :class:`PhotoReader`); float
+files hold radiance already and are returned as stored.
+
 Alpha is returned as stored by the format: straight (unassociated) for PNG / TIFF, associated for
 EXR. OpenImageIO would otherwise premultiply PNG colours on read, which would break the sRGB decode.
 
@@ -220,9 +224,11 @@ def _gamma_from_colorspace(name: str | None) -> float | None:
     return None
 
 
-def _to_linear(px: np.ndarray, spec, path: Path, linear: bool, first_row: int = 0) -> np.ndarray:
+def _to_linear(px: np.ndarray, spec, path: Path, linear: bool, first_row: int = 0, response=None) -> np.ndarray:
     """Stored values -> float32, decoding 8-bit sRGB when ``linear`` (``first_row``: the image row of
-    ``px``'s first, for the NaN message)."""
+    ``px``'s first, for the NaN message); integer codes through ``response`` (a PhotoResponse) when given."""
+    if linear and response is not None and px.dtype in (np.uint8, np.uint16):
+        return response.lut(256 if px.dtype == np.uint8 else 65536)[px]
     if px.dtype == np.uint8:
         gamma = _gamma_from_colorspace(spec.getattribute("oiio:ColorSpace"))
         if not linear or gamma == 1.0:
@@ -255,7 +261,8 @@ def _split_alpha(px: np.ndarray, spec) -> tuple[np.ndarray, np.ndarray | None]:
 
 
 def read_image(path: str | os.PathLike, *, channels: int = 3, linear: bool = True,
-               rows: tuple[int, int] | None = None, size: tuple[int, int] | None = None) -> np.ndarray:
+               rows: tuple[int, int] | None = None, size: tuple[int, int] | None = None,
+               response=None) -> np.ndarray:
     """Read an image as linear float32.
 
     Args:
@@ -266,6 +273,9 @@ def read_image(path: str | os.PathLike, *, channels: int = 3, linear: bool = Tru
         rows: (y0, y1) to read only those rows (a photo cropped to the object: an EXR decodes only
             the blocks that hold them); NaN/Inf are then checked in those rows only.
         size: the expected (H, W), checked against the header before decoding.
+        response: the capture's photo response (:class:`texstream.capture.response.PhotoResponse`): with
+            ``linear``, 8- and 16-bit colour decoded through it instead of sRGB or value / 65535 (whatever the
+            file's colour space tag says: the response was measured on these codes); None: the rules above.
 
     Returns:
         (H, W, channels) float32 ((y1 - y0, W, channels) with ``rows``); linear radiance (see the
@@ -282,7 +292,7 @@ def read_image(path: str | os.PathLike, *, channels: int = 3, linear: bool = Tru
     colour, alpha = _split_alpha(px, spec)
     if colour.shape[2] == 0:  # alpha-only image: treat the alpha as grey
         colour, alpha = alpha[:, :, None], None
-    colour = _to_linear(colour, spec, path, linear, rows[0] if rows else 0)
+    colour = _to_linear(colour, spec, path, linear, rows[0] if rows else 0, response)
     if alpha is not None:  # alpha is coverage, never sRGB-encoded
         alpha = _to_linear(alpha[:, :, None], spec, path, False)[:, :, 0]
     if channels == 1:
@@ -301,6 +311,26 @@ def read_image(path: str | os.PathLike, *, channels: int = 3, linear: bool = Tru
         a = np.ones(colour.shape[:2], np.float32) if alpha is None else alpha
         colour = np.concatenate([colour, a[:, :, None]], axis=2)
     return np.ascontiguousarray(colour, dtype=np.float32)
+
+
+class PhotoReader:
+    """``read_image`` of a capture's photos through its response, as the fit's photo files call a reader:
+    (path, rows, size) -> (H, W, 3) linear float32. A module-level class so the decoding pool's worker
+    processes receive it (fit/stream/decode_pool.py)."""
+
+    def __init__(self, response):
+        self.response = response
+        self.cache_key = f"response-{response.key}"
+        """names the curve in the decoded photos' cache key (fit/stream/photo_stream.PhotoCache)"""
+
+    def __call__(self, path, rows=None, size=None, channels: int = 3) -> np.ndarray:
+        return read_image(path, channels=channels, rows=rows, size=size, response=self.response)
+
+
+def photo_reader(response):
+    """The reader of a capture's photos: :func:`read_image` (sRGB) without a response, else a
+    :class:`PhotoReader`."""
+    return read_image if response is None else PhotoReader(response)
 
 
 def read_alpha(path: str | os.PathLike) -> np.ndarray | None:

@@ -242,7 +242,7 @@ class PhotometricRefinement:
         masks = np.zeros((n, self.hmax, self.wmax), np.uint8)
         fg_sum = fg_count = 0.0
         for i, f in enumerate(self.frames):
-            im = read_image(capture.image_path(f), channels=3)
+            im = read_image(capture.image_path(f), channels=3, response=capture.response)
             h, w = im.shape[:2]
             if (h, w) != tuple(sizes[i]):
                 raise InputError(f"photo is {w}x{h}, its camera says {sizes[i][1]}x{sizes[i][0]}",

@@ -21,7 +21,8 @@ def output_target(args: argparse.Namespace) -> OutputTarget:
 
 
 def run(args: argparse.Namespace) -> int:
-    res = ingest(Path(args.photos), Path(args.out), config_from_args(IngestConfig, args))
+    cfg = config_from_args(IngestConfig, args)
+    res = ingest(Path(args.photos), Path(args.out), cfg)
     s = res.summary
     print(f"found {s['found']} file(s): {s['frames']} frame(s) ({s['brackets']} merged bracket(s)), "
           f"{s['masks']} mask(s), cameras {', '.join(s['camera_sizes'])}, intrinsics: {s['intrinsics_source']}")
@@ -30,5 +31,7 @@ def run(args: argparse.Namespace) -> int:
     for line in s.get("focal_prior", []):
         print(f"  focal length: {line}")
     print(f"  masks: {s['auto_masks']['decision']}")
+    if cfg.response != "srgb":
+        print(f"  photo response: {s['response']['why']}")
     print(f"wrote {res.output}")
     return 0

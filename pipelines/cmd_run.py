@@ -42,6 +42,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         type=Number.of(IngestConfig, "colocated_light", "--colocated-light"),
                         help="photos lit by a flash at the camera: its irradiance at the object (the albedos' scale)")
     parser.add_argument("--lights", default=None, help="lights file (JSON) for the photos (texstream ingest --lights)")
+    parser.add_argument("--response", default=None, metavar="FILE|auto|srgb",
+                        help="how the photos' codes become linear radiance (texstream ingest --response; default srgb)")
     parser.add_argument("--mirror-ball", dest="mirror_ball", default=None, metavar="X,Y,Z,R",
                         help="a mirror ball at X,Y,Z with radius R in the capture's world frame (more balls: "
                              "X,Y,Z,R,X,Y,Z,R): the run estimates the light from the ball photos and fits the "
@@ -76,7 +78,8 @@ def _config(args: argparse.Namespace):
            if getattr(args, k, None) is not None}
     fit = {k: v for k, v in (("max_iterations", args.iterations), ("optimizer", args.optimizer)) if v is not None}
     cfg = dataclasses.replace(cfg, **top)
-    ingest = {k: getattr(args, k) for k in ("colocated_light", "lights") if getattr(args, k) is not None}
+    ingest = {k: getattr(args, k) for k in ("colocated_light", "lights", "response")
+              if getattr(args, k) is not None}
     if ingest:
         cfg.ingest = dataclasses.replace(cfg.ingest, **ingest)
     if fit:

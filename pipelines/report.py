@@ -177,7 +177,7 @@ def evaluate_views(model, capture, frames, device: str) -> list[dict]:
     rows = []
     render_frame = model.renderer(device)
     for f in bar(frames, "report: held-out renders", unit="view"):
-        photo = read_image(capture.image_path(f), channels=3)
+        photo = read_image(capture.image_path(f), channels=3, response=capture.response)
         render, rmask = render_frame(f)
         m = rmask.astype(bool)
         mp = capture.mask_path(f)
@@ -663,7 +663,8 @@ def _viewer_frames(capture, held_names: set[str], max_photos: int, photo_max_sid
     want += [f for f in frames if f not in want][:max(0, max_photos - len(want))]
     want_names = {f.name for f in want}
     for f in frames:
-        photo = read_image(capture.image_path(f), channels=3) if f.name in want_names else None
+        photo = (read_image(capture.image_path(f), channels=3, response=capture.response) if f.name in want_names
+                 else None)
         vframes.append(viewer_frame(f, f.name in held_names, photo, photo_max_side))
     default = next((i for i, vf in enumerate(vframes) if vf["held_out"] and vf["photo"]),
                    next((i for i, vf in enumerate(vframes) if vf["photo"]), 0))

@@ -302,7 +302,7 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
     model_dir = out / "model"
     fit_rec, model_kind, why = _fit(pipe, capture, posed, posed_dir, fit_geometry, model_dir, cfg, lights_summary)
 
-    inputs = run_inputs(pipe.records, kind, capture, cfg.mesh_file)
+    inputs = dict(run_inputs(pipe.records, kind, capture, cfg.mesh_file), response=_response_input(pipe, capture))
     for line in inputs_lines(inputs):
         log(f"[inputs] {line}")
     _export_and_report(pipe, out, model_dir, posed_dir, cfg.device, inputs)
@@ -454,6 +454,18 @@ def refine_decision(cfg: RunConfig, registered: bool, mesh_made: bool, atlas_fol
     held = (f"; held-out photos (every {rc.holdout_every}th) only aligned, moving no colour or vertex"
             if rc.holdout_every and rc.align_heldout and cameras else "")
     return rc, f"{what} refined against the photos (Gauss-Newton on one shared texture){held}"
+
+
+def _response_input(pipe: Pipeline, capture) -> dict:
+    """{source, why} of how the fitted photos' codes became radiance (capture.json's ``response``): ingest's
+    decision when this run ingested the photos, else what the capture says."""
+    ing = next((r.summary for r in pipe.records if r.name == "ingest" and r.summary.get("response")), {})
+    response = capture.response
+    if response is not None:
+        return {"source": "colour chart", "why": str(ing.get("response", {}).get("why") or response.source)}
+    if ing:
+        return {"source": "sRGB" if ing["response"]["used"] == "srgb" else "none", "why": str(ing["response"]["why"])}
+    return {"source": "sRGB", "why": "capture.json has no response: 8-bit photos decoded as sRGB"}
 
 
 def _lights_source(capture) -> str:

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from texstream.capture.capture_json import read_capture
-from texstream.capture.imageio import read_image, read_mask
+from texstream.capture.imageio import photo_reader, read_image, read_mask
 from texstream.core.config import config_to_dict
 from texstream.core.errors import InputError, StageError
 from texstream.core.progress import say
@@ -56,10 +56,12 @@ def load_geometry(mesh_path: str | Path, texture_size: int, device: str, frames=
 
 
 def load_photos(capture, frames, device: str | None = None):
-    """Images (linear, H x W x 3) and masks of the given frames."""
+    """Images (linear, H x W x 3, through the capture's photo response when it has one) and masks of the given
+    frames."""
     images, masks = [], []
+    response = capture.response
     for f in frames:
-        images.append(read_image(capture.image_path(f), channels=3))
+        images.append(read_image(capture.image_path(f), channels=3, response=response))
         mp = capture.mask_path(f)
         masks.append(read_mask(mp, images[-1].shape[:2]) if mp is not None and mp.exists() else None)
     return images, masks
@@ -80,8 +82,9 @@ def photo_files(capture, frames, level: int = 0):
         mp = capture.mask_path(f)
         masks.append(mp if mp is not None and mp.exists() else None)
     # module functions or module classes, not closures: worker processes receive them (fit/stream/decode_pool.py)
-    image_reader, mask_reader = ((read_image, read_mask) if level == 0 else
-                                 (LevelImageReader(read_image, level), LevelMaskReader(read_mask, level)))
+    reader = photo_reader(capture.response)
+    image_reader, mask_reader = ((reader, read_mask) if level == 0 else
+                                 (LevelImageReader(reader, level), LevelMaskReader(read_mask, level)))
     return PhotoFiles([capture.image_path(f) for f in frames], masks, image_reader, mask_reader,
                       cache_dir=Path(capture.root) / PHOTO_CACHE_FOLDER)
 

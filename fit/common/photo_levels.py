@@ -60,7 +60,8 @@ class LevelImageReader:
 
     def __init__(self, read_image, level: int):
         self.read_image, self.level = read_image, int(level)
-        self.cache_key = f"level{self.level}"
+        inner = getattr(read_image, "cache_key", None)  # a reader through a photo response names its curve
+        self.cache_key = f"level{self.level}" if inner is None else f"{inner}-level{self.level}"
         """names the level in the decoded photos' cache key (fit/stream/photo_stream.PhotoCache)"""
 
     def __call__(self, path, rows=None, size=None) -> np.ndarray:

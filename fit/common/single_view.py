@@ -236,7 +236,7 @@ def load_single_view(capture_dir: str | Path, normals_path: str | Path | None, c
         frames = [f for i, f in enumerate(frames) if i % k != k - 1]
     images, masks = [], []
     for f in frames:
-        im = read_image(capture.image_path(f), channels=3)
+        im = read_image(capture.image_path(f), channels=3, response=capture.response)
         if im.shape[:2] != shape:
             raise InputError(f"photo is {im.shape[1]}x{im.shape[0]} but the normal map is {shape[1]}x{shape[0]}",
                              capture.image_path(f), "give photos and normal map of one size")

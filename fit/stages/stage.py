@@ -165,7 +165,7 @@ def eval_stage(model_dir: str | Path, capture_dir: str | Path, device: str = "cp
 
     rows = []
     for f in bar(frames, "eval", unit="view"):
-        photo = read_image(capture.image_path(f), channels=3)
+        photo = read_image(capture.image_path(f), channels=3, response=capture.response)
         rend, rmask = render(f)
         check_render(rend, f.file_path)
         m = rmask.astype(bool)
