@@ -12,7 +12,7 @@ import pytest
 
 from texstream.capture import conventions
 from texstream.capture.capture_json import Capture, Frame, Intrinsics, Light, read_capture, write_capture
-from texstream.core.errors import InputError
+from texstream.core.errors import InputError, StageError
 
 # Poses go c2w -> (R, t) -> c2w through a transpose and a matrix product: float64 rounding only.
 POSE_ATOL = 1e-12
@@ -233,6 +233,6 @@ def test_failed_write_leaves_previous_file(tmp_path):
     before = p.read_text()
     bad = copy.deepcopy(cap)
     bad.extra["oops"] = float("nan")  # not representable in strict JSON: the write must fail cleanly
-    with pytest.raises(ValueError):
+    with pytest.raises(StageError, match="oops is nan"):  # one line naming the file and the key
         write_capture(bad)
     assert p.read_text() == before and sorted(os.listdir(tmp_path)) == ["capture.json"]
