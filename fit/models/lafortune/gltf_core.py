@@ -154,23 +154,26 @@ def core_brdf(base: np.ndarray, metallic: np.ndarray, roughness: np.ndarray, lig
     return np.asarray(base)[:, None] * (1 - m) / np.pi + (dv * (1 - x5))[..., None] * f0 + (dv * x5)[..., None]
 
 
-def _best_for_roughness(y, w, dv, x5, metal):
-    """For one roughness per texel (``dv``, ``x5`` (T, S)): the best metallic on the grid ``metal`` (K,) and its
-    base colour and squared error, from weighted moments (module doc). Returns (err (T,), m (T,), b (T, 3))."""
+def _wsum(wu: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """sum over samples of wu * y: ``wu`` (S,) shared by the texels or (T, S), ``y`` (T, S, 3) -> (T, 3)."""
+    return np.einsum("s,tsc->tc" if wu.ndim == 1 else "ts,tsc->tc", wu, y)
+
+
+def _best_for_roughness(y, w, dv, x5, metal, yy):
+    """For one roughness per texel (``dv``, ``x5``: (S,) when every texel has the same roughness, else (T, S);
+    ``w`` likewise): the best metallic on the grid ``metal`` (K,) and its base colour and squared error, from
+    weighted moments (module doc); ``yy`` (T, 3) the weighted sum of y^2. Returns (err (T,), m (T,), b (T, 3))."""
     a = dv * (1 - x5)
     p, q = 1.0 / np.pi, a - 1.0 / np.pi
     s, t = dv * x5 + DIELECTRIC_F0 * a, -DIELECTRIC_F0 * a  # g0 = s + m t, g1 = p + m q
 
-    def mom(u, v):
-        return np.einsum("ts,ts,ts->t", w, u, v)
+    def mom(u, v):  # (T,), or (1,) for directions and weights shared by the texels
+        return np.atleast_1d((w * u * v).sum(axis=-1))
 
-    sw = w.sum(axis=1)
-    pp, pq, qq = p * p * sw, p * (w * q).sum(1), mom(q, q)
-    ps, pt, qs, qt = p * (w * s).sum(1), p * (w * t).sum(1), mom(q, s), mom(q, t)
+    pp, pq, qq = p * p * np.atleast_1d(w.sum(axis=-1)), p * mom(q, 1.0), mom(q, q)
+    ps, pt, qs, qt = p * mom(s, 1.0), p * mom(t, 1.0), mom(q, s), mom(q, t)
     ss, st, tt = mom(s, s), mom(s, t), mom(t, t)
-    py, qy = p * np.einsum("ts,tsc->tc", w, y), np.einsum("ts,ts,tsc->tc", w, q, y)
-    sy, ty = np.einsum("ts,ts,tsc->tc", w, s, y), np.einsum("ts,ts,tsc->tc", w, t, y)
-    yy = np.einsum("ts,tsc,tsc->tc", w, y, y)
+    py, qy, sy, ty = p * _wsum(w, y), _wsum(w * q, y), _wsum(w * s, y), _wsum(w * t, y)
     m = metal[None, :, None]  # (1, K, 1)
     g2 = (pp[:, None] + 2 * metal[None] * pq[:, None] + metal[None] ** 2 * qq[:, None])[..., None]
     gy = (py[:, None] + m * qy[:, None] - (ps[:, None, None] + m * (qs + pt)[:, None, None]
@@ -185,25 +188,30 @@ def _best_for_roughness(y, w, dv, x5, metal):
 
 
 def _fit_chunk(y, w, light, view) -> tuple[np.ndarray, ...]:
-    """Core (b, m, r) and the extension's F0_d for a chunk of texels (module doc)."""
+    """Core (b, m, r) and the extension's F0_d for a chunk of texels (module doc). The coarse roughness grid
+    gives every texel the same roughness, so its GGX terms and moments are computed once for the chunk (the
+    directions and weights are every texel's): only the refinement works per texel."""
     metal = np.linspace(0.0, 1.0, METALLIC_STEPS)
     best_err = np.full(len(y), np.inf)
     best_m, best_r, best_b = np.zeros(len(y)), np.ones(len(y)), np.zeros((len(y), 3))
+    yy = _wsum(w[0], y * y)
 
-    def consider(rough):
+    def consider(rough, dv, x5, wt):
         nonlocal best_err, best_m, best_r, best_b
-        dv, x5 = ggx_terms(light, view, (rough ** 2)[:, None])
-        err, m, b = _best_for_roughness(y, w, np.broadcast_to(dv, w.shape), np.broadcast_to(x5, w.shape), metal)
+        err, m, b = _best_for_roughness(y, wt, dv, x5, metal, yy)
         better = err < best_err
         best_err = np.where(better, err, best_err)
         best_m, best_r = np.where(better, m, best_m), np.where(better, rough, best_r)
         best_b = np.where(better[:, None], b, best_b)
 
     for r in np.geomspace(ROUGHNESS_MIN, 1.0, ROUGHNESS_STEPS):
-        consider(np.full(len(y), r))
+        dv, x5 = ggx_terms(light[0], view[0], r * r)
+        consider(np.full(len(y), r), dv, x5, w[0])
     coarse = best_r.copy()
     for f in ROUGHNESS_REFINE:
-        consider(np.clip(coarse * f, ROUGHNESS_MIN, 1.0))
+        rough = np.clip(coarse * f, ROUGHNESS_MIN, 1.0)
+        dv, x5 = ggx_terms(light, view, (rough ** 2)[:, None])
+        consider(rough, dv, x5, w)
     dv, x5 = ggx_terms(light, view, (best_r ** 2)[:, None])
     kk = ((1 - best_m)[:, None] * dv * (1 - x5))[..., None]  # d f / d F0_d
     g = core_brdf(best_b, best_m, best_r, light, view) - DIELECTRIC_F0 * kk
