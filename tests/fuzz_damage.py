@@ -46,6 +46,18 @@ def _write(path: Path, img: np.ndarray, **kw) -> Path:
     return write_image(path, img, **kw)
 
 
+def _float_exr(path: Path, img: np.ndarray) -> Path:
+    """A float EXR written by OpenImageIO itself: texstream's write_image refuses NaN and Inf, a camera or another
+    tool may not."""
+    import OpenImageIO as oiio
+
+    out = oiio.ImageOutput.create("openexr")
+    out.open(str(path), oiio.ImageSpec(img.shape[1], img.shape[0], img.shape[2], "float"))
+    out.write_image(np.ascontiguousarray(img, np.float32))
+    out.close()
+    return path
+
+
 def _truncated(src: Path, dst: Path, fraction: float) -> Path:
     data = src.read_bytes()
     dst.write_bytes(data[: max(1, int(len(data) * fraction))])
@@ -90,8 +102,8 @@ PHOTO_CASES: dict[str, tuple[Callable[[Path], Path], str]] = {
     "empty_png": (lambda d: _bytes(d / "empty.png", 0), "fail"),
     "text_as_png": (lambda d: _text(d / "notes.png", "not an image\n"), "fail"),
     "bomb_png": (lambda d: _bomb_png(d / "bomb.png"), "fail"),
-    "nan_exr": (lambda d: _write(d / "nan.exr", _with(textured(8, 8), (2, 3), np.nan), bits=32), "fail"),
-    "inf_exr": (lambda d: _write(d / "inf.exr", _with(textured(8, 8), (5, 1), np.inf), bits=32), "fail"),
+    "nan_exr": (lambda d: _float_exr(d / "nan.exr", _with(textured(8, 8), (2, 3), np.nan)), "fail"),
+    "inf_exr": (lambda d: _float_exr(d / "inf.exr", _with(textured(8, 8), (5, 1), np.inf)), "fail"),
     "one_by_one_png": (lambda d: _write(d / "one.png", textured(1, 1)), "unusable"),
     "png16": (lambda d: _write(d / "deep.png", textured(12, 10), bits=16), "read"),
     "grey_alpha_png": (lambda d: _write(d / "ga.png", _with_alpha(textured(8, 8)[..., :1])), "read"),
