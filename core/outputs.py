@@ -142,10 +142,19 @@ def atomic_output_dir(out: str | os.PathLike, overwrite: bool = True) -> Iterato
         _name_write_error(e, out)  # a write into tmp that named no file
         raise
     old = None
-    if out.exists():
-        old = out.parent / f".{out.name}.old.{os.getpid()}.{time.monotonic_ns()}"
-        os.replace(out, old)
-    os.replace(tmp, out)
+    try:
+        if out.exists():
+            old = out.parent / f".{out.name}.old.{os.getpid()}.{time.monotonic_ns()}"
+            os.replace(out, old)
+        os.replace(tmp, out)
+    except BaseException as e:  # a rename refused (a full or read-only disk, Ctrl-C): the previous output back
+        if old is not None and not out.exists():
+            with contextlib.suppress(OSError):
+                os.replace(old, out)
+                old = None
+        shutil.rmtree(tmp, ignore_errors=True)
+        _name_write_error(e, out)
+        raise
     if old is not None:
         shutil.rmtree(old, ignore_errors=True)
 

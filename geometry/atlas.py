@@ -659,7 +659,13 @@ def atlas_stage(mesh_path, out, config: AtlasConfig | None = None, face_weights:
             return StageResult(output=out, summary=read_json(out / "atlas_info.json"), skipped=True,
                                reason="output exists for the same mesh and config")
     with phase("atlas", f"xatlas charts and packing of {mesh.n_faces} faces"):
-        atlas_mesh, info = build_atlas(mesh, config, face_weights)
+        try:
+            atlas_mesh, info = build_atlas(mesh, config, face_weights)
+        except InputError as e:  # the mesh's own fault (no area, nothing to chart): name its file
+            if e.path is None:
+                e.path = str(mesh_path)
+                e.args = (e.one_line(),)
+            raise
     with phase("atlas", f"texel bake ({info.width}x{info.height})"):
         bake = bake_texels(atlas_mesh, info.width, info.height, device=device, padding=config.padding)
 

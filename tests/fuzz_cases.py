@@ -191,7 +191,9 @@ def generated_option_case(fx: dict, rng: random.Random, seed: int) -> Case:
             argv.append(spec.flag.replace("--", "--no-", 1) if negate else spec.flag)
             continue
         argv += [spec.flag, *H.format_value(v)]
-        names += spec.names()  # the command may refuse any of them first (a word where a number goes)
+        # the command may refuse any of them first (a word where a number goes), naming the option or the value
+        # it could not take (a path option's missing file, argparse's "unrecognized arguments: -inf")
+        names += [*spec.names(), *(t for t in H.format_value(v) if len(t) > 2 and any(c.isalpha() for c in t))]
         if not in_range(spec, v):
             refused.append(spec.dest)
     # keyed by an out-of-range option, one not on a known list first (the command must refuse that one)

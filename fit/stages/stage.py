@@ -95,7 +95,7 @@ class FitStageConfig:
                                           "before the fit; each bad one costs the set-up again)")
     min_seen_fraction: float = option(0.01, "fail before fitting when fewer than this fraction of the atlas's texels "
                                             "is seen by any photo (the mesh faces away or is in another frame)",
-                                      min=0.0)
+                                      min=0.0, max=1.0)
     choice: choice.ModelChoiceConfig = option(default_factory=choice.ModelChoiceConfig,
                                               help="the automatic model choice (--model auto)")
     materials: MaterialConfig = option(default_factory=MaterialConfig,
