@@ -494,7 +494,6 @@ def dense_points(frames: Sequence, images: Sequence[np.ndarray], masks: Sequence
     transl = np.stack([np.asarray(f.t, np.float64).reshape(3) for f in frames])
     d_grey = wp.array(grey, dtype=wp.float32, device=device)
     d_mask = wp.array(mask, dtype=wp.uint8, device=device)
-    radius = cfg.window // 2
     # texture threshold as a variance (grey units squared)
     min_var = float(cfg.min_texture) ** 2
     depth_maps = np.zeros((n, hmax, wmax), np.float32)
@@ -502,29 +501,13 @@ def dense_points(frames: Sequence, images: Sequence[np.ndarray], masks: Sequence
     t_sweep = time.perf_counter()
     kept = _kept_depth_maps(checkpoint, n)
     for r in range(n):
-        if r in kept:
-            depth_maps[r], rep = kept[r]
-            per_view.append(rep)
-            continue
-        rep = {"photo": frames[r].name, "neighbours": [frames[c].name for c in neighbours[r]]}
+        if r not in kept:
+            rng = _depth_range(frames[r], lo, hi) if depth_ranges is None else depth_ranges[r]
+            kept[r] = _sweep_view(r, neighbours, frames, mask, rng, rots, transl, d_grey, d_mask, cfg, min_var, device)
+            if checkpoint is not None and "matched" in kept[r][1]:
+                checkpoint.write_arrays(f"depth_{r:05d}.npz", depth=kept[r][0], report=np.array(json.dumps(kept[r][1])))
+        depth_maps[r], rep = kept[r]
         per_view.append(rep)
-        ys, xs = np.nonzero(mask[r])
-        rng = _depth_range(frames[r], lo, hi) if depth_ranges is None else depth_ranges[r]
-        if not neighbours[r] or len(ys) == 0 or rng is None:
-            rep["skipped"] = ("no neighbour photo within the angle range" if not neighbours[r]
-                              else "empty mask" if len(ys) == 0 else "the object box is behind the camera")
-            continue
-        y0, y1 = max(0, ys.min() - radius), min(hmax, ys.max() + radius + 1)
-        x0, x1 = max(0, xs.min() - radius), min(wmax, xs.max() + radius + 1)
-        h, w = int(y1 - y0), int(x1 - x0)
-        near, far = rng
-        depth_maps[r] = _sweep(r, neighbours[r], frames, rots, transl, d_grey, d_mask, (int(x0), int(y0), w, h),
-                               (near, far), cfg, min_var, device)
-        rep["depth_range"] = [round(near, 6), round(far, 6)]
-        rep["mask_pixels"] = int(len(ys))
-        rep["matched"] = int(np.count_nonzero(depth_maps[r]))
-        if checkpoint is not None:
-            checkpoint.write_arrays(f"depth_{r:05d}.npz", depth=depth_maps[r], report=np.array(json.dumps(rep)))
     t_sweep = time.perf_counter() - t_sweep
 
     # geometric consistency against every photo that is not a near duplicate of the reference
@@ -580,6 +563,29 @@ def dense_points(frames: Sequence, images: Sequence[np.ndarray], masks: Sequence
               "seconds": {"sweep": round(t_sweep, 2), "consistency_and_fusion": round(t_fuse, 2),
                           "total": round(time.perf_counter() - t0, 2)}}
     return DensePoints(pts, nrm, kept_depths, report)
+
+
+def _sweep_view(r: int, neighbours: list, frames: Sequence, mask: np.ndarray, rng: tuple[float, float] | None,
+                rots: np.ndarray, transl: np.ndarray, d_grey: wp.array, d_mask: wp.array, cfg: MvsConfig,
+                min_var: float, device: str) -> tuple[np.ndarray, dict]:
+    """(depth map (0: none), report) of reference photo r: its plane sweep over its mask's box, or why not."""
+    rep = {"photo": frames[r].name, "neighbours": [frames[c].name for c in neighbours[r]]}
+    hmax, wmax = mask.shape[1:]
+    ys, xs = np.nonzero(mask[r])
+    if not neighbours[r] or len(ys) == 0 or rng is None:
+        rep["skipped"] = ("no neighbour photo within the angle range" if not neighbours[r]
+                          else "empty mask" if len(ys) == 0 else "the object box is behind the camera")
+        return np.zeros((hmax, wmax), np.float32), rep
+    radius = cfg.window // 2
+    y0, y1 = max(0, ys.min() - radius), min(hmax, ys.max() + radius + 1)
+    x0, x1 = max(0, xs.min() - radius), min(wmax, xs.max() + radius + 1)
+    near, far = rng
+    depth = _sweep(r, neighbours[r], frames, rots, transl, d_grey, d_mask, (int(x0), int(y0), int(x1 - x0),
+                                                                           int(y1 - y0)), (near, far), cfg, min_var, device)
+    rep["depth_range"] = [round(near, 6), round(far, 6)]
+    rep["mask_pixels"] = int(len(ys))
+    rep["matched"] = int(np.count_nonzero(depth))
+    return depth, rep
 
 
 def _kept_depth_maps(checkpoint: StageCheckpoint | None, n: int) -> dict[int, tuple[np.ndarray, dict]]:

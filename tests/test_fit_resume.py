@@ -8,6 +8,7 @@ import json
 import numpy as np
 import pytest
 
+from texstream.core.progress import reporting
 from texstream.fit.optim.fitter import FitConfig
 from texstream.fit.stages.stage import FitStageConfig, fit_stage
 
@@ -54,8 +55,11 @@ def test_an_interrupted_fit_resumes_to_the_uninterrupted_result(capture, tmp_pat
     checkpoint = tmp_path / ".resumed.checkpoint.npz"
     assert checkpoint.is_file() and not (tmp_path / "resumed").exists()
     monkeypatch.setattr(stage, "run_fit", real)
-    again = fit_stage(capture, gt, tmp_path / "resumed", config(), progress=False)
+    lines = []
+    with reporting(lines.append, bars=False):
+        again = fit_stage(capture, gt, tmp_path / "resumed", config(), progress=False)
     assert again.summary["resumed_from"] == 4 and not checkpoint.exists()
+    assert any(f"resuming from checkpoint {checkpoint}: 4 iterations done" in line for line in lines), lines
     np.testing.assert_array_equal(maps(tmp_path / "resumed"), maps(tmp_path / "whole"))
     t_whole = json.loads((tmp_path / "whole" / "trace.json").read_text())
     t_again = json.loads((tmp_path / "resumed" / "trace.json").read_text())
@@ -73,7 +77,10 @@ def test_a_checkpoint_of_other_options_is_not_used(capture, tmp_path, monkeypatc
     ck.save({"iteration": 6, "p": np.zeros((1, 1)), "lam": np.zeros(1), "trace": np.zeros((7, 8)),
              "times": np.zeros(7), "last_obj": 0.0, "robust_scale": 0.0})
     cfg = dataclasses.replace(config(), fit=dataclasses.replace(config().fit, max_iterations=3))
-    res = fit_stage(capture, gt, tmp_path / "m", cfg, progress=False)
+    lines = []
+    with reporting(lines.append, bars=False):
+        res = fit_stage(capture, gt, tmp_path / "m", cfg, progress=False)
+    assert any("is of other inputs or options: ignored, starting afresh" in line for line in lines), lines
     trace = json.loads((tmp_path / "m" / "trace.json").read_text())
     fitted = [r for r in trace if r.get("stage") != "traced polish"]
     assert res.summary["resumed_from"] is None and fitted[-1]["iteration"] == 3

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +13,7 @@ import numpy as np
 from texstream.capture.synthetic.param_maps import read_param_maps
 from texstream.core.errors import InputError
 from texstream.core.outputs import read_json
-from texstream.core.progress import bar, bars_enabled
+from texstream.core.progress import bar, bars_enabled, say
 
 from texstream.fit.optim.fitter import FitConfig, FitResult, run_fit
 from texstream.fit.common.model_folder import image_metrics
@@ -175,15 +176,19 @@ class Checkpoint:
         self.key = hashlib.sha256(json.dumps(key, sort_keys=True, default=str).encode()).hexdigest()
 
     def load(self) -> dict | None:
+        """The state of an interrupted fit of the same key, said in one line (as is one ignored)."""
         if not self.path.is_file():
             return None
         try:
             with np.load(self.path, allow_pickle=False) as z:
                 data = {k: z[k] for k in z.files}
-        except (OSError, ValueError):
-            return None  # a damaged checkpoint is only a lost head start
-        if str(data.pop("key", "")) != self.key:
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile):
+            say("fit", f"checkpoint {self.path} is damaged: ignored, starting afresh")  # only a lost head start
             return None
+        if str(data.pop("key", "")) != self.key:
+            say("fit", f"checkpoint {self.path} is of other inputs or options: ignored, starting afresh")
+            return None
+        say("fit", f"resuming from checkpoint {self.path}: {int(data['iteration'])} iterations done")
         return {k: (v.item() if v.ndim == 0 else v) for k, v in data.items()}
 
     def save(self, state: dict) -> None:
