@@ -1,0 +1,116 @@
+"""Kill ``texstream run`` with SIGKILL at random times, run the same command again, and check that the result
+matches an uninterrupted run (issue 41: resume after any interruption).
+
+    python scripts/kill_resume.py --trials 3 --work /tmp/kill_resume
+
+Makes a small synthetic capture (``texstream synth``), runs it once uninterrupted (the reference), then per
+trial starts the same run into a fresh folder, kills it (SIGKILL) at a random time inside the reference's
+duration (``--kills`` times), runs it again to the end, and compares the files the stages wrote (meshes, bakes,
+parameter maps, posed cameras) byte for byte with the reference's, and the held-out PSNR. Files that hold
+timings (run.json, trace.json, the report, plots) are not compared. Prints which stage each kill hit (from
+the log), the rerun's "resuming" lines, and one line per trial; exits 1 on any mismatch.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+COMPARED = ("mesh/mesh.ply", "atlas/mesh.obj", "atlas/bake.npz", "refine/mesh.obj", "refine/bake.npz",
+            "refine/capture.json", "model/mesh.obj", "model/bake.npz")
+"""files of the run folder compared byte for byte (with every parameter map model/*.exr)"""
+
+
+def cli(*args: str) -> list[str]:
+    return [sys.executable, "-m", "texstream.pipelines.cli", *args]
+
+
+def run_command(capture: Path, out: Path, a) -> list[str]:
+    return cli("run", str(capture), "-o", str(out), "--iterations", str(a.iterations), "--model", a.model,
+               "--no-progress")
+
+
+def compared_files(out: Path) -> dict[str, bytes]:
+    names = [n for n in COMPARED if (out / n).is_file()] + sorted(
+        str(p.relative_to(out)) for p in (out / "model").glob("*.exr"))
+    return {n: (out / n).read_bytes() for n in names}
+
+
+def heldout(out: Path):
+    return json.loads((out / "model" / "model.json").read_text()).get("heldout", {}).get("pooled_psnr_db")
+
+
+def killed_run(cmd: list[str], after_s: float, log: Path) -> str:
+    """Start ``cmd``, SIGKILL it after ``after_s`` seconds (unless it ended), return the last stage line."""
+    with open(log, "a") as fh:
+        proc = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT)
+        try:
+            proc.wait(timeout=after_s)
+            return "finished before the kill"
+        except subprocess.TimeoutExpired:
+            os.kill(proc.pid, signal.SIGKILL)
+            proc.wait()
+    stages = [line for line in log.read_text().splitlines() if line.startswith("[") or line.startswith("  ")]
+    return stages[-1].strip() if stages else "(no output yet)"
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--work", type=Path, default=Path("kill_resume_work"))
+    ap.add_argument("--trials", type=int, default=3)
+    ap.add_argument("--kills", type=int, default=1, help="kills per trial before the run may finish")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--scene", default="sphere")
+    ap.add_argument("--scale", default="0.02")
+    ap.add_argument("--photos", default="8")
+    ap.add_argument("--image-size", default="24")
+    ap.add_argument("--iterations", type=int, default=3)
+    ap.add_argument("--model", default="diffuse")
+    a = ap.parse_args()
+    rng = random.Random(a.seed)
+    a.work.mkdir(parents=True, exist_ok=True)
+    capture = a.work / "capture"
+    if not capture.is_dir():
+        subprocess.run(cli("synth", a.scene, "--scale", a.scale, "--photos", a.photos, "--image-size",
+                           a.image_size, "-o", str(capture)), check=True, capture_output=True)
+    ref = a.work / "reference"
+    if not (ref / "run.json").is_file():
+        t0 = time.perf_counter()
+        subprocess.run(run_command(capture, ref, a), check=True, capture_output=True)
+        (a.work / "reference_seconds.txt").write_text(f"{time.perf_counter() - t0:.1f}\n")
+    ref_s = float((a.work / "reference_seconds.txt").read_text())
+    want, want_psnr = compared_files(ref), heldout(ref)
+    print(f"reference: {ref_s:.1f} s, {len(want)} files compared, held-out PSNR {want_psnr}")
+    failures = 0
+    for trial in range(a.trials):
+        out, log = a.work / f"trial_{trial}", a.work / f"trial_{trial}.log"
+        log.unlink(missing_ok=True)
+        hits = [killed_run(run_command(capture, out, a), rng.uniform(3.0, 0.95 * ref_s), log)
+                for _ in range(a.kills)]
+        before = len(log.read_text().splitlines()) if log.exists() else 0
+        with open(log, "a") as fh:
+            done = subprocess.run(run_command(capture, out, a), stdout=fh, stderr=subprocess.STDOUT)
+        rerun = log.read_text().splitlines()[before:]
+        resumed = [line.strip() for line in rerun if "resuming" in line or "unchanged since" in line]
+        got = compared_files(out) if done.returncode == 0 else {}
+        differ = sorted(n for n in set(want) | set(got) if want.get(n) != got.get(n))
+        same_psnr = done.returncode == 0 and heldout(out) == want_psnr
+        ok = done.returncode == 0 and not differ and same_psnr
+        failures += not ok
+        print(f"trial {trial}: killed at {hits}; rerun exit {done.returncode}; "
+              + ("result identical" if ok else f"MISMATCH: {differ or ''} psnr same {same_psnr}"))
+        for line in resumed:
+            print(f"    {line}")
+    print(f"{a.trials - failures} of {a.trials} trials matched the uninterrupted run")
+    return 1 if failures else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
