@@ -590,8 +590,10 @@ def _sweep_view(r: int, neighbours: list, frames: Sequence, mask: np.ndarray, rn
 
 def _kept_depth_maps(checkpoint: StageCheckpoint | None, n: int) -> dict[int, tuple[np.ndarray, dict]]:
     """{photo: (depth map, its report)} a checkpoint holds from an interrupted run (said in one line)."""
+    if checkpoint is None or not checkpoint.open():  # opened once the inputs passed their checks
+        return {}
     kept = {}
-    for r in range(n if checkpoint is not None else 0):
+    for r in range(n):
         saved = checkpoint.read_arrays(f"depth_{r:05d}.npz")
         if saved is not None:
             kept[r] = (saved["depth"], json.loads(str(saved["report"])))
@@ -603,7 +605,7 @@ def _kept_depth_maps(checkpoint: StageCheckpoint | None, n: int) -> dict[int, tu
 
 def dense_checkpoint(capture, masks: Sequence[np.ndarray] | None, bounds, config: MvsConfig, device: str,
                      depth_ranges, work_dir: str | Path) -> StageCheckpoint:
-    """The dense stereo's work folder (opened), keyed by the photos and capture.json it reads (paths, sizes,
+    """The dense stereo's work folder, keyed by the photos and capture.json it reads (paths, sizes,
     modification times), the masks or regions it matches in (their bytes), the bounds, the depth ranges, its
     options and the device."""
     masks_hash = hashlib.sha256()
@@ -613,9 +615,7 @@ def dense_checkpoint(capture, masks: Sequence[np.ndarray] | None, bounds, config
     key = inputs_key("dense", files_signature(files), masks_hash.hexdigest(), np.asarray(bounds).tolist(),
                      None if depth_ranges is None else [list(r) if r else None for r in depth_ranges],
                      config_to_dict(config), device)
-    ck = StageCheckpoint(work_dir, key, "mesh")
-    ck.open()
-    return ck
+    return StageCheckpoint(work_dir, key, "mesh")
 
 
 def _check_inputs(frames: Sequence, images: Sequence, masks: Sequence | None, cfg: MvsConfig) -> None:

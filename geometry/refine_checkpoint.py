@@ -51,8 +51,11 @@ def save_start(ck: StageCheckpoint, start: dict) -> None:
 
 
 def restore_state(job, ck: StageCheckpoint, history) -> tuple[int, dict] | None:
-    """(iterations done, starting residual) of a saved state, put back into ``job`` and ``history``; None
-    when there is none (a fresh work folder, or one killed before its first iteration finished)."""
+    """Open the work folder (once the inputs passed their checks: a refused input leaves none); (iterations
+    done, starting residual) of a saved state, put back into ``job`` and ``history``; None when there is none
+    (a fresh work folder, or one killed before its first iteration finished)."""
+    if not ck.open():
+        return None
     start = ck.read_json(START_FILE)
     state = ck.read_arrays(STATE_FILE)
     if start is None or state is None:

@@ -84,3 +84,41 @@ def test_a_checkpoint_of_other_options_is_not_used(capture, tmp_path, monkeypatc
     trace = json.loads((tmp_path / "m" / "trace.json").read_text())
     fitted = [r for r in trace if r.get("stage") != "traced polish"]
     assert res.summary["resumed_from"] is None and fitted[-1]["iteration"] == 3
+
+
+def test_an_interrupted_model_choice_keeps_its_finished_candidates(capture, tmp_path, monkeypatch):
+    """--model auto fits candidates one after another (fit/stages/choice.py); killed during the second, the rerun
+    keeps the first (stage.fit_candidate: same inputs and options), fits the rest and chooses as an uninterrupted
+    choice does, the kept model's maps identical to the last bit."""
+    import dataclasses
+
+    import texstream.fit.stages.stage as stage
+    from texstream.fit.models.materials import MaterialConfig
+    from texstream.fit.stages.choice import ModelChoiceConfig
+
+    gt = capture / "ground_truth"
+    cfg = dataclasses.replace(config(), holdout_every=4, traced_polish=0, materials=MaterialConfig(mode="off"),
+                              choice=ModelChoiceConfig(second_lobe=False),
+                              fit=dataclasses.replace(config().fit, model="auto", max_iterations=4))
+    whole = fit_stage(capture, gt, tmp_path / "whole", cfg, progress=False)
+    assert len(whole.summary["selection"]["heldout_pooled_db"]) == 2  # Lafortune and diffuse judged
+    real, fitted = stage.fit_model, []
+
+    def killed_in_the_second(capture_dir, mesh_path, out_dir, c, progress=True):
+        fitted.append(c.fit.model)
+        if len(fitted) == 2:
+            raise KeyboardInterrupt
+        return real(capture_dir, mesh_path, out_dir, c, progress)
+
+    monkeypatch.setattr(stage, "fit_model", killed_in_the_second)
+    with pytest.raises(KeyboardInterrupt):
+        fit_stage(capture, gt, tmp_path / "again", cfg, progress=False)
+    monkeypatch.undo()
+    lines = []
+    with reporting(lines.append, bars=False):
+        again = fit_stage(capture, gt, tmp_path / "again", cfg, progress=False)
+    kept = [line for line in lines if "was finished by an interrupted run with the same inputs and options" in line]
+    assert len(kept) == 1 and f"{fitted[0]}:" in kept[0], lines
+    assert again.summary["selection"] == whole.summary["selection"]
+    np.testing.assert_array_equal(maps(tmp_path / "again"), maps(tmp_path / "whole"))
+    assert not list(tmp_path.rglob(stage.CANDIDATE_STAMP))  # the finished choice forgets its candidates
