@@ -6,7 +6,7 @@ matches an uninterrupted run (issue 41: resume after any interruption).
 Makes a small synthetic capture (``texstream synth``), runs it once uninterrupted (the reference), then per
 trial starts the same run into a fresh folder, kills it (SIGKILL) at a random time inside the reference's
 duration (``--kills`` times), runs it again to the end, and compares the files the stages wrote (meshes, bakes,
-parameter maps, posed cameras) byte for byte with the reference's, and the held-out PSNR. Files that hold
+parameter maps, posed cameras; pixels and arrays, not file headers) with the reference's, and the held-out PSNR. Files that hold
 timings (run.json, trace.json, the report, plots) are not compared. Prints which stage each kill hit (from
 the log), the rerun's "resuming" lines, and one line per trial; exits 1 on any mismatch.
 """
@@ -38,9 +38,24 @@ def run_command(capture: Path, out: Path, a) -> list[str]:
 
 
 def compared_files(out: Path) -> dict[str, bytes]:
+    """Each compared file's content: an EXR's pixels (its header holds the time it was written), an npz's arrays,
+    other files' bytes."""
+    import numpy as np
+
+    from texstream.capture.imageio import read_image
+
     names = [n for n in COMPARED if (out / n).is_file()] + sorted(
         str(p.relative_to(out)) for p in (out / "model").glob("*.exr"))
-    return {n: (out / n).read_bytes() for n in names}
+    content = {}
+    for n in names:
+        if n.endswith(".exr"):
+            content[n] = read_image(out / n).tobytes()
+        elif n.endswith(".npz"):
+            with np.load(out / n, allow_pickle=False) as z:
+                content[n] = b"".join(k.encode() + z[k].tobytes() for k in sorted(z.files))
+        else:
+            content[n] = (out / n).read_bytes()
+    return content
 
 
 def heldout(out: Path):
@@ -71,7 +86,8 @@ def main() -> int:
     ap.add_argument("--scale", default="0.02")
     ap.add_argument("--photos", default="8")
     ap.add_argument("--image-size", default="24")
-    ap.add_argument("--iterations", type=int, default=3)
+    ap.add_argument("--iterations", type=int, default=12,
+                    help="fit iterations (checkpoints every 5: sync_every)")
     ap.add_argument("--model", default="diffuse")
     a = ap.parse_args()
     rng = random.Random(a.seed)
