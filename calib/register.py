@@ -296,22 +296,9 @@ def _run_colmap(photos: list[_Photo], img_dir: Path, mask_dir: Path | None, work
     if matcher == "vocab_tree" and (not cfg.vocab_tree or not Path(cfg.vocab_tree).is_file()):
         raise ConfigError("--matcher vocab_tree needs --vocab-tree FILE (a COLMAP vocabulary tree)",
                           cfg.vocab_tree, "download one from colmap.github.io or use --matcher sequential")
-    with phase("register", f"matching features ({matcher}, {len(photos)} photos)"), colmap_quiet():
-        if kept == MATCHED_DB:
-            pass
-        elif matcher == "exhaustive":
-            pycolmap.match_exhaustive(db, matching_options=mo, verification_options=vo, device=pycolmap.Device.cpu)
-        elif matcher == "sequential":
-            po = pycolmap.SequentialPairingOptions()
-            po.overlap = cfg.sequential_overlap
-            pycolmap.match_sequential(db, matching_options=mo, pairing_options=po, verification_options=vo,
-                                      device=pycolmap.Device.cpu)
-        else:
-            po = pycolmap.VocabTreePairingOptions()
-            po.vocab_tree_path = cfg.vocab_tree
-            pycolmap.match_vocabtree(db, matching_options=mo, pairing_options=po, verification_options=vo,
-                                     device=pycolmap.Device.cpu)
     if kept != MATCHED_DB:
+        with phase("register", f"matching features ({matcher}, {len(photos)} photos)"), colmap_quiet():
+            _match(db, matcher, mo, vo, cfg)
         _keep_database(db, work / MATCHED_DB)
     timings["match_s"] = time.perf_counter() - t0
     groups = match_groups(db, vo.min_num_inliers)
@@ -326,6 +313,24 @@ def _run_colmap(photos: list[_Photo], img_dir: Path, mask_dir: Path | None, work
         recs = check_focal_prior(recs, db, len(photos), report,
                                  lambda: _map(db, img_dir, work / "sparse_no_prior", len(photos), cfg, fixed=False))
     return recs
+
+
+def _match(db: Path, matcher: str, mo: Any, vo: Any, cfg: RegisterConfig) -> None:
+    """COLMAP's feature matching of the database's photos (exhaustive, sequential or vocabulary tree)."""
+    import pycolmap
+
+    if matcher == "exhaustive":
+        pycolmap.match_exhaustive(db, matching_options=mo, verification_options=vo, device=pycolmap.Device.cpu)
+    elif matcher == "sequential":
+        po = pycolmap.SequentialPairingOptions()
+        po.overlap = cfg.sequential_overlap
+        pycolmap.match_sequential(db, matching_options=mo, pairing_options=po, verification_options=vo,
+                                  device=pycolmap.Device.cpu)
+    else:
+        po = pycolmap.VocabTreePairingOptions()
+        po.vocab_tree_path = cfg.vocab_tree
+        pycolmap.match_vocabtree(db, matching_options=mo, pairing_options=po, verification_options=vo,
+                                 device=pycolmap.Device.cpu)
 
 
 FEATURES_DB, MATCHED_DB = "features.db", "matched.db"
@@ -686,7 +691,7 @@ def register(capture: str | os.PathLike, out: str | os.PathLike, config: Registe
     except TexstreamError:
         ck.remove()  # a clear failure: nothing to resume
         raise
-    ck.remove()  # interrupted (Ctrl-C, a crash, SIGKILL): the databases stay for the rerun
+    ck.remove()  # registered; only an interrupted run (Ctrl-C, a crash, SIGKILL) leaves its databases for the rerun
     summary = {k: report[k] for k in ("registered", "placed", "unregistered", "dropped", "models",
                                       "mean_reprojection_error", "points3D", "timings")}
     summary["ring"] = report.get("ring", {}).get("decision")

@@ -10,7 +10,9 @@ from pathlib import Path
 
 import numpy as np
 
+from texstream.capture.capture_json import read_capture
 from texstream.capture.synthetic.param_maps import read_param_maps
+from texstream.core.checkpoint import files_signature
 from texstream.core.errors import InputError
 from texstream.core.outputs import read_json
 from texstream.core.progress import bar, bars_enabled, say
@@ -161,6 +163,18 @@ def run_fit_with_progress(problem, fit: FitConfig, progress: bool, **kw) -> FitR
     with bar(total=fit.max_iterations, desc=f"fit {fit.optimizer}", unit="it") as b:
         b.update(start)
         return run_fit(problem, fit, progress=lambda it: b.update(1), **kw)
+
+
+def fit_inputs_signature(capture_dir: str | Path, mesh_path: str | Path) -> list:
+    """(path, size, modification time) of what a fit reads: capture.json, the photos and masks, the mesh file or
+    the atlas folder's files (hidden ones, a stage's stamp, are not inputs); part of a checkpoint's key, so a
+    photo replaced in place is not fitted from a checkpoint of the old one."""
+    cap = read_capture(capture_dir)
+    mesh = Path(mesh_path)
+    files = [cap.root / "capture.json"] + [cap.image_path(f) for f in cap.frames]
+    files += [m for m in map(cap.mask_path, cap.frames) if m is not None]
+    files += sorted(p for p in mesh.iterdir() if not p.name.startswith(".")) if mesh.is_dir() else [mesh]
+    return files_signature(files)
 
 
 class Checkpoint:

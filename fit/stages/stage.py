@@ -22,7 +22,7 @@ import numpy as np
 from texstream.capture.capture_json import read_capture
 from texstream.capture.imageio import read_image, read_mask
 from texstream.core.errors import ConfigError, InputError
-from texstream.core.checkpoint import files_signature, inputs_key
+from texstream.core.checkpoint import inputs_key
 from texstream.core.config import check_config, config_to_dict, option
 from texstream.core.devices import DEVICE_HELP, resolve_device
 from texstream.core.outputs import StageResult, write_json_atomic
@@ -38,6 +38,7 @@ from texstream.fit.common.model_folder import check_render, image_metrics, json_
 from texstream.fit.common.inputs import load_geometry, load_photos, photo_files  # noqa: F401
 from texstream.fit.common.setup import (build_problem, fit_synthetic, heldout_psnr, load_model,  # noqa: F401
                                         params_to_grid, render_model)
+from texstream.fit.common.setup import fit_inputs_signature
 from texstream.fit.models.per_texel.lobes import drop_unsupported_lobes, lobe_shape_report  # noqa: F401
 from texstream.fit.stream.photo_stream import loaders_closed_after
 
@@ -154,14 +155,10 @@ def fit_candidate(capture_dir: str | Path, mesh_path: str | Path, out_dir: str |
                   progress: bool = True) -> StageResult:
     """:func:`fit_model` of one candidate of the model choice (``fit_choice``'s ``fit_one``): a candidate folder
     that a choice interrupted later (Ctrl-C, a killed process) finished with the same inputs and options is kept,
-    with a line, so the rerun fits only the candidates not finished. The key: the capture's photos, masks and
-    capture.json, the mesh or atlas folder's files (paths, sizes, modification times), the options, the device."""
-    cap = read_capture(capture_dir)
-    mesh = Path(mesh_path)
-    files = [cap.root / "capture.json"] + [cap.image_path(f) for f in cap.frames] + [
-        m for m in map(cap.mask_path, cap.frames) if m is not None] + (
-        sorted(p for p in mesh.iterdir() if not p.name.startswith(".")) if mesh.is_dir() else [mesh])
-    key = inputs_key("fit candidate", files_signature(files), config_to_dict(cfg), resolve_device(cfg.device))
+    with a line, so the rerun fits only the candidates not finished. The key: what the fit reads
+    (:func:`~texstream.fit.common.setup.fit_inputs_signature`), the options, the device."""
+    key = inputs_key("fit candidate", fit_inputs_signature(capture_dir, mesh_path), config_to_dict(cfg),
+                     resolve_device(cfg.device))
     stamp = Path(out_dir) / CANDIDATE_STAMP
     try:
         done = json.loads(stamp.read_text())
