@@ -75,8 +75,9 @@ def test_a_checkpoint_of_other_options_is_ignored_with_a_line(capture, tmp_path,
     with pytest.raises(KeyboardInterrupt):
         refine_stage(capture, gt, tmp_path / "out", config())
     monkeypatch.undo()
+    interrupt_after(monkeypatch, 1)  # stopped again: only the lines matter
     lines = []
-    with reporting(lines.append, bars=False):
+    with reporting(lines.append, bars=False), pytest.raises(KeyboardInterrupt):
         refine_stage(capture, gt, tmp_path / "out", config(smoothness=0.02))
     assert any("work of other inputs or options: ignored" in line for line in lines), lines
     assert not any("resuming" in line for line in lines)

@@ -82,10 +82,9 @@ def test_a_database_of_other_options_is_ignored_with_a_line(photos, tmp_path, mo
     monkeypatch.setattr(reg, "_keep_database", stop)  # interrupted after extraction, its copy not yet kept
     with pytest.raises(KeyboardInterrupt):
         register(photos, tmp_path / "out", config(photos))
-    monkeypatch.undo()
     lines = []
     other = config(photos, features=900)
-    with reporting(lines.append, bars=False):
+    with reporting(lines.append, bars=False), pytest.raises(KeyboardInterrupt):  # stopped again: the lines matter
         register(photos, tmp_path / "out", other)
     assert any("work of other inputs or options: ignored" in line for line in lines), lines
     assert not any("resuming" in line for line in lines)
