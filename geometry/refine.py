@@ -774,7 +774,7 @@ def refine_stage(capture_dir: str | Path, geometry: str | Path, out: str | Path,
     capture = read_capture(capture_dir)
     mesh = load_mesh(geometry / "mesh.obj")
     bake = TexelBake.load(geometry / "bake.npz")
-    checkpoint = refine_checkpoint.refine_checkpoint(capture, geometry, out, cfg, device)
+    checkpoint = refine_checkpoint.refine_checkpoint(capture, geometry, out, cfg, device, log)
     with phase("refine", f"cameras and mesh against {len(capture.frames)} photos"):
         job = PhotometricRefinement(capture, mesh, bake, cfg, device, log)
         result = job.run(checkpoint)

@@ -26,10 +26,10 @@ _ARRAYS = ("disp", "base", "direction", "welded_points", "pose_damping", "pose_a
            "disp_accepted")
 
 
-def refine_checkpoint(capture: Capture, geometry: Path, out: Path, cfg, device: str) -> StageCheckpoint:
+def refine_checkpoint(capture: Capture, geometry: Path, out: Path, cfg, device: str, log=None) -> StageCheckpoint:
     """The refine stage's work folder beside ``out``, keyed by the photos, masks, capture.json, mesh and bake
     it reads (paths, sizes, modification times), its options and the device (another device's arithmetic
-    gives other bits)."""
+    gives other bits); its lines go to ``log`` when given (``texstream refine`` prints), else the phase lines."""
     files = [capture.root / "capture.json", geometry / "mesh.obj", geometry / "bake.npz"]
     for f in capture.frames:
         files.append(capture.image_path(f))
@@ -37,7 +37,8 @@ def refine_checkpoint(capture: Capture, geometry: Path, out: Path, cfg, device: 
         if mask is not None:
             files.append(mask)
     key = inputs_key("refine", files_signature(files), config_to_dict(cfg), device)
-    return StageCheckpoint(work_dir_for(out, "refine"), key, "refine")
+    return StageCheckpoint(work_dir_for(out, "refine"), key, "refine",
+                           None if log is None else (lambda message: log(f"  refine: {message}")))
 
 
 def save_state(job, ck: StageCheckpoint, step: int, history) -> None:
