@@ -114,7 +114,9 @@ def main() -> int:
         with open(log, "a") as fh:
             done = subprocess.run(run_command(capture, out, a), stdout=fh, stderr=subprocess.STDOUT)
         rerun = log.read_text().splitlines()[before:]
-        resumed = [line.strip() for line in rerun if "resuming" in line or "unchanged since" in line]
+        resumed = [line.strip() for line in rerun
+                   if "resuming" in line or "was finished by an interrupted run" in line
+                   or (line.startswith("[") and "unchanged since" in line)]
         got = compared_files(out) if done.returncode == 0 else {}
         differ = sorted(n for n in set(want) | set(got) if want.get(n) != got.get(n))
         same_psnr = done.returncode == 0 and heldout(out) == want_psnr
