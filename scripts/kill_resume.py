@@ -4,8 +4,9 @@ matches an uninterrupted run (issue 41: resume after any interruption).
     python scripts/kill_resume.py --trials 3 --work /tmp/kill_resume
 
 Makes a small synthetic capture (``texstream synth``), runs it once uninterrupted (the reference), then per
-trial starts the same run into a fresh folder, kills it (SIGKILL) at a random time inside the reference's
-duration (``--kills`` times), runs it again to the end, and compares the files the stages wrote (meshes, bakes,
+trial starts the same run into a fresh folder and kills it (SIGKILL) at a random point of a random stage (one the
+reference ran for more than 2 s: once the stage's line appears, after a random fraction of the reference's time
+for it; ``--kills`` times), runs it again to the end, and compares the files the stages wrote (meshes, bakes,
 parameter maps, posed cameras; pixels and arrays, not file headers) with the reference's, and the held-out PSNR. Files that hold
 timings (run.json, trace.json, the report, plots) are not compared. Prints which stage each kill hit (from
 the log), the rerun's "resuming" lines, and one line per trial; exits 1 on any mismatch.
@@ -17,6 +18,7 @@ import argparse
 import json
 import os
 import random
+import shutil
 import signal
 import subprocess
 import sys
@@ -62,18 +64,31 @@ def heldout(out: Path):
     return json.loads((out / "model" / "model.json").read_text()).get("heldout", {}).get("pooled_psnr_db")
 
 
-def killed_run(cmd: list[str], after_s: float, log: Path) -> str:
-    """Start ``cmd``, SIGKILL it after ``after_s`` seconds (unless it ended), return the last stage line."""
+def stage_seconds(ref: Path) -> dict[str, float]:
+    """Seconds of each stage the reference ran (its run.json)."""
+    stages = json.loads((ref / "run.json").read_text())["stages"]
+    return {st["name"]: st["seconds"] for st in stages if st["status"] == "ran" and st["seconds"] > 2.0}
+
+
+def killed_run(cmd: list[str], stage: str, after_s: float, log: Path) -> str:
+    """Start ``cmd``; once its log shows ``stage`` starting, SIGKILL it ``after_s`` seconds later (unless it ended
+    first); return the last progress line before the kill (what it was doing)."""
     with open(log, "a") as fh:
+        start = log.stat().st_size
         proc = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT)
+        while proc.poll() is None and not any(
+                line.startswith(f"[{stage}] ") and "done in" not in line and "unchanged" not in line
+                for line in log.read_bytes()[start:].decode(errors="replace").splitlines()):
+            time.sleep(0.2)
         try:
             proc.wait(timeout=after_s)
             return "finished before the kill"
         except subprocess.TimeoutExpired:
             os.kill(proc.pid, signal.SIGKILL)
             proc.wait()
-    stages = [line for line in log.read_text().splitlines() if line.startswith("[") or line.startswith("  ")]
-    return stages[-1].strip() if stages else "(no output yet)"
+    lines = [line for line in log.read_bytes()[start:].decode(errors="replace").splitlines()
+             if line.startswith("[") or line.startswith("  ")]
+    return lines[-1].strip() if lines else "(no output yet)"
 
 
 def main() -> int:
@@ -102,14 +117,19 @@ def main() -> int:
         subprocess.run(run_command(capture, ref, a), check=True, capture_output=True)
         (a.work / "reference_seconds.txt").write_text(f"{time.perf_counter() - t0:.1f}\n")
     ref_s = float((a.work / "reference_seconds.txt").read_text())
-    want, want_psnr = compared_files(ref), heldout(ref)
+    want, want_psnr, seconds = compared_files(ref), heldout(ref), stage_seconds(ref)
     print(f"reference: {ref_s:.1f} s, {len(want)} files compared, held-out PSNR {want_psnr}")
     failures = 0
     for trial in range(a.trials):
         out, log = a.work / f"trial_{trial}", a.work / f"trial_{trial}.log"
-        log.unlink(missing_ok=True)
-        hits = [killed_run(run_command(capture, out, a), rng.uniform(3.0, 0.95 * ref_s), log)
-                for _ in range(a.kills)]
+        for leftover in [out, *a.work.glob(f".trial_{trial}.*")]:  # an earlier invocation's trial folder
+            shutil.rmtree(leftover, ignore_errors=True)
+        log.write_text("")
+        hits = []
+        for _ in range(a.kills):  # a stage the reference ran for seconds, then a random point inside it
+            stage = rng.choice(sorted(seconds))
+            hits.append(f"{stage}: " + killed_run(run_command(capture, out, a), stage,
+                                                  rng.uniform(0.05, 0.9) * seconds[stage], log))
         before = len(log.read_text().splitlines()) if log.exists() else 0
         with open(log, "a") as fh:
             done = subprocess.run(run_command(capture, out, a), stdout=fh, stderr=subprocess.STDOUT)
