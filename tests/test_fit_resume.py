@@ -97,9 +97,10 @@ def test_an_interrupted_model_choice_keeps_its_finished_candidates(capture, tmp_
     from texstream.fit.stages.choice import ModelChoiceConfig
 
     gt = capture / "ground_truth"
-    cfg = dataclasses.replace(config(), holdout_every=4, traced_polish=0, materials=MaterialConfig(mode="off"),
-                              choice=ModelChoiceConfig(second_lobe=False),
-                              fit=dataclasses.replace(config().fit, model="auto", max_iterations=4))
+    # two short candidates (no traced polish, no shared materials, 2 iterations): the choice, not the fit, is tested
+    cfg = dataclasses.replace(config(), holdout_every=4, traced_polish=0, renders=0,
+                              materials=MaterialConfig(mode="off"), choice=ModelChoiceConfig(second_lobe=False),
+                              fit=dataclasses.replace(config().fit, model="auto", max_iterations=2))
     whole = fit_stage(capture, gt, tmp_path / "whole", cfg, progress=False)
     assert len(whole.summary["selection"]["heldout_pooled_db"]) == 2  # Lafortune and diffuse judged
     real, fitted = stage.fit_model, []
