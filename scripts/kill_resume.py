@@ -126,8 +126,9 @@ def main() -> int:
             shutil.rmtree(leftover, ignore_errors=True)
         log.write_text("")
         hits = []
-        for _ in range(a.kills):  # a stage the reference ran for seconds, then a random point inside it
-            stage = rng.choice(sorted(seconds))
+        order = list(seconds)  # run.json lists the stages in the order they ran
+        planned = sorted((rng.choice(order) for _ in range(a.kills)), key=order.index)
+        for stage in planned:  # a stage the reference ran for seconds, then a random point inside it
             hits.append(f"{stage}: " + killed_run(run_command(capture, out, a), stage,
                                                   rng.uniform(0.05, 0.9) * seconds[stage], log))
         before = len(log.read_text().splitlines()) if log.exists() else 0
