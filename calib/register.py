@@ -34,7 +34,6 @@ from __future__ import annotations
 import dataclasses
 import os
 import shutil
-import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -44,9 +43,10 @@ import numpy as np
 
 from texstream.capture.capture_json import CAPTURE_FILE, Capture, Frame, Intrinsics, read_capture, write_capture
 from texstream.capture.imageio import image_size, linear_to_srgb, read_image, read_mask, write_image
-from texstream.core.errors import ConfigError, InputError, StageError
-from texstream.core.config import option, save_config
-from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
+from texstream.core.checkpoint import KEY_FILE, StageCheckpoint, files_signature, inputs_key, work_dir_for
+from texstream.core.errors import ConfigError, InputError, StageError, TexstreamError
+from texstream.core.config import config_to_dict, option, save_config
+from texstream.core.outputs import StageResult, atomic_output_dir, write_atomic_with, write_json_atomic
 from texstream.core.progress import bar, phase, say
 
 from .colmap_log import colmap_errors_held, colmap_quiet, quiet_colmap_log
@@ -266,13 +266,14 @@ def _run_colmap(photos: list[_Photo], img_dir: Path, mask_dir: Path | None, work
     import pycolmap
 
     db = work / "database.db"
+    kept = _kept_database(work, db)
     t0 = time.perf_counter()
     eo = pycolmap.FeatureExtractionOptions()
     eo.sift.max_num_features = cfg.max_num_features
     eo.max_image_size = cfg.max_image_size
     eo.num_threads = cfg.extraction_threads  # reproducible image ids (geometry/triangulate.py says why)
     cameras = _camera_groups(photos, cfg, source)
-    for ps, model, params, _ in cameras:
+    for ps, model, params, _ in cameras if kept is None else ():
         ro = pycolmap.ImageReaderOptions()
         ro.camera_model = model
         if params:
@@ -286,8 +287,10 @@ def _run_colmap(photos: list[_Photo], img_dir: Path, mask_dir: Path | None, work
                                       extraction_options=eo, device=pycolmap.Device.cpu)
     timings["extract_s"] = time.perf_counter() - t0
     guessed = [p.name for ps, _, _, prior in cameras if prior is False for p in ps]
-    if guessed:
+    if guessed and kept is None:
         drop_focal_priors(db, guessed)
+    if kept is None:
+        _keep_database(db, work / FEATURES_DB)
     t0 = time.perf_counter()
     mo = pycolmap.FeatureMatchingOptions()
     mo.num_threads = cfg.num_threads
@@ -299,19 +302,10 @@ def _run_colmap(photos: list[_Photo], img_dir: Path, mask_dir: Path | None, work
     if matcher == "vocab_tree" and (not cfg.vocab_tree or not Path(cfg.vocab_tree).is_file()):
         raise ConfigError("--matcher vocab_tree needs --vocab-tree FILE (a COLMAP vocabulary tree)",
                           cfg.vocab_tree, "download one from colmap.github.io or use --matcher sequential")
-    with phase("register", f"matching features ({matcher}, {len(photos)} photos)"), colmap_quiet():
-        if matcher == "exhaustive":
-            pycolmap.match_exhaustive(db, matching_options=mo, verification_options=vo, device=pycolmap.Device.cpu)
-        elif matcher == "sequential":
-            po = pycolmap.SequentialPairingOptions()
-            po.overlap = cfg.sequential_overlap
-            pycolmap.match_sequential(db, matching_options=mo, pairing_options=po, verification_options=vo,
-                                      device=pycolmap.Device.cpu)
-        else:
-            po = pycolmap.VocabTreePairingOptions()
-            po.vocab_tree_path = cfg.vocab_tree
-            pycolmap.match_vocabtree(db, matching_options=mo, pairing_options=po, verification_options=vo,
-                                     device=pycolmap.Device.cpu)
+    if kept != MATCHED_DB:
+        with phase("register", f"matching features ({matcher}, {len(photos)} photos)"), colmap_quiet():
+            _match(db, matcher, mo, vo, cfg)
+        _keep_database(db, work / MATCHED_DB)
     timings["match_s"] = time.perf_counter() - t0
     groups = match_groups(db, vo.min_num_inliers)
     check_groups(groups, photos, capture_root, out, cfg, report)
@@ -325,6 +319,61 @@ def _run_colmap(photos: list[_Photo], img_dir: Path, mask_dir: Path | None, work
         recs = check_focal_prior(recs, db, len(photos), report,
                                  lambda: _map(db, img_dir, work / "sparse_no_prior", len(photos), cfg, fixed=False))
     return recs
+
+
+def _match(db: Path, matcher: str, mo: Any, vo: Any, cfg: RegisterConfig) -> None:
+    """COLMAP's feature matching of the database's photos (exhaustive, sequential or vocabulary tree)."""
+    import pycolmap
+
+    if matcher == "exhaustive":
+        pycolmap.match_exhaustive(db, matching_options=mo, verification_options=vo, device=pycolmap.Device.cpu)
+    elif matcher == "sequential":
+        po = pycolmap.SequentialPairingOptions()
+        po.overlap = cfg.sequential_overlap
+        pycolmap.match_sequential(db, matching_options=mo, pairing_options=po, verification_options=vo,
+                                  device=pycolmap.Device.cpu)
+    else:
+        po = pycolmap.VocabTreePairingOptions()
+        po.vocab_tree_path = cfg.vocab_tree
+        pycolmap.match_vocabtree(db, matching_options=mo, pairing_options=po, verification_options=vo,
+                                 device=pycolmap.Device.cpu)
+
+
+FEATURES_DB, MATCHED_DB = "features.db", "matched.db"
+"""the work folder's copies of COLMAP's database after feature extraction and after matching: a rerun after an
+interruption starts from the later one (mapping and the checks after it change database.db, never these)"""
+
+
+def _kept_database(work: Path, db: Path) -> str | None:
+    """The copy of the database an interrupted run kept (its name, put in place as ``db``; said in one line), or
+    None. Everything else in the work folder (staged photos, mapped models) is made again."""
+    kept = next((name for name in (MATCHED_DB, FEATURES_DB) if (work / name).is_file()), None)
+    db.unlink(missing_ok=True)
+    if kept is not None:
+        shutil.copyfile(work / kept, db)
+        say("register", f"resuming from {work / kept}: " + ("features and matches kept, only the mapping runs again"
+                                                             if kept == MATCHED_DB else "features kept, matching again"))
+    return kept
+
+
+def _keep_database(db: Path, copy: Path) -> None:
+    """An atomic copy of the database as it is now (a kill during the copy leaves none)."""
+    with open(db, "rb") as src:
+        write_atomic_with(copy, lambda fh: shutil.copyfileobj(src, fh))
+
+
+def _work_folder(photos: list, cap_root: Path, out: Path, cfg: RegisterConfig) -> StageCheckpoint:
+    """The registration's work folder beside ``out`` (opened), keyed by the photos and masks (paths, sizes,
+    modification times), the capture.json, and the options; staged photos and models of an earlier run removed
+    (made again), its databases kept."""
+    files = [p.path for p in photos] + [p.mask for p in photos if p.mask is not None] + [cap_root / CAPTURE_FILE]
+    ck = StageCheckpoint(work_dir_for(out, "register"), inputs_key("register", files_signature(files),
+                                                                   config_to_dict(cfg)), "register")
+    if ck.open():
+        for entry in ck.folder.iterdir():
+            if entry.name not in (FEATURES_DB, MATCHED_DB, KEY_FILE):
+                shutil.rmtree(entry) if entry.is_dir() else entry.unlink()
+    return ck
 
 
 def _map(db: Path, img_dir: Path, sparse: Path, n_photos: int, cfg: RegisterConfig, fixed: bool) -> dict[int, Any]:
@@ -590,8 +639,9 @@ def register(capture: str | os.PathLike, out: str | os.PathLike, config: Registe
         align_mesh = mesh_alignment(cfg.align_mesh)
     timings: dict[str, float] = {}
     out.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(prefix=".register.", dir=out.parent if out.parent.exists() else None) as w:
-        work = Path(w)
+    ck = _work_folder(photos, capture, out, cfg)
+    try:
+        work = ck.folder
         img_dir, mask_dir = _stage_images(photos, work)
         source = str(cap.extra.get("intrinsics_source", "")) if cap is not None else ""
         recs = _run_colmap(photos, img_dir, mask_dir, work, cfg, timings, source, capture, out, report)
@@ -645,6 +695,10 @@ def register(capture: str | os.PathLike, out: str | os.PathLike, config: Registe
             report["points3D"] = int(rec.num_points3D())
             write_json_atomic(tmp / REPORT_FILE, report)
             save_config(cfg, tmp / "register_config.json")
+    except TexstreamError:
+        ck.remove()  # a clear failure: nothing to resume
+        raise
+    ck.remove()  # registered; only an interrupted run (Ctrl-C, a crash, SIGKILL) leaves its databases for the rerun
     summary = {k: report[k] for k in ("registered", "placed", "unregistered", "dropped", "models",
                                       "mean_reprojection_error", "points3D", "timings")}
     summary["ring"] = report.get("ring", {}).get("decision")

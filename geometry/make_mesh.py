@@ -66,12 +66,14 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import shutil
 import time
 from pathlib import Path
 
 import numpy as np
 
 from texstream.capture.capture_json import masks_are_silhouettes, read_capture
+from texstream.core.checkpoint import work_dir_for
 from texstream.core.errors import ConfigError, InputError, StageError
 from texstream.core.config import option, save_config
 from texstream.core.devices import DEVICE_HELP, resolve_device
@@ -309,7 +311,7 @@ def make_mesh(capture_dir: str | os.PathLike | None, out: str | os.PathLike,
             mesh, report["alignment"] = _place_scan(mesh, capture, cfg)
             check_in_view(mesh, capture, cfg.mesh)
     elif source == "sfm":
-        mesh, new_points = _from_sfm(capture, cfg, masks, report)
+        mesh, new_points = _from_sfm(capture, cfg, masks, report, work_dir_for(out, "dense"))
     else:
         with phase("mesh", f"visual hull: carving {len(masks)} masks (resolution {cfg.hull_resolution})"):
             mesh = visual_hull(capture.frames, masks, _hull_config(cfg), cfg.device, bounds=_capture_bounds(capture),
@@ -337,6 +339,7 @@ def make_mesh(capture_dir: str | os.PathLike | None, out: str | os.PathLike,
             write_points(tmp / name, p, n)
         write_json_atomic(tmp / "mesh_report.json", report)
         save_config(cfg, tmp / "mesh_config.json")
+    shutil.rmtree(work_dir_for(out, "dense"), ignore_errors=True)  # the depth maps kept for a rerun
     return StageResult(output=Path(out), summary=report)
 
 
@@ -452,7 +455,7 @@ def _dense_bounds(capture, cfg: MeshConfig, masks) -> tuple[tuple[np.ndarray, np
 
 
 def _dense_points(capture, cfg: MeshConfig, masks, report: dict,
-                  sparse: tuple[np.ndarray, np.ndarray | None] | None) -> tuple[np.ndarray, np.ndarray] | None:
+                  sparse: tuple[np.ndarray, np.ndarray | None] | None, work: Path) -> tuple[np.ndarray, np.ndarray] | None:
     """Dense stereo points and normals (geometry/mvs.py), or None (with the reason in the report) when too few.
     Without masks the depth range of each photo and the region it is matched over come from the SfM
     points ``sparse`` (geometry/posed_dense.py)."""
@@ -481,7 +484,7 @@ def _dense_points(capture, cfg: MeshConfig, masks, report: dict,
                           "scene)" if scene else "without masks, over the region the SfM points cover")
                        + f", depth range from {where.split(' (')[0]}"):
         dp = capture_dense_points(capture, masks if masks is not None else regions, bounds, cfg.mvs, cfg.device,
-                                  ranges)
+                                  ranges, work)
     why = ("on (--dense on)" if cfg.dense == "on" else "auto: the capture has known cameras, pinhole photos and "
            + ("masks" if masks is not None else "SfM points but no masks"))
     rep = {"reason": why, "masks": "the capture's" if masks is not None else "none: matched over every pixel (a "
@@ -530,15 +533,15 @@ def _hull_instead(capture, cfg: MeshConfig, masks, report: dict, n_points: int) 
                        report=report.setdefault("hull", {}))
 
 
-def _from_sfm(capture, cfg: MeshConfig, masks, report: dict) -> tuple[SurfaceMesh, tuple | None]:
+def _from_sfm(capture, cfg: MeshConfig, masks, report: dict, work: Path) -> tuple[SurfaceMesh, tuple | None]:
     """Poisson (+ hull) from the capture's SfM or dense points; returns (mesh, {file name: (points, normals)} made
-    here)."""
+    here). ``work``: dense stereo's work folder (a rerun resumes from its depth maps)."""
     pts_path = capture.root / POINTS_FILE
     new_points: dict = {}  # file name -> (points, normals) made here
     will_dense = _will_dense(cfg, capture)
     # dense stereo with masks takes its depth range from the hull; without, from the sparse points
     sparse = _sparse_points(capture, cfg, masks, report, new_points) if masks is None or not will_dense else None
-    dense = _dense_points(capture, cfg, masks, report, sparse) if will_dense else None
+    dense = _dense_points(capture, cfg, masks, report, sparse, work) if will_dense else None
     if dense is not None:
         pts, nrm = dense
         new_points[DENSE_POINTS_FILE] = dense

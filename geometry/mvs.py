@@ -39,15 +39,19 @@ faster than summing each window, and a GPU still gets neighbours x rows threads.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import itertools
+import json
 import time
+from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 import warp as wp
 
 from texstream.capture.imageio import read_image
-from texstream.core.config import option
+from texstream.core.checkpoint import StageCheckpoint, files_signature, inputs_key
+from texstream.core.config import config_to_dict, option
 from texstream.core.errors import ConfigError, InputError
 
 MAX_NEIGHBOURS = 8  # the kernels keep one pixel's neighbour costs in a fixed-size vector
@@ -449,7 +453,8 @@ def _kvec(frame) -> wp.vec4:
 
 def dense_points(frames: Sequence, images: Sequence[np.ndarray], masks: Sequence[np.ndarray] | None,
                  bounds: tuple[np.ndarray, np.ndarray], config: MvsConfig | None = None,
-                 device: str = "cpu", depth_ranges: Sequence[tuple[float, float] | None] | None = None) -> DensePoints:
+                 device: str = "cpu", depth_ranges: Sequence[tuple[float, float] | None] | None = None,
+                 checkpoint: StageCheckpoint | None = None) -> DensePoints:
     """Dense points of an object seen by posed pinhole photos (module doc).
 
     Args:
@@ -462,6 +467,9 @@ def dense_points(frames: Sequence, images: Sequence[np.ndarray], masks: Sequence
         device: Warp device.
         depth_ranges: per photo (near, far), or None (no depths): overrides the box's range (e.g. from
             the points triangulated with the cameras, :mod:`.posed_dense`).
+        checkpoint: a work folder (opened) that keeps each photo's finished depth map: a rerun after an
+            interruption sweeps only the others (each sweep reads only the photos, so the fused points are the
+            same to the bit).
 
     Returns:
         The fused :class:`DensePoints`.
@@ -486,30 +494,20 @@ def dense_points(frames: Sequence, images: Sequence[np.ndarray], masks: Sequence
     transl = np.stack([np.asarray(f.t, np.float64).reshape(3) for f in frames])
     d_grey = wp.array(grey, dtype=wp.float32, device=device)
     d_mask = wp.array(mask, dtype=wp.uint8, device=device)
-    radius = cfg.window // 2
     # texture threshold as a variance (grey units squared)
     min_var = float(cfg.min_texture) ** 2
     depth_maps = np.zeros((n, hmax, wmax), np.float32)
     per_view: list[dict] = []
     t_sweep = time.perf_counter()
+    kept = _kept_depth_maps(checkpoint, n)
     for r in range(n):
-        rep = {"photo": frames[r].name, "neighbours": [frames[c].name for c in neighbours[r]]}
+        if r not in kept:
+            rng = _depth_range(frames[r], lo, hi) if depth_ranges is None else depth_ranges[r]
+            kept[r] = _sweep_view(r, neighbours, frames, mask, rng, rots, transl, d_grey, d_mask, cfg, min_var, device)
+            if checkpoint is not None and "matched" in kept[r][1]:
+                checkpoint.write_arrays(f"depth_{r:05d}.npz", depth=kept[r][0], report=np.array(json.dumps(kept[r][1])))
+        depth_maps[r], rep = kept[r]
         per_view.append(rep)
-        ys, xs = np.nonzero(mask[r])
-        rng = _depth_range(frames[r], lo, hi) if depth_ranges is None else depth_ranges[r]
-        if not neighbours[r] or len(ys) == 0 or rng is None:
-            rep["skipped"] = ("no neighbour photo within the angle range" if not neighbours[r]
-                              else "empty mask" if len(ys) == 0 else "the object box is behind the camera")
-            continue
-        y0, y1 = max(0, ys.min() - radius), min(hmax, ys.max() + radius + 1)
-        x0, x1 = max(0, xs.min() - radius), min(wmax, xs.max() + radius + 1)
-        h, w = int(y1 - y0), int(x1 - x0)
-        near, far = rng
-        depth_maps[r] = _sweep(r, neighbours[r], frames, rots, transl, d_grey, d_mask, (int(x0), int(y0), w, h),
-                               (near, far), cfg, min_var, device)
-        rep["depth_range"] = [round(near, 6), round(far, 6)]
-        rep["mask_pixels"] = int(len(ys))
-        rep["matched"] = int(np.count_nonzero(depth_maps[r]))
     t_sweep = time.perf_counter() - t_sweep
 
     # geometric consistency against every photo that is not a near duplicate of the reference
@@ -565,6 +563,59 @@ def dense_points(frames: Sequence, images: Sequence[np.ndarray], masks: Sequence
               "seconds": {"sweep": round(t_sweep, 2), "consistency_and_fusion": round(t_fuse, 2),
                           "total": round(time.perf_counter() - t0, 2)}}
     return DensePoints(pts, nrm, kept_depths, report)
+
+
+def _sweep_view(r: int, neighbours: list, frames: Sequence, mask: np.ndarray, rng: tuple[float, float] | None,
+                rots: np.ndarray, transl: np.ndarray, d_grey: wp.array, d_mask: wp.array, cfg: MvsConfig,
+                min_var: float, device: str) -> tuple[np.ndarray, dict]:
+    """(depth map (0: none), report) of reference photo r: its plane sweep over its mask's box, or why not."""
+    rep = {"photo": frames[r].name, "neighbours": [frames[c].name for c in neighbours[r]]}
+    hmax, wmax = mask.shape[1:]
+    ys, xs = np.nonzero(mask[r])
+    if not neighbours[r] or len(ys) == 0 or rng is None:
+        rep["skipped"] = ("no neighbour photo within the angle range" if not neighbours[r]
+                          else "empty mask" if len(ys) == 0 else "the object box is behind the camera")
+        return np.zeros((hmax, wmax), np.float32), rep
+    radius = cfg.window // 2
+    y0, y1 = max(0, ys.min() - radius), min(hmax, ys.max() + radius + 1)
+    x0, x1 = max(0, xs.min() - radius), min(wmax, xs.max() + radius + 1)
+    near, far = rng
+    depth = _sweep(r, neighbours[r], frames, rots, transl, d_grey, d_mask, (int(x0), int(y0), int(x1 - x0),
+                                                                           int(y1 - y0)), (near, far), cfg, min_var, device)
+    rep["depth_range"] = [round(near, 6), round(far, 6)]
+    rep["mask_pixels"] = int(len(ys))
+    rep["matched"] = int(np.count_nonzero(depth))
+    return depth, rep
+
+
+def _kept_depth_maps(checkpoint: StageCheckpoint | None, n: int) -> dict[int, tuple[np.ndarray, dict]]:
+    """{photo: (depth map, its report)} a checkpoint holds from an interrupted run (said in one line)."""
+    if checkpoint is None or not checkpoint.open():  # opened once the inputs passed their checks
+        return {}
+    kept = {}
+    for r in range(n):
+        saved = checkpoint.read_arrays(f"depth_{r:05d}.npz")
+        if saved is not None:
+            kept[r] = (saved["depth"], json.loads(str(saved["report"])))
+    if kept:
+        checkpoint.say(f"resuming dense stereo from {checkpoint.folder}: {len(kept)} of {n} photos' depth maps "
+                       "done")
+    return kept
+
+
+def dense_checkpoint(capture, masks: Sequence[np.ndarray] | None, bounds, config: MvsConfig, device: str,
+                     depth_ranges, work_dir: str | Path) -> StageCheckpoint:
+    """The dense stereo's work folder, keyed by the photos and capture.json it reads (paths, sizes,
+    modification times), the masks or regions it matches in (their bytes), the bounds, the depth ranges, its
+    options and the device."""
+    masks_hash = hashlib.sha256()
+    for m in masks or []:
+        masks_hash.update(np.ascontiguousarray(np.asarray(m) != 0).tobytes())
+    files = [capture.root / "capture.json"] + [capture.image_path(f) for f in capture.frames]
+    key = inputs_key("dense", files_signature(files), masks_hash.hexdigest(), np.asarray(bounds).tolist(),
+                     None if depth_ranges is None else [list(r) if r else None for r in depth_ranges],
+                     config_to_dict(config), device)
+    return StageCheckpoint(work_dir, key, "mesh")
 
 
 def _check_inputs(frames: Sequence, images: Sequence, masks: Sequence | None, cfg: MvsConfig) -> None:
@@ -686,8 +737,10 @@ def voxel_merge(points: np.ndarray, normals: np.ndarray, size: float) -> tuple[n
 
 def capture_dense_points(capture, masks: Sequence[np.ndarray] | None, bounds: tuple[np.ndarray, np.ndarray],
                          config: MvsConfig | None = None, device: str = "cpu",
-                         depth_ranges: Sequence[tuple[float, float] | None] | None = None) -> DensePoints:
-    """:func:`dense_points` of a capture folder's photos (read with OpenImageIO).
+                         depth_ranges: Sequence[tuple[float, float] | None] | None = None,
+                         work_dir: str | Path | None = None) -> DensePoints:
+    """:func:`dense_points` of a capture folder's photos (read with OpenImageIO); with ``work_dir``, each finished
+    depth map is kept there (:func:`dense_checkpoint`) and a rerun after an interruption resumes from them.
 
     Raises:
         InputError: a photo is missing or unreadable, or has lens distortion (undistort it first).
@@ -702,4 +755,6 @@ def capture_dense_points(capture, masks: Sequence[np.ndarray] | None, bounds: tu
             raise InputError(f"photo {f.file_path} has lens distortion; dense stereo needs pinhole photos",
                              capture.root / "capture.json", "undistort with 'texstream register', or use --dense off")
         images.append(read_image(p, channels=3))
-    return dense_points(capture.frames, images, masks, bounds, config, device, depth_ranges)
+    cfg = config or MvsConfig()
+    ck = None if work_dir is None else dense_checkpoint(capture, masks, bounds, cfg, device, depth_ranges, work_dir)
+    return dense_points(capture.frames, images, masks, bounds, cfg, device, depth_ranges, ck)

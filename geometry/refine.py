@@ -48,6 +48,7 @@ from texstream.core.progress import bar, phase
 from texstream.render.camera import ImageInfo, PhotoFrame, image_infos, struct_array
 from texstream.render.visibility import depth_maps_kernel
 
+from . import refine_checkpoint
 from . import refine_kernels as rk
 from . import refine_normal_kernels as rnk
 from .bake import TexelBake, bake_texels
@@ -438,29 +439,43 @@ class PhotometricRefinement:
                   outputs=[self.disp, self.base, self.direction, self.welded_points, self.disp_damping,
                            self.disp_accepted])
 
-    def run(self) -> RefineResult:
-        """Every level's iterations (colours, pose steps, displacement steps), then the summary."""
+    def run(self, checkpoint=None) -> RefineResult:
+        """Every level's iterations (colours, pose steps, displacement steps), then the summary; with a
+        ``checkpoint`` (:func:`.refine_checkpoint.refine_checkpoint`) the state after each iteration is saved
+        and a saved one resumed from."""
         cfg = self.cfg
         t0 = time.perf_counter()
+        levels = cfg.levels()
+        history = wp.zeros((len(levels) * cfg.iterations, len(self.frames), 2), dtype=wp.float64, device=self.device)
+        saved = None if checkpoint is None else refine_checkpoint.restore_state(self, checkpoint, history)
         self.update_geometry()
         self.blur(0.0)
         self.colours(self.blurred)
-        start = self._score()
-        levels = cfg.levels()
-        history = wp.zeros((len(levels) * cfg.iterations, len(self.frames), 2), dtype=wp.float64, device=self.device)
-        step = 0
+        if saved is None:
+            step, start = 0, self._score()
+            if checkpoint is not None:
+                refine_checkpoint.save_start(checkpoint, start)
+        else:
+            step, start = saved
+            checkpoint.say(f"resuming from {checkpoint.folder}: {step} of {len(levels) * cfg.iterations} "
+                           "iterations of the levels done")
         shaded = self.lit and cfg.normal_iterations > 0
         extra = cfg.normal_iterations + cfg.intensity_iterations if shaded else 0
         progress = bar(total=len(levels) * cfg.iterations + extra, desc="refine", unit="it")
-        for sigma in levels:
+        progress.update(step)
+        for level, sigma in enumerate(levels):
+            if step >= (level + 1) * cfg.iterations:
+                continue  # done before the interruption
             self.blur(sigma)
             self.log(f"blur {sigma:g} px: {cfg.iterations} iterations")
-            for it in range(cfg.iterations):
+            for it in range(step - level * cfg.iterations, cfg.iterations):
                 progress.update(1)
                 self.colours(self.blurred)
                 self.geometry_step(self.blurred)
                 self.objective(self.blurred, history[step])
                 step += 1
+                if checkpoint is not None:
+                    refine_checkpoint.save_state(self, checkpoint, step, history)
         hist = history.numpy()  # read once, after the loop
         trace = [{"blur_px": sigma, "iteration": it, **self._per_role(hist[i * cfg.iterations + it])}
                  for i, sigma in enumerate(levels) for it in range(cfg.iterations)]
@@ -759,9 +774,10 @@ def refine_stage(capture_dir: str | Path, geometry: str | Path, out: str | Path,
     capture = read_capture(capture_dir)
     mesh = load_mesh(geometry / "mesh.obj")
     bake = TexelBake.load(geometry / "bake.npz")
+    checkpoint = refine_checkpoint.refine_checkpoint(capture, geometry, out, cfg, device, log)
     with phase("refine", f"cameras and mesh against {len(capture.frames)} photos"):
         job = PhotometricRefinement(capture, mesh, bake, cfg, device, log)
-        result = job.run()
+        result = job.run(checkpoint)
     normals = None if result.normals is None else result.normals[job.weld_host]
     moved = dataclasses.replace(mesh, vertices=result.points, normals=normals)
     with phase("refine", f"texel bake ({bake.width}x{bake.height})"):
@@ -776,4 +792,5 @@ def refine_stage(capture_dir: str | Path, geometry: str | Path, out: str | Path,
             shutil.copy2(geometry / "seams.npz", tmp / "seams.npz")
         save_config(cfg, tmp / "refine_config.json")
         write_json_atomic(tmp / "refine.json", summary)
+    checkpoint.remove()
     return StageResult(output=out, summary={k: v for k, v in summary.items() if k != "trace"})

@@ -118,7 +118,12 @@ def observe(infos: wp.array(dtype=ImageInfo), images: wp.array3d(dtype=wp.vec3),
         return ob
     x0 = int(wp.floor(x - 0.5))
     y0 = int(wp.floor(y - 0.5))
-    if not depth_consistent(depth, k, x0, y0, pc[2], depth_tol, 0.0):
+    # the fit's slack (fit/kernels/stream.py observe): a tap up to ~1.5 px away on a surface tilted by theta lies
+    # (z / fx) tan(theta) deeper per pixel. Without it small photos keep only the surface facing each camera
+    # within ~20 degrees (24x24 photos of a sphere: a held-out photo then shared no texel with the fitted ones,
+    # issue 41); tan capped at 4 (76 degrees) so silhouettes still reject the background.
+    tan_v = wp.min(wp.sqrt(wp.max(1.0 - cos_view * cos_view, 0.0)) / cos_view, 4.0)
+    if not depth_consistent(depth, k, x0, y0, pc[2], depth_tol, 1.5 * pc[2] / info.fx * tan_v):
         return ob
     value, gx, gy = bilinear_with_gradient(images, k, x, y)
     shading = wp.vec3(info.exposure, info.exposure, info.exposure)

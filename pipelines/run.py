@@ -46,7 +46,7 @@ from texstream.fit.optim.fitter import FitConfig
 from texstream.fit.optim.lfm_config import LFMConfig
 from texstream.fit.stages.choice import ModelChoiceConfig, fit_choice, plan_choice
 from texstream.fit.stages.export import export_stage
-from texstream.fit.stages.stage import FitStageConfig, fit_model, fit_stage
+from texstream.fit.stages.stage import FitStageConfig, fit_candidate, fit_stage, forget_candidates
 from texstream.geometry.atlas import AtlasConfig, atlas_stage
 from texstream.geometry.make_mesh import MeshConfig, make_mesh
 from texstream.geometry.mesh_frame import mesh_alignment
@@ -419,7 +419,9 @@ def _fit(pipe: Pipeline, capture, posed: bool, posed_dir: Path, fit_geometry: Pa
         if not plan.compare:
             return fit_stage(posed_dir, fit_geometry, model_dir, dataclasses.replace(
                 fit_cfg, fit=dataclasses.replace(fit_cfg.fit, model=plan.base)))
-        return fit_choice(posed_dir, fit_geometry, model_dir, fit_cfg, plan, fit_model, pipe.log)
+        res = fit_choice(posed_dir, fit_geometry, model_dir, fit_cfg, plan, fit_candidate, pipe.log)
+        forget_candidates(model_dir)  # candidates are kept only while their choice is unfinished
+        return res
 
     fit_rec = pipe.run("fit", model_dir, [pipe.stamp_of("atlas"), pipe.stamp_of("mesh"), pipe.stamp_of("register"),
                                           pipe.stamp_of("lights"), pipe.stamp_of("refine"),

@@ -8,6 +8,7 @@ import json
 import numpy as np
 import pytest
 
+from texstream.core.progress import reporting
 from texstream.fit.optim.fitter import FitConfig
 from texstream.fit.stages.stage import FitStageConfig, fit_stage
 
@@ -52,8 +53,11 @@ def test_an_interrupted_fit_resumes_to_the_uninterrupted_result(capture, tmp_pat
     checkpoint = tmp_path / ".resumed.checkpoint.npz"
     assert checkpoint.is_file() and not (tmp_path / "resumed").exists()
     monkeypatch.setattr(stage, "run_fit", real)
-    again = fit_stage(capture, gt, tmp_path / "resumed", config(), progress=False)
+    lines = []
+    with reporting(lines.append, bars=False):
+        again = fit_stage(capture, gt, tmp_path / "resumed", config(), progress=False)
     assert again.summary["resumed_from"] == 4 and not checkpoint.exists()
+    assert any(f"resuming from checkpoint {checkpoint}: 4 iterations done" in line for line in lines), lines
     np.testing.assert_array_equal(maps(tmp_path / "resumed"), maps(tmp_path / "whole"))
     t_whole = json.loads((tmp_path / "whole" / "trace.json").read_text())
     t_again = json.loads((tmp_path / "resumed" / "trace.json").read_text())
@@ -71,7 +75,49 @@ def test_a_checkpoint_of_other_options_is_not_used(capture, tmp_path, monkeypatc
     ck.save({"iteration": 6, "p": np.zeros((1, 1)), "lam": np.zeros(1), "trace": np.zeros((7, 8)),
              "times": np.zeros(7), "last_obj": 0.0, "robust_scale": 0.0})
     cfg = dataclasses.replace(config(), fit=dataclasses.replace(config().fit, max_iterations=3))
-    res = fit_stage(capture, gt, tmp_path / "m", cfg, progress=False)
+    lines = []
+    with reporting(lines.append, bars=False):
+        res = fit_stage(capture, gt, tmp_path / "m", cfg, progress=False)
+    assert any("is of other inputs or options: ignored, starting afresh" in line for line in lines), lines
     trace = json.loads((tmp_path / "m" / "trace.json").read_text())
     fitted = [r for r in trace if r.get("stage") != "traced polish"]
     assert res.summary["resumed_from"] is None and fitted[-1]["iteration"] == 3
+
+
+def test_an_interrupted_model_choice_keeps_its_finished_candidates(capture, tmp_path, monkeypatch):
+    """--model auto fits candidates one after another (fit/stages/choice.py); killed during the second, the rerun
+    keeps the first (stage.fit_candidate: same inputs and options), fits the rest and chooses as an uninterrupted
+    choice does, the kept model's maps identical to the last bit."""
+    import dataclasses
+
+    import texstream.fit.stages.stage as stage
+    from texstream.fit.models.materials import MaterialConfig
+    from texstream.fit.stages.choice import ModelChoiceConfig
+
+    gt = capture / "ground_truth"
+    # two short candidates (no traced polish, no shared materials, 2 iterations): the choice, not the fit, is tested
+    cfg = dataclasses.replace(config(), holdout_every=4, traced_polish=0, renders=0,
+                              materials=MaterialConfig(mode="off"), choice=ModelChoiceConfig(second_lobe=False),
+                              fit=dataclasses.replace(config().fit, model="auto", max_iterations=2))
+    whole = fit_stage(capture, gt, tmp_path / "whole", cfg, progress=False)
+    assert len(whole.summary["selection"]["heldout_pooled_db"]) == 2  # Lafortune and diffuse judged
+    real, fitted = stage.fit_model, []
+
+    def killed_in_the_second(capture_dir, mesh_path, out_dir, c, progress=True):
+        fitted.append(c.fit.model)
+        if len(fitted) == 2:
+            raise KeyboardInterrupt
+        return real(capture_dir, mesh_path, out_dir, c, progress)
+
+    monkeypatch.setattr(stage, "fit_model", killed_in_the_second)
+    with pytest.raises(KeyboardInterrupt):
+        fit_stage(capture, gt, tmp_path / "again", cfg, progress=False)
+    monkeypatch.undo()
+    lines = []
+    with reporting(lines.append, bars=False):
+        again = fit_stage(capture, gt, tmp_path / "again", cfg, progress=False)
+    kept = [line for line in lines if "was finished by an interrupted run with the same inputs and options" in line]
+    assert len(kept) == 1 and f"{fitted[0]}:" in kept[0], lines
+    assert again.summary["selection"] == whole.summary["selection"]
+    np.testing.assert_array_equal(maps(tmp_path / "again"), maps(tmp_path / "whole"))
+    assert not list(tmp_path.rglob(stage.CANDIDATE_STAMP))  # the finished choice forgets its candidates

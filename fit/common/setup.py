@@ -5,14 +5,17 @@ from __future__ import annotations
 
 import dataclasses
 import time
+import zipfile
 from pathlib import Path
 
 import numpy as np
 
+from texstream.capture.capture_json import read_capture
 from texstream.capture.synthetic.param_maps import read_param_maps
+from texstream.core.checkpoint import files_signature
 from texstream.core.errors import InputError
 from texstream.core.outputs import read_json
-from texstream.core.progress import bar, bars_enabled
+from texstream.core.progress import bar, bars_enabled, say
 
 from texstream.fit.optim.fitter import FitConfig, FitResult, run_fit
 from texstream.fit.common.model_folder import image_metrics
@@ -162,6 +165,18 @@ def run_fit_with_progress(problem, fit: FitConfig, progress: bool, **kw) -> FitR
         return run_fit(problem, fit, progress=lambda it: b.update(1), **kw)
 
 
+def fit_inputs_signature(capture_dir: str | Path, mesh_path: str | Path) -> list:
+    """(path, size, modification time) of what a fit reads: capture.json, the photos and masks, the mesh file or
+    the atlas folder's files (hidden ones, a stage's stamp, are not inputs); part of a checkpoint's key, so a
+    photo replaced in place is not fitted from a checkpoint of the old one."""
+    cap = read_capture(capture_dir)
+    mesh = Path(mesh_path)
+    files = [cap.root / "capture.json"] + [cap.image_path(f) for f in cap.frames]
+    files += [m for m in map(cap.mask_path, cap.frames) if m is not None]
+    files += sorted(p for p in mesh.iterdir() if not p.name.startswith(".")) if mesh.is_dir() else [mesh]
+    return files_signature(files)
+
+
 class Checkpoint:
     """The fit's checkpoint beside its output folder (``.NAME.checkpoint.npz``), tied to the inputs and
     options by a key: a rerun with the same ones resumes from it, anything else starts afresh."""
@@ -175,15 +190,19 @@ class Checkpoint:
         self.key = hashlib.sha256(json.dumps(key, sort_keys=True, default=str).encode()).hexdigest()
 
     def load(self) -> dict | None:
+        """The state of an interrupted fit of the same key, said in one line (as is one ignored)."""
         if not self.path.is_file():
             return None
         try:
             with np.load(self.path, allow_pickle=False) as z:
                 data = {k: z[k] for k in z.files}
-        except (OSError, ValueError):
-            return None  # a damaged checkpoint is only a lost head start
-        if str(data.pop("key", "")) != self.key:
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile):
+            say("fit", f"checkpoint {self.path} is damaged: ignored, starting afresh")  # only a lost head start
             return None
+        if str(data.pop("key", "")) != self.key:
+            say("fit", f"checkpoint {self.path} is of other inputs or options: ignored, starting afresh")
+            return None
+        say("fit", f"resuming from checkpoint {self.path}: {int(data['iteration'])} iterations done")
         return {k: (v.item() if v.ndim == 0 else v) for k, v in data.items()}
 
     def save(self, state: dict) -> None:

@@ -14,6 +14,7 @@ read and write files.
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +22,8 @@ import numpy as np
 from texstream.capture.capture_json import read_capture
 from texstream.capture.imageio import read_image, read_mask
 from texstream.core.errors import ConfigError, InputError
-from texstream.core.config import check_config, option
+from texstream.core.checkpoint import inputs_key
+from texstream.core.config import check_config, config_to_dict, option
 from texstream.core.devices import DEVICE_HELP, resolve_device
 from texstream.core.outputs import StageResult, write_json_atomic
 from texstream.core.progress import bar, say
@@ -32,11 +34,12 @@ from texstream.fit.models import registry
 from texstream.fit.stages import choice
 from texstream.fit.models.materials import MaterialConfig
 from texstream.fit.common.inputs import SharedPhotoSet, check_output_path, split_holdout
-from texstream.fit.common.model_folder import check_render, image_metrics, pooled_psnr
+from texstream.fit.common.model_folder import check_render, image_metrics, json_safe, pooled_psnr
 # the shared helpers of a fit, where tests and benchmarks import them beside the stages
 from texstream.fit.common.inputs import load_geometry, load_photos, photo_files  # noqa: F401
 from texstream.fit.common.setup import (build_problem, fit_synthetic, heldout_psnr, load_model,  # noqa: F401
                                         params_to_grid, render_model)
+from texstream.fit.common.setup import fit_inputs_signature
 from texstream.fit.models.per_texel.lobes import drop_unsupported_lobes, lobe_shape_report  # noqa: F401
 from texstream.fit.stream.photo_stream import loaders_closed_after
 
@@ -132,8 +135,10 @@ def _fit_stage(capture_dir, mesh_path, out_dir, cfg: FitStageConfig, progress: b
     if not plan.compare:
         return fit_model(capture_dir, mesh_path, out_dir, dataclasses.replace(cfg, fit=dataclasses.replace(
             cfg.fit, model=plan.base)), progress)
-    return choice.fit_choice(Path(capture_dir), Path(mesh_path), Path(out_dir), cfg, plan,
-                             lambda c, m, o, k: fit_model(c, m, o, k, progress))
+    res = choice.fit_choice(Path(capture_dir), Path(mesh_path), Path(out_dir), cfg, plan,
+                            lambda c, m, o, k: fit_candidate(c, m, o, k, progress))
+    forget_candidates(out_dir)
+    return res
 
 
 def fit_model(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Path, cfg: FitStageConfig,
@@ -147,6 +152,40 @@ def fit_model(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
         result = plugin.fit(registry.FitRequest(Path(capture_dir), Path(mesh_path), Path(out_dir), cfg, progress))
     mark_kernels_built(cfg.device)
     return result
+
+
+CANDIDATE_STAMP = ".texstream_candidate.json"
+"""in a candidate's model folder while its choice is unfinished: the key of its inputs and options, its summary"""
+
+
+def forget_candidates(out_dir: str | Path) -> None:
+    """After the model choice into ``out_dir`` finished: its candidates' stamps go, so only an interrupted choice
+    keeps candidates (a later fit, with code or data changed in ways the key does not see, fits them all)."""
+    out = Path(out_dir)
+    for stamp in [out / CANDIDATE_STAMP, *out.parent.glob(f"{out.name}_*/{CANDIDATE_STAMP}")]:
+        stamp.unlink(missing_ok=True)
+
+
+def fit_candidate(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Path, cfg: FitStageConfig,
+                  progress: bool = True) -> StageResult:
+    """:func:`fit_model` of one candidate of the model choice (``fit_choice``'s ``fit_one``): a candidate folder
+    that a choice interrupted later (Ctrl-C, a killed process) finished with the same inputs and options is kept,
+    with a line, so the rerun fits only the candidates not finished. The key: what the fit reads
+    (:func:`~texstream.fit.common.setup.fit_inputs_signature`), the options, the device."""
+    key = inputs_key("fit candidate", fit_inputs_signature(capture_dir, mesh_path), config_to_dict(cfg),
+                     resolve_device(cfg.device))
+    stamp = Path(out_dir) / CANDIDATE_STAMP
+    try:
+        done = json.loads(stamp.read_text())
+    except (OSError, ValueError):
+        done = None
+    if isinstance(done, dict) and done.get("key") == key:
+        say("fit", f"{cfg.fit.model}: {out_dir} was finished by an interrupted run with the same inputs and "
+                   "options: kept")
+        return StageResult(Path(out_dir), done["summary"])
+    res = fit_model(capture_dir, mesh_path, out_dir, cfg, progress)
+    write_json_atomic(stamp, {"key": key, "summary": json.loads(json.dumps(json_safe(res.summary), default=str))})
+    return res
 
 
 def eval_stage(model_dir: str | Path, capture_dir: str | Path, device: str = "cpu",

@@ -23,8 +23,8 @@ from texstream.fit.common.inputs import FitInputs, load_fit_inputs, load_photos,
 from texstream.fit.common.model_folder import (bound_report, check_model, pooled_psnr, render_comparisons, trace_plot,
                                                write_model_folder)
 from texstream.fit.common.numerics import numerics_warnings
-from texstream.fit.common.setup import (Checkpoint, ModelRenders, fill_unseen_texels, params_to_grid,
-                                        run_fit_with_progress)
+from texstream.fit.common.setup import (Checkpoint, ModelRenders, fill_unseen_texels, fit_inputs_signature,
+                                        params_to_grid, run_fit_with_progress)
 from texstream.fit.models import registry
 from texstream.fit.models.per_texel.ambient import resolve_ambient
 from texstream.fit.models.per_texel.lobes import (_materials_manifest, average_seams_in_bounds, choose_materials,
@@ -118,6 +118,7 @@ def _checkpoint(capture_dir, mesh_path, out_dir, cfg, problem) -> tuple[Checkpoi
     capture_json = Path(capture_dir) / "capture.json"
     ckpt = Checkpoint(out_dir, {"capture": str(Path(capture_dir).resolve()), "mesh": str(Path(mesh_path).resolve()),
                                 "config": config_to_dict(cfg), "texels": problem.n,
+                                "files": fit_inputs_signature(capture_dir, mesh_path),
                                 "capture_mtime": capture_json.stat().st_mtime_ns if capture_json.exists() else 0})
     return ckpt, ckpt.load()
 

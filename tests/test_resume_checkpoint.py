@@ -1,0 +1,51 @@
+"""The stage work folders (core/checkpoint.py) the long stages resume from: a write cut short leaves the previous
+checkpoint whole, work of another key is dropped with a line, damage is only a lost head start."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from texstream.core.checkpoint import StageCheckpoint, work_dir_for
+from texstream.core.progress import reporting
+
+
+def test_a_write_cut_short_leaves_the_previous_checkpoint(tmp_path, monkeypatch):
+    ck = StageCheckpoint(work_dir_for(tmp_path / "out", "stage"), "key-a", "stage")
+    assert ck.open() is False and ck.folder == tmp_path / ".out.stage-work"
+    ck.write_arrays("state.npz", step=np.array(1), x=np.arange(5.0))
+
+    def half_then_killed(fh, **arrays):
+        fh.write(b"PK\x03\x04 half a zip")  # what a process killed mid-write leaves in its file
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(np, "savez", half_then_killed)
+    with pytest.raises(KeyboardInterrupt):
+        ck.write_arrays("state.npz", step=np.array(2), x=np.zeros(5))
+    monkeypatch.undo()
+    again = StageCheckpoint(ck.folder, "key-a", "stage")
+    assert again.open() is True
+    state = again.read_arrays("state.npz")
+    assert int(state["step"]) == 1 and state["x"].tolist() == [0.0, 1.0, 2.0, 3.0, 4.0]
+
+
+def test_work_of_another_key_is_dropped_with_a_line(tmp_path):
+    ck = StageCheckpoint(tmp_path / "work", "key-a", "stage")
+    ck.open()
+    ck.write_json("start.json", {"rms": 0.5})
+    lines = []
+    with reporting(lines.append, bars=False):
+        other = StageCheckpoint(tmp_path / "work", "key-b", "stage")
+        assert other.open() is False
+    assert lines == [f"  stage: {tmp_path / 'work'} holds work of other inputs or options: ignored, starting afresh"]
+    assert other.read_json("start.json") is None
+
+
+def test_a_damaged_file_is_only_a_lost_head_start(tmp_path):
+    ck = StageCheckpoint(tmp_path / "work", "key", "stage")
+    ck.open()
+    (ck.folder / "state.npz").write_bytes(b"not a zip")
+    (ck.folder / "start.json").write_text("{")
+    assert ck.read_arrays("state.npz") is None and ck.read_json("start.json") is None
+    ck.remove()
+    assert not ck.folder.exists()

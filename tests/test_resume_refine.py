@@ -1,0 +1,83 @@
+"""The refine stage, interrupted after an iteration, resumes from its checkpoint to the uninterrupted result to
+the last bit (geometry/refine_checkpoint.py); a checkpoint of other options is ignored with a line.
+
+The interruption is raised in-process from the checkpoint's write (a KeyboardInterrupt right after the N-th
+save): work after the last save is lost whether the process is killed there or later, so this is the state a
+SIGKILL anywhere between two saves leaves, without a subprocess's start-up (seconds of imports and kernel
+loads). scripts/kill_resume.py kills a real ``texstream run`` with SIGKILL at random times."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from texstream.core.checkpoint import StageCheckpoint, work_dir_for
+from texstream.core.progress import reporting
+from texstream.geometry.refine import RefineConfig, refine_stage
+from texstream.geometry.mesh_io import load_mesh
+
+from conftest import tiny_sphere_capture
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    return tiny_sphere_capture(tmp_path_factory.mktemp("refine_resume"), photos=8, image_size=24)
+
+
+def config(**kw) -> RefineConfig:
+    # two levels of two iterations, the shading normals short: 4 checkpoints, a few seconds
+    return RefineConfig(holdout_every=8, blur="1,0", iterations=2, normal_iterations=1, intensity_iterations=1, **kw)
+
+
+def interrupt_after(monkeypatch, saves: int) -> None:
+    real, calls = StageCheckpoint.write_arrays, []
+
+    def write_then_stop(self, name, **arrays):
+        real(self, name, **arrays)
+        calls.append(name)
+        if len(calls) == saves:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(StageCheckpoint, "write_arrays", write_then_stop)
+
+
+def outputs(folder):
+    record = json.loads((folder / "refine.json").read_text())
+    record.pop("seconds")
+    cap = json.loads((folder / "capture.json").read_text())
+    return record, [f["transform_matrix"] for f in cap["frames"]], load_mesh(folder / "mesh.obj").vertices
+
+
+def test_an_interrupted_refine_resumes_to_the_uninterrupted_result(capture, tmp_path, monkeypatch):
+    gt = capture / "ground_truth"
+    refine_stage(capture, gt, tmp_path / "whole", config())
+    assert not work_dir_for(tmp_path / "whole", "refine").exists()  # removed once the output is in place
+    interrupt_after(monkeypatch, 3)  # after the first iteration of the second level
+    with pytest.raises(KeyboardInterrupt):
+        refine_stage(capture, gt, tmp_path / "again", config())
+    assert not (tmp_path / "again").exists() and work_dir_for(tmp_path / "again", "refine").is_dir()
+    monkeypatch.undo()
+    lines = []
+    with reporting(lines.append, bars=False):
+        refine_stage(capture, gt, tmp_path / "again", config())
+    assert any("resuming from" in line and "3 of 4 iterations" in line for line in lines), lines
+    whole, again = outputs(tmp_path / "whole"), outputs(tmp_path / "again")
+    assert whole[0] == again[0]  # summary and trace, every float to the last digit
+    assert whole[1] == again[1]
+    np.testing.assert_array_equal(whole[2], again[2])
+
+
+def test_a_checkpoint_of_other_options_is_ignored_with_a_line(capture, tmp_path, monkeypatch):
+    gt = capture / "ground_truth"
+    interrupt_after(monkeypatch, 1)
+    with pytest.raises(KeyboardInterrupt):
+        refine_stage(capture, gt, tmp_path / "out", config())
+    monkeypatch.undo()
+    interrupt_after(monkeypatch, 1)  # stopped again: only the lines matter
+    lines = []
+    with reporting(lines.append, bars=False), pytest.raises(KeyboardInterrupt):
+        refine_stage(capture, gt, tmp_path / "out", config(smoothness=0.02))
+    assert any("work of other inputs or options: ignored" in line for line in lines), lines
+    assert not any("resuming" in line for line in lines)
