@@ -24,8 +24,11 @@ import contextlib
 import datetime
 import errno
 import fcntl
+import glob
 import json
 import os
+import re
+import shutil
 import socket
 from pathlib import Path
 from typing import Callable, Iterator
@@ -211,6 +214,31 @@ def output_lock(output: str | os.PathLike, command: str, log: Callable[[str], No
     """
     fd = acquire(output, command, log)
     try:
+        remove_leftovers(output, log)
         yield lock_path(output)
     finally:
         release(output, fd)
+
+
+LEFTOVER = re.compile(r"^\..+(\.partial|\.tmp|\.old\.\d+\.\d+)$")
+"""names the atomic writers give their temporary files and folders (core/outputs.py: ``.NAME.XXXX.partial``,
+``.NAME.XXXX.tmp``, ``.NAME.old.PID.NS``)"""
+
+
+def remove_leftovers(output: str | os.PathLike, log: Callable[[str], None]) -> int:
+    """Remove what atomic writes killed outright (``kill -9``, a power cut) left beside ``output`` and directly
+    inside it (a run's stage folders): with the output's lock held no other process writes there, so they are
+    nobody's. Returns how many went (one line says so)."""
+    out = Path(output).absolute()
+    found = [q for q in out.parent.glob(f".{glob.escape(out.name)}.*") if LEFTOVER.match(q.name)]
+    if out.is_dir():
+        found += [q for q in out.glob(".*") if LEFTOVER.match(q.name)]
+    for q in found:
+        if q.is_dir() and not q.is_symlink():
+            shutil.rmtree(q, ignore_errors=True)
+        else:
+            with contextlib.suppress(OSError):
+                q.unlink()
+    if found:
+        log(f"texstream: removed {len(found)} temporary file(s) an interrupted command left in {out}")
+    return len(found)

@@ -196,3 +196,22 @@ def test_ctrl_c_of_a_running_command_releases_its_lock(tmp_path):
     # 130 is the CLI's status; under pytest the process has also ended by SIGINT itself (-2) after printing
     # its line and releasing the lock (2 runs in 8 on the 2-core dev box, never outside pytest; not traced)
     assert proc.returncode in (130, -signal.SIGINT) and "interrupted" in err, (proc.returncode, err)
+
+
+def test_leftovers_of_a_killed_command_go_when_the_lock_is_taken(tmp_path):
+    """kill -9 during an atomic write leaves its temporary folder: the next command on that output (holding its
+    lock, so nobody else writes there) removes it, and what it left inside a run's folder, but not the output."""
+    from texstream.core.lock import output_lock
+
+    out = tmp_path / "run"
+    (out / "model").mkdir(parents=True)
+    (out / "model" / "keep.json").write_text("{}")
+    left = [tmp_path / ".run.abc123.partial", out / ".model.x1y2.partial", out / ".run_config.toml.q9.tmp",
+            tmp_path / ".run.old.123.456"]
+    for q in left[:2] + left[3:]:
+        q.mkdir()
+    left[2].write_text("half")
+    said = []
+    with output_lock(out, "texstream run", said.append):
+        assert not any(q.exists() for q in left)
+    assert (out / "model" / "keep.json").exists() and len(said) == 1 and "removed 4" in said[0]
