@@ -135,7 +135,6 @@ def small_fit_config(ambient: str):
 def room_fits(tmp_path_factory):
     """The matte sphere in a lit room and under the flash alone (:func:`matte_scenes`), 48 photos of 40x40 on a
     29x14 atlas, each fitted with ``ambient`` auto; the flash-only one also with the term on."""
-    pytest.importorskip("OpenImageIO")
     from texstream.capture.synthetic.synth import SynthConfig, synthesize
     from texstream.fit.stages.stage import fit_stage
 

@@ -229,7 +229,19 @@ def test_a_capture_whose_texels_are_almost_unseen_fails_before_fitting(capture_a
 
     root = capture_and_atlas
     monkeypatch.setattr("texstream.fit.models.per_texel.fit.run_fit_with_progress", no_fitting)
-    cfg = dataclasses.replace(stage_config(), min_seen_fraction=1.01)  # more than every texel: always too few
+    from texstream.fit.common import inputs
+
+    real_start = inputs.fit_start
+
+    def almost_unseen(problem, fit_cfg):  # the photos see only the first 5 texels (a mesh facing away)
+        start = real_start(problem, fit_cfg)
+        counts = start.counts.numpy()
+        counts[5:] = 0
+        start.counts.assign(counts)
+        return start
+
+    monkeypatch.setattr(inputs, "fit_start", almost_unseen)
+    cfg = stage_config()
     with pytest.raises(StageError, match="texels .* are seen by any photo") as e:
         fit_stage(root / "cap", root / "atlas", root / "model_unseen", cfg, progress=False)
     assert "capture.json" in e.value.one_line() and not (root / "model_unseen").exists()
