@@ -76,3 +76,19 @@ def tiny_sphere_capture(root: Path, photos: int, image_size: int = 40) -> Path:
     synthesize("sphere", root / "cap", SynthConfig(scale=0.05, photos=photos, image_size=image_size, progress=False,
                                                    preview=False, device=SCENE_DEVICE))
     return root / "cap"
+
+
+def interrupt_after(monkeypatch, saves: int) -> None:
+    """Stop a stage with KeyboardInterrupt right after its ``saves``-th checkpoint write: the state a SIGKILL
+    anywhere before the next write leaves (what it did after the last save is lost either way)."""
+    from texstream.core.checkpoint import StageCheckpoint
+
+    real, calls = StageCheckpoint.write_arrays, []
+
+    def write_then_stop(self, name, **arrays):
+        real(self, name, **arrays)
+        calls.append(name)
+        if len(calls) == saves:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(StageCheckpoint, "write_arrays", write_then_stop)

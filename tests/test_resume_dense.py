@@ -11,13 +11,12 @@ import numpy as np
 import pytest
 
 from texstream.capture.capture_json import read_capture
-from texstream.core.checkpoint import StageCheckpoint
 from texstream.core.progress import reporting
 from texstream.geometry.hull import load_masks
 from texstream.geometry.mesh_io import load_mesh
 from texstream.geometry.mvs import MvsConfig, capture_dense_points
 
-from conftest import SCENE_DEVICE
+from conftest import SCENE_DEVICE, interrupt_after
 
 
 @pytest.fixture(scope="module")
@@ -30,18 +29,6 @@ def sphere(tmp_path_factory):
                                                     device=SCENE_DEVICE))
     cap = read_capture(root)
     return cap, load_masks(cap), load_mesh(root / "ground_truth" / "mesh.obj").bbox()
-
-
-def interrupt_after(monkeypatch, saves: int) -> None:
-    real, calls = StageCheckpoint.write_arrays, []
-
-    def write_then_stop(self, name, **arrays):
-        real(self, name, **arrays)
-        calls.append(name)
-        if len(calls) == saves:
-            raise KeyboardInterrupt
-
-    monkeypatch.setattr(StageCheckpoint, "write_arrays", write_then_stop)
 
 
 def test_interrupted_dense_stereo_resumes_to_the_same_points(sphere, tmp_path, monkeypatch):

@@ -13,12 +13,12 @@ import json
 import numpy as np
 import pytest
 
-from texstream.core.checkpoint import StageCheckpoint, work_dir_for
+from texstream.core.checkpoint import work_dir_for
 from texstream.core.progress import reporting
 from texstream.geometry.refine import RefineConfig, refine_stage
 from texstream.geometry.mesh_io import load_mesh
 
-from conftest import tiny_sphere_capture
+from conftest import interrupt_after, tiny_sphere_capture
 
 
 @pytest.fixture(scope="module")
@@ -29,18 +29,6 @@ def capture(tmp_path_factory):
 def config(**kw) -> RefineConfig:
     # two levels of two iterations, the shading normals short: 4 checkpoints, a few seconds
     return RefineConfig(holdout_every=8, blur="1,0", iterations=2, normal_iterations=1, intensity_iterations=1, **kw)
-
-
-def interrupt_after(monkeypatch, saves: int) -> None:
-    real, calls = StageCheckpoint.write_arrays, []
-
-    def write_then_stop(self, name, **arrays):
-        real(self, name, **arrays)
-        calls.append(name)
-        if len(calls) == saves:
-            raise KeyboardInterrupt
-
-    monkeypatch.setattr(StageCheckpoint, "write_arrays", write_then_stop)
 
 
 def outputs(folder):
