@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 
 import numpy as np
 
@@ -339,12 +340,37 @@ def _pack_options(config: AtlasConfig, texels_per_unit: float):
     return po
 
 
+XATLAS_SETTLE_S = 0.02
+"""how long an xatlas atlas is kept after its last use before it is destroyed (:class:`_Atlas`)"""
+
+
+class _Atlas:
+    """An ``xatlas.Atlas`` destroyed only once its worker threads are asleep again. xatlas's TaskScheduler
+    destructor sets each worker's wake-up flag and notifies it without holding the worker's mutex: a worker that
+    has just finished its last task and checked the flag, but not yet blocked, misses the notification, and the
+    destructor's join waits forever (a CI run hung so in ``xatlas::Destroy``). The workers block within
+    microseconds of their last task, so a pause before the release closes that window."""
+
+    def __init__(self):
+        import xatlas
+
+        self._atlas = xatlas.Atlas()
+
+    def __getattr__(self, name):
+        if name == "_atlas":  # not made (xatlas failed in __init__)
+            raise AttributeError(name)
+        return getattr(self._atlas, name)
+
+    def __del__(self):
+        time.sleep(XATLAS_SETTLE_S)  # the wrapped atlas is released after this returns
+
+
 def _pack(uv_world: np.ndarray, faces: np.ndarray, chart: np.ndarray, config: AtlasConfig, tpu: float):
     import xatlas
 
     # xatlas welds UV vertices closer than an absolute epsilon (~1e-4), which folds small faces
     # of a scene in metres; in texel units nothing that far apart matters.
-    atlas = xatlas.Atlas()
+    atlas = _Atlas()
     atlas.add_uv_mesh((uv_world * tpu).astype(np.float32), faces.astype(np.uint32),
                       chart.astype(np.uint32).reshape(-1, 1))
     atlas.generate(xatlas.ChartOptions(), _pack_options(config, 1.0))
@@ -367,7 +393,7 @@ def _xatlas_atlas(mesh: SurfaceMesh, config: AtlasConfig,
     lo, hi = mesh.bbox()
     s_norm = _XATLAS_DIAGONAL / max(float(np.linalg.norm(hi - lo)), 1e-30)
     verts_n = (np.asarray(mesh.vertices, np.float64) - 0.5 * (lo + hi)) * s_norm
-    chart_atlas = xatlas.Atlas()
+    chart_atlas = _Atlas()
     normals = None if mesh.normals is None else np.asarray(mesh.normals, dtype=np.float32)
     try:
         chart_atlas.add_mesh(verts_n.astype(np.float32), faces_in, normals=normals)
