@@ -45,7 +45,7 @@ from texstream.fit.models import registry
 from texstream.fit.optim.fitter import FitConfig
 from texstream.fit.optim.lfm_config import LFMConfig
 from texstream.fit.stages.choice import ModelChoiceConfig, fit_choice, plan_choice
-from texstream.fit.stages.export import export_stage
+from texstream.fit.stages.export import ExportConfig, export_stage
 from texstream.fit.stages.stage import FitStageConfig, fit_candidate, fit_stage, forget_candidates
 from texstream.geometry.atlas import AtlasConfig, atlas_stage
 from texstream.geometry.make_mesh import MeshConfig, make_mesh
@@ -539,7 +539,7 @@ def _export_and_report(pipe: Pipeline, out: Path, model_dir: Path, capture_dir: 
     """Exports (glTF binary, OBJ+MTL) and the HTML report (its held-out renders on the run's device)."""
     export_dir = out / "export"
     pipe.run("export", export_dir, [pipe.stamp_of("fit")], "glTF binary and OBJ+MTL",
-             lambda: export_stage(model_dir, export_dir))
+             lambda: export_stage(model_dir, export_dir, ExportConfig(device=device)))
     t0 = time.perf_counter()
     stages = [dataclasses.asdict(r) for r in pipe.records]
     write_report(out, stages, model_dir, capture_dir, device=device, inputs=inputs)

@@ -177,22 +177,3 @@ def test_gltf_colour_spaces(tmp_path):
     assert np.abs(spec_codes - linear_to_srgb(pbr.specular_f0 / s)).max() <= half
     assert got["gltf"].materials[0].pbrMetallicRoughness.metallicFactor == 1.0
     assert pbr.metallic.max() > 0  # the lobe's energy is in the core material
-
-
-def test_fit_recovers_a_core_material_exactly():
-    """A texel whose target is itself a core material (b, m, r on the fit's grids): the fit's moments (module doc)
-    give it back, and the extension's F0 is 0.04 (the core material is already exact)."""
-    flash = gltf_core.flash_samples()
-    rough = np.geomspace(gltf_core.ROUGHNESS_MIN, 1.0, gltf_core.ROUGHNESS_STEPS)[[6, 14]]
-    b = np.array([[0.6, 0.3, 0.1], [0.2, 0.2, 0.25]])
-    m = np.array([0.3, 0.07])
-    light, view = (np.broadcast_to(a, (2,) + a.shape[1:]) for a in (flash.light, flash.view))
-    w = np.broadcast_to(flash.weight, (2, flash.weight.shape[1]))
-    y = gltf_core.core_brdf(b, m, rough, light, view)
-    # and the test's own reading of the specification agrees with the module's BRDF
-    np.testing.assert_allclose(y[0], spec_brdf(b[0], m[0], rough[0], light[0], view[0]), rtol=1e-10)
-    got_b, got_m, got_r, f0d = gltf_core._fit_chunk(y, w / w.sum(1, keepdims=True), light, view)
-    np.testing.assert_allclose(got_m, m, atol=1e-9)
-    np.testing.assert_allclose(got_r, rough, rtol=1e-9)
-    np.testing.assert_allclose(got_b, b, atol=1e-9)
-    np.testing.assert_allclose(f0d, 0.04, atol=1e-7)

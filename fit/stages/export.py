@@ -43,6 +43,7 @@ import numpy as np
 from texstream.capture.imageio import write_image
 from texstream.core import outputs  # write_atomic_with through it: a test makes it fail there (full disk)
 from texstream.core.config import option, save_config
+from texstream.core.devices import DEVICE_HELP
 from texstream.core.errors import ConfigError, InputError
 from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
 from texstream.core.progress import phase
@@ -81,6 +82,7 @@ class ExportConfig:
     radiance_scale: float = option(1.0, "radiance models: multiply the radiance by this before clipping "
                                    "to [0, 1] (1 = photo units, where 1 is the photo's white)", min=1e-12)
     copy_maps: bool = option(True, "copy the float EXR parameter maps into maps/ (the exact fitted values)")
+    device: str = option("auto", DEVICE_HELP + "; runs the glTF core-material fit of lit models")
     lfm_view_mean: str = option("cosine", "light field mapping models: unlit base colour = the view-"
                                 "independent term plus each view-dependent term's mean over view "
                                 "directions, cosine-weighted over the hemisphere (cosine), or the "

@@ -182,14 +182,16 @@ def bake_fill_source(model_dir: Path) -> np.ndarray | None:
 
 
 def lafortune_material(grid: np.ndarray, layout, covered: np.ndarray, roughness: str,
-                       samples: DirectionSamples | None = None, fill_source: np.ndarray | None = None) -> ExportMaterial:
+                       samples: DirectionSamples | None = None, fill_source: np.ndarray | None = None,
+                       device: str = "cpu") -> ExportMaterial:
     """The exported material of a Lafortune parameter grid (H, W, P).
 
     OBJ (and the fields ``base``, ``specular``, ``roughness``): base colour the clipped albedo; with lobes, F0 the
     summed lobe albedos (normalised by their largest value over ``covered`` texels), the roughness of the
     dominant lobe's exponent (``roughness``: the conversion) and Ns their median; without, no specular layer.
     glTF (``pbr``): the core metallic-roughness material fitted to the model over ``samples`` (None: the flash
-    set; gltf_core.py), padding texels taking their ``fill_source``'s, and KHR_materials_specular's F0 on top."""
+    set; gltf_core.py, on Warp ``device``), padding texels taking their ``fill_source``'s, and KHR_materials_specular's F0
+    on top."""
     g = grid.astype(np.float64)
     lay = layout
     albedo = albedo_from_rho_d(g[..., 0:3])
@@ -199,7 +201,7 @@ def lafortune_material(grid: np.ndarray, layout, covered: np.ndarray, roughness:
     if lay.n_lobes == 0:
         before = (base, np.zeros_like(base), np.ones(base.shape[:2]))
         return ExportMaterial(base, clipped=clipped, name="diffuse",
-                              pbr=fit_core_material(g, lay, samples, fill_source, before))
+                              pbr=fit_core_material(g, lay, samples, fill_source, before, device))
     albedos, exps = [], []
     for j in range(lay.n_lobes):
         o = lay.lobe_offset(j)
@@ -214,6 +216,7 @@ def lafortune_material(grid: np.ndarray, layout, covered: np.ndarray, roughness:
     rough = roughness_from_exponent(n_dom, roughness)
     shiny = covered & (f0.max(axis=-1) > 0)
     ns = float(np.median(n_dom[shiny if shiny.any() else covered]))
-    pbr = fit_core_material(g, lay, samples, fill_source, (base, np.maximum(f0, 0.0), np.maximum(rough, 0.04)))
+    pbr = fit_core_material(g, lay, samples, fill_source, (base, np.maximum(f0, 0.0), np.maximum(rough, 0.04)),
+                            device)
     return ExportMaterial(base, specular=spec, specular_scale=scale, roughness=rough,
                           ns=float(np.clip(ns, 1.0, MTL_NS_MAX)), clipped=clipped, name="lafortune", pbr=pbr)

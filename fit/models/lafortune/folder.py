@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from texstream.capture.imageio import linear_to_srgb
+from texstream.core.devices import resolve_device
 from texstream.fit.models.lafortune.export import bake_fill_source, lafortune_material
 from texstream.fit.models.per_texel.folder import PerTexelModel, load_per_texel
 from texstream.fit.models.previews import read_shader, rgb_scaled
@@ -18,7 +19,7 @@ class LafortuneModel(PerTexelModel):
 
     def export_material(self, cfg) -> ExportMaterial:
         mat = lafortune_material(self.grid, self.layout, self.covered, cfg.roughness,
-                                 fill_source=bake_fill_source(self.folder))
+                                 fill_source=bake_fill_source(self.folder), device=resolve_device(cfg.device))
         if self.layout.ambient:  # the room's light, the same from every view: an emissive term for viewers
             o = self.layout.ambient_offset
             mat.emissive = np.maximum(self.grid[..., o:o + 3], 0.0).astype(np.float32)

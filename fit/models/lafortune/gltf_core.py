@@ -45,12 +45,13 @@ import dataclasses
 
 import numpy as np
 
+from texstream.fit.models.lafortune.gltf_core_kernel import fit_rows
+
 DIELECTRIC_F0 = 0.04
 ROUGHNESS_MIN = 0.04  # three.js clamps roughness to [0.04, 1]
 METALLIC_STEPS = 101
 ROUGHNESS_STEPS = 24
 ROUGHNESS_REFINE = (0.95, 0.975, 1.025, 1.05)
-TEXEL_CHUNK = 1024
 FLASH_OFFSETS_DEG = (0.0, 8.0, 16.0)  # the light's angles off the view direction (flash_samples)
 
 
@@ -154,75 +155,10 @@ def core_brdf(base: np.ndarray, metallic: np.ndarray, roughness: np.ndarray, lig
     return np.asarray(base)[:, None] * (1 - m) / np.pi + (dv * (1 - x5))[..., None] * f0 + (dv * x5)[..., None]
 
 
-def _wsum(wu: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """sum over samples of wu * y: ``wu`` (S,) shared by the texels or (T, S), ``y`` (T, S, 3) -> (T, 3)."""
-    return np.einsum("s,tsc->tc" if wu.ndim == 1 else "ts,tsc->tc", wu, y)
-
-
-def _best_for_roughness(y, w, dv, x5, metal, yy):
-    """For one roughness per texel (``dv``, ``x5``: (S,) when every texel has the same roughness, else (T, S);
-    ``w`` likewise): the best metallic on the grid ``metal`` (K,) and its base colour and squared error, from
-    weighted moments (module doc); ``yy`` (T, 3) the weighted sum of y^2. Returns (err (T,), m (T,), b (T, 3))."""
-    a = dv * (1 - x5)
-    p, q = 1.0 / np.pi, a - 1.0 / np.pi
-    s, t = dv * x5 + DIELECTRIC_F0 * a, -DIELECTRIC_F0 * a  # g0 = s + m t, g1 = p + m q
-
-    def mom(u, v):  # (T,), or (1,) for directions and weights shared by the texels
-        return np.atleast_1d((w * u * v).sum(axis=-1))
-
-    pp, pq, qq = p * p * np.atleast_1d(w.sum(axis=-1)), p * mom(q, 1.0), mom(q, q)
-    ps, pt, qs, qt = p * mom(s, 1.0), p * mom(t, 1.0), mom(q, s), mom(q, t)
-    ss, st, tt = mom(s, s), mom(s, t), mom(t, t)
-    py, qy, sy, ty = p * _wsum(w, y), _wsum(w * q, y), _wsum(w * s, y), _wsum(w * t, y)
-    m = metal[None, :, None]  # (1, K, 1)
-    g2 = (pp[:, None] + 2 * metal[None] * pq[:, None] + metal[None] ** 2 * qq[:, None])[..., None]
-    gy = (py[:, None] + m * qy[:, None] - (ps[:, None, None] + m * (qs + pt)[:, None, None]
-                                           + m * m * qt[:, None, None]))
-    r2 = (yy[:, None] - 2 * (sy[:, None] + m * ty[:, None]) + ss[:, None, None] + 2 * m * st[:, None, None]
-          + m * m * tt[:, None, None])
-    b = np.clip(gy / np.maximum(g2, 1e-300), 0.0, 1.0)
-    err = (r2 - 2 * b * gy + b * b * g2).sum(axis=2)  # (T, K)
-    k = np.argmin(err, axis=1)
-    rows = np.arange(len(k))
-    return err[rows, k], metal[k], b[rows, k]
-
-
-def _fit_chunk(y, w, light, view) -> tuple[np.ndarray, ...]:
-    """Core (b, m, r) and the extension's F0_d for a chunk of texels (module doc). The coarse roughness grid
-    gives every texel the same roughness, so its GGX terms and moments are computed once for the chunk (the
-    directions and weights are every texel's): only the refinement works per texel."""
-    metal = np.linspace(0.0, 1.0, METALLIC_STEPS)
-    best_err = np.full(len(y), np.inf)
-    best_m, best_r, best_b = np.zeros(len(y)), np.ones(len(y)), np.zeros((len(y), 3))
-    yy = _wsum(w[0], y * y)
-
-    def consider(rough, dv, x5, wt):
-        nonlocal best_err, best_m, best_r, best_b
-        err, m, b = _best_for_roughness(y, wt, dv, x5, metal, yy)
-        better = err < best_err
-        best_err = np.where(better, err, best_err)
-        best_m, best_r = np.where(better, m, best_m), np.where(better, rough, best_r)
-        best_b = np.where(better[:, None], b, best_b)
-
-    for r in np.geomspace(ROUGHNESS_MIN, 1.0, ROUGHNESS_STEPS):
-        dv, x5 = ggx_terms(light[0], view[0], r * r)
-        consider(np.full(len(y), r), dv, x5, w[0])
-    coarse = best_r.copy()
-    for f in ROUGHNESS_REFINE:
-        rough = np.clip(coarse * f, ROUGHNESS_MIN, 1.0)
-        dv, x5 = ggx_terms(light, view, (rough ** 2)[:, None])
-        consider(rough, dv, x5, w)
-    dv, x5 = ggx_terms(light, view, (best_r ** 2)[:, None])
-    kk = ((1 - best_m)[:, None] * dv * (1 - x5))[..., None]  # d f / d F0_d
-    g = core_brdf(best_b, best_m, best_r, light, view) - DIELECTRIC_F0 * kk
-    num, den = np.einsum("ts,tsc->tc", w, kk * (y - g)), np.einsum("ts,tsc->tc", w, kk * kk)
-    f0d = np.where(den > 0, np.clip(num / np.where(den > 0, den, 1.0), 0.0, 1.0), DIELECTRIC_F0)
-    return best_b, best_m, best_r, f0d
-
-
 def fit_core_material(grid: np.ndarray, layout, samples: DirectionSamples, fill_source: np.ndarray | None,
-                      old: tuple[np.ndarray, np.ndarray, np.ndarray]) -> CoreMaterial:
-    """The core material of a Lafortune parameter grid (H, W, P) under ``samples`` (module doc).
+                      old: tuple[np.ndarray, np.ndarray, np.ndarray], device: str = "cpu") -> CoreMaterial:
+    """The core material of a Lafortune parameter grid (H, W, P) under ``samples`` (module doc), fitted by
+    gltf_core_kernel.py on Warp ``device``.
 
     ``fill_source``: bake.npz's (H, W) flat index of the covered texel each texel copies (padding takes its
     source's material; None: every texel fitted itself). ``old``: the export before (base = albedo, F0_d,
@@ -231,24 +167,15 @@ def fit_core_material(grid: np.ndarray, layout, samples: DirectionSamples, fill_
     rows = np.asarray(grid, np.float64).reshape(-1, npar)
     own = np.arange(len(rows)) if fill_source is None else np.asarray(fill_source).reshape(-1)
     todo = np.unique(own)
+    old_b, old_f0, old_r = (np.asarray(a, np.float64).reshape(len(rows), -1) for a in old)
+    weight = samples.weight[0] / samples.weight.sum()
+    fitted = fit_rows(rows[todo], layout, samples.light[0], samples.view[0], weight,
+                      (old_b[todo], old_f0[todo], old_r[todo, 0]), np.geomspace(ROUGHNESS_MIN, 1.0, ROUGHNESS_STEPS),
+                      ROUGHNESS_REFINE, ROUGHNESS_MIN, METALLIC_STEPS, device)
     base, metallic = np.zeros((len(rows), 3)), np.zeros(len(rows))
     rough, f0d = np.ones(len(rows)), np.full((len(rows), 3), DIELECTRIC_F0)
-    rel = np.zeros((4, len(rows)))  # per texel relative RMS: core, core + extension, before (core, extension)
-    old_b, old_f0, old_r = (np.asarray(a, np.float64).reshape(len(rows), -1) for a in old)
-    for lo in range(0, len(todo), TEXEL_CHUNK):
-        idx = todo[lo:lo + TEXEL_CHUNK]
-        light, view = (np.broadcast_to(a, (len(idx),) + a.shape[1:]) for a in (samples.light, samples.view))
-        wt = np.broadcast_to(samples.weight / samples.weight.sum(), (len(idx), samples.weight.shape[1]))
-        y = lafortune_brdf(rows[idx], layout, light, view)
-        b, m, r, f = _fit_chunk(y, wt, light, view)
-        base[idx], metallic[idx], rough[idx], f0d[idx] = b, m, r, f
-        zero = np.zeros(len(idx))
-        yy = np.maximum(np.einsum("ts,tsc->t", wt, y * y), 1e-300)
-        for k, pred in enumerate((core_brdf(b, m, r, light, view), core_brdf(b, m, r, light, view, f),
-                                  core_brdf(old_b[idx], zero, old_r[idx, 0], light, view),
-                                  core_brdf(old_b[idx], zero, old_r[idx, 0], light, view, old_f0[idx]))):
-            rel[k, idx] = np.sqrt(np.einsum("ts,tsc->t", wt, (pred - y) ** 2) / yy)
-    med = np.median(rel[:, todo], axis=1)
+    base[todo], metallic[todo], rough[todo], f0d[todo], rel = fitted
+    med = np.median(rel, axis=1)
     fit = {"directions": samples.source, "relative_rms_core": float(med[0]),
            "relative_rms_with_specular_extension": float(med[1]), "relative_rms_before_core": float(med[2]),
            "relative_rms_before_with_specular_extension": float(med[3]),

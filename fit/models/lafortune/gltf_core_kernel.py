@@ -1,0 +1,266 @@
+"""The glTF core-material fit (gltf_core.py's module doc) as one Warp kernel: one thread per texel, float64.
+
+The same search as the moment-based numpy version it replaces (kept as the reference in
+tests/test_gltf_core_kernel.py): for each roughness of the geometric grid, the weighted moments of the GGX terms
+and the Lafortune radiance over the direction samples, then the best metallic of the 101-step grid in closed
+form (base colour the clipped least-squares value per channel); the coarse best refined by four factors; then
+KHR_materials_specular's F0 and the four relative RMS scores. Ties go to the first value, as numpy's argmin and
+the strict ``<`` did. Why a kernel: the numpy version took 8 s of the README demo's export on the CPU (numpy
+temporaries of texels x samples x channels per roughness), and ran on the CPU whatever device the run had; the
+kernel reads each sample's terms once per roughness and keeps nothing per sample.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import warp as wp
+
+from texstream.render.shading import lafortune_brdf
+
+INV_PI = wp.constant(wp.float64(1.0 / math.pi))
+F0_DIELECTRIC = wp.constant(wp.float64(0.04))
+
+
+@wp.func
+def _ggx(ell: wp.vec3d, v: wp.vec3d, alpha: wp.float64):
+    """(D * Vis, (1 - l.h)^5): gltf_core.py ``ggx_terms`` for one direction pair."""
+    h = ell + v
+    hn = wp.length(h)
+    if hn > wp.float64(1.0e-30):
+        h = h / hn
+    else:
+        h = h / wp.float64(1.0e-30)
+    zero, one = wp.float64(0.0), wp.float64(1.0)
+    nl = wp.clamp(ell[2], zero, one)
+    nv = wp.clamp(v[2], zero, one)
+    nh = wp.clamp(h[2], zero, one)
+    lh = wp.clamp(wp.dot(ell, h), zero, one)
+    a2 = alpha * alpha
+    den = nh * nh * (a2 - one) + one
+    d = a2 / (wp.float64(math.pi) * den * den)
+    vis = wp.float64(0.5) / wp.max(nl * wp.sqrt(a2 + (one - a2) * nv * nv) + nv * wp.sqrt(a2 + (one - a2) * nl * nl),
+                                    wp.float64(1.0e-12))
+    x = one - lh
+    return d * vis, x * x * x * x * x
+
+
+@wp.func
+def _core(b: wp.vec3d, m: wp.float64, f0d: wp.vec3d, dv: wp.float64, x5: wp.float64):
+    """The core BRDF (gltf_core.py ``core_brdf``) from one sample's GGX terms."""
+    one = wp.float64(1.0)
+    f0 = (one - m) * f0d + m * b
+    return b * ((one - m) * INV_PI) + f0 * (dv * (one - x5)) + wp.vec3d(dv * x5, dv * x5, dv * x5)
+
+
+@wp.func
+def _best_metallic(radiance: wp.array2d(dtype=wp.vec3d), t: int, light: wp.array(dtype=wp.vec3d),
+                   view: wp.array(dtype=wp.vec3d), weight: wp.array(dtype=wp.float64),
+                   table_dv: wp.array2d(dtype=wp.float64), table_x5: wp.array2d(dtype=wp.float64), row: int,
+                   alpha: wp.float64, yy: wp.vec3d, m_steps: int):
+    """(err, m, b) of the best metallic for one roughness (gltf_core.py ``_best_for_roughness``): g0 = s + m t
+    and g1 = p + m q per sample, the base colour's model b g1 + g0 affine in b. The GGX terms come from row
+    ``row`` of the tables (the coarse grid, the same for every texel), or for ``row`` < 0 from ``alpha``."""
+    p = INV_PI
+    sw = wp.float64(0.0)
+    sq = wp.float64(0.0)
+    sqq = wp.float64(0.0)
+    ss_ = wp.float64(0.0)
+    st_ = wp.float64(0.0)
+    stt = wp.float64(0.0)
+    s1 = wp.float64(0.0)
+    t1 = wp.float64(0.0)
+    qs = wp.float64(0.0)
+    qt = wp.float64(0.0)
+    y1 = wp.vec3d()
+    qy = wp.vec3d()
+    sy = wp.vec3d()
+    ty = wp.vec3d()
+    for k in range(light.shape[0]):
+        w = weight[k]
+        dv = wp.float64(0.0)
+        x5 = wp.float64(0.0)
+        if row >= 0:
+            dv = table_dv[row, k]
+            x5 = table_x5[row, k]
+        else:
+            dv, x5 = _ggx(light[k], view[k], alpha)
+        a = dv * (wp.float64(1.0) - x5)
+        q = a - p
+        s = dv * x5 + F0_DIELECTRIC * a
+        tt = -F0_DIELECTRIC * a
+        y = radiance[t, k]
+        sw += w
+        sq += w * q
+        sqq += w * q * q
+        s1 += w * s
+        t1 += w * tt
+        qs += w * q * s
+        qt += w * q * tt
+        ss_ += w * s * s
+        st_ += w * s * tt
+        stt += w * tt * tt
+        y1 += w * y
+        qy += (w * q) * y
+        sy += (w * s) * y
+        ty += (w * tt) * y
+    pp, pq, ps, pt = p * p * sw, p * sq, p * s1, p * t1
+    py = p * y1
+    best_err = wp.float64(1.0e300)
+    best_m = wp.float64(0.0)
+    best_b = wp.vec3d()
+    for i in range(m_steps):
+        m = wp.float64(i) / wp.float64(m_steps - 1)
+        g2 = pp + wp.float64(2.0) * m * pq + m * m * sqq
+        err = wp.float64(0.0)
+        b = wp.vec3d()
+        for c in range(3):
+            gy = py[c] + m * qy[c] - (ps + m * (qs + pt) + m * m * qt)
+            r2 = yy[c] - wp.float64(2.0) * (sy[c] + m * ty[c]) + ss_ + wp.float64(2.0) * m * st_ + m * m * stt
+            bc = wp.clamp(gy / wp.max(g2, wp.float64(1.0e-300)), wp.float64(0.0), wp.float64(1.0))
+            b[c] = bc
+            err += r2 - wp.float64(2.0) * bc * gy + bc * bc * g2
+        if err < best_err:
+            best_err = err
+            best_m = m
+            best_b = b
+    return best_err, best_m, best_b
+
+
+@wp.kernel
+def lafortune_samples_kernel(rows: wp.array2d(dtype=wp.float64), first: int, n_lobes: int, aniso: int,
+                             light: wp.array(dtype=wp.vec3d), view: wp.array(dtype=wp.vec3d),
+                             radiance: wp.array2d(dtype=wp.vec3d)):
+    """The Lafortune BRDF of texel ``first + t`` at every direction sample (the fit's target, read ~30 times)."""
+    t, k = wp.tid()
+    radiance[t, k] = lafortune_brdf(rows, first + t, n_lobes, aniso, light[k], view[k], wp.float64(1.0))
+
+
+@wp.kernel
+def ggx_table_kernel(light: wp.array(dtype=wp.vec3d), view: wp.array(dtype=wp.vec3d),
+                     rough: wp.array(dtype=wp.float64), dv: wp.array2d(dtype=wp.float64),
+                     x5: wp.array2d(dtype=wp.float64)):
+    """GGX terms of the coarse roughness grid at every sample: the same for every texel."""
+    i, k = wp.tid()
+    a, b = _ggx(light[k], view[k], rough[i] * rough[i])
+    dv[i, k] = a
+    x5[i, k] = b
+
+
+@wp.kernel
+def core_material_kernel(radiance: wp.array2d(dtype=wp.vec3d), first: int,
+                         light: wp.array(dtype=wp.vec3d), view: wp.array(dtype=wp.vec3d),
+                         weight: wp.array(dtype=wp.float64), coarse: wp.array(dtype=wp.float64),
+                         table_dv: wp.array2d(dtype=wp.float64), table_x5: wp.array2d(dtype=wp.float64),
+                         refine: wp.array(dtype=wp.float64), rough_min: wp.float64, m_steps: int,
+                         old_base: wp.array(dtype=wp.vec3d), old_f0: wp.array(dtype=wp.vec3d),
+                         old_rough: wp.array(dtype=wp.float64),
+                         base: wp.array(dtype=wp.vec3d), metallic: wp.array(dtype=wp.float64),
+                         roughness: wp.array(dtype=wp.float64), f0d: wp.array(dtype=wp.vec3d),
+                         rel: wp.array2d(dtype=wp.float64)):
+    """One texel (``radiance``'s row ``t``, output row ``first + t``): its core material, F0_d and relative RMS
+    scores (module doc)."""
+    t = wp.tid()
+    o = first + t
+    yy = wp.vec3d()
+    for k in range(light.shape[0]):
+        y = radiance[t, k]
+        yy += weight[k] * wp.cw_mul(y, y)
+    best_err = wp.float64(1.0e308)
+    best_m = wp.float64(0.0)
+    best_r = wp.float64(1.0)
+    best_b = wp.vec3d()
+    for i in range(coarse.shape[0]):
+        r = coarse[i]
+        err, m, b = _best_metallic(radiance, t, light, view, weight, table_dv, table_x5, i, r * r, yy, m_steps)
+        if err < best_err:
+            best_err = err
+            best_m = m
+            best_r = r
+            best_b = b
+    coarse_best = best_r
+    for i in range(refine.shape[0]):
+        r = wp.clamp(coarse_best * refine[i], rough_min, wp.float64(1.0))
+        err, m, b = _best_metallic(radiance, t, light, view, weight, table_dv, table_x5, -1, r * r, yy, m_steps)
+        if err < best_err:
+            best_err = err
+            best_m = m
+            best_r = r
+            best_b = b
+    # KHR_materials_specular's dielectric F0 with (b, m, r) fixed: affine per channel, least squares in [0, 1]
+    dielectric = wp.vec3d(F0_DIELECTRIC, F0_DIELECTRIC, F0_DIELECTRIC)
+    num = wp.vec3d()
+    den = wp.float64(0.0)
+    one = wp.float64(1.0)
+    for k in range(light.shape[0]):
+        dv, x5 = _ggx(light[k], view[k], best_r * best_r)
+        kk = (one - best_m) * dv * (one - x5)
+        g = _core(best_b, best_m, dielectric, dv, x5) - F0_DIELECTRIC * wp.vec3d(kk, kk, kk)
+        y = radiance[t, k]
+        num += (weight[k] * kk) * (y - g)
+        den += weight[k] * kk * kk
+    f = dielectric
+    if den > wp.float64(0.0):
+        for c in range(3):
+            f[c] = wp.clamp(num[c] / den, wp.float64(0.0), one)
+    base[o] = best_b
+    metallic[o] = best_m
+    roughness[o] = best_r
+    f0d[o] = f
+    # relative RMS radiance error over the samples: core, core + extension, the export before (both)
+    e0 = wp.float64(0.0)
+    e1 = wp.float64(0.0)
+    e2 = wp.float64(0.0)
+    e3 = wp.float64(0.0)
+    zero = wp.float64(0.0)
+    ob = old_base[o]
+    for k in range(light.shape[0]):
+        w = weight[k]
+        y = radiance[t, k]
+        dv, x5 = _ggx(light[k], view[k], best_r * best_r)
+        e0 += w * wp.length_sq(_core(best_b, best_m, dielectric, dv, x5) - y)
+        e1 += w * wp.length_sq(_core(best_b, best_m, f, dv, x5) - y)
+        dv, x5 = _ggx(light[k], view[k], old_rough[o] * old_rough[o])
+        e2 += w * wp.length_sq(_core(ob, zero, dielectric, dv, x5) - y)
+        e3 += w * wp.length_sq(_core(ob, zero, old_f0[o], dv, x5) - y)
+    total = wp.max(yy[0] + yy[1] + yy[2], wp.float64(1.0e-300))
+    rel[0, o] = wp.sqrt(e0 / total)
+    rel[1, o] = wp.sqrt(e1 / total)
+    rel[2, o] = wp.sqrt(e2 / total)
+    rel[3, o] = wp.sqrt(e3 / total)
+
+
+TEXEL_CHUNK = 16384  # texels per launch: their samples' radiance (S x 24 bytes each, ~4.5 KB) stays ~75 MB
+
+
+def fit_rows(rows: np.ndarray, layout, light: np.ndarray, view: np.ndarray, weight: np.ndarray,
+             old: tuple[np.ndarray, np.ndarray, np.ndarray], coarse: np.ndarray, refine: tuple, rough_min: float,
+             metallic_steps: int, device: str) -> tuple[np.ndarray, ...]:
+    """The core material of texels ``rows`` (T, P) under direction samples (S, 3) and normalised weights (S,):
+    (base (T, 3), metallic (T,), roughness (T,), F0_d (T, 3), relative RMS (4, T)); ``old``: the export
+    before's (base (T, 3), F0 (T, 3), roughness (T,)), scored beside."""
+    n, s = len(rows), len(light)
+    with wp.ScopedDevice(device):
+        def arr(a, dtype):
+            return wp.array(np.ascontiguousarray(a, dtype=np.float64), dtype=dtype)
+
+        outs = (wp.zeros(n, dtype=wp.vec3d), wp.zeros(n, dtype=wp.float64), wp.zeros(n, dtype=wp.float64),
+                wp.zeros(n, dtype=wp.vec3d), wp.zeros((4, n), dtype=wp.float64))
+        if n == 0:
+            return tuple(o.numpy() for o in outs)
+        grid, light_w, view_w = arr(rows, wp.float64), arr(light, wp.vec3d), arr(view, wp.vec3d)
+        coarse_w = arr(coarse, wp.float64)
+        table_dv, table_x5 = wp.empty((len(coarse), s), dtype=wp.float64), wp.empty((len(coarse), s), dtype=wp.float64)
+        wp.launch(ggx_table_kernel, dim=(len(coarse), s), inputs=[light_w, view_w, coarse_w], outputs=[table_dv, table_x5])
+        radiance = wp.empty((min(n, TEXEL_CHUNK), s), dtype=wp.vec3d)
+        fixed = [arr(weight, wp.float64), coarse_w, table_dv, table_x5, arr(np.asarray(refine), wp.float64),
+                 wp.float64(rough_min), int(metallic_steps), arr(old[0], wp.vec3d), arr(old[1], wp.vec3d),
+                 arr(old[2], wp.float64)]
+        for first in range(0, n, TEXEL_CHUNK):
+            count = min(TEXEL_CHUNK, n - first)
+            wp.launch(lafortune_samples_kernel, dim=(count, s), inputs=[
+                grid, first, layout.n_lobes, int(layout.anisotropic), light_w, view_w], outputs=[radiance])
+            wp.launch(core_material_kernel, dim=count, inputs=[radiance, first, light_w, view_w] + fixed,
+                      outputs=list(outs))
+        return tuple(o.numpy() for o in outs)
