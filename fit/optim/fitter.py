@@ -27,6 +27,7 @@ from texstream.fit.optim.linesearch import LineSearchConfig, line_search
 from texstream.fit.optim.lm import LevenbergMarquardt
 from texstream.fit.optim.steepest import SteepestDescent
 from texstream.fit.stream.penalties import PenaltyConfig, Penalties
+from texstream.fit.optim.env_config import EnvDiffuseConfig
 from texstream.fit.optim.lfm_config import LFMConfig
 from texstream.fit.stream.config import StreamConfig
 from texstream.fit.stream.problem import StreamProblem, no_light_error
@@ -122,6 +123,8 @@ class FitConfig:
     penalties: PenaltyConfig = option(default_factory=PenaltyConfig, help="penalties")
     stream: StreamConfig = option(default_factory=StreamConfig, help="streaming and numerics")
     lfm: LFMConfig = option(default_factory=LFMConfig, help="light field mapping (--model lfm)")
+    env: EnvDiffuseConfig = option(default_factory=EnvDiffuseConfig,
+                                   help="relightable diffuse model under one unknown environment (--model env_diffuse)")
 
     def loss(self, layout: ModelLayout) -> str:
         """The robust loss the fit uses for ``layout`` (``robust_loss`` with auto resolved)."""
