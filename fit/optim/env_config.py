@@ -26,6 +26,8 @@ class EnvDiffuseConfig:
     max_materials: int = option(4, "materials = 0: the most tried", min=1, max=16)
     material_gain: float = option(0.1, "materials = 0: a further material must lower the shared-albedo residual by "
                                         "at least this fraction", min=0.0, max=1.0)
+    merge_log_distance: float = option(0.15, "materials whose albedos differ by less than this in every channel's "
+                                             "log (0.15: 16%) are merged when texels are relabelled", min=0.0)
     relabel_rounds: int = option(4, "rounds of (light and material albedos, then each texel moved to the material "
                                     "nearest its own albedo under that light)", min=1, max=50)
     light_passes: int = option(300, "alternation passes (material albedos given the light, the light given them) "

@@ -158,13 +158,27 @@ def _fit_materials(radiance, weight, transfer, k: int, cfg, trace: list):
                       "light_gradient_rel": float(np.abs(grad).max() * np.abs(light).max() / max(e, 1e-300))})
         own = albedo_given_light(light, radiance, weight, transfer)
         d = np.log(own[:, None, :] + 1e-3) - np.log(mats[None, :, :] + 1e-3)
-        new = np.argmin((d * d).sum(-1), axis=1)
+        new = _merged(mats, cfg.merge_log_distance)[np.argmin((d * d).sum(-1), axis=1)]
         present = np.unique(new)
         new = np.searchsorted(present, new)  # materials nobody chose are dropped
         if np.array_equal(new, labels):
             break
         labels, k, light0 = new, len(present), light
     return light, mats, labels, e
+
+
+def _merged(mats: np.ndarray, distance: float) -> np.ndarray:
+    """(K,) each material's representative: materials whose albedos differ by less than ``distance`` in every
+    channel's log are one (a split along the shading would let their albedo ratio absorb the light's
+    variation, the ambiguity the materials are there to remove)."""
+    logm = np.log(np.maximum(mats, 1e-6))
+    rep = np.arange(len(mats))
+    for i in range(len(mats)):
+        for j in range(i):
+            if rep[j] == j and np.max(np.abs(logm[i] - logm[j])) < distance:
+                rep[i] = j
+                break
+    return rep
 
 
 def fix_gauge(light: np.ndarray, albedo: np.ndarray, materials: np.ndarray, cfg) -> tuple:
@@ -206,8 +220,8 @@ def solve(radiance: np.ndarray, weight: np.ndarray, transfer: np.ndarray, cfg, f
     ks = [cfg.materials] if cfg.materials > 0 else list(range(1, cfg.max_materials + 1))
     for k in ks:
         found = _fit_materials(radiance, weight, transfer, k, cfg, trace)
-        if best is not None and found[3] > (1.0 - cfg.material_gain) * best[3]:
-            break  # one more material hardly helps: keep the fewer
+        if best is not None and (len(found[1]) <= len(best[1]) or found[3] > (1.0 - cfg.material_gain) * best[3]):
+            break  # one more material was merged into another, or hardly helps: keep the fewer
         best = found
     light, mats, labels, _ = best
     albedo = albedo_given_light(light, radiance, weight, transfer, mats[labels], cfg.albedo_prior)
