@@ -10,7 +10,6 @@ from texstream.render.renderer import Renderer
 
 ENV_MAP_SIZE = (32, 64)
 """(height, width) of the latitude-longitude map written for an SH light (order 2 has no finer detail)"""
-RADIANCE = ModelLayout(kind="radiance")
 
 
 def transfer_grid(bake, grid_index: np.ndarray, transfer: np.ndarray) -> np.ndarray:
@@ -32,8 +31,9 @@ class EnvDiffuseRenderer:
 
     def __init__(self, mesh, albedo: np.ndarray, transfer: np.ndarray, light: np.ndarray, device: str = "cpu"):
         self.albedo, self.transfer = albedo, transfer
-        self.renderer = Renderer(mesh, lit_radiance(albedo, transfer, light).astype(np.float32), RADIANCE,
-                                 device=device)
+        # the radiance layout, made here: its kind is registered by the radiance plugin, loaded after this one
+        self.renderer = Renderer(mesh, lit_radiance(albedo, transfer, light).astype(np.float32),
+                                 ModelLayout(kind="radiance"), device=device)
 
     def set_light(self, light: np.ndarray) -> None:
         grid = lit_radiance(self.albedo, self.transfer, light).reshape(-1, 3)
