@@ -47,7 +47,9 @@ class FitConfig:
                                      "photo), radiance (view-independent radiance under the photos' one fixed, "
                                      "unknown lighting; ignores lights), view_radiance (that radiance as a "
                                      "biquadratic of the view direction), lfm (light field mapping: vertex light "
-                                     "fields of surface maps x view maps; options --lfm.*), or auto: the model "
+                                     "fields of surface maps x view maps; options --lfm.*), env_diffuse (albedo under an "
+                                     "estimated order-2 SH environment light, relightable; options --env.*), or "
+                                     "auto: the model "
                                      "choice (fit/stages/choice.py) fits the candidates the capture calls for and "
                                      "keeps the one with the best held-out error")
     view_prior: float = option(0.5, "view_radiance: ridge prior pulling each texel's view terms to 0, in samples' "
