@@ -28,6 +28,10 @@ class EnvDiffuseConfig:
                                         "at least this fraction", min=0.0, max=1.0)
     merge_log_distance: float = option(0.15, "materials whose albedos differ by less than this in every channel's "
                                              "log (0.15: 16%) are merged when texels are relabelled", min=0.0)
+    robust_log: float = option(0.1, "the light's fit down-weights texels whose own albedo (under the light of the "
+                                     "round before) is off their material's: Cauchy weight 1 / (1 + (q / this)^2), q "
+                                     "the largest log-ratio over the channels (0.1: a texel 10% off counts half); "
+                                     "0: every texel by its sample count", min=0.0)
     relabel_rounds: int = option(4, "rounds of (light and material albedos, then each texel moved to the material "
                                     "nearest its own albedo under that light)", min=1, max=50)
     light_passes: int = option(300, "alternation passes (material albedos given the light, the light given them) "
