@@ -124,8 +124,9 @@ def _write_folder(request, inputs, grid, tgrid, sol, given: bool, timings: dict,
             "atlas": {"width": bake.width, "height": bake.height, "texels": run["texels"],
                       "seen_texels": run["seen"], "unseen_filled_from_nearest": run["filled"]},
             "photos": {"fitted": len(inputs.frames), "held_out": len(inputs.held), "skipped": run["skipped"]},
-            "stream": {"passes": run["passes"], "final": {k: run["trace"][-1][k] for k in
-                                                          ("iteration", "time_s", "objective", "psnr_db")}},
+            # the photos' stream (the radiance fit): its trace and last row, as the report reads a fit's
+            "passes": run["passes"], "trace": run["trace"], "setup_s": timings["setup"],
+            "final": {k: run["trace"][-1][k] for k in ("iteration", "time_s", "objective", "psnr_db")},
             "timings_s": timings, "warnings": warnings, "device": cfg.device, "config": config_to_dict(cfg),
             "render_eval": evals, "heldout": pooled_psnr([e for e in evals if e["held_out"]]), "units": UNITS}
         write_json_atomic(tmp / "model.json", manifest)
