@@ -55,7 +55,8 @@ class EnvDiffuseModel(FittedModel):
         img, s = rgb_scaled(lit_radiance(self.albedo, self.transfer, self.light))
         save("radiance", img, f"the albedo lit by the estimated light (divided by {s:.4g}; sRGB)")
         img, s = rgb_scaled(np.repeat(np.clip(self.transfer[..., :1] / sh.sh9_basis(np.zeros(3))[0], 0, None), 3, 2))
-        save("ambient_visibility", img, "ambient visibility: the transfer's constant term over the unoccluded one")
+        save("ambient_visibility", img, "ambient visibility: the transfer's constant term over the unoccluded one "
+             f"(1: the texel sees the whole hemisphere; divided by {s:.4g}; sRGB)")
         img, s = rgb_scaled(np.maximum(sh.latlong_from_sh(self.light, *ENV_MAP_SIZE), 0.0))
         save("environment", img, f"the estimated environment, latitude-longitude, +z up (divided by {s:.4g}; sRGB)")
 
