@@ -39,6 +39,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "fit": ("texstream.pipelines.cmd_fit", "fit an appearance model to a posed capture (Warp)"),
     "export": ("texstream.pipelines.cmd_export", "glTF binary and OBJ+MTL of a fitted model, for viewers and DCC tools"),
     "eval": ("texstream.pipelines.cmd_eval", "PSNR / APE of a fitted model on a capture"),
+    "relight": ("texstream.pipelines.cmd_relight", "render a relightable model under another light (env map or SH)"),
     "preview": ("texstream.pipelines.cmd_preview", "contact sheet of a capture folder"),
     "fpcheck": ("texstream.pipelines.cmd_fpcheck", "error in ULPs of the device's floating-point operations (Warp)"),
     "stiffcheck": ("texstream.pipelines.cmd_stiffcheck", "stiff and extreme fits against a float64 reference"),

@@ -163,7 +163,7 @@ def test_every_command_that_writes_is_refused_on_a_held_output(tmp_path, capsys)
         "lights": ["lights", t], "chart": ["chart", t], "import": ["import", "colmap", t], "synth": ["synth", "sphere"],
         "mesh": ["mesh", t], "atlas": ["atlas", t], "refine": ["refine", t, t], "fit": ["fit", t, "--mesh", t],
         "export": ["export", t], "eval": ["eval", t, t], "preview": ["preview", t], "fpcheck": ["fpcheck"],
-        "stiffcheck": ["stiffcheck"],
+        "stiffcheck": ["stiffcheck"], "relight": ["relight", t, "--env", t, "--capture", t],
     }
     holder = _holder(out)
     try:

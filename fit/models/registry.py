@@ -55,6 +55,9 @@ class ExportMaterial:
             KHR_materials_specular's F0 per texel); None: the glTF material is base (+ specular) as above.
         emissive: (H, W, 3) linear radiance the surface sends whatever the light (a reflectance model's fitted
             ambient radiance, the room's light baked in, render/layout.py ``ModelLayout.ambient``), or None.
+        environment: (h, w, 3) linear latitude-longitude radiance (render/sh.py's convention) of the light the
+            material was estimated under, written beside the glTF / OBJ as environment.exr and named in
+            export.json's ``files.environment``; None: none (a model with known lights, or unlit).
     """
 
     base: np.ndarray
@@ -69,6 +72,7 @@ class ExportMaterial:
     extras: dict = dataclasses.field(default_factory=dict)
     pbr: Any = None
     emissive: np.ndarray | None = None
+    environment: np.ndarray | None = None
 
 
 @dataclasses.dataclass

@@ -27,6 +27,7 @@ from texstream.fit.optim.linesearch import LineSearchConfig, line_search
 from texstream.fit.optim.lm import LevenbergMarquardt
 from texstream.fit.optim.steepest import SteepestDescent
 from texstream.fit.stream.penalties import PenaltyConfig, Penalties
+from texstream.fit.optim.env_config import EnvDiffuseConfig
 from texstream.fit.optim.lfm_config import LFMConfig
 from texstream.fit.stream.config import StreamConfig
 from texstream.fit.stream.problem import StreamProblem, no_light_error
@@ -46,7 +47,9 @@ class FitConfig:
                                      "photo), radiance (view-independent radiance under the photos' one fixed, "
                                      "unknown lighting; ignores lights), view_radiance (that radiance as a "
                                      "biquadratic of the view direction), lfm (light field mapping: vertex light "
-                                     "fields of surface maps x view maps; options --lfm.*), or auto: the model "
+                                     "fields of surface maps x view maps; options --lfm.*), env_diffuse (albedo under an "
+                                     "estimated order-2 SH environment light, relightable; options --env.*), or "
+                                     "auto: the model "
                                      "choice (fit/stages/choice.py) fits the candidates the capture calls for and "
                                      "keeps the one with the best held-out error")
     view_prior: float = option(0.5, "view_radiance: ridge prior pulling each texel's view terms to 0, in samples' "
@@ -122,6 +125,8 @@ class FitConfig:
     penalties: PenaltyConfig = option(default_factory=PenaltyConfig, help="penalties")
     stream: StreamConfig = option(default_factory=StreamConfig, help="streaming and numerics")
     lfm: LFMConfig = option(default_factory=LFMConfig, help="light field mapping (--model lfm)")
+    env: EnvDiffuseConfig = option(default_factory=EnvDiffuseConfig,
+                                   help="relightable diffuse model under one unknown environment (--model env_diffuse)")
 
     def loss(self, layout: ModelLayout) -> str:
         """The robust loss the fit uses for ``layout`` (``robust_loss`` with auto resolved)."""

@@ -410,8 +410,11 @@ def export_stage(model_dir, out_dir, config: ExportConfig | None = None) -> Stag
         maps = _copy_maps(m, tmp / "maps") if cfg.copy_maps else []
         for w in written.values():
             w["path"] = Path(w["path"]).name
-        summary = {**next(iter(written.values())), "files": {k: w["path"] for k, w in written.items()},
-                   "maps": maps, "model": str(m.folder.resolve())}
+        files = {k: w["path"] for k, w in written.items()}
+        if mat.environment is not None:  # the estimated light a viewer lights the lit glTF with
+            write_image(tmp / "environment.exr", mat.environment, bits=32)
+            files["environment"] = "environment.exr"
+        summary = {**next(iter(written.values())), "files": files, "maps": maps, "model": str(m.folder.resolve())}
         summary.pop("path", None)
         write_json_atomic(tmp / "export.json", summary)
         save_config(cfg, tmp / "export_config.json")

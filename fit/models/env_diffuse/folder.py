@@ -1,0 +1,100 @@
+"""An env_diffuse model folder read back (eval, export, report, viewer, ``texstream relight``).
+
+It renders under its estimated light (eval, the report's held-out views) or any other SH light
+(:meth:`EnvDiffuseModel.relit_renderer`); exports a lit glTF (base colour = albedo, metallic 0, roughness 1,
+no specular layer) with the estimated environment as a latitude-longitude EXR beside it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from texstream.capture.imageio import read_image
+from texstream.core.errors import InputError
+from texstream.fit.models.env_diffuse.light_file import read_light
+from texstream.fit.models.env_diffuse.model import ENV_MAP_SIZE, EnvDiffuseRenderer, lit_radiance
+from texstream.fit.models.previews import read_shader, rgb_scaled
+from texstream.fit.models.radiance.folder import RadianceModel
+from texstream.fit.models.registry import ExportMaterial, FittedModel, ViewerModel
+from texstream.geometry.bake import TexelBake
+from texstream.geometry.mesh_io import load_mesh
+from texstream.render import sh
+
+FIX = "re-run `texstream fit --model env_diffuse` to rewrite the model folder"
+
+
+class EnvDiffuseModel(FittedModel):
+    """Albedo (H, W, 3) and transfer vectors (H, W, 9) per atlas texel, and the SH light (9, 3) of the photos."""
+
+    relightable = True
+
+    def __init__(self, folder: Path, mesh, manifest: dict, covered, albedo, transfer, light):
+        super().__init__("env_diffuse", folder, mesh, manifest, covered)
+        self.albedo, self.transfer, self.light = albedo, transfer, light
+
+    def renderer(self, device: str = "cpu"):
+        return self.relit_renderer(self.light, device)
+
+    def relit_renderer(self, light: np.ndarray, device: str = "cpu"):
+        """Frame -> (image x exposure, coverage) under the SH light ``light`` (9, 3)."""
+        return EnvDiffuseRenderer(self.mesh, self.albedo, self.transfer, light, device).render
+
+    def export_material(self, cfg) -> ExportMaterial:
+        clipped = int((self.albedo.max(axis=-1)[self.covered] > 1.0).sum())
+        env = np.maximum(sh.latlong_from_sh(self.light, *ENV_MAP_SIZE), 0.0).astype(np.float32)
+        return ExportMaterial(np.clip(self.albedo, 0.0, 1.0), clipped=clipped, label="basecolor", name="env_diffuse",
+                              extras={"light_sh": [[float(v) for v in r] for r in self.light],
+                                      "light_gauge": (self.manifest.get("light") or {}).get("gauge")},
+                              environment=env)
+
+    def report_maps(self, save, seen) -> None:
+        img, s = rgb_scaled(self.albedo)
+        save("albedo", img, f"albedo (RGB, divided by {s:.4g}, the 99th percentile; sRGB)")
+        img, s = rgb_scaled(lit_radiance(self.albedo, self.transfer, self.light))
+        save("radiance", img, f"the albedo lit by the estimated light (divided by {s:.4g}; sRGB)")
+        img, s = rgb_scaled(np.repeat(np.clip(self.transfer[..., :1] / sh.sh9_basis(np.zeros(3))[0], 0, None), 3, 2))
+        save("ambient_visibility", img, "ambient visibility: the transfer's constant term over the unoccluded one "
+             f"(1: the texel sees the whole hemisphere; divided by {s:.4g}; sRGB)")
+        img, s = rgb_scaled(np.maximum(sh.latlong_from_sh(self.light, *ENV_MAP_SIZE), 0.0))
+        save("environment", img, f"the estimated environment, latitude-longitude, +z up (divided by {s:.4g}; sRGB)")
+
+    def report_facts(self) -> list[tuple[str, str]]:
+        lt = self.manifest.get("light") or {}
+        gauge = lt.get("gauge") or {}
+        return [("model", "env_diffuse: albedo under an order-2 SH environment light"),
+                ("light", f"{lt.get('source')}" + (f", {gauge.get('materials')} shared materials" if
+                                                   gauge.get("materials") else "")),
+                ("ambiguities", gauge.get("why", gauge.get("fixed", "")))]
+
+    def viewer(self) -> ViewerModel:
+        grid = lit_radiance(self.albedo, self.transfer, self.light).astype(np.float32)
+        return ViewerModel(grid, read_shader(RadianceModel.shader_folder), lit=False,
+                           note="Relightable diffuse model shown under its estimated environment light (the albedo "
+                                "lit through each texel's transfer with self-occlusion); the light controls do "
+                                "nothing here: `texstream relight` renders it under other lights.")
+
+
+def load(model_dir: Path, manifest: dict) -> FittedModel:
+    d = Path(model_dir)
+    for name in ("mesh.obj", "bake.npz", "albedo.exr", "transfer.npz", "light.json"):
+        if not (d / name).is_file():
+            raise InputError(f"env_diffuse model folder has no {name}", d / name, FIX)
+    mesh = load_mesh(d / "mesh.obj").with_normals()
+    if mesh.uvs is None:
+        raise InputError("mesh has no texture coordinates", d / "mesh.obj", FIX)
+    albedo = read_image(d / "albedo.exr", channels=3).astype(np.float64)
+    try:
+        with np.load(d / "transfer.npz") as z:
+            transfer = np.asarray(z["transfer"], np.float64)
+    except (OSError, KeyError, ValueError) as e:
+        raise InputError(f"transfer.npz is unreadable ({type(e).__name__})", d / "transfer.npz", FIX) from None
+    if transfer.shape != (*albedo.shape[:2], sh.SH_COUNT):
+        raise InputError(f"transfer.npz holds {transfer.shape}, the albedo map is {albedo.shape[:2]}",
+                         d / "transfer.npz", FIX)
+    light = read_light(d / "light.json")
+    covered = np.asarray(TexelBake.load(d / "bake.npz").covered, bool)
+    if covered.shape != albedo.shape[:2] or not covered.any():
+        covered = np.ones(albedo.shape[:2], bool)
+    return EnvDiffuseModel(d, mesh, manifest, covered, albedo, transfer, light)

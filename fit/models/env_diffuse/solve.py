@@ -1,0 +1,244 @@
+"""The light and the albedo of the env_diffuse model, from the texels' radiance under one environment light.
+
+The photos' data term of a Lambertian texel t under an SH light L (9, 3) is, per channel c,
+sum_i (I_i / e_i - a_tc s_tc)^2 with s_tc = T_t . L_c (T_t its transfer vector, geometry/sh_transfer.py): its
+prediction is the same in every photo, so that sum is w_t (R_tc - a_tc s_tc)^2 plus a constant, with R_t the
+texel's mean radiance and w_t its sample count: exactly what the streaming radiance fit accumulates per texel
+(its robust loss keeps glints out of R_t). So the photos stream once, and this module fits
+E(L, a) = sum_t w_t sum_c (R_tc - a_tc T_t . L_c)^2 on those statistics, in float64.
+
+**The ambiguities.** With a free albedo per texel any light fits (a_t = R_t / (T_t . L)). The light is
+determined through texels that share an albedo but differ in normal or visibility, so it is fitted with
+**shared materials** (a prior: K albedos m_k, each texel labelled with one) and only then each texel's own
+albedo given that light, pulled toward its material's (``albedo_prior``; a texel no light reaches takes its
+material's). Two ambiguities remain whatever the data, one scale per channel (a_c x g_c with L_c / g_c fit
+alike); they are fixed after the fit, as the options say and model.json records (:func:`fix_gauge`): the
+colour (``white``: the light's mean colour grey, or the mean albedo grey) and the overall scale (``scale``:
+the mean albedo, or the environment's mean radiance, at ``scale_value``).
+
+**Alternation, not a Schur complement.** For fixed labels E is bilinear in (m, L), and each block alone is an
+exact linear least squares: the material albedos given L are K x 3 ratios of per-material sums, and the light
+given the albedos is one 9 x 9 normal equation per channel (E is quadratic in L: its Gauss-Newton terms are
+exact), its terms reduced over all texels: once per labelling into per-material sums
+(:func:`material_statistics`), from which every pass assembles them in K x 81 flops. A Gauss-Newton step on
+(m, L) with m eliminated by its Schur complement would need damping and a gauge constraint inside the step
+(the per-channel scale makes the joint Hessian singular); the alternation needs neither, never raises E, and
+is renormalised each pass (L[0, c] = 1, m absorbing it). Its passes cost microseconds, so its slower
+convergence in flat valleys (tens of passes) costs nothing beside the photos' stream. Labels start from
+k-means on the radiance's chromaticity and are then moved to the material nearest each texel's own albedo
+under the fitted light (``relabel_rounds``), where the light's colour no longer shifts the texels' colours.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from texstream.fit.models.materials import kmeans
+from texstream.render import sh
+
+_Y0 = sh.sh9_basis(np.array([0.0, 0.0, 1.0]))[0]
+"""Y_0: an SH light's mean radiance over the sphere is L[0] x Y_0"""
+
+
+@dataclasses.dataclass
+class EnvSolution:
+    """What the fit of the light and the albedo found (over the seen texels given to :func:`solve`).
+
+    Attributes:
+        light: (9, 3) SH light.
+        albedo: (N, 3) per-texel albedo.
+        materials: (K, 3) the shared albedos the light was fitted with (gauge-fixed like ``albedo``); (0, 3)
+            for a given light.
+        labels: (N,) each texel's material (-1: none, a given light).
+        gauge: how the ambiguities were fixed (model.json's ``light.gauge``).
+        trace: per round and pass count, the shared-albedo objective (model.json's ``light.trace``).
+    """
+
+    light: np.ndarray
+    albedo: np.ndarray
+    materials: np.ndarray
+    labels: np.ndarray
+    gauge: dict
+    trace: list
+
+
+def objective(light: np.ndarray, albedo: np.ndarray, radiance: np.ndarray, weight: np.ndarray,
+              transfer: np.ndarray) -> float:
+    """E = sum_t w_t |R_t - a_t * (T_t @ L)|^2 (per-texel albedo ``albedo`` (N, 3): a material's repeated)."""
+    r = radiance - albedo * (transfer @ light)
+    return float(np.sum(weight[:, None] * r * r))
+
+
+def light_gradient(light: np.ndarray, albedo: np.ndarray, radiance: np.ndarray, weight: np.ndarray,
+                   transfer: np.ndarray) -> np.ndarray:
+    """(9, 3) dE / dL: -2 sum_t w_t (R_t - a_t s_t) a_t T_t, per channel."""
+    r = radiance - albedo * (transfer @ light)
+    return -2.0 * transfer.T @ (weight[:, None] * r * albedo)
+
+
+def material_statistics(radiance, weight, transfer, labels, k: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """(G (k, 9, 9), h (k, 9, 3), sum w R^2): the texels reduced per material, G_k = sum_{t in k} w_t T_t T_t^T,
+    h_k = sum_{t in k} w_t T_t R_t^T. For fixed labels E(L, m) = sum w R^2 - 2 sum_kc m_kc L_c.h_kc
+    + sum_kc m_kc^2 L_c^T G_k L_c, so the alternation's passes cost K x 81 flops, not N x 81."""
+    wt = weight[:, None] * transfer
+    g = np.stack([wt[labels == j].T @ transfer[labels == j] for j in range(k)])
+    h = np.stack([wt[labels == j].T @ radiance[labels == j] for j in range(k)])
+    return g, h, float(np.sum(weight[:, None] * radiance * radiance))
+
+
+def _fit_shared(stats, k: int, cfg, light0) -> tuple[np.ndarray, np.ndarray, float, int]:
+    """(L, m, E, passes): the alternation for fixed labels on the per-material statistics, from ``light0``, L
+    renormalised each pass (L[0, c] = 1)."""
+    g, h, r2 = stats
+    pull = np.ones(sh.SH_COUNT)
+    pull[0] = 0.0
+
+    def mats_given(light):
+        num = np.einsum("kjc,jc->kc", h, light)
+        den = np.einsum("jc,kji,ic->kc", light, g, light)
+        return np.maximum(np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0), 0.0)
+
+    def energy(light, mats):
+        lin = np.einsum("kc,kjc,jc->", mats, h, light)
+        quad = np.einsum("kc,jc,kji,ic->", mats ** 2, light, g, light)
+        return r2 - 2.0 * lin + quad
+
+    light, prev, passes = light0.copy(), np.inf, 0
+    mats = mats_given(light)
+    for passes in range(1, cfg.light_passes + 1):
+        light = np.zeros_like(light)
+        for c in range(3):  # the light's normal equations per channel: A_c = sum_k m_kc^2 G_k, b_c = sum_k m_kc h_kc
+            a = np.einsum("k,kji->ji", mats[:, c] ** 2, g)
+            scale = max(float(np.trace(a)) / sh.SH_COUNT, 1e-300)
+            light[:, c] = np.linalg.lstsq(a + np.diag(cfg.light_ridge * scale * pull), mats[:, c] @ h[:, :, c],
+                                          rcond=None)[0]
+        dc = np.where(np.abs(light[0]) > 1e-12, light[0], 1.0)
+        light = light / dc  # the per-channel gauge, absorbed by the materials' albedos in the next block
+        mats = mats_given(light)
+        e = energy(light, mats)
+        if np.isfinite(prev) and prev - e <= cfg.rel_tol * max(prev, 1e-300):
+            break
+        prev = e
+    return light, mats, energy(light, mats), passes
+
+
+def albedo_given_light(light, radiance, weight, transfer, prior_albedo=None, prior: float = 0.0) -> np.ndarray:
+    """(N, 3) each texel's albedo minimising w_t (R_t - a_t s_t)^2 + p (a_t - prior_t)^2, p = ``prior`` x the
+    mean of w s^2 over the texels (per channel); nonnegative."""
+    s = transfer @ light
+    ws2 = weight[:, None] * s * s
+    num = weight[:, None] * s * radiance
+    if prior_albedo is not None and prior > 0:
+        p = prior * np.mean(ws2, axis=0)[None, :]
+        return np.maximum((num + p * prior_albedo) / (ws2 + p), 0.0)
+    return np.maximum(np.where(ws2 > 0, num / np.where(ws2 > 0, ws2, 1.0), 0.0), 0.0)
+
+
+def _chromaticity(radiance: np.ndarray) -> np.ndarray:
+    """log colour minus its mean over the channels: what k-means first groups texels by (shading-free when the
+    light is grey)."""
+    lr = np.log(np.maximum(radiance, 1e-6 * max(float(radiance.max()), 1e-30)))
+    return lr - lr.mean(axis=1, keepdims=True)
+
+
+def _fit_materials(radiance, weight, transfer, k: int, cfg, trace: list):
+    """(L, m, labels, E) with ``k`` materials: labels from chromaticity, then, round after round, relabelled under
+    the fitted light and reweighted (:func:`_robust_weight`); E is the plain (unweighted) objective."""
+    labels, _ = kmeans(_chromaticity(radiance), k)
+    k = int(labels.max()) + 1
+    light0 = np.zeros((sh.SH_COUNT, 3))
+    light0[0] = 1.0
+    fit_weight = weight
+    for round_ in range(cfg.relabel_rounds):
+        stats = material_statistics(radiance, fit_weight, transfer, labels, k)
+        light, mats, e, passes = _fit_shared(stats, k, cfg, light0)
+        # stationarity of the light at the shared albedos, relative (dE/dL over E / |L|: 0 at a minimum)
+        grad = light_gradient(light, mats[labels], radiance, fit_weight, transfer)
+        trace.append({"materials": k, "round": round_, "passes": passes, "objective": float(e),
+                      "light_gradient_rel": float(np.abs(grad).max() * np.abs(light).max() / max(e, 1e-300))})
+        own = albedo_given_light(light, radiance, weight, transfer)
+        d = np.log(own[:, None, :] + 1e-3) - np.log(mats[None, :, :] + 1e-3)
+        new = _merged(mats, cfg.merge_log_distance)[np.argmin((d * d).sum(-1), axis=1)]
+        present = np.unique(new)
+        new = np.searchsorted(present, new)  # materials nobody chose are dropped
+        if np.array_equal(new, labels) and (round_ > 0 or cfg.robust_log == 0):
+            break
+        fit_weight = _robust_weight(weight, own, mats[present][new], cfg.robust_log)
+        labels, k, light0 = new, len(present), light
+    return light, mats, labels, objective(light, mats[labels], radiance, weight, transfer)
+
+
+def _robust_weight(weight, own: np.ndarray, material: np.ndarray, scale: float) -> np.ndarray:
+    """(N,) the texels' weights in the next round's light fit: Cauchy in the largest log-ratio q of a texel's own
+    albedo (under the current light) to its material's, w / (1 + (q / scale)^2). Texels the photos blend across
+    material edges, or of an albedo no material holds, then steer the light less than the texels that fit their
+    material (on the ornament they moved it by 8%). ``scale`` 0: the weights as they are."""
+    if scale <= 0:
+        return weight
+    q = np.max(np.abs(np.log(own + 1e-3) - np.log(material + 1e-3)), axis=1)
+    return weight / (1.0 + (q / scale) ** 2)
+
+
+def _merged(mats: np.ndarray, distance: float) -> np.ndarray:
+    """(K,) each material's representative: materials whose albedos differ by less than ``distance`` in every
+    channel's log are one (a split along the shading would let their albedo ratio absorb the light's
+    variation, the ambiguity the materials are there to remove)."""
+    logm = np.log(np.maximum(mats, 1e-6))
+    rep = np.arange(len(mats))
+    for i in range(len(mats)):
+        for j in range(i):
+            if rep[j] == j and np.max(np.abs(logm[i] - logm[j])) < distance:
+                rep[i] = j
+                break
+    return rep
+
+
+def fix_gauge(light: np.ndarray, albedo: np.ndarray, materials: np.ndarray, cfg) -> tuple:
+    """(light, albedo, materials, gauge): the per-channel scale the photos cannot tell, fixed as ``cfg`` says
+    (module docstring); E is unchanged."""
+    mean_a = albedo.mean(axis=0) if len(albedo) else np.ones(3)
+    if cfg.white == "light":
+        g = light[0] / max(float(light[0].mean()), 1e-300)  # L_c / g_c: L[0] the same in every channel
+    else:
+        g = mean_a.mean() / np.maximum(mean_a, 1e-300)  # a_c x g_c: the mean albedo the same in every channel
+    g = np.where(np.abs(g) > 1e-300, g, 1.0)
+    light, albedo, materials = light / g, albedo * g, materials * g
+    if cfg.scale == "mean_albedo":
+        sigma = cfg.scale_value / max(float(albedo.mean()), 1e-300)
+    else:
+        sigma = float(light[0].mean()) * _Y0 / cfg.scale_value
+    light, albedo, materials = light / sigma, albedo * sigma, materials * sigma
+    gauge = {"colour": cfg.white, "scale": cfg.scale, "scale_value": cfg.scale_value,
+             "mean_albedo": [float(v) for v in albedo.mean(axis=0)] if len(albedo) else None,
+             "light_mean_radiance": [float(v) for v in light[0] * _Y0],
+             "why": "one light of unknown colour and strength: a_c x g and L_c / g render alike, so "
+                    + ("the environment's mean colour is grey" if cfg.white == "light" else
+                       "the seen texels' mean albedo is grey") + " and "
+                    + ("their mean albedo" if cfg.scale == "mean_albedo" else "the environment's mean radiance")
+                    + f" is {cfg.scale_value:g}"}
+    return light, albedo, materials, gauge
+
+
+def solve(radiance: np.ndarray, weight: np.ndarray, transfer: np.ndarray, cfg, fixed_light=None) -> EnvSolution:
+    """The light (estimated, or ``fixed_light`` (9, 3)) and every texel's albedo, from seen texels' radiance
+    (N, 3), weights (N,) (sample counts) and transfer vectors (N, 9); ``cfg``: optim/env_config.py."""
+    radiance, weight, transfer = (np.asarray(x, np.float64) for x in (radiance, weight, transfer))
+    if fixed_light is not None:
+        light = np.asarray(fixed_light, np.float64)
+        albedo = albedo_given_light(light, radiance, weight, transfer)
+        return EnvSolution(light, albedo, np.zeros((0, 3)), -np.ones(len(radiance), int),
+                           {"fixed": "the light was given (--env.light): no ambiguity to fix"}, [])
+    trace, best = [], None
+    ks = [cfg.materials] if cfg.materials > 0 else list(range(1, cfg.max_materials + 1))
+    for k in ks:
+        found = _fit_materials(radiance, weight, transfer, k, cfg, trace)
+        if best is not None and (len(found[1]) <= len(best[1]) or found[3] > (1.0 - cfg.material_gain) * best[3]):
+            break  # one more material was merged into another, or hardly helps: keep the fewer
+        best = found
+    light, mats, labels, _ = best
+    albedo = albedo_given_light(light, radiance, weight, transfer, mats[labels], cfg.albedo_prior)
+    light, albedo, mats, gauge = fix_gauge(light, albedo, mats, cfg)
+    gauge["materials"] = int(len(mats))
+    return EnvSolution(light, albedo, mats, labels, gauge, trace)
