@@ -31,7 +31,8 @@ import numpy as np
 import warp as wp
 
 from texstream.core.errors import ConfigError
-from texstream.core.outputs import write_json_atomic
+from texstream.core.outputs import read_json, write_json_atomic
+from texstream.capture.imageio import read_image, write_image
 from texstream.capture.synthetic import environments
 from texstream.geometry.mesh_io import write_npz_atomic
 from texstream.render import sh
@@ -148,8 +149,6 @@ class EnvLighting:
 
     def write(self, gt: Path) -> None:
         """The environment's ground-truth files into ``gt`` (ENV_FILES)."""
-        from texstream.capture.imageio import write_image
-
         write_image(gt / ENV_FILES["albedo"], (math.pi * self.params[..., 0:3]).astype(np.float32), bits=32)
         write_image(gt / ENV_FILES["radiance"], self.radiance, bits=32)
         environments.write_environment(gt / ENV_FILES["environment"], self.env)
@@ -197,9 +196,6 @@ def light_scene(sc: dict, mesh, bake, params: np.ndarray, frames: list, env: str
 def load_env_ground_truth(folder) -> dict:
     """The environment ground truth of a capture written with ``--env``: albedo (H, W, 3), radiance (H, W, 3),
     transfer (H, W, 9), coeffs (9, 3), env (h, w, 3) and the manifest's ``environment`` entry."""
-    from texstream.capture.imageio import read_image
-    from texstream.core.outputs import read_json
-
     g = Path(folder)
     if (g / "ground_truth").is_dir():
         g = g / "ground_truth"

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from texstream.core.errors import ConfigError, InputError
+from texstream.capture.imageio import read_image, write_image
 from texstream.render import sh
 
 ENV_HEIGHT = 128
@@ -125,8 +126,6 @@ def downsample_latlong(env: np.ndarray, height: int, width: int) -> np.ndarray:
 
 def write_environment(path: str | os.PathLike, env: np.ndarray) -> Path:
     """Write a lat-long map as a float32 EXR (any HDR viewer or glTF tool loads it)."""
-    from texstream.capture.imageio import write_image
-
     return write_image(path, np.asarray(env, dtype=np.float32), bits=32)
 
 
@@ -136,8 +135,6 @@ def read_environment(path: str | os.PathLike) -> np.ndarray:
     Raises:
         InputError: unreadable, not 2:1, or negative / non-finite values.
     """
-    from texstream.capture.imageio import read_image
-
     p = Path(path)
     if not p.is_file():
         raise InputError("environment map not found", p, "give an EXR / HDR lat-long map or a built-in name "
