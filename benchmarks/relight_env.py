@@ -201,7 +201,7 @@ def albedo_errors(model: Path, gt_folder: str) -> dict:
     if fitted.shape != truth.shape:
         return {"error": f"{found[0].name} is {fitted.shape[:2]}, the ground truth's texture {truth.shape[:2]}"}
     man = json.loads((g / "manifest.json").read_text())
-    mid = read_image(g / "material_id.png", channels=1, linear=False)
+    mid = read_image(g / "material_id.png", channels=1, linear=False)[..., 0]
     mid = np.rint(mid * 255).astype(int) - 1
     cov = mid >= 0
     scale = (fitted[cov] * truth[cov]).sum(0) / np.maximum((fitted[cov] ** 2).sum(0), 1e-300)
