@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import SCENE_DEVICE
 
 from texstream.capture.imageio import write_image
 from texstream.capture.capture_json import read_capture
@@ -46,7 +47,7 @@ def _template_values(template: list[str], args: list[str]) -> dict:
 def test_fit_side_runs_with_a_stand_in_model(bench, tmp_path, monkeypatch):
     """The stand-in fit writes the true albedo x (2, 1, 0.5); its relight renders the true radiance of the target
     capture (the ground truth's texture): the relit scores are exact, the albedo error 0 after the scale."""
-    args = type("A", (), {"device": "cpu", "env_grid": 8})
+    args = type("A", (), {"device": SCENE_DEVICE, "env_grid": 8})
     caps = bench.captures(tmp_path, "sphere", 0.02, ["sky", "studio"], args)
     calls = []
 
@@ -59,13 +60,14 @@ def test_fit_side_runs_with_a_stand_in_model(bench, tmp_path, monkeypatch):
             write_image(Path(v["model"]) / bench.MODEL_ALBEDO_FILES[0], albedo, bits=32)
         else:
             v = _template_values(bench.RELIGHT_ARGS, argv)
-            render = bench.texture_renderer(v["capture"], load_env_ground_truth(v["capture"])["radiance"], "cpu")
+            render = bench.texture_renderer(v["capture"], load_env_ground_truth(v["capture"])["radiance"],
+                                            SCENE_DEVICE)
             for f in read_capture(v["capture"]).frames:
                 write_image(Path(v["out"]) / bench.RELIT_FILE.format(frame=f.name), render(f), bits=32)
         return 1.0
 
     monkeypatch.setattr(bench, "texstream", stand_in)
-    fits = bench.fit_and_relight(caps, "sky", tmp_path, "sphere", "cpu")
+    fits = bench.fit_and_relight(caps, "sky", tmp_path, "sphere", SCENE_DEVICE)
     assert len(calls) == 2 + 2 * 2  # two fits, each relit under both environments
     fit_calls = [c for c in calls if c[0] == "fit"]
     true_env = str(tmp_path / "sphere_sky" / "ground_truth" / "environment.exr")

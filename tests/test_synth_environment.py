@@ -10,6 +10,7 @@ import math
 
 import numpy as np
 import pytest
+from conftest import SCENE_DEVICE
 
 from texstream.capture.capture_json import read_capture
 from texstream.capture.imageio import read_image
@@ -20,13 +21,13 @@ from texstream.geometry.bake import bake_texels
 from texstream.render import sh
 from texstream.render.mesh import SurfaceMesh
 
-TINY = dict(scale=0.02, progress=False, preview=False)
+TINY = dict(scale=0.02, progress=False, preview=False, device=SCENE_DEVICE)
 
 
 @pytest.fixture(scope="module")
 def sphere():
     mesh = procedural.make("uv_sphere", radius=1.0, n_segments=32, n_rings=16)
-    return mesh, bake_texels(mesh, 32, 16, padding=1)
+    return mesh, bake_texels(mesh, 32, 16, device=SCENE_DEVICE, padding=1)
 
 
 def test_builtin_environments_are_deterministic_finite_and_distinct():
@@ -66,17 +67,17 @@ def test_environment_file_round_trip_and_bad_files(tmp_path):
         environments.make_environment("moon")
 
 
-def test_convex_sphere_under_a_constant_environment_gives_albedo_times_radiance(sphere):
+def test_convex_sphere_under_a_constant_environment_gives_albedo_times_radiance(sphere, device):
     """Irradiance pi c on every texel: no self-occlusion on a convex surface. 1%: the midpoint quadrature of the
     clamped cosine's kink on a 16 x 32 grid (measured 0.3%) and the facets' own horizon (directions above the
     shading normal's horizon but below the facet's are blocked)."""
     mesh, bake = sphere
-    irr, transfer = env_capture.texel_environment(mesh, bake, np.full((16, 32, 3), 0.7, np.float32))
+    irr, transfer = env_capture.texel_environment(mesh, bake, np.full((16, 32, 3), 0.7, np.float32), device)
     np.testing.assert_allclose(irr[bake.covered], math.pi * 0.7, rtol=1e-2)
     assert not irr[~bake.covered].any() and not transfer[~bake.covered].any()
 
 
-def test_sphere_under_a_band_limited_environment_matches_sh_diffuse_radiance(sphere):
+def test_sphere_under_a_band_limited_environment_matches_sh_diffuse_radiance(sphere, device):
     """An SH-9 light integrated over the grid equals render/sh.py's closed form albedo * T(n) . L with the
     unoccluded transfer; and the kernel's occluded transfer equals that T(n) (convex: nothing occludes).
     Tolerances: the grid's quadrature (measured 0.4% of the mean and 2e-3 absolute on the transfer)."""
@@ -84,7 +85,7 @@ def test_sphere_under_a_band_limited_environment_matches_sh_diffuse_radiance(sph
     rng = np.random.default_rng(1)
     coeffs = rng.normal(scale=0.15, size=(9, 3))
     coeffs[0] = 1.0  # a positive light everywhere (min radiance 0.06)
-    irr, transfer = env_capture.texel_environment(mesh, bake, sh.latlong_from_sh(coeffs, 16, 32))
+    irr, transfer = env_capture.texel_environment(mesh, bake, sh.latlong_from_sh(coeffs, 16, 32), device)
     n = bake.normal[bake.covered].astype(np.float64)
     albedo = np.array([0.8, 0.5, 0.2])
     expected = sh.diffuse_radiance(np.broadcast_to(albedo, n.shape), sh.unoccluded_transfer(n), coeffs)
@@ -103,13 +104,13 @@ def _floor_and_wall(height: float = 2.0, half_length: float = 10.0) -> SurfaceMe
     return SurfaceMesh(vertices=v, faces=np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]]), uvs=uv).with_normals()
 
 
-def test_occlusion_darkens_a_concavity_by_the_walls_form_factor():
+def test_occlusion_darkens_a_concavity_by_the_walls_form_factor(device):
     """Floor texels at distance a from a wall of height h lose the form factor F = (1 - a / sqrt(a^2 + h^2)) / 2
     of an infinitely long strip (half the sky at the corner). Checked where the 20-long wall is long compared
     to the distances (|y| < 5); 0.02: the wall's edge cuts the 32 x 64 grid's 5.6-degree pixels (measured 0.009)."""
     mesh = _floor_and_wall()
-    bake = bake_texels(mesh, 32, 32, padding=1)
-    irr, _ = env_capture.texel_environment(mesh, bake, np.ones((32, 64, 3), np.float32))
+    bake = bake_texels(mesh, 32, 32, device=SCENE_DEVICE, padding=1)
+    irr, _ = env_capture.texel_environment(mesh, bake, np.ones((32, 64, 3), np.float32), device)
     floor = bake.covered & (bake.normal[..., 2] > 0.5) & (np.abs(bake.position[..., 1]) < 5)
     a = bake.position[floor][:, 0].astype(np.float64)
     form_factor = 0.5 * (1 - a / np.sqrt(a * a + 4.0))
