@@ -11,7 +11,6 @@ import math
 import numpy as np
 import pytest
 from conftest import SCENE_DEVICE
-
 from texstream.capture.capture_json import read_capture
 from texstream.capture.imageio import read_image
 from texstream.capture.synthetic import env_capture, environments, procedural
@@ -21,7 +20,7 @@ from texstream.geometry.bake import bake_texels
 from texstream.render import sh
 from texstream.render.mesh import SurfaceMesh
 
-TINY = dict(scale=0.02, progress=False, preview=False, device=SCENE_DEVICE)
+TINY = {"scale": 0.02, "progress": False, "preview": False, "device": SCENE_DEVICE}
 
 
 @pytest.fixture(scope="module")
@@ -148,6 +147,7 @@ def test_every_environment_sees_the_same_cameras():
         np.testing.assert_array_equal(fa.R, fb.R)
         assert fa.light is None and fb.light is None
     assert a.layout.kind == "diffuse" and a.params.shape[-1] == 3
+    assert a.environment.name == "sky" and b.environment.coeffs.shape == (9, 3)
     assert np.abs(a.images[0] - b.images[0]).max() > 0.05
     with pytest.raises(ConfigError, match="room light"):
         render_scene("sphere_room", SynthConfig(env="sky", env_grid=8, **TINY))

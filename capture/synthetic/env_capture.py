@@ -29,11 +29,10 @@ from pathlib import Path
 
 import numpy as np
 import warp as wp
-
-from texstream.core.errors import ConfigError
-from texstream.core.outputs import read_json, write_json_atomic
 from texstream.capture.imageio import read_image, write_image
 from texstream.capture.synthetic import environments
+from texstream.core.errors import ConfigError
+from texstream.core.outputs import read_json, write_json_atomic
 from texstream.geometry.mesh_io import write_npz_atomic
 from texstream.render import sh
 from texstream.render.layout import ModelLayout

@@ -22,9 +22,8 @@ import os
 from pathlib import Path
 
 import numpy as np
-
-from texstream.core.errors import ConfigError, InputError
 from texstream.capture.imageio import read_image, write_image
+from texstream.core.errors import ConfigError, InputError
 from texstream.render import sh
 
 ENV_HEIGHT = 128
@@ -42,7 +41,8 @@ def _unit(elevation_deg: float, azimuth_deg: float) -> np.ndarray:
     return np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
 
 
-def _soft_disk(d: np.ndarray, elevation_deg: float, azimuth_deg: float, radius_deg: float, soft_deg: float) -> np.ndarray:
+def _soft_disk(d: np.ndarray, elevation_deg: float, azimuth_deg: float, radius_deg: float,
+               soft_deg: float) -> np.ndarray:
     """1 inside a cone of ``radius_deg`` about a direction, 0 outside, a smoothstep ``soft_deg`` wide between."""
     ang = np.degrees(np.arccos(np.clip(d @ _unit(elevation_deg, azimuth_deg), -1.0, 1.0)))
     return 1.0 - _smoothstep(radius_deg - soft_deg / 2, radius_deg + soft_deg / 2, ang)
@@ -53,8 +53,11 @@ def _soft_rect(d: np.ndarray, elevation_deg: tuple, azimuth_deg: tuple, soft_deg
     el = np.degrees(np.arcsin(np.clip(d[..., 2], -1.0, 1.0)))
     az = np.degrees(np.arctan2(d[..., 1], d[..., 0]))
     s = soft_deg / 2
-    return (_smoothstep(elevation_deg[0] - s, elevation_deg[0] + s, el) * (1 - _smoothstep(elevation_deg[1] - s, elevation_deg[1] + s, el))
-            * _smoothstep(azimuth_deg[0] - s, azimuth_deg[0] + s, az) * (1 - _smoothstep(azimuth_deg[1] - s, azimuth_deg[1] + s, az)))
+
+    def window(x, lo, hi):
+        return _smoothstep(lo - s, lo + s, x) * (1 - _smoothstep(hi - s, hi + s, x))
+
+    return window(el, *elevation_deg) * window(az, *azimuth_deg)
 
 
 def _sky(d: np.ndarray) -> np.ndarray:
@@ -175,7 +178,8 @@ def irradiance_sh_error(env: np.ndarray, normal_rows: int = 32) -> dict:
     normals, omega = sh.latlong_directions(normal_rows, 2 * normal_rows)
     normals, weight = normals.reshape(-1, 3), omega.reshape(-1, 1) / omega.sum()
     exact = irradiance(env, normals)
-    approx = math.pi * sh.diffuse_radiance(np.ones_like(exact), sh.unoccluded_transfer(normals), sh.project_latlong(env))
+    coeffs = sh.project_latlong(env)
+    approx = math.pi * sh.diffuse_radiance(np.ones_like(exact), sh.unoccluded_transfer(normals), coeffs)
     scale = (exact * weight).sum(axis=0)
     rel = (approx - exact) / scale
     return {"rms_relative": float(np.sqrt(((rel * rel) * weight).sum(axis=0).max())),

@@ -435,6 +435,8 @@ class RenderedScene:
         material_id: (H, W) int32 material index per texel (-1 off the surface).
         material_names: names of the materials, in index order.
         scene: the resolved scene dict (after scaling and overrides).
+        environment: with ``--env``, the :class:`~texstream.capture.synthetic.env_capture.EnvLighting` (the map, its
+            SH, the texels' radiance and SH transfer); ``params`` and ``layout`` are then the diffuse ground truth.
     """
 
     mesh: Any
@@ -448,6 +450,7 @@ class RenderedScene:
     material_id: np.ndarray
     material_names: list
     scene: dict
+    environment: Any = None
 
     def __iter__(self) -> Iterator:
         return iter((self.mesh, self.bake, self.params, self.frames, self.images))
@@ -551,7 +554,7 @@ def render_scene(scene, config: SynthConfig | None = None) -> RenderedScene:
     sc, mesh, bake, layout, params, mid, names, _ = prepare_scene(scene, config)
     sc["_seed"] = config.seed
     frames = _frames(sc, _image_ext(sc["photo"]["bits"]))
-    shading = (params, layout)
+    lit, shading = None, (params, layout)
     if config.env:
         lit = env_capture.light_scene(sc, mesh, bake, params, frames, config.env, config.env_grid, config.device)
         params, layout, frames, shading = lit.params, lit.layout, lit.frames, (lit.radiance, lit.render_layout)
@@ -563,7 +566,7 @@ def render_scene(scene, config: SynthConfig | None = None) -> RenderedScene:
             cleans.append(clean)
     sc.pop("_seed", None)
     return RenderedScene(mesh=mesh, bake=bake, params=params, frames=frames, images=images, masks=masks,
-                         clean=cleans, layout=layout, material_id=mid, material_names=names, scene=sc)
+                         clean=cleans, layout=layout, material_id=mid, material_names=names, scene=sc, environment=lit)
 
 
 # ---------------------------------------------------------------------------------- ground truth
