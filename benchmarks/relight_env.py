@@ -7,11 +7,13 @@ For each scene (``--scenes``: the ornament at a scale a CPU fits, and the bunny)
 environment (``texstream synth SCENE --env NAME``: a Lambertian object under a built-in environment map, the same
 cameras under every map, capture/synthetic/env_capture.py) into ``--work`` (kept: a second run reuses them).
 
-``--check-references``: the relighting references are consistent and reachable. Per capture, the ground-truth
-per-texel radiance rendered by texstream's renderer against the photos (the photos are exactly that, to float32),
-and the *SH-9 ceiling*: the true albedo times the true occluded SH transfer times the environment's order-2 SH
-(render/sh.py) rendered the same way against the photos; that PSNR is the best any order-2 relightable
-diffuse model can reach under that map (the SH truncation of the map's diffuse shading).
+``--check-references``: the relighting references are consistent, reachable and discriminating. Per capture,
+the ground-truth per-texel radiance rendered by texstream's renderer against the photos (the photos are exactly
+that, to float32); the *SH-9 ceiling*: the true albedo times the true occluded SH transfer times the
+environment's order-2 SH (render/sh.py) rendered the same way against the photos, the best any order-2
+relightable diffuse model can reach under that map (the SH truncation of the map's diffuse shading); and the
+*unrelit baseline*: the training capture's photos of the same views against them (no relighting, what a radiance
+model scores), which a relit model has to beat clearly for the benchmark to mean anything.
 
 ``--fit``: under the training environment (``--train``) it fits the relightable model twice (``texstream fit
 --model env_diffuse``: the light estimated; and given the true light, held fixed), renders each under every
@@ -166,8 +168,19 @@ def texture_renderer(gt_folder: str, texture: np.ndarray, device: str):
     return lambda frame: rend.render_frame(frame).radiance
 
 
-def check_references(caps: dict, device: str) -> dict:
-    """Per capture: the ground-truth radiance's render and the SH-9 ceiling's against the photos."""
+def photos_of(capture_dir: str):
+    """A render(frame) that returns another capture's photo of the same frame: the unrelit baseline."""
+    from texstream.capture.capture_json import read_capture
+    from texstream.capture.imageio import read_image
+
+    cap = read_capture(capture_dir)
+    by_name = {f.name: f for f in cap.frames}
+    return lambda frame: read_image(cap.image_path(by_name[frame.name]), channels=3)
+
+
+def check_references(caps: dict, train: str, device: str) -> dict:
+    """Per capture: the ground-truth radiance's render and the SH-9 ceiling's against the photos, and the training
+    capture's own photos against them (no relighting at all: what a radiance model would score)."""
     from texstream.capture.synthetic.env_capture import load_env_ground_truth
 
     out = {}
@@ -182,6 +195,8 @@ def check_references(caps: dict, device: str) -> dict:
                                                                                          device)),
                     "sh9_ceiling": score_capture(row["path"], texture_renderer(row["path"], sh_radiance, device)),
                     "sh9_texel_relative_rms": float(texel_err), "sh_irradiance_error": row["sh_irradiance_error"]}
+        if env != train:
+            out[env]["unrelit_baseline"] = score_capture(row["path"], photos_of(caps[train]["path"]))
     return out
 
 
@@ -268,9 +283,11 @@ def table(result: dict) -> str:
     for scene, s in result["scenes"].items():
         for env, r in s.get("references", {}).items():
             g, c = r["ground_truth_radiance"], r["sh9_ceiling"]
+            b = r.get("unrelit_baseline", {})
             refs.append(f"| {scene} | {env} | {g['psnr_db']:.1f} | {c['psnr_db']:.2f} / {c['aligned_psnr_db']:.2f} | "
                         f"{100 * r['sh9_texel_relative_rms']:.2f}% | "
-                        f"{100 * r['sh_irradiance_error']['rms_relative']:.2f}% |")
+                        f"{100 * r['sh_irradiance_error']['rms_relative']:.2f}% | "
+                        f"{b.get('psnr_db', nan):.2f} / {b.get('aligned_psnr_db', nan):.2f} |")
         for kind, f in s.get("fits", {}).items():
             for env, r in f["relit"].items():
                 fits.append(f"| {scene} | {kind} | {f['fit_seconds']:.1f} | {env} | "
@@ -280,8 +297,8 @@ def table(result: dict) -> str:
     lines = []
     if refs:
         head = ("| scene | env | GT render vs photos (dB) | SH-9 ceiling raw / aligned (dB) | SH-9 texel rel. RMS "
-                "| irradiance SH-9 RMS |")
-        lines += [head, "|---|---|---|---|---|---|", *refs]
+                "| irradiance SH-9 RMS | unrelit (train photos) raw / aligned (dB) |")
+        lines += [head, "|---|---|---|---|---|---|---|", *refs]
     if fits:
         lines += ["", "| scene | fit | fit s | relit under | PSNR raw / aligned (dB) |", "|---|---|---|---|---|", *fits]
     return "\n".join(lines)
@@ -319,7 +336,7 @@ def main(argv=None) -> int:
         caps = captures(work, scene, scale, envs, a)
         s = result["scenes"][scene] = {"scale": scale, "captures": caps}
         if a.check_references:
-            s["references"] = check_references(caps, a.device)
+            s["references"] = check_references(caps, a.train, a.device)
         if a.fit:
             s["fits"] = fit_and_relight(caps, a.train, work, scene, a.device)
             s["targets"] = targets(s["fits"], a.train)
