@@ -80,7 +80,8 @@ def test_fit_side_runs_with_a_stand_in_model(bench, tmp_path, monkeypatch):
             assert r["aligned_psnr_db"] > 100  # the photos are these renders, to float32
         alb = fits[kind]["albedo"]
         np.testing.assert_allclose(alb["channel_scale"], [0.5, 1.0, 2.0], rtol=1e-5)
-        assert all(m["relative_rms"] < 1e-5 and m["interior_relative_rms"] < 1e-5 for m in alb["materials"].values())
+        assert all(m["relative_rms"] < 1e-5 and m["interior_relative_rms"] < 1e-5 and m["texels_off_2x"] == 0
+                   for m in alb["materials"].values())
     assert bench.targets(fits, "sky")["met"]
     assert "| sphere | estimated_light |" in bench.table({"scenes": {"sphere": {"fits": fits}}})
     bake = TexelBake.load(tmp_path / "sphere_sky" / "ground_truth" / "bake.npz")
