@@ -4,6 +4,10 @@ SCENE is a built-in scene (sphere, flat_sample, bunny, ornament) or a scene JSON
 :mod:`texstream.capture.synthetic.synth` for the scene keys. Example:
 
     texstream synth ornament -o out/ornament --scale 0.05 --bits 8 --noise 0.005 --save-clean
+
+Under an environment light (no light in capture.json; the map and its SH in ground_truth/):
+
+    texstream synth ornament -o out/ornament_sky --scale 0.05 --env sky
 """
 
 from __future__ import annotations

@@ -58,6 +58,9 @@ mapping), ...); more scenes need no code. Keys (full-scale values):
     clipping)}``. 8-bit photos are sRGB PNG, 16-bit linear PNG, 32-bit float EXR; integer photos
     clip at 1, which is their ``saturation`` in capture.json.
 
+``--env NAME|FILE`` lights the scene by an environment map instead of ``light`` (a Lambertian object, frames
+without lights: :mod:`~texstream.capture.synthetic.env_capture`).
+
 ``--scale s`` (:class:`SynthConfig`) shrinks a scene: photo count x s, image sides x sqrt(s),
 texture sides (or atlas resolution, kept at least 64 texels so the charts still pack) x sqrt(s),
 so texel count x s; the mesh is unchanged. A
@@ -88,7 +91,7 @@ from texstream.core.outputs import StageResult, atomic_output_dir, write_json_at
 
 from texstream.capture.capture_json import Capture, Frame, Intrinsics, Light, write_capture
 from texstream.capture.conventions import look_at_w2c
-from texstream.capture.synthetic import procedural
+from texstream.capture.synthetic import env_capture, procedural
 from texstream.capture.synthetic.materials import add_room_light, material_params
 from texstream.capture.synthetic.param_maps import read_param_maps, write_param_maps
 from texstream.capture.imageio import linear_to_srgb, srgb_to_linear, write_image
@@ -136,6 +139,11 @@ class SynthConfig:
     save_clean: bool = option(False, help="also write the noise-free float renders to ground_truth/clean/ "
                                           "(for the noise-floor PSNR)")
     shadows: bool = option(True, help="render cast shadows")
+    env: str | None = option(None, help="light the scene by this environment instead of its lights: a built-in "
+                                        "(sky, room, studio) or a lat-long EXR; the object turns Lambertian "
+                                        "(its rho_d) and the frames carry no light (capture/synthetic/env_capture.py)")
+    env_grid: int = option(32, help="--env: rows of the lat-long grid the environment is integrated on "
+                                    "(columns twice that)", min=4, max=512)
     room_light: float | None = option(None, help="the room's irradiance beside the scene's light, the same on every "
                                                  "texel up to the scene's room_light gradient (0: none; None: the "
                                                  "scene's): each texel adds an ambient radiance rho_d x this",
@@ -427,6 +435,8 @@ class RenderedScene:
         material_id: (H, W) int32 material index per texel (-1 off the surface).
         material_names: names of the materials, in index order.
         scene: the resolved scene dict (after scaling and overrides).
+        environment: with ``--env``, the :class:`~texstream.capture.synthetic.env_capture.EnvLighting` (the map, its
+            SH, the texels' radiance and SH transfer); ``params`` and ``layout`` are then the diffuse ground truth.
     """
 
     mesh: Any
@@ -440,6 +450,7 @@ class RenderedScene:
     material_id: np.ndarray
     material_names: list
     scene: dict
+    environment: Any = None
 
     def __iter__(self) -> Iterator:
         return iter((self.mesh, self.bake, self.params, self.frames, self.images))
@@ -543,15 +554,19 @@ def render_scene(scene, config: SynthConfig | None = None) -> RenderedScene:
     sc, mesh, bake, layout, params, mid, names, _ = prepare_scene(scene, config)
     sc["_seed"] = config.seed
     frames = _frames(sc, _image_ext(sc["photo"]["bits"]))
+    lit, shading = None, (params, layout)
+    if config.env:
+        lit = env_capture.light_scene(sc, mesh, bake, params, frames, config.env, config.env_grid, config.device)
+        params, layout, frames, shading = lit.params, lit.layout, lit.frames, (lit.radiance, lit.render_layout)
     images, masks, cleans = [], [], ([] if config.save_clean else None)
-    for _, _, photo, mask, clean in iter_renders(sc, mesh, params, layout, frames, config):
+    for _, _, photo, mask, clean in iter_renders(sc, mesh, *shading, frames, config):
         images.append(photo)
         masks.append(mask)
         if cleans is not None:
             cleans.append(clean)
     sc.pop("_seed", None)
     return RenderedScene(mesh=mesh, bake=bake, params=params, frames=frames, images=images, masks=masks,
-                         clean=cleans, layout=layout, material_id=mid, material_names=names, scene=sc)
+                         clean=cleans, layout=layout, material_id=mid, material_names=names, scene=sc, environment=lit)
 
 
 # ---------------------------------------------------------------------------------- ground truth
@@ -614,6 +629,10 @@ def synthesize(scene, out_dir: str | os.PathLike, config: SynthConfig | None = N
     bits = int(sc["photo"]["bits"])
     frames = _frames(sc, _image_ext(bits))
     sc.pop("_seed", None)
+    lit, shading = None, (params, layout)
+    if config.env:
+        lit = env_capture.light_scene(sc, mesh, bake, params, frames, config.env, config.env_grid, config.device)
+        params, layout, frames, shading = lit.params, lit.layout, lit.frames, (lit.radiance, lit.render_layout)
     out_dir = Path(out_dir)
     with atomic_output_dir(out_dir) as tmp:
         gt = tmp / GROUND_TRUTH
@@ -633,7 +652,7 @@ def synthesize(scene, out_dir: str | os.PathLike, config: SynthConfig | None = N
         workers = max(1, min(8, os.cpu_count() or 1))
         with concurrent.futures.ThreadPoolExecutor(max_workers=workers) as pool:
             pending = collections.deque()
-            for i, f, photo, mask, clean in iter_renders(sc, mesh, params, layout, frames, config):
+            for i, f, photo, mask, clean in iter_renders(sc, mesh, *shading, frames, config):
                 # copies: the renderer may hand out views of buffers it reuses for the next frame
                 pending.append(pool.submit(write, f, photo, np.array(mask), np.array(clean)))
                 n_fg += int(mask.sum())
@@ -656,6 +675,9 @@ def synthesize(scene, out_dir: str | os.PathLike, config: SynthConfig | None = N
                     "counts": counts, "mesh": "mesh.obj", "maps": files, "bake": "bake.npz",
                     "clean": "clean/" if config.save_clean else None, "mesh_info": info,
                     "units": "BRDF values in 1/sr; photos = exposure * radiance (capture/conventions.py)"}
+        if lit is not None:
+            lit.write(gt)
+            manifest["environment"] = lit.manifest()
         write_json_atomic(gt / "manifest.json", manifest)
         save_config(config, tmp / "synth_config.json")
         if config.preview:
