@@ -120,11 +120,11 @@ def test_a_default_fit_on_two_cores_takes_two_threads_and_writes_the_one_thread_
         capture_dir, one_thread_model, tmp_path, monkeypatch):
     """``texstream fit`` with its defaults on a 2-core CPU: two threads (the warm start from the materials
     choice's split and the checkpoint kept), the maps of ``--stream.cpu-threads 1`` to the bit."""
-    import texstream.fit.models.per_texel.fit as per_texel_fit
+    from texstream.fit.multi import tiles
 
     cores(monkeypatch, 2)
-    real, calls = per_texel_fit.run_tiled_fit, []
-    monkeypatch.setattr(per_texel_fit, "run_tiled_fit", lambda *a, **kw: calls.append(kw) or real(*a, **kw))
+    real, calls = tiles.run_tiled_fit, []
+    monkeypatch.setattr(tiles, "run_tiled_fit", lambda *a, **kw: calls.append(kw) or real(*a, **kw))
     got = fit_cli(capture_dir, tmp_path / "model")
     assert one_thread_model[2]["tiles"] is None
     assert got[2]["tiles"]["devices"] == ["cpu", "cpu"] and got[2]["tiles"]["backend"] == "threads"

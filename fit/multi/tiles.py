@@ -28,6 +28,7 @@ import numpy as np
 import warp as wp
 
 from texstream.core.errors import ConfigError
+from texstream.core.progress import bar, bars_enabled
 
 from texstream.fit.optim.fitter import FitConfig, FitResult, start_arrays
 from texstream.fit.kernels.tiles import gather_rows_kernel, scatter_rows_kernel
@@ -137,6 +138,17 @@ class HaloExchange:
             wp.launch(scatter_rows_kernel, dim=dst.shape[0], device=wt.problem.device,
                       inputs=[in_t, dst], outputs=[wt.run.state.p])
         self._sync()
+
+
+def run_tiled_fit_with_progress(problem: StreamProblem, cfg: FitConfig, progress: bool, start=None,
+                                **kw) -> tuple[FitResult, dict]:
+    """:func:`run_tiled_fit` with a tqdm bar over iterations when ``progress``, as an untiled fit shows
+    (``kw``: p0, checkpoint, resume)."""
+    if not (progress and bars_enabled()):
+        return run_tiled_fit(problem, cfg, start, **kw)
+    with bar(total=cfg.max_iterations, desc=f"fit {cfg.optimizer}", unit="it") as b:
+        b.update(int(kw["resume"]["iteration"]) if kw.get("resume") else 0)
+        return run_tiled_fit(problem, cfg, start, progress=lambda it: b.update(1), **kw)
 
 
 def run_tiled_fit(problem: StreamProblem, cfg: FitConfig, start=None, progress=None, p0: np.ndarray | None = None,

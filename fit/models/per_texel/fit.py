@@ -32,7 +32,7 @@ from texstream.fit.models.per_texel.lobes import (_materials_manifest, average_s
                                                   lobe_shape_report, lobes_in_use, texel_evidence, traced_polish,
                                                   traced_polish_applies, traced_problem)
 from texstream.fit.multi.cpu_threads import cpu_threads, threaded_config
-from texstream.fit.multi.tiles import run_tiled_fit, tiled
+from texstream.fit.multi.tiles import run_tiled_fit_with_progress, tiled
 from texstream.fit.optim.fitter import resumable
 from texstream.geometry.mesh_io import save_mesh
 
@@ -156,7 +156,7 @@ def _core_fit(problem, cfg, start, progress: bool, ckpt, resume, p0: np.ndarray 
     fit_cfg = threaded_config(cfg.fit, threads) if threads > 1 else cfg.fit
     with phase("fit", f"{cfg.fit.model}: tiles of texels ({cfg.fit.stream.tile_backend}"
                       + (f", {threads} CPU threads: {why})" if threads > 1 else ")")):
-        result, report = run_tiled_fit(problem, fit_cfg, start, p0=p0, **kept)
+        result, report = run_tiled_fit_with_progress(problem, fit_cfg, progress, start, p0=p0, **kept)
     say("fit", f"tiles: {report['tiles']} on {','.join(report['devices'])} ({report['backend']}), photos per tile "
                f"{min(report['photos_per_tile'])}..{max(report['photos_per_tile'])} of {report['photos']}")
     return result, report
