@@ -3,11 +3,14 @@ fit/multi/cpu_threads.py): the command's wall time, the core fit loop's, how muc
 runs inside Warp's kernels (the part threads share out: the launches release the GIL) and whether the models
 are equal to the bit; writes JSON.
 
-    python benchmarks/cpu_threads.py --scale 0.1 --modes off,defaults --repeats 2 --out DIR
+    python benchmarks/cpu_threads.py --scale 0.1 --modes off,defaults --threads 1,auto --repeats 2 --out DIR
 
-writes DIR/cpu_threads.json (``--summarise FILE`` recomputes a file's summary). In
-benchmarks/results/cpu_threads_cpu/: ``quiet_off.json`` and ``quiet_defaults.json`` (the 2-core box with no
-other job running), ``loaded_off_defaults.json`` (the same box with other jobs holding about one core).
+writes DIR/cpu_threads.json (``--summarise FILE`` recomputes a file's summary). ``--threads``: the counts
+given as ``--stream.cpu-threads N``, ``auto`` for none given (the default, 0: one per core, capped; the run
+records the threads it took). In benchmarks/results/cpu_threads_cpu/: ``quiet_off.json`` and
+``quiet_defaults.json`` (the 2-core box with no other job running, ``--threads 1,2``),
+``loaded_off_defaults.json`` (the same box with other jobs holding about one core), ``default_auto.json``
+(``--threads 1,auto`` once the threads were the default, on the loaded box).
 
 The demo capture (``texstream synth ornament --scale S``, 176 photos of 136x136 at 0.1) is made under
 ``--work`` unless ``--capture`` names one. Each repeat runs every thread count once per materials mode,
@@ -97,12 +100,18 @@ def read_maps(folder: Path) -> dict:
     return {p.name: oiio.ImageBuf(str(p)).get_pixels() for p in sorted(folder.glob("*.exr"))}
 
 
-def one_run(capture: Path, out: Path, mode: str, threads: int, extra: list[str]) -> dict:
+def thread_spec(text: str) -> int | str:
+    """A ``--threads`` entry: a count, or ``auto`` (no ``--stream.cpu-threads``: the default)."""
+    return "auto" if text.strip() == "auto" else int(text)
+
+
+def one_run(capture: Path, out: Path, mode: str, threads: int | str, extra: list[str]) -> dict:
     """One `texstream fit` in a child process; its times, probes and load."""
     model = out / f"model_{mode}_t{threads}"
     probe_file = out / f"probe_{mode}_t{threads}.json"
     argv = ["fit", str(capture), "--mesh", str(capture / "ground_truth"), "-o", str(model), "--model", "lafortune",
-            "--stream.cpu-threads", str(threads), *(["--materials.mode", "off"] if mode == "off" else []), *extra]
+            *([] if threads == "auto" else ["--stream.cpu-threads", str(threads)]),
+            *(["--materials.mode", "off"] if mode == "off" else []), *extra]
     load0 = os.getloadavg()
     r0 = os.times()
     t0 = time.perf_counter()
@@ -122,6 +131,7 @@ def one_run(capture: Path, out: Path, mode: str, threads: int, extra: list[str])
             "kernel_cpu_s": kernel, "kernel_share_of_loop_cpu": kernel / max(probe["loop_cpu_s"], 1e-9),
             "kernel_cpu_s_per_thread": probe["kernel_cpu_s_per_thread"], "launches": probe["launches"],
             "timings_s": manifest.get("timings_s"), "tiles": manifest.get("tiles"),
+            "threads_taken": len((manifest.get("tiles") or {}).get("devices", [])) or 1,
             "iterations": len(json.loads((model / "trace.json").read_text())) - 1,
             "loadavg_before": load0, "loadavg_after": os.getloadavg(), "model": str(model)}
 
@@ -146,7 +156,8 @@ def main() -> None:
     ap.add_argument("--scale", type=float, default=0.1, help="the synthesised ornament's scale")
     ap.add_argument("--work", default="/tmp/texstream_cpu_threads", help="where the capture and models go")
     ap.add_argument("--modes", default="off,defaults", help="materials modes: off (--materials.mode off), defaults")
-    ap.add_argument("--threads", default="1,2", help="thread counts to compare (the first is the reference)")
+    ap.add_argument("--threads", default="1,auto",
+                    help="thread counts to compare (the first is the reference; auto: the default, none given)")
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--fit-arg", action="append", default=[], help="an extra `texstream fit` argument (repeatable)")
     ap.add_argument("--out", required=True)
@@ -157,7 +168,7 @@ def main() -> None:
     if not capture.exists():
         subprocess.run([sys.executable, "-m", "texstream.pipelines.cli", "synth", "ornament", "--scale", str(a.scale),
                         "-o", str(capture)], check=True)
-    threads = [int(t) for t in a.threads.split(",")]
+    threads = [thread_spec(t) for t in a.threads.split(",")]
     runs, checks = [], []
     for rep in range(a.repeats):
         for mode in [m.strip() for m in a.modes.split(",") if m.strip()]:
@@ -167,14 +178,15 @@ def main() -> None:
                 done[n] = one_run(capture, work, mode, n, a.fit_arg)
                 done[n]["repeat"] = rep
                 runs.append(done[n])
-                print(json.dumps({k: done[n][k] for k in ("mode", "threads", "command_s", "fit_loop_s",
+                print(json.dumps({k: done[n][k] for k in ("mode", "threads", "threads_taken", "command_s", "fit_loop_s",
                                                           "loop_cores_used", "kernel_share_of_loop_cpu",
                                                           "loadavg_before")}), flush=True)
             for n in threads[1:]:
                 checks.append({"mode": mode, "repeat": rep, "threads": n, **compare(done[threads[0]], done[n])})
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    result = {"commit": commit(), "machine": platform.platform(), "cpus": os.cpu_count(), "capture": str(capture),
+    result = {"commit": commit(), "machine": platform.platform(), "cpus": os.cpu_count(),
+              "command": " ".join([Path(sys.executable).name, *sys.argv]), "capture": str(capture),
               "args": vars(a), "runs": runs, "checks": checks, "summary": summarise(runs, threads)}
     (out / "cpu_threads.json").write_text(json.dumps(result, indent=1))
     print(json.dumps({"summary": result["summary"], "checks": checks}, indent=1))
@@ -214,7 +226,7 @@ if __name__ == "__main__":
     if len(sys.argv) > 2 and sys.argv[1] == "--summarise":  # a JSON of this script's, summarised again
         path = Path(sys.argv[2])
         data = json.loads(path.read_text())
-        data["summary"] = summarise(data["runs"], [int(t) for t in data["args"]["threads"].split(",")])
+        data["summary"] = summarise(data["runs"], [thread_spec(t) for t in data["args"]["threads"].split(",")])
         path.write_text(json.dumps(data, indent=1))
         print(json.dumps(data["summary"], indent=1))
         sys.exit(0)

@@ -33,10 +33,12 @@ def usable_cpus() -> int:
         return os.cpu_count() or 1
 
 
-def cpu_threads(problem: StreamProblem, cfg: FitConfig, resuming: bool = False) -> tuple[int, str]:
+def cpu_threads(problem: StreamProblem, cfg: FitConfig) -> tuple[int, str]:
     """(worker threads, why) for the fit of ``problem`` with ``cfg`` (``StreamConfig.cpu_threads``): more than
     one only on the CPU, for a fit that asked for no tiles or devices of its own, with its photos resident,
-    with options a tiled fit takes, and not resuming a checkpoint (an untiled fit's)."""
+    and with options a tiled fit takes. A checkpoint and a warm start do not matter: the tiled fit keeps the
+    untiled fit's checkpoint (in the untiled texel order, so either resumes the other's) and takes its starting
+    parameters."""
     s = cfg.stream
     if str(problem.device) != "cpu":
         return 1, f"the fit runs on {problem.device}"
@@ -44,8 +46,6 @@ def cpu_threads(problem: StreamProblem, cfg: FitConfig, resuming: bool = False) 
         return 1, "stream.cpu_threads 1"
     if tiled(cfg) or split_photos(cfg):
         return 1, "stream.tiles or stream.devices given"
-    if resuming:
-        return 1, "resuming an untiled fit's checkpoint"
     if problem.photos.residency != "device":
         return 1, f"the photos are streamed from {problem.photos.residency} (the threads would share one window)"
     if s.model_lookup == "bilinear" or cfg.penalties.laplacian_weight > 0 or cfg.linesearch.acceptance == "global":

@@ -28,10 +28,11 @@ import numpy as np
 import warp as wp
 
 from texstream.core.errors import ConfigError
+from texstream.core.progress import bar, bars_enabled
 
 from texstream.fit.optim.fitter import FitConfig, FitResult, start_arrays
 from texstream.fit.kernels.tiles import gather_rows_kernel, scatter_rows_kernel
-from texstream.fit.multi.lockstep import TileWorker, lockstep
+from texstream.fit.multi.lockstep import TileWorker, lockstep, tile_resume
 from texstream.fit.multi.tile_plan import (TilePlan, assemble, halo_pairs, plan_tiles, texel_subset, tile_config,
                                            tile_photos, tile_start)
 from texstream.fit.multi.tile_plan import parse_devices  # noqa: F401  (re-exported: the fit stage's import)
@@ -139,16 +140,35 @@ class HaloExchange:
         self._sync()
 
 
-def run_tiled_fit(problem: StreamProblem, cfg: FitConfig, start=None,
-                  progress=None) -> tuple[FitResult, dict]:
+def run_tiled_fit_with_progress(problem: StreamProblem, cfg: FitConfig, progress: bool, start=None,
+                                **kw) -> tuple[FitResult, dict]:
+    """:func:`run_tiled_fit` with a tqdm bar over iterations when ``progress``, as an untiled fit shows
+    (``kw``: p0, checkpoint, resume)."""
+    if not (progress and bars_enabled()):
+        return run_tiled_fit(problem, cfg, start, **kw)
+    with bar(total=cfg.max_iterations, desc=f"fit {cfg.optimizer}", unit="it") as b:
+        b.update(int(kw["resume"]["iteration"]) if kw.get("resume") else 0)
+        return run_tiled_fit(problem, cfg, start, progress=lambda it: b.update(1), **kw)
+
+
+def run_tiled_fit(problem: StreamProblem, cfg: FitConfig, start=None, progress=None, p0: np.ndarray | None = None,
+                  checkpoint=None, resume: dict | None = None) -> tuple[FitResult, dict]:
     """Fit ``problem`` in tiles (``cfg.stream.tiles``, ``devices``, ``tile_backend``); returns the result in the
     untiled texel order and a report (tiles, devices, texels and photos per tile, set-up and fit times).
 
-    ``start``: :func:`~texstream.fit.optim.fitter.fit_start`'s start (or its arrays) over all texels when already streamed."""
+    ``start``: :func:`~texstream.fit.optim.fitter.fit_start`'s start (or its arrays) over all texels when already
+    streamed; ``p0``, ``checkpoint`` and ``resume``: as :func:`~texstream.fit.optim.fitter.run_fit`'s (the
+    starting parameters; the checkpoint, in the untiled texel order, so a fit on other tiles or untiled resumes
+    it; threads only)."""
     if cfg.stream.tile_backend == "ray":
+        if p0 is not None or checkpoint is not None or resume is not None:
+            raise ConfigError("a fit on Ray actors takes no starting parameters and keeps no checkpoint",
+                              fix="set stream.tile_backend threads, or fit.checkpoint off")
         return run_ray_tiled_fit(problem, cfg, start, progress)
     t0 = time.perf_counter()
     guess, counts = start_arrays(start, problem, cfg)
+    if p0 is not None:  # as FitRun: the counts of ``start``, the parameters given
+        guess = np.asarray(p0, dtype=np.float64)
     t_guess = time.perf_counter()
     plan = plan_tiles(problem, cfg)
     t_plan = time.perf_counter()
@@ -159,14 +179,16 @@ def run_tiled_fit(problem: StreamProblem, cfg: FitConfig, start=None,
         def make(t, _):
             b, e = plan.bounds[t]
             return TileWorker(tile_problem(problem, plan, t, tcfg), tcfg, tile_start(plan, t, guess, counts),
-                              mean_sq, own=int(e - b))
+                              mean_sq, own=int(e - b), checkpointed=checkpoint is not None,
+                              resume=tile_resume(resume, plan.texels(t)))
 
         # tile 0 first, alone: building launches kernels (Warp's first launch of a kernel is not thread-safe)
         first = make(0, None)
         workers = pool.map(lambda t, _: first if t == 0 else make(t, _), list(range(len(plan.bounds))))
         t_setup = time.perf_counter() - t0
         exchange = HaloExchange(plan, workers) if any(h.size for h in plan.halo) else None
-        sums, times, it_done, _ = lockstep(workers, pool.map, cfg, np.concatenate, progress, exchange=exchange)
+        sums, times, it_done, _ = lockstep(workers, pool.map, cfg, np.concatenate, progress, exchange=exchange,
+                                           checkpoint=checkpoint, resume=resume)
         parts = pool.map(lambda t, w: w.params(), workers)
     finally:
         pool.close()

@@ -107,12 +107,11 @@ class StreamConfig:
                                           "as files on storage every Ray worker reads)", choices=("threads", "ray"))
     cpu_threads: int = option(0, "worker threads of a fit on the CPU: its texels split into this many tiles, one "
                                  "thread each (Warp runs a CPU kernel on the launching thread, one core; the "
-                                 "tiled fit's result to the bit; fit/multi/cpu_threads.py). 0: one per CPU core "
-                                 "(at most 8, each with 2,000 texels or more) where the fit can be tiled (photos "
-                                 "resident, no stream.tiles or devices given, no checkpoint to resume) and keeps "
-                                 "no checkpoint and no warm start (a fit on threads writes none and starts from "
-                                 "the initial guess: LM fits with checkpoints on, the default, stay on one thread "
-                                 "unless N is given), else one; 1: one thread", min=0)
+                                 "untiled fit's maps to the bit, its checkpoint and warm start kept; "
+                                 "fit/multi/cpu_threads.py). 0: one per CPU core this process may use, at most 8 "
+                                 "and each with 2,000 texels or more (2 on a 2-core machine), where the fit can be "
+                                 "tiled (the CPU device, photos resident, no stream.tiles or devices given, no "
+                                 "option coupling texels), else one; on CUDA always one; 1: one thread", min=0)
     cuda_block_dim: int = option(128, "threads per CUDA block of the accumulation kernels (128 fits three blocks "
                                       "per SM at the register cap; docs/gpu-performance.md)", min=32, max=1024)
     cuda_max_registers: int = option(-1, "registers per CUDA thread of the accumulation kernels: 0 uncapped, -1 "

@@ -32,7 +32,7 @@ from texstream.fit.models.per_texel.lobes import (_materials_manifest, average_s
                                                   lobe_shape_report, lobes_in_use, texel_evidence, traced_polish,
                                                   traced_polish_applies, traced_problem)
 from texstream.fit.multi.cpu_threads import cpu_threads, threaded_config
-from texstream.fit.multi.tiles import run_tiled_fit, tiled
+from texstream.fit.multi.tiles import run_tiled_fit_with_progress, tiled
 from texstream.fit.optim.fitter import resumable
 from texstream.geometry.mesh_io import save_mesh
 
@@ -112,8 +112,8 @@ def _fit_per_texel_model(capture_dir: str | Path, mesh_path: str | Path, out_dir
 
 
 def _checkpoint(capture_dir, mesh_path, out_dir, cfg, problem) -> tuple[Checkpoint | None, dict | None]:
-    """The fit's checkpoint (LM fits that are not tiled) and the state it holds from an interrupted run."""
-    if not (cfg.checkpoint and resumable(cfg.fit) and not tiled(cfg.fit)):
+    """The fit's checkpoint (LM fits, untiled or tiles on threads) and the state it holds from an interrupted run."""
+    if not (cfg.checkpoint and resumable(cfg.fit) and cfg.fit.stream.tile_backend != "ray"):
         return None, None
     capture_json = Path(capture_dir) / "capture.json"
     ckpt = Checkpoint(out_dir, {"capture": str(Path(capture_dir).resolve()), "mesh": str(Path(mesh_path).resolve()),
@@ -147,21 +147,16 @@ def _choice_before_fit(inputs: FitInputs, problem, cfg, start, resume) -> tuple[
 
 def _core_fit(problem, cfg, start, progress: bool, ckpt, resume, p0: np.ndarray | None = None):
     """(FitResult, tiles report or None): the streaming fit, tiled where asked or on the CPU's cores
-    (``stream.cpu_threads``: the same maps, no checkpoint written, and it starts from the initial guess
-    ``start``); ``p0``: its starting parameters (None: ``start``'s)."""
-    threads, why = cpu_threads(problem, cfg.fit, resuming=resume is not None)
-    if threads > 1 and cfg.fit.stream.cpu_threads == 0 and (ckpt is not None or p0 is not None):
-        # auto keeps what a one-thread fit gives: the checkpoint a Ctrl-C or a killed run resumes from, and the
-        # warm start from the validation split's fit; threads are taken when asked for (--stream.cpu-threads N)
-        threads, why = 1, "auto: a checkpointed or warm-started fit stays on one thread"
+    (``stream.cpu_threads``: the same maps), with the checkpoint ``ckpt`` and its state ``resume``; ``p0``: its
+    starting parameters (None: ``start``'s)."""
+    threads, why = cpu_threads(problem, cfg.fit)
+    kept = {"checkpoint": ckpt.save, "resume": resume} if ckpt else {}
     if not tiled(cfg.fit) and threads == 1:
-        result = run_fit_with_progress(problem, cfg.fit, progress, start=start, p0=p0,
-                                       **({"checkpoint": ckpt.save, "resume": resume} if ckpt else {}))
-        return result, None
+        return run_fit_with_progress(problem, cfg.fit, progress, start=start, p0=p0, **kept), None
     fit_cfg = threaded_config(cfg.fit, threads) if threads > 1 else cfg.fit
     with phase("fit", f"{cfg.fit.model}: tiles of texels ({cfg.fit.stream.tile_backend}"
                       + (f", {threads} CPU threads: {why})" if threads > 1 else ")")):
-        result, report = run_tiled_fit(problem, fit_cfg, start)
+        result, report = run_tiled_fit_with_progress(problem, fit_cfg, progress, start, p0=p0, **kept)
     say("fit", f"tiles: {report['tiles']} on {','.join(report['devices'])} ({report['backend']}), photos per tile "
                f"{min(report['photos_per_tile'])}..{max(report['photos_per_tile'])} of {report['photos']}")
     return result, report
