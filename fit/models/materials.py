@@ -137,10 +137,16 @@ def residual_variance(stats: np.ndarray) -> float:
 
 
 def texel_uncertainty(jtj: np.ndarray, params: np.ndarray, layout: ModelLayout, sigma2: float) -> np.ndarray:
-    """(N, 3) per texel: relative standard deviation of rho_s (worst channel and lobe), of n (worst lobe),
-    and the standard deviation of c_z (0 where held), from the covariance sigma^2 (J^T J)^-1 over the
-    texel's free columns. inf where a column is not constrained at all (a zero J^T J diagonal: no photo
-    sees the lobe, or rho_s = 0 leaves n without effect).
+    """(N, 3) per texel: relative standard deviation of rho_s (worst channel), of n, and the standard deviation
+    of c_z (0 where held) of the texel's best-constrained lobe (the lobe of smallest max(rel rho_s, rel n)),
+    from the covariance sigma^2 (J^T J)^-1 over the texel's free columns. inf where a column is not
+    constrained at all (a zero J^T J diagonal: no photo sees the lobe, or rho_s = 0 leaves n without effect).
+
+    With two lobes the photos pin the broad one down where they saw the highlight and seldom the second: taken
+    over the worst lobe, 5 of the demo ornament's 9,580 texels passed the constrained test (against 971 with
+    one lobe), so its two-lobe materials had no lobe to share. A texel whose second lobe is loose is still one
+    whose photos saw its highlight; its loose lobe is held by the materials prior (a weight of sigma^2 over
+    the material's spread, its own J^T J being small) or dropped by ``lobe_support``. One lobe: as before.
 
     The inverse is taken in the Jacobi-scaled basis with eigenvalues floored at 1e-12 of the largest,
     so a nearly singular block (a lobe seen in one photo) gives a large, finite deviation.
@@ -148,9 +154,8 @@ def texel_uncertainty(jtj: np.ndarray, params: np.ndarray, layout: ModelLayout, 
     lay = layout
     p = np.asarray(params, np.float64)
     n = p.shape[0]
-    out = np.zeros((n, 3))
     if lay.n_lobes == 0:
-        return out
+        return np.zeros((n, 3))
     free = np.flatnonzero(~lay.frozen())
     h = np.asarray(jtj, np.float64)[:, free][:, :, free]
     d = np.einsum("nii->ni", h)
@@ -164,6 +169,7 @@ def texel_uncertainty(jtj: np.ndarray, params: np.ndarray, layout: ModelLayout, 
     var[dead] = np.inf
     full = np.full((n, lay.n_params), 0.0)
     full[:, free] = var
+    per_lobe = np.empty((lay.n_lobes, n, 3))
     for j in range(lay.n_lobes):
         o = lay.lobe_offset(j)
         rho = p[:, o:o + 3]
@@ -172,10 +178,10 @@ def texel_uncertainty(jtj: np.ndarray, params: np.ndarray, layout: ModelLayout, 
             nn = p[:, o + lay.lobe_stride - 1]
             rel_n = np.sqrt(full[:, o + lay.lobe_stride - 1]) / np.maximum(nn, 1e-300)
         rel_n = np.where(np.isfinite(rel_rho), rel_n, np.inf)  # no lobe: n has no meaning
-        out[:, 0] = np.maximum(out[:, 0], rel_rho)
-        out[:, 1] = np.maximum(out[:, 1], rel_n)
-        out[:, 2] = np.maximum(out[:, 2], np.sqrt(full[:, o + lay.lobe_stride - 2]))
-    return np.nan_to_num(out, nan=np.inf, posinf=np.inf)
+        per_lobe[j] = np.stack([rel_rho, rel_n, np.sqrt(full[:, o + lay.lobe_stride - 2])], axis=1)
+    per_lobe = np.nan_to_num(per_lobe, nan=np.inf, posinf=np.inf)
+    best = np.argmin(per_lobe[:, :, :2].max(axis=2), axis=0)
+    return per_lobe[best, np.arange(n)]
 
 
 UNCERTAINTY_CHUNK = 4096
