@@ -179,6 +179,7 @@ def fit_choice(capture_dir: Path, mesh_path: Path, out_dir: Path, cfg, plan: Cho
     out_dir, t0 = Path(out_dir), time.perf_counter()
     judged: dict[str, Judged] = {}
     left_out: dict[str, str] = {}
+    failed: set[str] = set()  # escalations the capture could not take (said in the escalation's reason)
 
     def folder(c, suffix: str = "") -> Path:
         return out_dir.with_name(f"{out_dir.name}_{c.name}{suffix}")
@@ -193,7 +194,7 @@ def fit_choice(capture_dir: Path, mesh_path: Path, out_dir: Path, cfg, plan: Cho
             why = c.supported({k: j.full.summary for k, j in judged.items() if j.full is not None}, cfg)
             if why:
                 left_out[c.name] = why
-                log(f"[fit] {why}")
+                log(f"[fit] {c.name} left out: {why}")
                 return
         t, full, score = time.perf_counter(), None, None
         if makes_own_choice(c, cfg):
@@ -218,8 +219,10 @@ def fit_choice(capture_dir: Path, mesh_path: Path, out_dir: Path, cfg, plan: Cho
             except TexstreamError as e:  # an optional candidate the capture cannot take (e.g. streamed photos)
                 extra_reason += f"; {c.name} could not be fitted ({e.message}), left out"
                 left_out[c.name] = f"could not be fitted ({e.message})"
+                failed.add(c.name)
                 log(f"[fit] {c.name} could not be fitted ({e.message}): left out")
     best, reason = _best(judged, cfg.materials.validation_every)
+    reason += "".join(f"; {k} left out: {why}" for k, why in left_out.items() if k not in failed)
     kept = judged[best]
     t_refit, refit = time.perf_counter(), kept.full is None
     if refit:

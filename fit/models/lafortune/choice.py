@@ -34,6 +34,6 @@ def second_lobe_supported(fitted: dict, cfg) -> str | None:
     share = unc["constrained_texels"] / unc["seen_texels"]
     if share >= need:
         return None
-    return (f"the two-lobe Lafortune left out: the one-lobe fit's photos constrain the lobe of {unc['constrained_texels']:,} "
-            f"of {unc['seen_texels']:,} seen texels ({100 * share:.1f}% < second_lobe_min_constrained "
-            f"{100 * need:g}%), too few to pin a second lobe down")
+    return (f"the one-lobe fit's photos constrain the lobe of {unc['constrained_texels']:,} of "
+            f"{unc['seen_texels']:,} seen texels ({100 * share:.1f}% < second_lobe_min_constrained {100 * need:g}%), "
+            "too few to pin a second lobe down")
