@@ -84,13 +84,15 @@ def test_unknown_lighting_chooses_the_radiance_model(capture, tmp_path):
     (cap / "capture.json").write_text(json.dumps(data))
     summary = run_pipeline(cap, tmp_path / "out", tiny_config(mesh_file=str(cap / "ground_truth")), log=lambda m: None)
     # fixed unknown lighting: the radiance model, and with held-out photos the view-dependent one beside
-    # it, the better held-out one kept (both figures recorded)
+    # it, each judged by a fit of the validation split (both figures recorded), the better one fitted to
+    # every fitted photo and kept; the validation fits go
     assert summary["model"] in ("radiance", "view_radiance") and "unknown" in summary["model_reason"]
-    assert set(summary["fit"]["selection"]["heldout_pooled_db"]) == {"radiance", "view_radiance"}
+    sel = summary["fit"]["selection"]
+    assert set(sel["validation"]) == {"radiance", "view_radiance"} and sel["refit"]
+    assert all(v["judged_by"] == "a fit of the validation split" for v in sel["validation"].values())
     man = json.loads((tmp_path / "out" / "model" / "model.json").read_text())
-    assert man["kind"] == summary["model"]
-    other = {"radiance", "view_radiance"} - {summary["model"]}
-    assert (tmp_path / "out" / f"model_{other.pop()}" / "model.json").is_file()
+    assert man["kind"] == summary["model"] and man["photos"]["fitted"] == 14  # every fitted photo
+    assert not list((tmp_path / "out").glob("model_*"))
     with pytest.raises(InputError, match="needs a light"):
         run_pipeline(cap, tmp_path / "out2", tiny_config(mesh_file=str(cap / "ground_truth"), model="lafortune"),
                      log=lambda m: None)

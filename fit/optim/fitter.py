@@ -48,7 +48,7 @@ class FitConfig:
                                      "biquadratic of the view direction), lfm (light field mapping: vertex light "
                                      "fields of surface maps x view maps; options --lfm.*), or auto: the model "
                                      "choice (fit/stages/choice.py) fits the candidates the capture calls for and "
-                                     "keeps the one with the best held-out error")
+                                     "keeps the one that predicts a validation split of the fitted photos best")
     view_prior: float = option(0.5, "view_radiance: ridge prior pulling each texel's view terms to 0, in samples' "
                                     "worth of squared residual per unit coefficient (a texel seen from few directions "
                                     "stays view-independent); 0 = none", min=0.0)
