@@ -10,8 +10,9 @@ and leaves out what the scene does not need, deciding from the data and recordin
 - cameras this run registered and a mesh it made: refined against the photos (``refine``); given ones stay;
 - lights known for every photo -> a reflectance model (Lafortune SBRDF); one fixed unknown
   lighting -> the radiance model (``model`` "auto"); with held-out photos the view-dependent radiance
-  model beside it and, when view dependence matters (view_radiance beats radiance on the held-out
-  photos by ``lfm_min_gain_db``), light field mapping too (``lfm``); the best held-out one is kept.
+  model beside it and, when view dependence matters (view_radiance beats radiance on a validation split
+  of the fitted photos by ``lfm_min_gain_db``), light field mapping too (``lfm``); the one that predicts
+  the validation photos best is kept, and the held-out photos score it (fit/stages/choice.py).
 
 Each stage writes its own folder under ``OUT`` with a stamp (``.texstream_stage.json``: a hash of
 the stage's inputs and config); a rerun whose stamp matches skips the stage, ``from_stage`` reruns
@@ -80,21 +81,29 @@ class RunConfig:
     device: str = option("auto", DEVICE_HELP + "; every stage of the run uses it (mesh, atlas, refine, fit, report)")
     model: str = option("auto", "appearance model: auto (lafortune when every photo has a known light, radiance "
                                 "when the lighting is fixed and unknown; with held-out photos the diffuse or the "
-                                "view-dependent radiance model too, the better held-out one kept, and light field "
+                                "view-dependent radiance model too, the one that predicts a validation split of the "
+                                "fitted photos best kept and the held-out photos scoring it, and light field "
                                 "mapping where view dependence matters, see lfm), lafortune, diffuse, radiance, "
                                 "view_radiance or lfm (light field mapping, [fit.lfm] options): a kind of the model "
                                 "registry (fit/models/)")
     lfm: str = option("auto", "fixed unknown lighting, model auto, held-out photos: fit a light field mapping model "
                               "([fit.lfm]: K=1 streaming CG, iterations capped at fit.lfm.iterations) beside radiance "
-                              "and view_radiance and keep it when its held-out error is the best: auto (only when view "
-                              "dependence matters: view_radiance's held-out pooled PSNR at least lfm_min_gain_db above "
+                              "and view_radiance and keep it when it predicts the validation photos (every "
+                              "fit.materials.validation_every-th fitted photo) best: auto (only when view dependence "
+                              "matters: view_radiance's validation pooled PSNR at least lfm_min_gain_db above "
                               "radiance's), always, or never", choices=LFM_CANDIDATE)
-    lfm_min_gain_db: float = option(0.5, "lfm auto: the held-out gain (dB) of view_radiance over radiance from which "
-                                         "view dependence counts as mattering", min=-60.0, max=60.0)
+    lfm_min_gain_db: float = option(0.5, "lfm auto: the validation gain (dB) of view_radiance over radiance from "
+                                         "which view dependence counts as mattering", min=-60.0, max=60.0)
     second_lobe: bool = option(True, "known lights, model auto, held-out photos: also fit a two-lobe Lafortune "
                                      "model (the second lobe kept per texel only where it lowers the texel's error "
-                                     "on the fitted photos, fit lobe_support) and keep it only when its held-out "
-                                     "error is the best")
+                                     "on the fitted photos, fit lobe_support) and keep it only when it predicts the "
+                                     "validation photos best; fitted only where the photos can support it "
+                                     "(second_lobe_min_constrained)")
+    second_lobe_min_constrained: float = option(0.3, "second_lobe: the two-lobe model is fitted only when at least "
+                                                     "this share of the seen texels have a lobe their photos "
+                                                     "constrain in the one-lobe fit (fit.materials."
+                                                     "constrained_rel_std): only those can pin a second lobe down; "
+                                                     "0: always fitted", min=0.0, max=1.0)
     mesh_file: str | None = option(None, "a mesh of the object (OBJ/PLY) to use instead of one from the photos; "
                                          "with usable UVs it also skips the atlas")
     progress: bool = option(True, "progress bars over photos and iterations (shown on a terminal only); the stages' "
@@ -404,11 +413,13 @@ def _mesh_and_atlas(pipe: Pipeline, posed: bool, posed_dir: Path, out: Path, cfg
 def _fit(pipe: Pipeline, capture, posed: bool, posed_dir: Path, fit_geometry: Path, model_dir: Path,
          cfg: RunConfig, lights_summary: dict | None):
     """(the fit stage's record, the kept model's kind, why): the model the scene needs (fit/stages/choice.py:
-    with held-out photos, the candidates it calls for judged on them: with known lights a specular lobe only
-    where it generalises; under one fixed unknown lighting view dependence only where it does)."""
+    with held-out photos, the candidates it calls for judged on a validation split of the fitted photos, the
+    held-out ones scoring only the model kept: with known lights a specular lobe only where it generalises;
+    under one fixed unknown lighting view dependence only where it does)."""
     fit_cfg = dataclasses.replace(cfg.fit, device=cfg.device, fit=dataclasses.replace(cfg.fit.fit, model=cfg.model),
                                   choice=ModelChoiceConfig(second_lobe=cfg.second_lobe, lfm=cfg.lfm,
-                                                           lfm_min_gain_db=cfg.lfm_min_gain_db))
+                                                           lfm_min_gain_db=cfg.lfm_min_gain_db,
+                                                           second_lobe_min_constrained=cfg.second_lobe_min_constrained))
     plan = plan_choice(capture, cfg.model, fit_cfg)
     model_kind, why = plan.base, plan.reason
     if lights_summary:
@@ -427,8 +438,9 @@ def _fit(pipe: Pipeline, capture, posed: bool, posed_dir: Path, fit_geometry: Pa
                                           pipe.stamp_of("lights"), pipe.stamp_of("refine"),
                                           _files_hash(posed_dir) if posed else "", config_to_dict(fit_cfg), plan.compare]
                        + ([cfg.lfm, cfg.lfm_min_gain_db] if escalates else []),
-                       f"{model_kind} model: {why}" + (f"; the {plan.also} model too, the best held-out one "
-                                                       "kept" if plan.compare else ""), fit_work)
+                       f"{model_kind} model: {why}" + (f"; the {plan.also} model too, the best on a validation "
+                                                       "split of the fitted photos kept" if plan.compare else ""),
+                       fit_work)
     if plan.compare:
         chosen = fit_rec.summary.get("selection", {})
         if chosen.get("chosen"):

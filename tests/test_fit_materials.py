@@ -138,6 +138,34 @@ def test_uncertainty_is_the_inverse_gauss_newton_diagonal():
     assert np.isinf(unc[2, 0]) and np.isinf(unc[2, 1])
 
 
+def test_a_lobe_that_is_off_does_not_count_and_a_loose_one_does():
+    """With two lobes a texel is judged over the lobes it has: its second lobe off (rho_s = 0 in every channel)
+    leaves the first lobe's figures (exact: sigma^2 (J^T J)^-1 over the free columns); a second lobe on but
+    whose n no sample touches makes the texel's n deviation inf (unconstrained: it borrows its material's lobes).
+    """
+    lay = ModelLayout(n_lobes=2)
+    rng = np.random.default_rng(1)
+    n, P = 2, lay.n_params
+    p = random_params(lay, n, rng)
+    free = ~lay.frozen()
+    jtj = np.zeros((n, P, P))
+    for i in range(n):
+        a = rng.normal(size=(60, free.sum()))
+        jtj[i][np.ix_(free, free)] = a.T @ a
+    o1 = lay.lobe_offset(1)
+    p[0, o1:o1 + 3] = 0.0  # texel 0: the second lobe off
+    n1 = o1 + lay.lobe_stride - 1
+    jtj[1, n1, :] = jtj[1, :, n1] = 0.0  # texel 1: the second lobe on, its n untouched by any sample
+    unc = texel_uncertainty(jtj, p, lay, 3e-4)
+    o = lay.lobe_offset(0)
+    cov = np.zeros((P, P))
+    cov[np.ix_(free, free)] = 3e-4 * np.linalg.inv(jtj[0][np.ix_(free, free)])
+    sd = np.sqrt(np.diag(cov))
+    np.testing.assert_allclose(unc[0, 0], (sd[o:o + 3] / p[0, o:o + 3]).max(), rtol=1e-9)
+    np.testing.assert_allclose(unc[0, 1], sd[o + lay.lobe_stride - 1] / p[0, o + lay.lobe_stride - 1], rtol=1e-9)
+    assert np.isinf(unc[1, 1]) and np.isfinite(unc[1, 0])
+
+
 def planted(rng, per=60):
     """Three materials by albedo: gold (n 60), green (n 200) and a white one without a lobe; lobes
     vary by +-5% around the material's, diffuse by +-3%."""

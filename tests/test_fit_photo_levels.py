@@ -139,3 +139,40 @@ def test_a_fit_on_the_previous_candidates_photo_set_gives_the_same_model(fine_ca
     assert alone.keys() == shared.keys() and alone
     for name in alone:
         np.testing.assert_array_equal(shared[name], alone[name], err_msg=name)
+
+
+def test_a_validation_fit_takes_its_photos_from_the_previous_fits_set(fine_capture, tmp_path):
+    """The model choice's fit of the validation split (choice.validation_fit) after a fit of every fitted photo
+    takes its photos from that fit's set (PhotoSet.subset: nothing decoded or shadow-mapped again), leaves the
+    larger set kept for the next fit, and gives the model of a validation fit that set up its own, to the bit."""
+    from texstream.core.progress import reporting
+    from texstream.fit.common.inputs import SharedPhotoSet
+    from texstream.fit.models.materials import MaterialConfig
+    from texstream.fit.optim.fitter import FitConfig
+    from texstream.fit.stages.choice import ModelChoiceConfig
+    from texstream.fit.stages.stage import FitStageConfig, fit_model
+
+    def cfg(model, validation):  # materials and polish off: they add fits, not another use of the photo set
+        return FitStageConfig(device=SCENE_DEVICE, texture_size=16, holdout_every=4, renders=0, traced_polish=0,
+                              materials=MaterialConfig(mode="off", validation_every=3),
+                              choice=ModelChoiceConfig(validation_fit=validation),
+                              fit=FitConfig(model=model, max_iterations=4))
+
+    mesh = fine_capture / "ground_truth" / "mesh.obj"
+    SharedPhotoSet.release()
+    alone = fit_model(fine_capture, mesh, tmp_path / "alone", cfg("lafortune", True), progress=False)
+    SharedPhotoSet.release()
+    fit_model(fine_capture, mesh, tmp_path / "every", cfg("diffuse", False), progress=False)
+    every = SharedPhotoSet.photos
+    said = []
+    with reporting(said.append):
+        split = fit_model(fine_capture, mesh, tmp_path / "split", cfg("lafortune", True), progress=False)
+    assert SharedPhotoSet.photos is every and every.n == 12
+    SharedPhotoSet.release()
+    assert any("shared with the previous fit" in line for line in said)
+    # 12 fitted photos, every 3rd a validation photo: 8 fitted, 4 scored where the held-out ones are
+    assert split.summary["photos"] == alone.summary["photos"] == 8 and split.summary["heldout"]["views"] == 4
+    a, b = _maps(tmp_path / "alone"), _maps(tmp_path / "split")
+    assert a.keys() == b.keys() and a
+    for name in a:
+        np.testing.assert_array_equal(b[name], a[name], err_msg=name)

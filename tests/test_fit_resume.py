@@ -100,7 +100,7 @@ def test_an_interrupted_model_choice_keeps_its_finished_candidates(capture, tmp_
                               materials=MaterialConfig(mode="off"), choice=ModelChoiceConfig(second_lobe=False),
                               fit=dataclasses.replace(config().fit, model="auto", max_iterations=2))
     whole = fit_stage(capture, gt, tmp_path / "whole", cfg, progress=False)
-    assert len(whole.summary["selection"]["heldout_pooled_db"]) == 2  # Lafortune and diffuse judged
+    assert set(whole.summary["selection"]["validation"]) == {"lafortune", "diffuse"}  # both judged
     real, fitted = stage.fit_model, []
 
     def killed_in_the_second(capture_dir, mesh_path, out_dir, c, progress=True):
@@ -118,6 +118,13 @@ def test_an_interrupted_model_choice_keeps_its_finished_candidates(capture, tmp_
         again = fit_stage(capture, gt, tmp_path / "again", cfg, progress=False)
     kept = [line for line in lines if "was finished by an interrupted run with the same inputs and options" in line]
     assert len(kept) == 1 and f"{fitted[0]}:" in kept[0], lines
-    assert again.summary["selection"] == whole.summary["selection"]
+    assert without_seconds(again.summary["selection"]) == without_seconds(whole.summary["selection"])
     np.testing.assert_array_equal(maps(tmp_path / "again"), maps(tmp_path / "whole"))
     assert not list(tmp_path.rglob(stage.CANDIDATE_STAMP))  # the finished choice forgets its candidates
+
+
+def without_seconds(record):
+    """A choice's record less the seconds it took (the same choice, another clock)."""
+    if isinstance(record, dict):
+        return {k: without_seconds(v) for k, v in record.items() if k != "seconds"}
+    return record

@@ -184,6 +184,8 @@ def load_fit_inputs(capture_dir: str | Path, mesh_path: str | Path, cfg) -> FitI
     capture = read_capture(capture_dir)
     check_capture_lights(capture, cfg.fit.model, capture_dir)
     frames, held = split_holdout(capture.frames, cfg.holdout_every)
+    if cfg.choice.validation_fit:  # the model choice's fit of a candidate: the validation photos are scored instead
+        frames, held = split_holdout(frames, cfg.materials.validation_every)
     if not frames:
         raise InputError("no photo is left to fit after the hold-out split", Path(capture_dir) / "capture.json",
                          "lower --holdout-every or add photos")
@@ -213,49 +215,68 @@ def bad_photo(error: InputError, images) -> int | None:
 
 class SharedPhotoSet:
     """The photo set (photos on the device with their depth and shadow maps) of the last fit in this process,
-    handed to the next fit of the same photos, frames, mesh, stream options and device: the candidates of the
-    model choice (``texstream run``: Lafortune, diffuse, two lobes) differ only in their parameters, and the photo
-    set was most of each one's set-up (issue 40: 7 s of the demo's 48 s Lafortune fit, each candidate again).
-    The set is built the same way every time, so a fit on a shared one gives the parameters of a fit on its
-    own (tests/test_fit_photo_levels.py). Sets streamed from disk (their loaders close with the stage) and photos
-    split over devices are not kept. One set at most: the next fit's replaces it, :meth:`release` drops it."""
+    handed to the next fit of the same photos (or some of them: :meth:`PhotoSet.subset`, nothing read or
+    rendered again), frames, mesh, stream options and device: the candidates of the model choice (``texstream
+    run``: Lafortune, diffuse, two lobes, and their fits of the validation split) differ only in their parameters
+    and photos, and the photo set was most of each one's set-up (issue 40: 7 s of the demo's 48 s Lafortune
+    fit, each candidate again). The set is built the same way every time, so a fit on a shared one gives the
+    parameters of a fit on its own (tests/test_fit_photo_levels.py). Sets streamed from disk (their loaders
+    close with the stage) and photos split over devices are not kept. One set at most: the next fit's replaces
+    it unless its photos are a subset of the kept ones; :meth:`release` drops it."""
 
     key: str | None = None
+    photo_keys: list | None = None
     photos = None
 
     @classmethod
-    def key_for(cls, inputs: FitInputs, cfg) -> str | None:
+    def key_for(cls, inputs: FitInputs, cfg) -> tuple[str, list[str]] | None:
+        """(the key of what every photo shares: device, stream options, reader, mesh; one key per photo: its
+        files, pose, intrinsics, exposure and light), or None for photos given as arrays."""
         paths = getattr(inputs.images, "paths", None)
         if paths is None:  # photos given as arrays: not a capture's files
             return None
         h = hashlib.sha256(json.dumps({"device": str(cfg.device), "stream": config_to_dict(cfg.fit.stream),
-                                       "photos": [str(p) for p in paths],
-                                       "masks": [None if m is None else str(m) for m in inputs.images.mask_paths],
                                        "reader": getattr(inputs.images.read_image, "cache_key", None)},
                                       sort_keys=True, default=str).encode())
-        for f in inputs.frames:
-            i = f.intrinsics
-            h.update(np.asarray([*np.ravel(f.R), *np.ravel(f.t), i.fx, i.fy, i.cx, i.cy, i.width, i.height,
-                                 f.exposure], np.float64).tobytes())
-            h.update(repr(None if f.light is None else f.light.to_json()).encode())
         for a in (inputs.mesh.vertices, inputs.mesh.faces):
             h.update(np.ascontiguousarray(a).tobytes())
-        return h.hexdigest()
+        photo_keys = []
+        for f, path, mask in zip(inputs.frames, paths, inputs.images.mask_paths):
+            i = f.intrinsics
+            k = hashlib.sha256(json.dumps([str(path), None if mask is None else str(mask)]).encode())
+            k.update(np.asarray([*np.ravel(f.R), *np.ravel(f.t), i.fx, i.fy, i.cx, i.cy, i.width, i.height,
+                                 f.exposure], np.float64).tobytes())
+            k.update(repr(None if f.light is None else f.light.to_json()).encode())
+            photo_keys.append(k.hexdigest())
+        return h.hexdigest(), photo_keys
 
     @classmethod
-    def take(cls, key: str | None):
-        return cls.photos if key is not None and key == cls.key else None
+    def _rows(cls, key) -> list[int] | None:
+        """The kept set's rows of ``key``'s photos, or None where some photo or the shared key differs."""
+        if key is None or cls.photos is None or key[0] != cls.key:
+            return None
+        row = {k: j for j, k in enumerate(cls.photo_keys)}
+        return [row[k] for k in key[1]] if all(k in row for k in key[1]) else None
 
     @classmethod
-    def keep(cls, key: str | None, photos) -> None:
+    def take(cls, key):
+        rows = cls._rows(key)
+        if rows is None:
+            return None
+        return cls.photos if rows == list(range(cls.photos.n)) else cls.photos.subset(rows)
+
+    @classmethod
+    def keep(cls, key, photos) -> None:
+        if cls._rows(key) is not None:
+            return  # the kept set holds these photos and maybe more: kept for the next fit
         if key is None or not isinstance(photos, PhotoSet) or photos.residency == "disk":
             cls.release()
             return
-        cls.key, cls.photos = key, photos
+        (cls.key, cls.photo_keys), cls.photos = key, photos
 
     @classmethod
     def release(cls) -> None:
-        cls.key, cls.photos = None, None
+        cls.key, cls.photo_keys, cls.photos = None, None, None
 
 
 def set_up_skipping_bad_photos(inputs: FitInputs, cfg, capture_dir: str | Path):

@@ -214,7 +214,8 @@ def image_metrics(render: np.ndarray, photo: np.ndarray, mask: np.ndarray, peak:
         return {"psnr_db": float("nan"), "ape_percent": float("nan"), "pixels": 0}
     d = (render[m] - photo[m]).astype(np.float64)
     mse = float(np.mean(d * d))
-    ape = 100.0 * float(np.abs(d).sum() / max(np.abs(photo[m]).sum(), 1e-300))
+    scale = float(np.abs(photo[m]).sum())  # 0: a black view (the unlit side under a fixed light): APE undefined
+    ape = 100.0 * float(np.abs(d).sum()) / scale if scale > 0 else float("nan")
     return {"psnr_db": 10 * math.log10(peak * peak / mse) if mse > 0 else float("inf"), "ape_percent": ape,
             "pixels": int(m.sum())}
 

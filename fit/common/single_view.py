@@ -234,6 +234,10 @@ def load_single_view(capture_dir: str | Path, normals_path: str | Path | None, c
         k = cfg.holdout_every
         held = [f for i, f in enumerate(frames) if i % k == k - 1]
         frames = [f for i, f in enumerate(frames) if i % k != k - 1]
+    if cfg.choice.validation_fit:  # the model choice's fit of a candidate: the validation photos are scored instead
+        k = cfg.materials.validation_every
+        held = [f for i, f in enumerate(frames) if i % k == k - 1]
+        frames = [f for i, f in enumerate(frames) if i % k != k - 1]
     images, masks = [], []
     for f in frames:
         im = read_image(capture.image_path(f), channels=3, response=capture.response)

@@ -139,8 +139,15 @@ def residual_variance(stats: np.ndarray) -> float:
 def texel_uncertainty(jtj: np.ndarray, params: np.ndarray, layout: ModelLayout, sigma2: float) -> np.ndarray:
     """(N, 3) per texel: relative standard deviation of rho_s (worst channel and lobe), of n (worst lobe),
     and the standard deviation of c_z (0 where held), from the covariance sigma^2 (J^T J)^-1 over the
-    texel's free columns. inf where a column is not constrained at all (a zero J^T J diagonal: no photo
-    sees the lobe, or rho_s = 0 leaves n without effect).
+    texel's free columns, over the lobes the texel has: a lobe that is off (rho_s = 0 in every channel: at its
+    bound, or dropped) renders nothing and is left out. inf where a column is not constrained at all (a zero
+    J^T J diagonal: no photo sees the lobe, or the texel has no lobe on, which leaves n without effect).
+
+    Why a lobe that is off is left out: a texel whose second lobe the fit put at zero has one lobe, which its
+    photos may pin down; counted, the off lobe's infinite deviation made the texel unconstrained. Why a lobe
+    that is on counts even when loose (rather than judging a texel by its best-constrained lobe): on a two-lobe
+    sphere (a broad sheen and a sharp highlight, 128 photos) texels then kept loose second lobes of their own
+    and the two-lobe model fell from 49.3 to 29.5 dB held out; counted, they borrow their material's lobes.
 
     The inverse is taken in the Jacobi-scaled basis with eigenvalues floored at 1e-12 of the largest,
     so a nearly singular block (a lobe seen in one photo) gives a large, finite deviation.
@@ -148,9 +155,8 @@ def texel_uncertainty(jtj: np.ndarray, params: np.ndarray, layout: ModelLayout, 
     lay = layout
     p = np.asarray(params, np.float64)
     n = p.shape[0]
-    out = np.zeros((n, 3))
     if lay.n_lobes == 0:
-        return out
+        return np.zeros((n, 3))
     free = np.flatnonzero(~lay.frozen())
     h = np.asarray(jtj, np.float64)[:, free][:, :, free]
     d = np.einsum("nii->ni", h)
@@ -164,6 +170,7 @@ def texel_uncertainty(jtj: np.ndarray, params: np.ndarray, layout: ModelLayout, 
     var[dead] = np.inf
     full = np.full((n, lay.n_params), 0.0)
     full[:, free] = var
+    per_lobe = np.empty((lay.n_lobes, n, 3))
     for j in range(lay.n_lobes):
         o = lay.lobe_offset(j)
         rho = p[:, o:o + 3]
@@ -172,10 +179,13 @@ def texel_uncertainty(jtj: np.ndarray, params: np.ndarray, layout: ModelLayout, 
             nn = p[:, o + lay.lobe_stride - 1]
             rel_n = np.sqrt(full[:, o + lay.lobe_stride - 1]) / np.maximum(nn, 1e-300)
         rel_n = np.where(np.isfinite(rel_rho), rel_n, np.inf)  # no lobe: n has no meaning
-        out[:, 0] = np.maximum(out[:, 0], rel_rho)
-        out[:, 1] = np.maximum(out[:, 1], rel_n)
-        out[:, 2] = np.maximum(out[:, 2], np.sqrt(full[:, o + lay.lobe_stride - 2]))
-    return np.nan_to_num(out, nan=np.inf, posinf=np.inf)
+        per_lobe[j] = np.stack([rel_rho, rel_n, np.sqrt(full[:, o + lay.lobe_stride - 2])], axis=1)
+    per_lobe = np.nan_to_num(per_lobe, nan=np.inf, posinf=np.inf)
+    on = np.stack([np.any(p[:, lay.lobe_offset(j):lay.lobe_offset(j) + 3] != 0, axis=1) for j in range(lay.n_lobes)])
+    out = np.where(on[:, :, None], per_lobe, -np.inf).max(axis=0)
+    no_lobe = ~on.any(axis=0)
+    out[no_lobe] = per_lobe[:, no_lobe].max(axis=0)  # no lobe on: inf, as for a texel without any
+    return out
 
 
 UNCERTAINTY_CHUNK = 4096

@@ -168,6 +168,9 @@ class Candidate:
     overrides: dict = dataclasses.field(default_factory=dict)
     label: str = ""
     """how logs name it ("the two-lobe Lafortune"); the name when empty"""
+    supported: Callable | None = None
+    """(summaries of the candidates fitted before it, by name; FitStageConfig) -> None when the photos can support
+    it, else the reason it is left out unfitted; None: always fitted"""
 
 
 @dataclasses.dataclass

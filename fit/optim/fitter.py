@@ -51,7 +51,7 @@ class FitConfig:
                                      "estimated order-2 SH environment light, relightable; options --env.*), or "
                                      "auto: the model "
                                      "choice (fit/stages/choice.py) fits the candidates the capture calls for and "
-                                     "keeps the one with the best held-out error")
+                                     "keeps the one that predicts a validation split of the fitted photos best")
     view_prior: float = option(0.5, "view_radiance: ridge prior pulling each texel's view terms to 0, in samples' "
                                     "worth of squared residual per unit coefficient (a texel seen from few directions "
                                     "stays view-independent); 0 = none", min=0.0)

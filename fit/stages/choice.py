@@ -3,24 +3,33 @@ a capture calls for, which candidates are fitted beside it, and which one is kep
 
 The policy is written over the registry's declarations, never over model names: the base model is the plugin
 of lowest ``auto_rank`` among those whose ``needs_light`` matches the capture (every photo with a known light:
-a reflectance model; one fixed, unknown lighting: a radiance model). With held-out photos to judge by, the
-base model's ``candidates`` are fitted (e.g. diffuse beside Lafortune: a lobe only where it generalises), then
-its ``escalate`` may add fits once the first round is scored (light field mapping where view dependence
-matters), and the candidate with the best pooled held-out PSNR is kept. Each candidate is fitted into a
-sibling folder ``<out>_<candidate>``; the kept one is renamed to ``<out>``.
+a reflectance model; one fixed, unknown lighting: a radiance model). When the fit holds photos out, the base
+model's ``candidates`` are fitted (e.g. diffuse beside Lafortune: a lobe only where it generalises; one whose
+``supported`` says the photos cannot support it is left out unfitted), then its ``escalate`` may add fits once
+the first round is scored (light field mapping where view dependence matters).
+
+Every decision (the kept model, the escalation, the second lobe) is made on a validation split of the fitted
+photos, the materials choice's (every ``materials.validation_every``-th fitted photo): the held-out photos only
+score the model handed over, as a user meets it. A candidate whose own fit makes its materials choice on that
+split is fitted once, to every fitted photo, and judged by that choice's score; any other is judged by a fit of
+the split and fitted to every fitted photo only when kept (:func:`fit_choice`). The kept fit is renamed to
+``<out>``; the other full fits stay beside it as ``<out>_<candidate>``.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import os
 import shutil
+import time
 from pathlib import Path
 from typing import Callable
 
 from texstream.core.config import option
 from texstream.core.errors import InputError, TexstreamError
+from texstream.core.outputs import StageResult, write_json_atomic
 from texstream.core.progress import say
 from texstream.fit.models import registry
 
@@ -30,17 +39,28 @@ LFM_CANDIDATE = ("auto", "always", "never")
 
 @dataclasses.dataclass
 class ModelChoiceConfig:
-    """Options of the automatic model choice (``--model auto``)."""
+    """Options of the automatic model choice (``--model auto``). Every decision is made on a validation split of
+    the fitted photos (every ``materials.validation_every``-th); the held-out photos only score the model kept."""
 
     second_lobe: bool = option(True, "known lights, held-out photos: also fit a two-lobe Lafortune model (the second "
                                      "lobe kept per texel only where it lowers the texel's error on the fitted "
-                                     "photos, lobe_support) and keep it only when its held-out error is the best")
+                                     "photos, lobe_support) and keep it only when it predicts the validation photos "
+                                     "best; fitted only where the photos can support it (second_lobe_min_constrained)")
+    second_lobe_min_constrained: float = option(0.3, "second_lobe: the two-lobe model is fitted only when at least "
+                                                     "this share of the seen texels have a lobe their photos "
+                                                     "constrain in the one-lobe fit (materials.constrained_rel_std): "
+                                                     "only those can pin a second lobe down; 0: always fitted",
+                                                min=0.0, max=1.0)
     lfm: str = option("auto", "fixed unknown lighting, held-out photos: fit a light field mapping model ([fit.lfm]) "
-                              "beside radiance and view_radiance and keep it when its held-out error is the best: "
-                              "auto (only when view dependence matters: view_radiance's held-out pooled PSNR at least "
-                              "lfm_min_gain_db above radiance's), always, or never", choices=LFM_CANDIDATE)
-    lfm_min_gain_db: float = option(0.5, "lfm auto: the held-out gain (dB) of view_radiance over radiance from "
+                              "beside radiance and view_radiance and keep it when it predicts the validation photos "
+                              "best: auto (only when view dependence matters: view_radiance's validation pooled PSNR "
+                              "at least lfm_min_gain_db above radiance's), always, or never", choices=LFM_CANDIDATE)
+    lfm_min_gain_db: float = option(0.5, "lfm auto: the validation gain (dB) of view_radiance over radiance from "
                                          "which view dependence counts as mattering", min=-60.0, max=60.0)
+    validation_fit: bool = option(False, "fit only the fitted photos less every materials.validation_every-th and "
+                                         "score those validation photos where the held-out ones are scored (the "
+                                         "held-out photos are not read): how the choice judges a candidate whose "
+                                         "own fit makes no choice on that split")
 
 
 @dataclasses.dataclass
@@ -81,11 +101,13 @@ def requested_model(capture, requested: str) -> tuple[str, str]:
 
 def plan_choice(capture, requested: str, cfg) -> ChoicePlan:
     """The plan for ``requested`` (a kind or ``auto``) under the fit stage config ``cfg``: candidates only with
-    ``auto`` and at least one held-out photo (``cfg.holdout_every``)."""
+    ``auto`` and a fit that holds at least one photo out (``cfg.holdout_every``, the run's default: the user
+    asked for the model to be scored as they will meet it). The candidates are judged on a validation split of
+    the fitted photos; a bare ``texstream fit`` fits the base model alone, as before."""
     kind, why = requested_model(capture, requested)
     plugin = registry.get(kind)
-    judged = 0 < cfg.holdout_every <= len(capture.frames)
-    if requested != AUTO or not judged or plugin.candidates is None:
+    holds_out = 0 < cfg.holdout_every <= len(capture.frames)
+    if requested != AUTO or not holds_out or plugin.candidates is None:
         return ChoicePlan(kind, why, [])
     cands = plugin.candidates(capture, cfg)
     if len(cands) < 2:
@@ -100,53 +122,149 @@ def _db(value) -> str:
     return "n/a" if value is None else f"{value:.2f} dB"
 
 
+VALIDATION_SUFFIX = "_validation"
+"""a candidate's validation fit goes to ``<out>_<name>_validation`` (removed once the choice is made)"""
+
+
+@dataclasses.dataclass
+class Judged:
+    """A candidate as the choice judged it: its validation scores (None: no photo to validate on), how it was
+    judged, the seconds that took, and its fit of every fitted photo (None: only a validation fit so far)."""
+
+    candidate: object
+    pooled_db: float | None
+    worst_db: float | None
+    judged_by: str
+    seconds: float
+    full: StageResult | None = None
+
+    def record(self) -> dict:
+        return {"pooled_psnr_db": self.pooled_db, "worst_psnr_db": self.worst_db, "judged_by": self.judged_by,
+                "seconds": self.seconds}
+
+
+def makes_own_choice(candidate, cfg) -> bool:
+    """Whether the candidate's own fit chooses its materials on the validation split (a model with lobes and
+    ``materials.mode`` not off: fit/models/per_texel/lobes.py ``choose_materials``), scoring that split on the
+    way: its fit of every photo is then made once and judged by that score."""
+    traits = registry.get(candidate.kind).layout_traits
+    lobes = candidate.overrides.get("lobes", cfg.fit.lobes)
+    return bool(traits is not None and traits.lobes and lobes > 0 and cfg.materials.mode != "off")
+
+
+def own_validation_score(summary: dict) -> tuple[float, float] | None:
+    """(pooled, worst-view) validation PSNR of the materials model a fit's own choice kept, or None where its
+    choice scored nothing (too few fitted photos to split)."""
+    m = summary.get("materials") or {}
+    for c in m.get("candidates") or []:
+        if c["model"] == m.get("chosen") and c.get("k") == m.get("k") and "excluded" not in c:
+            return c["pooled_psnr_db"], c["worst_psnr_db"]
+    return None
+
+
 def fit_choice(capture_dir: Path, mesh_path: Path, out_dir: Path, cfg, plan: ChoicePlan,
                fit_one: Callable, log: Callable[[str], None] | None = None):
-    """Fit the plan's candidates (``fit_one(capture_dir, mesh_path, out, cfg)`` is the single-model fit stage)
-    into ``<out_dir>_<name>`` folders and keep the best held-out one as ``out_dir``; the StageResult of the
-    kept fit, its summary carrying ``selection`` (chosen, chosen_kind, reason, scores)."""
-    log = log or (lambda line: say("fit", line.removeprefix("[fit] ")))
-    out_dir = Path(out_dir)
-    results, kinds = {}, {}
+    """Fit the plan's candidates (``fit_one(capture_dir, mesh_path, out, cfg)`` is the single-model fit stage) and
+    keep the one that predicts a validation split of the fitted photos best (every ``materials.validation_every``-th,
+    the split of the materials choice) as ``out_dir``; the held-out photos only score the kept model.
 
-    def fit_candidate(c) -> None:
-        fit_cfg = dataclasses.replace(cfg.fit, model=c.kind, **c.overrides)
-        res = fit_one(capture_dir, mesh_path, out_dir.with_name(f"{out_dir.name}_{c.name}"),
-                      dataclasses.replace(cfg, fit=fit_cfg))
-        results[c.name], kinds[c.name] = res, c.kind
-        h = res.summary["heldout"]
-        log(f"[fit] {c.name}: held-out pooled PSNR {_db(h.get('pooled_psnr_db'))}, "
-            f"worst view {_db(h.get('worst_psnr_db'))}")
+    A candidate whose own fit chooses its materials on that split (:func:`makes_own_choice`: Lafortune) is
+    fitted to every fitted photo into ``<out_dir>_<name>`` and judged by its choice's score; any other gets a
+    validation fit (``choice.validation_fit``, into ``<out_dir>_<name>_validation``) and, when kept, its fit of
+    every fitted photo afterwards (from its initial guess: no plugin takes a warm start). A candidate whose
+    ``supported`` says the photos cannot support it is left out unfitted, with the reason. Returns the kept fit's
+    StageResult, its summary carrying ``selection`` (chosen, chosen_kind, reason, validation scores by candidate,
+    left_out, the kept model's held-out scores, seconds), also written to its model.json."""
+    log = log or (lambda line: say("fit", line.removeprefix("[fit] ")))
+    out_dir, t0 = Path(out_dir), time.perf_counter()
+    judged: dict[str, Judged] = {}
+    left_out: dict[str, str] = {}
+    failed: set[str] = set()  # escalations the capture could not take (said in the escalation's reason)
+
+    def folder(c, suffix: str = "") -> Path:
+        return out_dir.with_name(f"{out_dir.name}_{c.name}{suffix}")
+
+    def config(c, validation: bool):
+        return dataclasses.replace(cfg, fit=dataclasses.replace(cfg.fit, model=c.kind, **c.overrides),
+                                   choice=dataclasses.replace(cfg.choice, validation_fit=validation),
+                                   **({"renders": 0} if validation else {}))
+
+    def judge(c) -> None:
+        if c.supported is not None:
+            why = c.supported({k: j.full.summary for k, j in judged.items() if j.full is not None}, cfg)
+            if why:
+                left_out[c.name] = why
+                log(f"[fit] {c.name} left out: {why}")
+                return
+        t, full, score = time.perf_counter(), None, None
+        if makes_own_choice(c, cfg):
+            full = fit_one(capture_dir, mesh_path, folder(c), config(c, False))
+            score, how = own_validation_score(full.summary), "its own materials choice on the validation split"
+        if score is None:
+            h = fit_one(capture_dir, mesh_path, folder(c, VALIDATION_SUFFIX), config(c, True)).summary["heldout"]
+            score, how = (h.get("pooled_psnr_db"), h.get("worst_psnr_db")), "a fit of the validation split"
+        judged[c.name] = Judged(c, *score, how, time.perf_counter() - t, full)
+        log(f"[fit] {c.name}: validation pooled PSNR {_db(score[0])}, worst view {_db(score[1])} ({how})")
 
     for c in plan.candidates:
-        fit_candidate(c)
-    names = [c.name for c in plan.candidates]
+        judge(c)
     escalate = registry.get(plan.base).escalate
     extra_reason = None
     if escalate is not None:
-        extra, extra_reason = escalate({k: r.summary["heldout"].get("pooled_psnr_db") for k, r in results.items()}, cfg)
+        extra, extra_reason = escalate({k: j.pooled_db for k, j in judged.items()}, cfg)
         log(f"[fit] {extra_reason}")
         for c in extra:
             try:
-                fit_candidate(c)
-                names.append(c.name)
+                judge(c)
             except TexstreamError as e:  # an optional candidate the capture cannot take (e.g. streamed photos)
                 extra_reason += f"; {c.name} could not be fitted ({e.message}), left out"
+                left_out[c.name] = f"could not be fitted ({e.message})"
+                failed.add(c.name)
                 log(f"[fit] {c.name} could not be fitted ({e.message}): left out")
-    score = {k: r.summary["heldout"].get("pooled_psnr_db") for k, r in results.items()}
-    if all(v is None for v in score.values()):
-        best = names[0]
-        reason = f"{best} kept: no photo was held out, so no model could be judged on held-out photos"
-    else:
-        best = max(names, key=lambda k: -math.inf if score[k] is None else score[k])
-        reason = f"{best} kept: held-out pooled PSNR " + ", ".join(f"{k} {_db(score[k])}" for k in names)
+    best, reason = _best(judged, cfg.materials.validation_every)
+    reason += "".join(f"; {k} left out: {why}" for k, why in left_out.items() if k not in failed)
+    kept = judged[best]
+    t_refit, refit = time.perf_counter(), kept.full is None
+    if refit:
+        log(f"[fit] {best}: fitted to every fitted photo")
+        kept.full = fit_one(capture_dir, mesh_path, folder(kept.candidate), config(kept.candidate, False))
+    for c in (j.candidate for j in judged.values()):
+        shutil.rmtree(folder(c, VALIDATION_SUFFIX), ignore_errors=True)
     if out_dir.exists():
         shutil.rmtree(out_dir)
-    os.replace(out_dir.with_name(f"{out_dir.name}_{best}"), out_dir)
-    res = results[best]
+    os.replace(folder(kept.candidate), out_dir)
+    res = kept.full
     res.output = out_dir
-    res.summary["selection"] = {"chosen": best, "chosen_kind": kinds[best], "reason": reason,
-                                "heldout_pooled_db": score}
+    held = res.summary.get("heldout") or {}
+    selection = {"chosen": best, "chosen_kind": kept.candidate.kind, "reason": reason,
+                 "validation_every": cfg.materials.validation_every,
+                 "validation": {k: j.record() for k, j in judged.items()}, "left_out": left_out,
+                 "heldout_pooled_db": held.get("pooled_psnr_db"), "heldout_worst_db": held.get("worst_psnr_db"),
+                 "refit": ("its validation fit was fitted again to every fitted photo, from its initial guess"
+                           if refit else None),
+                 "seconds": {"choice": t_refit - t0, "refit": time.perf_counter() - t_refit if refit else 0.0}}
     if extra_reason is not None:
-        res.summary["selection"][registry.get(plan.base).escalation_key] = extra_reason
+        selection[registry.get(plan.base).escalation_key] = extra_reason
+    res.summary["selection"] = selection
+    _record_selection(out_dir, selection)
     return res
+
+
+def _best(judged: dict, every: int) -> tuple[str, str]:
+    """(name, reason): the candidate of best validation pooled PSNR (the first on ties); the first when no photo
+    could be validated on."""
+    names = list(judged)
+    score = {k: judged[k].pooled_db for k in names}
+    if all(v is None for v in score.values()):
+        return names[0], f"{names[0]} kept: too few fitted photos for a validation split, so no model could be judged"
+    best = max(names, key=lambda k: -math.inf if score[k] is None else score[k])
+    return best, (f"{best} kept: validation pooled PSNR (every {every}th fitted photo) "
+                  + ", ".join(f"{k} {_db(score[k])}" for k in names))
+
+
+def _record_selection(model_dir: Path, selection: dict) -> None:
+    """The choice's record added to the kept model's model.json (written atomically)."""
+    path = model_dir / "model.json"
+    manifest = json.loads(path.read_text())
+    manifest["selection"] = selection
+    write_json_atomic(path, manifest)

@@ -2,8 +2,8 @@
 light, every pixel a texel (the geometry, problem and renders: fit/common/single_view.py).
 
 Like the mesh fit (fit/stages/stage.py), ``--model auto`` takes part in the automatic model choice
-(fit/stages/choice.py: with held-out photos the reflectance model's candidates are fitted and the best held-out
-one kept), and a model with lobes gets the shared materials' choice and fit (fit/models/per_texel/lobes.py),
+(fit/stages/choice.py: with held-out photos the reflectance model's candidates are fitted, the one that predicts
+a validation split of the fitted photos best kept and the held-out photos scoring it), and a model with lobes gets the shared materials' choice and fit (fit/models/per_texel/lobes.py),
 judged on a validation split of the fitted photos rendered per pixel.
 
 Model folder: parameter maps (EXR, image resolution), seen.png, normals.exr (world-space normals of the
@@ -69,8 +69,8 @@ class SingleViewConfig:
 def fit_single_view_stage(capture_dir: str | Path, normals_path: str | Path | None, out_dir: str | Path,
                           config: SingleViewConfig | None = None, progress: bool = True) -> StageResult:
     """Fit ``config.fit``'s model per pixel of a single-view capture and write the model folder atomically; with
-    ``auto``, the model choice fits the candidates the capture calls for and keeps the best held-out one (the
-    summary's ``selection`` says which and why).
+    ``auto``, the model choice fits the candidates the capture calls for and keeps the one that predicts a
+    validation split of the fitted photos best (the summary's ``selection`` says which and why).
 
     Args:
         capture_dir: folder with capture.json (one camera, a light per frame), see fit/common/single_view.py.
@@ -89,7 +89,8 @@ def fit_single_view_stage(capture_dir: str | Path, normals_path: str | Path | No
     normals = normals_path if normals_path is not None else find_normal_map(capture.root)
     plan = choice.plan_choice(capture, choice.AUTO, cfg)
     say("fit", f"model auto: {plan.base} ({plan.reason})"
-        + (f"; the {plan.also} model too, the best held-out one kept" if plan.compare else ""))
+        + (f"; the {plan.also} model too, the best on a validation split of the fitted photos kept"
+           if plan.compare else ""))
     if not plan.compare:
         return fit_single_view_model(capture_dir, normals, out_dir, dataclasses.replace(
             cfg, fit=dataclasses.replace(cfg.fit, model=plan.base)), progress)

@@ -113,7 +113,8 @@ def fit_stage(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
               config: FitStageConfig | None = None, progress: bool = True) -> StageResult:
     """Fit the appearance model of ``config.fit.model`` to a capture and write the model folder atomically; with
     ``auto``, the model choice (fit/stages/choice.py) fits the candidates the capture calls for and keeps the
-    best held-out one (its summary's ``selection`` says which and why)."""
+    one that predicts a validation split of the fitted photos best (its summary's ``selection`` says which and
+    why; the held-out photos only score it)."""
     try:
         return _fit_stage(capture_dir, mesh_path, out_dir, config or FitStageConfig(), progress)
     finally:
@@ -131,7 +132,8 @@ def _fit_stage(capture_dir, mesh_path, out_dir, cfg: FitStageConfig, progress: b
     capture = read_capture(capture_dir)
     plan = choice.plan_choice(capture, choice.AUTO, cfg)
     say("fit", f"model auto: {plan.base} ({plan.reason})"
-        + (f"; the {plan.also} model too, the best held-out one kept" if plan.compare else ""))
+        + (f"; the {plan.also} model too, the best on a validation split of the fitted photos kept"
+           if plan.compare else ""))
     if not plan.compare:
         return fit_model(capture_dir, mesh_path, out_dir, dataclasses.replace(cfg, fit=dataclasses.replace(
             cfg.fit, model=plan.base)), progress)

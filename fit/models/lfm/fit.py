@@ -16,7 +16,7 @@ from texstream.core.errors import ConfigError, InputError
 from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
 from texstream.core.progress import phase
 from texstream.fit.common.inputs import load_fit_inputs, load_photos
-from texstream.fit.common.model_folder import pooled_psnr, render_comparisons
+from texstream.fit.common.model_folder import json_safe, pooled_psnr, render_comparisons
 from texstream.fit.common.setup import build_problem
 from texstream.fit.models.lfm.baselines import fit_nmf, fit_pca
 from texstream.fit.models.lfm.model_folder import LFMRenderer, lfm_geometry, write_lfm_maps
@@ -102,7 +102,7 @@ def lfm_fit_stage(capture_dir, mesh_path, out_dir, cfg, progress: bool = True) -
                     "render_eval": evals, "heldout": pooled_psnr([e for e in evals if e["held_out"]]),
                     "device": cfg.device, "config": config_to_dict(cfg),
                     "units": "exitant radiance in photo values per unit exposure"}
-        write_json_atomic(tmp / "model.json", manifest)
+        write_json_atomic(tmp / "model.json", json_safe(manifest))  # a black view's APE is undefined (None)
     return StageResult(Path(out_dir), {"psnr_db": err["psnr_db"], "iterations": info.get("iterations", 0),
                                        "time_s": fit_s, "texels": problem.N, "photos": len(frames),
                                        "resumed_from": None, "render_eval": evals, "warnings": [],

@@ -1,0 +1,91 @@
+"""The automatic model choice (fit/stages/choice.py) decides on a validation split of the fitted photos only:
+its candidates' fits are stand-ins here (no Warp), each writing a model folder whose scores are made up so that
+the held-out photos would choose differently from the validation photos; the choice must follow the validation
+photos, fit the kept model to every fitted photo, leave out a candidate the photos cannot support unfitted, and
+record what it did in the summary and model.json. The fits themselves are tested by the run's tests
+(tests/test_pipelines_run.py) and the materials choice's (tests/test_fit_materials_choice.py)."""
+
+from __future__ import annotations
+
+import json
+
+from texstream.core.outputs import StageResult
+from texstream.fit.models.lafortune.choice import TWO_LOBES, candidates, second_lobe_supported
+from texstream.fit.stages.choice import ChoicePlan, fit_choice
+from texstream.fit.stages.stage import FitStageConfig
+
+
+def fake_fits(validation: dict, heldout: dict, constrained_share: float = 0.1):
+    """A stand-in for the fit stage: pooled PSNR ``validation[name]`` on the validation photos (from the
+    materials choice of a Lafortune fit of every photo, or from a validation fit) and ``heldout[name]`` on the
+    held-out photos; the calls made, as (name, validation fit?)."""
+    calls = []
+
+    def fit_one(capture_dir, mesh_path, out, cfg):
+        name = out.name.removeprefix("model_").removesuffix("_validation")
+        calls.append((name, cfg.choice.validation_fit))
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "model.json").write_text(json.dumps({"kind": cfg.fit.model}))
+        score = {"views": 2, "pooled_psnr_db": validation[name] if cfg.choice.validation_fit else heldout[name],
+                 "worst_psnr_db": 20.0}
+        summary = {"heldout": score, "materials": None}
+        if cfg.fit.model == "lafortune" and not cfg.choice.validation_fit:
+            summary["materials"] = {
+                "chosen": "mixed", "k": 2,
+                "candidates": [{"model": "per-texel", "pooled_psnr_db": validation[name] - 5, "worst_psnr_db": 1.0},
+                               {"model": "mixed", "k": 2, "pooled_psnr_db": validation[name], "worst_psnr_db": 21.0}],
+                "uncertainty": {"constrained_texels": int(1000 * constrained_share), "seen_texels": 1000}}
+        return StageResult(out, summary)
+
+    return fit_one, calls
+
+
+def plan(cfg) -> ChoicePlan:
+    return ChoicePlan("lafortune", "known lights", candidates(None, cfg))
+
+
+def test_the_validation_photos_choose_and_the_held_out_ones_only_score(tmp_path):
+    """Diffuse would win on the held-out photos (45 against 30 dB) and loses on the validation photos (35 against
+    40 dB): Lafortune is kept, judged by its own materials choice on the split (the mixed K=2 score), and fitted
+    once; diffuse gets a validation fit only, removed afterwards. The two-lobe candidate is left out unfitted
+    (10% of the texels constrained < 30%). The summary and model.json record the validation scores, the reason
+    and the kept model's held-out score."""
+    cfg = FitStageConfig(holdout_every=8)
+    fit_one, calls = fake_fits({"lafortune": 40.0, "diffuse": 35.0}, {"lafortune": 30.0, "diffuse": 45.0})
+    res = fit_choice(tmp_path, tmp_path, tmp_path / "model", cfg, plan(cfg), fit_one, log=lambda line: None)
+    assert calls == [("lafortune", False), ("diffuse", True)]
+    sel = res.summary["selection"]
+    assert sel["chosen"] == "lafortune" and res.output == tmp_path / "model"
+    assert sel["validation"]["lafortune"]["pooled_psnr_db"] == 40.0
+    assert "materials choice" in sel["validation"]["lafortune"]["judged_by"]
+    assert sel["validation"]["diffuse"]["judged_by"] == "a fit of the validation split"
+    assert sel["heldout_pooled_db"] == 30.0 and sel["refit"] is None
+    assert set(sel["left_out"]) == {TWO_LOBES} and "too few to pin a second lobe" in sel["left_out"][TWO_LOBES]
+    assert "lafortune 40.00 dB, diffuse 35.00 dB" in sel["reason"] and f"{TWO_LOBES} left out" in sel["reason"]
+    assert json.loads((tmp_path / "model" / "model.json").read_text())["selection"]["chosen"] == "lafortune"
+    assert not (tmp_path / "model_diffuse_validation").exists()
+
+
+def test_a_candidate_kept_on_its_validation_fit_is_then_fitted_to_every_photo(tmp_path):
+    """Diffuse validates better (42 against 40 dB): it is fitted again to every fitted photo and kept; with the
+    one-lobe fit constraining most texels' lobes (60%) the two-lobe candidate is fitted and judged too."""
+    cfg = FitStageConfig(holdout_every=8)
+    scores = {"lafortune": 40.0, "diffuse": 42.0, TWO_LOBES: 39.0}
+    fit_one, calls = fake_fits(scores, {"lafortune": 30.0, "diffuse": 31.0, TWO_LOBES: 29.0}, constrained_share=0.6)
+    res = fit_choice(tmp_path, tmp_path, tmp_path / "model", cfg, plan(cfg), fit_one, log=lambda line: None)
+    assert calls == [("lafortune", False), ("diffuse", True), (TWO_LOBES, False), ("diffuse", False)]
+    sel = res.summary["selection"]
+    assert sel["chosen"] == "diffuse" and sel["heldout_pooled_db"] == 31.0 and sel["refit"]
+    assert sel["left_out"] == {} and set(sel["validation"]) == set(scores)
+    assert (tmp_path / "model_lafortune" / "model.json").is_file()  # the full fits not kept stay beside
+
+
+def test_the_second_lobe_is_fitted_only_where_the_photos_can_support_it():
+    """The rule of fit/models/lafortune/choice.py: the one-lobe fit's share of constrained texels against
+    choice.second_lobe_min_constrained; without its evidence (materials off) or with the option 0, fitted."""
+    cfg = FitStageConfig()
+    fitted = {"lafortune": {"materials": {"uncertainty": {"constrained_texels": 971, "seen_texels": 9580}}}}
+    assert "971 of 9,580" in second_lobe_supported(fitted, cfg)
+    fitted["lafortune"]["materials"]["uncertainty"]["constrained_texels"] = 5000
+    assert second_lobe_supported(fitted, cfg) is None
+    assert second_lobe_supported({"lafortune": {"materials": None}}, cfg) is None
