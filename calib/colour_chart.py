@@ -56,12 +56,26 @@ def chart_reflectance() -> np.ndarray:
 @dataclasses.dataclass
 class ChartSighting:
     """One chart found in one photo: its corners in the photo's pixels, its patches' mean code values (24, 3) in
-    [0, 1] (RGB), their standard deviations, and the detector's cost (lower is a better match)."""
+    [0, 1] (RGB), their standard deviations, the detector's cost (lower is a better match) and the patches'
+    centres (24, 2) in pixels, in patch order (the chart's pose: :mod:`.chart_flash`)."""
 
     corners: np.ndarray
     patches: np.ndarray
     patch_std: np.ndarray
     cost: float
+    patch_centres: np.ndarray | None = None
+
+    def to_json(self) -> dict:
+        return {"corners": self.corners.tolist(), "patches": self.patches.tolist(),
+                "patch_std": self.patch_std.tolist(), "cost": self.cost,
+                "patch_centres": None if self.patch_centres is None else self.patch_centres.tolist()}
+
+    @staticmethod
+    def from_json(d: dict) -> "ChartSighting":
+        centres = d.get("patch_centres")
+        return ChartSighting(np.asarray(d["corners"], np.float64), np.asarray(d["patches"], np.float64),
+                             np.asarray(d["patch_std"], np.float64), float(d["cost"]),
+                             None if centres is None else np.asarray(centres, np.float64))
 
 
 def find_chart(rgb_codes: np.ndarray) -> ChartSighting | None:
@@ -77,8 +91,12 @@ def find_chart(rgb_codes: np.ndarray) -> ChartSighting | None:
         return None
     best = detector.getBestColorChecker()
     stats = np.asarray(best.getChartsRGB(), np.float64).reshape(24, 3, -1)  # per patch and channel: count, mean, std, ...
-    return ChartSighting(np.asarray(best.getBox(), np.float64), stats[:, :, 1] / 255.0, stats[:, :, 2] / 255.0,
-                         float(best.getCost()))
+    corners = np.asarray(best.getBox(), np.float64)
+    h, w = rgb_codes.shape[:2]
+    if np.any(corners < -0.5) or np.any(corners > [w - 0.5, h - 0.5]):
+        return None  # a chart cut by the frame: the detector extrapolates the patches it cannot see
+    centres = np.asarray(best.getColorCharts(), np.float64).reshape(24, 4, 2).mean(axis=1)
+    return ChartSighting(corners, stats[:, :, 1] / 255.0, stats[:, :, 2] / 255.0, float(best.getCost()), centres)
 
 
 @dataclasses.dataclass

@@ -145,7 +145,8 @@ def synthesize_flash_capture(out: str | Path, cfg: FlashCaptureConfig | None = N
             h, w = mask.shape
             linear = np.zeros((h, w, 3))
             if front:
-                linear = paste_chart(linear, uv, _chart_light(f, flash, chart_room, (h, w)))
+                # paste_chart's pixel centres are at integers (OpenCV), the capture's at + 0.5
+                linear = paste_chart(linear, uv - 0.5, _chart_light(f, flash, chart_room, (h, w)))
                 in_view.append(bool(np.all((uv >= 0) & (uv < [w, h]))))
             linear = np.where(mask[..., None], radiance, linear)
             name = Path(f.file_path).stem
