@@ -26,10 +26,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
+from pathlib import Path
 
 import numpy as np
 
 from texstream.core.errors import InputError
+from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
 
 from .colour_chart import USABLE_CODES, ChartSighting, chart_reflectance
 
@@ -204,3 +207,46 @@ def flash_from_chart(frames: list, sightings: dict, response, offset=(0.0, 0.0, 
     resid = np.concatenate(resid)
     return FlashFromChart(intensity, room, room_fitted, scale, centre, spread, int(kept.sum()), int((~kept).sum()),
                           float(100.0 * np.sqrt(np.mean(resid ** 2))), per_photo, dropped_photos)
+
+
+def chart_flash_applies(capture) -> bool:
+    """Whether a posed capture can have its flash's intensity from the chart: a flash at the camera
+    (``colocated_light``, as ingest writes it), chart sightings (``colour_chart``, ingest's ``--response auto``)
+    and the response fitted to the same chart (the patches' codes made linear in the fit's units)."""
+    return (bool(capture.extra.get("colour_chart")) and isinstance(capture.extra.get("colocated_light"), dict)
+            and capture.response is not None)
+
+
+def flash_lit_capture(posed_dir: Path, out: Path) -> StageResult:
+    """The run's lights stage for a flash capture with a chart in view: the flash's intensity from the chart
+    (:func:`flash_from_chart`), ``OUT/flash.json`` (what it found) and ``OUT/capture.json``, the posed capture with
+    every frame's flash at that intensity (image and mask paths relative to ``OUT``: nothing is copied)."""
+    from texstream.capture.capture_json import Capture, read_capture, write_capture
+
+    from .lights import colocated_light
+
+    cap = read_capture(posed_dir)
+    sightings = {n: ChartSighting.from_json(d) for n, d in cap.extra["colour_chart"].items()}
+    guess = cap.extra["colocated_light"]
+    offset = guess.get("offset", [0.0, 0.0, 0.0])
+    found = flash_from_chart(cap.frames, sightings, cap.response, offset)
+    old = [float(v) for v in np.ravel(cap.frames[0].light.intensity)] if cap.frames[0].light is not None else None
+
+    def rel(p: str) -> str:
+        return os.path.relpath(posed_dir / p, out)
+
+    frames = [dataclasses.replace(f, file_path=rel(f.file_path), mask_path=None if f.mask_path is None else rel(f.mask_path),
+                                  light=colocated_light(f.R, f.t, found.intensity, offset)) for f in cap.frames]
+    summary = {"kind": "flash at the camera", "intensity": found.intensity.tolist(), "replaced": old,
+               "photos_with_chart": len(sightings) - len(found.dropped_photos), "photos": len(frames),
+               "room_irradiance_on_chart": found.room_irradiance.tolist(), "room_fitted": found.room_fitted,
+               "residual_percent": found.residual_percent, "centre_spread": found.centre_spread,
+               "why": (f"the colour chart in {len(sightings) - len(found.dropped_photos)} photos: its pose (solvePnP "
+                       f"on its patches, scaled by the registered cameras to {found.centre_spread:.1%}) and its "
+                       f"linearised patches fix the flash's intensity ({found.residual_percent:.2f}% RMS), so "
+                       "albedos are absolute; replaces the intensity guessed from the object's distance")}
+    extra = {**cap.extra, "lights_source": "flash at the camera, intensity from the colour chart"}
+    with atomic_output_dir(out, overwrite=True) as tmp:
+        write_json_atomic(tmp / "flash.json", {**found.to_json(), "why": summary["why"]})
+        write_capture(Capture(root=tmp, frames=frames, extra=extra), tmp)
+    return StageResult(output=out, summary=summary)

@@ -1,9 +1,9 @@
 """A synthetic flash capture as a photographer leaves it (issue 39): a glossy object photographed with a flash on
-the camera in a lit room, a ColorChecker lying beside it, exported as 8-bit PNGs through a tone curve.
+the camera in a lit room, a ColorChecker on a stand beside it, exported as 8-bit PNGs through a tone curve.
 
 ``texstream synth flash_capture -o DIR`` writes it. The object is the ``flash_sphere`` scene (a sphere with a
 value-noise albedo, SIFT's features, and one Lafortune lobe; the room's light adds rho_d E_room to every texel)
-rendered by texstream's renderer with a point light at each camera centre. The chart lies flat on the table the
+rendered by texstream's renderer with a point light at each camera centre. The chart stands on the table the
 sphere stands on (z = -1, beside it), so it never hides the object while the object hides it from the far side;
 it is drawn here by ray-plane intersection: each pixel's patch reflectance / pi x (the flash's irradiance there,
 I cos / r^2, plus the room's on the chart). Each photo is the object where the renderer's mask says, the chart
@@ -40,13 +40,16 @@ from texstream.core.outputs import StageResult, atomic_output_dir, write_json_at
 from .colour_chart import chart_plane, filmic_codes, paste_chart
 from .synth import GROUND_TRUTH, SynthConfig, synthesize
 
+FLASH_CAPTURE = "flash_capture"
+"""the name ``texstream synth`` takes for it"""
 FLASH_SCENE = "flash_sphere"
 TONE_WHITE = 4.0
 """the tone curve's white: linear radiance 4 maps to code 1 (highlights keep some headroom, mid-tones are bent)"""
-TABLE_Z = -1.0
-"""the table's height: the sphere (radius 1 at the origin) stands on it, the chart lies on it"""
-CHART_CENTRE = (0.0, -2.15)
-"""the chart's centre on the table (x, y): beside the sphere, towards the cameras of the first ring's start"""
+CHART_CENTRE = (0.0, -2.15, -0.8)
+"""the chart's centre: on a low stand on the table beside the sphere"""
+CHART_TILT_DEG = 15.0
+"""the stand tilts the chart from lying flat towards -y (the cameras on that side see it nearly square on, those
+across the sphere at a grazing angle or not at all)"""
 CHART_WIDTH = 1.9
 """the chart's long side in scene units (the sphere's radius is 1); its short side follows the Classic's
 layout (:func:`texstream.capture.synthetic.colour_chart.chart_plane`)"""
@@ -60,21 +63,39 @@ class FlashCaptureConfig:
     photos: int = option(24, help="photos, on two rings about the sphere and its chart", min=3, max=10000)
     image_size: int = option(400, help="photo width and height in pixels", min=64, max=16384)
     noise: float = option(0.002, help="sensor noise sigma in linear radiance before the tone curve", min=0.0, max=1.0)
-    room_light: float = option(0.8, help="the room's irradiance (0: the flash alone)", min=0.0)
+    room_light: float = option(0.6, help="the room's irradiance (0: the flash alone)", min=0.0)
     flash: float = option(40.0, help="the flash's intensity (point light at each camera centre)", min=1e-6)
     seed: int = option(0, help="random seed of the sensor noise", min=0)
     device: str = option("cpu", help="Warp device for baking and rendering")
     progress: bool = option(True, help="show a progress bar while rendering")
 
 
+def flash_config(synth: SynthConfig) -> FlashCaptureConfig:
+    """The flash capture's options from ``texstream synth``'s (those it has; the rest stay the defaults)."""
+    d = FlashCaptureConfig()
+    return FlashCaptureConfig(photos=synth.photos or d.photos, image_size=synth.image_size or d.image_size,
+                              noise=d.noise if synth.noise is None else synth.noise,
+                              room_light=d.room_light if synth.room_light is None else synth.room_light,
+                              seed=synth.seed, device=synth.device, progress=synth.progress)
+
+
 def chart_corners_world() -> np.ndarray:
-    """(4, 3) the chart's corners on the table in the order :func:`paste_chart` takes them (top-left, top-right,
+    """(4, 3) the chart's corners on its stand in the order :func:`paste_chart` takes them (top-left, top-right,
     bottom-right, bottom-left of :func:`chart_plane`'s image), its top edge towards the sphere."""
     h, w = chart_plane().shape[:2]
     hx, hy = CHART_WIDTH / 2, CHART_WIDTH * h / w / 2
-    cx, cy = CHART_CENTRE
-    return np.array([[cx - hx, cy + hy, TABLE_Z], [cx + hx, cy + hy, TABLE_Z], [cx + hx, cy - hy, TABLE_Z],
-                     [cx - hx, cy - hy, TABLE_Z]], np.float64)
+    tilt = math.radians(CHART_TILT_DEG)
+    down = np.array([0.0, -math.cos(tilt), -math.sin(tilt)])  # from the top edge to the bottom edge
+    right = np.array([1.0, 0.0, 0.0])
+    c = np.asarray(CHART_CENTRE, np.float64)
+    return np.array([c - hx * right - hy * down, c + hx * right - hy * down, c + hx * right + hy * down,
+                     c - hx * right + hy * down])
+
+
+def chart_normal() -> np.ndarray:
+    """The chart's unit normal, towards the side it faces (up and towards -y)."""
+    tilt = math.radians(CHART_TILT_DEG)
+    return np.array([0.0, -math.sin(tilt), math.cos(tilt)])
 
 
 def true_response(white: float = TONE_WHITE, knots: int = 96) -> PhotoResponse:
@@ -91,18 +112,20 @@ def true_response(white: float = TONE_WHITE, knots: int = 96) -> PhotoResponse:
 
 
 def _chart_light(frame, flash: np.ndarray, room: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """(H, W, 3) the irradiance / pi on the table's plane seen through each pixel (flash at the camera centre:
-    I cos / r^2; plus the room's), 0 where the pixel's ray misses the table."""
+    """(H, W, 3) the irradiance / pi on the chart's plane seen through each pixel (flash at the camera centre:
+    I cos / r^2; plus the room's), 0 where the pixel's ray meets the plane's back or misses it."""
     h, w = shape
     j, i = np.mgrid[0:h, 0:w]
     pix = np.stack([i.ravel() + 0.5, j.ravel() + 0.5, np.ones(h * w)], 1)
     dirs = (pix @ np.linalg.inv(frame.intrinsics.matrix()).T) @ np.asarray(frame.R)
     c = np.asarray(frame.center, np.float64)
+    n = chart_normal()
+    height = float(n @ (c - np.asarray(CHART_CENTRE)))  # the camera's distance in front of the chart's plane
     with np.errstate(divide="ignore", invalid="ignore"):
-        t = (TABLE_Z - c[2]) / dirs[:, 2]
-    ok = t > 0
+        t = -height / (dirs @ n)
+    ok = (t > 0) & (height > 0)
     r = np.where(ok, t * np.linalg.norm(dirs, axis=1), 1.0)
-    cos = np.clip((c[2] - TABLE_Z) / r, 0.0, 1.0)
+    cos = np.clip(height / r, 0.0, 1.0)
     e = np.where(ok[:, None], flash[None] * (cos / r ** 2)[:, None] + room[None], 0.0)
     return (e / math.pi).reshape(h, w, 3)
 
