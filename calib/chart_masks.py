@@ -6,7 +6,8 @@ of the torso). Every photo in which :mod:`.colour_chart` found the chart gets a 
 grown about its centre by :data:`CHART_MARGIN` (the detector's box sits inside the chart's black frame, and a
 stand or easel under the chart is close to it): the mesh stage's dense stereo keeps only masked pixels, its SfM
 points are judged by the masks, and the fit reads no chart pixel. A photo with an object mask keeps it, minus the
-chart; a photo without one gets a mask of everything but the chart, and when no photo had an object mask the
+parts of it that lie mostly on the chart (:func:`chart_pixels`: the object in front of the chart keeps its
+silhouette whole); a photo without one gets a mask of everything but the chart, and when no photo had an object mask the
 capture says so (``mask_kind`` ``valid_pixels``: such masks are not silhouettes a visual hull may be carved from).
 OpenCV is imported inside the functions that need it.
 """
@@ -38,6 +39,21 @@ def chart_quad_mask(corners: np.ndarray, shape: tuple[int, int], margin: float =
     return out.astype(bool)
 
 
+def chart_pixels(mask: np.ndarray, chart: np.ndarray) -> np.ndarray:
+    """The mask's pixels to clear for the chart's (grown) quad ``chart``: each connected part of the mask lying
+    mostly (over half its area) on the quad is the chart, or the chart with a little of what surrounds it, and is
+    cleared whole; a part mostly off it is the object, which may stand in front of the chart (the chart's quad
+    behind the object's outline): it is kept whole, so a silhouette is never cut into."""
+    import cv2
+
+    if mask.all():  # a mask of every pixel (no object mask): the quad itself
+        return chart.copy()
+    n, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
+    area = np.bincount(labels.ravel(), minlength=n)
+    on_chart = np.bincount(labels[chart], minlength=n)
+    return (on_chart * 2 > area)[labels] & mask
+
+
 def mask_out_charts(root: Path, frames: list, sightings: dict) -> dict:
     """Clear the chart from the masks of the ``frames`` (capture Frames of the capture folder ``root``, being
     written) named in ``sightings`` ({frame name: ChartSighting}); frames without a mask get one (their
@@ -57,8 +73,9 @@ def mask_out_charts(root: Path, frames: list, sightings: dict) -> dict:
             mask = np.ones((h, w), bool)
             f.mask_path = str(Path("masks") / f"{f.name}.png")
             made += 1
-        pixels += int((mask & chart).sum())
-        write_image(root / f.mask_path, np.where(mask & ~chart, np.uint8(255), np.uint8(0)), bits=8)
+        clear = chart_pixels(mask, chart)
+        pixels += int(clear.sum())
+        write_image(root / f.mask_path, np.where(mask & ~clear, np.uint8(255), np.uint8(0)), bits=8)
         masked += 1
     return {"photos": masked, "pixels": pixels, "made": made,
             "why": (f"the colour chart found in {masked} photo(s): its quad (grown {CHART_MARGIN:.0%}) cleared from "

@@ -211,11 +211,12 @@ def fit_response(sightings: list[ChartSighting], smoothness: float = 1e-3) -> Re
 def response_from_photos(paths: list[Path], read_codes) -> tuple[Response | None, list[dict]]:
     """Find the chart in each photo (``read_codes(path)``: its stored code values in [0, 1]) and fit the response
     to those that show it. Returns (response or None when no photo shows the chart, per photo {"photo", "found",
-    "cost"})."""
+    "cost"} and, where found, "sighting" (:meth:`ChartSighting.to_json`: corners, patches, patch centres))."""
     sightings, report = [], []
     for path in paths:
         s = find_chart(read_codes(path))
-        report.append({"photo": str(path), "found": s is not None, "cost": None if s is None else s.cost})
+        report.append({"photo": str(path), "found": s is not None, "cost": None if s is None else s.cost,
+                       **({"sighting": s.to_json()} if s is not None else {})})
         if s is not None:
             sightings.append(s)
     return (fit_response(sightings) if sightings else None), report
