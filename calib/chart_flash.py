@@ -31,10 +31,12 @@ from pathlib import Path
 
 import numpy as np
 
+from texstream.capture.capture_json import Capture, read_capture, write_capture
 from texstream.core.errors import InputError
 from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
 
 from .colour_chart import USABLE_CODES, ChartSighting, chart_reflectance
+from .lights import colocated_light
 
 MIN_X_SPREAD = 1.3
 """the ratio of the largest to the smallest ``cos / r^2`` over the patches from which the room's light on the chart
@@ -221,10 +223,6 @@ def flash_lit_capture(posed_dir: Path, out: Path) -> StageResult:
     """The run's lights stage for a flash capture with a chart in view: the flash's intensity from the chart
     (:func:`flash_from_chart`), ``OUT/flash.json`` (what it found) and ``OUT/capture.json``, the posed capture with
     every frame's flash at that intensity (image and mask paths relative to ``OUT``: nothing is copied)."""
-    from texstream.capture.capture_json import Capture, read_capture, write_capture
-
-    from .lights import colocated_light
-
     cap = read_capture(posed_dir)
     sightings = {n: ChartSighting.from_json(d) for n, d in cap.extra["colour_chart"].items()}
     guess = cap.extra["colocated_light"]

@@ -147,6 +147,19 @@ def _decide_response(infos: list[dict], cfg: IngestConfig):
     return fitted.photo_response(f"colour chart in {len(found)} of {len(coded)} photos"), entry
 
 
+def _chart_masks(response_entry: dict, infos: list[dict], frames: list[Frame], tmp: Path) -> tuple[dict, dict]:
+    """The colour chart (found by ``--response auto``) cleared from the frames' masks, kept out of the mesh and the
+    fit (:mod:`.chart_masks`). Returns (capture.json fields: the sightings, for the flash's intensity once the
+    cameras are known (:mod:`.chart_flash`), and ``mask_kind`` when every mask is one made here; the summary)."""
+    upright = {i["path"].name for i in infos if int(i["exif"].get("orientation", 1) or 1) == 1}
+    charts = charts_by_frame(response_entry.get("per_photo", []), upright)
+    summary = mask_out_charts(tmp, frames, charts)
+    extra: dict[str, Any] = {"colour_chart": {n: s.to_json() for n, s in charts.items()}} if charts else {}
+    if charts and summary["made"] == len(frames):  # no object mask anywhere: these masks are no silhouettes
+        extra[MASK_KIND_KEY] = VALID_PIXELS
+    return extra, summary
+
+
 def _exif(path: Path) -> dict[str, Any]:
     """EXIF fields texstream uses, from the file header (OpenImageIO); missing ones are absent."""
     import OpenImageIO as oiio
@@ -459,10 +472,7 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
                                   mask_path=None if mask_rel is None else str(mask_rel), saturation=sat, extra=extra),
                             gain, mask_src))
         auto = _auto_masks(entries, cfg, tmp)
-        # the colour chart (found by --response auto) cleared from the masks: kept out of the mesh and the fit
-        charts = charts_by_frame(response_entry.get("per_photo", []),
-                                 {i["path"].name for i in infos if int(i["exif"].get("orientation", 1) or 1) == 1})
-        chart_masks = mask_out_charts(tmp, [fr for fr, _, _ in entries], charts)
+        chart_extra, chart_masks = _chart_masks(response_entry, infos, [fr for fr, _, _ in entries], tmp)
         gains = [g for _, g, _ in entries if g]
         ref = float(np.median(gains)) if gains and cfg.normalize_exposure else None
         for fr, g, _ in entries:
@@ -476,10 +486,7 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
             extra_top["colocated_light"] = {"intensity": [float(cfg.colocated_light)] * 3, "offset": [0.0, 0.0, 0.0]}
         if response is not None:
             extra_top[RESPONSE_KEY] = response.to_json()
-        if charts:  # the sightings, for the flash's intensity once the cameras are known (calib/chart_flash.py)
-            extra_top["colour_chart"] = {n: s.to_json() for n, s in charts.items()}
-            if chart_masks["made"] == len(frames):  # no object mask anywhere: these masks are no silhouettes
-                extra_top[MASK_KIND_KEY] = VALID_PIXELS
+        extra_top.update(chart_extra)
         write_capture(Capture(root=tmp, frames=frames, extra=extra_top), tmp)
         report["response"] = response_entry
         report["frames"] = [f.file_path for f in frames]
