@@ -117,3 +117,23 @@ def test_ingest_keeps_the_chart_out_of_the_masks_and_records_it(tmp_path, sighti
         assert not mask[box[1], box[0]] and mask[5, 5]
     # the chart's response and sightings are there: a registered copy of this capture gets its flash from the chart
     assert chart_flash_applies(cap)
+
+
+def test_the_lights_stage_gives_every_frame_the_flash_from_the_chart(tmp_path, sightings):
+    from texstream.calib.chart_flash import flash_lit_capture
+    from texstream.capture.capture_json import Capture, read_capture, write_capture
+
+    frames, found = sightings
+    posed = tmp_path / "posed"
+    guess = [Frame(file_path=f.file_path, R=f.R, t=f.t, intrinsics=f.intrinsics, exposure=f.exposure,
+                   light=Light.point(f.center, [1.0] * 3)) for f in frames]
+    extra = {"colocated_light": {"intensity": [1.0] * 3, "offset": [0.0, 0.0, 0.0]},
+             "colour_chart": {n: s.to_json() for n, s in found.items()}, "response": true_response().to_json()}
+    write_capture(Capture(root=posed, frames=guess, extra=extra), posed)
+    res = flash_lit_capture(posed, tmp_path / "lights")
+    lit = read_capture(tmp_path / "lights")
+    assert np.abs(np.asarray(res.summary["intensity"]) / FLASH - 1.0).max() < 0.02  # as flash_from_chart's bound
+    assert all(np.allclose(f.light.intensity, res.summary["intensity"]) for f in lit.frames)
+    # the photos stay where the posed capture has them (paths relative to the lights folder)
+    assert lit.image_path(lit.frames[0]).resolve() == (posed / frames[0].file_path).resolve()
+    assert res.summary["replaced"] == [1.0, 1.0, 1.0] and "colour chart" in lit.extra["lights_source"]
