@@ -181,6 +181,9 @@ def main() -> None:
     ap.add_argument("--atlas-resolution", type=int, default=320,
                     help="the photos-only run's atlas side (the truth's is 320x160: about 2x2 photo pixels a texel)")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--reuse", action="store_true",
+                    help="keep OUT's capture, photos and the runs' stages whose inputs did not change (the pipeline's "
+                         "stamps); default: start afresh")
     a = ap.parse_args()
 
     import warp as wp
@@ -194,11 +197,12 @@ def main() -> None:
     wp.config.quiet = True
     wp.config.log_level = wp.LOG_WARNING
     out = Path(a.out)
-    shutil.rmtree(out, ignore_errors=True)
     truth_dir = out / "truth"
-    synthesize_flash_capture(truth_dir, FlashCaptureConfig(photos=a.photos, image_size=a.image_size, device=a.device,
-                                                           progress=False))
-    write_photos_only(truth_dir, out / "photos")
+    if not (a.reuse and (out / "photos").is_dir()):
+        shutil.rmtree(out, ignore_errors=True)
+        synthesize_flash_capture(truth_dir, FlashCaptureConfig(photos=a.photos, image_size=a.image_size,
+                                                               device=a.device, progress=False))
+        write_photos_only(truth_dir, out / "photos")
     truth = read_capture(truth_dir)
     flash_truth = json.loads((truth_dir / "ground_truth" / "flash.json").read_text())
 

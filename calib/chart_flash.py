@@ -211,12 +211,29 @@ def flash_from_chart(frames: list, sightings: dict, response, offset=(0.0, 0.0, 
                           float(100.0 * np.sqrt(np.mean(resid ** 2))), per_photo, dropped_photos)
 
 
+def camera_flash_offset(capture) -> list[float] | None:
+    """The offset (camera axes) of a flash fixed to the camera, or None: ingest's ``colocated_light`` before the
+    cameras are registered, else every frame's point light at one offset from its camera centre (what the
+    registration gives a capture ingested with ``--colocated-light``)."""
+    coloc = capture.extra.get("colocated_light")
+    if isinstance(coloc, dict):
+        return [float(v) for v in coloc.get("offset", [0.0, 0.0, 0.0])]
+    lights = [f.light for f in capture.frames]
+    if not lights or any(lt is None or lt.type != "point" for lt in lights):
+        return None
+    offsets = np.array([np.asarray(f.R) @ (np.asarray(f.light.position) - f.center) for f in capture.frames])
+    span = max(float(np.ptp([f.center for f in capture.frames], axis=0).max()), 1e-12)
+    if np.abs(offsets - offsets[0]).max() > 1e-6 * span:
+        return None
+    return offsets[0].tolist()
+
+
 def chart_flash_applies(capture) -> bool:
-    """Whether a posed capture can have its flash's intensity from the chart: a flash at the camera
-    (``colocated_light``, as ingest writes it), chart sightings (``colour_chart``, ingest's ``--response auto``)
-    and the response fitted to the same chart (the patches' codes made linear in the fit's units)."""
-    return (bool(capture.extra.get("colour_chart")) and isinstance(capture.extra.get("colocated_light"), dict)
-            and capture.response is not None)
+    """Whether a posed capture can have its flash's intensity from the chart: a flash fixed to the camera
+    (:func:`camera_flash_offset`), chart sightings (``colour_chart``, ingest's ``--response auto``) and the
+    response fitted to the same chart (the patches' codes made linear in the fit's units)."""
+    return (bool(capture.extra.get("colour_chart")) and capture.response is not None
+            and camera_flash_offset(capture) is not None)
 
 
 def flash_lit_capture(posed_dir: Path, out: Path) -> StageResult:
@@ -225,8 +242,7 @@ def flash_lit_capture(posed_dir: Path, out: Path) -> StageResult:
     every frame's flash at that intensity (image and mask paths relative to ``OUT``: nothing is copied)."""
     cap = read_capture(posed_dir)
     sightings = {n: ChartSighting.from_json(d) for n, d in cap.extra["colour_chart"].items()}
-    guess = cap.extra["colocated_light"]
-    offset = guess.get("offset", [0.0, 0.0, 0.0])
+    offset = camera_flash_offset(cap)
     found = flash_from_chart(cap.frames, sightings, cap.response, offset)
     old = [float(v) for v in np.ravel(cap.frames[0].light.intensity)] if cap.frames[0].light is not None else None
 

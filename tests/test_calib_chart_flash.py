@@ -127,9 +127,9 @@ def test_the_lights_stage_gives_every_frame_the_flash_from_the_chart(tmp_path, s
     posed = tmp_path / "posed"
     guess = [Frame(file_path=f.file_path, R=f.R, t=f.t, intrinsics=f.intrinsics, exposure=f.exposure,
                    light=Light.point(f.center, [1.0] * 3)) for f in frames]
-    extra = {"colocated_light": {"intensity": [1.0] * 3, "offset": [0.0, 0.0, 0.0]},
-             "colour_chart": {n: s.to_json() for n, s in found.items()}, "response": true_response().to_json()}
+    extra = {"colour_chart": {n: s.to_json() for n, s in found.items()}, "response": true_response().to_json()}
     write_capture(Capture(root=posed, frames=guess, extra=extra), posed)
+    assert chart_flash_applies(read_capture(posed))  # as registration leaves it: a point light at every camera
     res = flash_lit_capture(posed, tmp_path / "lights")
     lit = read_capture(tmp_path / "lights")
     assert np.abs(np.asarray(res.summary["intensity"]) / FLASH - 1.0).max() < 0.02  # as flash_from_chart's bound
