@@ -157,6 +157,24 @@ def _fit_without_ambient(run_dir: Path, out: Path, device: str, iterations: int)
             "seconds": time.perf_counter() - t0}
 
 
+def _mesh_without_chart_masks(out: Path, truth_frames, device: str) -> dict:
+    """The photos-only run's ingest, registration and mesh again with ``--response srgb`` (no chart looked for, so
+    none masked): what the chart masks keep out of the mesh."""
+    from texstream.calib.ingest import IngestConfig, ingest
+    from texstream.calib.register import RegisterConfig, register
+    from texstream.capture.capture_json import read_capture
+    from texstream.geometry.make_mesh import MeshConfig, make_mesh
+    from texstream.geometry.mesh_frame import mesh_alignment
+
+    root = out / "no_chart_masks"
+    t0 = time.perf_counter()
+    ingest(out / "photos", root / "capture", IngestConfig(response="srgb", colocated_light=1.0))
+    register(root / "capture", root / "posed", RegisterConfig(), mesh_alignment=mesh_alignment)
+    make_mesh(root / "posed", root / "mesh", MeshConfig(device=device))
+    sim = _similarity(read_capture(root / "posed").frames, truth_frames)
+    return {**_mesh_checks(root / "mesh" / "mesh.ply", sim), "seconds": time.perf_counter() - t0}
+
+
 def _run(photos_or_capture: Path, out: Path, device: str, iterations: int, atlas: int, *, photos_only: bool,
          mesh: str | None = None) -> tuple[dict, float]:
     from texstream.pipelines.run import RunConfig, run_pipeline
@@ -184,6 +202,9 @@ def main() -> None:
     ap.add_argument("--reuse", action="store_true",
                     help="keep OUT's capture, photos and the runs' stages whose inputs did not change (the pipeline's "
                          "stamps); default: start afresh")
+    ap.add_argument("--mesh-without-chart-masks", action="store_true",
+                    help="only the mesh with no chart masks (ingest --response srgb), into OUT/no_chart_masks and "
+                         "OUT/flash_capture_mesh_ab.json (needs OUT's photos: run without it first, or with --reuse)")
     a = ap.parse_args()
 
     import warp as wp
@@ -205,6 +226,14 @@ def main() -> None:
         write_photos_only(truth_dir, out / "photos")
     truth = read_capture(truth_dir)
     flash_truth = json.loads((truth_dir / "ground_truth" / "flash.json").read_text())
+    if a.mesh_without_chart_masks:
+        ab = {"commit": commit, "machine": f"{platform.node()} ({os.cpu_count()} cores)",
+              "command": f"python benchmarks/flash_capture.py --reuse --mesh-without-chart-masks --photos {a.photos} "
+                         f"--image-size {a.image_size}",
+              "without_chart_masks": _mesh_without_chart_masks(out, truth.frames, a.device)}
+        (out / "flash_capture_mesh_ab.json").write_text(json.dumps(ab, indent=2, default=float))
+        print(json.dumps(ab, indent=1, default=float))
+        return
 
     run, run_s = _run(out / "photos", out / "run", a.device, a.iterations, a.atlas_resolution, photos_only=True)
     ref, ref_s = _run(truth_dir, out / "reference", a.device, a.iterations, a.atlas_resolution, photos_only=False,
