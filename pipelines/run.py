@@ -8,6 +8,8 @@ and leaves out what the scene does not need, deciding from the data and recordin
 - cameras known (capture.json / transforms.json with poses, a COLMAP model): no registration;
 - a mesh given with UVs: no atlas (``mesh`` option);
 - cameras this run registered and a mesh it made: refined against the photos (``refine``); given ones stay;
+- a flash fixed to the camera and a colour chart found by ingest's ``--response auto``: the flash's intensity from
+  the chart (the lights stage, calib/chart_flash.py), so albedos come out absolute;
 - lights known for every photo -> a reflectance model (Lafortune SBRDF); one fixed unknown
   lighting -> the radiance model (``model`` "auto"); with held-out photos the view-dependent radiance
   model beside it and, when view dependence matters (view_radiance beats radiance on the held-out
