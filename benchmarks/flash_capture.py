@@ -141,6 +141,13 @@ def _heldout(summary: dict) -> dict:
     return {k: h.get(k) for k in ("pooled_psnr_db", "worst_psnr_db", "views")}
 
 
+def _ambient_choice(model_dir: Path) -> dict:
+    """model.json's ambient report: what --ambient auto chose and its validation scores with and without."""
+    amb = json.loads((model_dir / "model.json").read_text()).get("ambient") or {}
+    return {"chosen": amb.get("chosen"), "reason": amb.get("reason"),
+            "validation_pooled_db": {k: v.get("pooled_psnr_db") for k, v in (amb.get("candidates") or {}).items()}}
+
+
 def _fit_without_ambient(run_dir: Path, out: Path, device: str, iterations: int) -> dict:
     """The photos-only run's fit again, on the same cameras, mesh and lights, without the ambient term."""
     from texstream.fit.optim.fitter import FitConfig
@@ -259,9 +266,11 @@ def main() -> None:
                              "seconds": run_s, "inputs": run["inputs"], "model": run["model"],
                              "stages": [{k: st[k] for k in ("name", "status", "reason", "seconds")} for st in run["stages"]],
                              "registered": len(read_capture(fit_dir).frames),
+                             "ambient": _ambient_choice(out / "run" / "model"),
                              "texels": _texel_errors(out / "run" / "model", truth_dir, sim, truth.frames),
                              "mesh": _mesh_checks(out / "run" / "mesh" / "mesh.ply", sim)}
     result["true_inputs"] = {"heldout": _heldout(ref), "seconds": ref_s, "inputs": ref["inputs"],
+                             "ambient": _ambient_choice(out / "reference" / "model"),
                              "texels": _texel_errors(out / "reference" / "model", truth_dir, (1.0, np.eye(3), np.zeros(3)),
                                                      truth.frames)}
     result["gap_db"] = result["true_inputs"]["heldout"]["pooled_psnr_db"] - po["pooled_psnr_db"]
