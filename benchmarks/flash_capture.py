@@ -164,22 +164,28 @@ def _fit_without_ambient(run_dir: Path, out: Path, device: str, iterations: int)
             "seconds": time.perf_counter() - t0}
 
 
-def _mesh_without_chart_masks(out: Path, truth_frames, device: str) -> dict:
-    """The photos-only run's ingest, registration and mesh again with ``--response srgb`` (no chart looked for, so
-    none masked): what the chart masks keep out of the mesh."""
+def _mesh_with_and_without_chart_masks(out: Path, truth_frames, device: str) -> dict:
+    """Ingest, registration and mesh of the photos with no object masks (``--auto-masks none``, as in a room whose
+    background is no plain colour), once with the chart masked (``--response auto``: the chart found, its quad cleared
+    from masks of every pixel) and once without (``--response srgb``: no chart looked for): what the chart masks
+    keep out of the mesh."""
     from texstream.calib.ingest import IngestConfig, ingest
     from texstream.calib.register import RegisterConfig, register
     from texstream.capture.capture_json import read_capture
     from texstream.geometry.make_mesh import MeshConfig, make_mesh
     from texstream.geometry.mesh_frame import mesh_alignment
 
-    root = out / "no_chart_masks"
-    t0 = time.perf_counter()
-    ingest(out / "photos", root / "capture", IngestConfig(response="srgb", colocated_light=1.0))
-    register(root / "capture", root / "posed", RegisterConfig(), mesh_alignment=mesh_alignment)
-    make_mesh(root / "posed", root / "mesh", MeshConfig(device=device))
-    sim = _similarity(read_capture(root / "posed").frames, truth_frames)
-    return {**_mesh_checks(root / "mesh" / "mesh.ply", sim), "seconds": time.perf_counter() - t0}
+    result = {}
+    for name, response in (("chart_masks", "auto"), ("no_chart_masks", "srgb")):
+        root = out / f"mesh_{name}"
+        t0 = time.perf_counter()
+        ingest(out / "photos", root / "capture", IngestConfig(response=response, colocated_light=1.0,
+                                                               auto_masks="none"))
+        register(root / "capture", root / "posed", RegisterConfig(), mesh_alignment=mesh_alignment)
+        make_mesh(root / "posed", root / "mesh", MeshConfig(device=device))
+        sim = _similarity(read_capture(root / "posed").frames, truth_frames)
+        result[name] = {**_mesh_checks(root / "mesh" / "mesh.ply", sim), "seconds": time.perf_counter() - t0}
+    return result
 
 
 def _run(photos_or_capture: Path, out: Path, device: str, iterations: int, atlas: int, *, photos_only: bool,
@@ -209,9 +215,9 @@ def main() -> None:
     ap.add_argument("--reuse", action="store_true",
                     help="keep OUT's capture, photos and the runs' stages whose inputs did not change (the pipeline's "
                          "stamps); default: start afresh")
-    ap.add_argument("--mesh-without-chart-masks", action="store_true",
-                    help="only the mesh with no chart masks (ingest --response srgb), into OUT/no_chart_masks and "
-                         "OUT/flash_capture_mesh_ab.json (needs OUT's photos: run without it first, or with --reuse)")
+    ap.add_argument("--mesh-ab", action="store_true",
+                    help="only the meshes with and without chart masks, no object masks (OUT/mesh_*, "
+                         "OUT/flash_capture_mesh_ab.json; needs OUT's photos: run without it first, then with --reuse)")
     a = ap.parse_args()
 
     import warp as wp
@@ -233,11 +239,11 @@ def main() -> None:
         write_photos_only(truth_dir, out / "photos")
     truth = read_capture(truth_dir)
     flash_truth = json.loads((truth_dir / "ground_truth" / "flash.json").read_text())
-    if a.mesh_without_chart_masks:
+    if a.mesh_ab:
         ab = {"commit": commit, "machine": f"{platform.node()} ({os.cpu_count()} cores)",
-              "command": f"python benchmarks/flash_capture.py --reuse --mesh-without-chart-masks --photos {a.photos} "
+              "command": f"python benchmarks/flash_capture.py --reuse --mesh-ab --photos {a.photos} "
                          f"--image-size {a.image_size}",
-              "without_chart_masks": _mesh_without_chart_masks(out, truth.frames, a.device)}
+              "auto_masks_none": _mesh_with_and_without_chart_masks(out, truth.frames, a.device)}
         (out / "flash_capture_mesh_ab.json").write_text(json.dumps(ab, indent=2, default=float))
         print(json.dumps(ab, indent=1, default=float))
         return
