@@ -155,7 +155,7 @@ def _chart_masks(response_entry: dict, infos: list[dict], frames: list[Frame], t
     charts = charts_by_frame(response_entry.get("per_photo", []), upright)
     summary = mask_out_charts(tmp, frames, charts)
     extra: dict[str, Any] = {"colour_chart": {n: s.to_json() for n, s in charts.items()}} if charts else {}
-    if charts and summary["made"] == len(frames):  # no object mask anywhere: these masks are no silhouettes
+    if charts and summary["made"] == sum(1 for f in frames if f.mask_path):  # every mask made here: no silhouettes
         extra[MASK_KIND_KEY] = VALID_PIXELS
     return extra, summary
 
