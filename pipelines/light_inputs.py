@@ -45,7 +45,11 @@ def _resolutions(capture, model: dict, fit_geometry: Path) -> dict:
     level = (model.get("photos") or {}).get("resolution")
     source = (f"photos {', '.join(f'{w}x{h}' for w, h in sizes)}; atlas {atlas.get('width')}x{atlas.get('height')} "
               f"({atlas.get('texels', 0):,} texels)")
-    why = f"the fit read the photos at {level}" if level else "the fit read the photos as stored"
+    if isinstance(level, dict) and level.get("size"):
+        why = (f"the fit read the photos at level {level.get('level', 0)} ({level['size'][0]}x{level['size'][1]}), "
+               f"{float(level.get('level_texel_pixels') or 0):.2f} pixels a texel's side")
+    else:
+        why = f"the fit read the photos at {level}" if level else "the fit read the photos as stored"
     return {"source": source, "why": f"{why}; the atlas from {fit_geometry}"}
 
 
