@@ -57,7 +57,7 @@ def chart_pixels(mask: np.ndarray, chart: np.ndarray) -> np.ndarray:
 def mask_out_charts(root: Path, frames: list, sightings: dict) -> dict:
     """Clear the chart from the masks of the ``frames`` (capture Frames of the capture folder ``root``, being
     written) named in ``sightings`` ({frame name: ChartSighting}); frames without a mask get one (their
-    ``mask_path`` set). Returns the summary {"photos": masked, "pixels": cleared, "made": masks made, "why"}."""
+    ``mask_path`` set, and then so do the frames without the chart: masks of every pixel). Returns the summary {"photos": masked, "pixels": cleared, "made": masks made, "why"}."""
     masked = made = pixels = 0
     for f in frames:
         s = sightings.get(f.name)
@@ -77,6 +77,13 @@ def mask_out_charts(root: Path, frames: list, sightings: dict) -> dict:
         pixels += int(clear.sum())
         write_image(root / f.mask_path, np.where(mask & ~clear, np.uint8(255), np.uint8(0)), bits=8)
         masked += 1
+    if made:  # the photos without the chart or a mask get one of every pixel: all alike (COLMAP wants all or none)
+        for f in frames:
+            if f.mask_path is None:
+                f.mask_path = str(Path("masks") / f"{f.name}.png")
+                write_image(root / f.mask_path, np.full((int(f.intrinsics.height), int(f.intrinsics.width)),
+                                                        np.uint8(255)), bits=8)
+                made += 1
     return {"photos": masked, "pixels": pixels, "made": made,
             "why": (f"the colour chart found in {masked} photo(s): its quad (grown {CHART_MARGIN:.0%}) cleared from "
                     "their masks, so neither the mesh nor the fit reads it") if masked else "no chart found"}
