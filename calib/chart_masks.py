@@ -57,7 +57,8 @@ def chart_pixels(mask: np.ndarray, chart: np.ndarray) -> np.ndarray:
 def mask_out_charts(root: Path, frames: list, sightings: dict) -> dict:
     """Clear the chart from the masks of the ``frames`` (capture Frames of the capture folder ``root``, being
     written) named in ``sightings`` ({frame name: ChartSighting}); frames without a mask get one (their
-    ``mask_path`` set, and then so do the frames without the chart: masks of every pixel). Returns the summary {"photos": masked, "pixels": cleared, "made": masks made, "why"}."""
+    ``mask_path`` set, and then so do the frames without the chart: masks of every pixel). Returns the summary
+    {"photos": masked, "pixels": cleared, "made": masks made, "why"}."""
     masked = made = pixels = 0
     for f in frames:
         s = sightings.get(f.name)
