@@ -81,8 +81,11 @@ def _texel_errors(model_dir: Path, truth_dir: Path, sim, truth_frames) -> dict:
     hl = counts >= 5  # docs/accuracy.md's highlight texels; with ~24 photos few texels see a lobe 5 times
     out = {"texels_seen": int(seen.sum()), "texels_with_highlight_5_photos": int(hl.sum()),
            "texels_with_highlight_2_photos": int((counts >= 2).sum()), "match_distance_median": float(np.median(dist))}
-    alb = np.abs(fp[:, 0:3] / tp[:, 0:3] - 1.0).max(axis=1)  # albedo = pi rho_d: the ratio is the same
+    ratio = fp[:, 0:3] / tp[:, 0:3]  # albedo = pi rho_d: the ratio is the same
+    alb = np.abs(ratio - 1.0).max(axis=1)
     out["albedo_rel_error"] = _stats(alb)
+    # the albedos' common scale (what the flash's intensity sets): the median ratio, per channel
+    out["albedo_ratio_median"] = np.median(ratio, axis=0).tolist()
     out["albedo_rel_error_highlight"] = _stats(alb[hl])
     if fl is not None:
         rs = np.abs(fp[:, fl:fl + 3] / tp[:, tl:tl + 3] - 1.0).max(axis=1)
