@@ -38,6 +38,12 @@ RESPONSE_KNOTS = np.unique(np.concatenate([np.geomspace(0.02, 0.5, 10), np.linsp
 """code values where the inverse response's log radiance is a parameter, linear in log code between them (a power
 law, as sRGB's encoding nearly is, is then exact): spaced by ratio in the shadows, where log radiance bends with
 log code, and evenly towards white, where tone curves put their shoulder"""
+MAX_DETECTION_COST = 0.03
+"""``cv2.mcc``'s cost above which a sighting is a misread, not read: charts partly hidden by the object came out at
+0.04-0.06 with their patches out of order, whole ones below 0.015 (the synthetic flash capture)"""
+OUTLIER_LOG = 0.05
+"""a patch value further than this from the fitted curve (in log radiance, ~5%; and 4 median deviations) is left
+out: a patch the object hides in that photo, or a chart misread; 8-bit codes of usable patches miss by ~1%"""
 USABLE_CODES = (0.03, 0.97)
 """patch code values used for the response: darker ones are mostly noise and quantisation, brighter ones may
 be clipped"""
@@ -56,12 +62,26 @@ def chart_reflectance() -> np.ndarray:
 @dataclasses.dataclass
 class ChartSighting:
     """One chart found in one photo: its corners in the photo's pixels, its patches' mean code values (24, 3) in
-    [0, 1] (RGB), their standard deviations, and the detector's cost (lower is a better match)."""
+    [0, 1] (RGB), their standard deviations, the detector's cost (lower is a better match) and the patches'
+    centres (24, 2) in pixels, in patch order (the chart's pose: :mod:`.chart_flash`)."""
 
     corners: np.ndarray
     patches: np.ndarray
     patch_std: np.ndarray
     cost: float
+    patch_centres: np.ndarray | None = None
+
+    def to_json(self) -> dict:
+        return {"corners": self.corners.tolist(), "patches": self.patches.tolist(),
+                "patch_std": self.patch_std.tolist(), "cost": self.cost,
+                "patch_centres": None if self.patch_centres is None else self.patch_centres.tolist()}
+
+    @staticmethod
+    def from_json(d: dict) -> "ChartSighting":
+        centres = d.get("patch_centres")
+        return ChartSighting(np.asarray(d["corners"], np.float64), np.asarray(d["patches"], np.float64),
+                             np.asarray(d["patch_std"], np.float64), float(d["cost"]),
+                             None if centres is None else np.asarray(centres, np.float64))
 
 
 def find_chart(rgb_codes: np.ndarray) -> ChartSighting | None:
@@ -76,9 +96,15 @@ def find_chart(rgb_codes: np.ndarray) -> ChartSighting | None:
     if not detector.process(bgr8, 1):
         return None
     best = detector.getBestColorChecker()
+    if best.getCost() > MAX_DETECTION_COST:
+        return None
     stats = np.asarray(best.getChartsRGB(), np.float64).reshape(24, 3, -1)  # per patch and channel: count, mean, std, ...
-    return ChartSighting(np.asarray(best.getBox(), np.float64), stats[:, :, 1] / 255.0, stats[:, :, 2] / 255.0,
-                         float(best.getCost()))
+    corners = np.asarray(best.getBox(), np.float64)
+    h, w = rgb_codes.shape[:2]
+    if np.any(corners < -0.5) or np.any(corners > [w - 0.5, h - 0.5]):
+        return None  # a chart cut by the frame: the detector extrapolates the patches it cannot see
+    centres = np.asarray(best.getColorCharts(), np.float64).reshape(24, 4, 2).mean(axis=1)
+    return ChartSighting(corners, stats[:, :, 1] / 255.0, stats[:, :, 2] / 255.0, float(best.getCost()), centres)
 
 
 @dataclasses.dataclass
@@ -86,13 +112,15 @@ class Response:
     """The photos' inverse response: code value (in [0, 1]) to linear radiance, shared by the channels, as log
     radiance at the :data:`RESPONSE_KNOTS` (linear in log code between them); 1.0 maps to radiance 1. ``gains`` (photos, 3):
     each fitted photo's light times white balance, in the response's units; ``residual_percent``: the RMS relative
-    error of the linearised patches against reflectance x gain."""
+    error of the linearised patches against reflectance x gain (over the ``patches_used``; ``patches_dropped``: the
+    outliers left out)."""
 
     knots: np.ndarray
     log_radiance: np.ndarray
     gains: np.ndarray
     residual_percent: float
     patches_used: int
+    patches_dropped: int = 0
 
     def linearise(self, codes: np.ndarray) -> np.ndarray:
         """Linear radiance of code values (any shape), through the curve; below the first knot the first segment's
@@ -108,7 +136,7 @@ class Response:
     def to_json(self) -> dict:
         return {"knots": self.knots.tolist(), "log_radiance": self.log_radiance.tolist(),
                 "gains": self.gains.tolist(), "residual_percent": self.residual_percent,
-                "patches_used": self.patches_used}
+                "patches_used": self.patches_used, "patches_dropped": self.patches_dropped}
 
 
 def fit_response(sightings: list[ChartSighting], smoothness: float = 1e-3) -> Response:
@@ -117,7 +145,9 @@ def fit_response(sightings: list[ChartSighting], smoothness: float = 1e-3) -> Re
     Least squares in the log domain: log g(v) - log k_(photo, channel) = log r_(patch, channel), g piecewise linear
     at the knots (its value at a patch's code interpolated between the two nearest knots), the curve's second
     differences damped by ``smoothness`` (knots between the patches' codes follow their neighbours), g(1) = 1 fixing
-    the scale the gains absorb. A curve that comes out decreasing anywhere is an error: the patches disagree with
+    the scale the gains absorb. Each photo's light may vary across the chart (a flash's 1 / r^2 and its angle: a
+    chart a third of the flash's distance wide sees +-30%): a log-linear slope per photo along the chart's columns and
+    rows, shared by the channels, takes it up, and the gains are the light at the chart's centre. A curve that comes out decreasing anywhere is an error: the patches disagree with
     any camera response (a wrong chart, or clipped photos)."""
     if not sightings:
         raise InputError("no photo shows a colour chart", fix="photograph a ColorChecker Classic beside the object, "
@@ -128,6 +158,7 @@ def fit_response(sightings: list[ChartSighting], smoothness: float = 1e-3) -> Re
     rows, cols, vals, rhs = [], [], [], []
     n_photos = len(sightings)
     gain_col = n_knots  # then one column per (photo, channel)
+    grad_col = gain_col + 3 * n_photos  # then two per photo: its light's log slope across the chart's columns, rows
     r = 0
     for p, s in enumerate(sightings):
         for i in range(24):
@@ -137,16 +168,17 @@ def fit_response(sightings: list[ChartSighting], smoothness: float = 1e-3) -> Re
                     continue
                 k0 = int(np.clip(np.searchsorted(knots, v) - 1, 0, n_knots - 2))
                 w = (np.log(v) - log_knots[k0]) / (log_knots[k0 + 1] - log_knots[k0])
-                rows += [r, r, r]
-                cols += [k0, k0 + 1, gain_col + 3 * p + ch]
-                vals += [1.0 - w, w, -1.0]
+                slope = grad_col + 2 * p
+                rows += [r] * 5
+                cols += [k0, k0 + 1, gain_col + 3 * p + ch, slope, slope + 1]
+                vals += [1.0 - w, w, -1.0, -((i % 6) - 2.5) / 2.5, -((i // 6) - 1.5) / 1.5]
                 rhs.append(refl[i, ch])
                 r += 1
     used = r
     if used < 2 * n_knots:
         raise InputError(f"the colour chart's patches give {used} usable values, too few for a response",
                          fix="photograph the chart larger, exposed so its patches are neither black nor clipped")
-    n_cols = gain_col + 3 * n_photos
+    n_cols = grad_col + 2 * n_photos
     a = np.zeros((used + n_knots - 2 + 1, n_cols))
     a[rows, cols] = vals
     b = np.zeros(a.shape[0])
@@ -156,24 +188,35 @@ def fit_response(sightings: list[ChartSighting], smoothness: float = 1e-3) -> Re
         h0, h1 = log_knots[k] - log_knots[k - 1], log_knots[k + 1] - log_knots[k]
         a[used + k - 1, k - 1:k + 2] = weight * np.array([1.0 / h0, -(1.0 / h0 + 1.0 / h1), 1.0 / h1]) * h1
     a[-1, n_knots - 1] = 1e3  # g(1) = 1
-    x, *_ = np.linalg.lstsq(a, b, rcond=None)
-    log_g, log_k = x[:n_knots], x[gain_col:].reshape(n_photos, 3)
+    keep = np.ones(a.shape[0], bool)
+    for _ in range(4):  # patches the object hides in a photo (or misread) are outliers: refit without them
+        x, *_ = np.linalg.lstsq(a[keep], b[keep], rcond=None)
+        resid = a[:used] @ x - b[:used]
+        spread = 4.0 * 1.4826 * float(np.median(np.abs(resid[keep[:used]])))
+        new = keep.copy()
+        new[:used] = np.abs(resid) <= max(OUTLIER_LOG, spread)
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    log_g, log_k = x[:n_knots], x[gain_col:grad_col].reshape(n_photos, 3)
     if np.any(np.diff(log_g) <= 0):
         raise InputError("the colour chart's patches do not follow one increasing camera response",
                          fix="check that the chart is a ColorChecker Classic (24 patches) and that its patches "
                              "are not clipped")
-    resid = (a[:used] @ x - b[:used])
-    return Response(knots, log_g, np.exp(log_k), float(100.0 * np.sqrt(np.mean(np.expm1(resid) ** 2))), used)
+    kept = keep[:used]
+    return Response(knots, log_g, np.exp(log_k), float(100.0 * np.sqrt(np.mean(np.expm1(resid[kept]) ** 2))),
+                    int(kept.sum()), int(used - kept.sum()))
 
 
 def response_from_photos(paths: list[Path], read_codes) -> tuple[Response | None, list[dict]]:
     """Find the chart in each photo (``read_codes(path)``: its stored code values in [0, 1]) and fit the response
     to those that show it. Returns (response or None when no photo shows the chart, per photo {"photo", "found",
-    "cost"})."""
+    "cost"} and, where found, "sighting" (:meth:`ChartSighting.to_json`: corners, patches, patch centres))."""
     sightings, report = [], []
     for path in paths:
         s = find_chart(read_codes(path))
-        report.append({"photo": str(path), "found": s is not None, "cost": None if s is None else s.cost})
+        report.append({"photo": str(path), "found": s is not None, "cost": None if s is None else s.cost,
+                       **({"sighting": s.to_json()} if s is not None else {})})
         if s is not None:
             sightings.append(s)
     return (fit_response(sightings) if sightings else None), report

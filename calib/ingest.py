@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from texstream.capture.capture_json import Capture, Frame, Intrinsics, write_capture
+from texstream.capture.capture_json import MASK_KIND_KEY, VALID_PIXELS, Capture, Frame, Intrinsics, write_capture
 from texstream.capture.imageio import read_alpha, read_image, read_mask, srgb_to_linear, write_image
 from texstream.capture.response import RESPONSE_KEY, response_from_json
 from texstream.core.errors import InputError, StageError, TexstreamError
@@ -44,6 +44,7 @@ from texstream.core.config import option, save_config
 from texstream.core.outputs import StageResult, atomic_output_dir, read_json, write_json_atomic
 from texstream.core.progress import bar, say
 
+from .chart_masks import charts_by_frame, mask_out_charts
 from .colour_chart import response_from_photos
 from .files import list_images, write_failure_report
 from .lights import load_lights_file
@@ -144,6 +145,19 @@ def _decide_response(infos: list[dict], cfg: IngestConfig):
         return None, entry
     entry.update(residual_percent=fitted.residual_percent, patches_used=fitted.patches_used)
     return fitted.photo_response(f"colour chart in {len(found)} of {len(coded)} photos"), entry
+
+
+def _chart_masks(response_entry: dict, infos: list[dict], frames: list[Frame], tmp: Path) -> tuple[dict, dict]:
+    """The colour chart (found by ``--response auto``) cleared from the frames' masks, kept out of the mesh and the
+    fit (:mod:`.chart_masks`). Returns (capture.json fields: the sightings, for the flash's intensity once the
+    cameras are known (:mod:`.chart_flash`), and ``mask_kind`` when every mask is one made here; the summary)."""
+    upright = {i["path"].name for i in infos if int(i["exif"].get("orientation", 1) or 1) == 1}
+    charts = charts_by_frame(response_entry.get("per_photo", []), upright)
+    summary = mask_out_charts(tmp, frames, charts)
+    extra: dict[str, Any] = {"colour_chart": {n: s.to_json() for n, s in charts.items()}} if charts else {}
+    if charts and summary["made"] == sum(1 for f in frames if f.mask_path):  # every mask made here: no silhouettes
+        extra[MASK_KIND_KEY] = VALID_PIXELS
+    return extra, summary
 
 
 def _exif(path: Path) -> dict[str, Any]:
@@ -458,6 +472,7 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
                                   mask_path=None if mask_rel is None else str(mask_rel), saturation=sat, extra=extra),
                             gain, mask_src))
         auto = _auto_masks(entries, cfg, tmp)
+        chart_extra, chart_masks = _chart_masks(response_entry, infos, [fr for fr, _, _ in entries], tmp)
         gains = [g for _, g, _ in entries if g]
         ref = float(np.median(gains)) if gains and cfg.normalize_exposure else None
         for fr, g, _ in entries:
@@ -471,6 +486,7 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
             extra_top["colocated_light"] = {"intensity": [float(cfg.colocated_light)] * 3, "offset": [0.0, 0.0, 0.0]}
         if response is not None:
             extra_top[RESPONSE_KEY] = response.to_json()
+        extra_top.update(chart_extra)
         write_capture(Capture(root=tmp, frames=frames, extra=extra_top), tmp)
         report["response"] = response_entry
         report["frames"] = [f.file_path for f in frames]
@@ -478,6 +494,7 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
         report["bracket_decisions"] = decisions
         report["camera_sizes"] = sorted({f"{f.intrinsics.width}x{f.intrinsics.height}" for f in frames})
         report["auto_masks"] = auto
+        report["chart_masks"] = chart_masks
         report["focal_prior"] = list(focal_decisions.values())
         write_json_atomic(tmp / REPORT_FILE, report)
         save_config(cfg, tmp / "ingest_config.json")
@@ -489,5 +506,5 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
                "camera_sizes": report["camera_sizes"],
                "focal_prior": [d["decision"] for d in focal_decisions.values()],
                "auto_masks": {k: auto.get(k) for k in ("mode", "decision", "masks")},
-               "response": {k: response_entry[k] for k in ("used", "why")}}
+               "response": {k: response_entry[k] for k in ("used", "why")}, "chart_masks": chart_masks["why"]}
     return StageResult(output=out, summary=summary)

@@ -1,7 +1,9 @@
 """``texstream synth SCENE -o DIR``: render a synthetic capture set with ground truth.
 
 SCENE is a built-in scene (sphere, flat_sample, bunny, ornament) or a scene JSON file; see
-:mod:`texstream.capture.synthetic.synth` for the scene keys. Example:
+:mod:`texstream.capture.synthetic.synth` for the scene keys. ``flash_capture`` writes the synthetic flash capture
+(:mod:`texstream.capture.synthetic.flash_capture`: 8-bit tone-mapped photos with a colour chart in view; options
+--photos, --image-size, --noise, --room-light, --seed, --device). Example:
 
     texstream synth ornament -o out/ornament --scale 0.05 --bits 8 --noise 0.005 --save-clean
 
@@ -15,13 +17,15 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from texstream.capture.synthetic.flash_capture import FLASH_CAPTURE, flash_config, synthesize_flash_capture
 from texstream.capture.synthetic.synth import SynthConfig, builtin_scenes, synthesize
 from texstream.core.outputs import OutputTarget
 from texstream.pipelines.cli import add_config_arguments, config_from_args
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("scene", help=f"built-in scene ({', '.join(builtin_scenes())}) or a scene JSON path")
+    parser.add_argument("scene", help=f"built-in scene ({', '.join(builtin_scenes())}), {FLASH_CAPTURE} or a scene "
+                                      "JSON path")
     parser.add_argument("-o", "--out", required=True, help="output capture folder (replaced if it exists)")
     add_config_arguments(parser, SynthConfig)
 
@@ -36,7 +40,10 @@ def run(args: argparse.Namespace) -> int:
     wp.config.log_level = wp.LOG_WARNING  # the progress bar and the summary are the output (1.19: not `quiet`)
 
     config = config_from_args(SynthConfig, args, scene=args.scene)
-    res = synthesize(args.scene, args.out, config)
+    if args.scene == FLASH_CAPTURE:
+        res = synthesize_flash_capture(args.out, flash_config(config))
+    else:
+        res = synthesize(args.scene, args.out, config)
     s = res.summary
     print(f"wrote {res.output}: {s['photos']} photos of {s['image_width']}x{s['image_height']}, "
           f"{s['triangles']} triangles, {s['covered_texels']} covered texels "

@@ -8,6 +8,8 @@ and leaves out what the scene does not need, deciding from the data and recordin
 - cameras known (capture.json / transforms.json with poses, a COLMAP model): no registration;
 - a mesh given with UVs: no atlas (``mesh`` option);
 - cameras this run registered and a mesh it made: refined against the photos (``refine``); given ones stay;
+- a flash fixed to the camera and a colour chart found by ingest's ``--response auto``: the flash's intensity from
+  the chart (the lights stage, calib/chart_flash.py), so albedos come out absolute;
 - lights known for every photo -> a reflectance model (Lafortune SBRDF); one fixed unknown
   lighting -> the radiance model (``model`` "auto"); with held-out photos the view-dependent radiance
   model beside it and, when view dependence matters (view_radiance beats radiance on a validation split
@@ -29,6 +31,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
+from texstream.calib.chart_flash import chart_flash_applies, flash_lit_capture
 from texstream.calib.colmap_io import import_colmap
 from texstream.calib.files import IMAGE_EXTS
 from texstream.calib.ingest import IngestConfig, ingest
@@ -53,6 +56,7 @@ from texstream.geometry.make_mesh import MeshConfig, make_mesh
 from texstream.geometry.mesh_frame import mesh_alignment
 from texstream.geometry.mesh_io import load_mesh
 from texstream.geometry.refine import RefineConfig, refine_stage
+from texstream.pipelines.light_inputs import light_and_resolution_inputs
 from texstream.pipelines.provenance import inputs_lines, run_inputs
 from texstream.pipelines.report import write_report
 
@@ -292,6 +296,9 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
 
     # lights: from mirror-ball photos when a ball is given
     posed_dir, lights_summary = _mirror_ball_lights(pipe, out, posed_dir, posed, capture, cfg)
+    flash_summary = {}
+    if not lights_summary and chart_flash_applies(capture):  # a flash and a colour chart: its intensity from it
+        posed_dir, flash_summary = _chart_flash(pipe, out, posed_dir, posed)
     capture = read_capture(posed_dir)
 
     # refine: cameras registered here and a mesh made here, moved until the photos agree
@@ -311,7 +318,8 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
     model_dir = out / "model"
     fit_rec, model_kind, why = _fit(pipe, capture, posed, posed_dir, fit_geometry, model_dir, cfg, lights_summary)
 
-    inputs = dict(run_inputs(pipe.records, kind, capture, cfg.mesh_file), response=_response_input(pipe, capture))
+    inputs = dict(run_inputs(pipe.records, kind, capture, cfg.mesh_file), response=_response_input(pipe, capture),
+                  **light_and_resolution_inputs(capture, model_dir, fit_geometry, flash_summary))
     for line in inputs_lines(inputs):
         log(f"[inputs] {line}")
     _export_and_report(pipe, out, model_dir, posed_dir, cfg.device, inputs)
@@ -319,7 +327,7 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
     summary = {"source": str(src), "source_kind": kind, "device": cfg.device, "model": model_kind, "model_reason": why, "inputs": inputs,
                "total_s": time.perf_counter() - t_start,
                "heldout": heldout, "stages": [dataclasses.asdict(r) for r in pipe.records],
-               "lights": lights_summary or {"source": _lights_source(capture)},
+               "lights": lights_summary or flash_summary or {"source": _lights_source(capture)},
                "fit": fit_rec.summary, "warnings": run_warnings(pipe.records, heldout, fit_rec.summary)}
     write_json_atomic(out / "run.json", _summary_safe(summary))
     return summary
@@ -497,6 +505,8 @@ def _mirror_ball_lights(pipe: Pipeline, out: Path, posed_dir: Path, posed: bool,
     stay where they are. Returns (the capture the fit reads, the lights summary or {})."""
     lcfg = cfg.lights
     if not (lcfg.sphere or lcfg.ball_masks):
+        if chart_flash_applies(capture):
+            return posed_dir, {}  # the lights stage is the chart's flash (_chart_flash)
         why = ("every photo has a known light" if capture.has_lights else
                "no light known and no mirror ball given (--mirror-ball X,Y,Z,R)")
         pipe.skip("lights", why)
@@ -515,6 +525,22 @@ def _mirror_ball_lights(pipe: Pipeline, out: Path, posed_dir: Path, posed: bool,
     s = rec.summary
     pipe.log(f"[lights] {s['kind']} light from {s['views']} ball view(s); {s['photos']} photos lit by it")
     return lights_dir, {"source": "mirror ball", **s}
+
+
+def _chart_flash(pipe: Pipeline, out: Path, posed_dir: Path, posed: bool) -> tuple[Path, dict]:
+    """The lights stage of a flash capture with a colour chart in view (calib/chart_flash.py): OUT/lights, the posed
+    capture with the flash's intensity from the chart. A chart too seldom seen, or misread, leaves the intensity
+    as given, with the reason."""
+    lights_dir = out / "lights"
+    try:
+        rec = pipe.run("lights", lights_dir, [pipe.stamp_of("register") if not posed else _files_hash(posed_dir)],
+                       "a flash at the camera and a colour chart in view: the flash's intensity from the chart",
+                       lambda: flash_lit_capture(posed_dir, lights_dir))
+    except InputError as e:
+        pipe.skip("lights", f"the flash's intensity stays as given: {e.message}")
+        return posed_dir, {}
+    pipe.log(f"[lights] {rec.summary['why']}")
+    return lights_dir, {"source": "colour chart", **rec.summary}
 
 
 def run_warnings(records: list[StageRecord], heldout: dict, fit_summary: dict) -> list[str]:

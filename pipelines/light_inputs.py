@@ -1,0 +1,60 @@
+"""What a run's summary and report say about its light and resolutions (issue 39): which light the fit assumed
+(the flash's intensity from a colour chart, given, or per photo), whether the room's light got a per-texel ambient
+term and why, and the photos' and the atlas's sizes with the level the fit read. Entries in the
+``{input: {source, why}}`` form of :mod:`texstream.pipelines.provenance` (printed, and in the report's inputs)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+
+def _model_json(model_dir: Path) -> dict:
+    try:
+        return json.loads((Path(model_dir) / "model.json").read_text())
+    except (OSError, json.JSONDecodeError):
+        return {}
+
+
+def _light(capture, flash_summary: dict) -> dict:
+    if flash_summary:
+        inten = ", ".join(f"{v:.4g}" for v in flash_summary["intensity"])
+        return {"source": f"flash at the camera, intensity ({inten}) from the colour chart", "why": flash_summary["why"]}
+    coloc = capture.extra.get("colocated_light")
+    if isinstance(coloc, dict):
+        return {"source": "flash at the camera, intensity given",
+                "why": "--colocated-light (the irradiance at the object's median distance when the cameras' scale "
+                       "is SfM's); no colour chart fixed it, so albedos are relative to that guess"}
+    if capture.extra.get("lights_source"):
+        return {"source": str(capture.extra["lights_source"]), "why": "the lights stage"}
+    return {"source": "known per photo" if capture.has_lights else "none known", "why": "as the capture states"}
+
+
+def _ambient(model: dict) -> dict:
+    amb = model.get("ambient")
+    if not amb:
+        return {"source": "none", "why": "the model has no ambient term (a kind without one, or no fit)"}
+    on = amb.get("chosen") == "on"
+    return {"source": "flash plus a per-texel ambient term (the room's light)" if on else "flash alone",
+            "why": f"--ambient {amb.get('mode', amb.get('chosen'))}: {amb.get('reason', '')}"}
+
+
+def _resolutions(capture, model: dict, fit_geometry: Path) -> dict:
+    sizes = sorted({(f.intrinsics.width, f.intrinsics.height) for f in capture.frames}, key=lambda s: -s[0] * s[1])
+    atlas = model.get("atlas") or {}
+    level = (model.get("photos") or {}).get("resolution")
+    source = (f"photos {', '.join(f'{w}x{h}' for w, h in sizes)}; atlas {atlas.get('width')}x{atlas.get('height')} "
+              f"({atlas.get('texels', 0):,} texels)")
+    if isinstance(level, dict) and level.get("size"):
+        why = (f"the fit read the photos at level {level.get('level', 0)} ({level['size'][0]}x{level['size'][1]}), "
+               f"{float(level.get('level_texel_pixels') or 0):.2f} pixels a texel's side")
+    else:
+        why = f"the fit read the photos at {level}" if level else "the fit read the photos as stored"
+    return {"source": source, "why": f"{why}; the atlas from {fit_geometry}"}
+
+
+def light_and_resolution_inputs(capture, model_dir: Path, fit_geometry: Path, flash_summary: dict) -> dict:
+    """{"light", "ambient", "resolutions"}: each {source, why} (module doc)."""
+    model = _model_json(model_dir)
+    return {"light": _light(capture, flash_summary), "ambient": _ambient(model),
+            "resolutions": _resolutions(capture, model, fit_geometry)}
