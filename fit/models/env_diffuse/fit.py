@@ -60,7 +60,7 @@ def fit(request) -> StageResult:
     seen = result.samples > 0
     what = "given" if fixed is not None else "estimated with shared materials"
     with phase("fit", f"env_diffuse: the light ({what}) and the albedo of {int(seen.sum())} seen texels"):
-        sol = solve(result.params[seen], result.samples[seen], transfer[seen], env, fixed)
+        sol = solve(result.params[seen], result.samples[seen], transfer[seen], env, fixed, tx.position[seen])
     t_solve = time.perf_counter()
     albedo = np.zeros((problem.n, 3))
     albedo[seen] = sol.albedo

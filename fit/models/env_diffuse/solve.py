@@ -143,9 +143,10 @@ def _chromaticity(radiance: np.ndarray) -> np.ndarray:
     return lr - lr.mean(axis=1, keepdims=True)
 
 
-def _fit_materials(radiance, weight, transfer, k: int, cfg, trace: list):
+def _fit_materials(radiance, weight, transfer, neighbours, k: int, cfg, trace: list):
     """(L, m, labels, E) with ``k`` materials: labels from chromaticity, then, round after round, relabelled under
-    the fitted light and reweighted (:func:`_robust_weight`); E is the plain (unweighted) objective."""
+    the fitted light and reweighted (:func:`_robust_weight`, the material edges left out, :func:`_material_weight`);
+    E is the plain (unweighted) objective. ``neighbours``: (N, n) each texel's nearest texels, or None."""
     labels, _ = kmeans(_chromaticity(radiance), k)
     k = int(labels.max()) + 1
     light0 = np.zeros((sh.SH_COUNT, 3))
@@ -163,9 +164,12 @@ def _fit_materials(radiance, weight, transfer, k: int, cfg, trace: list):
         new = _merged(mats, cfg.merge_log_distance)[np.argmin((d * d).sum(-1), axis=1)]
         present = np.unique(new)
         new = np.searchsorted(present, new)  # materials nobody chose are dropped
-        if np.array_equal(new, labels) and (round_ > 0 or cfg.robust_log == 0):
+        if np.array_equal(new, labels) and round_ > 0:
             break
         fit_weight = _robust_weight(weight, own, mats[present][new], cfg.robust_log)
+        if neighbours is not None:  # the texels the photos blend across material edges
+            fit_weight = fit_weight * (new[neighbours] == new[:, None]).all(axis=1)
+        fit_weight = fit_weight * _material_weight(fit_weight, own, mats[present], new, cfg.material_weight_power)
         labels, k, light0 = new, len(present), light
     return light, mats, labels, objective(light, mats[labels], radiance, weight, transfer)
 
@@ -179,6 +183,23 @@ def _robust_weight(weight, own: np.ndarray, material: np.ndarray, scale: float) 
         return weight
     q = np.max(np.abs(np.log(own + 1e-3) - np.log(material + 1e-3)), axis=1)
     return weight / (1.0 + (q / scale) ** 2)
+
+
+def _material_weight(weight, own: np.ndarray, mats: np.ndarray, labels: np.ndarray, power: float) -> np.ndarray:
+    """(N,) each texel's factor in the next round's light fit by how well its material fits one albedo:
+    (v_min / v_k)^power, v_k the material's weighted mean squared log-ratio of its texels' own albedos (under the
+    current light) to its albedo. A material whose albedo drifts across the object (a gradient, wear) lets that
+    drift pass for the light's low-order terms, the ambiguity the shared albedo is there to remove; the materials
+    that hold one albedo then steer the light (power 1: each material's residual as its noise variance, the
+    maximum-likelihood weighting; larger powers trust the most uniform material more). 0: factors 1."""
+    if power <= 0:
+        return np.ones(len(labels))
+    q = np.log(own + 1e-3) - np.log(mats[labels] + 1e-3)
+    total = np.bincount(labels, weight, len(mats))
+    var = np.bincount(labels, (q * q).mean(axis=1) * weight, len(mats)) / np.maximum(total, 1e-300)
+    var = np.where(total > 0, np.maximum(var, 1e-12), np.inf)  # a material of edge texels only: no say
+    best = float(var[np.isfinite(var)].min()) if np.isfinite(var).any() else 1.0
+    return (best / var)[labels] ** power
 
 
 def _merged(mats: np.ndarray, distance: float) -> np.ndarray:
@@ -221,9 +242,20 @@ def fix_gauge(light: np.ndarray, albedo: np.ndarray, materials: np.ndarray, cfg)
     return light, albedo, materials, gauge
 
 
-def solve(radiance: np.ndarray, weight: np.ndarray, transfer: np.ndarray, cfg, fixed_light=None) -> EnvSolution:
+def nearest_texels(positions: np.ndarray, count: int) -> np.ndarray | None:
+    """(N, count) each texel's ``count`` nearest other texels on the surface (by position), or None (count 0)."""
+    if count <= 0 or len(positions) <= count:
+        return None
+    from scipy.spatial import cKDTree
+
+    return cKDTree(positions).query(positions, count + 1)[1][:, 1:]
+
+
+def solve(radiance: np.ndarray, weight: np.ndarray, transfer: np.ndarray, cfg, fixed_light=None,
+          positions: np.ndarray | None = None) -> EnvSolution:
     """The light (estimated, or ``fixed_light`` (9, 3)) and every texel's albedo, from seen texels' radiance
-    (N, 3), weights (N,) (sample counts) and transfer vectors (N, 9); ``cfg``: optim/env_config.py."""
+    (N, 3), weights (N,) (sample counts) and transfer vectors (N, 9); ``cfg``: optim/env_config.py;
+    ``positions`` (N, 3): where the texels are, for the material edges (None: no texel is taken for an edge)."""
     radiance, weight, transfer = (np.asarray(x, np.float64) for x in (radiance, weight, transfer))
     if fixed_light is not None:
         light = np.asarray(fixed_light, np.float64)
@@ -232,8 +264,9 @@ def solve(radiance: np.ndarray, weight: np.ndarray, transfer: np.ndarray, cfg, f
                            {"fixed": "the light was given (--env.light): no ambiguity to fix"}, [])
     trace, best = [], None
     ks = [cfg.materials] if cfg.materials > 0 else list(range(1, cfg.max_materials + 1))
+    neighbours = None if positions is None else nearest_texels(np.asarray(positions, np.float64), cfg.edge_neighbours)
     for k in ks:
-        found = _fit_materials(radiance, weight, transfer, k, cfg, trace)
+        found = _fit_materials(radiance, weight, transfer, neighbours, k, cfg, trace)
         if best is not None and (len(found[1]) <= len(best[1]) or found[3] > (1.0 - cfg.material_gain) * best[3]):
             break  # one more material was merged into another, or hardly helps: keep the fewer
         best = found
