@@ -119,6 +119,27 @@ def test_a_material_whose_albedo_drifts_steers_the_light_less():
     assert light_error(2.0) < 0.02
 
 
+def test_the_slopes_of_most_materials_fix_the_light_when_each_drifts_along_its_own_axis():
+    """Every material drifts, each along another axis (the ornament's: 15% along z, 5% along x, 8% along y): no
+    material is uniform to trust, but along each axis most materials hold no slope."""
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(6000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    transfer, labels, light = sh.unoccluded_transfer(d), material_of(d), true_light()
+    drift = np.array([[0.0, 0.0, 0.15], [0.05, 0.0, 0.0], [0.0, 0.08, 0.0]])
+    albedo = MATERIALS[labels] * (1.0 + (drift[labels] * d).sum(axis=1))[:, None]
+    radiance = albedo * (transfer @ light) + rng.normal(scale=0.002, size=albedo.shape)
+
+    def light_error(consensus):
+        cfg = EnvDiffuseConfig(**TRUTH_GAUGE, slope_consensus=consensus)
+        est = S.solve(radiance, np.full(len(d), 8.0), transfer, cfg, positions=d).light
+        return np.linalg.norm(est - light) / np.linalg.norm(light)
+
+    # measured 6.6% without the consensus, 4.2% with it (on a sphere a drift along an axis and the light's
+    # dipole along it differ only through the shading's variation: what is left): the bound between them
+    assert light_error(False) > 0.053 > light_error(True)
+
+
 def test_a_light_turned_about_z_lights_the_turned_directions():
     light = true_light(seed=7)
     turned = rotated_about_z(light, 90.0)

@@ -105,9 +105,7 @@ def _fit_shared(stats, k: int, cfg, light0) -> tuple[np.ndarray, np.ndarray, flo
     pull[0] = 0.0
 
     def mats_given(light):
-        num = np.einsum("kjc,jc->kc", h, light)
-        den = np.einsum("jc,kji,ic->kc", light, g, light)
-        return np.maximum(np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0), 0.0)
+        return materials_given_light(stats, light)
 
     def energy(light, mats):
         lin = np.einsum("kc,kjc,jc->", mats, h, light)
@@ -131,6 +129,54 @@ def _fit_shared(stats, k: int, cfg, light0) -> tuple[np.ndarray, np.ndarray, flo
             break
         prev = e
     return light, mats, energy(light, mats), passes
+
+
+def materials_given_light(stats, light: np.ndarray) -> np.ndarray:
+    """(K, 3) the material albedos minimising E for the light ``light`` (:func:`material_statistics`'s
+    ``stats``): per material and channel m = L.h / L^T G L; nonnegative."""
+    g, h, _ = stats
+    num = np.einsum("kjc,jc->kc", h, light)
+    den = np.einsum("jc,kji,ic->kc", light, g, light)
+    return np.maximum(np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0), 0.0)
+
+
+def slope_consensus(light, radiance, weight, transfer, positions, labels, irls: int = 20) -> np.ndarray:
+    """(9, 3) ``light`` with its band-1 terms (the dipole) moved so that most materials' albedos hold no slope.
+
+    A material whose albedo drifts along an axis makes the light's fit tilt the dipole along it (the fit then
+    trusts the most uniform material, which may drift too: the ornament's white by 5% along x, 3.4% of the light
+    moved). Each material's own albedos under the light, log, regressed on position give its slopes b_k (3,) per
+    channel; a dipole change d moves them by -J_k d (linearised: d log a_t = -T_t[1:4] . d / s_t, regressed alike).
+    The d that zeroes the slopes of most materials (least absolute deviations over the materials' slopes,
+    iteratively reweighted) is kept: a drift is taken to be one material's, not most materials'. With fewer than
+    3 materials of 20+ texels (``weight`` > 0) there is no majority: the light is returned as it is."""
+    light = np.array(light, np.float64)
+    shading = transfer @ light
+    own = albedo_given_light(light, radiance, weight, transfer)
+    for c in range(3):
+        slopes, jacobians = [], []
+        for k in range(int(labels.max()) + 1):
+            m = (labels == k) & (weight > 0) & (own[:, c] > 1e-6) & (shading[:, c] > 1e-9)
+            if m.sum() < 20:
+                continue
+            w = weight[m]
+            x = positions[m] - np.average(positions[m], axis=0, weights=w)
+            design = np.c_[np.ones(len(x)), x]
+            wd = design * w[:, None]
+            normal = wd.T @ design
+            rhs = np.c_[np.log(own[m, c]), transfer[m, 1:4] / shading[m, c][:, None]]
+            coef = np.linalg.lstsq(normal, wd.T @ rhs, rcond=None)[0][1:]  # (3 axes, 1 + 3)
+            slopes.append(coef[:, 0])
+            jacobians.append(coef[:, 1:])
+        if len(slopes) < 3:
+            return light
+        b, jac = np.concatenate(slopes), np.concatenate(jacobians)
+        rw, d = np.ones(len(b)), np.zeros(3)
+        for _ in range(irls):
+            d = np.linalg.lstsq(jac * rw[:, None], b * rw, rcond=None)[0]
+            rw = 1.0 / np.sqrt(np.maximum(np.abs(b - jac @ d), 1e-4))
+        light[1:4, c] += d
+    return light
 
 
 def albedo_given_light(light, radiance, weight, transfer, prior_albedo=None, prior: float = 0.0) -> np.ndarray:
@@ -280,6 +326,11 @@ def solve(radiance: np.ndarray, weight: np.ndarray, transfer: np.ndarray, cfg, f
             break  # one more material was merged into another, or hardly helps: keep the fewer
         best = found
     light, mats, labels, _ = best
+    if neighbours is not None and cfg.slope_consensus:
+        interior = (labels[neighbours] == labels[:, None]).all(axis=1)
+        light = slope_consensus(light, radiance, weight * interior, transfer, np.asarray(positions, np.float64),
+                                labels)
+        mats = materials_given_light(material_statistics(radiance, weight, transfer, labels, len(mats)), light)
     albedo = albedo_given_light(light, radiance, weight, transfer, mats[labels], cfg.albedo_prior)
     light, albedo, mats, gauge = fix_gauge(light, albedo, mats, cfg)
     gauge["materials"] = int(len(mats))
