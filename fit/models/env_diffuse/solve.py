@@ -151,6 +151,8 @@ def slope_consensus(light, radiance, weight, transfer, positions, labels, irls: 
     iteratively reweighted) is kept: a drift is taken to be one material's, not most materials'. With fewer than
     3 materials of 20+ texels (``weight`` > 0) there is no majority: the light is returned as it is."""
     light = np.array(light, np.float64)
+    centred = positions - positions.mean(axis=0)
+    positions = centred / max(float(np.sqrt(np.mean(np.sum(centred ** 2, axis=1)))), 1e-300)  # slopes per radius
     shading = transfer @ light
     own = albedo_given_light(light, radiance, weight, transfer)
     for c in range(3):
