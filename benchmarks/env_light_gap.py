@@ -114,7 +114,6 @@ def fit_and_score(work: Path, scene: dict, name: str, extra: list[str], device: 
     cov = np.asarray(scene["bake"].covered, bool)
     a, t = read_image(model / "albedo.exr")[cov], scene["albedo"][cov]
     return {"relit_psnr_db": relit_psnr(renders, work / "relit_truth"),
-            "heldout_own_light_db": manifest["heldout"]["pooled_psnr_db"],
             "light_rel_error": float(np.linalg.norm(light - truth_light) / np.linalg.norm(truth_light)),
             "albedo_median_rel_error": float(np.median(np.abs(a - t) / np.maximum(t, 1e-3))),
             "materials": manifest["light"]["gauge"].get("materials"), "fit_s": fit_s,
