@@ -23,7 +23,7 @@ rm -rf "$WARP_CACHE_PATH"
 for run in cold warm; do
   s=$(date +%s.%N)
   texstream fit "$work/capture" --mesh "$work/capture/ground_truth" -o "/root/env_fit_$run" --model env_diffuse \
-    --device cuda --env.scale light_mean --env.scale-value 0.8 > "$out/fit_$run.log" 2>&1
+    --device cuda --holdout-every 8 --env.scale light_mean --env.scale-value 0.8 > "$out/fit_$run.log" 2>&1
   rc=$?
   e=$(date +%s.%N)
   python3 - "$run" "$rc" "$s" "$e" "/root/env_fit_$run/model.json" "$out/fit_$run.json" <<'PY'
