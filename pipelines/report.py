@@ -526,6 +526,7 @@ def write_report(out_dir: str | Path, stages: list[dict], model_dir: str | Path,
         sections.append(_fit_section(info["model"], grid, trace, tmp))
         rows, source, k, held_names = _heldout_rows(info["model"], capture, model_dir, device)
         sections.append(_heldout_section(rows, source, k, model_dir, tmp, max_comparisons, summary))
+        sections.append(_relit_section(info["model"], capture, rows, tmp, device))
         vframes, default = _viewer_frames(capture, held_names, max_photos, photo_max_side)
         model_data = viewer_model_data(mesh, info, vframes, seen, default)
         sections.append(VIEWER_HTML.replace("%%KIND_NOTE%%", _e(info["viewer"].note)))
@@ -650,6 +651,29 @@ def _heldout_section(rows: list[dict], source: str, k: int, model_dir: Path, tmp
     if figs:
         ho.append("<h3>Held-out photos beside the fitted renders</h3>" + "".join(figs))
     return "".join(ho)
+
+
+def _relit_section(model, capture, rows: list[dict], tmp: Path, device: str) -> str:
+    """A relightable model (its plugin's ``report_relit_lights``): a held-out photo, the model under the fitted
+    light and under the plugin's other lights, from that photo's camera."""
+    lights = model.report_relit_lights()
+    row = next((r for r in rows if "_render" in r), None)
+    frame = next((f for f in capture.frames if f.name == row["name"]), None) if capture and row else None
+    if not lights or frame is None:
+        return ""
+    panels = [("photo (held out)", row["_photo"]), ("fitted light", row["_render"])]
+    panels += [(caption, model.relit_renderer(light, device)(frame)[0]) for caption, light in lights]
+    plt = _plt()
+    fig, ax = plt.subplots(1, len(panels), figsize=(2.6 * len(panels), 2.9))
+    for a, (caption, img) in zip(ax, panels):
+        a.imshow(linear_to_srgb(np.clip(img, 0, 1)), interpolation="nearest")
+        a.set_title(caption, fontsize=8, wrap=True)
+        a.set_axis_off()
+    fig.tight_layout()
+    fig.savefig(tmp / "views" / "relit.png", dpi=100)
+    plt.close(fig)
+    return "<h2>Relit</h2>" + _fig("views/relit.png", f"{row['name']}: the photo, the model under its fitted light, "
+                                   "and relit under " + "; ".join(c for c, _ in lights) + " (sRGB, clipped at 1).")
 
 
 def _viewer_frames(capture, held_names: set[str], max_photos: int, photo_max_side: int) -> tuple[list[dict], int]:

@@ -142,6 +142,11 @@ class FittedModel:
         """Model-specific (label, value) rows of the report's summary table."""
         return []
 
+    def report_relit_lights(self) -> list[tuple[str, Any]]:
+        """(caption, light) pairs the report renders a held-out view under beside its photo (a relightable
+        model's ``relit_renderer(light, device)``); none for a model that cannot be relit."""
+        return []
+
     def viewer(self) -> ViewerModel:
         raise NotImplementedError
 

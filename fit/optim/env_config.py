@@ -32,6 +32,16 @@ class EnvDiffuseConfig:
                                      "round before) is off their material's: Cauchy weight 1 / (1 + (q / this)^2), q "
                                      "the largest log-ratio over the channels (0.1: a texel 10% off counts half); "
                                      "0: every texel by its sample count", min=0.0)
+    material_weight_power: float = option(2.0, "the light's fit weights each material by (v_min / v_k)^this, v_k "
+                                                "its texels' mean squared log-misfit to its albedo: materials whose "
+                                                "albedo drifts over the object steer the light less (1: the "
+                                                "maximum-likelihood weighting; 0: every material alike)", min=0.0)
+    edge_neighbours: int = option(8, "a texel any of whose this many nearest texels (on the surface) is of another "
+                                     "material is left out of the light's fit: the photos blend colours across "
+                                     "material edges; 0: every texel", min=0, max=64)
+    slope_consensus: bool = option(True, "after the fit, the light's dipole is moved so that most materials' albedos "
+                                         "(3 or more materials, texels off their edges) hold no slope along x, y, z: "
+                                         "one material's drift is not taken for the light (solve.py)")
     relabel_rounds: int = option(4, "rounds of (light and material albedos, then each texel moved to the material "
                                     "nearest its own albedo under that light)", min=1, max=50)
     light_passes: int = option(300, "alternation passes (material albedos given the light, the light given them) "

@@ -11,7 +11,8 @@ Three phases:
 The model folder (folder.py reads it back): mesh.obj, bake.npz, albedo.exr, radiance.exr (the albedo lit by
 the estimated light: what the photos saw), transfer.npz (the atlas's transfer vectors, (H, W, 9)), light.json
 (the SH light, the format ``--env`` reads), environment.exr (that light as a 64 x 32 latitude-longitude map),
-renders/ and model.json (layout kind "env_diffuse", the light, its gauge and trace, the held-out scores).
+renders/, model.json (layout kind "env_diffuse", the light, its gauge and trace, the held-out scores) and
+fit_config.json.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from texstream.capture.imageio import read_mask, write_image
-from texstream.core.config import config_to_dict
+from texstream.core.config import config_to_dict, save_config
 from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
 from texstream.core.progress import phase
 from texstream.fit.common.inputs import load_fit_inputs, load_photos, set_up_skipping_bad_photos
@@ -60,7 +61,7 @@ def fit(request) -> StageResult:
     seen = result.samples > 0
     what = "given" if fixed is not None else "estimated with shared materials"
     with phase("fit", f"env_diffuse: the light ({what}) and the albedo of {int(seen.sum())} seen texels"):
-        sol = solve(result.params[seen], result.samples[seen], transfer[seen], env, fixed)
+        sol = solve(result.params[seen], result.samples[seen], transfer[seen], env, fixed, tx.position[seen])
     t_solve = time.perf_counter()
     albedo = np.zeros((problem.n, 3))
     albedo[seen] = sol.albedo
@@ -130,6 +131,7 @@ def _write_folder(request, inputs, grid, tgrid, sol, given: bool, timings: dict,
             "timings_s": timings, "warnings": warnings, "device": cfg.device, "config": config_to_dict(cfg),
             "render_eval": evals, "heldout": pooled_psnr([e for e in evals if e["held_out"]]), "units": UNITS}
         write_json_atomic(tmp / "model.json", manifest)
+        save_config(cfg, tmp / "fit_config.json")  # the report reads the held-out split from it, as other models'
     return manifest
 
 

@@ -60,6 +60,10 @@ class EnvDiffuseModel(FittedModel):
         img, s = rgb_scaled(np.maximum(sh.latlong_from_sh(self.light, *ENV_MAP_SIZE), 0.0))
         save("environment", img, f"the estimated environment, latitude-longitude, +z up (divided by {s:.4g}; sRGB)")
 
+    def report_relit_lights(self) -> list[tuple[str, np.ndarray]]:
+        return [(f"the estimated light turned {deg} deg about +z", rotated_about_z(self.light, deg))
+                for deg in (90, 180)]
+
     def report_facts(self) -> list[tuple[str, str]]:
         lt = self.manifest.get("light") or {}
         gauge = lt.get("gauge") or {}
@@ -98,3 +102,11 @@ def load(model_dir: Path, manifest: dict) -> FittedModel:
     if covered.shape != albedo.shape[:2] or not covered.any():
         covered = np.ones(albedo.shape[:2], bool)
     return EnvDiffuseModel(d, mesh, manifest, covered, albedo, transfer, light)
+
+
+def rotated_about_z(light: np.ndarray, degrees: float) -> np.ndarray:
+    """(9, 3) the SH light ``light`` turned by ``degrees`` about +z (east): its latitude-longitude map's columns
+    rolled, projected back (exact for whole-column turns of a band-limited map, to the grid's quadrature)."""
+    height, width = 64, 128
+    env = sh.latlong_from_sh(light, height, width)
+    return sh.project_latlong(np.roll(env, int(round(degrees / 360.0 * width)), axis=1))
