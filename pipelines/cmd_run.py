@@ -37,6 +37,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lfm", default=None, choices=LFM_CANDIDATE,
                         help="fixed unknown lighting, model auto: also fit light field mapping when view dependence "
                              "matters (auto, the default), always, or never")
+    parser.add_argument("--relightable", action=argparse.BooleanOptionalAction, default=None,
+                        help="fixed unknown lighting, model auto: also fit the relightable env_diffuse model (the light "
+                             "estimated; texstream relight) and keep it within relightable_margin_db (1 dB) of the best "
+                             "model on the validation photos (default: off)")
     parser.add_argument("--mesh-file", dest="mesh_file", default=None, help="use this mesh instead of one from the photos")
     parser.add_argument("--colocated-light", dest="colocated_light", default=None,
                         type=Number.of(IngestConfig, "colocated_light", "--colocated-light"),
@@ -74,7 +78,7 @@ def _config(args: argparse.Namespace):
         cfg = RunConfig()
     if args.config is None:
         cfg.fit.fit = dataclasses.replace(cfg.fit.fit, max_iterations=30)
-    top = {k: getattr(args, k) for k in ("model", "lfm", "device", "mesh_file", "progress")
+    top = {k: getattr(args, k) for k in ("model", "lfm", "relightable", "device", "mesh_file", "progress")
            if getattr(args, k, None) is not None}
     fit = {k: v for k, v in (("max_iterations", args.iterations), ("optimizer", args.optimizer)) if v is not None}
     cfg = dataclasses.replace(cfg, **top)

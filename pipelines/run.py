@@ -108,6 +108,12 @@ class RunConfig:
                                                      "constrain in the one-lobe fit (fit.materials."
                                                      "constrained_rel_std): only those can pin a second lobe down; "
                                                      "0: always fitted", min=0.0, max=1.0)
+    relightable: bool = option(False, "fixed unknown lighting, model auto, held-out photos: also fit the relightable "
+                                      "env_diffuse model (albedo and the light estimated, `texstream relight`) and keep "
+                                      "it when its validation pooled PSNR is within relightable_margin_db of the best "
+                                      "radiance model's")
+    relightable_margin_db: float = option(1.0, "relightable: the margin (dB) below the best model within which the "
+                                               "relightable model is kept", min=0.0, max=60.0)
     mesh_file: str | None = option(None, "a mesh of the object (OBJ/PLY) to use instead of one from the photos; "
                                          "with usable UVs it also skips the atlas")
     progress: bool = option(True, "progress bars over photos and iterations (shown on a terminal only); the stages' "
@@ -427,7 +433,9 @@ def _fit(pipe: Pipeline, capture, posed: bool, posed_dir: Path, fit_geometry: Pa
     fit_cfg = dataclasses.replace(cfg.fit, device=cfg.device, fit=dataclasses.replace(cfg.fit.fit, model=cfg.model),
                                   choice=ModelChoiceConfig(second_lobe=cfg.second_lobe, lfm=cfg.lfm,
                                                            lfm_min_gain_db=cfg.lfm_min_gain_db,
-                                                           second_lobe_min_constrained=cfg.second_lobe_min_constrained))
+                                                           second_lobe_min_constrained=cfg.second_lobe_min_constrained,
+                                                           relightable=cfg.relightable,
+                                                           relightable_margin_db=cfg.relightable_margin_db))
     plan = plan_choice(capture, cfg.model, fit_cfg)
     model_kind, why = plan.base, plan.reason
     if lights_summary:

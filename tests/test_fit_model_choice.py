@@ -89,3 +89,36 @@ def test_the_second_lobe_is_fitted_only_where_the_photos_can_support_it():
     fitted["lafortune"]["materials"]["uncertainty"]["constrained_texels"] = 5000
     assert second_lobe_supported(fitted, cfg) is None
     assert second_lobe_supported({"lafortune": {"materials": None}}, cfg) is None
+
+
+def radiance_plan(cfg) -> ChoicePlan:
+    from texstream.fit.models.radiance.choice import candidates as radiance_candidates
+
+    return ChoicePlan("radiance", "no lights", radiance_candidates(None, cfg))
+
+
+def test_a_relightable_model_is_kept_within_its_margin_and_only_when_asked(tmp_path):
+    """``choice.relightable``: env_diffuse (the registry's relightable model) is fitted beside the radiance models
+    (a validation fit, then every fitted photo when kept) and kept 0.6 dB below the best, inside the 1 dB margin;
+    1.5 dB below it is not kept, and the reason says so; without the option it is never fitted. lfm never, so
+    the escalation adds nothing."""
+    import dataclasses
+
+    from texstream.fit.stages.choice import ModelChoiceConfig
+
+    scores = {"radiance": 30.0, "view_radiance": 31.0, "env_diffuse": 30.4}
+    for relightable, env_db, kept in ((True, 30.4, "env_diffuse"), (True, 29.5, "view_radiance"),
+                                      (False, 30.4, "view_radiance")):
+        cfg = FitStageConfig(holdout_every=8, choice=ModelChoiceConfig(lfm="never", relightable=relightable))
+        fit_one, calls = fake_fits(dict(scores, env_diffuse=env_db), dict.fromkeys(scores, 25.0))
+        out = tmp_path / f"{relightable}_{env_db}" / "model"
+        out.parent.mkdir()
+        res = fit_choice(out.parent, out.parent, out, dataclasses.replace(cfg), radiance_plan(cfg), fit_one,
+                         log=lambda line: None)
+        sel = res.summary["selection"]
+        assert sel["chosen"] == kept, (relightable, env_db, sel["reason"])
+        assert (("env_diffuse", True) in calls) == relightable
+        if relightable and kept != "env_diffuse":
+            assert "relightable env_diffuse not kept" in sel["reason"]
+        if kept == "env_diffuse":
+            assert "within relightable_margin_db 1" in sel["reason"] and calls[-1] == ("env_diffuse", False)

@@ -197,6 +197,9 @@ class AppearanceModel:
             fits, it returns ([], a phrase for the plan's log line). The reason is recorded in the selection
             under ``escalation_key``.
         auto_rank: the base model for a capture with lights (needs_light) or without: lowest rank wins.
+        relightable: its folder can be rendered under another light than the photos' (``FittedModel.
+            report_relit_lights``); the choice's ``relightable`` option fits it beside the base model's
+            candidates (fit/stages/choice.py).
         layout_traits: what the kind's name means for the per-texel parameter table and kernels
             (render/layout.py LayoutTraits), or None: the model has no per-texel table of its own (light field
             mapping).
@@ -212,6 +215,7 @@ class AppearanceModel:
     escalate: Callable | None = None
     auto_rank: int = 100
     escalation_key: str = "escalation"
+    relightable: bool = False
     layout_traits: LayoutTraits | None = None
 
 

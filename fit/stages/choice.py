@@ -57,6 +57,12 @@ class ModelChoiceConfig:
                               "at least lfm_min_gain_db above radiance's), always, or never", choices=LFM_CANDIDATE)
     lfm_min_gain_db: float = option(0.5, "lfm auto: the validation gain (dB) of view_radiance over radiance from "
                                          "which view dependence counts as mattering", min=-60.0, max=60.0)
+    relightable: bool = option(False, "one fixed unknown lighting: also fit the relightable models of the registry "
+                                      "(env_diffuse: albedo and the light, estimated) and keep one when its "
+                                      "validation pooled PSNR is within relightable_margin_db of the best model's; "
+                                      "off by default: one more fit (8.5 min on the temple on the 2-core CPU)")
+    relightable_margin_db: float = option(1.0, "relightable: how far (dB, validation pooled PSNR) below the best model "
+                                               "a relightable model may be and still be kept", min=0.0, max=60.0)
     validation_fit: bool = option(False, "fit only the fitted photos less every materials.validation_every-th and "
                                          "score those validation photos where the held-out ones are scored (the "
                                          "held-out photos are not read): how the choice judges a candidate whose "
@@ -221,7 +227,13 @@ def fit_choice(capture_dir: Path, mesh_path: Path, out_dir: Path, cfg, plan: Cho
                 left_out[c.name] = f"could not be fitted ({e.message})"
                 failed.add(c.name)
                 log(f"[fit] {c.name} could not be fitted ({e.message}): left out")
-    best, reason = _best(judged, cfg.materials.validation_every)
+    relit = _relightable_candidates(plan, cfg)
+    for c in relit:
+        judge(c)
+    best, reason = _best({k: j for k, j in judged.items() if k not in {c.name for c in relit}},
+                         cfg.materials.validation_every)
+    if relit:
+        best, reason = _prefer_relightable(judged, best, reason, [c.name for c in relit], cfg.choice.relightable_margin_db)
     reason += "".join(f"; {k} left out: {why}" for k, why in left_out.items() if k not in failed)
     kept = judged[best]
     t_refit, refit = time.perf_counter(), kept.full is None
@@ -248,6 +260,30 @@ def fit_choice(capture_dir: Path, mesh_path: Path, out_dir: Path, cfg, plan: Cho
     res.summary["selection"] = selection
     _record_selection(out_dir, selection)
     return res
+
+
+def _relightable_candidates(plan: ChoicePlan, cfg) -> list:
+    """The registry's relightable models for a capture like the base model's (``choice.relightable``)."""
+    if not cfg.choice.relightable:
+        return []
+    lit = registry.get(plan.base).needs_light
+    return [registry.Candidate(k, k, label=f"the relightable {k}") for k in registry.kinds()
+            if registry.get(k).relightable and registry.get(k).needs_light == lit and k != plan.base]
+
+
+def _prefer_relightable(judged: dict, best: str, reason: str, relit: list[str], margin_db: float) -> tuple[str, str]:
+    """(kept, reason): the best relightable candidate when its validation pooled PSNR is within ``margin_db`` of
+    ``best``'s (a model that can be relit is worth that much), else ``best`` with why not."""
+    scored = [k for k in relit if judged[k].pooled_db is not None]
+    if not scored:
+        return best, reason + "; no relightable model could be validated, so none kept"
+    top = max(scored, key=lambda k: judged[k].pooled_db)
+    ref = judged[best].pooled_db
+    if ref is None or judged[top].pooled_db >= ref - margin_db:
+        return top, (f"{top} kept (relightable): validation pooled PSNR {_db(judged[top].pooled_db)}, within "
+                     f"relightable_margin_db {margin_db:g} of the best other model's ({reason})")
+    return best, (reason + f"; the relightable {top} not kept: {_db(judged[top].pooled_db)}, more than "
+                  f"relightable_margin_db {margin_db:g} below")
 
 
 def _best(judged: dict, every: int) -> tuple[str, str]:

@@ -4,11 +4,11 @@ declaration.
 Photos under one fixed, unknown lighting (no ``light`` per frame, as for the radiance models); its global
 parameters are the light, order-2 SH (render/sh.py), fitted with a per-texel albedo (fit.py, solve.py).
 
-The automatic model choice (fit/stages/choice.py) does not try it (``candidates`` None): it would enter as a
-further candidate of a capture without lights (radiance's), kept only where its held-out error is within a
-stated margin of the best radiance model, since its renders under the photos' own light are a diffuse
-approximation of what the radiance models fit freely. Its folder says it can be relit
-(``EnvDiffuseModel.relightable``, ``relit_renderer``).
+It is never a base model (``candidates`` None). With the choice's ``relightable`` option (``texstream run
+--relightable``) it is fitted beside the radiance models of a capture without lights and kept where its
+validation error is within ``relightable_margin_db`` of the best one (fit/stages/choice.py), since its renders
+under the photos' own light are a diffuse approximation of what the radiance models fit freely. Its folder
+says it can be relit (``EnvDiffuseModel.relightable``, ``relit_renderer``).
 """
 
 from __future__ import annotations
@@ -25,4 +25,5 @@ PLUGIN = register(AppearanceModel(
     units=fit_module.UNITS,
     fit=fit_module.fit,
     load=folder_module.load,
+    relightable=True,
 ))
