@@ -1,4 +1,4 @@
-"""The highlight diagnostic (fit/diagnostics/highlights.py) on synthetic ground truth: the glossy sphere
+"""The highlight diagnostic (fit/common/highlights.py) on synthetic ground truth: the glossy sphere
 (a lobe of exponent 30 on every texel, a point light beside each camera), its photos fitted with the Lafortune
 model (the lobes found where the photos show them) and with the diffuse model (no lobe anywhere: every highlight
 is a highlight without a lobe, issue 39's failure), and the same sphere made matte (no highlight to find).
@@ -17,7 +17,7 @@ import pytest
 from texstream.capture.imageio import read_image
 from texstream.capture.synthetic.synth import SynthConfig, load_scene, render_scene
 from texstream.fit.diagnostics.accuracy import highlight_counts
-from texstream.fit.diagnostics.highlights import CLASS_COLOURS, highlight_masks, highlight_report
+from texstream.fit.common.highlights import CLASS_COLOURS, highlight_masks, highlight_report
 from texstream.fit.models.per_texel.fit import Lobes, write_highlights
 from texstream.fit.optim.fitter import FitConfig, run_fit
 from texstream.fit.stages.stage import build_problem

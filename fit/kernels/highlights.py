@@ -1,4 +1,4 @@
-"""The highlight diagnostic's passes (fit/diagnostics/highlights.py): per texel, its photos' samples taken as the
+"""The highlight diagnostic's passes (fit/common/highlights.py): per texel, its photos' samples taken as the
 fit takes them (fit/kernels/stream.py ``observe``: the same projection, visibility, shadow, mask, saturation and
 grazing tests, the same photo filter), sorted by how close each is to the mirror configuration, and compared with
 what the fitted model's diffuse part (plus its ambient term) predicts there.

@@ -8,7 +8,7 @@ import numpy as np
 
 from texstream.capture.imageio import linear_to_srgb, read_image
 from texstream.core.devices import resolve_device
-from texstream.fit.diagnostics.highlights import CLASS_NAMES
+from texstream.fit.common.highlights import CLASS_NAMES
 from texstream.fit.models.lafortune.export import bake_fill_source, lafortune_material
 from texstream.fit.models.per_texel.folder import PerTexelModel, load_per_texel
 from texstream.fit.models.previews import read_shader, rgb_scaled
@@ -47,7 +47,7 @@ class LafortuneModel(PerTexelModel):
             img, s = rgb_scaled(grid[..., lay.ambient_offset:lay.ambient_offset + 3])
             save("ambient", img, f"ambient radiance A, the room's light (RGB, photo value / exposure, divided by "
                                  f"{s:.4g}; sRGB)")
-        if (self.folder / "highlights.png").is_file():  # the fit's highlight diagnostic (fit/diagnostics/highlights.py)
+        if (self.folder / "highlights.png").is_file():  # the fit's highlight diagnostic (fit/common/highlights.py)
             save("highlights", read_image(self.folder / "highlights.png", channels=3, linear=False),
                  "highlights the photos show against lobes the model has: " + ", ".join(CLASS_NAMES))
 

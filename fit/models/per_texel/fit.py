@@ -25,7 +25,7 @@ from texstream.fit.common.model_folder import (bound_report, check_model, pooled
 from texstream.fit.common.numerics import numerics_warnings
 from texstream.fit.common.setup import (Checkpoint, ModelRenders, fill_unseen_texels, fit_inputs_signature,
                                         params_to_grid, run_fit_with_progress)
-from texstream.fit.diagnostics.highlights import highlight_image, highlight_masks, highlight_report
+from texstream.fit.common.highlights import highlight_image, highlight_masks, highlight_report
 from texstream.fit.models import registry
 from texstream.fit.models.per_texel.ambient import resolve_ambient
 from texstream.fit.models.per_texel.lobes import (_materials_manifest, average_seams_in_bounds, choose_materials,
@@ -280,7 +280,7 @@ def write_lobe_maps(tmp: Path, bake, problem, result, lobes: Lobes) -> None:
 
 
 def write_highlights(tmp: Path, bake, problem, result, lobes: Lobes) -> dict | None:
-    """highlights.png and what model.json records of the highlight diagnostic (fit/diagnostics/highlights.py)
+    """highlights.png and what model.json records of the highlight diagnostic (fit/common/highlights.py)
     for a lit model; None for the radiance models (no light, no mirror configuration)."""
     if result.layout.is_radiance or result.layout.view_terms:
         return None
