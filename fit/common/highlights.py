@@ -26,7 +26,9 @@ highlight (the photos show one)
 
 lobe (the model has one)
     Some lobe's rho_s (channel mean) is at least :data:`LOBE_FRACTION` of rho_d's and its exponent is off its
-    lower bound: its peak is then at least a tenth of the diffuse BRDF, the height :data:`REL_MARGIN` detects.
+    lower bound (1, render/layout.py): its peak is then at least a tenth of the diffuse BRDF, the height
+    :data:`REL_MARGIN` detects. (An empty lobe, rho_s 0, keeps the exponent it started at, 10: the "floor" issue 39
+    saw; the rho_s test rules it out.)
 
 The counts (model.json ``highlights``): texels seen, with a highlight, with a lobe, highlight but no lobe (the
 failure issue 39 describes: polished bronze fitted with empty lobes) and lobe but no highlight (a lobe no photo
@@ -66,15 +68,14 @@ CLASS_NAMES = ("unseen (black)", "no highlight, no lobe (grey)", "highlight and 
 
 @dataclasses.dataclass
 class HighlightMasks:
-    """Per compact texel: seen (some usable sample), highlight, lobe, highlight samples, samples near the
-    mirror, and the strongest excess over its threshold (1: at it; 0 where none was near the mirror)."""
+    """Per compact texel: seen (some usable sample), highlight, lobe, highlight samples and samples near the
+    mirror; the seconds the two passes took."""
 
     seen: np.ndarray
     highlight: np.ndarray
     lobe: np.ndarray
     hits: np.ndarray
     near_mirror: np.ndarray
-    strongest: np.ndarray
     seconds: float
 
     def classes(self) -> np.ndarray:
@@ -102,22 +103,22 @@ def _parts(problem) -> list:
     return [problem, *problem.peers]
 
 
-def _stream(problem, kernel, per_texel: dict, outputs: dict, scalars_before: list, scalars_after: list) -> dict:
-    """Launch ``kernel`` over every window of every part's photos; ``per_texel`` (name -> numpy) uploaded to each
-    part's device, ``outputs`` (name -> (numpy dtype, warp dtype)) zero-filled there and summed over the parts on
-    the host (``strongest``: the largest)."""
+def _stream(problem, kernel, per_texel: dict, arguments, outputs: dict) -> dict:
+    """Launch ``kernel`` over every window of every part's photos, as the fit's passes stream them;
+    ``per_texel`` (name -> numpy) uploaded to each part's device, ``arguments(uploaded)`` the kernel's arguments
+    after the sample options, ``outputs`` (name -> warp dtype) zero-filled there and summed over the parts on the
+    host."""
     total = {}
     for pr in _parts(problem):
         dev = pr.device
         ins = {k: wp.array(v, dtype=wp.vec3 if v.ndim == 2 else wp.float32, device=dev) for k, v in per_texel.items()}
-        outs = {k: wp.zeros(pr.n, dtype=wt, device=dev) for k, (_, wt) in outputs.items()}
+        outs = {k: wp.zeros(pr.n, dtype=wt, device=dev) for k, wt in outputs.items()}
         for images, depth, shadow, infos, b, e in pr.own_photos.windows():
             wp.launch(kernel, dim=pr.n, device=dev,
-                      inputs=[pr.tex, images, depth, shadow, infos, b, e, pr.opt, *scalars_before(ins),
-                              *scalars_after], outputs=list(outs.values()))
+                      inputs=[pr.tex, images, depth, shadow, infos, b, e, pr.opt, *arguments(ins)],
+                      outputs=list(outs.values()))
         for k, a in outs.items():
-            v = a.numpy()
-            total[k] = v if k not in total else (np.maximum(total[k], v) if k == "strongest" else total[k] + v)
+            total[k] = a.numpy() + total.get(k, 0)
     return total
 
 
@@ -133,8 +134,8 @@ def highlight_masks(problem, params: np.ndarray) -> HighlightMasks:
     s_cone = 0.5 ** (1.0 / CONE_EXPONENT)
     s_off = OFF_LOBE_FRACTION ** (1.0 / CONE_EXPONENT)
     first = _stream(problem, off_mirror_residual_kernel, {"rho_d": rho_d, "ambient": amb},
-                    {"sums": (np.float64, wp.vec4d), "cone": (np.int32, wp.int32)},
-                    lambda a: [a["rho_d"], a["ambient"]], [float(s_off), float(s_cone)])
+                    lambda a: [a["rho_d"], a["ambient"], float(s_off), float(s_cone)],
+                    {"sums": wp.vec4d, "cone": wp.int32})
     sums, near = first["sums"], first["cone"]
     count = sums[:, 0]
     own = count >= MIN_OFF_SAMPLES
@@ -145,13 +146,13 @@ def highlight_masks(problem, params: np.ndarray) -> HighlightMasks:
     level = mean.astype(np.float32)
     second = _stream(problem, highlight_samples_kernel,
                      {"rho_d": rho_d, "ambient": amb, "level": level, "sigma": sigma},
-                     {"hits": (np.int32, wp.int32), "strongest": (np.float32, wp.float32)},
-                     lambda a: [a["rho_d"], a["ambient"], float(s_cone), a["level"], a["sigma"]],
-                     [float(K_SIGMA), float(REL_MARGIN)])
+                     lambda a: [a["rho_d"], a["ambient"], float(s_cone), a["level"], a["sigma"], float(K_SIGMA),
+                                float(REL_MARGIN)],
+                     {"hits": wp.int32})
     seen = sums[:, 3] > 0
     hits = second["hits"]
     return HighlightMasks(seen=seen, highlight=seen & (hits > 0), lobe=seen & lobe_mask(p, lay), hits=hits,
-                          near_mirror=near, strongest=second["strongest"], seconds=time.perf_counter() - t0)
+                          near_mirror=near, seconds=time.perf_counter() - t0)
 
 
 def highlight_report(masks: HighlightMasks, constrained: np.ndarray | None = None) -> dict:

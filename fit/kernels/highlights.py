@@ -75,24 +75,18 @@ def highlight_samples_kernel(tex: TexelFrames, images: wp.array3d(dtype=Any), de
                              img_begin: int, img_end: int, opt: SampleOptions, rho_d: wp.array(dtype=wp.vec3),
                              ambient: wp.array(dtype=wp.vec3), s_cone: float, level: wp.array(dtype=wp.float32),
                              sigma: wp.array(dtype=wp.float32), k_sigma: float, rel_margin: float,
-                             hits: wp.array(dtype=wp.int32), strongest: wp.array(dtype=wp.float32)):
+                             hits: wp.array(dtype=wp.int32)):
     """Per texel, added to ``hits``: the samples near the mirror configuration (mirror cosine at or above
     ``s_cone``) whose diffuse residual exceeds the texel's off-mirror ``level`` by more than both
-    ``k_sigma`` times its off-mirror spread ``sigma`` and ``rel_margin`` times the diffuse prediction; and
-    into ``strongest`` the largest such excess over its threshold (1: at the threshold)."""
+    ``k_sigma`` times its off-mirror spread ``sigma`` and ``rel_margin`` times the diffuse prediction."""
     i = wp.tid()
     n_hits = hits[i]
-    best = strongest[i]
     for k in range(img_begin, img_end):
         ok, y, w, u, v, xs, ys = observe(images, depth, shadow, infos, k, tex, i, opt)
         if ok:
             if mirror_cosine(infos, k, tex, i) >= s_cone:
                 r, pred = diffuse_residual(y, w, infos[k].exposure, rho_d[i], ambient[i])
                 threshold = wp.max(k_sigma * sigma[i], rel_margin * wp.abs(pred))
-                excess = r - level[i]
-                if threshold > 0.0:
-                    best = wp.max(best, excess / threshold)
-                    if excess > threshold:
-                        n_hits = n_hits + 1
+                if r - level[i] > threshold:
+                    n_hits = n_hits + 1
     hits[i] = n_hits
-    strongest[i] = best
