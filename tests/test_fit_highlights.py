@@ -10,6 +10,7 @@ fits need only a good diffuse part and, for the Lafortune fit, lobes where the h
 from __future__ import annotations
 
 import copy
+import json
 
 import numpy as np
 import pytest
@@ -86,3 +87,23 @@ def test_a_matte_sphere_shows_no_highlight():
     # fitted rho_d misses the texture's gradient across the photo filter; none is expected, 1% allowed
     assert report["highlight_texels"] <= 0.01 * report["seen_texels"], report
     assert report["texels_near_mirror"] > 100  # the mirror configuration was there to look at
+
+
+def test_the_fit_stage_records_the_counts_and_the_map(tmp_path):
+    """The fit stage's hook (fit/models/per_texel/fit.py): model.json's counts, highlights.png and the report's
+    line, on a tiny sphere capture (24 photos of 40 px, 8 iterations: only the plumbing is tested here)."""
+    from conftest import SCENE_DEVICE, tiny_sphere_capture
+    from texstream.fit.models.materials import MaterialConfig
+    from texstream.fit.models.registry import load_model_folder
+    from texstream.fit.stages.stage import FitStageConfig, fit_stage
+
+    capture = tiny_sphere_capture(tmp_path, photos=24)
+    cfg = FitStageConfig(device=SCENE_DEVICE, renders=0, materials=MaterialConfig(mode="off"),
+                         fit=FitConfig(max_iterations=8))
+    res = fit_stage(capture, capture / "ground_truth", tmp_path / "model", cfg, progress=False)
+    counts = json.loads((tmp_path / "model" / "model.json").read_text())["highlights"]
+    assert res.summary["highlights"] == counts
+    assert 0 < counts["highlight_texels"] <= counts["texels_near_mirror"] <= counts["seen_texels"]
+    assert counts["lobe_constrained"] is None  # materials off: the fit ran no constrained-lobe test
+    assert (tmp_path / "model" / "highlights.png").is_file()
+    assert dict(load_model_folder(tmp_path / "model").report_facts())["highlights"] == counts["line"]
