@@ -17,8 +17,8 @@ import pytest
 
 from texstream.capture.imageio import read_image
 from texstream.capture.synthetic.synth import SynthConfig, load_scene, render_scene
-from texstream.fit.diagnostics.accuracy import highlight_counts
 from texstream.fit.common.highlights import CLASS_COLOURS, highlight_masks, highlight_report
+from texstream.fit.diagnostics.accuracy import highlight_counts
 from texstream.fit.models.per_texel.fit import Lobes, write_highlights
 from texstream.fit.optim.fitter import FitConfig, run_fit
 from texstream.fit.stages.stage import build_problem

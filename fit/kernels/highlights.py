@@ -26,7 +26,7 @@ def mirror_cosine(infos: wp.array(dtype=ImageInfo), k: int, tex: TexelFrames, i:
     texel centre): 1 at the mirror configuration, the base of a Phong lobe ``max(s, 0)^n``."""
     p = tex.pos[i]
     nrm = tex.nrm[i]
-    wi, e_int, dist = incident_light(infos[k].light_kind, infos[k].light_vec, infos[k].light_intensity, p)
+    wi, _e_int, _dist = incident_light(infos[k].light_kind, infos[k].light_vec, infos[k].light_intensity, p)
     vdir = wp.normalize(infos[k].center - p)
     mirrored = 2.0 * wp.dot(nrm, wi) * nrm - wi
     return wp.dot(mirrored, vdir)
@@ -54,12 +54,12 @@ def off_mirror_residual_kernel(tex: TexelFrames, images: wp.array3d(dtype=Any), 
     acc = sums[i]
     near = cone[i]
     for k in range(img_begin, img_end):
-        ok, y, w, u, v, xs, ys = observe(images, depth, shadow, infos, k, tex, i, opt)
+        ok, y, w, _u, _v, _xs, _ys = observe(images, depth, shadow, infos, k, tex, i, opt)
         if ok:
             s = mirror_cosine(infos, k, tex, i)
             acc[3] = acc[3] + wp.float64(1.0)
             if s < s_off:
-                r, pred = diffuse_residual(y, w, infos[k].exposure, rho_d[i], ambient[i])
+                r, _pred = diffuse_residual(y, w, infos[k].exposure, rho_d[i], ambient[i])
                 acc[0] = acc[0] + wp.float64(1.0)
                 acc[1] = acc[1] + wp.float64(r)
                 acc[2] = acc[2] + wp.float64(r) * wp.float64(r)
@@ -82,11 +82,10 @@ def highlight_samples_kernel(tex: TexelFrames, images: wp.array3d(dtype=Any), de
     i = wp.tid()
     n_hits = hits[i]
     for k in range(img_begin, img_end):
-        ok, y, w, u, v, xs, ys = observe(images, depth, shadow, infos, k, tex, i, opt)
-        if ok:
-            if mirror_cosine(infos, k, tex, i) >= s_cone:
-                r, pred = diffuse_residual(y, w, infos[k].exposure, rho_d[i], ambient[i])
-                threshold = wp.max(k_sigma * sigma[i], rel_margin * wp.abs(pred))
-                if r - level[i] > threshold:
-                    n_hits = n_hits + 1
+        ok, y, w, _u, _v, _xs, _ys = observe(images, depth, shadow, infos, k, tex, i, opt)
+        if ok and mirror_cosine(infos, k, tex, i) >= s_cone:
+            r, pred = diffuse_residual(y, w, infos[k].exposure, rho_d[i], ambient[i])
+            threshold = wp.max(k_sigma * sigma[i], rel_margin * wp.abs(pred))
+            if r - level[i] > threshold:
+                n_hits = n_hits + 1
     hits[i] = n_hits
