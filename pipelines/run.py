@@ -323,6 +323,8 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
 
     model_dir = out / "model"
     fit_rec, model_kind, why = _fit(pipe, capture, posed, posed_dir, fit_geometry, model_dir, cfg, lights_summary)
+    if isinstance((fit_rec.summary or {}).get("highlights"), dict):  # fit/common/highlights.py
+        log(f"[fit] highlights: {fit_rec.summary['highlights']['line']}")
 
     inputs = dict(run_inputs(pipe.records, kind, capture, cfg.mesh_file), response=_response_input(pipe, capture),
                   **light_and_resolution_inputs(capture, model_dir, fit_geometry, flash_summary))

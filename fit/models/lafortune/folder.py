@@ -6,8 +6,9 @@ from pathlib import Path
 
 import numpy as np
 
-from texstream.capture.imageio import linear_to_srgb
+from texstream.capture.imageio import linear_to_srgb, read_image
 from texstream.core.devices import resolve_device
+from texstream.fit.common.highlights import CLASS_NAMES
 from texstream.fit.models.lafortune.export import bake_fill_source, lafortune_material
 from texstream.fit.models.per_texel.folder import PerTexelModel, load_per_texel
 from texstream.fit.models.previews import read_shader, rgb_scaled
@@ -46,12 +47,17 @@ class LafortuneModel(PerTexelModel):
             img, s = rgb_scaled(grid[..., lay.ambient_offset:lay.ambient_offset + 3])
             save("ambient", img, f"ambient radiance A, the room's light (RGB, photo value / exposure, divided by "
                                  f"{s:.4g}; sRGB)")
+        if (self.folder / "highlights.png").is_file():  # the fit's highlight diagnostic (fit/common/highlights.py)
+            save("highlights", read_image(self.folder / "highlights.png", channels=3, linear=False),
+                 "highlights the photos show against lobes the model has: " + ", ".join(CLASS_NAMES))
 
     def report_facts(self) -> list[tuple[str, str]]:
         rows = super().report_facts()
         amb = self.manifest.get("ambient")
         if isinstance(amb, dict):
             rows.append(("ambient term", f"{amb.get('chosen')} ({amb.get('mode')}): {amb.get('reason')}"))
+        if isinstance(self.manifest.get("highlights"), dict):
+            rows.append(("highlights", self.manifest["highlights"].get("line", "")))
         return rows
 
     def viewer(self) -> ViewerModel:

@@ -25,6 +25,7 @@ from texstream.fit.common.model_folder import (bound_report, check_model, pooled
 from texstream.fit.common.numerics import numerics_warnings
 from texstream.fit.common.setup import (Checkpoint, ModelRenders, fill_unseen_texels, fit_inputs_signature,
                                         params_to_grid, run_fit_with_progress)
+from texstream.fit.common.highlights import highlight_image, highlight_masks, highlight_report
 from texstream.fit.models import registry
 from texstream.fit.models.per_texel.ambient import resolve_ambient
 from texstream.fit.models.per_texel.lobes import (_materials_manifest, average_seams_in_bounds, choose_materials,
@@ -91,12 +92,14 @@ def _fit_per_texel_model(capture_dir: str | Path, mesh_path: str | Path, out_dir
         seen = np.zeros(inputs.bake.height * inputs.bake.width, bool)
         seen[problem.texels.grid_index] = result.samples > 0
         write_lobe_maps(tmp, inputs.bake, problem, result, lobes)
+        highlights = write_highlights(tmp, inputs.bake, problem, result, lobes)
         timings = {"inputs": t_inputs, "setup": t_setup - t_inputs, "choice_before_fit": t_choice,
                    "fit": t_loop - t0 - t_setup - t_choice, "after_fit": t_fitted - t_loop,
                    "renders": time.perf_counter() - t_fitted}
         manifest = _manifest(inputs, problem, result, lobes, cfg, evals,
                              {"seen_before": seen_before, "filled": filled, "skipped": skipped, "tiles": tiles_report,
-                              "seams": seams_info, "setup_s": t_setup, "timings_s": timings, "ambient": ambient})
+                              "seams": seams_info, "setup_s": t_setup, "timings_s": timings, "ambient": ambient,
+                              "highlights": highlights})
         write_model_folder(tmp, grid, result.layout, seen.reshape(inputs.bake.height, inputs.bake.width), result.trace,
                            title, manifest, cfg, plot=plot)
     if ckpt is not None:
@@ -108,7 +111,8 @@ def _fit_per_texel_model(capture_dir: str | Path, mesh_path: str | Path, out_dir
                                        "resumed_from": None if resume is None else int(resume["iteration"]),
                                        "skipped_photos": [p["file"] for p in skipped],
                                        "render_eval": evals, "warnings": manifest["warnings"],
-                                       "heldout": manifest["heldout"], "materials": manifest["materials"]})
+                                       "heldout": manifest["heldout"], "materials": manifest["materials"],
+                                       "highlights": highlights})
 
 
 def _checkpoint(capture_dir, mesh_path, out_dir, cfg, problem) -> tuple[Checkpoint | None, dict | None]:
@@ -275,9 +279,20 @@ def write_lobe_maps(tmp: Path, bake, problem, result, lobes: Lobes) -> None:
         write_image(tmp / "materials.png", colours.reshape(bake.height, bake.width, 3), bits=8)
 
 
+def write_highlights(tmp: Path, bake, problem, result, lobes: Lobes) -> dict | None:
+    """highlights.png and what model.json records of the highlight diagnostic (fit/common/highlights.py)
+    for a lit model; None for the radiance models (no light, no mirror configuration)."""
+    if result.layout.is_radiance or result.layout.view_terms:
+        return None
+    masks = highlight_masks(problem, result.params)
+    write_image(tmp / "highlights.png", highlight_image(masks, problem.texels.grid_index, bake.height, bake.width),
+                bits=8)
+    return highlight_report(masks, None if lobes.evidence is None else lobes.evidence.constrained)
+
+
 def _manifest(inputs: FitInputs, problem, result, lobes: Lobes, cfg, evals: list[dict], run: dict) -> dict:
-    """model.json of a per-texel fit (``run``: seen_before, filled, skipped, tiles, seams, setup_s, timings_s, and
-    the ambient option's report, ambient.py ``resolve_ambient``)."""
+    """model.json of a per-texel fit (``run``: seen_before, filled, skipped, tiles, seams, setup_s, timings_s, the
+    ambient option's report, ambient.py ``resolve_ambient``, and the highlight diagnostic's)."""
     lay, last, frames = result.layout, result.trace[-1], inputs.frames
     at_bounds, warnings = bound_report(result.params, lay, result.samples > 0)
     warnings = numerics_warnings(cfg.fit.stream, len(frames), inputs.images, inputs.masks) + warnings
@@ -297,6 +312,7 @@ def _manifest(inputs: FitInputs, problem, result, lobes: Lobes, cfg, evals: list
             "lobe_shape": lobe_shape_report(cfg.fit, lay, frames, problem.texels.position),
             "materials": _materials_manifest(lobes.info, lobes.evidence, cfg.materials),
             **({"ambient": run["ambient"]} if run["ambient"] is not None else {}),
+            **({"highlights": run["highlights"]} if run["highlights"] is not None else {}),
             "seams": run["seams"], "setup_s": run["setup_s"], "passes": result.passes, "device": cfg.device,
             "timings_s": run["timings_s"],
             "render_eval": evals, "heldout": pooled_psnr([e for e in evals if e["held_out"]]),
