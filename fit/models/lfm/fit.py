@@ -109,7 +109,7 @@ def lfm_fit_stage(capture_dir, mesh_path, out_dir, cfg, progress: bool = True) -
         manifest = {"layout": {"kind": "lfm", **dataclasses.asdict(lcfg)}, "mesh": "mesh.obj", "bake": "bake.npz",
                     "params": "lfm.npz", "maps": files,
                     "lfm": {"vertices_welded": problem.V, "texels": problem.N, "slots": problem.S,
-                            "view_texels_in_mask": int(problem.mask_np.sum()),
+                            "view_texels_in_mask": int(problem.mask_np.sum()), "sample_cache": bool(problem.cache),
                             "parameters": int(problem.S * problem.K * 3 + problem.V * problem.K * problem.M * 3
                                               + problem.N * 3)},
                     "method_info": info, "sample_error": err, "fit_s": fit_s, "setup_s": t_setup,
