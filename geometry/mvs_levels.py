@@ -1,8 +1,9 @@
 """Dense stereo at a pyramid level (geometry/mvs.py, MvsConfig.level; issue 40): depth maps finer than the mesh
-they become cost sweep time (the temple's 640x480 photos: 4x the pixels and 2x the planes of level 1) and give
-points the fusion voxels and Poisson merge anyway, since the mesh stage decimates to MeshConfig.faces. A level
-averages the photo's 2^L x 2^L boxes and scales its camera, as the fit's photo levels do (fit/common/
-photo_levels.py, a layer above, whose rule this repeats). numpy only."""
+needs cost sweep time (4x the pixels and 2x the planes per level) and give points the fusion voxels
+and Poisson merge anyway, since the mesh stage decimates to MeshConfig.faces. How coarse is coarse enough was
+measured on the temple (MvsConfig.level_min_mask_pixels). A level averages the photo's 2^L x 2^L boxes and scales
+its camera, as the fit's photo levels do (fit/common/photo_levels.py, a layer above, whose rule this repeats).
+numpy only."""
 
 from __future__ import annotations
 

@@ -189,9 +189,12 @@ def test_the_matching_level_follows_the_masks_and_scales_the_cameras():
 
     masks = np.zeros((3, 480, 640), np.uint8)
     masks[:, 100:370, 200:467] = 1  # 72,090 pixels each, the temple's masks' size
-    assert matching_level(masks, MvsConfig().level_min_mask_pixels) == 1  # 18,022 at level 1, 4,505 at 2
-    assert matching_level(masks[:, :128, :128], MvsConfig().level_min_mask_pixels) == 0  # the 128-pixel sphere
-    assert matching_level(masks, 1000) == 3
+    default = MvsConfig().level_min_mask_pixels
+    assert matching_level(masks, default) == 0  # 18,022 at level 1: too few for the temple's held-out figure
+    assert matching_level(masks, 12000) == 1 and matching_level(masks, 1000) == 3
+    six_megapixels = np.zeros((1, 2048, 3072), np.uint8)
+    six_megapixels[0, 300:1800, 800:2300] = 1  # 2.25 million pixels: 140,625 at level 2, 35,156 at level 3
+    assert matching_level(six_megapixels, default) == 2
     frame = Frame("images/a.png", np.eye(3), np.array([0.1, -0.2, 3.0]),
                   Intrinsics(width=203, height=150, fx=180.0, fy=181.0, cx=101.3, cy=74.9))
     coarse = frame_at_level(frame, 1)
