@@ -14,8 +14,10 @@ SETTLED_REL_TOL = 1e-3
 robust loss of the fitted photos' residuals: training data only) by less than this fraction. The view-dependent
 radiance is linear least squares per texel, which Levenberg-Marquardt solves in its first iteration: on the
 temple its objective moved by 2e-5 of itself after the first of 10 iterations; the radiance model's robust
-(Cauchy) loss reweights its samples and settles more slowly, by 0.1% per iteration after about 13 of 30
-iterations, where its training PSNR was 0.014 dB from the 30th's."""
+(Cauchy) loss reweights its samples and settles more slowly, by 0.1% per iteration after 13 of 30 iterations.
+Measured on the temple's registered cameras and mesh (2-core CPU; held out: templeSR0010): view_radiance 2
+iterations instead of 10, held-out PSNR 24.67 dB either way (to 1e-5 dB), the candidate's CPU time 24.8 s
+against 45.4 s; radiance 13 instead of 30, 23.33 against 23.32 dB, 16.6 s against 24.0 s."""
 
 SETTLED_SYNC_EVERY = 1
 """the radiance models test the rule after every iteration (one scalar read of the trace), so a fit settled after
