@@ -87,10 +87,12 @@ class MvsConfig:
                                 min=3, max=31)
     voxel: float = option(0.001, help="fuse points on a voxel grid of this fraction of the bounding-box diagonal "
                                       "(0: keep every pixel's point)", min=0.0)
-    level: int = option(-1, help="match the photos at pyramid level L (2^L x 2^L pixel boxes averaged, masks kept "
-                                 "where the whole box is object, the cameras scaled; depths / 2^L planes, the same "
-                                 "parallax per plane); -1 auto: the coarsest level at which the median photo's mask "
-                                 "keeps level_min_mask_pixels pixels", min=-1, max=4)
+    level: int = option(0, help="match the photos at pyramid level L (2^L x 2^L pixel boxes averaged, masks kept "
+                                "where the whole box is object, the cameras scaled; depths / 2^L planes, the same "
+                                "parallax per plane); 0: as they are; -1 auto: the coarsest level at which the "
+                                "median photo's mask keeps level_min_mask_pixels pixels (auto keeps the temple at "
+                                "level 0; on photos of megapixels its held-out cost is not measured yet, so it is "
+                                "not the default)", min=-1, max=4)
     level_min_mask_pixels: int = option(64000, help="level auto: the pixels the median photo's mask must keep at the "
                                                     "chosen level. The temple's 640x480 photos (masks of about 72,000 "
                                                     "pixels) stay at level 0: at level 1 (18,000) its mesh stage took "
