@@ -135,11 +135,11 @@ def view_scene():
     return dict(scene=sc, frames=frames, images=images, truth=truth)
 
 
-def fit_view_scene(data, device, model, prior=0.0):
+def fit_view_scene(data, device, model, prior=0.0, **stop):
     sc = data["scene"]
     mesh, bake = sc.mesh, sc.bake
     fit_idx = [k for k in range(len(data["frames"])) if k % 4 != 3]
-    cfg = FitConfig(model=model, optimizer="lm", max_iterations=10, view_prior=prior, robust_loss="none")
+    cfg = FitConfig(model=model, optimizer="lm", max_iterations=10, view_prior=prior, robust_loss="none", **stop)
     normals = mesh.vertex_normals()
     fn, jac = surface_derivatives(mesh.vertices, mesh.faces, normals, bake.face, bake.bary)
     texels = TexelSet.from_grid(bake.covered, bake.position, bake.normal, bake.tangent, bake.bitangent, fn, jac)
@@ -199,3 +199,29 @@ def test_prior_keeps_a_texel_seen_from_one_direction_view_independent(device):
     # each channel: minimise (L + a.phi - y)^2 / 2 + |a|^2 / 2 -> a = phi (y - L) ... with L free, the
     # optimum has a = 0 and L = y; LM reaches it to its stopping tolerance
     assert np.max(np.abs(res.params[seen, 3:])) < 1e-3
+
+
+def test_the_radiance_models_stop_once_their_objective_settles(view_scene, device):
+    """The radiance models' stopping rule (fit/models/radiance/fit.py): the view-dependent radiance is linear
+    least squares per texel, which LM solves in its first iteration or two (its damping starts at lm_lambda0), so
+    under the rule its fit stops at the second or third (measured: the third here, the second on the temple)
+    instead of running to the cap, with the parameters of the capped fit. A rule the caller gives is kept."""
+    from texstream.fit.models.radiance.fit import SETTLED_REL_TOL, SETTLED_SYNC_EVERY, settled_config
+    from texstream.fit.stages.stage import FitStageConfig
+
+    settled = settled_config(FitStageConfig(fit=FitConfig(model="view_radiance"))).fit
+    assert (settled.rel_tol, settled.sync_every) == (SETTLED_REL_TOL, SETTLED_SYNC_EVERY)
+    given = FitStageConfig(fit=FitConfig(model="view_radiance", rel_tol=1e-9))
+    assert settled_config(given) is given
+
+    capped, _, capped_grid = fit_view_scene(view_scene, device, "view_radiance")
+    stopped, _, stopped_grid = fit_view_scene(view_scene, device, "view_radiance", rel_tol=settled.rel_tol,
+                                              sync_every=settled.sync_every)
+    assert capped.trace[-1]["iteration"] == 10 and stopped.trace[-1]["iteration"] <= 3
+    # texels seen from many directions are solved: the later iterations move them by float32 round-off of
+    # their values (0.1-0.8); the 0.1% seen by a few photos, whose view terms the damping still holds back,
+    # moved by up to 0.007 (measured), which the held-out views must not see
+    well = capped.samples >= 12
+    np.testing.assert_allclose(stopped.params[well], capped.params[well], rtol=0, atol=1e-4)
+    mse_stopped, mse_capped = heldout_mse(view_scene, stopped_grid, VIEW), heldout_mse(view_scene, capped_grid, VIEW)
+    assert mse_stopped <= 1.01 * mse_capped, (mse_stopped, mse_capped)

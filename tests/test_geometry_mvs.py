@@ -177,3 +177,61 @@ def test_temple_dense_mesh_fills_the_readme_box_with_many_more_points(data_dir, 
     assert np.all((np.minimum(mhi, TEMPLE_HI) - np.maximum(mlo, TEMPLE_LO)) > 0.9 * (TEMPLE_HI - TEMPLE_LO))
     # the mesh follows the dense points: within 1% of the box diagonal (2 mm)
     assert np.mean(point_surface_distance(pts, m) < 0.01 * TEMPLE_DIAG) > 0.9
+
+
+def test_the_matching_level_follows_the_masks_and_scales_the_cameras():
+    """MvsConfig.level auto (geometry/mvs_levels.py): the coarsest level whose median mask keeps
+    level_min_mask_pixels pixels; a level's camera sees a point where the photo's box holds it, and its mask
+    keeps only boxes that are object throughout."""
+    from texstream.capture.capture_json import Frame, Intrinsics
+    from texstream.geometry.mvs import MvsConfig
+    from texstream.geometry.mvs_levels import frame_at_level, matching_level, stack_at_level
+
+    masks = np.zeros((3, 480, 640), np.uint8)
+    masks[:, 100:370, 200:467] = 1  # 72,090 pixels each, the temple's masks' size
+    default = MvsConfig().level_min_mask_pixels
+    assert matching_level(masks, default) == 0  # 18,022 at level 1: too few for the temple's held-out figure
+    assert matching_level(masks, 12000) == 1 and matching_level(masks, 1000) == 3
+    six_megapixels = np.zeros((1, 2048, 3072), np.uint8)
+    six_megapixels[0, 300:1800, 800:2300] = 1  # 2.25 million pixels: 140,625 at level 2, 35,156 at level 3
+    assert matching_level(six_megapixels, default) == 2
+    frame = Frame("images/a.png", np.eye(3), np.array([0.1, -0.2, 3.0]),
+                  Intrinsics(width=203, height=150, fx=180.0, fy=181.0, cx=101.3, cy=74.9))
+    coarse = frame_at_level(frame, 1)
+    assert (coarse.intrinsics.width, coarse.intrinsics.height) == (101, 75)
+    p = np.array([0.2, 0.1, 0.4])
+    for f, s in ((frame, 1.0), (coarse, 0.5)):
+        pc = f.R @ p + f.t
+        uv = np.array([f.intrinsics.fx * pc[0] / pc[2] + f.intrinsics.cx, f.intrinsics.fy * pc[1] / pc[2] + f.intrinsics.cy])
+        if s == 1.0:
+            full = uv
+        else:  # pixel centres at +0.5 at both levels: continuous coordinates halve exactly (float64 round-off)
+            np.testing.assert_allclose(uv, full / 2, rtol=0, atol=1e-12)
+    grey = np.arange(150 * 203, dtype=np.float32).reshape(1, 150, 203)
+    mask = np.ones((1, 150, 203), np.uint8)
+    mask[0, 0, 0] = 0
+    g, m = stack_at_level(grey, mask, [coarse], 1)
+    assert g.shape == (1, 75, 101) and g[0, 1, 2] == grey[0, 2:4, 4:6].mean()  # exact: sums of small integers
+    assert m[0, 0, 0] == 0 and m.sum() == 75 * 101 - 1
+
+
+def test_depth_maps_at_level_one_still_find_the_surface(sphere_capture):
+    """The sphere matched at level 1 (64x64, 80 planes: a quarter of the pixels, half the planes): the depths
+    stay sub-plane (median relative error under 1%: one level-1 pixel spans 3.2% of the depth at the front,
+    one plane 0.7%), in depth maps of the level's size."""
+    from texstream.geometry.mvs import MvsConfig, capture_dense_points
+    from texstream.geometry.mvs_levels import frame_at_level
+    from texstream.geometry.visibility import Visibility
+
+    dense = capture_dense_points(sphere_capture["capture"], sphere_capture["masks"], sphere_capture["mesh"].bbox(),
+                                 MvsConfig(level=1), SCENE_DEVICE)
+    assert dense.report["level"] == 1 and dense.report["depths"] == 80
+    vis = Visibility(sphere_capture["mesh"])
+    errors = []
+    for f, d in zip(sphere_capture["capture"].frames, dense.depth_maps):
+        truth, _ = vis.render(frame_at_level(f, 1))
+        assert d.shape == truth.shape == (64, 64)
+        kept = d > 0
+        errors.append(np.abs(d[kept] - truth[kept]) / truth[kept])
+    e = np.concatenate(errors)
+    assert len(e) > 24 * 500 and np.median(e) < 0.01, (len(e), np.median(e))

@@ -61,7 +61,8 @@ class LFMConfig:
     sample_cache: str = option("auto", "streaming fit: keep every photo's samples on the device (float32, photos x "
                                        "texels x 16 bytes; the same values) after the first pass instead of "
                                        "distributing the photos again at every pass: on, off, or auto (on when they "
-                                       "take no more device memory than the photos held)",
+                                       "take no more device memory than the photos held; on the CPU, up to 1 GiB "
+                                       "whatever the photos take)",
                                choices=("auto", "on", "off"))
     nmf_iterations: int = option(200, "nmf: multiplicative update iterations", min=1)
     render_view: str = option("point", "rendering: each vertex's view map read along the direction from the shaded "

@@ -14,8 +14,8 @@ from texstream.capture.imageio import read_mask
 from texstream.core.config import config_to_dict
 from texstream.core.errors import ConfigError, InputError
 from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
-from texstream.core.progress import phase
-from texstream.fit.common.inputs import load_fit_inputs, load_photos
+from texstream.core.progress import phase, say
+from texstream.fit.common.inputs import SharedPhotoSet, load_fit_inputs, load_photos
 from texstream.fit.common.model_folder import json_safe, pooled_psnr, render_comparisons
 from texstream.fit.common.setup import build_problem
 from texstream.fit.models.lfm.baselines import fit_nmf, fit_pca
@@ -35,6 +35,20 @@ def fit(request) -> StageResult:
     return lfm_fit_stage(request.capture_dir, request.mesh_path, request.out_dir, cfg, request.progress)
 
 
+def _radiance_problem(inputs, cfg):
+    """The radiance StreamProblem the LFM samples are distributed from, on the photo set the model choice's
+    radiance candidates built (fit/common/inputs.py SharedPhotoSet: the same photos, maps and stream options;
+    the distribution step only reads them), else on one built here and kept for the next fit."""
+    key = SharedPhotoSet.key_for(inputs, cfg)
+    shared = SharedPhotoSet.take(key)
+    if shared is not None:
+        say("fit", "lfm: photos and their maps shared with the previous fit of this capture")
+    sp = build_problem(inputs.mesh, inputs.bake, inputs.frames, inputs.images, inputs.masks, cfg.fit, cfg.device,
+                       photos=shared)
+    SharedPhotoSet.keep(key, sp.photos)
+    return sp
+
+
 def lfm_fit_stage(capture_dir, mesh_path, out_dir, cfg, progress: bool = True) -> StageResult:
     """Fit an LFM model (streaming, PCA or NMF per ``cfg.fit.lfm.method``) and write the model folder."""
     lcfg = cfg.fit.lfm
@@ -42,11 +56,12 @@ def lfm_fit_stage(capture_dir, mesh_path, out_dir, cfg, progress: bool = True) -
     t0 = time.perf_counter()
     fit_cfg = dataclasses.replace(cfg.fit, model="radiance")
     with phase("fit", f"lfm ({lcfg.method}): reading the photos and setting up the texels"):
-        inputs = load_fit_inputs(capture_dir, mesh_path, dataclasses.replace(cfg, fit=fit_cfg))
+        radiance_cfg = dataclasses.replace(cfg, fit=fit_cfg)
+        inputs = load_fit_inputs(capture_dir, mesh_path, radiance_cfg)
         capture, frames, held, mesh, bake = inputs.capture, inputs.frames, inputs.held, inputs.mesh, inputs.bake
         if mesh.uvs is None:
             raise InputError("the mesh has no UVs", mesh_path, "pass an atlas folder (texstream atlas)")
-        sp = build_problem(mesh, bake, frames, inputs.images, inputs.masks, fit_cfg, cfg.device)
+        sp = _radiance_problem(inputs, radiance_cfg)
         geom = lfm_geometry(mesh, bake, sp.texels)
         if lcfg.method == "nmf":
             lcfg = dataclasses.replace(lcfg, diffuse="min")
@@ -94,7 +109,7 @@ def lfm_fit_stage(capture_dir, mesh_path, out_dir, cfg, progress: bool = True) -
         manifest = {"layout": {"kind": "lfm", **dataclasses.asdict(lcfg)}, "mesh": "mesh.obj", "bake": "bake.npz",
                     "params": "lfm.npz", "maps": files,
                     "lfm": {"vertices_welded": problem.V, "texels": problem.N, "slots": problem.S,
-                            "view_texels_in_mask": int(problem.mask_np.sum()),
+                            "view_texels_in_mask": int(problem.mask_np.sum()), "sample_cache": bool(problem.cache),
                             "parameters": int(problem.S * problem.K * 3 + problem.V * problem.K * problem.M * 3
                                               + problem.N * 3)},
                     "method_info": info, "sample_error": err, "fit_s": fit_s, "setup_s": t_setup,

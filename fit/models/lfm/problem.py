@@ -260,6 +260,19 @@ def initial_view_maps(n_vertices: int, terms: int, res: int, mapping: str, offse
     return np.broadcast_to(h[None, :, :, None], (n_vertices, terms, res * res, 3)).copy()
 
 
+CPU_SAMPLE_CACHE_BYTES = 1 << 30
+"""``sample_cache`` auto on the CPU: the samples are kept when they take at most this much memory, photos or not.
+There the device's memory is the host's and distributing the photos again is most of a pass (projection, depth
+test and bilinear taps of every texel in every photo, on one thread): the temple's 12 photos give 105 MB of
+samples against 43 MB of photos, which the GPU's rule (no more than the photos) turned down"""
+
+
+def sample_cache_budget(photo_bytes: int, device: str) -> int:
+    """The bytes of samples ``sample_cache`` auto keeps on ``device``: as many as the photos take (a GPU's memory
+    is what holds both), at least :data:`CPU_SAMPLE_CACHE_BYTES` on the CPU."""
+    return int(photo_bytes) if wp.get_device(device).is_cuda else max(int(photo_bytes), CPU_SAMPLE_CACHE_BYTES)
+
+
 class LFMProblem:
     """Device buffers and streaming passes of an LFM fit (allocated once; see the module doc)."""
 
@@ -304,8 +317,8 @@ class LFMProblem:
         # batched passes: B photos per launch (see fit/kernels/lfm.py), the taps of every photo once;
         # the samples read from the device tables (TableSamples, or the cache), else distributed per batch
         P = int(samples.n_photos)
-        cache = samples.cache_bytes() > 0 and (
-            cfg.sample_cache == "on" or (cfg.sample_cache == "auto" and samples.cache_bytes() <= samples.photo_bytes()))
+        cache = samples.cache_bytes() > 0 and (cfg.sample_cache == "on" or (
+            cfg.sample_cache == "auto" and samples.cache_bytes() <= sample_cache_budget(samples.photo_bytes(), dev)))
         self.cache_filled = False
         ty, te = samples.obs_types
         obs_bytes = 0 if (cache or samples.resident() is not None) else self.N * (wp.types.type_size_in_bytes(ty)
