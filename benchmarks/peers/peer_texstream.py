@@ -2,9 +2,11 @@
 
 Two runs from the same start: one timed as benchmarks/fit_error_vs_time.py times it (kernels warmed
 up by a one-iteration fit, the trace's per-iteration wall times), and one that hands back the
-parameters after every iteration (run_fit's checkpoint hook), scored on the held-out views
-afterwards. LM is deterministic on one device, so iteration k of both runs has the same parameters;
-the trace pairs the first run's time with the second's score.
+parameters after every iteration (run_fit's checkpoint hook), scored on the validation and held-out
+views afterwards. LM is deterministic on one device, so iteration k of both runs has the same
+parameters; the trace pairs the first run's time with the second's scores. This is the bare core fit
+(no lobe support, unseen-texel fill, traced polish or shared materials): ``texstream fit`` with its
+defaults is peer_texstream_default.py.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ from common import HeldOut, build_problem, fit_config
 
 
 def run(data, device: str, iterations: int, photo_sampling: str = "filtered") -> dict:
-    from texstream.fit.optim.fitter import run_fit
+    from texstream.fit.optim.fitter import initial_guess, run_fit
 
     import warp as wp
 
@@ -30,16 +32,13 @@ def run(data, device: str, iterations: int, photo_sampling: str = "filtered") ->
             checkpoint=lambda st: snaps.append((int(st["iteration"]), st["p"].copy())))
     scorer = HeldOut(data, prob, prob.layout, device)
     times = {r["iteration"]: r["time_s"] for r in timed.trace}
-    from texstream.fit.optim.fitter import initial_guess
-
     p0, _ = initial_guess(prob, cfg)
     trace = []
     for it, p in [(0, p0), *snaps, (timed.trace[-1]["iteration"], timed.params)]:
         if it in times and (not trace or trace[-1]["iteration"] < it):
-            pooled, worst = scorer.score(p)
-            trace.append({"time_s": times[it], "iteration": it, "heldout_psnr_db": pooled, "worst_psnr_db": worst,
+            trace.append({"time_s": times[it], "iteration": it, **scorer.score(p),
                           "train_psnr_db": timed.trace[it]["psnr_db"]})
     return {"trace": trace, "texels": prob.n, "passes": timed.passes, "layout": prob.layout.to_json(),
-            "fit_s": timed.trace[-1]["time_s"],
+            "fit_s": timed.trace[-1]["time_s"], "val_check_s": scorer.check_seconds(),
             "settings": f"FitConfig defaults: LM, photo_sampling {photo_sampling}, lobe shape "
                         f"{prob.layout.lobe_shape} (auto), energy bound on, {iterations} iterations"}
