@@ -4,6 +4,7 @@
     python benchmarks/peers/run.py --out out/peers_cpu                       # the CPU study (small ornament)
     python benchmarks/peers/run.py --device cuda:0 --out $OUT/peers_h100     # the GPU study (one H100)
     python benchmarks/peers/run.py --plot-only out/peers_cpu/peers.json      # replot
+    python benchmarks/peers/run.py --plot-only a/peers.json,b/peers.json --out merged   # merge runs, then replot
 
 Methods (``--methods``; docs/peers.md says what each is and how a stronger version would differ):
 ``texstream_default`` (``texstream fit`` with the command's defaults, from a folder: model choice, shared
@@ -243,6 +244,18 @@ def plot(results: dict, out: Path) -> None:
     plt.close(fig)
 
 
+def merge(runs: list[dict]) -> dict:
+    """Several runs' results as one (the first's header; the runs it came from listed in ``merged_from``)."""
+    out = dict(runs[0], datasets={})
+    if len(runs) > 1:
+        out["merged_from"] = [{k: r.get(k) for k in ("command", "commit", "date", "machine", "gpu")} for r in runs]
+    for r in runs:
+        for ds, methods in r["datasets"].items():
+            for name, run in methods.items():
+                out["datasets"].setdefault(ds, {}).setdefault(name, run)
+    return out
+
+
 def commit() -> str:
     try:
         return subprocess.check_output(["git", "rev-parse", "--short", "HEAD"], cwd=HERE, text=True).strip()
@@ -261,19 +274,23 @@ def main(argv=None) -> int:
     ap.add_argument("--methods", default=None, help=f"comma list (default: {','.join(METHODS)}; scipy is CPU only)")
     ap.add_argument("--out", default="out/peers")
     ap.add_argument("--timeout", type=float, default=900.0, help="seconds per method before it is stopped")
-    ap.add_argument("--plot-only", default=None)
+    ap.add_argument("--plot-only", default=None,
+                    help="re-summarise, table and plot a finished run's peers.json; several (comma list): merged "
+                         "into --out (each data set's methods in file order, a method's first run kept)")
     ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--worker-out", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--dataset", default="clean", help=argparse.SUPPRESS)
     ap.add_argument("--iterations", type=int, default=0, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
-    if a.plot_only:  # re-summarise, table and plot from a finished run's JSON
-        p = Path(a.plot_only)
-        results = json.loads(p.read_text())
+    if a.plot_only:  # re-summarise, table and plot finished runs' JSON
+        paths = [Path(x) for x in a.plot_only.split(",")]
+        results = merge([json.loads(x.read_text()) for x in paths])
+        out = paths[0].parent if len(paths) == 1 else Path(a.out)
+        out.mkdir(parents=True, exist_ok=True)
         summarise(results)
-        p.write_text(json.dumps(results, indent=1))
-        (p.parent / "peers_table.md").write_text(table(results) + "\n")
-        plot(results, p.parent)
+        (out / "peers.json").write_text(json.dumps(results, indent=1))
+        (out / "peers_table.md").write_text(table(results) + "\n")
+        plot(results, out)
         print(table(results))
         return 0
     cuda = a.device.startswith("cuda")
