@@ -353,32 +353,40 @@ class HeldOut:
 # ------------------------------------------------------------------------------------- recording
 
 
+def cpu_seconds() -> float:
+    """CPU time of this process and its waited-for children, user and system (every method runs one thread:
+    on a shared box this is the time an idle core would take, whatever the other jobs' load)."""
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
+
+
 class Recorder:
-    """Snapshots of the parameters against wall time, with the snapshotting itself left out of the time.
+    """Snapshots of the parameters against wall time and CPU time, the snapshotting itself left out of both.
 
     ``start()`` once the method's set-up is done; ``snap(params)`` copies what to score later (host
     copy timed and subtracted); :meth:`trace` scores every snapshot afterwards."""
 
     def __init__(self, sync=None):
         self.sync = sync or (lambda: None)
-        self.t0 = None
-        self.paused = 0.0
+        self.t0 = self.c0 = None
+        self.paused = self.paused_cpu = 0.0
         self.snaps: list[tuple[float, int, Any, dict]] = []
 
     def start(self) -> None:
         self.sync()
-        self.t0 = time.perf_counter()
-        self.paused = 0.0
+        self.t0, self.c0 = time.perf_counter(), cpu_seconds()
+        self.paused = self.paused_cpu = 0.0
 
     def elapsed(self) -> float:
         return time.perf_counter() - self.t0 - self.paused
 
     def snap(self, iteration: int, params, **extra) -> None:
         self.sync()
-        t = self.elapsed()
-        t1 = time.perf_counter()
-        self.snaps.append((t, iteration, np.array(params, dtype=np.float64, copy=True), extra))
+        t, c = self.elapsed(), cpu_seconds() - self.c0 - self.paused_cpu
+        t1, c1 = time.perf_counter(), cpu_seconds()
+        self.snaps.append((t, iteration, np.array(params, dtype=np.float64, copy=True), {"cpu_s": c, **extra}))
         self.paused += time.perf_counter() - t1
+        self.paused_cpu += cpu_seconds() - c1
 
     def trace(self, scorer, train_psnr=None) -> list[dict]:
         """Every snapshot scored: the held-out and validation PSNRs (``scorer(params)``, :meth:`HeldOut.score`)
@@ -444,7 +452,7 @@ def early_stop(trace: list[dict], key: str = "val_psnr_db") -> dict:
 
 def summarise_trace(trace: list[dict]) -> dict:
     """The method as the rule hands it back (:func:`early_stop`): its held-out and validation scores at the
-    check handed back, the wall time to the stop (the patience run included) and to that check, and for
+    check handed back, the wall and CPU time to the stop (the patience run included) and to that check, and for
     reference the best held-out PSNR anywhere on the trace (what choosing on the test views would give)."""
     rule = early_stop(trace)
     if rule["best"] is None:
@@ -453,6 +461,7 @@ def summarise_trace(trace: list[dict]) -> dict:
     ok = [r for r in trace if math.isfinite(r["heldout_psnr_db"])]
     return {"stopped_by": rule["by"], "iteration_handed_back": b["iteration"], "iteration_stopped": st["iteration"],
             "time_to_stop_s": st["time_s"], "time_to_handed_back_s": b["time_s"],
+            "cpu_to_stop_s": st.get("cpu_s"), "cpu_to_handed_back_s": b.get("cpu_s"),
             "heldout_psnr_at_stop_db": b["heldout_psnr_db"], "worst_view_at_stop_db": b["worst_psnr_db"],
             "val_psnr_at_stop_db": b["val_psnr_db"], "val_worst_at_stop_db": b.get("val_worst_psnr_db"),
             "oracle_best_heldout_psnr_db": max(r["heldout_psnr_db"] for r in ok) if ok else None,

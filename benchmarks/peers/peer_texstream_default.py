@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import VALIDATION_EVERY, early_stop, schedule, synth_config
+from common import VALIDATION_EVERY, cpu_seconds, early_stop, schedule, synth_config
 
 DEFAULT_MAX_ITERATIONS = 100
 """FitConfig.max_iterations's default: the command's own cap"""
@@ -84,9 +84,9 @@ def run(data, device: str, iterations: int = DEFAULT_MAX_ITERATIONS, dense: int 
 
         def fit(cap: int, name: str) -> dict:
             cfg = dataclasses.replace(base, fit=dataclasses.replace(base.fit, max_iterations=cap))
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), cpu_seconds()
             res = fit_stage(capture, mesh, root / name, cfg, progress=False)
-            wall = time.perf_counter() - t0
+            wall, cpu = time.perf_counter() - t0, cpu_seconds() - c0
             s = res.summary
             if s["heldout"]["views"] != len(data.val_frames):
                 raise RuntimeError(f"the fit held back {s['heldout']['views']} photos, the validation split has "
@@ -95,7 +95,7 @@ def run(data, device: str, iterations: int = DEFAULT_MAX_ITERATIONS, dense: int 
             held, worst = score_model(root / name, data.held_frames, data.held_images, data.held_masks, device)
             sel = s.get("selection") or {}
             mat = s.get("materials") or {}
-            return {"time_s": wall, "iteration": cap, "heldout_psnr_db": held, "worst_psnr_db": worst,
+            return {"time_s": wall, "cpu_s": cpu, "iteration": cap, "heldout_psnr_db": held, "worst_psnr_db": worst,
                     "val_psnr_db": val, "val_worst_psnr_db": val_worst, "train_psnr_db": s.get("psnr_db"),
                     "fit_iterations": s.get("iterations"), "model_chosen": sel.get("chosen"),
                     "materials_chosen": mat.get("chosen"), "materials_k": mat.get("k"), "texels": s.get("texels"),

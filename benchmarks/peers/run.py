@@ -158,10 +158,17 @@ def stop_line(r: dict) -> str:
             f"{s['heldout_psnr_at_stop_db']:.2f} / worst {s['worst_view_at_stop_db']:.2f} dB")
 
 
+def clock(s: dict, what: str) -> float | None:
+    """A summary's CPU time ``cpu_<what>`` where the trace has it, else its wall time ``time_<what>``."""
+    return s.get(f"cpu_{what}") if s.get(f"cpu_{what}") is not None else s.get(f"time_{what}")
+
+
 def summarise(results: dict) -> None:
     """Each trace through the stopping rule (common.summarise_trace), then the speed ratios against texstream's
-    core fit: to each one's stop, and to the same validation PSNR (the first check of texstream's core fit at or
-    above the validation PSNR of the model the method handed back, against the method's time to that model)."""
+    core fit, on CPU time (the time on an idle core: every method runs one thread, and the shared CPU box's load
+    inflates wall times unevenly; wall time where a trace has no CPU time, e.g. on the GPU): to each one's stop,
+    and to the same validation PSNR (the first check of texstream's core fit at or above the validation PSNR of
+    the model the method handed back, against the method's time to that model)."""
     from common import summarise_trace
 
     for ds, runs in results["datasets"].items():
@@ -170,23 +177,28 @@ def summarise(results: dict) -> None:
                 r["summary"] = summarise_trace(r["trace"])
         ts = runs.get("texstream")
         ts_s = (ts or {}).get("summary") or {}
+        cpu = results["device"] == "cpu"
         for name, r in runs.items():
             s = r.get("summary")
             if not s or s.get("time_to_stop_s") is None or not ts_s.get("time_to_stop_s"):
                 continue
-            s["texstream_faster_to_stop"] = s["time_to_stop_s"] / ts_s["time_to_stop_s"]
+            mine, theirs = (clock(s, "to_stop_s"), clock(ts_s, "to_stop_s")) if cpu else (
+                s["time_to_stop_s"], ts_s["time_to_stop_s"])
+            s["texstream_faster_to_stop"] = mine / theirs if theirs else None
             hit = next((x for x in ts["trace"] if x["val_psnr_db"] >= s["val_psnr_at_stop_db"]), None)
-            s["texstream_time_to_this_val_psnr_s"] = None if hit is None else hit["time_s"]
-            s["texstream_faster_to_this_val_psnr"] = (None if hit is None or not hit["time_s"]
-                                                      else s["time_to_handed_back_s"] / hit["time_s"])
+            t_hit = None if hit is None else (hit.get("cpu_s") if cpu and hit.get("cpu_s") is not None else hit["time_s"])
+            s["texstream_time_to_this_val_psnr_s"] = t_hit
+            mine_b = clock(s, "to_handed_back_s") if cpu else s["time_to_handed_back_s"]
+            s["texstream_faster_to_this_val_psnr"] = None if not t_hit else mine_b / t_hit
+            s["ratio_clock"] = "cpu" if cpu and s.get("cpu_to_stop_s") is not None else "wall"
 
 
 def table(results: dict) -> str:
-    rows = ["| data | method | stopped at (by) | handed back | time to stop (s) | held-out pooled (dB) | worst view (dB) "
-            "| validation (dB) | texstream core faster, to each stop | texstream core's time to this validation PSNR (s) "
-            "| texstream core faster, same validation PSNR | best held-out anywhere (dB) | final held-out (dB) "
-            "| validation check (s) | peak host (MB) | peak device (MB) |",
-            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    rows = ["| data | method | stopped at (by) | handed back | time to stop: CPU (s) | wall (s) | held-out pooled (dB) "
+            "| worst view (dB) | validation (dB) | texstream core faster, to each stop | texstream core's time to this "
+            "validation PSNR (s) | texstream core faster, same validation PSNR | best held-out anywhere (dB) "
+            "| final held-out (dB) | validation check (s) | peak host (MB) | peak device (MB) |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     f = lambda x, p=2: "-" if x is None else (f"{x:.{p}f}" if isinstance(x, float) else str(x))  # noqa: E731
     x = lambda v: "-" if v is None else f"{v:.1f}x"  # noqa: E731
     for ds, runs in results["datasets"].items():
@@ -194,17 +206,19 @@ def table(results: dict) -> str:
             s = r.get("summary")
             if not s or s.get("time_to_stop_s") is None:
                 rows.append(f"| {ds} | {LABELS.get(name, name)} | failed: {r.get('error', '?')[:80]} "
-                            "| | | | | | | | | | | | | |")
+                            "| | | | | | | | | | | | | | |")
                 continue
             reached = x(s.get("texstream_faster_to_this_val_psnr"))
             if s.get("texstream_time_to_this_val_psnr_s") is None and name != "texstream":
                 reached = "not reached"
             final = r["as_is"]["heldout_psnr_db"] if "as_is" in r else s["final_heldout_psnr_db"]
+            wall_ratio = " (wall)" if s.get("ratio_clock") == "wall" and results["device"] == "cpu" else ""
             rows.append(f"| {ds} | {LABELS.get(name, name)} | {s['iteration_stopped']} ({s['stopped_by']}) "
-                        f"| {s['iteration_handed_back']} | {f(s['time_to_stop_s'])} | {f(s['heldout_psnr_at_stop_db'])} "
-                        f"| {f(s['worst_view_at_stop_db'])} | {f(s['val_psnr_at_stop_db'])} "
-                        f"| {x(s.get('texstream_faster_to_stop'))} | {f(s.get('texstream_time_to_this_val_psnr_s'))} "
-                        f"| {reached} | {f(s['oracle_best_heldout_psnr_db'])} | {f(final)} "
+                        f"| {s['iteration_handed_back']} | {f(s.get('cpu_to_stop_s'))} | {f(s['time_to_stop_s'])} "
+                        f"| {f(s['heldout_psnr_at_stop_db'])} | {f(s['worst_view_at_stop_db'])} "
+                        f"| {f(s['val_psnr_at_stop_db'])} | {x(s.get('texstream_faster_to_stop'))}{wall_ratio} "
+                        f"| {f(s.get('texstream_time_to_this_val_psnr_s'))} | {reached}{wall_ratio} "
+                        f"| {f(s['oracle_best_heldout_psnr_db'])} | {f(final)} "
                         f"| {f(r.get('val_check_s'), 3)} | {f(r.get('peak_host_mb'), 0)} | {f(r.get('peak_device_mb'), 0)} |")
     return "\n".join(rows)
 
@@ -215,27 +229,31 @@ def plot(results: dict, out: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from common import early_stop
+
     ds_names = list(results["datasets"])
+    cpu = results["device"] == "cpu"  # CPU seconds where the trace has them (the time on an idle core)
+    when = lambda row: row["cpu_s"] if cpu and row.get("cpu_s") is not None else row["time_s"]  # noqa: E731
     fig, axes = plt.subplots(2, len(ds_names), figsize=(6.5 * len(ds_names), 8.5), squeeze=False, sharex="col")
     for col, ds in enumerate(ds_names):
         for k, (name, r) in enumerate(results["datasets"][ds].items()):
             if "trace" not in r:
                 continue
             c = f"C{k}"
-            t = [max(x["time_s"], 1e-3) for x in r["trace"]]
+            t = [max(when(x), 1e-3) for x in r["trace"]]
             for row, key in ((0, "val_psnr_db"), (1, "heldout_psnr_db")):
                 axes[row][col].semilogx(t, [x[key] for x in r["trace"]], "o-", ms=2, color=c,
                                         label=LABELS.get(name, name))
             s = r.get("summary") or {}
             if s.get("time_to_handed_back_s") is not None:  # the model the rule hands back, and where it stopped
-                tb = max(s["time_to_handed_back_s"], 1e-3)
+                tb = max(when(r["trace"][early_stop(r["trace"])["best"]]), 1e-3)
                 axes[0][col].plot([tb], [s["val_psnr_at_stop_db"]], "*", ms=11, color=c)
                 axes[1][col].plot([tb], [s["heldout_psnr_at_stop_db"]], "*", ms=11, color=c)
-                axes[0][col].axvline(max(s["time_to_stop_s"], 1e-3), color=c, lw=0.6, ls=":")
+                axes[0][col].axvline(max(when(r["trace"][early_stop(r["trace"])["stop"]]), 1e-3), color=c, lw=0.6, ls=":")
         axes[0][col].set_title(f"{ds}: ornament x{results['scale']}, {results.get('photos_total')} photos")
         axes[0][col].set_ylabel("validation pooled PSNR (dB): the rule's input")
         axes[1][col].set_ylabel("held-out pooled PSNR (dB): the score")
-        axes[1][col].set_xlabel("wall time (s, log); star: the model handed back, dotted: the stop")
+        axes[1][col].set_xlabel(f"{'CPU' if cpu else 'wall'} time (s, log); star: the model handed back, dotted: the stop")
         axes[0][col].legend(fontsize=7)
     fig.suptitle(f"validation and held-out error against run time on {results['device']} ({results['machine']}), "
                  f"commit {results['commit']}", fontsize=9)
