@@ -46,7 +46,7 @@ sys.path.insert(0, str(HERE))
 METHODS = ("texstream_default", "texstream", "texstream_bilinear", "scipy", "torch_adam", "torch_lbfgs", "mitsuba")
 QUICK_METHODS = METHODS[1:]
 """--quick (CI) leaves out texstream_default: a whole fit per check is minutes on two cores"""
-LABELS = {"texstream_default": "texstream fit (defaults)", "texstream": "texstream core fit (LM, filtered)", "texstream_bilinear": "texstream (LM, bilinear samples)",
+LABELS = {"texstream_default": "texstream fit (defaults)", "texstream": "texstream core fit (LM, filtered)", "texstream_bilinear": "texstream core fit (LM, bilinear samples)",
           "scipy": "scipy two-step (MINPACK LM per texel)", "scipy_blocks": "scipy two-step (sparse trf blocks)",
           "torch_adam": "PyTorch Adam", "torch_lbfgs": "PyTorch L-BFGS", "mitsuba": "Mitsuba 3 (principled, Adam)"}
 # iteration budgets: long enough that the stopping rule stops every method before it (docs/peers.md);
@@ -158,11 +158,6 @@ def stop_line(r: dict) -> str:
             f"{s['heldout_psnr_at_stop_db']:.2f} / worst {s['worst_view_at_stop_db']:.2f} dB")
 
 
-def clock(s: dict, what: str) -> float | None:
-    """A summary's CPU time ``cpu_<what>`` where the trace has it, else its wall time ``time_<what>``."""
-    return s.get(f"cpu_{what}") if s.get(f"cpu_{what}") is not None else s.get(f"time_{what}")
-
-
 def summarise(results: dict) -> None:
     """Each trace through the stopping rule (common.summarise_trace), then the speed ratios against texstream's
     core fit, on CPU time (the time on an idle core: every method runs one thread, and the shared CPU box's load
@@ -177,27 +172,26 @@ def summarise(results: dict) -> None:
                 r["summary"] = summarise_trace(r["trace"])
         ts = runs.get("texstream")
         ts_s = (ts or {}).get("summary") or {}
-        cpu = results["device"] == "cpu"
         for name, r in runs.items():
             s = r.get("summary")
             if not s or s.get("time_to_stop_s") is None or not ts_s.get("time_to_stop_s"):
                 continue
-            mine, theirs = (clock(s, "to_stop_s"), clock(ts_s, "to_stop_s")) if cpu else (
-                s["time_to_stop_s"], ts_s["time_to_stop_s"])
-            s["texstream_faster_to_stop"] = mine / theirs if theirs else None
+            # CPU time on the CPU where both traces have it (a run recorded before CPU times were: wall for both)
+            cpu = results["device"] == "cpu" and s.get("cpu_to_stop_s") is not None and ts_s.get("cpu_to_stop_s") is not None
+            key = "cpu" if cpu else "time"
+            s["ratio_clock"] = "cpu" if cpu else "wall"
+            s["texstream_faster_to_stop"] = s[f"{key}_to_stop_s"] / ts_s[f"{key}_to_stop_s"]
             hit = next((x for x in ts["trace"] if x["val_psnr_db"] >= s["val_psnr_at_stop_db"]), None)
-            t_hit = None if hit is None else (hit.get("cpu_s") if cpu and hit.get("cpu_s") is not None else hit["time_s"])
+            t_hit = None if hit is None else hit["cpu_s" if cpu else "time_s"]
             s["texstream_time_to_this_val_psnr_s"] = t_hit
-            mine_b = clock(s, "to_handed_back_s") if cpu else s["time_to_handed_back_s"]
-            s["texstream_faster_to_this_val_psnr"] = None if not t_hit else mine_b / t_hit
-            s["ratio_clock"] = "cpu" if cpu and s.get("cpu_to_stop_s") is not None else "wall"
+            s["texstream_faster_to_this_val_psnr"] = None if not t_hit else s[f"{key}_to_handed_back_s"] / t_hit
 
 
 def table(results: dict) -> str:
     rows = ["| data | method | stopped at (by) | handed back | time to stop: CPU (s) | wall (s) | held-out pooled (dB) "
             "| worst view (dB) | validation (dB) | texstream core faster, to each stop | texstream core's time to this "
             "validation PSNR (s) | texstream core faster, same validation PSNR | best held-out anywhere (dB) "
-            "| final held-out (dB) | validation check (s) | peak host (MB) | peak device (MB) |",
+            "| final held-out (dB) | one validation check, wall (s) | peak host (MB) | peak device (MB) |",
             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     f = lambda x, p=2: "-" if x is None else (f"{x:.{p}f}" if isinstance(x, float) else str(x))  # noqa: E731
     x = lambda v: "-" if v is None else f"{v:.1f}x"  # noqa: E731
