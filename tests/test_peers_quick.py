@@ -72,16 +72,17 @@ def test_every_peer_fits_the_toy_ornament(tmp_path):
         tr = r["trace"]
         best = max(x["heldout_psnr_db"] for x in tr)
         if name == "mitsuba":
-            # its own BSDF and start (no lobe): the held-out PSNR must rise above its start by 1 dB
-            # (measured +2.2 dB; a broken gradient, UV or camera convention leaves it at or below the start)
-            assert best >= tr[0]["heldout_psnr_db"] + 1.0, (name, best, tr[0]["heldout_psnr_db"])
+            # its own BSDF and start (no lobe): the held-out PSNR must rise above its start by 0.5 dB
+            # (measured +1.1 dB on the 92 fitted photos; a broken gradient, UV or camera convention leaves it at
+            # or below the start)
+            assert best >= tr[0]["heldout_psnr_db"] + 0.5, (name, best, tr[0]["heldout_psnr_db"])
             continue
-        # the Lafortune peers start from texstream's percentile guess, 29.9 dB held out on this toy case
+        # the Lafortune peers start from texstream's percentile guess, 30.0 dB held out on this toy case
         # (every fit's later lobes lose held-out PSNR: too few photos per texel); 0.4 dB below it allows for
         # another platform's float rounding, while a broken sample or scoring path renders the wrong image
         assert best >= 29.5, (name, best)
         # the optimizer works: the fitted samples' PSNR rises at least 2 dB above the start (measured
-        # +3.2 dB for L-BFGS, which stalls at the bounds, to +7.8 dB for texstream's LM)
+        # +3.3 dB for L-BFGS, which stalls at the bounds, to +7.8 dB for texstream's LM)
         assert tr[-1]["train_psnr_db"] >= tr[0]["train_psnr_db"] + 2.0, (name, tr[0]["train_psnr_db"],
                                                                           tr[-1]["train_psnr_db"])
     for name, r in runs.items():
