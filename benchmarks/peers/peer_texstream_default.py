@@ -20,6 +20,7 @@ here with texstream's renderer of the written model folder, as common.HeldOut sc
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import tempfile
 import time
@@ -71,9 +72,11 @@ def score_model(model_dir: Path, frames: list, photos: list, masks: list, device
     return float(-10 * np.log10(np.mean([10 ** (-v / 10) for v in views]))), float(min(views))
 
 
-def run(data, device: str, iterations: int = DEFAULT_MAX_ITERATIONS, dense: int = 6, per_doubling: int = 4) -> dict:
+def run(data, device: str, iterations: int = DEFAULT_MAX_ITERATIONS, dense: int = 6, per_doubling: int = 4,
+        partial: Path | None = None) -> dict:
     """The checks ``schedule(iterations, dense, per_doubling)`` (no 0: the fit runs at least one iteration), each
-    a whole ``texstream fit``, until the rule stops; then the command's own cap if not run yet."""
+    a whole ``texstream fit``, until the rule stops; then the command's own cap if not run yet. ``partial``: the
+    trace so far is written there after every check (a run stopped by its time limit keeps its checks)."""
     from texstream.fit.optim.fitter import FitConfig
     from texstream.fit.stages.stage import FitStageConfig, fit_stage
 
@@ -106,6 +109,10 @@ def run(data, device: str, iterations: int = DEFAULT_MAX_ITERATIONS, dense: int 
         trace = []
         for cap in sorted(schedule(iterations, dense, per_doubling) - {0}):
             trace.append(fit(cap, f"check_{cap}"))
+            if partial is not None:  # renamed into place: a kill mid-write leaves the previous checks readable
+                tmp_json = Path(str(partial) + ".tmp")
+                tmp_json.write_text(json.dumps({"trace": trace, "texels": trace[-1]["texels"], "partial": True}))
+                os.replace(tmp_json, partial)
             print(f"  texstream fit --max-iterations {cap}: {trace[-1]['time_s']:.1f} s, validation "
                   f"{trace[-1]['val_psnr_db']:.2f} dB, held out {trace[-1]['heldout_psnr_db']:.2f} dB", flush=True)
             if early_stop(trace)["by"] == "patience":

@@ -60,12 +60,12 @@ DEFAULT_CHECKS = {"cpu": (2, 1), "cuda": (6, 4)}
 doubling on the 2-core CPU, where each whole fit takes minutes; the denser schedule of scipy's runs on a GPU"""
 
 
-def run_method(method: str, data, device: str, iterations: int, quick: bool) -> dict:
+def run_method(method: str, data, device: str, iterations: int, quick: bool, partial: Path | None = None) -> dict:
     if method == "texstream_default":
         import peer_texstream_default
 
         dense, per_doubling = DEFAULT_CHECKS["cuda" if device.startswith("cuda") else "cpu"]
-        return peer_texstream_default.run(data, device, iterations, dense, per_doubling)
+        return peer_texstream_default.run(data, device, iterations, dense, per_doubling, partial)
     if method in ("texstream", "texstream_bilinear"):
         import peer_texstream
 
@@ -88,6 +88,11 @@ def run_method(method: str, data, device: str, iterations: int, quick: bool) -> 
     raise SystemExit(f"unknown method {method!r}: use {', '.join(METHODS)} or scipy_blocks")
 
 
+def partial_path(worker_out) -> Path:
+    """Where a worker whose checks are whole runs (texstream_default) keeps its trace so far."""
+    return Path(str(worker_out) + ".partial")
+
+
 def worker(a) -> None:
     """One method on one data set in this process; writes its JSON to ``a.worker_out``."""
     from common import DeviceMemoryPoller, host_rss_mb, load_data, peak_host_mb
@@ -107,7 +112,7 @@ def worker(a) -> None:
     t0 = time.perf_counter()
     data = load_data(a.dataset, a.scale, a.photos, device=a.device)
     rss_data = host_rss_mb()
-    out = run_method(a.worker, data, a.device, a.iterations, a.quick)
+    out = run_method(a.worker, data, a.device, a.iterations, a.quick, partial_path(a.worker_out))
     out.update({"method": a.worker, "dataset": a.dataset, "iterations_budget": a.iterations,
                 "peak_host_mb": peak_host_mb(), "host_mb_after_data": rss_data,
                 "peak_device_mb": poller.result_mb(), "process_s": time.perf_counter() - t0,
@@ -352,7 +357,9 @@ def main(argv=None) -> int:
                 runs[m] = json.loads(wout.read_text()) if ok else {
                     "error": f"exit status {p.returncode}: " + ((p.stderr or p.stdout).strip()[-2000:] or "no output")}
             except subprocess.TimeoutExpired:
-                runs[m] = {"error": f"stopped after {a.timeout:.0f} s"}
+                part = partial_path(wout)  # texstream_default's checks so far: the rule applies to them as they are
+                runs[m] = ({**json.loads(part.read_text()), "error_partial": f"stopped after {a.timeout:.0f} s"}
+                           if part.exists() else {"error": f"stopped after {a.timeout:.0f} s"})
             summarise(results)
             print(f"{ds:7s} {m:20s} {time.perf_counter() - t0:6.1f} s  {stop_line(runs[m])}", flush=True)
             (out / "peers.json").write_text(json.dumps(results, indent=1))
