@@ -2,9 +2,18 @@
 
 Data: the synthetic ornament (capture/synthetic/scenes/ornament.json) rendered by texstream at ``scale``,
 noise-free float photos ("clean") or 8-bit sRGB photos with Gaussian camera noise ("noisy8");
-every 8th photo is held out (:func:`texstream.fit.stages.stage.split_holdout`). Scores: the held-out
-PSNR of the pooled (mean over views) MSE on foreground pixels and the worst view's PSNR, both
-from texstream's own renderer for the Lafortune peers (:func:`texstream.fit.stages.stage.heldout_psnr`).
+every 8th photo is held out (:func:`texstream.fit.stages.stage.split_holdout`), and of the rest
+(the training photos) every 8th again is the validation split: no method fits it, and it alone
+decides where each method stops (:func:`early_stop`). Scores: the PSNR of the pooled (mean over
+views) MSE on foreground pixels and the worst view's PSNR, of the held-out and of the validation
+views, from texstream's own renderer for the Lafortune peers
+(:func:`texstream.fit.stages.stage.heldout_psnr`).
+
+Stopping rule, the same for every method (:func:`early_stop`): the method's parameters are checked
+on the validation views at its snapshots (iterations 0..20, then 5 per doubling); it stops at
+the first check whose iteration count reaches ``max(2 k, k + 4)``, k the iteration of the best
+validation PSNR so far (a check improves on the best only by more than 0.01 dB), or at its budget,
+and hands back the parameters of iteration k. The held-out views score that model; they choose nothing.
 
 Samples (the two-step approach's step 1, the seed's Table 4.1): every training photo resampled
 once at every texel centre with texstream's own distribution step (``stream.observe``, bilinear
@@ -31,6 +40,13 @@ import warp as wp
 from texstream.fit.kernels import stream
 
 HOLDOUT_EVERY = 8
+VALIDATION_EVERY = 8
+"""of the training photos (those not held out), every 8th is the validation split: seen by the stopping rule only"""
+PATIENCE_FACTOR = 2.0
+PATIENCE_MIN = 4
+"""the rule stops at iteration max(PATIENCE_FACTOR k, k + PATIENCE_MIN), k the best validation check's"""
+MIN_DELTA_DB = 0.01
+"""a validation check improves on the best only by more than this (dB): ties and rounding do not restart patience"""
 NOISE_SIGMA = 0.01
 """camera noise of the noisy data set, linear units (1% of the white photo level: a few 8-bit codes)"""
 DATASETS = ("clean", "noisy8")
@@ -51,26 +67,45 @@ class PeerData:
     held_frames: list
     held_images: list
     held_masks: list
+    val_frames: list
+    val_images: list
+    val_masks: list
     dataset: str
     scale: float
 
 
-def load_data(dataset: str, scale: float, photos: int = 0, device: str = "cpu") -> PeerData:
-    """Render the ornament at ``scale`` with ``photos`` photos (0: the scene's count x scale), clean
-    float photos or 8-bit with ``NOISE_SIGMA`` noise, and split off every ``HOLDOUT_EVERY``-th photo."""
-    from texstream.capture.synthetic.synth import SynthConfig, render_scene
+def synth_config(dataset: str, scale: float, photos: int = 0, device: str = "cpu"):
+    """The SynthConfig of a data set (``load_data`` renders it in memory, the default-fit peer writes it)."""
+    from texstream.capture.synthetic.synth import SynthConfig
 
     if dataset not in DATASETS:
         raise ValueError(f"dataset {dataset!r}: use one of {DATASETS}")
     cfg = SynthConfig(scale=scale, device=device, progress=False, preview=False, photos=photos)
     if dataset == "noisy8":
         cfg.noise, cfg.bits = NOISE_SIGMA, 8
-    sc = render_scene("ornament", cfg)
-    idx = np.arange(len(sc.frames))
-    held = idx % HOLDOUT_EVERY == HOLDOUT_EVERY - 1  # texstream.fit.stages.stage.split_holdout's rule
+    return cfg
+
+
+def split_every(n: int, every: int) -> np.ndarray:
+    """The held-back mask of ``n`` items: every ``every``-th (texstream.fit.stages.stage.split_holdout's rule)."""
+    return np.arange(n) % every == every - 1
+
+
+def load_data(dataset: str, scale: float, photos: int = 0, device: str = "cpu") -> PeerData:
+    """Render the ornament at ``scale`` with ``photos`` photos (0: the scene's count x scale), clean
+    float photos or 8-bit with ``NOISE_SIGMA`` noise; split off every ``HOLDOUT_EVERY``-th photo (held
+    out), then every ``VALIDATION_EVERY``-th of the rest (validation); the others are fitted."""
+    from texstream.capture.synthetic.synth import render_scene
+
+    sc = render_scene("ornament", synth_config(dataset, scale, photos, device))
+    held = split_every(len(sc.frames), HOLDOUT_EVERY)
+    val = np.zeros_like(held)
+    val[~held] = split_every(int((~held).sum()), VALIDATION_EVERY)
+    fit = ~held & ~val
     pick = lambda xs, m: [x for x, k in zip(xs, m) if k]  # noqa: E731
-    return PeerData(sc, pick(sc.frames, ~held), pick(sc.images, ~held), pick(sc.masks, ~held),
-                    pick(sc.frames, held), pick(sc.images, held), pick(sc.masks, held), dataset, scale)
+    return PeerData(sc, pick(sc.frames, fit), pick(sc.images, fit), pick(sc.masks, fit),
+                    pick(sc.frames, held), pick(sc.images, held), pick(sc.masks, held),
+                    pick(sc.frames, val), pick(sc.images, val), pick(sc.masks, val), dataset, scale)
 
 
 def shadow_map_size(data: PeerData) -> int:
@@ -276,12 +311,17 @@ def project(p: np.ndarray, layout, lobe_albedo_max: float) -> np.ndarray:
 
 
 class HeldOut:
-    """Held-out scoring of per-texel Lafortune parameters with texstream's renderer."""
+    """Scoring of per-texel Lafortune parameters with texstream's renderer, on the held-out views and on the
+    validation views (the one renderer, its BVH built once, reused for every snapshot)."""
 
     def __init__(self, data: PeerData, problem, layout, device: str = "cpu"):
+        from texstream.fit.common.setup import ModelRenders
+
         self.data, self.layout, self.device = data, layout, device
         self.grid_index = problem.texels.grid_index
         self.bake = data.scene.bake
+        self.renders = ModelRenders(data.scene.mesh, layout, device)
+        self.val_seconds: list[float] = []
 
     def grid(self, params: np.ndarray) -> np.ndarray:
         lay, bake = self.layout, self.bake
@@ -289,53 +329,71 @@ class HeldOut:
         g[self.grid_index] = params
         return bake.fill_padding(g.reshape(bake.height, bake.width, -1))
 
-    def score(self, params: np.ndarray) -> tuple[float, float]:
-        """(pooled PSNR, worst view PSNR) in dB over the held-out views."""
+    def score(self, params: np.ndarray) -> dict:
+        """Pooled and worst-view PSNR (dB) on the held-out and on the validation views (a trace row's fields);
+        the validation scoring's wall time is kept in ``val_seconds`` (what a check costs the rule)."""
         from texstream.fit.stages.stage import heldout_psnr
 
         d = self.data
-        views, pooled = heldout_psnr(d.scene.mesh, self.grid(params), self.layout, d.held_frames, d.held_images,
-                                     d.held_masks, self.device)
-        return float(pooled), float(min(views))
+        grid = self.grid(params)
+        t0 = time.perf_counter()
+        val_views, val_pooled = heldout_psnr(d.scene.mesh, grid, self.layout, d.val_frames, d.val_images,
+                                             d.val_masks, self.device, self.renders)
+        self.val_seconds.append(time.perf_counter() - t0)
+        views, pooled = heldout_psnr(d.scene.mesh, grid, self.layout, d.held_frames, d.held_images, d.held_masks,
+                                     self.device, self.renders)
+        return {"heldout_psnr_db": float(pooled), "worst_psnr_db": float(min(views)),
+                "val_psnr_db": float(val_pooled), "val_worst_psnr_db": float(min(val_views))}
+
+    def check_seconds(self) -> float | None:
+        """Median wall time of one validation check (rendering and scoring the validation views)."""
+        return float(np.median(self.val_seconds)) if self.val_seconds else None
 
 
 # ------------------------------------------------------------------------------------- recording
 
 
+def cpu_seconds() -> float:
+    """CPU time of this process and its waited-for children, user and system (every method runs one thread:
+    on a shared box this is the time an idle core would take, whatever the other jobs' load)."""
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
+
+
 class Recorder:
-    """Snapshots of the parameters against wall time, with the snapshotting itself left out of the time.
+    """Snapshots of the parameters against wall time and CPU time, the snapshotting itself left out of both.
 
     ``start()`` once the method's set-up is done; ``snap(params)`` copies what to score later (host
     copy timed and subtracted); :meth:`trace` scores every snapshot afterwards."""
 
     def __init__(self, sync=None):
         self.sync = sync or (lambda: None)
-        self.t0 = None
-        self.paused = 0.0
+        self.t0 = self.c0 = None
+        self.paused = self.paused_cpu = 0.0
         self.snaps: list[tuple[float, int, Any, dict]] = []
 
     def start(self) -> None:
         self.sync()
-        self.t0 = time.perf_counter()
-        self.paused = 0.0
+        self.t0, self.c0 = time.perf_counter(), cpu_seconds()
+        self.paused = self.paused_cpu = 0.0
 
     def elapsed(self) -> float:
         return time.perf_counter() - self.t0 - self.paused
 
     def snap(self, iteration: int, params, **extra) -> None:
         self.sync()
-        t = self.elapsed()
-        t1 = time.perf_counter()
-        self.snaps.append((t, iteration, np.array(params, dtype=np.float64, copy=True), extra))
+        t, c = self.elapsed(), cpu_seconds() - self.c0 - self.paused_cpu
+        t1, c1 = time.perf_counter(), cpu_seconds()
+        self.snaps.append((t, iteration, np.array(params, dtype=np.float64, copy=True), {"cpu_s": c, **extra}))
         self.paused += time.perf_counter() - t1
+        self.paused_cpu += cpu_seconds() - c1
 
     def trace(self, scorer, train_psnr=None) -> list[dict]:
-        """Every snapshot scored: held-out pooled and worst-view PSNR (``scorer(params)``) and, given
-        ``train_psnr(params)``, the PSNR of the fitted samples."""
+        """Every snapshot scored: the held-out and validation PSNRs (``scorer(params)``, :meth:`HeldOut.score`)
+        and, given ``train_psnr(params)``, the PSNR of the fitted samples."""
         out = []
         for t, it, p, extra in self.snaps:
-            pooled, worst = scorer(p)
-            row = {"time_s": t, "iteration": it, "heldout_psnr_db": pooled, "worst_psnr_db": worst, **extra}
+            row = {"time_s": t, "iteration": it, **scorer(p), **extra}
             if train_psnr is not None:
                 row["train_psnr_db"] = train_psnr(p)
             out.append(row)
@@ -359,32 +417,55 @@ def sample_psnr(samples: Samples, layout, lobe_albedo_max: float, max_samples: i
     return psnr
 
 
-def schedule(max_iterations: int) -> set[int]:
-    """Iterations to snapshot: every one up to 20, then about 10 per doubling (bounded scoring cost)."""
-    its = set(range(0, min(max_iterations, 20) + 1))
-    x = 20.0
+def schedule(max_iterations: int, dense: int = 20, per_doubling: int = 5) -> set[int]:
+    """Iterations to check (snapshot): every one up to ``dense``, then ``per_doubling`` per doubling
+    (bounded scoring cost; the methods whose every check is a run of its own check more sparsely)."""
+    its = set(range(0, min(max_iterations, dense) + 1))
+    x = float(dense)
     while x < max_iterations:
-        x *= 2 ** 0.1
-        its.add(int(round(x)))
+        x *= 2 ** (1.0 / per_doubling)
+        its.add(min(int(round(x)), max_iterations))
     its.add(max_iterations)
     return its
 
 
-def summarise_trace(trace: list[dict], target_db: float | None = None) -> dict:
-    """Best held-out PSNR, the time to within 0.1 dB of it (the stopping rule) and, given
-    ``target_db``, the time to reach that."""
+def early_stop(trace: list[dict], key: str = "val_psnr_db") -> dict:
+    """The stopping rule every method gets (module doc), on the trace's validation PSNR only.
+
+    Walks the checks in order keeping k, the iteration of the best validation PSNR so far (improved on only
+    by more than ``MIN_DELTA_DB``); stops at the first check at iteration >= max(PATIENCE_FACTOR k,
+    k + PATIENCE_MIN), else at the last check (the budget). Returns the indices into ``trace`` of the check
+    handed back (``best``) and of the one where the method stopped (``stop``), and ``by`` ("patience" or
+    "budget")."""
+    best = None
+    for i, r in enumerate(trace):
+        v = r.get(key)
+        if v is not None and math.isfinite(v) and (best is None or v > trace[best][key] + MIN_DELTA_DB):
+            best = i
+        if best is None:
+            continue
+        k = trace[best]["iteration"]
+        if r["iteration"] >= max(PATIENCE_FACTOR * k, k + PATIENCE_MIN):
+            return {"best": best, "stop": i, "by": "patience"}
+    return {"best": best, "stop": len(trace) - 1, "by": "budget"}
+
+
+def summarise_trace(trace: list[dict]) -> dict:
+    """The method as the rule hands it back (:func:`early_stop`): its held-out and validation scores at the
+    check handed back, the wall and CPU time to the stop (the patience run included) and to that check, and for
+    reference the best held-out PSNR anywhere on the trace (what choosing on the test views would give)."""
+    rule = early_stop(trace)
+    if rule["best"] is None:
+        return {"heldout_psnr_at_stop_db": None, "time_to_stop_s": None}
+    b, st = trace[rule["best"]], trace[rule["stop"]]
     ok = [r for r in trace if math.isfinite(r["heldout_psnr_db"])]
-    if not ok:
-        return {"best_heldout_psnr_db": None, "time_to_own_best_s": None}
-    best = max(r["heldout_psnr_db"] for r in ok)
-    hit = next(r for r in ok if r["heldout_psnr_db"] >= best - 0.1)
-    out = {"best_heldout_psnr_db": best, "time_to_own_best_s": hit["time_s"],
-           "heldout_psnr_at_stop_db": hit["heldout_psnr_db"], "worst_view_at_stop_db": hit["worst_psnr_db"],
-           "iterations_to_own_best": hit["iteration"], "final_heldout_psnr_db": ok[-1]["heldout_psnr_db"]}
-    if target_db is not None:
-        t = next((r for r in ok if r["heldout_psnr_db"] >= target_db), None)
-        out["time_to_texstream_target_s"] = None if t is None else t["time_s"]
-    return out
+    return {"stopped_by": rule["by"], "iteration_handed_back": b["iteration"], "iteration_stopped": st["iteration"],
+            "time_to_stop_s": st["time_s"], "time_to_handed_back_s": b["time_s"],
+            "cpu_to_stop_s": st.get("cpu_s"), "cpu_to_handed_back_s": b.get("cpu_s"),
+            "heldout_psnr_at_stop_db": b["heldout_psnr_db"], "worst_view_at_stop_db": b["worst_psnr_db"],
+            "val_psnr_at_stop_db": b["val_psnr_db"], "val_worst_at_stop_db": b.get("val_worst_psnr_db"),
+            "oracle_best_heldout_psnr_db": max(r["heldout_psnr_db"] for r in ok) if ok else None,
+            "final_heldout_psnr_db": trace[-1]["heldout_psnr_db"], "checks_to_stop": rule["stop"] + 1}
 
 
 # ---------------------------------------------------------------------------------------- memory

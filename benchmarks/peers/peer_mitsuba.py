@@ -25,7 +25,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from common import HeldOut, Recorder, build_problem, fit_config
+import time
+
+from common import HeldOut, Recorder, build_problem, fit_config, schedule
 
 
 def find_libllvm() -> str | None:
@@ -151,9 +153,12 @@ def run(data, device: str, iterations: int, views_per_step: int = 8, lr: float =
     lay = prob.layout
     bake = data.scene.bake
     lafortune = HeldOut(data, prob, lay, warp_device)
-    # foreground of each held-out view as texstream scores it: photo mask and render coverage
-    held_masks = [render_model(data.scene.mesh, lafortune.grid(lay.defaults()[None].repeat(prob.n, 0)), lay, f,
-                               warp_device)[1] & m for f, m in zip(data.held_frames, data.held_masks)]
+    # foreground of each held-out and validation view as texstream scores it: photo mask and render coverage
+    neutral = lafortune.grid(lay.defaults()[None].repeat(prob.n, 0))
+    held_masks = [render_model(data.scene.mesh, neutral, lay, f, warp_device)[1] & m
+                  for f, m in zip(data.held_frames, data.held_masks)]
+    val_masks = [render_model(data.scene.mesh, neutral, lay, f, warp_device)[1] & m
+                 for f, m in zip(data.val_frames, data.val_masks)]
     train_masks = []
     for img, m, f in zip(data.train_images, data.train_masks, data.train_frames):
         sat = float(f.saturation) if f.saturation is not None else np.inf
@@ -206,35 +211,50 @@ def run(data, device: str, iterations: int, views_per_step: int = 8, lr: float =
     sync = dr.sync_thread
     rec = Recorder(sync)
     rec.start()
-    snaps = {0, iterations} | set(range(0, iterations + 1, max(1, iterations // 50)))
+    snaps = schedule(iterations)
     rec.snap(0, np.zeros(1), textures=textures())
     for it in range(1, iterations + 1):
         loss = step(it)
         if it in snaps:
             rec.snap(it, np.zeros(1), textures=textures(), train_psnr_db=float(-10 * np.log10(max(loss, 1e-30))))
 
-    trace = []
+    trace, val_seconds = [], []
     for t, it, _, extra in rec.snaps:
         tx = extra.pop("textures")
         for name, key in ms.keys.items():
             ms.params[key] = mi.TensorXf(np.ascontiguousarray(tx[name], np.float32))
         ms.params.update()
-        views = []
-        for f, photo, mk in zip(data.held_frames, data.held_images, held_masks):
-            ms.set_light(f)
-            # scored with the non-differentiable path tracer at the same depth (the same image for a point
-            # light: its one light path is the emitter sample); prb's primal render of a new sensor after
-            # the optimisation crashed the cuda_ad_rgb variant (segmentation fault, Mitsuba 3.9.1, H100)
-            img = np.array(mi.render(ms.scene, sensor=held_sensor(ms, f), integrator=ms.scoring, spp=1)) * float(f.exposure)
-            d = (img[mk] - photo[mk]).astype(np.float64)
-            views.append(10 * np.log10(1.0 / max(float(np.mean(d * d)), 1e-30)))
-        pooled = float(-10 * np.log10(np.mean([10 ** (-v / 10) for v in views])))
-        trace.append({"time_s": t, "iteration": it, "heldout_psnr_db": pooled, "worst_psnr_db": float(min(views)),
-                      **{k: v for k, v in extra.items()}})
+        t0 = time.perf_counter()
+        val_views = score_views(ms, data.val_frames, data.val_images, val_masks)
+        val_seconds.append(time.perf_counter() - t0)
+        views = score_views(ms, data.held_frames, data.held_images, held_masks)
+        trace.append({"time_s": t, "iteration": it, "heldout_psnr_db": pooled_db(views),
+                      "worst_psnr_db": float(min(views)), "val_psnr_db": pooled_db(val_views),
+                      "val_worst_psnr_db": float(min(val_views)), **{k: v for k, v in extra.items()}})
     return {"trace": trace, "texels": int(H * W), "mitsuba": mi.__version__, "variant": mi.variant(),
             "settings": f"principled BSDF (base_color RGB, roughness, metallic textures {W}x{H}), prb max_depth 2, "
                         f"1 spp at pixel centres, mi.ad.Adam lr {lr}, {views_per_step} views per step, "
-                        f"{iterations} steps"}
+                        f"{iterations} steps", "val_check_s": float(np.median(val_seconds))}
+
+
+def score_views(ms: MitsubaScene, frames: list, photos: list, masks: list) -> list[float]:
+    """Per-view PSNR (dB) of Mitsuba's renders of its current textures against ``photos`` on ``masks``."""
+    mi = ms.mi
+    views = []
+    for f, photo, mk in zip(frames, photos, masks):
+        ms.set_light(f)
+        # scored with the non-differentiable path tracer at the same depth (the same image for a point
+        # light: its one light path is the emitter sample); prb's primal render of a new sensor after
+        # the optimisation crashed the cuda_ad_rgb variant (segmentation fault, Mitsuba 3.9.1, H100)
+        img = np.array(mi.render(ms.scene, sensor=held_sensor(ms, f), integrator=ms.scoring, spp=1)) * float(f.exposure)
+        d = (img[mk] - photo[mk]).astype(np.float64)
+        views.append(10 * np.log10(1.0 / max(float(np.mean(d * d)), 1e-30)))
+    return views
+
+
+def pooled_db(views: list[float]) -> float:
+    """PSNR of the views' mean squared error (texstream's heldout_psnr pooling)."""
+    return float(-10 * np.log10(np.mean([10 ** (-v / 10) for v in views])))
 
 
 _HELD_SENSORS: dict = {}

@@ -20,15 +20,20 @@ Jacobian through the projection), as the torch peer does; without the energy bou
 PSNR of this capture collapses (lobes fitted to one highlight sample render far too bright).
 
 The time axis starts before step 1 (resampling and the initial guess count; the kernels are
-compiled by a warm-up call first); a snapshot is taken after each batch (texels not fitted yet
-hold their start values) and, within one-batch runs, after every trf iteration.
+compiled by a warm-up call first). ``per_texel``: MINPACK cannot hand back its iterates, so each check
+of the stopping rule (common.early_stop) is a run of its own with ``max_nfev`` = the check's budget
+(MINPACK is deterministic: the run with budget k stops where an unlimited one is after k evaluations),
+timed whole; the checks run in order and end where the rule stops. ``blocks``: a snapshot after each
+batch (texels not fitted yet hold their start values) and, within one-batch runs, after every trf
+iteration.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from common import HeldOut, Recorder, sample_psnr, build_problem, check_supported, fit_config, free_columns, project, projected_model, resample
+from common import (HeldOut, Recorder, build_problem, check_supported, early_stop, fit_config, free_columns, project,
+                    projected_model, resample, sample_psnr, schedule)
 
 
 class BatchProblem:
@@ -95,6 +100,45 @@ class TexelProblem:
         return (self.w[:, :, None] * J[:, :, self.free]).reshape(-1, self.free.size)
 
 
+def fit_per_texel(samples, params: np.ndarray, seen: np.ndarray, lay, albedo_max: float, max_nfev: int) -> dict:
+    """One MINPACK LM call per seen texel from ``params`` (updated in place); evaluation counts."""
+    from scipy.optimize import least_squares
+
+    free = free_columns(lay)
+    stats = {"nfev": 0, "njev": 0}
+    for t in seen:
+        tp = TexelProblem(samples, int(t), params[t].copy(), lay, free, albedo_max)
+        res = least_squares(tp.residual, params[t, free], jac=tp.jacobian, method="lm", x_scale="jac",
+                            max_nfev=max_nfev)
+        params[t] = project(tp.full(res.x)[0][None], lay, albedo_max)[0]
+        stats["nfev"] += int(res.nfev)
+        stats["njev"] += int(res.njev or 0)
+    return stats
+
+
+def run_checks(prob, cfg, scorer, max_nfev: int) -> tuple[list, dict, object]:
+    """``per_texel``: one whole timed run (resampling, initial guess, fit) per check of max_nfev, scored on the
+    validation and held-out views between runs (not timed); stops where the rule does."""
+    from texstream.fit.optim.fitter import initial_guess
+
+    lay = prob.layout
+    trace, stats = [], {}
+    # MINPACK's evaluations per check: every one to 6, then 4 per doubling (each check is a whole run)
+    for budget in sorted(schedule(max_nfev, dense=6, per_doubling=4)):
+        rec = Recorder()
+        rec.start()
+        samples = resample(prob)
+        p0, counts = initial_guess(prob, cfg)
+        params = project(p0, lay, cfg.lobe_albedo_max)
+        if budget > 0:
+            stats = fit_per_texel(samples, params, np.flatnonzero(counts > 0), lay, cfg.lobe_albedo_max, budget)
+        rec.snap(budget, params)
+        trace += rec.trace(scorer.score, sample_psnr(samples, lay, cfg.lobe_albedo_max))
+        if early_stop(trace)["by"] == "patience":
+            break
+    return trace, stats, samples
+
+
 def run(data, device: str, mode: str = "per_texel", batch: int = 0, max_nfev: int = 100) -> dict:
     """Fit every texel: ``mode`` "per_texel" (MINPACK LM per texel) or "blocks" (``batch`` texels per
     sparse trf problem, 0 = all in one)."""
@@ -107,6 +151,15 @@ def run(data, device: str, mode: str = "per_texel", batch: int = 0, max_nfev: in
     check_supported(lay)
     resample(prob)  # compile the sampling kernels (not timed)
     initial_guess(prob, cfg)
+    scorer = HeldOut(data, prob, lay, device)
+    if mode == "per_texel":
+        trace, stats, samples = run_checks(prob, cfg, scorer, max_nfev)
+        return {"trace": trace, "texels": prob.n, "samples": int(samples.y.shape[0]), "mode": mode, **stats,
+                "val_check_s": scorer.check_seconds(),
+                "settings": f"least_squares lm (MINPACK) per texel, x_scale=jac, max_nfev up to {max_nfev} (a run "
+                            "per check), projected model"}
+    if mode != "blocks":
+        raise ValueError(f"mode {mode!r}: use per_texel or blocks")
     rec = Recorder()
     rec.start()
     samples = resample(prob)
@@ -117,46 +170,29 @@ def run(data, device: str, mode: str = "per_texel", batch: int = 0, max_nfev: in
     lo, hi = lay.lower()[free], lay.upper()[free]
     seen = np.flatnonzero(counts > 0)
     stats = {"nfev": 0, "njev": 0, "iterations": 0}
-    if mode == "per_texel":
-        every = max(1, seen.size // 40)
-        for k, t in enumerate(seen):
-            tp = TexelProblem(samples, int(t), params[t].copy(), lay, free, cfg.lobe_albedo_max)
-            res = least_squares(tp.residual, params[t, free], jac=tp.jacobian, method="lm", x_scale="jac",
-                                max_nfev=max_nfev)
-            params[t] = project(tp.full(res.x)[0][None], lay, cfg.lobe_albedo_max)[0]
-            stats["nfev"] += int(res.nfev)
-            stats["njev"] += int(res.njev or 0)
-            if (k + 1) % every == 0 or k + 1 == seen.size:
-                rec.snap(k + 1, params)
-        settings = f"least_squares lm (MINPACK) per texel, x_scale=jac, max_nfev {max_nfev}, projected model"
-        extra = {}
-    elif mode == "blocks":
-        size = seen.size if batch <= 0 else batch
-        batches = [seen[b:b + size] for b in range(0, seen.size, size)]
-        for bi, texels in enumerate(batches):
-            bp = BatchProblem(samples, texels, params, lay, cfg.lobe_albedo_max)
-            x0 = np.clip(params[texels][:, free], lo, hi).reshape(-1)
+    size = seen.size if batch <= 0 else batch
+    batches = [seen[b:b + size] for b in range(0, seen.size, size)]
+    for bi, texels in enumerate(batches):
+        bp = BatchProblem(samples, texels, params, lay, cfg.lobe_albedo_max)
+        x0 = np.clip(params[texels][:, free], lo, hi).reshape(-1)
 
-            def snap_iteration(x, bp=bp, texels=texels):
-                stats["iterations"] += 1
-                if len(batches) == 1:
-                    p = params.copy()
-                    p[texels] = project(bp.full(x), lay, cfg.lobe_albedo_max)
-                    rec.snap(stats["iterations"], p)
+        def snap_iteration(x, bp=bp, texels=texels):
+            stats["iterations"] += 1
+            if len(batches) == 1:
+                p = params.copy()
+                p[texels] = project(bp.full(x), lay, cfg.lobe_albedo_max)
+                rec.snap(stats["iterations"], p)
 
-            res = least_squares(bp.residual, x0, jac=bp.jacobian,
-                                bounds=(np.tile(lo, texels.size), np.tile(hi, texels.size)), method="trf",
-                                tr_solver="lsmr", x_scale="jac", max_nfev=max_nfev, callback=snap_iteration)
-            params[texels] = project(bp.full(res.x), lay, cfg.lobe_albedo_max)
-            stats["nfev"] += int(res.nfev)
-            stats["njev"] += int(res.njev or 0)
-            if len(batches) > 1:
-                rec.snap(bi + 1, params)
-        settings = (f"least_squares trf, lsmr, x_scale=jac, sparse block-diagonal Jacobian, {len(batches)} "
-                    f"batch(es) of {size} texels, max_nfev {max_nfev}, box bounds, projected model")
-        extra = {"batches": len(batches), "batch": size}
-    else:
-        raise ValueError(f"mode {mode!r}: use per_texel or blocks")
-    scorer = HeldOut(data, prob, lay, device)
-    return {"trace": rec.trace(scorer.score, sample_psnr(samples, lay, cfg.lobe_albedo_max)), "texels": prob.n, "samples": int(samples.y.shape[0]), "mode": mode,
-            **extra, **stats, "settings": settings}
+        res = least_squares(bp.residual, x0, jac=bp.jacobian,
+                            bounds=(np.tile(lo, texels.size), np.tile(hi, texels.size)), method="trf",
+                            tr_solver="lsmr", x_scale="jac", max_nfev=max_nfev, callback=snap_iteration)
+        params[texels] = project(bp.full(res.x), lay, cfg.lobe_albedo_max)
+        stats["nfev"] += int(res.nfev)
+        stats["njev"] += int(res.njev or 0)
+        if len(batches) > 1:
+            rec.snap(bi + 1, params)
+    settings = (f"least_squares trf, lsmr, x_scale=jac, sparse block-diagonal Jacobian, {len(batches)} "
+                f"batch(es) of {size} texels, max_nfev {max_nfev}, box bounds, projected model")
+    return {"trace": rec.trace(scorer.score, sample_psnr(samples, lay, cfg.lobe_albedo_max)), "texels": prob.n,
+            "samples": int(samples.y.shape[0]), "mode": mode, "batches": len(batches), "batch": size, **stats,
+            "val_check_s": scorer.check_seconds(), "settings": settings}

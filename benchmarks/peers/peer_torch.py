@@ -26,7 +26,8 @@ import math
 
 import numpy as np
 
-from common import HeldOut, Recorder, sample_psnr, build_problem, check_supported, fit_config, free_columns, project, resample
+from common import (HeldOut, Recorder, build_problem, check_supported, fit_config, free_columns, project, resample,
+                    sample_psnr, schedule)
 
 ADAM_LR = 0.03
 
@@ -146,7 +147,7 @@ def run(data, device: str, optimizer: str, iterations: int, compile: bool = True
     samples, obj, X = setup()
     loss_fn = lambda X: compiled(obj, X)  # noqa: E731
     rec.snap(0, obj.params_numpy(X))
-    keep = set(range(0, iterations + 1, max(1, iterations // 60))) | {iterations}
+    keep = schedule(iterations)
     if optimizer == "adam":
         opt = torch.optim.Adam([X], lr=lr)
         for it in range(1, iterations + 1):
@@ -181,4 +182,5 @@ def run(data, device: str, optimizer: str, iterations: int, compile: bool = True
         out["torch_max_allocated_mb"] = torch.cuda.max_memory_allocated(device) / 2 ** 20
     scorer = HeldOut(data, prob, lay, warp_device)
     out["trace"] = rec.trace(scorer.score, sample_psnr(samples, lay, cfg.lobe_albedo_max))
+    out["val_check_s"] = scorer.check_seconds()
     return out
