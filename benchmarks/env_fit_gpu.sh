@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The env_diffuse fit of the ornament-sized capture on one GPU (issue 42: converges in under 10 s): the scene of
-# benchmarks/env_light_gap.py (ornament --scale 0.1 re-rendered Lambertian under an SH light, made on the CPU),
-# then `texstream fit --model env_diffuse --device cuda` with an empty Warp kernel cache (cold), then again
+# benchmarks/env_light_gap.py (ornament --scale 0.1 re-rendered Lambertian under an SH light, made on the GPU:
+# the GPU machine's Warp has no CPU compiler), then `texstream fit --model env_diffuse --device cuda` with an empty Warp kernel cache (cold), then again
 # (warm), each fit's wall time and its phases from model.json (timings_s: setup, stream, transfer,
 # light_and_albedo; the stream's passes and final row); then the whole relighting gap on the GPU
 # (benchmarks/env_light_gap.py --device cuda, its JSON). Warp in /root/site, OpenImageIO's wheel in WHEELS
@@ -17,7 +17,7 @@ python3 -m pip install -q --no-index --no-deps --no-compile --target /root/oiio 
 export PYTHONPATH=/root/site:/root/oiio
 python3 -m pip install -q --no-deps --no-build-isolation -e . >/dev/null 2>&1 || exit 1
 work=/root/env_gap
-(cd benchmarks && python3 env_light_gap.py "$work" --scene-only) > "$out/scene.log" 2>&1 || { tail "$out/scene.log"; exit 1; }
+(cd benchmarks && python3 env_light_gap.py "$work" --scene-only --device cuda) > "$out/scene.log" 2>&1 || { tail "$out/scene.log"; exit 1; }
 export WARP_CACHE_PATH=/root/warp-cache-env  # empty: the cold fit compiles every kernel it launches
 rm -rf "$WARP_CACHE_PATH"
 for run in cold warm; do

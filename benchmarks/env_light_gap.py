@@ -43,21 +43,21 @@ def sh_light(seed: int) -> np.ndarray:
     return light
 
 
-def render_capture(folder: Path, light, albedo, tgrid, mesh) -> None:
+def render_capture(folder: Path, light, albedo, tgrid, mesh, device: str = "cpu") -> None:
     """Every photo of ``folder`` replaced by the Lambertian render under ``light``; capture.json without lights."""
     from texstream.capture.capture_json import read_capture, write_capture
     from texstream.capture.imageio import write_image
     from texstream.fit.models.env_diffuse.model import EnvDiffuseRenderer
 
     cap = read_capture(folder)
-    renderer = EnvDiffuseRenderer(mesh, albedo, tgrid, light)
+    renderer = EnvDiffuseRenderer(mesh, albedo, tgrid, light, device=device)
     for f in cap.frames:
         write_image(folder / f.file_path, renderer.render(f)[0], bits=32)
         f.light = None
     write_capture(cap, folder)
 
 
-def make_scene(work: Path) -> dict:
+def make_scene(work: Path, device: str = "cpu") -> dict:
     from texstream.capture.synthetic.synth import SynthConfig, load_ground_truth, synthesize
     from texstream.fit.models.env_diffuse.light_file import write_light_json
     from texstream.fit.models.env_diffuse.model import transfer_grid
@@ -67,17 +67,19 @@ def make_scene(work: Path) -> dict:
     cap, relit = work / "capture", work / "relit_truth"
     for d in (cap, relit):
         shutil.rmtree(d, ignore_errors=True)
-    synthesize("ornament", cap, SynthConfig(scale=0.1, progress=False))
-    synthesize("ornament", relit, SynthConfig(scale=0.1, photos=24, azimuth_offset=7.0, progress=False))
+    synthesize("ornament", cap, SynthConfig(scale=0.1, progress=False, device=device))
+    synthesize("ornament", relit, SynthConfig(scale=0.1, photos=24, azimuth_offset=7.0, progress=False,
+                                                   device=device))
     mesh, params, _, bake, _ = load_ground_truth(cap)
     mesh = mesh.with_normals()
     idx = np.nonzero(bake.covered.reshape(-1))[0]
     pos, nrm = bake.position.reshape(-1, 3)[idx], bake.normal.reshape(-1, 3)[idx]
     albedo = np.clip(np.pi * params[..., :3].astype(np.float64), 0.0, 1.0)
-    tgrid = transfer_grid(bake, idx, sh_transfer(mesh.vertices, mesh.faces, pos, nrm, samples=1024))
+    tgrid = transfer_grid(bake, idx, sh_transfer(mesh.vertices, mesh.faces, pos, nrm, samples=1024,
+                                                       device=device))
     lights = {"L1": sh_light(0), "L2": sh_light(7)}
-    render_capture(cap, lights["L1"], albedo, tgrid, mesh)
-    render_capture(relit, lights["L2"], albedo, tgrid, mesh)
+    render_capture(cap, lights["L1"], albedo, tgrid, mesh, device)
+    render_capture(relit, lights["L2"], albedo, tgrid, mesh, device)
     for name, light in lights.items():
         write_light_json(work / f"{name}.json", light)
     return {"albedo": albedo, "bake": bake, "lights": lights, "seconds": time.perf_counter() - t0}
@@ -126,7 +128,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--reuse-scene", action="store_true", help="WORK already holds the scene: only fit and score")
     ap.add_argument("--scene-only", action="store_true", help="only make the scene (WORK/capture, L1.json, ...)")
-    ap.add_argument("--device", default="cpu", help="the fits' and relights' device (the scene is made on the CPU)")
+    ap.add_argument("--device", default="cpu", help="the device of the scene's renders, the fits and the relights")
     a, extra = ap.parse_known_args()
     import warp as wp
 
@@ -140,7 +142,7 @@ def main() -> None:
         scene = {"albedo": np.clip(np.pi * params[..., :3].astype(np.float64), 0.0, 1.0), "bake": bake,
                  "lights": {n: read_light(a.work / f"{n}.json") for n in ("L1", "L2")}, "seconds": 0.0}
     else:
-        scene = make_scene(a.work)
+        scene = make_scene(a.work, a.device)
         if a.scene_only:
             print(f"scene in {a.work} ({scene['seconds']:.1f} s)")
             return
