@@ -15,14 +15,9 @@ DEVICE_HELP = "Warp device: auto (the first CUDA device when Warp sees one, else
 
 
 def cuda_device_count() -> int:
-    """CUDA devices Warp sees (0 without a driver or a GPU). Also asks Warp for kernels compiled to the GPU's own
-    machine code (cubin) unless its config says otherwise: Warp's automatic choice, with a driver as new as its
-    compiler, is PTX for an older architecture, which the driver compiles again on every module's first load,
-    about 25-30 s of a cold run on an H200 (docs/scale.md, "Cold starts")."""
+    """CUDA devices Warp sees (0 without a driver or a GPU)."""
     import warp as wp
 
-    if wp.config.cuda_output is None:
-        wp.config.cuda_output = "cubin"
     try:
         return int(wp.get_cuda_device_count())
     except Exception:  # noqa: BLE001 - a broken driver is the same as no GPU for choosing a device
