@@ -91,6 +91,20 @@ def no_ambient(f: Any, share: Any, weight: Any):
     return f
 
 
+def set_ambient_func(amb: int):
+    """``set_ambient`` (:class:`LafortuneFuncs`) of a layout whose ambient (or room) columns start at ``amb``."""
+
+    @wp.func
+    def set_ambient(f: Any, share: Any, weight: Any):
+        tiny = share - share + type(share)(1.0e-30)  # a weight of 0 (an unlit channel): no inf
+        out = f
+        for c in range(3):
+            out[wp.static(amb) + c] = share / wp.max(weight[c], tiny)
+        return out
+
+    return set_ambient
+
+
 def jacobian_row_func(row_entry: Any, row_nonzeros: int):
     """``jacobian_row(p, f, c)`` of a model from its ``row_entry``: dm_c/dp as an n_params vector, its
     ``row_nonzeros`` structurally non-zero entries set with literal trip counts (kept in registers)."""
@@ -222,16 +236,8 @@ def lafortune_funcs(n_lobes: int, anisotropic: int, ambient: int = 0) -> Lafortu
                     out = out + (one + one) * l1 * da + l2 * a
         return out
 
-    @wp.func
-    def set_ambient(f: Any, share: Any, weight: Any):
-        tiny = share - share + type(share)(1.0e-30)  # a weight of 0 (an unlit channel): no inf
-        out = f
-        for c in range(3):
-            out[wp.static(amb) + c] = share / wp.max(weight[c], tiny)
-        return out
-
     return LafortuneFuncs(features, dhd, model_value, jacobian_row, row_entry, row_nonzeros,
-                          set_ambient if with_ambient else no_ambient)
+                          set_ambient_func(amb) if with_ambient else no_ambient)
 
 
 @functools.cache

@@ -92,14 +92,17 @@ def reduced_room_blocks(layout, g: np.ndarray, jtj: np.ndarray) -> tuple[np.ndar
     o = layout.room_offset
     room = np.arange(o, o + 3)
     own = np.flatnonzero(~layout.frozen())
-    h_pp = jtj[:, own[:, None], own[None, :]]
-    h_ps = jtj[:, own[:, None], room[None, :]]
-    # a relative ridge keeps the texels without samples (all zero) and rank-deficient lobes solvable
-    ridge = 1e-9 * np.maximum(np.trace(h_pp, axis1=1, axis2=2), 1e-300)[:, None, None] * np.eye(len(own))
-    rhs = np.concatenate([h_ps, g[:, own, None]], axis=2)
+    r, q = np.zeros((len(g), 3, 3)), np.zeros((len(g), 3))
+    trace = np.trace(jtj[:, own[:, None], own[None, :]], axis1=1, axis2=2)
+    seen = np.flatnonzero(trace > 0)  # a texel no sample reaches has all-zero blocks: nothing to reduce
+    h_pp = jtj[seen[:, None, None], own[None, :, None], own[None, None, :]]
+    h_ps = jtj[seen[:, None, None], own[None, :, None], room[None, None, :]]
+    # a relative ridge keeps rank-deficient blocks (a lobe no highlight constrains) solvable
+    ridge = 1e-9 * trace[seen][:, None, None] * np.eye(len(own))
+    rhs = np.concatenate([h_ps, g[seen][:, own, None]], axis=2)
     sol = np.linalg.solve(h_pp + ridge, rhs)
-    r = jtj[:, room[:, None], room[None, :]] - np.einsum("npi,npj->nij", h_ps, sol[:, :, :3])
-    q = g[:, room] - np.einsum("npi,np->ni", h_ps, sol[:, :, 3])
+    r[seen] = jtj[seen][:, room[:, None], room[None, :]] - np.einsum("npi,npj->nij", h_ps, sol[:, :, :3])
+    q[seen] = g[seen][:, room] - np.einsum("npi,np->ni", h_ps, sol[:, :, 3])
     return r, q
 
 
