@@ -174,14 +174,16 @@ def test_synthetic_room_light_adds_the_ambient_to_the_photos(tmp_path):
 def test_auto_keeps_the_room_light_on_a_lit_room_and_recovers_it(room_fits):
     """On the flash + room capture, auto keeps a room term: without one the validation photos lose more than 10 dB
     (the albedo absorbs the room's light, which it can follow only as E_flash cos varies from photo to photo). The
-    room's irradiance E (1 + a n_z) on the sphere is an order-2 SH irradiance, so the global room light
+    room's irradiance E (1 + a n_z) on the sphere is an order-1 SH irradiance, so the global room light
     (fit/models/per_texel/room_light.py) expresses it exactly with 27 unknowns and wins the tie with the free
-    per-texel ambient (measured: VALIDATION). Its fit predicts the held-out photos to above 55 dB pooled (measured
-    HELDOUT; float photos without noise, the error is the fit's stopping rule and the filtered taps' plane
-    geometry; the held-out renders include the room term, without it they would sit near the off fit's 25 dB) and
-    recovers the albedo and the room's radiance pi rho_d T.L the synthesizer wrote (rho_d E). Bounds over the texels
-    the photos saw: median relative error 1% (measured MEDIANS), 95th percentile 5% (measured P95S: texels near the
-    silhouette and the poles, seen grazingly by few photos), every texel 15% (measured MAXES)."""
+    per-texel ambient (validation photos, measured: off 24.9 dB, room 67.6 dB, on 67.2 dB). Its fit predicts the
+    held-out photos to above 55 dB pooled (measured 66.0 dB; float photos without noise, the error is the fit's
+    stopping rule and the filtered taps' plane geometry; the held-out renders include the room term, without it
+    they would sit near the off fit's 25 dB) and recovers the albedo and the room's radiance pi rho_d T.L the
+    synthesizer wrote (rho_d E). Bounds over the texels the photos saw: median relative error 1% (measured 0.55%
+    room radiance, 0.49% albedo), 95th percentile 5% (measured 0.9% and 0.8%: texels near the silhouette and the
+    poles, seen grazingly by few photos), every texel 15% (measured 1.3% and 1.1%). The light's relative step per
+    alternation round: 1, 0.47, 0.18, 0.039, 0.0023 (about quadratic)."""
     from texstream.capture.imageio import read_image
     from texstream.capture.synthetic.synth import load_ground_truth
     from texstream.fit.stages.stage import load_model
@@ -198,9 +200,6 @@ def test_auto_keeps_the_room_light_on_a_lit_room_and_recovers_it(room_fits):
     room_radiance = grid[seen][:, 0:3] * grid[seen][:, lay.room_offset:]
     a_err = np.abs(room_radiance / truth[seen][:, tl.ambient_offset:] - 1)
     d_err = np.abs(grid[seen][:, 0:3] / truth[seen][:, 0:3] - 1)
-    print({k: v["pooled_psnr_db"] for k, v in cand.items()}, man["heldout"]["pooled_psnr_db"],
-          [(np.median(e), np.percentile(e, 95), e.max()) for e in (a_err, d_err)],
-          [r["light_step_rel"] for r in rep["room"]["trace"]])
     assert man["heldout"]["pooled_psnr_db"] > 55, man["heldout"]
     for err in (a_err, d_err):
         assert np.median(err) < 0.01 and np.percentile(err, 95) < 0.05 and err.max() < 0.15, (

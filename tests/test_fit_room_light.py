@@ -1,6 +1,7 @@
 """The room light (render/layout.py ``ModelLayout.room``, fit/models/per_texel/room_light.py): the kernels'
-derivatives in its columns and the light's normal equations against float64 finite differences, the room light
-at zero giving the flash-only fit bit for bit, and recovery of a known room light and albedo."""
+derivatives in its columns and the light's normal equations against float64 finite differences, and the room light
+at zero giving the flash-only fit bit for bit. The recovery of a known room light and albedo is test_fit_ambient's
+``test_auto_keeps_the_room_light_on_a_lit_room_and_recovers_it`` (auto chooses it there)."""
 
 from __future__ import annotations
 
@@ -10,11 +11,7 @@ import pytest
 from texstream.fit.models.per_texel.room_light import light_step, texel_blocks, with_room
 from texstream.render.layout import ModelLayout
 
-from conftest import SCENE_DEVICE
 from test_fit_gradients import evaluate, plane_problem, random_params
-
-LAYOUTS = [ModelLayout(room=True), ModelLayout(kind="diffuse", room=True)]
-
 
 def room_params(layout: ModelLayout, n: int, rng) -> np.ndarray:
     """Random lobes (test_fit_gradients) and a random room irradiance factor of the size of the flash's share."""
@@ -37,8 +34,9 @@ def test_layout_declares_the_room_columns():
     np.testing.assert_array_equal(drawn[0, -3:], p[0, 0:3] * p[0, -3:])
 
 
-@pytest.mark.parametrize("layout", LAYOUTS, ids=["lafortune", "diffuse"])
-@pytest.mark.parametrize("lookup", ["texel", "bilinear"])
+@pytest.mark.parametrize("layout,lookup", [(ModelLayout(room=True), "bilinear"),
+                                           (ModelLayout(kind="diffuse", room=True), "texel")],
+                         ids=["lafortune_lookup", "diffuse"])
 def test_room_gradient_matches_finite_differences(device, layout, lookup):
     """Every column's gradient, the frozen room columns' included (what the light's step reduces), against central
     differences in float64; with the renderer's lookup the neighbours' rho_d S is held (their share in the
@@ -108,42 +106,3 @@ def test_zero_room_light_is_the_flash_only_fit_bit_for_bit(device):
     np.testing.assert_array_equal(f_room, f_off)
     np.testing.assert_array_equal(g_room[:, :off.n_params], g_off)
     assert off.extra_term == 0 and off.names == ModelLayout(ambient=False, room=False).names
-
-
-# ------------------------------------------------------------------------------- recovery
-
-
-def small_fit_config(ambient: str):
-    from texstream.fit.models.materials import MaterialConfig
-    from texstream.fit.optim.fitter import FitConfig
-    from texstream.fit.stages.stage import FitStageConfig
-
-    return FitStageConfig(device=SCENE_DEVICE, renders=0, holdout_every=8, materials=MaterialConfig(validation_every=4),
-                          fit=FitConfig(model="diffuse", max_iterations=30, ambient=ambient))
-
-
-def test_room_light_recovers_a_known_room_light_and_albedo(tmp_path):
-    """The matte sphere in a lit room (test_fit_ambient's scene): the room's irradiance E (1 + a n_z) on a sphere is
-    an order-1 SH irradiance (its gradient runs along z, the sphere's normal), so the room light can express it
-    exactly and the fit should find the albedo and the room's radiance rho_d E the synthesizer wrote."""
-    from texstream.capture.imageio import read_image
-    from texstream.capture.synthetic.synth import SynthConfig, load_ground_truth, synthesize
-    from texstream.fit.stages.stage import fit_stage, load_model
-
-    from test_fit_ambient import matte_scenes
-
-    synthesize(matte_scenes()["room"], tmp_path / "room", SynthConfig(scale=0.05, photos=48, image_size=40,
-                                                                       progress=False, preview=False,
-                                                                       device=SCENE_DEVICE))
-    fit_stage(tmp_path / "room", tmp_path / "room" / "ground_truth", tmp_path / "fit", small_fit_config("room"),
-              progress=False)
-    _, grid, lay, man = load_model(tmp_path / "fit")
-    assert lay.room and man["ambient"]["chosen"] == "room"
-    room = man["ambient"]["room"]
-    _, truth, tl, bake, _ = load_ground_truth(tmp_path / "room")
-    seen = bake.covered & (read_image(tmp_path / "fit" / "seen.png", channels=3)[..., 0] > 0.5)
-    d_err = np.abs(grid[seen][:, 0:3] / truth[seen][:, 0:3] - 1)
-    a_err = np.abs(grid[seen][:, 0:3] * grid[seen][:, lay.room_offset:] / truth[seen][:, tl.ambient_offset:] - 1)
-    print(np.median(d_err), np.percentile(d_err, 95), np.median(a_err), np.percentile(a_err, 95),
-          man["heldout"], [r["light_step_rel"] for r in room["trace"]])
-    assert np.median(d_err) < 0.02 and np.median(a_err) < 0.03, (np.median(d_err), np.median(a_err))
