@@ -127,19 +127,19 @@ def light_step(layout, g: np.ndarray, jtj: np.ndarray, transfer: np.ndarray, lig
 def fit_room(problem: StreamProblem, fit_cfg, start: FitStart, transfer: np.ndarray, rounds: int = ROOM_ROUNDS,
              light0: np.ndarray | None = None) -> tuple[FitStart, RoomLight]:
     """(start, RoomLight): ``rounds`` rounds of the alternation (module doc), each a per-texel fit at the current
-    light and a step on the light; ``start`` is the initial guess with the room columns at the final light, from
-    which the caller's last per-texel fit starts. Every per-texel fit starts from the same initial guess, as the
-    fits without the term do: continued from the previous round's fit, the lobes of the flash capture's sphere kept
-    what they had taken of the room's light in the first round and overfitted (held out 33.0 dB against 38.1 dB
-    with the free ambient, benchmarks/flash_room_light.py at 10 iterations). ``problem``'s layout has the room columns; ``start`` (the
-    argument) its starting parameters and sample counts."""
+    light and a step on the light, each fit continuing from the previous round's; ``start`` is the last fit's
+    parameters with the room columns at the final light, from which the caller's last per-texel fit starts
+    (restarting every round from the initial guess instead was measured worse on the flash capture: held out
+    31.1 dB against 33.0 dB, benchmarks/flash_room_light.py at 10 iterations). ``problem``'s layout has the room
+    columns; ``start`` (the argument) its starting parameters and sample counts."""
     layout = problem.layout
     light = np.zeros((sh.SH_COUNT, 3)) if light0 is None else np.asarray(light0, np.float64)
-    guess, counts = start.numpy()
+    params, counts = start.numpy()
     trace = []
     for round_ in range(rounds):
-        res = run_fit(problem, fit_cfg, p0=with_room(guess, layout, transfer, light), start=(guess, counts))
-        g, jtj, objective = texel_blocks(problem, res.params)
+        res = run_fit(problem, fit_cfg, p0=with_room(params, layout, transfer, light), start=(params, counts))
+        params = res.params
+        g, jtj, objective = texel_blocks(problem, params)
         step = light_step(layout, g, jtj, transfer, light)
         light = light + step
         rel = float(np.abs(step).max() / max(np.abs(light).max(), 1e-300))
@@ -147,4 +147,4 @@ def fit_room(problem: StreamProblem, fit_cfg, start: FitStart, transfer: np.ndar
                       "light_step_rel": rel, "mean_radiance": [float(v) for v in light[0] * sh.sh9_basis(
                           np.array([0.0, 0.0, 1.0]))[0]]})
         say("fit", f"room light round {round_}: objective {objective:.6g}, light step {rel:.2e} of the light")
-    return FitStart.of((with_room(guess, layout, transfer, light), counts), problem), RoomLight(light, trace)
+    return FitStart.of((with_room(params, layout, transfer, light), counts), problem), RoomLight(light, trace)
