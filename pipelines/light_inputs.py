@@ -34,8 +34,9 @@ def _ambient(model: dict) -> dict:
     amb = model.get("ambient")
     if not amb:
         return {"source": "none", "why": "the model has no ambient term (a kind without one, or no fit)"}
-    on = amb.get("chosen") == "on"
-    return {"source": "flash plus a per-texel ambient term (the room's light)" if on else "flash alone",
+    source = {"on": "flash plus a per-texel ambient term (the room's light)",
+              "room": "flash plus the room's light as one global SH environment lighting the same albedo"}
+    return {"source": source.get(amb.get("chosen"), "flash alone"),
             "why": f"--ambient {amb.get('mode', amb.get('chosen'))}: {amb.get('reason', '')}"}
 
 

@@ -47,6 +47,14 @@ Ambient (``ModelLayout.ambient``, reflectance kinds whose traits allow it): a pe
 the room's own light adds to the flash-lit reflectance, seen the same from every view and under every light
 position. A sample predicts ``exposure * (f_r E cos(theta_i) + A)``; its columns ``<kind>.ambient.{r,g,b}``
 come last, in photo value / exposure units like the radiance model's L, with a lower bound 0.
+
+Room light (``ModelLayout.room``, the physically right alternative to the free ambient): the room's light is one
+global environment L_room in order-2 SH (render/sh.py), which lights the same diffuse albedo as the flash. A
+sample predicts ``exposure * (f_r E cos(theta_i) + rho_d S)`` with S_c = pi T_t . L_room,c the texel's room
+irradiance factor (T_t its visibility transfer, geometry/sh_transfer.py), so the room's radiance is pi rho_d T.L.
+S is not fitted per texel: its columns ``<kind>.room.{r,g,b}`` (last, where the ambient's would be) carry each
+texel's S, set from the global light between the fit's rounds (fit/models/per_texel/room_light.py) and frozen in
+the per-texel fit (``frozen``), which then sees a known extra diffuse irradiance.
 """
 
 from __future__ import annotations
@@ -169,6 +177,8 @@ class ModelLayout:
         lobe_shape: "free" (c_z fitted) or "phong" (c_z held at 1; see the module doc).
         ambient: a per-texel ambient radiance A (RGB) in the last three columns (see the module doc); kinds whose
             traits do not allow it (``LayoutTraits.ambient``) have none.
+        room: the room's light as a global SH environment: each texel's known room irradiance factor S (RGB) in the
+            last three columns, frozen (module doc); exclusive with ``ambient``; same traits.
     """
 
     kind: str = "lafortune"
@@ -176,6 +186,7 @@ class ModelLayout:
     anisotropic: bool = False
     lobe_shape: str = "free"
     ambient: bool = False
+    room: bool = False
 
     def __post_init__(self) -> None:
         traits = layout_traits(self.kind)
@@ -183,6 +194,10 @@ class ModelLayout:
             object.__setattr__(self, "n_lobes", 0)
         if self.ambient and not (traits.ambient and traits.lit):
             object.__setattr__(self, "ambient", False)
+        if self.room and not (traits.ambient and traits.lit):
+            object.__setattr__(self, "room", False)
+        if self.room and self.ambient:
+            raise ConfigError("a layout has either the free ambient or the room light", fix="use one of them")
         if not traits.lit:  # no lobes: nothing anisotropic, no lobe shape
             object.__setattr__(self, "anisotropic", False)
             object.__setattr__(self, "lobe_shape", "free")
@@ -211,12 +226,32 @@ class ModelLayout:
 
     @property
     def n_params(self) -> int:
-        return 3 + self.n_lobes * self.lobe_stride + 3 * self.view_terms + 3 * int(self.ambient)
+        return 3 + self.n_lobes * self.lobe_stride + 3 * self.view_terms + 3 * int(self.ambient or self.room)
 
     @property
     def ambient_offset(self) -> int:
         """First column (channel r) of the ambient radiance; -1 without one."""
         return self.n_params - 3 if self.ambient else -1
+
+    @property
+    def room_offset(self) -> int:
+        """First column (channel r) of the room irradiance factor S; -1 without the room light."""
+        return self.n_params - 3 if self.room else -1
+
+    @property
+    def extra_term(self) -> int:
+        """The kernels' switch for the last three columns: 0 none, 1 the free ambient A, 2 the room's S."""
+        return 2 if self.room else int(self.ambient)
+
+    def rendered(self, params: np.ndarray) -> tuple["ModelLayout", np.ndarray]:
+        """(layout, params) the renderer draws: a room light's columns become the ambient radiance they make,
+        rho_d S (the room's light lights the same albedo, module doc); any other layout as it is."""
+        if not self.room:
+            return self, params
+        out = np.array(params, copy=True)
+        o = self.room_offset
+        out[..., o:o + 3] = out[..., 0:3] * out[..., o:o + 3]
+        return dataclasses.replace(self, room=False, ambient=True), out
 
     def lobe_offset(self, j: int) -> int:
         return 3 + j * self.lobe_stride
@@ -253,6 +288,11 @@ class ModelLayout:
             out += [ParamSpec(f"{self.kind}.ambient.{c}", "photo value / exposure", 0.0, 1000.0, 0.0,
                               "ambient radiance: what the room's light adds, the same from every view and under "
                               "every light; a sample predicts exposure * (f_r E cos + A)") for c in "rgb"]
+        if self.room:
+            out += [ParamSpec(f"{self.kind}.room.{c}", "photo value / exposure", 0.0, 1.0e6, 0.0,
+                              "room irradiance factor S = pi T.L_room (known, set from the global room light, "
+                              "frozen in the per-texel fit); a sample predicts exposure * (f_r E cos + rho_d S)")
+                    for c in "rgb"]
         return out
 
     @property
@@ -269,8 +309,11 @@ class ModelLayout:
         return np.array([s.default for s in self.specs()], dtype=np.float64)
 
     def frozen(self) -> np.ndarray:
-        """Columns that never move (lower == upper)."""
-        return self.lower() == self.upper()
+        """Columns that never move in the per-texel fit (lower == upper; the room's S, set from the global light)."""
+        out = self.lower() == self.upper()
+        if self.room:
+            out[self.room_offset:self.room_offset + 3] = True
+        return out
 
     def index(self, name: str) -> int:
         """Column of a named parameter; the kind prefix may be omitted ("lobe0.n")."""
@@ -300,10 +343,12 @@ class ModelLayout:
                 "n_params": self.n_params, "names": self.names,
                 "units": [s.unit for s in self.specs()],
                 "lower": self.lower().tolist(), "upper": self.upper().tolist(),
-                **({"ambient": True} if self.ambient else {})}  # absent: none (the manifests written before it)
+                **({"ambient": True} if self.ambient else {}),  # absent: none (the manifests written before it)
+                **({"room": True} if self.room else {})}
 
     @staticmethod
     def from_json(d: dict) -> "ModelLayout":
         # model folders written before lobe_shape existed fitted c_z freely; before ambient, had none
         return ModelLayout(kind=d["kind"], n_lobes=int(d["n_lobes"]), anisotropic=bool(d["anisotropic"]),
-                           lobe_shape=d.get("lobe_shape", "free"), ambient=bool(d.get("ambient", False)))
+                           lobe_shape=d.get("lobe_shape", "free"), ambient=bool(d.get("ambient", False)),
+                           room=bool(d.get("room", False)))

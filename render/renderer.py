@@ -70,6 +70,10 @@ class Renderer:
         if mesh.n_faces == 0:
             raise InputError("the mesh has no faces", fix="check the mesh file")
         self.device = wp.get_device(device)
+        if getattr(layout, "room", False):  # the room light drawn as the ambient radiance it makes (layout.py)
+            if isinstance(params, wp.array):
+                raise ConfigError("a room-light model renders from a parameter grid", fix="pass the (H, W, P) grid")
+            layout, params = layout.rendered(params)
         self.layout = layout
         self.shadows = bool(shadows)
         if isinstance(params, wp.array):

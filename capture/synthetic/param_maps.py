@@ -18,7 +18,8 @@ def write_param_maps(folder: Path, params: np.ndarray, layout) -> dict[str, str]
     lobe{j}_shape.exr ([c_xy, c_z, n] or, anisotropic, RGBA [c_x, c_y, c_z, n]); a radiance
     layout (render/layout.py) writes radiance.exr (RGB L), and the view-dependent one also
     view_{term}.exr (RGB coefficient of each view term, e.g. view_vx.exr); a layout with an ambient radiance
-    (``ambient_offset`` >= 0) also ambient.exr (RGB)."""
+    (``ambient_offset`` >= 0) also ambient.exr (RGB), one with the room light (``room_offset`` >= 0)
+    room_irradiance.exr (RGB S)."""
 
     if getattr(layout, "is_radiance", False):
         write_image(folder / "radiance.exr", params[..., 0:3], bits=32)
@@ -41,6 +42,10 @@ def write_param_maps(folder: Path, params: np.ndarray, layout) -> dict[str, str]
     if o >= 0:
         write_image(folder / "ambient.exr", params[..., o:o + 3], bits=32)
         files["ambient"] = "ambient.exr"
+    o = getattr(layout, "room_offset", -1)
+    if o >= 0:  # the room light's per-texel irradiance factor S = pi T.L (the light itself is in model.json)
+        write_image(folder / "room_irradiance.exr", params[..., o:o + 3], bits=32)
+        files["room_irradiance"] = "room_irradiance.exr"
     return files
 
 
@@ -59,4 +64,6 @@ def read_param_maps(folder: str | os.PathLike, layout) -> np.ndarray:
         maps.append(read_image(g / f"lobe{j}_shape.exr", channels=layout.lobe_stride - 3))
     if getattr(layout, "ambient_offset", -1) >= 0:
         maps.append(read_image(g / "ambient.exr", channels=3))
+    if getattr(layout, "room_offset", -1) >= 0:
+        maps.append(read_image(g / "room_irradiance.exr", channels=3))
     return np.concatenate(maps, axis=-1).astype(np.float32)

@@ -126,8 +126,7 @@ def highlight_masks(problem, params: np.ndarray) -> HighlightMasks:
     """Which texels' photos show a highlight and which have a lobe (module doc), for the fitted compact
     ``params`` of ``problem`` (a StreamProblem of a lit model)."""
     t0 = time.perf_counter()
-    lay = problem.layout
-    p = np.asarray(params, np.float64)
+    lay, p = problem.layout.rendered(np.asarray(params, np.float64))  # a room light as the ambient radiance it makes
     rho_d = np.ascontiguousarray(p[:, 0:3], np.float32)
     amb = (np.ascontiguousarray(p[:, lay.ambient_offset:lay.ambient_offset + 3], np.float32) if lay.ambient
            else np.zeros_like(rho_d))

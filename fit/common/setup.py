@@ -105,6 +105,7 @@ class ModelRenders:
             return
         if not np.all(np.isfinite(grid)):
             raise InputError("params grid holds NaN or Inf", fix="fill every texel (fill_padding)")
+        grid = self.layout.rendered(grid)[1]  # a room light's columns as the radiance they make
         r.params.assign(np.ascontiguousarray(grid.reshape(-1, self.layout.n_params), dtype=np.float32))
 
     def render(self, frame) -> tuple[np.ndarray, np.ndarray]:

@@ -256,7 +256,7 @@ def build_single_view_problem(geo: SingleViewGeometry, frames, images, masks, cf
     photo_frames = [PhotoFrame.from_capture_frame(f) for f in frames]
     photos = PhotoSet(photo_frames, images, None, None, masks=masks, config=cfg.stream, device=device)
     layout = cfg.layout(photo_frames, texels.position.mean(axis=0))
-    if layout.ambient:  # its per-pixel render (render_single_view) has no ambient term
+    if layout.ambient or layout.room:  # its per-pixel render (render_single_view) has no ambient term
         raise ConfigError("the single-view fit (--normals) has no ambient term", fix="use --ambient off or auto")
     return StreamProblem(texels, photos, layout, cfg.stream, device=device)
 

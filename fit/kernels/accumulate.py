@@ -136,11 +136,12 @@ def layout_funcs(n_lobes: int, anisotropic: int, lookup: bool = False, traced: b
     mesh, :func:`traced_tap`; else the texel's face plane, :func:`ray_surface`) and to the light
     (``radiance``: 1 the radiance model, no lobes, no light, W = exposure, :func:`observe_func`; 2 the
     view-dependent radiance, the same with ``view_radiance_funcs`` of the local view direction) and to the
-    ambient radiance (``ambient``: a lit model's per-texel A, render/layout.py, its columns last)."""
+    ambient radiance (``ambient``: 1 a lit model's per-texel A, 2 the room light's per-texel S, render/layout.py
+    ``extra_term``, its columns last)."""
     view = int(radiance) == 2
-    ambient = bool(ambient) and not radiance
+    ambient = 0 if radiance else int(ambient)  # 1 the free ambient, 2 the room light's S (render/layout.py)
     lf = view_radiance_funcs() if view else lafortune_funcs(n_lobes, anisotropic, ambient)
-    n_params = 18 if view else 3 + int(n_lobes) * (6 + int(anisotropic)) + 3 * int(ambient)
+    n_params = 18 if view else 3 + int(n_lobes) * (6 + int(anisotropic)) + 3 * int(bool(ambient))
     load_params, channel_residual = _parameter_funcs(lf, n_params)
     frame_directions, lobe_directions = _direction_funcs(anisotropic)
     sample_model = _sample_model_func(lf, frame_directions, lobe_directions, bool(lookup), bool(traced),
@@ -293,7 +294,8 @@ def _sample_model_func(lf, frame_directions, lobe_directions, blend: bool, trace
                 a = a * own
                 if wp.static(ambient):
                     own_b = own_b + b * own
-                    amb_other = amb_other + b * texel_blend_ambient(tex, i, tx, ty, ambient_col)
+                    amb_other = amb_other + b * texel_blend_ambient(tex, i, tx, ty, ambient_col,
+                                                                             wp.static(int(ambient) == 2))
             elif wp.static(ambient):
                 own_b = own_b + b
             ac = type(one)(a)
@@ -455,7 +457,8 @@ def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, d
                     + [flag for flag, on in (("kahan", use_kahan), ("diag", want_diag), ("dhd", want_dhd),
                                              ("full", want_full), ("lookup", bool(lookup)),
                                              ("traced", bool(traced)), ("radiance", bool(radiance)),
-                                             ("view", int(radiance) == 2), ("ambient", bool(ambient))) if on]
+                                             ("view", int(radiance) == 2), ("ambient", int(ambient) == 1),
+                                             ("room", int(ambient) == 2)) if on]
                     + ([_robust_name(robust)] if robust_on else []))
     if max_registers:
         name += f"_maxreg{max_registers}"
@@ -539,7 +542,8 @@ def accumulate_lm_kernel(n_lobes: int, anisotropic: int, max_registers: int = 0,
     name = "_".join(["accumulate_lm", f"{int(n_lobes)}lobes", "aniso" if anisotropic else "iso"]
                     + (["lookup"] if lookup else []) + (["traced"] if traced else [])
                     + (["radiance"] if radiance else []) + (["view"] if int(radiance) == 2 else [])
-                    + ([_robust_name(robust)] if robust_on else []) + (["ambient"] if ambient else []))
+                    + ([_robust_name(robust)] if robust_on else []) + (["ambient"] if int(ambient) == 1 else [])
+                    + (["room"] if int(ambient) == 2 else []))
     if max_registers:
         name += f"_maxreg{max_registers}"
     return wp.kernel(accumulate_lm, name=name, enable_backward=False, module="unique",

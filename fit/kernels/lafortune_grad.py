@@ -21,6 +21,12 @@ W m_c with m_c = (the above) + A_c a_c, a_c = exposure / W_c (the sample's flash
 per unit BRDF, so W m_c = W (rho_d + lobes) + exposure A_c). a_c is a property of the sample, not of a direction,
 so it is not a per-direction feature: the sample sets it once its weight is known (``set_ambient``).
     dm_c/dA_c = a_c, and m is linear in A: no second-derivative term.
+With the room light (``ModelLayout.room``, the same columns holding the texel's known room irradiance factor S)
+the room's radiance rho_d S takes the ambient's place: m_c = (the above) + rho_d,c S_c a_c, so
+    dm_c/drho_d,c = 1 + S_c a_c,   dm_c/dS_c = rho_d,c a_c
+(S is frozen in the per-texel fit; its column's J^T r and J^T J are what the global light's solve reduces,
+fit/models/per_texel/room_light.py). The only second derivative, d^2 m_c / drho_d,c dS_c = a_c, meets a direction
+whose S entries are 0 (frozen), so ``dhd`` is unchanged.
 """
 
 from __future__ import annotations
@@ -85,6 +91,20 @@ def no_ambient(f: Any, share: Any, weight: Any):
     return f
 
 
+def set_ambient_func(amb: int):
+    """``set_ambient`` (:class:`LafortuneFuncs`) of a layout whose ambient (or room) columns start at ``amb``."""
+
+    @wp.func
+    def set_ambient(f: Any, share: Any, weight: Any):
+        tiny = share - share + type(share)(1.0e-30)  # a weight of 0 (an unlit channel): no inf
+        out = f
+        for c in range(3):
+            out[wp.static(amb) + c] = share / wp.max(weight[c], tiny)
+        return out
+
+    return set_ambient
+
+
 def jacobian_row_func(row_entry: Any, row_nonzeros: int):
     """``jacobian_row(p, f, c)`` of a model from its ``row_entry``: dm_c/dp as an n_params vector, its
     ``row_nonzeros`` structurally non-zero entries set with literal trip counts (kept in registers)."""
@@ -101,9 +121,9 @@ def jacobian_row_func(row_entry: Any, row_nonzeros: int):
 
 
 @functools.cache
-def lafortune_funcs(n_lobes: int, anisotropic: int, ambient: bool = False) -> LafortuneFuncs:
+def lafortune_funcs(n_lobes: int, anisotropic: int, ambient: int = 0) -> LafortuneFuncs:
     """The model functions specialised to one layout (K = ``n_lobes``, isotropic or not, with or without the
-    ambient radiance, whose columns follow the lobes).
+    ambient radiance (``ambient`` 1) or the room light's S (2), whose columns follow the lobes).
 
     Every loop over lobes and columns has a compile-time trip count, so Warp unrolls it and
     every vector index is a literal: the parameter, feature and Jacobian vectors stay in
@@ -117,6 +137,7 @@ def lafortune_funcs(n_lobes: int, anisotropic: int, ambient: bool = False) -> La
     n_shape = stride - 3  # C columns and n
     lobe_nonzeros = 1 + n_lobes + n_lobes * n_shape
     with_ambient = bool(ambient)
+    with_room = int(ambient) == 2
     amb = 3 + n_lobes * stride  # the ambient columns (when the layout has them)
     row_nonzeros = lobe_nonzeros + int(with_ambient)
 
@@ -164,15 +185,22 @@ def lafortune_funcs(n_lobes: int, anisotropic: int, ambient: bool = False) -> La
         for j in range(wp.static(n_lobes)):
             o = 3 + j * wp.static(stride)
             m = m + p[o + c] * f[o]
-        if wp.static(with_ambient):
+        if wp.static(with_room):
+            m = m + p[c] * p[wp.static(amb) + c] * f[wp.static(amb) + c]
+        elif wp.static(with_ambient):
             m = m + p[wp.static(amb) + c] * f[wp.static(amb) + c]
         return m
 
     @wp.func
     def row_entry(p: Any, f: Any, c: int, t: int):
         if t == 0:
+            if wp.static(with_room):
+                return c, type(p[0])(1.0) + p[wp.static(amb) + c] * f[wp.static(amb) + c]
             return c, p[0] - p[0] + type(p[0])(1.0)
-        if wp.static(with_ambient):
+        if wp.static(with_room):
+            if t == wp.static(lobe_nonzeros):
+                return wp.static(amb) + c, p[c] * f[wp.static(amb) + c]
+        elif wp.static(with_ambient):
             if t == wp.static(lobe_nonzeros):
                 return wp.static(amb) + c, f[wp.static(amb) + c]
         if t <= wp.static(n_lobes):
@@ -208,16 +236,8 @@ def lafortune_funcs(n_lobes: int, anisotropic: int, ambient: bool = False) -> La
                     out = out + (one + one) * l1 * da + l2 * a
         return out
 
-    @wp.func
-    def set_ambient(f: Any, share: Any, weight: Any):
-        tiny = share - share + type(share)(1.0e-30)  # a weight of 0 (an unlit channel): no inf
-        out = f
-        for c in range(3):
-            out[wp.static(amb) + c] = share / wp.max(weight[c], tiny)
-        return out
-
     return LafortuneFuncs(features, dhd, model_value, jacobian_row, row_entry, row_nonzeros,
-                          set_ambient if with_ambient else no_ambient)
+                          set_ambient_func(amb) if with_ambient else no_ambient)
 
 
 @functools.cache

@@ -184,10 +184,11 @@ def texel_blend(tex: TexelFrames, i: int, x: float, y: float, u: wp.vec3, v: wp.
 
 
 @wp.func
-def texel_blend_ambient(tex: TexelFrames, i: int, x: float, y: float, col: int):
-    """The ambient radiance (columns ``col``..``col + 2`` of ``tex.lookup_params``) that the renderer's lookup at
-    continuous texel coordinates (x, y) blends in from the corners other than texel i (held fixed), as
-    :func:`texel_blend` does for the BRDF; texel i's own weight there is :func:`texel_blend`'s."""
+def texel_blend_ambient(tex: TexelFrames, i: int, x: float, y: float, col: int, room: bool):
+    """The ambient radiance (columns ``col``..``col + 2`` of ``tex.lookup_params``; ``room``: the room light's
+    radiance rho_d S, those columns times rho_d) that the renderer's lookup at continuous texel coordinates (x, y)
+    blends in from the corners other than texel i (held fixed), as :func:`texel_blend` does for the BRDF; texel
+    i's own weight there is :func:`texel_blend`'s."""
     x0, y0, fx, fy = bilinear_taps(x, y, tex.grid_width, tex.grid_height)
     other = wp.vec3(0.0)
     for corner in range(4):
@@ -196,8 +197,11 @@ def texel_blend_ambient(tex: TexelFrames, i: int, x: float, y: float, col: int):
         b = (fx * float(cx) + (1.0 - fx) * float(1 - cx)) * (fy * float(cy) + (1.0 - fy) * float(1 - cy))
         row = tex.grid_source[(y0 + cy) * tex.grid_width + x0 + cx]
         if row != i and b > 0.0:
-            other = other + b * wp.vec3(tex.lookup_params[row, col], tex.lookup_params[row, col + 1],
-                                        tex.lookup_params[row, col + 2])
+            amb = wp.vec3(tex.lookup_params[row, col], tex.lookup_params[row, col + 1], tex.lookup_params[row, col + 2])
+            if room:
+                amb = wp.cw_mul(amb, wp.vec3(tex.lookup_params[row, 0], tex.lookup_params[row, 1],
+                                             tex.lookup_params[row, 2]))
+            other = other + b * amb
     return other
 
 

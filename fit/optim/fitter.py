@@ -65,7 +65,9 @@ class FitConfig:
                                  "room's light, seen the same from every view, render/layout.py): off, on, or auto "
                                  "(fitted with and without it on a validation split of the fitted photos, "
                                  "materials.validation_every, and kept where it predicts them better; "
-                                 "fit/models/per_texel/ambient.py)", choices=("off", "on", "auto"))
+                                 "fit/models/per_texel/ambient.py); room: the room's light as one global SH "
+                                 "environment lighting the same albedo (27 unknowns, fit/models/per_texel/"
+                                 "room_light.py), which auto also weighs", choices=("off", "on", "room", "auto"))
     lobe_shape_spread_deg: float = option(10.0, "auto lobe shape: the spread of light-view angles below which c_z is held",
                                           min=0.0, max=180.0)
     optimizer: str = option("lm", "sd, cg, lbfgs or lm (per-texel Levenberg-Marquardt)", choices=OPTIMIZERS)
@@ -156,7 +158,8 @@ class FitConfig:
                 raise ConfigError("lobe_shape auto needs the photos to decide", fix="pass frames, or set free or phong")
             shape = choose_lobe_shape(frames, centre, self.lobe_shape_spread_deg)
         return ModelLayout(kind=self.model, n_lobes=self.lobes if traits.lobes else 0,
-                           anisotropic=self.anisotropic, lobe_shape=shape, ambient=self.ambient == "on")
+                           anisotropic=self.anisotropic, lobe_shape=shape, ambient=self.ambient == "on",
+                           room=self.ambient == "room")
 
 
 def light_view_angles(frames, centre) -> np.ndarray:

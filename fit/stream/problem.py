@@ -340,7 +340,7 @@ class StreamProblem:
         kernel = accumulate.accumulate_kernel(lay.n_lobes, int(lay.anisotropic), bool(self.cfg.kahan), diag is not None,
                                           direction is not None, bool(full_hessian and direction is not None),
                                           self.max_registers, self.lookup, self.traced, self.radiance, self.robust,
-                                          lay.ambient)
+                                          lay.extra_term)
         if direction is not None and direction.dtype != params.dtype:
             raise ConfigError("direction and parameters must share a dtype")
         h_out = dhd if dhd is not None else self.ph_scratch()
@@ -470,7 +470,7 @@ class StreamProblem:
         """One streaming pass accumulating f, J^T r and J^T J per texel (Gauss-Newton / LM)."""
         lay = self.layout
         kernel = accumulate.accumulate_lm_kernel(lay.n_lobes, int(lay.anisotropic), self.max_registers, self.lookup,
-                                             self.traced, self.radiance, self.robust, lay.ambient)
+                                             self.traced, self.radiance, self.robust, lay.extra_term)
 
         def launch(pr: StreamProblem, inputs: dict, window) -> None:
             images, depth, shadow, infos, b, e = window

@@ -21,9 +21,10 @@ class LafortuneModel(PerTexelModel):
     def export_material(self, cfg) -> ExportMaterial:
         mat = lafortune_material(self.grid, self.layout, self.covered, cfg.roughness,
                                  fill_source=bake_fill_source(self.folder), device=resolve_device(cfg.device))
-        if self.layout.ambient:  # the room's light, the same from every view: an emissive term for viewers
-            o = self.layout.ambient_offset
-            mat.emissive = np.maximum(self.grid[..., o:o + 3], 0.0).astype(np.float32)
+        lay, grid = self.layout.rendered(self.grid)  # the room light: its radiance pi rho_d T.L, baked per texel
+        if lay.ambient:  # the room's light, the same from every view: an emissive term for viewers
+            o = lay.ambient_offset
+            mat.emissive = np.maximum(grid[..., o:o + 3], 0.0).astype(np.float32)
         return mat
 
     def report_maps(self, save, seen) -> None:
@@ -43,10 +44,12 @@ class LafortuneModel(PerTexelModel):
             n = grid[..., o + lay.lobe_stride - 1]
             save(f"lobe{j}_n", np.log10(np.maximum(n, 1e-6)), f"lobe {j} exponent n (log10)", cmap="viridis",
                  colorbar_label="log10 n")
-        if lay.ambient:
-            img, s = rgb_scaled(grid[..., lay.ambient_offset:lay.ambient_offset + 3])
-            save("ambient", img, f"ambient radiance A, the room's light (RGB, photo value / exposure, divided by "
-                                 f"{s:.4g}; sRGB)")
+        if lay.ambient or lay.room:
+            drawn_lay, drawn = lay.rendered(grid)
+            o = drawn_lay.ambient_offset
+            img, s = rgb_scaled(drawn[..., o:o + 3])
+            what = "the global SH room light's radiance pi rho_d T.L" if lay.room else "ambient radiance A"
+            save("ambient", img, f"{what}, the room's light (RGB, photo value / exposure, divided by {s:.4g}; sRGB)")
         if (self.folder / "highlights.png").is_file():  # the fit's highlight diagnostic (fit/common/highlights.py)
             save("highlights", read_image(self.folder / "highlights.png", channels=3, linear=False),
                  "highlights the photos show against lobes the model has: " + ", ".join(CLASS_NAMES))
@@ -56,15 +59,19 @@ class LafortuneModel(PerTexelModel):
         amb = self.manifest.get("ambient")
         if isinstance(amb, dict):
             rows.append(("ambient term", f"{amb.get('chosen')} ({amb.get('mode')}): {amb.get('reason')}"))
+            if isinstance(amb.get("room"), dict):
+                rows.append(("room light", "order-2 SH, mean radiance (RGB) "
+                             + ", ".join(f"{v:.4g}" for v in amb["room"]["mean_radiance"])
+                             + f"; {len(amb['room']['trace'])} alternation rounds"))
         if isinstance(self.manifest.get("highlights"), dict):
             rows.append(("highlights", self.manifest["highlights"].get("line", "")))
         return rows
 
     def viewer(self) -> ViewerModel:
-        return ViewerModel(self.grid, read_shader(Path(__file__).parent), lit=True,
-                           data={"uniforms": {"u_nlobes": int(self.layout.n_lobes),
-                                              "u_aniso": int(bool(self.layout.anisotropic)),
-                                              "u_ambient": int(self.layout.ambient_offset)}})
+        lay, grid = self.layout.rendered(self.grid)  # the room light drawn as the ambient radiance it makes
+        return ViewerModel(grid, read_shader(Path(__file__).parent), lit=True,
+                           data={"uniforms": {"u_nlobes": int(lay.n_lobes), "u_aniso": int(bool(lay.anisotropic)),
+                                              "u_ambient": int(lay.ambient_offset)}})
 
 
 def load(model_dir: Path, manifest: dict) -> FittedModel:

@@ -1,13 +1,14 @@
-"""The ambient radiance option of the lit per-texel models (``FitConfig.ambient``, render/layout.py
-``ModelLayout.ambient``): off, on, or auto.
+"""The ambient option of the lit per-texel models (``FitConfig.ambient``, render/layout.py ``ModelLayout.ambient``
+and ``ModelLayout.room``): off, on (a free per-texel ambient radiance, 3 unknowns per texel), room (the room's
+light as one global SH environment lighting the same albedo, 27 unknowns, room_light.py), or auto.
 
 ``auto`` decides per capture as every other option of the model choice does, by how well each fit predicts
 photos it did not see, and never with the fit's own held-out photos: every ``materials.validation_every``-th
-fitted photo is held back (lobes.py :func:`validation_split`), the model is fitted to the rest once without the
-ambient term and once with it (the same stopping rule, the same lobe support rule) and both are scored by their
-renders of the validation photos (pooled PSNR). The term is kept when it gains more than ``MIN_GAIN_DB``: ties
-go to the simpler model, as in the materials choice, so a capture without room light keeps its flash-only
-model."""
+fitted photo is held back (lobes.py :func:`validation_split`), the model is fitted to the rest without a term,
+with the room light and with the free ambient (the same stopping rule, the same lobe support rule) and each is
+scored by its renders of the validation photos (pooled PSNR). A candidate replaces a simpler one only when it
+gains more than ``MIN_GAIN_DB``: ties go to the simpler model (off, then room, then on), as in the materials
+choice, so a capture without room light keeps its flash-only model."""
 
 from __future__ import annotations
 
@@ -17,8 +18,9 @@ import time
 import numpy as np
 
 from texstream.core.progress import say
-from texstream.fit.optim.fitter import FitStart, run_fit
+from texstream.fit.optim.fitter import FitStart, fit_start, run_fit
 from texstream.fit.models.per_texel.lobes import drop_unsupported_lobes, mesh_view_scores, validation_split
+from texstream.fit.models.per_texel.room_light import fit_room, texel_transfer
 from texstream.fit.stream.problem import StreamProblem
 from texstream.render.layout import layout_traits
 
@@ -28,7 +30,7 @@ choice's tie margin (lobes.py ``choose_materials``), below which the simpler mod
 
 
 def ambient_applies(layout) -> bool:
-    """Whether the layout's kind can carry the term (``LayoutTraits.ambient``; lit kinds only)."""
+    """Whether the layout's kind can carry the term (``LayoutTraits.ambient``; lit kinds only; the room light too)."""
     traits = layout_traits(layout.kind)
     return bool(traits.ambient and traits.lit)
 
@@ -41,8 +43,8 @@ def with_layout(problem: StreamProblem, layout) -> StreamProblem:
 
 
 def start_for(start: FitStart, problem: StreamProblem) -> FitStart:
-    """``start`` (the initial guess of a layout without the term) for ``problem``'s layout: the ambient columns at
-    their default 0 (the room's share starts inside rho_d, which the low percentile over-estimates by the
+    """``start`` (the initial guess of a layout without the term) for ``problem``'s layout: the ambient (or room)
+    columns at their default 0 (the room's share starts inside rho_d, which the low percentile over-estimates by the
     ambient over the flash's weight; the fit moves it out)."""
     params, counts = start.numpy()
     n_params = problem.layout.n_params
@@ -52,10 +54,30 @@ def start_for(start: FitStart, problem: StreamProblem) -> FitStart:
     return FitStart.of((np.concatenate([params, extra], axis=1), counts), problem)
 
 
+MODES = ("off", "room", "on")
+"""the candidates of auto, simplest first (ties keep the earlier)"""
+
+
+def layout_for(layout, mode: str):
+    """``layout`` with the term ``mode`` (off, on, room) asks for."""
+    return dataclasses.replace(layout, ambient=mode == "on", room=mode == "room")
+
+
+def room_start(inputs, problem: StreamProblem, start: FitStart, cfg) -> tuple[FitStart, dict | None]:
+    """(start, room report): for a room-light layout, the alternation's rounds (room_light.py) and the start of
+    the last per-texel fit, whose room columns hold the fitted light; ``start`` and None otherwise."""
+    if not problem.layout.room:
+        return start, None
+    t0 = time.perf_counter()
+    transfer = texel_transfer(problem, inputs.mesh, cfg.device)
+    start, room = fit_room(problem, cfg.fit, start, transfer)
+    return start, {**room.to_json(), "seconds": time.perf_counter() - t0}
+
+
 def choose_ambient(inputs, problem: StreamProblem, cfg) -> dict:
-    """Whether to fit the ambient term (``cfg.fit.ambient`` auto), judged on a validation split of the fitted
-    photos (module doc). Returns {"chosen": "on" | "off", "reason", and, where the split was fitted, the
-    validation photos, each fit's pooled and worst-view PSNR, iterations and seconds}."""
+    """Which term to fit (``cfg.fit.ambient`` auto), judged on a validation split of the fitted photos (module
+    doc). Returns {"chosen": "off" | "room" | "on", "reason", and, where the split was fitted, the validation
+    photos, each fit's pooled and worst-view PSNR, iterations and seconds}."""
     every = cfg.materials.validation_every
     n = len(inputs.frames)
     train, val = validation_split(n, every)
@@ -64,11 +86,11 @@ def choose_ambient(inputs, problem: StreamProblem, cfg) -> dict:
                                            "without the term (the simpler model)"}
     photos = problem.photos.subset(train)
     scores = {}
-    for chosen, on in (("off", False), ("on", True)):
+    for chosen in MODES:
         t0 = time.perf_counter()
-        sub = StreamProblem(problem.texels, photos, dataclasses.replace(problem.layout, ambient=on), problem.cfg,
-                            problem.device)
-        res = run_fit(sub, cfg.fit)
+        sub = StreamProblem(problem.texels, photos, layout_for(problem.layout, chosen), problem.cfg, problem.device)
+        start, _ = room_start(inputs, sub, fit_start(sub, cfg.fit), cfg)
+        res = run_fit(sub, cfg.fit, start=start)
         fitted = time.perf_counter() - t0
         params, _ = drop_unsupported_lobes(sub, res, cfg.lobe_support)
         views = mesh_view_scores(inputs, val, cfg)(params, res, sub)
@@ -77,18 +99,21 @@ def choose_ambient(inputs, problem: StreamProblem, cfg) -> dict:
                           "iterations": len(res.trace) - 1,
                           "seconds": {"fit": fitted, "score": time.perf_counter() - t0 - fitted}}
         say("fit", f"ambient {chosen}: validation pooled {pooled:.2f} dB, worst view {min(views):.2f} dB")
-    gain = scores["on"]["pooled_psnr_db"] - scores["off"]["pooled_psnr_db"]
-    chosen = "on" if gain > MIN_GAIN_DB else "off"
+    chosen = "off"
+    for mode in MODES[1:]:
+        if scores[mode]["pooled_psnr_db"] > scores[chosen]["pooled_psnr_db"] + MIN_GAIN_DB:
+            chosen = mode
+    listed = ", ".join(f"{m} {scores[m]['pooled_psnr_db']:.2f} dB" for m in MODES)
     return {"chosen": chosen, "validation_photos": len(val), "fitted_on": len(train), "candidates": scores,
             "reason": f"ambient {chosen}: pooled PSNR on {len(val)} validation photos (every {every}th fitted photo) "
-                      f"{scores['on']['pooled_psnr_db']:.2f} dB with the term against "
-                      f"{scores['off']['pooled_psnr_db']:.2f} dB without (kept above a {MIN_GAIN_DB} dB gain)"}
+                      f"{listed} (a richer term kept above a {MIN_GAIN_DB} dB gain)"}
 
 
 def resolve_ambient(inputs, problem: StreamProblem, start: FitStart, cfg):
-    """(problem, start, cfg, report) of the fit with ``cfg.fit.ambient`` resolved to on or off: auto chosen by
-    :func:`choose_ambient`; the problem and start carry the term's columns where it is on. ``report`` (None for a
-    kind without the term) goes to model.json's ``ambient``."""
+    """(problem, start, cfg, report) of the fit with ``cfg.fit.ambient`` resolved to off, on or room: auto chosen
+    by :func:`choose_ambient`; the problem and start carry the term's columns where it is on (the room light's
+    fitted by its alternation, the report's ``room``). ``report`` (None for a kind without the term) goes to
+    model.json's ``ambient``."""
     mode = cfg.fit.ambient
     if not ambient_applies(problem.layout):
         return problem, start, cfg, None
@@ -96,7 +121,9 @@ def resolve_ambient(inputs, problem: StreamProblem, start: FitStart, cfg):
     if mode == "auto":
         report = {"mode": mode, **choose_ambient(inputs, problem, cfg)}
         say("fit", report["reason"])
-    on = report["chosen"] == "on"
-    problem = with_layout(problem, dataclasses.replace(problem.layout, ambient=on))
+    problem = with_layout(problem, layout_for(problem.layout, report["chosen"]))
     cfg = dataclasses.replace(cfg, fit=dataclasses.replace(cfg.fit, ambient=report["chosen"]))
-    return problem, start_for(start, problem), cfg, report
+    start, room = room_start(inputs, problem, start_for(start, problem), cfg)
+    if room is not None:
+        report["room"] = room
+    return problem, start, cfg, report

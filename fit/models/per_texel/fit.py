@@ -138,7 +138,7 @@ def _choice_before_fit(inputs: FitInputs, problem, cfg, start, resume) -> tuple[
     None) where the photos were too few to split."""
     m = cfg.materials
     if not (m.fit_from_validation and problem.layout.n_lobes and m.mode != "off" and resume is None
-            and not tiled(cfg.fit) and not problem.layout.ambient):
+            and not tiled(cfg.fit) and not problem.layout.extra_term):
         return None, None
     kept = {}
     with phase("fit", "materials: per-texel or shared lobes, judged on a validation split of the fitted photos"):

@@ -1,0 +1,83 @@
+"""The room's light on the synthetic flash capture with the TRUE cameras, mesh and response: the Lafortune fit with
+``--ambient`` off, on (a free per-texel ambient radiance) and room (one global SH room light lighting the same
+albedo, fit/models/per_texel/room_light.py); albedo error against the truth, held-out PSNR (issue 39; JSON).
+
+    python benchmarks/flash_room_light.py --out out/flash_room [--photos 24] [--image-size 400] [--iterations 15]
+        [--modes off,on,room] [--model lafortune] [--reuse]
+
+The capture is benchmarks/flash_capture.py's (``texstream synth flash_capture``: a glossy textured sphere, a flash
+at each camera, the room's light E (1 + a (2 s - 1)) along z, which on a sphere is an order-1 SH irradiance);
+each fit is ``fit_stage`` on the truth's capture.json and ground-truth mesh, every 8th photo held out. Writes
+``OUT/flash_room_light_<model>.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parent))
+from flash_capture import _texel_errors  # noqa: E402  (the benchmark's albedo comparison, reused)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", default="out/flash_room")
+    ap.add_argument("--photos", type=int, default=24)
+    ap.add_argument("--image-size", type=int, default=400)
+    ap.add_argument("--iterations", type=int, default=15)
+    ap.add_argument("--modes", default="off,on,room")
+    ap.add_argument("--model", default="lafortune", help="lafortune, or diffuse (no lobe to trade with the albedo)")
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--reuse", action="store_true", help="keep OUT's synthesized capture")
+    a = ap.parse_args()
+
+    import warp as wp
+
+    from texstream.capture.capture_json import read_capture
+    from texstream.capture.synthetic.flash_capture import FlashCaptureConfig, synthesize_flash_capture
+    from texstream.fit.optim.fitter import FitConfig
+    from texstream.fit.stages.stage import FitStageConfig, fit_stage
+
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                            cwd=Path(__file__).parent).stdout.strip()
+    wp.config.quiet = True
+    out = Path(a.out)
+    truth_dir = out / "truth"
+    if not (a.reuse and (truth_dir / "capture.json").is_file()):
+        synthesize_flash_capture(truth_dir, FlashCaptureConfig(photos=a.photos, image_size=a.image_size,
+                                                               device=a.device, progress=False))
+    truth = read_capture(truth_dir)
+    result = {"commit": commit, "machine": f"{platform.node()} ({os.cpu_count()} cores)", "device": a.device,
+              "load_before": os.getloadavg(),
+              "command": f"python benchmarks/flash_room_light.py --photos {a.photos} --image-size {a.image_size} "
+                         f"--iterations {a.iterations} --modes {a.modes} --model {a.model}", "modes": {}}
+    for mode in a.modes.split(","):
+        cfg = FitStageConfig(device=a.device, holdout_every=8, renders=0,
+                             fit=FitConfig(model=a.model, ambient=mode, max_iterations=a.iterations))
+        t0 = time.perf_counter()
+        fit_stage(truth_dir, truth_dir / "ground_truth", out / f"fit_{a.model}_{mode}", cfg, progress=False)
+        man = json.loads((out / f"fit_{a.model}_{mode}" / "model.json").read_text())
+        tex = _texel_errors(out / f"fit_{a.model}_{mode}", truth_dir, (1.0, np.eye(3), np.zeros(3)), truth.frames)
+        amb = man.get("ambient") or {}
+        result["modes"][mode] = {"seconds": time.perf_counter() - t0, "load_after": os.getloadavg(),
+                                 "heldout": {k: man["heldout"].get(k) for k in ("pooled_psnr_db", "worst_psnr_db",
+                                                                                 "views")},
+                                 "training_psnr_db": man["final"].get("psnr_db"),
+                                 "albedo_rel_error": tex["albedo_rel_error"],
+                                 "albedo_ratio_median": tex["albedo_ratio_median"],
+                                 "room": {k: v for k, v in (amb.get("room") or {}).items() if k != "convention"}}
+        print(mode, json.dumps(result["modes"][mode], default=float), flush=True)
+    (out / f"flash_room_light_{a.model}.json").write_text(json.dumps(result, indent=2, default=float))
+
+
+if __name__ == "__main__":
+    main()
