@@ -141,6 +141,7 @@ def test_a_plugin_from_outside_goes_through_fit_eval_export_and_report(test_plug
     CLI calls; its hooks (material, maps, shader) are the ones that run."""
     from conftest import tiny_sphere_capture
 
+    from texstream.fit.models.radiance.fit import SETTLED_REL_TOL, SETTLED_SYNC_EVERY
     from texstream.fit.stages.export import export_stage
     from texstream.fit.stages.stage import FitStageConfig, eval_stage, fit_stage
     from texstream.pipelines.report import write_report
@@ -148,6 +149,9 @@ def test_a_plugin_from_outside_goes_through_fit_eval_export_and_report(test_plug
     cap = tiny_sphere_capture(tmp_path, photos=8)
     cfg = FitStageConfig(holdout_every=4, renders=1)
     cfg.fit.model, cfg.fit.max_iterations, cfg.fit.robust_loss = TEST_KIND, 3, "none"
+    # the shipped radiance model's own stopping rule (fit/models/radiance/fit.py settled_config), given explicitly
+    # so both kinds stop by the same rule
+    cfg.fit.rel_tol, cfg.fit.sync_every = SETTLED_REL_TOL, SETTLED_SYNC_EVERY
     fitted = fit_stage(cap, cap / "ground_truth", tmp_path / "model", cfg, progress=False)
     man = json.loads((tmp_path / "model" / "model.json").read_text())
     assert man["layout"]["kind"] == TEST_KIND and man["units"] == test_plugin.units
