@@ -43,7 +43,8 @@ def refine_checkpoint(capture: Capture, geometry: Path, out: Path, cfg, device: 
 
 def save_state(job, ck: StageCheckpoint, step: int, history) -> None:
     """The state after ``step`` iterations of the levels (``history``: the device trace rows)."""
-    ck.write_arrays(STATE_FILE, step=np.array(step), infos=job.infos.numpy(), history=history.numpy()[:step],
+    ck.write_arrays(STATE_FILE, step=np.array(step), level=np.array(job.level), infos=job.infos.numpy(),
+                    history=history.numpy()[:step],
                     **{name: getattr(job, name).numpy() for name in _ARRAYS})
 
 
@@ -65,6 +66,7 @@ def restore_state(job, ck: StageCheckpoint, history) -> tuple[int, dict] | None:
     for name in _ARRAYS:
         getattr(job, name).assign(state[name])
     job.infos = struct_array(state["infos"], ImageInfo, job.device)
+    job.level = int(state["level"])  # the cameras' pyramid level (job.set_level rescales them from it)
     if step:
         rows = history.numpy()
         rows[:step] = state["history"]
