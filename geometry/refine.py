@@ -385,8 +385,10 @@ class PhotometricRefinement:
         extra = cfg.normal_iterations + cfg.intensity_iterations if shaded else 0
         progress = bar(total=len(schedule) * cfg.iterations + extra, desc="refine", unit="it")
         progress.update(step)
-        ran, finer = [], {"ran": len(schedule) > 1,
-                          "reason": "resumed after the coarse level" if len(schedule) > 1 else "one blur level"}
+        ran, finer = [], {"ran": len(schedule) > 1, "reason": "one blur level"}
+        if step > cfg.iterations:  # resumed after the coarse level: its decision as it was taken
+            finer = refine_checkpoint.read_decision(checkpoint) or {"ran": True,
+                                                                    "reason": "resumed after the coarse level"}
         for k, (level, sigma) in enumerate(schedule):
             if k == 1 and step <= cfg.iterations:  # the coarse level just finished (or did before an interruption)
                 moved, by = rl.coarse_moved(self, self.frames, self.pyramid.frames_at(finest), cfg.min_move)
@@ -394,6 +396,8 @@ class PhotometricRefinement:
                     f"the coarse level moved a camera or the mesh by {max(by.values()):.3g} px of level {finest}, "
                     + (f"at least {cfg.min_move:g}: the finer levels ran" if moved else
                        f"less than {cfg.min_move:g}: the finer levels skipped"))}
+                if checkpoint is not None:
+                    refine_checkpoint.save_decision(checkpoint, finer)
                 if not moved:
                     progress.update((len(schedule) - 1) * cfg.iterations)
                     break

@@ -22,6 +22,7 @@ from texstream.render.camera import ImageInfo, struct_array
 
 STATE_FILE = "levels.npz"
 START_FILE = "start.json"
+DECISION_FILE = "finer_levels.json"
 _ARRAYS = ("disp", "base", "direction", "welded_points", "pose_damping", "pose_accepted", "disp_damping",
            "disp_accepted")
 
@@ -50,6 +51,15 @@ def save_state(job, ck: StageCheckpoint, step: int, history) -> None:
 
 def save_start(ck: StageCheckpoint, start: dict) -> None:
     ck.write_json(START_FILE, start)
+
+
+def save_decision(ck: StageCheckpoint, finer: dict) -> None:
+    """Whether the finer levels run, and why (refine_levels.coarse_moved), taken once after the coarse level."""
+    ck.write_json(DECISION_FILE, finer)
+
+
+def read_decision(ck: StageCheckpoint) -> dict:
+    return ck.read_json(DECISION_FILE)
 
 
 def restore_state(job, ck: StageCheckpoint, history) -> tuple[int, dict] | None:
