@@ -311,7 +311,8 @@ def _run_colmap(photos: list[_Photo], img_dir: Path, mask_dir: Path | None, work
         if mask_dir is not None:
             ro.mask_path = str(mask_dir)
         # One camera per size group: SINGLE within a call, a new camera per call.
-        with phase("register", f"SIFT features of {len(ps)} photo(s) {ps[0].width}x{ps[0].height}"), colmap_quiet():
+        with phase("register", f"SIFT features of {len(ps)} photo(s) {ps[0].width}x{ps[0].height} read at "
+                   f"{eo.max_image_size} px"), colmap_quiet():
             pycolmap.extract_features(db, img_dir, image_names=[p.name for p in ps],
                                       camera_mode=pycolmap.CameraMode.SINGLE, reader_options=ro,
                                       extraction_options=eo, device=pycolmap.Device.cpu)
