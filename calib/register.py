@@ -149,7 +149,9 @@ def feature_image_size(width: int, height: int, requested: int) -> tuple[int, st
     else:
         size = min(side, max(FEATURE_SIDE, (side + 1) // 2))
         why = (f"auto: the longest side halved, at least {FEATURE_SIDE} px" if size < side else
-               f"auto: photos at most {2 * FEATURE_SIDE} px on their longest side keep up to {FEATURE_SIDE} px")
+               f"auto: photos of at most {FEATURE_SIDE} px are read as they are")
+    if size == side:
+        return size, f"SIFT on the photos as they are, {width}x{height} ({why})"
     scale = size / side
     return size, (f"SIFT on {round(width * scale)}x{round(height * scale)} of {width}x{height} ({why}); "
                   "keypoints scaled back, cameras in full-resolution pixels")

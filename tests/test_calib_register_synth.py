@@ -267,7 +267,8 @@ def test_feature_size_rule_halves_large_photos_and_keeps_small_ones():
 
     assert feature_image_size(3072, 2048, 0)[0] == FEATURE_SIDE  # 6 MP: halved would be 1536, below the floor
     assert feature_image_size(6000, 4000, 0)[0] == 3000  # 24 MP: halved
-    assert feature_image_size(1200, 800, 0)[0] == 1200  # small photos as they are
+    size, line = feature_image_size(1200, 800, 0)
+    assert size == 1200 and line.startswith("SIFT on the photos as they are, 1200x800")  # small photos as they are
     size, line = feature_image_size(3072, 2048, 1000)
     assert size == 1000 and "1000x667 of 3072x2048" in line and "max-image-size 1000" in line
 

@@ -71,7 +71,8 @@ def _refine(sphere, tmp_path, capture_dir, **options):
     root, _ = sphere
     cfg = RefineConfig(mesh=False, holdout_every=0, iterations=4, normal_iterations=0, intensity_iterations=0,
                        **options)
-    return refine_stage(capture_dir, root / "ground_truth", tmp_path / "refined", cfg, device=SCENE_DEVICE).summary
+    refine_stage(capture_dir, root / "ground_truth", tmp_path / "refined", cfg, device=SCENE_DEVICE)
+    return json.loads((tmp_path / "refined" / "refine.json").read_text())  # the summary with its trace
 
 
 def test_a_coarse_level_that_moves_too_little_skips_the_finer_levels_and_says_why(sphere, tmp_path):
