@@ -32,12 +32,23 @@ SCENE = Path(__file__).resolve().parent.parent / "capture" / "synthetic" / "scen
 
 
 def _run(photos: Path, out: Path, cfg, label: str) -> dict:
-    from texstream.pipelines.run import run_pipeline
+    from texstream.pipelines.run import STAGES, run_pipeline
+
+    marks: list[tuple[str, float]] = []  # (stage, this process's CPU seconds at its first line): a shared box's load
+    # stretches the wall time, the CPU time much less
+
+    def log(message: str) -> None:
+        name = message[1:].split("]", 1)[0] if message.startswith("[") else ""
+        if name in STAGES and (not marks or marks[-1][0] != name):
+            marks.append((name, time.process_time()))
+        print(f"[{label}] {message}", flush=True)
 
     load = os.getloadavg()
     t0 = time.perf_counter()
-    run = run_pipeline(photos, out, cfg, log=lambda m: print(f"[{label}] {m}", flush=True))
-    return {"seconds": time.perf_counter() - t0, "loadavg_before": [round(x, 2) for x in load],
+    run = run_pipeline(photos, out, cfg, log=log)
+    marks.append(("end", time.process_time()))
+    cpu = {a[0]: round(b[1] - a[1], 2) for a, b in zip(marks, marks[1:])}
+    return {"seconds": time.perf_counter() - t0, "cpu_seconds_per_stage": cpu, "loadavg_before": [round(x, 2) for x in load],
             "loadavg_after": [round(x, 2) for x in os.getloadavg()], "heldout": run["heldout"],
             "model": run["model"], "resolutions": run["resolutions"],
             "stages": {s["name"]: {"status": s["status"], "seconds": round(s["seconds"], 2)} for s in run["stages"]},
