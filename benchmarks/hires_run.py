@@ -67,6 +67,10 @@ def main() -> None:
     ap.add_argument("--scale", type=float, default=1.0, help="photo sides times this (1: 3072x2048)")
     ap.add_argument("--full", default="off", choices=("on", "off"), help="also the run at full resolution")
     ap.add_argument("--default", default="on", choices=("on", "off"), help="the run at the resolutions needed")
+    ap.add_argument("--reuse", default="off", choices=("on", "off"),
+                    help="the full-resolution run starts from a copy of the default run's folder: the stages whose "
+                         "inputs and options are the same (ingest, mesh, atlas; register where SIFT read the photos "
+                         "as they are in both) are not run again, only those whose resolution differs")
     ap.add_argument("--device", default="cpu")
     args = ap.parse_args()
 
@@ -96,21 +100,26 @@ def main() -> None:
     cfg = RunConfig(device=args.device, progress=False)
     d = float(sum(((f.center ** 2).sum()) ** 0.5 for f in truth.frames) / len(truth.frames))
     cfg.ingest = dataclasses.replace(cfg.ingest, colocated_light=float(max(truth.frames[0].light.intensity)) / d ** 2)
+    from texstream.calib.register import feature_image_size
+
+    side = max(truth.frames[0].intrinsics.width, truth.frames[0].intrinsics.height)
+    downscaled = feature_image_size(side, side, 0)[0] < side  # else SIFT reads the photos as they are either way
     full = dataclasses.replace(
-        cfg, register=dataclasses.replace(cfg.register, max_image_size=max(truth.frames[0].intrinsics.width,
-                                                                           truth.frames[0].intrinsics.height)),
+        cfg, register=dataclasses.replace(cfg.register, max_image_size=side if downscaled else 0),
         refine=dataclasses.replace(cfg.refine, photo_level=0, pyramid=False, min_move=0.0),
         fit=dataclasses.replace(cfg.fit, photo_level=0))
     result = {"scene": "textured_sphere_6mp", "photos": len(truth.frames), "photo_size": size,
               "device": args.device, "machine": f"{platform.node()} ({os.cpu_count()} cores)", "commit": commit,
               "command": f"python benchmarks/hires_run.py --out {args.out} --scale {args.scale} --full {args.full} "
-                         f"--default {args.default} --device {args.device}"}
+                         f"--default {args.default} --reuse {args.reuse} --device {args.device}"}
     name = out / "hires_run.json"
     if name.is_file():  # a second invocation adds the other run
         result = {**json.loads(name.read_text()), **{k: v for k, v in result.items() if k != "command"}}
     for label, on, run_cfg in (("needed", args.default, cfg), ("full", args.full, full)):
         if on == "on":
             shutil.rmtree(out / f"run_{label}", ignore_errors=True)
+            if label == "full" and args.reuse == "on":
+                shutil.copytree(out / "run_needed", out / "run_full", symlinks=True)
             result[label] = _run(photos, out / f"run_{label}", run_cfg, label)
             name.write_text(json.dumps(result, indent=2, default=str))
     if "needed" in result and "full" in result:
