@@ -70,6 +70,13 @@ def level_schedule(blurs: list[float], finest: int, frames, pyramid: bool) -> li
     return out
 
 
+def _box_all(mask: np.ndarray, level: int) -> np.ndarray:
+    """A mask at ``level`` levels up: a pixel is object where every pixel of its box is."""
+    s = 2 ** level
+    h, w = mask.shape[0] // s, mask.shape[1] // s
+    return mask[: h * s, : w * s].reshape(h, s, w, s).all(axis=(1, 3))
+
+
 class PhotoPyramid:
     """The photos and masks of a capture at the pyramid levels the refinement reads, each photo read once (host
     float32 images, bool masks: a level pixel is object where every pixel of its box is)."""
@@ -87,11 +94,12 @@ class PhotoPyramid:
                                  capture.image_path(f), "re-run texstream register")
             mp = capture.mask_path(f)
             mk = read_mask(mp, (h, w)) if mp is not None and mp.exists() else np.ones((h, w), bool)
-            for lv in self.levels:
-                s = 2 ** lv
-                self.images[lv].append(box_average(im, lv))
-                hs, ws = h // s, w // s
-                self.masks[lv].append(mk[: hs * s, : ws * s].reshape(hs, s, ws, s).all(axis=(1, 3)))
+            done = 0
+            for lv in self.levels:  # each level from the last one made: a box of boxes is the level's box
+                im, mk = box_average(im, lv - done), _box_all(mk, lv - done)
+                self.images[lv].append(im)
+                self.masks[lv].append(mk)
+                done = lv
 
     def frames_at(self, level: int) -> list:
         return [frame_at_level(f, level) for f in self.frames]
