@@ -42,7 +42,8 @@ def stage_resolutions(stages: list[dict], model_dir: str | Path | None = None) -
             out[s["name"]] = line + (" (unchanged since the last run)" if s.get("status") == "skipped" else "")
     manifest = Path(model_dir) / "model.json" if model_dir is not None else None
     if manifest is not None and manifest.is_file():
-        line = fit_resolution_line((read_json(manifest, what="model manifest").get("photos") or {}).get("resolution"))
+        photos = read_json(manifest, what="model manifest").get("photos")
+        line = fit_resolution_line(photos.get("resolution") if isinstance(photos, dict) else None)
         if line is not None:
             out["fit"] = line
     out["report"] = HELDOUT_LINE
