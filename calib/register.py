@@ -58,6 +58,7 @@ from .intrinsics import intrinsics_for_size, load_intrinsics
 from .photo_groups import check_groups, match_groups
 from .lights import colocated_light
 from .photometric import estimate_gains, observations_from_model
+from .register_selfcal import refine_principal_point, select_distortion
 from .ring_placement import RingConfig, focal_by_ring, map_at_focal, place_on_ring
 
 REPORT_FILE = "registration_report.json"
@@ -74,8 +75,9 @@ class RegisterConfig:
     sequential_overlap: int = option(10, help="neighbours matched per photo by the sequential matcher",
                                      min=1, max=10000)
     max_num_features: int = option(8192, help="SIFT features kept per photo", min=64, max=1000000)
-    max_image_size: int = option(3200, help="photos are downscaled to this longest side for features",
-                                 min=16, max=100000)
+    max_image_size: int = option(0, help="longest side of the photos SIFT reads (COLMAP downscales them and scales "
+                                 "the keypoints back: the cameras are in full-resolution pixels); 0: auto, "
+                                 "FEATURE_SIDE rule (feature_image_size)", min=16, max=100000, also=(0,))
     camera_model: str = option("SIMPLE_RADIAL", help="COLMAP camera model estimated when no intrinsics are given",
                                choices=("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"))
     intrinsics: str | None = option(None, help="intrinsics.json from 'texstream calibrate' (matched by image size)")
@@ -127,6 +129,32 @@ class RegisterConfig:
                        "estimated, the left-out photos placed on the ring and checked by their silhouettes; "
                        "calib/ring_placement.py), off (reported unregistered)", choices=("auto", "off"))
     overwrite: bool = option(True, help="replace an existing output folder")
+
+
+FEATURE_SIDE = 1600
+"""``max_image_size`` auto: SIFT reads a photo at its longest side halved, but never below this many pixels (nor
+above the photo's own size). SIFT localises a keypoint to about half a pixel of the size it finds it at, so at
+most a 2x reduction keeps the registered cameras within about a pixel of the full-resolution photos, which the
+refine stage's pose steps then correct at the texels' resolution; 1,600 pixels (hloc's SIFT default) still
+yields the default 8,192 features of a textured photo. A 6 MP photo (3072x2048) is read at 1600x1067: a
+quarter of its pixels, about a quarter of the extraction time."""
+
+
+def feature_image_size(width: int, height: int, requested: int) -> tuple[int, str]:
+    """(longest side SIFT reads photos of ``width`` x ``height`` at, why in one line): ``requested`` when > 0,
+    else the :data:`FEATURE_SIDE` rule."""
+    side = max(int(width), int(height))
+    if requested > 0:
+        size, why = min(requested, side), f"--register.max-image-size {requested}"
+    else:
+        size = min(side, max(FEATURE_SIDE, (side + 1) // 2))
+        why = (f"auto: the longest side halved, at least {FEATURE_SIDE} px" if size < side else
+               f"auto: photos of at most {FEATURE_SIDE} px are read as they are")
+    if size == side:
+        return size, f"SIFT on the photos as they are, {width}x{height} ({why})"
+    scale = size / side
+    return size, (f"SIFT on {round(width * scale)}x{round(height * scale)} of {width}x{height} ({why}); "
+                  "keypoints scaled back, cameras in full-resolution pixels")
 
 
 @dataclasses.dataclass
@@ -270,10 +298,14 @@ def _run_colmap(photos: list[_Photo], img_dir: Path, mask_dir: Path | None, work
     t0 = time.perf_counter()
     eo = pycolmap.FeatureExtractionOptions()
     eo.sift.max_num_features = cfg.max_num_features
-    eo.max_image_size = cfg.max_image_size
     eo.num_threads = cfg.extraction_threads  # reproducible image ids (geometry/triangulate.py says why)
     cameras = _camera_groups(photos, cfg, source)
-    for ps, model, params, _ in cameras if kept is None else ():
+    resolution = report.setdefault("feature_resolution", {})
+    for ps, model, params, _ in cameras:
+        eo.max_image_size, resolution[f"{ps[0].width}x{ps[0].height}"] = feature_image_size(
+            ps[0].width, ps[0].height, cfg.max_image_size)
+        if kept is not None:
+            continue  # features kept from an interrupted run
         ro = pycolmap.ImageReaderOptions()
         ro.camera_model = model
         if params:
@@ -281,7 +313,8 @@ def _run_colmap(photos: list[_Photo], img_dir: Path, mask_dir: Path | None, work
         if mask_dir is not None:
             ro.mask_path = str(mask_dir)
         # One camera per size group: SINGLE within a call, a new camera per call.
-        with phase("register", f"SIFT features of {len(ps)} photo(s) {ps[0].width}x{ps[0].height}"), colmap_quiet():
+        with phase("register", f"SIFT features of {len(ps)} photo(s) {ps[0].width}x{ps[0].height} read at "
+                   f"{eo.max_image_size} px"), colmap_quiet():
             pycolmap.extract_features(db, img_dir, image_names=[p.name for p in ps],
                                       camera_mode=pycolmap.CameraMode.SINGLE, reader_options=ro,
                                       extraction_options=eo, device=pycolmap.Device.cpu)
@@ -398,111 +431,6 @@ def _map(db: Path, img_dir: Path, sparse: Path, n_photos: int, cfg: RegisterConf
         return pycolmap.incremental_mapping(db, img_dir, sparse, options=op,
                                             initial_image_pair_callback=lambda: step(2),
                                             next_image_callback=lambda: step(1))
-
-
-PINHOLE_OF = {"SIMPLE_RADIAL": ("SIMPLE_PINHOLE", 3), "RADIAL": ("SIMPLE_PINHOLE", 3),
-              "OPENCV": ("PINHOLE", 4), "FULL_OPENCV": ("PINHOLE", 4)}  # model -> (pinhole model, params kept)
-
-
-def _bundle_adjust(rec: Any, focal: bool, principal_point: bool, extra: bool) -> None:
-    import pycolmap
-
-    bo = pycolmap.BundleAdjustmentOptions()
-    bo.refine_focal_length = focal
-    bo.refine_principal_point = principal_point
-    bo.refine_extra_params = extra
-    bo.print_summary = os.environ.get("TEXSTREAM_COLMAP_LOG") == "1"
-    with colmap_quiet():  # pycolmap's bundle adjustment resets glog's level on every call
-        pycolmap.bundle_adjustment(rec, bo)
-
-
-def _select_distortion(rec: Any, cfg: RegisterConfig, free: bool) -> tuple[Any, dict]:
-    """Self-calibration's model choice: the cameras made pinhole (distortion 0, focal length and poses
-    re-adjusted) unless the estimated distortion lowers the mean reprojection error by at least
-    ``cfg.min_self_calibration_gain``. Radial distortion and focal length trade against each other
-    on tracks that do not reach the image corners; a term the tracks do not need then bends the
-    focal length and the poses (see the option's help). Returns (the reconstruction to keep, report)."""
-    import pycolmap
-
-    info: dict[str, Any] = {"min_gain": cfg.min_self_calibration_gain}
-    distorted = {cid: c for cid, c in rec.cameras.items()
-                 if c.model.name in PINHOLE_OF and any(abs(float(v)) > 0 for v in
-                                                       np.asarray(c.params)[PINHOLE_OF[c.model.name][1]:])}
-    if not free:
-        info.update(kept="given", reason="intrinsics are calibrated and fixed")
-        return rec, info
-    if not distorted:
-        info.update(kept="pinhole", reason="no camera has an estimated distortion")
-        return rec, info
-    if cfg.min_self_calibration_gain <= 0:
-        info.update(kept="distortion", reason="--min-self-calibration-gain 0: every estimate kept")
-        return rec, info
-    pin = pycolmap.Reconstruction(rec)
-    for cid, c in distorted.items():
-        model, n = PINHOLE_OF[c.model.name]
-        cam = pin.cameras[cid]
-        params = np.asarray(c.params, np.float64)
-        cam.model = getattr(pycolmap.CameraModelId, model)
-        cam.params = params[:n].tolist()
-    _bundle_adjust(pin, focal=True, principal_point=False, extra=False)
-    err_d, err_p = float(rec.compute_mean_reprojection_error()), float(pin.compute_mean_reprojection_error())
-    gain = (err_p - err_d) / err_p if err_p > 0 else 0.0
-    info.update(reprojection_error_distortion=err_d, reprojection_error_pinhole=err_p, gain=gain,
-                distortion={str(cid): [float(v) for v in np.asarray(c.params)[PINHOLE_OF[c.model.name][1]:]]
-                            for cid, c in distorted.items()})
-    if gain >= cfg.min_self_calibration_gain:
-        info.update(kept="distortion", reason=f"the distortion lowers the mean reprojection error by {100 * gain:.2f}% "
-                    f"(at least {100 * cfg.min_self_calibration_gain:g}% asked)")
-        return rec, info
-    info.update(kept="pinhole", reason=f"the distortion lowers the mean reprojection error by only {100 * gain:.3f}% "
-                f"(less than {100 * cfg.min_self_calibration_gain:g}%): pinhole cameras, focal length re-adjusted")
-    return pin, info
-
-
-def _refine_principal_point(rec: Any, cfg: RegisterConfig, free: bool) -> tuple[Any, dict]:
-    """Final global bundle adjustment that also refines the principal point (and focal length and
-    distortion); returns (the reconstruction to keep, report entry with the decision and its reason)."""
-    import pycolmap
-
-    n_img, n_pts = rec.num_reg_images(), rec.num_points3D()
-    info: dict[str, Any] = {"mode": cfg.refine_principal_point}
-    if not free:
-        info.update(refined=False, reason="intrinsics are calibrated and fixed (pass --refine-intrinsics to free them)")
-        return rec, info
-    if cfg.refine_principal_point == "off":
-        info.update(refined=False, reason="off")
-        return rec, info
-    if cfg.refine_principal_point == "auto" and (n_img < 8 or n_pts < 500):
-        info.update(refined=False, reason=f"auto: {n_img} photo(s) and {n_pts} point(s) registered, fewer than 8 and "
-                    "500 needed to pin the principal point down")
-        return rec, info
-    before = {cid: (float(c.principal_point_x), float(c.principal_point_y)) for cid, c in rec.cameras.items()}
-    out = pycolmap.Reconstruction(rec)
-    err0 = float(rec.compute_mean_reprojection_error())
-    with phase("register", "global bundle adjustment with the principal point free"):
-        _bundle_adjust(out, focal=True, principal_point=True, extra=True)
-    err1 = float(out.compute_mean_reprojection_error())
-    cams = {}
-    for cid, c in out.cameras.items():
-        off = max(abs(c.principal_point_x - c.width / 2) / c.width, abs(c.principal_point_y - c.height / 2) / c.height)
-        cams[str(cid)] = {"before": [round(v, 3) for v in before[cid]],
-                          "after": [round(float(c.principal_point_x), 3), round(float(c.principal_point_y), 3)],
-                          "off_centre_fraction": round(float(off), 4)}
-        if not off <= 0.1:
-            info.update(refined=False, cameras=cams,
-                        reason=f"rejected: camera {cid}'s principal point went {100 * off:.0f}% of the image off centre")
-            return rec, info
-    gain = (err0 - err1) / err0 if err0 > 0 else 0.0
-    info.update(cameras=cams, reprojection_error_before=err0, reprojection_error_after=err1)
-    if cfg.refine_principal_point == "auto" and gain < cfg.min_self_calibration_gain:
-        # the image centre explains the tracks as well: a free principal point only trades against the poses
-        # (the synthetic sphere's cy moved 2.6 px at 0.01% lower error)
-        info.update(refined=False, reason=f"auto: the refined principal point lowers the mean reprojection error by "
-                    f"only {100 * gain:.3f}% (less than {100 * cfg.min_self_calibration_gain:g}%): kept at the centre")
-        return rec, info
-    info.update(refined=True, reason=f"{cfg.refine_principal_point}: {n_img} photos, {n_pts} points registered, "
-                f"mean reprojection error {100 * gain:.2f}% lower")
-    return out, info
 
 
 def _known_centres(path: str) -> dict[str, np.ndarray]:
@@ -660,8 +588,8 @@ def register(capture: str | os.PathLike, out: str | os.PathLike, config: Registe
                              "take overlapping photos (60%+ overlap between neighbours) of a textured object")
         rec = max(recs.values(), key=lambda r: r.num_reg_images())
         fixed = bool(cfg.intrinsics or source == "calibrated") and not cfg.refine_intrinsics
-        rec, report["distortion"] = _select_distortion(rec, cfg, not fixed)
-        rec, report["principal_point"] = _refine_principal_point(rec, cfg, not fixed)
+        rec, report["distortion"] = select_distortion(rec, cfg, not fixed)
+        rec, report["principal_point"] = refine_principal_point(rec, cfg, not fixed)
         report["mean_reprojection_error"] = float(rec.compute_mean_reprojection_error())
         if centres is not None:
             report["alignment"] = align_to_centres(rec, centres, cfg.align_max_error, cfg.seed)
@@ -706,6 +634,7 @@ def register(capture: str | os.PathLike, out: str | os.PathLike, config: Registe
     summary["principal_point"] = report.get("principal_point")
     summary["distortion"] = report.get("distortion")
     summary["focal_prior"] = report.get("focal_prior")
+    summary["resolution"] = "; ".join(report["feature_resolution"].values())
     return StageResult(output=out, summary=summary)
 
 

@@ -40,8 +40,7 @@ import numpy as np
 import warp as wp
 
 from texstream.capture.capture_json import Capture, Light, read_capture, split_holdout, write_capture
-from texstream.capture.imageio import read_image, read_mask
-from texstream.core.config import option, save_config
+from texstream.core.config import save_config
 from texstream.core.errors import ConfigError, InputError
 from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
 from texstream.core.progress import bar, phase
@@ -50,90 +49,11 @@ from texstream.render.visibility import depth_maps_kernel
 
 from . import refine_checkpoint
 from . import refine_kernels as rk
+from . import refine_levels as rl
+from .refine_config import RefineConfig
 from . import refine_normal_kernels as rnk
 from .bake import TexelBake, bake_texels
 from .mesh_io import load_mesh, save_mesh
-
-
-@dataclasses.dataclass
-class RefineConfig:
-    """Options of the photometric refinement of cameras and mesh (``texstream refine``)."""
-
-    mode: str = option("auto", "when texstream run refines: auto (cameras it registered and a mesh it made, each "
-                               "only then), on (cameras and mesh whatever their source), off", choices=("auto", "on", "off"))
-    cameras: bool = option(True, "refine each photo's pose (rotation and translation; intrinsics stay)")
-    mesh: bool = option(True, "move the mesh's vertices along their normals (seams stay closed)")
-    align_heldout: bool = option(True, "align the held-out photos' poses to the texture the fitted photos make "
-                                       "(their pixels move no colour and no vertex)")
-    holdout_every: int = option(8, "photos held out as the fit holds them out (every k-th; 0: none)", min=0)
-    blur: str = option("2,1,0.5", "Gaussian blur (standard deviation in pixels) of the photos at each level, "
-                                  "coarse to fine")
-    detail: float = option(6.0, "compare the photos' detail, not their intensities: each level's blurred photo less "
-                                "the photo blurred this wide (standard deviation, pixels), so that shading the "
-                                "shared texture cannot explain (a lamp that moves with the camera, soft shadows, "
-                                "sheen) does not pull cameras and mesh; 0: intensities", min=0.0)
-    iterations: int = option(8, "iterations per level", min=1)
-    smoothness: float = option(0.01, "weight of the displacements' graph Laplacian relative to the mean data "
-                                    "curvature per vertex", min=0.0)
-    max_displacement: float = option(0.01, "largest displacement of a vertex, as a fraction of the mesh's "
-                                           "bounding-box diagonal", min=0.0)
-    max_rotation_step: float = option(0.25, "largest rotation of a camera per iteration (degrees)", min=0.0)
-    max_translation_step: float = option(0.002, "largest translation of a camera per iteration, as a fraction of "
-                                                "its distance to the object", min=0.0)
-    huber: float = option(0.1, "scale of the Huber loss as a fraction of the photos' mean foreground value "
-                               "(residuals beyond it, occlusions and highlights, count linearly)", min=1e-6)
-    normal_smoothing: str = option("0,2,5,10,20", "shading normals of the refined mesh: rounds of 1-ring averaging "
-                                                  "of its vertex normals to try (comma-separated); with known "
-                                                  "lights the one whose shading best explains the fitted photos' "
-                                                  "intensities is kept and written as the mesh's normals (positions "
-                                                  "a stereo mesh and the refinement make are good to a fraction of "
-                                                  "a pixel, their normals to a few degrees, which under a known "
-                                                  "light is several percent of shading); 0 alone: the mesh's own",
-                                   )
-    normal_iterations: int = option(
-        6, "with known lights: iterations of photometric shading normals after the levels (a 2-degree-of-"
-           "freedom tilt of each welded vertex's normal, a texel's normal interpolating its face's; damped "
-           "Gauss-Newton on the photos' intensities averaged over each vertex's faces, alternated with the "
-           "texture's colours), from the normal_smoothing choice; written as the mesh's normals; 0: off (the "
-           "smoothing choice is written)", min=0)
-    intensity_iterations: int = option(
-        8, "with known lights, after the shading normals: iterations of pose and displacement steps "
-           "comparing the photos' intensities (not their detail) with the texture shaded by the fitted "
-           "normals, each followed by one iteration of the normals (needs normal_iterations > 0)", min=0)
-    intensity_blur: float = option(0.0, "Gaussian blur (standard deviation in pixels) of the photos the "
-                                        "shading normals and the intensity iterations compare", min=0.0)
-    normal_smoothness: float = option(0.1, "weight of the smoothness of the shading normals' correction (its "
-                                           "difference between neighbouring vertices) relative to the mean "
-                                           "data curvature per vertex", min=0.0)
-    normal_prior: float = option(0.01, "weight of the shading normals' pull toward their start relative to "
-                                       "the mean data curvature per vertex (holds vertices the photos barely "
-                                       "see)", min=0.0)
-    max_normal_tilt: float = option(20.0, "largest tilt of a shading normal from its start (degrees)",
-                                    min=0.0, max=80.0)
-    cos_view_min: float = option(0.2, "samples seen more grazingly than this cosine are left out", min=0.0, max=1.0)
-    depth_tol: float = option(0.01, "visibility test tolerance, as a fraction of the camera distance", min=0.0)
-    max_photo_mb: float = option(8192.0, "largest size of the photos (float32) this stage holds on the device; "
-                                         "beyond it the stage refuses with a one-line error", min=1.0)
-
-    def smoothing_rounds(self) -> list[int]:
-        try:
-            out = sorted({int(x) for x in str(self.normal_smoothing).split(",") if x.strip()})
-        except ValueError:
-            out = []
-        if not out or out[0] < 0:
-            raise ConfigError(f"refine normal_smoothing {self.normal_smoothing!r} is not a comma-separated list of "
-                              "rounds", fix="write it as 0,2,5,10,20 (or 0 to keep the mesh's normals)")
-        return out
-
-    def levels(self) -> list[float]:
-        try:
-            out = [float(x) for x in str(self.blur).split(",") if x.strip()]
-        except ValueError:
-            out = []
-        if not out or any(not (math.isfinite(x) and x >= 0.0) for x in out):
-            raise ConfigError(f"refine blur {self.blur!r} is not a comma-separated list of pixel widths",
-                              fix="write it as 2,1,0.5 (coarse to fine)")
-        return out
 
 
 def _gaussian(sigma: float) -> tuple[np.ndarray, int]:
@@ -232,40 +152,23 @@ class PhotometricRefinement:
             raise InputError("no photo left to refine with after the held-out split", capture.root,
                              "lower --holdout-every or add photos")
         self.roles_host = roles
-        sizes = np.array([[f.intrinsics.height, f.intrinsics.width] for f in self.frames], np.int64)
-        self.hmax, self.wmax = int(sizes[:, 0].max()), int(sizes[:, 1].max())
-        mb = n * self.hmax * self.wmax * 12 * 4 / 2 ** 20  # photos, their blurred copy, a wide blur and scratch
-        if mb > cfg.max_photo_mb:
-            raise ConfigError(f"refining {n} photos of up to {self.wmax}x{self.hmax} takes {mb:,.0f} MB "
-                              f"(refine.max_photo_mb {cfg.max_photo_mb:,.0f})",
-                              fix="raise --refine.max-photo-mb, or run with --refine off")
-        images = np.zeros((n, self.hmax, self.wmax, 3), np.float32)
-        masks = np.zeros((n, self.hmax, self.wmax), np.uint8)
-        fg_sum = fg_count = 0.0
-        for i, f in enumerate(self.frames):
-            im = read_image(capture.image_path(f), channels=3, response=capture.response)
-            h, w = im.shape[:2]
-            if (h, w) != tuple(sizes[i]):
-                raise InputError(f"photo is {w}x{h}, its camera says {sizes[i][1]}x{sizes[i][0]}",
-                                 capture.image_path(f), "re-run texstream register")
-            images[i, :h, :w] = im
-            mp = capture.mask_path(f)
-            mk = read_mask(mp, (h, w)) if mp is not None and mp.exists() else np.ones((h, w), bool)
-            masks[i, :h, :w] = mk
-            fg_sum += float(im[mk].sum())
-            fg_count += 3.0 * float(mk.sum())
-        self.huber = cfg.huber * max(fg_sum / max(fg_count, 1.0), 1e-12)
-        self.images = wp.array(images, dtype=wp.vec3, device=device)
-        self.blurred = wp.empty_like(self.images)
-        self._scratch = wp.empty_like(self.images)
-        self._wide = wp.empty_like(self.images) if cfg.detail > 0.0 else None
-        self.masks = wp.array(masks, dtype=wp.uint8, device=device)
-        self.widths = wp.array(sizes[:, 1].astype(np.int32), device=device)
-        self.heights = wp.array(sizes[:, 0].astype(np.int32), device=device)
-        del images, masks
-        pframes = [PhotoFrame.from_capture_frame(f) for f in self.frames]
+        self.level, self.resolution = rl.finest_level(mesh, bake, self.frames, cfg.photo_level)
+        self.schedule = rl.level_schedule(cfg.levels(), self.level, self.frames, cfg.pyramid)
+        first = self.frames[0].intrinsics
+        fine_mb = n * (first.height >> self.level) * (first.width >> self.level) * 12 * 4 / 2 ** 20
+        if fine_mb > cfg.max_photo_mb:  # the photos, their blurred copy, a wide blur and scratch
+            raise ConfigError(f"refining {n} photos of {first.width >> self.level}x{first.height >> self.level} "
+                              f"takes {fine_mb:,.0f} MB (refine.max_photo_mb {cfg.max_photo_mb:,.0f})",
+                              fix="raise --refine.max-photo-mb or --refine.photo-level, or run with --refine off")
+        self.pyramid = rl.PhotoPyramid(capture, [lv for lv, _ in self.schedule] + [self.level])
+        images, masks, _ = self.pyramid.stacked(self.level)
+        fg = masks.astype(bool)
+        self.huber = cfg.huber * max(float(images[fg].sum()) / max(3.0 * float(fg.sum()), 1.0), 1e-12)
+        del images, masks, fg
+        pframes = [PhotoFrame.from_capture_frame(f) for f in self.pyramid.frames_at(self.level)]
         self.infos = struct_array(image_infos(pframes, None, None, 0.0, 0), ImageInfo, device)
         self.saved_infos = wp.empty_like(self.infos)
+        self.set_level(self.level)
         self.roles = wp.array(roles, dtype=wp.int32, device=device)
         attached, offset = camera_attached_lights(self.frames)
         self.light_attached = wp.array(attached, dtype=wp.int32, device=device)
@@ -316,7 +219,6 @@ class PhotometricRefinement:
         self.known = wp.zeros(self.n_texels, dtype=wp.int32, device=device)
 
         # per photo
-        self.depth = wp.zeros((n, self.hmax, self.wmax), dtype=wp.float32, device=device)
         self.system = wp.zeros((n, rk.POSE_TERMS), dtype=wp.float64, device=device)
         self.obj_before = wp.zeros((n, 2), dtype=wp.float64, device=device)
         self.obj_after = wp.zeros_like(self.obj_before)
@@ -327,6 +229,25 @@ class PhotometricRefinement:
         self.max_translation = wp.array((cfg.max_translation_step * np.linalg.norm(centres - mid, axis=1)
                                          ).astype(np.float32), dtype=float, device=device)
         self.totals = wp.zeros(4, dtype=wp.float64, device=device)  # before sum, count; after sum, count
+
+    def set_level(self, level: int) -> None:
+        """The photos, masks and depth maps at pyramid ``level``, the cameras' intrinsics with them (poses kept)."""
+        images, masks, sizes = self.pyramid.stacked(level)
+        n, dev = len(self.frames), self.device
+        self.hmax, self.wmax = images.shape[1:3]
+        self.images = wp.array(images, dtype=wp.vec3, device=dev)
+        self.blurred = wp.empty_like(self.images)
+        self._scratch = wp.empty_like(self.images)
+        self._wide = wp.empty_like(self.images) if self.cfg.detail > 0.0 else None
+        self.masks = wp.array(masks, dtype=wp.uint8, device=dev)
+        self.widths = wp.array(sizes[:, 1].astype(np.int32), device=dev)
+        self.heights = wp.array(sizes[:, 0].astype(np.int32), device=dev)
+        self.depth = wp.zeros((n, self.hmax, self.wmax), dtype=wp.float32, device=dev)
+        if level != self.level:
+            infos = rl.rescale_infos(self.infos.numpy(), sizes, 2.0 ** (self.level - level))
+            self.infos = struct_array(infos, ImageInfo, dev)
+            self.saved_infos = wp.empty_like(self.infos)
+        self.level = level
 
     # ------------------------------------------------------------------------------------------- passes
     def _gaussian_blur(self, sigma: float, out) -> None:
@@ -443,11 +364,12 @@ class PhotometricRefinement:
         """Every level's iterations (colours, pose steps, displacement steps), then the summary; with a
         ``checkpoint`` (:func:`.refine_checkpoint.refine_checkpoint`) the state after each iteration is saved
         and a saved one resumed from."""
-        cfg = self.cfg
+        cfg, finest, schedule = self.cfg, self.level, self.schedule
         t0 = time.perf_counter()
-        levels = cfg.levels()
-        history = wp.zeros((len(levels) * cfg.iterations, len(self.frames), 2), dtype=wp.float64, device=self.device)
+        history = wp.zeros((len(schedule) * cfg.iterations, len(self.frames), 2), dtype=wp.float64,
+                           device=self.device)
         saved = None if checkpoint is None else refine_checkpoint.restore_state(self, checkpoint, history)
+        self.set_level(finest)  # a resumed state's cameras are at the level it was saved at
         self.update_geometry()
         self.blur(0.0)
         self.colours(self.blurred)
@@ -457,18 +379,36 @@ class PhotometricRefinement:
                 refine_checkpoint.save_start(checkpoint, start)
         else:
             step, start = saved
-            checkpoint.say(f"resuming from {checkpoint.folder}: {step} of {len(levels) * cfg.iterations} "
+            checkpoint.say(f"resuming from {checkpoint.folder}: {step} of {len(schedule) * cfg.iterations} "
                            "iterations of the levels done")
         shaded = self.lit and cfg.normal_iterations > 0
         extra = cfg.normal_iterations + cfg.intensity_iterations if shaded else 0
-        progress = bar(total=len(levels) * cfg.iterations + extra, desc="refine", unit="it")
+        progress = bar(total=len(schedule) * cfg.iterations + extra, desc="refine", unit="it")
         progress.update(step)
-        for level, sigma in enumerate(levels):
-            if step >= (level + 1) * cfg.iterations:
+        ran, finer = [], {"ran": len(schedule) > 1, "reason": "one blur level"}
+        if step > cfg.iterations:  # resumed after the coarse level: its decision as it was taken
+            finer = refine_checkpoint.read_decision(checkpoint) or {"ran": True,
+                                                                    "reason": "resumed after the coarse level"}
+        for k, (level, sigma) in enumerate(schedule):
+            if k == 1 and step <= cfg.iterations:  # the coarse level just finished (or did before an interruption)
+                moved, by = rl.coarse_moved(self, self.frames, self.pyramid.frames_at(finest), cfg.min_move)
+                finer = {"ran": moved, "moved_finest_px": by, "reason": (
+                    f"the coarse level moved a camera or the mesh by {max(by.values()):.3g} px of level {finest}, "
+                    + (f"at least {cfg.min_move:g}: the finer levels ran" if moved else
+                       f"less than {cfg.min_move:g}: the finer levels skipped"))}
+                if checkpoint is not None:
+                    refine_checkpoint.save_decision(checkpoint, finer)
+                if not moved:
+                    progress.update((len(schedule) - 1) * cfg.iterations)
+                    break
+            ran.append(k)
+            if step >= (k + 1) * cfg.iterations:
                 continue  # done before the interruption
+            self.set_level(level)
+            self.update_geometry()
             self.blur(sigma)
-            self.log(f"blur {sigma:g} px: {cfg.iterations} iterations")
-            for it in range(step - level * cfg.iterations, cfg.iterations):
+            self.log(f"level {level}, blur {sigma:g} px: {cfg.iterations} iterations")
+            for it in range(step - k * cfg.iterations, cfg.iterations):
                 progress.update(1)
                 self.colours(self.blurred)
                 self.geometry_step(self.blurred)
@@ -477,8 +417,10 @@ class PhotometricRefinement:
                 if checkpoint is not None:
                     refine_checkpoint.save_state(self, checkpoint, step, history)
         hist = history.numpy()  # read once, after the loop
-        trace = [{"blur_px": sigma, "iteration": it, **self._per_role(hist[i * cfg.iterations + it])}
-                 for i, sigma in enumerate(levels) for it in range(cfg.iterations)]
+        trace = [{"photo_level": schedule[k][0], "blur_px": schedule[k][1], "iteration": it,
+                  **self._per_role(hist[k * cfg.iterations + it])} for k in ran for it in range(cfg.iterations)]
+        self.set_level(finest)
+        self.update_geometry()
         self.blur(0.0)
         self.colours(self.blurred)
         end = self._score()
@@ -492,6 +434,12 @@ class PhotometricRefinement:
         progress.close()
         result = self._result(start, end, trace, time.perf_counter() - t0)
         result.summary["shading_normals"] = shading
+        result.summary["levels"] = {"schedule": [{"photo_level": lv, "blur_px": b} for lv, b in schedule],
+                                    "ran": len(ran), "finer_levels": finer}
+        size = self.resolution["size"]
+        result.summary["resolution"] = (
+            f"{size[0]}x{size[1]} (level {finest}; {self.resolution['why']}); coarse first at level {schedule[0][0]}"
+            + ("" if len(schedule) == 1 else f"; {finer['reason']}"))
         result.normals = normals
         return result
 

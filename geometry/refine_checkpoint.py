@@ -22,6 +22,7 @@ from texstream.render.camera import ImageInfo, struct_array
 
 STATE_FILE = "levels.npz"
 START_FILE = "start.json"
+DECISION_FILE = "finer_levels.json"
 _ARRAYS = ("disp", "base", "direction", "welded_points", "pose_damping", "pose_accepted", "disp_damping",
            "disp_accepted")
 
@@ -43,12 +44,22 @@ def refine_checkpoint(capture: Capture, geometry: Path, out: Path, cfg, device: 
 
 def save_state(job, ck: StageCheckpoint, step: int, history) -> None:
     """The state after ``step`` iterations of the levels (``history``: the device trace rows)."""
-    ck.write_arrays(STATE_FILE, step=np.array(step), infos=job.infos.numpy(), history=history.numpy()[:step],
+    ck.write_arrays(STATE_FILE, step=np.array(step), level=np.array(job.level), infos=job.infos.numpy(),
+                    history=history.numpy()[:step],
                     **{name: getattr(job, name).numpy() for name in _ARRAYS})
 
 
 def save_start(ck: StageCheckpoint, start: dict) -> None:
     ck.write_json(START_FILE, start)
+
+
+def save_decision(ck: StageCheckpoint, finer: dict) -> None:
+    """Whether the finer levels run, and why (refine_levels.coarse_moved), taken once after the coarse level."""
+    ck.write_json(DECISION_FILE, finer)
+
+
+def read_decision(ck: StageCheckpoint) -> dict:
+    return ck.read_json(DECISION_FILE)
 
 
 def restore_state(job, ck: StageCheckpoint, history) -> tuple[int, dict] | None:
@@ -65,6 +76,7 @@ def restore_state(job, ck: StageCheckpoint, history) -> tuple[int, dict] | None:
     for name in _ARRAYS:
         getattr(job, name).assign(state[name])
     job.infos = struct_array(state["infos"], ImageInfo, job.device)
+    job.level = int(state["level"])  # the cameras' pyramid level (job.set_level rescales them from it)
     if step:
         rows = history.numpy()
         rows[:step] = state["history"]

@@ -40,6 +40,7 @@ from texstream.core.outputs import StageResult, atomic_output_dir, read_json
 from texstream.core.progress import bar
 from texstream.fit.models import registry
 from texstream.fit.stages.stage import image_metrics
+from texstream.pipelines.resolutions import resolutions_html, stage_resolutions
 
 ASSETS = Path(__file__).with_name("report_assets")
 STAGE_STATUSES = ("ran", "skipped")
@@ -519,7 +520,8 @@ def write_report(out_dir: str | Path, stages: list[dict], model_dir: str | Path,
         when = datetime.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
         sections = [f"<h1>{_e(title)}</h1><p class='meta'>{_e(when)} &middot; model {_e(model_dir.resolve())}"
                     + (f" &middot; capture {_e(Path(capture_dir).resolve())}" if capture_dir else "") + "</p>",
-                    *([_inputs_html(inputs)] if inputs else []), "<h2>Stages</h2>" + _stages_html(stages)]
+                    *([_inputs_html(inputs)] if inputs else []), "<h2>Stages</h2>" + _stages_html(stages),
+                    resolutions_html(stage_resolutions(stages, model_dir))]
         if man.get("warnings"):  # the fit's warnings (bounds, numerics), one line each
             sections.append("<h2>Warnings</h2><ul class='warnings'>"
                             + "".join(f"<li>{_e(w)}</li>" for w in man["warnings"]) + "</ul>")

@@ -59,6 +59,7 @@ from texstream.geometry.refine import RefineConfig, refine_stage
 from texstream.pipelines.light_inputs import light_and_resolution_inputs
 from texstream.pipelines.provenance import inputs_lines, run_inputs
 from texstream.pipelines.report import write_report
+from texstream.pipelines.resolutions import stage_resolutions
 
 STAGES = ("ingest", "register", "mesh", "atlas", "lights", "refine", "fit", "export", "report")
 STAMP = ".texstream_stage.json"
@@ -335,6 +336,7 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
     summary = {"source": str(src), "source_kind": kind, "device": cfg.device, "model": model_kind, "model_reason": why, "inputs": inputs,
                "total_s": time.perf_counter() - t_start,
                "heldout": heldout, "stages": [dataclasses.asdict(r) for r in pipe.records],
+               "resolutions": stage_resolutions([dataclasses.asdict(r) for r in pipe.records], model_dir),
                "lights": lights_summary or flash_summary or {"source": _lights_source(capture)},
                "fit": fit_rec.summary, "warnings": run_warnings(pipe.records, heldout, fit_rec.summary)}
     write_json_atomic(out / "run.json", _summary_safe(summary))
