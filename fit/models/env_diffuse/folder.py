@@ -7,6 +7,7 @@ no specular layer) with the estimated environment as a latitude-longitude EXR be
 
 from __future__ import annotations
 
+import base64
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +17,6 @@ from texstream.core.errors import InputError
 from texstream.fit.models.env_diffuse.light_file import read_light
 from texstream.fit.models.env_diffuse.model import ENV_MAP_SIZE, EnvDiffuseRenderer, lit_radiance
 from texstream.fit.models.previews import read_shader, rgb_scaled
-from texstream.fit.models.radiance.folder import RadianceModel
 from texstream.fit.models.registry import ExportMaterial, FittedModel, ViewerModel
 from texstream.geometry.bake import TexelBake
 from texstream.geometry.mesh_io import load_mesh
@@ -73,11 +73,33 @@ class EnvDiffuseModel(FittedModel):
                 ("ambiguities", gauge.get("why", gauge.get("fixed", "")))]
 
     def viewer(self) -> ViewerModel:
-        grid = lit_radiance(self.albedo, self.transfer, self.light).astype(np.float32)
-        return ViewerModel(grid, read_shader(RadianceModel.shader_folder), lit=False,
-                           note="Relightable diffuse model shown under its estimated environment light (the albedo "
-                                "lit through each texel's transfer with self-occlusion); the light controls do "
-                                "nothing here: `texstream relight` renders it under other lights.")
+        grid = np.concatenate([self.albedo, self.transfer], axis=-1).astype(np.float32)
+        return ViewerModel(grid, read_shader(Path(__file__).parent), lit=True, data=viewer_light(self.light, self.mesh),
+                           note="Relightable diffuse model under its estimated environment light (the albedo lit "
+                                "through each texel's transfer with self-occlusion); moving the light turns the "
+                                "environment about +z by the light's azimuth around the object, its intensity "
+                                "scales it; `texstream relight` renders it under any light.")
+
+
+def turned_about_z(light: np.ndarray, radians: float) -> np.ndarray:
+    """(9, 3) the SH light turned by ``radians`` about +z, exactly (the viewer's GLSL does the same): the band-1
+    and band-2 m = +-1 pairs turn by the angle, the m = +-2 pair by twice it."""
+    out = np.array(light, np.float64, copy=True)
+    c, s, c2, s2 = np.cos(radians), np.sin(radians), np.cos(2 * radians), np.sin(2 * radians)
+    for (ky, kx), (cc, ss) in (((1, 3), (c, s)), ((5, 7), (c, s)), ((4, 8), (c2, s2))):
+        out[kx], out[ky] = cc * light[kx] - ss * light[ky], ss * light[kx] + cc * light[ky]
+    return out
+
+
+def viewer_light(light: np.ndarray, mesh) -> dict:
+    """The viewer's ``u_shlight`` texture: the 9 SH coefficients (RGB) then the object's centre (the bounding
+    box's, where the viewer puts its default light above)."""
+    texels = np.zeros((1, 10, 4), np.float32)
+    texels[0, :9, :3] = light
+    v = np.asarray(mesh.vertices, np.float64)
+    texels[0, 9, :3] = 0.5 * (v.min(axis=0) + v.max(axis=0))
+    data = base64.b64encode(np.ascontiguousarray(texels, dtype="<f4").tobytes()).decode("ascii")
+    return {"textures": [{"name": "u_shlight", "width": 10, "height": 1, "data": data}]}
 
 
 def load(model_dir: Path, manifest: dict) -> FittedModel:
