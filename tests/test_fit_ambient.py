@@ -21,6 +21,8 @@ def ambient_params(layout: ModelLayout, n: int, rng) -> np.ndarray:
     return p
 
 
+AMBIENT_STEP = np.r_[[0.01] * 3, [0.05] * 3, 0.0, 0.02, 0.5, [0.05] * 3]
+"""a random direction's scale per column of one isotropic lobe plus the ambient RGB"""
 LAYOUTS = [ModelLayout(ambient=True), ModelLayout(kind="diffuse", ambient=True),
            ModelLayout(n_lobes=2, anisotropic=True, ambient=True)]
 
@@ -56,13 +58,7 @@ def test_ambient_gradient_with_the_lookup_and_traced_taps(device, lookup, taps):
     p = ambient_params(layout, prob.n, rng)
     prob.refresh_lookup(prob.new_storage(p))  # neighbours held at other values than the texel's own
     assert_gradient_matches_finite_differences(prob, layout, p)
-    d = rng.normal(size=p.shape) * np.r_[[0.01] * 3, [0.05] * 3, 0.0, 0.02, 0.5, [0.05] * 3]
-    f0, _, dhd, _ = evaluate(prob, p, direction=d, full=True)
-    h = 3e-4
-    second = (evaluate(prob, p + h * d)[0] - 2 * f0 + evaluate(prob, p - h * d)[0]) / h ** 2
-    # as test_fit_gradients' full d^T H d: O(h^2) truncation and second-difference rounding
-    bound = 1e-6 * np.abs(second) + 1e-6 * np.abs(second).max() + 1e-7 * np.abs(f0)
-    assert np.all(np.abs(dhd - second) <= bound), np.max(np.abs(dhd - second) / bound)
+    assert_full_dhd_matches_second_difference(prob, p, rng, AMBIENT_STEP)
 
 
 @pytest.mark.parametrize("sampling", ["point"])
@@ -71,12 +67,7 @@ def test_ambient_full_dhd_matches_second_difference(device, sampling):
     layout = ModelLayout(ambient=True)
     prob, rng = plane_problem(device, layout, seed=1, sampling=sampling)
     p = ambient_params(layout, prob.n, rng)
-    d = rng.normal(size=p.shape) * np.r_[[0.01] * 3, [0.05] * 3, 0.0, 0.02, 0.5, [0.05] * 3]
-    f0, _, dhd, _ = evaluate(prob, p, direction=d, full=True)
-    h = 3e-4
-    second = (evaluate(prob, p + h * d)[0] - 2 * f0 + evaluate(prob, p - h * d)[0]) / h ** 2
-    bound = 1e-6 * np.abs(second) + 1e-6 * np.abs(second).max() + 1e-7 * np.abs(f0)
-    assert np.all(np.abs(dhd - second) <= bound), np.max(np.abs(dhd - second) / bound)
+    assert_full_dhd_matches_second_difference(prob, p, rng, AMBIENT_STEP)
 
 
 @pytest.mark.parametrize("layout", LAYOUTS[:1], ids=["lafortune"])

@@ -90,10 +90,12 @@ def test_gradient_matches_finite_differences(device, layout, n_range, sampling):
     assert_gradient_matches_finite_differences(prob, layout, random_params(layout, prob.n, rng, n_range))
 
 
-def assert_full_dhd_matches_second_difference(prob, p, rng):
-    """The full-Hessian d^T H d along a random direction (one lobe, isotropic) against second differences
-    of every texel's objective; bound: O(h^2) truncation and second-difference rounding."""
-    d = rng.normal(size=p.shape) * np.array([0.01, 0.01, 0.01, 0.05, 0.05, 0.05, 0.0, 0.02, 0.5])
+def assert_full_dhd_matches_second_difference(prob, p, rng, scale=None):
+    """The full-Hessian d^T H d along a random direction (columns scaled by ``scale``; default: one isotropic
+    lobe's) against second differences of every texel's objective; bound: O(h^2) truncation and second-difference
+    rounding."""
+    scale = np.array([0.01, 0.01, 0.01, 0.05, 0.05, 0.05, 0.0, 0.02, 0.5]) if scale is None else scale
+    d = rng.normal(size=p.shape) * scale
     f0, _, dhd, _ = evaluate(prob, p, direction=d, full=True)
     h = 3e-4
     second = (evaluate(prob, p + h * d)[0] - 2 * f0 + evaluate(prob, p - h * d)[0]) / h ** 2
@@ -101,12 +103,12 @@ def assert_full_dhd_matches_second_difference(prob, p, rng):
     assert np.all(np.abs(dhd - second) <= bound), np.max(np.abs(dhd - second) / bound)
 
 
-def assert_gradient_matches_finite_differences(prob, layout, p):
-    """Each free column's gradient against central differences of every texel's objective."""
+def assert_gradient_matches_finite_differences(prob, layout, p, columns=None):
+    """Each free column's gradient (or each of ``columns``) against central differences of every texel's
+    objective."""
     f0, g0, _, st = evaluate(prob, p)
     assert st[:, 0].sum() > 0
-    free = ~layout.frozen()
-    for k in np.flatnonzero(free):
+    for k in (np.flatnonzero(~layout.frozen()) if columns is None else columns):
         h = 1e-6 * max(1.0, np.abs(p[:, k]).max())
         pp, pm = p.copy(), p.copy()
         pp[:, k] += h

@@ -11,7 +11,7 @@ import pytest
 from texstream.fit.models.per_texel.room_light import light_step, texel_blocks, with_room
 from texstream.render.layout import ModelLayout
 
-from test_fit_gradients import evaluate, plane_problem, random_params
+from test_fit_gradients import assert_gradient_matches_finite_differences, evaluate, plane_problem, random_params
 
 def room_params(layout: ModelLayout, n: int, rng) -> np.ndarray:
     """Random lobes (test_fit_gradients) and a random room irradiance factor of the size of the flash's share."""
@@ -44,17 +44,7 @@ def test_room_gradient_matches_finite_differences(device, layout, lookup):
     prob, rng = plane_problem(device, layout, seed=5, lookup=lookup)
     p = room_params(layout, prob.n, rng)
     prob.refresh_lookup(prob.new_storage(p))
-    f0, g0, _, st = evaluate(prob, p)
-    assert st[:, 0].sum() > 0
-    for k in [0, 1, 2, *range(layout.room_offset, layout.n_params)]:
-        h = 1e-6 * max(1.0, np.abs(p[:, k]).max())
-        pp, pm = p.copy(), p.copy()
-        pp[:, k] += h
-        pm[:, k] -= h
-        fd = (evaluate(prob, pp)[0] - evaluate(prob, pm)[0]) / (2 * h)
-        # 1e-6 of each texel's gradient norm: O(h^2) truncation plus eps f / h rounding are far below it
-        scale = np.linalg.norm(g0, axis=1) + 1e-12
-        assert np.all(np.abs(fd - g0[:, k]) <= 1e-6 * scale), (k, np.max(np.abs(fd - g0[:, k]) / scale))
+    assert_gradient_matches_finite_differences(prob, layout, p, [0, 1, 2, *range(layout.room_offset, layout.n_params)])
 
 
 def test_light_normal_equations_match_finite_differences(device):
