@@ -6,13 +6,7 @@
 #   usage: CUDA_TESTS="tests/a.py tests/b.py" bash benchmarks/cold_start_gpu.sh OUT
 set -u
 out=$1
-mkdir -p "$out"
-nvidia-smi --query-gpu=name,memory.total --format=csv,noheader | tee "$out/machine.txt"
-nproc | tee -a "$out/machine.txt"
-git rev-parse --short HEAD 2>/dev/null | tee "$out/commit.txt"
-python3 -m pip install -q --no-index --no-deps --no-compile --target /root/oiio "${WHEELS:-.whl}"/*.whl || exit 1
-export PYTHONPATH=/root/site:/root/oiio
-python3 -m pip install -q --no-deps --no-build-isolation -e . >/dev/null 2>&1 || exit 1
+. "$(dirname "$0")/gpu_setup.sh"
 export WARP_CACHE_PATH=/root/warp-cache-cold  # empty: the cold run compiles every kernel it launches
 rm -rf "$WARP_CACHE_PATH"
 for run in cold warm; do

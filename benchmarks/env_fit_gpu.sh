@@ -9,13 +9,7 @@
 #   usage: bash benchmarks/env_fit_gpu.sh OUT
 set -u
 out=$1
-mkdir -p "$out"
-nvidia-smi --query-gpu=name,memory.total --format=csv,noheader | tee "$out/machine.txt"
-nproc | tee -a "$out/machine.txt"
-git rev-parse --short HEAD 2>/dev/null | tee "$out/commit.txt"
-python3 -m pip install -q --no-index --no-deps --no-compile --target /root/oiio "${WHEELS:-.whl}"/*.whl || exit 1
-export PYTHONPATH=/root/site:/root/oiio
-python3 -m pip install -q --no-deps --no-build-isolation -e . >/dev/null 2>&1 || exit 1
+. "$(dirname "$0")/gpu_setup.sh"
 work=/root/env_gap
 (cd benchmarks && python3 env_light_gap.py "$work" --scene-only --device cuda) > "$out/scene.log" 2>&1 || { tail "$out/scene.log"; exit 1; }
 export WARP_CACHE_PATH=/root/warp-cache-env  # empty: the cold fit compiles every kernel it launches
