@@ -24,9 +24,10 @@ import json
 import os
 import platform
 import shutil
-import subprocess
 import time
 from pathlib import Path
+
+import gitinfo
 
 SCENE = Path(__file__).resolve().parent.parent / "capture" / "synthetic" / "scenes" / "textured_sphere_6mp.json"
 
@@ -82,8 +83,7 @@ def main() -> None:
     from texstream.pipelines.run import RunConfig
 
     # the code that runs, read before the run (a commit made while it runs must not be named)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                            cwd=Path(__file__).parent).stdout.strip()
+    commit = gitinfo.commit()
     wp.config.quiet = True
     wp.config.log_level = wp.LOG_WARNING
     out = Path(args.out)
