@@ -127,8 +127,5 @@ def load(model_dir: Path, manifest: dict) -> FittedModel:
 
 
 def rotated_about_z(light: np.ndarray, degrees: float) -> np.ndarray:
-    """(9, 3) the SH light ``light`` turned by ``degrees`` about +z (east): its latitude-longitude map's columns
-    rolled, projected back (exact for whole-column turns of a band-limited map, to the grid's quadrature)."""
-    height, width = 64, 128
-    env = sh.latlong_from_sh(light, height, width)
-    return sh.project_latlong(np.roll(env, int(round(degrees / 360.0 * width)), axis=1))
+    """(9, 3) the SH light ``light`` turned by ``degrees`` about +z (east): :func:`turned_about_z`."""
+    return turned_about_z(light, np.radians(degrees))
