@@ -362,8 +362,8 @@ class PhotometricRefinement:
 
     def run(self, checkpoint=None) -> RefineResult:
         """Every level's iterations (colours, pose steps, displacement steps), then the summary; with a
-        ``checkpoint`` (:func:`.refine_checkpoint.refine_checkpoint`) the state after each iteration is saved
-        and a saved one resumed from."""
+        ``checkpoint`` (:func:`.refine_checkpoint.refine_checkpoint`) the state is saved after an iteration
+        (every ``checkpoint_every_s`` seconds and at each level's end) and a saved one resumed from."""
         cfg, finest, schedule = self.cfg, self.level, self.schedule
         t0 = time.perf_counter()
         history = wp.zeros((len(schedule) * cfg.iterations, len(self.frames), 2), dtype=wp.float64,
@@ -389,6 +389,7 @@ class PhotometricRefinement:
         if step > cfg.iterations:  # resumed after the coarse level: its decision as it was taken
             finer = refine_checkpoint.read_decision(checkpoint) or {"ran": True,
                                                                     "reason": "resumed after the coarse level"}
+        saved_at = time.perf_counter()
         for k, (level, sigma) in enumerate(schedule):
             if k == 1 and step <= cfg.iterations:  # the coarse level just finished (or did before an interruption)
                 moved, by = rl.coarse_moved(self, self.frames, self.pyramid.frames_at(finest), cfg.min_move)
@@ -414,8 +415,10 @@ class PhotometricRefinement:
                 self.geometry_step(self.blurred)
                 self.objective(self.blurred, history[step])
                 step += 1
-                if checkpoint is not None:
+                if checkpoint is not None and (it == cfg.iterations - 1
+                                               or time.perf_counter() - saved_at >= cfg.checkpoint_every_s):
                     refine_checkpoint.save_state(self, checkpoint, step, history)
+                    saved_at = time.perf_counter()
         hist = history.numpy()  # read once, after the loop
         trace = [{"photo_level": schedule[k][0], "blur_px": schedule[k][1], "iteration": it,
                   **self._per_role(hist[k * cfg.iterations + it])} for k in ran for it in range(cfg.iterations)]

@@ -1,4 +1,5 @@
-"""The photometric refinement's checkpoint: after every iteration of the levels, what the next one reads.
+"""The photometric refinement's checkpoint: after an iteration of the levels (at most every ``checkpoint_every_s``
+seconds, and at each level's end), what the next one reads.
 
 An iteration of :meth:`~texstream.geometry.refine.PhotometricRefinement.run` recomputes the colours, the depth
 maps and every scratch array from the state kept here (poses with their damping, the welded vertices'
@@ -37,7 +38,9 @@ def refine_checkpoint(capture: Capture, geometry: Path, out: Path, cfg, device: 
         mask = capture.mask_path(f)
         if mask is not None:
             files.append(mask)
-    key = inputs_key("refine", files_signature(files), config_to_dict(cfg), device)
+    options = config_to_dict(cfg)
+    options.pop("checkpoint_every_s", None)  # when the state is saved, not what it is: a checkpoint resumes either way
+    key = inputs_key("refine", files_signature(files), options, device)
     return StageCheckpoint(work_dir_for(out, "refine"), key, "refine",
                            None if log is None else (lambda message: log(f"  refine: {message}")))
 

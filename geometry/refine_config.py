@@ -75,6 +75,10 @@ class RefineConfig:
                                     min=0.0, max=80.0)
     cos_view_min: float = option(0.2, "samples seen more grazingly than this cosine are left out", min=0.0, max=1.0)
     depth_tol: float = option(0.01, "visibility test tolerance, as a fraction of the camera distance", min=0.0)
+    checkpoint_every_s: float = option(10.0, "seconds between saves of the levels' state to the work folder (a kill "
+                                             "loses at most this much; each level's last iteration is always saved; "
+                                             "0: every iteration). Saving copies the state to the host, which on a GPU "
+                                             "costs more than an iteration", min=0.0)
     max_photo_mb: float = option(8192.0, "largest size of the photos (float32) this stage holds on the device; "
                                          "beyond it the stage refuses with a one-line error", min=1.0)
 

@@ -27,8 +27,10 @@ def capture(tmp_path_factory):
 
 
 def config(**kw) -> RefineConfig:
-    # two levels of two iterations, the shading normals short: 4 checkpoints, a few seconds
-    return RefineConfig(holdout_every=8, blur="1,0", iterations=2, normal_iterations=1, intensity_iterations=1, **kw)
+    # two levels of two iterations, the shading normals short: 4 checkpoints (saved after every iteration), a
+    # few seconds
+    return RefineConfig(**{"holdout_every": 8, "blur": "1,0", "iterations": 2, "normal_iterations": 1,
+                           "intensity_iterations": 1, "checkpoint_every_s": 0.0, **kw})
 
 
 def outputs(folder):
@@ -69,3 +71,23 @@ def test_a_checkpoint_of_other_options_is_ignored_with_a_line(capture, tmp_path,
         refine_stage(capture, gt, tmp_path / "out", config(smoothness=0.02))
     assert any("work of other inputs or options: ignored" in line for line in lines), lines
     assert not any("resuming" in line for line in lines)
+
+
+def test_the_state_is_saved_at_level_ends_between_intervals_and_resumes_under_another_interval(capture, tmp_path,
+                                                                                            monkeypatch):
+    """With a long interval only each level's last iteration is saved (a host copy per iteration costs more than
+    the iteration on a GPU); the interval is not part of the checkpoint's key, so a state saved under one interval
+    resumes under another to the uninterrupted result."""
+    gt = capture / "ground_truth"
+    refine_stage(capture, gt, tmp_path / "whole", config())
+    interrupt_after(monkeypatch, 1)
+    with pytest.raises(KeyboardInterrupt):
+        refine_stage(capture, gt, tmp_path / "again", config(checkpoint_every_s=1e9))
+    monkeypatch.undo()
+    lines = []
+    with reporting(lines.append, bars=False):
+        refine_stage(capture, gt, tmp_path / "again", config())
+    assert any("resuming from" in line and "2 of 4 iterations" in line for line in lines), lines  # the first level's end
+    whole, again = outputs(tmp_path / "whole"), outputs(tmp_path / "again")
+    assert whole[0] == again[0] and whole[1] == again[1]
+    np.testing.assert_array_equal(whole[2], again[2])
