@@ -428,6 +428,13 @@ def _mesh_and_atlas(pipe: Pipeline, posed: bool, posed_dir: Path, out: Path, cfg
     return mesh_path
 
 
+def run_choice_options(cfg: RunConfig) -> dict:
+    """The model choice's options the run declares at its top level (``--second-lobe``, ``--lfm``, ...), by
+    ModelChoiceConfig's own field names: they override ``cfg.fit.choice`` (tests/test_run_choice_options.py keeps
+    their defaults and ranges the same as ModelChoiceConfig's)."""
+    return {f.name: getattr(cfg, f.name) for f in dataclasses.fields(ModelChoiceConfig) if hasattr(cfg, f.name)}
+
+
 def _fit(pipe: Pipeline, capture, posed: bool, posed_dir: Path, fit_geometry: Path, model_dir: Path,
          cfg: RunConfig, lights_summary: dict | None):
     """(the fit stage's record, the kept model's kind, why): the model the scene needs (fit/stages/choice.py:
@@ -435,11 +442,7 @@ def _fit(pipe: Pipeline, capture, posed: bool, posed_dir: Path, fit_geometry: Pa
     held-out ones scoring only the model kept: with known lights a specular lobe only where it generalises;
     under one fixed unknown lighting view dependence only where it does)."""
     fit_cfg = dataclasses.replace(cfg.fit, device=cfg.device, fit=dataclasses.replace(cfg.fit.fit, model=cfg.model),
-                                  choice=ModelChoiceConfig(second_lobe=cfg.second_lobe, lfm=cfg.lfm,
-                                                           lfm_min_gain_db=cfg.lfm_min_gain_db,
-                                                           second_lobe_min_constrained=cfg.second_lobe_min_constrained,
-                                                           relightable=cfg.relightable,
-                                                           relightable_margin_db=cfg.relightable_margin_db))
+                                  choice=dataclasses.replace(cfg.fit.choice, **run_choice_options(cfg)))
     plan = plan_choice(capture, cfg.model, fit_cfg)
     model_kind, why = plan.base, plan.reason
     if lights_summary:
