@@ -73,6 +73,8 @@ def main() -> None:
                          "inputs and options are the same (ingest, mesh, atlas; register where SIFT read the photos "
                          "as they are in both) are not run again, only those whose resolution differs")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--mvs-level", type=int, default=None,
+                    help="both runs' dense-stereo level (mvs.level; -1 auto; default: the run's default)")
     args = ap.parse_args()
 
     import warp as wp
@@ -100,6 +102,8 @@ def main() -> None:
     cfg = RunConfig(device=args.device, progress=False)
     d = float(sum(((f.center ** 2).sum()) ** 0.5 for f in truth.frames) / len(truth.frames))
     cfg.ingest = dataclasses.replace(cfg.ingest, colocated_light=float(max(truth.frames[0].light.intensity)) / d ** 2)
+    if args.mvs_level is not None:  # the mesh's resolution, the same in both runs (what they compare is the others')
+        cfg.mesh = dataclasses.replace(cfg.mesh, mvs=dataclasses.replace(cfg.mesh.mvs, level=args.mvs_level))
     from texstream.calib.register import feature_image_size
 
     side = max(truth.frames[0].intrinsics.width, truth.frames[0].intrinsics.height)
@@ -111,7 +115,9 @@ def main() -> None:
     result = {"scene": "textured_sphere_6mp", "photos": len(truth.frames), "photo_size": size,
               "device": args.device, "machine": f"{platform.node()} ({os.cpu_count()} cores)", "commit": commit,
               "command": f"python benchmarks/hires_run.py --out {args.out} --scale {args.scale} --full {args.full} "
-                         f"--default {args.default} --reuse {args.reuse} --device {args.device}"}
+                         f"--default {args.default} --reuse {args.reuse} --device {args.device}"
+                         + ("" if args.mvs_level is None else f" --mvs-level {args.mvs_level}"),
+              "mvs_level": cfg.mesh.mvs.level}
     name = out / "hires_run.json"
     if name.is_file():  # a second invocation adds the other run
         result = {**json.loads(name.read_text()), **{k: v for k, v in result.items() if k != "command"}}
