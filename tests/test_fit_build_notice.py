@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import warp as wp
 
-from texstream.core.progress import reporting
 from texstream.fit.kernels import build_notice
 
 
@@ -12,16 +11,13 @@ def test_the_notice_shows_on_a_cold_cache_only(tmp_path, monkeypatch):
     wp.init()
     monkeypatch.setattr(wp.config, "kernel_cache_dir", str(tmp_path))
     monkeypatch.setattr(build_notice, "_ANNOUNCED", set())
-    lines = []
-    with reporting(lines.append):
-        build_notice.announce_kernel_build("fit", "cpu")
-        build_notice.announce_kernel_build("fit", "cpu")  # once per process and device
-    assert len(lines) == 1 and "compiling its Warp kernels" in lines[0] and str(tmp_path) in lines[0]
+    assert build_notice.kernels_cold("cpu")
+    assert not build_notice.kernels_cold("cpu")  # once per process and device
+    line = build_notice.kernel_build_line("cpu", "12 Warp modules at once on 2 threads")
+    assert "compiling its Warp kernels" in line and str(tmp_path) in line and "12 Warp modules at once" in line
     build_notice.mark_kernels_built("cpu")
     monkeypatch.setattr(build_notice, "_ANNOUNCED", set())
-    with reporting(lines.append):
-        build_notice.announce_kernel_build("fit", "cpu")
-    assert len(lines) == 1  # warm: nothing more said
+    assert not build_notice.kernels_cold("cpu")  # warm: nothing to build or say
 
 
 def test_the_key_follows_the_kernel_sources():

@@ -56,6 +56,7 @@ from typing import Any, NamedTuple
 import warp as wp
 
 from texstream.fit.kernels.lafortune_grad import lafortune_funcs, view_radiance_funcs
+from texstream.fit.kernels.overloads import IMAGE_PIXEL, STORAGE_SCALAR, declare, param_overloads
 from texstream.render.shading import incident_light, to_local
 from texstream.fit.kernels.stream import (SAMPLING_FILTERED, ImageInfo, SampleOptions, TexelFrames, kahan_add,
                                           observe_func, plane_texel_coords, ray_surface, tangent_frame, texel_blend,
@@ -462,8 +463,12 @@ def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, d
                     + ([_robust_name(robust)] if robust_on else []))
     if max_registers:
         name += f"_maxreg{max_registers}"
-    return wp.kernel(accumulate, name=name, enable_backward=False, module="unique",
-                     cuda_max_registers=max_registers or None)
+    kernel = wp.kernel(accumulate, name=name, enable_backward=False, module="unique",
+                       cuda_max_registers=max_registers or None)
+    [(s, v, _)] = param_overloads((fn.n_params,))  # the default precisions' overload (fit/kernels/overloads.py)
+    declare(kernel, params=STORAGE_SCALAR, direction=STORAGE_SCALAR, images=IMAGE_PIXEL, like=v, one=s, out_f=s,
+            out_g=v, out_dhd=s, out_diag=v)
+    return kernel
 
 
 @functools.cache
@@ -546,8 +551,11 @@ def accumulate_lm_kernel(n_lobes: int, anisotropic: int, max_registers: int = 0,
                     + (["room"] if int(ambient) == 2 else []))
     if max_registers:
         name += f"_maxreg{max_registers}"
-    return wp.kernel(accumulate_lm, name=name, enable_backward=False, module="unique",
-                     cuda_max_registers=max_registers or None)
+    kernel = wp.kernel(accumulate_lm, name=name, enable_backward=False, module="unique",
+                       cuda_max_registers=max_registers or None)
+    [(s, v, m)] = param_overloads((n_params,))  # the default precisions' overload (fit/kernels/overloads.py)
+    declare(kernel, params=STORAGE_SCALAR, images=IMAGE_PIXEL, like=v, like_m=m, one=s, out_f=s, out_g=v, out_jtj=m)
+    return kernel
 
 
 @wp.kernel(enable_backward=False, module="unique")
@@ -586,6 +594,11 @@ def reduce_partials_kernel(pf: wp.array2d(dtype=Any), pg: wp.array2d(dtype=Any),
     g[i] = b
     h[i] = c
     st[i] = s
+
+
+for _s, _v, _m in param_overloads():  # the default run's overloads (fit/kernels/overloads.py): LM's J^T J, CG's d^T H d
+    for _h in (_m, _s):
+        declare(reduce_partials_kernel, pf=_s, pg=_v, ph=_h, f=_s, g=_v, h=_h)
 
 
 @wp.kernel(enable_backward=False, module="unique")

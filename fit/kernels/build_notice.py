@@ -3,8 +3,9 @@
 Warp compiles a module on its first launch and keeps the binary in its kernel cache
 (``wp.config.kernel_cache_dir``); later runs load it in milliseconds. Warp has no hook before a compile, so
 texstream keeps its own marker beside the cache: one file per (texstream kernel sources, Warp version,
-device kind), written after a fit on that device succeeded. A fit that finds no marker prints one line saying
-the kernels are being built and where they are cached. The first ``python3 scripts/dev.py demo`` (or any
+device kind), written after a fit on that device succeeded. The first fit that finds no marker says the
+kernels are being built and where they are cached, and builds the default run's modules in parallel
+(fit/stages/prewarm.py). The first ``python3 scripts/dev.py demo`` (or any
 first fit) warms the cache for the CPU or GPU it ran on.
 """
 
@@ -21,7 +22,7 @@ from texstream.core.progress import say
 KERNEL_FOLDERS = ("render", "fit", "geometry")
 """the texstream folders whose modules hold Warp kernels (their sources make the marker's key)"""
 
-COLD_SECONDS = {"cpu": "2-4 min on 2 CPU cores", "cuda": "about 1 min on a GPU"}
+COLD_SECONDS = {"cpu": "about half a minute on 2 CPU cores", "cuda": "about 1 min on a GPU"}
 """what a cold build of a default fit's kernels takes, as the notice says it (docs/scale.md, issue 40)"""
 
 
@@ -49,20 +50,24 @@ def _marker(device: str) -> Path:
 _ANNOUNCED: set = set()
 
 
-def announce_kernel_build(stage: str, device: str) -> None:
-    """One line, once per process and device, when this texstream's kernels were never built on this device
-    kind in Warp's cache."""
+def kernels_cold(device: str) -> bool:
+    """Whether this texstream's kernels were never built on ``device``'s kind in Warp's cache: true at most once
+    per process and device (the first fit there says so and builds them, fit/stages/prewarm.py)."""
     if device in _ANNOUNCED:
-        return
+        return False
     _ANNOUNCED.add(device)
     try:
-        cold = not _marker(device).exists()
+        return not _marker(device).exists()
     except OSError:
-        return
-    if cold:
-        kind = "cuda" if str(device).startswith("cuda") else "cpu"
-        say(stage, f"first fit of this texstream on {device}: compiling its Warp kernels ({COLD_SECONDS[kind]}); "
-                   f"they are kept in {wp.config.kernel_cache_dir} and later runs start at once")
+        return False
+
+
+def kernel_build_line(device: str, how: str = "") -> str:
+    """The notice of a cold build on ``device``; ``how`` says how it is built."""
+    kind = "cuda" if str(device).startswith("cuda") else "cpu"
+    return (f"first fit of this texstream on {device}: compiling its Warp kernels ({COLD_SECONDS[kind]}"
+            + (f"; {how}" if how else "") + f"); they are kept in {wp.config.kernel_cache_dir} and later runs "
+            "start at once")
 
 
 def mark_kernels_built(device: str) -> None:

@@ -13,6 +13,7 @@ from typing import Any
 
 import warp as wp
 
+from texstream.fit.kernels.overloads import IMAGE_PIXEL, declare
 from texstream.fit.kernels.stream import SampleOptions, TexelFrames, observe
 from texstream.render.camera import ImageInfo
 from texstream.render.shading import incident_light
@@ -89,3 +90,8 @@ def highlight_samples_kernel(tex: TexelFrames, images: wp.array3d(dtype=Any), de
             if r - level[i] > threshold:
                 n_hits = n_hits + 1
     hits[i] = n_hits
+
+
+# the default run's overloads, in the module before its first launch (fit/kernels/overloads.py)
+declare(off_mirror_residual_kernel, images=IMAGE_PIXEL)
+declare(highlight_samples_kernel, images=IMAGE_PIXEL)

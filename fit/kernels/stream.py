@@ -20,6 +20,7 @@ from typing import Any
 
 import warp as wp
 
+from texstream.fit.kernels.overloads import IMAGE_PIXEL, declare
 from texstream.render.camera import ImageInfo
 from texstream.render.shading import bilinear_taps, incident_light, lafortune_brdf, surface_frame, texel_coords, to_local
 from texstream.render.visibility import depth_consistent
@@ -468,8 +469,10 @@ def initial_guess_kernel_for(radiance: bool = False):
         high[i] = hi
         count[i] = n
 
-    return wp.kernel(initial_guess, name="initial_guess_radiance" if radiance else "initial_guess",
-                     enable_backward=False, module="unique")
+    kernel = wp.kernel(initial_guess, name="initial_guess_radiance" if radiance else "initial_guess",
+                       enable_backward=False, module="unique")
+    declare(kernel, images=IMAGE_PIXEL)  # the default run's overload (fit/kernels/overloads.py)
+    return kernel
 
 
 @wp.func

@@ -7,6 +7,7 @@ from typing import Any
 
 import warp as wp
 
+from texstream.fit.kernels.overloads import IMAGE_PIXEL, declare
 from texstream.fit.kernels.stream import SampleOptions, TexelFrames, observe_func
 from texstream.render.camera import ImageInfo
 
@@ -30,8 +31,10 @@ def tile_visibility_kernel_for(radiance: bool = False):
         if ok:
             seen[tile_of_texel[i], photo_offset + k] = 1
 
-    return wp.kernel(tile_visibility, name="tile_visibility_radiance" if radiance else "tile_visibility",
-                     enable_backward=False, module="unique")
+    kernel = wp.kernel(tile_visibility, name="tile_visibility_radiance" if radiance else "tile_visibility",
+                       enable_backward=False, module="unique")
+    declare(kernel, images=IMAGE_PIXEL)  # the default run's overload (fit/kernels/overloads.py)
+    return kernel
 
 
 tile_visibility_kernel = tile_visibility_kernel_for(False)

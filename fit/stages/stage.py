@@ -28,10 +28,11 @@ from texstream.core.devices import DEVICE_HELP, resolve_device
 from texstream.core.outputs import StageResult, write_json_atomic
 from texstream.core.progress import bar, say
 
-from texstream.fit.kernels.build_notice import announce_kernel_build, mark_kernels_built
+from texstream.fit.kernels.build_notice import mark_kernels_built
 from texstream.fit.optim.fitter import FitConfig
 from texstream.fit.models import registry
 from texstream.fit.stages import choice
+from texstream.fit.stages.prewarm import build_kernels_if_cold
 from texstream.fit.models.materials import MaterialConfig
 from texstream.fit.common.inputs import SharedPhotoSet, check_output_path, split_holdout
 from texstream.fit.common.model_folder import check_render, image_metrics, json_safe, pooled_psnr
@@ -149,7 +150,7 @@ def fit_model(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     plugin = registry.get(cfg.fit.model)
     check_output_path(out_dir)
     cfg = dataclasses.replace(cfg, device=resolve_device(cfg.device))
-    announce_kernel_build("fit", cfg.device)
+    build_kernels_if_cold("fit", cfg.device, cfg.fit.model)
     with loaders_closed_after():  # photos streamed from disk: their loaders' threads end with the stage
         result = plugin.fit(registry.FitRequest(Path(capture_dir), Path(mesh_path), Path(out_dir), cfg, progress))
     mark_kernels_built(cfg.device)

@@ -1,0 +1,91 @@
+"""On a cold kernel cache, build the default run's Warp modules at once, in parallel, before the fit launches any.
+
+Warp compiles a module at its first launch, so a cold ``texstream run`` compiled ~25 modules one after another
+(issue 40: 27 of the README demo's 31.6 s on an H200). Warp's own compile runs unlocked in threads (only the
+Python code generation is serialised), so the first fit on a device whose marker is missing
+(fit/kernels/build_notice.py) loads every module the default run will launch there in one batch, one thread
+per CPU core, and the run's launches find them built. A module's hash covers its generic kernels' overloads,
+so those are declared when each kernel is made (fit/kernels/overloads.py): the hash built here is the hash
+launched, in this process and in later ones. A warm cache (the marker there) skips all of it.
+
+The list is explicit (tests/test_fit_prewarm.py fails when a default run launches a module it lacks, or one
+whose hash it did not build), not every module texstream imported: most of the fit's modules are made per
+pass kind by factories only when a fit asks for them, and on a 2-core CPU each unneeded module is a
+compile the run would wait for.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import warp as wp
+
+from texstream.core.progress import say
+from texstream.fit.kernels import accumulate, highlights, optim_kernels, stream, tiles, view_error
+from texstream.fit.kernels.build_notice import kernel_build_line, kernels_cold
+from texstream.fit.models.lafortune import gltf_core_kernel
+from texstream.fit.stream import photo_stream
+from texstream.fit.stream.config import StreamConfig
+from texstream.render import kernels as render_kernels
+from texstream.render import visibility
+
+DEFAULT_KINDS = ("lafortune", "diffuse")
+"""the models of the default run (the README's ``texstream run``: Lafortune, diffuse beside it); a fit of
+another kind builds only :func:`shared_modules` ahead and the rest at its launches"""
+MAX_REGISTERS = 168
+"""the accumulation kernels' register cap of layouts of at most 9 parameters (``stream.cuda_max_registers``
+-1, fit/stream/problem.py): part of their names, so of their modules"""
+
+
+def shared_modules() -> list:
+    """(module, block_dim) of every fit: photo streaming and depth maps, the plain optimizer kernels, the
+    renderer of the held-out renders and the report."""
+    plain = [photo_stream.to_half_kernel, visibility.depth_maps_kernel, optim_kernels.guess_from_samples_kernel,
+             render_kernels.render_kernel]
+    return [(k.module, None) for k in plain]
+
+
+def default_run_modules(device: str) -> list:
+    """(module, block_dim) of every module the default run's fit, export and report launch on ``device``
+    (None: the launch's default block size; the accumulation passes run at ``stream.cuda_block_dim``)."""
+    passes = StreamConfig().cuda_block_dim
+    per_pass = [accumulate.accumulate_lm_kernel(1, 0, MAX_REGISTERS),  # Lafortune's LM
+                accumulate.accumulate_lm_kernel(1, 0, MAX_REGISTERS, False, True),  # its traced polish
+                accumulate.accumulate_kernel(1, 0, False, False, False, False, MAX_REGISTERS),  # its scores
+                accumulate.accumulate_lm_kernel(0, 0, MAX_REGISTERS)]  # diffuse's LM
+    generic = [stream.initial_guess_kernel_for(False), optim_kernels.start_point_kernel, optim_kernels.trial_kernel,
+               optim_kernels.lm_solve_kernel, optim_kernels.lm_accept_kernel, optim_kernels.chunk_sums_kernel,
+               optim_kernels.centred_prior_kernel, optim_kernels.centred_prior_diag_kernel,
+               accumulate.reduce_partials_kernel]
+    plain = [view_error.view_error_rows_kernel, highlights.highlight_samples_kernel,
+             gltf_core_kernel.core_material_kernel]
+    if not str(device).startswith("cuda"):
+        generic.append(tiles.tile_visibility_kernel)  # the CPU's fit in threads over tiles of texels
+    return (shared_modules() + [(k.module, passes) for k in per_pass]
+            + [(k.module, None) for k in generic + plain])
+
+
+def build_threads() -> int:
+    """One compile per CPU core this process may use."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def build_kernels_if_cold(stage: str, device: str, kind: str) -> None:
+    """The first fit on ``device`` with a cold kernel cache: say so, build the default run's modules (those
+    every fit launches for another ``kind``) in parallel, and say how long it took. Warm: nothing."""
+    if not kernels_cold(device):
+        return
+    modules = default_run_modules(device) if kind in DEFAULT_KINDS else shared_modules()
+    threads = min(build_threads(), len(modules))
+    say(stage, kernel_build_line(device, f"{len(modules)} Warp modules at once on {threads} threads"))
+    t0 = time.perf_counter()
+    with ThreadPoolExecutor(threads) as pool:
+        for done in [pool.submit(wp.force_load, device=device, modules=[m], block_dim=b, max_workers=0)
+                     for m, b in modules]:
+            done.result()
+    say(stage, f"kernels built: {len(modules)} Warp modules in {time.perf_counter() - t0:.1f} s")
