@@ -22,7 +22,7 @@ from texstream.core.progress import say
 KERNEL_FOLDERS = ("render", "fit", "geometry")
 """the texstream folders whose modules hold Warp kernels (their sources make the marker's key)"""
 
-COLD_SECONDS = {"cpu": "about half a minute on 2 CPU cores", "cuda": "about 1 min on a GPU"}
+COLD_SECONDS = {"cpu": "about half a minute on 2 CPU cores", "cuda": "about 10 s on a GPU"}
 """what a cold build of a default fit's kernels takes, as the notice says it (docs/scale.md, issue 40)"""
 
 
