@@ -42,9 +42,10 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-from texstream.capture.capture_json import read_capture
+from texstream.capture.capture_json import read_capture, split_holdout
 from texstream.capture.imageio import read_image, read_mask
 from texstream.core.errors import ConfigError, InputError
+from texstream.fit.common.inputs import validation_period
 from texstream.fit.optim.fitter import FitConfig
 from texstream.fit.kernels import stream
 from texstream.fit.stream.photo_set import PhotoSet
@@ -228,16 +229,9 @@ def load_single_view(capture_dir: str | Path, normals_path: str | Path | None, c
     if not geo.covered.any():
         raise InputError("no pixel has both a valid normal and the object mask", normals_path,
                          "check that mask.png and the normal map cover the same object")
-    frames = capture.frames
-    held = []
-    if cfg.holdout_every > 0:
-        k = cfg.holdout_every
-        held = [f for i, f in enumerate(frames) if i % k == k - 1]
-        frames = [f for i, f in enumerate(frames) if i % k != k - 1]
+    frames, held = split_holdout(capture.frames, cfg.holdout_every)
     if cfg.choice.validation_fit:  # the model choice's fit of a candidate: the validation photos are scored instead
-        k = cfg.materials.validation_every
-        held = [f for i, f in enumerate(frames) if i % k == k - 1]
-        frames = [f for i, f in enumerate(frames) if i % k != k - 1]
+        frames, held = split_holdout(frames, validation_period(len(frames), cfg.materials.validation_every))
     images, masks = [], []
     for f in frames:
         im = read_image(capture.image_path(f), channels=3, response=capture.response)

@@ -68,7 +68,9 @@ class MaterialConfig:
                                      "lobes, the others borrow their material's), shared (every texel takes its "
                                      "material's lobe) or both (comma-separated: mixed,shared)")
     validation_every: int = option(8, "every k-th fitted photo is held back as a validation photo for the choice "
-                                      "(the fit's own held-out photos stay out of every decision)", min=2)
+                                      "(the fit's own held-out photos stay out of every decision); with fewer than "
+                                      "2k fitted photos the period shortens to keep two validation photos (at least "
+                                      "6 fitted photos: every n//2-th)", min=2)
     constrained_rel_std: float = option(0.1, "a texel's lobe is constrained by its photos when the relative standard "
                                              "deviations of its rho_s and n (sigma^2 (J^T J)^-1) are below this",
                                         min=0.0)

@@ -31,6 +31,8 @@ from texstream.core.config import option
 from texstream.core.errors import InputError, TexstreamError
 from texstream.core.outputs import StageResult, write_json_atomic
 from texstream.core.progress import say
+from texstream.capture.capture_json import split_holdout
+from texstream.fit.common.inputs import validation_period
 from texstream.fit.models import registry
 
 AUTO = "auto"
@@ -72,12 +74,14 @@ class ModelChoiceConfig:
 @dataclasses.dataclass
 class ChoicePlan:
     """What the choice will fit: the base kind and why, the first round of candidates (empty: the base model
-    alone, no comparison) and a phrase naming them for logs."""
+    alone, no comparison), a phrase naming them for logs, and the period of the validation split of this
+    capture's fitted photos (:func:`~texstream.fit.common.inputs.validation_period`; None: the configured one)."""
 
     base: str
     reason: str
     candidates: list
     also: str = ""
+    validation_every: int | None = None
 
     @property
     def compare(self) -> bool:
@@ -121,7 +125,8 @@ def plan_choice(capture, requested: str, cfg) -> ChoicePlan:
     also = " and ".join(c.label or c.name for c in cands[1:])
     if plugin.escalate is not None:
         also += plugin.escalate(None, cfg)[1]
-    return ChoicePlan(kind, why, cands, also)
+    fitted = len(split_holdout(capture.frames, cfg.holdout_every)[0])
+    return ChoicePlan(kind, why, cands, also, validation_period(fitted, cfg.materials.validation_every))
 
 
 def _db(value) -> str:
@@ -183,6 +188,7 @@ def fit_choice(capture_dir: Path, mesh_path: Path, out_dir: Path, cfg, plan: Cho
     left_out, the kept model's held-out scores, seconds), also written to its model.json."""
     log = log or (lambda line: say("fit", line.removeprefix("[fit] ")))
     out_dir, t0 = Path(out_dir), time.perf_counter()
+    every = plan.validation_every or cfg.materials.validation_every  # the split every candidate is judged on
     judged: dict[str, Judged] = {}
     left_out: dict[str, str] = {}
     failed: set[str] = set()  # escalations the capture could not take (said in the escalation's reason)
@@ -230,8 +236,7 @@ def fit_choice(capture_dir: Path, mesh_path: Path, out_dir: Path, cfg, plan: Cho
     relit = _relightable_candidates(plan, cfg)
     for c in relit:
         judge(c)
-    best, reason = _best({k: j for k, j in judged.items() if k not in {c.name for c in relit}},
-                         cfg.materials.validation_every)
+    best, reason = _best({k: j for k, j in judged.items() if k not in {c.name for c in relit}}, every)
     if relit:
         best, reason = _prefer_relightable(judged, best, reason, [c.name for c in relit], cfg.choice.relightable_margin_db)
     reason += "".join(f"; {k} left out: {why}" for k, why in left_out.items() if k not in failed)
@@ -249,7 +254,7 @@ def fit_choice(capture_dir: Path, mesh_path: Path, out_dir: Path, cfg, plan: Cho
     res.output = out_dir
     held = res.summary.get("heldout") or {}
     selection = {"chosen": best, "chosen_kind": kept.candidate.kind, "reason": reason,
-                 "validation_every": cfg.materials.validation_every,
+                 "validation_every": every,
                  "validation": {k: j.record() for k, j in judged.items()}, "left_out": left_out,
                  "heldout_pooled_db": held.get("pooled_psnr_db"), "heldout_worst_db": held.get("worst_psnr_db"),
                  "refit": ("its validation fit was fitted again to every fitted photo, from its initial guess"

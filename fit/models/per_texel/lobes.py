@@ -18,7 +18,7 @@ from texstream.fit.models.materials import (MaterialConfig, contradiction_test, 
                                             residual_variance, texel_uncertainty)
 from texstream.render.layout import ModelLayout
 
-from texstream.fit.common.inputs import read_photos, FitInputs
+from texstream.fit.common.inputs import read_photos, validation_period, FitInputs
 from texstream.fit.common.setup import (data_jtj, fill_unseen_texels, params_to_grid, per_texel_objective,
                                         unseen_sources)
 from texstream.fit.common.view_scores import ViewScores
@@ -203,9 +203,10 @@ def model_grid(params: np.ndarray, result: FitResult, problem, bake, cfg, seams=
 
 
 def validation_split(n: int, every: int) -> tuple[list[int], list[int]]:
-    """(fitted, validation) indices of ``n`` fitted photos for the materials choice: every ``every``-th is a
-    validation photo."""
-    return [i for i in range(n) if i % every != every - 1], [i for i in range(n) if i % every == every - 1]
+    """(fitted, validation) indices of ``n`` fitted photos for the materials choice: every k-th is a validation
+    photo, k = ``every`` or shorter for few photos (:func:`~texstream.fit.common.inputs.validation_period`)."""
+    k = validation_period(n, every)
+    return [i for i in range(n) if i % k != k - 1], [i for i in range(n) if i % k == k - 1]
 
 
 def mesh_view_scores(inputs: "FitInputs", val: list[int], cfg) -> Callable:
@@ -253,8 +254,8 @@ def choose_materials(inputs: "FitInputs", problem, cfg, log=None, score_views: C
     and every candidate's score, or {"chosen": "per-texel", "reason": ...} when the fitted photos are too few
     to split."""
     mcfg = cfg.materials
-    every = mcfg.validation_every
     n = len(inputs.frames)
+    every = validation_period(n, mcfg.validation_every)
     train, val = validation_split(n, every)
     if len(val) < 2 or len(train) < 2:
         return {"chosen": "per-texel", "reason": f"{n} fitted photos are too few for a validation split of every "
