@@ -57,8 +57,18 @@ def _stats(err: np.ndarray) -> dict:
             "within_2pct": float(np.mean(err <= 0.02))}
 
 
-def _texel_errors(model_dir: Path, truth_dir: Path, sim, truth_frames) -> dict:
-    """Per texel, the fitted albedo, rho_s and n against the truth at the same surface point (module doc)."""
+def _facing_counts(frames, pos: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """Per surface point, how many of ``frames`` face it (the view's cosine above 0.1, the fit's grazing limit)."""
+    counts = np.zeros(len(pos), np.int64)
+    for f in frames:
+        view = np.asarray(f.center)[None] - pos
+        counts += (np.sum(view * normal, axis=1) / np.linalg.norm(view, axis=1) > 0.1).astype(np.int64)
+    return counts
+
+
+def _texel_errors(model_dir: Path, truth_dir: Path, sim, truth_frames, training_frames=None) -> dict:
+    """Per texel, the fitted albedo, rho_s and n against the truth at the same surface point (module doc); with
+    ``training_frames`` (truth frames) also the albedo on the texels 4 or more of them face, and the ambient's."""
     from scipy.spatial import cKDTree
 
     from texstream.capture.imageio import read_image
@@ -88,6 +98,13 @@ def _texel_errors(model_dir: Path, truth_dir: Path, sim, truth_frames) -> dict:
     # the albedos' common scale (what the flash's intensity sets): the median ratio, per channel
     out["albedo_ratio_median"] = np.median(ratio, axis=0).tolist()
     out["albedo_rel_error_highlight"] = _stats(alb[hl])
+    if training_frames is not None:
+        faced = _facing_counts(training_frames, tpos[idx], tbake.normal[tbake.covered][idx].astype(np.float64))
+        out["albedo_rel_error_seen_4"] = _stats(alb[faced >= 4])
+        if lay.ambient and tlay.ambient:
+            amb = np.abs(fp[:, lay.ambient_offset:lay.ambient_offset + 3] / tp[:, tlay.ambient_offset:tlay.ambient_offset + 3]
+                         - 1.0).max(axis=1)
+            out["ambient_rel_error"] = _stats(amb)
     if fl is not None:
         rs = np.abs(fp[:, fl:fl + 3] / tp[:, tl:tl + 3] - 1.0).max(axis=1)
         n = np.abs(fp[:, fl + lay.lobe_stride - 1] / tp[:, tl + tlay.lobe_stride - 1] - 1.0)

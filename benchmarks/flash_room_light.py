@@ -3,12 +3,16 @@
 albedo, fit/models/per_texel/room_light.py); albedo error against the truth, held-out PSNR (issue 39; JSON).
 
     python benchmarks/flash_room_light.py --out out/flash_room [--photos 24] [--image-size 400] [--iterations 15]
-        [--modes off,on,room] [--model lafortune] [--reuse]
+        [--modes off,on,room] [--model lafortune] [--reuse] [--no-flash-pairs]
 
 The capture is benchmarks/flash_capture.py's (``texstream synth flash_capture``: a glossy textured sphere, a flash
 at each camera, the room's light E (1 + a (2 s - 1)) along z, which on a sphere is an order-1 SH irradiance);
-each fit is ``fit_stage`` on the truth's capture.json and ground-truth mesh, every 8th photo held out. Writes
-``OUT/flash_room_light_<model>.json``.
+each fit is ``fit_stage`` on the truth's capture.json and ground-truth mesh, every 8th photo held out. With
+``--no-flash-pairs`` every camera also takes a photo with the flash off (``texstream synth flash_capture
+--no-flash-pairs``; the capture in ``OUT/truth_pairs``): with 24 photos the held-out flash photos are those held out
+without pairs, plus their pairs; ``heldout_flash`` pools the flash photos alone, which compares with and without.
+The albedo error is also given on the texels that 4 or more training flash photos face (``albedo_rel_error_seen_4``:
+the view's cosine above 0.1, a convex sphere hiding nothing else). Writes ``OUT/flash_room_light_<model>[_pairs].json``.
 """
 
 from __future__ import annotations
@@ -38,11 +42,13 @@ def main() -> None:
     ap.add_argument("--model", default="lafortune", help="lafortune, or diffuse (no lobe to trade with the albedo)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--reuse", action="store_true", help="keep OUT's synthesized capture")
+    ap.add_argument("--no-flash-pairs", action="store_true", help="each camera also takes a no-flash photo")
     a = ap.parse_args()
 
     import warp as wp
 
-    from texstream.capture.capture_json import read_capture
+    from texstream.capture.capture_json import flash_fired, read_capture, split_holdout
+    from texstream.fit.common.model_folder import pooled_psnr
     from texstream.capture.synthetic.flash_capture import FlashCaptureConfig, synthesize_flash_capture
     from texstream.fit.optim.fitter import FitConfig
     from texstream.fit.stages.stage import FitStageConfig, fit_stage
@@ -51,32 +57,42 @@ def main() -> None:
                             cwd=Path(__file__).parent).stdout.strip()
     wp.config.quiet = True
     out = Path(a.out)
-    truth_dir = out / "truth"
+    pairs = "_pairs" if a.no_flash_pairs else ""
+    truth_dir = out / f"truth{pairs}"
     if not (a.reuse and (truth_dir / "capture.json").is_file()):
         synthesize_flash_capture(truth_dir, FlashCaptureConfig(photos=a.photos, image_size=a.image_size,
-                                                               device=a.device, progress=False))
+                                                               device=a.device, progress=False,
+                                                               no_flash_pairs=a.no_flash_pairs))
     truth = read_capture(truth_dir)
     result = {"commit": commit, "machine": f"{platform.node()} ({os.cpu_count()} cores)", "device": a.device,
               "load_before": os.getloadavg(),
               "command": f"python benchmarks/flash_room_light.py --photos {a.photos} --image-size {a.image_size} "
-                         f"--iterations {a.iterations} --modes {a.modes} --model {a.model}", "modes": {}}
+                         f"--iterations {a.iterations} --modes {a.modes} --model {a.model}"
+                         + (" --no-flash-pairs" if a.no_flash_pairs else ""), "modes": {}}
+    train_flash = [f for f in split_holdout(truth.frames, 8)[0] if flash_fired(f)]
     for mode in a.modes.split(","):
         cfg = FitStageConfig(device=a.device, holdout_every=8, renders=0,
                              fit=FitConfig(model=a.model, ambient=mode, max_iterations=a.iterations))
         t0 = time.perf_counter()
-        fit_stage(truth_dir, truth_dir / "ground_truth", out / f"fit_{a.model}_{mode}", cfg, progress=False)
-        man = json.loads((out / f"fit_{a.model}_{mode}" / "model.json").read_text())
-        tex = _texel_errors(out / f"fit_{a.model}_{mode}", truth_dir, (1.0, np.eye(3), np.zeros(3)), truth.frames)
+        fit_dir = out / f"fit_{a.model}_{mode}{pairs}"
+        fit_stage(truth_dir, truth_dir / "ground_truth", fit_dir, cfg, progress=False)
+        man = json.loads((fit_dir / "model.json").read_text())
+        tex = _texel_errors(fit_dir, truth_dir, (1.0, np.eye(3), np.zeros(3)), truth.frames, train_flash)
+        flash_views = [v for v in man.get("render_eval", []) if v.get("held_out") and "_noflash" not in v["frame"]]
         amb = man.get("ambient") or {}
         result["modes"][mode] = {"seconds": time.perf_counter() - t0, "load_after": os.getloadavg(),
                                  "heldout": {k: man["heldout"].get(k) for k in ("pooled_psnr_db", "worst_psnr_db",
                                                                                  "views")},
+                                 "heldout_flash": pooled_psnr(flash_views),
                                  "training_psnr_db": man["final"].get("psnr_db"),
                                  "albedo_rel_error": tex["albedo_rel_error"],
+                                 "albedo_rel_error_seen_4": tex["albedo_rel_error_seen_4"],
+                                 "ambient_rel_error": tex.get("ambient_rel_error"),
+                                 "ambient_choice": {k: v for k, v in amb.items() if k in ("mode", "chosen", "reason")},
                                  "albedo_ratio_median": tex["albedo_ratio_median"],
                                  "room": {k: v for k, v in (amb.get("room") or {}).items() if k != "convention"}}
         print(mode, json.dumps(result["modes"][mode], default=float), flush=True)
-    (out / f"flash_room_light_{a.model}.json").write_text(json.dumps(result, indent=2, default=float))
+    (out / f"flash_room_light_{a.model}{pairs}.json").write_text(json.dumps(result, indent=2, default=float))
 
 
 if __name__ == "__main__":
