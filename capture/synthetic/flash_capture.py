@@ -44,6 +44,7 @@ from texstream.capture.imageio import read_image, write_image
 from texstream.capture.response import PhotoResponse
 from texstream.core.config import option
 from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
+from texstream.render.renderer import Renderer
 
 from .colour_chart import chart_plane, filmic_codes, paste_chart
 from .synth import GROUND_TRUTH, SynthConfig, load_ground_truth, synthesize
@@ -183,8 +184,6 @@ def _no_flash_photos(tmp: Path, frames: list[Frame], chart_room: np.ndarray, cfg
     """Each flash frame's no-flash pair (module doc): the ground truth rendered with the flash at intensity 0 (the
     room's light alone, which the scene's ambient columns hold), the chart lit by the room; the sensor noise drawn
     after the flash photos' (seeds ``[seed, photos + k]``), so those stay as without pairs."""
-    from texstream.render.renderer import Renderer
-
     mesh, params, layout, _, _ = load_ground_truth(tmp)
     rend = Renderer(mesh, params, layout, device=cfg.device, shadows=SynthConfig().shadows)
     pairs = []

@@ -12,6 +12,8 @@ from texstream.capture.capture_json import Intrinsics
 from texstream.capture.capture_json import flash_fired, no_flash_frames, read_capture
 from texstream.capture.imageio import copy_with_metadata
 
+from .flash_capture import EXIF_FLASH_FIRED, EXIF_FLASH_OFF
+
 
 SENSOR_WIDTH_MM = 36.0  # the synthetic camera's sensor: full frame, so the 35 mm equivalent is the focal length
 
@@ -33,7 +35,6 @@ def write_photos_only(capture_dir: str | os.PathLike, out_dir: str | os.PathLike
     values unchanged) carrying the camera's EXIF focal length (:func:`camera_exif`) and, when some frames are
     marked ``no_flash`` (flash/no-flash pairs), the EXIF Flash tag the camera writes (fired or not), and nothing
     else (no capture.json, masks, poses or lights). Written atomically; returns the photo paths."""
-    from .flash_capture import EXIF_FLASH_FIRED, EXIF_FLASH_OFF
 
     cap = read_capture(capture_dir)
     pairs = bool(no_flash_frames(cap.frames))
