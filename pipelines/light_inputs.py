@@ -34,14 +34,14 @@ def _light(capture, flash_summary: dict) -> dict:
 
 
 def _no_flash(capture) -> dict:
+    """{"no_flash": {source, why}} when some photos were taken with the flash off, else {} (most captures)."""
     dark = no_flash_frames(capture.frames)
     if not dark:
-        return {"source": "none", "why": "every photo was taken with the flash (no EXIF Flash tag said otherwise, no "
-                                         "--no-flash glob)"}
+        return {}
     entry = capture.extra.get(NO_FLASH_KEY)
     why = entry.get("why") if isinstance(entry, dict) else "capture.json marks them no_flash"
-    return {"source": f"{len(dark)} of {len(capture.frames)} photos taken with the flash off (the room's light alone)",
-            "why": str(why)}
+    return {"no_flash": {"source": f"{len(dark)} of {len(capture.frames)} photos taken with the flash off (the room's "
+                                  "light alone)", "why": str(why)}}
 
 
 def _ambient(model: dict) -> dict:
@@ -69,7 +69,8 @@ def _resolutions(capture, model: dict, fit_geometry: Path) -> dict:
 
 
 def light_and_resolution_inputs(capture, model_dir: Path, fit_geometry: Path, flash_summary: dict) -> dict:
-    """{"light", "no_flash", "ambient", "resolutions"}: each {source, why} (module doc)."""
+    """{"light", "no_flash" (only when some photos were taken with the flash off), "ambient", "resolutions"}: each
+    {source, why} (module doc)."""
     model = _model_json(model_dir)
-    return {"light": _light(capture, flash_summary), "no_flash": _no_flash(capture), "ambient": _ambient(model),
+    return {"light": _light(capture, flash_summary), **_no_flash(capture), "ambient": _ambient(model),
             "resolutions": _resolutions(capture, model, fit_geometry)}

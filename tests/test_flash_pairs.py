@@ -235,3 +235,27 @@ def test_no_flash_sightings_of_the_chart_give_the_room_not_the_flash():
     assert [p["flash"] for p in res.photos].count(False) == sum(n.endswith("_noflash") for n in found)
     with pytest.raises(InputError, match="flash off"):
         flash_from_chart(dark, {n: s for n, s in found.items() if n.endswith("_noflash")}, true_response())
+
+
+def test_the_run_says_how_many_photos_had_no_flash_and_why(pair_fits):
+    """The run's light provenance (pipelines/light_inputs.py) names the no-flash photos and what marked them; a
+    capture without them gets no entry (most captures: their summaries stay as they were)."""
+    from texstream.pipelines.light_inputs import light_and_resolution_inputs
+
+    pairs = light_and_resolution_inputs(read_capture(pair_fits / "pairs"), pair_fits / "pairs_auto", pair_fits, {})
+    assert pairs["no_flash"]["source"].startswith("16 of 32 photos taken with the flash off"), pairs["no_flash"]
+    assert "flash off" in pairs["ambient"]["why"]
+    flash = light_and_resolution_inputs(read_capture(pair_fits / "flash"), pair_fits / "flash_on", pair_fits, {})
+    assert "no_flash" not in flash
+
+
+def test_run_passes_no_flash_to_ingest():
+    """``texstream run PHOTOS --no-flash GLOB`` reaches ingest's option."""
+    import argparse
+
+    from texstream.pipelines.cmd_run import _config, add_arguments
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    assert _config(parser.parse_args(["photos", "--no-flash", "*_noflash.*"])).ingest.no_flash == "*_noflash.*"
+    assert _config(parser.parse_args(["photos"])).ingest.no_flash is None

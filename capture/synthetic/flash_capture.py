@@ -238,8 +238,9 @@ def synthesize_flash_capture(out: str | Path, cfg: FlashCaptureConfig | None = N
                  "room_irradiance_on_chart": chart_room.tolist(), "chart_corners_world": chart_corners_world().tolist(),
                  "chart_in_full_view": int(sum(in_view)), "photos": len(cap.frames),
                  "image_size": cfg.image_size, "atlas": [res.summary["texture_width"], res.summary["texture_height"]],
-                 "no_flash_pairs": cfg.no_flash_pairs,
                  "units": "intensity in the scene's units (irradiance = I cos / r^2); response units = scene / "
                           "tone_white, the units of capture.json's response and exposures"}
+        if cfg.no_flash_pairs:  # absent without pairs: the capture's files stay as they were
+            truth["no_flash_pairs"] = True
         write_json_atomic(gt / "flash.json", truth)
     return StageResult(output=out, summary={**res.summary, "chart_in_full_view": int(sum(in_view))})
