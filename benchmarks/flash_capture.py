@@ -175,7 +175,7 @@ def heldout_flash(model_dir: Path) -> dict:
     from texstream.fit.common.model_folder import pooled_psnr
 
     views = json.loads((Path(model_dir) / "model.json").read_text()).get("render_eval", [])
-    return pooled_psnr([v for v in views if v.get("held_out") and "_noflash" not in v["frame"]])
+    return pooled_psnr([v for v in views if v.get("held_out") and "noflash" not in v["frame"]])
 
 
 def _ambient_choice(model_dir: Path) -> dict:

@@ -137,7 +137,7 @@ def main() -> None:
             fit_stage(truth_dir, truth_dir / "ground_truth", fit_dir, cfg, progress=False)
         man = json.loads((fit_dir / "model.json").read_text())
         tex = _texel_errors(fit_dir, truth_dir, (1.0, np.eye(3), np.zeros(3)), truth.frames, train_flash)
-        flash_views = [v for v in man.get("render_eval", []) if v.get("held_out") and "_noflash" not in v["frame"]]
+        flash_views = [v for v in man.get("render_eval", []) if v.get("held_out") and "noflash" not in v["frame"]]
         amb = man.get("ambient") or {}
         result["modes"][mode] = {"seconds": None if a.score_only else time.perf_counter() - t0,
                                  "load_after": os.getloadavg(),

@@ -22,12 +22,12 @@ Ground truth beside the photos, as for every synthetic set (``ground_truth/``: m
 - ``ground_truth/response.json``: the true response as ``texstream chart`` writes one (``--response FILE``).
 
 With ``no_flash_pairs`` (``--no-flash-pairs``) every camera also takes a photo with the flash off, from the same
-pose at the same exposure, as a photographer takes a flash/no-flash pair: ``images/frame_00003_noflash.png``
-beside ``frame_00003.png``, the room's light alone on the sphere and the chart, its frame's flash at intensity 0
+pose at the same exposure, as a photographer takes a flash/no-flash pair: ``images/frame_noflash_00003.png``
+the pair of ``frame_00003.png``, the room's light alone on the sphere and the chart, its frame's flash at intensity 0
 and marked ``no_flash`` (capture_json.py), the EXIF Flash tag written into both PNGs (0x9: fired; 0x10: not fired,
 flash suppressed) so that ingest tells them apart without ``--no-flash``. The no-flash frames follow all the flash
-frames in capture.json, so a hold-out of every 8th frame with a multiple of 8 photos holds out the flash photos it
-holds out without pairs and their pairs.
+frames in capture.json, as they do in name order (a photos-only run's), so a hold-out of every 8th frame with a
+multiple of 8 photos holds out the flash photos it holds out without pairs and their pairs.
 """
 
 from __future__ import annotations
@@ -66,8 +66,9 @@ EXIF_FLASH_FIRED = 0x9
 """the EXIF Flash tag of a flash photo: fired (bit 0), compulsory flash mode (bits 3-4 = 1)"""
 EXIF_FLASH_OFF = 0x10
 """the EXIF Flash tag of a no-flash photo: not fired, flash suppressed (bits 3-4 = 2)"""
-NO_FLASH_SUFFIX = "_noflash"
-"""a no-flash photo's name: its flash photo's with this suffix"""
+NO_FLASH_NAME = "frame_noflash_"
+"""a no-flash photo's name: its flash photo's ``frame_`` replaced by this, so the pairs share their number and, in
+name order (ingest's), the no-flash photos follow the flash photos as they do in capture.json"""
 
 
 @dataclasses.dataclass
@@ -191,7 +192,7 @@ def _no_flash_photos(tmp: Path, frames: list[Frame], chart_room: np.ndarray, cfg
         off = dataclasses.replace(f, light=Light.point(f.light.position, np.zeros(3)),
                                   extra={**f.extra, NO_FLASH_KEY: True})
         res = rend.render_frame(off)
-        name = Path(f.file_path).stem + NO_FLASH_SUFFIX
+        name = Path(f.file_path).stem.replace("frame_", NO_FLASH_NAME, 1)
         _write_photo(tmp, name, off, np.asarray(res.radiance, np.float64), np.asarray(res.mask, bool), np.zeros(3),
                      chart_room, np.random.default_rng([cfg.seed, len(frames) + k]), cfg.noise, EXIF_FLASH_OFF)
         off.file_path, off.mask_path = f"images/{name}.png", f"masks/{name}.png"
