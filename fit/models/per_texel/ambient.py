@@ -156,6 +156,10 @@ def resolve_ambient(inputs, problem: StreamProblem, start: FitStart, cfg):
     if not ambient_applies(problem.layout):
         return problem, start, cfg, None
     report = no_flash_decision(inputs, mode)
+    if report is not None and problem.cfg.residual_space != "radiance":
+        raise ConfigError(f"stream.residual_space {problem.cfg.residual_space} divides each sample by its flash's "
+                          f"light, which is 0 in the {report['no_flash_photos']} no-flash photos",
+                          fix="use stream.residual_space radiance (the default)")
     if report is not None:
         say("fit", report["reason"])
         start = flash_only_start(problem, start, inputs, cfg)
