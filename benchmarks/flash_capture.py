@@ -2,7 +2,7 @@
 response (issue 39; JSON).
 
     python benchmarks/flash_capture.py --out out/flash_capture [--photos 24] [--image-size 400] [--iterations 15]
-        [--variant-iterations 40] [--reuse] [--mesh-ab]
+        [--variant-iterations 40] [--reuse] [--mesh-ab] [--no-flash-pairs]
 
 Renders ``texstream synth flash_capture`` (a glossy textured sphere, a flash at each camera, the room's light,
 a ColorChecker on a stand beside it, 8-bit photos through a tone curve: capture/synthetic/flash_capture.py), writes
@@ -19,6 +19,12 @@ albedo (pi rho_d), rho_s and n against the truth at the same surface point (the 
 frame by the cameras' similarity, the nearest true texel), on the texels the photos saw and on those that saw their
 highlight in 5+ photos; the same fit without the ambient term; the mesh's vertices near the chart's quad (none
 wanted) and its distance to the true sphere. Writes ``OUT/flash_capture.json``.
+
+With ``--no-flash-pairs`` every camera also takes a photo with the flash off (``texstream synth flash_capture
+--no-flash-pairs``), which the run tells apart by their EXIF Flash tag: the run's ambient term is then on without
+the validation comparison, and the forced-off variant is left out (refused with no-flash photos). ``heldout_flash``
+pools the held-out flash photos alone (the held-out views without pairs), and the albedo is also given on the texels
+4 or more training flash photos face.
 """
 
 from __future__ import annotations
@@ -57,8 +63,18 @@ def _stats(err: np.ndarray) -> dict:
             "within_2pct": float(np.mean(err <= 0.02))}
 
 
-def _texel_errors(model_dir: Path, truth_dir: Path, sim, truth_frames) -> dict:
-    """Per texel, the fitted albedo, rho_s and n against the truth at the same surface point (module doc)."""
+def _facing_counts(frames, pos: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """Per surface point, how many of ``frames`` face it (the view's cosine above 0.1, the fit's grazing limit)."""
+    counts = np.zeros(len(pos), np.int64)
+    for f in frames:
+        view = np.asarray(f.center)[None] - pos
+        counts += (np.sum(view * normal, axis=1) / np.linalg.norm(view, axis=1) > 0.1).astype(np.int64)
+    return counts
+
+
+def _texel_errors(model_dir: Path, truth_dir: Path, sim, truth_frames, training_frames=None) -> dict:
+    """Per texel, the fitted albedo, rho_s and n against the truth at the same surface point (module doc); with
+    ``training_frames`` (truth frames) also the albedo on the texels 4 or more of them face, and the ambient's."""
     from scipy.spatial import cKDTree
 
     from texstream.capture.imageio import read_image
@@ -88,6 +104,13 @@ def _texel_errors(model_dir: Path, truth_dir: Path, sim, truth_frames) -> dict:
     # the albedos' common scale (what the flash's intensity sets): the median ratio, per channel
     out["albedo_ratio_median"] = np.median(ratio, axis=0).tolist()
     out["albedo_rel_error_highlight"] = _stats(alb[hl])
+    if training_frames is not None:
+        faced = _facing_counts(training_frames, tpos[idx], tbake.normal[tbake.covered][idx].astype(np.float64))
+        out["albedo_rel_error_seen_4"] = _stats(alb[faced >= 4])
+        if lay.ambient and tlay.ambient:
+            amb = np.abs(fp[:, lay.ambient_offset:lay.ambient_offset + 3] / tp[:, tlay.ambient_offset:tlay.ambient_offset + 3]
+                         - 1.0).max(axis=1)
+            out["ambient_rel_error"] = _stats(amb)
     if fl is not None:
         rs = np.abs(fp[:, fl:fl + 3] / tp[:, tl:tl + 3] - 1.0).max(axis=1)
         n = np.abs(fp[:, fl + lay.lobe_stride - 1] / tp[:, tl + tlay.lobe_stride - 1] - 1.0)
@@ -145,6 +168,14 @@ def _curve_check(run_capture_dir: Path, truth_dir: Path) -> dict:
 def _heldout(summary: dict) -> dict:
     h = summary.get("heldout") or {}
     return {k: h.get(k) for k in ("pooled_psnr_db", "worst_psnr_db", "views")}
+
+
+def heldout_flash(model_dir: Path) -> dict:
+    """Pooled PSNR of the held-out flash photos alone (model.json's per-view scores, no-flash photos left out)."""
+    from texstream.fit.common.model_folder import pooled_psnr
+
+    views = json.loads((Path(model_dir) / "model.json").read_text()).get("render_eval", [])
+    return pooled_psnr([v for v in views if v.get("held_out") and "noflash" not in v["frame"]])
 
 
 def _ambient_choice(model_dir: Path) -> dict:
@@ -225,6 +256,7 @@ def main() -> None:
     ap.add_argument("--reuse", action="store_true",
                     help="keep OUT's capture, photos and the runs' stages whose inputs did not change (the pipeline's "
                          "stamps); default: start afresh")
+    ap.add_argument("--no-flash-pairs", action="store_true", help="each camera also takes a no-flash photo")
     ap.add_argument("--mesh-ab", action="store_true",
                     help="only the meshes with and without chart masks, no object masks (OUT/mesh_*, "
                          "OUT/flash_capture_mesh_ab.json; needs OUT's photos: run without it first, then with --reuse)")
@@ -232,7 +264,7 @@ def main() -> None:
 
     import warp as wp
 
-    from texstream.capture.capture_json import read_capture
+    from texstream.capture.capture_json import flash_fired, read_capture, split_holdout
     from texstream.capture.synthetic.flash_capture import FlashCaptureConfig, synthesize_flash_capture
     from texstream.capture.synthetic.photos_only import write_photos_only
 
@@ -245,9 +277,11 @@ def main() -> None:
     if not (a.reuse and (out / "photos").is_dir()):
         shutil.rmtree(out, ignore_errors=True)
         synthesize_flash_capture(truth_dir, FlashCaptureConfig(photos=a.photos, image_size=a.image_size,
-                                                               device=a.device, progress=False))
+                                                               device=a.device, progress=False,
+                                                               no_flash_pairs=a.no_flash_pairs))
         write_photos_only(truth_dir, out / "photos")
     truth = read_capture(truth_dir)
+    train_flash = [f for f in split_holdout(truth.frames, 8)[0] if flash_fired(f)]
     flash_truth = json.loads((truth_dir / "ground_truth" / "flash.json").read_text())
     if a.mesh_ab:
         ab = {"commit": commit, "machine": f"{platform.node()} ({os.cpu_count()} cores)",
@@ -268,7 +302,7 @@ def main() -> None:
     result = {"commit": commit, "machine": f"{platform.node()} ({os.cpu_count()} cores)", "device": a.device,
               "command": f"python benchmarks/flash_capture.py --photos {a.photos} --image-size {a.image_size} "
                          f"--iterations {a.iterations} --variant-iterations {a.variant_iterations} "
-                         f"--atlas-resolution {a.atlas_resolution}",
+                         f"--atlas-resolution {a.atlas_resolution}" + (" --no-flash-pairs" if a.no_flash_pairs else ""),
               "truth": flash_truth, "chart": curve, "similarity": {"scale": sim[0], "camera_rms": sim[3]}}
     lights = run.get("lights") or {}
     if lights.get("source") == "colour chart":
@@ -280,26 +314,31 @@ def main() -> None:
     shift = 20 * math.log10(curve["scale_fitted_over_true"])
     po = _heldout(run)
     result["photos_only"] = {"heldout": po, "pooled_psnr_db_in_true_units": (po["pooled_psnr_db"] or 0) + shift,
+                             "heldout_flash": heldout_flash(out / "run" / "model"),
                              "seconds": run_s, "inputs": run["inputs"], "model": run["model"],
                              "stages": [{k: st[k] for k in ("name", "status", "reason", "seconds")} for st in run["stages"]],
                              "registered": len(read_capture(fit_dir).frames),
                              "ambient": _ambient_choice(out / "run" / "model"),
-                             "texels": _texel_errors(out / "run" / "model", truth_dir, sim, truth.frames),
+                             "texels": _texel_errors(out / "run" / "model", truth_dir, sim, truth.frames, train_flash),
                              "mesh": _mesh_checks(out / "run" / "mesh" / "mesh.ply", sim)}
     result["true_inputs"] = {"heldout": _heldout(ref), "seconds": ref_s, "inputs": ref["inputs"],
+                             "heldout_flash": heldout_flash(out / "reference" / "model"),
                              "ambient": _ambient_choice(out / "reference" / "model"),
                              "texels": _texel_errors(out / "reference" / "model", truth_dir, (1.0, np.eye(3), np.zeros(3)),
-                                                     truth.frames)}
+                                                     truth.frames, train_flash)}
     result["gap_db"] = result["true_inputs"]["heldout"]["pooled_psnr_db"] - po["pooled_psnr_db"]
-    for mode in ("on", "off"):  # the term forced either way, whatever auto chose: held-out error and albedos
+    # the term forced either way, whatever auto chose: held-out error and albedos (off is refused with pairs)
+    for mode in ("on",) if a.no_flash_pairs else ("on", "off"):
         key = f"photos_only_ambient_{mode}"
         result[key] = _fit_ambient(out / "run", out / f"run_ambient_{mode}", mode, a.device,
                                    a.variant_iterations or a.iterations)
-        result[key]["texels"] = _texel_errors(out / f"run_ambient_{mode}", truth_dir, sim, truth.frames)
-    result["ambient_gain_db"] = (result["photos_only_ambient_on"]["heldout"]["pooled_psnr_db"]
-                                 - result["photos_only_ambient_off"]["heldout"]["pooled_psnr_db"])
+        result[key]["heldout_flash"] = heldout_flash(out / f"run_ambient_{mode}")
+        result[key]["texels"] = _texel_errors(out / f"run_ambient_{mode}", truth_dir, sim, truth.frames, train_flash)
+    if not a.no_flash_pairs:
+        result["ambient_gain_db"] = (result["photos_only_ambient_on"]["heldout"]["pooled_psnr_db"]
+                                     - result["photos_only_ambient_off"]["heldout"]["pooled_psnr_db"])
     (out / "flash_capture.json").write_text(json.dumps(result, indent=2, default=float))
-    print(json.dumps({k: result[k] for k in ("gap_db", "ambient_gain_db")}, indent=1))
+    print(json.dumps({k: result.get(k) for k in ("gap_db", "ambient_gain_db")}, indent=1))
 
 
 if __name__ == "__main__":

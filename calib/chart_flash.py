@@ -17,6 +17,8 @@ irradiance where it lies, once their codes are linear (the capture's response, f
    channel in ``x = cos / r^2``, whose slope is the flash's intensity and whose intercept is the room's light on
    the chart, solved robustly (patches the object hides in a photo are outliers). When the photos' ``x`` barely
    varies the intercept is not told apart from the slope: the room's term is then left out, and the summary says so.
+   A photo taken with the flash off (capture_json.py ``no_flash``) has ``x = 0``: its patches measure the room's
+   light alone, the line's intercept, and leave the slope (the flash) to the flash photos.
 
 The intensity is in the capture's world units and the response's radiance units: the units the fit's lights
 need, so fitted albedos come out absolute. OpenCV is imported inside the functions that need it.
@@ -31,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from texstream.capture.capture_json import Capture, read_capture, write_capture
+from texstream.capture.capture_json import Capture, flash_fired, read_capture, write_capture
 from texstream.core.errors import InputError
 from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
 
@@ -183,20 +185,25 @@ def flash_from_chart(frames: list, sightings: dict, response, offset=(0.0, 0.0, 
         dist = np.linalg.norm(pts, axis=1)
         cos = np.abs(pts @ r[:, 2]) / dist
         per_photo.append({"photo": f.name, "distance": float(np.mean(dist)), "cos": float(np.mean(cos)),
-                          "pnp_rms_px": rms})
+                          "pnp_rms_px": rms, "flash": flash_fired(f)})
         codes = np.asarray(s.patches, np.float64)
         usable = (codes >= USABLE_CODES[0]) & (codes <= USABLE_CODES[1])
         lin = np.asarray(response.linearise(codes), np.float64)
         y = math.pi * lin / refl / float(f.exposure)
+        flash_x = cos / dist ** 2 * (1.0 if flash_fired(f) else 0.0)  # no flash: the room's light alone
         for ch in range(3):
             u = usable[:, ch]
-            xs.append((cos / dist ** 2)[u])
+            xs.append(flash_x[u])
             ys.append(y[u, ch])
             chans.append(np.full(int(u.sum()), ch))
     x, y, ch = np.concatenate(xs), np.concatenate(ys), np.concatenate(chans)
     if len(x) < 12:
         raise InputError(f"the colour chart gives {len(x)} usable patch values, too few for the flash's intensity",
                          fix="photograph the chart larger, exposed so its patches are neither black nor clipped")
+    if not np.any(x > 0):
+        raise InputError("the colour chart is seen only in photos taken with the flash off: the flash's intensity "
+                         "needs it under the flash", fix="photograph the chart in view of flash photos too, or give "
+                                                         "--colocated-light")
     room_fitted = float(x.max() / max(x.min(), 1e-30)) >= MIN_X_SPREAD
     intensity, room, kept = np.zeros(3), np.zeros(3), np.zeros(len(x), bool)
     resid = []
@@ -244,13 +251,15 @@ def flash_lit_capture(posed_dir: Path, out: Path) -> StageResult:
     sightings = {n: ChartSighting.from_json(d) for n, d in cap.extra["colour_chart"].items()}
     offset = camera_flash_offset(cap)
     found = flash_from_chart(cap.frames, sightings, cap.response, offset)
-    old = [float(v) for v in np.ravel(cap.frames[0].light.intensity)] if cap.frames[0].light is not None else None
+    lit = [f for f in cap.frames if f.light is not None and flash_fired(f)]
+    old = [float(v) for v in np.ravel(lit[0].light.intensity)] if lit else None
 
     def rel(p: str) -> str:
         return os.path.relpath(posed_dir / p, out)
 
     frames = [dataclasses.replace(f, file_path=rel(f.file_path), mask_path=None if f.mask_path is None else rel(f.mask_path),
-                                  light=colocated_light(f.R, f.t, found.intensity, offset)) for f in cap.frames]
+                                  light=colocated_light(f.R, f.t, found.intensity, offset, flash_fired(f)))
+              for f in cap.frames]
     summary = {"kind": "flash at the camera", "intensity": found.intensity.tolist(), "replaced": old,
                "photos_with_chart": len(sightings) - len(found.dropped_photos), "photos": len(frames),
                "room_irradiance_on_chart": found.room_irradiance.tolist(), "room_fitted": found.room_fitted,

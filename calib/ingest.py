@@ -36,7 +36,8 @@ from typing import Any
 
 import numpy as np
 
-from texstream.capture.capture_json import MASK_KIND_KEY, VALID_PIXELS, Capture, Frame, Intrinsics, write_capture
+from texstream.capture.capture_json import (MASK_KIND_KEY, NO_FLASH_KEY, VALID_PIXELS, Capture, Frame, Intrinsics,
+                                             write_capture)
 from texstream.capture.imageio import read_alpha, read_image, read_mask, srgb_to_linear, write_image
 from texstream.capture.response import RESPONSE_KEY, response_from_json
 from texstream.core.errors import InputError, StageError, TexstreamError
@@ -49,6 +50,7 @@ from .colour_chart import response_from_photos
 from .files import list_images, write_failure_report
 from .lights import load_lights_file
 from .masks import MASK_MODES, MaskConfig, masks_for_images, write_mask_preview
+from .no_flash import NO_FLASH_HELP, decide_no_flash, exif_flash_fired
 from .hdr import (BRACKET_MODES, HDR_METHODS, bracket_alignment, calibrate_response, group_brackets, is_exif_bracket,
                   merge_brackets_8bit, merge_brackets_linear)
 from .intrinsics import intrinsics_for_size, load_intrinsics
@@ -93,6 +95,8 @@ class IngestConfig:
                                            "light at each camera centre; when SfM's scale is arbitrary (no "
                                            "alignment) it is the irradiance at the median object distance",
                                            min=1e-12)
+    no_flash: str | None = option(None, help=NO_FLASH_HELP + " (calib/no_flash.py); those photos' flash gets "
+                                  "intensity 0")
     response: str = option("srgb", help="how the 8- and 16-bit photos' codes become linear radiance (the "
                            "fit's input): srgb (decoded as sRGB), auto (the curve fitted to a ColorChecker Classic "
                            "found in the photos, when it is found in at least 2 of them; else srgb, saying why), or "
@@ -175,7 +179,7 @@ def _exif(path: Path) -> dict[str, Any]:
                           ("ExposureTime", "exposure_time"), ("Exif:ExposureTime", "exposure_time"),
                           ("Exif:PhotographicSensitivity", "iso"), ("Exif:ISOSpeedRatings", "iso"),
                           ("FNumber", "f_number"), ("Exif:FNumber", "f_number"), ("Orientation", "orientation"),
-                          ("Exif:ExposureMode", "exposure_mode"),
+                          ("Exif:ExposureMode", "exposure_mode"), ("Exif:Flash", "flash"),
                           ("Make", "make"), ("Model", "model"),
                           ("Exif:FocalPlaneXResolution", "focal_plane_xres"),
                           ("Exif:FocalPlaneResolutionUnit", "focal_plane_unit"),
@@ -186,6 +190,17 @@ def _exif(path: Path) -> dict[str, Any]:
         return out
     finally:
         inp.close()
+
+
+def _no_flash_photos(groups: list[list[int]], infos: list[dict], cfg: IngestConfig) -> tuple[set[str], dict]:
+    """(the file names of the views' lead photos taken with the flash off, capture.json's ``no_flash`` entry):
+    ``--no-flash``, else the EXIF Flash tag (:mod:`.no_flash`); a bracket's lead photo speaks for it."""
+    leads = [infos[g[len(g) // 2]] for g in groups]
+    marked, entry = decide_no_flash({i["path"].name: exif_flash_fired(i["exif"].get("flash")) for i in leads},
+                                    cfg.no_flash)
+    if marked:
+        say("ingest", f"no-flash photos: {entry['why']}")
+    return marked, entry
 
 
 def apply_orientation(img: np.ndarray, orientation: int) -> np.ndarray:
@@ -435,9 +450,8 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
     candidates = group_brackets(times, [i["size"] for i in infos], cfg.bracket_size)
     groups, decisions = _decide_brackets(candidates, infos, cfg)
     response, response_entry = _decide_response(infos, cfg)
-    cams = None
-    if cfg.intrinsics:
-        cams = load_intrinsics(cfg.intrinsics)
+    no_flash, no_flash_entry = _no_flash_photos(groups, infos, cfg)
+    cams = load_intrinsics(cfg.intrinsics) if cfg.intrinsics else None
     default_light, frame_lights = load_lights_file(cfg.lights) if cfg.lights else (None, {})
     frames: list[Frame] = []
     sources: set[str] = set()
@@ -464,10 +478,12 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
                 gain = float(ex["exposure_time"]) * float(ex.get("iso", 100.0)) / 100.0 / float(ex.get("f_number", 1.0)) ** 2
             light = frame_lights.get(name) or frame_lights.get(lead["path"].name) or default_light
             # per frame too: registration gives an EXIF prior as one, a guess as none
-            extra = {"source_images": [m["path"].name for m in members], "focal_prior": source}
+            extra = {"source_images": [m["path"].name for m in members], "focal_prior": source,
+                     **({NO_FLASH_KEY: True} if lead["path"].name in no_flash else {})}
             if ex:
                 extra["exif"] = {k: v for k, v in ex.items() if k in ("exposure_time", "iso", "f_number", "focal_mm",
-                                                                        "focal_35mm", "orientation", "make", "model")}
+                                                                        "focal_35mm", "orientation", "make", "model",
+                                                                        "flash")}
             entries.append((Frame(file_path=str(rel), R=np.eye(3), t=np.zeros(3), intrinsics=intr, light=light,
                                   mask_path=None if mask_rel is None else str(mask_rel), saturation=sat, extra=extra),
                             gain, mask_src))
@@ -484,18 +500,15 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
             extra_top["focal_prior"] = [d["decision"] for d in focal_decisions.values()]
         if cfg.colocated_light is not None:
             extra_top["colocated_light"] = {"intensity": [float(cfg.colocated_light)] * 3, "offset": [0.0, 0.0, 0.0]}
-        if response is not None:
-            extra_top[RESPONSE_KEY] = response.to_json()
+        extra_top.update({RESPONSE_KEY: response.to_json()} if response is not None else {},
+                         **({NO_FLASH_KEY: no_flash_entry} if no_flash else {}))
         extra_top.update(chart_extra)
         write_capture(Capture(root=tmp, frames=frames, extra=extra_top), tmp)
-        report["response"] = response_entry
-        report["frames"] = [f.file_path for f in frames]
+        report.update(response=response_entry, frames=[f.file_path for f in frames], no_flash=no_flash_entry)
         report["brackets"] = [[infos[i]["path"].name for i in g] for g in groups if len(g) > 1]
         report["bracket_decisions"] = decisions
         report["camera_sizes"] = sorted({f"{f.intrinsics.width}x{f.intrinsics.height}" for f in frames})
-        report["auto_masks"] = auto
-        report["chart_masks"] = chart_masks
-        report["focal_prior"] = list(focal_decisions.values())
+        report.update(auto_masks=auto, chart_masks=chart_masks, focal_prior=list(focal_decisions.values()))
         write_json_atomic(tmp / REPORT_FILE, report)
         save_config(cfg, tmp / "ingest_config.json")
         if auto.get("masks"):
@@ -506,5 +519,6 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
                "camera_sizes": report["camera_sizes"],
                "focal_prior": [d["decision"] for d in focal_decisions.values()],
                "auto_masks": {k: auto.get(k) for k in ("mode", "decision", "masks")},
-               "response": {k: response_entry[k] for k in ("used", "why")}, "chart_masks": chart_masks["why"]}
+               "response": {k: response_entry[k] for k in ("used", "why")}, "chart_masks": chart_masks["why"],
+               "no_flash": no_flash_entry}
     return StageResult(output=out, summary=summary)

@@ -58,11 +58,13 @@ def load_lights_file(path: str | os.PathLike) -> tuple[Light | None, dict[str, L
     return default, frames
 
 
-def colocated_light(r: np.ndarray, t: np.ndarray, intensity, offset=(0.0, 0.0, 0.0)) -> Light:
-    """Point light fixed to a camera with world-to-camera (R, t): at the centre plus ``offset`` (camera axes)."""
+def colocated_light(r: np.ndarray, t: np.ndarray, intensity, offset=(0.0, 0.0, 0.0), fired: bool = True) -> Light:
+    """Point light fixed to a camera with world-to-camera (R, t): at the centre plus ``offset`` (camera axes);
+    intensity 0 for a photo whose flash did not fire (``fired`` False: a no-flash photo, which the room lights
+    alone; capture_json.py ``no_flash``)."""
     r = np.asarray(r, dtype=np.float64)
     pos = r.T @ (np.asarray(offset, dtype=np.float64).reshape(3) - np.asarray(t, dtype=np.float64).reshape(3))
-    inten = np.broadcast_to(np.asarray(intensity, dtype=np.float64), (3,))
+    inten = np.broadcast_to(np.asarray(intensity, dtype=np.float64), (3,)) * (1.0 if fired else 0.0)
     return Light.point(pos, inten)
 
 

@@ -55,6 +55,7 @@ from texstream.core.config import option, save_config
 from texstream.core.errors import InputError
 from texstream.core.outputs import StageResult, atomic_output_dir
 
+from .no_flash import NO_FLASH_HELP
 from .posed_import import (LensCamera, MeshWriter, PosedPhoto, check_photos_out, find_photo, photo_index,
                            photo_scale, pose_from_camera_to_world, similarity_matrix, summary_lines,
                            write_posed_capture)
@@ -74,6 +75,8 @@ class MetashapeImportConfig:
     colocated_light: float | None = option(None, help="photos lit by a flash at the camera: its intensity (a point "
                                                       "light at each camera centre, in the chunk's world units)",
                                                       min=1e-12)
+    no_flash: str | None = option(None, help=NO_FLASH_HELP + " (calib/no_flash.py); those photos' flash gets "
+                                  "intensity 0")
     mesh: str | None = option(None, help="a mesh Metashape exported (OBJ/PLY): written into the capture, and "
                                          "'texstream run' uses it as the mesh")
     mesh_frame: str = option("chunk", help="the frame the mesh is in: chunk (Metashape's default export) or world "
@@ -295,7 +298,7 @@ def import_metashape(cameras_xml: str | os.PathLike, photos: str | os.PathLike, 
             extra["mesh"] = mesh_rel
             extra["mesh_source"] = {"file": str(Path(cfg.mesh).resolve()), "frame": cfg.mesh_frame}
         write_posed_capture(tmp, posed, undistort=cfg.undistort, copy_mode=cfg.copy_mode,
-                            colocated=cfg.colocated_light, extra=extra)
+                            colocated=cfg.colocated_light, extra=extra, no_flash=cfg.no_flash)
         save_config(cfg, tmp / "import_config.json")
     log(summary_lines(sensors_used, len(posed), skipped) + f"\nchunk scale {scale:.6g} (chunk -> world)")
     return StageResult(output=out, summary={"cameras": len(posed), "disabled": len(skipped["disabled"]),

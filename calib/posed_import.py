@@ -28,13 +28,15 @@ from typing import Callable
 
 import numpy as np
 
-from texstream.capture.capture_json import MASK_KIND_KEY, VALID_PIXELS, Capture, Frame, Intrinsics, write_capture
+from texstream.capture.capture_json import (MASK_KIND_KEY, NO_FLASH_KEY, VALID_PIXELS, Capture, Frame, Intrinsics,
+                                             write_capture)
 from texstream.capture.imageio import write_image
 from texstream.core.errors import InputError, StageError
 
 from .colmap_io import _copy_file
 from .files import IMAGE_EXTS, read_stored_pixels, remap_channels, write_stored_pixels
 from .lights import colocated_light
+from .no_flash import decide_no_flash, read_flash_fired
 
 FLOAT_EXTS = (".exr", ".hdr", ".pfm")
 """photo formats that store linear floats (no clipping level); the others store integers, which clip at 1"""
@@ -194,9 +196,14 @@ MeshWriter = Callable[[Path, Path, np.ndarray], None]
 
 
 def write_posed_capture(tmp: Path, photos: list[PosedPhoto], *, undistort: bool, copy_mode: str,
-                        colocated: float | None, extra: dict) -> list[Frame]:
+                        colocated: float | None, extra: dict, no_flash: str | None = None) -> list[Frame]:
     """Write the photos into ``tmp/images`` (resampled to pinhole, or copied) and ``tmp/capture.json``; an
-    undistorted photo with pixels outside the source gets ``tmp/masks/NAME.png`` (nonzero: seen)."""
+    undistorted photo with pixels outside the source gets ``tmp/masks/NAME.png`` (nonzero: seen). The photos taken
+    with the flash off (``no_flash``, a file-name glob, else their EXIF Flash tag: :mod:`.no_flash`) are marked,
+    their flash at intensity 0."""
+    marked, no_flash_entry = decide_no_flash({p.photo.name: read_flash_fired(p.photo) for p in photos}, no_flash)
+    if marked:
+        extra = {**extra, NO_FLASH_KEY: no_flash_entry}
     frames = []
     used: set[str] = set()
     for p in photos:
@@ -215,10 +222,12 @@ def write_posed_capture(tmp: Path, photos: list[PosedPhoto], *, undistort: bool,
         else:
             intr = p.lens.pinhole() if undistort else p.lens.opencv_intrinsics(f"camera {p.label}")
             _copy_file(p.photo, tmp / rel, copy_mode)
-        light = None if colocated is None else colocated_light(p.r, p.t, float(colocated))
+        fired = p.photo.name not in marked
+        light = None if colocated is None else colocated_light(p.r, p.t, float(colocated), fired=fired)
         saturation = None if p.photo.suffix.lower() in FLOAT_EXTS else 1.0
-        frames.append(Frame(file_path=str(rel), R=p.r, t=p.t, intrinsics=intr, light=light, saturation=saturation, mask_path=mask,
-                            extra={"label": p.label, "sensor": p.sensor} if p.sensor else {"label": p.label}))
+        fextra = {"label": p.label, **({"sensor": p.sensor} if p.sensor else {}), **({} if fired else {NO_FLASH_KEY: True})}
+        frames.append(Frame(file_path=str(rel), R=p.r, t=p.t, intrinsics=intr, light=light, saturation=saturation,
+                            mask_path=mask, extra=fextra))
     if any(f.mask_path for f in frames):
         # these masks mark the pixels that have data, not the object: the mesh stage must not carve a hull from them
         extra = {**extra, MASK_KIND_KEY: VALID_PIXELS}

@@ -46,6 +46,7 @@ from texstream.core.config import option, save_config
 from texstream.core.errors import InputError
 from texstream.core.outputs import StageResult, atomic_output_dir
 
+from .no_flash import NO_FLASH_HELP
 from .posed_import import (LensCamera, PosedPhoto, check_photos_out, find_photo, photo_index, summary_lines,
                            write_posed_capture)
 
@@ -66,6 +67,8 @@ class RealityCaptureImportConfig:
     colocated_light: float | None = option(None, help="photos lit by a flash at the camera: its intensity (a point "
                                                       "light at each camera centre, in the export's world units)",
                                                       min=1e-12)
+    no_flash: str | None = option(None, help=NO_FLASH_HELP + " (calib/no_flash.py); those photos' flash gets "
+                                  "intensity 0")
     overwrite: bool = option(True, help="replace an existing output folder")
 
 
@@ -204,7 +207,7 @@ def import_realitycapture(xmps: str | os.PathLike, photos: str | os.PathLike, ou
                            for k, n in kinds.items()]}
     with atomic_output_dir(out, overwrite=cfg.overwrite) as tmp:
         write_posed_capture(tmp, posed, undistort=cfg.undistort, copy_mode=cfg.copy_mode,
-                            colocated=cfg.colocated_light, extra=extra)
+                            colocated=cfg.colocated_light, extra=extra, no_flash=cfg.no_flash)
         save_config(cfg, tmp / "import_config.json")
     groups = {f"{m} ({c} coordinates)": {"cameras": n, "calibration": "relative (XMP)", "photos": ", ".join(sizes),
                                          "scale": 1.0} for (m, c, _), n in kinds.items()}

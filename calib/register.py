@@ -41,7 +41,8 @@ from typing import Any
 
 import numpy as np
 
-from texstream.capture.capture_json import CAPTURE_FILE, Capture, Frame, Intrinsics, read_capture, write_capture
+from texstream.capture.capture_json import (CAPTURE_FILE, Capture, Frame, Intrinsics, flash_fired, read_capture,
+                                             write_capture)
 from texstream.capture.imageio import image_size, linear_to_srgb, read_image, read_mask, write_image
 from texstream.core.checkpoint import KEY_FILE, StageCheckpoint, files_signature, inputs_key, work_dir_for
 from texstream.core.errors import ConfigError, InputError, StageError, TexstreamError
@@ -688,7 +689,7 @@ def _posed_frame(p: _Photo, pose: tuple, tmp: Path, mask_dir: Path, cfg: Registe
     base = p.frame
     light = base.light if base else None
     if coloc is not None:
-        light = colocated_light(r, t, coloc, offset)
+        light = colocated_light(r, t, coloc, offset, fired=base is None or flash_fired(base))
     extra = dict(base.extra) if base else {}
     exposure = base.exposure if base else 1.0
     if p.name in gains:

@@ -12,6 +12,9 @@ in OpenGL axes. texstream adds optional per-frame fields (DESIGN.md):
   ``"valid_pixels"`` (photos undistorted by an import) nonzero means only "this pixel has data": the fit and
   stereo use such masks, the visual hull does not (:func:`masks_are_silhouettes`)
 - ``saturation``: pixel value at or above which a sample is clipped (default none)
+- ``no_flash``: true for a photo taken with the flash off (a flash/no-flash pair's second photo, issue 39): the
+  stages that put the flash at the camera give it intensity 0, so it sees the room's light alone
+  (:func:`flash_fired`)
 
 and an optional top-level ``response``: the inverse response of the 8- and 16-bit photos (code value to linear
 radiance, from a colour checker; :mod:`texstream.capture.response`); absent, they are decoded as sRGB.
@@ -36,6 +39,8 @@ from .conventions import c2w_gl_to_w2c_cv, camera_center, is_rotation, w2c_cv_to
 from .response import RESPONSE_KEY, PhotoResponse, response_from_json
 
 CAPTURE_FILE = "capture.json"
+NO_FLASH_KEY = "no_flash"
+"""a frame's field marking a photo taken with the flash off (module doc)"""
 MASK_KIND_KEY = "mask_kind"
 VALID_PIXELS = "valid_pixels"
 _INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
@@ -318,6 +323,16 @@ def write_capture(capture: Capture, folder: str | os.PathLike | None = None) -> 
     path = root / CAPTURE_FILE
     write_json_atomic(path, capture_to_json(capture))
     return path
+
+
+def flash_fired(frame: Frame) -> bool:
+    """Whether the camera's flash fired for this photo (False: a frame marked ``no_flash``, module doc)."""
+    return frame.extra.get(NO_FLASH_KEY) is not True
+
+
+def no_flash_frames(frames: list[Frame]) -> list[Frame]:
+    """The frames taken with the flash off."""
+    return [f for f in frames if not flash_fired(f)]
 
 
 def masks_are_silhouettes(capture: "Capture") -> bool:

@@ -132,6 +132,8 @@ def observe(infos: wp.array(dtype=ImageInfo), images: wp.array3d(dtype=wp.vec3),
         cos_light = wp.dot(n_shade, wi)
         if cos_light < 0.1:  # the fit's grazing-light rejection (StreamConfig.cos_light_min)
             return ob
+        if wp.max(irradiance) <= 0.0:  # a no-flash photo (flash intensity 0): nothing lit to compare
+            return ob
         shading = info.exposure * cos_light * irradiance
     ob.ok = 1
     ob.p_cam = pc

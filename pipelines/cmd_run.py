@@ -45,6 +45,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--colocated-light", dest="colocated_light", default=None,
                         type=Number.of(IngestConfig, "colocated_light", "--colocated-light"),
                         help="photos lit by a flash at the camera: its irradiance at the object (the albedos' scale)")
+    parser.add_argument("--no-flash", dest="no_flash", default=None, metavar="GLOB",
+                        help="photos taken with the flash off, a file-name glob (texstream ingest --no-flash; a photos "
+                             "folder's run: a capture's capture.json marks them itself); default: the EXIF Flash tag")
     parser.add_argument("--lights", default=None, help="lights file (JSON) for the photos (texstream ingest --lights)")
     parser.add_argument("--response", default=None, metavar="FILE|auto|srgb",
                         help="how the photos' codes become linear radiance (texstream ingest --response; default srgb)")
@@ -82,7 +85,7 @@ def _config(args: argparse.Namespace):
            if getattr(args, k, None) is not None}
     fit = {k: v for k, v in (("max_iterations", args.iterations), ("optimizer", args.optimizer)) if v is not None}
     cfg = dataclasses.replace(cfg, **top)
-    ingest = {k: getattr(args, k) for k in ("colocated_light", "lights", "response")
+    ingest = {k: getattr(args, k) for k in ("colocated_light", "lights", "response", "no_flash")
               if getattr(args, k) is not None}
     if ingest:
         cfg.ingest = dataclasses.replace(cfg.ingest, **ingest)

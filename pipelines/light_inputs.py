@@ -1,12 +1,15 @@
 """What a run's summary and report say about its light and resolutions (issue 39): which light the fit assumed
-(the flash's intensity from a colour chart, given, or per photo), whether the room's light got a per-texel ambient
-term and why, and the photos' and the atlas's sizes with the level the fit read. Entries in the
+(the flash's intensity from a colour chart, given, or per photo), how many photos were taken with the flash off and
+what said so (EXIF, ``--no-flash``), whether the room's light got a per-texel ambient term and why, and the photos'
+and the atlas's sizes with the level the fit read. Entries in the
 ``{input: {source, why}}`` form of :mod:`texstream.pipelines.provenance` (printed, and in the report's inputs)."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
+
+from texstream.capture.capture_json import NO_FLASH_KEY, no_flash_frames
 
 
 def _model_json(model_dir: Path) -> dict:
@@ -28,6 +31,17 @@ def _light(capture, flash_summary: dict) -> dict:
     if capture.extra.get("lights_source"):
         return {"source": str(capture.extra["lights_source"]), "why": "the lights stage"}
     return {"source": "known per photo" if capture.has_lights else "none known", "why": "as the capture states"}
+
+
+def _no_flash(capture) -> dict:
+    """{"no_flash": {source, why}} when some photos were taken with the flash off, else {} (most captures)."""
+    dark = no_flash_frames(capture.frames)
+    if not dark:
+        return {}
+    entry = capture.extra.get(NO_FLASH_KEY)
+    why = entry.get("why") if isinstance(entry, dict) else "capture.json marks them no_flash"
+    return {"no_flash": {"source": f"{len(dark)} of {len(capture.frames)} photos taken with the flash off (the room's "
+                                  "light alone)", "why": str(why)}}
 
 
 def _ambient(model: dict) -> dict:
@@ -55,7 +69,8 @@ def _resolutions(capture, model: dict, fit_geometry: Path) -> dict:
 
 
 def light_and_resolution_inputs(capture, model_dir: Path, fit_geometry: Path, flash_summary: dict) -> dict:
-    """{"light", "ambient", "resolutions"}: each {source, why} (module doc)."""
+    """{"light", "no_flash" (only when some photos were taken with the flash off), "ambient", "resolutions"}: each
+    {source, why} (module doc)."""
     model = _model_json(model_dir)
-    return {"light": _light(capture, flash_summary), "ambient": _ambient(model),
+    return {"light": _light(capture, flash_summary), **_no_flash(capture), "ambient": _ambient(model),
             "resolutions": _resolutions(capture, model, fit_geometry)}

@@ -37,7 +37,7 @@ from texstream.calib.files import IMAGE_EXTS
 from texstream.calib.ingest import IngestConfig, ingest
 from texstream.calib.lights import LightsConfig, _world_balls, lit_capture
 from texstream.calib.register import RegisterConfig, register
-from texstream.capture.capture_json import read_capture
+from texstream.capture.capture_json import no_flash_frames, read_capture
 from texstream.core.config import check_config, config_from_dict, config_to_dict, option
 from texstream.core.devices import DEVICE_HELP, resolve_device
 from texstream.core.errors import ConfigError, InputError
@@ -443,6 +443,8 @@ def _fit(pipe: Pipeline, capture, posed: bool, posed_dir: Path, fit_geometry: Pa
     under one fixed unknown lighting view dependence only where it does)."""
     fit_cfg = dataclasses.replace(cfg.fit, device=cfg.device, fit=dataclasses.replace(cfg.fit.fit, model=cfg.model),
                                   choice=dataclasses.replace(cfg.fit.choice, **run_choice_options(cfg)))
+    if fit_cfg.fit.ambient == "off" and no_flash_frames(capture.frames):  # off would predict them black
+        fit_cfg = dataclasses.replace(fit_cfg, fit=dataclasses.replace(fit_cfg.fit, ambient="auto"))
     plan = plan_choice(capture, cfg.model, fit_cfg)
     model_kind, why = plan.base, plan.reason
     if lights_summary:

@@ -20,6 +20,14 @@ Ground truth beside the photos, as for every synthetic set (``ground_truth/``: m
 - ``ground_truth/flash.json``: the flash's intensity (scene units, and in those response units), the tone
   curve, the chart's corners in the world, the room's irradiance on the chart, the photo and atlas sizes;
 - ``ground_truth/response.json``: the true response as ``texstream chart`` writes one (``--response FILE``).
+
+With ``no_flash_pairs`` (``--no-flash-pairs``) every camera also takes a photo with the flash off, from the same
+pose at the same exposure, as a photographer takes a flash/no-flash pair: ``images/frame_noflash_00003.png``
+the pair of ``frame_00003.png``, the room's light alone on the sphere and the chart, its frame's flash at intensity 0
+and marked ``no_flash`` (capture_json.py), the EXIF Flash tag written into both PNGs (0x9: fired; 0x10: not fired,
+flash suppressed) so that ingest tells them apart without ``--no-flash``. The no-flash frames follow all the flash
+frames in capture.json, as they do in name order (a photos-only run's), so a hold-out of every 8th frame with a
+multiple of 8 photos holds out the flash photos it holds out without pairs and their pairs.
 """
 
 from __future__ import annotations
@@ -31,14 +39,15 @@ from pathlib import Path
 
 import numpy as np
 
-from texstream.capture.capture_json import read_capture, write_capture
+from texstream.capture.capture_json import NO_FLASH_KEY, Frame, Light, read_capture, write_capture
 from texstream.capture.imageio import read_image, write_image
 from texstream.capture.response import PhotoResponse
 from texstream.core.config import option
 from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
+from texstream.render.renderer import Renderer
 
 from .colour_chart import chart_plane, filmic_codes, paste_chart
-from .synth import GROUND_TRUTH, SynthConfig, synthesize
+from .synth import GROUND_TRUTH, SynthConfig, load_ground_truth, synthesize
 
 FLASH_CAPTURE = "flash_capture"
 """the name ``texstream synth`` takes for it"""
@@ -53,12 +62,19 @@ across the sphere at a grazing angle or not at all)"""
 CHART_WIDTH = 1.9
 """the chart's long side in scene units (the sphere's radius is 1); its short side follows the Classic's
 layout (:func:`texstream.capture.synthetic.colour_chart.chart_plane`)"""
+EXIF_FLASH_FIRED = 0x9
+"""the EXIF Flash tag of a flash photo: fired (bit 0), compulsory flash mode (bits 3-4 = 1)"""
+EXIF_FLASH_OFF = 0x10
+"""the EXIF Flash tag of a no-flash photo: not fired, flash suppressed (bits 3-4 = 2)"""
+NO_FLASH_NAME = "frame_noflash_"
+"""a no-flash photo's name: its flash photo's ``frame_`` replaced by this, so the pairs share their number and, in
+name order (ingest's), the no-flash photos follow the flash photos as they do in capture.json"""
 
 
 @dataclasses.dataclass
 class FlashCaptureConfig:
     """Options of the synthetic flash capture (``texstream synth flash_capture``: ``--photos``, ``--image-size``,
-    ``--seed``, ``--noise``, ``--room-light``, ``--device`` map onto these)."""
+    ``--seed``, ``--noise``, ``--room-light``, ``--device``, ``--no-flash-pairs`` map onto these)."""
 
     photos: int = option(24, help="photos, on two rings about the sphere and its chart", min=3, max=10000)
     image_size: int = option(400, help="photo width and height in pixels", min=64, max=16384)
@@ -66,6 +82,8 @@ class FlashCaptureConfig:
     room_light: float = option(0.6, help="the room's irradiance (0: the flash alone)", min=0.0)
     flash: float = option(40.0, help="the flash's intensity (point light at each camera centre)", min=1e-6)
     seed: int = option(0, help="random seed of the sensor noise", min=0)
+    no_flash_pairs: bool = option(False, help="each camera also takes a photo with the flash off (same pose and "
+                                              "exposure): flash/no-flash pairs (module doc)")
     device: str = option("cpu", help="Warp device for baking and rendering")
     progress: bool = option(True, help="show a progress bar while rendering")
 
@@ -143,6 +161,45 @@ def develop_codes(linear: np.ndarray, rng: np.random.Generator, noise: float) ->
     return np.clip(np.floor(filmic_codes(x, TONE_WHITE) * 255.0 + 0.5), 0, 255).astype(np.uint8)
 
 
+def _write_photo(tmp: Path, name: str, f, radiance: np.ndarray, mask: np.ndarray, flash: np.ndarray,
+                 chart_room: np.ndarray, rng: np.random.Generator, noise: float, exif_flash: int | None) -> list[bool]:
+    """Develop one photo (the object's ``radiance`` inside ``mask``, the chart lit by ``flash`` and the room
+    elsewhere) into ``images/NAME.png`` with its mask; returns [whether the whole chart is in view] when its front
+    faces the camera, else []."""
+    uv, front = _project(f, chart_corners_world())
+    h, w = mask.shape
+    linear = np.zeros((h, w, 3))
+    in_view = []
+    if front:
+        # paste_chart's pixel centres are at integers (OpenCV), the capture's at + 0.5
+        linear = paste_chart(linear, uv - 0.5, _chart_light(f, flash, chart_room, (h, w)))
+        in_view.append(bool(np.all((uv >= 0) & (uv < [w, h]))))
+    linear = np.where(mask[..., None], radiance, linear)
+    write_image(tmp / "images" / f"{name}.png", develop_codes(linear, rng, noise), bits=8,
+                metadata=None if exif_flash is None else {"Exif:Flash": exif_flash})
+    write_image(tmp / "masks" / f"{name}.png", np.where(mask, np.uint8(255), np.uint8(0)), bits=8)
+    return in_view
+
+
+def _no_flash_photos(tmp: Path, frames: list[Frame], chart_room: np.ndarray, cfg: FlashCaptureConfig) -> list[Frame]:
+    """Each flash frame's no-flash pair (module doc): the ground truth rendered with the flash at intensity 0 (the
+    room's light alone, which the scene's ambient columns hold), the chart lit by the room; the sensor noise drawn
+    after the flash photos' (seeds ``[seed, photos + k]``), so those stay as without pairs."""
+    mesh, params, layout, _, _ = load_ground_truth(tmp)
+    rend = Renderer(mesh, params, layout, device=cfg.device, shadows=SynthConfig().shadows)
+    pairs = []
+    for k, f in enumerate(frames):
+        off = dataclasses.replace(f, light=Light.point(f.light.position, np.zeros(3)),
+                                  extra={**f.extra, NO_FLASH_KEY: True})
+        res = rend.render_frame(off)
+        name = Path(f.file_path).stem.replace("frame_", NO_FLASH_NAME, 1)
+        _write_photo(tmp, name, off, np.asarray(res.radiance, np.float64), np.asarray(res.mask, bool), np.zeros(3),
+                     chart_room, np.random.default_rng([cfg.seed, len(frames) + k]), cfg.noise, EXIF_FLASH_OFF)
+        off.file_path, off.mask_path = f"images/{name}.png", f"masks/{name}.png"
+        pairs.append(off)
+    return pairs
+
+
 def synthesize_flash_capture(out: str | Path, cfg: FlashCaptureConfig | None = None) -> StageResult:
     """Write the flash capture (module doc) to ``out`` atomically. Returns its counts."""
     cfg = cfg or FlashCaptureConfig()
@@ -159,25 +216,17 @@ def synthesize_flash_capture(out: str | Path, cfg: FlashCaptureConfig | None = N
         res = synthesize(FLASH_SCENE, floats, scfg)
         cap = read_capture(floats)
         shutil.move(str(floats / GROUND_TRUTH), str(tmp / GROUND_TRUTH))
-        corners = chart_corners_world()
         in_view = []
         for k, f in enumerate(cap.frames):
             radiance = read_image(cap.image_path(f), channels=3)
             mask = read_image(cap.mask_path(f), channels=1)[..., 0] > 0.5
-            uv, front = _project(f, corners)
-            h, w = mask.shape
-            linear = np.zeros((h, w, 3))
-            if front:
-                # paste_chart's pixel centres are at integers (OpenCV), the capture's at + 0.5
-                linear = paste_chart(linear, uv - 0.5, _chart_light(f, flash, chart_room, (h, w)))
-                in_view.append(bool(np.all((uv >= 0) & (uv < [w, h]))))
-            linear = np.where(mask[..., None], radiance, linear)
             name = Path(f.file_path).stem
-            write_image(tmp / "images" / f"{name}.png", develop_codes(linear, np.random.default_rng([cfg.seed, k]),
-                                                                     cfg.noise), bits=8)
-            write_image(tmp / "masks" / f"{name}.png", np.where(mask, np.uint8(255), np.uint8(0)), bits=8)
+            in_view += _write_photo(tmp, name, f, radiance, mask, flash, chart_room, np.random.default_rng([cfg.seed, k]),
+                                    cfg.noise, EXIF_FLASH_FIRED if cfg.no_flash_pairs else None)
             f.file_path, f.mask_path = f"images/{name}.png", f"masks/{name}.png"
             f.exposure, f.saturation = 1.0 / TONE_WHITE, 1.0
+        if cfg.no_flash_pairs:
+            cap.frames += _no_flash_photos(tmp, cap.frames, chart_room, cfg)
         response = true_response()
         cap.root = tmp
         cap.extra = {**cap.extra, "texstream_synthetic": "flash_capture", "response": response.to_json()}
@@ -187,10 +236,12 @@ def synthesize_flash_capture(out: str | Path, cfg: FlashCaptureConfig | None = N
         write_json_atomic(gt / "response.json", response.to_json())
         truth = {"flash_intensity": flash.tolist(), "flash_intensity_response_units": (flash / TONE_WHITE).tolist(),
                  "tone_white": TONE_WHITE, "room_irradiance": room_rgb.tolist(),
-                 "room_irradiance_on_chart": chart_room.tolist(), "chart_corners_world": corners.tolist(),
+                 "room_irradiance_on_chart": chart_room.tolist(), "chart_corners_world": chart_corners_world().tolist(),
                  "chart_in_full_view": int(sum(in_view)), "photos": len(cap.frames),
                  "image_size": cfg.image_size, "atlas": [res.summary["texture_width"], res.summary["texture_height"]],
                  "units": "intensity in the scene's units (irradiance = I cos / r^2); response units = scene / "
                           "tone_white, the units of capture.json's response and exposures"}
+        if cfg.no_flash_pairs:  # absent without pairs: the capture's files stay as they were
+            truth["no_flash_pairs"] = True
         write_json_atomic(gt / "flash.json", truth)
     return StageResult(output=out, summary={**res.summary, "chart_in_full_view": int(sum(in_view))})

@@ -9,8 +9,10 @@ from pathlib import Path
 from texstream.core.outputs import atomic_output_dir
 
 from texstream.capture.capture_json import Intrinsics
-from texstream.capture.capture_json import read_capture
+from texstream.capture.capture_json import flash_fired, no_flash_frames, read_capture
 from texstream.capture.imageio import copy_with_metadata
+
+from .flash_capture import EXIF_FLASH_FIRED, EXIF_FLASH_OFF
 
 
 SENSOR_WIDTH_MM = 36.0  # the synthetic camera's sensor: full frame, so the 35 mm equivalent is the focal length
@@ -30,12 +32,15 @@ def camera_exif(intrinsics: Intrinsics) -> dict:
 
 def write_photos_only(capture_dir: str | os.PathLike, out_dir: str | os.PathLike) -> list[Path]:
     """A synthetic capture's photos as a camera leaves them: a folder of its images (same names, stored
-    values unchanged) carrying the camera's EXIF focal length (:func:`camera_exif`), and nothing else (no
-    capture.json, masks, poses or lights). Written atomically; returns the photo paths."""
+    values unchanged) carrying the camera's EXIF focal length (:func:`camera_exif`) and, when some frames are
+    marked ``no_flash`` (flash/no-flash pairs), the EXIF Flash tag the camera writes (fired or not), and nothing
+    else (no capture.json, masks, poses or lights). Written atomically; returns the photo paths."""
 
     cap = read_capture(capture_dir)
+    pairs = bool(no_flash_frames(cap.frames))
     out_dir = Path(out_dir)
     with atomic_output_dir(out_dir) as tmp:
         for f in cap.frames:
-            copy_with_metadata(cap.image_path(f), tmp / Path(f.file_path).name, camera_exif(f.intrinsics))
+            flash = {"Exif:Flash": EXIF_FLASH_FIRED if flash_fired(f) else EXIF_FLASH_OFF} if pairs else {}
+            copy_with_metadata(cap.image_path(f), tmp / Path(f.file_path).name, {**camera_exif(f.intrinsics), **flash})
     return [out_dir / Path(f.file_path).name for f in cap.frames]

@@ -8,7 +8,13 @@ fitted photo is held back (lobes.py :func:`validation_split`), the model is fitt
 with the room light and with the free ambient (the same stopping rule, the same lobe support rule) and each is
 scored by its renders of the validation photos (pooled PSNR). A candidate replaces a simpler one only when it
 gains more than ``MIN_GAIN_DB``: ties go to the simpler model (off, then room, then on), as in the materials
-choice, so a capture without room light keeps its flash-only model."""
+choice, so a capture without room light keeps its flash-only model.
+
+Photos taken with the flash off (capture_json.py ``no_flash``, flash/no-flash pairs) see the room's light alone:
+the ambient radiance is observed directly, not told from the albedo by how little the flash's light varies between
+views. With them ``auto`` fits ``on`` without the validation comparison (the reason in model.json), ``off`` is
+refused (those photos would be predicted black), and the fit starts from the flash photos' samples alone (a
+no-flash sample over its light's weight, ~0, is no estimate of the albedo or the lobes)."""
 
 from __future__ import annotations
 
@@ -17,6 +23,8 @@ import time
 
 import numpy as np
 
+from texstream.capture.capture_json import flash_fired
+from texstream.core.errors import ConfigError
 from texstream.core.progress import say
 from texstream.fit.optim.fitter import FitStart, fit_start, run_fit
 from texstream.fit.models.per_texel.lobes import drop_unsupported_lobes, mesh_view_scores, validation_split
@@ -109,6 +117,36 @@ def choose_ambient(inputs, problem: StreamProblem, cfg) -> dict:
                       f"{listed} (a richer term kept above a {MIN_GAIN_DB} dB gain)"}
 
 
+def no_flash_decision(inputs, mode: str) -> dict | None:
+    """The ambient term's report when some fitted photos were taken with the flash off (module doc), else None.
+
+    Raises:
+        ConfigError: ``mode`` off with no-flash photos.
+    """
+    dark = [f.name for f in inputs.frames if not flash_fired(f)]
+    if not dark:
+        return None
+    if mode == "off":
+        raise ConfigError(f"--ambient off with {len(dark)} no-flash photo(s) (e.g. {dark[0]}): the room's light they "
+                          "show alone would be predicted black", fix="use --ambient on or auto")
+    chosen = "on" if mode == "auto" else mode
+    return {"mode": mode, "chosen": chosen, "no_flash_photos": len(dark),
+            "reason": f"{len(dark)} of {len(inputs.frames)} fitted photos were taken with the flash off: they see the "
+                      "room's light alone, so the ambient term is observed directly"
+                      + (" (on, without the validation comparison)" if mode == "auto" else " (requested)")}
+
+
+def flash_only_start(problem: StreamProblem, start: FitStart, inputs, cfg) -> FitStart:
+    """The initial guess from the flash photos' samples alone (module doc), with ``start``'s sample counts (a texel
+    only no-flash photos see is still seen)."""
+    lit = [k for k, f in enumerate(inputs.frames) if flash_fired(f)]
+    if not lit:
+        return start
+    sub = StreamProblem(problem.texels, problem.photos.subset(lit), problem.layout, problem.cfg, problem.device)
+    guess, _ = fit_start(sub, cfg.fit).numpy()
+    return FitStart.of((guess, start.numpy()[1]), problem)
+
+
 def resolve_ambient(inputs, problem: StreamProblem, start: FitStart, cfg):
     """(problem, start, cfg, report) of the fit with ``cfg.fit.ambient`` resolved to off, on or room: auto chosen
     by :func:`choose_ambient`; the problem and start carry the term's columns where it is on (the room light's
@@ -117,8 +155,17 @@ def resolve_ambient(inputs, problem: StreamProblem, start: FitStart, cfg):
     mode = cfg.fit.ambient
     if not ambient_applies(problem.layout):
         return problem, start, cfg, None
-    report = {"mode": mode, "chosen": mode, "reason": "requested"}
-    if mode == "auto":
+    report = no_flash_decision(inputs, mode)
+    if report is not None and problem.cfg.residual_space != "radiance":
+        raise ConfigError(f"stream.residual_space {problem.cfg.residual_space} divides each sample by its flash's "
+                          f"light, which is 0 in the {report['no_flash_photos']} no-flash photos",
+                          fix="use stream.residual_space radiance (the default)")
+    if report is not None:
+        say("fit", report["reason"])
+        start = flash_only_start(problem, start, inputs, cfg)
+    elif mode != "auto":
+        report = {"mode": mode, "chosen": mode, "reason": "requested"}
+    else:
         report = {"mode": mode, **choose_ambient(inputs, problem, cfg)}
         say("fit", report["reason"])
     problem = with_layout(problem, layout_for(problem.layout, report["chosen"]))
