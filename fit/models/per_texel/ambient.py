@@ -28,6 +28,7 @@ from texstream.core.errors import ConfigError
 from texstream.core.progress import say
 from texstream.fit.optim.fitter import FitStart, fit_start, run_fit
 from texstream.fit.models.per_texel.lobes import drop_unsupported_lobes, mesh_view_scores, validation_split
+from texstream.fit.common.inputs import validation_period
 from texstream.fit.models.per_texel.room_light import fit_room, texel_transfer
 from texstream.fit.stream.problem import StreamProblem
 from texstream.render.layout import layout_traits
@@ -86,8 +87,8 @@ def choose_ambient(inputs, problem: StreamProblem, cfg) -> dict:
     """Which term to fit (``cfg.fit.ambient`` auto), judged on a validation split of the fitted photos (module
     doc). Returns {"chosen": "off" | "room" | "on", "reason", and, where the split was fitted, the validation
     photos, each fit's pooled and worst-view PSNR, iterations and seconds}."""
-    every = cfg.materials.validation_every
     n = len(inputs.frames)
+    every = validation_period(n, cfg.materials.validation_every)
     train, val = validation_split(n, every)
     if len(val) < 2 or len(train) < 2:
         return {"chosen": "off", "reason": f"{n} fitted photos are too few for a validation split of every {every}th; "
