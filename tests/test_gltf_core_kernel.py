@@ -138,3 +138,23 @@ def test_kernel_matches_the_numpy_reference(device, lobes, aniso):
     np.testing.assert_allclose(got.specular_f0[same, 0], ref_f[same], atol=1e-9)
     assert 0.0 <= got.fit["relative_rms_core"] < 1.0
     assert got.fit["relative_rms_with_specular_extension"] <= got.fit["relative_rms_core"] + 1e-12
+
+
+def test_texel_chunks_on_worker_threads_give_the_same_maps_to_the_bit(monkeypatch):
+    """On the CPU the chunks of texels run on one thread per core (each CPU launch runs on its caller's thread):
+    chunks of 16 texels over 2 threads against 1, every map equal to the bit (each texel's arithmetic is its
+    own)."""
+    from texstream.fit.models.lafortune import gltf_core_kernel
+
+    layout = ModelLayout(n_lobes=1)
+    rows = random_grid(np.random.default_rng(7), layout, 100)
+    samples = gltf_core.flash_samples()
+    old = (np.full((100, 1, 3), 0.1), np.full((100, 1, 3), 0.04), np.full((100, 1), 0.5))
+    monkeypatch.setattr(gltf_core_kernel, "TEXEL_CHUNK", 16)
+    maps = {}
+    for threads in (1, 2):
+        monkeypatch.setattr(gltf_core_kernel, "usable_cpus", lambda t=threads: t)
+        got = gltf_core.fit_core_material(rows.reshape(100, 1, -1), layout, samples, None, old, device="cpu")
+        maps[threads] = (got.base_color, got.metallic, got.roughness, got.specular_f0)
+    for one, two in zip(maps[1], maps[2]):
+        np.testing.assert_array_equal(one, two)

@@ -13,10 +13,12 @@ kernel reads each sample's terms once per roughness and keeps nothing per sample
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import warp as wp
 
+from texstream.fit.multi.cpu_threads import usable_cpus
 from texstream.render.shading import lafortune_brdf
 
 INV_PI = wp.constant(wp.float64(1.0 / math.pi))
@@ -231,7 +233,7 @@ def core_material_kernel(radiance: wp.array2d(dtype=wp.vec3d), first: int,
     rel[3, o] = wp.sqrt(e3 / total)
 
 
-TEXEL_CHUNK = 16384  # texels per launch: their samples' radiance (S x 24 bytes each, ~4.5 KB) stays ~75 MB
+TEXEL_CHUNK = 16384  # texels per launch: their samples' radiance (S x 24 bytes each, ~4.5 KB) stays ~75 MB a thread
 
 
 def fit_rows(rows: np.ndarray, layout, light: np.ndarray, view: np.ndarray, weight: np.ndarray,
@@ -253,14 +255,27 @@ def fit_rows(rows: np.ndarray, layout, light: np.ndarray, view: np.ndarray, weig
         coarse_w = arr(coarse, wp.float64)
         table_dv, table_x5 = wp.empty((len(coarse), s), dtype=wp.float64), wp.empty((len(coarse), s), dtype=wp.float64)
         wp.launch(ggx_table_kernel, dim=(len(coarse), s), inputs=[light_w, view_w, coarse_w], outputs=[table_dv, table_x5])
-        radiance = wp.empty((min(n, TEXEL_CHUNK), s), dtype=wp.vec3d)
         fixed = [arr(weight, wp.float64), coarse_w, table_dv, table_x5, arr(np.asarray(refine), wp.float64),
                  wp.float64(rough_min), int(metallic_steps), arr(old[0], wp.vec3d), arr(old[1], wp.vec3d),
                  arr(old[2], wp.float64)]
-        for first in range(0, n, TEXEL_CHUNK):
-            count = min(TEXEL_CHUNK, n - first)
-            wp.launch(lafortune_samples_kernel, dim=(count, s), inputs=[
-                grid, first, layout.n_lobes, int(layout.anisotropic), light_w, view_w], outputs=[radiance])
-            wp.launch(core_material_kernel, dim=count, inputs=[radiance, first, light_w, view_w] + fixed,
-                      outputs=list(outs))
+        firsts = list(range(0, n, TEXEL_CHUNK))
+        threads = min(len(firsts), usable_cpus()) if wp.get_device(device).is_cpu else 1
+        # chunk k on thread k % threads, each with its own radiance buffer: the chunks write disjoint texels, so
+        # the maps are the same to the bit on any number of threads
+        buffers = [wp.empty((min(n, TEXEL_CHUNK), s), dtype=wp.vec3d) for _ in range(threads)]
+
+        def run_chunks(t: int) -> None:
+            for first in firsts[t::threads]:
+                count = min(TEXEL_CHUNK, n - first)
+                wp.launch(lafortune_samples_kernel, dim=(count, s), device=device, inputs=[
+                    grid, first, layout.n_lobes, int(layout.anisotropic), light_w, view_w], outputs=[buffers[t]])
+                wp.launch(core_material_kernel, dim=count, device=device,
+                          inputs=[buffers[t], first, light_w, view_w] + fixed, outputs=list(outs))
+
+        if threads == 1:
+            run_chunks(0)
+        else:  # a CPU launch runs on its caller's thread and releases the GIL (fit/multi/cpu_threads.py)
+            with ThreadPoolExecutor(threads) as pool:
+                for done in [pool.submit(run_chunks, t) for t in range(threads)]:
+                    done.result()
         return tuple(o.numpy() for o in outs)
