@@ -181,3 +181,25 @@ def test_traced_polish_stops_when_settled_with_the_full_polish_iterations(small_
     full, settled = polish_rows("polish_full", 0.0), polish_rows("polish_settled", 1.0)
     assert len(full) == 5 and len(settled) == 3  # the start row and the iterations
     assert settled == full[:3]
+
+
+def test_the_candidates_on_two_cpu_threads_choose_the_same_to_the_bit(small_capture, monkeypatch):
+    """The materials candidates (mixed and shared, K = 1, 2) fitted on two CPU worker threads, each on its own
+    problem over the same photos (lobes.py ``candidate_fits``), against one thread: every candidate's scores and
+    iterations equal to the bit, and the same choice (each candidate's fit is its own arithmetic)."""
+    from texstream.fit.models.per_texel import lobes
+    from texstream.fit.stages.stage import FitStageConfig, fit_stage
+
+    cfg = FitStageConfig(device="cpu", renders=0, traced_polish=0, checkpoint=False,
+                         materials=MaterialConfig(mode="auto", max_materials=2, variants="mixed,shared"),
+                         fit=FitConfig(max_iterations=40, stream=StreamConfig(shadow_map_size=48, cpu_threads=1)))
+    picks = {}
+    for threads in (1, 2):
+        monkeypatch.setattr(lobes, "usable_cpus", lambda t=threads: t)
+        fit_stage(small_capture / "cap", small_capture / "cap" / "ground_truth", small_capture / f"t{threads}", cfg,
+                  progress=False)
+        m = json.loads((small_capture / f"t{threads}" / "model.json").read_text())["materials"]
+        picks[threads] = (m["chosen"], m.get("k"), [(c["model"], c.get("k"), c["pooled_psnr_db"], c["worst_psnr_db"],
+                                                      c["iterations"]) for c in m["candidates"]])
+    assert len(picks[1][2]) >= 3  # per-texel and at least two materials candidates were compared
+    assert picks[2] == picks[1]

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
+import queue
 import time
 from typing import Callable
 
@@ -22,7 +23,8 @@ from texstream.fit.common.inputs import read_photos, validation_period, FitInput
 from texstream.fit.common.setup import (data_jtj, fill_unseen_texels, params_to_grid, per_texel_objective,
                                         unseen_sources)
 from texstream.fit.common.view_scores import ViewScores
-from texstream.fit.multi.tiles import tiled
+from texstream.fit.multi.cpu_threads import cpu_threads, threaded_config, usable_cpus
+from texstream.fit.multi.tiles import run_tiled_fit, tiled
 from texstream.fit.stream.problem import PhotoFrame, StreamProblem
 from texstream.geometry.seams import average_across_seams, seam_gaps
 
@@ -265,7 +267,10 @@ def choose_materials(inputs: "FitInputs", problem, cfg, log=None, score_views: C
     sub = StreamProblem(problem.texels, problem.photos.subset(train), problem.layout, problem.cfg, problem.device)
     seconds = {"setup": clock.lap()}
     fit_cfg = choice_fit_config(cfg)
-    res = run_fit(sub, cfg.fit)  # the fit's own rule: the per-texel model it stands for, and the full fit's start
+    # the fit's own rule: the per-texel model it stands for, and the full fit's start; on a multi-core CPU in tiles
+    # of texels, one thread each (the same parameters to the bit, fit/multi/cpu_threads.py)
+    threads, _ = cpu_threads(sub, cfg.fit)
+    res = run_tiled_fit(sub, threaded_config(cfg.fit, threads))[0] if threads > 1 else run_fit(sub, cfg.fit)
     seconds["validation_fit"] = clock.lap()
     if on_validation_fit is not None:
         on_validation_fit(res)
@@ -282,13 +287,15 @@ def choose_materials(inputs: "FitInputs", problem, cfg, log=None, score_views: C
         cands[0]["excluded"] = "materials mode on"
     evidence = texel_evidence(sub, res, mcfg)
     seconds["evidence"] = clock.lap()
+    fitted = candidate_fits(sub, res, evidence, cfg, fit_cfg)
+    clock.lap()
     for variant in mcfg.variant_list():
         for k in range(1, mcfg.max_materials + 1):
-            r, info = fit_with_materials(sub, res, evidence, k, variant, cfg, fit_cfg=fit_cfg)
+            (r, info), fit_seconds = fitted((variant, k))
             if info["k"] < k:
                 break  # fewer distinct albedos than k: no new model
             cands.append({"model": variant, "k": info["k"], "iterations": len(r.trace) - 1,
-                          **score(r.params, clock.lap())})
+                          **score(r.params, fit_seconds)})
             if log is not None:
                 log(f"[fit] validation: {variant} K={k}: pooled {cands[-1]['pooled_psnr_db']:.2f} dB, "
                     f"worst {cands[-1]['worst_psnr_db']:.2f} dB")
@@ -304,6 +311,37 @@ def choose_materials(inputs: "FitInputs", problem, cfg, log=None, score_views: C
                          "candidates": {"rel_tol": fit_cfg.rel_tol, "sync_every": fit_cfg.sync_every}},
             "reason": f"{name}: best pooled PSNR on {len(val)} validation photos (every {every}th fitted photo), "
                       f"{best['pooled_psnr_db']:.2f} dB against per-texel {cands[0]['pooled_psnr_db']:.2f} dB"}
+
+
+def candidate_fits(sub, res: FitResult, evidence: TexelEvidence, cfg, fit_cfg: FitConfig) -> Callable:
+    """``fitted((variant, K))`` -> ((FitResult, info), fit seconds) of a materials candidate of the choice, fitted
+    on the validation split's problem ``sub`` from its per-texel fit ``res``. On a multi-core CPU every candidate
+    is fitted up front, one worker thread per core (a CPU launch runs on its caller's thread and releases the GIL),
+    each thread on its own problem over the same photos (a problem holds the candidate's prior and scratch; the
+    photos are only read, as the tiles of fit/multi share them): each candidate's fit is its own arithmetic, so the
+    choice is the same to the bit on any number of threads (candidates past the distinct albedos, fewer than K, are
+    fitted and ignored). Elsewhere a candidate is fitted when asked, as before."""
+    jobs = [(variant, k) for variant in cfg.materials.variant_list() for k in range(1, cfg.materials.max_materials + 1)]
+    threads = min(usable_cpus(), len(jobs)) if str(sub.device) == "cpu" else 1
+    problems = queue.SimpleQueue()
+    problems.put(sub)
+    for _ in range(threads - 1):
+        problems.put(StreamProblem(sub.texels, sub.photos, sub.layout, sub.cfg, sub.device))
+
+    def fit_one(job):
+        problem = problems.get()
+        try:
+            t0 = time.perf_counter()
+            out = fit_with_materials(problem, res, evidence, job[1], job[0], cfg, fit_cfg=fit_cfg)
+            return out, time.perf_counter() - t0
+        finally:
+            problems.put(problem)
+
+    if threads == 1:
+        return fit_one
+    with concurrent.futures.ThreadPoolExecutor(threads) as pool:
+        done = dict(zip(jobs, pool.map(fit_one, jobs)))
+    return done.__getitem__
 
 
 class _Clock:
