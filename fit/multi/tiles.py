@@ -65,14 +65,18 @@ def split_photos(cfg: FitConfig) -> bool:
 def tile_problem(problem: StreamProblem, plan: TilePlan, t: int, cfg: FitConfig) -> StreamProblem:
     """Tile ``t``'s StreamProblem on its device: its texels, and its photos (:func:`tile_photos`) with their
     maps (the parent's own when it takes every photo on the parent's device, else a copy,
-    :meth:`PhotoSet.subset`)."""
+    :meth:`PhotoSet.subset`), and its rows of the parent's shared-materials prior when it has one."""
     dev = plan.devices[plan.slots[t]]
     idx = tile_photos(plan, t, problem.photos.n)
     photos = problem.photos
     if dev != problem.device or not np.array_equal(idx, np.arange(photos.n)):
         photos = photos.subset(idx, device=dev)
-    return StreamProblem(texel_subset(problem.texels, plan.texels(t)), photos, problem.layout, cfg.stream,
+    tile = StreamProblem(texel_subset(problem.texels, plan.texels(t)), photos, problem.layout, cfg.stream,
                          device=dev)
+    if problem.material_centre is not None:  # the shared materials' prior: per texel, so each tile takes its rows
+        rows = plan.texels(t)
+        tile.set_material_prior(problem.material_centre.numpy()[rows], problem.material_weights.numpy()[rows])
+    return tile
 
 
 class SlotPool:

@@ -180,7 +180,9 @@ def fit_with_materials(problem, result: FitResult, evidence: TexelEvidence, k: i
     problem.set_material_prior(prior.centre, prior.weights)
     try:
         fit = dataclasses.replace(fit_cfg or cfg.fit, max_iterations=mcfg.iterations, optimizer="lm")
-        res = run_fit(problem, fit, start=(prior.start, evidence.samples))
+        threads, _ = cpu_threads(problem, fit)  # on a multi-core CPU in tiles (their rows of the prior), the same bits
+        res = (run_tiled_fit(problem, threaded_config(fit, threads), start=(prior.start, evidence.samples))[0]
+               if threads > 1 else run_fit(problem, fit, start=(prior.start, evidence.samples)))
     finally:
         problem.set_material_prior(None)
     if polish:
@@ -328,19 +330,23 @@ def candidate_fits(sub, res: FitResult, evidence: TexelEvidence, cfg, fit_cfg: F
     for _ in range(threads - 1):
         problems.put(StreamProblem(sub.texels, sub.photos, sub.layout, sub.cfg, sub.device))
 
-    def fit_one(job):
+    def fit_one(job, job_cfg=fit_cfg):
         problem = problems.get()
         try:
             t0 = time.perf_counter()
-            out = fit_with_materials(problem, res, evidence, job[1], job[0], cfg, fit_cfg=fit_cfg)
+            out = fit_with_materials(problem, res, evidence, job[1], job[0], cfg, fit_cfg=job_cfg)
             return out, time.perf_counter() - t0
         finally:
             problems.put(problem)
 
     if threads == 1:
         return fit_one
+    # each candidate on one thread (no tiles inside a worker), the first alone: its launches load the prior's
+    # kernels, which the others then find loaded
+    single = dataclasses.replace(fit_cfg, stream=dataclasses.replace(fit_cfg.stream, cpu_threads=1))
+    done = {jobs[0]: fit_one(jobs[0], single)}
     with concurrent.futures.ThreadPoolExecutor(threads) as pool:
-        done = dict(zip(jobs, pool.map(fit_one, jobs)))
+        done.update(zip(jobs[1:], pool.map(lambda job: fit_one(job, single), jobs[1:])))
     return done.__getitem__
 
 
