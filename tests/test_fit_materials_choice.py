@@ -205,25 +205,29 @@ def test_the_candidates_on_two_cpu_threads_choose_the_same_to_the_bit(small_capt
     assert picks[2] == picks[1]
 
 
-def test_a_materials_fit_on_both_cpu_cores_gives_one_threads_maps(small_capture):
-    """``stream.cpu_threads`` 2 against 1 with shared materials chosen: the validation split's per-texel fit and
-    the chosen materials' fit in tiles of texels (each tile with its rows of the materials' prior), the candidates
-    on worker threads; every map and the choice equal to the bit (no texel's arithmetic changes)."""
+@pytest.mark.parametrize("polish", [0, 3])
+def test_a_materials_fit_on_both_cpu_cores_gives_one_threads_maps(small_capture, polish):
+    """``stream.cpu_threads`` 2 against 1 with shared materials chosen: the validation split's per-texel fit, the
+    chosen materials' fit and its traced polish in tiles of texels (each tile with its rows of the materials'
+    prior), the candidates on worker threads; every map and the choice equal to the bit (no texel's arithmetic
+    changes)."""
     from texstream.capture.imageio import read_image
     from texstream.fit.stages.stage import FitStageConfig, fit_stage
 
     out = {}
     for threads in (1, 2):
-        cfg = FitStageConfig(device="cpu", renders=0, traced_polish=0, checkpoint=False,
+        cfg = FitStageConfig(device="cpu", renders=0, traced_polish=polish, checkpoint=False,
                              materials=MaterialConfig(mode="on", max_materials=2, variants="mixed"),
                              fit=FitConfig(max_iterations=40, stream=StreamConfig(shadow_map_size=48,
                                                                                   cpu_threads=threads)))
-        folder = small_capture / f"threads{threads}"
+        folder = small_capture / f"threads{threads}_polish{polish}"
         fit_stage(small_capture / "cap", small_capture / "cap" / "ground_truth", folder, cfg, progress=False)
         m = json.loads((folder / "model.json").read_text())
         out[threads] = (m["materials"]["chosen"], m["materials"].get("k"),
                         [c["pooled_psnr_db"] for c in m["materials"]["candidates"]],
                         {f: read_image(folder / f) for f in ("rho_d.exr", "lobe0_rho_s.exr", "lobe0_shape.exr")})
     assert out[1][:3] == out[2][:3] and out[1][0] == "mixed"
+    if polish:
+        assert json.loads((small_capture / "threads2_polish3" / "model.json").read_text())["traced_polish_iterations"]
     for name, image in out[1][3].items():
         np.testing.assert_array_equal(image, out[2][3][name], err_msg=name)

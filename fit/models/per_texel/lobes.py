@@ -148,8 +148,10 @@ def traced_polish(problem, result: FitResult, cfg, prior=None) -> FitResult:
     if prior is not None:
         traced.set_material_prior(*prior)
     fit = dataclasses.replace(cfg.fit, max_iterations=cfg.traced_polish, optimizer="lm",
-                              rel_tol=cfg.traced_polish_rel_tol, sync_every=1)
-    res = run_fit(traced, fit, start=(result.params, result.samples))
+                              rel_tol=cfg.traced_polish_rel_tol, sync_every=1, stream=traced.cfg)
+    threads, _ = cpu_threads(traced, fit)  # on a multi-core CPU in tiles of texels, traced too: the same bits
+    res = (run_tiled_fit(traced, threaded_config(fit, threads), start=(result.params, result.samples))[0]
+           if threads > 1 else run_fit(traced, fit, start=(result.params, result.samples)))
     t_end = result.trace[-1]["time_s"] if result.trace else 0.0
     extra = [{**r, "iteration": r["iteration"] + len(result.trace), "time_s": r["time_s"] + t_end,
               "stage": "traced polish"} for r in res.trace]
@@ -324,7 +326,9 @@ def candidate_fits(sub, res: FitResult, evidence: TexelEvidence, cfg, fit_cfg: F
     choice is the same to the bit on any number of threads (candidates past the distinct albedos, fewer than K, are
     fitted and ignored). Elsewhere a candidate is fitted when asked, as before."""
     jobs = [(variant, k) for variant in cfg.materials.variant_list() for k in range(1, cfg.materials.max_materials + 1)]
-    threads = min(usable_cpus(), len(jobs)) if str(sub.device) == "cpu" else 1
+    # photos streamed from the host or disk share one window buffer between problems: one thread there
+    resident = str(sub.device) == "cpu" and sub.photos.residency == "device"
+    threads = min(usable_cpus(), len(jobs)) if resident else 1
     problems = queue.SimpleQueue()
     problems.put(sub)
     for _ in range(threads - 1):
