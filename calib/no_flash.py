@@ -30,8 +30,9 @@ NO_FLASH_HELP = ("photos taken with the flash off (a flash/no-flash pair's secon
 
 
 def exif_flash_fired(value) -> bool | None:
-    """Whether an EXIF ``Flash`` value says the flash fired (bit 0), None when the tag is absent."""
-    if value is None:
+    """Whether an EXIF ``Flash`` value says the flash fired (bit 0), None when the tag is absent or says the
+    camera has no flash (bit 5: such a camera's photos say nothing about a pair)."""
+    if value is None or int(value) & 0x20:
         return None
     return bool(int(value) & 1)
 

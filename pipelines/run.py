@@ -445,6 +445,8 @@ def _fit(pipe: Pipeline, capture, posed: bool, posed_dir: Path, fit_geometry: Pa
                                   choice=dataclasses.replace(cfg.fit.choice, **run_choice_options(cfg)))
     if fit_cfg.fit.ambient == "off" and no_flash_frames(capture.frames):  # off would predict them black
         fit_cfg = dataclasses.replace(fit_cfg, fit=dataclasses.replace(fit_cfg.fit, ambient="auto"))
+        pipe.log(f"[fit] ambient auto, not off: {len(no_flash_frames(capture.frames))} photos were taken with the "
+                 "flash off and see only the room's light")
     plan = plan_choice(capture, cfg.model, fit_cfg)
     model_kind, why = plan.base, plan.reason
     if lights_summary:

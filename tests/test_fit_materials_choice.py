@@ -192,7 +192,7 @@ def test_the_candidates_on_two_cpu_threads_choose_the_same_to_the_bit(small_capt
 
     cfg = FitStageConfig(device="cpu", renders=0, traced_polish=0, checkpoint=False,
                          materials=MaterialConfig(mode="auto", max_materials=2, variants="mixed,shared"),
-                         fit=FitConfig(max_iterations=40, stream=StreamConfig(shadow_map_size=48, cpu_threads=1)))
+                         fit=FitConfig(max_iterations=40, stream=StreamConfig(shadow_map_size=48)))
     picks = {}
     for threads in (1, 2):
         monkeypatch.setattr(lobes, "usable_cpus", lambda t=threads: t)
@@ -205,8 +205,8 @@ def test_the_candidates_on_two_cpu_threads_choose_the_same_to_the_bit(small_capt
     assert picks[2] == picks[1]
 
 
-@pytest.mark.parametrize("polish", [0, 3])
-def test_a_materials_fit_on_both_cpu_cores_gives_one_threads_maps(small_capture, polish):
+@pytest.mark.parametrize("polish, traced_materials", [(0, False), (3, False), (3, True)])
+def test_a_materials_fit_on_both_cpu_cores_gives_one_threads_maps(small_capture, polish, traced_materials):
     """``stream.cpu_threads`` 2 against 1 with shared materials chosen: the validation split's per-texel fit, the
     chosen materials' fit and its traced polish in tiles of texels (each tile with its rows of the materials'
     prior), the candidates on worker threads; every map and the choice equal to the bit (no texel's arithmetic
@@ -217,10 +217,11 @@ def test_a_materials_fit_on_both_cpu_cores_gives_one_threads_maps(small_capture,
     out = {}
     for threads in (1, 2):
         cfg = FitStageConfig(device="cpu", renders=0, traced_polish=polish, checkpoint=False,
+                             traced_materials=traced_materials,
                              materials=MaterialConfig(mode="on", max_materials=2, variants="mixed"),
                              fit=FitConfig(max_iterations=40, stream=StreamConfig(shadow_map_size=48,
                                                                                   cpu_threads=threads)))
-        folder = small_capture / f"threads{threads}_polish{polish}"
+        folder = small_capture / f"threads{threads}_polish{polish}_{traced_materials}"
         fit_stage(small_capture / "cap", small_capture / "cap" / "ground_truth", folder, cfg, progress=False)
         m = json.loads((folder / "model.json").read_text())
         out[threads] = (m["materials"]["chosen"], m["materials"].get("k"),
@@ -228,6 +229,7 @@ def test_a_materials_fit_on_both_cpu_cores_gives_one_threads_maps(small_capture,
                         {f: read_image(folder / f) for f in ("rho_d.exr", "lobe0_rho_s.exr", "lobe0_shape.exr")})
     assert out[1][:3] == out[2][:3] and out[1][0] == "mixed"
     if polish:
-        assert json.loads((small_capture / "threads2_polish3" / "model.json").read_text())["traced_polish_iterations"]
+        m = json.loads((small_capture / f"threads2_polish3_{traced_materials}" / "model.json").read_text())
+        assert m["traced_polish_iterations"] and m["materials"]["traced"] == traced_materials
     for name, image in out[1][3].items():
         np.testing.assert_array_equal(image, out[2][3][name], err_msg=name)

@@ -259,3 +259,12 @@ def test_run_passes_no_flash_to_ingest():
     add_arguments(parser)
     assert _config(parser.parse_args(["photos", "--no-flash", "*_noflash.*"])).ingest.no_flash == "*_noflash.*"
     assert _config(parser.parse_args(["photos"])).ingest.no_flash is None
+
+
+def test_a_camera_without_a_flash_says_nothing_about_pairs():
+    """EXIF Flash bit 5 (0x20, "no flash function"): neither fired nor off, so a second camera without a flash in
+    the capture does not mark its photos as no-flash pairs; bit 0 says fired (0x9) or not (0x10)."""
+    from texstream.calib.no_flash import exif_flash_fired
+
+    assert exif_flash_fired(0x20) is None and exif_flash_fired(None) is None
+    assert exif_flash_fired(0x9) is True and exif_flash_fired(0x10) is False

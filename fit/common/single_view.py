@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-from texstream.capture.capture_json import read_capture, split_holdout
+from texstream.capture.capture_json import no_flash_frames, read_capture, split_holdout
 from texstream.capture.imageio import read_image, read_mask
 from texstream.core.errors import ConfigError, InputError
 from texstream.fit.common.inputs import validation_period
@@ -229,6 +229,10 @@ def load_single_view(capture_dir: str | Path, normals_path: str | Path | None, c
     if not geo.covered.any():
         raise InputError("no pixel has both a valid normal and the object mask", normals_path,
                          "check that mask.png and the normal map cover the same object")
+    if no_flash_frames(capture.frames):  # its per-pixel fit has no ambient term: they would be predicted black
+        raise ConfigError(f"{len(no_flash_frames(capture.frames))} photos of the single-view capture were taken with "
+                          "the flash off", fix="fit the single view from its flash photos alone (leave the no-flash "
+                                                "ones out of capture.json)")
     frames, held = split_holdout(capture.frames, cfg.holdout_every)
     if cfg.choice.validation_fit:  # the model choice's fit of a candidate: the validation photos are scored instead
         frames, held = split_holdout(frames, validation_period(len(frames), cfg.materials.validation_every))

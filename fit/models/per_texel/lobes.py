@@ -23,7 +23,7 @@ from texstream.fit.common.inputs import read_photos, validation_period, FitInput
 from texstream.fit.common.setup import (data_jtj, fill_unseen_texels, params_to_grid, per_texel_objective,
                                         unseen_sources)
 from texstream.fit.common.view_scores import ViewScores
-from texstream.fit.multi.cpu_threads import cpu_threads, threaded_config, usable_cpus
+from texstream.fit.multi.cpu_threads import MAX_AUTO_THREADS, cpu_threads, threaded_config, usable_cpus
 from texstream.fit.multi.tiles import run_tiled_fit, tiled
 from texstream.fit.stream.problem import PhotoFrame, StreamProblem
 from texstream.geometry.seams import average_across_seams, seam_gaps
@@ -181,7 +181,11 @@ def fit_with_materials(problem, result: FitResult, evidence: TexelEvidence, k: i
                            evidence.sigma2, contradicted, mcfg, variant)
     problem.set_material_prior(prior.centre, prior.weights)
     try:
-        fit = dataclasses.replace(fit_cfg or cfg.fit, max_iterations=mcfg.iterations, optimizer="lm")
+        base = fit_cfg or cfg.fit
+        # the tiles take their stream config from the fit's: the problem's tap geometry (traced with
+        # traced_materials) must reach them
+        fit = dataclasses.replace(base, max_iterations=mcfg.iterations, optimizer="lm",
+                                  stream=dataclasses.replace(base.stream, tap_geometry=problem.cfg.tap_geometry))
         threads, _ = cpu_threads(problem, fit)  # on a multi-core CPU in tiles (their rows of the prior), the same bits
         res = (run_tiled_fit(problem, threaded_config(fit, threads), start=(prior.start, evidence.samples))[0]
                if threads > 1 else run_fit(problem, fit, start=(prior.start, evidence.samples)))
@@ -328,7 +332,8 @@ def candidate_fits(sub, res: FitResult, evidence: TexelEvidence, cfg, fit_cfg: F
     jobs = [(variant, k) for variant in cfg.materials.variant_list() for k in range(1, cfg.materials.max_materials + 1)]
     # photos streamed from the host or disk share one window buffer between problems: one thread there
     resident = str(sub.device) == "cpu" and sub.photos.residency == "device"
-    threads = min(usable_cpus(), len(jobs)) if resident else 1
+    asked = fit_cfg.stream.cpu_threads  # 0 auto, 1 one thread, k threads (fit/multi/cpu_threads.py)
+    threads = (min(asked or min(usable_cpus(), MAX_AUTO_THREADS), len(jobs)) if resident and asked != 1 else 1)
     problems = queue.SimpleQueue()
     problems.put(sub)
     for _ in range(threads - 1):
