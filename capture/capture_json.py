@@ -20,7 +20,8 @@ and an optional top-level ``response``: the inverse response of the 8- and 16-bi
 radiance, from a colour checker; :mod:`texstream.capture.response`); absent, they are decoded as sRGB.
 
 Unknown keys are kept and written back, so nerfstudio's own fields survive a round trip.
-Conventions are in :mod:`texstream.capture.conventions`. This module imports only numpy.
+Conventions are in :mod:`texstream.capture.conventions`. This module imports only numpy (OpenImageIO only when
+:meth:`Capture.within_mask` reads a mask, inside capture/imageio.py).
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ from texstream.core.errors import InputError
 from texstream.core.outputs import read_json, write_json_atomic
 
 from .conventions import c2w_gl_to_w2c_cv, camera_center, is_rotation, w2c_cv_to_c2w_gl
+from .imageio import read_mask
 from .response import RESPONSE_KEY, PhotoResponse, response_from_json
 
 CAPTURE_FILE = "capture.json"
@@ -145,6 +147,14 @@ class Capture:
 
     def mask_path(self, frame: Frame) -> Path | None:
         return None if frame.mask_path is None else self.root / frame.mask_path
+
+    def within_mask(self, frame: Frame, mask: np.ndarray) -> np.ndarray:
+        """``mask`` (a render's foreground, bool) where ``frame``'s mask file says object, when it has one: the
+        pixels a render is scored on (fit, eval, report)."""
+        path = self.mask_path(frame)
+        if path is None or not path.exists():
+            return mask
+        return mask & read_mask(path, mask.shape)
 
     @property
     def has_lights(self) -> bool:

@@ -34,7 +34,7 @@ import numpy as np
 
 from texstream.capture.capture_json import read_capture
 from texstream.capture.conventions import w2c_cv_to_c2w_gl
-from texstream.capture.imageio import linear_to_srgb, read_image, read_mask
+from texstream.capture.imageio import linear_to_srgb, read_image
 from texstream.core.errors import ConfigError, InputError, TexstreamError
 from texstream.core.outputs import StageResult, atomic_output_dir, read_json
 from texstream.core.progress import bar
@@ -180,10 +180,7 @@ def evaluate_views(model, capture, frames, device: str) -> list[dict]:
     for f in bar(frames, "report: held-out renders", unit="view"):
         photo = read_image(capture.image_path(f), channels=3, response=capture.response)
         render, rmask = render_frame(f)
-        m = rmask.astype(bool)
-        mp = capture.mask_path(f)
-        if mp is not None and mp.exists():
-            m &= read_mask(mp, rmask.shape)
+        m = capture.within_mask(f, rmask.astype(bool))
         rows.append({"frame": f.file_path, "name": f.name, **image_metrics(render, photo, m),
                      "_render": render, "_photo": photo, "_mask": m})
     return rows

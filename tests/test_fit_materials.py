@@ -109,6 +109,17 @@ def test_prior_rejects_bad_input(device):
 # ------------------------------------------------------------------------------------ host side
 
 
+def random_jtj(lay, n: int, samples: int, rng) -> np.ndarray:
+    """(n, P, P) J^T J of ``samples`` random Jacobian rows per texel over the layout's free columns (zero on the
+    frozen ones), drawn after the parameters from the same generator as the tests always did."""
+    free = ~lay.frozen()
+    jtj = np.zeros((n, lay.n_params, lay.n_params))
+    for i in range(n):
+        a = rng.normal(size=(samples, free.sum()))
+        jtj[i][np.ix_(free, free)] = a.T @ a
+    return jtj
+
+
 def test_uncertainty_is_the_inverse_gauss_newton_diagonal():
     """rho_s and n deviations equal sqrt(sigma^2 [(J^T J)^-1]_kk) / p_k on the free columns (c_xy held) for a
     well-conditioned J^T J (1e-9: the eigen-decomposed inverse in fp64); a texel whose n column no sample
@@ -117,10 +128,7 @@ def test_uncertainty_is_the_inverse_gauss_newton_diagonal():
     n, P = 5, LAYOUT.n_params
     p = random_params(LAYOUT, n, rng)
     free = ~LAYOUT.frozen()
-    jtj = np.zeros((n, P, P))
-    for i in range(n):
-        a = rng.normal(size=(40, free.sum()))
-        jtj[i][np.ix_(free, free)] = a.T @ a
+    jtj = random_jtj(LAYOUT, n, 40, rng)
     sigma2 = 3e-4
     unc = texel_uncertainty(jtj, p, LAYOUT, sigma2)
     o = LAYOUT.lobe_offset(0)
@@ -148,10 +156,7 @@ def test_a_lobe_that_is_off_does_not_count_and_a_loose_one_does():
     n, P = 2, lay.n_params
     p = random_params(lay, n, rng)
     free = ~lay.frozen()
-    jtj = np.zeros((n, P, P))
-    for i in range(n):
-        a = rng.normal(size=(60, free.sum()))
-        jtj[i][np.ix_(free, free)] = a.T @ a
+    jtj = random_jtj(lay, n, 60, rng)
     o1 = lay.lobe_offset(1)
     p[0, o1:o1 + 3] = 0.0  # texel 0: the second lobe off
     n1 = o1 + lay.lobe_stride - 1

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from texstream.capture.capture_json import read_capture
-from texstream.capture.imageio import read_image, read_mask, write_image
+from texstream.capture.imageio import read_image, write_image
 from texstream.core.config import check_config, option
 from texstream.core.devices import DEVICE_HELP, resolve_device
 from texstream.core.errors import ConfigError, InputError
@@ -133,12 +133,8 @@ def fit_single_view_model(capture_dir: str | Path, normals_path: str | Path | No
             raise InputError(f"photo is {photo.shape[1]}x{photo.shape[0]} but the normal map is {w}x{h}",
                              capture.image_path(f), "give photos and normal map of one size")
 
-    def render(f):
-        m = seen.copy()  # texels no photo saw keep defaults: flagged, not scored
-        mp = capture.mask_path(f)
-        if mp is not None and mp.exists():
-            m &= read_mask(mp, m.shape)
-        return render_single_view(problem, result.params, lay, f), m
+    def render(f):  # texels no photo saw keep defaults: flagged, not scored
+        return render_single_view(problem, result.params, lay, f), capture.within_mask(f, seen.copy())
 
     with atomic_output_dir(out_dir) as tmp:
         write_image(tmp / "normals.exr", np.where(geo.covered[..., None], geo.normal, 0.0).astype(np.float32))

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from texstream.capture.capture_json import read_capture
-from texstream.capture.imageio import read_image, read_mask
+from texstream.capture.imageio import read_image
 from texstream.core.errors import ConfigError, InputError
 from texstream.core.checkpoint import inputs_key
 from texstream.core.config import check_config, config_to_dict, option
@@ -210,10 +210,7 @@ def eval_stage(model_dir: str | Path, capture_dir: str | Path, device: str = "cp
         photo = read_image(capture.image_path(f), channels=3, response=capture.response)
         rend, rmask = render(f)
         check_render(rend, f.file_path)
-        m = rmask.astype(bool)
-        mp = capture.mask_path(f)
-        if mp is not None and mp.exists():
-            m &= read_mask(mp, rmask.shape)
+        m = capture.within_mask(f, rmask.astype(bool))
         rows.append({"frame": f.file_path, **image_metrics(rend, photo, m)})
     mse_all = [10 ** (-r["psnr_db"] / 10) for r in rows if r["pixels"]]
     pooled = pooled_psnr(rows)

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from texstream.capture.imageio import read_mask, write_image
+from texstream.capture.imageio import write_image
 from texstream.core.config import config_to_dict, save_config
 from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
 from texstream.core.progress import phase
@@ -93,10 +93,7 @@ def _write_folder(request, inputs, grid, tgrid, sol, given: bool, timings: dict,
 
     def render(f):
         image, m = renderer.render(f)
-        mp = capture.mask_path(f)
-        if mp is not None and mp.exists():
-            m &= read_mask(mp, m.shape)
-        return image, m
+        return image, capture.within_mask(f, m)
 
     covered = np.asarray(bake.covered, bool)
     over_one = int((grid[covered].max(axis=-1) > 1.0).sum())

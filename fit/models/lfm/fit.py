@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 
-from texstream.capture.imageio import read_mask
 from texstream.core.config import config_to_dict
 from texstream.core.errors import ConfigError, InputError
 from texstream.core.outputs import StageResult, atomic_output_dir, write_json_atomic
@@ -92,10 +91,7 @@ def lfm_fit_stage(capture_dir, mesh_path, out_dir, cfg, progress: bool = True) -
 
     def render(f):
         image, m = renderer.render_frame(f)
-        mp = capture.mask_path(f)
-        if mp is not None and mp.exists():
-            m &= read_mask(mp, m.shape)
-        return image, m
+        return image, capture.within_mask(f, m)
 
     with atomic_output_dir(out_dir) as tmp, phase("fit", "lfm: held-out renders and the model folder"):
         save_mesh(tmp / "mesh.obj", mesh)
