@@ -129,13 +129,15 @@ def small_capture(tmp_path_factory):
     return root
 
 
-def stage_fit(root, name: str, fit_from_validation: bool) -> dict:
-    """model.json of ``fit_stage`` on ``small_capture`` with shared materials on (one candidate, K = 1)."""
+def stage_fit(root, name: str, fit_from_validation: bool, start_fit_rel_tol: float = 0.0) -> dict:
+    """model.json of ``fit_stage`` on ``small_capture`` with shared materials on (one candidate, K = 1); the fit of
+    every photo by the fit's own rule unless ``start_fit_rel_tol``."""
     from texstream.fit.stages.stage import FitStageConfig, fit_stage
 
     cfg = FitStageConfig(device=SCENE_DEVICE, renders=0, traced_polish=0, checkpoint=False,
                          materials=MaterialConfig(mode="on", max_materials=1, variants="mixed",
-                                                  fit_from_validation=fit_from_validation),
+                                                  fit_from_validation=fit_from_validation,
+                                                  start_fit_rel_tol=start_fit_rel_tol),
                          fit=FitConfig(max_iterations=300, rel_tol=1e-6,
                                        stream=StreamConfig(shadow_map_size=48)))
     fit_stage(root / "cap", root / "cap" / "ground_truth", root / name, cfg, progress=False)
@@ -157,9 +159,27 @@ def test_fit_from_validation_keeps_the_choice_and_the_optimum(small_capture):
     assert warm["materials"]["chosen"] == cold["materials"]["chosen"]
     # the choice ran first and the full fit started from the validation split's fit (no clock needed: a fit
     # from the initial guess takes as many iterations as the cold one)
-    core = lambda m: sum(1 for r in json.loads((small_capture / m / "trace.json").read_text()) if "stage" not in r)
-    assert core("warm") < 0.8 * core("cold")  # here 145 against 240: the split saw 14 of the 16 photos
+    assert core_rows(small_capture, "warm") < 0.8 * core_rows(small_capture, "cold")  # here 145 against 240: the split saw 14 of the 16 photos
     assert warm["final"]["objective"] == pytest.approx(cold["final"]["objective"], rel=5e-3)
+
+
+def core_rows(root, name: str) -> int:
+    """Rows of the fit of every photo in a model's trace (the materials' fit and the polish have a stage)."""
+    return sum(1 for r in json.loads((root / name / "trace.json").read_text()) if "stage" not in r)
+
+
+def test_a_materials_model_chosen_its_start_fit_stops_early_at_the_same_optimum(small_capture):
+    """``materials.start_fit_rel_tol`` (default 1e-4): with a materials model chosen before the fit, the fit of
+    every photo only starts the materials' fit, so it stops when its objective falls by less than 1e-4 over 2
+    iterations: fewer iterations than by the fit's own rule (1e-6 over 5 here), the same choice, and the
+    materials' fit, which refits every parameter by the fit's own rule, ends within 0.5% of the objective it
+    reaches from the fully converged start (two starts of one nonconvex fit, as in the test above)."""
+    own = stage_fit(small_capture, "warm_own_rule", True, 0.0)
+    early = stage_fit(small_capture, "warm_start_rule", True, 1e-4)
+    untimed = lambda m: [{k: v for k, v in c.items() if k != "seconds"} for c in m["materials"]["candidates"]]
+    assert untimed(early) == untimed(own)
+    assert core_rows(small_capture, "warm_start_rule") < 0.5 * core_rows(small_capture, "warm_own_rule")
+    assert early["final"]["objective"] == pytest.approx(own["final"]["objective"], rel=5e-3)
 
 
 def test_traced_polish_stops_when_settled_with_the_full_polish_iterations(small_capture):

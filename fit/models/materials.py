@@ -112,6 +112,14 @@ class MaterialConfig:
                                              "photos: it then needs fewer iterations; texels no fitted photo of the "
                                              "split saw start from the fit's own guess); the choice is the same "
                                              "either way. Not with tiles or a resumed checkpoint")
+    start_fit_rel_tol: float = option(1e-4, "fit_from_validation, a materials model chosen: the fit of every fitted "
+                                            "photo is only the start of the materials' fit (which refits every "
+                                            "parameter to every fitted photo by the fit's own rule), so it stops when "
+                                            "its objective falls by less than this, relative, over 2 iterations (on "
+                                            "the full ornament it starts from the split's fit and falls 2e-4 over its "
+                                            "last 75 of 85 iterations under the fit's own rule). 0: the fit's own "
+                                            "rule; per-texel chosen: always the fit's own rule (that fit is the "
+                                            "model)", min=0.0)
 
     def variant_list(self) -> tuple:
         out = tuple(v.strip() for v in str(self.variants).split(",") if v.strip())

@@ -80,7 +80,7 @@ def _fit_per_texel_model(capture_dir: str | Path, mesh_path: str | Path, out_dir
     ckpt, resume = _checkpoint(capture_dir, mesh_path, out_dir, cfg, problem)
     choice, p0 = _choice_before_fit(inputs, problem, cfg, start, resume)
     t_choice = time.perf_counter() - t0 - t_setup
-    result, tiles_report = _core_fit(problem, cfg, start, progress, ckpt, resume, p0)
+    result, tiles_report = _core_fit(problem, start_fit_config(cfg, choice, p0), start, progress, ckpt, resume, p0)
     t_loop = time.perf_counter()
     result, lobes = _lobes_and_materials(inputs, problem, result, cfg, choice)
     grid, filled, seams_info = _model_grid(inputs, problem, result, cfg)
@@ -147,6 +147,15 @@ def _choice_before_fit(inputs: FitInputs, problem, cfg, start, resume) -> tuple[
         return choice, None
     split = kept["fit"]
     return choice, np.where((split.samples > 0)[:, None], split.params, start.params.numpy())
+
+
+def start_fit_config(cfg, choice: dict | None, p0: np.ndarray | None):
+    """The stage config of the fit of every fitted photo: with ``materials.start_fit_rel_tol`` where that fit only
+    starts the chosen materials' fit (a materials model chosen before the fit, from the split's fit ``p0``)."""
+    tol = cfg.materials.start_fit_rel_tol
+    if p0 is None or tol <= 0 or not choice or choice.get("chosen", "per-texel") == "per-texel":
+        return cfg
+    return dataclasses.replace(cfg, fit=dataclasses.replace(cfg.fit, rel_tol=tol, sync_every=2))
 
 
 def _core_fit(problem, cfg, start, progress: bool, ckpt, resume, p0: np.ndarray | None = None):
