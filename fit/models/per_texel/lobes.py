@@ -300,6 +300,7 @@ def choose_materials(inputs: "FitInputs", problem, cfg, log=None, score_views: C
     for variant in mcfg.variant_list():
         for k in range(1, mcfg.max_materials + 1):
             (r, info), fit_seconds = fitted((variant, k))
+            clock.lap()  # a candidate fitted when asked ran since the last lap: the score's seconds are its own
             if info["k"] < k:
                 break  # fewer distinct albedos than k: no new model
             cands.append({"model": variant, "k": info["k"], "iterations": len(r.trace) - 1,
