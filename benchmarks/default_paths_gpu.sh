@@ -1,0 +1,38 @@
+#!/usr/bin/env bash
+# The default paths on one GPU (issue 40), in one call: Python's bytecode compiled first, as `pip install` does
+# (the device's Warp comes from a tarball: without it every process compiles Warp's sources again; the import time
+# of Warp is recorded before and after), then the README's `texstream run` cold and warm
+# (benchmarks/cold_start_gpu.sh, with the CUDA tests in CUDA_TESTS), then `texstream fit` with its defaults on the
+# full ornament (1,760 float EXRs of 430x430; benchmarks/fit_cli_timeline.py, RUNS runs, the first one warming the
+# default kernel cache), Warp's CUDA activity over one more run (benchmarks/fit_gpu_activity.py), and the dense
+# ornament's held-out figures (scale 0.01, 1,760 photos of 160x160, every 8th held out).
+#   usage: CUDA_TESTS="tests/a.py ..." WHEELS=.whl bash benchmarks/default_paths_gpu.sh OUT   (warp in /root/site)
+set -u
+out=$1
+mkdir -p "$out"
+here=$(cd "$(dirname "$0")/.." && pwd)
+export PYTHONPATH=/root/site:/root/oiio
+echo "PYTHONDONTWRITEBYTECODE=${PYTHONDONTWRITEBYTECODE:-unset}" | tee "$out/bytecode.txt"
+import_warp() { python3 -c "import time; t = time.perf_counter(); import warp; print(f'{time.perf_counter() - t:.3f}')"; }
+echo "import warp before compileall: $(import_warp) $(import_warp) s" | tee -a "$out/bytecode.txt"
+python3 -m compileall -q -j 16 /root/site/warp "$here" > /dev/null 2>&1
+echo "import warp after compileall: $(import_warp) $(import_warp) s" | tee -a "$out/bytecode.txt"
+bash "$here/benchmarks/cold_start_gpu.sh" "$out/readme"
+python3 -m compileall -q -j 16 /root/oiio "$here" > /dev/null 2>&1  # the wheel cold_start installed
+python3 -c "from texstream.capture.synthetic.synth import SynthConfig, synthesize
+synthesize('ornament', '/root/sd/capture', SynthConfig(scale=1.0, device='cuda:0', progress=False, preview=False))"
+python3 "$here/benchmarks/fit_cli_timeline.py" --capture /root/sd/capture --mesh /root/sd/capture/ground_truth \
+  --out /root/fd --runs "${RUNS:-4}" | tee "$out/fit_timeline.txt"
+cp /root/fd/fit_cli_timeline.json "$out/"
+cp /root/fd/model_1/model.json "$out/fit_model_1.json"
+python3 "$here/benchmarks/fit_gpu_activity.py" --capture /root/sd/capture --mesh /root/sd/capture/ground_truth \
+  --out /root/act > "$out/fit_gpu_activity.txt" 2>&1
+cp /root/act/fit_gpu_activity.json "$out/"
+texstream synth ornament --scale 0.01 --photos 1760 --image-size 160 -o /root/dense --device cuda:0 > /dev/null 2>&1
+s=$(date +%s.%N)
+texstream fit /root/dense --mesh /root/dense/ground_truth/mesh.obj -o /root/dense_fit --holdout-every 8 \
+  --model lafortune > "$out/dense_fit.log" 2>&1
+echo "dense fit $(python3 -c "print(round($(date +%s.%N) - $s, 1))") s" | tee -a "$out/dense_fit.log"
+texstream eval /root/dense_fit /root/dense --holdout-every 8 -o "$out/dense_eval.json" 2>&1 | tail -n 1 \
+  | tee -a "$out/dense_fit.log"
+cp /root/dense_fit/model.json "$out/dense_model.json"
