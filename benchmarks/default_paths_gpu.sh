@@ -5,7 +5,9 @@
 # (benchmarks/cold_start_gpu.sh, with the CUDA tests in CUDA_TESTS), then `texstream fit` with its defaults on the
 # full ornament (1,760 float EXRs of 430x430; benchmarks/fit_cli_timeline.py, RUNS runs, the first one warming the
 # default kernel cache), Warp's CUDA activity over one more run (benchmarks/fit_gpu_activity.py), and the dense
-# ornament's held-out figures (scale 0.01, 1,760 photos of 160x160, every 8th held out).
+# ornament's held-out figures (scale 0.01, 1,760 photos of 160x160, every 8th held out). With TEMPLE_CAPTURE (a posed
+# capture folder, e.g. a CPU run's `posed/` of the Middlebury temple) first `texstream run` of it on the GPU: the mesh,
+# atlas, refine and fit stages (pymeshlab, scipy and xatlas on EXTRA_PYTHONPATH: the machine has none of them).
 #   usage: CUDA_TESTS="tests/a.py ..." WHEELS=.whl bash benchmarks/default_paths_gpu.sh OUT   (warp in /root/site)
 set -u
 out=$1
@@ -18,6 +20,14 @@ echo "import warp before compileall: $(import_warp) $(import_warp) s" | tee -a "
 python3 -m compileall -q -j 16 /root/site/warp "$here" > /dev/null 2>&1
 echo "import warp after compileall: $(import_warp) $(import_warp) s" | tee -a "$out/bytecode.txt"
 bash "$here/benchmarks/cold_start_gpu.sh" "$out/readme"
+if [ -n "${TEMPLE_CAPTURE:-}" ]; then
+  s=$(date +%s.%N)
+  PYTHONPATH="${EXTRA_PYTHONPATH:-}:$PYTHONPATH" texstream run "$TEMPLE_CAPTURE" -o /root/temple_run --no-progress \
+    > "$out/temple_run.log" 2>&1
+  echo "temple run rc=$? $(python3 -c "print(round($(date +%s.%N) - $s, 1))") s" | tee -a "$out/temple_run.log"
+  cp /root/temple_run/run.json "$out/temple_run.json" 2>/dev/null
+  tail -n 16 "$out/temple_run.log"
+fi
 python3 -m compileall -q -j 16 /root/oiio "$here" > /dev/null 2>&1  # the wheel cold_start installed
 python3 -c "from texstream.capture.synthetic.synth import SynthConfig, synthesize
 synthesize('ornament', '/root/sd/capture', SynthConfig(scale=1.0, device='cuda:0', progress=False, preview=False))"
