@@ -8,6 +8,7 @@
 # ornament's held-out figures (scale 0.01, 1,760 photos of 160x160, every 8th held out). With TEMPLE_CAPTURE (a posed
 # capture folder, e.g. a CPU run's `posed/` of the Middlebury temple) first `texstream run` of it on the GPU: the mesh,
 # atlas, refine and fit stages (pymeshlab, scipy and xatlas on EXTRA_PYTHONPATH: the machine has none of them).
+# PARTS (default "readme temple fit"): which of the three to run (a device call lasts at most 10 minutes).
 #   usage: CUDA_TESTS="tests/a.py ..." WHEELS=.whl bash benchmarks/default_paths_gpu.sh OUT   (warp in /root/site)
 set -u
 out=$1
@@ -19,8 +20,9 @@ import_warp() { python3 -c "import time; t = time.perf_counter(); import warp; p
 echo "import warp before compileall: $(import_warp) $(import_warp) s" | tee -a "$out/bytecode.txt"
 python3 -m compileall -q -j 16 /root/site/warp "$here" > /dev/null 2>&1
 echo "import warp after compileall: $(import_warp) $(import_warp) s" | tee -a "$out/bytecode.txt"
-bash "$here/benchmarks/cold_start_gpu.sh" "$out/readme"
-if [ -n "${TEMPLE_CAPTURE:-}" ]; then  # twice: the first builds the kernels the radiance models need
+parts=" ${PARTS:-readme temple fit} "
+[[ $parts == *" readme "* ]] && bash "$here/benchmarks/cold_start_gpu.sh" "$out/readme"
+if [[ $parts == *" temple "* ]] && [ -n "${TEMPLE_CAPTURE:-}" ]; then  # twice: the first builds the kernels the radiance models need
   for t in cold warm; do
     s=$(date +%s.%N)
     PYTHONPATH="${EXTRA_PYTHONPATH:-}:$PYTHONPATH" texstream run "$TEMPLE_CAPTURE" -o "/root/temple_$t" --no-progress \
@@ -30,6 +32,7 @@ if [ -n "${TEMPLE_CAPTURE:-}" ]; then  # twice: the first builds the kernels the
   done
   tail -n 16 "$out/temple_warm.log"
 fi
+[[ $parts == *" fit "* ]] || exit 0
 python3 -m compileall -q -j 16 /root/oiio "$here" > /dev/null 2>&1  # the wheel cold_start installed
 python3 -c "from texstream.capture.synthetic.synth import SynthConfig, synthesize
 synthesize('ornament', '/root/sd/capture', SynthConfig(scale=1.0, device='cuda:0', progress=False, preview=False))"
