@@ -39,7 +39,7 @@ def record_loads(monkeypatch) -> list:
 
 def test_a_default_run_after_the_prewarm_builds_no_module(capture, device, tmp_path, monkeypatch):
     monkeypatch.setattr(build_notice, "_ANNOUNCED", set())
-    monkeypatch.setattr(build_notice, "_marker", lambda dev: tmp_path / "absent.warm")  # a cold cache, as said
+    monkeypatch.setattr(build_notice, "_marker", lambda dev, precision="fp32": tmp_path / "absent.warm")  # a cold cache, as said
     loads = record_loads(monkeypatch)
     lines = []
     with reporting(lines.append):
@@ -61,10 +61,85 @@ def test_a_default_run_after_the_prewarm_builds_no_module(capture, device, tmp_p
 
 def test_a_warm_cache_builds_nothing_ahead(tmp_path, monkeypatch):
     monkeypatch.setattr(build_notice, "_ANNOUNCED", set())
-    monkeypatch.setattr(build_notice, "_marker", lambda dev: tmp_path / "present.warm")
+    monkeypatch.setattr(build_notice, "_marker", lambda dev, precision="fp32": tmp_path / "present.warm")
     (tmp_path / "present.warm").touch()
     loads = record_loads(monkeypatch)
     lines = []
     with reporting(lines.append):
         prewarm.build_kernels_if_cold("fit", "cpu", "lafortune")
     assert loads == [] and lines == []
+
+
+FLOAT64_FIT = r"""
+import json, sys
+from pathlib import Path
+
+import warp as wp
+
+wp.config.quiet = True
+from texstream.fit.kernels import build_notice
+from texstream.fit.kernels.overloads import declared_precisions
+from texstream.fit.models.materials import MaterialConfig
+from texstream.fit.optim.fitter import FitConfig
+from texstream.fit.stages.stage import FitStageConfig, fit_stage
+from texstream.fit.stream.config import StreamConfig
+
+capture, out, device, cold = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3], sys.argv[4] == "cold"
+build_notice._marker = lambda dev, precision="fp32": out.parent / ("absent.warm" if cold else "present.warm")
+(out.parent / "present.warm").touch()
+loads = []
+load = wp.Module.load
+
+def recorded(self, device, block_dim=None, *args, **kwargs):
+    exec_ = load(self, device, block_dim, *args, **kwargs)
+    loads.append((self.name, exec_.module_hash.hex(), str(exec_.device), exec_.block_dim))
+    return exec_
+
+wp.Module.load = recorded
+cfg = FitStageConfig(device=device, renders=0, traced_polish=0, checkpoint=False, materials=MaterialConfig(mode="off"),
+                     fit=FitConfig(model="lafortune", max_iterations=2,
+                                   stream=StreamConfig(accumulate="fp64", shadow_map_size=48)))
+import texstream.fit.stages.prewarm as prewarm
+built = []
+build = prewarm.build_kernels_if_cold
+
+def recorded_build(*args, **kwargs):
+    n = len(loads)
+    build(*args, **kwargs)
+    built.extend(loads[n:])
+
+import texstream.fit.stages.stage as stage
+stage.build_kernels_if_cold = recorded_build
+fit_stage(capture, capture / "ground_truth", out, cfg, progress=False)
+print(json.dumps({"loads": loads, "built": built, "precisions": declared_precisions()}))
+"""
+
+
+def test_a_float64_fit_declares_its_overloads_before_any_build_or_launch(capture, device, tmp_path):
+    """A fit whose passes accumulate in float64 declares every generic kernel's float64 overloads before its prewarm
+    and its first launch (fit/kernels/overloads.py ``declare_precision``): no module is loaded under two hashes
+    (a launch that added an overload would rehash it and compile again), and on a cold cache (CUDA) every module the
+    fit launches was built by its prewarm. In a child process: the declaration is for the rest of a process, and
+    this worker's later tests would compile every module again. The CPU case skips the prewarm (the default
+    modules with their float64 overloads take about 45 s of CI's two cores to build; measured 42.6 s against 28.9
+    s for float32 alone) and checks the launches alone."""
+    import json
+    import subprocess
+    import sys
+
+    from conftest import ROOT
+
+    cold = str(device).startswith("cuda")
+    run = subprocess.run([sys.executable, "-c", FLOAT64_FIT, str(capture), str(tmp_path / "model"), device,
+                          "cold" if cold else "warm"], capture_output=True, text=True, cwd=ROOT, timeout=900)
+    assert run.returncode == 0, run.stderr[-3000:]
+    got = json.loads(run.stdout.strip().splitlines()[-1])
+    assert got["precisions"] == ["fp32", "fp64"]
+    hashes = {}
+    for name, module_hash, dev, _ in got["loads"]:
+        hashes.setdefault((name, dev), set()).add(module_hash)
+    assert {k: v for k, v in hashes.items() if len(v) > 1} == {}, "rehashed after a launch added an overload"
+    if cold:
+        built = {tuple(x) for x in got["built"]}
+        launched = {tuple(x) for x in got["loads"] if x[2] == device} - built
+        assert built and not launched, f"launched but not prewarmed: {sorted(launched)}"

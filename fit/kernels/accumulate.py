@@ -56,7 +56,8 @@ from typing import Any, NamedTuple
 import warp as wp
 
 from texstream.fit.kernels.lafortune_grad import lafortune_funcs, view_radiance_funcs
-from texstream.fit.kernels.overloads import IMAGE_PIXEL, STORAGE_SCALAR, declare, param_overloads
+from texstream.fit.kernels.overloads import (IMAGE_PIXEL, STORAGE_SCALAR, at_every_precision, declare,
+                                             param_overloads)
 from texstream.render.shading import incident_light, to_local
 from texstream.fit.kernels.stream import (SAMPLING_FILTERED, ImageInfo, SampleOptions, TexelFrames, kahan_add,
                                           observe_func, plane_texel_coords, ray_surface, tangent_frame, texel_blend,
@@ -465,9 +466,12 @@ def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, d
         name += f"_maxreg{max_registers}"
     kernel = wp.kernel(accumulate, name=name, enable_backward=False, module="unique",
                        cuda_max_registers=max_registers or None)
-    [(s, v, _)] = param_overloads((fn.n_params,))  # the default precisions' overload (fit/kernels/overloads.py)
-    declare(kernel, params=STORAGE_SCALAR, direction=STORAGE_SCALAR, images=IMAGE_PIXEL, like=v, one=s, out_f=s,
-            out_g=v, out_dhd=s, out_diag=v)
+    def declare_at(scalar, n_params=fn.n_params):  # each compute precision's overload (fit/kernels/overloads.py)
+        [(s, v, _)] = param_overloads((n_params,), scalar)
+        declare(kernel, params=STORAGE_SCALAR, direction=STORAGE_SCALAR, images=IMAGE_PIXEL, like=v, one=s, out_f=s,
+                out_g=v, out_dhd=s, out_diag=v)
+
+    at_every_precision(declare_at)
     return kernel
 
 
@@ -553,8 +557,12 @@ def accumulate_lm_kernel(n_lobes: int, anisotropic: int, max_registers: int = 0,
         name += f"_maxreg{max_registers}"
     kernel = wp.kernel(accumulate_lm, name=name, enable_backward=False, module="unique",
                        cuda_max_registers=max_registers or None)
-    [(s, v, m)] = param_overloads((n_params,))  # the default precisions' overload (fit/kernels/overloads.py)
-    declare(kernel, params=STORAGE_SCALAR, images=IMAGE_PIXEL, like=v, like_m=m, one=s, out_f=s, out_g=v, out_jtj=m)
+    def declare_at(scalar, n_params=n_params):  # each compute precision's overload (fit/kernels/overloads.py)
+        [(s, v, m)] = param_overloads((n_params,), scalar)
+        declare(kernel, params=STORAGE_SCALAR, images=IMAGE_PIXEL, like=v, like_m=m, one=s, out_f=s, out_g=v,
+                out_jtj=m)
+
+    at_every_precision(declare_at)
     return kernel
 
 
@@ -596,9 +604,15 @@ def reduce_partials_kernel(pf: wp.array2d(dtype=Any), pg: wp.array2d(dtype=Any),
     st[i] = s
 
 
-for _s, _v, _m in param_overloads():  # the default run's overloads (fit/kernels/overloads.py): LM's J^T J, CG's d^T H d
-    for _h in (_m, _s):
-        declare(reduce_partials_kernel, pf=_s, pg=_v, ph=_h, f=_s, g=_v, h=_h)
+def _declare_reduce_overloads(scalar) -> None:
+    """reduce_partials_kernel's overloads of the compute scalar ``scalar`` (fit/kernels/overloads.py): LM's J^T J,
+    CG's d^T H d."""
+    for _s, _v, _m in param_overloads(scalar=scalar):
+        for _h in (_m, _s):
+            declare(reduce_partials_kernel, pf=_s, pg=_v, ph=_h, f=_s, g=_v, h=_h)
+
+
+at_every_precision(_declare_reduce_overloads)
 
 
 @wp.kernel(enable_backward=False, module="unique")

@@ -39,25 +39,28 @@ def kernel_sources_key() -> str:
     return h.hexdigest()[:16]
 
 
-def _marker(device: str) -> Path:
+def _marker(device: str, precision: str = "fp32") -> Path:
     wp.init()  # sets the kernel cache folder
     kind = "cuda" if str(device).startswith("cuda") else "cpu"
     if kind == "cuda":  # binaries are per GPU architecture
         kind += f"-sm{wp.get_device(device).arch}"
-    return Path(wp.config.kernel_cache_dir or "") / f"texstream-{kernel_sources_key()}-{kind}.warm"
+    # a float64 fit's modules also hold the float64 overloads (fit/kernels/overloads.py): other hashes, own marker
+    suffix = "" if precision == "fp32" else f"-{precision}"
+    return Path(wp.config.kernel_cache_dir or "") / f"texstream-{kernel_sources_key()}-{kind}{suffix}.warm"
 
 
 _ANNOUNCED: set = set()
 
 
-def kernels_cold(device: str) -> bool:
-    """Whether this texstream's kernels were never built on ``device``'s kind in Warp's cache: true at most once
-    per process and device (the first fit there says so and builds them, fit/stages/prewarm.py)."""
-    if device in _ANNOUNCED:
+def kernels_cold(device: str, precision: str = "fp32") -> bool:
+    """Whether this texstream's kernels of compute ``precision`` were never built on ``device``'s kind in Warp's
+    cache: true at most once per process, device and precision (the first fit there says so and builds them,
+    fit/stages/prewarm.py)."""
+    if (device, precision) in _ANNOUNCED:
         return False
-    _ANNOUNCED.add(device)
+    _ANNOUNCED.add((device, precision))
     try:
-        return not _marker(device).exists()
+        return not _marker(device, precision).exists()
     except OSError:
         return False
 
@@ -70,11 +73,11 @@ def kernel_build_line(device: str, how: str = "") -> str:
             "start at once")
 
 
-def mark_kernels_built(device: str) -> None:
-    """Record that a fit on ``device`` succeeded, so its kernels are in the cache (best effort: a cache folder
-    that cannot be written only means the notice shows again)."""
+def mark_kernels_built(device: str, precision: str = "fp32") -> None:
+    """Record that a fit on ``device`` of compute ``precision`` succeeded, so its kernels are in the cache (best
+    effort: a cache folder that cannot be written only means the notice shows again)."""
     try:
-        marker = _marker(device)
+        marker = _marker(device, precision)
         marker.parent.mkdir(parents=True, exist_ok=True)
         marker.touch()
     except OSError:

@@ -1,12 +1,17 @@
-"""The overloads of the fit's generic kernels that the default run launches, declared when each kernel is made.
+"""The overloads of the fit's generic kernels that a fit launches, declared when each kernel is made.
 
 Warp hashes a module with every overload its generic kernels have at that moment, and a launch whose argument
 types are new adds an overload: the module is hashed again and compiled again. Declared here, up front and the
-same in every process, the default run's overloads are in each module before its first launch, so one build
-of the module (the cold fit's parallel prewarm, fit/stages/prewarm.py, or a first launch) serves every later
-launch and run. Other precisions or parameter counts (``stream.accumulate`` fp64 above 1,000 photos,
-``stream.image_precision`` fp16, two-lobe or anisotropic Lafortune, the radiance models) still add their
-overload at their first launch and compile then, the declared ones with them.
+same in every process, a fit's overloads are in each module before its first launch, so one build of the module
+(the cold fit's parallel prewarm, fit/stages/prewarm.py, or a first launch) serves every later launch and run.
+
+The compute precision: every process declares float32's (``stream.accumulate`` auto up to 1,000 photos); a fit
+whose passes accumulate in float64 (auto above 1,000 photos, or asked) declares float64's too, with
+:func:`declare_precision`, before its prewarm and its first launch, on every generic kernel made so far and on
+each one made later (:func:`at_every_precision`). The order is the same in every process (float32 at import,
+float64 at the fit's start), so the cold process's build is the warm process's hash. Other parameter counts or
+photo precisions (``stream.image_precision`` fp16, two-lobe or anisotropic Lafortune, the radiance models) still
+add their overload at their first launch and compile then, the declared ones with them.
 """
 
 from __future__ import annotations
@@ -36,6 +41,37 @@ def declare(kernel, **dtypes) -> None:
     wp.overload(kernel, types)
 
 
-def param_overloads(param_counts=DEFAULT_PARAM_COUNTS):
-    """(scalar, parameter vector, parameter matrix) of the compute precision, per parameter count."""
-    return [(COMPUTE_SCALAR, *param_types(n, COMPUTE_SCALAR)) for n in param_counts]
+COMPUTE_PRECISIONS = {"fp32": wp.float32, "fp64": wp.float64}
+"""the compute scalars of ``stream.accumulate``'s resolved precisions (fit/stream/config.py)"""
+_declared_scalars: list = [COMPUTE_SCALAR]
+"""the compute scalars declared in this process, in the order they were"""
+_declarers: list = []
+"""every generic kernel's declaration, as a function of the compute scalar"""
+
+
+def at_every_precision(declarer) -> None:
+    """Call ``declarer(scalar)`` for each compute scalar declared so far, and keep it for those declared later."""
+    _declarers.append(declarer)
+    for scalar in list(_declared_scalars):
+        declarer(scalar)
+
+
+def declare_precision(precision: str) -> None:
+    """Declare every generic kernel's overloads of the compute precision ``precision`` ("fp32" or "fp64"), once
+    per process, before a fit that accumulates in it builds or launches a kernel."""
+    scalar = COMPUTE_PRECISIONS[precision]
+    if scalar in _declared_scalars:
+        return
+    _declared_scalars.append(scalar)
+    for declarer in list(_declarers):
+        declarer(scalar)
+
+
+def declared_precisions() -> tuple:
+    """The compute precisions declared in this process ("fp32", and "fp64" after a float64 fit's start)."""
+    return tuple(name for name, scalar in COMPUTE_PRECISIONS.items() if scalar in _declared_scalars)
+
+
+def param_overloads(param_counts=DEFAULT_PARAM_COUNTS, scalar=COMPUTE_SCALAR):
+    """(scalar, parameter vector, parameter matrix) of the compute precision ``scalar``, per parameter count."""
+    return [(scalar, *param_types(n, scalar)) for n in param_counts]

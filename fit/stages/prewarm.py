@@ -75,10 +75,12 @@ def build_threads() -> int:
         return os.cpu_count() or 1
 
 
-def build_kernels_if_cold(stage: str, device: str, kind: str) -> None:
+def build_kernels_if_cold(stage: str, device: str, kind: str, precision: str = "fp32") -> None:
     """The first fit on ``device`` with a cold kernel cache: say so, build the default run's modules (those
-    every fit launches for another ``kind``) in parallel, and say how long it took. Warm: nothing."""
-    if not kernels_cold(device):
+    every fit launches for another ``kind``) in parallel, and say how long it took. Warm: nothing. ``precision``:
+    the fit's compute precision, whose overloads the caller declared (fit/kernels/overloads.py
+    ``declare_precision``), so the modules built hold them."""
+    if not kernels_cold(device, precision):
         return
     modules = default_run_modules(device) if kind in DEFAULT_KINDS else shared_modules()
     threads = min(build_threads(), len(modules))

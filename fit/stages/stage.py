@@ -29,6 +29,8 @@ from texstream.core.outputs import StageResult, write_json_atomic
 from texstream.core.progress import bar, say
 
 from texstream.fit.kernels.build_notice import mark_kernels_built
+from texstream.fit.kernels.overloads import declare_precision
+from texstream.fit.stream.config import resolve_accumulate
 from texstream.fit.optim.fitter import FitConfig
 from texstream.fit.models import registry
 from texstream.fit.stages import choice
@@ -150,11 +152,20 @@ def fit_model(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     plugin = registry.get(cfg.fit.model)
     check_output_path(out_dir)
     cfg = dataclasses.replace(cfg, device=resolve_device(cfg.device))
-    build_kernels_if_cold("fit", cfg.device, cfg.fit.model)
+    precision = compute_precision(capture_dir, cfg)
+    declare_precision(precision)  # before any build or launch: the same modules cold and warm
+    build_kernels_if_cold("fit", cfg.device, cfg.fit.model, precision)
     with loaders_closed_after():  # photos streamed from disk: their loaders' threads end with the stage
         result = plugin.fit(registry.FitRequest(Path(capture_dir), Path(mesh_path), Path(out_dir), cfg, progress))
-    mark_kernels_built(cfg.device)
+    mark_kernels_built(cfg.device, precision)
     return result
+
+
+def compute_precision(capture_dir: str | Path, cfg: FitStageConfig) -> str:
+    """The precision the fit's passes accumulate in (``stream.accumulate``; auto: by the capture's photo count, an
+    upper bound of the fitted photos', so a fit near the threshold may declare float64 it does not use)."""
+    frames = read_capture(capture_dir).frames if Path(capture_dir, "capture.json").is_file() else []
+    return resolve_accumulate(cfg.fit.stream.accumulate, len(frames))
 
 
 CANDIDATE_STAMP = ".texstream_candidate.json"
