@@ -466,13 +466,15 @@ def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, d
         name += f"_maxreg{max_registers}"
     kernel = wp.kernel(accumulate, name=name, enable_backward=False, module="unique",
                        cuda_max_registers=max_registers or None)
-    def declare_at(scalar, n_params=fn.n_params):  # each compute precision's overload (fit/kernels/overloads.py)
-        [(s, v, _)] = param_overloads((n_params,), scalar)
-        declare(kernel, params=STORAGE_SCALAR, direction=STORAGE_SCALAR, images=IMAGE_PIXEL, like=v, one=s, out_f=s,
-                out_g=v, out_dhd=s, out_diag=v)
-
-    at_every_precision(declare_at)
+    at_every_precision(functools.partial(_declare_gradient_pass, kernel, fn.n_params))
     return kernel
+
+
+def _declare_gradient_pass(kernel, n_params: int, scalar) -> None:
+    """A gradient pass kernel's overload of the compute scalar ``scalar`` (fit/kernels/overloads.py)."""
+    [(s, v, _)] = param_overloads((n_params,), scalar)
+    declare(kernel, params=STORAGE_SCALAR, direction=STORAGE_SCALAR, images=IMAGE_PIXEL, like=v, one=s, out_f=s,
+            out_g=v, out_dhd=s, out_diag=v)
 
 
 @functools.cache
@@ -557,13 +559,14 @@ def accumulate_lm_kernel(n_lobes: int, anisotropic: int, max_registers: int = 0,
         name += f"_maxreg{max_registers}"
     kernel = wp.kernel(accumulate_lm, name=name, enable_backward=False, module="unique",
                        cuda_max_registers=max_registers or None)
-    def declare_at(scalar, n_params=n_params):  # each compute precision's overload (fit/kernels/overloads.py)
-        [(s, v, m)] = param_overloads((n_params,), scalar)
-        declare(kernel, params=STORAGE_SCALAR, images=IMAGE_PIXEL, like=v, like_m=m, one=s, out_f=s, out_g=v,
-                out_jtj=m)
-
-    at_every_precision(declare_at)
+    at_every_precision(functools.partial(_declare_lm_pass, kernel, n_params))
     return kernel
+
+
+def _declare_lm_pass(kernel, n_params: int, scalar) -> None:
+    """An LM pass kernel's overload of the compute scalar ``scalar`` (fit/kernels/overloads.py)."""
+    [(s, v, m)] = param_overloads((n_params,), scalar)
+    declare(kernel, params=STORAGE_SCALAR, images=IMAGE_PIXEL, like=v, like_m=m, one=s, out_f=s, out_g=v, out_jtj=m)
 
 
 @wp.kernel(enable_backward=False, module="unique")
