@@ -123,30 +123,67 @@ def test_ambient_off_with_no_flash_photos_is_one_line(pair_fits, tmp_path):
 
 
 def test_a_zero_intensity_frame_gives_finite_gradients(pair_fits):
-    """A no-flash frame (flash intensity 0) alone: every objective and gradient entry finite; the ambient's gradient
-    is what the photo says (non-zero), the albedo's nearly none (the fit carries the light at 1e-9 of the brightest,
-    fit/common/setup.py ``UNLIT_SHARE``: bound 1e-6 of the ambient's largest)."""
+    """No-flash frames (flash intensity 0, as the capture states it: the fit takes it unchanged) alone: every
+    objective and gradient entry finite; the ambient's gradient is what the photos say (non-zero), the albedo's
+    exactly 0 (such a sample's only feature is the ambient, fit/kernels/accumulate.py)."""
     import warp as wp
 
     from texstream.capture.synthetic.synth import load_ground_truth
-    from texstream.fit.common.setup import build_problem, fit_photo_frames
-    from texstream.fit.optim.fitter import FitConfig
     from texstream.fit.common.inputs import load_photos
+    from texstream.fit.common.setup import build_problem
+    from texstream.fit.optim.fitter import FitConfig
 
     cap = read_capture(pair_fits / "pairs")
     dark = [f for f in cap.frames if not flash_fired(f)][:2]
-    assert fit_photo_frames(cap.frames[:1])[0].light_intensity.tolist() == cap.frames[0].light.intensity.tolist()
     mesh, params, _, bake, _ = load_ground_truth(pair_fits / "pairs")
     cfg = FitConfig(model="diffuse", ambient="on")
     images, masks = load_photos(cap, dark)
     prob = build_problem(mesh, bake, dark, images, masks, cfg, SCENE_DEVICE)
+    assert not prob.photos.infos_host["light_intensity"].any()
     p = np.tile(prob.layout.defaults(), (prob.n, 1))
     f, g = prob.new_scalar(), prob.new_vec()
-    prob.evaluate(prob.new_storage(p), f, g, wp.zeros(prob.n, dtype=wp.vec4d, device=prob.device))
+    stats = wp.zeros(prob.n, dtype=wp.vec4d, device=prob.device)
+    prob.evaluate(prob.new_storage(p), f, g, stats)
     g = g.numpy()[:, :prob.layout.n_params]
-    assert np.all(np.isfinite(f.numpy())) and np.all(np.isfinite(g))
-    amb = np.abs(g[:, prob.layout.ambient_offset:]).max()
-    assert amb > 0 and np.abs(g[:, 0:3]).max() < 1e-6 * amb
+    assert np.all(np.isfinite(f.numpy())) and np.all(np.isfinite(g)) and stats.numpy()[:, 0].sum() > 0
+    assert np.abs(g[:, prob.layout.ambient_offset:]).max() > 0 and not g[:, 0:3].any()
+
+
+UNLIT_CASES = {"filtered": ({}, False), "point": ({"sampling": "point"}, False),
+               "lookup": ({"lookup": "bilinear"}, False), "traced": ({"taps": "mesh"}, False),
+               "room": ({"lookup": "bilinear"}, True)}
+"""plane_problem options of the unlit samples' derivative checks, and whether the layout has the room light"""
+
+
+@pytest.mark.parametrize("case", list(UNLIT_CASES))
+def test_unlit_samples_derivatives_match_finite_differences(device, case):
+    """Half the photos of test_fit_gradients' plane scene with their light at 0: each column's gradient (the room
+    light's frozen S included: what its solve reduces) against central differences in float64 (bound 1e-6 of each
+    texel's gradient norm, test_fit_gradients'), and the full d^T H d against second differences (an unlit sample is
+    linear in its parameters: its curvature is the Gauss-Newton one). With every photo unlit, the albedo's and the
+    lobes' gradient is exactly 0 and the ambient's not."""
+    from test_fit_ambient import AMBIENT_STEP, ambient_params
+    from test_fit_gradients import (assert_full_dhd_matches_second_difference,
+                                    assert_gradient_matches_finite_differences, evaluate, plane_problem)
+    from test_fit_room_light import room_params
+
+    from texstream.render.layout import ModelLayout
+
+    options, room = UNLIT_CASES[case]
+    layout = ModelLayout(room=room, ambient=not room)
+    params = room_params if room else ambient_params
+    prob, rng = plane_problem(device, layout, unlit=3, **options)
+    p = params(layout, prob.n, rng)
+    prob.refresh_lookup(prob.new_storage(p))
+    assert_gradient_matches_finite_differences(prob, layout, p, range(layout.n_params))
+    if not room:  # the room's frozen S has no step
+        assert_full_dhd_matches_second_difference(prob, p, rng, AMBIENT_STEP)
+    dark, _ = plane_problem(device, layout, unlit=6, **options)
+    dark.refresh_lookup(dark.new_storage(p))
+    f, g, _, stats = evaluate(dark, p)
+    extra = layout.n_params - 3
+    assert stats[:, 0].sum() > 0 and np.isfinite(f).all() and np.abs(g[:, extra:]).max() > 0
+    assert not g[:, 3:extra].any() and (room or not g[:, 0:3].any())
 
 
 def write_photos(folder, flash_tags: dict) -> None:

@@ -30,24 +30,6 @@ from texstream.render.layout import ModelLayout
 from texstream.render.renderer import Renderer
 
 
-
-UNLIT_SHARE = 1e-9
-"""a light of intensity 0 (a photo taken with the flash off, capture_json.py ``no_flash``) reaches the fit's kernels
-at this fraction of the capture's brightest light: their ambient term's feature is its share over the sample's light
-weight W (fit/kernels/accumulate.py), finite only for W > 0, and W cancels from it exactly, while the flash's
-reflectance then adds 1e-9 of a flash photo's (below float32's resolution of the radiance)"""
-
-
-def fit_photo_frames(frames) -> list[PhotoFrame]:
-    """The fit's view of the capture's frames: a zero light channel raised to ``UNLIT_SHARE`` of the brightest."""
-    photo_frames = [PhotoFrame.from_capture_frame(f) for f in frames]
-    lit = [pf for pf in photo_frames if pf.light_kind != "none"]
-    top = max((float(np.max(pf.light_intensity)) for pf in lit), default=0.0)
-    floor = UNLIT_SHARE * (top if top > 0 else 1.0)
-    return [dataclasses.replace(pf, light_intensity=np.maximum(np.asarray(pf.light_intensity, np.float64), floor))
-            if pf.light_kind != "none" and np.min(pf.light_intensity) <= 0 else pf for pf in photo_frames]
-
-
 def build_problem(mesh, bake, frames, images, masks, cfg: FitConfig, device: str, photos=None):
     """The StreamProblem of a fit: texels from the bake, photos on the device with their depth and
     shadow maps (``photos``: a PhotoSet of these frames built before, e.g. by another problem's
@@ -58,7 +40,7 @@ def build_problem(mesh, bake, frames, images, masks, cfg: FitConfig, device: str
     import concurrent.futures
     import contextvars
 
-    photo_frames = fit_photo_frames(frames)
+    photo_frames = [PhotoFrame.from_capture_frame(f) for f in frames]  # a no-flash photo's light at 0 (accumulate.py)
     normals = mesh.vertex_normals()  # computed anew on each call for a mesh without stored normals
 
     split = split_photos(cfg)  # before any work: refuses tiles with it

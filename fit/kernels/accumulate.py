@@ -148,6 +148,8 @@ def layout_funcs(n_lobes: int, anisotropic: int, lookup: bool = False, traced: b
     sample_model = _sample_model_func(lf, frame_directions, lobe_directions, bool(lookup), bool(traced),
                                       bool(radiance), ambient)
     sample = _sample_func(observe_func(bool(radiance)), sample_model, bool(lookup))
+    if ambient:  # its own function around the sample, for photos whose light is 0: the other layouts compile as they did
+        sample = _unlit_sample_func(sample, 3 + int(n_lobes) * (6 + int(anisotropic)))
     return LayoutFuncs(lf, load_params, sample, channel_residual, n_params)
 
 
@@ -346,6 +348,31 @@ def _sample_func(observe_sample, sample_model, blend: bool):
         return use, wc, feat, hm, to_compute3(fitted, one), y
 
     return sample
+
+
+def _unlit_sample_func(sample, ambient_col: int):
+    """The sample (``sample``) of a layout with the ambient (columns from ``ambient_col``), with photos whose
+    light is 0 (the flash off): a channel ``set_ambient`` marks unlit (f[c] = 1, its weight W_c 0) has the weight 1
+    and no d^T (Hess M) d, its residual the ambient's alone (``lafortune_grad.unlit_funcs``); a photo whose light is
+    0 in every channel gives a usable sample wherever the photo sees texel i's share of the ambient (observed, and
+    with the lookup a tap on the texel), whatever its light's cosine over the taps (module doc)."""
+
+    @wp.func
+    def unlit_sample(pv: Any, dv: Any, images: wp.array3d(dtype=Any), depth: wp.array3d(dtype=wp.float32),
+                     shadow: wp.array3d(dtype=wp.float32), infos: wp.array(dtype=ImageInfo), k: int, tex: TexelFrames,
+                     i: int, opt: SampleOptions, want_hm: int, one: Any):
+        use, wc, feat, hm, fitted, y = sample(pv, dv, images, depth, shadow, infos, k, tex, i, opt, want_hm, one)
+        zero = one - one
+        for c in range(3):
+            if feat[c] != zero:
+                wc[c] = one
+                hm[c] = zero
+        light = infos[k].light_intensity
+        if light[0] == 0.0 and light[1] == 0.0 and light[2] == 0.0:
+            use = feat[wp.static(ambient_col)] > zero
+        return use, wc, feat, hm, fitted, y
+
+    return unlit_sample
 
 
 @functools.cache
