@@ -41,8 +41,17 @@ mesh or misses, :func:`traced_texel`), W = sum_t w_t and N the neighbours' blend
 
 The ambient radiance (``ambient``) adds exposure A to every tap whatever its light (sum_t b_t = 1): its feature is
 a_c = exposure / W_c (fit/kernels/lafortune_grad.py), with the lookup exposure sum_t b_t o_t / W_c and the
-neighbours' blended ambient exposure sum_t b_t n^A_t added to N. Samples whose taps are all unlit stay unusable
-(the observation already rejects shadowed and grazing texel centres): the flash-lit samples fit A.
+neighbours' blended ambient exposure sum_t b_t n^A_t added to N. Samples of a lit photo whose taps are all unlit
+stay unusable (the observation already rejects shadowed and grazing texel centres). A photo whose light is exactly 0
+(taken with the flash off, capture_json.py ``no_flash``) sees the room alone: in a channel whose W_c is 0 the sample's
+only feature is A's, a_c = exposure sum_t b_t o_t itself, with the weight 1 (r_c = a_c A_c + N_c - y_c, no division
+by W), and such a photo's sample is usable wherever texel i has a share of its taps, whatever its light's cosine
+over them (:func:`_unlit_sample_func`, ``lafortune_grad.unlit_funcs``; the observation's light tests at the texel
+centre remain, so the fit places such a light at the camera, fit/common/setup.py ``fit_photo_frame``). The functions that do it are the ambient
+layouts' own, wrapped around the others, so the layouts without the ambient compile the code (and Warp hashes the
+source) they did; the ambient layouts' arithmetic on lit samples is unchanged, so their results are bit-identical.
+Without the ambient such a sample has W = 0: in radiance space r = -y with a zero Jacobian, no information
+(reflectance space, which divides by W, is refused with no-flash photos: fit/models/per_texel/ambient.py).
 
 The data term is sum rho(r_c) with rho(r) = r^2 / 2 (least squares) or a robust loss (Huber, Cauchy;
 ``accumulate_kernel``'s ``robust``), applied per sample as iteratively reweighted least squares.

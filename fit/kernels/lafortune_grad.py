@@ -27,6 +27,11 @@ the room's radiance rho_d S takes the ambient's place: m_c = (the above) + rho_d
 (S is frozen in the per-texel fit; its column's J^T r and J^T J are what the global light's solve reduces,
 fit/models/per_texel/room_light.py). The only second derivative, d^2 m_c / drho_d,c dS_c = a_c, meets a direction
 whose S entries are 0 (frozen), so ``dhd`` is unchanged.
+A channel whose light is exactly 0 (a photo taken with the flash off) has no flash term: its sample predicts the
+ambient alone, exposure A_c share (the room's: rho_d,c S_c share), so the sample takes the share itself as a_c and
+the weight 1 (fit/kernels/accumulate.py): m_c = A_c a_c, dm_c/dA_c = a_c and every other entry 0 (the room's:
+m_c = rho_d,c S_c a_c, dm_c/drho_d,c = S_c a_c, dm_c/dS_c = rho_d,c a_c); ``set_ambient`` marks such a channel by
+f[c] = 1 (the features leave the diffuse columns' f[0:3] at 0) and :func:`unlit_funcs` reads the mark.
 """
 
 from __future__ import annotations
