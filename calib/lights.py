@@ -59,21 +59,31 @@ def load_lights_file(path: str | os.PathLike) -> tuple[Light | None, dict[str, L
     return default, frames
 
 
-def light_of_photo(names, default: Light | None, frames: dict[str, Light], no_flash: bool,
-                   path: str | os.PathLike) -> tuple[Light | None, bool]:
-    """(light, zeroed) of one photo from a lights file (``path``): its own entry (by any of ``names``, its stem or
-    file name), else ``default``. A photo taken with the flash off (capture_json.py ``no_flash``) is lit by the room
-    alone, so the default (a blanket light for every photo) reaches it at intensity 0 (``zeroed``); an entry of its
-    own that gives it light contradicts the marking, and which of the two is wrong only the user knows: refused."""
-    own = next((frames[n] for n in names if n in frames), None)
-    light = own or default
-    if light is None or not no_flash or not np.any(light.intensity):
-        return light, False
-    if own is not None:
-        raise InputError(f"photo {names[0]} was taken with the flash off (no_flash) but the lights file gives it a "
-                         "light of its own", path, "remove its entry from the lights file (the room lights it alone), "
-                         "or mark the no-flash photos with --no-flash GLOB, which overrides the EXIF Flash tag")
-    return unlit(light), True
+def photo_lights(path: str | os.PathLike | None, no_flash: set[str]):
+    """``light(stem, file_name)``: a photo's light from the lights file ``path`` (None: none), its own entry (by
+    stem or file name) else the file's default. A photo taken with the flash off (``no_flash``: their file names,
+    capture_json.py ``no_flash``) is lit by the room alone, so the default (a blanket light for every photo) reaches
+    it at intensity 0, said in one line; an entry of its own that gives it light contradicts the marking, and which
+    of the two is wrong only the user knows: refused, before any photo is written."""
+    default, frames = load_lights_file(path) if path else (None, {})
+    zeroed = 0
+    for file_name in sorted(no_flash):
+        own = frames.get(Path(file_name).stem) or frames.get(file_name)
+        if own is not None and np.any(own.intensity):
+            raise InputError(f"photo {file_name} was taken with the flash off (no_flash) but the lights file gives "
+                             "it a light of its own", path, "remove its entry from the lights file (the room lights "
+                             "it alone), or mark the no-flash photos with --no-flash GLOB (it overrides the EXIF "
+                             "Flash tag)")
+        zeroed += own is None and default is not None and bool(np.any(default.intensity))
+    if zeroed:
+        say("ingest", f"--lights: the default light at intensity 0 on the {zeroed} photo(s) taken with the flash off "
+                      "(the room lights them alone)")
+
+    def light(stem: str, file_name: str) -> Light | None:
+        chosen = frames.get(stem) or frames.get(file_name) or default
+        return unlit(chosen) if chosen is not None and file_name in no_flash else chosen
+
+    return light
 
 
 def unlit(light: Light) -> Light:
@@ -505,7 +515,8 @@ def lit_capture(posed_dir: Path, out: Path, lcfg: LightsConfig) -> StageResult:
 
     frames = []
     for f in keep:  # the room alone lights a photo taken with the flash off: the ball's light at 0 there
-        frames.append(dataclasses.replace(f, file_path=rel(f.file_path), light=light if flash_fired(f) else unlit(light),
+        frames.append(dataclasses.replace(f, file_path=rel(f.file_path),
+                                          light=light if flash_fired(f) else unlit(light),
                                           mask_path=None if f.mask_path is None else rel(f.mask_path)))
     dark = sum(not flash_fired(f) for f in keep)
     if dark:

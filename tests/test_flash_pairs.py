@@ -253,14 +253,17 @@ def test_ingest_marks_no_flash_photos_from_exif_and_the_glob(tmp_path):
     assert dark == [] and entry["source"] == "none" and "no_flash" not in cap.extra
 
 
-def test_a_lights_file_leaves_no_flash_photos_to_the_room(tmp_path):
+def test_a_lights_file_leaves_no_flash_photos_to_the_room(tmp_path, monkeypatch):
     """``--lights``: a no-flash photo is lit by the room alone, so the file's default light reaches it at intensity
     0 (in place), said in one line; a light the file gives that photo by name contradicts the marking (which of the
     two is wrong only the user knows): a one-line error naming the file and both fixes; an entry at intensity 0 is
-    what the marking says, accepted."""
+    what the marking says, accepted. The mirror ball's light (the lights stage, its estimate stubbed here) is every
+    photo's default: at intensity 0 on the no-flash ones too."""
     import json
 
+    from texstream.calib import lights as lights_stage
     from texstream.core.errors import InputError
+    from texstream.core.outputs import StageResult
     from texstream.core.progress import reporting
 
     photos = tmp_path / "photos"
@@ -278,6 +281,18 @@ def test_a_lights_file_leaves_no_flash_photos_to_the_room(tmp_path):
     assert [line for line in lines if "intensity 0" in line] == [
         "  ingest: --lights: the default light at intensity 0 on the 1 photo(s) taken with the flash off (the room "
         "lights them alone)"]
+    def ball(posed, out, cfg):
+        out.mkdir()
+        return StageResult(output=out, summary={"light": lamp, "kind": "point", "views": 2})
+
+    monkeypatch.setattr(lights_stage, "estimate_lights", ball)
+    lines.clear()
+    with reporting(lines.append, bars=False):
+        lights_stage.lit_capture(tmp_path / "default", tmp_path / "ball", lights_stage.LightsConfig())
+    assert [f.light.intensity.tolist() for f in read_capture(tmp_path / "ball").frames] == [[5.0] * 3, [0.0] * 3]
+    assert [line for line in lines if "intensity 0" in line] == [
+        "  lights: the mirror ball's light at intensity 0 on the 1 photo(s) taken with the flash off (the room lights "
+        "them alone)"]
     lights.write_text(json.dumps({"default": lamp, "frames": {"a_noflash": lamp}}))
     with pytest.raises(InputError) as e:
         ingested(photos, tmp_path / "named", lights=str(lights))
