@@ -265,6 +265,7 @@ def test_a_lights_file_leaves_no_flash_photos_to_the_room(tmp_path, monkeypatch)
     from texstream.core.errors import InputError
     from texstream.core.outputs import StageResult
     from texstream.core.progress import reporting
+    from texstream.pipelines.light_inputs import light_and_resolution_inputs
 
     photos = tmp_path / "photos"
     photos.mkdir()
@@ -293,6 +294,9 @@ def test_a_lights_file_leaves_no_flash_photos_to_the_room(tmp_path, monkeypatch)
     assert [line for line in lines if "intensity 0" in line] == [
         "  lights: the mirror ball's light at intensity 0 on the 1 photo(s) taken with the flash off (the room lights "
         "them alone)"]
+    light = light_and_resolution_inputs(read_capture(tmp_path / "ball"), tmp_path / "no_model", tmp_path, {})["light"]
+    assert light["source"].endswith(", intensity 0 on the 1 photos taken with the flash off (the room lights them "
+                                    "alone)"), light
     lights.write_text(json.dumps({"default": lamp, "frames": {"a_noflash": lamp}}))
     with pytest.raises(InputError) as e:
         ingested(photos, tmp_path / "named", lights=str(lights))
