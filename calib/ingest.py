@@ -48,7 +48,7 @@ from texstream.core.progress import bar, say
 from .chart_masks import charts_by_frame, mask_out_charts
 from .colour_chart import response_from_photos
 from .files import list_images, write_failure_report
-from .lights import load_lights_file
+from .lights import photo_lights
 from .masks import MASK_MODES, MaskConfig, masks_for_images, write_mask_preview
 from .no_flash import NO_FLASH_HELP, decide_no_flash, exif_flash_fired
 from .hdr import (BRACKET_MODES, HDR_METHODS, bracket_alignment, calibrate_response, group_brackets, is_exif_bracket,
@@ -452,7 +452,7 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
     response, response_entry = _decide_response(infos, cfg)
     no_flash, no_flash_entry = _no_flash_photos(groups, infos, cfg)
     cams = load_intrinsics(cfg.intrinsics) if cfg.intrinsics else None
-    default_light, frame_lights = load_lights_file(cfg.lights) if cfg.lights else (None, {})
+    light_of = photo_lights(cfg.lights, no_flash)
     frames: list[Frame] = []
     sources: set[str] = set()
     focal_decisions: dict[str, dict] = {}
@@ -476,7 +476,7 @@ def ingest(photos: str | os.PathLike, out: str | os.PathLike, config: IngestConf
             if ex.get("exposure_time"):
                 # Sensor exposure ~ t * ISO / N^2 (N = 1 and ISO 100 when unknown: only ratios matter).
                 gain = float(ex["exposure_time"]) * float(ex.get("iso", 100.0)) / 100.0 / float(ex.get("f_number", 1.0)) ** 2
-            light = frame_lights.get(name) or frame_lights.get(lead["path"].name) or default_light
+            light = light_of(name, lead["path"].name)
             # per frame too: registration gives an EXIF prior as one, a guess as none
             extra = {"source_images": [m["path"].name for m in members], "focal_prior": source,
                      **({NO_FLASH_KEY: True} if lead["path"].name in no_flash else {})}

@@ -32,12 +32,13 @@ from typing import Any
 
 import numpy as np
 
-from texstream.capture.capture_json import (Capture, Frame, Intrinsics, Light, _light_from, read_capture,
-                                            write_capture)
+from texstream.capture.capture_json import (Capture, Frame, Intrinsics, Light, _light_from, flash_fired,
+                                            read_capture, write_capture)
 from texstream.capture.imageio import read_image, read_mask
 from texstream.core.errors import ConfigError, InputError, StageError
 from texstream.core.config import option, save_config
 from texstream.core.outputs import StageResult, atomic_output_dir, read_json, write_json_atomic
+from texstream.core.progress import say
 from .colmap_io import opencv_distortion
 
 LIGHTS_FILE = "lights.json"
@@ -56,6 +57,38 @@ def load_lights_file(path: str | os.PathLike) -> tuple[Light | None, dict[str, L
     default = _light_from(data["default"], "default", p) if data.get("default") else None
     frames = {str(k): _light_from(v, f"frames[{k!r}]", p) for k, v in (data.get("frames") or {}).items()}
     return default, frames
+
+
+def photo_lights(path: str | os.PathLike | None, no_flash: set[str]):
+    """``light(stem, file_name)``: a photo's light from the lights file ``path`` (None: none), its own entry (by
+    stem or file name) else the file's default. A photo taken with the flash off (``no_flash``: their file names,
+    capture_json.py ``no_flash``) is lit by the room alone, so the default (a blanket light for every photo) reaches
+    it at intensity 0, said in one line; an entry of its own that gives it light contradicts the marking, and which
+    of the two is wrong only the user knows: refused, before any photo is written."""
+    default, frames = load_lights_file(path) if path else (None, {})
+    zeroed = 0
+    for file_name in sorted(no_flash):
+        own = frames.get(Path(file_name).stem) or frames.get(file_name)
+        if own is not None and np.any(own.intensity):
+            raise InputError(f"photo {file_name} was taken with the flash off (no_flash) but the lights file gives "
+                             "it a light of its own", path, "remove its entry from the lights file (the room lights "
+                             "it alone), or mark the no-flash photos with --no-flash GLOB (it overrides the EXIF "
+                             "Flash tag)")
+        zeroed += own is None and default is not None and bool(np.any(default.intensity))
+    if zeroed:
+        say("ingest", f"--lights: the default light at intensity 0 on the {zeroed} photo(s) taken with the flash off "
+                      "(the room lights them alone)")
+
+    def light(stem: str, file_name: str) -> Light | None:
+        chosen = frames.get(stem) or frames.get(file_name) or default
+        return unlit(chosen) if chosen is not None and file_name in no_flash else chosen
+
+    return light
+
+
+def unlit(light: Light) -> Light:
+    """``light`` at intensity 0 (in place, the same kind): a photo's light whose flash did not fire."""
+    return dataclasses.replace(light, intensity=np.zeros(3))
 
 
 def colocated_light(r: np.ndarray, t: np.ndarray, intensity, offset=(0.0, 0.0, 0.0), fired: bool = True) -> Light:
@@ -481,9 +514,14 @@ def lit_capture(posed_dir: Path, out: Path, lcfg: LightsConfig) -> StageResult:
         return os.path.relpath(posed_dir / p, out)
 
     frames = []
-    for f in keep:
-        frames.append(dataclasses.replace(f, file_path=rel(f.file_path), light=light,
+    for f in keep:  # the room alone lights a photo taken with the flash off: the ball's light at 0 there
+        frames.append(dataclasses.replace(f, file_path=rel(f.file_path),
+                                          light=light if flash_fired(f) else unlit(light),
                                           mask_path=None if f.mask_path is None else rel(f.mask_path)))
+    dark = sum(not flash_fired(f) for f in keep)
+    if dark:
+        say("lights", f"the mirror ball's light at intensity 0 on the {dark} photo(s) taken with the flash off (the "
+                      "room lights them alone)")
     extra = dict(cap.extra)
     extra["lights_source"] = f"mirror ball ({res.summary['kind']} light, {res.summary['views']} ball view(s))"
     write_capture(Capture(root=out, frames=frames, extra=extra), out)

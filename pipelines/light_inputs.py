@@ -28,9 +28,11 @@ def _light(capture, flash_summary: dict) -> dict:
         return {"source": "flash at the camera, intensity given",
                 "why": "--colocated-light (the irradiance at the object's median distance when the cameras' scale "
                        "is SfM's); no colour chart fixed it, so albedos are relative to that guess"}
+    dark = len(no_flash_frames(capture.frames))
+    unlit = f", intensity 0 on the {dark} photos taken with the flash off (the room lights them alone)" if dark else ""
     if capture.extra.get("lights_source"):
-        return {"source": str(capture.extra["lights_source"]), "why": "the lights stage"}
-    return {"source": "known per photo" if capture.has_lights else "none known", "why": "as the capture states"}
+        return {"source": str(capture.extra["lights_source"]) + unlit, "why": "the lights stage"}
+    return {"source": "known per photo" + unlit if capture.has_lights else "none known", "why": "as the capture states"}
 
 
 def _no_flash(capture) -> dict:

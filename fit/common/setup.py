@@ -30,22 +30,16 @@ from texstream.render.layout import ModelLayout
 from texstream.render.renderer import Renderer
 
 
-
-UNLIT_SHARE = 1e-9
-"""a light of intensity 0 (a photo taken with the flash off, capture_json.py ``no_flash``) reaches the fit's kernels
-at this fraction of the capture's brightest light: their ambient term's feature is its share over the sample's light
-weight W (fit/kernels/accumulate.py), finite only for W > 0, and W cancels from it exactly, while the flash's
-reflectance then adds 1e-9 of a flash photo's (below float32's resolution of the radiance)"""
-
-
-def fit_photo_frames(frames) -> list[PhotoFrame]:
-    """The fit's view of the capture's frames: a zero light channel raised to ``UNLIT_SHARE`` of the brightest."""
-    photo_frames = [PhotoFrame.from_capture_frame(f) for f in frames]
-    lit = [pf for pf in photo_frames if pf.light_kind != "none"]
-    top = max((float(np.max(pf.light_intensity)) for pf in lit), default=0.0)
-    floor = UNLIT_SHARE * (top if top > 0 else 1.0)
-    return [dataclasses.replace(pf, light_intensity=np.maximum(np.asarray(pf.light_intensity, np.float64), floor))
-            if pf.light_kind != "none" and np.min(pf.light_intensity) <= 0 else pf for pf in photo_frames]
+def fit_photo_frame(frame) -> PhotoFrame:
+    """The fit's view of a capture frame. A light of intensity 0 (a photo taken with the flash off, capture_json.py
+    ``no_flash``) keeps it: the kernels take such a sample's ambient alone (fit/kernels/accumulate.py). It lights
+    nothing, but the kernels still test its cosine and shadow map (fit/kernels/stream.py ``observe``), so it is placed
+    at the camera, where they reject what the view's own tests do: a lamp's position (``--lights``, the mirror ball)
+    would drop the samples that face away from a lamp that did not light the photo."""
+    pf = PhotoFrame.from_capture_frame(frame)
+    if pf.light_kind == "none" or np.any(pf.light_intensity):
+        return pf
+    return dataclasses.replace(pf, light_kind="point", light_vec=-np.asarray(pf.R).T @ np.asarray(pf.t))
 
 
 def build_problem(mesh, bake, frames, images, masks, cfg: FitConfig, device: str, photos=None):
@@ -58,7 +52,7 @@ def build_problem(mesh, bake, frames, images, masks, cfg: FitConfig, device: str
     import concurrent.futures
     import contextvars
 
-    photo_frames = fit_photo_frames(frames)
+    photo_frames = [fit_photo_frame(f) for f in frames]
     normals = mesh.vertex_normals()  # computed anew on each call for a mesh without stored normals
 
     split = split_photos(cfg)  # before any work: refuses tiles with it

@@ -41,8 +41,18 @@ mesh or misses, :func:`traced_texel`), W = sum_t w_t and N the neighbours' blend
 
 The ambient radiance (``ambient``) adds exposure A to every tap whatever its light (sum_t b_t = 1): its feature is
 a_c = exposure / W_c (fit/kernels/lafortune_grad.py), with the lookup exposure sum_t b_t o_t / W_c and the
-neighbours' blended ambient exposure sum_t b_t n^A_t added to N. Samples whose taps are all unlit stay unusable
-(the observation already rejects shadowed and grazing texel centres): the flash-lit samples fit A.
+neighbours' blended ambient exposure sum_t b_t n^A_t added to N. Samples of a lit photo whose taps are all unlit
+stay unusable (the observation already rejects shadowed and grazing texel centres). A photo whose light is exactly 0
+(taken with the flash off, capture_json.py ``no_flash``) sees the room alone: in a channel whose W_c is 0 the
+sample's only feature is A's, a_c = exposure sum_t b_t o_t itself, with the weight 1 (r_c = a_c A_c + N_c - y_c, no
+division by W), and such a photo's sample is usable wherever texel i has a share of its taps, whatever its light's
+cosine over them (:func:`_unlit_sample_func`, ``lafortune_grad.unlit_funcs``; the observation's light tests at the
+texel centre remain, so the fit places such a light at the camera, fit/common/setup.py ``fit_photo_frame``). The
+functions that do it are the ambient layouts' own, wrapped around the others, so the layouts without the ambient
+compile the code (and Warp hashes the source) they did; the ambient layouts' arithmetic on lit samples is unchanged,
+so their results are bit-identical. Without the ambient such a sample has W = 0: in radiance space r = -y with a
+zero Jacobian, no information (reflectance space, which divides by W, is refused with no-flash photos:
+fit/models/per_texel/ambient.py).
 
 The data term is sum rho(r_c) with rho(r) = r^2 / 2 (least squares) or a robust loss (Huber, Cauchy;
 ``accumulate_kernel``'s ``robust``), applied per sample as iteratively reweighted least squares.
@@ -149,6 +159,8 @@ def layout_funcs(n_lobes: int, anisotropic: int, lookup: bool = False, traced: b
     sample_model = _sample_model_func(lf, frame_directions, lobe_directions, bool(lookup), bool(traced),
                                       bool(radiance), ambient)
     sample = _sample_func(observe_func(bool(radiance)), sample_model, bool(lookup))
+    if ambient:  # its own function around the sample, for photos whose light is 0: the others compile as they did
+        sample = _unlit_sample_func(sample, 3 + int(n_lobes) * (6 + int(anisotropic)))
     return LayoutFuncs(lf, load_params, sample, channel_residual, n_params)
 
 
@@ -347,6 +359,31 @@ def _sample_func(observe_sample, sample_model, blend: bool):
         return use, wc, feat, hm, to_compute3(fitted, one), y
 
     return sample
+
+
+def _unlit_sample_func(sample, ambient_col: int):
+    """The sample (``sample``) of a layout with the ambient (columns from ``ambient_col``), with photos whose
+    light is 0 (the flash off): a channel ``set_ambient`` marks unlit (f[c] = 1, its weight W_c 0) has the weight 1
+    and no d^T (Hess M) d, its residual the ambient's alone (``lafortune_grad.unlit_funcs``); a photo whose light is
+    0 in every channel gives a usable sample wherever the photo sees texel i's share of the ambient (observed, and
+    with the lookup a tap on the texel), whatever its light's cosine over the taps (module doc)."""
+
+    @wp.func
+    def unlit_sample(pv: Any, dv: Any, images: wp.array3d(dtype=Any), depth: wp.array3d(dtype=wp.float32),
+                     shadow: wp.array3d(dtype=wp.float32), infos: wp.array(dtype=ImageInfo), k: int, tex: TexelFrames,
+                     i: int, opt: SampleOptions, want_hm: int, one: Any):
+        use, wc, feat, hm, fitted, y = sample(pv, dv, images, depth, shadow, infos, k, tex, i, opt, want_hm, one)
+        zero = one - one
+        for c in range(3):
+            if feat[c] != zero:
+                wc[c] = one
+                hm[c] = zero
+        light = infos[k].light_intensity
+        if light[0] == 0.0 and light[1] == 0.0 and light[2] == 0.0:
+            use = feat[wp.static(ambient_col)] > zero
+        return use, wc, feat, hm, fitted, y
+
+    return unlit_sample
 
 
 @functools.cache

@@ -27,6 +27,11 @@ the room's radiance rho_d S takes the ambient's place: m_c = (the above) + rho_d
 (S is frozen in the per-texel fit; its column's J^T r and J^T J are what the global light's solve reduces,
 fit/models/per_texel/room_light.py). The only second derivative, d^2 m_c / drho_d,c dS_c = a_c, meets a direction
 whose S entries are 0 (frozen), so ``dhd`` is unchanged.
+A channel whose light is exactly 0 (a photo taken with the flash off) has no flash term: its sample predicts the
+ambient alone, exposure A_c share (the room's: rho_d,c S_c share), so the sample takes the share itself as a_c and
+the weight 1 (fit/kernels/accumulate.py): m_c = A_c a_c, dm_c/dA_c = a_c and every other entry 0 (the room's:
+m_c = rho_d,c S_c a_c, dm_c/drho_d,c = S_c a_c, dm_c/dS_c = rho_d,c a_c); ``set_ambient`` marks such a channel by
+f[c] = 1 (the features leave the diffuse columns' f[0:3] at 0) and :func:`unlit_funcs` reads the mark.
 """
 
 from __future__ import annotations
@@ -92,17 +97,55 @@ def no_ambient(f: Any, share: Any, weight: Any):
 
 
 def set_ambient_func(amb: int):
-    """``set_ambient`` (:class:`LafortuneFuncs`) of a layout whose ambient (or room) columns start at ``amb``."""
+    """``set_ambient`` (:class:`LafortuneFuncs`) of a layout whose ambient (or room) columns start at ``amb``.
+
+    A channel whose weight W_c is 0 (its light is exactly 0: a photo taken with the flash off) sees the ambient
+    alone: its feature is the share itself (the residual's weight taken as 1, :func:`unlit_funcs`, no division by
+    W) and f[c] = 1 marks the channel unlit (the features leave f[0:3], the diffuse columns, at 0)."""
 
     @wp.func
     def set_ambient(f: Any, share: Any, weight: Any):
-        tiny = share - share + type(share)(1.0e-30)  # a weight of 0 (an unlit channel): no inf
+        zero = share - share
+        tiny = zero + type(share)(1.0e-30)
         out = f
         for c in range(3):
-            out[wp.static(amb) + c] = share / wp.max(weight[c], tiny)
+            if weight[c] > zero:
+                out[wp.static(amb) + c] = share / wp.max(weight[c], tiny)
+            else:
+                out[c] = zero + type(share)(1.0)
+                out[wp.static(amb) + c] = share
         return out
 
     return set_ambient
+
+
+def unlit_funcs(model_value: Any, row_entry: Any, amb: int, room: bool, ambient_entry: int):
+    """(model_value, row_entry) of a layout with the ambient (``room``: the room light's S) whose columns start at
+    ``amb``: a lit channel's as the layout's own (the same arithmetic), an unlit one's (f[c] = 1, ``set_ambient``)
+    the ambient's alone, m_c = A_c a_c (the room's: rho_d,c S_c a_c) with a_c the share and every other entry of the
+    row 0 but ``ambient_entry`` (A's; the room's: S's and rho_d's, S_c a_c)."""
+
+    @wp.func
+    def unlit_model_value(p: Any, f: Any, c: int):
+        if f[c] != p[0] - p[0]:
+            if wp.static(room):
+                return p[c] * p[wp.static(amb) + c] * f[wp.static(amb) + c]
+            return p[wp.static(amb) + c] * f[wp.static(amb) + c]
+        return model_value(p, f, c)
+
+    @wp.func
+    def unlit_row_entry(p: Any, f: Any, c: int, t: int):
+        col, val = row_entry(p, f, c, t)
+        zero = p[0] - p[0]
+        if f[c] != zero:
+            if t != wp.static(ambient_entry):
+                val = zero
+                if wp.static(room):
+                    if t == 0:
+                        val = p[wp.static(amb) + c] * f[wp.static(amb) + c]
+        return col, val
+
+    return unlit_model_value, unlit_row_entry
 
 
 def jacobian_row_func(row_entry: Any, row_nonzeros: int):
@@ -211,6 +254,8 @@ def lafortune_funcs(n_lobes: int, anisotropic: int, ambient: int = 0) -> Lafortu
         o = 3 + j * wp.static(stride)
         return o + 3 + k, p[o + c] * f[o + 3 + k]
 
+    if with_ambient:  # wrapped for samples whose light is 0 (unlit_funcs); the other layouts compile as they did
+        model_value, row_entry = unlit_funcs(model_value, row_entry, amb, with_room, lobe_nonzeros)
     jacobian_row = jacobian_row_func(row_entry, row_nonzeros)
 
     @wp.func
