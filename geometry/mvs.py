@@ -54,7 +54,7 @@ from texstream.core.checkpoint import StageCheckpoint, files_signature, inputs_k
 from texstream.core.config import config_to_dict, option
 from texstream.core.errors import ConfigError, InputError
 
-from .mvs_levels import frame_at_level, matching_level, stack_at_level
+from .mvs_levels import frame_at_level, matching_level, planes_at_level, stack_at_level
 
 MAX_NEIGHBOURS = 8  # the kernels keep one pixel's neighbour costs in a fixed-size vector
 
@@ -65,7 +65,9 @@ class MvsConfig:
 
     depths: int = option(160, help="depth hypotheses per photo, evenly spaced in inverse depth across the "
                                    "object's depth range (about one pixel of parallax per step at 20 degrees "
-                                   "on the Middlebury temple)", min=8, max=4096)
+                                   "on the Middlebury temple's 640x480 photos); photos matched larger than 640 "
+                                   "pixels get as many more as their longer side is larger (the parallax grows "
+                                   "with it), those matched at level L at least depths / 2^L", min=8, max=4096)
     window: int = option(7, help="NCC window side in pixels (odd)", min=3, max=31)
     neighbours: int = option(4, help="at most this many neighbour photos per reference photo", min=1,
                              max=MAX_NEIGHBOURS)
@@ -87,12 +89,12 @@ class MvsConfig:
                                 min=3, max=31)
     voxel: float = option(0.001, help="fuse points on a voxel grid of this fraction of the bounding-box diagonal "
                                       "(0: keep every pixel's point)", min=0.0)
-    level: int = option(0, help="match the photos at pyramid level L (2^L x 2^L pixel boxes averaged, masks kept "
-                                "where the whole box is object, the cameras scaled; depths / 2^L planes, the same "
-                                "parallax per plane); 0: as they are; -1 auto: the coarsest level at which the "
-                                "median photo's mask keeps level_min_mask_pixels pixels (auto keeps the temple at "
-                                "level 0; on photos of megapixels its held-out cost is not measured yet, so it is "
-                                "not the default)", min=-1, max=4)
+    level: int = option(-1, help="match the photos at pyramid level L (2^L x 2^L pixel boxes averaged, masks kept "
+                                 "where the whole box is object, the cameras scaled); 0: as they are; -1 auto: the "
+                                 "coarsest level at which the median photo's mask keeps level_min_mask_pixels "
+                                 "pixels (photos of the temple's size stay at level 0; 11 photos of 3072x2048 are "
+                                 "matched at level 2, 768x512, in 31 s on 2 CPU cores with 98,197 points)",
+                        min=-1, max=4)
     level_min_mask_pixels: int = option(64000, help="level auto: the pixels the median photo's mask must keep at the "
                                                     "chosen level. The temple's 640x480 photos (masks of about 72,000 "
                                                     "pixels) stay at level 0: at level 1 (18,000) its mesh stage took "
@@ -502,7 +504,7 @@ def dense_points(frames: Sequence, images: Sequence[np.ndarray], masks: Sequence
     if level:
         frames = [frame_at_level(f, level) for f in frames]
         grey, mask = stack_at_level(grey, mask, frames, level)
-        cfg = dataclasses.replace(cfg, depths=max(8, cfg.depths >> level))
+    cfg = dataclasses.replace(cfg, depths=planes_at_level(cfg.depths, frames, level))
     hmax, wmax = grey.shape[1:]
     lo, hi = (np.asarray(b, np.float64) for b in bounds)
     centres = np.array([f.center for f in frames])

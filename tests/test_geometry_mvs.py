@@ -215,6 +215,24 @@ def test_the_matching_level_follows_the_masks_and_scales_the_cameras():
     assert m[0, 0, 0] == 0 and m.sum() == 75 * 101 - 1
 
 
+def test_the_planes_follow_the_matched_photos_size():
+    """MvsConfig.depths is the count for photos of the temple's size (640 px, about a pixel of parallax per plane):
+    larger matched photos get more in proportion to their longer side (the parallax in pixels grows with it), and
+    a level never has fewer than depths / 2^L (the rule before, kept for photos no larger than the temple's)."""
+    from types import SimpleNamespace
+
+    from texstream.geometry.mvs_levels import planes_at_level
+
+    def frames(w, h):
+        return [SimpleNamespace(intrinsics=SimpleNamespace(width=w, height=h))]
+
+    assert planes_at_level(160, frames(640, 480), 0) == 160  # the temple, as before
+    assert planes_at_level(160, frames(320, 240), 1) == 80  # the temple at level 1, as before
+    assert planes_at_level(160, frames(64, 64), 1) == 80  # small photos keep depths / 2^L
+    assert planes_at_level(160, frames(768, 512), 2) == 192  # 3072x2048 at level 2 (was 40)
+    assert planes_at_level(160, frames(3072, 2048), 0) == 768
+
+
 def test_depth_maps_at_level_one_still_find_the_surface(sphere_capture):
     """The sphere matched at level 1 (64x64, 80 planes: a quarter of the pixels, half the planes): the depths
     stay sub-plane (median relative error under 1%: one level-1 pixel spans 3.2% of the depth at the front,
