@@ -2,7 +2,7 @@
 (``run.json`` ``resolutions``) and its report say it.
 
 A stage says its own in its summary's ``resolution`` (a line: the registration's SIFT size, the refinement's
-pyramid levels); the fit says it in ``model.json`` (``photos.resolution``: the pyramid level it streamed, chosen
+pyramid levels), the mesh stage in its dense stereo report (the matching level, its size and planes); the fit says it in ``model.json`` (``photos.resolution``: the pyramid level it streamed, chosen
 from the texels' footprint, fit/common/inputs.py); the report scores the held-out views on the photos as they are.
 """
 
@@ -31,6 +31,17 @@ def fit_resolution_line(level_info: dict | None) -> str | None:
     return f"{size[0]}x{size[1]} (level {level}; {why})"
 
 
+def mesh_resolution_line(summary: dict) -> str | None:
+    """The mesh stage's line from its dense stereo report (None: no dense stereo ran)."""
+    dense = summary.get("dense") if isinstance(summary, dict) else None
+    if not isinstance(dense, dict) or "level" not in dense or not dense.get("matched_size"):
+        return None
+    w, h = dense["matched_size"]
+    return (f"dense stereo on {w}x{h} (level {int(dense['level'])}: mvs.level, auto: the coarsest level whose median "
+            f"mask keeps mvs.level_min_mask_pixels pixels), {int(dense.get('depths', 0))} depth planes, "
+            f"{int(dense.get('points', 0)):,} points")
+
+
 def stage_resolutions(stages: list[dict], model_dir: str | Path | None = None) -> dict[str, str]:
     """{stage: the resolution it used and why} for the stages that say it (``stages``: the run's records as
     dicts with ``name``, ``status`` and ``summary``), the fit's from ``model_dir``'s model.json, and the
@@ -38,6 +49,8 @@ def stage_resolutions(stages: list[dict], model_dir: str | Path | None = None) -
     out: dict[str, str] = {}
     for s in stages:
         line = (s.get("summary") or {}).get("resolution")
+        if s.get("name") == "mesh" and not line:
+            line = mesh_resolution_line(s.get("summary") or {})
         if isinstance(line, str) and line:
             out[s["name"]] = line + (" (unchanged since the last run)" if s.get("status") == "skipped" else "")
     manifest = Path(model_dir) / "model.json" if model_dir is not None else None

@@ -119,9 +119,12 @@ def test_the_run_says_which_resolution_each_stage_used(tmp_path):
         "level": 1, "size": [1536, 1024], "texel_pixels": 5.1, "requested": -1}}}))
     stages = [{"name": "ingest", "status": "ran", "summary": {}},
               {"name": "register", "status": "ran", "summary": {"resolution": "SIFT on 1600x1067 of 3072x2048"}},
+              {"name": "mesh", "status": "ran", "summary": {"dense": {"level": 2, "matched_size": [768, 512],
+                                                                      "depths": 192, "points": 114281}}},
               {"name": "refine", "status": "skipped", "summary": {"resolution": "768x512 (level 2)"}}]
     lines = stage_resolutions(stages, tmp_path)
-    assert list(lines) == ["register", "refine", "fit", "report"]
+    assert list(lines) == ["register", "mesh", "refine", "fit", "report"]
+    assert lines["mesh"].startswith("dense stereo on 768x512 (level 2") and "192 depth planes, 114,281 points" in lines["mesh"]
     assert lines["refine"].endswith("(unchanged since the last run)")
     assert lines["fit"].startswith("1536x1024 (level 1; auto: texels 5.10 px") and lines["report"] == HELDOUT_LINE
     assert "<td>register</td><td>SIFT on 1600x1067 of 3072x2048</td>" in resolutions_html(lines)
