@@ -161,6 +161,13 @@ class PhotometricRefinement:
                               f"takes {fine_mb:,.0f} MB (refine.max_photo_mb {cfg.max_photo_mb:,.0f})",
                               fix="raise --refine.max-photo-mb or --refine.photo-level, or run with --refine off")
         self.pyramid = rl.PhotoPyramid(capture, [lv for lv, _ in self.schedule] + [self.level])
+        # texels: the bake's covered texels (a coarse level's: a coarser bake of the same charts), at the
+        # surface's current position
+        self.fine_level, self.texel_level = self.level, None
+        self.bakes = {self.level: bake}
+        if cfg.coarse_texels:
+            for lv, _ in self.schedule:
+                self.bakes.setdefault(lv, rl.coarse_bake(mesh, bake, lv - self.fine_level, device))
         images, masks, _ = self.pyramid.stacked(self.level)
         fg = masks.astype(bool)
         self.huber = cfg.huber * max(float(images[fg].sum()) / max(3.0 * float(fg.sum()), 1.0), 1e-12)
@@ -203,7 +210,26 @@ class PhotometricRefinement:
         self.disp_damping = wp.array([1.0], dtype=wp.float64, device=device)
         self.disp_accepted = wp.zeros(1, dtype=wp.int32, device=device)
 
-        # texels: the bake's covered texels, at the surface's current position
+
+        # per photo
+        self.system = wp.zeros((n, rk.POSE_TERMS), dtype=wp.float64, device=device)
+        self.obj_before = wp.zeros((n, 2), dtype=wp.float64, device=device)
+        self.obj_after = wp.zeros_like(self.obj_before)
+        self.pose_damping = wp.full(n, 1e-3, dtype=wp.float64, device=device)
+        self.pose_accepted = wp.zeros(n, dtype=wp.int32, device=device)
+        centres = np.array([f.center for f in self.frames])
+        mid = 0.5 * (welded.max(axis=0) + welded.min(axis=0))
+        self.max_translation = wp.array((cfg.max_translation_step * np.linalg.norm(centres - mid, axis=1)
+                                         ).astype(np.float32), dtype=float, device=device)
+        self.totals = wp.zeros(4, dtype=wp.float64, device=device)  # before sum, count; after sum, count
+
+    def set_texels(self, level: int) -> None:
+        """The texels of pyramid ``level``'s bake (the atlas's own without ``coarse_texels``), with their colour
+        and scratch arrays."""
+        bake = self.bakes.get(level, self.bakes[self.fine_level])
+        if self.texel_level is not None and bake is self.bakes.get(self.texel_level, self.bakes[self.fine_level]):
+            return
+        self.texel_level, device = level, self.device
         covered = bake.covered.reshape(-1)
         self.n_texels = int(covered.sum())
         if self.n_texels == 0:
@@ -218,18 +244,6 @@ class PhotometricRefinement:
         self.colour = wp.zeros_like(self.num)
         self.known = wp.zeros(self.n_texels, dtype=wp.int32, device=device)
 
-        # per photo
-        self.system = wp.zeros((n, rk.POSE_TERMS), dtype=wp.float64, device=device)
-        self.obj_before = wp.zeros((n, 2), dtype=wp.float64, device=device)
-        self.obj_after = wp.zeros_like(self.obj_before)
-        self.pose_damping = wp.full(n, 1e-3, dtype=wp.float64, device=device)
-        self.pose_accepted = wp.zeros(n, dtype=wp.int32, device=device)
-        centres = np.array([f.center for f in self.frames])
-        mid = 0.5 * (welded.max(axis=0) + welded.min(axis=0))
-        self.max_translation = wp.array((cfg.max_translation_step * np.linalg.norm(centres - mid, axis=1)
-                                         ).astype(np.float32), dtype=float, device=device)
-        self.totals = wp.zeros(4, dtype=wp.float64, device=device)  # before sum, count; after sum, count
-
     def set_level(self, level: int) -> None:
         """The photos, masks and depth maps at pyramid ``level``, the cameras' intrinsics with them (poses kept)."""
         images, masks, sizes = self.pyramid.stacked(level)
@@ -243,6 +257,8 @@ class PhotometricRefinement:
         self.widths = wp.array(sizes[:, 1].astype(np.int32), device=dev)
         self.heights = wp.array(sizes[:, 0].astype(np.int32), device=dev)
         self.depth = wp.zeros((n, self.hmax, self.wmax), dtype=wp.float32, device=dev)
+        self.depth_saved = wp.zeros_like(self.depth)
+        self.set_texels(level)
         if level != self.level:
             infos = rl.rescale_infos(self.infos.numpy(), sizes, 2.0 ** (self.level - level))
             self.infos = struct_array(infos, ImageInfo, dev)
@@ -270,16 +286,17 @@ class PhotometricRefinement:
             wp.launch(rk.subtract_kernel, dim=(len(self.frames), self.hmax, self.wmax), inputs=[self._wide],
                       outputs=[self.blurred], device=self.device)
 
-    def update_geometry(self) -> None:
-        """Mesh vertices from the welded ones, the BVH, texel positions, and every photo's depth map."""
+    def update_geometry(self, depth: bool = True) -> None:
+        """Mesh vertices from the welded ones, the BVH, texel positions, and (``depth``) every photo's depth map."""
         wp.launch(rk.scatter_points_kernel, dim=len(self.mesh.vertices), inputs=[self.welded_points, self.weld],
                   outputs=[self.points], device=self.device)
         self.bvh.refit()
         wp.launch(rk.texel_points_kernel, dim=self.n_texels,
                   inputs=[self.t_face, self.t_bary, self.faces, self.points, self.direction, self.weld],
                   outputs=[self.t_p, self.t_n], device=self.device)
-        wp.launch(depth_maps_kernel, dim=(len(self.frames), self.hmax, self.wmax), device=self.device,
-                  inputs=[self.bvh.id, self.infos, 0, self.masks, 1], outputs=[self.depth])
+        if depth:
+            wp.launch(depth_maps_kernel, dim=(len(self.frames), self.hmax, self.wmax), device=self.device,
+                      inputs=[self.bvh.id, self.infos, 0, self.masks, 1], outputs=[self.depth])
 
     def colours(self, images) -> None:
         self.num.zero_()
@@ -302,16 +319,29 @@ class PhotometricRefinement:
                           int(system)],
                   outputs=[self.system, out])
 
-    def geometry_step(self, images) -> None:
+    def geometry_step(self, images, objective=None) -> None:
         """One pose step of every camera (``cameras``), then the colours and one displacement step of the mesh
-        (``mesh``), each followed by the geometry's update; the colours the pose step compares are the caller's."""
+        (``mesh``), each followed by the geometry's update; the colours the pose step compares are the caller's.
+        With ``objective`` (n, 2), the per-photo objective after the step, against the colours it compared."""
         if self.cfg.cameras:
             self.pose_step(images)
             self.update_geometry()
-        if self.cfg.mesh:
-            self.colours(images)
-            self.displacement_step(images)
-            self.update_geometry()
+        if not self.cfg.mesh:
+            if objective is not None:
+                self.objective(images, objective)
+            return
+        if self.cfg.cameras:
+            self.colours(images)  # else the caller's are still current
+        self.displacement_step(images)
+        # a kept step leaves the depth maps it was scored with, a refused one those before it (restored);
+        # the objective after the step is the one of the two the geometry kept, with the same colours
+        self.update_geometry(depth=False)
+        wp.launch(rk.keep_depth_kernel, dim=(len(self.frames), self.hmax, self.wmax), device=self.device,
+                  inputs=[self.totals[0:2], self.totals[2:4], self.depth_saved], outputs=[self.depth])
+        if objective is not None:
+            wp.launch(rk.kept_objective_kernel, dim=len(self.frames), device=self.device,
+                      inputs=[self.totals[0:2], self.totals[2:4], self.obj_before, self.obj_after],
+                      outputs=[objective])
 
     def pose_step(self, images) -> None:
         self.objective(images, self.obj_before, system=True)
@@ -348,6 +378,7 @@ class PhotometricRefinement:
         wp.launch(rk.apply_displacement_kernel, dim=self.n_welded, device=dev,
                   inputs=[src, 0.25 * edge, edge], outputs=[self.disp, self.disp_saved, self.base, self.direction,
                                                              self.welded_points])
+        wp.copy(self.depth_saved, self.depth)  # a refused step restores them (geometry_step)
         self.update_geometry()
         self.objective(images, self.obj_after)
         self.totals.zero_()
@@ -408,20 +439,12 @@ class PhotometricRefinement:
             self.set_level(level)
             self.update_geometry()
             self.blur(sigma)
-            self.log(f"level {level}, blur {sigma:g} px: {cfg.iterations} iterations")
-            for it in range(step - k * cfg.iterations, cfg.iterations):
-                progress.update(1)
-                self.colours(self.blurred)
-                self.geometry_step(self.blurred)
-                self.objective(self.blurred, history[step])
-                step += 1
-                if checkpoint is not None and (it == cfg.iterations - 1
-                                               or time.perf_counter() - saved_at >= cfg.checkpoint_every_s):
-                    refine_checkpoint.save_state(self, checkpoint, step, history)
-                    saved_at = time.perf_counter()
+            self.log(f"level {level}, blur {sigma:g} px: at most {cfg.iterations} iterations")
+            step, saved_at = self._level_iterations(k, step, history, checkpoint, progress, saved_at)
         hist = history.numpy()  # read once, after the loop
         trace = [{"photo_level": schedule[k][0], "blur_px": schedule[k][1], "iteration": it,
-                  **self._per_role(hist[k * cfg.iterations + it])} for k in ran for it in range(cfg.iterations)]
+                  **self._per_role(hist[k * cfg.iterations + it])} for k in ran for it in range(cfg.iterations)
+                 if hist[k * cfg.iterations + it, :, 1].sum() > 0]  # a settled level's rows after its stop: 0
         self.set_level(finest)
         self.update_geometry()
         self.blur(0.0)
@@ -438,13 +461,41 @@ class PhotometricRefinement:
         result = self._result(start, end, trace, time.perf_counter() - t0)
         result.summary["shading_normals"] = shading
         result.summary["levels"] = {"schedule": [{"photo_level": lv, "blur_px": b} for lv, b in schedule],
-                                    "ran": len(ran), "finer_levels": finer}
+                                    "ran": len(ran), "finer_levels": finer,
+                                    "iterations": [sum(t["photo_level"] == schedule[k][0] and t["blur_px"] ==
+                                                       schedule[k][1] for t in trace) for k in ran],
+                                    "rel_tol": cfg.rel_tol}
         size = self.resolution["size"]
         result.summary["resolution"] = (
             f"{size[0]}x{size[1]} (level {finest}; {self.resolution['why']}); coarse first at level {schedule[0][0]}"
             + ("" if len(schedule) == 1 else f"; {finer['reason']}"))
         result.normals = normals
         return result
+
+    def _level_iterations(self, k: int, step: int, history, checkpoint, progress, saved_at: float):
+        """Level ``k``'s iterations from ``step`` (of the levels' count; each level has ``iterations`` rows of
+        ``history``), until they are done or the objective settled: an iteration lowered the photos' mean
+        objective per sample by less than ``rel_tol`` of it (the level's rows left are skipped, zero in
+        ``history``). Returns (step, time of the last checkpoint save)."""
+        cfg = self.cfg
+        end = (k + 1) * cfg.iterations
+        previous = None
+        while step < end:
+            progress.update(1)
+            self.colours(self.blurred)
+            self.geometry_step(self.blurred, history[step])
+            step += 1
+            if cfg.rel_tol > 0.0 and step < end:
+                sums = history[step - 1].numpy().sum(axis=0)  # one small read an iteration
+                current = sums[0] / max(sums[1], 1.0)
+                if previous is not None and previous - current < cfg.rel_tol * previous:
+                    progress.update(end - step)
+                    step = end
+                previous = current
+            if checkpoint is not None and (step == end or time.perf_counter() - saved_at >= cfg.checkpoint_every_s):
+                refine_checkpoint.save_state(self, checkpoint, step, history)
+                saved_at = time.perf_counter()
+        return step, saved_at
 
     def shaded_refinement(self, start: np.ndarray, progress=None) -> tuple[np.ndarray, dict]:
         """With known lights, after the levels: ``normal_iterations`` of :meth:`ShadingNormals.iterate` from
