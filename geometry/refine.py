@@ -29,6 +29,7 @@ numpy and warp at import time.
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import math
 import os
@@ -54,6 +55,10 @@ from .refine_config import RefineConfig
 from . import refine_normal_kernels as rnk
 from .bake import TexelBake, bake_texels
 from .mesh_io import load_mesh, save_mesh
+
+
+MAX_THREADS = 8
+"""``threads`` 0 uses at most this many CPU cores (each launch splits into that many parts; measured on 2)"""
 
 
 def _gaussian(sigma: float) -> tuple[np.ndarray, int]:
@@ -122,6 +127,20 @@ def camera_attached_lights(frames) -> tuple[np.ndarray, np.ndarray]:
     return attached, offset
 
 
+def refine_threads(cfg: RefineConfig, device: str) -> int:
+    """The threads the refinement's heavy kernels run on: ``cfg.threads``, or (0) the CPU cores this process may
+    use (at most :data:`MAX_THREADS`); 1 on a GPU."""
+    if not str(device).startswith("cpu"):
+        return 1
+    if cfg.threads > 0:
+        return cfg.threads
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # macOS and Windows have no affinity call
+        cores = os.cpu_count() or 1
+    return max(1, min(cores, MAX_THREADS))
+
+
 @dataclasses.dataclass
 class RefineResult:
     """Refined poses (world-to-camera R, t per frame), welded vertex displacements and the trace."""
@@ -161,6 +180,11 @@ class PhotometricRefinement:
                               f"takes {fine_mb:,.0f} MB (refine.max_photo_mb {cfg.max_photo_mb:,.0f})",
                               fix="raise --refine.max-photo-mb or --refine.photo-level, or run with --refine off")
         self.pyramid = rl.PhotoPyramid(capture, [lv for lv, _ in self.schedule] + [self.level])
+        self.threads, self.pool = refine_threads(cfg, device), None
+        if self.threads > 1:  # the kernels' modules loaded before two threads launch them
+            wp.load_module(rk, device=device)
+            wp.load_module(depth_maps_kernel.module, device=device)
+            self.pool = concurrent.futures.ThreadPoolExecutor(self.threads, thread_name_prefix="texstream-refine")
         # texels: the bake's covered texels (a coarse level's: a coarser bake of the same charts), at the
         # surface's current position
         self.fine_level, self.texel_level = self.level, None
@@ -223,6 +247,24 @@ class PhotometricRefinement:
                                          ).astype(np.float32), dtype=float, device=device)
         self.totals = wp.zeros(4, dtype=wp.float64, device=device)  # before sum, count; after sum, count
 
+    def close(self) -> None:
+        """End the launch threads (the state stays readable)."""
+        if self.pool is not None:
+            self.pool.shutdown()
+            self.pool = None
+
+    def _split(self, count: int, launch) -> None:
+        """``launch(a, b)`` over [0, count) in ``threads`` parts, one a thread, on the CPU (Warp runs a CPU kernel
+        on the launching thread and releases the GIL; the parts write disjoint rows, so the results are those of
+        one launch to the bit); one launch elsewhere."""
+        if self.pool is None or count < 2:
+            launch(0, count)
+            return
+        parts = min(self.threads, count)
+        edges = [count * i // parts for i in range(parts + 1)]
+        for done in [self.pool.submit(launch, a, b) for a, b in zip(edges[:-1], edges[1:])]:
+            done.result()
+
     def set_texels(self, level: int) -> None:
         """The texels of pyramid ``level``'s bake (the atlas's own without ``coarse_texels``), with their colour
         and scratch arrays."""
@@ -272,11 +314,10 @@ class PhotometricRefinement:
             wp.copy(out, self.images)
             return
         weights = wp.array(w, dtype=float, device=self.device)
-        dims = (len(self.frames), self.hmax, self.wmax)
-        wp.launch(rk.blur_axis_kernel, dim=dims, inputs=[self.images, weights, radius, 1, self.widths, self.heights],
-                  outputs=[self._scratch], device=self.device)
-        wp.launch(rk.blur_axis_kernel, dim=dims, inputs=[self._scratch, weights, radius, 0, self.widths, self.heights],
-                  outputs=[out], device=self.device)
+        for src, along_x, dst in ((self.images, 1, self._scratch), (self._scratch, 0, out)):
+            self._split(len(self.frames), lambda a, b: wp.launch(
+                rk.blur_axis_kernel, dim=(b - a, self.hmax, self.wmax), device=self.device,
+                inputs=[src[a:b], weights, radius, along_x, self.widths[a:b], self.heights[a:b]], outputs=[dst[a:b]]))
 
     def blur(self, sigma: float) -> None:
         """``blurred``: the photos at this level, blurred by ``sigma`` pixels, less their ``detail``-wide blur."""
@@ -295,16 +336,17 @@ class PhotometricRefinement:
                   inputs=[self.t_face, self.t_bary, self.faces, self.points, self.direction, self.weld],
                   outputs=[self.t_p, self.t_n], device=self.device)
         if depth:
-            wp.launch(depth_maps_kernel, dim=(len(self.frames), self.hmax, self.wmax), device=self.device,
-                      inputs=[self.bvh.id, self.infos, 0, self.masks, 1], outputs=[self.depth])
+            self._split(len(self.frames), lambda a, b: wp.launch(
+                depth_maps_kernel, dim=(b - a, self.hmax, self.wmax), device=self.device,
+                inputs=[self.bvh.id, self.infos, a, self.masks[a:b], 1], outputs=[self.depth[a:b]]))
 
     def colours(self, images) -> None:
         self.num.zero_()
         self.den.zero_()
-        dims = (len(self.frames), self.n_texels)
-        wp.launch(rk.albedo_sums_kernel, dim=dims, device=self.device,
-                  inputs=[self.infos, images, self.depth, self.roles, self.t_p, self.t_n, self.t_shade,
-                          self.cfg.cos_view_min, self.cfg.depth_tol], outputs=[self.num, self.den])
+        self._split(self.n_texels, lambda a, b: wp.launch(  # by texels: a texel's sums keep the photos' order
+            rk.albedo_sums_kernel, dim=(len(self.frames), b - a), device=self.device,
+            inputs=[self.infos, images, self.depth, self.roles, self.t_p[a:b], self.t_n[a:b], self.t_shade[a:b],
+                    self.cfg.cos_view_min, self.cfg.depth_tol], outputs=[self.num[a:b], self.den[a:b]]))
         wp.launch(rk.albedo_kernel, dim=self.n_texels, inputs=[self.num, self.den], outputs=[self.colour, self.known],
                   device=self.device)
 
@@ -313,11 +355,12 @@ class PhotometricRefinement:
         out.zero_()
         if system:
             self.system.zero_()
-        wp.launch(rk.pose_system_kernel, dim=(len(self.frames), self.n_texels), device=self.device,
-                  inputs=[self.infos, images, self.depth, self.roles, self.t_p, self.t_n, self.t_shade,
-                          self.colour, self.known, self.cfg.cos_view_min, self.cfg.depth_tol, self.huber,
-                          int(system)],
-                  outputs=[self.system, out])
+        self._split(len(self.frames), lambda a, b: wp.launch(  # by photos: each has its own sums
+            rk.pose_system_kernel, dim=(b - a, self.n_texels), device=self.device,
+            inputs=[self.infos[a:b], images[a:b], self.depth[a:b], self.roles[a:b], self.t_p, self.t_n,
+                    self.t_shade, self.colour, self.known, self.cfg.cos_view_min, self.cfg.depth_tol, self.huber,
+                    int(system)],
+            outputs=[self.system[a:b], out[a:b]]))
 
     def geometry_step(self, images, objective=None) -> None:
         """One pose step of every camera (``cameras``), then the colours and one displacement step of the mesh
@@ -779,7 +822,10 @@ def refine_stage(capture_dir: str | Path, geometry: str | Path, out: str | Path,
     checkpoint = refine_checkpoint.refine_checkpoint(capture, geometry, out, cfg, device, log)
     with phase("refine", f"cameras and mesh against {len(capture.frames)} photos"):
         job = PhotometricRefinement(capture, mesh, bake, cfg, device, log)
-        result = job.run(checkpoint)
+        try:
+            result = job.run(checkpoint)
+        finally:
+            job.close()
     normals = None if result.normals is None else result.normals[job.weld_host]
     moved = dataclasses.replace(mesh, vertices=result.points, normals=normals)
     with phase("refine", f"texel bake ({bake.width}x{bake.height})"):

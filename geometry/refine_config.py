@@ -82,6 +82,10 @@ class RefineConfig:
                                     min=0.0, max=80.0)
     cos_view_min: float = option(0.2, "samples seen more grazingly than this cosine are left out", min=0.0, max=1.0)
     depth_tol: float = option(0.01, "visibility test tolerance, as a fraction of the camera distance", min=0.0)
+    threads: int = option(0, "on the CPU, the threads the heavy kernels (depth maps, colours, objectives, blur) "
+                             "split their photos or texels over (Warp runs a CPU kernel on one core; the results "
+                             "are the same to the bit); 0: one per CPU core this process may use (at most 8)",
+                          min=0, max=64)
     checkpoint_every_s: float = option(10.0, "seconds between saves of the levels' state to the work folder (a kill "
                                              "loses at most this much; each level's last iteration is always saved; "
                                              "0: every iteration). Saving copies the state to the host, which on a GPU "
