@@ -125,3 +125,32 @@ def test_the_run_says_which_resolution_each_stage_used(tmp_path):
     assert lines["refine"].endswith("(unchanged since the last run)")
     assert lines["fit"].startswith("1536x1024 (level 1; auto: texels 5.10 px") and lines["report"] == HELDOUT_LINE
     assert "<td>register</td><td>SIFT on 1600x1067 of 3072x2048</td>" in resolutions_html(lines)
+
+
+def test_a_coarse_level_samples_a_coarser_bake_of_the_same_charts(sphere):
+    from texstream.geometry.bake import TexelBake
+    from texstream.geometry.mesh_io import load_mesh
+
+    root, _ = sphere
+    mesh = load_mesh(root / "ground_truth" / "mesh.obj")
+    bake = TexelBake.load(root / "ground_truth" / "bake.npz")
+    assert rl.coarse_bake(mesh, bake, 0, SCENE_DEVICE) is bake  # the finest level: the atlas's own
+    coarse = rl.coarse_bake(mesh, bake, 2, SCENE_DEVICE)
+    assert (coarse.width, coarse.height) == (bake.width // 4, bake.height // 4)
+    # texels 4x wider: a sixteenth as many (chart borders and faces claiming a texel of their own add a few)
+    ratio = coarse.covered.sum() / bake.covered.sum()
+    assert 1 / 16 <= ratio < 1.3 / 16, ratio
+    assert set(np.unique(coarse.face[coarse.covered])) == set(range(len(mesh.faces)))  # every face sampled
+
+
+def test_a_level_stops_once_its_objective_settled_and_threads_change_no_bit(sphere, tmp_path):
+    # rel_tol 0.5: the second iteration of a level lowers the objective by far less than half, so every level
+    # stops there; two threads split the kernels' photos and texels and give the one thread's result exactly
+    root, _ = sphere
+    one = _refine(sphere, tmp_path / "one", root, min_move=0.0, rel_tol=0.5, threads=1)
+    assert one["levels"]["iterations"] == [2, 2, 2] and len(one["trace"]) == 6
+    assert [t["iteration"] for t in one["trace"]] == [0, 1] * 3
+    two = _refine(sphere, tmp_path / "two", root, min_move=0.0, rel_tol=0.5, threads=2)
+    assert two["trace"] == one["trace"] and two["residual_after"] == one["residual_after"]
+    assert (tmp_path / "one" / "refined" / "capture.json").read_text() == \
+        (tmp_path / "two" / "refined" / "capture.json").read_text()
