@@ -38,12 +38,10 @@ faster than summing each window, and a GPU still gets neighbours x rows threads.
 
 from __future__ import annotations
 
-import concurrent.futures
 import dataclasses
 import hashlib
 import itertools
 import json
-import os
 import time
 from pathlib import Path
 from typing import Sequence
@@ -56,6 +54,7 @@ from texstream.core.checkpoint import StageCheckpoint, files_signature, inputs_k
 from texstream.core.config import config_to_dict, option
 from texstream.core.errors import ConfigError, InputError
 
+from .cpu_threads import in_order, threads_for
 from .mvs_levels import frame_at_level, matching_level, stack_at_level
 
 MAX_NEIGHBOURS = 8  # the kernels keep one pixel's neighbour costs in a fixed-size vector
@@ -97,7 +96,7 @@ class MvsConfig:
                                 "not the default)", min=-1, max=4)
     threads: int = option(0, help="on the CPU, the reference photos swept at once, one a thread (Warp runs a CPU "
                                   "kernel on one core; the depth maps are the same to the bit); 0: one per CPU "
-                                  "core this process may use", min=0, max=64)
+                                  "core this process may use, at most 8", min=0, max=64)
     level_min_mask_pixels: int = option(64000, help="level auto: the pixels the median photo's mask must keep at the "
                                                     "chosen level. The temple's 640x480 photos (masks of about 72,000 "
                                                     "pixels) stay at level 0: at level 1 (18,000) its mesh stage took "
@@ -530,27 +529,17 @@ def dense_points(frames: Sequence, images: Sequence[np.ndarray], masks: Sequence
         rng = _depth_range(frames[r], lo, hi) if depth_ranges is None else depth_ranges[r]
         return _sweep_view(r, neighbours, frames, mask, rng, rots, transl, d_grey, d_mask, cfg, min_var, device)
 
-    # the photos' sweeps on threads at once (Warp runs a CPU kernel on the launching thread and releases the GIL;
-    # a sweep reads only the shared photos and writes its own arrays: the depth maps of one thread, to the bit)
+    # the photos' sweeps on threads at once (geometry/cpu_threads.py: a sweep reads only the shared photos and
+    # writes its own arrays, so the depth maps are one thread's to the bit)
     todo = [r for r in range(n) if r not in kept]
-    threads = min(sweep_threads(cfg, device), len(todo))
-    pool, swept = None, {}
-    if threads > 1:
-        wp.load_module(_warp_rows_kernel.module, device=device)  # built once, before the threads launch it
-        pool = concurrent.futures.ThreadPoolExecutor(threads, thread_name_prefix="texstream-mvs")
-        swept = {r: pool.submit(sweep, r) for r in todo}
-    try:
-        for r in range(n):
-            if r not in kept:
-                kept[r] = swept[r].result() if pool is not None else sweep(r)
-                if checkpoint is not None and "matched" in kept[r][1]:
-                    checkpoint.write_arrays(f"depth_{r:05d}.npz", depth=kept[r][0],
-                                            report=np.array(json.dumps(kept[r][1])))
-            depth_maps[r], rep = kept[r]
-            per_view.append(rep)
-    finally:
-        if pool is not None:
-            pool.shutdown(cancel_futures=True)
+    wp.load_module(_warp_rows_kernel.module, device=device)  # built once, before threads launch its kernels
+    for r, (depth, rep) in in_order(sweep, todo, threads_for(cfg.threads, device)):
+        kept[r] = depth, rep
+        if checkpoint is not None and "matched" in rep:
+            checkpoint.write_arrays(f"depth_{r:05d}.npz", depth=depth, report=np.array(json.dumps(rep)))
+    for r in range(n):
+        depth_maps[r], rep = kept[r]
+        per_view.append(rep)
     t_sweep = time.perf_counter() - t_sweep
 
     # geometric consistency against every photo that is not a near duplicate of the reference
@@ -607,19 +596,6 @@ def dense_points(frames: Sequence, images: Sequence[np.ndarray], masks: Sequence
               "seconds": {"sweep": round(t_sweep, 2), "consistency_and_fusion": round(t_fuse, 2),
                           "total": round(time.perf_counter() - t0, 2)}}
     return DensePoints(pts, nrm, kept_depths, report)
-
-
-def sweep_threads(cfg: MvsConfig, device: str) -> int:
-    """The threads the reference photos' sweeps run on at once: ``cfg.threads``, or (0) the CPU cores this
-    process may use; 1 on a GPU (one sweep's launches fill it)."""
-    if not str(device).startswith("cpu"):
-        return 1
-    if cfg.threads > 0:
-        return cfg.threads
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # macOS and Windows have no affinity call
-        return os.cpu_count() or 1
 
 
 def _sweep_view(r: int, neighbours: list, frames: Sequence, mask: np.ndarray, rng: tuple[float, float] | None,
