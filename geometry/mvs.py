@@ -520,26 +520,20 @@ def dense_points(frames: Sequence, images: Sequence[np.ndarray], masks: Sequence
     d_mask = wp.array(mask, dtype=wp.uint8, device=device)
     # texture threshold as a variance (grey units squared)
     min_var = float(cfg.min_texture) ** 2
-    depth_maps = np.zeros((n, hmax, wmax), np.float32)
-    per_view: list[dict] = []
     t_sweep = time.perf_counter()
     kept = _kept_depth_maps(checkpoint, n)
-
-    def sweep(r: int) -> tuple[np.ndarray, dict]:
-        rng = _depth_range(frames[r], lo, hi) if depth_ranges is None else depth_ranges[r]
-        return _sweep_view(r, neighbours, frames, mask, rng, rots, transl, d_grey, d_mask, cfg, min_var, device)
-
+    ranges = [_depth_range(f, lo, hi) for f in frames] if depth_ranges is None else depth_ranges
     # the photos' sweeps on threads at once (geometry/cpu_threads.py: a sweep reads only the shared photos and
     # writes its own arrays, so the depth maps are one thread's to the bit)
-    todo = [r for r in range(n) if r not in kept]
     wp.load_module(_warp_rows_kernel.module, device=device)  # built once, before threads launch its kernels
-    for r, (depth, rep) in in_order(sweep, todo, threads_for(cfg.threads, device)):
+    for r, (depth, rep) in in_order(lambda r: _sweep_view(r, neighbours, frames, mask, ranges[r], rots, transl, d_grey,
+                                                          d_mask, cfg, min_var, device),
+                                    [r for r in range(n) if r not in kept], threads_for(cfg.threads, device)):
         kept[r] = depth, rep
         if checkpoint is not None and "matched" in rep:
             checkpoint.write_arrays(f"depth_{r:05d}.npz", depth=depth, report=np.array(json.dumps(rep)))
-    for r in range(n):
-        depth_maps[r], rep = kept[r]
-        per_view.append(rep)
+    depth_maps = np.stack([kept[r][0] for r in range(n)]).astype(np.float32, copy=False)
+    per_view = [kept[r][1] for r in range(n)]
     t_sweep = time.perf_counter() - t_sweep
 
     # geometric consistency against every photo that is not a near duplicate of the reference
