@@ -218,7 +218,6 @@ class PhotometricRefinement:
         self.disp_damping = wp.array([1.0], dtype=wp.float64, device=device)
         self.disp_accepted = wp.zeros(1, dtype=wp.int32, device=device)
 
-
         # per photo
         self.system = wp.zeros((n, rk.POSE_TERMS), dtype=wp.float64, device=device)
         self.obj_before = wp.zeros((n, 2), dtype=wp.float64, device=device)
@@ -489,8 +488,8 @@ class PhotometricRefinement:
         result.summary["shading_normals"] = shading
         result.summary["levels"] = {"schedule": [{"photo_level": lv, "blur_px": b} for lv, b in schedule],
                                     "ran": len(ran), "finer_levels": finer,
-                                    "iterations": [sum(t["photo_level"] == schedule[k][0] and t["blur_px"] ==
-                                                       schedule[k][1] for t in trace) for k in ran],
+                                    "iterations": [int((hist[k * cfg.iterations:(k + 1) * cfg.iterations, :, 1]
+                                                        .sum(axis=1) > 0).sum()) for k in ran],
                                     "rel_tol": cfg.rel_tol}
         size = self.resolution["size"]
         result.summary["resolution"] = (
@@ -506,15 +505,19 @@ class PhotometricRefinement:
         ``history``). Returns (step, time of the last checkpoint save)."""
         cfg = self.cfg
         end = (k + 1) * cfg.iterations
-        previous = None
+
+        def mean(row) -> float:  # one small read an iteration
+            sums = history[row].numpy().sum(axis=0)
+            return sums[0] / max(sums[1], 1.0)
+
+        previous = mean(step - 1) if cfg.rel_tol > 0.0 and step > k * cfg.iterations else None  # resumed in it
         while step < end:
             progress.update(1)
             self.colours(self.blurred)
             self.geometry_step(self.blurred, history[step])
             step += 1
             if cfg.rel_tol > 0.0 and step < end:
-                sums = history[step - 1].numpy().sum(axis=0)  # one small read an iteration
-                current = sums[0] / max(sums[1], 1.0)
+                current = mean(step - 1)
                 if previous is not None and previous - current < cfg.rel_tol * previous:
                     progress.update(end - step)
                     step = end
