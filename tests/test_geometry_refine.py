@@ -90,9 +90,10 @@ def test_cameras_return_to_their_true_poses(sphere, tmp_path, device):
     px = _reprojection_px(got, truth, points)
     # 0.6 degrees and 0.4% off: the surface lands 1.6 px (median) from where the true camera puts it; the
     # blotchy texture (features ~5 px) pins it to a fraction of a pixel: measured 0.25 px median, 0.47 px worst
-    # on the CPU (0.24 and 0.45 with the atlas's texels at the coarse level too, coarse_texels off). What is tested is the image, not the angles: for a convex object a turn of the camera and a
-    # sideways move of it shift the image alike, and the photos cannot tell them apart (the rotation errors
-    # stay near 0.4 degrees while the image lands within 0.2 px).
+    # on the CPU (0.24 and 0.45 with the atlas's texels at the coarse levels too, coarse_texels off). What is
+    # tested is the image, not the angles: for a convex object a turn of the camera and a sideways move of it
+    # shift the image alike, and the photos cannot tell them apart (the rotation errors stay near 0.4 degrees
+    # while the image lands within a fraction of a pixel).
     assert np.median(px_before) > 1.2
     assert np.median(px) < 0.3 and px.max() < 0.5, (px_before, px)
     s = res.summary
