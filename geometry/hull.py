@@ -17,7 +17,9 @@ Imports numpy and warp at module level; scipy / OpenImageIO inside functions.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
+import hashlib
 from typing import Sequence
 
 import numpy as np
@@ -152,6 +154,34 @@ def mask_sdf(mask: np.ndarray) -> np.ndarray:
     return (np.where(m, distance_transform_edt(m) - 0.5, -(distance_transform_edt(~m) - 0.5))).astype(np.float32)
 
 
+_FIELDS_CACHE: collections.OrderedDict = collections.OrderedDict()
+_FIELDS_CACHE_BYTES = 256 * 2 ** 20
+"""the most bytes of filled masks and signed distances :func:`mask_fields` keeps (the least recently used go
+first): the mesh stage carves the same masks three times (the coarse bounds, the hull, the hull of the
+Poisson intersection), and each mask's hole filling and two distance transforms cost more than the carving"""
+
+
+def mask_fields(masks: Sequence[np.ndarray], fill_holes: float) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """(each mask with its small holes filled (:func:`fill_small_holes`), its signed distance
+    (:func:`mask_sdf`)), remembered by the mask's bytes for the next call with the same masks."""
+    filled, sdfs = [], []
+    for m in masks:
+        m = np.ascontiguousarray(m)
+        key = (hashlib.blake2b(m.tobytes(), digest_size=16).hexdigest(), m.shape, m.dtype.str, float(fill_holes))
+        if key in _FIELDS_CACHE:
+            _FIELDS_CACHE.move_to_end(key)
+        else:
+            fm = fill_small_holes(m, fill_holes)
+            _FIELDS_CACHE[key] = (fm, mask_sdf(fm))
+            while sum(a.nbytes + b.nbytes for a, b in _FIELDS_CACHE.values()) > _FIELDS_CACHE_BYTES \
+                    and len(_FIELDS_CACHE) > 1:
+                _FIELDS_CACHE.popitem(last=False)
+        fm, sdf = _FIELDS_CACHE[key]  # the newest entry is never dropped; the callers only read them
+        filled.append(fm)
+        sdfs.append(sdf)
+    return filled, sdfs
+
+
 def _camera_arrays(frames: Sequence, sdfs: list[np.ndarray], device: str):
     n = len(frames)
     hmax = max(s.shape[0] for s in sdfs)
@@ -239,8 +269,7 @@ def hull_bounds(frames: Sequence, masks: Sequence[np.ndarray], config: HullConfi
         StageError: the masks carve away everything.
     """
     cfg = config or HullConfig()
-    sdfs = [mask_sdf(fill_small_holes(m, cfg.fill_holes)) for m in masks]
-    return _coarse_bounds(frames, sdfs, cfg, device)
+    return _coarse_bounds(frames, mask_fields(masks, cfg.fill_holes)[1], cfg, device)
 
 
 def visual_hull(frames: Sequence, masks: Sequence[np.ndarray], config: HullConfig | None = None,
@@ -275,10 +304,9 @@ def visual_hull(frames: Sequence, masks: Sequence[np.ndarray], config: HullConfi
             raise InputError(f"mask of {f.file_path} is {np.asarray(m).shape[:2]} but the image is "
                              f"{(f.intrinsics.height, f.intrinsics.width)}", f.mask_path,
                              "write masks at the image resolution")
-    filled = [fill_small_holes(m, cfg.fill_holes) for m in masks]
+    filled, sdfs = mask_fields(masks, cfg.fill_holes)
     if report is not None:
         report["mask_pixels_filled"] = int(sum(int(fm.sum() - np.count_nonzero(m)) for fm, m in zip(filled, masks)))
-    sdfs = [mask_sdf(m) for m in filled]
     if bounds is None:
         lo, hi = _coarse_bounds(frames, sdfs, cfg, device)
     else:

@@ -90,10 +90,10 @@ def hull_fill_samples(hull: SurfaceMesh, points: np.ndarray, frames: Sequence, d
     p = np.asarray(points, np.float64).reshape(-1, 3)
     tree = cKDTree(p)
     if spacing is None:
-        d1, _ = tree.query(p, k=2)
+        d1, _ = tree.query(p, k=2, workers=-1)  # every core: the same distances
         spacing = float(np.median(d1[:, 1]))
     samples, normals = sample_surface(hull, spacing)
-    far = tree.query(samples)[0] > distance
+    far = tree.query(samples, workers=-1)[0] > distance
     views = np.zeros(len(samples), np.int32)
     views[far] = well_seen_views(samples[far], normals[far], hull, frames, max_angle_deg, device)
     keep = far & (views < min_views)

@@ -23,12 +23,14 @@ Held-out photos (every ``holdout_every``-th, as the fit splits them) move neithe
 new photo is registered to a model), so their held-out scores measure the model rather than the camera
 registration; the report says so.
 
-Kernels in geometry/refine_kernels.py (the shading normals' in geometry/refine_normal_kernels.py); imports only
-numpy and warp at import time.
+Kernels in geometry/refine_kernels.py (the shading normals' in geometry/refine_shading.py and
+geometry/refine_normal_kernels.py). On the CPU the heavy launches split their photos or texels over the cores
+(``threads``, geometry/cpu_threads.py; the same bits). Imports only numpy and warp at import time.
 """
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import math
 import os
@@ -51,8 +53,9 @@ from . import refine_checkpoint
 from . import refine_kernels as rk
 from . import refine_levels as rl
 from .refine_config import RefineConfig
-from . import refine_normal_kernels as rnk
+from .refine_shading import ShadingNormals
 from .bake import TexelBake, bake_texels
+from .cpu_threads import threads_for
 from .mesh_io import load_mesh, save_mesh
 
 
@@ -161,6 +164,18 @@ class PhotometricRefinement:
                               f"takes {fine_mb:,.0f} MB (refine.max_photo_mb {cfg.max_photo_mb:,.0f})",
                               fix="raise --refine.max-photo-mb or --refine.photo-level, or run with --refine off")
         self.pyramid = rl.PhotoPyramid(capture, [lv for lv, _ in self.schedule] + [self.level])
+        self.threads, self.pool = threads_for(cfg.threads, device), None
+        if self.threads > 1:  # the kernels' modules loaded before two threads launch them
+            wp.load_module(rk, device=device)
+            wp.load_module(depth_maps_kernel.module, device=device)
+            self.pool = concurrent.futures.ThreadPoolExecutor(self.threads, thread_name_prefix="texstream-refine")
+        # texels: the bake's covered texels (a coarse level's: a coarser bake of the same charts), at the
+        # surface's current position
+        self.fine_level, self.texel_level = self.level, None
+        self.bakes = {self.level: bake}
+        if cfg.coarse_texels:
+            for lv, _ in self.schedule:
+                self.bakes.setdefault(lv, rl.coarse_bake(mesh, bake, lv - self.fine_level, device))
         images, masks, _ = self.pyramid.stacked(self.level)
         fg = masks.astype(bool)
         self.huber = cfg.huber * max(float(images[fg].sum()) / max(3.0 * float(fg.sum()), 1.0), 1e-12)
@@ -203,7 +218,43 @@ class PhotometricRefinement:
         self.disp_damping = wp.array([1.0], dtype=wp.float64, device=device)
         self.disp_accepted = wp.zeros(1, dtype=wp.int32, device=device)
 
-        # texels: the bake's covered texels, at the surface's current position
+        # per photo
+        self.system = wp.zeros((n, rk.POSE_TERMS), dtype=wp.float64, device=device)
+        self.obj_before = wp.zeros((n, 2), dtype=wp.float64, device=device)
+        self.obj_after = wp.zeros_like(self.obj_before)
+        self.pose_damping = wp.full(n, 1e-3, dtype=wp.float64, device=device)
+        self.pose_accepted = wp.zeros(n, dtype=wp.int32, device=device)
+        centres = np.array([f.center for f in self.frames])
+        mid = 0.5 * (welded.max(axis=0) + welded.min(axis=0))
+        self.max_translation = wp.array((cfg.max_translation_step * np.linalg.norm(centres - mid, axis=1)
+                                         ).astype(np.float32), dtype=float, device=device)
+        self.totals = wp.zeros(4, dtype=wp.float64, device=device)  # before sum, count; after sum, count
+
+    def close(self) -> None:
+        """End the launch threads (the state stays readable)."""
+        if self.pool is not None:
+            self.pool.shutdown()
+            self.pool = None
+
+    def _split(self, count: int, launch) -> None:
+        """``launch(a, b)`` over [0, count) in ``threads`` parts, one a thread, on the CPU (Warp runs a CPU kernel
+        on the launching thread and releases the GIL; the parts write disjoint rows, so the results are those of
+        one launch to the bit); one launch elsewhere."""
+        if self.pool is None or count < 2:
+            launch(0, count)
+            return
+        parts = min(self.threads, count)
+        edges = [count * i // parts for i in range(parts + 1)]
+        for done in [self.pool.submit(launch, a, b) for a, b in zip(edges[:-1], edges[1:])]:
+            done.result()
+
+    def set_texels(self, level: int) -> None:
+        """The texels of pyramid ``level``'s bake (the atlas's own without ``coarse_texels``), with their colour
+        and scratch arrays."""
+        bake = self.bakes.get(level, self.bakes[self.fine_level])
+        if self.texel_level is not None and bake is self.bakes.get(self.texel_level, self.bakes[self.fine_level]):
+            return
+        self.texel_level, device = level, self.device
         covered = bake.covered.reshape(-1)
         self.n_texels = int(covered.sum())
         if self.n_texels == 0:
@@ -218,18 +269,6 @@ class PhotometricRefinement:
         self.colour = wp.zeros_like(self.num)
         self.known = wp.zeros(self.n_texels, dtype=wp.int32, device=device)
 
-        # per photo
-        self.system = wp.zeros((n, rk.POSE_TERMS), dtype=wp.float64, device=device)
-        self.obj_before = wp.zeros((n, 2), dtype=wp.float64, device=device)
-        self.obj_after = wp.zeros_like(self.obj_before)
-        self.pose_damping = wp.full(n, 1e-3, dtype=wp.float64, device=device)
-        self.pose_accepted = wp.zeros(n, dtype=wp.int32, device=device)
-        centres = np.array([f.center for f in self.frames])
-        mid = 0.5 * (welded.max(axis=0) + welded.min(axis=0))
-        self.max_translation = wp.array((cfg.max_translation_step * np.linalg.norm(centres - mid, axis=1)
-                                         ).astype(np.float32), dtype=float, device=device)
-        self.totals = wp.zeros(4, dtype=wp.float64, device=device)  # before sum, count; after sum, count
-
     def set_level(self, level: int) -> None:
         """The photos, masks and depth maps at pyramid ``level``, the cameras' intrinsics with them (poses kept)."""
         images, masks, sizes = self.pyramid.stacked(level)
@@ -243,6 +282,8 @@ class PhotometricRefinement:
         self.widths = wp.array(sizes[:, 1].astype(np.int32), device=dev)
         self.heights = wp.array(sizes[:, 0].astype(np.int32), device=dev)
         self.depth = wp.zeros((n, self.hmax, self.wmax), dtype=wp.float32, device=dev)
+        self.depth_saved = wp.zeros_like(self.depth)
+        self.set_texels(level)
         if level != self.level:
             infos = rl.rescale_infos(self.infos.numpy(), sizes, 2.0 ** (self.level - level))
             self.infos = struct_array(infos, ImageInfo, dev)
@@ -256,11 +297,10 @@ class PhotometricRefinement:
             wp.copy(out, self.images)
             return
         weights = wp.array(w, dtype=float, device=self.device)
-        dims = (len(self.frames), self.hmax, self.wmax)
-        wp.launch(rk.blur_axis_kernel, dim=dims, inputs=[self.images, weights, radius, 1, self.widths, self.heights],
-                  outputs=[self._scratch], device=self.device)
-        wp.launch(rk.blur_axis_kernel, dim=dims, inputs=[self._scratch, weights, radius, 0, self.widths, self.heights],
-                  outputs=[out], device=self.device)
+        for src, along_x, dst in ((self.images, 1, self._scratch), (self._scratch, 0, out)):
+            self._split(len(self.frames), lambda a, b: wp.launch(
+                rk.blur_axis_kernel, dim=(b - a, self.hmax, self.wmax), device=self.device,
+                inputs=[src[a:b], weights, radius, along_x, self.widths[a:b], self.heights[a:b]], outputs=[dst[a:b]]))
 
     def blur(self, sigma: float) -> None:
         """``blurred``: the photos at this level, blurred by ``sigma`` pixels, less their ``detail``-wide blur."""
@@ -270,24 +310,26 @@ class PhotometricRefinement:
             wp.launch(rk.subtract_kernel, dim=(len(self.frames), self.hmax, self.wmax), inputs=[self._wide],
                       outputs=[self.blurred], device=self.device)
 
-    def update_geometry(self) -> None:
-        """Mesh vertices from the welded ones, the BVH, texel positions, and every photo's depth map."""
+    def update_geometry(self, depth: bool = True) -> None:
+        """Mesh vertices from the welded ones, the BVH, texel positions, and (``depth``) every photo's depth map."""
         wp.launch(rk.scatter_points_kernel, dim=len(self.mesh.vertices), inputs=[self.welded_points, self.weld],
                   outputs=[self.points], device=self.device)
         self.bvh.refit()
         wp.launch(rk.texel_points_kernel, dim=self.n_texels,
                   inputs=[self.t_face, self.t_bary, self.faces, self.points, self.direction, self.weld],
                   outputs=[self.t_p, self.t_n], device=self.device)
-        wp.launch(depth_maps_kernel, dim=(len(self.frames), self.hmax, self.wmax), device=self.device,
-                  inputs=[self.bvh.id, self.infos, 0, self.masks, 1], outputs=[self.depth])
+        if depth:
+            self._split(len(self.frames), lambda a, b: wp.launch(
+                depth_maps_kernel, dim=(b - a, self.hmax, self.wmax), device=self.device,
+                inputs=[self.bvh.id, self.infos, a, self.masks[a:b], 1], outputs=[self.depth[a:b]]))
 
     def colours(self, images) -> None:
         self.num.zero_()
         self.den.zero_()
-        dims = (len(self.frames), self.n_texels)
-        wp.launch(rk.albedo_sums_kernel, dim=dims, device=self.device,
-                  inputs=[self.infos, images, self.depth, self.roles, self.t_p, self.t_n, self.t_shade,
-                          self.cfg.cos_view_min, self.cfg.depth_tol], outputs=[self.num, self.den])
+        self._split(self.n_texels, lambda a, b: wp.launch(  # by texels: a texel's sums keep the photos' order
+            rk.albedo_sums_kernel, dim=(len(self.frames), b - a), device=self.device,
+            inputs=[self.infos, images, self.depth, self.roles, self.t_p[a:b], self.t_n[a:b], self.t_shade[a:b],
+                    self.cfg.cos_view_min, self.cfg.depth_tol], outputs=[self.num[a:b], self.den[a:b]]))
         wp.launch(rk.albedo_kernel, dim=self.n_texels, inputs=[self.num, self.den], outputs=[self.colour, self.known],
                   device=self.device)
 
@@ -296,22 +338,36 @@ class PhotometricRefinement:
         out.zero_()
         if system:
             self.system.zero_()
-        wp.launch(rk.pose_system_kernel, dim=(len(self.frames), self.n_texels), device=self.device,
-                  inputs=[self.infos, images, self.depth, self.roles, self.t_p, self.t_n, self.t_shade,
-                          self.colour, self.known, self.cfg.cos_view_min, self.cfg.depth_tol, self.huber,
-                          int(system)],
-                  outputs=[self.system, out])
+        self._split(len(self.frames), lambda a, b: wp.launch(  # by photos: each has its own sums
+            rk.pose_system_kernel, dim=(b - a, self.n_texels), device=self.device,
+            inputs=[self.infos[a:b], images[a:b], self.depth[a:b], self.roles[a:b], self.t_p, self.t_n,
+                    self.t_shade, self.colour, self.known, self.cfg.cos_view_min, self.cfg.depth_tol, self.huber,
+                    int(system)],
+            outputs=[self.system[a:b], out[a:b]]))
 
-    def geometry_step(self, images) -> None:
+    def geometry_step(self, images, objective=None) -> None:
         """One pose step of every camera (``cameras``), then the colours and one displacement step of the mesh
-        (``mesh``), each followed by the geometry's update; the colours the pose step compares are the caller's."""
+        (``mesh``), each followed by the geometry's update; the colours the pose step compares are the caller's.
+        With ``objective`` (n, 2), the per-photo objective after the step, against the colours it compared."""
         if self.cfg.cameras:
             self.pose_step(images)
             self.update_geometry()
-        if self.cfg.mesh:
-            self.colours(images)
-            self.displacement_step(images)
-            self.update_geometry()
+        if not self.cfg.mesh:
+            if objective is not None:
+                self.objective(images, objective)
+            return
+        if self.cfg.cameras:
+            self.colours(images)  # else the caller's are still current
+        self.displacement_step(images)
+        # a kept step leaves the depth maps it was scored with, a refused one those before it (restored);
+        # the objective after the step is the one of the two the geometry kept, with the same colours
+        self.update_geometry(depth=False)
+        wp.launch(rk.keep_depth_kernel, dim=(len(self.frames), self.hmax, self.wmax), device=self.device,
+                  inputs=[self.totals[0:2], self.totals[2:4], self.depth_saved], outputs=[self.depth])
+        if objective is not None:
+            wp.launch(rk.kept_objective_kernel, dim=len(self.frames), device=self.device,
+                      inputs=[self.totals[0:2], self.totals[2:4], self.obj_before, self.obj_after],
+                      outputs=[objective])
 
     def pose_step(self, images) -> None:
         self.objective(images, self.obj_before, system=True)
@@ -348,6 +404,7 @@ class PhotometricRefinement:
         wp.launch(rk.apply_displacement_kernel, dim=self.n_welded, device=dev,
                   inputs=[src, 0.25 * edge, edge], outputs=[self.disp, self.disp_saved, self.base, self.direction,
                                                              self.welded_points])
+        wp.copy(self.depth_saved, self.depth)  # a refused step restores them (geometry_step)
         self.update_geometry()
         self.objective(images, self.obj_after)
         self.totals.zero_()
@@ -408,20 +465,12 @@ class PhotometricRefinement:
             self.set_level(level)
             self.update_geometry()
             self.blur(sigma)
-            self.log(f"level {level}, blur {sigma:g} px: {cfg.iterations} iterations")
-            for it in range(step - k * cfg.iterations, cfg.iterations):
-                progress.update(1)
-                self.colours(self.blurred)
-                self.geometry_step(self.blurred)
-                self.objective(self.blurred, history[step])
-                step += 1
-                if checkpoint is not None and (it == cfg.iterations - 1
-                                               or time.perf_counter() - saved_at >= cfg.checkpoint_every_s):
-                    refine_checkpoint.save_state(self, checkpoint, step, history)
-                    saved_at = time.perf_counter()
+            self.log(f"level {level}, blur {sigma:g} px: at most {cfg.iterations} iterations")
+            step, saved_at = self._level_iterations(k, step, history, checkpoint, progress, saved_at)
         hist = history.numpy()  # read once, after the loop
         trace = [{"photo_level": schedule[k][0], "blur_px": schedule[k][1], "iteration": it,
-                  **self._per_role(hist[k * cfg.iterations + it])} for k in ran for it in range(cfg.iterations)]
+                  **self._per_role(hist[k * cfg.iterations + it])} for k in ran for it in range(cfg.iterations)
+                 if hist[k * cfg.iterations + it, :, 1].sum() > 0]  # a settled level's rows after its stop: 0
         self.set_level(finest)
         self.update_geometry()
         self.blur(0.0)
@@ -438,13 +487,45 @@ class PhotometricRefinement:
         result = self._result(start, end, trace, time.perf_counter() - t0)
         result.summary["shading_normals"] = shading
         result.summary["levels"] = {"schedule": [{"photo_level": lv, "blur_px": b} for lv, b in schedule],
-                                    "ran": len(ran), "finer_levels": finer}
+                                    "ran": len(ran), "finer_levels": finer,
+                                    "iterations": [int((hist[k * cfg.iterations:(k + 1) * cfg.iterations, :, 1]
+                                                        .sum(axis=1) > 0).sum()) for k in ran],
+                                    "rel_tol": cfg.rel_tol}
         size = self.resolution["size"]
         result.summary["resolution"] = (
             f"{size[0]}x{size[1]} (level {finest}; {self.resolution['why']}); coarse first at level {schedule[0][0]}"
             + ("" if len(schedule) == 1 else f"; {finer['reason']}"))
         result.normals = normals
         return result
+
+    def _level_iterations(self, k: int, step: int, history, checkpoint, progress, saved_at: float):
+        """Level ``k``'s iterations from ``step`` (of the levels' count; each level has ``iterations`` rows of
+        ``history``), until they are done or the objective settled: an iteration lowered the photos' mean
+        objective per sample by less than ``rel_tol`` of it (the level's rows left are skipped, zero in
+        ``history``). Returns (step, time of the last checkpoint save)."""
+        cfg = self.cfg
+        end = (k + 1) * cfg.iterations
+
+        def mean(row) -> float:  # one small read an iteration
+            sums = history[row].numpy().sum(axis=0)
+            return sums[0] / max(sums[1], 1.0)
+
+        previous = mean(step - 1) if cfg.rel_tol > 0.0 and step > k * cfg.iterations else None  # resumed in it
+        while step < end:
+            progress.update(1)
+            self.colours(self.blurred)
+            self.geometry_step(self.blurred, history[step])
+            step += 1
+            if cfg.rel_tol > 0.0 and step < end:
+                current = mean(step - 1)
+                if previous is not None and previous - current < cfg.rel_tol * previous:
+                    progress.update(end - step)
+                    step = end
+                previous = current
+            if checkpoint is not None and (step == end or time.perf_counter() - saved_at >= cfg.checkpoint_every_s):
+                refine_checkpoint.save_state(self, checkpoint, step, history)
+                saved_at = time.perf_counter()
+        return step, saved_at
 
     def shaded_refinement(self, start: np.ndarray, progress=None) -> tuple[np.ndarray, dict]:
         """With known lights, after the levels: ``normal_iterations`` of :meth:`ShadingNormals.iterate` from
@@ -563,126 +644,6 @@ class PhotometricRefinement:
         return RefineResult(rot, trans, points, disp, trace, summary)
 
 
-class ShadingNormals:
-    """Photometric shading normals under known lights, on a :class:`PhotometricRefinement`'s device state.
-
-    Each welded vertex's normal is its start normal b tilted in its tangent plane, n = normalize(b + x0 tu +
-    x1 tv); a texel's shading normal interpolates its face's vertex normals. A sample's residual is r = I - C
-    s (wi . n_t) (``refine_kernels.observe``: the texture's colour C, the photo's exposure and the light's
-    irradiance s, the unit direction to the light wi; the texel's surface normal, not its shading normal,
-    decides visibility and weighs the sample). Samples are compared in intensities (the shading is the
-    signal), averaged over each vertex's patch (its faces' texels, weighted by its barycentric share): the
-    objective is the sum over photos and vertices of W rho(R), R the patch's weighted mean residual, W its
-    weight, rho the Huber loss. The mean keeps the shading, smooth on the surface, and averages out most of
-    the residual a texel's point samples leave where the photos alias the texture.
-
-    An iteration: the colours in closed form, then with them held a damped Gauss-Newton step of every tilt
-    (exact gradient, a lumped 2x2 curvature per vertex) with a smoothness of the correction between neighbours
-    and a pull toward the start, solved by Jacobi sweeps; the step is clamped, and each vertex keeps it where
-    its patch's objective plus its priors fell. No host reads."""
-
-    def __init__(self, job: PhotometricRefinement, start: np.ndarray):
-        self.job, cfg, dev, n = job, job.cfg, job.device, job.n_welded
-        base = np.asarray(start, np.float64)
-        base = base / np.maximum(np.linalg.norm(base, axis=1, keepdims=True), 1e-30)
-        helper = np.where(np.abs(base[:, :1]) < 0.6, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-        tu = np.cross(base, helper)
-        tu /= np.linalg.norm(tu, axis=1, keepdims=True)
-        self.start = base
-        vec3 = {"dtype": wp.vec3, "device": dev}
-        self.base, self.tu, self.tv = (wp.array(a.astype(np.float32), **vec3)
-                                       for a in (base, tu, np.cross(base, tu)))
-        self.shade = wp.array(base.astype(np.float32), **vec3)
-        self.tilt = wp.zeros(n, dtype=wp.vec2, device=dev)
-        self.saved, self.x_a, self.x_b = (wp.zeros_like(self.tilt) for _ in range(3))
-        self.system = wp.zeros((n, rnk.NORMAL_TERMS), dtype=wp.float64, device=dev)
-        self.before = wp.zeros((n, 2), dtype=wp.float64, device=dev)
-        self.after = wp.zeros_like(self.before)
-        self.mean = wp.zeros(2, dtype=wp.float64, device=dev)
-        self.prior_before = wp.zeros(n, dtype=wp.float64, device=dev)
-        self.prior_after = wp.zeros_like(self.prior_before)
-        self.damping = wp.full(n, 1e-3, dtype=wp.float64, device=dev)
-        self.accepted = wp.zeros(1, dtype=wp.int32, device=dev)
-        shape = (len(job.frames), n)
-        self.patch_w = wp.zeros(shape, dtype=float, device=dev)
-        self.patch_r, self.patch_ju, self.patch_jv, self.back = (wp.zeros(shape, **vec3) for _ in range(4))
-        self.max_step = math.tan(math.radians(min(2.0, cfg.max_normal_tilt)))
-        self.max_total = math.tan(math.radians(cfg.max_normal_tilt))
-        job.t_shade = wp.empty_like(job.t_n)
-        self.texel_normals()
-        job._gaussian_blur(cfg.intensity_blur, job.blurred)  # intensities: shading is the signal
-
-    def texel_normals(self) -> None:
-        """The texels' shading normals from the vertices'."""
-        j = self.job
-        wp.launch(rnk.texel_normals_kernel, dim=j.n_texels, outputs=[j.t_shade], device=j.device,
-                  inputs=[j.t_face, j.t_bary, j.faces, self.shade, j.weld])
-
-    def set_tilt(self, tilt) -> None:
-        """Tilts (welded vertices, 2) from the host (tests)."""
-        self.tilt.assign(np.asarray(tilt, np.float32))
-        wp.launch(rnk.tilted_normals_kernel, dim=self.job.n_welded, outputs=[self.shade],
-                  inputs=[self.base, self.tu, self.tv, self.tilt], device=self.job.device)
-        self.texel_normals()
-
-    def evaluate(self, out, with_system: bool) -> None:
-        """Each vertex's patch objective into ``out`` (welded vertices, 2: sum of W rho(R), sum of W) and,
-        with ``with_system``, its tilt's lumped curvature and exact gradient into ``system`` (zeroed by the
-        caller), the colours held."""
-        j, cfg = self.job, self.job.cfg
-        out.zero_()
-        for a in (self.patch_w, self.patch_r, self.patch_ju, self.patch_jv, self.back):
-            a.zero_()
-        samples = (len(j.frames), j.n_texels)
-        state = [j.t_p, j.t_n, j.t_shade, self.shade, self.base, self.tu, self.tv, self.tilt, j.colour,
-                 j.known, cfg.cos_view_min, cfg.depth_tol]
-        head = [j.infos, j.blurred, j.depth, j.roles, j.t_face, j.t_bary, j.faces, j.weld]
-        wp.launch(rnk.patch_residual_kernel, dim=samples, device=j.device,
-                  inputs=[*head, *state, int(with_system)],
-                  outputs=[self.patch_w, self.patch_r, self.patch_ju, self.patch_jv])
-        wp.launch(rnk.patch_system_kernel, dim=(len(j.frames), j.n_welded), device=j.device,
-                  inputs=[self.patch_w, self.patch_r, self.patch_ju, self.patch_jv, j.huber,
-                          int(with_system)],
-                  outputs=[self.system, out, self.back])
-        if with_system:
-            wp.launch(rnk.normal_gradient_kernel, dim=samples, device=j.device,
-                      inputs=[*head, *state, self.back], outputs=[self.system])
-
-    def iterate(self, history) -> None:
-        """One iteration (see the class); ``history`` (2,) += the objective before the step (sum, weight)."""
-        j, cfg, dev, n = self.job, self.job.cfg, self.job.device, self.job.n_welded
-        j.colours(j.blurred)
-        self.system.zero_()
-        self.evaluate(self.before, with_system=True)
-        wp.launch(rk.vertex_total_kernel, dim=n, inputs=[self.before], outputs=[history], device=dev)
-        self.mean.zero_()
-        wp.launch(rnk.mean_tilt_curvature_kernel, dim=n, inputs=[self.system], outputs=[self.mean], device=dev)
-        priors = [j.offsets, j.neighbours, self.base, self.tu, self.tv, self.mean, cfg.normal_smoothness,
-                  cfg.normal_prior]
-        wp.launch(rnk.tilt_prior_kernel, dim=n, inputs=[self.tilt, *priors], outputs=[self.prior_before],
-                  device=dev)
-        wp.copy(self.x_a, self.tilt)
-        src, dst = self.x_a, self.x_b
-        for _ in range(20):  # Jacobi sweeps: the priors spread a step over a few rings
-            wp.launch(rnk.tilt_sweep_kernel, dim=n, device=dev,
-                      inputs=[self.tilt, self.system, *priors, self.damping, src], outputs=[dst])
-            src, dst = dst, src
-        wp.launch(rnk.apply_tilt_kernel, dim=n, inputs=[src, self.max_step, self.max_total], device=dev,
-                  outputs=[self.tilt, self.saved, self.base, self.tu, self.tv, self.shade])
-        self.texel_normals()
-        self.evaluate(self.after, with_system=False)
-        wp.launch(rnk.tilt_prior_kernel, dim=n, inputs=[self.tilt, *priors], outputs=[self.prior_after],
-                  device=dev)
-        wp.launch(rnk.tilt_accept_kernel, dim=n, device=dev,
-                  inputs=[self.before, self.after, self.prior_before, self.prior_after, self.saved],
-                  outputs=[self.tilt, self.base, self.tu, self.tv, self.shade, self.damping, self.accepted])
-        self.texel_normals()
-
-    def normals(self) -> np.ndarray:
-        """(welded vertices, 3) the current shading normals (a host read)."""
-        return self.shade.numpy().astype(np.float64)
-
-
 def refined_capture(capture, result: RefineResult, out: Path):
     """The capture with refined poses (lights fixed to a camera moved with it), its files referenced from
     ``out``."""
@@ -728,7 +689,10 @@ def refine_stage(capture_dir: str | Path, geometry: str | Path, out: str | Path,
     checkpoint = refine_checkpoint.refine_checkpoint(capture, geometry, out, cfg, device, log)
     with phase("refine", f"cameras and mesh against {len(capture.frames)} photos"):
         job = PhotometricRefinement(capture, mesh, bake, cfg, device, log)
-        result = job.run(checkpoint)
+        try:
+            result = job.run(checkpoint)
+        finally:
+            job.close()
     normals = None if result.normals is None else result.normals[job.weld_host]
     moved = dataclasses.replace(mesh, vertices=result.points, normals=normals)
     with phase("refine", f"texel bake ({bake.width}x{bake.height})"):

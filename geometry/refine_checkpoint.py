@@ -40,6 +40,7 @@ def refine_checkpoint(capture: Capture, geometry: Path, out: Path, cfg, device: 
             files.append(mask)
     options = config_to_dict(cfg)
     options.pop("checkpoint_every_s", None)  # when the state is saved, not what it is: a checkpoint resumes either way
+    options.pop("threads", None)  # the same bits on any number
     key = inputs_key("refine", files_signature(files), options, device)
     return StageCheckpoint(work_dir_for(out, "refine"), key, "refine",
                            None if log is None else (lambda message: log(f"  refine: {message}")))

@@ -26,13 +26,20 @@ class RefineConfig:
                                 "the photo blurred this wide (standard deviation, pixels), so that shading the "
                                 "shared texture cannot explain (a lamp that moves with the camera, soft shadows, "
                                 "sheen) does not pull cameras and mesh; 0: intensities", min=0.0)
-    iterations: int = option(8, "iterations per level", min=1)
+    iterations: int = option(8, "iterations per level (at most: rel_tol)", min=1)
     photo_level: int = option(-1, "the pyramid level (L: 2^L x 2^L pixel boxes averaged) of the finest blur level: "
                                   "-1 automatic, the coarsest whose pixels are no larger than the atlas's texels "
                                   "(geometry/refine_levels.py); 0 the photos as they are", min=-1, max=8)
+    rel_tol: float = option(1e-3, "a level stops before its iterations are done once an iteration lowered the "
+                                  "photos' mean objective per sample by less than this fraction of it (settled; "
+                                  "refine.json's levels say how many each ran); 0: every level runs all",
+                            min=0.0, max=1.0)
     pyramid: bool = option(True, "run each blur level on the pyramid level where its blur is the finest one's (blur "
                                  "2, 1, 0.5 px: 0.5 px at two, one and zero levels above the finest; a quarter of "
                                  "the pixels per level); off: every blur level on the finest level's photos")
+    coarse_texels: bool = option(True, "a coarse level samples the photos at texels as many of its pixels wide as "
+                                       "the finest level's (the atlas's charts baked 2^k times coarser k levels up, "
+                                       "a 4^k-th of the per-texel work); off: the atlas's texels at every level")
     min_move: float = option(0.25, "the finer blur levels run only when the first (coarsest) moved a camera or the "
                                    "mesh by at least this many pixels of the finest level (else they are skipped, "
                                    "the reason in refine.json); 0: always", min=0.0)
@@ -75,6 +82,10 @@ class RefineConfig:
                                     min=0.0, max=80.0)
     cos_view_min: float = option(0.2, "samples seen more grazingly than this cosine are left out", min=0.0, max=1.0)
     depth_tol: float = option(0.01, "visibility test tolerance, as a fraction of the camera distance", min=0.0)
+    threads: int = option(0, "on the CPU, the threads the heavy kernels (depth maps, colours, objectives, blur) "
+                             "split their photos or texels over (Warp runs a CPU kernel on one core; the results "
+                             "are the same to the bit); 0: one per CPU core this process may use (at most 8)",
+                          min=0, max=64)
     checkpoint_every_s: float = option(10.0, "seconds between saves of the levels' state to the work folder (a kill "
                                              "loses at most this much; each level's last iteration is always saved; "
                                              "0: every iteration). Saving copies the state to the host, which on a GPU "

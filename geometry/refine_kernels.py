@@ -455,7 +455,7 @@ def displacement_accept_kernel(before: wp.array(dtype=wp.float64), after: wp.arr
     """Keep the displacement step when the fitting photos' total objective fell, else restore it (one
     thread per welded vertex; thread 0 updates the damping and the count of kept steps)."""
     v = wp.tid()
-    keep = after[0] * before[1] <= before[0] * after[1]  # mean per sample: the visible set may change
+    keep = step_kept(before, after)
     if not keep:
         current[v] = saved[v]
         welded_points[v] = base[v] + float(saved[v]) * direction[v]
@@ -465,6 +465,36 @@ def displacement_accept_kernel(before: wp.array(dtype=wp.float64), after: wp.arr
             accepted[0] = accepted[0] + 1
         else:
             damping[0] = wp.min(damping[0] * wp.float64(10.0), wp.float64(1.0e6))
+
+
+@wp.func
+def step_kept(before: wp.array(dtype=wp.float64), after: wp.array(dtype=wp.float64)):
+    """Whether a displacement step was kept (:func:`displacement_accept_kernel`'s test)."""
+    return after[0] * before[1] <= before[0] * after[1]  # mean per sample: the visible set may change
+
+
+@wp.kernel
+def keep_depth_kernel(before: wp.array(dtype=wp.float64), after: wp.array(dtype=wp.float64),
+                      saved: wp.array3d(dtype=wp.float32), depth: wp.array3d(dtype=wp.float32)):
+    """The depth maps of the geometry a displacement step left: the step's own (in ``depth``) when it was kept,
+    else those from before it (``saved``; the refused step restored the vertices to the bit)."""
+    k, y, x = wp.tid()
+    if not step_kept(before, after):
+        depth[k, y, x] = saved[k, y, x]
+
+
+@wp.kernel
+def kept_objective_kernel(before: wp.array(dtype=wp.float64), after: wp.array(dtype=wp.float64),
+                          obj_before: wp.array2d(dtype=wp.float64), obj_after: wp.array2d(dtype=wp.float64),
+                          out: wp.array2d(dtype=wp.float64)):
+    """Each photo's objective after a displacement step: the step's when it was kept, else the one before it."""
+    k = wp.tid()
+    if step_kept(before, after):
+        out[k, 0] = obj_after[k, 0]
+        out[k, 1] = obj_after[k, 1]
+    else:
+        out[k, 0] = obj_before[k, 0]
+        out[k, 1] = obj_before[k, 1]
 
 
 @wp.kernel

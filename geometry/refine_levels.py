@@ -26,6 +26,7 @@ from texstream.capture.imageio import read_image, read_mask
 from texstream.capture.pyramid import box_average, frame_at_level
 from texstream.core.errors import InputError
 
+from .bake import bake_texels
 from .density import photo_level_for, pixel_footprints
 
 MIN_LEVEL_SIDE = 64
@@ -68,6 +69,17 @@ def level_schedule(blurs: list[float], finest: int, frames, pyramid: bool) -> li
             up -= 1
         out.append((finest + up, sigma / 2 ** up))
     return out
+
+
+def coarse_bake(mesh, bake, up: int, device: str):
+    """The atlas's charts baked ``up`` levels coarser (texels 2^up times wider, a 4^up-th as many), for a level
+    whose pixels are 2^up times the finest level's: every level samples the photos with as many texels per
+    pixel as the finest, where the atlas's own would pay per-texel work for detail the level's pixels do not
+    hold (a face too small for a texel centre still claims one: :func:`~.bake.bake_texels`)."""
+    if up <= 0:
+        return bake
+    return bake_texels(mesh, max(bake.width >> up, 1), max(bake.height >> up, 1), device=device,
+                       padding=bake.padding)
 
 
 def _box_all(mask: np.ndarray, level: int) -> np.ndarray:

@@ -142,7 +142,7 @@ def point_spacing(points: np.ndarray, k: int = 8) -> float:
     k = int(min(k, len(p) - 1))
     if k < 1:
         return 0.0
-    d, _ = cKDTree(p).query(p, k=k + 1)
+    d, _ = cKDTree(p).query(p, k=k + 1, workers=-1)  # every core: the same distances
     return float(np.median(d[:, k]))
 
 
@@ -151,7 +151,7 @@ def trim_far_from_points(mesh: SurfaceMesh, points: np.ndarray, max_distance: fl
     where there are none: over the sky, across the gaps between objects, around the cameras)."""
     from scipy.spatial import cKDTree
 
-    d, _ = cKDTree(np.asarray(points, np.float64).reshape(-1, 3)).query(mesh.vertices)
+    d, _ = cKDTree(np.asarray(points, np.float64).reshape(-1, 3)).query(mesh.vertices, workers=-1)
     near = d <= max_distance
     return _compact(mesh, near[mesh.faces].all(axis=1))
 

@@ -79,3 +79,18 @@ def test_temple_hull_fills_the_readme_bbox(data_dir, tmp_path):
     # under-constrained: measured 1 cm of 20 cm below the box) and covering at least 90% of each side
     assert np.all(mlo > lo - 0.06 * diag) and np.all(mhi < hi + 0.06 * diag)
     assert np.all((np.minimum(mhi, hi) - np.maximum(mlo, lo)) > 0.9 * (hi - lo))
+
+
+def test_mask_fields_are_computed_once_per_mask():
+    """The mesh stage carves the same masks three times: the filled masks and signed distances are remembered
+    by the masks' bytes (the same arrays come back), and equal a fresh computation."""
+    from texstream.geometry.hull import fill_small_holes, mask_fields, mask_sdf
+
+    rng = np.random.default_rng(0)
+    masks = [rng.random((40, 50)) < 0.7, np.pad(np.ones((20, 20), bool), 10)]
+    filled, sdfs = mask_fields(masks, 0.01)
+    for m, f, s in zip(masks, filled, sdfs):
+        assert np.array_equal(f, fill_small_holes(m, 0.01)) and np.array_equal(s, mask_sdf(f))
+    again = mask_fields([m.copy() for m in masks], 0.01)
+    assert all(a is b for a, b in zip(again[1], sdfs))
+    assert mask_fields(masks, 0.0)[1][0] is not sdfs[0]  # another fill: another entry

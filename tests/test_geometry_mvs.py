@@ -253,3 +253,17 @@ def test_depth_maps_at_level_one_still_find_the_surface(sphere_capture):
         errors.append(np.abs(d[kept] - truth[kept]) / truth[kept])
     e = np.concatenate(errors)
     assert len(e) > 24 * 500 and np.median(e) < 0.01, (len(e), np.median(e))
+
+
+def test_photos_swept_on_two_threads_give_one_threads_points(sphere_capture):
+    """Each reference photo's sweep reads only the shared photos and writes its own arrays: two at once on two
+    threads give the same depth maps and points to the bit (8 planes: what is compared is the bits, not the
+    depths' accuracy)."""
+    from texstream.geometry.mvs import MvsConfig, capture_dense_points
+
+    args = (sphere_capture["capture"], sphere_capture["masks"], sphere_capture["mesh"].bbox())
+    one = capture_dense_points(*args, MvsConfig(depths=8, threads=1), "cpu")
+    two = capture_dense_points(*args, MvsConfig(depths=8, threads=2), "cpu")
+    assert len(one.points) > 1000
+    assert np.array_equal(one.points, two.points) and np.array_equal(one.normals, two.normals)
+    assert all(np.array_equal(a, b) for a, b in zip(one.depth_maps, two.depth_maps))

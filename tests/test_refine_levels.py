@@ -128,3 +128,40 @@ def test_the_run_says_which_resolution_each_stage_used(tmp_path):
     assert lines["refine"].endswith("(unchanged since the last run)")
     assert lines["fit"].startswith("1536x1024 (level 1; auto: texels 5.10 px") and lines["report"] == HELDOUT_LINE
     assert "<td>register</td><td>SIFT on 1600x1067 of 3072x2048</td>" in resolutions_html(lines)
+
+
+def test_a_coarse_level_samples_a_coarser_bake_of_the_same_charts(sphere):
+    from texstream.geometry.bake import TexelBake
+    from texstream.geometry.mesh_io import load_mesh
+
+    root, _ = sphere
+    mesh = load_mesh(root / "ground_truth" / "mesh.obj")
+    bake = TexelBake.load(root / "ground_truth" / "bake.npz")
+    assert rl.coarse_bake(mesh, bake, 0, SCENE_DEVICE) is bake  # the finest level: the atlas's own
+    coarse = rl.coarse_bake(mesh, bake, 2, SCENE_DEVICE)
+    assert (coarse.width, coarse.height) == (bake.width // 4, bake.height // 4)
+    # texels 4x wider: a sixteenth as many (chart borders and faces claiming a texel of their own add a few)
+    ratio = coarse.covered.sum() / bake.covered.sum()
+    assert 1 / 16 <= ratio < 1.3 / 16, ratio
+    assert set(np.unique(coarse.face[coarse.covered])) == set(range(len(mesh.faces)))  # every face sampled
+
+
+def test_a_level_stops_once_its_objective_settled_and_threads_change_no_bit(tmp_path):
+    # rel_tol 0.5: the second iteration of a level lowers the objective by far less than half, so every level
+    # stops there; two threads split the kernels' photos and texels and give the one thread's result exactly
+    from conftest import tiny_sphere_capture
+    from texstream.geometry.refine import RefineConfig, refine_stage
+
+    root = tiny_sphere_capture(tmp_path, photos=6, image_size=32)
+    runs = []
+    for threads in (1, 2):
+        cfg = RefineConfig(holdout_every=0, min_move=0.0, rel_tol=0.5, threads=threads, normal_iterations=0)
+        refine_stage(root, root / "ground_truth", tmp_path / str(threads), cfg, device="cpu")
+        runs.append([(tmp_path / str(threads) / name).read_text() for name in ("refine.json", "capture.json")])
+    one = json.loads(runs[0][0])
+    assert one["levels"]["iterations"] == [2, 2, 2] and len(one["trace"]) == 6
+    assert [t["iteration"] for t in one["trace"]] == [0, 1] * 3
+    two = json.loads(runs[1][0])
+    for s in (one, two):
+        s.pop("seconds")
+    assert two == one and runs[1][1] == runs[0][1]

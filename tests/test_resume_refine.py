@@ -59,6 +59,24 @@ def test_an_interrupted_refine_resumes_to_the_uninterrupted_result(capture, tmp_
     np.testing.assert_array_equal(whole[2], again[2])
 
 
+def test_a_refine_interrupted_in_a_level_that_settles_resumes_to_the_uninterrupted_result(capture, tmp_path,
+                                                                                         monkeypatch):
+    # rel_tol 0.5: each level of 4 stops after its second iteration (saves: 1, 2 at the first level's stop, 3
+    # after the second level's first iteration); the resumed level compares its next iteration with the saved one
+    gt = capture / "ground_truth"
+    options = {"iterations": 4, "rel_tol": 0.5, "min_move": 0.0}
+    refine_stage(capture, gt, tmp_path / "whole", config(**options))
+    interrupt_after(monkeypatch, 3)
+    with pytest.raises(KeyboardInterrupt):
+        refine_stage(capture, gt, tmp_path / "again", config(**options))
+    monkeypatch.undo()
+    refine_stage(capture, gt, tmp_path / "again", config(**options))
+    whole, again = outputs(tmp_path / "whole"), outputs(tmp_path / "again")
+    assert whole[0]["levels"]["iterations"] == [2, 2]
+    assert whole[0] == again[0] and whole[1] == again[1]
+    np.testing.assert_array_equal(whole[2], again[2])
+
+
 def test_a_checkpoint_of_other_options_is_ignored_with_a_line(capture, tmp_path, monkeypatch):
     gt = capture / "ground_truth"
     interrupt_after(monkeypatch, 1)
