@@ -65,6 +65,12 @@ class ModelChoiceConfig:
                                       "off by default: one more fit (8.5 min on the temple on the 2-core CPU)")
     relightable_margin_db: float = option(1.0, "relightable: how far (dB, validation pooled PSNR) below the best model "
                                                "a relightable model may be and still be kept", min=0.0, max=60.0)
+    stop_hopeless: bool = option(True, "a candidate's validation fit that can stop early (lfm) ends once it cannot "
+                                       "win: its validation pooled PSNR, rising for the iterations left at the best "
+                                       "rate of its last two checks, stays below the best candidate's so far (it is "
+                                       "judged by its score there); off: fitted to its iteration cap")
+    beat_db: float = option(0.0, "set by the choice on a candidate's validation fit (stop_hopeless): the best "
+                                 "validation pooled PSNR (dB) of the candidates judged before it; 0: none", min=0.0)
     validation_fit: bool = option(False, "fit only the fitted photos less every materials.validation_every-th and "
                                          "score those validation photos where the held-out ones are scored (the "
                                          "held-out photos are not read): how the choice judges a candidate whose "
@@ -197,8 +203,11 @@ def fit_choice(capture_dir: Path, mesh_path: Path, out_dir: Path, cfg, plan: Cho
         return out_dir.with_name(f"{out_dir.name}_{c.name}{suffix}")
 
     def config(c, validation: bool):
+        beat = [j.pooled_db for j in judged.values() if j.pooled_db is not None and validation
+                and cfg.choice.stop_hopeless]
         return dataclasses.replace(cfg, fit=dataclasses.replace(cfg.fit, model=c.kind, **c.overrides),
-                                   choice=dataclasses.replace(cfg.choice, validation_fit=validation),
+                                   choice=dataclasses.replace(cfg.choice, validation_fit=validation,
+                                                              beat_db=max([0.0, *beat])),
                                    **({"renders": 0} if validation else {}))
 
     def judge(c) -> None:
@@ -213,8 +222,11 @@ def fit_choice(capture_dir: Path, mesh_path: Path, out_dir: Path, cfg, plan: Cho
             full = fit_one(capture_dir, mesh_path, folder(c), config(c, False))
             score, how = own_validation_score(full.summary), "its own materials choice on the validation split"
         if score is None:
-            h = fit_one(capture_dir, mesh_path, folder(c, VALIDATION_SUFFIX), config(c, True)).summary["heldout"]
-            score, how = (h.get("pooled_psnr_db"), h.get("worst_psnr_db")), "a fit of the validation split"
+            fitted = fit_one(capture_dir, mesh_path, folder(c, VALIDATION_SUFFIX), config(c, True)).summary
+            h, how = fitted["heldout"], "a fit of the validation split"
+            score = h.get("pooled_psnr_db"), h.get("worst_psnr_db")
+            if fitted.get("stopped"):  # it could not win (choice.stop_hopeless)
+                how += f", {fitted['stopped']}"
         judged[c.name] = Judged(c, *score, how, time.perf_counter() - t, full)
         log(f"[fit] {c.name}: validation pooled PSNR {_db(score[0])}, worst view {_db(score[1])} ({how})")
 

@@ -593,11 +593,12 @@ class PatchLBFGS:
 
 def fit_lfm(problem: LFMProblem, max_iterations: int | None = None, time_budget_s: float = 0.0,
             G0: np.ndarray | None = None, H0: np.ndarray | None = None, callback=None,
-            snapshot=None) -> LFMResult:
+            snapshot=None, stop=None) -> LFMResult:
     """The streaming fit (CG, SD or L-BFGS, Hessian or backtracking step, per-patch acceptance); computes d
     first when it was not (``problem.compute_diffuse``). ``callback(iteration, objective)`` is
     called at every objective read, then ``snapshot(iteration, G, H)`` with the current device
-    parameters (benchmarks score the model there; keep it out of the timing yourself)."""
+    parameters (benchmarks score the model there; keep it out of the timing yourself); the fit ends at a read
+    where ``stop(iteration, G, H)`` is true (the model choice's candidate that cannot win, fit/models/lfm/fit.py)."""
     pr, cfg, dev = problem, problem.cfg, problem.device
     if not pr.seen.any():
         pr.compute_diffuse()
@@ -691,7 +692,7 @@ def fit_lfm(problem: LFMProblem, max_iterations: int | None = None, time_budget_
         if it % cfg.sync_every == 0 or it == iters:
             obj = pr.total(f)
             _record(trace, it, time.perf_counter() - t0, obj, callback, snapshot, G, H)
-            if last - obj <= cfg.rel_tol * max(abs(last), 1e-300):
+            if last - obj <= cfg.rel_tol * max(abs(last), 1e-300) or (stop is not None and stop(it, G, H)):
                 break
             last = obj
             if time_budget_s > 0 and time.perf_counter() - t0 > time_budget_s:
