@@ -127,7 +127,8 @@ def test_a_relightable_model_is_kept_within_its_margin_and_only_when_asked(tmp_p
 def test_the_lfm_validation_fit_is_told_the_score_to_beat_and_its_stop_is_recorded(tmp_path):
     """``choice.stop_hopeless``: the LFM candidate's validation fit gets the best validation score of the
     candidates judged before it (view_radiance's 31 dB) as ``choice.beat_db``, the first candidate none and a
-    fit of every fitted photo none; a fit that stopped says so in its ``judged_by``. Off: no score to beat."""
+    fit of every fitted photo none; a fit that stopped says so in its ``judged_by`` and its checks are recorded.
+    Off: no score to beat."""
     import dataclasses
 
     from texstream.fit.stages.choice import ModelChoiceConfig
@@ -142,7 +143,8 @@ def test_the_lfm_validation_fit_is_told_the_score_to_beat_and_its_stop_is_record
             beats.append((c.fit.model, c.choice.validation_fit, c.choice.beat_db))
             res = fit_one(capture_dir, mesh_path, out, c)
             if c.fit.model == "lfm" and c.choice.beat_db:
-                res.summary["stopped"] = "stopped at iteration 30 of 50: below the 31.00 dB to beat"
+                res.summary["stop"] = {"stopped": "stopped at iteration 30 of 50: below the 31.00 dB to beat",
+                                       "beat_db": c.choice.beat_db, "checks": [[10, 29.0]], "checks_s": 1.0}
             return res
 
         out = tmp_path / str(stop) / "model"
@@ -154,3 +156,4 @@ def test_the_lfm_validation_fit_is_told_the_score_to_beat_and_its_stop_is_record
                     ("lfm", True, 31.0 if stop else 0.0), ("view_radiance", False, 0.0)]
         assert beats == expected
         assert ("stopped at iteration 30" in sel["validation"]["lfm"]["judged_by"]) == stop
+        assert ("stop" in sel["validation"]["lfm"]) == stop  # the checks recorded beside the score

@@ -74,7 +74,8 @@ class ModelChoiceConfig:
     validation_fit: bool = option(False, "fit only the fitted photos less every materials.validation_every-th and "
                                          "score those validation photos where the held-out ones are scored (the "
                                          "held-out photos are not read): how the choice judges a candidate whose "
-                                         "own fit makes no choice on that split")
+                                         "own fit makes no choice on that split (an lfm fit writes its scores "
+                                         "only, model.json)")
 
 
 @dataclasses.dataclass
@@ -154,10 +155,12 @@ class Judged:
     judged_by: str
     seconds: float
     full: StageResult | None = None
+    stop: dict | None = None
+    """its validation fit's checks of whether it could still win (choice.stop_hopeless), None: not checked"""
 
     def record(self) -> dict:
         return {"pooled_psnr_db": self.pooled_db, "worst_psnr_db": self.worst_db, "judged_by": self.judged_by,
-                "seconds": self.seconds}
+                "seconds": self.seconds, **({"stop": self.stop} if self.stop else {})}
 
 
 def makes_own_choice(candidate, cfg) -> bool:
@@ -217,7 +220,7 @@ def fit_choice(capture_dir: Path, mesh_path: Path, out_dir: Path, cfg, plan: Cho
                 left_out[c.name] = why
                 log(f"[fit] {c.name} left out: {why}")
                 return
-        t, full, score = time.perf_counter(), None, None
+        t, full, score, stop = time.perf_counter(), None, None, None
         if makes_own_choice(c, cfg):
             full = fit_one(capture_dir, mesh_path, folder(c), config(c, False))
             score, how = own_validation_score(full.summary), "its own materials choice on the validation split"
@@ -225,9 +228,10 @@ def fit_choice(capture_dir: Path, mesh_path: Path, out_dir: Path, cfg, plan: Cho
             fitted = fit_one(capture_dir, mesh_path, folder(c, VALIDATION_SUFFIX), config(c, True)).summary
             h, how = fitted["heldout"], "a fit of the validation split"
             score = h.get("pooled_psnr_db"), h.get("worst_psnr_db")
-            if fitted.get("stopped"):  # it could not win (choice.stop_hopeless)
-                how += f", {fitted['stopped']}"
-        judged[c.name] = Judged(c, *score, how, time.perf_counter() - t, full)
+            stop = fitted.get("stop")  # choice.stop_hopeless: the checks of whether it could still win
+            if stop and stop["stopped"]:
+                how += f", {stop['stopped']}"
+        judged[c.name] = Judged(c, *score, how, time.perf_counter() - t, full, stop)
         log(f"[fit] {c.name}: validation pooled PSNR {_db(score[0])}, worst view {_db(score[1])} ({how})")
 
     for c in plan.candidates:

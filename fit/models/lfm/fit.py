@@ -98,6 +98,12 @@ class CannotWin:
             rows.append(image_metrics(image, photo, self.within_mask(f, cover)))
         return pooled_psnr(rows)["pooled_psnr_db"]
 
+    def record(self) -> dict:
+        """What the stop did, for the choice's record: why it stopped (None: it did not), the score to beat, the
+        checks (iteration, validation pooled PSNR) and the seconds they took."""
+        return {"stopped": self.stopped, "beat_db": self.target_db, "checks": self.points,
+                "checks_s": self.seconds}
+
     def __call__(self, iteration: int, G, H) -> bool:
         if iteration < STOP_FIRST_CHECK or iteration >= self.cap:
             return False
@@ -168,8 +174,7 @@ def lfm_fit_stage(capture_dir, mesh_path, out_dir, cfg, progress: bool = True) -
             params, trace, fit_s = res.params, res.trace, res.fit_s
             info = {"iterations": res.iterations, "passes": res.passes}
             if stop is not None:
-                info["stopped"] = stop.stopped
-                info["validation_checks"] = {"points": stop.points, "seconds": stop.seconds}
+                info["stop"] = stop.record()
         else:
             params, info = fit_pca(problem) if lcfg.method == "pca" else fit_nmf(problem, lcfg.nmf_iterations)
             trace, fit_s = [], info["total_s"]
@@ -182,17 +187,23 @@ def lfm_fit_stage(capture_dir, mesh_path, out_dir, cfg, progress: bool = True) -
         image, m = renderer.render_frame(f)
         return image, capture.within_mask(f, m)
 
+    # the model choice's validation fit is judged by its scores and then removed: model.json alone (the
+    # parameters and maps, compressed, took 3-4 s of the temple's candidate)
+    scores_only = cfg.choice.validation_fit
     with atomic_output_dir(out_dir) as tmp, phase("fit", "lfm: held-out renders and the model folder"):
-        save_mesh(tmp / "mesh.obj", mesh)
-        bake.save(tmp / "bake.npz")
-        np.savez_compressed(tmp / "lfm.npz", diffuse=params.diffuse, G=params.G, H=params.H, grid_index=grid_index,
-                            vpos=geom.vpos, vnrm=geom.vnrm, vtan=geom.vtan, vbit=geom.vbit)
-        files = write_lfm_maps(tmp, params, bake, grid_index, problem.R)
+        files = {}
+        if not scores_only:
+            save_mesh(tmp / "mesh.obj", mesh)
+            bake.save(tmp / "bake.npz")
+            np.savez_compressed(tmp / "lfm.npz", diffuse=params.diffuse, G=params.G, H=params.H,
+                                grid_index=grid_index, vpos=geom.vpos, vnrm=geom.vnrm, vtan=geom.vtan, vbit=geom.vbit)
+            files = write_lfm_maps(tmp, params, bake, grid_index, problem.R)
         show = held if held else inputs.frames_as_photographed()[: max(cfg.renders, 0)]
         evals = render_comparisons(tmp / "renders", show, load_photos(capture, show)[0] if show else [], held, render,
                                    images=max(cfg.renders, 0))
-        manifest = {"layout": {"kind": "lfm", **dataclasses.asdict(lcfg)}, "mesh": "mesh.obj", "bake": "bake.npz",
-                    "params": "lfm.npz", "maps": files,
+        manifest = {"layout": {"kind": "lfm", **dataclasses.asdict(lcfg)}, "scores_only": scores_only,
+                    **({} if scores_only else {"mesh": "mesh.obj", "bake": "bake.npz", "params": "lfm.npz"}),
+                    "maps": files,
                     "lfm": {"vertices_welded": problem.V, "texels": problem.N, "slots": problem.S,
                             "view_texels_in_mask": int(problem.mask_np.sum()), "sample_cache": bool(problem.cache),
                             "parameters": int(problem.S * problem.K * 3 + problem.V * problem.K * problem.M * 3
@@ -204,7 +215,7 @@ def lfm_fit_stage(capture_dir, mesh_path, out_dir, cfg, progress: bool = True) -
                     "units": "exitant radiance in photo values per unit exposure"}
         write_json_atomic(tmp / "model.json", json_safe(manifest))  # a black view's APE is undefined (None)
     return StageResult(Path(out_dir), {"psnr_db": err["psnr_db"], "iterations": info.get("iterations", 0),
-                                       "stopped": info.get("stopped"),
+                                       "stop": info.get("stop"),
                                        "time_s": fit_s, "texels": problem.N, "photos": len(frames),
                                        "resumed_from": None, "render_eval": evals, "warnings": [],
                                        "heldout": manifest["heldout"]})
