@@ -32,7 +32,7 @@ def main(argv=None) -> int:
 
     from texstream.fit.common.inputs import load_fit_inputs, load_photos
     from texstream.fit.common.model_folder import image_metrics, pooled_psnr
-    from texstream.fit.models.lfm.fit import _radiance_problem, filled_params
+    from texstream.fit.models.lfm.fit import _radiance_problem, filled_params, lfm_threads
     from texstream.fit.models.lfm.model_folder import LFMRenderer, lfm_geometry
     from texstream.fit.models.lfm.problem import LFMProblem, PhotoSamples, fit_lfm
     from texstream.pipelines.run import RunConfig
@@ -50,7 +50,7 @@ def main(argv=None) -> int:
     inputs = load_fit_inputs(capture_dir, geometry, cfg)
     sp = _radiance_problem(inputs, cfg)
     geom = lfm_geometry(inputs.mesh, inputs.bake, sp.texels)
-    problem = LFMProblem(geom, PhotoSamples(sp, inputs.frames), lcfg, a.device)
+    problem = LFMProblem(geom, PhotoSamples(sp, inputs.frames), lcfg, a.device, lfm_threads(cfg.fit, sp.n))
     setup_s = time.perf_counter() - t0
     held = inputs.held
     images, masks = load_photos(inputs.capture, held)
