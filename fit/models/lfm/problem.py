@@ -283,6 +283,7 @@ class LFMProblem:
         cfg.check()
         self.geom, self.samples, self.cfg, self.device = geom, samples, cfg, device
         self.threads = int(threads) if not wp.get_device(device).is_cuda else 1
+        self._launched: set[str] = set()  # the passes launched once (see _on_threads)
         self.K, self.R = int(cfg.terms), int(cfg.view_res)
         self.M = self.R * self.R
         self.N, self.V = geom.n_texels, geom.n_vertices
@@ -450,14 +451,14 @@ class LFMProblem:
                 obs_y, obs_e, base = self.batch_y, self.batch_e, 0
             else:
                 (obs_y, obs_e), base = resident, p0
-            self._on_threads(self.N, lambda first, count: wp.launch(
+            self._on_threads("slot pass", self.N, lambda first, count: wp.launch(
                 LK.slot_pass_batch_kernel, dim=count, device=dev,
                 inputs=[obs_y, obs_e, base, nb, B, p0, self.diffuse, self.slot_vertex, self.slot_hat, G, H, dG, dH,
                         self.all_tap_idx, self.all_tap_w, self.V, self.K, int(want_grad), int(want_dhd),
                         int(want_diag), first],
                 outputs=[self.slot_f, gG, self.slot_dhd, self.slot_gn, self.batch_res, xG]))
             if want_grad:
-                self._on_threads(self.V, lambda first, count: wp.launch(
+                self._on_threads("gather", self.V, lambda first, count: wp.launch(
                     LK.view_gather_batch_kernel, dim=(count, nb), device=dev,
                     inputs=[self.ring_start, self.ring_slots, self.batch_res, B, G, self.K, int(want_diag), obs_e,
                             base, self.N, first],
@@ -480,14 +481,19 @@ class LFMProblem:
                       outputs=[f, gH, h_out, g_out])
         self.passes += 1
 
-    def _on_threads(self, count: int, launch) -> None:
+    def _on_threads(self, key: str, count: int, launch) -> None:
         """``launch(first, size)`` over ``count`` items, one contiguous range per CPU thread (``threads``): Warp
         runs a CPU kernel on the launching thread and releases the GIL, and each texel (vertex) of the slot pass
-        (gather) writes only its own slots (rows), so the ranges give the one launch's values to the last bit."""
+        (gather) writes only its own slots (rows), so the ranges give the one launch's values to the last bit.
+        The first launch of each ``key`` runs its ranges one after the other: it builds the generic kernel's
+        overload for these sample types, which Warp does not do safely from two threads at once (the dino's
+        run failed in its launch checks)."""
         edges = np.linspace(0, count, max(1, min(self.threads, count)) + 1).astype(int)
         ranges = [(int(a), int(b - a)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
-        if len(ranges) == 1:
-            launch(*ranges[0])
+        if len(ranges) == 1 or key not in self._launched:
+            self._launched.add(key)
+            for r in ranges:
+                launch(*r)
             return
         with concurrent.futures.ThreadPoolExecutor(len(ranges)) as pool:
             list(pool.map(lambda r: launch(*r), ranges))
