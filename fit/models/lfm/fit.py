@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import warp as wp
 
 from texstream.core.config import config_to_dict
 from texstream.core.errors import ConfigError, InputError
@@ -105,8 +106,6 @@ class CannotWin:
 
     def score(self, G, H) -> float:
         """Validation pooled PSNR of the renderer's model with the fit's current surface and view maps."""
-        import warp as wp
-
         wp.copy(self.renderer.G, G)
         wp.copy(self.renderer.H, H)
         rows = []
