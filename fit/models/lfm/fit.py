@@ -40,8 +40,9 @@ def fit(request) -> StageResult:
 def lfm_threads(fit_cfg, n_texels: int) -> int:
     """CPU threads of the LFM fit's passes: ``stream.cpu_threads``, or with 0 (auto) the per-texel fit's rule
     (fit/multi/cpu_threads.py): every usable core, at most MAX_AUTO_THREADS, MIN_TEXELS_PER_THREAD texels or more
-    a thread. Measured on the temple (545,635 texels, 10 photos, 2-core CPU): 10 iterations in 14.9 s on one
-    thread, the slot pass 68% of it and the view-map gather 14%, the two that split."""
+    a thread. Measured on the temple (545,635 texels, 10 photos, 2-core CPU): 10 iterations in 14.7 s on one
+    thread, the slot pass 68% of it and the view-map gather 14%, the two that split; 10.4 s on two. With other
+    jobs keeping both cores busy two threads lost (17-19 s against 15.6-15.9 s): stream.cpu_threads 1 there."""
     if fit_cfg.stream.cpu_threads > 0:
         return int(fit_cfg.stream.cpu_threads)
     return max(1, min(usable_cpus(), MAX_AUTO_THREADS, n_texels // MIN_TEXELS_PER_THREAD))
