@@ -43,7 +43,7 @@ def texels_on(pts, faces, per_face: int, rng):
     return face, b, pos
 
 
-def tiny_problem(device, cfg: LFMConfig, seed: int = 0, photos: int = 6, unseen: float = 0.2):
+def tiny_problem(device, cfg: LFMConfig, seed: int = 0, photos: int = 6, unseen: float = 0.2, threads: int = 1):
     rng = np.random.default_rng(seed)
     pts, faces, nrm = grid_mesh()
     face, bary, pos = texels_on(pts, faces, 3, rng)
@@ -51,7 +51,7 @@ def tiny_problem(device, cfg: LFMConfig, seed: int = 0, photos: int = 6, unseen:
     centers = np.stack([rng.uniform(-1, 2, photos), rng.uniform(-1, 2, photos), rng.uniform(1.5, 3, photos)], 1)
     y = rng.uniform(0.1, 1.0, (photos, face.size, 3))
     e = rng.uniform(0.5, 1.5, (photos, 1)) * (rng.uniform(size=(photos, face.size)) > unseen)
-    pr = LFMProblem(geom, TableSamples(y, e, centers, device), cfg, device)
+    pr = LFMProblem(geom, TableSamples(y, e, centers, device), cfg, device, threads)
     pr.compute_diffuse()
     return pr, rng
 
@@ -183,11 +183,13 @@ def test_gathers_equal_dense_reference(device):
 def test_photo_batches_give_identical_sums(device):
     """The batched passes add every photo in order whatever the batch size: one photo per batch, a
     partial last batch (3 + 3 + 1) and all 7 at once give bit-identical objective, gradients and
-    curvature."""
+    curvature; so do the slot pass and the gather split over 3 CPU threads (each texel and vertex summed by
+    one of them), the Gauss-Newton diagonal too."""
     outs = []
-    for batch in (1, 3, 7):
-        cfg = LFMConfig(terms=2, view_res=5, lookup="bilinear", laplacian=0.3, photo_batch=batch)
-        pr, rng = tiny_problem(device, cfg, seed=5, photos=7)
+    for batch, threads in ((1, 1), (3, 1), (7, 1), (3, 3)):
+        cfg = LFMConfig(terms=2, view_res=5, lookup="bilinear", laplacian=0.3, photo_batch=batch,
+                        precondition="jacobi")  # jacobi: the diagonal's scratch
+        pr, rng = tiny_problem(device, cfg, seed=5, photos=7, threads=threads)
         assert pr.B == batch
         G, H = random_params(pr, rng)
         DG, DH = random_params(pr, rng)
@@ -196,7 +198,9 @@ def test_photo_batches_give_identical_sums(device):
         pr.evaluate(pr.new_G(G), pr.new_H(H), f, gG, gH)
         f2 = pr.new_patch()
         pr.evaluate(pr.new_G(G), pr.new_H(H), f2, DG=pr.new_G(DG), DH=pr.new_H(DH), dhd=dhd, gn=gn)
-        outs.append([a.numpy() for a in (f, gG, gH, f2, dhd, gn)])
+        f3, xG, xH = pr.new_patch(), pr.new_G(), pr.new_H()
+        pr.evaluate(pr.new_G(G), pr.new_H(H), f3, pr.new_G(), pr.new_H(), diag_G=xG, diag_H=xH)
+        outs.append([a.numpy() for a in (f, gG, gH, f2, dhd, gn, f3, xG, xH)])
     for other in outs[1:]:
         for a, b in zip(outs[0], other):
             assert np.array_equal(a, b)

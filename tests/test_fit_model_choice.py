@@ -122,3 +122,38 @@ def test_a_relightable_model_is_kept_within_its_margin_and_only_when_asked(tmp_p
             assert "relightable env_diffuse not kept" in sel["reason"]
         if kept == "env_diffuse":
             assert "within relightable_margin_db 1" in sel["reason"] and calls[-1] == ("env_diffuse", False)
+
+
+def test_the_lfm_validation_fit_is_told_the_score_to_beat_and_its_stop_is_recorded(tmp_path):
+    """``choice.stop_hopeless``: the LFM candidate's validation fit gets the best validation score of the
+    candidates judged before it (view_radiance's 31 dB) as ``choice.beat_db``, the first candidate none and a
+    fit of every fitted photo none; a fit that stopped says so in its ``judged_by`` and its checks are recorded.
+    Off: no score to beat."""
+    import dataclasses
+
+    from texstream.fit.stages.choice import ModelChoiceConfig
+
+    for stop in (True, False):
+        cfg = FitStageConfig(holdout_every=8, choice=ModelChoiceConfig(lfm="always", stop_hopeless=stop))
+        fit_one, calls = fake_fits({"radiance": 30.0, "view_radiance": 31.0, "lfm": 30.5}, dict.fromkeys(
+            ("radiance", "view_radiance", "lfm"), 25.0))
+        beats = []
+
+        def recording(capture_dir, mesh_path, out, c):
+            beats.append((c.fit.model, c.choice.validation_fit, c.choice.beat_db))
+            res = fit_one(capture_dir, mesh_path, out, c)
+            if c.fit.model == "lfm" and c.choice.beat_db:
+                res.summary["stop"] = {"stopped": "stopped at iteration 30 of 50: below the 31.00 dB to beat",
+                                       "beat_db": c.choice.beat_db, "checks": [[10, 29.0]], "checks_s": 1.0}
+            return res
+
+        out = tmp_path / str(stop) / "model"
+        out.parent.mkdir()
+        sel = fit_choice(out.parent, out.parent, out, dataclasses.replace(cfg), radiance_plan(cfg), recording,
+                         log=lambda line: None).summary["selection"]
+        assert sel["chosen"] == "view_radiance"
+        expected = [("radiance", True, 0.0), ("view_radiance", True, 30.0 if stop else 0.0),
+                    ("lfm", True, 31.0 if stop else 0.0), ("view_radiance", False, 0.0)]
+        assert beats == expected
+        assert ("stopped at iteration 30" in sel["validation"]["lfm"]["judged_by"]) == stop
+        assert ("stop" in sel["validation"]["lfm"]) == stop  # the checks recorded beside the score

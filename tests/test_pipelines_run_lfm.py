@@ -57,6 +57,11 @@ def test_view_dependence_brings_in_lfm_and_the_best_validated_model_is_kept(capt
     assert "view dependence matters" in sel["lfm"] and sel["lfm"] in summary["model_reason"]
     assert any("view dependence matters" in m for m in lines)  # printed
     assert sel["chosen"] == max(scores, key=scores.get) == summary["model"]
+    # choice.stop_hopeless: the LFM validation fit was given the radiance models' best score and checked its own
+    # on the rendered validation photos from iteration 10 on (two checks of its 20 iterations: no bound yet)
+    stop = sel["validation"]["lfm"]["stop"]
+    assert stop["beat_db"] == max(scores["radiance"], scores["view_radiance"]) and stop["stopped"] is None
+    assert [i for i, _ in stop["checks"]] == [10, 15] and all(15 < db < 60 for _, db in stop["checks"])
     man = json.loads((out / "model" / "model.json").read_text())
     assert man["layout"]["kind"] == summary["model"]
     assert not list(out.glob("model_*"))  # the others had validation fits only, removed after the choice

@@ -156,6 +156,7 @@ def slot_pass_batch_kernel(obs_y: wp.array(dtype=Any), obs_e: wp.array(dtype=Any
                            DG: wp.array2d(dtype=wp.vec3d), DH: wp.array2d(dtype=wp.vec3d),
                            tap_idx: wp.array(dtype=wp.vec4i), tap_w: wp.array(dtype=wp.vec4d),
                            n_vertices: int, n_terms: int, want_grad: int, want_dhd: int, want_diag: int,
+                           first_texel: int,
                            slot_f: wp.array(dtype=wp.vec3d), grad_G: wp.array2d(dtype=wp.vec3d),
                            slot_dhd: wp.array(dtype=wp.vec3d), slot_gn: wp.array(dtype=wp.vec3d),
                            slot_res: wp.array(dtype=wp.vec3d), diag_G: wp.array2d(dtype=wp.vec3d)):
@@ -164,8 +165,9 @@ def slot_pass_batch_kernel(obs_y: wp.array(dtype=Any), obs_e: wp.array(dtype=Any
     derivative along the direction (DG, DH) (m1^2 - 2 r m2, with the model along the line
     m0 + a m1 + a^2 m2) and its Gauss-Newton part m1^2, each photo added in order (the objective and
     curvature sums in registers across the batch); with ``want_grad`` write each slot's e r of photo b
-    at slot_res[slot * batch + b] (0 where unobserved) for the view-map gather."""
-    s = wp.tid()
+    at slot_res[slot * batch + b] (0 where unobserved) for the view-map gather. Texels from ``first_texel``
+    (the CPU's threads take a range each, fit/models/lfm/problem.py)."""
+    s = wp.tid() + first_texel
     n = diffuse.shape[0]
     zero = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
     two = wp.float64(2.0)
@@ -228,12 +230,15 @@ def slot_pass_batch_kernel(obs_y: wp.array(dtype=Any), obs_e: wp.array(dtype=Any
 def view_gather_batch_kernel(ring_start: wp.array(dtype=wp.int32), ring_slots: wp.array(dtype=wp.int32),
                              slot_res: wp.array(dtype=wp.vec3d), batch: int, G: wp.array2d(dtype=wp.vec3d),
                              n_terms: int, want_diag: int, obs_e: wp.array(dtype=Any), obs_base: int, n_texels: int,
+                             first_vertex: int,
                              gathered: wp.array(dtype=wp.vec3d), gathered_diag: wp.array(dtype=wp.vec3d)):
     """Per (vertex v, batch photo b): sum over v's ring of e r g_k (index table), for every term k,
     written at gathered[(v K + k) * batch + b]; dim = (V, n_batch). Threads of one vertex share the
     ring walk and read the batch's residuals of one slot side by side. With ``want_diag`` also the
-    sum of (e g_k)^2 (the view maps' Gauss-Newton diagonal, before the taps' weights)."""
+    sum of (e g_k)^2 (the view maps' Gauss-Newton diagonal, before the taps' weights). Vertices from
+    ``first_vertex`` (a CPU thread's range)."""
     v, b = wp.tid()
+    v = v + first_vertex
     for k in range(n_terms):
         acc = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
         acc2 = acc

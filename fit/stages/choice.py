@@ -12,8 +12,10 @@ Every decision (the kept model, the escalation, the second lobe) is made on a va
 photos, the materials choice's (every ``materials.validation_every``-th fitted photo): the held-out photos only
 score the model handed over, as a user meets it. A candidate whose own fit makes its materials choice on that
 split is fitted once, to every fitted photo, and judged by that choice's score; any other is judged by a fit of
-the split and fitted to every fitted photo only when kept (:func:`fit_choice`). The kept fit is renamed to
-``<out>``; the other full fits stay beside it as ``<out>_<candidate>``.
+the split and fitted to every fitted photo only when kept (:func:`fit_choice`); a validation fit that can stop
+early (light field mapping's) is told the best score so far and ends once it cannot reach it
+(``choice.stop_hopeless``). The kept fit is renamed to ``<out>``; the other full fits stay beside it as
+``<out>_<candidate>``.
 """
 
 from __future__ import annotations
@@ -65,10 +67,18 @@ class ModelChoiceConfig:
                                       "off by default: one more fit (8.5 min on the temple on the 2-core CPU)")
     relightable_margin_db: float = option(1.0, "relightable: how far (dB, validation pooled PSNR) below the best model "
                                                "a relightable model may be and still be kept", min=0.0, max=60.0)
+    stop_hopeless: bool = option(True, "a candidate's validation fit that can stop early (lfm) ends once it cannot "
+                                       "win: its validation pooled PSNR, rising for the iterations left at the best "
+                                       "rate of its last two checks, stays more than 0.2 dB below the best "
+                                       "candidate's so far (it is judged by its score there; the temple's lfm "
+                                       "stops after 30 of 50 iterations); off: fitted to its iteration cap")
+    beat_db: float = option(0.0, "set by the choice on a candidate's validation fit (stop_hopeless): the best "
+                                 "validation pooled PSNR (dB) of the candidates judged before it; 0: none", min=0.0)
     validation_fit: bool = option(False, "fit only the fitted photos less every materials.validation_every-th and "
                                          "score those validation photos where the held-out ones are scored (the "
                                          "held-out photos are not read): how the choice judges a candidate whose "
-                                         "own fit makes no choice on that split")
+                                         "own fit makes no choice on that split (an lfm fit writes its scores "
+                                         "only, model.json)")
 
 
 @dataclasses.dataclass
@@ -148,10 +158,12 @@ class Judged:
     judged_by: str
     seconds: float
     full: StageResult | None = None
+    stop: dict | None = None
+    """its validation fit's checks of whether it could still win (choice.stop_hopeless), None: not checked"""
 
     def record(self) -> dict:
         return {"pooled_psnr_db": self.pooled_db, "worst_psnr_db": self.worst_db, "judged_by": self.judged_by,
-                "seconds": self.seconds}
+                "seconds": self.seconds, **({"stop": self.stop} if self.stop else {})}
 
 
 def makes_own_choice(candidate, cfg) -> bool:
@@ -197,8 +209,11 @@ def fit_choice(capture_dir: Path, mesh_path: Path, out_dir: Path, cfg, plan: Cho
         return out_dir.with_name(f"{out_dir.name}_{c.name}{suffix}")
 
     def config(c, validation: bool):
+        beat = [j.pooled_db for j in judged.values() if j.pooled_db is not None and validation
+                and cfg.choice.stop_hopeless]
         return dataclasses.replace(cfg, fit=dataclasses.replace(cfg.fit, model=c.kind, **c.overrides),
-                                   choice=dataclasses.replace(cfg.choice, validation_fit=validation),
+                                   choice=dataclasses.replace(cfg.choice, validation_fit=validation,
+                                                              beat_db=max([0.0, *beat])),
                                    **({"renders": 0} if validation else {}))
 
     def judge(c) -> None:
@@ -208,14 +223,18 @@ def fit_choice(capture_dir: Path, mesh_path: Path, out_dir: Path, cfg, plan: Cho
                 left_out[c.name] = why
                 log(f"[fit] {c.name} left out: {why}")
                 return
-        t, full, score = time.perf_counter(), None, None
+        t, full, score, stop = time.perf_counter(), None, None, None
         if makes_own_choice(c, cfg):
             full = fit_one(capture_dir, mesh_path, folder(c), config(c, False))
             score, how = own_validation_score(full.summary), "its own materials choice on the validation split"
         if score is None:
-            h = fit_one(capture_dir, mesh_path, folder(c, VALIDATION_SUFFIX), config(c, True)).summary["heldout"]
-            score, how = (h.get("pooled_psnr_db"), h.get("worst_psnr_db")), "a fit of the validation split"
-        judged[c.name] = Judged(c, *score, how, time.perf_counter() - t, full)
+            fitted = fit_one(capture_dir, mesh_path, folder(c, VALIDATION_SUFFIX), config(c, True)).summary
+            h, how = fitted["heldout"], "a fit of the validation split"
+            score = h.get("pooled_psnr_db"), h.get("worst_psnr_db")
+            stop = fitted.get("stop")  # choice.stop_hopeless: the checks of whether it could still win
+            if stop and stop["stopped"]:
+                how += f", {stop['stopped']}"
+        judged[c.name] = Judged(c, *score, how, time.perf_counter() - t, full, stop)
         log(f"[fit] {c.name}: validation pooled PSNR {_db(score[0])}, worst view {_db(score[1])} ({how})")
 
     for c in plan.candidates:

@@ -32,6 +32,7 @@ Imports only numpy and warp.
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import math
 import time
@@ -276,9 +277,13 @@ def sample_cache_budget(photo_bytes: int, device: str) -> int:
 class LFMProblem:
     """Device buffers and streaming passes of an LFM fit (allocated once; see the module doc)."""
 
-    def __init__(self, geom: LFMGeometry, samples, cfg: LFMConfig, device: str = "cpu"):
+    def __init__(self, geom: LFMGeometry, samples, cfg: LFMConfig, device: str = "cpu", threads: int = 1):
+        """``threads``: CPU threads the slot pass and the view-map gather split their texels and vertices over
+        (the CPU only; the same values for any count)."""
         cfg.check()
         self.geom, self.samples, self.cfg, self.device = geom, samples, cfg, device
+        self.threads = int(threads) if not wp.get_device(device).is_cuda else 1
+        self._launched: set[str] = set()  # the passes launched once (see _on_threads)
         self.K, self.R = int(cfg.terms), int(cfg.view_res)
         self.M = self.R * self.R
         self.N, self.V = geom.n_texels, geom.n_vertices
@@ -446,16 +451,18 @@ class LFMProblem:
                 obs_y, obs_e, base = self.batch_y, self.batch_e, 0
             else:
                 (obs_y, obs_e), base = resident, p0
-            wp.launch(LK.slot_pass_batch_kernel, dim=self.N, device=dev,
-                      inputs=[obs_y, obs_e, base, nb, B, p0, self.diffuse, self.slot_vertex, self.slot_hat,
-                              G, H, dG, dH, self.all_tap_idx, self.all_tap_w, self.V, self.K, int(want_grad),
-                              int(want_dhd), int(want_diag)],
-                      outputs=[self.slot_f, gG, self.slot_dhd, self.slot_gn, self.batch_res, xG])
+            self._on_threads("slot pass", self.N, lambda first, count: wp.launch(
+                LK.slot_pass_batch_kernel, dim=count, device=dev,
+                inputs=[obs_y, obs_e, base, nb, B, p0, self.diffuse, self.slot_vertex, self.slot_hat, G, H, dG, dH,
+                        self.all_tap_idx, self.all_tap_w, self.V, self.K, int(want_grad), int(want_dhd),
+                        int(want_diag), first],
+                outputs=[self.slot_f, gG, self.slot_dhd, self.slot_gn, self.batch_res, xG]))
             if want_grad:
-                wp.launch(LK.view_gather_batch_kernel, dim=(self.V, nb), device=dev,
-                          inputs=[self.ring_start, self.ring_slots, self.batch_res, B, G, self.K, int(want_diag),
-                                  obs_e, base, self.N],
-                          outputs=[self.batch_gathered, self.batch_gathered_diag])
+                self._on_threads("gather", self.V, lambda first, count: wp.launch(
+                    LK.view_gather_batch_kernel, dim=(count, nb), device=dev,
+                    inputs=[self.ring_start, self.ring_slots, self.batch_res, B, G, self.K, int(want_diag), obs_e,
+                            base, self.N, first],
+                    outputs=[self.batch_gathered, self.batch_gathered_diag]))
                 wp.launch(LK.view_scatter_batch_kernel, dim=self.V * self.K, device=dev,
                           inputs=[self.batch_gathered, nb, B, p0, self.all_tap_idx, self.all_tap_w, self.K, self.V,
                                   int(want_diag), self.batch_gathered_diag],
@@ -473,6 +480,23 @@ class LFMProblem:
                       inputs=[H, dH, self.mask, self.R, self.K, wp.float64(self.lam), int(want_grad), int(want_dhd)],
                       outputs=[f, gH, h_out, g_out])
         self.passes += 1
+
+    def _on_threads(self, key: str, count: int, launch) -> None:
+        """``launch(first, size)`` over ``count`` items, one contiguous range per CPU thread (``threads``): Warp
+        runs a CPU kernel on the launching thread and releases the GIL, and each texel (vertex) of the slot pass
+        (gather) writes only its own slots (rows), so the ranges give the one launch's values to the last bit.
+        The first launch of each ``key`` runs its ranges one after the other: it builds the generic kernel's
+        overload for these sample types, which Warp does not do safely from two threads at once (the dino's
+        run failed in its launch checks)."""
+        edges = np.linspace(0, count, max(1, min(self.threads, count)) + 1).astype(int)
+        ranges = [(int(a), int(b - a)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+        if len(ranges) == 1 or key not in self._launched:
+            self._launched.add(key)
+            for r in ranges:
+                launch(*r)
+            return
+        with concurrent.futures.ThreadPoolExecutor(len(ranges)) as pool:
+            list(pool.map(lambda r: launch(*r), ranges))
 
     def patch_dot(self, aG, bG, aH, bH, out: wp.array) -> None:
         wp.launch(LK.patch_dot_kernel, dim=self.V, device=self.device,
@@ -593,11 +617,12 @@ class PatchLBFGS:
 
 def fit_lfm(problem: LFMProblem, max_iterations: int | None = None, time_budget_s: float = 0.0,
             G0: np.ndarray | None = None, H0: np.ndarray | None = None, callback=None,
-            snapshot=None) -> LFMResult:
+            snapshot=None, stop=None) -> LFMResult:
     """The streaming fit (CG, SD or L-BFGS, Hessian or backtracking step, per-patch acceptance); computes d
     first when it was not (``problem.compute_diffuse``). ``callback(iteration, objective)`` is
     called at every objective read, then ``snapshot(iteration, G, H)`` with the current device
-    parameters (benchmarks score the model there; keep it out of the timing yourself)."""
+    parameters (benchmarks score the model there; keep it out of the timing yourself); the fit ends at a read
+    where ``stop(iteration, G, H)`` is true (the model choice's candidate that cannot win, fit/models/lfm/fit.py)."""
     pr, cfg, dev = problem, problem.cfg, problem.device
     if not pr.seen.any():
         pr.compute_diffuse()
@@ -691,7 +716,7 @@ def fit_lfm(problem: LFMProblem, max_iterations: int | None = None, time_budget_
         if it % cfg.sync_every == 0 or it == iters:
             obj = pr.total(f)
             _record(trace, it, time.perf_counter() - t0, obj, callback, snapshot, G, H)
-            if last - obj <= cfg.rel_tol * max(abs(last), 1e-300):
+            if last - obj <= cfg.rel_tol * max(abs(last), 1e-300) or (stop is not None and stop(it, G, H)):
                 break
             last = obj
             if time_budget_s > 0 and time.perf_counter() - t0 > time_budget_s:
