@@ -293,7 +293,8 @@ def average_across_seams(grid: np.ndarray, seams: Seams, padding_cost: float = 1
         c = _constraint_matrix(seams, cols)
         base_inv_cost = np.where(fs[cols] == cols, 1.0, 1.0 / float(padding_cost))
         x0 = out[cols]
-        x = _seam_solve(c, base_inv_cost, x0, eps)
+        factors = _factor_cache(c, eps)  # the channels' and the fits' active sets often hold the same texels
+        x = _seam_solve(c, base_inv_cost, x0, eps, factors)
         if lower is not None or upper is not None:
             lo = np.broadcast_to(-np.inf if lower is None else np.asarray(lower, np.float64), (x.shape[1],))
             hi = np.broadcast_to(np.inf if upper is None else np.asarray(upper, np.float64), (x.shape[1],))
@@ -307,7 +308,7 @@ def average_across_seams(grid: np.ndarray, seams: Seams, padding_cost: float = 1
                         break
                     held |= outside
                     x0c[outside, 0] = np.where(xc[outside, 0] < lo[ch], lo[ch], hi[ch])
-                    xc = _seam_solve(c, np.where(held, 0.0, base_inv_cost), x0c, eps)
+                    xc = _seam_solve(c, np.where(held, 0.0, base_inv_cost), x0c, eps, factors)
                 x[:, ch] = np.clip(xc[:, 0], lo[ch], hi[ch])
         out[cols] = x
     return out.astype(np.asarray(grid).dtype, copy=False).reshape(shape)
@@ -328,8 +329,48 @@ def _constraint_matrix(seams: Seams, cols: np.ndarray):
     return c
 
 
-def _seam_solve(c, inv_cost: np.ndarray, x0: np.ndarray, eps: float) -> np.ndarray:
-    """x = x0 - D^-1 C^T (C D^-1 C^T + eps s I)^-1 C x0 (texels with inverse cost 0 do not move)."""
+_FACTORS: dict = {}
+"""the factorisations of the last seam systems (:func:`_factor_cache`), by constraint matrix and eps"""
+FACTOR_SYSTEMS = 2
+"""seam systems whose factorisations are kept: one atlas's (a run fits several models on it: the temple's choice made
+15 of the same factorisations, 4 s) and one more; each holds a few million nonzeros"""
+
+
+def _factor_cache(c, eps: float) -> dict:
+    """{inverse costs' key: (C D^-1, factorisation)} of the system ``c`` (a content key: another atlas, another
+    cache); the oldest system's are dropped past :data:`FACTOR_SYSTEMS`."""
+    import hashlib
+
+    h = hashlib.sha1(np.float64(eps).tobytes())
+    for a in (c.data, c.indices, c.indptr):
+        h.update(np.ascontiguousarray(a).tobytes())
+    key = (c.shape, h.digest())
+    if key not in _FACTORS:
+        while len(_FACTORS) >= FACTOR_SYSTEMS:
+            _FACTORS.pop(next(iter(_FACTORS)))
+        _FACTORS[key] = {}
+    return _FACTORS[key]
+
+
+def _seam_solve(c, inv_cost: np.ndarray, x0: np.ndarray, eps: float, factors: dict | None = None) -> np.ndarray:
+    """x = x0 - D^-1 C^T (C D^-1 C^T + eps s I)^-1 C x0 (texels with inverse cost 0 do not move). ``factors``: the
+    factorisations of earlier solves with the same ``c``, by their inverse costs (the same matrix, the same bits)."""
+    import hashlib
+
+    key = hashlib.sha1(np.ascontiguousarray(inv_cost, np.float64).tobytes()).digest()
+    if factors is None or key not in factors:
+        cached = _seam_factor(c, inv_cost, eps)
+        if factors is not None:
+            factors[key] = cached
+    else:
+        cached = factors[key]
+    cd, lu = cached
+    lam = lu.solve(np.asarray(c @ x0))
+    return x0 - np.asarray(cd.T @ lam)
+
+
+def _seam_factor(c, inv_cost: np.ndarray, eps: float):
+    """(C D^-1, the factorisation of C D^-1 C^T + eps s I) of :func:`_seam_solve`."""
     import scipy.sparse as sp
     from scipy.sparse.linalg import splu
 
@@ -342,5 +383,4 @@ def _seam_solve(c, inv_cost: np.ndarray, x0: np.ndarray, eps: float) -> np.ndarr
     # took 10.4 s of CPU time instead of 12.3 s, the same values to 4e-7)
     lu = splu((m + eps * scale * sp.identity(c.shape[0], format="csc")).tocsc(), permc_spec="MMD_AT_PLUS_A",
               diag_pivot_thresh=0.0, options={"SymmetricMode": True})
-    lam = lu.solve(np.asarray(c @ x0))
-    return x0 - np.asarray(cd.T @ lam)
+    return cd, lu

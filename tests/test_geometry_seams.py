@@ -180,3 +180,27 @@ def test_atlas_stage_writes_seams(tmp_path, atlased):
     assert s.width == res.summary["width"] and s.n_samples > 0 and res.summary["seam_edges"] == s.n_edges
     with pytest.raises(InputError, match="atlas"):
         Seams.load(tmp_path / "missing.npz")
+
+
+def test_a_seam_system_is_factorised_once_for_every_map_of_an_atlas(atlased, monkeypatch):
+    """The seam solve keeps its factorisations by system (constraint matrix, eps) and inverse costs
+    (geometry/seams.py ``_factor_cache``): a second map on the same atlas, and a channel whose active set holds
+    the same texels as another's, reuse them; the results are those of fresh factorisations to the bit (the same
+    matrix factorised the same way)."""
+    from texstream.geometry import seams as seams_module
+
+    _, bake, seams = atlased
+    rng = np.random.default_rng(5)
+    lo, hi = np.array([0.0, 0.0]), np.array([1.0, 1.0])
+    grid = bake.fill_padding(np.where(rng.random((bake.height, bake.width, 2)) < 0.5, lo, hi).astype(np.float32))
+    made = []
+    factor = seams_module._seam_factor
+    monkeypatch.setattr(seams_module, "_seam_factor", lambda *a: made.append(1) or factor(*a))
+    monkeypatch.setattr(seams_module, "_FACTORS", {})
+    first = average_across_seams(grid, seams, lower=lo, upper=hi)
+    n_first = len(made)
+    again = average_across_seams(grid, seams, lower=lo, upper=hi)
+    assert n_first >= 2 and len(made) == n_first  # the base system and an active set; nothing new the second time
+    monkeypatch.setattr(seams_module, "_FACTORS", {})  # fresh factorisations: the same bits
+    fresh = average_across_seams(grid, seams, lower=lo, upper=hi)
+    assert np.array_equal(first, again) and np.array_equal(first, fresh)
