@@ -62,7 +62,8 @@ def main() -> None:
         by_name[key][0] += 1
         by_name[key][1] += r.elapsed / 1000.0  # ms -> s
     kernels = sum(v[1] for k, v in by_name.items())
-    timings = json.loads((model / "model.json").read_text()).get("timings_s") if (model / "model.json").is_file() else None
+    manifest = model / "model.json"
+    timings = json.loads(manifest.read_text()).get("timings_s") if manifest.is_file() else None
     doc = {"command": " ".join(["python benchmarks/fit_gpu_activity.py", *sys.argv[1:]]), "machine": platform.node(),
            "exit_code": code, "start": start, "fit_wall_s": wall, "gpu_activity_s": kernels,
            "activity_records": len(records), "timings_s": timings,

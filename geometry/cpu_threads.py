@@ -29,6 +29,18 @@ def threads_for(asked: int, device: str) -> int:
     return asked if asked > 0 else max(1, min(usable_cpus(), MAX_AUTO_THREADS))
 
 
+def threads_within_memory(threads: int, bytes_per_thread: int, fraction: float = 0.5) -> int:
+    """``threads`` or fewer, so that their scratch of ``bytes_per_thread`` each stays within ``fraction`` of the memory
+    the OS says is available (Linux MemAvailable; elsewhere no cap): dense stereo's sweep of a 3072x2048 photo at
+    level 0 holds about 1 GB. At least one."""
+    try:
+        with open("/proc/meminfo") as fh:
+            available = next(int(line.split()[1]) * 1024 for line in fh if line.startswith("MemAvailable:"))
+    except (OSError, StopIteration, ValueError):
+        return threads
+    return max(1, min(threads, int(fraction * available) // max(int(bytes_per_thread), 1)))
+
+
 def in_order(work, items: list, threads: int):
     """(item, ``work(item)``) in the items' order, the work done on ``threads`` threads at once (in the caller's
     thread with one); the work not started yet is cancelled when the caller stops early."""

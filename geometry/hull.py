@@ -172,7 +172,10 @@ def mask_fields(masks: Sequence[np.ndarray], fill_holes: float) -> tuple[list[np
             _FIELDS_CACHE.move_to_end(key)
         else:
             fm = fill_small_holes(m, fill_holes)
-            _FIELDS_CACHE[key] = (fm, mask_sdf(fm))
+            sdf = mask_sdf(fm)
+            fm.setflags(write=False)  # shared by every caller of this mask: read only
+            sdf.setflags(write=False)
+            _FIELDS_CACHE[key] = (fm, sdf)
             while sum(a.nbytes + b.nbytes for a, b in _FIELDS_CACHE.values()) > _FIELDS_CACHE_BYTES \
                     and len(_FIELDS_CACHE) > 1:
                 _FIELDS_CACHE.popitem(last=False)

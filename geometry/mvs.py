@@ -54,7 +54,7 @@ from texstream.core.checkpoint import StageCheckpoint, files_signature, inputs_k
 from texstream.core.config import config_to_dict, option
 from texstream.core.errors import ConfigError, InputError
 
-from .cpu_threads import in_order, threads_for
+from .cpu_threads import in_order, threads_for, threads_within_memory
 from .mvs_levels import frame_at_level, matching_level, planes_at_level, stack_at_level
 
 MAX_NEIGHBOURS = 8  # the kernels keep one pixel's neighbour costs in a fixed-size vector
@@ -530,7 +530,7 @@ def dense_points(frames: Sequence, images: Sequence[np.ndarray], masks: Sequence
     wp.load_module(_warp_rows_kernel.module, device=device)  # built once, before threads launch its kernels
     for r, (depth, rep) in in_order(lambda r: _sweep_view(r, neighbours, frames, mask, ranges[r], rots, transl, d_grey,
                                                           d_mask, cfg, min_var, device),
-                                    [r for r in range(n) if r not in kept], threads_for(cfg.threads, device)):
+                                    [r for r in range(n) if r not in kept], sweep_threads(cfg, device, hmax, wmax)):
         kept[r] = depth, rep
         if checkpoint is not None and "matched" in rep:
             checkpoint.write_arrays(f"depth_{r:05d}.npz", depth=depth, report=np.array(json.dumps(rep)))
@@ -643,7 +643,8 @@ def dense_checkpoint(capture, masks: Sequence[np.ndarray] | None, bounds, config
     files = [capture.root / "capture.json"] + [capture.image_path(f) for f in capture.frames]
     key = inputs_key("dense", files_signature(files), masks_hash.hexdigest(), np.asarray(bounds).tolist(),
                      None if depth_ranges is None else [list(r) if r else None for r in depth_ranges],
-                     {k: v for k, v in config_to_dict(config).items() if k != "threads"}, device)  # same bits
+                     {k: v for k, v in config_to_dict(config).items() if k != "threads"}, device,  # same bits
+                     "planes per matched size")  # the plane rule (mvs_levels.py planes_at_level): not before's maps
     return StageCheckpoint(work_dir, key, "mesh")
 
 
@@ -660,6 +661,14 @@ def _check_inputs(frames: Sequence, images: Sequence, masks: Sequence | None, cf
         raise InputError(f"dense stereo needs at least 2 photos with one image (and mask) each; got {n} frames, "
                          f"{len(images)} images, {'no' if masks is None else len(masks)} masks",
                          fix="give every frame its photo and mask")
+
+
+def sweep_threads(cfg: MvsConfig, device: str, height: int, width: int) -> int:
+    """The photos swept at once (``cfg.threads``), as many as their scratch fits in half the available memory: a
+    sweep holds its neighbours' warped photos and rows (two vec4 per pixel each) and their costs (one float each),
+    about 36 bytes a pixel per neighbour and 20 more."""
+    per_sweep = height * width * (36 * int(cfg.neighbours) + 20)
+    return threads_within_memory(threads_for(cfg.threads, device), per_sweep)
 
 
 def _matching_stack(frames: Sequence, images: Sequence[np.ndarray],

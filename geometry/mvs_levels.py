@@ -34,7 +34,7 @@ def planes_at_level(depths: int, frames_at_level: Sequence, level: int) -> int:
     :data:`REFERENCE_SIDE` pixels of its longer side, and never fewer than ``depths / 2^level`` (the same parallax
     per plane as the full-size photo's ``depths``, the rule for photos no larger than the temple's). Before, photos
     of 3072x2048 matched at level 2 swept 40 planes, several pixels of parallax each, and the consistency test kept
-    2,236 points; 192 planes keep 98,197 (docs/scale.md)."""
+    2,236 points; 192 planes keep 114,281 (docs/scale.md)."""
     side = max((max(int(f.intrinsics.width), int(f.intrinsics.height)) for f in frames_at_level), default=0)
     return max(8, int(depths) >> int(level), round(int(depths) * side / REFERENCE_SIDE))
 

@@ -175,7 +175,8 @@ class PhotometricRefinement:
         self.bakes = {self.level: bake}
         if cfg.coarse_texels:
             for lv, _ in self.schedule:
-                self.bakes.setdefault(lv, rl.coarse_bake(mesh, bake, lv - self.fine_level, device))
+                if lv not in self.bakes:  # a level repeated in the schedule bakes once
+                    self.bakes[lv] = rl.coarse_bake(mesh, bake, lv - self.fine_level, device)
         images, masks, _ = self.pyramid.stacked(self.level)
         fg = masks.astype(bool)
         self.huber = cfg.huber * max(float(images[fg].sum()) / max(3.0 * float(fg.sum()), 1.0), 1e-12)
@@ -500,14 +501,16 @@ class PhotometricRefinement:
 
     def _level_iterations(self, k: int, step: int, history, checkpoint, progress, saved_at: float):
         """Level ``k``'s iterations from ``step`` (of the levels' count; each level has ``iterations`` rows of
-        ``history``), until they are done or the objective settled: an iteration lowered the photos' mean
+        ``history``), until they are done or the objective settled: an iteration lowered the fitted photos' mean
         objective per sample by less than ``rel_tol`` of it (the level's rows left are skipped, zero in
         ``history``). Returns (step, time of the last checkpoint save)."""
         cfg = self.cfg
         end = (k + 1) * cfg.iterations
 
+        fitted = self.roles_host == rk.FIT  # the held-out photos' rows play no part in when to stop
+
         def mean(row) -> float:  # one small read an iteration
-            sums = history[row].numpy().sum(axis=0)
+            sums = history[row].numpy()[fitted].sum(axis=0)
             return sums[0] / max(sums[1], 1.0)
 
         previous = mean(step - 1) if cfg.rel_tol > 0.0 and step > k * cfg.iterations else None  # resumed in it

@@ -31,7 +31,7 @@ class RefineConfig:
                                   "-1 automatic, the coarsest whose pixels are no larger than the atlas's texels "
                                   "(geometry/refine_levels.py); 0 the photos as they are", min=-1, max=8)
     rel_tol: float = option(1e-3, "a level stops before its iterations are done once an iteration lowered the "
-                                  "photos' mean objective per sample by less than this fraction of it (settled; "
+                                  "fitted photos' mean objective per sample by less than this fraction of it (settled; "
                                   "refine.json's levels say how many each ran); 0: every level runs all",
                             min=0.0, max=1.0)
     pyramid: bool = option(True, "run each blur level on the pyramid level where its blur is the finest one's (blur "

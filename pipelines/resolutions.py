@@ -2,8 +2,9 @@
 (``run.json`` ``resolutions``) and its report say it.
 
 A stage says its own in its summary's ``resolution`` (a line: the registration's SIFT size, the refinement's
-pyramid levels), the mesh stage in its dense stereo report (the matching level, its size and planes); the fit says it in ``model.json`` (``photos.resolution``: the pyramid level it streamed, chosen
-from the texels' footprint, fit/common/inputs.py); the report scores the held-out views on the photos as they are.
+pyramid levels), the mesh stage in its dense stereo report (the matching level, its size and planes); the fit says
+it in ``model.json`` (``photos.resolution``: the pyramid level it streamed, chosen from the texels' footprint,
+fit/common/inputs.py); the report scores the held-out views on the photos as they are.
 """
 
 from __future__ import annotations

@@ -387,3 +387,26 @@ def test_a_camera_without_a_flash_says_nothing_about_pairs():
 
     assert exif_flash_fired(0x20) is None and exif_flash_fired(None) is None
     assert exif_flash_fired(0x9) is True and exif_flash_fired(0x10) is False
+
+
+def test_the_lobe_shape_choice_leaves_out_photos_without_light():
+    """A no-flash photo's light (0, placed at its camera by fit/common/setup.py) shows no highlight, so the lobe
+    shape's light-view spread (fit/optim/fitter.py ``choose_lobe_shape``) leaves it out: six photos under a fixed lamp
+    22.6-27 degrees from their cameras stay "phong" with two no-flash photos beside them (at 0 degrees they would
+    make the spread 27 degrees, over the 10 degree default, and "free")."""
+    from types import SimpleNamespace
+
+    from texstream.fit.optim.fitter import choose_lobe_shape, light_view_angles
+
+    lamp = np.array([1.0, 0.0, 0.0])
+
+    def frame(angle_deg: float, intensity: float, light=None):
+        a = np.radians(angle_deg)
+        centre = 4.0 * np.array([np.cos(a), np.sin(a), 0.0])  # the camera, looking at the origin
+        return SimpleNamespace(R=np.eye(3), t=-centre, light_kind="point",
+                               light_vec=centre if light is None else light, light_intensity=np.full(3, intensity))
+
+    lit = [frame(a, 1.0, 4.0 * lamp) for a in (22.6, 23.5, 24.4, 25.3, 26.1, 27.0)]
+    unlit = [frame(a, 0.0) for a in (10.0, 40.0)]  # light at the camera, intensity 0
+    assert light_view_angles(lit + unlit, np.zeros(3)).size == len(lit)
+    assert choose_lobe_shape(lit + unlit, np.zeros(3), 10.0) == choose_lobe_shape(lit, np.zeros(3), 10.0) == "phong"

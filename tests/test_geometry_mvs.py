@@ -267,3 +267,13 @@ def test_photos_swept_on_two_threads_give_one_threads_points(sphere_capture):
     assert len(one.points) > 1000
     assert np.array_equal(one.points, two.points) and np.array_equal(one.normals, two.normals)
     assert all(np.array_equal(a, b) for a, b in zip(one.depth_maps, two.depth_maps))
+
+
+def test_the_photos_swept_at_once_fit_in_memory():
+    """Dense stereo's threads (geometry/mvs.py ``sweep_threads``) are capped so their scratch stays within half the
+    memory the OS says is available: a sweep of 3072x2048 at level 0 holds about 1 GB, and eight of them would
+    not fit a small machine. A scratch larger than the machine still gets one thread; a small one the threads asked."""
+    from texstream.geometry.cpu_threads import threads_within_memory
+
+    assert threads_within_memory(4, 1 << 60) == 1
+    assert threads_within_memory(4, 1 << 10) == 4

@@ -18,6 +18,7 @@ from pathlib import Path
 import warp as wp
 
 from texstream.core.progress import say
+from texstream.fit.kernels.overloads import declared_precisions
 
 KERNEL_FOLDERS = ("render", "fit", "geometry")
 """the texstream folders whose modules hold Warp kernels (their sources make the marker's key)"""
@@ -44,8 +45,10 @@ def _marker(device: str, precision: str = "fp32") -> Path:
     kind = "cuda" if str(device).startswith("cuda") else "cpu"
     if kind == "cuda":  # binaries are per GPU architecture
         kind += f"-sm{wp.get_device(device).arch}"
-    # a float64 fit's modules also hold the float64 overloads (fit/kernels/overloads.py): other hashes, own marker
-    suffix = "" if precision == "fp32" else f"-{precision}"
+    # a process that declared float64 builds modules with those overloads too (fit/kernels/overloads.py): other
+    # hashes, another marker, whatever precision this fit uses
+    declared = [p for p in declared_precisions() if p != "fp32"] + ([precision] if precision != "fp32" else [])
+    suffix = "".join(f"-{p}" for p in dict.fromkeys(declared))
     return Path(wp.config.kernel_cache_dir or "") / f"texstream-{kernel_sources_key()}-{kind}{suffix}.warm"
 
 

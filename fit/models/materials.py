@@ -118,8 +118,9 @@ class MaterialConfig:
                                             "its objective falls by less than this, relative, over 2 iterations (on "
                                             "the full ornament it starts from the split's fit and falls 2e-4 over its "
                                             "last 75 of 85 iterations under the fit's own rule). 0: the fit's own "
-                                            "rule; per-texel chosen: always the fit's own rule (that fit is the "
-                                            "model)", min=0.0)
+                                            "rule; per-texel chosen, or a fit resumed from its checkpoint (the choice "
+                                            "then runs after it): the fit's own rule (that fit is the model)",
+                                      min=0.0)
 
     def variant_list(self) -> tuple:
         out = tuple(v.strip() for v in str(self.variants).split(",") if v.strip())

@@ -164,7 +164,10 @@ def fit_model(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
 def compute_precision(capture_dir: str | Path, cfg: FitStageConfig) -> str:
     """The precision the fit's passes accumulate in (``stream.accumulate``; auto: by the capture's photo count, an
     upper bound of the fitted photos', so a fit near the threshold may declare float64 it does not use)."""
-    frames = read_capture(capture_dir).frames if Path(capture_dir, "capture.json").is_file() else []
+    try:  # a capture.json folder, a nerfstudio transforms.json or a file: as the fit reads it
+        frames = read_capture(capture_dir).frames
+    except InputError:  # the fit's own reading says what is wrong with it, in one line
+        frames = []
     return resolve_accumulate(cfg.fit.stream.accumulate, len(frames))
 
 
