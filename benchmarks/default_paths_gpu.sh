@@ -7,7 +7,8 @@
 # default kernel cache), Warp's CUDA activity over one more run (benchmarks/fit_gpu_activity.py), and the dense
 # ornament's held-out figures (scale 0.01, 1,760 photos of 160x160, every 8th held out). With TEMPLE_CAPTURE (a posed
 # capture folder, e.g. a CPU run's `posed/` of the Middlebury temple) first `texstream run` of it on the GPU: the mesh,
-# atlas, refine and fit stages (pymeshlab, scipy and xatlas on EXTRA_PYTHONPATH: the machine has none of them).
+# atlas, refine and fit stages (pymeshlab, scipy and xatlas on EXTRA_PYTHONPATH: the machine has none of them; its
+# pymeshlab needs libGL, which the machine lacks: TEMPLE_ARGS="--mesh MESH" gives the CPU run's mesh instead).
 # PARTS (default "readme temple fit"): which of the three to run (a device call lasts at most 10 minutes).
 #   usage: CUDA_TESTS="tests/a.py ..." WHEELS=.whl bash benchmarks/default_paths_gpu.sh OUT   (warp in /root/site)
 set -u
@@ -25,7 +26,7 @@ parts=" ${PARTS:-readme temple fit} "
 if [[ $parts == *" temple "* ]] && [ -n "${TEMPLE_CAPTURE:-}" ]; then  # twice: the first builds the kernels the radiance models need
   for t in cold warm; do
     s=$(date +%s.%N)
-    PYTHONPATH="${EXTRA_PYTHONPATH:-}:$PYTHONPATH" texstream run "$TEMPLE_CAPTURE" -o "/root/temple_$t" --no-progress \
+    PYTHONPATH="${EXTRA_PYTHONPATH:-}:$PYTHONPATH" texstream run "$TEMPLE_CAPTURE" -o "/root/temple_$t" --no-progress ${TEMPLE_ARGS:-} \
       > "$out/temple_$t.log" 2>&1
     echo "temple $t rc=$? $(python3 -c "print(round($(date +%s.%N) - $s, 1))") s" | tee -a "$out/temple_$t.log"
     cp "/root/temple_$t/run.json" "$out/temple_$t.json" 2>/dev/null
