@@ -15,6 +15,7 @@ set -u
 out=$1
 mkdir -p "$out"
 here=$(cd "$(dirname "$0")/.." && pwd)
+(out="$out/setup"; . "$here/benchmarks/gpu_setup.sh")  # OpenImageIO's wheel and texstream, whatever PARTS
 export PYTHONPATH=/root/site:/root/oiio
 echo "PYTHONDONTWRITEBYTECODE=${PYTHONDONTWRITEBYTECODE:-unset}" | tee "$out/bytecode.txt"
 import_warp() { python3 -c "import time; t = time.perf_counter(); import warp; print(f'{time.perf_counter() - t:.3f}')"; }
