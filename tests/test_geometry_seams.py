@@ -204,3 +204,20 @@ def test_a_seam_system_is_factorised_once_for_every_map_of_an_atlas(atlased, mon
     monkeypatch.setattr(seams_module, "_FACTORS", {})  # fresh factorisations: the same bits
     fresh = average_across_seams(grid, seams, lower=lo, upper=hi)
     assert np.array_equal(first, again) and np.array_equal(first, fresh)
+
+
+def test_the_bounded_channels_on_threads_give_one_threads_bits(atlased, monkeypatch):
+    """Each channel's active-set rounds are its own, so solving the channels on two threads (geometry/seams.py: SuperLU
+    releases the GIL while it factorises) gives the maps of one thread to the bit."""
+    from texstream.geometry import seams as seams_module
+
+    _, bake, seams = atlased
+    rng = np.random.default_rng(7)
+    lo, hi = np.array([0.0, 1.0, 0.0]), np.array([10.0, 1.0e4, 1.0])
+    grid = bake.fill_padding(np.where(rng.random((bake.height, bake.width, 3)) < 0.5, lo, hi).astype(np.float32))
+    out = {}
+    for threads in (1, 2):
+        monkeypatch.setattr(seams_module, "threads_for", lambda asked, device, t=threads: t)
+        monkeypatch.setattr(seams_module, "_FACTORS", {})
+        out[threads] = average_across_seams(grid, seams, lower=lo, upper=hi)
+    assert np.array_equal(out[1], out[2])
