@@ -157,3 +157,24 @@ def test_the_lfm_validation_fit_is_told_the_score_to_beat_and_its_stop_is_record
         assert beats == expected
         assert ("stopped at iteration 30" in sel["validation"]["lfm"]["judged_by"]) == stop
         assert ("stop" in sel["validation"]["lfm"]) == stop  # the checks recorded beside the score
+
+
+def test_a_per_texel_validation_fit_writes_its_scores_only(tmp_path):
+    """The model choice's validation fit of a per-texel model (``choice.validation_fit``) is judged by its scores and
+    then removed (fit/stages/choice.py), so it writes model.json with the validation photos' scores and no maps,
+    mesh, bake or plot (2-3 s of each of the temple's candidates)."""
+    import dataclasses
+
+    from conftest import SCENE_DEVICE, tiny_sphere_capture
+    from texstream.fit.optim.fitter import FitConfig
+    from texstream.fit.stages.stage import fit_stage
+
+    cap = tiny_sphere_capture(tmp_path, photos=8)
+    cfg = FitStageConfig(device=SCENE_DEVICE, holdout_every=4, checkpoint=False, fit=FitConfig(model="diffuse",
+                                                                                                max_iterations=2))
+    cfg = dataclasses.replace(cfg, choice=dataclasses.replace(cfg.choice, validation_fit=True))
+    res = fit_stage(cap, cap / "ground_truth", tmp_path / "val", cfg, progress=False)
+    written = sorted(p.name for p in (tmp_path / "val").iterdir())
+    manifest = json.loads((tmp_path / "val" / "model.json").read_text())
+    assert manifest["scores_only"] and manifest["maps"] == {} and res.summary["heldout"]["views"] > 0
+    assert not {"rho_d.exr", "mesh.obj", "bake.npz", "seen.png", "error_vs_time.png"} & set(written), written

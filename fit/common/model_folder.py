@@ -261,7 +261,8 @@ def render_comparisons(folder: Path, frames: Sequence, photos: Sequence[np.ndarr
 
 
 def write_model_folder(folder: Path, grid: np.ndarray, layout: ModelLayout, seen: np.ndarray, trace: list[dict],
-                       title: str, manifest: dict, config: Any, plot: subprocess.Popen | None = None) -> dict[str, str]:
+                       title: str, manifest: dict, config: Any, plot: subprocess.Popen | None = None,
+                       maps: bool = True) -> dict[str, str]:
     """Write the maps, seen.png, trace, error-against-time plot, model.json and the config into
     ``folder`` (a stage's temporary output folder), after :func:`check_model`.
 
@@ -271,16 +272,21 @@ def write_model_folder(folder: Path, grid: np.ndarray, layout: ModelLayout, seen
         manifest: model.json's stage-specific fields; kind, layout and maps are added here.
         config: the stage's resolved config, saved as fit_config.json.
         plot: the child of :func:`trace_plot` drawing ``trace``'s plot into ``folder`` (None: drawn here).
+        maps: False for a model judged by its scores alone (the model choice's validation fit): model.json, the
+            trace and the config, no maps, seen.png or plot (a plot's child is waited for).
 
     Returns:
         The map files by name (as model.json lists them).
     """
     check_model(grid, layout)
-    files = write_param_maps(folder, grid, layout)
-    write_image(folder / "seen.png", np.repeat(seen.astype(np.float32)[..., None], 3, axis=2), bits=8)
+    files = write_param_maps(folder, grid, layout) if maps else {}
+    if maps:
+        write_image(folder / "seen.png", np.repeat(seen.astype(np.float32)[..., None], 3, axis=2), bits=8)
     if plot is None:  # else trace_plot wrote it for its child
         write_json_atomic(folder / "trace.json", json_safe(trace))
-    if plot is None or plot.wait() != 0 or not (folder / "error_vs_time.png").is_file():
+    if plot is not None and not maps:
+        plot.wait()  # its child's plot is not needed, its exit is
+    elif maps and (plot is None or plot.wait() != 0 or not (folder / "error_vs_time.png").is_file()):
         plot_trace(trace, folder / "error_vs_time.png", title)
     write_json_atomic(folder / "model.json",
                       json_safe({"kind": layout.kind, "layout": layout.to_json(), "maps": files, **manifest}))

@@ -86,22 +86,27 @@ def _fit_per_texel_model(capture_dir: str | Path, mesh_path: str | Path, out_dir
     grid, filled, seams_info = _model_grid(inputs, problem, result, cfg)
     t_fitted = time.perf_counter()
     title = f"{result.layout.kind} fit, {cfg.fit.optimizer}, {cfg.device}"
+    # the model choice's validation fit is judged by its scores and then removed: model.json alone (its maps, mesh,
+    # bake and plot were 2-3 s of each of the temple's candidates)
+    scores_only = cfg.choice.validation_fit
     with (atomic_output_dir(out_dir) as tmp, phase("fit", f"{cfg.fit.model}: held-out renders and the model folder"),
-          trace_plot(tmp, result.trace, title, plotter) as plot):  # drawn by the child while this one renders
-        evals = _write_geometry_and_renders(tmp, inputs, mesh_path, grid, result.layout, cfg)
+          contextlib.nullcontext() if scores_only else trace_plot(tmp, result.trace, title, plotter) as plot):
+        evals = _write_geometry_and_renders(tmp, inputs, mesh_path, grid, result.layout, cfg, scores_only)
         seen = np.zeros(inputs.bake.height * inputs.bake.width, bool)
         seen[problem.texels.grid_index] = result.samples > 0
-        write_lobe_maps(tmp, inputs.bake, problem, result, lobes)
-        highlights = write_highlights(tmp, inputs.bake, problem, result, lobes)
+        highlights = None
+        if not scores_only:
+            write_lobe_maps(tmp, inputs.bake, problem, result, lobes)
+            highlights = write_highlights(tmp, inputs.bake, problem, result, lobes)
         timings = {"inputs": t_inputs, "setup": t_setup - t_inputs, "choice_before_fit": t_choice,
                    "fit": t_loop - t0 - t_setup - t_choice, "after_fit": t_fitted - t_loop,
                    "renders": time.perf_counter() - t_fitted}
         manifest = _manifest(inputs, problem, result, lobes, cfg, evals,
                              {"seen_before": seen_before, "filled": filled, "skipped": skipped, "tiles": tiles_report,
                               "seams": seams_info, "setup_s": t_setup, "timings_s": timings, "ambient": ambient,
-                              "highlights": highlights})
+                              "highlights": highlights, "scores_only": scores_only})
         write_model_folder(tmp, grid, result.layout, seen.reshape(inputs.bake.height, inputs.bake.width), result.trace,
-                           title, manifest, cfg, plot=plot)
+                           title, manifest, cfg, plot=plot, maps=not scores_only)
     if ckpt is not None:
         ckpt.remove()
     problem.photos.wait_for_cache()  # a photo cache written in the background is complete for the next fit
@@ -234,9 +239,10 @@ def _model_grid(inputs: FitInputs, problem, result, cfg) -> tuple[np.ndarray, in
     return grid, filled, seams_info
 
 
-def _write_geometry_and_renders(tmp: Path, inputs: FitInputs, mesh_path, grid, layout, cfg) -> list[dict]:
-    """mesh.obj, bake.npz and renders/ into the model folder; every held-out view scored (pooled and worst-view
-    PSNR), the first ``cfg.renders`` written as images."""
+def _write_geometry_and_renders(tmp: Path, inputs: FitInputs, mesh_path, grid, layout, cfg,
+                                scores_only: bool = False) -> list[dict]:
+    """mesh.obj, bake.npz (not ``scores_only``) and renders/ into the model folder; every held-out view scored
+    (pooled and worst-view PSNR), the first ``cfg.renders`` written as images."""
     capture, mesh, bake = inputs.capture, inputs.mesh, inputs.bake
 
     renders = ModelRenders(mesh, layout, cfg.device)  # one renderer, its BVH built once, for every frame
@@ -249,12 +255,13 @@ def _write_geometry_and_renders(tmp: Path, inputs: FitInputs, mesh_path, grid, l
             m &= read_mask(capture.mask_path(f), coverage.shape)
         return image, m
 
-    save_mesh(tmp / "mesh.obj", mesh)
-    baked = Path(mesh_path) / "bake.npz"
-    if Path(mesh_path).is_dir() and baked.is_file():  # the bake the fit read (load_geometry): copied
-        shutil.copyfile(baked, tmp / "bake.npz")
-    else:
-        bake.save(tmp / "bake.npz")
+    if not scores_only:
+        save_mesh(tmp / "mesh.obj", mesh)
+        baked = Path(mesh_path) / "bake.npz"
+        if Path(mesh_path).is_dir() and baked.is_file():  # the bake the fit read (load_geometry): copied
+            shutil.copyfile(baked, tmp / "bake.npz")
+        else:
+            bake.save(tmp / "bake.npz")
     show = inputs.held if inputs.held else inputs.frames_as_photographed()[: max(cfg.renders, 0)]
     return render_comparisons(tmp / "renders", show, load_photos(capture, show)[0] if show else [], inputs.held,
                               render, images=max(cfg.renders, 0))
@@ -306,7 +313,8 @@ def _manifest(inputs: FitInputs, problem, result, lobes: Lobes, cfg, evals: list
     at_bounds, warnings = bound_report(result.params, lay, result.samples > 0)
     warnings = numerics_warnings(cfg.fit.stream, len(frames), inputs.images, inputs.masks) + warnings
     polish_iterations = max(0, sum(r.get("stage") == "traced polish" for r in result.trace) - 1)  # less its start row
-    return {"mesh": "mesh.obj", "bake": "bake.npz", "warnings": warnings, "at_bounds": at_bounds,
+    files = {"scores_only": True} if run["scores_only"] else {"mesh": "mesh.obj", "bake": "bake.npz"}
+    return {**files, "warnings": warnings, "at_bounds": at_bounds,
             "atlas": {"width": inputs.bake.width, "height": inputs.bake.height, "texels": int(problem.n),
                       "unseen_texels": int((result.samples == 0).sum()), "seen_before_fit": run["seen_before"],
                       "unseen_filled_from_nearest": run["filled"], "lobes_dropped": int(lobes.dropped.sum()),
