@@ -172,7 +172,9 @@ def test_a_validation_fit_takes_its_photos_from_the_previous_fits_set(fine_captu
     assert any("shared with the previous fit" in line for line in said)
     # 12 fitted photos, every 3rd a validation photo: 8 fitted, 4 scored where the held-out ones are
     assert split.summary["photos"] == alone.summary["photos"] == 8 and split.summary["heldout"]["views"] == 4
-    a, b = _maps(tmp_path / "alone"), _maps(tmp_path / "split")
-    assert a.keys() == b.keys() and a
-    for name in a:
-        np.testing.assert_array_equal(b[name], a[name], err_msg=name)
+    # a validation fit writes its scores only (model.json): the same fit to the bit gives the same final objective
+    # and the same validation scores, view by view
+    a, b = (json.loads((tmp_path / name / "model.json").read_text()) for name in ("alone", "split"))
+    untimed = lambda m: {k: v for k, v in m["final"].items() if k != "time_s"}
+    assert a["scores_only"] and untimed(a) == untimed(b)
+    assert [e["psnr_db"] for e in a["render_eval"]] == [e["psnr_db"] for e in b["render_eval"]]
