@@ -193,36 +193,16 @@ def _same_file(fd: int, path: Path) -> bool:
     return (st.st_dev, st.st_ino) == (own.st_dev, own.st_ino)
 
 
-@contextlib.contextmanager
-def _interrupts_deferred() -> Iterator[None]:
-    """Ctrl-C (SIGINT) held back for the block where this thread may (the main thread, POSIX): delivered, as the
-    KeyboardInterrupt the CLI turns into exit 130, once the block is done, so an interrupt never lands half-way
-    through removing the lock."""
-    import signal
-    import threading
-
-    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "pthread_sigmask"):
-        yield
-        return
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
-
-
 def release(output: str | os.PathLike, fd: int) -> None:
-    """Remove the lock file (while still holding it, so no one takes a file about to vanish) and close it; an
-    interrupt waits until both are done."""
+    """Remove the lock file (while still holding it, so no one takes a file about to vanish) and close it."""
     path = lock_path(output)
-    with _interrupts_deferred():
-        try:
-            if _same_file(fd, path):
-                os.unlink(path)
-        except OSError:
-            pass  # a lock file that cannot be removed is stale once this process ends; the next command takes it over
-        finally:
-            os.close(fd)
+    try:
+        if _same_file(fd, path):
+            os.unlink(path)
+    except OSError:
+        pass  # a lock file that cannot be removed is stale once this process ends; the next command takes it over
+    finally:
+        os.close(fd)
 
 
 @contextlib.contextmanager
