@@ -44,14 +44,20 @@ def timed_run(cmd: list[str]) -> tuple[float, list[tuple[float, str]], int]:
     return time.perf_counter() - t0, lines, code
 
 
-def main() -> None:
-    argv = sys.argv[1:]
+def capture_arguments(doc: str, argv: list[str]) -> tuple[argparse.ArgumentParser, list[str], list[str]]:
+    """(a parser with --capture, --mesh and --out, the arguments before ``--``, the ``texstream fit`` options after
+    it) of a benchmark that runs ``texstream fit`` on a capture folder."""
     extra = argv[argv.index("--") + 1:] if "--" in argv else []
     argv = argv[:argv.index("--")] if "--" in argv else argv
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     ap.add_argument("--capture", required=True)
     ap.add_argument("--mesh", required=True)
     ap.add_argument("--out", required=True)
+    return ap, argv, extra
+
+
+def main() -> None:
+    ap, argv, extra = capture_arguments(__doc__, sys.argv[1:])
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--texstream", default=shutil.which("texstream") or "texstream")
     a = ap.parse_args(argv)

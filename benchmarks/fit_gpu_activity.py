@@ -11,7 +11,6 @@ small beside the wall time means the run waits on the host (Python, launches, sy
 
 from __future__ import annotations
 
-import argparse
 import collections
 import json
 import platform
@@ -19,17 +18,11 @@ import sys
 import time
 from pathlib import Path
 
-T_PROCESS = time.perf_counter()
+from fit_cli_timeline import capture_arguments
 
 
 def main() -> None:
-    argv = sys.argv[1:]
-    extra = argv[argv.index("--") + 1:] if "--" in argv else []
-    argv = argv[:argv.index("--")] if "--" in argv else argv
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--capture", required=True)
-    ap.add_argument("--mesh", required=True)
-    ap.add_argument("--out", required=True)
+    ap, argv, extra = capture_arguments(__doc__, sys.argv[1:])
     a = ap.parse_args(argv)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -42,3 +42,15 @@ def resolve_device(requested: str | None) -> str:
                               fix="use --device auto or cpu" + (f", or cuda:0..cuda:{count - 1}" if count else ""))
         return f"cuda:{int(index)}"
     raise ConfigError(f"device {requested!r} unknown", fix="use --device auto, cpu or cuda:N")
+
+
+def available_memory_bytes() -> int | None:
+    """Memory the OS says a new allocation may take (Linux MemAvailable); None where it does not say."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError):
+        pass
+    return None

@@ -2,12 +2,14 @@
 kernel on the thread that launches it, one core, and its launches release the GIL (a ctypes call of the
 kernel's compiled entry point), so work split into parts that write disjoint arrays, one launching thread each,
 keeps the cores busy and gives one thread's result to the bit. (fit/multi/cpu_threads.py, a layer above, does
-the same for the fit.) Standard library only."""
+the same for the fit, with these cores.) The standard library and texstream.core only."""
 
 from __future__ import annotations
 
 import concurrent.futures
 import os
+
+from texstream.core.devices import available_memory_bytes
 
 MAX_AUTO_THREADS = 8
 """the most threads ``threads`` 0 picks (measured on 2 cores only)"""
@@ -33,10 +35,8 @@ def threads_within_memory(threads: int, bytes_per_thread: int, fraction: float =
     """``threads`` or fewer, so that their scratch of ``bytes_per_thread`` each stays within ``fraction`` of the memory
     the OS says is available (Linux MemAvailable; elsewhere no cap): dense stereo's sweep of a 3072x2048 photo at
     level 0 holds about 1 GB. At least one."""
-    try:
-        with open("/proc/meminfo") as fh:
-            available = next(int(line.split()[1]) * 1024 for line in fh if line.startswith("MemAvailable:"))
-    except (OSError, StopIteration, ValueError):
+    available = available_memory_bytes()
+    if available is None:
         return threads
     return max(1, min(threads, int(fraction * available) // max(int(bytes_per_thread), 1)))
 

@@ -7,7 +7,6 @@ from __future__ import annotations
 import dataclasses
 
 import pytest
-import warp as wp
 
 from texstream.core.progress import reporting
 from texstream.fit.kernels import build_notice
@@ -15,6 +14,7 @@ from texstream.fit.stages import prewarm
 from texstream.pipelines.run import RunConfig, run_pipeline
 
 from conftest import tiny_sphere_capture
+from kernel_loads import record_loads
 
 
 @pytest.fixture(scope="module")
@@ -22,26 +22,11 @@ def capture(tmp_path_factory):
     return tiny_sphere_capture(tmp_path_factory.mktemp("prewarm"), photos=16)
 
 
-def record_loads(monkeypatch) -> list:
-    """(module name, hash, device, block size) of every module load from now on (a module loaded again with
-    another hash was rehashed: an overload or a kernel added after its build)."""
-    loads = []
-    load = wp.Module.load
-
-    def recorded(self, device, block_dim=None, *args, **kwargs):
-        exec_ = load(self, device, block_dim, *args, **kwargs)
-        loads.append((self.name, exec_.module_hash.hex(), str(exec_.device), exec_.block_dim))
-        return exec_
-
-    monkeypatch.setattr(wp.Module, "load", recorded)
-    return loads
-
-
 def test_a_default_run_after_the_prewarm_builds_no_module(capture, device, tmp_path, monkeypatch):
     monkeypatch.setattr(build_notice, "_ANNOUNCED", set())
     # a cold cache, as said
     monkeypatch.setattr(build_notice, "_marker", lambda dev, precision="fp32": tmp_path / "absent.warm")
-    loads = record_loads(monkeypatch)
+    loads = record_loads(monkeypatch.setattr)
     lines = []
     with reporting(lines.append):
         prewarm.build_kernels_if_cold("fit", device, "lafortune")
@@ -64,7 +49,7 @@ def test_a_warm_cache_builds_nothing_ahead(tmp_path, monkeypatch):
     monkeypatch.setattr(build_notice, "_ANNOUNCED", set())
     monkeypatch.setattr(build_notice, "_marker", lambda dev, precision="fp32": tmp_path / "present.warm")
     (tmp_path / "present.warm").touch()
-    loads = record_loads(monkeypatch)
+    loads = record_loads(monkeypatch.setattr)
     lines = []
     with reporting(lines.append):
         prewarm.build_kernels_if_cold("fit", "cpu", "lafortune")
@@ -88,15 +73,10 @@ from texstream.fit.stream.config import StreamConfig
 capture, out, device, cold = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3], sys.argv[4] == "cold"
 build_notice._marker = lambda dev, precision="fp32": out.parent / ("absent.warm" if cold else "present.warm")
 (out.parent / "present.warm").touch()
-loads = []
-load = wp.Module.load
+sys.path.insert(0, "tests")
+from kernel_loads import record_loads
 
-def recorded(self, device, block_dim=None, *args, **kwargs):
-    exec_ = load(self, device, block_dim, *args, **kwargs)
-    loads.append((self.name, exec_.module_hash.hex(), str(exec_.device), exec_.block_dim))
-    return exec_
-
-wp.Module.load = recorded
+loads = record_loads()
 cfg = FitStageConfig(device=device, renders=0, traced_polish=0, checkpoint=False, materials=MaterialConfig(mode="off"),
                      fit=FitConfig(model="lafortune", max_iterations=2,
                                    stream=StreamConfig(accumulate="fp64", shadow_map_size=48)))

@@ -11,8 +11,8 @@ test) holds the GIL, the part that does not scale (benchmarks/cpu_threads.py mea
 from __future__ import annotations
 
 import dataclasses
-import os
 
+from texstream.geometry.cpu_threads import usable_cpus  # one definition, a layer below
 from texstream.fit.optim.fitter import FitConfig
 from texstream.fit.multi.tiles import split_photos, tiled
 from texstream.fit.stream.problem import StreamProblem
@@ -23,14 +23,6 @@ shared host work between launches serialises the threads (untested beyond 2 core
 MIN_TEXELS_PER_THREAD = 2000
 """the fewest texels per thread ``cpu_threads`` 0 gives a thread: below, a tile's launches are too short to pay
 for the thread hand-offs (the demo's 176 photos and ~6,000 texels take two)"""
-
-
-def usable_cpus() -> int:
-    """The CPU cores this process may run on (its affinity mask where the OS has one)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # macOS and Windows have no affinity call
-        return os.cpu_count() or 1
 
 
 def cpu_threads(problem: StreamProblem, cfg: FitConfig) -> tuple[int, str]:

@@ -34,6 +34,7 @@ from collections.abc import Callable, Iterator, Sequence
 import numpy as np
 import warp as wp
 
+from texstream.core.devices import available_memory_bytes
 from texstream.core.progress import say
 from texstream.fit.stream import decode_pool
 from texstream.render.camera import ImageInfo
@@ -475,14 +476,8 @@ def wait(futures: list) -> None:
 
 def host_available_bytes() -> int:
     """Memory the OS says a new allocation may take (Linux MemAvailable; else a conservative 4 GiB)."""
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return 4 << 30
+    available = available_memory_bytes()
+    return 4 << 30 if available is None else available
 
 
 def device_available_bytes(device: str) -> int:
