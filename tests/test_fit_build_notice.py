@@ -23,3 +23,14 @@ def test_the_notice_shows_on_a_cold_cache_only(tmp_path, monkeypatch):
 def test_the_key_follows_the_kernel_sources():
     key = build_notice.kernel_sources_key()
     assert len(key) == 16 and key == build_notice.kernel_sources_key()
+
+
+def test_each_group_of_models_has_its_own_marker(tmp_path, monkeypatch):
+    """A run of real photos first (the radiance models) leaves the default run's models cold: the README demo
+    after it still builds its own modules ahead (fit/stages/prewarm.py KERNEL_GROUPS)."""
+    wp.init()
+    monkeypatch.setattr(wp.config, "kernel_cache_dir", str(tmp_path))
+    monkeypatch.setattr(build_notice, "_ANNOUNCED", set())
+    build_notice.mark_kernels_built("cpu", "fp32", "radiance")
+    assert not build_notice.kernels_cold("cpu", "fp32", "radiance")
+    assert build_notice.kernels_cold("cpu", "fp32", "default") and build_notice.kernels_cold("cpu", "fp32", None)

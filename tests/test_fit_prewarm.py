@@ -25,7 +25,7 @@ def capture(tmp_path_factory):
 def test_a_default_run_after_the_prewarm_builds_no_module(capture, device, tmp_path, monkeypatch):
     monkeypatch.setattr(build_notice, "_ANNOUNCED", set())
     # a cold cache, as said
-    monkeypatch.setattr(build_notice, "_marker", lambda dev, precision="fp32": tmp_path / "absent.warm")
+    monkeypatch.setattr(build_notice, "_marker", lambda *_, **__: tmp_path / "absent.warm")
     loads = record_loads(monkeypatch.setattr)
     lines = []
     with reporting(lines.append):
@@ -47,7 +47,7 @@ def test_a_default_run_after_the_prewarm_builds_no_module(capture, device, tmp_p
 
 def test_a_warm_cache_builds_nothing_ahead(tmp_path, monkeypatch):
     monkeypatch.setattr(build_notice, "_ANNOUNCED", set())
-    monkeypatch.setattr(build_notice, "_marker", lambda dev, precision="fp32": tmp_path / "present.warm")
+    monkeypatch.setattr(build_notice, "_marker", lambda *_, **__: tmp_path / "present.warm")
     (tmp_path / "present.warm").touch()
     loads = record_loads(monkeypatch.setattr)
     lines = []
@@ -71,7 +71,7 @@ from texstream.fit.stages.stage import FitStageConfig, fit_stage
 from texstream.fit.stream.config import StreamConfig
 
 capture, out, device, cold = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3], sys.argv[4] == "cold"
-build_notice._marker = lambda dev, precision="fp32": out.parent / ("absent.warm" if cold else "present.warm")
+build_notice._marker = lambda *_, **__: out.parent / ("absent.warm" if cold else "present.warm")
 (out.parent / "present.warm").touch()
 sys.path.insert(0, "tests")
 from kernel_loads import record_loads
@@ -125,3 +125,72 @@ def test_a_float64_fit_declares_its_overloads_before_any_build_or_launch(capture
         built = {tuple(x) for x in got["built"]}
         launched = {tuple(x) for x in got["loads"] if x[2] == device} - built
         assert built and not launched, f"launched but not prewarmed: {sorted(launched)}"
+
+
+RADIANCE_RUN = r"""
+import dataclasses, json, sys
+from pathlib import Path
+
+import warp as wp
+
+wp.config.quiet = True
+from texstream.fit.kernels import build_notice
+from texstream.pipelines.run import RunConfig, run_pipeline
+
+capture, out, device = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3]
+build_notice._marker = lambda *_, **__: out.parent / "absent.warm"  # every group cold
+sys.path.insert(0, "tests")
+from kernel_loads import record_loads
+
+loads = record_loads()
+import texstream.fit.stages.prewarm as prewarm
+built, groups = [], []
+build = prewarm.build_kernels_if_cold
+
+def recorded_build(stage, device, kind, *args, **kwargs):
+    n = len(loads)
+    build(stage, device, kind, *args, **kwargs)
+    built.extend(loads[n:])
+    groups.append(prewarm.kernel_group(kind))
+
+import texstream.fit.stages.stage as stage
+stage.build_kernels_if_cold = recorded_build
+cfg = RunConfig(device=device, progress=False, mesh_file=str(capture / "ground_truth"))
+lfm = dataclasses.replace(cfg.fit.fit.lfm, iterations=20)
+cfg.fit = dataclasses.replace(cfg.fit, renders=1, fit=dataclasses.replace(cfg.fit.fit, max_iterations=3, lfm=lfm))
+summary = run_pipeline(capture, out, cfg, log=lambda m: None)
+print(json.dumps({"loads": loads, "built": built, "groups": groups,
+                  "kinds": sorted(summary["fit"]["selection"]["validation"])}))
+"""
+
+
+def test_a_run_under_an_unknown_light_builds_its_radiance_models_ahead(device, tmp_path):
+    """A run of photos under one fixed, unknown light (radiance, view_radiance and LFM compared on its validation
+    photos) on a cold cache builds its group's modules ahead (fit/stages/prewarm.py ``radiance_run_modules``, the
+    group's parameter counts declared first): every module the run's fit, export and report launch was built by
+    the prewarm, and none is loaded under two hashes (before, view_radiance's 18 parameters rehashed the optimizer's
+    8 modules and LFM's two generic passes its module twice: each a second compile). In a child process: the
+    declared counts are for the rest of a process (this worker's later tests would build the default modules
+    again). About 25 s on CI's cold cache (the group's modules, which no other test builds with these
+    overloads), 8 s warm."""
+    import json
+    import subprocess
+    import sys
+
+    from conftest import ROOT
+    from lfm_scenes import fixed_light_sphere_capture
+
+    capture = fixed_light_sphere_capture(tmp_path, photos=24, device="cpu")
+    run = subprocess.run([sys.executable, "-c", RADIANCE_RUN, str(capture), str(tmp_path / "out"), device],
+                         capture_output=True, text=True, cwd=ROOT, timeout=900)
+    assert run.returncode == 0, run.stderr[-3000:]
+    got = json.loads(run.stdout.strip().splitlines()[-1])
+    assert got["kinds"] == ["lfm", "radiance", "view_radiance"], got["kinds"]  # the whole group ran
+    assert got["groups"][0] == "radiance"
+    hashes = {}
+    for name, module_hash, dev, _ in got["loads"]:
+        hashes.setdefault((name, dev), set()).add(module_hash)
+    assert {k: v for k, v in hashes.items() if len(v) > 1} == {}, "rehashed after a launch added an overload"
+    built = {tuple(x) for x in got["built"]}
+    launched = {tuple(x) for x in got["loads"] if x[2] == device} - built
+    assert built and not launched, f"launched but not prewarmed: {sorted(launched)}"

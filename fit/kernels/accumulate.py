@@ -66,8 +66,8 @@ from typing import Any, NamedTuple
 import warp as wp
 
 from texstream.fit.kernels.lafortune_grad import lafortune_funcs, view_radiance_funcs
-from texstream.fit.kernels.overloads import (IMAGE_PIXEL, STORAGE_SCALAR, at_every_precision, declare,
-                                             param_overloads)
+from texstream.fit.kernels.overloads import (IMAGE_PIXEL, STORAGE_SCALAR, at_every_count, at_every_precision,
+                                             declare, param_overloads)
 from texstream.render.shading import incident_light, to_local
 from texstream.fit.kernels.stream import (SAMPLING_FILTERED, ImageInfo, SampleOptions, TexelFrames, kahan_add,
                                           observe_func, plane_texel_coords, ray_surface, tangent_frame, texel_blend,
@@ -644,15 +644,15 @@ def reduce_partials_kernel(pf: wp.array2d(dtype=Any), pg: wp.array2d(dtype=Any),
     st[i] = s
 
 
-def _declare_reduce_overloads(scalar) -> None:
-    """reduce_partials_kernel's overloads of the compute scalar ``scalar`` (fit/kernels/overloads.py): LM's J^T J,
-    CG's d^T H d."""
-    for _s, _v, _m in param_overloads(scalar=scalar):
+def _declare_reduce_overloads(scalar, n_params: int) -> None:
+    """reduce_partials_kernel's overloads of the compute scalar ``scalar`` and one declared parameter count
+    (fit/kernels/overloads.py): LM's J^T J, CG's d^T H d."""
+    for _s, _v, _m in param_overloads((n_params,), scalar):
         for _h in (_m, _s):
             declare(reduce_partials_kernel, pf=_s, pg=_v, ph=_h, f=_s, g=_v, h=_h)
 
 
-at_every_precision(_declare_reduce_overloads)
+at_every_count(_declare_reduce_overloads)
 
 
 @wp.kernel(enable_backward=False, module="unique")

@@ -40,7 +40,7 @@ def kernel_sources_key() -> str:
     return h.hexdigest()[:16]
 
 
-def _marker(device: str, precision: str = "fp32") -> Path:
+def _marker(device: str, precision: str = "fp32", group: str | None = "default") -> Path:
     wp.init()  # sets the kernel cache folder
     kind = "cuda" if str(device).startswith("cuda") else "cpu"
     if kind == "cuda":  # binaries are per GPU architecture
@@ -49,21 +49,23 @@ def _marker(device: str, precision: str = "fp32") -> Path:
     # hashes, another marker, whatever precision this fit uses
     declared = [p for p in declared_precisions() if p != "fp32"] + ([precision] if precision != "fp32" else [])
     suffix = "".join(f"-{p}" for p in dict.fromkeys(declared))
+    # one marker per group of models built ahead together (fit/stages/prewarm.py KERNEL_GROUPS)
+    suffix += "" if group == "default" else f"-{group or 'other'}"
     return Path(wp.config.kernel_cache_dir or "") / f"texstream-{kernel_sources_key()}-{kind}{suffix}.warm"
 
 
 _ANNOUNCED: set = set()
 
 
-def kernels_cold(device: str, precision: str = "fp32") -> bool:
-    """Whether this texstream's kernels of compute ``precision`` were never built on ``device``'s kind in Warp's
-    cache: true at most once per process, device and precision (the first fit there says so and builds them,
-    fit/stages/prewarm.py)."""
-    if (device, precision) in _ANNOUNCED:
+def kernels_cold(device: str, precision: str = "fp32", group: str | None = "default") -> bool:
+    """Whether this texstream's kernels of compute ``precision`` for the models of ``group`` were never built on
+    ``device``'s kind in Warp's cache: true at most once per process, device, precision and group (the first fit
+    there says so and builds them, fit/stages/prewarm.py)."""
+    if (device, precision, group) in _ANNOUNCED:
         return False
-    _ANNOUNCED.add((device, precision))
+    _ANNOUNCED.add((device, precision, group))
     try:
-        return not _marker(device, precision).exists()
+        return not _marker(device, precision, group).exists()
     except OSError:
         return False
 
@@ -76,11 +78,11 @@ def kernel_build_line(device: str, how: str = "") -> str:
             "start at once")
 
 
-def mark_kernels_built(device: str, precision: str = "fp32") -> None:
+def mark_kernels_built(device: str, precision: str = "fp32", group: str | None = "default") -> None:
     """Record that a fit on ``device`` of compute ``precision`` succeeded, so its kernels are in the cache (best
     effort: a cache folder that cannot be written only means the notice shows again)."""
     try:
-        marker = _marker(device, precision)
+        marker = _marker(device, precision, group)
         marker.parent.mkdir(parents=True, exist_ok=True)
         marker.touch()
     except OSError:

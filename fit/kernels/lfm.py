@@ -35,6 +35,7 @@ from typing import Any
 import warp as wp
 
 from texstream.fit.kernels import stream
+from texstream.fit.kernels.overloads import declare
 from texstream.render.camera import ImageInfo
 from texstream.render.shading import bilinear_taps, surface_frame, texel_coords
 
@@ -741,3 +742,10 @@ def balance_kernel(ring_start: wp.array(dtype=wp.int32), ring_slots: wp.array(dt
             G[ring_slots[e], k] = wp.cw_mul(G[ring_slots[e], k], sc)
         for q in range(m):
             H[row, q] = wp.cw_div(H[row, q], sc)
+
+
+# the generic batched passes' overloads for the run's photo samples (fit/models/lfm/problem.py PhotoSamples
+# obs_types: the distribution step's float32), in the module before its first launch: declared at a launch, each
+# added the module's rehash and a second and third compile of this large module (fit/kernels/overloads.py)
+declare(slot_pass_batch_kernel, obs_y=wp.vec3, obs_e=wp.float32)
+declare(view_gather_batch_kernel, obs_e=wp.float32)

@@ -9,9 +9,14 @@ The compute precision: every process declares float32's (``stream.accumulate`` a
 whose passes accumulate in float64 (auto above 1,000 photos, or asked) declares float64's too, with
 :func:`declare_precision`, before its prewarm and its first launch, on every generic kernel made so far and on
 each one made later (:func:`at_every_precision`). The order is the same in every process (float32 at import,
-float64 at the fit's start), so the cold process's build is the warm process's hash. Other parameter counts or
-photo precisions (``stream.image_precision`` fp16, two-lobe or anisotropic Lafortune, the radiance models) still
-add their overload at their first launch and compile then, the declared ones with them.
+float64 at the fit's start), so the cold process's build is the warm process's hash.
+
+The parameter counts: every process declares the default run's (:data:`DEFAULT_PARAM_COUNTS`); a fit of another
+group of models declares its own with :func:`declare_param_counts` before its prewarm and first launch (the
+radiance models' group, fit/stages/prewarm.py ``KERNEL_GROUPS``), in the same place in every process, so a
+radiance run's generic modules are built once with every count its candidates launch. Counts no group names
+(anisotropic Lafortune, the ambient layouts) and ``stream.image_precision`` fp16 still add their overload at
+their first launch and compile then, the declared ones with them.
 """
 
 from __future__ import annotations
@@ -46,7 +51,11 @@ COMPUTE_PRECISIONS = {"fp32": wp.float32, "fp64": wp.float64}
 _declared_scalars: list = [COMPUTE_SCALAR]
 """the compute scalars declared in this process, in the order they were"""
 _declarers: list = []
-"""every generic kernel's declaration, as a function of the compute scalar"""
+"""every kernel's declaration of a compute scalar, as a function of the scalar"""
+_declared_counts: list = list(DEFAULT_PARAM_COUNTS)
+"""the parameter counts declared in this process, in the order they were"""
+_count_declarers: list = []
+"""every generic kernel's declaration of one parameter count, as a function of (compute scalar, count)"""
 
 
 def at_every_precision(declarer) -> None:
@@ -65,6 +74,35 @@ def declare_precision(precision: str) -> None:
     _declared_scalars.append(scalar)
     for declarer in list(_declarers):
         declarer(scalar)
+    for declarer in list(_count_declarers):
+        for n in list(_declared_counts):
+            declarer(scalar, n)
+
+
+def at_every_count(declarer) -> None:
+    """A generic kernel's overloads: ``declarer(scalar, n_params)`` for each compute scalar and parameter count
+    declared so far, and for each declared later (:func:`declare_precision`, :func:`declare_param_counts`)."""
+    _count_declarers.append(declarer)
+    for scalar in list(_declared_scalars):
+        for n in list(_declared_counts):
+            declarer(scalar, n)
+
+
+def declare_param_counts(counts) -> None:
+    """Declare the generic kernels' overloads of each parameter count in ``counts`` not declared yet, at every
+    declared compute precision, before a fit that launches them builds or launches a kernel."""
+    for n in counts:
+        if int(n) in _declared_counts:
+            continue
+        _declared_counts.append(int(n))
+        for declarer in list(_count_declarers):
+            for scalar in list(_declared_scalars):
+                declarer(scalar, int(n))
+
+
+def declared_param_counts() -> tuple:
+    """The parameter counts declared in this process, the default run's first."""
+    return tuple(_declared_counts)
 
 
 def declared_precisions() -> tuple:

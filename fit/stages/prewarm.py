@@ -8,10 +8,12 @@ per CPU core, and the run's launches find them built. A module's hash covers its
 so those are declared when each kernel is made (fit/kernels/overloads.py): the hash built here is the hash
 launched, in this process and in later ones. A warm cache (the marker there) skips all of it.
 
-The list is explicit (tests/test_fit_prewarm.py fails when a default run launches a module it lacks, or one
-whose hash it did not build), not every module texstream imported: most of the fit's modules are made per
-pass kind by factories only when a fit asks for them, and on a 2-core CPU each unneeded module is a
-compile the run would wait for.
+The lists are explicit, one per group of models a run fits together (:data:`KERNEL_GROUPS`: the default run's
+reflectance models; the radiance models a run of photos under an unknown light compares), each with its own
+marker (a run of real photos first, then the README demo: each builds its own group ahead).
+tests/test_fit_prewarm.py fails when a run of a group launches a module its list lacks, or one whose hash it did
+not build. Not every module texstream imported: most of the fit's modules are made per pass kind by factories
+only when a fit asks for them, and on a 2-core CPU each unneeded module is a compile the run would wait for.
 """
 
 from __future__ import annotations
@@ -23,8 +25,9 @@ from concurrent.futures import ThreadPoolExecutor
 import warp as wp
 
 from texstream.core.progress import say
-from texstream.fit.kernels import accumulate, highlights, optim_kernels, stream, tiles, view_error
+from texstream.fit.kernels import accumulate, highlights, lfm, optim_kernels, stream, tiles, view_error
 from texstream.fit.kernels.build_notice import kernel_build_line, kernels_cold
+from texstream.fit.kernels.overloads import declare_param_counts
 from texstream.fit.models.lafortune import gltf_core_kernel
 from texstream.fit.stream import photo_stream
 from texstream.fit.stream.config import StreamConfig
@@ -32,8 +35,16 @@ from texstream.render import kernels as render_kernels
 from texstream.render import visibility
 
 DEFAULT_KINDS = ("lafortune", "diffuse")
-"""the models of the default run (the README's ``texstream run``: Lafortune, diffuse beside it); a fit of
-another kind builds only :func:`shared_modules` ahead and the rest at its launches"""
+"""the models of the default run (the README's ``texstream run``: Lafortune, diffuse beside it)"""
+RADIANCE_KINDS = ("radiance", "view_radiance", "lfm")
+"""the models a run compares under one fixed, unknown light (fit/models/radiance/choice.py)"""
+RADIANCE_PARAM_COUNTS = (3, 18)
+"""parameters per texel of the radiance models: radiance (RGB) and view_radiance (RGB and 5 view terms per
+channel), declared before the group's first launch (fit/kernels/overloads.py ``declare_param_counts``); LFM's
+kernels are not generic over it"""
+KERNEL_GROUPS = {"default": DEFAULT_KINDS, "radiance": RADIANCE_KINDS}
+"""the groups built ahead, each with its marker; a fit of another kind builds only :func:`shared_modules` ahead
+and the rest at its launches"""
 MAX_REGISTERS = 168
 """the accumulation kernels' register cap of layouts of at most 9 parameters (``stream.cuda_max_registers``
 -1, fit/stream/problem.py): part of their names, so of their modules"""
@@ -55,16 +66,48 @@ def default_run_modules(device: str) -> list:
                 accumulate.accumulate_lm_kernel(1, 0, MAX_REGISTERS, False, True),  # its traced polish
                 accumulate.accumulate_kernel(1, 0, False, False, False, False, MAX_REGISTERS),  # its scores
                 accumulate.accumulate_lm_kernel(0, 0, MAX_REGISTERS)]  # diffuse's LM
-    generic = [stream.initial_guess_kernel_for(False), optim_kernels.start_point_kernel, optim_kernels.trial_kernel,
-               optim_kernels.lm_solve_kernel, optim_kernels.lm_accept_kernel, optim_kernels.chunk_sums_kernel,
-               optim_kernels.centred_prior_kernel, optim_kernels.centred_prior_diag_kernel,
-               accumulate.reduce_partials_kernel]
+    generic = [stream.initial_guess_kernel_for(False), *optimizer_modules()]
     plain = [view_error.view_error_rows_kernel, highlights.highlight_samples_kernel,
              gltf_core_kernel.core_material_kernel]
     if not str(device).startswith("cuda"):
         generic.append(tiles.tile_visibility_kernel)  # the CPU's fit in threads over tiles of texels
     return (shared_modules() + [(k.module, passes) for k in per_pass]
             + [(k.module, None) for k in generic + plain])
+
+
+def radiance_run_modules(device: str) -> list:
+    """(module, block_dim) of every module a run under one unknown light launches on ``device``: the radiance
+    and view_radiance fits (the radiance model's Cauchy loss, radiance/__init__.py; at most 9 parameters capped
+    at :data:`MAX_REGISTERS`, as fit/stream/problem.py does), LFM's passes, the optimizer's kernels with the
+    group's parameter counts declared."""
+    passes = StreamConfig().cuda_block_dim
+    per_pass = [accumulate.accumulate_lm_kernel(0, 0, MAX_REGISTERS, radiance=1, robust=accumulate.ROBUST_CAUCHY),
+                accumulate.accumulate_lm_kernel(0, 0, 0, radiance=2)]  # view_radiance: 18 parameters, no cap
+    generic = [stream.initial_guess_kernel_for(True), *optimizer_modules()]
+    plain = [lfm.slot_pass_batch_kernel]
+    if not str(device).startswith("cuda"):
+        generic.append(tiles.tile_visibility_kernel)  # the CPU's fit in threads over tiles of texels
+    return (shared_modules() + [(k.module, passes) for k in per_pass]
+            + [(k.module, None) for k in generic + plain])
+
+
+def optimizer_modules() -> list:
+    """The plain optimizer's kernels (one module each, generic over the declared parameter counts)."""
+    return [optim_kernels.start_point_kernel, optim_kernels.trial_kernel, optim_kernels.lm_solve_kernel,
+            optim_kernels.lm_accept_kernel, optim_kernels.chunk_sums_kernel, optim_kernels.centred_prior_kernel,
+            optim_kernels.centred_prior_diag_kernel, accumulate.reduce_partials_kernel]
+
+
+def kernel_group(kind: str) -> str | None:
+    """The group of :data:`KERNEL_GROUPS` that model ``kind`` belongs to (None: none)."""
+    return next((group for group, kinds in KERNEL_GROUPS.items() if kind in kinds), None)
+
+
+def declare_group_overloads(kind: str) -> None:
+    """Before a fit of ``kind`` builds or launches a kernel: its group's parameter counts (the same in every
+    process that fits the group, so a cold build is what later runs launch)."""
+    if kernel_group(kind) == "radiance":
+        declare_param_counts(RADIANCE_PARAM_COUNTS)
 
 
 def build_threads() -> int:
@@ -80,9 +123,12 @@ def build_kernels_if_cold(stage: str, device: str, kind: str, precision: str = "
     every fit launches for another ``kind``) in parallel, and say how long it took. Warm: nothing. ``precision``:
     the fit's compute precision, whose overloads the caller declared (fit/kernels/overloads.py
     ``declare_precision``), so the modules built hold them."""
-    if not kernels_cold(device, precision):
+    group = kernel_group(kind)
+    if not kernels_cold(device, precision, group):
         return
-    modules = default_run_modules(device) if kind in DEFAULT_KINDS else shared_modules()
+    modules = {"default": default_run_modules, "radiance": radiance_run_modules}.get(group, lambda d: shared_modules())(
+        device)
+    wp.init()  # here, not in the build threads: a first init marks every module modified under their loads
     threads = min(build_threads(), len(modules))
     say(stage, kernel_build_line(device, f"{len(modules)} Warp modules at once on {threads} threads"))
     t0 = time.perf_counter()

@@ -34,7 +34,7 @@ from texstream.fit.stream.config import resolve_accumulate
 from texstream.fit.optim.fitter import FitConfig
 from texstream.fit.models import registry
 from texstream.fit.stages import choice
-from texstream.fit.stages.prewarm import build_kernels_if_cold
+from texstream.fit.stages.prewarm import build_kernels_if_cold, declare_group_overloads, kernel_group
 from texstream.fit.models.materials import MaterialConfig
 from texstream.fit.common.inputs import SharedPhotoSet, check_output_path, split_holdout
 from texstream.fit.common.model_folder import check_render, image_metrics, json_safe, pooled_psnr
@@ -154,10 +154,11 @@ def fit_model(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     cfg = dataclasses.replace(cfg, device=resolve_device(cfg.device))
     precision = compute_precision(capture_dir, cfg)
     declare_precision(precision)  # before any build or launch: the same modules cold and warm
+    declare_group_overloads(cfg.fit.model)
     build_kernels_if_cold("fit", cfg.device, cfg.fit.model, precision)
     with loaders_closed_after():  # photos streamed from disk: their loaders' threads end with the stage
         result = plugin.fit(registry.FitRequest(Path(capture_dir), Path(mesh_path), Path(out_dir), cfg, progress))
-    mark_kernels_built(cfg.device, precision)
+    mark_kernels_built(cfg.device, precision, kernel_group(cfg.fit.model))
     return result
 
 
