@@ -260,6 +260,30 @@ def test_the_zero_lights_placement_does_not_matter(device, sampling):
         np.testing.assert_array_equal(near, behind)
 
 
+def test_the_highlight_diagnostic_leaves_unlit_photos_out(device):
+    """A photo whose light is 0 shows no highlight (fit/common/highlights.py): with every photo of test_fit_gradients'
+    plane unlit the diagnostic sees no texel and no sample near the mirror (each photo's samples are there, as the
+    fit's passes take them); with half of them unlit its masks are the same wherever their zero light sits."""
+    from test_fit_ambient import ambient_params
+    from test_fit_gradients import evaluate, plane_problem
+
+    from texstream.fit.common.highlights import highlight_masks
+    from texstream.render.layout import ModelLayout
+
+    layout = ModelLayout(ambient=True)
+    prob, rng = plane_problem(device, layout, unlit=6)
+    p = ambient_params(layout, prob.n, rng)
+    dark = highlight_masks(prob, p)
+    assert evaluate(prob, p)[3][:, 0].sum() > 0 and not dark.seen.any() and not dark.near_mirror.any()
+    masks = []
+    for where in (None, BEHIND_THE_PLANE):
+        prob, rng = plane_problem(device, layout, unlit=3, unlit_light=where)
+        masks.append(highlight_masks(prob, ambient_params(layout, prob.n, rng)))
+    assert masks[0].seen.any()
+    for name in ("seen", "highlight", "lobe", "hits", "near_mirror"):
+        np.testing.assert_array_equal(getattr(masks[0], name), getattr(masks[1], name), err_msg=name)
+
+
 def write_photos(folder, flash_tags: dict) -> None:
     """Small textured 8-bit PNGs, each with the given EXIF Flash tag (None: no tag)."""
     from texstream.capture.imageio import write_image

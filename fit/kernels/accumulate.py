@@ -50,9 +50,8 @@ light's cosine and shadow tests, ``stream.observe_with_unlit_func``) and texel i
 its light sits (:func:`_unlit_sample_func`, ``lafortune_grad.unlit_funcs``). The functions that do it are the ambient
 layouts' own, wrapped around the others, so the layouts without the ambient compile the code (and Warp hashes the
 source) they did; the ambient layouts' arithmetic on lit samples is unchanged, so their results are bit-identical.
-Without the ambient such a sample has W = 0: in radiance space r = -y with a
-zero Jacobian, no information (reflectance space, which divides by W, is refused with no-flash photos:
-fit/models/per_texel/ambient.py).
+Without the ambient such a sample has W = 0: in radiance space r = -y with a zero Jacobian, no information
+(reflectance space, which divides by W, is refused with no-flash photos: fit/models/per_texel/ambient.py).
 
 The data term is sum rho(r_c) with rho(r) = r^2 / 2 (least squares) or a robust loss (Huber, Cauchy;
 ``accumulate_kernel``'s ``robust``), applied per sample as iteratively reweighted least squares.

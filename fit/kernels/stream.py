@@ -422,7 +422,7 @@ def observe_with_unlit_func():
                            shadow: wp.array3d(dtype=wp.float32), infos: wp.array(dtype=ImageInfo), k: int,
                            tex: TexelFrames, i: int, opt: SampleOptions):
         if unlit_photo(infos, k):
-            ok, y, w, u, v, xs, ys = camera_observe(images, depth, shadow, infos, k, tex, i, opt)
+            ok, y, _w, _u, v, xs, ys = camera_observe(images, depth, shadow, infos, k, tex, i, opt)
             return ok, y, wp.vec3(0.0), wp.vec3(0.0), v, xs, ys
         return lit_observe(images, depth, shadow, infos, k, tex, i, opt)
 
