@@ -18,14 +18,15 @@ SAMPLINGS = ["filtered", "point", "bilinear"]
 
 
 def plane_problem(device, layout, n_photos=6, grid=5, seed=0, acc="fp64", kind="point", storage=None,
-                  sampling="filtered", lookup="texel", taps="plane", unlit=0):
+                  sampling="filtered", lookup="texel", taps="plane", unlit=0, unlit_light=None):
     """Texels on the plane z = 0 seen by random cameras under random lights; random photo values
     (the derivative checks need no consistent data). The shading normal bends across each texel
     (a random normal Jacobian) so point and filtered sampling see a different frame at every tap.
     The texel grid maps linearly onto the plane (texel coordinate gradients for ``lookup``
     bilinear: a filtered tap lands ~0.15 texel from its centre, so neighbours weigh in), and so
     do the mesh's UVs, whose tilted vertex normals give traced taps (``taps`` mesh) their own
-    frame at every hit. The first ``unlit`` photos' light has intensity 0 (taken with the flash off)."""
+    frame at every hit. The first ``unlit`` photos' light has intensity 0 (taken with the flash off), at
+    ``unlit_light`` when given (a point light's position; else drawn as the lit photos' are)."""
     rng = np.random.default_rng(seed)
     pts = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], float)
     faces = np.array([[0, 1, 2], [0, 2, 3]])
@@ -49,6 +50,8 @@ def plane_problem(device, layout, n_photos=6, grid=5, seed=0, acc="fp64", kind="
         else:
             lv = -(eye + rng.normal(size=3)) / np.linalg.norm(eye)
         intensity = np.array([5.0, 4.0, 3.0]) * float(len(frames) >= unlit)
+        if len(frames) < unlit and unlit_light is not None:
+            lv = np.asarray(unlit_light, float)
         frames.append(PhotoFrame(r, t, 60.0, 60.0, 32.0, 32.0, 64, 64, kind, lv, intensity))
         imgs.append(rng.uniform(0, 1, (64, 64, 3)).astype(np.float32))
     cfg = StreamConfig(accumulate=acc, storage=storage or ("fp64" if acc == "fp64" else "fp32"), shadow_map_size=64,

@@ -147,39 +147,53 @@ def test_ambient_off_with_no_flash_photos_is_one_line(pair_fits, tmp_path):
 
 
 def test_a_zero_intensity_frame_gives_finite_gradients(pair_fits):
-    """No-flash frames alone, their light at intensity 0 as the capture states it (here a lamp's above the sphere,
-    as ``--lights`` leaves it): the fit keeps the 0 and places the light at the camera (fit/common/setup.py
-    ``fit_photo_frame``: its cosine and shadow tests then drop nothing the view's keep); every objective and gradient
-    entry finite; the ambient's gradient is what the photos say (non-zero), the albedo's exactly 0 (such a sample's
-    only feature is the ambient, fit/kernels/accumulate.py)."""
+    """No-flash frames alone, their light at intensity 0 as the capture states it, here a lamp's above the sphere (as
+    ``--lights`` leaves it): the fit keeps the light where the capture puts it; every objective and gradient entry
+    finite; the ambient's gradient is what the photos say (non-zero), the albedo's exactly 0 (such a sample's only
+    feature is the ambient, fit/kernels/accumulate.py). Where the zero light sits does not matter (the kernels skip
+    its tests, fit/kernels/stream.py ``observe_with_unlit_func``): at the camera or at the sphere's centre (behind
+    every texel) the objective, gradient, sample counts and initial guess are the lamp's to the bit."""
     import warp as wp
 
     from texstream.capture.synthetic.synth import load_ground_truth
     from texstream.fit.common.inputs import load_photos
     from texstream.fit.common.setup import build_problem
-    from texstream.fit.optim.fitter import FitConfig
+    from texstream.fit.optim.fitter import FitConfig, fit_start
 
     cap = read_capture(pair_fits / "pairs")
-    dark = [dataclasses.replace(f, light=Light.point([0.0, 0.0, 10.0], np.zeros(3)))
-            for f in cap.frames if not flash_fired(f)][:2]
     mesh, params, _, bake, _ = load_ground_truth(pair_fits / "pairs")
+    dark = [f for f in cap.frames if not flash_fired(f)][:2]
     cfg = FitConfig(model="diffuse", ambient="on")
     images, masks = load_photos(cap, dark)
-    prob = build_problem(mesh, bake, dark, images, masks, cfg, SCENE_DEVICE)
-    infos = prob.photos.infos_host
-    assert not infos["light_intensity"].any() and np.allclose(infos["light_vec"], infos["center"], atol=1e-5)
-    p = np.tile(prob.layout.defaults(), (prob.n, 1))
-    f, g = prob.new_scalar(), prob.new_vec()
-    stats = wp.zeros(prob.n, dtype=wp.vec4d, device=prob.device)
-    prob.evaluate(prob.new_storage(p), f, g, stats)
-    g = g.numpy()[:, :prob.layout.n_params]
-    assert np.all(np.isfinite(f.numpy())) and np.all(np.isfinite(g)) and stats.numpy()[:, 0].sum() > 0
+    lamp = np.array([0.0, 0.0, 10.0])
+    placements = {"lamp": [lamp] * 2, "camera": [f.center for f in dark],
+                  "centre": [mesh.vertices.mean(axis=0)] * 2}
+    got = {}
+    for name, where in placements.items():
+        frames = [dataclasses.replace(f, light=Light.point(pos, np.zeros(3))) for f, pos in zip(dark, where)]
+        prob = build_problem(mesh, bake, frames, images, masks, cfg, SCENE_DEVICE)
+        infos = prob.photos.infos_host
+        assert not infos["light_intensity"].any() and np.allclose(infos["light_vec"], np.float32(where))
+        p = np.tile(prob.layout.defaults(), (prob.n, 1))
+        f, g = prob.new_scalar(), prob.new_vec()
+        stats = wp.zeros(prob.n, dtype=wp.vec4d, device=prob.device)
+        prob.evaluate(prob.new_storage(p), f, g, stats)
+        got[name] = (f.numpy(), g.numpy()[:, :prob.layout.n_params], stats.numpy(), *fit_start(prob, cfg).numpy())
+    f, g, stats, _, counts = got["lamp"]
+    assert np.all(np.isfinite(f)) and np.all(np.isfinite(g)) and stats[:, 0].sum() > 0 and counts.sum() > 0
     assert np.abs(g[:, prob.layout.ambient_offset:]).max() > 0 and not g[:, 0:3].any()
+    for name in ("camera", "centre"):
+        for a, b in zip(got["lamp"], got[name]):
+            np.testing.assert_array_equal(a, b, err_msg=name)
 
 
+BEHIND_THE_PLANE = (0.0, 0.0, -2.0)
+"""a point light under test_fit_gradients' plane z = 0, whose normals face +z: every texel faces away from it"""
 UNLIT_CASES = {"filtered": ({}, False), "point": ({"sampling": "point"}, False),
                "lookup": ({"lookup": "bilinear"}, False), "traced": ({"taps": "mesh"}, False),
-               "room": ({"lookup": "bilinear"}, True)}
+               "room": ({"lookup": "bilinear"}, True),
+               "filtered_light_behind": ({"unlit_light": BEHIND_THE_PLANE}, False),
+               "traced_light_behind": ({"taps": "mesh", "unlit_light": BEHIND_THE_PLANE}, False)}
 """plane_problem options of the unlit samples' derivative checks, and whether the layout has the room light"""
 
 
@@ -189,7 +203,8 @@ def test_unlit_samples_derivatives_match_finite_differences(device, case):
     light's frozen S included: what its solve reduces) against central differences in float64 (bound 1e-6 of each
     texel's gradient norm, test_fit_gradients'), and the full d^T H d against second differences (an unlit sample is
     linear in its parameters: its curvature is the Gauss-Newton one). With every photo unlit, the albedo's and the
-    lobes' gradient is exactly 0 and the ambient's not."""
+    lobes' gradient is exactly 0 and the ambient's not, also with the zero light behind the plane (its cosine and
+    shadow tests would reject every sample: the kernels skip them for a light of intensity 0)."""
     from test_fit_ambient import AMBIENT_STEP, ambient_params
     from test_fit_gradients import (assert_full_dhd_matches_second_difference,
                                     assert_gradient_matches_finite_differences, evaluate, plane_problem)
@@ -212,6 +227,61 @@ def test_unlit_samples_derivatives_match_finite_differences(device, case):
     extra = layout.n_params - 3
     assert stats[:, 0].sum() > 0 and np.isfinite(f).all() and np.abs(g[:, extra:]).max() > 0
     assert not g[:, 3:extra].any() and (room or not g[:, 0:3].any())
+
+
+@pytest.mark.parametrize("sampling", ["filtered", "point"])
+def test_the_zero_lights_placement_does_not_matter(device, sampling):
+    """test_fit_gradients' plane with every photo unlit, their zero light near each camera (where the lit photos'
+    is) or behind the plane: the objective, gradient, d^T H d, sample statistics, the LM pass's J^T J, the initial
+    guess and the tiles' photos are the same to the bit (an unlit sample's camera tests, its ambient feature and its
+    zero weight do not read the light's position; its lobes see no light direction)."""
+    import warp as wp
+    from test_fit_ambient import ambient_params
+    from test_fit_gradients import evaluate, plane_problem
+
+    from texstream.fit.multi.tile_plan import tile_photo_visibility
+    from texstream.fit.optim.fitter import FitConfig, fit_start
+    from texstream.render.layout import ModelLayout
+
+    layout = ModelLayout(ambient=True)
+    got = []
+    for where in (None, BEHIND_THE_PLANE):
+        prob, rng = plane_problem(device, layout, unlit=6, unlit_light=where, sampling=sampling)
+        p = ambient_params(layout, prob.n, rng)
+        f_lm, g_lm = prob.new_scalar(), prob.new_vec()
+        jtj = wp.zeros(prob.n, dtype=prob.mat, device=device)
+        prob.evaluate_lm(prob.new_storage(p), f_lm, g_lm, jtj, wp.zeros(prob.n, dtype=wp.vec4d, device=device))
+        direction = rng.normal(size=p.shape) * 0.01
+        tiles = tile_photo_visibility(prob, np.array([[0, 12], [12, prob.n]]))
+        got.append((*evaluate(prob, p, direction=direction, full=True), jtj.numpy(),
+                    *fit_start(prob, FitConfig()).numpy(), tiles))
+    assert got[0][3][:, 0].sum() > 0 and got[0][-1].any()
+    for near, behind in zip(*got):
+        np.testing.assert_array_equal(near, behind)
+
+
+def test_the_highlight_diagnostic_leaves_unlit_photos_out(device):
+    """A photo whose light is 0 shows no highlight (fit/common/highlights.py): with every photo of test_fit_gradients'
+    plane unlit the diagnostic sees no texel and no sample near the mirror (each photo's samples are there, as the
+    fit's passes take them); with half of them unlit its masks are the same wherever their zero light sits."""
+    from test_fit_ambient import ambient_params
+    from test_fit_gradients import evaluate, plane_problem
+
+    from texstream.fit.common.highlights import highlight_masks
+    from texstream.render.layout import ModelLayout
+
+    layout = ModelLayout(ambient=True)
+    prob, rng = plane_problem(device, layout, unlit=6)
+    p = ambient_params(layout, prob.n, rng)
+    dark = highlight_masks(prob, p)
+    assert evaluate(prob, p)[3][:, 0].sum() > 0 and not dark.seen.any() and not dark.near_mirror.any()
+    masks = []
+    for where in (None, BEHIND_THE_PLANE):
+        prob, rng = plane_problem(device, layout, unlit=3, unlit_light=where)
+        masks.append(highlight_masks(prob, ambient_params(layout, prob.n, rng)))
+    assert masks[0].seen.any()
+    for name in ("seen", "highlight", "lobe", "hits", "near_mirror"):
+        np.testing.assert_array_equal(getattr(masks[0], name), getattr(masks[1], name), err_msg=name)
 
 
 def write_photos(folder, flash_tags: dict) -> None:
@@ -390,10 +460,10 @@ def test_a_camera_without_a_flash_says_nothing_about_pairs():
 
 
 def test_the_lobe_shape_choice_leaves_out_photos_without_light():
-    """A no-flash photo's light (0, placed at its camera by fit/common/setup.py) shows no highlight, so the lobe
+    """A no-flash photo's light (0, left at the lamp as ``--lights`` leaves it) shows no highlight, so the lobe
     shape's light-view spread (fit/optim/fitter.py ``choose_lobe_shape``) leaves it out: six photos under a fixed lamp
-    22.6-27 degrees from their cameras stay "phong" with two no-flash photos beside them (at 0 degrees they would
-    make the spread 27 degrees, over the 10 degree default, and "free")."""
+    22.6-27 degrees from their cameras stay "phong" with two no-flash photos beside them (at 10 and 40 degrees they
+    would make the spread 30 degrees, over the 10 degree default, and "free")."""
     from types import SimpleNamespace
 
     from texstream.fit.optim.fitter import choose_lobe_shape, light_view_angles
@@ -407,6 +477,6 @@ def test_the_lobe_shape_choice_leaves_out_photos_without_light():
                                light_vec=centre if light is None else light, light_intensity=np.full(3, intensity))
 
     lit = [frame(a, 1.0, 4.0 * lamp) for a in (22.6, 23.5, 24.4, 25.3, 26.1, 27.0)]
-    unlit = [frame(a, 0.0) for a in (10.0, 40.0)]  # light at the camera, intensity 0
+    unlit = [frame(a, 0.0, 4.0 * lamp) for a in (10.0, 40.0)]  # the lamp, intensity 0
     assert light_view_angles(lit + unlit, np.zeros(3)).size == len(lit)
     assert choose_lobe_shape(lit + unlit, np.zeros(3), 10.0) == choose_lobe_shape(lit, np.zeros(3), 10.0) == "phong"

@@ -3,7 +3,7 @@
 A fit whose lobes came out empty (specular albedo 0, exponent where it started) may mean a matte object or a model
 that missed what the photos show. This diagnostic tells them apart per texel, from the fitted model and its photos,
 sampled exactly as the fit samples them (fit/kernels/highlights.py, two streaming passes over the fit's photo
-windows):
+windows), the lit photos' samples alone (a photo taken with the flash off, its light 0, shows no highlight):
 
 highlight (the photos show one)
     Some sample near the mirror configuration exceeds the model's diffuse prediction by a clear margin.
@@ -30,7 +30,7 @@ lobe (the model has one)
     :data:`REL_MARGIN` detects. (An empty lobe, rho_s 0, keeps the exponent it started at, 10: the "floor" issue 39
     saw; the rho_s test rules it out.)
 
-The counts (model.json ``highlights``): texels seen, with a highlight, with a lobe, highlight but no lobe (the
+The counts (model.json ``highlights``): texels seen (by a lit photo), with a highlight, with a lobe, highlight but no lobe (the
 failure issue 39 describes: polished bronze fitted with empty lobes) and lobe but no highlight (a lobe no photo
 showed: extrapolated from the flanks, or borrowed from its material); where the fit tested which lobes its photos
 constrain (materials' ``texel_evidence``), how many lobes are constrained. highlights.png maps the classes.
@@ -68,8 +68,8 @@ CLASS_NAMES = ("unseen (black)", "no highlight, no lobe (grey)", "highlight and 
 
 @dataclasses.dataclass
 class HighlightMasks:
-    """Per compact texel: seen (some usable sample), highlight, lobe, highlight samples and samples near the
-    mirror; the seconds the two passes took."""
+    """Per compact texel: seen (some usable sample of a lit photo), highlight, lobe, highlight samples and samples
+    near the mirror; the seconds the two passes took."""
 
     seen: np.ndarray
     highlight: np.ndarray

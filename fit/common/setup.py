@@ -30,18 +30,6 @@ from texstream.render.layout import ModelLayout
 from texstream.render.renderer import Renderer
 
 
-def fit_photo_frame(frame) -> PhotoFrame:
-    """The fit's view of a capture frame. A light of intensity 0 (a photo taken with the flash off, capture_json.py
-    ``no_flash``) keeps it: the kernels take such a sample's ambient alone (fit/kernels/accumulate.py). It lights
-    nothing, but the kernels still test its cosine and shadow map (fit/kernels/stream.py ``observe``), so it is placed
-    at the camera, where they reject what the view's own tests do: a lamp's position (``--lights``, the mirror ball)
-    would drop the samples that face away from a lamp that did not light the photo."""
-    pf = PhotoFrame.from_capture_frame(frame)
-    if pf.light_kind == "none" or np.any(pf.light_intensity):
-        return pf
-    return dataclasses.replace(pf, light_kind="point", light_vec=-np.asarray(pf.R).T @ np.asarray(pf.t))
-
-
 def build_problem(mesh, bake, frames, images, masks, cfg: FitConfig, device: str, photos=None):
     """The StreamProblem of a fit: texels from the bake, photos on the device with their depth and
     shadow maps (``photos``: a PhotoSet of these frames built before, e.g. by another problem's
@@ -52,7 +40,10 @@ def build_problem(mesh, bake, frames, images, masks, cfg: FitConfig, device: str
     import concurrent.futures
     import contextvars
 
-    photo_frames = [fit_photo_frame(f) for f in frames]
+    # a light of intensity 0 (a photo taken with the flash off, capture_json.py ``no_flash``) stays where the capture
+    # puts it: the kernels take such a photo's samples with the camera's tests alone (fit/kernels/stream.py
+    # ``observe_with_unlit_func``) and their ambient alone (fit/kernels/accumulate.py)
+    photo_frames = [PhotoFrame.from_capture_frame(f) for f in frames]
     normals = mesh.vertex_normals()  # computed anew on each call for a mesh without stored normals
 
     split = split_photos(cfg)  # before any work: refuses tiles with it

@@ -45,14 +45,13 @@ neighbours' blended ambient exposure sum_t b_t n^A_t added to N. Samples of a li
 stay unusable (the observation already rejects shadowed and grazing texel centres). A photo whose light is exactly 0
 (taken with the flash off, capture_json.py ``no_flash``) sees the room alone: in a channel whose W_c is 0 the
 sample's only feature is A's, a_c = exposure sum_t b_t o_t itself, with the weight 1 (r_c = a_c A_c + N_c - y_c, no
-division by W), and such a photo's sample is usable wherever texel i has a share of its taps, whatever its light's
-cosine over them (:func:`_unlit_sample_func`, ``lafortune_grad.unlit_funcs``; the observation's light tests at the
-texel centre remain, so the fit places such a light at the camera, fit/common/setup.py ``fit_photo_frame``). The
-functions that do it are the ambient layouts' own, wrapped around the others, so the layouts without the ambient
-compile the code (and Warp hashes the source) they did; the ambient layouts' arithmetic on lit samples is unchanged,
-so their results are bit-identical. Without the ambient such a sample has W = 0: in radiance space r = -y with a
-zero Jacobian, no information (reflectance space, which divides by W, is refused with no-flash photos:
-fit/models/per_texel/ambient.py).
+division by W), and such a photo's sample is usable wherever the camera's tests pass (the observation skips the
+light's cosine and shadow tests, ``stream.observe_with_unlit_func``) and texel i has a share of its taps, wherever
+its light sits (:func:`_unlit_sample_func`, ``lafortune_grad.unlit_funcs``). The functions that do it are the ambient
+layouts' own, wrapped around the others, so the layouts without the ambient compile the code (and Warp hashes the
+source) they did; the ambient layouts' arithmetic on lit samples is unchanged, so their results are bit-identical.
+Without the ambient such a sample has W = 0: in radiance space r = -y with a zero Jacobian, no information
+(reflectance space, which divides by W, is refused with no-flash photos: fit/models/per_texel/ambient.py).
 
 The data term is sum rho(r_c) with rho(r) = r^2 / 2 (least squares) or a robust loss (Huber, Cauchy;
 ``accumulate_kernel``'s ``robust``), applied per sample as iteratively reweighted least squares.
@@ -70,8 +69,9 @@ from texstream.fit.kernels.overloads import (IMAGE_PIXEL, STORAGE_SCALAR, at_eve
                                              declare, param_overloads)
 from texstream.render.shading import incident_light, to_local
 from texstream.fit.kernels.stream import (SAMPLING_FILTERED, ImageInfo, SampleOptions, TexelFrames, kahan_add,
-                                          observe_func, plane_texel_coords, ray_surface, tangent_frame, texel_blend,
-                                          texel_blend_ambient, to_compute3, trace_stats, traced_tap, traced_texel)
+                                          observe_func, observe_with_unlit_func, plane_texel_coords, ray_surface,
+                                          tangent_frame, texel_blend, texel_blend_ambient, to_compute3, trace_stats,
+                                          traced_tap, traced_texel)
 
 # no kernel here is differentiated (the fit writes its own derivatives): skipping Warp's adjoint
 # code generation roughly halves compile time
@@ -158,9 +158,11 @@ def layout_funcs(n_lobes: int, anisotropic: int, lookup: bool = False, traced: b
     frame_directions, lobe_directions = _direction_funcs(anisotropic)
     sample_model = _sample_model_func(lf, frame_directions, lobe_directions, bool(lookup), bool(traced),
                                       bool(radiance), ambient)
-    sample = _sample_func(observe_func(bool(radiance)), sample_model, bool(lookup))
-    if ambient:  # its own function around the sample, for photos whose light is 0: the others compile as they did
-        sample = _unlit_sample_func(sample, 3 + int(n_lobes) * (6 + int(anisotropic)))
+    if ambient:  # its own functions around the sample, for photos whose light is 0: the others compile as they did
+        sample = _unlit_sample_func(_sample_func(observe_with_unlit_func(), sample_model, bool(lookup)),
+                                    3 + int(n_lobes) * (6 + int(anisotropic)))
+    else:
+        sample = _sample_func(observe_func(bool(radiance)), sample_model, bool(lookup))
     return LayoutFuncs(lf, load_params, sample, channel_residual, n_params)
 
 

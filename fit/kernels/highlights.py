@@ -1,7 +1,8 @@
 """The highlight diagnostic's passes (fit/common/highlights.py): per texel, its photos' samples taken as the
 fit takes them (fit/kernels/stream.py ``observe``: the same projection, visibility, shadow, mask, saturation and
 grazing tests, the same photo filter), sorted by how close each is to the mirror configuration, and compared with
-what the fitted model's diffuse part (plus its ambient term) predicts there.
+what the fitted model's diffuse part (plus its ambient term) predicts there. An unlit photo (its light exactly 0: the
+flash off, stream.py ``unlit_photo``) cannot show a highlight and is left out.
 
 One thread per texel loops over a window of photos; windows accumulate (outputs pre-filled, added to), so the
 photos stream exactly as the fit's passes stream them.
@@ -14,7 +15,7 @@ from typing import Any
 import warp as wp
 
 from texstream.fit.kernels.overloads import IMAGE_PIXEL, declare
-from texstream.fit.kernels.stream import SampleOptions, TexelFrames, observe
+from texstream.fit.kernels.stream import SampleOptions, TexelFrames, observe, unlit_photo
 from texstream.render.camera import ImageInfo
 from texstream.render.shading import incident_light
 
@@ -55,6 +56,8 @@ def off_mirror_residual_kernel(tex: TexelFrames, images: wp.array3d(dtype=Any), 
     acc = sums[i]
     near = cone[i]
     for k in range(img_begin, img_end):
+        if unlit_photo(infos, k):
+            continue
         ok, y, w, _u, _v, _xs, _ys = observe(images, depth, shadow, infos, k, tex, i, opt)
         if ok:
             s = mirror_cosine(infos, k, tex, i)
@@ -83,6 +86,8 @@ def highlight_samples_kernel(tex: TexelFrames, images: wp.array3d(dtype=Any), de
     i = wp.tid()
     n_hits = hits[i]
     for k in range(img_begin, img_end):
+        if unlit_photo(infos, k):
+            continue
         ok, y, w, _u, _v, _xs, _ys = observe(images, depth, shadow, infos, k, tex, i, opt)
         if ok and mirror_cosine(infos, k, tex, i) >= s_cone:
             r, pred = diffuse_residual(y, w, infos[k].exposure, rho_d[i], ambient[i])

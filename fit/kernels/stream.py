@@ -399,6 +399,37 @@ observe = observe_func(False)
 
 
 @wp.func
+def unlit_photo(infos: wp.array(dtype=ImageInfo), k: int):
+    """Photo k's light is exactly 0 in every channel (taken with the flash off, capture_json.py ``no_flash``): it
+    lit nothing, wherever the capture places it."""
+    e = infos[k].light_intensity
+    return e[0] == 0.0 and e[1] == 0.0 and e[2] == 0.0
+
+
+@functools.cache
+def observe_with_unlit_func():
+    """:func:`observe` of the reflectance models for photos that may include unlit ones (:func:`unlit_photo`): a lit
+    photo's sample is observe's, to the bit; an unlit photo's takes the camera's tests alone (the light-free observe
+    of the radiance model: projection, depth or mask, grazing view, saturation), as a light that lit nothing can
+    neither face away nor cast a shadow, with the weight 0 and no light direction (u = 0: the lobes see no light).
+    The ambient layouts' samples (fit/kernels/accumulate.py), the initial guess and the tiles' visibility use it;
+    the other kernels compile the code (and Warp hashes the source) they did."""
+    lit_observe = observe_func(False)
+    camera_observe = observe_func(True)
+
+    @wp.func
+    def observe_with_unlit(images: wp.array3d(dtype=Any), depth: wp.array3d(dtype=wp.float32),
+                           shadow: wp.array3d(dtype=wp.float32), infos: wp.array(dtype=ImageInfo), k: int,
+                           tex: TexelFrames, i: int, opt: SampleOptions):
+        if unlit_photo(infos, k):
+            ok, y, _w, _u, v, xs, ys = camera_observe(images, depth, shadow, infos, k, tex, i, opt)
+            return ok, y, wp.vec3(0.0), wp.vec3(0.0), v, xs, ys
+        return lit_observe(images, depth, shadow, infos, k, tex, i, opt)
+
+    return observe_with_unlit
+
+
+@wp.func
 def to_compute3(a: wp.vec3, one: Any):
     return wp.vector(type(one)(a[0]), type(one)(a[1]), type(one)(a[2]))
 
@@ -421,9 +452,10 @@ def trace_stats(wm: Any, fitted: Any, y: wp.vec3, c: int):
 
 @functools.cache
 def initial_guess_kernel_for(radiance: bool = False):
-    """The initial-guess kernel for reflectance models (``radiance`` False) or the radiance model
+    """The initial-guess kernel for reflectance models (``radiance`` False, photos observed by
+    :func:`observe_with_unlit_func`, as the passes of a layout with the ambient observe them) or the radiance model
     (:func:`observe_func`)."""
-    obs = observe_func(bool(radiance))
+    obs = observe_func(True) if radiance else observe_with_unlit_func()
 
     def initial_guess(tex: TexelFrames, images: wp.array3d(dtype=Any),
                       depth: wp.array3d(dtype=wp.float32), shadow: wp.array3d(dtype=wp.float32),
@@ -433,7 +465,8 @@ def initial_guess_kernel_for(radiance: bool = False):
         """Per texel: the ``rank``-th smallest observed reflectance y / (exposure E cos) per channel
         (a low percentile, McAllister's diffuse estimate used by the seed; for the radiance model
         y / exposure, a low percentile of the radiance, below any highlight), the largest, and the
-        number of samples. Windows accumulate (call with the outputs pre-filled). ``keep_smallest``
+        number of samples. A channel of weight 0 (an unlit photo's: the flash off) counts its sample but says
+        nothing of the reflectance. Windows accumulate (call with the outputs pre-filled). ``keep_smallest``
         1 also writes the 4 smallest per channel (rows: channel; ascending, 1e30 where none) to
         ``smallest``: photos split over devices merge them exactly (:func:`merge_smallest_kernel`);
         2 resumes from ``smallest`` (the earlier windows' list) and writes it back, so windows of photos
@@ -452,9 +485,10 @@ def initial_guess_kernel_for(radiance: bool = False):
             if ok:
                 n = n + 1
                 for c in range(3):
-                    val = y[c] / w[c]
-                    hi[c] = wp.max(hi[c], val)
-                    lo = with_smallest(lo, c, val)
+                    if w[c] > 0.0:
+                        val = y[c] / w[c]
+                        hi[c] = wp.max(hi[c], val)
+                        lo = with_smallest(lo, c, val)
         if keep_smallest != 0:
             smallest[i] = lo
         est = low[i]

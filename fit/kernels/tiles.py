@@ -8,14 +8,16 @@ from typing import Any
 import warp as wp
 
 from texstream.fit.kernels.overloads import IMAGE_PIXEL, declare
-from texstream.fit.kernels.stream import SampleOptions, TexelFrames, observe_func
+from texstream.fit.kernels.stream import SampleOptions, TexelFrames, observe_func, observe_with_unlit_func
 from texstream.render.camera import ImageInfo
 
 
 def tile_visibility_kernel_for(radiance: bool = False):
     """The tile-visibility kernel for reflectance models (``radiance`` False: light, cosine and shadow
-    tests) or the radiance models (:func:`texstream.fit.kernels.stream.observe_func`)."""
-    obs = observe_func(bool(radiance))
+    tests, an unlit photo's camera tests alone as the ambient layouts' passes take it,
+    :func:`texstream.fit.kernels.stream.observe_with_unlit_func`) or the radiance models
+    (:func:`texstream.fit.kernels.stream.observe_func`)."""
+    obs = observe_func(True) if radiance else observe_with_unlit_func()
 
     def tile_visibility(tex: TexelFrames, images: wp.array3d(dtype=Any), depth: wp.array3d(dtype=wp.float32),
                         shadow: wp.array3d(dtype=wp.float32), infos: wp.array(dtype=ImageInfo), photo_begin: int,

@@ -164,8 +164,8 @@ class FitConfig:
 
 def light_view_angles(frames, centre) -> np.ndarray:
     """Angle (degrees) between the directions from ``centre`` to each lit photo's camera and light. A photo whose
-    light is 0 (taken with the flash off: its light sits at the camera, fit/common/setup.py) shows no highlight
-    and is left out."""
+    light is 0 (taken with the flash off, wherever the capture places its light) shows no highlight and is left
+    out."""
     centre = np.asarray(centre, dtype=np.float64)
     frames = [f for f in frames if float(np.max(np.asarray(f.light_intensity, np.float64))) > 0]
     if len(frames) == 0:
