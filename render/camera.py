@@ -193,9 +193,12 @@ def struct_array(records: np.ndarray, dtype, device: str) -> wp.array:
 def _shadow_cameras(a: np.ndarray, frames, center: np.ndarray, radius: float, size: int) -> None:
     """Aim each photo's shadow-map camera from its light at the object's bounding sphere (records of
     :func:`image_infos`): perspective from a point light, orthographic along a directional one;
-    has_shadow stays 0 for no light and for a point light inside the bounds (no frustum covers it)."""
+    has_shadow stays 0 for no light, for a light of intensity 0 (a no-flash photo: it lights nothing, and its
+    samples skip the light's tests, fit/kernels/stream.py ``observe_with_unlit_func``: no map to render) and for a
+    point light inside the bounds (no frustum covers it)."""
     r = max(radius, 1e-9)
     kinds = np.array([fr.light_kind for fr in frames])
+    kinds[[not np.any(np.asarray(fr.light_intensity, float)) for fr in frames]] = "none"
     light = np.array([np.asarray(fr.light_vec, float) for fr in frames], np.float64).reshape(-1, 3)
     point, directional = kinds == "point", kinds == "directional"
     dist = np.linalg.norm(light - center, axis=1)

@@ -480,3 +480,16 @@ def test_the_lobe_shape_choice_leaves_out_photos_without_light():
     unlit = [frame(a, 0.0, 4.0 * lamp) for a in (10.0, 40.0)]  # the lamp, intensity 0
     assert light_view_angles(lit + unlit, np.zeros(3)).size == len(lit)
     assert choose_lobe_shape(lit + unlit, np.zeros(3), 10.0) == choose_lobe_shape(lit, np.zeros(3), 10.0) == "phong"
+
+
+def test_a_zero_light_gets_no_shadow_map():
+    """A no-flash photo's light lights nothing and its samples skip the light's tests, so it gets no shadow camera
+    (render/camera.py): its shadow map is not rendered; the same light with an intensity gets one."""
+    from texstream.render.camera import PhotoFrame, image_infos
+
+    def frame(intensity: float) -> PhotoFrame:
+        return PhotoFrame(np.eye(3), np.array([0.0, 0.0, 4.0]), 50.0, 50.0, 32.0, 32.0, 64, 64, "point",
+                          np.array([0.0, 0.0, -4.0]), np.full(3, intensity))
+
+    infos = image_infos([frame(40.0), frame(0.0)], None, np.zeros(3), 1.0, 64)
+    assert infos["has_shadow"].tolist() == [1, 0]
