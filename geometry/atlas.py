@@ -159,8 +159,8 @@ def from_xatlas_uv(uv: np.ndarray) -> np.ndarray:
     return np.stack([uv[:, 0], 1.0 - uv[:, 1]], axis=1)
 
 
-def build_atlas(mesh: SurfaceMesh, config: AtlasConfig,
-                face_weights: np.ndarray | None = None) -> tuple[SurfaceMesh, AtlasInfo]:
+def build_atlas(mesh: SurfaceMesh, config: AtlasConfig, face_weights: np.ndarray | None = None,
+                device: str = "cpu") -> tuple[SurfaceMesh, AtlasInfo]:
     """Give a mesh a UV atlas for texel fitting.
 
     Args:
@@ -168,6 +168,7 @@ def build_atlas(mesh: SurfaceMesh, config: AtlasConfig,
         config: charting and packing options.
         face_weights: (F,) non-negative relative importance per face; a chart's texel count scales
             with the area-weighted mean weight of its faces (module doc). None: uniform.
+        device: Warp device of the texel coverage checks (the run's, as every stage's).
 
     Returns:
         (mesh with per-vertex ``uvs`` in [0, 1]^2 (v up), split at chart seams, ``source_vertex``
@@ -188,9 +189,9 @@ def build_atlas(mesh: SurfaceMesh, config: AtlasConfig,
         else:
             usable, why = _uvs_usable(mesh, config)
             if usable:
-                return _keep_uvs(mesh, config, weights)
+                return _keep_uvs(mesh, config, weights, device)
             reason = f"mesh UVs replaced: {why}"
-    out, info = _xatlas_atlas(mesh, config, weights)
+    out, info = _xatlas_atlas(mesh, config, weights, device)
     info.reason = reason or "mesh had no UVs"
     return out, info
 
@@ -256,10 +257,10 @@ def _kept_side(mesh: SurfaceMesh, config: AtlasConfig) -> int:
     return max(side, 8)
 
 
-def _keep_uvs(mesh: SurfaceMesh, config: AtlasConfig,
-              weights: np.ndarray | None) -> tuple[SurfaceMesh, AtlasInfo]:
+def _keep_uvs(mesh: SurfaceMesh, config: AtlasConfig, weights: np.ndarray | None,
+              device: str) -> tuple[SurfaceMesh, AtlasInfo]:
     side = _kept_side(mesh, config)
-    n_cov, n_orphan, n_without = _coverage(mesh, side, side)
+    n_cov, n_orphan, n_without = _coverage(mesh, side, side, device)
     a_uv = float(np.abs(_uv_areas(mesh.uvs, mesh.faces)).sum())
     tpu = side * math.sqrt(a_uv / max(float(mesh.face_areas().sum()), 1e-30))
     reason = "mesh UVs kept: inside [0, 1], not degenerate, not overlapping"
@@ -274,10 +275,10 @@ def _keep_uvs(mesh: SurfaceMesh, config: AtlasConfig,
     return out, info
 
 
-def _coverage(mesh: SurfaceMesh, width: int, height: int, return_owned: bool = False):
+def _coverage(mesh: SurfaceMesh, width: int, height: int, device: str, return_owned: bool = False):
     """(covered texels, faces with no texel centre inside, faces still without a texel after
     the orphan rule), as the bake will find them; with ``return_owned`` also (F,) texels per face."""
-    face = claim_texels(mesh, width, height, claim_orphans=False).reshape(-1)
+    face = claim_texels(mesh, width, height, device, claim_orphans=False).reshape(-1)
     n_orphan = mesh.n_faces - len(np.unique(face[face >= 0]))
     tx, ty = _texel_vertex_coords(mesh, width, height)
     _claim_orphans(face, tx, ty, np.asarray(mesh.faces), width, height)
@@ -377,8 +378,8 @@ def _pack(uv_world: np.ndarray, faces: np.ndarray, chart: np.ndarray, config: At
     return atlas
 
 
-def _xatlas_atlas(mesh: SurfaceMesh, config: AtlasConfig,
-                  weights: np.ndarray | None) -> tuple[SurfaceMesh, AtlasInfo]:
+def _xatlas_atlas(mesh: SurfaceMesh, config: AtlasConfig, weights: np.ndarray | None,
+                  device: str) -> tuple[SurfaceMesh, AtlasInfo]:
     import xatlas
 
     faces_in = np.asarray(mesh.faces, dtype=np.uint32)
@@ -438,7 +439,7 @@ def _xatlas_atlas(mesh: SurfaceMesh, config: AtlasConfig,
     face_scale = np.sqrt(np.maximum(np.abs(_uv_areas(uv_world, idx_a)), 0.0) / np.maximum(area3, 1e-300))
     out = _atlas_mesh(mesh, atlas, vm_a)
     w, h = int(atlas.width), int(atlas.height)
-    n_cov, n_orphan, n_without, owned = _coverage(out, w, h, return_owned=True)
+    n_cov, n_orphan, n_without, owned = _coverage(out, w, h, device, return_owned=True)
     # Every face must own a texel: faces left without one (slivers, pole fans, faces crowded in a
     # texel) get a chart of their own of at least 2 texels and the charts are packed again, at
     # one fixed density a little under the first one (room for the new charts): a chart packed
@@ -469,7 +470,7 @@ def _xatlas_atlas(mesh: SurfaceMesh, config: AtlasConfig,
         chart, idx_a, uv_world, vm_a, atlas = c2, i2, u2, v2, atlas2
         out = _atlas_mesh(mesh, atlas, vm_a)
         w, h = int(atlas.width), int(atlas.height)
-        n_cov, n_orphan, n_without, owned = _coverage(out, w, h, return_owned=True)
+        n_cov, n_orphan, n_without, owned = _coverage(out, w, h, device, return_owned=True)
         tpu = tpu_fixed
         if n_without < best[0]:
             best = (n_without, out, atlas, tpu, n_cov, n_orphan, int(chart.max()) + 1)
@@ -686,7 +687,7 @@ def atlas_stage(mesh_path, out, config: AtlasConfig | None = None, face_weights:
                                reason="output exists for the same mesh and config")
     with phase("atlas", f"xatlas charts and packing of {mesh.n_faces} faces"):
         try:
-            atlas_mesh, info = build_atlas(mesh, config, face_weights)
+            atlas_mesh, info = build_atlas(mesh, config, face_weights, device)
         except InputError as e:  # the mesh's own fault (no area, nothing to chart): name its file
             if e.path is None:
                 e.path = str(mesh_path)
