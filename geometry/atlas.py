@@ -63,7 +63,7 @@ from texstream.core.progress import phase
 from .atlas_density import _density_charts, _scale_charts, _uv_areas
 from texstream.render.mesh import SurfaceMesh
 from .bake import _claim_orphans, _texel_vertex_coords, bake_texels, claim_texels
-from .density import density_face_weights, texel_size_spread
+from .density import density_face_weights, pixel_footprints, texel_size_spread
 from .mesh_io import load_mesh, save_mesh, validate_mesh
 from .seams import SEAMS_FILE, find_seams
 from .visibility import depth_maps
@@ -77,6 +77,13 @@ class AtlasConfig:
                                         "density is chosen to fill this size", min=8, max=16384)
     texels_per_unit: float = option(0.0, help="texel density in texels per scene unit (at face weight 1); "
                                               "0 derives it from resolution", min=0.0)
+    min_texel_pixels: float = option(1.0, help="with photos given (texstream run: its posed capture; texstream atlas "
+                                               "--capture): when texels at resolution would be narrower than this "
+                                               "many pixels in the tenth of the photos that see the mesh largest, "
+                                               "the charts are packed at the density of texels this wide instead: "
+                                               "a smaller atlas, no detail that a photo shows lost, fewer texels to "
+                                               "fit (the Middlebury temple's 640x480 photos: 0.81 px texels at "
+                                               "1024; 0: off)", min=0.0)
     padding: int = option(2, help="empty texels between charts (also the padding fill radius of the bake)",
                           min=0, max=64)
     bilinear: bool = option(True, help="reserve a one-texel border around charts so bilinear lookups "
@@ -632,8 +639,44 @@ def _fingerprint(path, face_weights: np.ndarray | None) -> dict:
     return fp
 
 
+def photo_texel_density(mesh: SurfaceMesh, frames, min_texel_pixels: float) -> tuple[float, dict]:
+    """(texels per scene unit, why) of texels ``min_texel_pixels`` pixels wide in the tenth of ``frames`` that see
+    ``mesh`` largest (:func:`.density.pixel_footprints`: a pixel's surface length at the mesh's median depth)."""
+    sizes = pixel_footprints(mesh, frames)
+    sizes = sizes[np.isfinite(sizes)]
+    if not sizes.size:
+        return 0.0, {"reason": "no photo sees the mesh"}
+    pixel = float(np.quantile(sizes, 0.1))
+    return 1.0 / (min_texel_pixels * pixel), {"pixel_footprint": pixel, "min_texel_pixels": min_texel_pixels}
+
+
+def sized_by_photos(mesh: SurfaceMesh, config: AtlasConfig, frames) -> tuple[AtlasConfig | None, dict]:
+    """(the config packing at the photos' density, or None to keep ``config``; what was decided and why). The
+    photos' density applies when ``resolution`` could give finer texels: at a utilization of 1 (every texel
+    covered) an atlas ``resolution`` wide has sqrt(surface area) / resolution wide texels, the finest it can."""
+    if frames is None or config.min_texel_pixels <= 0 or config.texels_per_unit > 0:
+        return None, {"sized_by": "resolution"}
+    tpu, why = photo_texel_density(mesh, frames, config.min_texel_pixels)
+    finest = config.resolution / math.sqrt(max(float(mesh.face_areas().sum()), 1e-30))
+    why = {"sized_by": "resolution", "photo_texels_per_unit": tpu, **why}
+    if tpu <= 0 or tpu >= finest:
+        return None, why
+    return dataclasses.replace(config, texels_per_unit=tpu), {**why, "sized_by": "photos"}
+
+
+def _sizing_line(info: AtlasInfo, sizing: dict) -> str:
+    """The run's resolution line of the atlas (pipelines/resolutions.py)."""
+    size = f"{info.width}x{info.height} texels"
+    if sizing.get("sized_by") == "photos":
+        return (f"{size}, sized by the photos: texels {sizing['min_texel_pixels']:g} px wide in the tenth of them "
+                "that see the mesh largest (atlas.min_texel_pixels; finer texels than the photos resolve add no detail)")
+    if "photo_texels_per_unit" in sizing:
+        return f"{size} (atlas.resolution: the photos resolve texels at least this fine)"
+    return f"{size} (atlas.resolution)"
+
+
 def atlas_stage(mesh_path, out, config: AtlasConfig | None = None, face_weights: np.ndarray | None = None,
-                device: str = "cpu", force: bool = False, capture=None):
+                device: str = "cpu", force: bool = False, capture=None, photos=None):
     """The atlas stage: mesh file -> folder with the UV-mapped mesh and the texel bake.
 
     Writes (atomically, all or nothing) into ``out``:
@@ -657,7 +700,10 @@ def atlas_stage(mesh_path, out, config: AtlasConfig | None = None, face_weights:
         force: recompute even when an up-to-date output exists.
         capture: capture folder whose photos set the texel density (faces seen larger get more
             texels: :func:`.density.density_face_weights`); ignored when ``face_weights`` is given.
-            The summary then reports the texel size in the photos (``texel_size_px``).
+            The summary then reports the texel size in the photos (``texel_size_px``). Its photos also size
+            the atlas, as ``photos`` does.
+        photos: capture folder whose photos cap the texel density (``config.min_texel_pixels``: no finer texels
+            than the photos resolve; the run's posed capture); the summary's ``sizing`` says which applied.
 
     Returns:
         StageResult whose summary is the atlas info.
@@ -674,7 +720,9 @@ def atlas_stage(mesh_path, out, config: AtlasConfig | None = None, face_weights:
             depths = depth_maps(mesh, frames, device)
             if face_weights is None:
                 face_weights = density_face_weights(mesh, frames, device, depths)
-    fp = _fingerprint(mesh_path, face_weights)
+    sizing_frames = frames if frames is not None else (read_capture(photos).frames if photos is not None else None)
+    packing, sizing = sized_by_photos(mesh, config, sizing_frames)
+    fp = {**_fingerprint(mesh_path, face_weights), "sizing": dict(sizing)}
     if not force and (out / "atlas_info.json").is_file() and (out / "atlas_config.json").is_file() \
             and (out / "bake.npz").is_file() and (out / "mesh.obj").is_file() and (out / "seams.npz").is_file():
         try:
@@ -687,7 +735,13 @@ def atlas_stage(mesh_path, out, config: AtlasConfig | None = None, face_weights:
                                reason="output exists for the same mesh and config")
     with phase("atlas", f"xatlas charts and packing of {mesh.n_faces} faces"):
         try:
-            atlas_mesh, info = build_atlas(mesh, config, face_weights, device)
+            try:
+                atlas_mesh, info = build_atlas(mesh, packing or config, face_weights, device)
+            except ConfigError:  # the photos' density would need an atlas wider than resolution: resolution's
+                if packing is None:
+                    raise
+                sizing["sized_by"] = "resolution"
+                atlas_mesh, info = build_atlas(mesh, config, face_weights, device)
         except InputError as e:  # the mesh's own fault (no area, nothing to chart): name its file
             if e.path is None:
                 e.path = str(mesh_path)
@@ -701,6 +755,7 @@ def atlas_stage(mesh_path, out, config: AtlasConfig | None = None, face_weights:
     summary = {**info.to_dict(), "n_faces": atlas_mesh.n_faces, "n_vertices": atlas_mesh.n_vertices,
                "seam_edges": seams.n_edges, "seam_samples": seams.n_samples,
                "density": "photos" if capture is not None else ("weights" if face_weights is not None else "uniform"),
+               "sizing": sizing, "resolution": _sizing_line(info, sizing),
                "bake_faces_without_texels": bake.faces_without_texels.tolist()[:100],
                "bake_coverage": bake.coverage, "input": fp}
     if frames is not None:

@@ -414,15 +414,17 @@ def _mesh_and_atlas(pipe: Pipeline, posed: bool, posed_dir: Path, out: Path, cfg
             atlas_needed = False
         else:
             atlas_needed = load_mesh(mesh_path).uvs is None
-    else:
-        pipe.run("mesh", mesh_dir, [pipe.stamp_of("register") if not posed else _files_hash(posed_dir),
-                                    pipe.stamp_of("ingest"), config_to_dict(cfg.mesh), cfg.device],
+    cameras = pipe.stamp_of("register") if not posed else _files_hash(posed_dir)
+    if mesh_path is None:
+        pipe.run("mesh", mesh_dir, [cameras, pipe.stamp_of("ingest"), config_to_dict(cfg.mesh), cfg.device],
                  "mesh from the photos (dense stereo or SfM points, and masks)",
                  lambda: make_mesh(posed_dir, mesh_dir, dataclasses.replace(cfg.mesh, device=cfg.device)))
         mesh_path = mesh_dir / "mesh.ply"
-    if atlas_needed:
-        pipe.run("atlas", atlas_dir, [pipe.stamp_of("mesh"), str(mesh_path), config_to_dict(cfg.atlas), cfg.device],
-                 "UV atlas (xatlas) and texel bake", lambda: atlas_stage(mesh_path, atlas_dir, cfg.atlas, device=cfg.device))
+    if atlas_needed:  # the posed photos cap its texel density (AtlasConfig.min_texel_pixels): their cameras key it
+        pipe.run("atlas", atlas_dir, [pipe.stamp_of("mesh"), str(mesh_path), config_to_dict(cfg.atlas), cfg.device,
+                                      cameras],
+                 "UV atlas (xatlas) and texel bake",
+                 lambda: atlas_stage(mesh_path, atlas_dir, cfg.atlas, device=cfg.device, photos=posed_dir))
         return atlas_dir
     pipe.skip("atlas", "the given mesh has UVs" if mesh_path.is_file() else "an atlas folder is given", mesh_path)
     return mesh_path

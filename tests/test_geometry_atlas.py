@@ -231,3 +231,53 @@ def cfg_from(d: dict) -> AtlasConfig:
     from texstream.core.config import config_from_dict
 
     return config_from_dict(AtlasConfig, d)
+
+
+def _camera_ring(n: int, distance: float, fx: float):
+    """Frames on a ring around the origin looking at it (what pixel_footprints reads: R, t, intrinsics.fx)."""
+    from types import SimpleNamespace
+
+    frames = []
+    for k in range(n):
+        a = 2 * np.pi * k / n
+        c = np.array([distance * np.cos(a), distance * np.sin(a), 0.0])
+        z = -c / np.linalg.norm(c)
+        x = np.cross([0.0, 0.0, 1.0], z)
+        x /= np.linalg.norm(x)
+        r = np.stack([x, np.cross(z, x), z])
+        frames.append(SimpleNamespace(R=r, t=-r @ c, intrinsics=SimpleNamespace(fx=fx)))
+    return frames
+
+
+def test_photos_that_resolve_coarse_texels_give_a_smaller_atlas(tmp_path, monkeypatch):
+    """The run's atlas is no finer than its photos resolve (AtlasConfig.min_texel_pixels): photos whose pixels
+    span more surface than a 1024-wide atlas's texels size the atlas by their density (texels one pixel wide),
+    photos that resolve finer texels leave it at resolution; the summary says which and why."""
+    from types import SimpleNamespace
+
+    import texstream.geometry.atlas as atlas_module
+    from texstream.geometry.atlas import sized_by_photos
+    from texstream.geometry.density import pixel_footprints, texel_unit
+    from texstream.geometry.mesh_io import load_mesh, save_mesh
+
+    mesh = icosphere(3)
+    cfg = AtlasConfig(resolution=256)
+    coarse = _camera_ring(8, 4.0, fx=40.0)  # a pixel spans about 0.1 of the unit sphere: ~60 texels around it
+    fine = _camera_ring(8, 4.0, fx=4000.0)
+    assert sized_by_photos(mesh, cfg, fine)[0] is None
+    packing, why = sized_by_photos(mesh, cfg, coarse)
+    assert why["sized_by"] == "photos" and packing.texels_per_unit == pytest.approx(1.0 / why["pixel_footprint"])
+    save_mesh(tmp_path / "sphere.obj", mesh)
+    frames = {"coarse": coarse, "fine": fine}
+    for name in ("coarse", "fine"):  # the photos' frames as a capture folder would give them
+        monkeypatch.setattr(atlas_module, "read_capture", lambda _path, f=frames[name]: SimpleNamespace(frames=f))
+        s = atlas_stage(tmp_path / "sphere.obj", tmp_path / name, cfg, photos=tmp_path).summary
+        if name == "fine":
+            assert s["sizing"]["sized_by"] == "resolution" and max(s["width"], s["height"]) > 200, s["resolution"]
+            continue
+        assert s["sizing"]["sized_by"] == "photos" and "sized by the photos" in s["resolution"]
+        side = (s["width"] * s["height"]) ** 0.5
+        texel = texel_unit(load_mesh(tmp_path / name / "mesh.obj")) / side
+        # texels about one pixel of the photos wide: within 15% (xatlas packs charts on a whole-texel grid with a
+        # padding, so the density it reaches is near, not at, the one asked for)
+        assert texel / float(np.quantile(pixel_footprints(mesh, coarse), 0.1)) == pytest.approx(1.0, rel=0.15)
