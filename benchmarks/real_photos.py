@@ -74,6 +74,8 @@ def main() -> None:
     ap.add_argument("--hull-fill", default="on", choices=("on", "off"),
                     help="the mesh stage's visual-hull samples where the points leave the surface open "
                          "(geometry/hull_fill.py)")
+    ap.add_argument("--min-texel-pixels", type=float, default=None,
+                    help="atlas.min_texel_pixels (default: the run's; 0: the atlas at its resolution whatever the photos)")
     ap.add_argument("--results", default=None, help="also copy the JSON here (e.g. benchmarks/results/real_photos)")
     args = ap.parse_args()
 
@@ -89,6 +91,8 @@ def main() -> None:
     out = Path(args.out)
     cfg = RunConfig(device=args.device)  # auto: no light known -> radiance and view_radiance, the better kept
     cfg.mesh = dataclasses.replace(cfg.mesh, dense=args.dense, hull_fill=args.hull_fill == "on")
+    if args.min_texel_pixels is not None:
+        cfg.atlas = dataclasses.replace(cfg.atlas, min_texel_pixels=args.min_texel_pixels)
     cfg.fit = dataclasses.replace(cfg.fit, holdout_every=args.holdout_every,
                                   fit=dataclasses.replace(cfg.fit.fit, max_iterations=args.iterations))
     t0 = time.perf_counter()
