@@ -1,8 +1,9 @@
 """The synthetic flash capture from its photos alone against the same fit given the true cameras, mesh and
 response (issue 39; JSON).
 
-    python benchmarks/flash_capture.py --out out/flash_capture [--photos 24] [--image-size 400] [--iterations 15]
-        [--variant-iterations 40] [--reuse] [--mesh-ab] [--no-flash-pairs]
+    python benchmarks/flash_capture.py --out out/flash_capture [--scene flash_sphere|flash_sphere_resolved]
+        [--photos 0] [--image-size 400] [--iterations 15] [--variant-iterations 40] [--atlas-resolution 0] [--reuse]
+        [--mesh-ab] [--no-flash-pairs]
 
 Renders ``texstream synth flash_capture`` (a glossy textured sphere, a flash at each camera, the room's light,
 a ColorChecker on a stand beside it, 8-bit photos through a tone curve: capture/synthetic/flash_capture.py), writes
@@ -17,7 +18,8 @@ fitted curve against the true one over the patches' codes); the flash's intensit
 (in the run's units: the true intensity x the curves' scale ratio x the SfM scale squared); per texel, the fitted
 albedo (pi rho_d), rho_s and n against the truth at the same surface point (the run's texels mapped into the truth's
 frame by the cameras' similarity, the nearest true texel), on the texels the photos saw and on those that saw their
-highlight in 5+ photos; the same fit without the ambient term; the mesh's vertices near the chart's quad (none
+highlight in 5+ photos, and on the texels the training photos constrain (``CONSTRAINED``, against
+docs/accuracy.md's per-texel bounds); the same fit without the ambient term; the mesh's vertices near the chart's quad (none
 wanted) and its distance to the true sphere. Writes ``OUT/flash_capture.json``.
 
 With ``--no-flash-pairs`` every camera also takes a photo with the flash off (``texstream synth flash_capture
@@ -72,6 +74,23 @@ def _facing_counts(frames, pos: np.ndarray, normal: np.ndarray) -> np.ndarray:
     return counts
 
 
+CONSTRAINED = ("texels faced by 4+ training flash photos (view cosine > 0.1) whose true highlight 2+ of them show at "
+               ">= 10% of its peak; bounds of docs/accuracy.md: albedo 1%, rho_s 3%, n 5%")
+"""the texels whose parameters the photos constrain, chosen before measuring: the lobe seen twice fixes its height
+and width, 4 photos the albedo beside the ambient term"""
+
+
+def _constrained(albedo: np.ndarray, rho_s: np.ndarray, n: np.ndarray, mask: np.ndarray) -> dict:
+    """The parameters' errors on the constrained texels (:data:`CONSTRAINED`) and the shares within the bounds."""
+    if not mask.any():
+        return {"definition": CONSTRAINED, "texels": 0}
+    a, r, e = albedo[mask], rho_s[mask], n[mask]
+    return {"definition": CONSTRAINED, "texels": int(mask.sum()), "albedo": _stats(a), "rho_s": _stats(r),
+            "n": _stats(e), "albedo_within_1pct": float(np.mean(a <= 0.01)),
+            "rho_s_within_3pct": float(np.mean(r <= 0.03)), "n_within_5pct": float(np.mean(e <= 0.05)),
+            "all_three_within": float(np.mean((a <= 0.01) & (r <= 0.03) & (e <= 0.05)))}
+
+
 def _texel_errors(model_dir: Path, truth_dir: Path, sim, truth_frames, training_frames=None) -> dict:
     """Per texel, the fitted albedo, rho_s and n against the truth at the same surface point (module doc); with
     ``training_frames`` (truth frames) also the albedo on the texels 4 or more of them face, and the ambient's."""
@@ -94,7 +113,8 @@ def _texel_errors(model_dir: Path, truth_dir: Path, sim, truth_frames, training_
     tp = truth[tbake.covered][idx]
     fp = grid[seen]
     tl, fl = tlay.lobe_offset(0), lay.lobe_offset(0) if lay.n_lobes else None
-    counts = highlight_counts(truth_frames, tpos[idx], tbake.normal[tbake.covered][idx].astype(np.float64), tp, tl)
+    tnormal = tbake.normal[tbake.covered][idx].astype(np.float64)
+    counts = highlight_counts(truth_frames, tpos[idx], tnormal, tp, tl)
     hl = counts >= 5  # docs/accuracy.md's highlight texels; with ~24 photos few texels see a lobe 5 times
     out = {"texels_seen": int(seen.sum()), "texels_with_highlight_5_photos": int(hl.sum()),
            "texels_with_highlight_2_photos": int((counts >= 2).sum()), "match_distance_median": float(np.median(dist))}
@@ -105,8 +125,11 @@ def _texel_errors(model_dir: Path, truth_dir: Path, sim, truth_frames, training_
     out["albedo_ratio_median"] = np.median(ratio, axis=0).tolist()
     out["albedo_rel_error_highlight"] = _stats(alb[hl])
     if training_frames is not None:
-        faced = _facing_counts(training_frames, tpos[idx], tbake.normal[tbake.covered][idx].astype(np.float64))
+        faced = _facing_counts(training_frames, tpos[idx], tnormal)
         out["albedo_rel_error_seen_4"] = _stats(alb[faced >= 4])
+        train_hl = highlight_counts(training_frames, tpos[idx], tnormal, tp, tl)
+        for k, m in (("none", train_hl == 0), ("once", train_hl == 1), ("twice_or_more", train_hl >= 2)):
+            out[f"albedo_rel_error_training_highlight_{k}"] = _stats(alb[m])
         if lay.ambient and tlay.ambient:
             amb = np.abs(fp[:, lay.ambient_offset:lay.ambient_offset + 3] / tp[:, tlay.ambient_offset:tlay.ambient_offset + 3]
                          - 1.0).max(axis=1)
@@ -118,6 +141,8 @@ def _texel_errors(model_dir: Path, truth_dir: Path, sim, truth_frames, training_
         out["n_rel_error_highlight"] = _stats(n[hl])
         out["rho_s_rel_error_highlight_2_photos"] = _stats(rs[counts >= 2])
         out["n_rel_error_highlight_2_photos"] = _stats(n[counts >= 2])
+        if training_frames is not None:
+            out["constrained"] = _constrained(alb, rs, n, (train_hl >= 2) & (faced >= 4))
         out["bounds_docs_accuracy"] = {"diffuse_within_1pct": float(np.mean(alb[hl] <= 0.01)) if hl.any() else None,
                                        "rho_s_within_3pct": float(np.mean(rs[hl] <= 0.03)) if hl.any() else None,
                                        "n_within_5pct": float(np.mean(n[hl] <= 0.05)) if hl.any() else None}
@@ -243,15 +268,18 @@ def _run(photos_or_capture: Path, out: Path, device: str, iterations: int, atlas
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="out/flash_capture")
-    ap.add_argument("--photos", type=int, default=24)
+    ap.add_argument("--scene", default="flash_sphere", choices=("flash_sphere", "flash_sphere_resolved"),
+                    help="the capture's object (capture/synthetic/flash_capture.py's module doc)")
+    ap.add_argument("--photos", type=int, default=0, help="photos (0: the scene's, 24 or 72)")
     ap.add_argument("--image-size", type=int, default=400)
     ap.add_argument("--iterations", type=int, default=15)
     ap.add_argument("--variant-iterations", type=int, default=40,
                     help="LM iterations of the fits with the ambient term forced on and off (0: --iterations; at 15 "
                          "the term's fit is unconverged and loses on held-out photos); the "
                          "term's extra unknowns converge more slowly")
-    ap.add_argument("--atlas-resolution", type=int, default=320,
-                    help="the photos-only run's atlas side (the truth's is 320x160: about 2x2 photo pixels a texel)")
+    ap.add_argument("--atlas-resolution", type=int, default=0,
+                    help="the photos-only run's atlas side (0: the truth atlas's width, 320 or 160: the resolved "
+                         "scene's photos give about 2x2 pixels a texel of 160)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--reuse", action="store_true",
                     help="keep OUT's capture, photos and the runs' stages whose inputs did not change (the pipeline's "
@@ -276,13 +304,17 @@ def main() -> None:
     truth_dir = out / "truth"
     if not (a.reuse and (out / "photos").is_dir()):
         shutil.rmtree(out, ignore_errors=True)
-        synthesize_flash_capture(truth_dir, FlashCaptureConfig(photos=a.photos, image_size=a.image_size,
-                                                               device=a.device, progress=False,
-                                                               no_flash_pairs=a.no_flash_pairs))
+        synthesize_flash_capture(truth_dir, FlashCaptureConfig(scene=a.scene, photos=a.photos,
+                                                               image_size=a.image_size, device=a.device,
+                                                               progress=False, no_flash_pairs=a.no_flash_pairs))
         write_photos_only(truth_dir, out / "photos")
     truth = read_capture(truth_dir)
     train_flash = [f for f in split_holdout(truth.frames, 8)[0] if flash_fired(f)]
     flash_truth = json.loads((truth_dir / "ground_truth" / "flash.json").read_text())
+    if flash_truth.get("scene", "flash_sphere") != a.scene:
+        raise SystemExit(f"{truth_dir} holds {flash_truth.get('scene', 'flash_sphere')}, not --scene {a.scene}: "
+                         "run without --reuse")
+    a.atlas_resolution = a.atlas_resolution or int(flash_truth["atlas"][0])
     if a.mesh_ab:
         ab = {"commit": commit, "machine": f"{platform.node()} ({os.cpu_count()} cores)",
               "command": f"python benchmarks/flash_capture.py --reuse --mesh-ab --photos {a.photos} "
@@ -300,7 +332,8 @@ def main() -> None:
     sim = _similarity(read_capture(fit_dir).frames, truth.frames)
     curve = _curve_check(out / "run" / "capture", truth_dir)
     result = {"commit": commit, "machine": f"{platform.node()} ({os.cpu_count()} cores)", "device": a.device,
-              "command": f"python benchmarks/flash_capture.py --photos {a.photos} --image-size {a.image_size} "
+              "command": f"python benchmarks/flash_capture.py --scene {a.scene} --photos {a.photos} "
+                         f"--image-size {a.image_size} "
                          f"--iterations {a.iterations} --variant-iterations {a.variant_iterations} "
                          f"--atlas-resolution {a.atlas_resolution}" + (" --no-flash-pairs" if a.no_flash_pairs else ""),
               "truth": flash_truth, "chart": curve, "similarity": {"scale": sim[0], "camera_rms": sim[3]}}
