@@ -294,6 +294,7 @@ def main() -> None:
 
     from texstream.capture.capture_json import flash_fired, read_capture, split_holdout
     from texstream.capture.synthetic.flash_capture import FlashCaptureConfig, synthesize_flash_capture
+    from texstream.capture.synthetic.flash_sampling import scene_sampling
     from texstream.capture.synthetic.photos_only import write_photos_only
 
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
@@ -336,7 +337,9 @@ def main() -> None:
                          f"--image-size {a.image_size} "
                          f"--iterations {a.iterations} --variant-iterations {a.variant_iterations} "
                          f"--atlas-resolution {a.atlas_resolution}" + (" --no-flash-pairs" if a.no_flash_pairs else ""),
-              "truth": flash_truth, "chart": curve, "similarity": {"scale": sim[0], "camera_rms": sim[3]}}
+              "truth": flash_truth, "chart": curve, "similarity": {"scale": sim[0], "camera_rms": sim[3]},
+              "sampling": scene_sampling(a.scene, sum(map(flash_fired, truth.frames)), truth.frames[0].intrinsics.width),
+              "load_before": os.getloadavg()}
     lights = run.get("lights") or {}
     if lights.get("source") == "colour chart":
         # the run's units: response (fitted = scale x true) and SfM lengths (1 / s of the truth's)

@@ -115,6 +115,7 @@ def main() -> None:
     from texstream.capture.capture_json import flash_fired, read_capture, split_holdout
     from texstream.fit.common.model_folder import pooled_psnr
     from texstream.capture.synthetic.flash_capture import FlashCaptureConfig, synthesize_flash_capture
+    from texstream.capture.synthetic.flash_sampling import scene_sampling
     from texstream.fit.optim.fitter import FitConfig
     from texstream.fit.stages.stage import FitStageConfig, fit_stage
 
@@ -136,6 +137,7 @@ def main() -> None:
                          f"--iterations {a.iterations} --modes {a.modes} --model {a.model}"
                          + (" --no-flash-pairs" if a.no_flash_pairs else ""), "modes": {}}
     train_flash = [f for f in split_holdout(truth.frames, 8)[0] if flash_fired(f)]
+    result["sampling"] = scene_sampling(a.scene, sum(map(flash_fired, truth.frames)), truth.frames[0].intrinsics.width)
     for mode in a.modes.split(","):
         cfg = FitStageConfig(device=a.device, holdout_every=8, renders=0,
                              fit=FitConfig(model=a.model, ambient=mode, max_iterations=a.iterations))
