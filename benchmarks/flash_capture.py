@@ -299,6 +299,7 @@ def main() -> None:
 
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                             cwd=Path(__file__).parent).stdout.strip()  # read before the run
+    load_before = os.getloadavg()  # the box is shared: its load says how far the times are inflated
     wp.config.quiet = True
     wp.config.log_level = wp.LOG_WARNING
     out = Path(a.out)
@@ -339,7 +340,7 @@ def main() -> None:
                          f"--atlas-resolution {a.atlas_resolution}" + (" --no-flash-pairs" if a.no_flash_pairs else ""),
               "truth": flash_truth, "chart": curve, "similarity": {"scale": sim[0], "camera_rms": sim[3]},
               "sampling": scene_sampling(a.scene, sum(map(flash_fired, truth.frames)), truth.frames[0].intrinsics.width),
-              "load_before": os.getloadavg()}
+              "load_before": load_before}
     lights = run.get("lights") or {}
     if lights.get("source") == "colour chart":
         # the run's units: response (fitted = scale x true) and SfM lengths (1 / s of the truth's)
@@ -373,6 +374,7 @@ def main() -> None:
     if not a.no_flash_pairs:
         result["ambient_gain_db"] = (result["photos_only_ambient_on"]["heldout"]["pooled_psnr_db"]
                                      - result["photos_only_ambient_off"]["heldout"]["pooled_psnr_db"])
+    result["load_after"] = os.getloadavg()
     (out / "flash_capture.json").write_text(json.dumps(result, indent=2, default=float))
     print(json.dumps({k: result.get(k) for k in ("gap_db", "ambient_gain_db")}, indent=1))
 
