@@ -5,8 +5,10 @@ rendering), so that a test holds the scene to them and a benchmark records them 
 - **pixels a texel**: a texel's footprint in a photo, the area of its two atlas edges projected (pinhole, exact for
   a texel small against its distance), in the photos facing it (view cosine above 0.1, the fit's grazing limit); the
   issue's "4x the pixels the atlas needs" is 4 in the median facing photo;
-- **texel contrast**: the true albedo's largest relative step to a 4-neighbour in the atlas; a texture band-limited
-  to the atlas changes by a fraction of itself from one texel to the next;
+- **texels a noise cell**: the width in texels of the finest octave's cells of the value-noise albedo (its lattice
+  spacing along u); band-limited to the atlas (its Nyquist period 2 texels) when a cell spans 3 texels or more;
+- **texel contrast**: the true albedo's largest relative step to a 4-neighbour in the atlas (frequency and
+  amplitude together: the noise's amount and sharpening raise it too);
 - **highlights**: the training photos (every 8th held out, the benchmarks' split) in which a texel's true lobe is
   at 10% of its peak or more, the flash at the camera (as ``texstream.fit.diagnostics.accuracy.highlight_counts``,
   which this layer may not import): a lobe is pinned down where two photos show it.
@@ -65,9 +67,13 @@ def scene_sampling(scene: str, photos: int, image_size: int) -> dict:
     for shift in ((0, 1), (1, 0), (0, -1), (-1, 0)):
         contrast = np.fmax(contrast, np.abs(np.roll(lum, shift, (0, 1)) / lum - 1.0))
     seen = shown >= 1
+    noise = [m["noise"] for m in sc["materials"].values() if m.get("noise")]
+    cells = [(n["cells"] if isinstance(n["cells"], (int, float)) else n["cells"][0]) * 2 ** (int(n["octaves"]) - 1)
+             for n in noise]
     return {"scene": scene, "photos": photos, "image_size": image_size, "atlas": [bake.width, bake.height],
             "training_photos": len(train), "texels": int(inner.sum()),
             "pixels_a_texel_median_facing_photo": float(np.median(median_px)),
+            "texels_a_noise_cell": bake.width / max(cells) if cells else None,
             "texel_contrast_median": float(np.nanmedian(contrast[inner])),
             "texels_faced_by_4": float(np.mean(faced >= 4)),
             "texels_highlight_shown": float(np.mean(seen)),
