@@ -39,10 +39,10 @@ rings sampled as the issue asks, each value chosen from those figures: a 160x80 
 the median facing photo 5.1, 4x the first's), the noise band-limited to it (one octave of 48x24 cells, 3.3 texels
 a cell against the atlas's Nyquist period of 2, sharpened by tanh(2 x): contrast 29% median; two softer octaves of
 24x12 cells gave SIFT 12-29 features on the sphere a photo and registration failed, this 80, the first 340) and 72
-cameras, 36 a ring, so that neighbours along a ring are
-at most 8.8 degrees apart, within the highlight's 9.7 (48% of the texels that see their highlight see it in 2+
-training photos; a few more rings would be needed for every texel). Real flash captures of heritage objects take
-50-200 photos.
+cameras, 36 a ring, so that neighbours along a ring are at most 8.8 degrees apart, within the highlight's 9.7 (48%
+of the texels that see their highlight see it in 2+ training photos; a few more rings would be needed for every
+texel). Real flash captures of heritage objects take 50-200 photos. ``flash_sampling.scene_sampling`` computes
+these figures.
 """
 
 from __future__ import annotations
