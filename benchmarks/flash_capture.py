@@ -17,7 +17,8 @@ the photos-only figure also given corrected by the two curves' scale ratio); the
 fitted curve against the true one over the patches' codes); the flash's intensity from the chart against the truth
 (in the run's units: the true intensity x the curves' scale ratio x the SfM scale squared); per texel, the fitted
 albedo (pi rho_d), rho_s and n against the truth at the same surface point (the run's texels mapped into the truth's
-frame by the cameras' similarity, the nearest true texel), on the texels the photos saw and on those that saw their
+frame by the cameras' similarity, the nearest true texel, or with a fit atlas coarser than the truth's the mean of
+the true texels nearest each fitted texel: the texture a coarser atlas can hold), on the texels the photos saw and on those that saw their
 highlight in 5+ photos, and on the texels the training photos constrain (``CONSTRAINED``, against
 docs/accuracy.md's per-texel bounds); the same fit without the ambient term; the mesh's vertices near the chart's quad (none
 wanted) and its distance to the true sphere. Writes ``OUT/flash_capture.json``.
@@ -91,6 +92,21 @@ def _constrained(albedo: np.ndarray, rho_s: np.ndarray, n: np.ndarray, mask: np.
             "all_three_within": float(np.mean((a <= 0.01) & (r <= 0.03) & (e <= 0.05)))}
 
 
+def _truth_over_fit_texels(fit_pos: np.ndarray, fit_seen: np.ndarray, truth_pos: np.ndarray, truth: np.ndarray,
+                           nearest: np.ndarray) -> np.ndarray:
+    """(seen fit texels, P) the mean of the true texels nearest each fitted texel (its footprint on the surface,
+    in the truth's frame): what a texel of a coarser atlas can hold of a finer texture; ``nearest`` (the nearest
+    true texel's values) where no true texel falls to it."""
+    from scipy.spatial import cKDTree
+
+    owner = cKDTree(fit_pos).query(truth_pos)[1]
+    total = np.zeros((len(fit_pos), truth.shape[1]))
+    np.add.at(total, owner, truth.astype(np.float64))
+    count = np.bincount(owner, minlength=len(fit_pos))
+    mean = total / np.maximum(count, 1)[:, None]
+    return np.where((count > 0)[fit_seen][:, None], mean[fit_seen], nearest).astype(np.float32)
+
+
 def _texel_errors(model_dir: Path, truth_dir: Path, sim, truth_frames, training_frames=None) -> dict:
     """Per texel, the fitted albedo, rho_s and n against the truth at the same surface point (module doc); with
     ``training_frames`` (truth frames) also the albedo on the texels 4 or more of them face, and the ambient's."""
@@ -111,12 +127,17 @@ def _texel_errors(model_dir: Path, truth_dir: Path, sim, truth_frames, training_
     tpos = tbake.position[tbake.covered].astype(np.float64)
     dist, idx = cKDTree(tpos).query(pos)
     tp = truth[tbake.covered][idx]
+    coarser = bake.covered.sum() < 0.75 * tbake.covered.sum()
+    if coarser:  # a fit atlas coarser than the truth's: the truth averaged over each fitted texel (module doc)
+        tp = _truth_over_fit_texels(s * bake.position[bake.covered].astype(np.float64) @ r.T + t,
+                                    seen[bake.covered], tpos, truth[tbake.covered], tp)
     fp = grid[seen]
     tl, fl = tlay.lobe_offset(0), lay.lobe_offset(0) if lay.n_lobes else None
     tnormal = tbake.normal[tbake.covered][idx].astype(np.float64)
     counts = highlight_counts(truth_frames, tpos[idx], tnormal, tp, tl)
     hl = counts >= 5  # docs/accuracy.md's highlight texels; with ~24 photos few texels see a lobe 5 times
-    out = {"texels_seen": int(seen.sum()), "texels_with_highlight_5_photos": int(hl.sum()),
+    out = {"truth": "averaged over each fitted texel" if coarser else "the nearest true texel",
+           "texels_seen": int(seen.sum()), "texels_with_highlight_5_photos": int(hl.sum()),
            "texels_with_highlight_2_photos": int((counts >= 2).sum()), "match_distance_median": float(np.median(dist))}
     ratio = fp[:, 0:3] / tp[:, 0:3]  # albedo = pi rho_d: the ratio is the same
     alb = np.abs(ratio - 1.0).max(axis=1)
@@ -278,8 +299,8 @@ def main() -> None:
                          "the term's fit is unconverged and loses on held-out photos); the "
                          "term's extra unknowns converge more slowly")
     ap.add_argument("--atlas-resolution", type=int, default=0,
-                    help="the photos-only run's atlas side (0: the truth atlas's width, 320 or 160: the resolved "
-                         "scene's photos give about 2x2 pixels a texel of 160)")
+                    help="the photos-only run's atlas side (0: the width of the scene's fit atlas, 320, or 160 for "
+                         "the resolved scene, whose photos give about 2x2 pixels a texel of 160)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--reuse", action="store_true",
                     help="keep OUT's capture, photos and the runs' stages whose inputs did not change (the pipeline's "
@@ -293,7 +314,7 @@ def main() -> None:
     import warp as wp
 
     from texstream.capture.capture_json import flash_fired, read_capture, split_holdout
-    from texstream.capture.synthetic.flash_capture import FlashCaptureConfig, synthesize_flash_capture
+    from texstream.capture.synthetic.flash_capture import FlashCaptureConfig, fit_geometry, synthesize_flash_capture
     from texstream.capture.synthetic.flash_sampling import scene_sampling
     from texstream.capture.synthetic.photos_only import write_photos_only
 
@@ -316,7 +337,7 @@ def main() -> None:
     if flash_truth.get("scene", "flash_sphere") != a.scene:
         raise SystemExit(f"{truth_dir} holds {flash_truth.get('scene', 'flash_sphere')}, not --scene {a.scene}: "
                          "run without --reuse")
-    a.atlas_resolution = a.atlas_resolution or int(flash_truth["atlas"][0])
+    a.atlas_resolution = a.atlas_resolution or int((flash_truth.get("fit_atlas") or flash_truth["atlas"])[0])
     if a.mesh_ab:
         ab = {"commit": commit, "machine": f"{platform.node()} ({os.cpu_count()} cores)",
               "command": f"python benchmarks/flash_capture.py --reuse --mesh-ab --photos {a.photos} "
@@ -328,7 +349,7 @@ def main() -> None:
 
     run, run_s = _run(out / "photos", out / "run", a.device, a.iterations, a.atlas_resolution, photos_only=True)
     ref, ref_s = _run(truth_dir, out / "reference", a.device, a.iterations, a.atlas_resolution, photos_only=False,
-                      mesh=str(truth_dir / "ground_truth"))
+                      mesh=str(fit_geometry(truth_dir, out / "fit_geometry", a.device)))
     fit_dir = next(d for d in (out / "run" / "refine", out / "run" / "lights", out / "run" / "posed")
                    if (d / "capture.json").is_file())
     sim = _similarity(read_capture(fit_dir).frames, truth.frames)

@@ -114,7 +114,7 @@ def main() -> None:
 
     from texstream.capture.capture_json import flash_fired, read_capture, split_holdout
     from texstream.fit.common.model_folder import pooled_psnr
-    from texstream.capture.synthetic.flash_capture import FlashCaptureConfig, synthesize_flash_capture
+    from texstream.capture.synthetic.flash_capture import FlashCaptureConfig, fit_geometry, synthesize_flash_capture
     from texstream.capture.synthetic.flash_sampling import scene_sampling
     from texstream.fit.optim.fitter import FitConfig
     from texstream.fit.stages.stage import FitStageConfig, fit_stage
@@ -137,6 +137,7 @@ def main() -> None:
                          f"--iterations {a.iterations} --modes {a.modes} --model {a.model}"
                          + (" --no-flash-pairs" if a.no_flash_pairs else ""), "modes": {}}
     train_flash = [f for f in split_holdout(truth.frames, 8)[0] if flash_fired(f)]
+    geometry = fit_geometry(truth_dir, out / f"fit_geometry{tag}", a.device)
     result["sampling"] = scene_sampling(a.scene, sum(map(flash_fired, truth.frames)), truth.frames[0].intrinsics.width)
     for mode in a.modes.split(","):
         cfg = FitStageConfig(device=a.device, holdout_every=8, renders=0,
@@ -144,7 +145,7 @@ def main() -> None:
         t0 = time.perf_counter()
         fit_dir = out / f"fit_{a.model}_{mode}{tag}"
         if not a.score_only:
-            fit_stage(truth_dir, truth_dir / "ground_truth", fit_dir, cfg, progress=False)
+            fit_stage(truth_dir, geometry, fit_dir, cfg, progress=False)
         man = json.loads((fit_dir / "model.json").read_text())
         tex = _texel_errors(fit_dir, truth_dir, (1.0, np.eye(3), np.zeros(3)), truth.frames, train_flash)
         flash_views = [v for v in man.get("render_eval", []) if v.get("held_out") and "noflash" not in v["frame"]]
@@ -157,7 +158,9 @@ def main() -> None:
                                  "training_psnr_db": man["final"].get("psnr_db"),
                                  "albedo_rel_error": tex["albedo_rel_error"],
                                  "albedo_rel_error_seen_4": tex["albedo_rel_error_seen_4"],
-                                 "albedo_breakdown": albedo_breakdown(fit_dir, truth_dir, train_flash),
+                                 "albedo_breakdown": albedo_breakdown(fit_dir, truth_dir, train_flash)
+                                 if geometry.name == "ground_truth" else None,  # it compares the same atlas's texels
+                                 "truth": tex["truth"],
                                  "constrained": tex.get("constrained"),
                                  "albedo_by_training_highlights": {k: tex.get(f"albedo_rel_error_training_highlight_{k}")
                                                                    for k in ("none", "once", "twice_or_more")},

@@ -9,12 +9,12 @@ def test_resolved_flash_scene_meets_the_issues_sampling_and_the_first_does_not()
     size = FlashCaptureConfig().image_size
     first = scene_sampling("flash_sphere", 24, size)
     resolved = scene_sampling("flash_sphere_resolved", 72, size)
-    # the issue's "4x the pixels the atlas needs": 4 pixels a texel in the median facing photo (the first: 1.26)
-    assert resolved["pixels_a_texel_median_facing_photo"] >= 4.0 > 2.0 > first["pixels_a_texel_median_facing_photo"]
-    # band-limited to the atlas (Nyquist: a period of 2 texels): noise cells of 3.3 texels against the first's 1.7
-    # (its second octave), whose albedo then differs from its neighbours' by 37% at the median texel (29% here)
-    assert resolved["texels_a_noise_cell"] >= 3.0 > 2.0 > first["texels_a_noise_cell"]
-    assert resolved["texel_contrast_median"] < first["texel_contrast_median"]
+    # the issue's "4x the pixels the atlas needs": 4 pixels a fitted texel in the median facing photo (the first's
+    # photos give its atlas 1.26; the resolved scene's fit atlas has a quarter of the truth's texels: 5.0)
+    assert resolved["pixels_a_fit_texel_median_facing_photo"] >= 4.0 > 2.0 > first["pixels_a_fit_texel_median_facing_photo"]
+    # the same texture, finer than either fit atlas (a real object's; SIFT registers on it): the benchmarks score the
+    # albedo against the truth averaged over each fitted texel
+    assert resolved["fit_texels_a_noise_cell"] < 2.0 and first["fit_texels_a_noise_cell"] < 2.0
     # the exponent-40 highlight shown twice: none of the first's texels, about half of the resolved scene's that
     # show it at all (cameras along a ring within the lobe's 9.7-degree reach; between the rings none)
     assert first["highlight_shown_twice_of_shown"] == 0.0

@@ -4,9 +4,11 @@ rendering), so that a test holds the scene to them and a benchmark records them 
 
 - **pixels a texel**: a texel's footprint in a photo, the area of its two atlas edges projected (pinhole, exact for
   a texel small against its distance), in the photos facing it (view cosine above 0.1, the fit's grazing limit); the
-  issue's "4x the pixels the atlas needs" is 4 in the median facing photo;
-- **texels a noise cell**: the width in texels of the finest octave's cells of the value-noise albedo (its lattice
-  spacing along u); band-limited to the atlas (its Nyquist period 2 texels) when a cell spans 3 texels or more;
+  issue's "4x the pixels the atlas needs" is 4 in the median facing photo; given for the truth's atlas and for the
+  fit's (``FIT_ATLAS``, the same UVs: the truth's figure times the ratio of the texel counts);
+- **texels a noise cell**: the width in texels of the fit's atlas of the finest octave's cells of the value-noise
+  albedo (its lattice spacing along u); band-limited to the atlas (its Nyquist period 2 texels) when a cell spans 3
+  texels or more;
 - **texel contrast**: the true albedo's largest relative step to a 4-neighbour in the atlas (frequency and
   amplitude together: the noise's amount and sharpening raise it too);
 - **highlights**: the training photos (every 8th held out, the benchmarks' split) in which a texel's true lobe is
@@ -20,6 +22,7 @@ import numpy as np
 
 from texstream.capture.capture_json import split_holdout
 
+from .flash_capture import FIT_ATLAS
 from .synth import SynthConfig, _frames, prepare_scene
 
 HOLDOUT_EVERY = 8
@@ -70,10 +73,13 @@ def scene_sampling(scene: str, photos: int, image_size: int) -> dict:
     noise = [m["noise"] for m in sc["materials"].values() if m.get("noise")]
     cells = [(n["cells"] if isinstance(n["cells"], (int, float)) else n["cells"][0]) * 2 ** (int(n["octaves"]) - 1)
              for n in noise]
+    fit_w, fit_h = FIT_ATLAS.get(scene) or (bake.width, bake.height)
+    px = float(np.median(median_px))
     return {"scene": scene, "photos": photos, "image_size": image_size, "atlas": [bake.width, bake.height],
-            "training_photos": len(train), "texels": int(inner.sum()),
-            "pixels_a_texel_median_facing_photo": float(np.median(median_px)),
-            "texels_a_noise_cell": bake.width / max(cells) if cells else None,
+            "fit_atlas": [fit_w, fit_h], "training_photos": len(train), "texels": int(inner.sum()),
+            "pixels_a_texel_median_facing_photo": px,
+            "pixels_a_fit_texel_median_facing_photo": px * bake.width * bake.height / (fit_w * fit_h),
+            "fit_texels_a_noise_cell": fit_w / max(cells) if cells else None,
             "texel_contrast_median": float(np.nanmedian(contrast[inner])),
             "texels_faced_by_4": float(np.mean(faced >= 4)),
             "texels_highlight_shown": float(np.mean(seen)),
