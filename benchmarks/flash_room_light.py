@@ -158,6 +158,7 @@ def main() -> None:
                                  "training_psnr_db": man["final"].get("psnr_db"),
                                  "albedo_rel_error": tex["albedo_rel_error"],
                                  "albedo_rel_error_seen_4": tex["albedo_rel_error_seen_4"],
+                                 "albedo_rel_error_neighbourhood": tex["albedo_rel_error_neighbourhood"],
                                  "albedo_breakdown": albedo_breakdown(fit_dir, truth_dir, train_flash)
                                  if geometry.name == "ground_truth" else None,  # it compares the same atlas's texels
                                  "truth": tex["truth"],
