@@ -20,3 +20,24 @@ def test_resolved_flash_scene_meets_the_issues_sampling_and_the_first_does_not()
     assert first["highlight_shown_twice_of_shown"] == 0.0
     assert resolved["highlight_shown_twice_of_shown"] > 0.4
     assert resolved["texels_highlight_shown"] > first["texels_highlight_shown"]
+
+
+def test_fit_geometry_bakes_the_truths_mesh_at_the_fit_atlas(tmp_path):
+    import json
+
+    from texstream.capture.synthetic.flash_capture import fit_geometry
+    from texstream.capture.synthetic.procedural import uv_sphere
+    from texstream.geometry.bake import TexelBake
+    from texstream.geometry.mesh_io import save_mesh
+
+    gt = tmp_path / "capture" / "ground_truth"
+    gt.mkdir(parents=True)
+    save_mesh(gt / "mesh.obj", uv_sphere(1.0, 24, 12))
+    (gt / "flash.json").write_text(json.dumps({"fit_atlas": [32, 16]}))
+    geometry = fit_geometry(tmp_path / "capture", tmp_path / "fit_geometry")
+    bake = TexelBake.load(geometry / "bake.npz")
+    # the fit's atlas at the size asked, on the truth's mesh (copied beside it), most of the UV square on the surface
+    assert (bake.width, bake.height) == (32, 16) and (geometry / "mesh.obj").is_file()
+    assert bake.covered.mean() > 0.8
+    (gt / "flash.json").write_text(json.dumps({"fit_atlas": None}))  # the first scene: the truth's own atlas
+    assert fit_geometry(tmp_path / "capture", tmp_path / "unused") == gt

@@ -61,6 +61,7 @@ from texstream.capture.response import PhotoResponse
 from texstream.core.config import option
 from texstream.core.outputs import StageResult, atomic_output_dir, read_json, write_json_atomic
 from texstream.geometry.bake import bake_texels
+from texstream.geometry.mesh_io import load_mesh
 from texstream.render.renderer import Renderer
 
 from .colour_chart import chart_plane, filmic_codes, paste_chart
@@ -284,7 +285,7 @@ def fit_geometry(capture_dir: str | Path, out: str | Path, device: str = "cpu") 
         return gt
     out = Path(out)
     if not (out / "bake.npz").is_file():
-        mesh = load_ground_truth(capture_dir)[0]
+        mesh = load_mesh(gt / "mesh.obj").with_normals()
         with atomic_output_dir(out) as tmp:
             shutil.copy(gt / "mesh.obj", tmp / "mesh.obj")
             bake_texels(mesh, int(size[0]), int(size[1]), device=device, padding=2).save(tmp / "bake.npz")
