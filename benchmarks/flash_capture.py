@@ -121,11 +121,9 @@ def _neighbourhood_error(pos: np.ndarray, fitted: np.ndarray, truth: np.ndarray)
     return _stats(np.abs(f / t - 1.0).max(axis=1))
 
 
-def _texel_errors(model_dir: Path, truth_dir: Path, sim, truth_frames, training_frames=None,
-                  radiance_scale: float = 1.0) -> dict:
+def _texel_errors(model_dir: Path, truth_dir: Path, sim, truth_frames, training_frames=None) -> dict:
     """Per texel, the fitted albedo, rho_s and n against the truth at the same surface point (module doc); with
-    ``training_frames`` (truth frames) also the albedo on the texels 4 or more of them face, and the ambient's (a
-    radiance: the fitted one divided by ``radiance_scale``, the run's response over the true one)."""
+    ``training_frames`` (truth frames) also the albedo on the texels 4 or more of them face, and the ambient's."""
     from scipy.spatial import cKDTree
 
     from texstream.capture.imageio import read_image
@@ -169,8 +167,8 @@ def _texel_errors(model_dir: Path, truth_dir: Path, sim, truth_frames, training_
         for k, m in (("none", train_hl == 0), ("once", train_hl == 1), ("twice_or_more", train_hl >= 2)):
             out[f"albedo_rel_error_training_highlight_{k}"] = _stats(alb[m])
         if lay.ambient and tlay.ambient:
-            amb = np.abs(fp[:, lay.ambient_offset:lay.ambient_offset + 3] / radiance_scale
-                         / tp[:, tlay.ambient_offset:tlay.ambient_offset + 3] - 1.0).max(axis=1)
+            amb = np.abs(fp[:, lay.ambient_offset:lay.ambient_offset + 3] / tp[:, tlay.ambient_offset:tlay.ambient_offset + 3]
+                         - 1.0).max(axis=1)
             out["ambient_rel_error"] = _stats(amb)
     if fl is not None:
         rs = np.abs(fp[:, fl:fl + 3] / tp[:, tl:tl + 3] - 1.0).max(axis=1)
@@ -394,8 +392,7 @@ def main() -> None:
                              "stages": [{k: st[k] for k in ("name", "status", "reason", "seconds")} for st in run["stages"]],
                              "registered": len(read_capture(fit_dir).frames),
                              "ambient": _ambient_choice(out / "run" / "model"),
-                             "texels": _texel_errors(out / "run" / "model", truth_dir, sim, truth.frames, train_flash,
-                                                     curve["scale_fitted_over_true"]),
+                             "texels": _texel_errors(out / "run" / "model", truth_dir, sim, truth.frames, train_flash),
                              "mesh": _mesh_checks(out / "run" / "mesh" / "mesh.ply", sim)}
     result["true_inputs"] = {"heldout": _heldout(ref), "seconds": ref_s, "inputs": ref["inputs"],
                              "heldout_flash": heldout_flash(out / "reference" / "model"),
@@ -409,8 +406,7 @@ def main() -> None:
         result[key] = _fit_ambient(out / "run", out / f"run_ambient_{mode}", mode, a.device,
                                    a.variant_iterations or a.iterations)
         result[key]["heldout_flash"] = heldout_flash(out / f"run_ambient_{mode}")
-        result[key]["texels"] = _texel_errors(out / f"run_ambient_{mode}", truth_dir, sim, truth.frames, train_flash,
-                                              curve["scale_fitted_over_true"])
+        result[key]["texels"] = _texel_errors(out / f"run_ambient_{mode}", truth_dir, sim, truth.frames, train_flash)
     if not a.no_flash_pairs:
         result["ambient_gain_db"] = (result["photos_only_ambient_on"]["heldout"]["pooled_psnr_db"]
                                      - result["photos_only_ambient_off"]["heldout"]["pooled_psnr_db"])
