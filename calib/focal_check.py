@@ -41,6 +41,15 @@ def _model_quality(recs: dict[int, Any]) -> tuple[int, float]:
     return rec.num_reg_images(), -float(rec.compute_mean_reprojection_error())
 
 
+def _error_or_none(quality: tuple[int, float]) -> float | None:
+    return -quality[1] if np.isfinite(quality[1]) else None
+
+
+def _quality_text(quality: tuple[int, float]) -> str:
+    return (f"{quality[0]} photos, {-quality[1]:.3f} px" if np.isfinite(quality[1])
+            else "no model")
+
+
 def check_focal_prior(recs: dict[int, Any], db: Path, n_photos: int, report: dict,
                       remap: Callable[[], dict[int, Any]]) -> dict[int, Any]:
     """Mapping again without the EXIF focal prior when the mapping with it looks wrong; the better model kept.
@@ -98,10 +107,12 @@ def check_focal_prior(recs: dict[int, Any], db: Path, n_photos: int, report: dic
     q0, q1 = _model_quality(recs), _model_quality(again)
     keep = "no_prior" if q1 > q0 else "prior"
     line = (f"focal prior: kept the mapping {'without' if keep == 'no_prior' else 'with'} the EXIF prior "
-            f"(with: {q0[0]} photos, {-q0[1]:.3f} px; without: {q1[0]} photos, {-q1[1]:.3f} px)")
+            f"(with: {_quality_text(q0)}; without: {_quality_text(q1)})")
     say("register", line)
+    # a mapping that made no model has no reprojection error: None in the report (JSON has no infinity; the
+    # report of a failed registration must still be written)
     info.update(retried=True, reason="; ".join(why), kept=keep, decision=line,
                 retry_s=round(time.perf_counter() - t0, 2),
-                with_prior={"registered": q0[0], "reprojection_error": -q0[1]},
-                without_prior={"registered": q1[0], "reprojection_error": -q1[1]})
+                with_prior={"registered": q0[0], "reprojection_error": _error_or_none(q0)},
+                without_prior={"registered": q1[0], "reprojection_error": _error_or_none(q1)})
     return again if keep == "no_prior" else recs

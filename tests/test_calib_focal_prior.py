@@ -115,3 +115,20 @@ def test_registration_recovers_from_a_prior_six_times_too_long(tmp_path):
     report = json.loads((tmp_path / "reg" / "registration_report.json").read_text())
     assert report["focal_prior"]["retried"] and report["focal_prior"]["kept"] == "no_prior"
     assert "without the EXIF prior" in read_capture(tmp_path / "reg").extra["focal_prior_registration"]
+
+
+def test_a_mapping_without_a_model_is_reported_not_crashed_on(tmp_path):
+    """A mapping that registered nothing has no reprojection error (calib/focal_check.py): the report says None
+    and "no model" and is written (JSON has no infinity: a failed registration's report once crashed on it,
+    hiding the real error)."""
+    import numpy as np
+
+    from texstream.calib.focal_check import _error_or_none, _model_quality, _quality_text
+    from texstream.core.outputs import read_json, write_json_atomic
+
+    none = _model_quality({})
+    assert none[0] == 0 and not np.isfinite(none[1])
+    assert _error_or_none(none) is None and _quality_text(none) == "no model"
+    assert _error_or_none((12, -0.75)) == 0.75 and _quality_text((12, -0.75)) == "12 photos, 0.750 px"
+    write_json_atomic(tmp_path / "r.json", {"with_prior": {"registered": 0, "reprojection_error": _error_or_none(none)}})
+    assert read_json(tmp_path / "r.json")["with_prior"]["reprojection_error"] is None
