@@ -3,7 +3,7 @@
 SCENE is a built-in scene (sphere, flat_sample, bunny, ornament) or a scene JSON file; see
 :mod:`texstream.capture.synthetic.synth` for the scene keys. ``flash_capture`` writes the synthetic flash capture
 (:mod:`texstream.capture.synthetic.flash_capture`: 8-bit tone-mapped photos with a colour chart in view; options
---photos, --image-size, --noise, --room-light, --seed, --device, --no-flash-pairs). Example:
+--photos, --image-size, --noise, --room-light, --seed, --device, --no-flash-pairs, --object). Example:
 
     texstream synth ornament -o out/ornament --scale 0.05 --bits 8 --noise 0.005 --save-clean
 
@@ -18,7 +18,7 @@ import argparse
 import dataclasses
 from pathlib import Path
 
-from texstream.capture.synthetic.flash_capture import FLASH_CAPTURE, flash_config, synthesize_flash_capture
+from texstream.capture.synthetic.flash_capture import FLASH_CAPTURE, FLASH_SCENES, flash_config, synthesize_flash_capture
 from texstream.capture.synthetic.synth import SynthConfig, builtin_scenes, synthesize
 from texstream.core.errors import ConfigError
 from texstream.core.outputs import OutputTarget
@@ -32,6 +32,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_config_arguments(parser, SynthConfig)
     parser.add_argument("--no-flash-pairs", dest="no_flash_pairs", action="store_true",
                         help=f"{FLASH_CAPTURE} only: each camera also takes a photo with the flash off (a pair)")
+    parser.add_argument("--object", choices=FLASH_SCENES, default=None,
+                        help=f"{FLASH_CAPTURE} only: the object ({FLASH_SCENES[0]}, the default: 24 cameras, coarser "
+                             f"than issue 39 asks; {FLASH_SCENES[1]}: 72 cameras, photos 4x the pixels its fit atlas "
+                             "needs; capture/synthetic/flash_capture.py)")
 
 
 def output_target(args: argparse.Namespace) -> OutputTarget:
@@ -44,12 +48,13 @@ def run(args: argparse.Namespace) -> int:
     wp.config.log_level = wp.LOG_WARNING  # the progress bar and the summary are the output (1.19: not `quiet`)
 
     config = config_from_args(SynthConfig, args, scene=args.scene)
-    if args.no_flash_pairs and args.scene != FLASH_CAPTURE:
-        raise ConfigError(f"--no-flash-pairs is an option of {FLASH_CAPTURE}, not of {args.scene}",
-                          fix=f"use texstream synth {FLASH_CAPTURE} --no-flash-pairs")
+    for flag, given in (("--no-flash-pairs", args.no_flash_pairs), ("--object", args.object)):
+        if given and args.scene != FLASH_CAPTURE:
+            raise ConfigError(f"{flag} is an option of {FLASH_CAPTURE}, not of {args.scene}",
+                              fix=f"use texstream synth {FLASH_CAPTURE} {flag}")
     if args.scene == FLASH_CAPTURE:
-        res = synthesize_flash_capture(args.out, dataclasses.replace(flash_config(config),
-                                                                     no_flash_pairs=args.no_flash_pairs))
+        flash = dataclasses.replace(flash_config(config), no_flash_pairs=args.no_flash_pairs)
+        res = synthesize_flash_capture(args.out, dataclasses.replace(flash, scene=args.object or flash.scene))
     else:
         res = synthesize(args.scene, args.out, config)
     s = res.summary

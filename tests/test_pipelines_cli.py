@@ -120,3 +120,13 @@ def test_eval_refuses_a_negative_holdout_every_before_reading_anything(tmp_path)
 
     with pytest.raises(ConfigError, match="negative"):
         eval_stage(tmp_path / "no model", tmp_path / "no capture", holdout_every=-1)
+
+
+def test_synth_flash_options_belong_to_the_flash_capture(tmp_path, capsys):
+    """--object and --no-flash-pairs are options of ``texstream synth flash_capture``: given to another scene they
+    are a one-line error naming the fix, and nothing is written."""
+    for flag in (["--object", "flash_sphere_resolved"], ["--no-flash-pairs"]):
+        assert main(["synth", "sphere", "-o", str(tmp_path / "out"), *flag]) == 1
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and f"{flag[0]} is an option of flash_capture" in err, err
+        assert not (tmp_path / "out").exists()
