@@ -451,3 +451,17 @@ def test_objective_never_rises_with_the_laplacian(device, optimizer, preconditio
     # rounding only: the balancing re-evaluates E in another summation order (1e-12 relative)
     assert all(b <= a * (1 + 1e-12) for a, b in zip(objs, objs[1:])), objs
     assert objs[-1] < 0.5 * objs[0]
+
+
+def test_the_automatic_photo_batch_holds_the_photos_its_scratch_budget_allows(device):
+    """``photo_batch`` 0: as many photos a batch as their per-photo scratch (slot residuals and gathered view
+    terms, 24 bytes each) fits in the device's budget (problem.py ``CPU_BATCH_BYTES`` on the CPU), at most 64: the
+    tiny problem's 7 photos in one batch; the same sums whatever the batch (above)."""
+    from texstream.fit.models.lfm.problem import CPU_BATCH_BYTES
+
+    import warp as wp
+
+    pr, _ = tiny_problem(device, LFMConfig(terms=1, view_res=4), photos=7)
+    budget = (1 << 30) if wp.get_device(device).is_cuda else CPU_BATCH_BYTES
+    per_photo = pr.S * 24 + pr.V * pr.K * 24
+    assert budget // per_photo >= 7 and pr.B == 7
