@@ -605,5 +605,6 @@ def _export_and_report(pipe: Pipeline, out: Path, model_dir: Path, capture_dir: 
     stages = [dataclasses.asdict(r) for r in pipe.records]
     write_report(out, stages, model_dir, capture_dir, device=device, inputs=inputs)
     pipe.records.append(StageRecord("report", "ran", "HTML report with the relightable viewer",
-                                    time.perf_counter() - t0, str(out / "report"), cpu_seconds=time.process_time() - c0))
+                                    time.perf_counter() - t0, str(out / "report"),
+                                    cpu_seconds=time.process_time() - c0))
     pipe.log(f"[report] {out / 'report' / 'index.html'}")

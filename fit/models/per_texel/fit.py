@@ -44,8 +44,9 @@ MATERIAL_PALETTE = np.array([[0.9, 0.6, 0.1], [0.1, 0.6, 0.2], [0.8, 0.8, 0.8], 
 
 
 VALIDATION_SEAMS = ("a validation fit of the model choice: its seams are left as fitted (averaging them, an "
-                    "active set of sparse factorisations, took 4-8 s of CPU time in each of the temple's candidates; without it "
-                    "radiance's validation pooled PSNR moved by -0.002 dB, view_radiance's by +0.03 dB)")
+                    "active set of sparse factorisations, took 4-8 s of CPU time in each of the temple's "
+                    "candidates; without it radiance's validation pooled PSNR moved by -0.002 dB, view_radiance's "
+                    "by +0.03 dB)")
 """why a validation fit's seams are not averaged (model.json's ``seams``)"""
 
 
