@@ -465,3 +465,12 @@ def test_the_automatic_photo_batch_holds_the_photos_its_scratch_budget_allows(de
     budget = (1 << 30) if wp.get_device(device).is_cuda else CPU_BATCH_BYTES
     per_photo = pr.S * 24 + pr.V * pr.K * 24
     assert budget // per_photo >= 7 and pr.B == 7
+
+
+def test_a_fit_on_cpu_threads_gives_one_thread_s_parameters(device):
+    """The slot pass and the gather split their texels and vertices over the CPU threads, each summed as one launch
+    sums it: a fit on 3 threads ends at the parameters and objective of a fit on one, to the bit."""
+    cfg = LFMConfig(terms=2, view_res=5, iterations=6, rel_tol=0.0, laplacian=0.3)
+    fits = [fit_lfm(tiny_problem(device, cfg, seed=2, photos=5, threads=threads)[0]) for threads in (1, 3)]
+    assert np.array_equal(fits[0].params.G, fits[1].params.G) and np.array_equal(fits[0].params.H, fits[1].params.H)
+    assert [r["objective"] for r in fits[0].trace] == [r["objective"] for r in fits[1].trace]
