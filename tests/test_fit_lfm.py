@@ -451,3 +451,26 @@ def test_objective_never_rises_with_the_laplacian(device, optimizer, preconditio
     # rounding only: the balancing re-evaluates E in another summation order (1e-12 relative)
     assert all(b <= a * (1 + 1e-12) for a, b in zip(objs, objs[1:])), objs
     assert objs[-1] < 0.5 * objs[0]
+
+
+def test_the_automatic_photo_batch_holds_the_photos_its_scratch_budget_allows(device):
+    """``photo_batch`` 0: as many photos a batch as their per-photo scratch (slot residuals and gathered view
+    terms, 24 bytes each) fits in the device's budget (problem.py ``CPU_BATCH_BYTES`` on the CPU), at most 64: the
+    tiny problem's 7 photos in one batch; the same sums whatever the batch (above)."""
+    from texstream.fit.models.lfm.problem import CPU_BATCH_BYTES
+
+    import warp as wp
+
+    pr, _ = tiny_problem(device, LFMConfig(terms=1, view_res=4), photos=7)
+    budget = (1 << 30) if wp.get_device(device).is_cuda else CPU_BATCH_BYTES
+    per_photo = pr.S * 24 + pr.V * pr.K * 24
+    assert budget // per_photo >= 7 and pr.B == 7
+
+
+def test_a_fit_on_cpu_threads_gives_one_thread_s_parameters(device):
+    """The slot pass and the gather split their texels and vertices over the CPU threads, each summed as one launch
+    sums it: a fit on 3 threads ends at the parameters and objective of a fit on one, to the bit."""
+    cfg = LFMConfig(terms=2, view_res=5, iterations=6, rel_tol=0.0, laplacian=0.3)
+    fits = [fit_lfm(tiny_problem(device, cfg, seed=2, photos=5, threads=threads)[0]) for threads in (1, 3)]
+    assert np.array_equal(fits[0].params.G, fits[1].params.G) and np.array_equal(fits[0].params.H, fits[1].params.H)
+    assert [r["objective"] for r in fits[0].trace] == [r["objective"] for r in fits[1].trace]

@@ -178,3 +178,27 @@ def test_a_per_texel_validation_fit_writes_its_scores_only(tmp_path):
     manifest = json.loads((tmp_path / "val" / "model.json").read_text())
     assert manifest["scores_only"] and manifest["maps"] == {} and res.summary["heldout"]["views"] > 0
     assert not {"rho_d.exr", "mesh.obj", "bake.npz", "seen.png", "error_vs_time.png"} & set(written), written
+
+
+def test_candidates_that_saw_the_same_texels_share_the_nearest_seen_texels():
+    """The per-texel fit fills each texel no photo saw from the nearest seen one; the model choice's radiance and
+    view_radiance validation fits see the same texels, so the second takes the first's sources (the same arrays
+    as computed afresh); another seen set computes its own."""
+    import types
+
+    import numpy as np
+
+    from texstream.fit.common.setup import unseen_sources
+    from texstream.fit.models.per_texel import fit as per_texel
+
+    rng = np.random.default_rng(0)
+    texels = types.SimpleNamespace(grid_index=np.arange(300) * 2, position=rng.uniform(size=(300, 3)))
+    problem = types.SimpleNamespace(texels=texels)
+    first = types.SimpleNamespace(samples=(rng.uniform(size=300) > 0.3).astype(np.int32))
+    second = types.SimpleNamespace(samples=first.samples * 7)  # other counts, the same texels seen
+    shared = per_texel._unseen_sources(problem, first)
+    assert per_texel._unseen_sources(problem, second) is shared
+    for a, b in zip(shared, unseen_sources(problem, first)):
+        assert np.array_equal(a, b)
+    other = types.SimpleNamespace(samples=np.ones(300, np.int32))
+    assert per_texel._unseen_sources(problem, other)[0].size == 0

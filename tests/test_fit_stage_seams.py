@@ -352,3 +352,21 @@ def test_a_second_lobe_stays_only_where_it_lowers_the_error(capture_and_atlas):
     # of the sphere but a few at the highlight's rim, where it is a small part of the texel's samples
     keeps = np.any(out[lit & ~tiny, second] != 0, axis=1)
     assert keeps.mean() > 0.8, keeps.mean()
+
+
+def test_a_validation_fit_of_the_model_choice_leaves_its_seams_as_fitted(capture_and_atlas):
+    """The model choice's validation fit (``choice.validation_fit``: scored on the validation photos, then removed)
+    does not average its seams, as the light field mapping candidate it is judged beside does not (an active set of
+    sparse factorisations, 4-8 s of CPU time in each of the temple's candidates); model.json says so and why."""
+    from texstream.fit.models.per_texel.fit import VALIDATION_SEAMS
+
+    root = capture_and_atlas
+    cfg = stage_config(traced_polish=0)
+    cfg = dataclasses.replace(cfg, holdout_every=4, renders=0, fit=dataclasses.replace(cfg.fit, model="diffuse",
+                                                                                    max_iterations=2),
+                              choice=dataclasses.replace(cfg.choice, validation_fit=True))
+    res = fit_stage(root / "cap", root / "atlas", root / "validation", cfg, progress=False)
+    man = json.loads((root / "validation" / "model.json").read_text())
+    seams = Seams.load(root / "atlas" / SEAMS_FILE)
+    assert man["seams"] == {"samples": seams.n_samples, "averaged": False, "why": VALIDATION_SEAMS}
+    assert res.summary["heldout"]["views"] > 0

@@ -16,7 +16,7 @@ from texstream.fit.stream.penalties import PenaltyConfig
 from texstream.fit.stream.config import StreamConfig
 from texstream.fit.stages.stage import build_problem
 from texstream.fit.multi.tile_plan import split_texels, texel_range
-from texstream.fit.multi.tiles import plan_tiles, run_tiled_fit
+from texstream.fit.multi.tiles import WARM_UP_TEXELS, plan_tiles, run_tiled_fit
 
 from conftest import DEVICES
 
@@ -83,6 +83,18 @@ def test_tiles_on_two_worker_threads_equal_the_untiled_fit(scene, device):
     res, report = run_tiled_fit(problem(scene, two, device), two)
     assert report["devices"] == [device, device] and report["backend"] == "threads"
     np.testing.assert_array_equal(res.params, ref.params)
+    # the modules were loaded by a throwaway fit of a few of tile 0's texels, so no tile went first alone; the
+    # tiles' fit is the untiled one's all the same (above)
+    assert report["warm_up"]["texels"] == WARM_UP_TEXELS
+
+
+def test_a_fit_with_a_halo_exchange_keeps_tile_0_first_alone(scene, device):
+    """With LM's smoothness the tiles' steps go through other calls (the halo exchange's), which the warm-up does
+    not make: tile 0 still steps first alone, and no warm-up is run."""
+    cfg = dataclasses.replace(fit_config(), penalties=PenaltyConfig(smooth_weight=0.05))
+    tcfg = dataclasses.replace(cfg, stream=dataclasses.replace(cfg.stream, tiles=2, devices=f"{device},{device}"))
+    _, report = run_tiled_fit(problem(scene, tcfg, device), tcfg)
+    assert report["warm_up"]["texels"] == 0
 
 
 def test_stopping_test_sums_the_tiles(scene, device):

@@ -207,9 +207,15 @@ def test_a_seam_system_is_factorised_once_for_every_map_of_an_atlas(atlased, mon
 
 
 def test_the_bounded_channels_on_threads_give_one_threads_bits(atlased, monkeypatch):
-    """Each channel's active-set rounds are its own, so solving the channels on two threads (geometry/seams.py: SuperLU
-    releases the GIL while it factorises) gives the maps of one thread to the bit."""
+    """Each channel's active-set rounds are its own, so solving the channels on threads (geometry/seams.py: SuperLU
+    releases the GIL while it factorises; with several cores one thread a channel) gives the maps of one thread to
+    the bit."""
     from texstream.geometry import seams as seams_module
+
+    used = []
+    in_order = seams_module.in_order
+    monkeypatch.setattr(seams_module, "in_order", lambda work, items, threads: (used.append(threads),
+                                                                                 in_order(work, items, threads))[1])
 
     _, bake, seams = atlased
     rng = np.random.default_rng(7)
@@ -220,4 +226,4 @@ def test_the_bounded_channels_on_threads_give_one_threads_bits(atlased, monkeypa
         monkeypatch.setattr(seams_module, "threads_for", lambda asked, device, t=threads: t)
         monkeypatch.setattr(seams_module, "_FACTORS", {})
         out[threads] = average_across_seams(grid, seams, lower=lo, upper=hi)
-    assert np.array_equal(out[1], out[2])
+    assert np.array_equal(out[1], out[2]) and used == [1, 3]  # 2 cores: the 3 channels on a thread each

@@ -74,3 +74,28 @@ def test_the_streaming_fit_ends_at_the_check_where_it_cannot_win(device):
     res = fit_lfm(tiny_problem(device, cfg)[0], stop=reach)
     assert res.iterations == cfg.iterations and reach.stopped is None
     assert [i for i, _ in reach.points] == [10, 15, 20, 25, 30, 35]  # none at the cap: the fit ends there anyway
+
+
+def test_the_unseen_texels_show_their_nearest_seen_texel_s_diffuse_term():
+    """``seen_sources``: every texel no photo sees takes the diffuse term of the seen texel nearest to it (a brute
+    force nearest neighbour agrees), seen ones keep their own; computed once, it fills any parameters alike (the
+    stop's renderer and the model folder), as filling from scratch does. Nothing to fill: None."""
+    import types
+
+    import numpy as np
+
+    from texstream.fit.models.lfm.fit import filled_params, seen_sources
+    from texstream.fit.models.lfm.problem import LFMParams
+
+    rng = np.random.default_rng(3)
+    geom = types.SimpleNamespace(texel_pos=rng.uniform(size=(200, 3)))
+    seen = rng.uniform(size=200) > 0.4
+    sources = seen_sources(geom, seen)
+    d = np.linalg.norm(geom.texel_pos[:, None] - geom.texel_pos[None, seen], axis=2)
+    expected = np.where(seen, np.arange(200), np.flatnonzero(seen)[d.argmin(axis=1)])
+    assert np.array_equal(sources, expected)
+    params = LFMParams(rng.uniform(size=(200, 3)), np.zeros((1, 1, 3)), np.zeros((1, 1, 1, 3)))
+    filled = filled_params(params, geom, seen, sources)
+    assert np.array_equal(filled.diffuse, filled_params(params, geom, seen).diffuse)
+    assert np.array_equal(filled.diffuse, params.diffuse[expected])
+    assert seen_sources(geom, np.ones(200, bool)) is None and seen_sources(geom, np.zeros(200, bool)) is None

@@ -30,7 +30,7 @@ import warp as wp
 from texstream.core.errors import ConfigError
 from texstream.core.progress import bar, bars_enabled
 
-from texstream.fit.optim.fitter import FitConfig, FitResult, start_arrays
+from texstream.fit.optim.fitter import FitConfig, FitResult, robust_scale_from_stats, start_arrays
 from texstream.fit.kernels.tiles import gather_rows_kernel, scatter_rows_kernel
 from texstream.fit.multi.lockstep import TileWorker, lockstep, tile_resume
 from texstream.fit.multi.tile_plan import (TilePlan, assemble, halo_pairs, plan_tiles, texel_subset, tile_config,
@@ -71,12 +71,42 @@ def tile_problem(problem: StreamProblem, plan: TilePlan, t: int, cfg: FitConfig)
     photos = problem.photos
     if dev != problem.device or not np.array_equal(idx, np.arange(photos.n)):
         photos = photos.subset(idx, device=dev)
-    tile = StreamProblem(texel_subset(problem.texels, plan.texels(t)), photos, problem.layout, cfg.stream,
-                         device=dev)
+    return texels_problem(problem, plan.texels(t), photos, cfg, dev)
+
+
+def texels_problem(problem: StreamProblem, rows: np.ndarray, photos, cfg: FitConfig, device: str) -> StreamProblem:
+    """The StreamProblem of the parent's texels ``rows`` over ``photos`` on ``device``, with those rows of the
+    parent's shared-materials prior when it has one."""
+    tile = StreamProblem(texel_subset(problem.texels, rows), photos, problem.layout, cfg.stream, device=device)
     if problem.material_centre is not None:  # the shared materials' prior: per texel, so each tile takes its rows
-        rows = plan.texels(t)
         tile.set_material_prior(problem.material_centre.numpy()[rows], problem.material_weights.numpy()[rows])
     return tile
+
+
+WARM_UP_TEXELS = 64
+"""the seen texels of tile 0 that :func:`warm_up` steps alone before the tiles run at once"""
+
+
+def warm_up(problem: StreamProblem, first: TileWorker, cfg: FitConfig, guess: np.ndarray, counts: np.ndarray,
+            mean_sq: float) -> bool:
+    """Load every Warp module the tiles' fit launches before their threads run (Warp loads a module at its first
+    launch, which two threads must not do at once): a throwaway fit of :data:`WARM_UP_TEXELS` seen texels of tile 0
+    (``first``, whose own texels lead the parent's), over its photos, through the calls :func:`lockstep` makes
+    of a tile up to its first iteration, instead of tile 0's whole scale pass, start and first iteration alone
+    (the temple's view_radiance fit, two iterations, ran two thirds of its passes on one of the two threads). The
+    tiles' fit is untouched: the warm-up has problem, state and robust scale of its own. False (no warm-up):
+    tile 0 sees no texel, so the tiles keep lockstep's tile-0-first order."""
+    own = np.flatnonzero(counts[:first.own] > 0)[:WARM_UP_TEXELS]
+    if own.size == 0:
+        return False
+    tile = texels_problem(problem, own, first.problem.photos, cfg, first.problem.device)
+    worker = TileWorker(tile, cfg, (guess[own], counts[own]), mean_sq)
+    scale = None
+    if worker.needs_scale_pass():
+        scale = robust_scale_from_stats(worker.scale_pass_stats(), cfg)
+    worker.begin(scale)
+    worker.run_iterations(1, 1)
+    return True
 
 
 class SlotPool:
@@ -191,8 +221,11 @@ def run_tiled_fit(problem: StreamProblem, cfg: FitConfig, start=None, progress=N
         workers = pool.map(lambda t, _: first if t == 0 else make(t, _), list(range(len(plan.bounds))))
         t_setup = time.perf_counter() - t0
         exchange = HaloExchange(plan, workers) if any(h.size for h in plan.halo) else None
-        sums, times, it_done, _ = lockstep(workers, pool.map, cfg, np.concatenate, progress, exchange=exchange,
-                                           checkpoint=checkpoint, resume=resume)
+        # with a halo exchange (other calls, other kernels) tile 0 still goes first alone (lockstep)
+        warmed = exchange is None and len(workers) > 1 and warm_up(problem, first, tcfg, guess, counts, mean_sq)
+        t_warm = time.perf_counter() - t0 - t_setup
+        sums, times, it_done, _ = lockstep(workers, pool.map, cfg, np.concatenate, progress, first_in_order=not warmed,
+                                           exchange=exchange, checkpoint=checkpoint, resume=resume)
         parts = pool.map(lambda t, w: w.params(), workers)
     finally:
         pool.close()
@@ -200,6 +233,7 @@ def run_tiled_fit(problem: StreamProblem, cfg: FitConfig, start=None, progress=N
     report = {**plan.report(problem.photos.n), "backend": "threads", "tile_setup_s": t_setup,
               "tile_setup_phases_s": {"initial_guess": t_guess - t0, "plan": t_plan - t_guess,
                                       "tile_problems": t_setup - (t_plan - t0)},
+              "warm_up": {"texels": WARM_UP_TEXELS if warmed else 0, "seconds": t_warm},
               "halo_texels": [int(h.size) for h in plan.halo],
               "fit_s": times[-1]}
     return result, report

@@ -57,7 +57,7 @@ class LFMConfig:
                                     "are shrunk, which lowers the objective); 0 = never", min=0)
     photo_batch: int = option(0, "streaming fit: photos per batch of launches (their observations and slot "
                                  "residuals held together on the device; the same sums as one photo at a time); "
-                                 "0 = as many as fit in 1 GiB on a GPU, 64 MiB on the CPU, at most 64", min=0)
+                                 "0 = as many as fit in 1 GiB on a GPU, 512 MiB on the CPU, at most 64", min=0)
     sample_cache: str = option("auto", "streaming fit: keep every photo's samples on the device (float32, photos x "
                                        "texels x 16 bytes; the same values) after the first pass instead of "
                                        "distributing the photos again at every pass: on, off, or auto (on when they "
