@@ -8,7 +8,8 @@
 # ornament's held-out figures (scale 0.01, 1,760 photos of 160x160, every 8th held out). With TEMPLE_CAPTURE (a posed
 # capture folder, e.g. a CPU run's `posed/` of the Middlebury temple) first `texstream run` of it on the GPU: the mesh,
 # atlas, refine and fit stages (pymeshlab, scipy and xatlas on EXTRA_PYTHONPATH: the machine has none of them; its
-# pymeshlab needs libGL, which the machine lacks: TEMPLE_ARGS="--mesh MESH" gives the CPU run's mesh instead).
+# pymeshlab needs libGL and X11's client libraries, which the machine lacks: copy them from a Debian box (ldd of
+# pymeshlab's .so files lists them) onto LD_LIBRARY_PATH, or TEMPLE_ARGS="--mesh-file MESH" gives a CPU run's mesh).
 # PARTS (default "readme temple fit"): which of the three to run (a device call lasts at most 10 minutes).
 #   usage: CUDA_TESTS="tests/a.py ..." WHEELS=.whl bash benchmarks/default_paths_gpu.sh OUT   (warp in /root/site)
 set -u
