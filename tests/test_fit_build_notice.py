@@ -31,6 +31,6 @@ def test_each_group_of_models_has_its_own_marker(tmp_path, monkeypatch):
     wp.init()
     monkeypatch.setattr(wp.config, "kernel_cache_dir", str(tmp_path))
     monkeypatch.setattr(build_notice, "_ANNOUNCED", set())
-    build_notice.mark_kernels_built("cpu", "fp32", "radiance")
-    assert not build_notice.kernels_cold("cpu", "fp32", "radiance")
+    build_notice.mark_kernels_built("cpu", "fp32", "unknown_light")
+    assert not build_notice.kernels_cold("cpu", "fp32", "unknown_light")
     assert build_notice.kernels_cold("cpu", "fp32", "default") and build_notice.kernels_cold("cpu", "fp32", None)

@@ -186,7 +186,7 @@ def test_a_run_under_an_unknown_light_builds_its_radiance_models_ahead(device, t
     assert run.returncode == 0, run.stderr[-3000:]
     got = json.loads(run.stdout.strip().splitlines()[-1])
     assert got["kinds"] == ["lfm", "radiance", "view_radiance"], got["kinds"]  # the whole group ran
-    assert got["groups"][0] == "radiance"
+    assert got["groups"][0] == "unknown_light"
     hashes = {}
     for name, module_hash, dev, _ in got["loads"]:
         hashes.setdefault((name, dev), set()).add(module_hash)

@@ -42,7 +42,7 @@ RADIANCE_PARAM_COUNTS = (3, 18)
 """parameters per texel of the radiance models: radiance (RGB) and view_radiance (RGB and 5 view terms per
 channel), declared before the group's first launch (fit/kernels/overloads.py ``declare_param_counts``); LFM's
 kernels are not generic over it"""
-KERNEL_GROUPS = {"default": DEFAULT_KINDS, "radiance": RADIANCE_KINDS}
+KERNEL_GROUPS = {"default": DEFAULT_KINDS, "unknown_light": RADIANCE_KINDS}
 """the groups built ahead, each with its marker; a fit of another kind builds only :func:`shared_modules` ahead
 and the rest at its launches"""
 MAX_REGISTERS = 168
@@ -106,7 +106,7 @@ def kernel_group(kind: str) -> str | None:
 def declare_group_overloads(kind: str) -> None:
     """Before a fit of ``kind`` builds or launches a kernel: its group's parameter counts (the same in every
     process that fits the group, so a cold build is what later runs launch)."""
-    if kernel_group(kind) == "radiance":
+    if kernel_group(kind) == "unknown_light":
         declare_param_counts(RADIANCE_PARAM_COUNTS)
 
 
@@ -126,7 +126,7 @@ def build_kernels_if_cold(stage: str, device: str, kind: str, precision: str = "
     group = kernel_group(kind)
     if not kernels_cold(device, precision, group):
         return
-    modules = {"default": default_run_modules, "radiance": radiance_run_modules}.get(group, lambda d: shared_modules())(
+    modules = {"default": default_run_modules, "unknown_light": radiance_run_modules}.get(group, lambda d: shared_modules())(
         device)
     wp.init()  # here, not in the build threads: a first init marks every module modified under their loads
     threads = min(build_threads(), len(modules))
