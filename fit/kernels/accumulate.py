@@ -66,7 +66,7 @@ import warp as wp
 
 from texstream.fit.kernels.lafortune_grad import lafortune_funcs, view_radiance_funcs
 from texstream.fit.kernels.overloads import (IMAGE_PIXEL, STORAGE_SCALAR, at_every_count, at_every_precision,
-                                             declare, param_overloads)
+                                             declare, param_overload)
 from texstream.render.shading import incident_light, to_local
 from texstream.fit.kernels.stream import (SAMPLING_FILTERED, ImageInfo, SampleOptions, TexelFrames, kahan_add,
                                           observe_func, observe_with_unlit_func, plane_texel_coords, ray_surface,
@@ -511,7 +511,7 @@ def accumulate_kernel(n_lobes: int, anisotropic: int, kahan: bool, diag: bool, d
 
 def _declare_gradient_pass(kernel, n_params: int, scalar) -> None:
     """A gradient pass kernel's overload of the compute scalar ``scalar`` (fit/kernels/overloads.py)."""
-    [(s, v, _)] = param_overloads((n_params,), scalar)
+    s, v, _ = param_overload(n_params, scalar)
     declare(kernel, params=STORAGE_SCALAR, direction=STORAGE_SCALAR, images=IMAGE_PIXEL, like=v, one=s, out_f=s,
             out_g=v, out_dhd=s, out_diag=v)
 
@@ -604,7 +604,7 @@ def accumulate_lm_kernel(n_lobes: int, anisotropic: int, max_registers: int = 0,
 
 def _declare_lm_pass(kernel, n_params: int, scalar) -> None:
     """An LM pass kernel's overload of the compute scalar ``scalar`` (fit/kernels/overloads.py)."""
-    [(s, v, m)] = param_overloads((n_params,), scalar)
+    s, v, m = param_overload(n_params, scalar)
     declare(kernel, params=STORAGE_SCALAR, images=IMAGE_PIXEL, like=v, like_m=m, one=s, out_f=s, out_g=v, out_jtj=m)
 
 
@@ -649,9 +649,9 @@ def reduce_partials_kernel(pf: wp.array2d(dtype=Any), pg: wp.array2d(dtype=Any),
 def _declare_reduce_overloads(scalar, n_params: int) -> None:
     """reduce_partials_kernel's overloads of the compute scalar ``scalar`` and one declared parameter count
     (fit/kernels/overloads.py): LM's J^T J, CG's d^T H d."""
-    for _s, _v, _m in param_overloads((n_params,), scalar):
-        for _h in (_m, _s):
-            declare(reduce_partials_kernel, pf=_s, pg=_v, ph=_h, f=_s, g=_v, h=_h)
+    _s, _v, _m = param_overload(n_params, scalar)
+    for _h in (_m, _s):
+        declare(reduce_partials_kernel, pf=_s, pg=_v, ph=_h, f=_s, g=_v, h=_h)
 
 
 at_every_count(_declare_reduce_overloads)

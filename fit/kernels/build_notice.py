@@ -17,7 +17,6 @@ from pathlib import Path
 
 import warp as wp
 
-from texstream.core.progress import say
 from texstream.fit.kernels.overloads import declared_precisions
 
 KERNEL_FOLDERS = ("render", "fit", "geometry")

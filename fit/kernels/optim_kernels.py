@@ -12,7 +12,7 @@ from typing import Any
 
 import warp as wp
 
-from texstream.fit.kernels.overloads import STORAGE_SCALAR, at_every_count, declare, param_overloads
+from texstream.fit.kernels.overloads import STORAGE_SCALAR, at_every_count, declare, param_overload
 
 # no kernel here is differentiated (the fit writes its own derivatives): skipping Warp's adjoint
 # code generation roughly halves compile time
@@ -673,17 +673,17 @@ def centred_prior_diag_kernel(weights: wp.array(dtype=Any), active: wp.array(dty
 def _declare_optimizer_overloads(scalar, n_params: int) -> None:
     """The optimizer kernels' overloads of the compute scalar ``scalar`` for one declared parameter count, in
     every module before its first launch (fit/kernels/overloads.py)."""
-    for _s, _v, _m in param_overloads((n_params,), scalar):
-        declare(start_point_kernel, p=_v, storage=STORAGE_SCALAR)
-        declare(trial_kernel, p=_v, d=_v, alpha=_s, lower=_v, upper=_v, free=_v, trial=_v, storage=STORAGE_SCALAR)
-        declare(lm_solve_kernel, jtj=_m, jtr=_v, lam=_s, free=_v, like=_v, p=_v, lower=_v, upper=_v, step=_v,
-                pred=_s)
-        declare(lm_accept_kernel, p=_v, f=_s, g=_v, jtj=_m, trial=_v, f_trial=_s, g_trial=_v, jtj_trial=_m,
-                f_cmp=_s, f_trial_cmp=_s, pred=_s, lam=_s)
-        declare(chunk_sums_kernel, f=_s, g=_v)
-        declare(centred_prior_kernel, params=STORAGE_SCALAR, direction=STORAGE_SCALAR, centre=_v, weights=_v, f=_s,
-                g=_v, dhd=_s, diag=_v)
-        declare(centred_prior_diag_kernel, weights=_v, jtj=_m)
+    _s, _v, _m = param_overload(n_params, scalar)
+    declare(start_point_kernel, p=_v, storage=STORAGE_SCALAR)
+    declare(trial_kernel, p=_v, d=_v, alpha=_s, lower=_v, upper=_v, free=_v, trial=_v, storage=STORAGE_SCALAR)
+    declare(lm_solve_kernel, jtj=_m, jtr=_v, lam=_s, free=_v, like=_v, p=_v, lower=_v, upper=_v, step=_v,
+            pred=_s)
+    declare(lm_accept_kernel, p=_v, f=_s, g=_v, jtj=_m, trial=_v, f_trial=_s, g_trial=_v, jtj_trial=_m,
+            f_cmp=_s, f_trial_cmp=_s, pred=_s, lam=_s)
+    declare(chunk_sums_kernel, f=_s, g=_v)
+    declare(centred_prior_kernel, params=STORAGE_SCALAR, direction=STORAGE_SCALAR, centre=_v, weights=_v, f=_s,
+            g=_v, dhd=_s, diag=_v)
+    declare(centred_prior_diag_kernel, weights=_v, jtj=_m)
 
 
 at_every_count(_declare_optimizer_overloads)

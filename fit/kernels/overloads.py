@@ -110,6 +110,6 @@ def declared_precisions() -> tuple:
     return tuple(name for name, scalar in COMPUTE_PRECISIONS.items() if scalar in _declared_scalars)
 
 
-def param_overloads(param_counts=DEFAULT_PARAM_COUNTS, scalar=COMPUTE_SCALAR):
-    """(scalar, parameter vector, parameter matrix) of the compute precision ``scalar``, per parameter count."""
-    return [(scalar, *param_types(n, scalar)) for n in param_counts]
+def param_overload(n_params: int, scalar=COMPUTE_SCALAR):
+    """(scalar, parameter vector, parameter matrix) of ``n_params`` parameters at the compute precision ``scalar``."""
+    return (scalar, *param_types(n_params, scalar))
