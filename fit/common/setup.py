@@ -238,11 +238,15 @@ def unseen_sources(problem, result: FitResult) -> tuple[np.ndarray, np.ndarray]:
     idx = problem.texels.grid_index
     if seen.all() or not seen.any():
         return idx[:0], idx[:0]
+    return idx[~seen], idx[seen][nearest_seen(problem.texels.position, seen)]
+
+
+def nearest_seen(position: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """For each texel not ``seen`` (in order), the index among the seen ones of the nearest in 3D (``position``
+    (N, 3)): a k-d tree queried on every core (the same answer as one)."""
     from scipy.spatial import cKDTree  # only when needed: the import is a large share of a short fit's run
 
-    pos = problem.texels.position
-    _, nearest = cKDTree(pos[seen]).query(pos[~seen], workers=-1)  # every core; the same answer
-    return idx[~seen], idx[seen][nearest]
+    return cKDTree(position[seen]).query(position[~seen], workers=-1)[1]
 
 
 def per_texel_objective(problem, params: np.ndarray) -> np.ndarray:

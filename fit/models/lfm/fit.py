@@ -18,7 +18,7 @@ from texstream.core.outputs import StageResult, atomic_output_dir, write_json_at
 from texstream.core.progress import phase, say
 from texstream.fit.common.inputs import SharedPhotoSet, load_fit_inputs, load_photos
 from texstream.fit.common.model_folder import image_metrics, json_safe, pooled_psnr, render_comparisons
-from texstream.fit.common.setup import build_problem
+from texstream.fit.common.setup import build_problem, nearest_seen
 from texstream.fit.models.lfm.baselines import fit_nmf, fit_pca
 from texstream.fit.models.lfm.model_folder import LFMRenderer, lfm_geometry, write_lfm_maps
 from texstream.fit.models.lfm.problem import LFMParams, LFMProblem, PhotoSamples, fit_lfm
@@ -159,12 +159,8 @@ def seen_sources(geom, seen: np.ndarray) -> np.ndarray | None:
     temple's 545,635), built once per fit: the stop's renderer and the model folder fill alike."""
     if not ((~seen).any() and seen.any()):
         return None
-    from scipy.spatial import cKDTree
-
-    seen_index = np.flatnonzero(seen)
-    _, near = cKDTree(geom.texel_pos[seen_index]).query(geom.texel_pos[~seen])
     sources = np.arange(len(seen))
-    sources[~seen] = seen_index[near]
+    sources[~seen] = np.flatnonzero(seen)[nearest_seen(geom.texel_pos, seen)]
     return sources
 
 
