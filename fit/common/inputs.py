@@ -39,9 +39,9 @@ def load_geometry(mesh_path: str | Path, texture_size: int, device: str, frames=
         mfile = next((p / n for n in ("mesh.obj", "mesh.ply") if (p / n).exists()), None)
         if mfile is None:
             raise InputError("folder has no mesh.obj", p, "pass an atlas folder (texstream atlas) or a mesh file")
-        mesh = load_mesh(mfile)
         if (p / "bake.npz").exists():
-            return mesh.with_normals(), TexelBake.load(p / "bake.npz")
+            return _atlas_folder(mfile, p / "bake.npz")
+        mesh = load_mesh(mfile)
     else:
         mesh = load_mesh(p)
     if mesh.uvs is None:
@@ -53,6 +53,25 @@ def load_geometry(mesh_path: str | Path, texture_size: int, device: str, frames=
         if frames:
             side = texture_side_for(mesh, frames, texel_pixels)[0]
     return mesh, bake_texels(mesh, side, side, device=device)
+
+
+_ATLAS_READ: dict = {}
+"""the atlas folder read last: its files' identity (path, size, modification time) -> (mesh, bake). The model
+choice's candidates and the fit after them read one atlas four times (0.5 s of OBJ and bake a read on the
+temple's 830x834 atlas); its arrays are read-only, so no caller can change another's copy"""
+
+
+def _atlas_folder(mesh_file: Path, bake_file: Path):
+    """(mesh with normals, TexelBake) of an atlas folder, read once while its files stay the same."""
+    key = tuple((str(f.resolve()), st.st_size, st.st_mtime_ns) for f in (mesh_file, bake_file) for st in [f.stat()])
+    if key not in _ATLAS_READ:
+        mesh, bake = load_mesh(mesh_file).with_normals(), TexelBake.load(bake_file)
+        for array in [*vars(mesh).values(), *vars(bake).values()]:
+            if isinstance(array, np.ndarray):
+                array.flags.writeable = False
+        _ATLAS_READ.clear()
+        _ATLAS_READ[key] = mesh, bake
+    return _ATLAS_READ[key]
 
 
 def load_photos(capture, frames, device: str | None = None):

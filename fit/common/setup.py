@@ -60,19 +60,39 @@ def build_problem(mesh, bake, frames, images, masks, cfg: FitConfig, device: str
     with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="texstream-photos") as pool:
         # in a copy of this context: the stage's log and its registry of loaders to close
         pending = pool.submit(contextvars.copy_context().run, make_photos) if photos is None else None
-        face_normal, normal_jacobian = surface_derivatives(mesh.vertices, mesh.faces, normals, bake.face, bake.bary)
-        coordinate_gradients = None
-        if mesh.uvs is not None:
-            coordinate_gradients = texel_coordinate_gradients(mesh.vertices, mesh.faces, mesh.uvs, bake.face,
-                                                              bake.width, bake.height)
-        texels = TexelSet.from_grid(bake.covered, bake.position, bake.normal, bake.tangent, bake.bitangent,
-                                    face_normal, normal_jacobian, coordinate_gradients, bake.fill_source)
+        texels = texels_of(mesh, bake, normals)
         if pending is not None:
             photos = pending.result()  # a photo's error is raised here, after the texels
     if texels.n == 0:
         raise InputError("the atlas has no covered texels", fix="rebuild the atlas with a larger resolution")
     layout = cfg.layout(photo_frames, texels.position.mean(axis=0))
     return StreamProblem(texels, photos, layout, cfg.stream, device=device)
+
+
+_TEXELS_BUILT: list = []
+"""[(mesh, bake, TexelSet)] of the last read-only atlas set up (fit/common/inputs.py ``_atlas_folder``): the
+model choice's candidates and the fit after them set up the same texels"""
+
+
+def texels_of(mesh, bake, normals: np.ndarray) -> TexelSet:
+    """The TexelSet of ``bake`` on ``mesh``: built once for an atlas read from disk (its arrays read-only, so it
+    cannot have changed since), every time for any other."""
+    for built_mesh, built_bake, texels in _TEXELS_BUILT:
+        if built_mesh is mesh and built_bake is bake:
+            return texels
+    face_normal, normal_jacobian = surface_derivatives(mesh.vertices, mesh.faces, normals, bake.face, bake.bary)
+    coordinate_gradients = None
+    if mesh.uvs is not None:
+        coordinate_gradients = texel_coordinate_gradients(mesh.vertices, mesh.faces, mesh.uvs, bake.face,
+                                                          bake.width, bake.height)
+    texels = TexelSet.from_grid(bake.covered, bake.position, bake.normal, bake.tangent, bake.bitangent,
+                                face_normal, normal_jacobian, coordinate_gradients, bake.fill_source)
+    if not (mesh.vertices.flags.writeable or bake.face.flags.writeable):
+        for array in vars(texels).values():
+            if isinstance(array, np.ndarray):
+                array.flags.writeable = False
+        _TEXELS_BUILT[:] = [(mesh, bake, texels)]
+    return texels
 
 
 def params_to_grid(result: FitResult, problem, bake) -> np.ndarray:

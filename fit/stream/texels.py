@@ -98,30 +98,39 @@ def surface_derivatives(points: np.ndarray, faces: np.ndarray, normals: np.ndarr
         face_normal (..., 3) and normal_jacobian (..., 3, 3), float32.
     """
     shape = face.shape
-    where, tri, e, inv, good_face = _face_pseudo_inverse(points, faces, face)
+    on = np.flatnonzero(face.reshape(-1) >= 0)  # texels on no face keep zeros: half an atlas is padding
+    where, tri, e, inv, good_face = _face_pseudo_inverse(points, faces, face.reshape(-1)[on])
     nv = normals.astype(np.float64)[tri]                     # per face used
     dn = np.stack([nv[:, 1] - nv[:, 0], nv[:, 2] - nv[:, 0]], axis=2)
     jac_face = np.einsum("nkj,nji,nli->nkl", dn, inv, e)     # dn (3x2) @ inv (2x2) @ e^T (2x3)
-    b = bary.reshape(-1, 3).astype(np.float64)
+    b = bary.reshape(-1, 3)[on].astype(np.float64)
     interp = np.einsum("nj,njk->nk", b, nv[where])           # per texel
     length = np.linalg.norm(interp, axis=1)
     jac = jac_face[where] / np.maximum(length, 1e-12)[:, None, None]
-    good = good_face[where] & (face.reshape(-1) >= 0)
+    good = good_face[where]
     jac[~good] = 0.0
     fn_face = np.cross(e[:, :, 0], e[:, :, 1])
     fn_face /= np.maximum(np.linalg.norm(fn_face, axis=1, keepdims=True), 1e-300)
     fn = fn_face[where]
     fn[~good] = interp[~good] / np.maximum(length[~good], 1e-12)[:, None]
-    return fn.reshape(*shape, 3).astype(np.float32), jac.reshape(*shape, 3, 3).astype(np.float32)
+    fn_out = np.zeros((face.size, 3), np.float32)
+    jac_out = np.zeros((face.size, 3, 3), np.float32)
+    fn_out[on], jac_out[on] = fn, jac
+    return fn_out.reshape(*shape, 3), jac_out.reshape(*shape, 3, 3)
 
 
 def _face_pseudo_inverse(points: np.ndarray, faces: np.ndarray, face: np.ndarray):
-    """Per face that texels of ``face`` use (computed once a face, not once a texel): ``where`` (N,), each
-    flattened texel's row in the per-face arrays (texels without a face, -1, point at face 0's and are masked
-    by the callers); the faces' vertex ids (M, 3), edges E = [p1 - p0, p2 - p0] (M, 3, 2), (E^T E)^-1 (M, 2, 2;
+    """Per face that texels of ``face`` (N,) use (computed once a face, not once a texel): ``where`` (N,), each
+    texel's row in the per-face arrays (texels without a face, -1, point at face 0's and are masked by the
+    callers); the faces' vertex ids (M, 3), edges E = [p1 - p0, p2 - p0] (M, 3, 2), (E^T E)^-1 (M, 2, 2;
     zero where degenerate) and that mask (M,), so that (E^T E)^-1 E^T dp is the barycentric change (b1, b2)
     of an in-plane offset dp."""
-    used, where = np.unique(np.maximum(face.reshape(-1), 0), return_inverse=True)
+    ids = np.maximum(face.reshape(-1), 0)
+    present = np.zeros(len(faces), dtype=bool)
+    present[ids] = True
+    used = np.flatnonzero(present)  # np.unique's sorted ids and inverse, in linear time (it sorted every texel)
+    rank = np.cumsum(present) - 1
+    where = rank[ids]
     tri = faces[used]
     p = points.astype(np.float64)[tri]                      # (M, 3 vertices, 3)
     e = np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]], axis=2)   # (M, 3, 2)
@@ -144,11 +153,12 @@ def texel_coordinate_gradients(points: np.ndarray, faces: np.ndarray, uvs: np.nd
     is missing or degenerate.
     """
     shape = face.shape
-    where, tri, e, inv, good_face = _face_pseudo_inverse(points, faces, face)
+    on = np.flatnonzero(face.reshape(-1) >= 0)
+    where, tri, e, inv, good_face = _face_pseudo_inverse(points, faces, face.reshape(-1)[on])
     t = np.asarray(uvs, np.float64)[tri] * np.array([width, -height], np.float64)   # (M, 3 vertices, 2)
     te = np.stack([t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]], axis=2)                   # (M, 2, 2)
     grad_face = np.einsum("nkj,nji,nli->nkl", te, inv, e)                           # T (2x2) inv (2x2) E^T (2x3)
     grad_face[~good_face] = 0.0
-    grad = grad_face[where]
-    grad[face.reshape(-1) < 0] = 0.0
-    return grad.reshape(*shape, 2, 3).astype(np.float32)
+    grad = np.zeros((face.size, 2, 3), np.float32)
+    grad[on] = grad_face[where]
+    return grad.reshape(*shape, 2, 3)
