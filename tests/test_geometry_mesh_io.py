@@ -143,3 +143,37 @@ def test_save_is_atomic_and_validates(tmp_path):
     with pytest.raises(InputError, match="out of range"):
         save_mesh(tmp_path / "x.obj", bad)
     assert list(tmp_path.iterdir()) == []  # nothing half-written
+
+
+@pytest.mark.parametrize("corner", ["{v}", "{v}/{t}", "{v}//{n}", "{v}/{t}/{n}"])
+def test_plain_obj_read_by_numpy_as_by_the_general_parser(corner, monkeypatch, tmp_path):
+    """Triangles with positive indices in one corner form (what texstream and most exporters write) take the
+    numpy path; it must give the general parser's mesh exactly, comments, groups and materials between."""
+    import texstream.geometry.mesh_io as mesh_io
+
+    rng = np.random.default_rng(3)
+    rows = ["# made by a test", "mtllib a.mtl", "o thing"]
+    rows += [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in rng.random((6, 3))]
+    rows += [f"vt {u:.4f} {v:.4f}" for u, v in rng.random((5, 2))]
+    rows += ["vn 0 0 1", "vn 0 1 0", "g part", "usemtl m", "s off"]
+    for k in range(8):
+        corners = rng.choice(6, 3, replace=False) + 1
+        rows.append("f " + " ".join(corner.format(v=v, t=(v + k) % 5 + 1, n=k % 2 + 1) for v in corners))
+    path = tmp_path / "plain.obj"
+    path.write_text("\n".join(rows) + "\n")
+    assert mesh_io._read_obj_plain(path.read_text()) is not None
+    fast = load_mesh(path)
+    monkeypatch.setattr(mesh_io, "_read_obj_plain", lambda text: None)
+    general = load_mesh(path)
+    for name in ("vertices", "faces", "uvs", "normals", "source_vertex"):
+        a, b = getattr(fast, name), getattr(general, name)
+        assert (a is None) == (b is None) and (a is None or np.array_equal(a, b)), name
+
+
+@pytest.mark.parametrize("text", [SEAM_OBJ, "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nf 1 2 3 4\n",
+                                  "v 0 0 0 1\nv 1 0 0 1\nv 0 1 0 1\nf 1 2 3\n", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nf 1 2/1 3\n"])
+def test_other_obj_forms_go_to_the_general_parser(text):
+    """Polygons, negative indices, vertex weights and mixed corner forms are the general parser's."""
+    from texstream.geometry.mesh_io import _read_obj_plain
+
+    assert _read_obj_plain(text) is None
