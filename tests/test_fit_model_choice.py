@@ -15,10 +15,11 @@ from texstream.fit.stages.choice import ChoicePlan, fit_choice
 from texstream.fit.stages.stage import FitStageConfig
 
 
-def fake_fits(validation: dict, heldout: dict, constrained_share: float = 0.1):
+def fake_fits(validation: dict, heldout: dict, constrained_share: float = 0.1, highlight_share: float = 0.3):
     """A stand-in for the fit stage: pooled PSNR ``validation[name]`` on the validation photos (from the
     materials choice of a Lafortune fit of every photo, or from a validation fit) and ``heldout[name]`` on the
-    held-out photos; the calls made, as (name, validation fit?)."""
+    held-out photos, a diffuse fit's photos showing highlights on ``highlight_share`` of 1,000 texels; the calls
+    made, as (name, validation fit?)."""
     calls = []
 
     def fit_one(capture_dir, mesh_path, out, cfg):
@@ -29,6 +30,8 @@ def fake_fits(validation: dict, heldout: dict, constrained_share: float = 0.1):
         score = {"views": 2, "pooled_psnr_db": validation[name] if cfg.choice.validation_fit else heldout[name],
                  "worst_psnr_db": 20.0}
         summary = {"heldout": score, "materials": None}
+        if cfg.fit.model == "diffuse":
+            summary["highlights"] = {"seen_texels": 1000, "highlight_texels": int(1000 * highlight_share)}
         if cfg.fit.model == "lafortune" and not cfg.choice.validation_fit:
             summary["materials"] = {
                 "chosen": "mixed", "k": 2,
@@ -47,13 +50,14 @@ def plan(cfg) -> ChoicePlan:
 def test_the_validation_photos_choose_and_the_held_out_ones_only_score(tmp_path):
     """Diffuse would win on the held-out photos (45 against 30 dB) and loses on the validation photos (35 against
     40 dB): Lafortune is kept, judged by its own materials choice on the split (the mixed K=2 score), and fitted
-    once; diffuse gets a validation fit only, removed afterwards. The two-lobe candidate is left out unfitted
+    once; diffuse gets a validation fit only (first: its photos' highlights decide whether Lafortune is fitted),
+    removed afterwards. The two-lobe candidate is left out unfitted
     (10% of the texels constrained < 30%). The summary and model.json record the validation scores, the reason
     and the kept model's held-out score."""
     cfg = FitStageConfig(holdout_every=8)
     fit_one, calls = fake_fits({"lafortune": 40.0, "diffuse": 35.0}, {"lafortune": 30.0, "diffuse": 45.0})
     res = fit_choice(tmp_path, tmp_path, tmp_path / "model", cfg, plan(cfg), fit_one, log=lambda line: None)
-    assert calls == [("lafortune", False), ("diffuse", True)]
+    assert calls == [("diffuse", True), ("lafortune", False)]
     sel = res.summary["selection"]
     assert sel["chosen"] == "lafortune" and res.output == tmp_path / "model"
     assert sel["validation"]["lafortune"]["pooled_psnr_db"] == 40.0
@@ -61,7 +65,7 @@ def test_the_validation_photos_choose_and_the_held_out_ones_only_score(tmp_path)
     assert sel["validation"]["diffuse"]["judged_by"] == "a fit of the validation split"
     assert sel["heldout_pooled_db"] == 30.0 and sel["refit"] is None
     assert set(sel["left_out"]) == {TWO_LOBES} and "too few to pin a second lobe" in sel["left_out"][TWO_LOBES]
-    assert "lafortune 40.00 dB, diffuse 35.00 dB" in sel["reason"] and f"{TWO_LOBES} left out" in sel["reason"]
+    assert "diffuse 35.00 dB, lafortune 40.00 dB" in sel["reason"] and f"{TWO_LOBES} left out" in sel["reason"]
     assert json.loads((tmp_path / "model" / "model.json").read_text())["selection"]["chosen"] == "lafortune"
     assert not (tmp_path / "model_diffuse_validation").exists()
 
@@ -73,11 +77,36 @@ def test_a_candidate_kept_on_its_validation_fit_is_then_fitted_to_every_photo(tm
     scores = {"lafortune": 40.0, "diffuse": 42.0, TWO_LOBES: 39.0}
     fit_one, calls = fake_fits(scores, {"lafortune": 30.0, "diffuse": 31.0, TWO_LOBES: 29.0}, constrained_share=0.6)
     res = fit_choice(tmp_path, tmp_path, tmp_path / "model", cfg, plan(cfg), fit_one, log=lambda line: None)
-    assert calls == [("lafortune", False), ("diffuse", True), (TWO_LOBES, False), ("diffuse", False)]
+    assert calls == [("diffuse", True), ("lafortune", False), (TWO_LOBES, False), ("diffuse", False)]
     sel = res.summary["selection"]
     assert sel["chosen"] == "diffuse" and sel["heldout_pooled_db"] == 31.0 and sel["refit"]
     assert sel["left_out"] == {} and set(sel["validation"]) == set(scores)
     assert (tmp_path / "model_lafortune" / "model.json").is_file()  # the full fits not kept stay beside
+
+
+def test_no_lobe_is_fitted_where_the_diffuse_fit_saw_no_highlight(tmp_path):
+    """The diffuse fit's photos show a highlight on none of the texels (a matte facade): Lafortune and the two-lobe
+    model are left out unfitted with the reason (choice.lobe_min_highlight_share), diffuse is fitted to every
+    photo and kept; at 0.2% (over the 0.1% share) Lafortune is fitted; with the option 0, always."""
+    import dataclasses
+
+    from texstream.fit.models.lafortune.choice import lobes_supported
+
+    cfg = FitStageConfig(holdout_every=8)
+    fit_one, calls = fake_fits({"lafortune": 40.0, "diffuse": 35.0}, {"lafortune": 30.0, "diffuse": 45.0},
+                               highlight_share=0.0)
+    res = fit_choice(tmp_path, tmp_path, tmp_path / "model", cfg, plan(cfg), fit_one, log=lambda line: None)
+    assert calls == [("diffuse", True), ("diffuse", False)]
+    sel = res.summary["selection"]
+    assert sel["chosen"] == "diffuse" and set(sel["left_out"]) == {"lafortune", TWO_LOBES}
+    assert "no highlight for a lobe to explain" in sel["left_out"]["lafortune"]
+    seen = {"diffuse": {"highlights": {"seen_texels": 10_000, "highlight_texels": 20}}}
+    assert lobes_supported(seen, cfg) is None
+    seen["diffuse"]["highlights"]["highlight_texels"] = 5
+    assert "5 of 10,000" in lobes_supported(seen, cfg)
+    off = dataclasses.replace(cfg, choice=dataclasses.replace(cfg.choice, lobe_min_highlight_share=0.0))
+    assert lobes_supported(seen, off) is None
+    assert lobes_supported({"diffuse": {"highlights": None}}, cfg) is None  # no count: fitted
 
 
 def test_the_second_lobe_is_fitted_only_where_the_photos_can_support_it():

@@ -36,14 +36,15 @@ def test_known_cameras_and_atlas_skip_their_stages_and_a_rerun_skips_everything(
     first = run_pipeline(capture, out, cfg, log=lambda m: None)
     st = statuses(first)
     assert st["ingest"] == st["register"] == st["mesh"] == st["atlas"] == "skipped"
-    # the sphere's photos have lights: Lafortune, diffuse and (where the photos can support it) two-lobe
+    # the sphere's photos have lights: diffuse, Lafortune and (where the photos can support it) two-lobe
     # Lafortune judged on a validation split of the fitted photos, the best kept; the held-out photos score
     # only the kept model, and model.json records the choice
     assert st["fit"] == "ran" and first["model"] in ("lafortune", "diffuse")
     # the split keeps two validation photos: every 8th of 16 fitted photos or more, a shorter period below
     every = first["fit"]["selection"]["validation_every"]
     assert "light" in first["model_reason"]
-    assert f"validation pooled PSNR (every {every}th fitted photo) lafortune" in first["model_reason"]
+    assert f"validation pooled PSNR (every {every}th fitted photo) diffuse" in first["model_reason"]
+    assert "lafortune" in first["fit"]["selection"]["validation"]  # the glossy sphere's photos show highlights
     sel = first["fit"]["selection"]
     assert set(sel["validation"]) | set(sel["left_out"]) == {"lafortune", "diffuse", "lafortune_2lobes"}
     assert sel["heldout_pooled_db"] == first["heldout"]["pooled_psnr_db"]

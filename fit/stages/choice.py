@@ -61,6 +61,13 @@ class ModelChoiceConfig:
                               "at least lfm_min_gain_db above radiance's), always, or never", choices=LFM_CANDIDATE)
     lfm_min_gain_db: float = option(0.5, "lfm auto: the validation gain (dB) of view_radiance over radiance from "
                                          "which view dependence counts as mattering", min=-60.0, max=60.0)
+    lobe_min_highlight_share: float = option(0.001, "known lights: the Lafortune candidates are fitted only when at "
+                                                    "least this share of the seen texels show a highlight "
+                                                    "(fit/common/highlights.py) in the diffuse candidate's validation "
+                                                    "fit, judged first: a lobe has nothing to explain where the "
+                                                    "photos show none, and the Lafortune fit with its materials "
+                                                    "choice was 140 of the 209 s of a 6 MP facade's fit stage; "
+                                                    "0: always fitted", min=0.0, max=1.0)
     relightable: bool = option(False, "one fixed unknown lighting: also fit the relightable models of the registry "
                                       "(env_diffuse: albedo and the light, estimated) and keep one when its "
                                       "validation pooled PSNR is within relightable_margin_db of the best model's; "
@@ -132,7 +139,7 @@ def plan_choice(capture, requested: str, cfg) -> ChoicePlan:
     cands = plugin.candidates(capture, cfg)
     if len(cands) < 2:
         return ChoicePlan(kind, why, [])
-    also = " and ".join(c.label or c.name for c in cands[1:])
+    also = " and ".join(c.label or c.name for c in cands if c.name != kind)  # the base kind need not come first
     if plugin.escalate is not None:
         also += plugin.escalate(None, cfg)[1]
     fitted = len(split_holdout(capture.frames, cfg.holdout_every)[0])
@@ -158,6 +165,8 @@ class Judged:
     judged_by: str
     seconds: float
     full: StageResult | None = None
+    summary: dict | None = None
+    """the summary of the fit it was judged by (its validation fit's, or its fit of every fitted photo)"""
     stop: dict | None = None
     """its validation fit's checks of whether it could still win (choice.stop_hopeless), None: not checked"""
 
@@ -218,14 +227,15 @@ def fit_choice(capture_dir: Path, mesh_path: Path, out_dir: Path, cfg, plan: Cho
 
     def judge(c) -> None:
         if c.supported is not None:
-            why = c.supported({k: j.full.summary for k, j in judged.items() if j.full is not None}, cfg)
+            why = c.supported({k: j.summary for k, j in judged.items() if j.summary is not None}, cfg)
             if why:
                 left_out[c.name] = why
                 log(f"[fit] {c.name} left out: {why}")
                 return
-        t, full, score, stop = time.perf_counter(), None, None, None
+        t, full, score, stop, fitted = time.perf_counter(), None, None, None, None
         if makes_own_choice(c, cfg):
             full = fit_one(capture_dir, mesh_path, folder(c), config(c, False))
+            fitted = full.summary
             score, how = own_validation_score(full.summary), "its own materials choice on the validation split"
         if score is None:
             fitted = fit_one(capture_dir, mesh_path, folder(c, VALIDATION_SUFFIX), config(c, True)).summary
@@ -234,7 +244,7 @@ def fit_choice(capture_dir: Path, mesh_path: Path, out_dir: Path, cfg, plan: Cho
             stop = fitted.get("stop")  # choice.stop_hopeless: the checks of whether it could still win
             if stop and stop["stopped"]:
                 how += f", {stop['stopped']}"
-        judged[c.name] = Judged(c, *score, how, time.perf_counter() - t, full, stop)
+        judged[c.name] = Judged(c, *score, how, time.perf_counter() - t, full, fitted, stop)
         log(f"[fit] {c.name}: validation pooled PSNR {_db(score[0])}, worst view {_db(score[1])} ({how})")
 
     for c in plan.candidates:

@@ -102,10 +102,10 @@ def _fit_per_texel_model(capture_dir: str | Path, mesh_path: str | Path, out_dir
         evals = _write_geometry_and_renders(tmp, inputs, mesh_path, grid, result.layout, cfg, scores_only)
         seen = np.zeros(inputs.bake.height * inputs.bake.width, bool)
         seen[problem.texels.grid_index] = result.samples > 0
-        highlights = None
         if not scores_only:
             write_lobe_maps(tmp, inputs.bake, problem, result, lobes)
-            highlights = write_highlights(tmp, inputs.bake, problem, result, lobes)
+        # a validation fit's counts too: the model choice leaves the lobes out where the diffuse fit saw no highlight
+        highlights = write_highlights(tmp, inputs.bake, problem, result, lobes, image=not scores_only)
         timings = {"inputs": t_inputs, "setup": t_setup - t_inputs, "choice_before_fit": t_choice,
                    "fit": t_loop - t0 - t_setup - t_choice, "after_fit": t_fitted - t_loop,
                    "renders": time.perf_counter() - t_fitted}
@@ -326,14 +326,15 @@ def write_lobe_maps(tmp: Path, bake, problem, result, lobes: Lobes) -> None:
         write_image(tmp / "materials.png", colours.reshape(bake.height, bake.width, 3), bits=8)
 
 
-def write_highlights(tmp: Path, bake, problem, result, lobes: Lobes) -> dict | None:
-    """highlights.png and what model.json records of the highlight diagnostic (fit/common/highlights.py)
-    for a lit model; None for the radiance models (no light, no mirror configuration)."""
+def write_highlights(tmp: Path, bake, problem, result, lobes: Lobes, image: bool = True) -> dict | None:
+    """What model.json records of the highlight diagnostic (fit/common/highlights.py) for a lit model, and
+    highlights.png (``image``); None for the radiance models (no light, no mirror configuration)."""
     if result.layout.is_radiance or result.layout.view_terms:
         return None
     masks = highlight_masks(problem, result.params)
-    write_image(tmp / "highlights.png", highlight_image(masks, problem.texels.grid_index, bake.height, bake.width),
-                bits=8)
+    if image:
+        write_image(tmp / "highlights.png", highlight_image(masks, problem.texels.grid_index, bake.height,
+                                                            bake.width), bits=8)
     return highlight_report(masks, None if lobes.evidence is None else lobes.evidence.constrained)
 
 
