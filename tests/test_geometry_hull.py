@@ -94,3 +94,22 @@ def test_mask_fields_are_computed_once_per_mask():
     again = mask_fields([m.copy() for m in masks], 0.01)
     assert all(a is b for a, b in zip(again[1], sdfs))
     assert mask_fields(masks, 0.0)[1][0] is not sdfs[0]  # another fill: another entry
+
+
+def test_mask_fields_past_the_budget_keep_the_first_masks_on_every_pass(monkeypatch):
+    """A set of masks larger than the budget keeps those that fit (each later pass finds them; forgetting the
+    oldest made every pass of the 6 MP run's 11 masks miss), and another capture's masks are forgotten first."""
+    import texstream.geometry.hull as hull
+
+    monkeypatch.setattr(hull, "_FIELDS_CACHE", type(hull._FIELDS_CACHE)())
+    one = 30 * 40 * (1 + 4)  # a 30x40 mask's filled bools and float32 distances
+    monkeypatch.setattr(hull, "_FIELDS_CACHE_BYTES", 3 * one)
+    rng = np.random.default_rng(1)
+    masks = [rng.random((30, 40)) < 0.6 for _ in range(5)]
+    first = hull.mask_fields(masks, 0.0)[1]
+    second = hull.mask_fields(masks, 0.0)[1]
+    assert [a is b for a, b in zip(first, second)] == [True, True, True, False, False]
+    other = [rng.random((30, 40)) < 0.6 for _ in range(2)]
+    hull.mask_fields(other, 0.0)
+    assert len(hull._FIELDS_CACHE) == 3  # two of the first set's forgotten for the other set's two
+    assert hull.mask_fields(other, 0.0)[1][1] is hull.mask_fields(other, 0.0)[1][1]
