@@ -56,57 +56,96 @@ def _core(b: wp.vec3d, m: wp.float64, f0d: wp.vec3d, dv: wp.float64, x5: wp.floa
     return b * ((one - m) * INV_PI) + f0 * (dv * (one - x5)) + wp.vec3d(dv * x5, dv * x5, dv * x5)
 
 
+GeometryMoments = wp.types.vector(length=10, dtype=wp.float64)
+"""the weighted moments of one roughness's sample terms that do not depend on the texel: sw, sq, sqq, s1, t1, qs,
+qt, ss, st, tt (:func:`_geometry_moments`)"""
+
+
+@wp.func
+def _sample_terms(light: wp.array(dtype=wp.vec3d), view: wp.array(dtype=wp.vec3d),
+                  table_dv: wp.array2d(dtype=wp.float64), table_x5: wp.array2d(dtype=wp.float64), row: int,
+                  alpha: wp.float64, k: int):
+    """(q, s, tt) of sample ``k``: g0 = s + m tt and g1 = p + m q (:func:`_best_metallic`), from row ``row`` of the
+    tables or, for ``row`` < 0, from ``alpha``."""
+    dv = wp.float64(0.0)
+    x5 = wp.float64(0.0)
+    if row >= 0:
+        dv = table_dv[row, k]
+        x5 = table_x5[row, k]
+    else:
+        dv, x5 = _ggx(light[k], view[k], alpha)
+    a = dv * (wp.float64(1.0) - x5)
+    return a - INV_PI, dv * x5 + F0_DIELECTRIC * a, -F0_DIELECTRIC * a
+
+
+@wp.func
+def _geometry_moments(light: wp.array(dtype=wp.vec3d), view: wp.array(dtype=wp.vec3d),
+                      weight: wp.array(dtype=wp.float64), table_dv: wp.array2d(dtype=wp.float64),
+                      table_x5: wp.array2d(dtype=wp.float64), row: int, alpha: wp.float64):
+    """The texel-independent moments of one roughness (:data:`GeometryMoments`)."""
+    out = GeometryMoments()
+    for k in range(light.shape[0]):
+        w = weight[k]
+        q, s, tt = _sample_terms(light, view, table_dv, table_x5, row, alpha, k)
+        out[0] += w
+        out[1] += w * q
+        out[2] += w * q * q
+        out[3] += w * s
+        out[4] += w * tt
+        out[5] += w * q * s
+        out[6] += w * q * tt
+        out[7] += w * s * s
+        out[8] += w * s * tt
+        out[9] += w * tt * tt
+    return out
+
+
+@wp.kernel
+def geometry_moments_kernel(light: wp.array(dtype=wp.vec3d), view: wp.array(dtype=wp.vec3d),
+                            weight: wp.array(dtype=wp.float64), table_dv: wp.array2d(dtype=wp.float64),
+                            table_x5: wp.array2d(dtype=wp.float64), out: wp.array(dtype=GeometryMoments)):
+    """The moments of every coarse roughness: the same for every texel, so summed once, not once a texel."""
+    i = wp.tid()
+    out[i] = _geometry_moments(light, view, weight, table_dv, table_x5, i, wp.float64(0.0))
+
+
 @wp.func
 def _best_metallic(radiance: wp.array2d(dtype=wp.vec3d), t: int, light: wp.array(dtype=wp.vec3d),
                    view: wp.array(dtype=wp.vec3d), weight: wp.array(dtype=wp.float64),
                    table_dv: wp.array2d(dtype=wp.float64), table_x5: wp.array2d(dtype=wp.float64), row: int,
-                   alpha: wp.float64, yy: wp.vec3d, m_steps: int):
+                   alpha: wp.float64, yy: wp.vec3d, y1: wp.vec3d, g: GeometryMoments, m_steps: int):
     """(err, m, b) of the best metallic for one roughness (gltf_core.py ``_best_for_roughness``): g0 = s + m t
     and g1 = p + m q per sample, the base colour's model b g1 + g0 affine in b. The GGX terms come from row
-    ``row`` of the tables (the coarse grid, the same for every texel), or for ``row`` < 0 from ``alpha``."""
+    ``row`` of the tables (the coarse grid, the same for every texel), or for ``row`` < 0 from ``alpha``; ``g``
+    their texel-independent moments (summed here for ``row`` < 0), ``y1`` the texel's weighted radiance sum (each sum in the sample order it
+    always had: the maps are the same to the bit as when every texel summed them all)."""
     p = INV_PI
-    sw = wp.float64(0.0)
-    sq = wp.float64(0.0)
-    sqq = wp.float64(0.0)
-    ss_ = wp.float64(0.0)
-    st_ = wp.float64(0.0)
-    stt = wp.float64(0.0)
-    s1 = wp.float64(0.0)
-    t1 = wp.float64(0.0)
-    qs = wp.float64(0.0)
-    qt = wp.float64(0.0)
-    y1 = wp.vec3d()
+    own = GeometryMoments()  # a refined roughness's (row < 0), summed with the texel's in one pass over the samples
     qy = wp.vec3d()
     sy = wp.vec3d()
     ty = wp.vec3d()
     for k in range(light.shape[0]):
         w = weight[k]
-        dv = wp.float64(0.0)
-        x5 = wp.float64(0.0)
-        if row >= 0:
-            dv = table_dv[row, k]
-            x5 = table_x5[row, k]
-        else:
-            dv, x5 = _ggx(light[k], view[k], alpha)
-        a = dv * (wp.float64(1.0) - x5)
-        q = a - p
-        s = dv * x5 + F0_DIELECTRIC * a
-        tt = -F0_DIELECTRIC * a
+        q, s, tt = _sample_terms(light, view, table_dv, table_x5, row, alpha, k)
+        if row < 0:
+            own[0] += w
+            own[1] += w * q
+            own[2] += w * q * q
+            own[3] += w * s
+            own[4] += w * tt
+            own[5] += w * q * s
+            own[6] += w * q * tt
+            own[7] += w * s * s
+            own[8] += w * s * tt
+            own[9] += w * tt * tt
         y = radiance[t, k]
-        sw += w
-        sq += w * q
-        sqq += w * q * q
-        s1 += w * s
-        t1 += w * tt
-        qs += w * q * s
-        qt += w * q * tt
-        ss_ += w * s * s
-        st_ += w * s * tt
-        stt += w * tt * tt
-        y1 += w * y
         qy += (w * q) * y
         sy += (w * s) * y
         ty += (w * tt) * y
+    if row < 0:
+        g = own
+    sw, sq, sqq, s1, t1 = g[0], g[1], g[2], g[3], g[4]
+    qs, qt, ss_, st_, stt = g[5], g[6], g[7], g[8], g[9]
     pp, pq, ps, pt = p * p * sw, p * sq, p * s1, p * t1
     py = p * y1
     best_err = wp.float64(1.0e300)
@@ -155,6 +194,7 @@ def core_material_kernel(radiance: wp.array2d(dtype=wp.vec3d), first: int,
                          light: wp.array(dtype=wp.vec3d), view: wp.array(dtype=wp.vec3d),
                          weight: wp.array(dtype=wp.float64), coarse: wp.array(dtype=wp.float64),
                          table_dv: wp.array2d(dtype=wp.float64), table_x5: wp.array2d(dtype=wp.float64),
+                         table_moments: wp.array(dtype=GeometryMoments),
                          refine: wp.array(dtype=wp.float64), rough_min: wp.float64, m_steps: int,
                          old_base: wp.array(dtype=wp.vec3d), old_f0: wp.array(dtype=wp.vec3d),
                          old_rough: wp.array(dtype=wp.float64),
@@ -166,16 +206,19 @@ def core_material_kernel(radiance: wp.array2d(dtype=wp.vec3d), first: int,
     t = wp.tid()
     o = first + t
     yy = wp.vec3d()
+    y1 = wp.vec3d()
     for k in range(light.shape[0]):
         y = radiance[t, k]
         yy += weight[k] * wp.cw_mul(y, y)
+        y1 += weight[k] * y
     best_err = wp.float64(1.0e308)
     best_m = wp.float64(0.0)
     best_r = wp.float64(1.0)
     best_b = wp.vec3d()
     for i in range(coarse.shape[0]):
         r = coarse[i]
-        err, m, b = _best_metallic(radiance, t, light, view, weight, table_dv, table_x5, i, r * r, yy, m_steps)
+        err, m, b = _best_metallic(radiance, t, light, view, weight, table_dv, table_x5, i, r * r, yy, y1,
+                                   table_moments[i], m_steps)
         if err < best_err:
             best_err = err
             best_m = m
@@ -184,7 +227,8 @@ def core_material_kernel(radiance: wp.array2d(dtype=wp.vec3d), first: int,
     coarse_best = best_r
     for i in range(refine.shape[0]):
         r = wp.clamp(coarse_best * refine[i], rough_min, wp.float64(1.0))
-        err, m, b = _best_metallic(radiance, t, light, view, weight, table_dv, table_x5, -1, r * r, yy, m_steps)
+        err, m, b = _best_metallic(radiance, t, light, view, weight, table_dv, table_x5, -1, r * r, yy, y1,
+                                   GeometryMoments(), m_steps)
         if err < best_err:
             best_err = err
             best_m = m
@@ -255,7 +299,11 @@ def fit_rows(rows: np.ndarray, layout, light: np.ndarray, view: np.ndarray, weig
         coarse_w = arr(coarse, wp.float64)
         table_dv, table_x5 = wp.empty((len(coarse), s), dtype=wp.float64), wp.empty((len(coarse), s), dtype=wp.float64)
         wp.launch(ggx_table_kernel, dim=(len(coarse), s), inputs=[light_w, view_w, coarse_w], outputs=[table_dv, table_x5])
-        fixed = [arr(weight, wp.float64), coarse_w, table_dv, table_x5, arr(np.asarray(refine), wp.float64),
+        weight_w = arr(weight, wp.float64)
+        moments = wp.empty(len(coarse), dtype=GeometryMoments)
+        wp.launch(geometry_moments_kernel, dim=len(coarse), inputs=[light_w, view_w, weight_w, table_dv, table_x5],
+                  outputs=[moments])
+        fixed = [weight_w, coarse_w, table_dv, table_x5, moments, arr(np.asarray(refine), wp.float64),
                  wp.float64(rough_min), int(metallic_steps), arr(old[0], wp.vec3d), arr(old[1], wp.vec3d),
                  arr(old[2], wp.float64)]
         firsts = list(range(0, n, TEXEL_CHUNK))
