@@ -7,7 +7,10 @@ form (base colour the clipped least-squares value per channel); the coarse best 
 KHR_materials_specular's F0 and the four relative RMS scores. Ties go to the first value, as numpy's argmin and
 the strict ``<`` did. Why a kernel: the numpy version took 8 s of the README demo's export on the CPU (numpy
 temporaries of texels x samples x channels per roughness), and ran on the CPU whatever device the run had; the
-kernel reads each sample's terms once per roughness and keeps nothing per sample.
+kernel reads each sample's terms once per roughness and keeps nothing per sample. The moments of the coarse grid's
+GGX terms that do not depend on the texel are summed once for all texels (geometry_moments_kernel), in the order
+each texel summed them, so the maps are the same to the bit (a 204,000-texel block of the 6 MP facade's diffuse
+model: 5.7 -> 5.0 CPU s).
 """
 
 from __future__ import annotations
