@@ -48,9 +48,10 @@ from texstream.fit.common.model_folder import json_safe
 from texstream.fit.models import registry
 from texstream.fit.optim.fitter import FitConfig
 from texstream.fit.optim.lfm_config import LFMConfig
-from texstream.fit.stages.choice import ModelChoiceConfig, fit_choice, plan_choice
+from texstream.fit.stages.choice import ModelChoiceConfig, fit_choice, plan_choice, requested_model
 from texstream.fit.stages.export import ExportConfig, export_stage
-from texstream.fit.stages.stage import FitStageConfig, fit_candidate, fit_stage, forget_candidates
+from texstream.fit.stages.stage import (FitStageConfig, fit_candidate, fit_kernels_ahead, fit_stage,
+                                        forget_candidates)
 from texstream.geometry.atlas import AtlasConfig, atlas_stage
 from texstream.geometry.make_mesh import MeshConfig, make_mesh
 from texstream.geometry.mesh_frame import mesh_alignment
@@ -303,6 +304,9 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
     posed, posed_dir = _register(pipe, cap_dir, kind, out, cfg)
     capture = read_capture(posed_dir)
     cfg = _capture_mesh(cfg, capture, posed, posed_dir, log)
+    if not (cfg.lights.sphere or cfg.lights.ball_masks):  # a mirror ball would give the capture lights later
+        fit_kernels_ahead(posed_dir, dataclasses.replace(cfg.fit, device=cfg.device),
+                          requested_model(capture, cfg.model)[0])
     fit_geometry = _mesh_and_atlas(pipe, posed, posed_dir, out, cfg)
 
     # lights: from mirror-ball photos when a ball is given

@@ -194,3 +194,29 @@ def test_a_run_under_an_unknown_light_builds_its_radiance_models_ahead(device, t
     built = {tuple(x) for x in got["built"]}
     launched = {tuple(x) for x in got["loads"] if x[2] == device} - built
     assert built and not launched, f"launched but not prewarmed: {sorted(launched)}"
+
+
+def test_a_gpu_run_builds_the_fit_kernels_while_the_stages_before_it_run(capture, device, tmp_path, monkeypatch):
+    """On a GPU with a cold cache the run starts the fit's modules compiling before its mesh and atlas stages
+    (fit/stages/prewarm.py ``build_kernels_ahead``) and the fit waits for that build instead of starting its own;
+    every module the fit then launches was built (none rehashed). On the CPU the fit builds them, as before: the
+    stages' cores are their own."""
+    monkeypatch.setattr(build_notice, "_ANNOUNCED", set())
+    monkeypatch.setattr(build_notice, "_marker", lambda *_, **__: tmp_path / "absent.warm")
+    monkeypatch.setattr(prewarm, "_AHEAD", {})
+    loads = record_loads(monkeypatch.setattr)
+    cfg = RunConfig(device=device, mesh_file=str(capture / "ground_truth"))
+    cfg.fit = dataclasses.replace(cfg.fit, renders=1, fit=dataclasses.replace(cfg.fit.fit, max_iterations=3))
+    lines = []
+    with reporting(lines.append):
+        run_pipeline(capture, tmp_path / "out", cfg, log=lines.append)
+    ahead = [line for line in lines if "while the stages before it run" in line]
+    if not device.startswith("cuda"):
+        assert not ahead and any("Warp modules at once" in line for line in lines), lines
+        return
+    assert len(ahead) == 1 and any("kernels built ahead" in line for line in lines), lines
+    hashes: dict = {}
+    for name, module_hash, on, _ in loads:
+        if on == device:
+            hashes.setdefault(name, set()).add(module_hash)
+    assert hashes and all(len(h) == 1 for h in hashes.values()), {n: h for n, h in hashes.items() if len(h) > 1}

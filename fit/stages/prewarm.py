@@ -118,22 +118,66 @@ def build_threads() -> int:
         return os.cpu_count() or 1
 
 
-def build_kernels_if_cold(stage: str, device: str, kind: str, precision: str = "fp32") -> None:
-    """The first fit on ``device`` with a cold kernel cache: say so, build the default run's modules (those
-    every fit launches for another ``kind``) in parallel, and say how long it took. Warm: nothing. ``precision``:
-    the fit's compute precision, whose overloads the caller declared (fit/kernels/overloads.py
-    ``declare_precision``), so the modules built hold them."""
-    group = kernel_group(kind)
-    if not kernels_cold(device, precision, group):
-        return
-    modules = {"default": default_run_modules, "unknown_light": radiance_run_modules}.get(group, lambda d: shared_modules())(
-        device)
-    wp.init()  # here, not in the build threads: a first init marks every module modified under their loads
-    threads = min(build_threads(), len(modules))
-    say(stage, kernel_build_line(device, f"{len(modules)} Warp modules at once on {threads} threads"))
+def group_modules(group: str | None, device: str) -> list:
+    """(module, block_dim) of the modules ``group`` builds ahead on ``device`` (another kind: the shared ones)."""
+    return {"default": default_run_modules, "unknown_light": radiance_run_modules}.get(
+        group, lambda d: shared_modules())(device)
+
+
+def _build(modules: list, device: str, threads: int) -> float:
+    """Load (compile) ``modules`` on ``threads`` threads at once; the seconds it took."""
     t0 = time.perf_counter()
     with ThreadPoolExecutor(threads) as pool:
         for done in [pool.submit(wp.force_load, device=device, modules=[m], block_dim=b, max_workers=0)
                      for m, b in modules]:
             done.result()
-    say(stage, f"kernels built: {len(modules)} Warp modules in {time.perf_counter() - t0:.1f} s")
+    return time.perf_counter() - t0
+
+
+_AHEAD: dict = {}
+"""(device, precision, group) -> (the build started by :func:`build_kernels_ahead`, its module count)"""
+
+
+def build_kernels_ahead(stage: str, device: str, kind: str, precision: str = "fp32") -> None:
+    """A run on a GPU with a cold kernel cache: start building the fit's modules for ``kind``'s group on a thread of
+    their own, so they compile while the mesh, the atlas and the refinement run (the temple's cold run on an H200
+    waited 10.5 s of its fit stage for them); the fit waits for the build (:func:`build_kernels_if_cold`). The
+    caller declared the fit's precision and group overloads first (the modules' hashes depend on them). Only the
+    fit's own modules: those the stages before it launch too (:func:`shared_modules`: the renderer, depth maps)
+    load where they are first launched, not from two threads at once. The CPU builds at the fit, as before: its
+    cores are the stages' own."""
+    group = kernel_group(kind)
+    if not str(device).startswith("cuda") or group is None or not kernels_cold(device, precision, group):
+        return
+    shared = {id(m) for m, _ in shared_modules()}
+    modules = [(m, b) for m, b in group_modules(group, device) if id(m) not in shared]
+    wp.init()  # here, not in the build threads: a first init marks every module modified under their loads
+    threads = min(build_threads(), len(modules))
+    say(stage, kernel_build_line(device, f"{len(modules)} Warp modules of the fit on {threads} threads, while the "
+                                         "stages before it run"))
+    pool = ThreadPoolExecutor(1, thread_name_prefix="texstream-kernels")
+    _AHEAD[(device, precision, group)] = (pool.submit(_build, modules, device, threads), len(modules))
+    pool.shutdown(wait=False)
+
+
+def build_kernels_if_cold(stage: str, device: str, kind: str, precision: str = "fp32") -> None:
+    """The first fit on ``device`` with a cold kernel cache: say so, build the default run's modules (those
+    every fit launches for another ``kind``) in parallel, and say how long it took; a build started ahead
+    (:func:`build_kernels_ahead`) is waited for instead. Warm: nothing. ``precision``: the fit's compute
+    precision, whose overloads the caller declared (fit/kernels/overloads.py ``declare_precision``), so the
+    modules built hold them."""
+    group = kernel_group(kind)
+    ahead = _AHEAD.pop((device, precision, group), None)
+    if ahead is not None:
+        t0 = time.perf_counter()
+        seconds = ahead[0].result()  # a build error is raised here, as it would be at a launch
+        say(stage, f"kernels built ahead: {ahead[1]} Warp modules in {seconds:.1f} s, "
+                   f"{time.perf_counter() - t0:.1f} s of it waited for here")
+        return
+    if not kernels_cold(device, precision, group):
+        return
+    modules = group_modules(group, device)
+    wp.init()  # here, not in the build threads: a first init marks every module modified under their loads
+    threads = min(build_threads(), len(modules))
+    say(stage, kernel_build_line(device, f"{len(modules)} Warp modules at once on {threads} threads"))
+    say(stage, f"kernels built: {len(modules)} Warp modules in {_build(modules, device, threads):.1f} s")

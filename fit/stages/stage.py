@@ -34,7 +34,8 @@ from texstream.fit.stream.config import resolve_accumulate
 from texstream.fit.optim.fitter import FitConfig
 from texstream.fit.models import registry
 from texstream.fit.stages import choice
-from texstream.fit.stages.prewarm import build_kernels_if_cold, declare_group_overloads, kernel_group
+from texstream.fit.stages.prewarm import (build_kernels_ahead, build_kernels_if_cold, declare_group_overloads,
+                                          kernel_group)
 from texstream.fit.models.materials import MaterialConfig
 from texstream.fit.common.inputs import SharedPhotoSet, check_output_path, split_holdout
 from texstream.fit.common.model_folder import check_render, image_metrics, json_safe, pooled_psnr
@@ -160,6 +161,19 @@ def fit_model(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
         result = plugin.fit(registry.FitRequest(Path(capture_dir), Path(mesh_path), Path(out_dir), cfg, progress))
     mark_kernels_built(cfg.device, precision, kernel_group(cfg.fit.model))
     return result
+
+
+def fit_kernels_ahead(capture_dir: str | Path, cfg: FitStageConfig, kind: str) -> None:
+    """Before a run's mesh, atlas and refinement: on a GPU with a cold kernel cache, the modules a fit of ``kind``
+    (its group's, fit/stages/prewarm.py) launches start compiling on a thread of their own; the fit waits for
+    them. The fit's precision and group overloads are declared here, as :func:`fit_model` declares them."""
+    device = resolve_device(cfg.device)
+    if not str(device).startswith("cuda"):
+        return
+    precision = compute_precision(capture_dir, cfg)
+    declare_precision(precision)
+    declare_group_overloads(kind)
+    build_kernels_ahead("fit", device, kind, precision)
 
 
 def compute_precision(capture_dir: str | Path, cfg: FitStageConfig) -> str:
