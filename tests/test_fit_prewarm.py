@@ -210,7 +210,7 @@ def test_a_gpu_run_builds_the_fit_kernels_while_the_stages_before_it_run(capture
     lines = []
     with reporting(lines.append):
         run_pipeline(capture, tmp_path / "out", cfg, log=lines.append)
-    ahead = [line for line in lines if "while the stages before it run" in line]
+    ahead = [line for line in lines if "while the stages before the fit run" in line]
     if not device.startswith("cuda"):
         assert not ahead and any("Warp modules at once" in line for line in lines), lines
         return

@@ -118,6 +118,15 @@ def build_threads() -> int:
         return os.cpu_count() or 1
 
 
+def later_stage_modules() -> list:
+    """(module, None) of the stages between the mesh and the fit: the atlas's texel bake and the refinement's passes
+    (none generic: built ahead, they are what those stages launch; the temple's cold refine waited 3.0 s for them).
+    The mesh stage's own modules are left to it: it launches them at once."""
+    from texstream.geometry import bake, refine_kernels, refine_normal_kernels
+
+    return [(wp.get_module(m.__name__), None) for m in (bake, refine_kernels, refine_normal_kernels)]
+
+
 def group_modules(group: str | None, device: str) -> list:
     """(module, block_dim) of the modules ``group`` builds ahead on ``device`` (another kind: the shared ones)."""
     return {"default": default_run_modules, "unknown_light": radiance_run_modules}.get(
@@ -142,19 +151,20 @@ def build_kernels_ahead(stage: str, device: str, kind: str, precision: str = "fp
     """A run on a GPU with a cold kernel cache: start building the fit's modules for ``kind``'s group on a thread of
     their own, so they compile while the mesh, the atlas and the refinement run (the temple's cold run on an H200
     waited 10.5 s of its fit stage for them); the fit waits for the build (:func:`build_kernels_if_cold`). The
-    caller declared the fit's precision and group overloads first (the modules' hashes depend on them). Only the
-    fit's own modules: those the stages before it launch too (:func:`shared_modules`: the renderer, depth maps)
-    load where they are first launched, not from two threads at once. The CPU builds at the fit, as before: its
+    caller declared the fit's precision and group overloads first (the modules' hashes depend on them). The fit's
+    own modules and the atlas's and refinement's (:func:`later_stage_modules`); those the stages before it launch
+    too (:func:`shared_modules`: the renderer, depth maps) load where they are first launched, not from two threads
+    at once. The CPU builds at the fit, as before: its
     cores are the stages' own."""
     group = kernel_group(kind)
     if not str(device).startswith("cuda") or group is None or not kernels_cold(device, precision, group):
         return
     shared = {id(m) for m, _ in shared_modules()}
-    modules = [(m, b) for m, b in group_modules(group, device) if id(m) not in shared]
+    modules = later_stage_modules() + [(m, b) for m, b in group_modules(group, device) if id(m) not in shared]
     wp.init()  # here, not in the build threads: a first init marks every module modified under their loads
     threads = min(build_threads(), len(modules))
-    say(stage, kernel_build_line(device, f"{len(modules)} Warp modules of the fit on {threads} threads, while the "
-                                         "stages before it run"))
+    say(stage, kernel_build_line(device, f"{len(modules)} Warp modules of the fit, atlas and refinement on {threads} "
+                                         "threads, while the stages before the fit run"))
     pool = ThreadPoolExecutor(1, thread_name_prefix="texstream-kernels")
     _AHEAD[(device, precision, group)] = (pool.submit(_build, modules, device, threads), len(modules))
     pool.shutdown(wait=False)
