@@ -31,6 +31,7 @@ from texstream.fit.kernels.overloads import declare_param_counts
 from texstream.fit.models.lafortune import gltf_core_kernel
 from texstream.fit.stream import photo_stream
 from texstream.fit.stream.config import StreamConfig
+from texstream.geometry import bake, refine_kernels, refine_normal_kernels
 from texstream.render import kernels as render_kernels
 from texstream.render import visibility
 
@@ -122,8 +123,6 @@ def later_stage_modules() -> list:
     """(module, None) of the stages between the mesh and the fit: the atlas's texel bake and the refinement's passes
     (none generic: built ahead, they are what those stages launch; the temple's cold refine waited 3.0 s for them).
     The mesh stage's own modules are left to it: it launches them at once."""
-    from texstream.geometry import bake, refine_kernels, refine_normal_kernels
-
     return [(wp.get_module(m.__name__), None) for m in (bake, refine_kernels, refine_normal_kernels)]
 
 
