@@ -31,6 +31,8 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
+import warp as wp
+
 from texstream.calib.chart_flash import chart_flash_applies, flash_lit_capture
 from texstream.calib.colmap_io import import_colmap
 from texstream.calib.files import IMAGE_EXTS
@@ -52,6 +54,8 @@ from texstream.fit.stages.choice import ModelChoiceConfig, fit_choice, plan_choi
 from texstream.fit.stages.export import ExportConfig, export_stage
 from texstream.fit.stages.stage import (FitStageConfig, fit_candidate, fit_kernels_ahead, fit_stage,
                                         forget_candidates)
+from texstream.geometry import hull, mvs, reconstruct, scene
+from texstream.geometry import visibility as geometry_visibility
 from texstream.geometry.atlas import AtlasConfig, atlas_stage
 from texstream.geometry.make_mesh import MeshConfig, make_mesh
 from texstream.geometry.mesh_frame import mesh_alignment
@@ -306,7 +310,7 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
     cfg = _capture_mesh(cfg, capture, posed, posed_dir, log)
     if not (cfg.lights.sphere or cfg.lights.ball_masks):  # a mirror ball would give the capture lights later
         fit_kernels_ahead(posed_dir, dataclasses.replace(cfg.fit, device=cfg.device),
-                          requested_model(capture, cfg.model)[0])
+                          requested_model(capture, cfg.model)[0], mesh_modules() if cfg.mesh_file is None else [])
     fit_geometry = _mesh_and_atlas(pipe, posed, posed_dir, out, cfg)
 
     # lights: from mirror-ball photos when a ball is given
@@ -370,6 +374,12 @@ def _ingest(pipe: Pipeline, src: Path, kind: str, out: Path, cfg: RunConfig) -> 
         return cap_dir
     pipe.skip("ingest", f"{src} is a capture folder already", src)
     return src
+
+
+def mesh_modules() -> list:
+    """The Warp modules of the mesh stage (dense stereo, the visual hull, its cleanup checks): built together on a
+    cold GPU before the stage (fit/stages/prewarm.py ``build_kernels_ahead``), not one after another at launches."""
+    return [wp.get_module(m.__name__) for m in (mvs, hull, reconstruct, scene, geometry_visibility)]
 
 
 def _register(pipe: Pipeline, cap_dir: Path, kind: str, out: Path, cfg: RunConfig) -> tuple[bool, Path]:

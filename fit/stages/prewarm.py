@@ -147,23 +147,24 @@ _AHEAD: dict = {}
 
 
 def build_kernels_ahead(stage: str, device: str, kind: str, precision: str = "fp32") -> None:
-    """A run on a GPU with a cold kernel cache: start building the fit's modules for ``kind``'s group on a thread of
-    their own, so they compile while the mesh, the atlas and the refinement run (the temple's cold run on an H200
-    waited 10.5 s of its fit stage for them); the fit waits for the build (:func:`build_kernels_if_cold`). The
-    caller declared the fit's precision and group overloads first (the modules' hashes depend on them). The fit's
-    own modules and the atlas's and refinement's (:func:`later_stage_modules`); those the stages before it launch
-    too (:func:`shared_modules`: the renderer, depth maps) load where they are first launched, not from two threads
-    at once. The CPU builds at the fit, as before: its
-    cores are the stages' own."""
+    """A run on a GPU with a cold kernel cache: build ``now`` (the modules the next stage launches, e.g. the mesh
+    stage's) and :func:`shared_modules` at once, in parallel, then start the fit's modules for ``kind``'s group and
+    the atlas's and refinement's (:func:`later_stage_modules`) on a thread of their own, so they compile while those
+    stages run (the temple's cold run on an H200 waited 10.5 s of its fit stage for them); the fit waits for that
+    build (:func:`build_kernels_if_cold`). The caller declared the fit's precision and group overloads first (the
+    modules' hashes depend on them). Nothing loads a module from two threads at once: what the stages launch first
+    is built before they start. The CPU builds at the fit, as before: its cores are the stages' own."""
     group = kernel_group(kind)
     if not str(device).startswith("cuda") or group is None or not kernels_cold(device, precision, group):
         return
-    shared = {id(m) for m, _ in shared_modules()}
-    modules = later_stage_modules() + [(m, b) for m, b in group_modules(group, device) if id(m) not in shared]
+    first = [(m, None) for m in now] + shared_modules()
+    skip = {id(m) for m, _ in first}
+    modules = [(m, b) for m, b in later_stage_modules() + group_modules(group, device) if id(m) not in skip]
     wp.init()  # here, not in the build threads: a first init marks every module modified under their loads
-    threads = min(build_threads(), len(modules))
-    say(stage, kernel_build_line(device, f"{len(modules)} Warp modules of the fit, atlas and refinement on {threads} "
-                                         "threads, while the stages before the fit run"))
+    threads = min(build_threads(), len(first) + len(modules))
+    say(stage, kernel_build_line(device, f"{len(first)} Warp modules now, {len(modules)} of the atlas, refinement "
+                                         f"and fit on {threads} threads while the stages before the fit run"))
+    say(stage, f"kernels built: {len(first)} Warp modules in {_build(first, device, threads):.1f} s")
     pool = ThreadPoolExecutor(1, thread_name_prefix="texstream-kernels")
     _AHEAD[(device, precision, group)] = (pool.submit(_build, modules, device, threads), len(modules))
     pool.shutdown(wait=False)

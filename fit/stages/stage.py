@@ -163,17 +163,18 @@ def fit_model(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     return result
 
 
-def fit_kernels_ahead(capture_dir: str | Path, cfg: FitStageConfig, kind: str) -> None:
-    """Before a run's mesh, atlas and refinement: on a GPU with a cold kernel cache, the modules a fit of ``kind``
-    (its group's, fit/stages/prewarm.py) launches start compiling on a thread of their own; the fit waits for
-    them. The fit's precision and group overloads are declared here, as :func:`fit_model` declares them."""
+def fit_kernels_ahead(capture_dir: str | Path, cfg: FitStageConfig, kind: str, now: list = ()) -> None:
+    """Before a run's mesh, atlas and refinement: on a GPU with a cold kernel cache, ``now`` (the Warp modules of
+    the next stage) built at once, then the modules a fit of ``kind`` (its group's, fit/stages/prewarm.py) launches
+    start compiling on a thread of their own; the fit waits for them. The fit's precision and group overloads are
+    declared here, as :func:`fit_model` declares them."""
     device = resolve_device(cfg.device)
     if not str(device).startswith("cuda"):
         return
     precision = compute_precision(capture_dir, cfg)
     declare_precision(precision)
     declare_group_overloads(kind)
-    build_kernels_ahead("fit", device, kind, precision)
+    build_kernels_ahead("fit", device, kind, precision, now)
 
 
 def compute_precision(capture_dir: str | Path, cfg: FitStageConfig) -> str:
