@@ -220,3 +220,27 @@ def test_a_gpu_run_builds_the_fit_kernels_while_the_stages_before_it_run(capture
         if on == device:
             hashes.setdefault(name, set()).add(module_hash)
     assert hashes and all(len(h) == 1 for h in hashes.values()), {n: h for n, h in hashes.items() if len(h) > 1}
+
+
+def test_the_build_ahead_splits_its_modules_without_overlap(monkeypatch):
+    """The lists of ``build_kernels_ahead`` (their compile stubbed, the device taken for a GPU): the mesh stage's
+    modules and the shared ones first, at once; the atlas's, refinement's and the group's fit modules on the thread
+    started ahead; no module in both (none is loaded from two threads), and the fit then waits for that thread."""
+    from texstream.pipelines.run import mesh_modules
+
+    built = []
+    monkeypatch.setattr(prewarm, "_build", lambda modules, device, threads: built.append(modules) or 0.0)
+    monkeypatch.setattr(prewarm, "kernels_cold", lambda *_, **__: True)
+    monkeypatch.setattr(prewarm, "_AHEAD", {})
+    monkeypatch.setattr(prewarm.wp, "init", lambda: None)
+    lines = []
+    with reporting(lines.append):
+        prewarm.build_kernels_ahead("fit", "cuda:0", "radiance", "fp32", mesh_modules())
+        prewarm.build_kernels_if_cold("fit", "cuda:0", "view_radiance", "fp32")  # the same group: waits
+    now, ahead = built
+    names = [m.name for m, _ in now], [m.name for m, _ in ahead]
+    assert not set(names[0]) & set(names[1]), names
+    assert {"texstream.geometry.mvs", "texstream.geometry.hull"} <= set(names[0])
+    assert {"texstream.geometry.refine_kernels", "texstream.geometry.bake"} <= set(names[1])
+    assert {m.name for m, _ in prewarm.radiance_run_modules("cuda:0")} <= set(names[0]) | set(names[1])
+    assert any("kernels built ahead" in line for line in lines) and prewarm._AHEAD == {}, lines

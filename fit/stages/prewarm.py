@@ -146,7 +146,7 @@ _AHEAD: dict = {}
 """(device, precision, group) -> (the build started by :func:`build_kernels_ahead`, its module count)"""
 
 
-def build_kernels_ahead(stage: str, device: str, kind: str, precision: str = "fp32") -> None:
+def build_kernels_ahead(stage: str, device: str, kind: str, precision: str = "fp32", now: list = ()) -> None:
     """A run on a GPU with a cold kernel cache: build ``now`` (the modules the next stage launches, e.g. the mesh
     stage's) and :func:`shared_modules` at once, in parallel, then start the fit's modules for ``kind``'s group and
     the atlas's and refinement's (:func:`later_stage_modules`) on a thread of their own, so they compile while those
