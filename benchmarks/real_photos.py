@@ -17,6 +17,12 @@ mesh and atlas:
 Pooled PSNR (of the pixel-weighted mean squared error over the views) and the worst view are
 reported for each, with the per-view figures, stage times and the machine.
 Data from ``--data`` or ``TEXSTREAM_DATA`` (default ``../shared/data``).
+
+``--registration OUT/posed`` of an earlier run reuses its cameras instead of registering again: COLMAP's
+matching and mapping on several threads do not give the same cameras every run (issue 40: the temple's two
+registrations of one commit and one ingest, 15:17 and 20:23 UTC, differ by 0.45% in focal length and up to 0.1
+degree in rotation, 0.23 dB of the every-4th reprojection average), so a comparison of the stages after
+registration holds them fixed.
 """
 
 from __future__ import annotations
@@ -31,6 +37,25 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+
+def reuse_registration(registered: Path):
+    """A stand-in for the run's ``register`` that copies ``registered`` (an earlier run's OUT/posed) to the run's
+    posed folder, with that run's summary (from its registration report)."""
+    import shutil
+
+    from texstream.core.outputs import StageResult
+
+    def register(_capture_dir, posed_dir, *_args, **_kwargs):
+        if not (registered / "capture.json").is_file():
+            raise SystemExit(f"--registration {registered}: no capture.json (give an earlier run's OUT/posed)")
+        shutil.rmtree(posed_dir, ignore_errors=True)
+        shutil.copytree(registered, posed_dir)
+        report = json.loads((registered / "registration_report.json").read_text())
+        keys = ("registered", "unregistered", "mean_reprojection_error", "points3D", "principal_point", "distortion")
+        return StageResult(output=Path(posed_dir), summary={"reused": str(registered),
+                                                            **{k: report.get(k) for k in keys}})
+    return register
 
 
 def constant_colour_views(capture_dir: Path, model_dir: Path, holdout_every: int, device: str) -> list[dict]:
@@ -76,11 +101,15 @@ def main() -> None:
                          "(geometry/hull_fill.py)")
     ap.add_argument("--min-texel-pixels", type=float, default=None,
                     help="atlas.min_texel_pixels (default: the run's; 0: the atlas at its resolution whatever the photos)")
+    ap.add_argument("--registration", default=None,
+                    help="an earlier run's OUT/posed: its cameras instead of registering again (registration on "
+                         "several threads is not the same every run; the module doc says why this matters)")
     ap.add_argument("--results", default=None, help="also copy the JSON here (e.g. benchmarks/results/real_photos)")
     args = ap.parse_args()
 
     import warp as wp
 
+    import texstream.pipelines.run as run_module
     from texstream.fit.common.model_folder import pooled_psnr
     from texstream.fit.stages.stage import eval_stage, fit_stage
     from texstream.pipelines.run import RunConfig, run_pipeline
@@ -95,6 +124,8 @@ def main() -> None:
         cfg.atlas = dataclasses.replace(cfg.atlas, min_texel_pixels=args.min_texel_pixels)
     cfg.fit = dataclasses.replace(cfg.fit, holdout_every=args.holdout_every,
                                   fit=dataclasses.replace(cfg.fit.fit, max_iterations=args.iterations))
+    if args.registration:
+        run_module.register = reuse_registration(Path(args.registration).resolve())
     t0 = time.perf_counter()
     run = run_pipeline(photos, out, cfg)
     total_s = time.perf_counter() - t0
