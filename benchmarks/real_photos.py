@@ -99,6 +99,9 @@ def main() -> None:
     ap.add_argument("--hull-fill", default="on", choices=("on", "off"),
                     help="the mesh stage's visual-hull samples where the points leave the surface open "
                          "(geometry/hull_fill.py)")
+    ap.add_argument("--refine", default="auto", choices=("auto", "off", "cameras", "mesh"),
+                    help="the run's photometric refinement (geometry/refine.py): auto (the run's), off (the "
+                         "registered cameras and the mesh stage's mesh as they are), cameras or mesh (that alone)")
     ap.add_argument("--min-texel-pixels", type=float, default=None,
                     help="atlas.min_texel_pixels (default: the run's; 0: the atlas at its resolution whatever the photos)")
     ap.add_argument("--registration", default=None,
@@ -120,6 +123,9 @@ def main() -> None:
     out = Path(args.out)
     cfg = RunConfig(device=args.device)  # auto: no light known -> radiance and view_radiance, the better kept
     cfg.mesh = dataclasses.replace(cfg.mesh, dense=args.dense, hull_fill=args.hull_fill == "on")
+    if args.refine != "auto":
+        cfg.refine = dataclasses.replace(cfg.refine, mode="off" if args.refine == "off" else "auto",
+                                         cameras=args.refine != "mesh", mesh=args.refine != "cameras")
     if args.min_texel_pixels is not None:
         cfg.atlas = dataclasses.replace(cfg.atlas, min_texel_pixels=args.min_texel_pixels)
     cfg.fit = dataclasses.replace(cfg.fit, holdout_every=args.holdout_every,
