@@ -12,7 +12,10 @@ mesh and atlas:
 - the fitted model the run kept, and the one it did not;
 - the per-texel average of the reprojected photos, what texture bakers produce (the same streamed
   samples, least squares: the fit of a per-texel constant is the samples' mean);
-- one constant colour (the mean foreground colour of the fitted photos).
+- one constant colour (the mean foreground colour of the fitted photos);
+- when the run refined cameras and mesh, the reprojection average again on the refined ones, scored with the
+  refined capture's held-out cameras (aligned to the texture of the fitted photos, as the run's own held-out
+  figure): the refinement's effect on the geometry, free of any model.
 
 Pooled PSNR (of the pixel-weighted mean squared error over the views) and the worst view are
 reported for each, with the per-view figures, stage times and the machine.
@@ -147,6 +150,11 @@ def main() -> None:
                                                           max_iterations=args.iterations))
     fit_stage(posed, out / "atlas", avg_dir, avg_cfg, progress=False)
     models["reprojection average"] = avg_dir
+    # the same on the refined cameras and mesh the fit used, scored with the refined capture's held-out cameras
+    # (aligned to the fitted photos' texture, as the run scores): what the refine stage did to the geometry
+    refined = next((Path(s["output"]) for s in run["stages"] if s["name"] == "refine" and s.get("output")), None)
+    if refined is not None:
+        fit_stage(refined, refined, out / "baseline_average_refined", avg_cfg, progress=False)
     result = {"set": args.set, "photos": str(photos), "holdout_every": args.holdout_every, "device": args.device,
               "machine": f"{platform.node()} ({os.cpu_count()} cores, {platform.processor() or platform.machine()})",
               "commit": subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
@@ -163,6 +171,11 @@ def main() -> None:
                         out_json=out / f"eval_{folder.name}.json")
         per = json.loads(Path(ev.output).read_text())["per_frame"]
         result["models"][name] = {**pooled_psnr(per), "per_view": per}
+    if refined is not None:
+        ev = eval_stage(out / "baseline_average_refined", refined, device=args.device,
+                        holdout_every=args.holdout_every, out_json=out / "eval_baseline_average_refined.json")
+        per = json.loads(Path(ev.output).read_text())["per_frame"]
+        result["models"]["reprojection average, refined geometry"] = {**pooled_psnr(per), "per_view": per}
     const = constant_colour_views(posed, out / "model", args.holdout_every, args.device)
     result["models"]["constant colour"] = {**pooled_psnr(const), "per_view": const}
     result["model_kept"] = kept
