@@ -56,6 +56,7 @@ from .refine_config import RefineConfig
 from .refine_shading import ShadingNormals
 from .bake import TexelBake, bake_texels
 from .cpu_threads import threads_for
+from .density import pixel_footprint
 from .mesh_io import load_mesh, save_mesh
 
 
@@ -197,6 +198,13 @@ class PhotometricRefinement:
         normals = welded_normals(welded, self.weld_host[faces])
         self.n_welded = len(welded)
         self.diagonal = float(np.linalg.norm(welded.max(axis=0) - welded.min(axis=0)))
+        fitted_frames = [f for f, r in zip(self.pyramid.frames_at(self.fine_level), roles) if r == rk.FIT]
+        try:  # scene units per finest-level pixel: the displacement's bound is in the photos' pixels
+            self.pixel = pixel_footprint(mesh, fitted_frames)
+        except ValueError:
+            raise InputError("no fitted photo sees the mesh in front of its camera", capture.root,
+                             "check that the mesh is in the cameras' frame") from None
+        self.max_displacement = cfg.max_displacement_px * self.pixel
         offsets, neighbours = vertex_neighbours(self.weld_host[faces], self.n_welded)
         self.graph_host = (offsets, neighbours)
         self.lit = all(f.light is not None for f in self.frames)
@@ -401,7 +409,7 @@ class PhotometricRefinement:
                       inputs=[self.disp, self.curvature, self.gradient, self.offsets, self.neighbours, self.curv_mean,
                               self.cfg.smoothness, self.disp_damping, src], outputs=[dst])
             src, dst = dst, src
-        edge = self.cfg.max_displacement * self.diagonal
+        edge = self.max_displacement
         wp.launch(rk.apply_displacement_kernel, dim=self.n_welded, device=dev,
                   inputs=[src, 0.25 * edge, edge], outputs=[self.disp, self.disp_saved, self.base, self.direction,
                                                              self.welded_points])
@@ -638,7 +646,9 @@ class PhotometricRefinement:
             "pose_steps_kept": {"median": float(np.median(accepted_poses)), "min": int(accepted_poses.min())},
             "displacement": {"median_abs": float(np.median(np.abs(disp)) / self.diagonal),
                              "max_abs": float(np.max(np.abs(disp)) / self.diagonal), "unit": "bounding-box diagonal",
-                             "steps_kept": int(self.disp_accepted.numpy()[0])},
+                             "bound": self.max_displacement / self.diagonal,
+                             "median_abs_px": float(np.median(np.abs(disp)) / self.pixel),
+                             "bound_px": self.cfg.max_displacement_px, "steps_kept": int(self.disp_accepted.numpy()[0])},
         }
         points = self.points.numpy().astype(np.float64)
         for name, v in (("points", points), ("rotations", rot), ("translations", trans)):

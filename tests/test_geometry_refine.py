@@ -2,7 +2,7 @@
 
 The ``textured_sphere`` scene (24 photos of 128x128 of a blotchy matte sphere under a flash at each camera):
 cameras turned and moved off their true poses come back to them; a mesh made 1% too large comes back to the
-true radius; the pose system's gradient matches finite differences of the objective; jittered normals are
+true radius, and a vertex moves no farther than its bound in pixels; the pose system's gradient matches finite differences of the objective; jittered normals are
 smoothed by the shading they explain; the photometric shading normals' Jacobian and gradient match central
 differences, and bumped normals come back to the sphere's; the stage's outputs.
 """
@@ -10,6 +10,7 @@ differences, and bumped normals come back to the sphere's; the stage's outputs.
 from __future__ import annotations
 
 import dataclasses
+import json
 import shutil
 
 import numpy as np
@@ -134,6 +135,39 @@ def test_a_mesh_too_large_shrinks_to_the_sphere(sphere, tmp_path, device):
     assert np.allclose(moved, moved[np.unique(inverse.reshape(-1), return_index=True)[1]][inverse.reshape(-1)],
                        atol=1e-6)
     assert (tmp_path / "refined" / "seams.npz").is_file() == (root / "ground_truth" / "seams.npz").is_file()
+
+
+def test_a_vertex_moves_no_farther_than_its_bound_in_pixels(tmp_path):
+    from texstream.capture.capture_json import read_capture
+    from texstream.capture.synthetic.synth import SynthConfig, synthesize
+    from texstream.geometry.bake import TexelBake, bake_texels
+    from texstream.geometry.density import pixel_footprint
+    from texstream.geometry.mesh_io import load_mesh, save_mesh
+    from texstream.geometry.refine import RefineConfig, refine_stage
+
+    root = tmp_path / "cap"  # 8 photos of 64x64: the textured sphere's blotches move the surface, and fast
+    synthesize("textured_sphere", root, SynthConfig(photos=8, image_size=64, progress=False, preview=False,
+                                                    device=SCENE_DEVICE))
+    mesh = load_mesh(root / "ground_truth" / "mesh.obj")
+    bake = TexelBake.load(root / "ground_truth" / "bake.npz")
+    centre = 0.5 * (mesh.vertices.max(axis=0) + mesh.vertices.min(axis=0))
+    big = dataclasses.replace(mesh, vertices=centre + (mesh.vertices - centre) * 1.05, normals=None)
+    atlas = tmp_path / "atlas"
+    atlas.mkdir()
+    save_mesh(atlas / "mesh.obj", big)
+    bake_texels(big, bake.width, bake.height, device=SCENE_DEVICE, padding=bake.padding).save(atlas / "bake.npz")
+    cfg = RefineConfig(cameras=False, holdout_every=0, iterations=4, rel_tol=0.0, blur="0.5", photo_level=0,
+                       max_displacement_px=0.25,
+                       normal_iterations=0)
+    refine_stage(root, atlas, tmp_path / "refined", cfg, device="cpu")
+    d = json.loads((tmp_path / "refined" / "refine.json").read_text())["displacement"]
+    pixel = pixel_footprint(big, read_capture(root).frames)  # photo_level 0: the photos as they are
+    diagonal = np.linalg.norm(big.vertices.max(axis=0) - big.vertices.min(axis=0))
+    assert d["bound_px"] == 0.25
+    assert d["bound"] * diagonal == pytest.approx(0.25 * pixel, rel=1e-3)  # float32 vertices' diagonal
+    # the surface is 5% of the radius (1.2 px) too far out and each step goes a quarter of the bound: after
+    # four steps the vertices that moved farthest stop at the bound
+    assert d["bound"] * 0.9 < d["max_abs"] <= d["bound"] * (1 + 1e-5), d
 
 
 @pytest.mark.parametrize("device", DEVICES)
