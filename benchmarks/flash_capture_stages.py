@@ -1,0 +1,164 @@
+"""Where the photos-only flash capture loses accuracy, stage by stage (issue 39; JSON): run after
+``benchmarks/flash_capture.py --out OUT``.
+
+    python benchmarks/flash_capture_stages.py --out out/flash_capture [--controls]
+
+Reads ``OUT/truth`` (the synthetic capture) and ``OUT/run`` (the photos-only run). Per stage whose cameras the
+fit can see (``posed``: registration; ``refine``: the photometric refinement), with the run's frame brought
+into the truth's by the similarity of the camera centres (as flash_capture.py's texel errors are): the centres'
+RMS (scene units: the sphere's radius is 1, the cameras about 5.2 from its centre), the rotations' median and
+largest error, the focal length's error, and the pixel error of the true sphere (per photo the median distance
+between where a point of the true surface lands in the photo by the true camera and by the run's, the point
+mapped by the similarity; its median and 90th percentile over the photos): the error a texel sees. The meshes
+(``mesh``, ``refine``): their vertices' distance to the true sphere in that frame.
+
+With ``--controls`` (about 10 minutes on a 2-core CPU) the same stages from the true inputs: the mesh stage on the
+true cameras; the refine stage on the true cameras and mesh (the true atlas, ``OUT/fit_geometry``); and the
+Lafortune fit (as flash_capture.py runs it: 15 iterations, every 8th photo held out, the ambient term on) on
+(a) the true inputs, (b) the true inputs after the refine stage, (c) the photos-only run without its refine stage
+(``run/lights`` and ``run/atlas``): held-out flash PSNR, the albedo's per-texel error. Writes
+``OUT/flash_capture_stages.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+
+from flash_capture import _similarity, _texel_errors, heldout_flash
+
+
+def _sphere_pixel_error(frames, truth, sim) -> dict:
+    """Per photo, the median pixel distance between the true sphere's points (those the true camera faces) as
+    the true camera and as the run's camera (the point mapped into the run's frame) project them."""
+    s, r, t = sim[:3]
+    gt = {f.name: f for f in truth.frames}
+    u = np.random.default_rng(0).normal(size=(4000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+
+    def project(f, x):
+        cam = x @ np.asarray(f.R).T + np.asarray(f.t).reshape(3)
+        k = f.intrinsics
+        return np.c_[k.fx * cam[:, 0] / cam[:, 2] + k.cx, k.fy * cam[:, 1] / cam[:, 2] + k.cy]
+
+    per = []
+    for f in frames:
+        g = gt[f.name]
+        view = g.center - u
+        q = u[np.sum(u * view, axis=1) / np.linalg.norm(view, axis=1) > 0.2]
+        per.append(float(np.median(np.linalg.norm(project(f, ((q - t) / s) @ r) - project(g, q), axis=1))))
+    return {"median": float(np.median(per)), "p90": float(np.percentile(per, 90)), "max": float(np.max(per))}
+
+
+def _camera_errors(capture_dir: Path, truth) -> dict:
+    from texstream.capture.capture_json import read_capture
+
+    got = read_capture(capture_dir)
+    gt = {f.name: f for f in truth.frames}
+    frames = [f for f in got.frames if f.name in gt]
+    sim = _similarity(frames, truth.frames)
+    s, r, t = sim[:3]
+    rot = []
+    for f in frames:
+        d = (np.asarray(f.R) @ r.T) @ np.asarray(gt[f.name].R).T
+        rot.append(np.degrees(np.arccos(np.clip((np.trace(d) - 1) / 2, -1, 1))))
+    fx = float(np.median([f.intrinsics.fx for f in frames]))
+    return {"camera_rms": sim[3], "rotation_deg": {"median": float(np.median(rot)), "max": float(np.max(rot))},
+            "focal_rel_error": fx / truth.frames[0].intrinsics.fx - 1.0,
+            "sphere_pixel_error": _sphere_pixel_error(frames, truth, sim)}, sim
+
+
+def _mesh_distance(mesh_path: Path, sim) -> dict:
+    from texstream.geometry.mesh_io import load_mesh
+
+    s, r, t = sim[:3]
+    v = s * load_mesh(mesh_path).vertices.astype(np.float64) @ r.T + t
+    d = np.abs(np.linalg.norm(v, axis=1) - 1.0)
+    return {"sphere_distance_median": float(np.median(d)), "sphere_distance_p99": float(np.percentile(d, 99))}
+
+
+def _fit(capture_dir: Path, geometry: Path, out: Path, truth_dir: Path, truth) -> dict:
+    """flash_capture.py's fit (Lafortune, 15 iterations, every 8th photo held out, ambient on) and its scores."""
+    from texstream.capture.capture_json import flash_fired, read_capture, split_holdout
+    from texstream.fit.optim.fitter import FitConfig
+    from texstream.fit.stages.stage import FitStageConfig, fit_stage
+
+    cfg = FitStageConfig(device="cpu", holdout_every=8, fit=FitConfig(model="lafortune", ambient="on",
+                                                                      max_iterations=15))
+    t0 = time.perf_counter()
+    fit_stage(capture_dir, geometry, out, cfg, progress=False)
+    train_flash = [f for f in split_holdout(truth.frames, 8)[0] if flash_fired(f)]
+    sim = _similarity(read_capture(capture_dir).frames, truth.frames)
+    texels = _texel_errors(out, truth_dir, sim, truth.frames, train_flash)
+    return {"heldout_flash": heldout_flash(out), "albedo_rel_error_median": texels["albedo_rel_error"]["median"],
+            "albedo_rel_error_neighbourhood_median": texels["albedo_rel_error_neighbourhood"]["median"],
+            "match_distance_median": texels["match_distance_median"], "seconds": time.perf_counter() - t0}
+
+
+def _controls(out: Path, truth) -> dict:
+    from texstream.geometry.make_mesh import MeshConfig, make_mesh
+    from texstream.geometry.refine import RefineConfig, refine_stage
+
+    work = out / "stages"
+    truth_dir, true_geometry = out / "truth", out / "fit_geometry"
+    result = {}
+    t0 = time.perf_counter()
+    make_mesh(truth_dir, work / "mesh_true_cameras", MeshConfig(device="cpu"))
+    identity = (1.0, np.eye(3), np.zeros(3))
+    result["mesh_true_cameras"] = {**_mesh_distance(work / "mesh_true_cameras" / "mesh.ply", identity),
+                                   "seconds": time.perf_counter() - t0}
+    t0 = time.perf_counter()
+    refine_stage(truth_dir, true_geometry, work / "refine_true_inputs", RefineConfig(), device="cpu")
+    cams, sim = _camera_errors(work / "refine_true_inputs", truth)
+    result["refine_true_inputs"] = {**cams, "mesh": _mesh_distance(work / "refine_true_inputs" / "mesh.obj", sim),
+                                    "seconds": time.perf_counter() - t0}
+    result["fit_true_inputs"] = _fit(truth_dir, true_geometry, work / "fit_true", truth_dir, truth)
+    result["fit_true_inputs_refined"] = _fit(work / "refine_true_inputs", work / "refine_true_inputs",
+                                             work / "fit_true_refined", truth_dir, truth)
+    result["fit_photos_only_without_refine"] = _fit(out / "run" / "lights", out / "run" / "atlas",
+                                                    work / "fit_run_unrefined", truth_dir, truth)
+    return result
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", default="out/flash_capture")
+    ap.add_argument("--controls", action="store_true", help="the true inputs through the mesh and refine stages, "
+                    "and the fits with and without the refine stage (module doc)")
+    a = ap.parse_args()
+
+    import warp as wp
+
+    from texstream.capture.capture_json import read_capture
+
+    wp.config.quiet = True
+    out = Path(a.out)
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                            cwd=Path(__file__).parent).stdout.strip()
+    truth = read_capture(out / "truth")
+    result = {"commit": commit, "machine": f"{platform.node()} ({os.cpu_count()} cores)", "load_before": os.getloadavg(),
+              "command": "python benchmarks/flash_capture_stages.py" + (" --controls" if a.controls else ""),
+              "run_commit": json.loads((out / "flash_capture.json").read_text()).get("commit")
+              if (out / "flash_capture.json").is_file() else None}
+    posed, posed_sim = _camera_errors(out / "run" / "posed", truth)
+    result["register"] = posed
+    result["mesh"] = _mesh_distance(out / "run" / "mesh" / "mesh.ply", posed_sim)
+    if (out / "run" / "refine" / "capture.json").is_file():
+        refined, refined_sim = _camera_errors(out / "run" / "refine", truth)
+        result["refine"] = {**refined, "mesh": _mesh_distance(out / "run" / "refine" / "mesh.obj", refined_sim)}
+    if a.controls:
+        result["controls"] = _controls(out, truth)
+    result["load_after"] = os.getloadavg()
+    (out / "flash_capture_stages.json").write_text(json.dumps(result, indent=2, default=float))
+    print(json.dumps(result, indent=1, default=float))
+
+
+if __name__ == "__main__":
+    main()
