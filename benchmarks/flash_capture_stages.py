@@ -87,8 +87,9 @@ def _mesh_distance(mesh_path: Path, sim) -> dict:
     return {"sphere_distance_median": float(np.median(d)), "sphere_distance_p99": float(np.percentile(d, 99))}
 
 
-def _fit(capture_dir: Path, geometry: Path, out: Path, truth_dir: Path, truth) -> dict:
-    """flash_capture.py's fit (Lafortune, 15 iterations, every 8th photo held out, ambient on) and its scores."""
+def _fit(capture_dir: Path, geometry: Path, out: Path, truth_dir: Path, truth, reuse: bool = False) -> dict:
+    """flash_capture.py's fit (Lafortune, 15 iterations, every 8th photo held out, ambient on) and its scores
+    (with ``reuse``, those of the model already in ``out``)."""
     from texstream.capture.capture_json import flash_fired, read_capture, split_holdout
     from texstream.fit.optim.fitter import FitConfig
     from texstream.fit.stages.stage import FitStageConfig, fit_stage
@@ -96,7 +97,8 @@ def _fit(capture_dir: Path, geometry: Path, out: Path, truth_dir: Path, truth) -
     cfg = FitStageConfig(device="cpu", holdout_every=8, fit=FitConfig(model="lafortune", ambient="on",
                                                                       max_iterations=15))
     t0 = time.perf_counter()
-    fit_stage(capture_dir, geometry, out, cfg, progress=False)
+    if not (reuse and (out / "model.json").is_file()):
+        fit_stage(capture_dir, geometry, out, cfg, progress=False)
     train_flash = [f for f in split_holdout(truth.frames, 8)[0] if flash_fired(f)]
     sim = _similarity(read_capture(capture_dir).frames, truth.frames)
     texels = _texel_errors(out, truth_dir, sim, truth.frames, train_flash)
@@ -126,7 +128,7 @@ def _normal_error_deg(mesh_path: Path, sim) -> dict:
 
 def _controls(out: Path, truth, reuse: bool) -> dict:
     """The true inputs through the mesh and refine stages, and the fit on crossings of true and recovered inputs
-    (module doc); with ``reuse`` the mesh and refine outputs of an earlier --controls run are read again."""
+    (module doc); with ``reuse`` the outputs of an earlier --controls run are read again."""
     import shutil
 
     from texstream.geometry.align import transform_mesh
@@ -164,8 +166,9 @@ def _controls(out: Path, truth, reuse: bool) -> dict:
     for name, mesh in (("recovered_in_truth", work / "recovered_mesh_in_truth.ply"),
                        ("true_in_run", work / "true_mesh_in_run.obj"),
                        ("true", truth_dir / "ground_truth" / "mesh.obj")):
-        shutil.rmtree(work / f"atlas_{name}", ignore_errors=True)
-        atlas_stage(mesh, work / f"atlas_{name}", atlas, device="cpu")
+        if not (reuse and (work / f"atlas_{name}" / "bake.npz").is_file()):
+            shutil.rmtree(work / f"atlas_{name}", ignore_errors=True)
+            atlas_stage(mesh, work / f"atlas_{name}", atlas, device="cpu")
     _true_response_capture(out, work / "true_response")
     fits = {"true_inputs": (truth_dir, true_geometry),
             "true_inputs_pipeline_atlas": (truth_dir, work / "atlas_true"),
@@ -174,7 +177,7 @@ def _controls(out: Path, truth, reuse: bool) -> dict:
             "recovered_cameras_true_mesh": (run / "lights", work / "atlas_true_in_run"),
             "recovered_cameras_mesh_true_response": (work / "true_response", run / "atlas"),
             "photos_only_without_refine": (run / "lights", run / "atlas")}
-    result["fits"] = {name: _fit(cap, geometry, work / f"fit_{name}", truth_dir, truth)
+    result["fits"] = {name: _fit(cap, geometry, work / f"fit_{name}", truth_dir, truth, reuse)
                       for name, (cap, geometry) in fits.items()}
     return result
 
@@ -200,8 +203,8 @@ def main() -> None:
     ap.add_argument("--out", default="out/flash_capture")
     ap.add_argument("--controls", action="store_true", help="the true inputs through the mesh and refine stages, "
                     "and the fits on crossings of true and recovered inputs (module doc)")
-    ap.add_argument("--reuse", action="store_true", help="with --controls: the true-camera mesh and the refined true "
-                    "inputs of an earlier run (OUT/stages) read again")
+    ap.add_argument("--reuse", action="store_true", help="with --controls: the outputs of an earlier run (OUT/stages: "
+                    "the true-camera mesh, the refined true inputs, the atlases and fits) read again")
     a = ap.parse_args()
 
     import warp as wp
