@@ -19,7 +19,8 @@ stages from the true inputs: the mesh stage on the true cameras; the refine stag
 true mesh, after the refine stage) and on crossings of true and recovered inputs (true cameras and the recovered
 mesh, the recovered cameras and the true mesh, each mesh carried across by the cameras' similarity and given the
 pipeline's atlas; the recovered cameras and mesh with the true response) and the photos-only run without its refine
-stage (``run/lights`` and ``run/atlas``): held-out flash PSNR (in each capture's units: the chart's response
+stage (``run/lights`` and ``run/atlas``), with it, and with its parts alone (no shaded refinement; poses held):
+held-out flash PSNR (in each capture's units: the chart's response
 is 1.83x the true one at mid codes, 5.2 dB), the albedo's per-texel error. The meshes' normals against the
 sphere's (what the flash's cosine, so the albedo, depends on). Writes ``OUT/flash_capture_stages.json``.
 """
@@ -177,6 +178,14 @@ def _controls(out: Path, truth, reuse: bool) -> dict:
             "recovered_cameras_true_mesh": (run / "lights", work / "atlas_true_in_run"),
             "recovered_cameras_mesh_true_response": (work / "true_response", run / "atlas"),
             "photos_only_without_refine": (run / "lights", run / "atlas")}
+    # the refine stage's parts on the photos-only run: without the shaded refinement (poses and displacements on
+    # the photos' detail only), and with the poses held (displacements and shading normals only)
+    for name, option in (("photos_only_refined_without_shading", {"normal_iterations": 0}),
+                         ("photos_only_refined_poses_held", {"cameras": False})):
+        if not (reuse and (work / f"refine_{name}" / "capture.json").is_file()):
+            refine_stage(run / "lights", run / "atlas", work / f"refine_{name}", RefineConfig(**option), device="cpu")
+        fits[name] = (work / f"refine_{name}", work / f"refine_{name}")
+    fits["photos_only_refined"] = (run / "refine", run / "refine")
     result["fits"] = {name: _fit(cap, geometry, work / f"fit_{name}", truth_dir, truth, reuse)
                       for name, (cap, geometry) in fits.items()}
     return result
