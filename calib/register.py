@@ -14,7 +14,9 @@ Pipeline (what COLMAP's automatic reconstructor does, with capture-folder plumbi
    without the prior, the better model kept; the largest model is kept and unregistered photos are reported; with
    estimated intrinsics, the lens distortion (and an auto-refined principal point) is kept only
    where it lowers the reprojection error (``--min-self-calibration-gain``), else the cameras are
-   made pinhole and re-adjusted: an unneeded distortion term bends the focal length and the poses;
+   made pinhole and re-adjusted: an unneeded distortion term bends the focal length and the poses; by the same
+   rule an EXIF focal length the mapping kept is held (poses re-adjusted) unless refining it lowers the error
+   enough: on one object at one distance the focal length trades against that distance and drifts;
    photos it leaves out are placed on a turntable's ring when the registered cameras lie on one
    (``--ring``, :mod:`.ring_placement`: the focal length by the ring's fit, the other models merged, the
    left-out photos at their ring angles, checked by their silhouettes);
@@ -59,7 +61,7 @@ from .intrinsics import intrinsics_for_size, load_intrinsics
 from .photo_groups import check_groups, match_groups
 from .lights import colocated_light
 from .photometric import estimate_gains, observations_from_model
-from .register_selfcal import refine_principal_point, select_distortion
+from .register_selfcal import hold_focal_prior, refine_principal_point, select_distortion
 from .ring_placement import RingConfig, focal_by_ring, map_at_focal, place_on_ring
 
 REPORT_FILE = "registration_report.json"
@@ -89,9 +91,10 @@ class RegisterConfig:
                                          "on, off; a result more than a tenth of the image size off centre is rejected",
                                          choices=("auto", "on", "off"))
     min_self_calibration_gain: float = option(
-        0.01, help="when the intrinsics are estimated (no --intrinsics): keep the estimated lens distortion, and an "
-        "auto-refined principal point, only when it lowers the mean reprojection error by at least this fraction, "
-        "else pinhole cameras (distortion 0) and the image centre; a term the tracks do not need trades against "
+        0.01, help="when the intrinsics are estimated (no --intrinsics): keep the estimated lens distortion, an "
+        "auto-refined principal point, and a focal length refined away from the EXIF prior, only when it lowers the "
+        "mean reprojection error by at least this fraction, else pinhole cameras (distortion 0), the image centre "
+        "and the EXIF focal length; a term the tracks do not need trades against "
         "the focal length and the poses (the synthetic sphere, a perfect pinhole, came out with k = -0.12 and the "
         "focal length 8% long at a 0.02% lower error); 0 keeps every estimate", min=0.0, max=1.0)
     use_masks: bool = option(True, help="pass masks to feature extraction (no features on the background)")
@@ -575,10 +578,11 @@ def register(capture: str | os.PathLike, out: str | os.PathLike, config: Registe
         source = str(cap.extra.get("intrinsics_source", "")) if cap is not None else ""
         recs = _run_colmap(photos, img_dir, mask_dir, work, cfg, timings, source, capture, out, report)
         left_out = cfg.ring == "auto" and recs and max(r.num_reg_images() for r in recs.values()) < len(photos)
+        ring_focal = None
         if left_out and not (cfg.intrinsics or source == "calibrated") and len({p.width for p in photos}) == 1:
-            recs, _ = focal_by_ring(recs, lambda f: map_at_focal(work, img_dir, f, cfg.num_threads, cfg.seed,
-                                                                 cfg.min_model_size),
-                                    [p.name for p in photos], photos[0].width, RingConfig(), report)
+            recs, ring_focal = focal_by_ring(recs, lambda f: map_at_focal(work, img_dir, f, cfg.num_threads, cfg.seed,
+                                                                          cfg.min_model_size),
+                                             [p.name for p in photos], photos[0].width, RingConfig(), report)
         sizes = sorted((r.num_reg_images() for r in recs.values()), reverse=True)
         report["models"] = sizes
         if not recs:
@@ -591,6 +595,7 @@ def register(capture: str | os.PathLike, out: str | os.PathLike, config: Registe
         fixed = bool(cfg.intrinsics or source == "calibrated") and not cfg.refine_intrinsics
         rec, report["distortion"] = select_distortion(rec, cfg, not fixed)
         rec, report["principal_point"] = refine_principal_point(rec, cfg, not fixed)
+        rec = _hold_focal_prior(rec, cfg, fixed, ring_focal, report)
         report["mean_reprojection_error"] = float(rec.compute_mean_reprojection_error())
         if centres is not None:
             report["alignment"] = align_to_centres(rec, centres, cfg.align_max_error, cfg.seed)
@@ -635,8 +640,22 @@ def register(capture: str | os.PathLike, out: str | os.PathLike, config: Registe
     summary["principal_point"] = report.get("principal_point")
     summary["distortion"] = report.get("distortion")
     summary["focal_prior"] = report.get("focal_prior")
+    summary["focal_hold"] = report.get("focal_hold")
     summary["resolution"] = "; ".join(report["feature_resolution"].values())
     return StageResult(output=out, summary=summary)
+
+
+def _hold_focal_prior(rec: Any, cfg: RegisterConfig, fixed: bool, ring_focal: float | None, report: dict) -> Any:
+    """The model with its focal length held at the EXIF prior where the photos do not tell a better one
+    (:func:`.register_selfcal.hold_focal_prior`; ``report["focal_hold"]``), else ``rec``: only for an EXIF prior
+    the mapping kept (not one mapped again without, nor a focal length the turntable ring chose)."""
+    prior = report.get("focal_prior") or {}
+    if fixed or ring_focal is not None or prior.get("kept", "prior") != "prior" or not prior.get("prior_focal_px"):
+        return rec
+    priors = {int(k): float(v) for k, v in prior["prior_focal_px"].items()}
+    rec, report["focal_hold"] = hold_focal_prior(rec, priors, cfg, bool(report["principal_point"].get("refined")),
+                                                 report["distortion"].get("kept") == "distortion")
+    return rec
 
 
 def _intrinsics_of_size(posed: dict, photo: _Photo) -> Intrinsics | None:
@@ -715,7 +734,8 @@ def _capture_extra(cap: Capture | None, cfg: RegisterConfig, fixed: bool, report
         # Bundle adjustment estimated the intrinsics: say so, and keep where they started.
         extra["intrinsics_prior"] = extra.get("intrinsics_source") or ("guess" if cap is None else "unknown")
         extra["intrinsics_source"] = "sfm"
-        extra["intrinsics_refined"] = ["focal_length"] + (
+        held = (report.get("focal_hold") or {}).get("held")
+        extra["intrinsics_refined"] = ([] if held else ["focal_length"]) + (
             ["distortion"] if report["distortion"].get("kept") == "distortion" else []) + (
             ["principal_point"] if report["principal_point"].get("refined") else [])
     elif cfg.intrinsics:

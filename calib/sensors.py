@@ -106,7 +106,10 @@ def sensor_width_mm(make: str | None, model: str | None) -> float | None:
 # an integer (+-0.5 mm: +-2% at 24 mm), zoom lenses write a rounded focal length (+-2% at 24-50 mm), a body's
 # sensor width is rounded to 0.1 mm and bodies of one name differ by a few tenths (+-1%); a 3:2 sensor
 # cropped to 16:9 or 4:3 changes the diagonal by about 1.5%. The errors this catches are a crop factor
-# (1.5-2x) or a resized export (2-8x), all 50% or more; registration refines the few per cent left.
+# (1.5-2x) or a resized export (2-8x), all 50% or more; registration refines the few per cent left where the
+# photos tell it better (calib/register_selfcal.py hold_focal_prior). The value is
+# taken from the agreeing sources other than the 35 mm tag when there are any: its whole millimetres (+-1.3% at
+# 39 mm) are coarser than the focal-plane resolution's rational tags.
 AGREE_TOLERANCE = 0.05
 FRAME_35MM_DIAGONAL = math.hypot(36.0, 24.0)
 _UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}  # EXIF FocalPlaneResolutionUnit: inch, cm, mm, um
@@ -139,7 +142,8 @@ def focal_prior(exif: dict[str, Any], width: int, height: int) -> dict[str, Any]
         width, height: the photo's size as stored (either orientation: the longer side is the sensor's width).
 
     Returns:
-        dict: ``focal_px`` (None: no prior), ``candidates`` (source -> pixels), ``used`` (the sources taken),
+        dict: ``focal_px`` (None: no prior), ``candidates`` (source -> pixels), ``used`` (the sources that agreed;
+        the value is their median, the 35 mm tag left out when a finer one agrees),
         ``notes`` (per source, how it was made), ``decision`` (one line: which and why), ``checked``
         (whether two sources agreed).
     """
@@ -183,9 +187,13 @@ def focal_prior(exif: dict[str, Any], width: int, height: int) -> dict[str, Any]
         return {**out, "focal_px": None, "used": [], "checked": False,
                 "decision": f"EXIF focal sources disagree by more than {100 * AGREE_TOLERANCE:g}% ({desc}): prior "
                             "dropped, COLMAP's guess (1.2 x the longer side) refined by registration"}
-    value = float(statistics.median(cands[k] for k in best))
+    # the value from the finer sources of the group: the 35 mm tag, whole millimetres, only cross-checks them
+    finer = [k for k in best if k != "35mm"] or best
+    value = float(statistics.median(cands[k] for k in finer))
     left = [k for k in cands if k not in best]
     why = (f"; {', '.join(left)} disagree{'s' if len(left) == 1 else ''} by more than {100 * AGREE_TOLERANCE:g}% "
            f"and {'is' if len(left) == 1 else 'are'} ignored") if left else ""
+    checks = [k for k in best if k not in finer]
+    source = " + ".join(finer) + (f", checked by {' + '.join(checks)}" if checks else "")
     return {**out, "focal_px": value, "used": best, "checked": True,
-            "decision": f"{value:.0f} px from {' + '.join(best)} ({desc}){why}"}
+            "decision": f"{value:.0f} px from {source} ({desc}){why}"}

@@ -59,7 +59,10 @@ def _intrinsics(records: list, capture) -> dict:
     mapped = reg.get("focal_prior") or {}  # registration: mapped again without a doubtful prior? (focal_check)
     if isinstance(mapped, dict) and (mapped.get("decision") or mapped.get("retried")):
         why_parts.append(str(mapped.get("decision") or mapped.get("reason")))
-    if reg.get("registered") is not None:
+    hold = reg.get("focal_hold") or {}  # registration: the EXIF focal length held? (calib/register_selfcal.py)
+    if hold.get("held"):
+        why_parts.append(str(hold.get("reason")))
+    elif reg.get("registered") is not None:
         why_parts.append("refined by bundle adjustment")
     if not src:
         src = "given with the cameras"
