@@ -515,3 +515,29 @@ def test_a_step_leaves_the_depth_maps_and_objective_a_fresh_pass_gives(tmp_path,
         job.objective(job.blurred, fresh)
         assert np.array_equal(fresh.numpy(), row.numpy())
     assert not any(kept) if huge_step else any(kept), kept
+
+
+def test_a_refinement_that_fits_the_photos_no_better_hands_on_its_input(sphere, tmp_path, monkeypatch):
+    """The stage keeps the refined cameras and mesh only when the fitted photos' residual fell (``refine.json``
+    ``kept`` and why); here the residual is made to rise: the capture's poses and the atlas's mesh and bake come
+    out unchanged (a glossy flash capture's refinement followed its highlights, issue 39)."""
+    from texstream.capture.capture_json import read_capture
+    from texstream.geometry import refine
+    from texstream.geometry.bake import TexelBake
+    from texstream.geometry.mesh_io import load_mesh
+
+    root, truth = sphere
+    perturbed = _perturbed_capture(root, truth, tmp_path / "cap")
+    scores = iter([{"fit_rms": 0.010}, {"fit_rms": 0.012}])
+    monkeypatch.setattr(refine.PhotometricRefinement, "_score", lambda self: next(scores))
+    res = refine.refine_stage(perturbed, root / "ground_truth", tmp_path / "r",
+                              refine.RefineConfig(blur="1", iterations=2, normal_iterations=0), SCENE_DEVICE)
+    assert res.summary["kept"] is False and "no better" in res.summary["kept_why"]
+    given, out = read_capture(perturbed), read_capture(tmp_path / "r")
+    for a, b in zip(given.frames, out.frames):
+        assert np.allclose(a.R, b.R) and np.allclose(a.t, b.t)
+    assert np.array_equal(load_mesh(tmp_path / "r" / "mesh.obj").vertices,
+                          load_mesh(root / "ground_truth" / "mesh.obj").vertices)
+    assert np.array_equal(TexelBake.load(tmp_path / "r" / "bake.npz").position,
+                          TexelBake.load(root / "ground_truth" / "bake.npz").position)
+    assert refine.refinement_kept({"residual_before": {"fit_rms": 0.02}, "residual_after": {"fit_rms": 0.015}})[0]
