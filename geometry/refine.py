@@ -204,7 +204,11 @@ class PhotometricRefinement:
         except ValueError:
             raise InputError("no fitted photo sees the mesh in front of its camera", capture.root,
                              "check that the mesh is in the cameras' frame") from None
-        self.max_displacement = cfg.max_displacement_px * self.pixel
+        if cfg.mesh_level >= 0:  # dense stereo's mesh: about a pixel of the level it was made at off the surface
+            self.max_displacement = (cfg.max_displacement_px * self.pixel
+                                     * 2.0 ** max(0, cfg.mesh_level - self.fine_level))
+        else:
+            self.max_displacement = cfg.max_displacement * self.diagonal
         offsets, neighbours = vertex_neighbours(self.weld_host[faces], self.n_welded)
         self.graph_host = (offsets, neighbours)
         self.lit = all(f.light is not None for f in self.frames)
@@ -648,7 +652,8 @@ class PhotometricRefinement:
                              "max_abs": float(np.max(np.abs(disp)) / self.diagonal), "unit": "bounding-box diagonal",
                              "bound": self.max_displacement / self.diagonal,
                              "median_abs_px": float(np.median(np.abs(disp)) / self.pixel),
-                             "bound_px": self.cfg.max_displacement_px, "steps_kept": int(self.disp_accepted.numpy()[0])},
+                             "bound_px": self.max_displacement / self.pixel, "mesh_level": self.cfg.mesh_level,
+                             "steps_kept": int(self.disp_accepted.numpy()[0])},
         }
         points = self.points.numpy().astype(np.float64)
         for name, v in (("points", points), ("rotations", rot), ("translations", trans)):

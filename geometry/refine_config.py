@@ -46,11 +46,19 @@ class RefineConfig:
     smoothness: float = option(0.01, "weight of the displacements' graph Laplacian relative to the mean data "
                                     "curvature per vertex", min=0.0)
     max_displacement_px: float = option(
-        1.0, "largest displacement of a vertex, in pixels of the finest level at the object's median depth (the "
-             "median fitted photo's): a mesh made from these photos is about that close to the surface, and larger "
-             "moves fit the few photos that see a vertex rather than the surface (the temple, 10 fitted photos: the "
-             "earlier bound of 1% of the bounding-box diagonal, 6.1 px there, put vertices at the bound and held "
-             "out 0.45 dB under no refinement: issue 40)", min=0.0)
+        1.0, "largest displacement of a vertex of a mesh made by dense stereo (mesh_level >= 0), in pixels of the "
+             "level it was made at, or of the finest refine level where that is coarser, at the object's median "
+             "depth (the median fitted photo's): such a mesh is about that close to the surface, and larger moves "
+             "fit the few photos that see a vertex rather than the surface (the temple, 10 fitted photos: the "
+             "bound of 1% of the bounding-box diagonal, 6.1 px there, put vertices at the bound and held out 0.45 dB "
+             "under no refinement: issue 40)", min=0.0)
+    max_displacement: float = option(0.01, "largest displacement of a vertex of any other mesh (mesh_level -1: sparse "
+                                           "SfM points' Poisson surface, a visual hull, a given mesh), as a fraction "
+                                           "of the mesh's bounding-box diagonal: their error is not a pixel's (the "
+                                           "6 MP sphere's Poisson of 16,283 SfM points moved 6.6 px and held out "
+                                           "1.3 dB better than at a 1 px bound)", min=0.0)
+    mesh_level: int = option(-1, "the photo pyramid level dense stereo made the mesh at (texstream run sets it from its "
+                                 "mesh stage), or -1: another source (max_displacement bounds its vertices)", min=-1)
     max_rotation_step: float = option(0.25, "largest rotation of a camera per iteration (degrees)", min=0.0)
     max_translation_step: float = option(0.002, "largest translation of a camera per iteration, as a fraction of "
                                                 "its distance to the object", min=0.0)

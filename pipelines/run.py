@@ -322,7 +322,7 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
 
     # refine: cameras registered here and a mesh made here, moved until the photos agree
     refine_cfg, why_refine = refine_decision(cfg, registered=not posed, mesh_made=cfg.mesh_file is None,
-                                             atlas_folder=Path(fit_geometry).is_dir())
+                                             atlas_folder=Path(fit_geometry).is_dir(), mesh_level=_mesh_level(pipe))
     if refine_cfg is None:
         pipe.skip("refine", why_refine)
     else:
@@ -497,9 +497,18 @@ def _fit(pipe: Pipeline, capture, posed: bool, posed_dir: Path, fit_geometry: Pa
     return fit_rec, model_kind, why
 
 
-def refine_decision(cfg: RunConfig, registered: bool, mesh_made: bool, atlas_folder: bool):
+def _mesh_level(pipe: Pipeline) -> int:
+    """The pyramid level the run's mesh stage made its mesh at by dense stereo; -1: another source (sparse SfM points,
+    the visual hull, a given mesh: RefineConfig ``mesh_level``)."""
+    mesh = next((r.summary for r in pipe.records if r.name == "mesh"), None) or {}
+    dense = mesh.get("dense") or {}
+    return int(dense.get("level") or 0) if dense.get("used") else -1
+
+
+def refine_decision(cfg: RunConfig, registered: bool, mesh_made: bool, atlas_folder: bool, mesh_level: int = -1):
     """(the refine stage's config, or None to skip it; the reason). Auto refines cameras this run registered
-    and a mesh it made; given ones are taken as exact."""
+    and a mesh it made; given ones are taken as exact. ``mesh_level``: the pyramid level the run's dense stereo
+    made the mesh at (the vertices' bound is in its pixels, RefineConfig ``mesh_level``)."""
     rc = cfg.refine
     if rc.mode == "off":
         return None, "refine off"
@@ -511,7 +520,8 @@ def refine_decision(cfg: RunConfig, registered: bool, mesh_made: bool, atlas_fol
     if not (cameras or mesh):
         return None, "cameras and mesh given (taken as exact)" if rc.mode == "auto" else "nothing to refine"
     what = " and ".join(x for x, on in (("cameras", cameras), ("mesh", mesh)) if on)
-    rc = dataclasses.replace(rc, cameras=cameras, mesh=mesh, holdout_every=cfg.fit.holdout_every)
+    rc = dataclasses.replace(rc, cameras=cameras, mesh=mesh, holdout_every=cfg.fit.holdout_every,
+                             mesh_level=mesh_level if mesh else rc.mesh_level)
     held = (f"; held-out photos (every {rc.holdout_every}th) only aligned, moving no colour or vertex"
             if rc.holdout_every and rc.align_heldout and cameras else "")
     return rc, f"{what} refined against the photos (Gauss-Newton on one shared texture){held}"

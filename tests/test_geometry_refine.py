@@ -157,8 +157,7 @@ def test_a_vertex_moves_no_farther_than_its_bound_in_pixels(tmp_path):
     save_mesh(atlas / "mesh.obj", big)
     bake_texels(big, bake.width, bake.height, device=SCENE_DEVICE, padding=bake.padding).save(atlas / "bake.npz")
     cfg = RefineConfig(cameras=False, holdout_every=0, iterations=4, rel_tol=0.0, blur="0.5", photo_level=0,
-                       max_displacement_px=0.25,
-                       normal_iterations=0)
+                       max_displacement_px=0.25, mesh_level=0, normal_iterations=0)
     refine_stage(root, atlas, tmp_path / "refined", cfg, device="cpu")
     d = json.loads((tmp_path / "refined" / "refine.json").read_text())["displacement"]
     pixel = pixel_footprint(big, read_capture(root).frames)  # photo_level 0: the photos as they are
