@@ -309,8 +309,9 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
     capture = read_capture(posed_dir)
     cfg = _capture_mesh(cfg, capture, posed, posed_dir, log)
     if not (cfg.lights.sphere or cfg.lights.ball_masks):  # a mirror ball would give the capture lights later
+        makes_mesh = cfg.mesh_file is None  # then the atlas and (for what it made) the refinement run too
         fit_kernels_ahead(posed_dir, dataclasses.replace(cfg.fit, device=cfg.device),
-                          requested_model(capture, cfg.model)[0], mesh_modules() if cfg.mesh_file is None else [])
+                          requested_model(capture, cfg.model)[0], mesh_modules() if makes_mesh else [], makes_mesh)
     fit_geometry = _mesh_and_atlas(pipe, posed, posed_dir, out, cfg)
 
     # lights: from mirror-ball photos when a ball is given

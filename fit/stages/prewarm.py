@@ -146,20 +146,23 @@ _AHEAD: dict = {}
 """(device, precision, group) -> (the build started by :func:`build_kernels_ahead`, its module count)"""
 
 
-def build_kernels_ahead(stage: str, device: str, kind: str, precision: str = "fp32", now: list = ()) -> None:
+def build_kernels_ahead(stage: str, device: str, kind: str, precision: str = "fp32", now: list = (),
+                        later_stages: bool = True) -> None:
     """A run on a GPU with a cold kernel cache: build ``now`` (the modules the next stage launches, e.g. the mesh
     stage's) and :func:`shared_modules` at once, in parallel, then start the fit's modules for ``kind``'s group and
     the atlas's and refinement's (:func:`later_stage_modules`) on a thread of their own, so they compile while those
     stages run (the temple's cold run on an H200 waited 10.5 s of its fit stage for them); the fit waits for that
     build (:func:`build_kernels_if_cold`). The caller declared the fit's precision and group overloads first (the
     modules' hashes depend on them). Nothing loads a module from two threads at once: what the stages launch first
-    is built before they start. The CPU builds at the fit, as before: its cores are the stages' own."""
+    is built before they start. ``later_stages``: whether the atlas and refine stages will run (their modules are
+    built too). The CPU builds at the fit, as before: its cores are the stages' own."""
     group = kernel_group(kind)
     if not str(device).startswith("cuda") or group is None or not kernels_cold(device, precision, group):
         return
     first = [(m, None) for m in now] + shared_modules()
     skip = {id(m) for m, _ in first}
-    modules = [(m, b) for m, b in later_stage_modules() + group_modules(group, device) if id(m) not in skip]
+    later = later_stage_modules() if later_stages else []  # a run given its atlas makes none and refines nothing
+    modules = [(m, b) for m, b in later + group_modules(group, device) if id(m) not in skip]
     wp.init()  # here, not in the build threads: a first init marks every module modified under their loads
     threads = min(build_threads(), len(first) + len(modules))
     say(stage, kernel_build_line(device, f"{len(first)} Warp modules now, {len(modules)} of the atlas, refinement "

@@ -163,18 +163,19 @@ def fit_model(capture_dir: str | Path, mesh_path: str | Path, out_dir: str | Pat
     return result
 
 
-def fit_kernels_ahead(capture_dir: str | Path, cfg: FitStageConfig, kind: str, now: list = ()) -> None:
+def fit_kernels_ahead(capture_dir: str | Path, cfg: FitStageConfig, kind: str, now: list = (),
+                      later_stages: bool = True) -> None:
     """Before a run's mesh, atlas and refinement: on a GPU with a cold kernel cache, ``now`` (the Warp modules of
     the next stage) built at once, then the modules a fit of ``kind`` (its group's, fit/stages/prewarm.py) launches
-    start compiling on a thread of their own; the fit waits for them. The fit's precision and group overloads are
-    declared here, as :func:`fit_model` declares them."""
+    start compiling on a thread of their own (with the atlas's and refinement's when ``later_stages``); the fit
+    waits for them. The fit's precision and group overloads are declared here, as :func:`fit_model` declares them."""
     device = resolve_device(cfg.device)
     if not str(device).startswith("cuda"):
         return
     precision = compute_precision(capture_dir, cfg)
     declare_precision(precision)
     declare_group_overloads(kind)
-    build_kernels_ahead("fit", device, kind, precision, now)
+    build_kernels_ahead("fit", device, kind, precision, now, later_stages)
 
 
 def compute_precision(capture_dir: str | Path, cfg: FitStageConfig) -> str:
