@@ -165,8 +165,9 @@ def build_kernels_ahead(stage: str, device: str, kind: str, precision: str = "fp
     modules = [(m, b) for m, b in later + group_modules(group, device) if id(m) not in skip]
     wp.init()  # here, not in the build threads: a first init marks every module modified under their loads
     threads = min(build_threads(), len(first) + len(modules))
-    say(stage, kernel_build_line(device, f"{len(first)} Warp modules now, {len(modules)} of the atlas, refinement "
-                                         f"and fit on {threads} threads while the stages before the fit run"))
+    what = "the atlas's, the refinement's and the fit's" if later_stages else "the fit's"
+    say(stage, kernel_build_line(device, f"{len(first)} Warp modules now, {len(modules)} more ({what}) on {threads} "
+                                         "threads while the stages before the fit run"))
     say(stage, f"kernels built: {len(first)} Warp modules in {_build(first, device, threads):.1f} s")
     pool = ThreadPoolExecutor(1, thread_name_prefix="texstream-kernels")
     _AHEAD[(device, precision, group)] = (pool.submit(_build, modules, device, threads), len(modules))
