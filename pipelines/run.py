@@ -332,6 +332,9 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
                                         pipe.stamp_of("lights"), _files_hash(posed_dir) if posed else "",
                                         str(fit_geometry), config_to_dict(refine_cfg), cfg.device], why_refine,
                  lambda: refine_stage(posed_dir, fit_geometry, refine_dir, refine_cfg, device=cfg.device, log=pipe.log))
+        rec = pipe.records[-1]
+        if rec.summary.get("kept") is False:  # its output is its input: the summary says so, not "refined"
+            rec.reason += f"; not kept: {rec.summary.get('kept_why')}"
         posed_dir = fit_geometry = refine_dir
         capture = read_capture(posed_dir)
 
