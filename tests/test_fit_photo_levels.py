@@ -178,3 +178,33 @@ def test_a_validation_fit_takes_its_photos_from_the_previous_fits_set(fine_captu
     untimed = lambda m: {k: v for k, v in m["final"].items() if k != "time_s"}
     assert a["scores_only"] and untimed(a) == untimed(b)
     assert [e["psnr_db"] for e in a["render_eval"]] == [e["psnr_db"] for e in b["render_eval"]]
+
+
+def test_a_validation_fit_judged_first_leaves_every_fitted_photo_for_the_next_fit(fine_capture, tmp_path):
+    """A validation fit with nothing kept before it (the diffuse candidate, judged first) builds the set of every
+    fitted photo, keeps it and fits its split's subset: the Lafortune fit of every photo after it reads nothing
+    again, and the validation fit's model is the same as before (a fit on a shared set gives its own's, tested
+    above)."""
+    from texstream.core.progress import reporting
+    from texstream.fit.common.inputs import SharedPhotoSet
+    from texstream.fit.models.materials import MaterialConfig
+    from texstream.fit.optim.fitter import FitConfig
+    from texstream.fit.stages.choice import ModelChoiceConfig
+    from texstream.fit.stages.stage import FitStageConfig, fit_model
+
+    def cfg(model, validation):
+        return FitStageConfig(device=SCENE_DEVICE, texture_size=16, holdout_every=4, renders=0, traced_polish=0,
+                              materials=MaterialConfig(mode="off", validation_every=3),
+                              choice=ModelChoiceConfig(validation_fit=validation),
+                              fit=FitConfig(model=model, max_iterations=4))
+
+    mesh = fine_capture / "ground_truth" / "mesh.obj"
+    SharedPhotoSet.release()
+    split = fit_model(fine_capture, mesh, tmp_path / "split", cfg("diffuse", True), progress=False)
+    every = SharedPhotoSet.photos
+    assert split.summary["photos"] == 8 and every is not None and every.n == 12  # every fitted photo kept
+    said = []
+    with reporting(said.append):
+        fit_model(fine_capture, mesh, tmp_path / "every", cfg("lafortune", False), progress=False)
+    assert any("shared with the previous fit" in line for line in said), said
+    SharedPhotoSet.release()
