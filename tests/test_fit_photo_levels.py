@@ -141,22 +141,28 @@ def test_a_fit_on_the_previous_candidates_photo_set_gives_the_same_model(fine_ca
         np.testing.assert_array_equal(shared[name], alone[name], err_msg=name)
 
 
+def _split_fit_config(model: str, validation: bool):
+    """A fit of the fine capture's photos (every 4th held out, a validation split of every 3rd fitted), materials and
+    polish off: they add fits, not another use of the photo set."""
+    from texstream.fit.models.materials import MaterialConfig
+    from texstream.fit.optim.fitter import FitConfig
+    from texstream.fit.stages.choice import ModelChoiceConfig
+    from texstream.fit.stages.stage import FitStageConfig
+
+    return FitStageConfig(device=SCENE_DEVICE, texture_size=16, holdout_every=4, renders=0, traced_polish=0,
+                          materials=MaterialConfig(mode="off", validation_every=3),
+                          choice=ModelChoiceConfig(validation_fit=validation), fit=FitConfig(model=model, max_iterations=4))
+
+
 def test_a_validation_fit_takes_its_photos_from_the_previous_fits_set(fine_capture, tmp_path):
     """The model choice's fit of the validation split (choice.validation_fit) after a fit of every fitted photo
     takes its photos from that fit's set (PhotoSet.subset: nothing decoded or shadow-mapped again), leaves the
     larger set kept for the next fit, and gives the model of a validation fit that set up its own, to the bit."""
     from texstream.core.progress import reporting
     from texstream.fit.common.inputs import SharedPhotoSet
-    from texstream.fit.models.materials import MaterialConfig
-    from texstream.fit.optim.fitter import FitConfig
-    from texstream.fit.stages.choice import ModelChoiceConfig
-    from texstream.fit.stages.stage import FitStageConfig, fit_model
+    from texstream.fit.stages.stage import fit_model
 
-    def cfg(model, validation):  # materials and polish off: they add fits, not another use of the photo set
-        return FitStageConfig(device=SCENE_DEVICE, texture_size=16, holdout_every=4, renders=0, traced_polish=0,
-                              materials=MaterialConfig(mode="off", validation_every=3),
-                              choice=ModelChoiceConfig(validation_fit=validation),
-                              fit=FitConfig(model=model, max_iterations=4))
+    cfg = _split_fit_config
 
     mesh = fine_capture / "ground_truth" / "mesh.obj"
     SharedPhotoSet.release()
@@ -187,16 +193,9 @@ def test_a_validation_fit_judged_first_leaves_every_fitted_photo_for_the_next_fi
     above)."""
     from texstream.core.progress import reporting
     from texstream.fit.common.inputs import SharedPhotoSet
-    from texstream.fit.models.materials import MaterialConfig
-    from texstream.fit.optim.fitter import FitConfig
-    from texstream.fit.stages.choice import ModelChoiceConfig
-    from texstream.fit.stages.stage import FitStageConfig, fit_model
+    from texstream.fit.stages.stage import fit_model
 
-    def cfg(model, validation):
-        return FitStageConfig(device=SCENE_DEVICE, texture_size=16, holdout_every=4, renders=0, traced_polish=0,
-                              materials=MaterialConfig(mode="off", validation_every=3),
-                              choice=ModelChoiceConfig(validation_fit=validation),
-                              fit=FitConfig(model=model, max_iterations=4))
+    cfg = _split_fit_config
 
     mesh = fine_capture / "ground_truth" / "mesh.obj"
     SharedPhotoSet.release()

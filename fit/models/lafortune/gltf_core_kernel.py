@@ -82,24 +82,21 @@ def _sample_terms(light: wp.array(dtype=wp.vec3d), view: wp.array(dtype=wp.vec3d
 
 
 @wp.func
+def _sample_moments(w: wp.float64, q: wp.float64, s: wp.float64, tt: wp.float64):
+    """One sample's weighted terms of :data:`GeometryMoments`."""
+    return GeometryMoments(w, w * q, w * q * q, w * s, w * tt, w * q * s, w * q * tt, w * s * s, w * s * tt,
+                           w * tt * tt)
+
+
+@wp.func
 def _geometry_moments(light: wp.array(dtype=wp.vec3d), view: wp.array(dtype=wp.vec3d),
                       weight: wp.array(dtype=wp.float64), table_dv: wp.array2d(dtype=wp.float64),
                       table_x5: wp.array2d(dtype=wp.float64), row: int, alpha: wp.float64):
     """The texel-independent moments of one roughness (:data:`GeometryMoments`)."""
     out = GeometryMoments()
     for k in range(light.shape[0]):
-        w = weight[k]
         q, s, tt = _sample_terms(light, view, table_dv, table_x5, row, alpha, k)
-        out[0] += w
-        out[1] += w * q
-        out[2] += w * q * q
-        out[3] += w * s
-        out[4] += w * tt
-        out[5] += w * q * s
-        out[6] += w * q * tt
-        out[7] += w * s * s
-        out[8] += w * s * tt
-        out[9] += w * tt * tt
+        out += _sample_moments(weight[k], q, s, tt)
     return out
 
 
@@ -120,8 +117,8 @@ def _best_metallic(radiance: wp.array2d(dtype=wp.vec3d), t: int, light: wp.array
     """(err, m, b) of the best metallic for one roughness (gltf_core.py ``_best_for_roughness``): g0 = s + m t
     and g1 = p + m q per sample, the base colour's model b g1 + g0 affine in b. The GGX terms come from row
     ``row`` of the tables (the coarse grid, the same for every texel), or for ``row`` < 0 from ``alpha``; ``g``
-    their texel-independent moments (summed here for ``row`` < 0), ``y1`` the texel's weighted radiance sum (each sum in the sample order it
-    always had: the maps are the same to the bit as when every texel summed them all)."""
+    their texel-independent moments (summed here for ``row`` < 0), ``y1`` the texel's weighted radiance sum (each
+    sum in the sample order it always had: the maps are the same to the bit as when every texel summed them all)."""
     p = INV_PI
     own = GeometryMoments()  # a refined roughness's (row < 0), summed with the texel's in one pass over the samples
     qy = wp.vec3d()
@@ -131,16 +128,7 @@ def _best_metallic(radiance: wp.array2d(dtype=wp.vec3d), t: int, light: wp.array
         w = weight[k]
         q, s, tt = _sample_terms(light, view, table_dv, table_x5, row, alpha, k)
         if row < 0:
-            own[0] += w
-            own[1] += w * q
-            own[2] += w * q * q
-            own[3] += w * s
-            own[4] += w * tt
-            own[5] += w * q * s
-            own[6] += w * q * tt
-            own[7] += w * s * s
-            own[8] += w * s * tt
-            own[9] += w * tt * tt
+            own += _sample_moments(w, q, s, tt)
         y = radiance[t, k]
         qy += (w * q) * y
         sy += (w * s) * y
