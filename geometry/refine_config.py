@@ -15,6 +15,12 @@ class RefineConfig:
 
     mode: str = option("auto", "when texstream run refines: auto (cameras it registered and a mesh it made, each "
                                "only then), on (cameras and mesh whatever their source), off", choices=("auto", "on", "off"))
+    judge: str = option("auto", "under known lights, whether texstream run hands the refined cameras and mesh to the "
+                                "fit: auto (only when the diffuse fit, with the fit's options, predicts a validation "
+                                "split of the fitted photos better on them than on the registered ones: this stage's "
+                                "shared texture has no lobe and no room light, so its own residual can fall while the "
+                                "geometry gets worse for the fitted model; pipelines/refine_judge.py), off (the "
+                                "residual alone, refinement_kept)", choices=("auto", "off"))
     cameras: bool = option(True, "refine each photo's pose (rotation and translation; intrinsics stay)")
     mesh: bool = option(True, "move the mesh's vertices along their normals (seams stay closed)")
     align_heldout: bool = option(True, "align the held-out photos' poses to the texture the fitted photos make "

@@ -61,6 +61,7 @@ from texstream.geometry.make_mesh import MeshConfig, make_mesh
 from texstream.geometry.mesh_frame import mesh_alignment
 from texstream.geometry.mesh_io import load_mesh
 from texstream.geometry.refine import RefineConfig, refine_stage
+from texstream.pipelines.refine_judge import judge_refinement, judged_by_fit
 from texstream.pipelines.light_inputs import light_and_resolution_inputs
 from texstream.pipelines.provenance import inputs_lines, run_inputs
 from texstream.pipelines.report import write_report
@@ -335,7 +336,10 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
         rec = pipe.records[-1]
         if rec.summary.get("kept") is False:  # its output is its input: the summary says so, not "refined"
             rec.reason += f"; not kept: {rec.summary.get('kept_why')}"
-        posed_dir = fit_geometry = refine_dir
+            posed_dir = fit_geometry = refine_dir
+        else:
+            posed_dir, fit_geometry = _judged_refinement(pipe, cfg, refine_cfg, capture, (posed_dir, fit_geometry),
+                                                         refine_dir, out)
         capture = read_capture(posed_dir)
 
     model_dir = out / "model"
@@ -459,18 +463,25 @@ def run_choice_options(cfg: RunConfig) -> dict:
     return {f.name: getattr(cfg, f.name) for f in dataclasses.fields(ModelChoiceConfig) if hasattr(cfg, f.name)}
 
 
+def _fit_config(cfg: RunConfig, capture, log=lambda m: None):
+    """The fit stage's config for this capture: the run's device, model and top-level choice options; the ambient
+    term at least auto where some photos were taken with the flash off."""
+    fit_cfg = dataclasses.replace(cfg.fit, device=cfg.device, fit=dataclasses.replace(cfg.fit.fit, model=cfg.model),
+                                  choice=dataclasses.replace(cfg.fit.choice, **run_choice_options(cfg)))
+    if fit_cfg.fit.ambient == "off" and no_flash_frames(capture.frames):  # off would predict them black
+        fit_cfg = dataclasses.replace(fit_cfg, fit=dataclasses.replace(fit_cfg.fit, ambient="auto"))
+        log(f"[fit] ambient auto, not off: {len(no_flash_frames(capture.frames))} photos were taken with the "
+            "flash off and see only the room's light")
+    return fit_cfg
+
+
 def _fit(pipe: Pipeline, capture, posed: bool, posed_dir: Path, fit_geometry: Path, model_dir: Path,
          cfg: RunConfig, lights_summary: dict | None):
     """(the fit stage's record, the kept model's kind, why): the model the scene needs (fit/stages/choice.py:
     with held-out photos, the candidates it calls for judged on a validation split of the fitted photos, the
     held-out ones scoring only the model kept: with known lights a specular lobe only where it generalises;
     under one fixed unknown lighting view dependence only where it does)."""
-    fit_cfg = dataclasses.replace(cfg.fit, device=cfg.device, fit=dataclasses.replace(cfg.fit.fit, model=cfg.model),
-                                  choice=dataclasses.replace(cfg.fit.choice, **run_choice_options(cfg)))
-    if fit_cfg.fit.ambient == "off" and no_flash_frames(capture.frames):  # off would predict them black
-        fit_cfg = dataclasses.replace(fit_cfg, fit=dataclasses.replace(fit_cfg.fit, ambient="auto"))
-        pipe.log(f"[fit] ambient auto, not off: {len(no_flash_frames(capture.frames))} photos were taken with the "
-                 "flash off and see only the room's light")
+    fit_cfg = _fit_config(cfg, capture, pipe.log)
     plan = plan_choice(capture, cfg.model, fit_cfg)
     model_kind, why = plan.base, plan.reason
     if lights_summary:
@@ -507,6 +518,25 @@ def _mesh_level(pipe: Pipeline) -> int:
     mesh = next((r.summary for r in pipe.records if r.name == "mesh"), None) or {}
     dense = mesh.get("dense") or {}
     return int(dense.get("level") or 0) if dense.get("used") else -1
+
+
+def _judged_refinement(pipe: Pipeline, cfg: RunConfig, refine_cfg, capture, registered: tuple, refine_dir: Path,
+                       out: Path) -> tuple[Path, Path]:
+    """(capture folder, geometry) the fit gets after a refinement that kept its result: the refined ones, unless
+    under known lights the fit predicts its validation photos better on the registered ones
+    (pipelines/refine_judge.py); the run's refine line and summary say which and why."""
+    rec = pipe.records[-1]
+    why_not = judged_by_fit(capture, refine_cfg)
+    if why_not:
+        rec.summary["judged"] = {"by_fit": False, "why": why_not}
+        return refine_dir, refine_dir
+    kept, record = judge_refinement(registered, (refine_dir, refine_dir), out / "refine_judged",
+                                    _fit_config(cfg, capture), pipe.log)
+    rec.summary["judged"] = {"by_fit": True, **record}
+    if kept:
+        return refine_dir, refine_dir
+    rec.reason += f"; not kept: {record['why']}"
+    return registered
 
 
 def refine_decision(cfg: RunConfig, registered: bool, mesh_made: bool, atlas_folder: bool, mesh_level: int = -1):
