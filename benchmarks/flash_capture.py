@@ -46,6 +46,17 @@ from pathlib import Path
 import numpy as np
 
 
+def _fitted_inputs(run: Path) -> tuple[Path, Path]:
+    """(capture folder, geometry) the run's fit read (run.json's fit stage ``fitted_on``: the refinement's, or the
+    registered ones where the refinement was not kept); older runs: the latest stages' that exist."""
+    stages = json.loads((run / "run.json").read_text())["stages"]
+    fitted = next((s.get("summary") or {} for s in stages if s["name"] == "fit"), {}).get("fitted_on")
+    if fitted:
+        return Path(fitted["capture"]), Path(fitted["geometry"])
+    source = next(d for d in (run / "refine", run / "lights", run / "posed") if (d / "capture.json").is_file())
+    return source, run / "refine" if (run / "refine" / "bake.npz").is_file() else run / "atlas"
+
+
 def _similarity(run_frames, truth_frames):
     """(s, R, t): truth ~ s R run + t from the cameras' centres (matched by name)."""
     from texstream.geometry.align import umeyama
@@ -251,8 +262,7 @@ def _fit_ambient(run_dir: Path, out: Path, ambient: str, device: str, iterations
     from texstream.fit.optim.fitter import FitConfig
     from texstream.fit.stages.stage import FitStageConfig, fit_stage
 
-    source = next(d for d in (run_dir / "refine", run_dir / "lights", run_dir / "posed") if (d / "capture.json").is_file())
-    geometry = run_dir / "refine" if (run_dir / "refine" / "bake.npz").is_file() else run_dir / "atlas"
+    source, geometry = _fitted_inputs(run_dir)
     cfg = FitStageConfig(device=device, holdout_every=8, fit=FitConfig(model="lafortune", ambient=ambient,
                                                                       max_iterations=iterations))
     t0 = time.perf_counter()
@@ -365,8 +375,7 @@ def main() -> None:
     run, run_s = _run(out / "photos", out / "run", a.device, a.iterations, a.atlas_resolution, photos_only=True)
     ref, ref_s = _run(truth_dir, out / "reference", a.device, a.iterations, a.atlas_resolution, photos_only=False,
                       mesh=str(fit_geometry(truth_dir, out / "fit_geometry", a.device)))
-    fit_dir = next(d for d in (out / "run" / "refine", out / "run" / "lights", out / "run" / "posed")
-                   if (d / "capture.json").is_file())
+    fit_dir = _fitted_inputs(out / "run")[0]
     sim = _similarity(read_capture(fit_dir).frames, truth.frames)
     curve = _curve_check(out / "run" / "capture", truth_dir)
     result = {"commit": commit, "machine": f"{platform.node()} ({os.cpu_count()} cores)", "device": a.device,

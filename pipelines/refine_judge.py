@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import shutil
+import time
 from pathlib import Path
 
 from texstream.capture.capture_json import split_holdout
@@ -48,7 +49,7 @@ def judge_refinement(registered: tuple[Path, Path], refined: tuple[Path, Path], 
     scored there, no renders). The validation fits go to ``work`` and are removed after scoring."""
     cfg = dataclasses.replace(fit_cfg, renders=0, fit=dataclasses.replace(fit_cfg.fit, model=JUDGE_MODEL),
                               choice=dataclasses.replace(fit_cfg.choice, validation_fit=True, beat_db=0.0))
-    scores = {}
+    scores, t0 = {}, time.perf_counter()
     try:
         for name, (capture_dir, geometry) in (("registered", registered), ("refined", refined)):
             out = Path(work) / name
@@ -67,5 +68,6 @@ def judge_refinement(registered: tuple[Path, Path], refined: tuple[Path, Path], 
         kept, why = False, (f"the {JUDGE_MODEL} fit predicts its validation photos no better on the refined cameras and "
                             f"mesh ({ref:.2f} dB against {reg:.2f} registered): the registered ones are kept")
     log(f"[refine] judged by the fit: {why}")
-    return kept, {"model": JUDGE_MODEL, "validation": scores, "kept": kept, "why": why}
+    return kept, {"model": JUDGE_MODEL, "validation": scores, "kept": kept, "why": why,
+                  "seconds": round(time.perf_counter() - t0, 2)}
 

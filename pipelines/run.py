@@ -497,12 +497,15 @@ def _fit(pipe: Pipeline, capture, posed: bool, posed_dir: Path, fit_geometry: Pa
         return res
 
     fit_rec = pipe.run("fit", model_dir, [pipe.stamp_of("atlas"), pipe.stamp_of("mesh"), pipe.stamp_of("register"),
-                                          pipe.stamp_of("lights"), pipe.stamp_of("refine"),
-                                          _files_hash(posed_dir) if posed else "", config_to_dict(fit_cfg), plan.compare]
+                                          pipe.stamp_of("lights"), pipe.stamp_of("refine"), str(posed_dir),
+                                          str(fit_geometry), _files_hash(posed_dir) if posed else "",
+                                          config_to_dict(fit_cfg), plan.compare]
                        + ([cfg.lfm, cfg.lfm_min_gain_db] if escalates else []),
                        f"{model_kind} model: {why}" + (f"; the {plan.also} model too, the best on a validation "
                                                        "split of the fitted photos kept" if plan.compare else ""),
                        fit_work)
+    # which cameras and geometry it read (the refinement's, or the registered ones where it was not kept)
+    fit_rec.summary["fitted_on"] = {"capture": str(posed_dir), "geometry": str(fit_geometry)}
     if plan.compare:
         chosen = fit_rec.summary.get("selection", {})
         if chosen.get("chosen"):
