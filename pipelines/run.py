@@ -61,9 +61,9 @@ from texstream.geometry.make_mesh import MeshConfig, make_mesh
 from texstream.geometry.mesh_frame import mesh_alignment
 from texstream.geometry.mesh_io import load_mesh
 from texstream.geometry.refine import RefineConfig, refine_stage
-from texstream.pipelines.refine_judge import judge_refinement, judged_by_fit
 from texstream.pipelines.light_inputs import light_and_resolution_inputs
 from texstream.pipelines.provenance import inputs_lines, run_inputs
+from texstream.pipelines.refine_judge import judge_refinement, judged_by_fit
 from texstream.pipelines.report import write_report
 from texstream.pipelines.resolutions import stage_resolutions
 
