@@ -322,3 +322,32 @@ def test_sift_on_downscaled_photos_keeps_the_cameras(sphere_capture, tmp_path):
     assert cen.max() < 0.02 and rot.max() < 2.0, (cen, rot)
     assert np.median(rot) < 1.0
     assert s["mean_reprojection_error"] < 1.0  # full-size test: < 0.5 px (8-bit quantisation only); 4/3 of it here
+
+
+def test_mapping_and_bundle_adjustment_run_on_one_thread_whatever_the_matching_threads(sphere_capture, tmp_path,
+                                                                                        monkeypatch):
+    """``mapping_threads`` (1) reaches COLMAP's mapping and every bundle adjustment, ``num_threads`` only the
+    matching: COLMAP's mapping on several threads starts from whichever initial pair one of them finds first, so
+    its cameras depend on the machine's core count (the temple test in test_calib_register.py shows the draws);
+    the matches are the same at any count. Intrinsics estimated, so self-calibration's adjustments run too."""
+    import pycolmap
+
+    cap, _ = sphere_capture
+    threads: dict[str, list[int]] = {}
+
+    def spy(name: str, options_of) -> None:
+        call = getattr(pycolmap, name)
+
+        def recorded(*args, **kwargs):
+            threads.setdefault(name, []).append(options_of(args, kwargs).num_threads)
+            return call(*args, **kwargs)
+        monkeypatch.setattr(pycolmap, name, recorded)
+
+    spy("match_exhaustive", lambda a, k: k["matching_options"])
+    spy("incremental_mapping", lambda a, k: k["options"])
+    spy("bundle_adjustment", lambda a, k: a[1].ceres.solver_options)
+    s = register(cap, tmp_path / "posed", RegisterConfig(max_num_features=2000, num_threads=3, photometric="off",
+                                                         max_image_size=192)).summary
+    assert len(s["registered"]) >= 12, s  # a model, so the self-calibration's bundle adjustments ran
+    assert threads["match_exhaustive"] == [3]
+    assert set(threads["incremental_mapping"]) == {1} and set(threads["bundle_adjustment"]) == {1}, threads
