@@ -305,8 +305,9 @@ def test_sift_on_downscaled_photos_keeps_the_cameras(sphere_capture, tmp_path):
     """COLMAP finds the features on the downscaled photos and scales the keypoints back: the cameras come out in
     the full-resolution photos' pixels, about as close to the truth as from full-size features."""
     cap, k_file = sphere_capture
-    # one thread: COLMAP's steps on several threads are not deterministic, and under CI's load the worst frame of
-    # a two-thread run once came out at 2.1 degrees (every run here on one thread is the same run)
+    # one thread: COLMAP's mapping on several threads is not deterministic, and under CI's load the worst frame of
+    # a two-thread run once came out at 2.1 degrees (the mapping now runs on one thread whatever num_threads says:
+    # mapping_threads, test_mapping_and_bundle_adjustment_run_on_one_thread_whatever_the_matching_threads)
     cfg = RegisterConfig(max_num_features=2000, intrinsics=str(k_file), align_to=str(cap / "capture.json"),
                          num_threads=1, photometric="off", max_image_size=192)
     s = register(cap, tmp_path / "posed", cfg).summary
