@@ -123,12 +123,12 @@ class RegisterConfig:
     num_threads: int = option(-1, help="CPU threads for COLMAP's feature matching (-1: all); the matches are the same "
                               "at any count", min=-1, max=4096)
     mapping_threads: int = option(1, help="CPU threads for incremental mapping and bundle adjustment; 1: the same "
-                                  "cameras on every machine and in every run; -1: all cores, faster bundle adjustment "
-                                  "on large sets (COLMAP threads it from 50,000 residuals, about 25,000 observations) "
-                                  "but cameras that depend on the machine and the run: COLMAP tries initial pairs on "
-                                  "every thread at once and starts from the one that succeeds first (the Middlebury "
-                                  "temple's focal length came out 0.7% apart, rotations up to 0.12 degrees)",
-                                  min=1, max=4096, also=(-1,))
+                                  "cameras in every run and at any core count; -1: all cores, faster bundle "
+                                  "adjustment on large sets (COLMAP threads it from 50,000 residuals, about 25,000 "
+                                  "observations) but cameras that change with the core count and from run to run: "
+                                  "COLMAP tries initial pairs on every thread at once and starts from the one that "
+                                  "succeeds first (the Middlebury temple's focal length came out 0.4% apart, "
+                                  "rotations up to 0.12 degrees)", min=1, max=4096, also=(-1,))
     extraction_threads: int = option(1, help="CPU threads for SIFT extraction; more is faster on many cores "
                                              "but not reproducible (COLMAP numbers the images in the order "
                                              "they finish, and matching and mapping depend on that order)",
