@@ -18,10 +18,13 @@ PINHOLE_OF = {"SIMPLE_RADIAL": ("SIMPLE_PINHOLE", 3), "RADIAL": ("SIMPLE_PINHOLE
               "OPENCV": ("PINHOLE", 4), "FULL_OPENCV": ("PINHOLE", 4)}  # model -> (pinhole model, params kept)
 
 
-def bundle_adjust(rec: Any, focal: bool, principal_point: bool, extra: bool) -> None:
+def bundle_adjust(rec: Any, focal: bool, principal_point: bool, extra: bool, threads: int) -> None:
+    """Global bundle adjustment of ``rec`` in place on ``threads`` Ceres threads (-1: all; the registration's
+    ``mapping_threads``: threaded sums add in another order, so only a fixed count repeats itself exactly)."""
     import pycolmap
 
     bo = pycolmap.BundleAdjustmentOptions()
+    bo.ceres.solver_options.num_threads = threads
     bo.refine_focal_length = focal
     bo.refine_principal_point = principal_point
     bo.refine_extra_params = extra
@@ -58,7 +61,7 @@ def select_distortion(rec: Any, cfg, free: bool) -> tuple[Any, dict]:
         params = np.asarray(c.params, np.float64)
         cam.model = getattr(pycolmap.CameraModelId, model)
         cam.params = params[:n].tolist()
-    bundle_adjust(pin, focal=True, principal_point=False, extra=False)
+    bundle_adjust(pin, focal=True, principal_point=False, extra=False, threads=cfg.mapping_threads)
     err_d, err_p = float(rec.compute_mean_reprojection_error()), float(pin.compute_mean_reprojection_error())
     gain = (err_p - err_d) / err_p if err_p > 0 else 0.0
     info.update(reprojection_error_distortion=err_d, reprojection_error_pinhole=err_p, gain=gain,
@@ -94,7 +97,7 @@ def refine_principal_point(rec: Any, cfg, free: bool) -> tuple[Any, dict]:
     out = pycolmap.Reconstruction(rec)
     err0 = float(rec.compute_mean_reprojection_error())
     with phase("register", "global bundle adjustment with the principal point free"):
-        bundle_adjust(out, focal=True, principal_point=True, extra=True)
+        bundle_adjust(out, focal=True, principal_point=True, extra=True, threads=cfg.mapping_threads)
     err1 = float(out.compute_mean_reprojection_error())
     cams = {}
     for cid, c in out.cameras.items():
@@ -146,7 +149,8 @@ def hold_focal_prior(rec: Any, priors: dict[int, float], cfg, principal_point: b
         idx = set(cam.focal_length_idxs())
         cam.params = [priors[cid] if i in idx else float(v) for i, v in enumerate(cam.params)]
     with phase("register", "bundle adjustment with the focal length held at the EXIF prior"):
-        bundle_adjust(held, focal=False, principal_point=principal_point, extra=extra)
+        bundle_adjust(held, focal=False, principal_point=principal_point, extra=extra,
+                      threads=cfg.mapping_threads)
     err_free, err_held = float(rec.compute_mean_reprojection_error()), float(held.compute_mean_reprojection_error())
     gain = (err_held - err_free) / err_held if np.isfinite(err_held) and err_held > 0 else np.inf
     info.update(prior_focal_px={str(k): round(float(v), 2) for k, v in priors.items()}, free_focal_px=free_focal,
