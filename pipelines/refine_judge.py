@@ -26,6 +26,9 @@ from pathlib import Path
 from texstream.capture.capture_json import split_holdout
 from texstream.fit.stages.stage import fit_stage
 
+JUDGED_FILE = "refine_judged.json"
+"""the run's record of its last judgement and the key of its inputs (``texstream run`` reuses it while they hold)"""
+
 JUDGE_MODEL = "diffuse"
 """the candidate the judgement fits: the model choice's first under known lights, and its cheapest"""
 

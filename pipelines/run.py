@@ -40,6 +40,7 @@ from texstream.calib.ingest import IngestConfig, ingest
 from texstream.calib.lights import LightsConfig, _world_balls, lit_capture
 from texstream.calib.register import RegisterConfig, register
 from texstream.capture.capture_json import no_flash_frames, read_capture
+from texstream.core.checkpoint import inputs_key
 from texstream.core.config import check_config, config_from_dict, config_to_dict, option
 from texstream.core.devices import DEVICE_HELP, resolve_device
 from texstream.core.errors import ConfigError, InputError
@@ -63,7 +64,7 @@ from texstream.geometry.mesh_io import load_mesh
 from texstream.geometry.refine import RefineConfig, refine_stage
 from texstream.pipelines.light_inputs import light_and_resolution_inputs
 from texstream.pipelines.provenance import inputs_lines, run_inputs
-from texstream.pipelines.refine_judge import judge_refinement, judged_by_fit
+from texstream.pipelines.refine_judge import JUDGED_FILE, judge_refinement, judged_by_fit
 from texstream.pipelines.report import write_report
 from texstream.pipelines.resolutions import stage_resolutions
 
@@ -533,8 +534,21 @@ def _judged_refinement(pipe: Pipeline, cfg: RunConfig, refine_cfg, capture, regi
     if why_not:
         rec.summary["judged"] = {"by_fit": False, "why": why_not}
         return refine_dir, refine_dir
-    kept, record = judge_refinement(registered, (refine_dir, refine_dir), out / "refine_judged",
-                                    _fit_config(cfg, capture), pipe.log)
+    fit_cfg = _fit_config(cfg, capture)
+    key = inputs_key("refine judge", pipe.stamp_of("refine"), [str(p) for p in registered], config_to_dict(fit_cfg),
+                     resolve_device(cfg.device))
+    cache = out / JUDGED_FILE  # the judgement of an unchanged refinement is not fitted again
+    try:
+        earlier = json.loads(cache.read_text())
+    except (OSError, json.JSONDecodeError):
+        earlier = {}
+    if earlier.get("key") == key:
+        record = earlier["record"]
+        pipe.log(f"[refine] judged by the fit (unchanged since the last run): {record['why']}")
+    else:
+        record = judge_refinement(registered, (refine_dir, refine_dir), out / "refine_judged", fit_cfg, pipe.log)[1]
+        write_json_atomic(cache, {"key": key, "record": record})
+    kept = record["kept"]
     rec.summary["judged"] = {"by_fit": True, **record}
     if kept:
         return refine_dir, refine_dir

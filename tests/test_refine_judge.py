@@ -3,6 +3,7 @@ decide whether refined cameras go on, and only where the refinement's own model 
 
 import dataclasses
 import os
+import shutil
 
 import numpy as np
 import pytest
@@ -64,3 +65,41 @@ def test_judged_only_under_known_lights_with_a_split(lit_sphere):
     assert "radiance model" in judged_by_fit(unlit, cfg)
     few = dataclasses.replace(capture, frames=capture.frames[:5])
     assert "too few" in judged_by_fit(few, cfg)
+
+
+def test_the_run_judges_an_unchanged_refinement_once(lit_sphere, tmp_path, monkeypatch):
+    """The run keeps its judgement beside its stages (refine_judged.json, keyed by the refinement's stamp, the
+    registered inputs and the fit's options): a rerun with nothing changed reads it instead of two more fits, and a
+    changed fit option judges again."""
+    from texstream.pipelines import run as run_module
+
+    cap, turned = lit_sphere
+    calls = []
+    real = run_module.judge_refinement
+
+    def counted(*args, **kwargs):
+        calls.append(args[1])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(run_module, "judge_refinement", counted)
+    capture = read_capture(turned)
+    refined = tmp_path / "refine"  # a refine stage's folder: its capture and its geometry side by side
+    shutil.copytree(cap, refined)
+    for name in ("mesh.obj", "bake.npz"):
+        shutil.copy(cap / "ground_truth" / name, refined / name)
+    cfg = dataclasses.replace(RunConfig(), device="cpu")
+    refine_cfg = dataclasses.replace(cfg.refine, holdout_every=8)
+
+    def judged(run_cfg):
+        pipe = run_module.Pipeline(tmp_path, None, lambda m: None)
+        pipe.records.append(run_module.StageRecord("refine", "ran", "refined", output=str(refined)))
+        got = run_module._judged_refinement(pipe, run_cfg, refine_cfg, capture, (turned, cap / "ground_truth"),
+                                            refined, tmp_path)
+        return got, pipe.records[-1]
+
+    first, rec = judged(cfg)
+    assert first == (refined, refined) and rec.summary["judged"]["kept"]  # the "refined" side holds the true cameras
+    again, rec = judged(cfg)
+    assert again == first and len(calls) == 1 and rec.summary["judged"]["kept"]
+    judged(dataclasses.replace(cfg, fit=dataclasses.replace(cfg.fit, renders=1)))
+    assert len(calls) == 2
