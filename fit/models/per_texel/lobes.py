@@ -38,17 +38,21 @@ def lobe_shape_report(cfg: FitConfig, layout, frames, positions: np.ndarray) -> 
             "light_view_angle_deg": [float(angles.min()), float(angles.max())] if angles.size else None}
 
 
-def drop_unsupported_lobes(problem, result: FitResult, fraction: float) -> tuple[np.ndarray, np.ndarray]:
+def drop_unsupported_lobes(problem, result: FitResult, fraction: float,
+                           evidence: "TexelEvidence | None" = None) -> tuple[np.ndarray, np.ndarray]:
     """(params, dropped): the fitted parameters with rho_s = 0 on every seen texel whose lobes lower its
     objective by less than ``fraction`` of the objective without them, and the (N,) mask of those texels.
     Such a lobe explains nothing the photos show; a narrow one whose peak fell between the cameras would
-    still light up a new view at full height."""
+    still light up a new view at full height. ``evidence``: that of ``result`` on ``problem``, whose objective
+    without the lobes is then not evaluated again."""
     lay = result.layout
     dropped = np.zeros(problem.n, bool)
     if lay.n_lobes == 0 or fraction <= 0:
         return result.params, dropped
     bare = scale_lobes(result.params, lay, 0.0)
-    with_lobes, without = per_texel_objective(problem, result.params), per_texel_objective(problem, bare)
+    with_lobes = per_texel_objective(problem, result.params)
+    without = (evidence.bare_objective(problem) if evidence is not None and evidence.params is result.params
+               else per_texel_objective(problem, bare))
     dropped = (result.samples > 0) & (without - with_lobes <= fraction * np.maximum(without, 1e-30))
     params = np.where(dropped[:, None], bare, result.params)
     if lay.n_lobes > 1:
@@ -88,6 +92,16 @@ class TexelEvidence:
     uncertainty: np.ndarray
     """(N, 3) relative std of rho_s, of n, std of c_z (materials.texel_uncertainty)"""
     constrained: np.ndarray
+    bare: np.ndarray | None = None
+    """(N,) each texel's objective without its lobes (:meth:`bare_objective`; None: not evaluated yet)"""
+
+    def bare_objective(self, problem) -> np.ndarray:
+        """Each texel's objective on ``problem`` (the problem these parameters were fitted on, or one over the same
+        photos: the same arithmetic) with its lobes taken away: evaluated once, for the lobe support test and every
+        materials candidate's contradiction test."""
+        if self.bare is None:
+            self.bare = per_texel_objective(problem, scale_lobes(self.params, problem.layout, 0.0))
+        return self.bare
 
 
 def texel_evidence(problem, result: FitResult, mcfg: MaterialConfig) -> TexelEvidence:
@@ -169,10 +183,9 @@ def fit_with_materials(problem, result: FitResult, evidence: TexelEvidence, k: i
     seen = evidence.samples > 0
     mats = find_materials(evidence.params, seen, evidence.constrained, lay, k, mcfg.min_lobe_share,
                           mcfg.spread_floor)
-    bare = scale_lobes(evidence.params, lay, 0.0)
     with_lobe = material_lobes_on(evidence.params, mats.labels, mats, lay)
     doubled = scale_lobes(with_lobe, lay, 2.0)
-    f_mat, f_bare = per_texel_objective(problem, with_lobe), per_texel_objective(problem, bare)
+    f_mat, f_bare = per_texel_objective(problem, with_lobe), evidence.bare_objective(problem)
     contradicted = contradiction_test(f_bare, f_mat, per_texel_objective(problem, doubled), evidence.samples,
                                       evidence.sigma2, mcfg.contradiction)
     mats.contradicted_share = reject_contradicted_lobes(mats, mats.labels, seen, evidence.constrained, contradicted,
@@ -288,13 +301,13 @@ def choose_materials(inputs: "FitInputs", problem, cfg, log=None, score_views: C
                 "seconds": {"fit": fitted, "score": clock.lap()}}
 
     def per_texel(fitted: float) -> dict:
-        params, _ = drop_unsupported_lobes(sub, res, cfg.lobe_support)
+        params, _ = drop_unsupported_lobes(sub, res, cfg.lobe_support, evidence)
         out = {"model": "per-texel", "iterations": len(res.trace) - 1, **score(params, fitted)}
         return {**out, "excluded": "materials mode on"} if mcfg.mode == "on" else out
 
-    cands = [per_texel(clock.lap())]
     evidence = texel_evidence(sub, res, mcfg)
     seconds["evidence"] = clock.lap()
+    cands = [per_texel(seconds["validation_fit"])]
     fitted = candidate_fits(sub, res, evidence, cfg, fit_cfg)
     clock.lap()
     for variant in mcfg.variant_list():
@@ -316,7 +329,7 @@ def choose_materials(inputs: "FitInputs", problem, cfg, log=None, score_views: C
         early = cands[0]
         res = _split_fit(sub, cfg.fit, start=res)
         seconds["validation_fit_own_rule"] = clock.lap()
-        cands[0] = {**per_texel(seconds["validation_fit_own_rule"]),
+        cands[0] = {**per_texel(seconds["validation_fit"] + seconds["validation_fit_own_rule"]),
                     "at_candidates_rule": {k: early[k] for k in ("pooled_psnr_db", "worst_psnr_db", "iterations")}}
         best = _best_candidate(cands)
     if on_validation_fit is not None:
