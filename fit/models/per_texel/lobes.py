@@ -266,7 +266,9 @@ def choose_materials(inputs: "FitInputs", problem, cfg, log=None, score_views: C
     """Pick the per-texel or a materials model (variant and K) on a validation split of the fitted photos:
     every ``materials.validation_every``-th fitted photo is held back (:func:`validation_split`), the per-texel
     fit and every candidate are fitted to the rest and scored by their renders of the validation photos (pooled
-    PSNR; ties within 0.05 dB go to the simpler model). The fit's own held-out photos play no part.
+    PSNR; ties within 0.05 dB go to the simpler model). The fit's own held-out photos play no part. Every fit stops
+    by the candidates' rule (:func:`choice_fit_config`); where the per-texel model would be chosen, its fit is
+    continued by the fit's own rule and scored again (``materials.choice_rel_tol``).
     The candidates share one set-up: the sub-problem's photos are the fit's own, copied on the device
     (PhotoSet.subset: nothing decoded or shadow-mapped again), and one scorer. Each candidate's seconds (fit,
     score) and iterations, and the set-up's and validation fit's, are recorded.
