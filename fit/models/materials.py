@@ -172,13 +172,13 @@ def texel_uncertainty(jtj: np.ndarray, params: np.ndarray, layout: ModelLayout, 
     if lay.n_lobes == 0:
         return np.zeros((n, 3))
     free = np.flatnonzero(~lay.frozen())
-    h = np.asarray(jtj, np.float64)[:, free][:, :, free]
+    h = np.asarray(jtj, np.float64)[:, free[:, None], free]
     d = np.einsum("nii->ni", h)
     dead = ~(d > 1e-300)
     s = np.where(dead, 1.0, np.sqrt(np.where(dead, 1.0, d)))
     hs = h / (s[:, :, None] * s[:, None, :])
-    hs[dead] = 0.0
-    hs = np.where(dead[:, :, None] | dead[:, None, :], np.eye(len(free))[None], hs)
+    if dead.any():  # a column no sample constrains: the identity's row and column (its variance is inf below)
+        hs = np.where(dead[:, :, None] | dead[:, None, :], np.eye(len(free))[None], hs)
     var_s = scaled_inverse_diagonal(hs)
     var = sigma2 * var_s / (s * s)
     var[dead] = np.inf
@@ -228,8 +228,9 @@ def scaled_inverse_diagonal(hs: np.ndarray) -> np.ndarray:
             inv[:, i, i] = 1.0
             inv[:, i] -= np.einsum("nk,nkj->nj", chol[:, i, :i], inv[:, :i])
             inv[:, i] /= chol[:, i, i, None]
-        frob = (inv * inv).sum(axis=(1, 2))
-        out[b:b + len(block)] = (inv * inv).sum(axis=1)  # diag of L^-T L^-1
+        diag = (inv * inv).sum(axis=1)  # diag of L^-T L^-1
+        out[b:b + len(block)] = diag
+        frob = diag.sum(axis=1)
         floored[b:b + len(block)] = ~(frob * 1e-12 * m <= 1.0)
     if floored.any():
         w, v = np.linalg.eigh(hs[floored])
