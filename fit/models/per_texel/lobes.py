@@ -274,8 +274,8 @@ def choose_materials(inputs: "FitInputs", problem, cfg, log=None, score_views: C
     score) and iterations, and the set-up's and validation fit's, are recorded.
     ``score_views(params, result, sub_problem)``: the validation photos' PSNRs of compact ``params`` (fitted on
     ``sub_problem`` from ``result``); None: the mesh's renders (:func:`mesh_view_scores`).
-    ``on_validation_fit(result)``: given the validation split's per-texel fit as soon as it is there (the
-    fit of every photo starts from it: ``materials.fit_from_validation``). Returns the choice
+    ``on_validation_fit(result)``: given the validation split's per-texel fit once the choice is made (the fit
+    of every photo starts from it: ``materials.fit_from_validation``). Returns the choice
     and every candidate's score, or {"chosen": "per-texel", "reason": ...} when the fitted photos are too few
     to split."""
     mcfg = cfg.materials
@@ -293,7 +293,7 @@ def choose_materials(inputs: "FitInputs", problem, cfg, log=None, score_views: C
     # the candidates' rule first (the per-texel fit is the candidates' start and evidence); the fit's own rule
     # only where the per-texel model would be chosen (below). On a multi-core CPU in tiles of texels, one thread
     # each (the same parameters to the bit, fit/multi/cpu_threads.py)
-    res = _split_fit(sub, fit_cfg)
+    res, split_rule = _split_fit(sub, fit_cfg), fit_cfg
     seconds["validation_fit"] = clock.lap()
 
     def score(params, fitted: float) -> dict:
@@ -330,6 +330,7 @@ def choose_materials(inputs: "FitInputs", problem, cfg, log=None, score_views: C
         clock.lap()
         early = cands[0]
         res = _split_fit(sub, cfg.fit, start=res)
+        split_rule = cfg.fit
         seconds["validation_fit_own_rule"] = clock.lap()
         cands[0] = {**per_texel(seconds["validation_fit"] + seconds["validation_fit_own_rule"]),
                     "at_candidates_rule": {k: early[k] for k in ("pooled_psnr_db", "worst_psnr_db", "iterations")}}
@@ -340,9 +341,7 @@ def choose_materials(inputs: "FitInputs", problem, cfg, log=None, score_views: C
     return {"chosen": best["model"], "k": best.get("k"), "validation_photos": len(val), "fitted_on": len(train),
             "candidates": cands, "seconds": clock.total(), "seconds_by_part": seconds,
             "stopping": {"candidates": {"rel_tol": fit_cfg.rel_tol, "sync_every": fit_cfg.sync_every},
-                         "validation_fit": ({"rel_tol": fit_cfg.rel_tol, "sync_every": fit_cfg.sync_every}
-                                            if "validation_fit_own_rule" not in seconds and fit_cfg is not cfg.fit
-                                            else {"rel_tol": cfg.fit.rel_tol, "sync_every": cfg.fit.sync_every})},
+                         "validation_fit": {"rel_tol": split_rule.rel_tol, "sync_every": split_rule.sync_every}},
             "reason": f"{name}: best pooled PSNR on {len(val)} validation photos (every {every}th fitted photo), "
                       f"{best['pooled_psnr_db']:.2f} dB against per-texel {cands[0]['pooled_psnr_db']:.2f} dB"}
 
