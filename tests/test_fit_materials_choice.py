@@ -308,10 +308,11 @@ def choice_with_scores(root, pooled: dict[str, list[float]]) -> tuple[dict, obje
 
 def test_the_split_fit_stops_by_the_candidates_rule_unless_the_per_texel_model_would_be_chosen(small_capture):
     """The validation split's per-texel fit stops by the candidates' rule (materials.choice_rel_tol 1e-4 over 2
-    iterations): it is their start and evidence. Only where the per-texel model would then be chosen is it fitted on
-    by the fit's own rule and scored again, so a per-texel choice is judged on (and the fit of every photo starts
-    from) the fit it stands for. The scores are given (the control flow is what is tested): per-texel scoring below
-    the candidate is not fitted on; scoring above it, it is fitted on and, scoring lower then, loses."""
+    iterations): it is their start and evidence. Only where the per-texel model then scores within
+    materials.choice_refit_margin_db (1 dB) of the best is it fitted on by the fit's own rule and scored again, so a
+    per-texel choice is judged on (and the fit of every photo starts from) the fit it stands for. The scores are
+    given (the control flow is what is tested): per-texel scoring 10 dB below the candidate is not fitted on;
+    scoring above it, or 0.5 dB below, it is fitted on and scored again."""
     lost, early_fit = choice_with_scores(small_capture, {"per-texel": [30.0], "mixed": [40.0]})
     assert lost["chosen"] == "mixed" and "at_candidates_rule" not in lost["candidates"][0]
     assert lost["stopping"]["validation_fit"] == {"rel_tol": 1e-4, "sync_every": 2}
@@ -326,6 +327,10 @@ def test_the_split_fit_stops_by_the_candidates_rule_unless_the_per_texel_model_w
     assert per_texel["at_candidates_rule"]["iterations"] == lost["candidates"][0]["iterations"]
     assert per_texel["iterations"] == len(own_fit.trace) - 1 > per_texel["at_candidates_rule"]["iterations"]
     assert own_fit.trace[-1]["objective"] < early_fit.trace[-1]["objective"]
+
+    near, _ = choice_with_scores(small_capture, {"per-texel": [39.5, 40.5], "mixed": [40.0]})
+    assert near["candidates"][0]["at_candidates_rule"]["pooled_psnr_db"] == pytest.approx(39.5)
+    assert near["chosen"] == "per-texel" and near["candidates"][0]["pooled_psnr_db"] == pytest.approx(40.5)
 
 
 def test_the_fit_from_a_split_fit_stopped_by_the_candidates_rule_reaches_the_same_optimum(small_capture):

@@ -267,8 +267,8 @@ def choose_materials(inputs: "FitInputs", problem, cfg, log=None, score_views: C
     every ``materials.validation_every``-th fitted photo is held back (:func:`validation_split`), the per-texel
     fit and every candidate are fitted to the rest and scored by their renders of the validation photos (pooled
     PSNR; ties within 0.05 dB go to the simpler model). The fit's own held-out photos play no part. Every fit stops
-    by the candidates' rule (:func:`choice_fit_config`); where the per-texel model would be chosen, its fit is
-    continued by the fit's own rule and scored again (``materials.choice_rel_tol``).
+    by the candidates' rule (:func:`choice_fit_config`); where the per-texel model scores within
+    ``materials.choice_refit_margin_db`` of the best, its fit is continued by the fit's own rule and scored again.
     The candidates share one set-up: the sub-problem's photos are the fit's own, copied on the device
     (PhotoSet.subset: nothing decoded or shadow-mapped again), and one scorer. Each candidate's seconds (fit,
     score) and iterations, and the set-up's and validation fit's, are recorded.
@@ -324,9 +324,10 @@ def choose_materials(inputs: "FitInputs", problem, cfg, log=None, score_views: C
                 log(f"[fit] validation: {variant} K={k}: pooled {cands[-1]['pooled_psnr_db']:.2f} dB, "
                     f"worst {cands[-1]['worst_psnr_db']:.2f} dB")
     best = _best_candidate(cands)
-    if best is cands[0] and fit_cfg is not cfg.fit:
-        # the per-texel model would be chosen: judged on (and the fit of every photo started from) the fit it
-        # stands for, continued by the fit's own rule
+    if fit_cfg is not cfg.fit and "excluded" not in cands[0] and (
+            cands[0]["pooled_psnr_db"] >= best["pooled_psnr_db"] - mcfg.choice_refit_margin_db):
+        # the per-texel model would be chosen, or nearly: judged on (and the fit of every photo started from) the
+        # fit it stands for, continued by the fit's own rule
         clock.lap()
         early = cands[0]
         res = _split_fit(sub, cfg.fit, start=res)
