@@ -38,17 +38,21 @@ def lobe_shape_report(cfg: FitConfig, layout, frames, positions: np.ndarray) -> 
             "light_view_angle_deg": [float(angles.min()), float(angles.max())] if angles.size else None}
 
 
-def drop_unsupported_lobes(problem, result: FitResult, fraction: float) -> tuple[np.ndarray, np.ndarray]:
+def drop_unsupported_lobes(problem, result: FitResult, fraction: float,
+                           evidence: "TexelEvidence | None" = None) -> tuple[np.ndarray, np.ndarray]:
     """(params, dropped): the fitted parameters with rho_s = 0 on every seen texel whose lobes lower its
     objective by less than ``fraction`` of the objective without them, and the (N,) mask of those texels.
     Such a lobe explains nothing the photos show; a narrow one whose peak fell between the cameras would
-    still light up a new view at full height."""
+    still light up a new view at full height. ``evidence``: that of ``result`` on ``problem``, whose objective
+    without the lobes is then not evaluated again."""
     lay = result.layout
     dropped = np.zeros(problem.n, bool)
     if lay.n_lobes == 0 or fraction <= 0:
         return result.params, dropped
     bare = scale_lobes(result.params, lay, 0.0)
-    with_lobes, without = per_texel_objective(problem, result.params), per_texel_objective(problem, bare)
+    with_lobes = per_texel_objective(problem, result.params)
+    without = (evidence.bare_objective(problem) if evidence is not None and evidence.params is result.params
+               else per_texel_objective(problem, bare))
     dropped = (result.samples > 0) & (without - with_lobes <= fraction * np.maximum(without, 1e-30))
     params = np.where(dropped[:, None], bare, result.params)
     if lay.n_lobes > 1:
@@ -88,6 +92,16 @@ class TexelEvidence:
     uncertainty: np.ndarray
     """(N, 3) relative std of rho_s, of n, std of c_z (materials.texel_uncertainty)"""
     constrained: np.ndarray
+    bare: np.ndarray | None = None
+    """(N,) each texel's objective without its lobes (:meth:`bare_objective`; None: not evaluated yet)"""
+
+    def bare_objective(self, problem) -> np.ndarray:
+        """Each texel's objective on ``problem`` (the problem these parameters were fitted on, or one over the same
+        photos: the same arithmetic) with its lobes taken away: evaluated once, for the lobe support test and every
+        materials candidate's contradiction test."""
+        if self.bare is None:
+            self.bare = per_texel_objective(problem, scale_lobes(self.params, problem.layout, 0.0))
+        return self.bare
 
 
 def texel_evidence(problem, result: FitResult, mcfg: MaterialConfig) -> TexelEvidence:
@@ -169,10 +183,9 @@ def fit_with_materials(problem, result: FitResult, evidence: TexelEvidence, k: i
     seen = evidence.samples > 0
     mats = find_materials(evidence.params, seen, evidence.constrained, lay, k, mcfg.min_lobe_share,
                           mcfg.spread_floor)
-    bare = scale_lobes(evidence.params, lay, 0.0)
     with_lobe = material_lobes_on(evidence.params, mats.labels, mats, lay)
     doubled = scale_lobes(with_lobe, lay, 2.0)
-    f_mat, f_bare = per_texel_objective(problem, with_lobe), per_texel_objective(problem, bare)
+    f_mat, f_bare = per_texel_objective(problem, with_lobe), evidence.bare_objective(problem)
     contradicted = contradiction_test(f_bare, f_mat, per_texel_objective(problem, doubled), evidence.samples,
                                       evidence.sigma2, mcfg.contradiction)
     mats.contradicted_share = reject_contradicted_lobes(mats, mats.labels, seen, evidence.constrained, contradicted,
@@ -253,14 +266,16 @@ def choose_materials(inputs: "FitInputs", problem, cfg, log=None, score_views: C
     """Pick the per-texel or a materials model (variant and K) on a validation split of the fitted photos:
     every ``materials.validation_every``-th fitted photo is held back (:func:`validation_split`), the per-texel
     fit and every candidate are fitted to the rest and scored by their renders of the validation photos (pooled
-    PSNR; ties within 0.05 dB go to the simpler model). The fit's own held-out photos play no part.
+    PSNR; ties within 0.05 dB go to the simpler model). The fit's own held-out photos play no part. Every fit stops
+    by the candidates' rule (:func:`choice_fit_config`); where the per-texel model scores within
+    ``materials.choice_refit_margin_db`` of the best, its fit is continued by the fit's own rule and scored again.
     The candidates share one set-up: the sub-problem's photos are the fit's own, copied on the device
     (PhotoSet.subset: nothing decoded or shadow-mapped again), and one scorer. Each candidate's seconds (fit,
     score) and iterations, and the set-up's and validation fit's, are recorded.
     ``score_views(params, result, sub_problem)``: the validation photos' PSNRs of compact ``params`` (fitted on
     ``sub_problem`` from ``result``); None: the mesh's renders (:func:`mesh_view_scores`).
-    ``on_validation_fit(result)``: given the validation split's per-texel fit as soon as it is there (the
-    fit of every photo starts from it: ``materials.fit_from_validation``). Returns the choice
+    ``on_validation_fit(result)``: given the validation split's per-texel fit once the choice is made (the fit
+    of every photo starts from it: ``materials.fit_from_validation``). Returns the choice
     and every candidate's score, or {"chosen": "per-texel", "reason": ...} when the fitted photos are too few
     to split."""
     mcfg = cfg.materials
@@ -275,13 +290,11 @@ def choose_materials(inputs: "FitInputs", problem, cfg, log=None, score_views: C
     sub = StreamProblem(problem.texels, problem.photos.subset(train), problem.layout, problem.cfg, problem.device)
     seconds = {"setup": clock.lap()}
     fit_cfg = choice_fit_config(cfg)
-    # the fit's own rule: the per-texel model it stands for, and the full fit's start; on a multi-core CPU in tiles
-    # of texels, one thread each (the same parameters to the bit, fit/multi/cpu_threads.py)
-    threads, _ = cpu_threads(sub, cfg.fit)
-    res = run_tiled_fit(sub, threaded_config(cfg.fit, threads))[0] if threads > 1 else run_fit(sub, cfg.fit)
+    # the candidates' rule first (the per-texel fit is the candidates' start and evidence); the fit's own rule
+    # only where the per-texel model would be chosen (below). On a multi-core CPU in tiles of texels, one thread
+    # each (the same parameters to the bit, fit/multi/cpu_threads.py)
+    res, split_rule = _split_fit(sub, fit_cfg), fit_cfg
     seconds["validation_fit"] = clock.lap()
-    if on_validation_fit is not None:
-        on_validation_fit(res)
 
     def score(params, fitted: float) -> dict:
         views = score_views(params, res, sub)
@@ -289,12 +302,14 @@ def choose_materials(inputs: "FitInputs", problem, cfg, log=None, score_views: C
         return {"pooled_psnr_db": pooled, "worst_psnr_db": float(min(views)),
                 "seconds": {"fit": fitted, "score": clock.lap()}}
 
-    params, _ = drop_unsupported_lobes(sub, res, cfg.lobe_support)
-    cands = [{"model": "per-texel", "iterations": len(res.trace) - 1, **score(params, clock.lap())}]
-    if mcfg.mode == "on":
-        cands[0]["excluded"] = "materials mode on"
+    def per_texel(fitted: float) -> dict:
+        params, _ = drop_unsupported_lobes(sub, res, cfg.lobe_support, evidence)
+        out = {"model": "per-texel", "iterations": len(res.trace) - 1, **score(params, fitted)}
+        return {**out, "excluded": "materials mode on"} if mcfg.mode == "on" else out
+
     evidence = texel_evidence(sub, res, mcfg)
     seconds["evidence"] = clock.lap()
+    cands = [per_texel(seconds["validation_fit"])]
     fitted = candidate_fits(sub, res, evidence, cfg, fit_cfg)
     clock.lap()
     for variant in mcfg.variant_list():
@@ -308,18 +323,48 @@ def choose_materials(inputs: "FitInputs", problem, cfg, log=None, score_views: C
             if log is not None:
                 log(f"[fit] validation: {variant} K={k}: pooled {cands[-1]['pooled_psnr_db']:.2f} dB, "
                     f"worst {cands[-1]['worst_psnr_db']:.2f} dB")
+    best = _best_candidate(cands)
+    if fit_cfg is not cfg.fit and "excluded" not in cands[0] and (
+            cands[0]["pooled_psnr_db"] >= best["pooled_psnr_db"] - mcfg.choice_refit_margin_db):
+        # the per-texel model would be chosen, or nearly: judged on (and the fit of every photo started from) the
+        # fit it stands for, continued by the fit's own rule
+        clock.lap()
+        early = cands[0]
+        res = _split_fit(sub, cfg.fit, start=res)
+        split_rule = cfg.fit
+        seconds["validation_fit_own_rule"] = clock.lap()
+        cands[0] = {**per_texel(seconds["validation_fit"] + seconds["validation_fit_own_rule"]),
+                    "at_candidates_rule": {k: early[k] for k in ("pooled_psnr_db", "worst_psnr_db", "iterations")}}
+        best = _best_candidate(cands)
+    if on_validation_fit is not None:
+        on_validation_fit(res)
+    name = best["model"] + (f" K={best['k']}" if "k" in best else "")
+    return {"chosen": best["model"], "k": best.get("k"), "validation_photos": len(val), "fitted_on": len(train),
+            "candidates": cands, "seconds": clock.total(), "seconds_by_part": seconds,
+            "stopping": {"candidates": {"rel_tol": fit_cfg.rel_tol, "sync_every": fit_cfg.sync_every},
+                         "validation_fit": {"rel_tol": split_rule.rel_tol, "sync_every": split_rule.sync_every}},
+            "reason": f"{name}: best pooled PSNR on {len(val)} validation photos (every {every}th fitted photo), "
+                      f"{best['pooled_psnr_db']:.2f} dB against per-texel {cands[0]['pooled_psnr_db']:.2f} dB"}
+
+
+def _split_fit(sub, fit: FitConfig, start: FitResult | None = None) -> FitResult:
+    """The validation split's per-texel fit under ``fit``'s rule, from ``start`` (a fit to continue; None: the
+    initial guess), in tiles of texels on a multi-core CPU (the same parameters to the bit)."""
+    threads, _ = cpu_threads(sub, fit)
+    at = None if start is None else (start.params, start.samples)
+    res = (run_tiled_fit(sub, threaded_config(fit, threads), start=at)[0] if threads > 1
+           else run_fit(sub, fit, start=at))
+    return res if start is None else dataclasses.replace(res, trace=start.trace + res.trace[1:])
+
+
+def _best_candidate(cands: list[dict]) -> dict:
+    """The candidate of best validation pooled PSNR, ties within 0.05 dB to the one listed first (the simpler)."""
     eligible = [c for c in cands if "excluded" not in c]
     best = eligible[0]
     for c in eligible[1:]:
         if c["pooled_psnr_db"] > best["pooled_psnr_db"] + 0.05:
             best = c
-    name = best["model"] + (f" K={best['k']}" if "k" in best else "")
-    return {"chosen": best["model"], "k": best.get("k"), "validation_photos": len(val), "fitted_on": len(train),
-            "candidates": cands, "seconds": clock.total(), "seconds_by_part": seconds,
-            "stopping": {"validation_fit": {"rel_tol": cfg.fit.rel_tol, "sync_every": cfg.fit.sync_every},
-                         "candidates": {"rel_tol": fit_cfg.rel_tol, "sync_every": fit_cfg.sync_every}},
-            "reason": f"{name}: best pooled PSNR on {len(val)} validation photos (every {every}th fitted photo), "
-                      f"{best['pooled_psnr_db']:.2f} dB against per-texel {cands[0]['pooled_psnr_db']:.2f} dB"}
+    return best
 
 
 def candidate_fits(sub, res: FitResult, evidence: TexelEvidence, cfg, fit_cfg: FitConfig) -> Callable:
