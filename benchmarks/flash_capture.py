@@ -46,6 +46,14 @@ from pathlib import Path
 import numpy as np
 
 
+def _radiance_units(run_frames, truth_frames, scale_fitted_over_true: float) -> float:
+    """A photos-only model's radiance per unit exposure over the truth's: its response from the chart reads
+    ``scale_fitted_over_true`` times the true one, and its exposures (1 from EXIF-less PNGs) stand where the truth's
+    (1 / the tone curve's white) do."""
+    exposure_ratio = float(np.median([f.exposure for f in truth_frames]) / np.median([f.exposure for f in run_frames]))
+    return scale_fitted_over_true * exposure_ratio
+
+
 def _fitted_inputs(run: Path) -> tuple[Path, Path]:
     """(capture folder, geometry) the run's fit read (run.json's fit stage ``fitted_on``: the refinement's, or the
     registered ones where the refinement was not kept); older runs: the latest stages' that exist."""
@@ -132,9 +140,13 @@ def _neighbourhood_error(pos: np.ndarray, fitted: np.ndarray, truth: np.ndarray)
     return _stats(np.abs(f / t - 1.0).max(axis=1))
 
 
-def _texel_errors(model_dir: Path, truth_dir: Path, sim, truth_frames, training_frames=None) -> dict:
+def _texel_errors(model_dir: Path, truth_dir: Path, sim, truth_frames, training_frames=None,
+                  units_over_true: float = 1.0) -> dict:
     """Per texel, the fitted albedo, rho_s and n against the truth at the same surface point (module doc); with
-    ``training_frames`` (truth frames) also the albedo on the texels 4 or more of them face, and the ambient's."""
+    ``training_frames`` (truth frames) also the albedo on the texels 4 or more of them face, and the ambient's.
+    ``units_over_true``: the model's radiance units over the truth's (:func:`_radiance_units`): the ambient, a
+    radiance per unit exposure, is compared after dividing by it; the albedos are absolute (the chart's flash is
+    in the same units)."""
     from scipy.spatial import cKDTree
 
     from texstream.capture.imageio import read_image
@@ -178,8 +190,8 @@ def _texel_errors(model_dir: Path, truth_dir: Path, sim, truth_frames, training_
         for k, m in (("none", train_hl == 0), ("once", train_hl == 1), ("twice_or_more", train_hl >= 2)):
             out[f"albedo_rel_error_training_highlight_{k}"] = _stats(alb[m])
         if lay.ambient and tlay.ambient:
-            amb = np.abs(fp[:, lay.ambient_offset:lay.ambient_offset + 3] / tp[:, tlay.ambient_offset:tlay.ambient_offset + 3]
-                         - 1.0).max(axis=1)
+            amb = np.abs(fp[:, lay.ambient_offset:lay.ambient_offset + 3] / units_over_true
+                         / tp[:, tlay.ambient_offset:tlay.ambient_offset + 3] - 1.0).max(axis=1)
             out["ambient_rel_error"] = _stats(amb)
     if fl is not None:
         rs = np.abs(fp[:, fl:fl + 3] / tp[:, tl:tl + 3] - 1.0).max(axis=1)
@@ -394,6 +406,7 @@ def main() -> None:
                            "relative_error": (np.asarray(lights["intensity"]) / expected - 1.0).tolist(),
                            "room_irradiance_on_chart": lights.get("room_irradiance_on_chart"), "why": lights.get("why")}
     shift = 20 * math.log10(curve["scale_fitted_over_true"])
+    units = _radiance_units(read_capture(fit_dir).frames, truth.frames, curve["scale_fitted_over_true"])
     po = _heldout(run)
     result["photos_only"] = {"heldout": po, "pooled_psnr_db_in_true_units": (po["pooled_psnr_db"] or 0) + shift,
                              "heldout_flash": heldout_flash(out / "run" / "model"),
@@ -401,7 +414,8 @@ def main() -> None:
                              "stages": [{k: st[k] for k in ("name", "status", "reason", "seconds")} for st in run["stages"]],
                              "registered": len(read_capture(fit_dir).frames),
                              "ambient": _ambient_choice(out / "run" / "model"),
-                             "texels": _texel_errors(out / "run" / "model", truth_dir, sim, truth.frames, train_flash),
+                             "texels": _texel_errors(out / "run" / "model", truth_dir, sim, truth.frames, train_flash,
+                                                     units),
                              "mesh": _mesh_checks(out / "run" / "mesh" / "mesh.ply", sim)}
     result["true_inputs"] = {"heldout": _heldout(ref), "seconds": ref_s, "inputs": ref["inputs"],
                              "heldout_flash": heldout_flash(out / "reference" / "model"),
@@ -415,7 +429,8 @@ def main() -> None:
         result[key] = _fit_ambient(out / "run", out / f"run_ambient_{mode}", mode, a.device,
                                    a.variant_iterations or a.iterations)
         result[key]["heldout_flash"] = heldout_flash(out / f"run_ambient_{mode}")
-        result[key]["texels"] = _texel_errors(out / f"run_ambient_{mode}", truth_dir, sim, truth.frames, train_flash)
+        result[key]["texels"] = _texel_errors(out / f"run_ambient_{mode}", truth_dir, sim, truth.frames, train_flash,
+                                              units)
     if not a.no_flash_pairs:
         result["ambient_gain_db"] = (result["photos_only_ambient_on"]["heldout"]["pooled_psnr_db"]
                                      - result["photos_only_ambient_off"]["heldout"]["pooled_psnr_db"])
