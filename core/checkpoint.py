@@ -16,6 +16,7 @@ import hashlib
 import json
 import os
 import shutil
+import stat
 import zipfile
 from pathlib import Path
 from typing import Any, Callable
@@ -35,12 +36,26 @@ def inputs_key(*parts: Any) -> str:
 
 
 def files_signature(paths) -> list:
-    """(path, size, modification time) of each file: changes when a photo or a mesh does, without reading it."""
-    out = []
+    """(path, size, modification time) of each file: changes when a photo or a mesh does, without reading it.
+    The path is the file's resolved one (``Path.resolve``); each folder is resolved once and a file's own link
+    only where it is one (a fit's 1,760 photos and masks took 0.49 s of stat calls resolving every component of
+    every path on an H200's host, issue 40), the same strings."""
+    out, folders = [], {}
     for p in paths:
-        p = Path(p)
-        st = p.stat() if p.is_file() else None
-        out.append([str(p.resolve()), st.st_size if st else None, st.st_mtime_ns if st else None])
+        p = os.fspath(p)
+        try:
+            link = os.lstat(p)
+        except OSError:
+            link = None
+        if link is not None and stat.S_ISLNK(link.st_mode):
+            resolved, st = str(Path(p).resolve()), (os.stat(p) if os.path.isfile(p) else None)
+        else:
+            head, tail = os.path.split(p)  # the folder resolved as Path.resolve does (links before "..")
+            if head not in folders:
+                folders[head] = str(Path(head).resolve())
+            resolved = os.path.join(folders[head], tail)
+            st = link if link is not None and stat.S_ISREG(link.st_mode) else None
+        out.append([resolved, st.st_size if st else None, st.st_mtime_ns if st else None])
     return out
 
 

@@ -49,3 +49,27 @@ def test_a_damaged_file_is_only_a_lost_head_start(tmp_path):
     assert ck.read_arrays("state.npz") is None and ck.read_json("start.json") is None
     ck.remove()
     assert not ck.folder.exists()
+
+
+def test_files_signature_resolves_paths_as_path_resolve_does(tmp_path):
+    """The signature's paths are Path.resolve's (links in folders and in the file itself, ".." after a linked
+    folder, missing files and folders, relative paths), though it resolves each folder once."""
+    import os
+    from pathlib import Path
+
+    from texstream.core.checkpoint import files_signature
+
+    (tmp_path / "a" / "images").mkdir(parents=True)
+    (tmp_path / "b").mkdir()
+    for i in range(5):
+        (tmp_path / "a" / "images" / f"f{i}.png").write_bytes(b"x" * i)
+    os.symlink(tmp_path / "a", tmp_path / "link_a")
+    os.symlink(tmp_path / "a" / "images" / "f1.png", tmp_path / "b" / "file_link.png")
+    paths = [tmp_path / "a/images/f0.png", tmp_path / "link_a/images/f2.png", tmp_path / "b/../a/images/f3.png",
+             tmp_path / "link_a/../b/file_link.png", tmp_path / "b/file_link.png", tmp_path / "missing/x.png",
+             tmp_path / "a/images", "relative_missing.png", tmp_path / "b/../link_a/images/f4.png"]
+    expected = []
+    for p in map(Path, paths):
+        st = p.stat() if p.is_file() else None
+        expected.append([str(p.resolve()), st.st_size if st else None, st.st_mtime_ns if st else None])
+    assert files_signature(paths) == expected
