@@ -13,6 +13,10 @@ geometry goes on only when its validation pooled PSNR is higher. The held-out ph
 
 Measured on that capture (photos only, 2-core CPU, docs/real-data.md): diffuse validation 35.47 dB registered
 against 35.32 dB refined (the Lafortune validation fits agree: 38.35 against 36.02 dB), about 10 s a fit.
+
+The two fits are the model choice's own fit of its diffuse candidate (fit/stages/choice.py: the same options,
+``fit_candidate`` with its stamp), so the kept side's is handed to the choice (:func:`hand_to_choice`), which
+then does not fit it again: the judgement costs one validation fit, not two.
 """
 
 from __future__ import annotations
@@ -24,7 +28,9 @@ import time
 from pathlib import Path
 
 from texstream.capture.capture_json import split_holdout
-from texstream.fit.stages.stage import fit_stage
+from texstream.fit.common.inputs import SharedPhotoSet
+from texstream.fit.stages.choice import VALIDATION_SUFFIX
+from texstream.fit.stages.stage import fit_candidate
 
 JUDGED_FILE = "refine_judged.json"
 """the run's record of its last judgement and the key of its inputs (``texstream run`` reuses it while they hold)"""
@@ -44,24 +50,28 @@ def judged_by_fit(capture, refine_cfg) -> str | None:
     return None if len(fitted) >= 6 else f"{len(fitted)} fitted photos: too few for a validation split"
 
 
+def judge_config(fit_cfg):
+    """The config of the judgement's fits: the model choice's validation fit of its first candidate
+    (fit/stages/choice.py ``fit_choice``'s ``config(c, True)`` for :data:`JUDGE_MODEL`, no candidate judged before
+    it), so the choice can take the kept one as its own."""
+    return dataclasses.replace(fit_cfg, renders=0, fit=dataclasses.replace(fit_cfg.fit, model=JUDGE_MODEL),
+                               choice=dataclasses.replace(fit_cfg.choice, validation_fit=True, beat_db=0.0))
+
+
 def judge_refinement(registered: tuple[Path, Path], refined: tuple[Path, Path], work: Path, fit_cfg,
                      log=lambda m: None) -> tuple[bool, dict]:
     """(whether the refined cameras and mesh go on to the fit, the judgement's record). ``registered`` and
     ``refined`` are (capture folder, geometry) pairs; ``fit_cfg`` the run's fit stage config (its device,
     ambient and materials options are kept; the model is :data:`JUDGE_MODEL`, fitted on the validation split and
-    scored there, no renders). The validation fits go to ``work`` and are removed after scoring."""
-    cfg = dataclasses.replace(fit_cfg, renders=0, fit=dataclasses.replace(fit_cfg.fit, model=JUDGE_MODEL),
-                              choice=dataclasses.replace(fit_cfg.choice, validation_fit=True, beat_db=0.0))
+    scored there, no renders: :func:`judge_config`). The validation fits go to ``work/registered`` and
+    ``work/refined``; the caller hands the kept one to the model choice (:func:`hand_to_choice`) and removes
+    ``work``."""
+    cfg = judge_config(fit_cfg)
     scores, t0 = {}, time.perf_counter()
-    try:
-        for name, (capture_dir, geometry) in (("registered", registered), ("refined", refined)):
-            out = Path(work) / name
-            fit_stage(capture_dir, geometry, out, cfg, progress=False)
-            held = json.loads((out / "model.json").read_text()).get("heldout") or {}
-            scores[name] = {"pooled_psnr_db": held.get("pooled_psnr_db"), "worst_psnr_db": held.get("worst_psnr_db"),
-                            "views": held.get("views")}
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
+    for name, (capture_dir, geometry) in (("registered", registered), ("refined", refined)):
+        held = fit_candidate(capture_dir, geometry, Path(work) / name, cfg, progress=False).summary.get("heldout") or {}
+        scores[name] = {"pooled_psnr_db": held.get("pooled_psnr_db"), "worst_psnr_db": held.get("worst_psnr_db"),
+                        "views": held.get("views")}
     reg, ref = scores["registered"]["pooled_psnr_db"], scores["refined"]["pooled_psnr_db"]
     if reg is None or ref is None:
         kept, why = True, "no validation photo was scored: the refinement's own residual decides"
@@ -70,7 +80,25 @@ def judge_refinement(registered: tuple[Path, Path], refined: tuple[Path, Path], 
     else:
         kept, why = False, (f"the {JUDGE_MODEL} fit predicts its validation photos no better on the refined cameras and "
                             f"mesh ({ref:.2f} dB against {reg:.2f} registered): the registered ones are kept")
+        SharedPhotoSet.release()  # the photos the last fit shared were the refined side's, which no fit reads now
     log(f"[refine] judged by the fit: {why}")
     return kept, {"model": JUDGE_MODEL, "validation": scores, "kept": kept, "why": why,
                   "seconds": round(time.perf_counter() - t0, 2)}
 
+
+def choice_folder(model_dir: Path) -> Path:
+    """Where the model choice writing ``model_dir`` puts its :data:`JUDGE_MODEL` candidate's validation fit
+    (fit/stages/choice.py ``fit_choice``'s ``folder(c, VALIDATION_SUFFIX)``)."""
+    return model_dir.with_name(f"{model_dir.name}_{JUDGE_MODEL}{VALIDATION_SUFFIX}")
+
+
+def hand_to_choice(work: Path, kept: bool, model_dir: Path) -> None:
+    """The kept side's validation fit (its stamp with it) moved to where the model choice writing ``model_dir``
+    looks for its first candidate's (:func:`choice_folder`), and ``work`` removed: the choice finds it finished with
+    the same inputs and options and does not fit it again. The caller removes it when no choice came to take it."""
+    target = choice_folder(model_dir)
+    shutil.rmtree(target, ignore_errors=True)
+    source = Path(work) / ("refined" if kept else "registered")
+    if source.is_dir():
+        source.rename(target)
+    shutil.rmtree(work, ignore_errors=True)

@@ -27,6 +27,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import shutil
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -64,7 +65,8 @@ from texstream.geometry.mesh_io import load_mesh
 from texstream.geometry.refine import RefineConfig, refine_stage
 from texstream.pipelines.light_inputs import light_and_resolution_inputs
 from texstream.pipelines.provenance import inputs_lines, run_inputs
-from texstream.pipelines.refine_judge import JUDGED_FILE, judge_refinement, judged_by_fit
+from texstream.pipelines.refine_judge import (JUDGED_FILE, choice_folder, hand_to_choice, judge_refinement,
+                                              judged_by_fit)
 from texstream.pipelines.report import write_report
 from texstream.pipelines.resolutions import stage_resolutions
 
@@ -345,6 +347,7 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
 
     model_dir = out / "model"
     fit_rec, model_kind, why = _fit(pipe, capture, posed, posed_dir, fit_geometry, model_dir, cfg, lights_summary)
+    shutil.rmtree(choice_folder(model_dir), ignore_errors=True)  # a judged refinement's fit no choice took
     if isinstance((fit_rec.summary or {}).get("highlights"), dict):  # fit/common/highlights.py
         log(f"[fit] highlights: {fit_rec.summary['highlights']['line']}")
 
@@ -546,7 +549,9 @@ def _judged_refinement(pipe: Pipeline, cfg: RunConfig, refine_cfg, capture, regi
         record = earlier["record"]
         pipe.log(f"[refine] judged by the fit (unchanged since the last run): {record['why']}")
     else:
-        record = judge_refinement(registered, (refine_dir, refine_dir), out / "refine_judged", fit_cfg, pipe.log)[1]
+        work = out / "refine_judged"
+        record = judge_refinement(registered, (refine_dir, refine_dir), work, fit_cfg, pipe.log)[1]
+        hand_to_choice(work, record["kept"], out / "model")  # the model choice's first fit, done
         write_json_atomic(cache, {"key": key, "record": record})
     kept = record["kept"]
     rec.summary["judged"] = {"by_fit": True, **record}

@@ -4,6 +4,7 @@ decide whether refined cameras go on, and only where the refinement's own model 
 import dataclasses
 import os
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,7 +12,7 @@ import pytest
 from conftest import tiny_sphere_capture
 from texstream.capture.capture_json import read_capture, write_capture
 from texstream.geometry.refine import RefineConfig
-from texstream.pipelines.refine_judge import judge_refinement, judged_by_fit
+from texstream.pipelines.refine_judge import choice_folder, hand_to_choice, judge_refinement, judged_by_fit
 from texstream.pipelines.run import RunConfig
 
 
@@ -50,9 +51,43 @@ def test_judge_keeps_the_geometry_the_fit_predicts_better(lit_sphere, tmp_path):
     kept, record = judge_refinement((cap, geometry), (turned, geometry), tmp_path / "a", fit_cfg)
     assert not kept and "registered ones are kept" in record["why"]
     assert record["validation"]["registered"]["pooled_psnr_db"] > record["validation"]["refined"]["pooled_psnr_db"]
+    hand_to_choice(tmp_path / "a", kept, tmp_path / "model")
+    assert not (tmp_path / "a").exists() and (choice_folder(tmp_path / "model") / "model.json").is_file()
     kept, record = judge_refinement((turned, geometry), (cap, geometry), tmp_path / "b", fit_cfg)
     assert kept and "refined against" in record["why"]
-    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()  # the validation fits are removed
+
+
+def test_the_model_choice_takes_the_judged_fit(lit_sphere, tmp_path, monkeypatch):
+    """The kept side's validation fit is the model choice's fit of its first candidate, same inputs and options:
+    the choice the run then makes takes it without fitting it again (any fit_model call here would fail)."""
+    from texstream.fit.stages import stage
+    from texstream.fit.stages.choice import fit_choice, plan_choice
+    from texstream.pipelines import run as run_module
+
+    class Stop(Exception):
+        pass
+
+    cap, turned = lit_sphere
+    geometry, model = cap / "ground_truth", tmp_path / "model"
+    capture = read_capture(cap)
+    fit_cfg = run_module._fit_config(dataclasses.replace(RunConfig(), device="cpu"), capture)  # as the run's fit
+    kept, _ = judge_refinement((turned, geometry), (cap, geometry), tmp_path / "work", fit_cfg)
+    hand_to_choice(tmp_path / "work", kept, model)
+    folders = []
+
+    def fit_one(capture_dir, mesh_path, out_dir, cfg):
+        folders.append(Path(out_dir))
+        if Path(out_dir) != choice_folder(model):
+            raise Stop  # the candidates after the first: not what this test is about
+        return stage.fit_candidate(capture_dir, mesh_path, out_dir, cfg, progress=False)
+
+    def no_fit(*args, **kwargs):
+        raise AssertionError("the judged fit was fitted again")
+
+    monkeypatch.setattr(stage, "fit_model", no_fit)
+    with pytest.raises(Stop):
+        fit_choice(cap, geometry, model, fit_cfg, plan_choice(capture, "auto", fit_cfg), fit_one)
+    assert folders[0] == choice_folder(model) and len(folders) == 2
 
 
 def test_judged_only_under_known_lights_with_a_split(lit_sphere):
