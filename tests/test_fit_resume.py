@@ -116,7 +116,7 @@ def test_an_interrupted_model_choice_keeps_its_finished_candidates(capture, tmp_
     lines = []
     with reporting(lines.append, bars=False):
         again = fit_stage(capture, gt, tmp_path / "again", cfg, progress=False)
-    kept = [line for line in lines if "was finished by an interrupted run with the same inputs and options" in line]
+    kept = [line for line in lines if "was fitted before with the same inputs and options" in line]
     assert len(kept) == 1 and f"{fitted[0]}:" in kept[0], lines
     assert without_seconds(again.summary["selection"]) == without_seconds(whole.summary["selection"])
     np.testing.assert_array_equal(maps(tmp_path / "again"), maps(tmp_path / "whole"))

@@ -214,8 +214,8 @@ def fit_candidate(capture_dir: str | Path, mesh_path: str | Path, out_dir: str |
     except (OSError, ValueError):
         done = None
     if isinstance(done, dict) and done.get("key") == key:
-        say("fit", f"{cfg.fit.model}: {out_dir} was finished by an interrupted run with the same inputs and "
-                   "options: kept")
+        say("fit", f"{cfg.fit.model}: {out_dir} was fitted before with the same inputs and options (by an "
+                   "interrupted run, or by the run's judgement of its refinement): kept")
         return StageResult(Path(out_dir), done["summary"])
     res = fit_model(capture_dir, mesh_path, out_dir, cfg, progress)
     write_json_atomic(stamp, {"key": key, "summary": json.loads(json.dumps(json_safe(res.summary), default=str))})
