@@ -28,6 +28,7 @@ import time
 from pathlib import Path
 
 from texstream.capture.capture_json import split_holdout
+from texstream.core.errors import TexstreamError
 from texstream.fit.common.inputs import SharedPhotoSet
 from texstream.fit.stages.choice import VALIDATION_SUFFIX
 from texstream.fit.stages.stage import fit_candidate
@@ -69,11 +70,18 @@ def judge_refinement(registered: tuple[Path, Path], refined: tuple[Path, Path], 
     cfg = judge_config(fit_cfg)
     scores, t0 = {}, time.perf_counter()
     for name, (capture_dir, geometry) in (("registered", registered), ("refined", refined)):
-        held = fit_candidate(capture_dir, geometry, Path(work) / name, cfg, progress=False).summary.get("heldout") or {}
+        try:
+            held = fit_candidate(capture_dir, geometry, Path(work) / name, cfg, progress=False).summary.get("heldout")
+        except TexstreamError as e:  # a side the fit cannot take (no texel seen, ...) loses, with the reason
+            scores[name] = {"pooled_psnr_db": None, "error": e.message}
+            continue
+        held = held or {}
         scores[name] = {"pooled_psnr_db": held.get("pooled_psnr_db"), "worst_psnr_db": held.get("worst_psnr_db"),
                         "views": held.get("views")}
     reg, ref = scores["registered"]["pooled_psnr_db"], scores["refined"]["pooled_psnr_db"]
-    if reg is None or ref is None:
+    if ref is None and reg is not None and "error" in scores["refined"]:
+        kept, why = False, f"the {JUDGE_MODEL} fit could not take the refined geometry ({scores['refined']['error']})"
+    elif reg is None or ref is None:
         kept, why = True, "no validation photo was scored: the refinement's own residual decides"
     elif ref > reg:
         kept, why = True, f"the {JUDGE_MODEL} fit's validation photos: {ref:.2f} dB refined against {reg:.2f} registered"
