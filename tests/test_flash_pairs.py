@@ -11,7 +11,7 @@ import pytest
 from texstream.capture.capture_json import NO_FLASH_KEY, Light, flash_fired, read_capture, write_capture
 from texstream.core.errors import ConfigError
 
-from conftest import SCENE_DEVICE
+from conftest import SCENE_DEVICE, tiny_sphere_capture
 
 
 def matte_room_scene() -> dict:
@@ -493,3 +493,46 @@ def test_a_zero_light_gets_no_shadow_map():
 
     infos = image_infos([frame(40.0), frame(0.0)], None, np.zeros(3), 1.0, 64)
     assert infos["has_shadow"].tolist() == [1, 0]
+
+
+def test_texels_seen_only_without_the_flash_take_the_nearest_lit_reflectance(tmp_path):
+    """A texel only photos taken with the flash off saw has no sample for its albedo or lobes (they keep the initial
+    guess, which shows wherever a flash lights them): it takes the reflectance columns of the nearest texel a lit
+    photo saw and keeps its own ambient; lit texels and texels no photo saw are left to the other fills."""
+    from types import SimpleNamespace
+
+    from texstream.fit.common.setup import fill_unlit_reflectance
+    from texstream.geometry.bake import TexelBake
+    from texstream.render.layout import ModelLayout
+
+    cap = tiny_sphere_capture(tmp_path, photos=2, image_size=32)
+    bake = TexelBake.load(cap / "ground_truth" / "bake.npz")
+    grid_index = np.flatnonzero(bake.covered.reshape(-1))
+    position = bake.position.reshape(-1, 3)[grid_index].astype(np.float64)
+    problem = SimpleNamespace(texels=SimpleNamespace(grid_index=grid_index, position=position))
+    layout = ModelLayout(kind="lafortune", n_lobes=1, ambient=True)
+    rng = np.random.default_rng(3)
+    grid = rng.uniform(0.1, 1.0, (bake.height, bake.width, layout.n_params)).astype(np.float32)
+    n = len(grid_index)
+    seen = np.ones(n, bool)
+    seen[:5] = False  # no photo saw these: not this fill's
+    lit_seen = position[:, 2] < np.quantile(position[:, 2], 0.7)  # the top 30% only unlit photos saw
+    lit_seen &= seen
+    out, filled = fill_unlit_reflectance(grid, problem, bake, seen, lit_seen, layout)
+    flat_in, flat_out = grid.reshape(-1, layout.n_params), out.reshape(-1, layout.n_params)
+    targets = seen & ~lit_seen
+    assert filled == int(targets.sum()) > 0
+    a = layout.ambient_offset
+    assert np.array_equal(flat_out[grid_index[targets], a:a + 3], flat_in[grid_index[targets], a:a + 3])
+    lit_rows = flat_in[grid_index[lit_seen], :a]
+    for row in flat_out[grid_index[targets], :a][:50]:  # every filled texel holds some lit texel's reflectance
+        assert np.any(np.all(lit_rows == row, axis=1))
+    untouched = ~targets
+    assert np.array_equal(flat_out[grid_index[untouched]], flat_in[grid_index[untouched]])
+    # its nearest lit texel, in 3D
+    t = np.flatnonzero(targets)[0]
+    nearest = np.flatnonzero(lit_seen)[np.argmin(np.linalg.norm(position[lit_seen] - position[t], axis=1))]
+    assert np.array_equal(flat_out[grid_index[t], :a], flat_in[grid_index[nearest], :a])
+    # no photo without the flash, or a layout without the ambient term: nothing to fill
+    assert fill_unlit_reflectance(grid, problem, bake, seen, seen, layout)[1] == 0
+    assert fill_unlit_reflectance(grid, problem, bake, seen, lit_seen, ModelLayout(kind="lafortune"))[1] == 0

@@ -251,6 +251,24 @@ def fill_unseen_texels(grid: np.ndarray, problem, bake, result: FitResult,
     return bake.fill_padding(flat.reshape(grid.shape)), int(len(targets))
 
 
+def fill_unlit_reflectance(grid: np.ndarray, problem, bake, seen: np.ndarray, lit_seen: np.ndarray,
+                           layout) -> tuple[np.ndarray, int]:
+    """Texels whose only samples came from photos taken with the flash off (``seen`` but not ``lit_seen``, compact
+    order) get the reflectance (every column but the ambient's) of the nearest texel a lit photo saw, keeping their
+    own ambient, which those photos did observe. Their albedo and lobes had no sample to fit and kept the initial
+    guess, which shows wherever a flash lights them (issue 39). Returns the maps and the number of texels filled."""
+    targets = seen & ~lit_seen
+    if not targets.any() or not lit_seen.any() or layout.ambient_offset < 0:
+        return grid, 0
+    idx = problem.texels.grid_index
+    nearest = idx[lit_seen][nearest_seen(problem.texels.position, lit_seen)[targets[~lit_seen]]]
+    flat = grid.reshape(-1, grid.shape[-1]).copy()
+    keep = flat[idx[targets], layout.ambient_offset:layout.ambient_offset + 3].copy()
+    flat[idx[targets]] = flat[nearest]
+    flat[idx[targets], layout.ambient_offset:layout.ambient_offset + 3] = keep
+    return bake.fill_padding(flat.reshape(grid.shape)), int(targets.sum())
+
+
 def unseen_sources(problem, result: FitResult) -> tuple[np.ndarray, np.ndarray]:
     """(grid rows of the texels no photo saw, grid rows of the nearest seen texel of each); empty when every
     texel or none was seen."""

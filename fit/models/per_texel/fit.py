@@ -24,8 +24,8 @@ from texstream.fit.common.inputs import FitInputs, load_fit_inputs, load_photos,
 from texstream.fit.common.model_folder import (bound_report, check_model, pooled_psnr, render_comparisons, trace_plot,
                                                write_model_folder)
 from texstream.fit.common.numerics import numerics_warnings
-from texstream.fit.common.setup import (Checkpoint, ModelRenders, fill_unseen_texels, fit_inputs_signature,
-                                        params_to_grid, run_fit_with_progress, unseen_sources)
+from texstream.fit.common.setup import (Checkpoint, ModelRenders, fill_unlit_reflectance, fill_unseen_texels,
+                                        fit_inputs_signature, params_to_grid, run_fit_with_progress, unseen_sources)
 from texstream.fit.common.highlights import highlight_image, highlight_masks, highlight_report
 from texstream.fit.models import registry
 from texstream.fit.models.per_texel.ambient import resolve_ambient
@@ -91,7 +91,8 @@ def _fit_per_texel_model(capture_dir: str | Path, mesh_path: str | Path, out_dir
     result, tiles_report = _core_fit(problem, start_fit_config(cfg, choice, p0), start, progress, ckpt, resume, p0)
     t_loop = time.perf_counter()
     result, lobes = _lobes_and_materials(inputs, problem, result, cfg, choice)
-    grid, filled, seams_info = _model_grid(inputs, problem, result, cfg)
+    masks = lit_masks(problem, result)
+    grid, filled, seams_info = _model_grid(inputs, problem, result, cfg, masks)
     t_fitted = time.perf_counter()
     title = f"{result.layout.kind} fit, {cfg.fit.optimizer}, {cfg.device}"
     # the model choice's validation fit is judged by its scores and then removed: model.json alone (its maps, mesh,
@@ -105,12 +106,13 @@ def _fit_per_texel_model(capture_dir: str | Path, mesh_path: str | Path, out_dir
         if not scores_only:
             write_lobe_maps(tmp, inputs.bake, problem, result, lobes)
         # a validation fit's counts too: the model choice leaves the lobes out where the diffuse fit saw no highlight
-        highlights = write_highlights(tmp, inputs.bake, problem, result, lobes, image=not scores_only)
+        highlights = write_highlights(tmp, inputs.bake, problem, result, lobes, image=not scores_only, masks=masks)
         timings = {"inputs": t_inputs, "setup": t_setup - t_inputs, "choice_before_fit": t_choice,
                    "fit": t_loop - t0 - t_setup - t_choice, "after_fit": t_fitted - t_loop,
                    "renders": time.perf_counter() - t_fitted}
         manifest = _manifest(inputs, problem, result, lobes, cfg, evals,
-                             {"seen_before": seen_before, "filled": filled, "skipped": skipped, "tiles": tiles_report,
+                             {"seen_before": seen_before, "filled": filled[0], "unlit_filled": filled[1],
+                              "skipped": skipped, "tiles": tiles_report,
                               "seams": seams_info, "setup_s": t_setup, "timings_s": timings, "ambient": ambient,
                               "highlights": highlights, "scores_only": scores_only})
         write_model_folder(tmp, grid, result.layout, seen.reshape(inputs.bake.height, inputs.bake.width), result.trace,
@@ -237,13 +239,31 @@ def fit_chosen_materials(problem, result, evidence, info: dict, cfg, polish: boo
     return result, Lobes(info, evidence, (extra_info, labels, res_m), np.zeros(problem.n, bool))
 
 
-def _model_grid(inputs: FitInputs, problem, result, cfg) -> tuple[np.ndarray, int, dict | None]:
-    """(parameter maps, texels filled from the nearest seen one, seams report), checked finite and in bounds. The
-    model choice's validation fit (``choice.validation_fit``: scored, then removed) keeps its seams as fitted, as
-    the light field mapping candidate it is judged beside does; see :data:`VALIDATION_SEAMS`."""
-    grid, filled = params_to_grid(result, problem, inputs.bake), 0
-    if cfg.unseen == "nearest":
+def lit_masks(problem, result):
+    """The highlight diagnostic's masks (fit/common/highlights.py: which texels a lit photo saw, ...) of a lit model,
+    computed once for the maps and the report; None for the radiance models (no light)."""
+    if result.layout.is_radiance or result.layout.view_terms:
+        return None
+    return highlight_masks(problem, result.params)
+
+
+def _unlit(frame) -> bool:
+    """A photo whose light is exactly 0 (taken with the flash off): the kernels take only its ambient."""
+    return frame.light is not None and not np.any(np.asarray(frame.light.intensity, np.float64) > 0)
+
+
+def _model_grid(inputs: FitInputs, problem, result, cfg, masks=None) -> tuple[np.ndarray, tuple, dict | None]:
+    """(parameter maps, (texels filled from the nearest seen one, texels seen only by photos without the flash that
+    took their reflectance from the nearest lit one), seams report), checked finite and in bounds. The model
+    choice's validation fit (``choice.validation_fit``: scored, then removed) keeps its seams as fitted, as the light
+    field mapping candidate it is judged beside does; see :data:`VALIDATION_SEAMS`. ``masks``: :func:`lit_masks`."""
+    grid, filled, unlit = params_to_grid(result, problem, inputs.bake), 0, 0
+    if cfg.unseen == "nearest":  # texels seen unlit first: an unseen texel may take its values from one
+        if masks is not None and any(_unlit(f) for f in inputs.frames):
+            grid, unlit = fill_unlit_reflectance(grid, problem, inputs.bake, result.samples > 0, masks.seen,
+                                                 result.layout)
         grid, filled = fill_unseen_texels(grid, problem, inputs.bake, result, _unseen_sources(problem, result))
+    filled = (filled, unlit)
     if cfg.choice.validation_fit and inputs.seams is not None:
         seams_info = {"samples": int(inputs.seams.n_samples), "averaged": False, "why": VALIDATION_SEAMS}
     else:
@@ -326,12 +346,13 @@ def write_lobe_maps(tmp: Path, bake, problem, result, lobes: Lobes) -> None:
         write_image(tmp / "materials.png", colours.reshape(bake.height, bake.width, 3), bits=8)
 
 
-def write_highlights(tmp: Path, bake, problem, result, lobes: Lobes, image: bool = True) -> dict | None:
+def write_highlights(tmp: Path, bake, problem, result, lobes: Lobes, image: bool = True, masks=None) -> dict | None:
     """What model.json records of the highlight diagnostic (fit/common/highlights.py) for a lit model, and
-    highlights.png (``image``); None for the radiance models (no light, no mirror configuration)."""
+    highlights.png (``image``); None for the radiance models (no light, no mirror configuration). ``masks``: the
+    model's :func:`lit_masks` where the caller has them."""
     if result.layout.is_radiance or result.layout.view_terms:
         return None
-    masks = highlight_masks(problem, result.params)
+    masks = masks if masks is not None else highlight_masks(problem, result.params)
     if image:
         write_image(tmp / "highlights.png", highlight_image(masks, problem.texels.grid_index, bake.height,
                                                             bake.width), bits=8)
@@ -349,7 +370,8 @@ def _manifest(inputs: FitInputs, problem, result, lobes: Lobes, cfg, evals: list
     return {**files, "warnings": warnings, "at_bounds": at_bounds,
             "atlas": {"width": inputs.bake.width, "height": inputs.bake.height, "texels": int(problem.n),
                       "unseen_texels": int((result.samples == 0).sum()), "seen_before_fit": run["seen_before"],
-                      "unseen_filled_from_nearest": run["filled"], "lobes_dropped": int(lobes.dropped.sum()),
+                      "unseen_filled_from_nearest": run["filled"],
+                      "seen_only_without_flash_reflectance_from_nearest_lit": run["unlit_filled"], "lobes_dropped": int(lobes.dropped.sum()),
                       "texels_with_lobe": lobes_in_use(result.params, lay, result.samples > 0),
                       "lobe_support": cfg.lobe_support},
             "photos": {"fitted": len(frames), "held_out": len(inputs.held), "skipped": run["skipped"],
