@@ -545,7 +545,7 @@ def _judged_refinement(pipe: Pipeline, cfg: RunConfig, refine_cfg, capture, regi
         earlier = json.loads(cache.read_text())
     except (OSError, json.JSONDecodeError):
         earlier = {}
-    if earlier.get("key") == key:
+    if earlier.get("key") == key and rec.status == "skipped":  # the refinement reused, not run again
         record = earlier["record"]
         pipe.log(f"[refine] judged by the fit (unchanged since the last run): {record['why']}")
     else:

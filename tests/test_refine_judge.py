@@ -104,8 +104,8 @@ def test_judged_only_under_known_lights_with_a_split(lit_sphere):
 
 def test_the_run_judges_an_unchanged_refinement_once(lit_sphere, tmp_path, monkeypatch):
     """The run keeps its judgement beside its stages (refine_judged.json, keyed by the refinement's stamp, the
-    registered inputs and the fit's options): a rerun with nothing changed reads it instead of two more fits, and a
-    changed fit option judges again."""
+    registered inputs and the fit's options): a rerun that reused the refinement reads it instead of two more fits;
+    a changed fit option, or the refinement run again, judges again."""
     from texstream.pipelines import run as run_module
 
     cap, turned = lit_sphere
@@ -125,16 +125,18 @@ def test_the_run_judges_an_unchanged_refinement_once(lit_sphere, tmp_path, monke
     cfg = dataclasses.replace(RunConfig(), device="cpu")
     refine_cfg = dataclasses.replace(cfg.refine, holdout_every=8)
 
-    def judged(run_cfg):
+    def judged(run_cfg, refine_status="skipped"):  # "skipped": a rerun reusing the refinement's folder
         pipe = run_module.Pipeline(tmp_path, None, lambda m: None)
-        pipe.records.append(run_module.StageRecord("refine", "ran", "refined", output=str(refined)))
+        pipe.records.append(run_module.StageRecord("refine", refine_status, "refined", output=str(refined)))
         got = run_module._judged_refinement(pipe, run_cfg, refine_cfg, capture, (turned, cap / "ground_truth"),
                                             refined, tmp_path)
         return got, pipe.records[-1]
 
-    first, rec = judged(cfg)
+    first, rec = judged(cfg, "ran")
     assert first == (refined, refined) and rec.summary["judged"]["kept"]  # the "refined" side holds the true cameras
     again, rec = judged(cfg)
     assert again == first and len(calls) == 1 and rec.summary["judged"]["kept"]
     judged(dataclasses.replace(cfg, fit=dataclasses.replace(cfg.fit, renders=1)))
     assert len(calls) == 2
+    judged(cfg, "ran")  # the refinement run again (``--from refine``): judged again, whatever its stamp
+    assert len(calls) == 3
