@@ -42,16 +42,16 @@ def files_signature(paths) -> list:
     every path on an H200's host, issue 40), the same strings."""
     out, folders = [], {}
     for p in paths:
-        p = os.fspath(p)
+        p = os.fspath(Path(p))  # Path's own normal form ("a//b", "a/./b")
+        head, tail = os.path.split(p)
         try:
             link = os.lstat(p)
         except OSError:
             link = None
-        if link is not None and stat.S_ISLNK(link.st_mode):
+        if tail in ("", ".", "..") or (link is not None and stat.S_ISLNK(link.st_mode)):
             resolved, st = str(Path(p).resolve()), (os.stat(p) if os.path.isfile(p) else None)
         else:
-            head, tail = os.path.split(p)  # the folder resolved as Path.resolve does (links before "..")
-            if head not in folders:
+            if head not in folders:  # the folder resolved as Path.resolve does (links before "..")
                 folders[head] = str(Path(head).resolve())
             resolved = os.path.join(folders[head], tail)
             st = link if link is not None and stat.S_ISREG(link.st_mode) else None

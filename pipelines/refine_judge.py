@@ -33,6 +33,9 @@ from texstream.fit.common.inputs import SharedPhotoSet
 from texstream.fit.stages.choice import VALIDATION_SUFFIX
 from texstream.fit.stages.stage import fit_candidate
 
+JUDGE_WORK = "refine_judged"
+"""the run's folder of the judgement's two validation fits (resumable from their stamps; removed once handed on)"""
+
 JUDGED_FILE = "refine_judged.json"
 """the run's record of its last judgement and the key of its inputs (``texstream run`` reuses it while they hold)"""
 
@@ -81,6 +84,8 @@ def judge_refinement(registered: tuple[Path, Path], refined: tuple[Path, Path], 
     reg, ref = scores["registered"]["pooled_psnr_db"], scores["refined"]["pooled_psnr_db"]
     if ref is None and reg is not None and "error" in scores["refined"]:
         kept, why = False, f"the {JUDGE_MODEL} fit could not take the refined geometry ({scores['refined']['error']})"
+    elif reg is None and ref is not None and "error" in scores["registered"]:
+        kept, why = True, f"the {JUDGE_MODEL} fit could not take the registered geometry ({scores['registered']['error']})"
     elif reg is None or ref is None:
         kept, why = True, "no validation photo was scored: the refinement's own residual decides"
     elif ref > reg:

@@ -65,8 +65,8 @@ from texstream.geometry.mesh_io import load_mesh
 from texstream.geometry.refine import RefineConfig, refine_stage
 from texstream.pipelines.light_inputs import light_and_resolution_inputs
 from texstream.pipelines.provenance import inputs_lines, run_inputs
-from texstream.pipelines.refine_judge import (JUDGED_FILE, choice_folder, hand_to_choice, judge_refinement,
-                                              judged_by_fit)
+from texstream.pipelines.refine_judge import (JUDGE_WORK, JUDGED_FILE, choice_folder, hand_to_choice, judge_config,
+                                              judge_refinement, judged_by_fit)
 from texstream.pipelines.report import write_report
 from texstream.pipelines.resolutions import stage_resolutions
 
@@ -348,6 +348,7 @@ def _run_pipeline(source: str | Path, out: str | Path, cfg: RunConfig, from_stag
     model_dir = out / "model"
     fit_rec, model_kind, why = _fit(pipe, capture, posed, posed_dir, fit_geometry, model_dir, cfg, lights_summary)
     shutil.rmtree(choice_folder(model_dir), ignore_errors=True)  # a judged refinement's fit no choice took
+    shutil.rmtree(out / JUDGE_WORK, ignore_errors=True)  # an interrupted judgement's, once the fit is done
     if isinstance((fit_rec.summary or {}).get("highlights"), dict):  # fit/common/highlights.py
         log(f"[fit] highlights: {fit_rec.summary['highlights']['line']}")
 
@@ -538,8 +539,8 @@ def _judged_refinement(pipe: Pipeline, cfg: RunConfig, refine_cfg, capture, regi
         rec.summary["judged"] = {"by_fit": False, "why": why_not}
         return refine_dir, refine_dir
     fit_cfg = _fit_config(cfg, capture)
-    key = inputs_key("refine judge", pipe.stamp_of("refine"), [str(p) for p in registered], config_to_dict(fit_cfg),
-                     resolve_device(cfg.device))
+    key = inputs_key("refine judge", pipe.stamp_of("refine"), [str(p) for p in registered],
+                     config_to_dict(judge_config(fit_cfg)), resolve_device(cfg.device))
     cache = out / JUDGED_FILE  # the judgement of an unchanged refinement is not fitted again
     try:
         earlier = json.loads(cache.read_text())
@@ -549,10 +550,11 @@ def _judged_refinement(pipe: Pipeline, cfg: RunConfig, refine_cfg, capture, regi
         record = earlier["record"]
         pipe.log(f"[refine] judged by the fit (unchanged since the last run): {record['why']}")
     else:
-        work = out / "refine_judged"
+        work = out / JUDGE_WORK
         record = judge_refinement(registered, (refine_dir, refine_dir), work, fit_cfg, pipe.log)[1]
         hand_to_choice(work, record["kept"], out / "model")  # the model choice's first fit, done
-        write_json_atomic(cache, {"key": key, "record": record})
+        if not any("error" in side for side in record["validation"].values()):  # a failed fit is tried again
+            write_json_atomic(cache, {"key": key, "record": record})
     kept = record["kept"]
     rec.summary["judged"] = {"by_fit": True, **record}
     if kept:

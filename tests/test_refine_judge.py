@@ -104,8 +104,9 @@ def test_judged_only_under_known_lights_with_a_split(lit_sphere):
 
 def test_the_run_judges_an_unchanged_refinement_once(lit_sphere, tmp_path, monkeypatch):
     """The run keeps its judgement beside its stages (refine_judged.json, keyed by the refinement's stamp, the
-    registered inputs and the fit's options): a rerun that reused the refinement reads it instead of two more fits;
-    a changed fit option, or the refinement run again, judges again."""
+    registered inputs and the judge's fit options): a rerun that reused the refinement reads it instead of two more
+    fits, also where only an option the judge overrides changed; a changed option of its fit, or the refinement run
+    again, judges again. The kept side's fit waits for the model choice, the work folder is gone."""
     from texstream.pipelines import run as run_module
 
     cap, turned = lit_sphere
@@ -134,9 +135,51 @@ def test_the_run_judges_an_unchanged_refinement_once(lit_sphere, tmp_path, monke
 
     first, rec = judged(cfg, "ran")
     assert first == (refined, refined) and rec.summary["judged"]["kept"]  # the "refined" side holds the true cameras
+    assert (choice_folder(tmp_path / "model") / "model.json").is_file() and not (tmp_path / "refine_judged").exists()
     again, rec = judged(cfg)
     assert again == first and len(calls) == 1 and rec.summary["judged"]["kept"]
-    judged(dataclasses.replace(cfg, fit=dataclasses.replace(cfg.fit, renders=1)))
+    judged(dataclasses.replace(cfg, fit=dataclasses.replace(cfg.fit, renders=1)))  # an option the judge overrides
+    assert len(calls) == 1
+    judged(dataclasses.replace(cfg, fit=dataclasses.replace(cfg.fit, fit=dataclasses.replace(cfg.fit.fit,
+                                                                                            max_iterations=20))))
     assert len(calls) == 2
     judged(cfg, "ran")  # the refinement run again (``--from refine``): judged again, whatever its stamp
     assert len(calls) == 3
+
+
+def test_a_rejected_refinement_hands_on_the_registered_inputs(lit_sphere, tmp_path):
+    """Cameras turned by 2 degrees as the refinement's output against the true ones registered: the run's fit gets
+    the registered capture and geometry, and the refine line says why."""
+    from texstream.pipelines import run as run_module
+
+    cap, _ = lit_sphere
+    refined = _turned(read_capture(cap), tmp_path / "refine", 2.0)
+    for name in ("mesh.obj", "bake.npz"):
+        shutil.copy(cap / "ground_truth" / name, refined / name)
+    cfg = dataclasses.replace(RunConfig(), device="cpu")
+    pipe = run_module.Pipeline(tmp_path, None, lambda m: None)
+    pipe.records.append(run_module.StageRecord("refine", "ran", "refined", output=str(refined)))
+    registered = (cap, cap / "ground_truth")
+    got = run_module._judged_refinement(pipe, cfg, dataclasses.replace(cfg.refine, holdout_every=8),
+                                        read_capture(cap), registered, refined, tmp_path)
+    assert got == registered and "not kept" in pipe.records[-1].reason
+    assert not pipe.records[-1].summary["judged"]["kept"]
+
+
+def test_a_side_the_fit_cannot_take_loses(lit_sphere, tmp_path, monkeypatch):
+    from texstream.core.errors import InputError
+    from texstream.pipelines import refine_judge
+
+    cap, turned = lit_sphere
+    real = refine_judge.fit_candidate
+
+    def refined_fails(capture_dir, mesh_path, out_dir, cfg, progress=True):
+        if Path(out_dir).name == "refined":
+            raise InputError("no texel is seen", capture_dir, "check the mesh")
+        return real(capture_dir, mesh_path, out_dir, cfg, progress)
+
+    monkeypatch.setattr(refine_judge, "fit_candidate", refined_fails)
+    fit_cfg = dataclasses.replace(RunConfig().fit, device="cpu")
+    geometry = cap / "ground_truth"
+    kept, record = judge_refinement((turned, geometry), (cap, geometry), tmp_path / "w", fit_cfg)
+    assert not kept and "could not take the refined geometry" in record["why"] and "no texel" in record["why"]

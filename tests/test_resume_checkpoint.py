@@ -53,7 +53,8 @@ def test_a_damaged_file_is_only_a_lost_head_start(tmp_path):
 
 def test_files_signature_resolves_paths_as_path_resolve_does(tmp_path):
     """The signature's paths are Path.resolve's (links in folders and in the file itself, ".." after a linked
-    folder, missing files and folders, relative paths), though it resolves each folder once."""
+    folder, missing files and folders, relative paths, "..", "." or "" last, doubled and trailing slashes), though it
+    resolves each folder once."""
     import os
     from pathlib import Path
 
@@ -67,7 +68,9 @@ def test_files_signature_resolves_paths_as_path_resolve_does(tmp_path):
     os.symlink(tmp_path / "a" / "images" / "f1.png", tmp_path / "b" / "file_link.png")
     paths = [tmp_path / "a/images/f0.png", tmp_path / "link_a/images/f2.png", tmp_path / "b/../a/images/f3.png",
              tmp_path / "link_a/../b/file_link.png", tmp_path / "b/file_link.png", tmp_path / "missing/x.png",
-             tmp_path / "a/images", "relative_missing.png", tmp_path / "b/../link_a/images/f4.png"]
+             tmp_path / "a/images", "relative_missing.png", tmp_path / "b/../link_a/images/f4.png",
+             f"{tmp_path}/a//images/./f0.png", tmp_path / "a/images/..", f"{tmp_path}/a/.", f"{tmp_path}/b/", "",
+             f"{tmp_path}/a/images/f1.png/"]
     expected = []
     for p in map(Path, paths):
         st = p.stat() if p.is_file() else None

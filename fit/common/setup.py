@@ -251,6 +251,11 @@ def fill_unseen_texels(grid: np.ndarray, problem, bake, result: FitResult,
     return bake.fill_padding(flat.reshape(grid.shape)), int(len(targets))
 
 
+def has_unlit_photos(frames) -> bool:
+    """Whether some photo's light is exactly 0 (taken with the flash off): the kernels take only its ambient."""
+    return any(f.light is not None and not np.any(np.asarray(f.light.intensity, np.float64) > 0) for f in frames)
+
+
 def fill_unlit_reflectance(grid: np.ndarray, problem, bake, seen: np.ndarray, lit_seen: np.ndarray,
                            layout) -> tuple[np.ndarray, int]:
     """Texels whose only samples came from photos taken with the flash off (``seen`` but not ``lit_seen``, compact
@@ -260,8 +265,10 @@ def fill_unlit_reflectance(grid: np.ndarray, problem, bake, seen: np.ndarray, li
     targets = seen & ~lit_seen
     if not targets.any() or not lit_seen.any() or layout.ambient_offset < 0:
         return grid, 0
-    idx = problem.texels.grid_index
-    nearest = idx[lit_seen][nearest_seen(problem.texels.position, lit_seen)[targets[~lit_seen]]]
+    from scipy.spatial import cKDTree  # only when needed (nearest_seen says why)
+
+    idx, position = problem.texels.grid_index, problem.texels.position
+    nearest = idx[lit_seen][cKDTree(position[lit_seen]).query(position[targets], workers=-1)[1]]
     flat = grid.reshape(-1, grid.shape[-1]).copy()
     keep = flat[idx[targets], layout.ambient_offset:layout.ambient_offset + 3].copy()
     flat[idx[targets]] = flat[nearest]

@@ -25,7 +25,7 @@ from texstream.fit.common.model_folder import (bound_report, check_model, pooled
                                                write_model_folder)
 from texstream.fit.common.numerics import numerics_warnings
 from texstream.fit.common.setup import (Checkpoint, ModelRenders, fill_unlit_reflectance, fill_unseen_texels,
-                                        fit_inputs_signature, params_to_grid, run_fit_with_progress, unseen_sources)
+                                        fit_inputs_signature, has_unlit_photos, params_to_grid, run_fit_with_progress, unseen_sources)
 from texstream.fit.common.highlights import highlight_image, highlight_masks, highlight_report
 from texstream.fit.models import registry
 from texstream.fit.models.per_texel.ambient import resolve_ambient
@@ -247,11 +247,6 @@ def lit_masks(problem, result):
     return highlight_masks(problem, result.params)
 
 
-def _unlit(frame) -> bool:
-    """A photo whose light is exactly 0 (taken with the flash off): the kernels take only its ambient."""
-    return frame.light is not None and not np.any(np.asarray(frame.light.intensity, np.float64) > 0)
-
-
 def _model_grid(inputs: FitInputs, problem, result, cfg, masks=None) -> tuple[np.ndarray, tuple, dict | None]:
     """(parameter maps, (texels filled from the nearest seen one, texels seen only by photos without the flash that
     took their reflectance from the nearest lit one), seams report), checked finite and in bounds. The model
@@ -259,7 +254,7 @@ def _model_grid(inputs: FitInputs, problem, result, cfg, masks=None) -> tuple[np
     field mapping candidate it is judged beside does; see :data:`VALIDATION_SEAMS`. ``masks``: :func:`lit_masks`."""
     grid, filled, unlit = params_to_grid(result, problem, inputs.bake), 0, 0
     if cfg.unseen == "nearest":  # texels seen unlit first: an unseen texel may take its values from one
-        if masks is not None and any(_unlit(f) for f in inputs.frames):
+        if masks is not None and has_unlit_photos(inputs.frames):
             grid, unlit = fill_unlit_reflectance(grid, problem, inputs.bake, result.samples > 0, masks.seen,
                                                  result.layout)
         grid, filled = fill_unseen_texels(grid, problem, inputs.bake, result, _unseen_sources(problem, result))

@@ -20,8 +20,9 @@ from texstream.fit.models.materials import (MaterialConfig, contradiction_test, 
 from texstream.render.layout import ModelLayout
 
 from texstream.fit.common.inputs import read_photos, validation_period, FitInputs
-from texstream.fit.common.setup import (data_jtj, fill_unseen_texels, params_to_grid, per_texel_objective,
-                                        unseen_sources)
+from texstream.fit.common.highlights import highlight_masks
+from texstream.fit.common.setup import (data_jtj, fill_unlit_reflectance, fill_unseen_texels, has_unlit_photos,
+                                        params_to_grid, per_texel_objective, unseen_sources)
 from texstream.fit.common.view_scores import ViewScores
 from texstream.fit.multi.cpu_threads import MAX_AUTO_THREADS, cpu_threads, threaded_config, usable_cpus
 from texstream.fit.multi.tiles import run_tiled_fit, tiled
@@ -214,12 +215,15 @@ def fit_with_materials(problem, result: FitResult, evidence: TexelEvidence, k: i
 
 
 def model_grid(params: np.ndarray, result: FitResult, problem, bake, cfg, seams=None,
-               unseen: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
-    """(H, W, P) maps of compact ``params`` as the stage writes them: padding, unseen texels, seams.
-    ``unseen``: :func:`unseen_sources` of ``problem`` and ``result`` (computed here when None)."""
+               unseen: tuple[np.ndarray, np.ndarray] | None = None, lit_seen: np.ndarray | None = None) -> np.ndarray:
+    """(H, W, P) maps of compact ``params`` as the stage writes them: padding, texels seen only without the flash,
+    unseen texels, seams. ``unseen``: :func:`unseen_sources` of ``problem`` and ``result`` (computed here when None);
+    ``lit_seen``: which texels a lit photo saw, where some photos were taken with the flash off (else None)."""
     res = dataclasses.replace(result, params=params)
     grid = params_to_grid(res, problem, bake)
     if cfg.unseen == "nearest":
+        if lit_seen is not None:
+            grid, _ = fill_unlit_reflectance(grid, problem, bake, result.samples > 0, lit_seen, result.layout)
         grid, _ = fill_unseen_texels(grid, problem, bake, res, sources=unseen)
     grid, _ = average_seams_in_bounds(grid, seams, result.layout)
     return grid
@@ -248,8 +252,12 @@ def mesh_view_scores(inputs: "FitInputs", val: list[int], cfg) -> Callable:
         if "views" not in kept:  # the photos uploaded, the host's copies let go
             kept["views"] = ViewScores(inputs.mesh, result.layout, frames, *kept.pop("photos").result(), cfg.device)
             kept["unseen"] = unseen_sources(sub, result) if cfg.unseen == "nearest" else None
+            # which texels a lit photo saw (the same for every candidate's parameters): the written maps fill the
+            # reflectance of those seen only without the flash, so the scored maps do too
+            kept["lit_seen"] = (highlight_masks(sub, params).seen if has_unlit_photos(inputs.frames)
+                                and not (result.layout.is_radiance or result.layout.view_terms) else None)
         return kept["views"].psnr(model_grid(params, result, sub, inputs.bake, cfg, inputs.seams,
-                                             unseen=kept["unseen"]))
+                                             unseen=kept["unseen"], lit_seen=kept["lit_seen"]))
 
     return score_views
 
