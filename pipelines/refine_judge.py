@@ -82,14 +82,15 @@ def judge_refinement(registered: tuple[Path, Path], refined: tuple[Path, Path], 
         scores[name] = {"pooled_psnr_db": held.get("pooled_psnr_db"), "worst_psnr_db": held.get("worst_psnr_db"),
                         "views": held.get("views")}
     reg, ref = scores["registered"]["pooled_psnr_db"], scores["refined"]["pooled_psnr_db"]
-    if ref is None and reg is not None and "error" in scores["refined"]:
-        kept, why = False, f"the {JUDGE_MODEL} fit could not take the refined geometry ({scores['refined']['error']})"
-    elif reg is None and ref is not None and "error" in scores["registered"]:
-        kept, why = True, f"the {JUDGE_MODEL} fit could not take the registered geometry ({scores['registered']['error']})"
+    failed = [name for name in ("refined", "registered") if "error" in scores[name]]
+    if len(failed) == 1 and (ref if failed[0] == "registered" else reg) is not None:  # one side failed, one scored
+        kept, why = failed[0] == "registered", (f"the {JUDGE_MODEL} fit could not take the {failed[0]} geometry "
+                                                f"({scores[failed[0]]['error']})")
     elif reg is None or ref is None:
         kept, why = True, "no validation photo was scored: the refinement's own residual decides"
     elif ref > reg:
-        kept, why = True, f"the {JUDGE_MODEL} fit's validation photos: {ref:.2f} dB refined against {reg:.2f} registered"
+        kept, why = True, (f"the {JUDGE_MODEL} fit's validation photos: {ref:.2f} dB refined against {reg:.2f} "
+                           "registered")
     else:
         kept, why = False, (f"the {JUDGE_MODEL} fit predicts its validation photos no better on the refined cameras and "
                             f"mesh ({ref:.2f} dB against {reg:.2f} registered): the registered ones are kept")

@@ -25,7 +25,8 @@ from texstream.fit.common.model_folder import (bound_report, check_model, pooled
                                                write_model_folder)
 from texstream.fit.common.numerics import numerics_warnings
 from texstream.fit.common.setup import (Checkpoint, ModelRenders, fill_unlit_reflectance, fill_unseen_texels,
-                                        fit_inputs_signature, has_unlit_photos, params_to_grid, run_fit_with_progress, unseen_sources)
+                                        fit_inputs_signature, has_unlit_photos, params_to_grid, run_fit_with_progress,
+                                        unseen_sources)
 from texstream.fit.common.highlights import highlight_image, highlight_masks, highlight_report
 from texstream.fit.models import registry
 from texstream.fit.models.per_texel.ambient import resolve_ambient
@@ -258,13 +259,12 @@ def _model_grid(inputs: FitInputs, problem, result, cfg, masks=None) -> tuple[np
             grid, unlit = fill_unlit_reflectance(grid, problem, inputs.bake, result.samples > 0, masks.seen,
                                                  result.layout)
         grid, filled = fill_unseen_texels(grid, problem, inputs.bake, result, _unseen_sources(problem, result))
-    filled = (filled, unlit)
     if cfg.choice.validation_fit and inputs.seams is not None:
         seams_info = {"samples": int(inputs.seams.n_samples), "averaged": False, "why": VALIDATION_SEAMS}
     else:
         grid, seams_info = average_seams_in_bounds(grid, inputs.seams, result.layout)
     check_model(grid, result.layout)  # before rendering it
-    return grid, filled, seams_info
+    return grid, (filled, unlit), seams_info
 
 
 _UNSEEN_SOURCES: dict = {}
@@ -366,7 +366,8 @@ def _manifest(inputs: FitInputs, problem, result, lobes: Lobes, cfg, evals: list
             "atlas": {"width": inputs.bake.width, "height": inputs.bake.height, "texels": int(problem.n),
                       "unseen_texels": int((result.samples == 0).sum()), "seen_before_fit": run["seen_before"],
                       "unseen_filled_from_nearest": run["filled"],
-                      "seen_only_without_flash_reflectance_from_nearest_lit": run["unlit_filled"], "lobes_dropped": int(lobes.dropped.sum()),
+                      "seen_only_without_flash_reflectance_from_nearest_lit": run["unlit_filled"],
+                      "lobes_dropped": int(lobes.dropped.sum()),
                       "texels_with_lobe": lobes_in_use(result.params, lay, result.samples > 0),
                       "lobe_support": cfg.lobe_support},
             "photos": {"fitted": len(frames), "held_out": len(inputs.held), "skipped": run["skipped"],
