@@ -23,6 +23,7 @@ from texstream.core.config import Number
 from texstream.core.errors import InputError
 from texstream.core.outputs import OutputTarget
 from texstream.core.progress import reporting
+from texstream.fit.common.shading_normals import NormalsConfig
 from texstream.fit.models.materials import MaterialConfig
 from texstream.fit.optim.fitter import FitConfig
 from texstream.fit.stages.choice import ModelChoiceConfig
@@ -89,7 +90,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     add_config_arguments(parser, MaterialConfig, prefix="materials.")  # shared materials (fit/models/materials.py)
     add_config_arguments(parser, ModelChoiceConfig, prefix="choice.")  # --model auto (fit/stages/choice.py)
-    add_config_arguments(parser, FitConfig)  # with the four above: the fields of FitStageConfig
+    add_config_arguments(parser, NormalsConfig, prefix="shading_normals.")  # fit/common/shading_normals.py
+    add_config_arguments(parser, FitConfig)  # with the five above: the fields of FitStageConfig
     # the command's default is the model choice (a capture with lights gets its reflectance model, one without
     # its radiance model; with --holdout-every the candidates are judged on the held-out photos)
     parser.set_defaults(model="auto")
@@ -116,6 +118,7 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = FitStageConfig(fit=fit_cfg, materials=config_from_args(MaterialConfig, args, prefix="materials."),
                          choice=config_from_args(ModelChoiceConfig, args, prefix="choice."),
+                         shading_normals=config_from_args(NormalsConfig, args, prefix="shading_normals."),
                          **{k: getattr(args, k) for k in ("device", "texture_size", "texel_pixels", "photo_level", "holdout_every",
                                                           "renders", "min_seen_fraction", "skip_bad_photos",
                                                           "traced_polish", "traced_polish_rel_tol", "traced_materials")
@@ -152,6 +155,7 @@ def _print_evaluation(s: dict) -> None:
 def _run_single_view(args: argparse.Namespace, fit_cfg) -> int:
     cfg = SingleViewConfig(fit=fit_cfg, materials=config_from_args(MaterialConfig, args, prefix="materials."),
                            choice=config_from_args(ModelChoiceConfig, args, prefix="choice."),
+                         shading_normals=config_from_args(NormalsConfig, args, prefix="shading_normals."),
                            **{k: getattr(args, k) for k in ("device", "holdout_every", "renders", "normal_space",
                                                             "depth")})
     with reporting(lambda line: print(line, flush=True)):

@@ -296,12 +296,18 @@ def nearest_seen(position: np.ndarray, seen: np.ndarray) -> np.ndarray:
 
 def per_texel_objective(problem, params: np.ndarray) -> np.ndarray:
     """Each texel's objective on the fitted photos at ``params`` (N, P): one streaming pass."""
+    return per_texel_objective_and_samples(problem, params)[0]
+
+
+def per_texel_objective_and_samples(problem, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(each texel's objective (N,), its usable samples (N,)) on the fitted photos at ``params`` (N, P): one
+    streaming pass."""
     import warp as wp
 
     f, g = problem.new_scalar(), problem.new_vec()
     stats = wp.zeros(problem.n, dtype=wp.vec4d, device=problem.device)
     problem.evaluate(problem.new_storage(params), f, g, stats)
-    return f.numpy().astype(np.float64)
+    return f.numpy().astype(np.float64), stats.numpy()[:, 0]
 
 
 def data_jtj(problem, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

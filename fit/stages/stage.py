@@ -37,6 +37,7 @@ from texstream.fit.stages import choice
 from texstream.fit.stages.prewarm import (build_kernels_ahead, build_kernels_if_cold, declare_group_overloads,
                                           kernel_group)
 from texstream.fit.models.materials import MaterialConfig
+from texstream.fit.common.shading_normals import NormalsConfig
 from texstream.fit.common.inputs import SharedPhotoSet, check_output_path, split_holdout
 from texstream.fit.common.model_folder import check_render, image_metrics, json_safe, pooled_psnr
 # the shared helpers of a fit, where tests and benchmarks import them beside the stages
@@ -105,6 +106,9 @@ class FitStageConfig:
                                       min=0.0, max=1.0)
     choice: choice.ModelChoiceConfig = option(default_factory=choice.ModelChoiceConfig,
                                               help="the automatic model choice (--model auto)")
+    shading_normals: NormalsConfig = option(default_factory=NormalsConfig,
+                                            help="shading normals fitted to the photos under known lights "
+                                                 "(fit/common/shading_normals.py)")
     materials: MaterialConfig = option(default_factory=MaterialConfig,
                                        help="shared materials: texels whose lobe no photo constrained borrow their "
                                             "material's (fit/models/materials.py)")

@@ -19,7 +19,7 @@ from texstream.capture.imageio import read_mask, write_image
 from texstream.core.config import config_to_dict
 from texstream.core.outputs import StageResult, atomic_output_dir
 from texstream.core.progress import phase, say
-from texstream.fit.common import model_folder
+from texstream.fit.common import model_folder, shading_normals
 from texstream.fit.common.inputs import FitInputs, load_fit_inputs, load_photos, set_up_skipping_bad_photos
 from texstream.fit.common.model_folder import (bound_report, check_model, pooled_psnr, render_comparisons, trace_plot,
                                                write_model_folder)
@@ -90,6 +90,7 @@ def _fit_per_texel_model(capture_dir: str | Path, mesh_path: str | Path, out_dir
     choice, p0 = _choice_before_fit(inputs, problem, cfg, start, resume)
     t_choice = time.perf_counter() - t0 - t_setup
     result, tiles_report = _core_fit(problem, start_fit_config(cfg, choice, p0), start, progress, ckpt, resume, p0)
+    result, inputs, normals = _shading_normals(inputs, problem, result, cfg, start)
     t_loop = time.perf_counter()
     result, lobes = _lobes_and_materials(inputs, problem, result, cfg, choice)
     masks = lit_masks(problem, result)
@@ -101,7 +102,8 @@ def _fit_per_texel_model(capture_dir: str | Path, mesh_path: str | Path, out_dir
     scores_only = cfg.choice.validation_fit
     with (atomic_output_dir(out_dir) as tmp, phase("fit", f"{cfg.fit.model}: held-out renders and the model folder"),
           contextlib.nullcontext() if scores_only else trace_plot(tmp, result.trace, title, plotter) as plot):
-        evals = _write_geometry_and_renders(tmp, inputs, mesh_path, grid, result.layout, cfg, scores_only)
+        evals = _write_geometry_and_renders(tmp, inputs, mesh_path, grid, result.layout, cfg, scores_only,
+                                            bake_changed=normals is not None and normals["rounds_kept"] > 0)
         seen = np.zeros(inputs.bake.height * inputs.bake.width, bool)
         seen[problem.texels.grid_index] = result.samples > 0
         if not scores_only:
@@ -115,7 +117,7 @@ def _fit_per_texel_model(capture_dir: str | Path, mesh_path: str | Path, out_dir
                              {"seen_before": seen_before, "filled": filled[0], "unlit_filled": filled[1],
                               "skipped": skipped, "tiles": tiles_report,
                               "seams": seams_info, "setup_s": t_setup, "timings_s": timings, "ambient": ambient,
-                              "highlights": highlights, "scores_only": scores_only})
+                              "highlights": highlights, "scores_only": scores_only, "normals": normals})
         write_model_folder(tmp, grid, result.layout, seen.reshape(inputs.bake.height, inputs.bake.width), result.trace,
                            title, manifest, cfg, plot=plot, maps=not scores_only)
     if ckpt is not None:
@@ -163,6 +165,36 @@ def _choice_before_fit(inputs: FitInputs, problem, cfg, start, resume) -> tuple[
         return choice, None
     split = kept["fit"]
     return choice, np.where((split.samples > 0)[:, None], split.params, start.params.numpy())
+
+
+def _shading_normals(inputs: FitInputs, problem, result, cfg, start):
+    """(result, inputs, report or None): the shading normals fitted to the fitted photos where ``cfg.shading_normals`` asks
+    and the model is lit (fit/common/shading_normals.py); the inputs' mesh and bake then carry them (the renders,
+    the model folder and the materials' validation scores use them), and the refits' iterations are appended to
+    the trace (stage "normals")."""
+    ok, why = shading_normals.applies(cfg, problem.layout, inputs.frames)
+    if not ok:
+        return result, inputs, (None if cfg.shading_normals.mode != "on" else {"mode": "on", "applied": False,
+                                                                                "why": why})
+    refit_cfg = dataclasses.replace(cfg, fit=dataclasses.replace(cfg.fit, max_iterations=cfg.shading_normals.refit_iterations))
+
+    def refit(params):
+        return _core_fit(problem, refit_cfg, start, False, None, None, params)[0]
+
+    with phase("fit", f"shading normals: up to {cfg.shading_normals.rounds} rounds of tilts from the photos, each refitted"):
+        out = shading_normals.fit_shading_normals(problem, result, inputs.mesh, inputs.bake, cfg, refit,
+                                                  log=lambda m: say("fit", m))
+    report = {"applied": True, **out.report}
+    if out.vertex_normals is None:
+        return result, inputs, report
+    trace = list(result.trace)
+    for probe_s, rows in out.traces:  # each kept round's refit after the fit's rows, as the materials' fit appends
+        t_end = trace[-1]["time_s"] + probe_s
+        trace += [{**r, "iteration": len(trace) + k, "time_s": r["time_s"] + t_end, "stage": "normals"}
+                  for k, r in enumerate(rows[1:])]
+    kept = dataclasses.replace(out.result, trace=trace)
+    mesh = dataclasses.replace(inputs.mesh, normals=out.vertex_normals)
+    return kept, dataclasses.replace(inputs, mesh=mesh, bake=shading_normals.bake_with(inputs.bake, problem)), report
 
 
 def start_fit_config(cfg, choice: dict | None, p0: np.ndarray | None):
@@ -286,9 +318,10 @@ def _unseen_sources(problem, result) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _write_geometry_and_renders(tmp: Path, inputs: FitInputs, mesh_path, grid, layout, cfg,
-                                scores_only: bool = False) -> list[dict]:
+                                scores_only: bool = False, bake_changed: bool = False) -> list[dict]:
     """mesh.obj, bake.npz (not ``scores_only``) and renders/ into the model folder; every held-out view scored
-    (pooled and worst-view PSNR), the first ``cfg.renders`` written as images."""
+    (pooled and worst-view PSNR), the first ``cfg.renders`` written as images. ``bake_changed``: the inputs' bake
+    is not the geometry folder's (fitted shading normals), so it is written rather than copied."""
     capture, mesh, bake = inputs.capture, inputs.mesh, inputs.bake
 
     renders = ModelRenders(mesh, layout, cfg.device)  # one renderer, its BVH built once, for every frame
@@ -304,7 +337,7 @@ def _write_geometry_and_renders(tmp: Path, inputs: FitInputs, mesh_path, grid, l
     if not scores_only:
         save_mesh(tmp / "mesh.obj", mesh)
         baked = Path(mesh_path) / "bake.npz"
-        if Path(mesh_path).is_dir() and baked.is_file():  # the bake the fit read (load_geometry): copied
+        if Path(mesh_path).is_dir() and baked.is_file() and not bake_changed:  # the bake the fit read: copied
             shutil.copyfile(baked, tmp / "bake.npz")
         else:
             bake.save(tmp / "bake.npz")
@@ -380,6 +413,7 @@ def _manifest(inputs: FitInputs, problem, result, lobes: Lobes, cfg, evals: list
             "materials": _materials_manifest(lobes.info, lobes.evidence, cfg.materials),
             **({"ambient": run["ambient"]} if run["ambient"] is not None else {}),
             **({"highlights": run["highlights"]} if run["highlights"] is not None else {}),
+            **({"shading_normals": run["normals"]} if run["normals"] is not None else {}),
             "seams": run["seams"], "setup_s": run["setup_s"], "passes": result.passes, "device": cfg.device,
             "timings_s": run["timings_s"],
             "render_eval": evals, "heldout": pooled_psnr([e for e in evals if e["held_out"]]),
