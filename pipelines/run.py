@@ -470,14 +470,9 @@ def run_choice_options(cfg: RunConfig) -> dict:
 
 def _fit_config(cfg: RunConfig, capture, log=lambda m: None):
     """The fit stage's config for this capture: the run's device, model and top-level choice options; the ambient
-    term at least auto where some photos were taken with the flash off; the shading normals' auto resolved (on
-    where the run made the mesh from the photos and every photo has a known light)."""
+    term at least auto where some photos were taken with the flash off."""
     fit_cfg = dataclasses.replace(cfg.fit, device=cfg.device, fit=dataclasses.replace(cfg.fit.fit, model=cfg.model),
                                   choice=dataclasses.replace(cfg.fit.choice, **run_choice_options(cfg)))
-    if fit_cfg.shading_normals.mode == "auto":
-        made = cfg.mesh_file is None and all(f.light is not None for f in capture.frames)
-        fit_cfg = dataclasses.replace(fit_cfg, shading_normals=dataclasses.replace(
-            fit_cfg.shading_normals, mode="on" if made else "off"))
     if fit_cfg.fit.ambient == "off" and no_flash_frames(capture.frames):  # off would predict them black
         fit_cfg = dataclasses.replace(fit_cfg, fit=dataclasses.replace(fit_cfg.fit, ambient="auto"))
         log(f"[fit] ambient auto, not off: {len(no_flash_frames(capture.frames))} photos were taken with the "

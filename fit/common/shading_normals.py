@@ -42,19 +42,19 @@ from texstream.core.config import option
 from texstream.fit.common.setup import per_texel_objective_and_samples
 from texstream.fit.stream.texels import surface_derivatives
 
-NORMAL_MODES = ("auto", "off", "on")
+NORMAL_MODES = ("off", "on")
 
 
 @dataclasses.dataclass
 class NormalsConfig:
     """The fitted shading normals (fit/common/shading_normals.py)."""
 
-    mode: str = option("auto", "fit the mesh's shading normals to the photos under known lights (Lafortune and "
-                               "diffuse models): on (rounds of per-texel tilts from the photos, averaged into the "
-                               "vertex normals, then the reflectance fitted again; a round is kept only when it lowers "
-                               "the objective), off, or auto: on where `texstream run` made the mesh from the photos "
-                               "(their normals are a few degrees off) and every photo has a known light, else off "
-                               "(a given mesh, `texstream fit`)", choices=NORMAL_MODES)
+    mode: str = option("off", "fit the mesh's shading normals to the photos under known lights (Lafortune and "
+                              "diffuse models): on (rounds of per-texel tilts from the photos, solved for the vertex "
+                              "normals, then the reflectance fitted again; a round is kept only when it lowers the "
+                              "objective) or off. For a given mesh whose surface is right and whose normals are a few "
+                              "degrees off (decimated or smoothed scans); not for meshes made from the photos, whose "
+                              "position errors the normals then absorb (docs/real-data.md)", choices=NORMAL_MODES)
     rounds: int = option(6, "rounds of tilt, vertex normals and refit at most", min=1, max=50)
     step_degrees: float = option(0.5, "the tilt probed about each tangent axis (the parabola's half width); a texel "
                                       "moves at most twice this a round. Small because a glossy texel's objective is "
@@ -63,6 +63,9 @@ class NormalsConfig:
                                       "normals from 3.2 to 0.6 degrees off", min=0.05, max=20.0)
     max_tilt_degrees: float = option(15.0, "no vertex normal ends farther than this from the mesh's own",
                                      min=0.1, max=90.0)
+    solver_iterations: int = option(30, "conjugate-gradient iterations of the vertex normals' least-squares moves "
+                                        "a round (0: the weighted mean of each vertex's texels' tilts)", min=0,
+                                    max=1000)
     refit_iterations: int = option(6, "Levenberg-Marquardt iterations of the reflectance's refit after each round "
                                       "(the fit's own stopping rule may end it sooner)", min=1, max=200)
     min_gain: float = option(1e-4, "a round is kept when the fit's objective falls by more than this, relative",
@@ -84,8 +87,7 @@ def applies(cfg, layout, frames) -> tuple[bool, str]:
     """(whether the shading normals are fitted, why): ``cfg`` the fit stage's config; the layout must be lit (its
     light's cosine is what the normals change) and every fitted photo must have a light."""
     if cfg.shading_normals.mode != "on":
-        return False, f"shading_normals.mode {cfg.shading_normals.mode}" + (
-            " (on only where texstream run made the mesh from the photos)" if cfg.shading_normals.mode == "auto" else "")
+        return False, f"shading_normals.mode {cfg.shading_normals.mode}"
     if layout.is_radiance or layout.view_terms:
         return False, f"the {layout.kind} model has no light, so the normals change nothing it predicts"
     if cfg.fit.optimizer != "lm":
@@ -157,6 +159,60 @@ def vertex_tilts(texel_tilt: np.ndarray, confidence: np.ndarray, faces: np.ndarr
     np.add.at(den, welded, w)
     move = np.where(den[:, None] > 0, num / np.maximum(den, 1e-300)[:, None], 0.0)
     return move[weld]
+
+
+def vertex_moves(tilts, curvatures, axes, faces: np.ndarray, face: np.ndarray, bary: np.ndarray, weld: np.ndarray,
+                 iterations: int, max_move: float, ridge: float = 0.1) -> np.ndarray:
+    """(V, 3) the vertex normals' moves that best give each texel its tilt: the least-squares solution of
+
+        sum_t sum_a h_a,t (axis_a,t . sum_v b_t,v m_v - tilt_a,t)^2 + ridge sum_v d_v |m_v|^2
+
+    (a texel's normal moves by the barycentric mix of its vertices' moves; h its parabolas' curvatures, d_v the
+    vertex's share of them, so a vertex few texels constrain stays near its normal) by ``iterations`` of
+    Jacobi-preconditioned conjugate gradients from the weighted mean of its texels' tilts (:func:`vertex_tilts`, the
+    exact answer where every texel of a vertex wants the same), the copies of a vertex along seams as one; each move
+    at most ``max_move`` radians. ``tilts``, ``curvatures``: per tangent axis (N,); ``axes``: the (N, 3) axes."""
+    n_welded = int(weld.max()) + 1 if weld.size else 0
+    corner = weld[faces[face]]                                         # (N, 3) welded vertex of each corner
+
+    def spread(x):  # (welded, 3) -> per texel, its normal's move (N, 3)
+        return np.einsum("nk,nkj->nj", bary, x[corner])
+
+    def gather(z):  # per texel (N, 3) -> (welded, 3), the transpose of spread
+        out = np.zeros((n_welded, 3))
+        np.add.at(out, corner.reshape(-1), (bary[:, :, None] * z[:, None, :]).reshape(-1, 3))
+        return out
+
+    def weigh(y):  # each texel's quadratic form: sum_a h_a axis_a (axis_a . y)
+        return sum(h[:, None] * ax * np.sum(ax * y, axis=1, keepdims=True) for h, ax in zip(curvatures, axes))
+
+    conf = curvatures[0] + curvatures[1]
+    d = np.zeros(n_welded)
+    np.add.at(d, corner.reshape(-1), (bary ** 2 * conf[:, None]).reshape(-1))
+    d = np.maximum(d, 1e-300)
+    lam = ridge * d[:, None]
+    rhs = gather(sum(h[:, None] * t[:, None] * ax for h, t, ax in zip(curvatures, tilts, axes)))
+    apply = lambda x: gather(weigh(spread(x))) + lam * x  # noqa: E731
+    tilt = sum(t[:, None] * ax for t, ax in zip(tilts, axes))
+    x = vertex_tilts(tilt, conf, faces, face, bary, weld)[np.unique(weld, return_index=True)[1]]
+    r = rhs - apply(x)
+    z = r / ((1.0 + ridge) * d[:, None])
+    p = z.copy()
+    rz = float(np.sum(r * z))
+    for _ in range(iterations):
+        if rz <= 0:
+            break
+        ap = apply(p)
+        alpha = rz / max(float(np.sum(p * ap)), 1e-300)
+        x += alpha * p
+        r -= alpha * ap
+        z = r / ((1.0 + ridge) * d[:, None])
+        rz_new = float(np.sum(r * z))
+        p = z + (rz_new / rz) * p
+        rz = rz_new
+    length = np.linalg.norm(x, axis=1, keepdims=True)
+    x *= np.minimum(1.0, max_move / np.maximum(length, 1e-300))
+    return x[weld]
 
 
 def limit_tilt(normals: np.ndarray, reference: np.ndarray, max_angle: float) -> np.ndarray:
@@ -235,6 +291,30 @@ def probe_objectives(normals: TexelNormals, params: np.ndarray, texel_normal: np
     return f0, pairs, same, (t1, t2)
 
 
+HARM = 0.01
+"""a texel whose objective a round's proposal raises (the parameters held) by more than this share of the whole
+objective keeps its vertices' normals: on the photos-only flash capture a few such texels raised the whole fit's
+objective 40-75x in one round. Smaller rises are the rule on glossy texels whose lobe has not yet followed its
+normal (4-5% of the sphere_room's texels rise tenfold in a round whose total falls 10-30%): held back, the rounds
+brought the turned normals to 1.7 degrees instead of 1.0"""
+
+
+def _without_harmful_moves(normals: TexelNormals, proposed: np.ndarray, current: np.ndarray, weld: np.ndarray,
+                           params: np.ndarray, f0: np.ndarray) -> np.ndarray:
+    """``proposed`` vertex normals, set on the problem, less the moves of the vertices of texels they harm (:data:`HARM`);
+    one streaming pass, two where some harm."""
+    normals.set_vertex_normals(proposed)
+    f = per_texel_objective_and_samples(normals.problem, params)[0]
+    harmed = f - f0 > HARM * float(np.sum(f0))
+    if not harmed.any():
+        return proposed
+    held = np.zeros(int(weld.max()) + 1, bool)
+    held[weld[normals.faces[normals.face[harmed]]].reshape(-1)] = True
+    proposed = np.where(held[weld][:, None], current, proposed)
+    normals.set_vertex_normals(proposed)
+    return proposed
+
+
 def fit_shading_normals(problem, result, mesh, bake, cfg, refit, log=lambda m: None) -> NormalsOutcome:
     """The shading normals' rounds (module doc) from the fit ``result`` on ``problem`` (set up on ``mesh`` and
     ``bake``); ``cfg``: the fit stage's config; ``refit(params)``: the reflectance fitted again from ``params`` on
@@ -254,17 +334,14 @@ def fit_shading_normals(problem, result, mesh, bake, cfg, refit, log=lambda m: N
         t_round = time.perf_counter()
         texel_normal = normals.texel_normals(current)
         f0, pairs, same, axes = probe_objectives(normals, kept_result.params, texel_normal, step)
-        tilt = np.zeros_like(texel_normal)
-        conf = np.zeros(texel_normal.shape[0])
-        for a in range(2):
-            t, c = parabola_tilts(f0, pairs[a][0], pairs[a][1], step, same[:, a] & seen)
-            tilt += t[:, None] * axes[a]
-            conf += c
-        move = vertex_tilts(tilt, conf, normals.faces, normals.face, normals.bary, weld)
+        tilts, curvatures = zip(*(parabola_tilts(f0, pairs[a][0], pairs[a][1], step, same[:, a] & seen)
+                                  for a in range(2)))
+        move = vertex_moves(tilts, curvatures, axes, normals.faces, normals.face, normals.bary, weld,
+                            ncfg.solver_iterations, 2.0 * step)
         proposed = current + move
         proposed /= np.maximum(np.linalg.norm(proposed, axis=1, keepdims=True), 1e-300)
         proposed = limit_tilt(proposed, reference, math.radians(ncfg.max_tilt_degrees))
-        normals.set_vertex_normals(proposed)
+        proposed = _without_harmful_moves(normals, proposed, current, weld, kept_result.params, f0)
         # the normals' own effect, the reflectance held: the refit after it gains whatever the normals do
         held = float(np.sum(per_texel_objective_and_samples(problem, kept_result.params)[0]))
         before = float(np.sum(f0))
