@@ -10,7 +10,10 @@ a ColorChecker on a stand beside it, 8-bit photos through a tone curve: capture/
 its photos as a camera leaves them (EXIF focal length; no capture.json, masks, cameras or response), and runs
 ``texstream run`` on them with ``--response auto`` (the curve from the chart), ``--colocated-light 1`` (a guess the
 chart replaces), ``--ambient auto``, the Lafortune model, every 8th photo held out. The reference runs the same
-options on the capture with the true cameras, the true mesh (its atlas) and the true response.
+options on the capture with the true cameras, the true mesh (its atlas) and the true response; a second reference
+(``true_inputs_pipeline_atlas``) the same with the true mesh charted by the run's atlas stage as a mesh from the photos
+is (:func:`true_mesh_without_uvs` says why that is the fair one); ``gap_true_units_db`` gives both gaps in the truth's
+units.
 
 Measured: held-out pooled and worst PSNR of both (in the same linear units: both responses put code 1 at radiance 1;
 the photos-only figure also given corrected by the two curves' scale ratio); the chart (photos where found, the
@@ -323,6 +326,24 @@ def _run(photos_or_capture: Path, out: Path, device: str, iterations: int, atlas
     return summary, time.perf_counter() - t0
 
 
+def true_mesh_without_uvs(truth_dir: Path, out: Path) -> Path:
+    """The truth's mesh, welded along its UV seam, without its UVs (``out``, a PLY with its normals): what the run's
+    atlas stage charts with xatlas as it charts a mesh made from the photos. The truth's own lat-long atlas is laid on
+    the grid its texture was drawn on (2x2 of the truth's texels a fitted texel), an alignment no atlas made from a
+    mesh has: the texture finer than the atlas then averages exactly, where a chart at any other angle aliases it."""
+    from texstream.geometry.mesh_io import load_mesh, save_mesh
+    from texstream.render.mesh import SurfaceMesh
+
+    if not out.is_file():
+        mesh = load_mesh(truth_dir / "ground_truth" / "mesh.obj")
+        key = mesh.weld_key()
+        first = np.unique(key, return_index=True)[1]
+        welded = SurfaceMesh(vertices=np.asarray(mesh.vertices)[first], faces=key[mesh.faces].astype(np.int32),
+                             normals=np.asarray(mesh.vertex_normals())[first])
+        save_mesh(out, welded)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="out/flash_capture")
@@ -387,6 +408,9 @@ def main() -> None:
     run, run_s = _run(out / "photos", out / "run", a.device, a.iterations, a.atlas_resolution, photos_only=True)
     ref, ref_s = _run(truth_dir, out / "reference", a.device, a.iterations, a.atlas_resolution, photos_only=False,
                       mesh=str(fit_geometry(truth_dir, out / "fit_geometry", a.device)))
+    # the same, the truth's mesh charted by the run's atlas stage (true_mesh_without_uvs): the fair reference
+    ref_pa, ref_pa_s = _run(truth_dir, out / "reference_pipeline_atlas", a.device, a.iterations, a.atlas_resolution,
+                            photos_only=False, mesh=str(true_mesh_without_uvs(truth_dir, out / "true_mesh_no_uvs.ply")))
     fit_dir = _fitted_inputs(out / "run")[0]
     sim = _similarity(read_capture(fit_dir).frames, truth.frames)
     curve = _curve_check(out / "run" / "capture", truth_dir)
@@ -422,7 +446,20 @@ def main() -> None:
                              "ambient": _ambient_choice(out / "reference" / "model"),
                              "texels": _texel_errors(out / "reference" / "model", truth_dir, (1.0, np.eye(3), np.zeros(3)),
                                                      truth.frames, train_flash)}
+    result["true_inputs_pipeline_atlas"] = {
+        "heldout": _heldout(ref_pa), "seconds": ref_pa_s, "inputs": ref_pa["inputs"],
+        "heldout_flash": heldout_flash(out / "reference_pipeline_atlas" / "model"),
+        "texels": _texel_errors(out / "reference_pipeline_atlas" / "model", truth_dir, (1.0, np.eye(3), np.zeros(3)),
+                                truth.frames, train_flash)}
     result["gap_db"] = result["true_inputs"]["heldout"]["pooled_psnr_db"] - po["pooled_psnr_db"]
+    # in the truth's units (the photos-only figures shifted by the chart's response scale), all held-out views and
+    # the flash views alone, against the true inputs with the truth's atlas and with the pipeline's
+    flash_true_units = result["photos_only"]["heldout_flash"]["pooled_psnr_db"] + shift
+    result["gap_true_units_db"] = {
+        ref_name: {"all_views": result[ref_name]["heldout"]["pooled_psnr_db"]
+                   - result["photos_only"]["pooled_psnr_db_in_true_units"],
+                   "flash_views": result[ref_name]["heldout_flash"]["pooled_psnr_db"] - flash_true_units}
+        for ref_name in ("true_inputs", "true_inputs_pipeline_atlas")}
     # the term forced either way, whatever auto chose: held-out error and albedos (off is refused with pairs)
     for mode in ("on",) if a.no_flash_pairs else ("on", "off"):
         key = f"photos_only_ambient_{mode}"
@@ -436,7 +473,7 @@ def main() -> None:
                                      - result["photos_only_ambient_off"]["heldout"]["pooled_psnr_db"])
     result["load_after"] = os.getloadavg()
     (out / "flash_capture.json").write_text(json.dumps(result, indent=2, default=float))
-    print(json.dumps({k: result.get(k) for k in ("gap_db", "ambient_gain_db")}, indent=1))
+    print(json.dumps({k: result.get(k) for k in ("gap_db", "gap_true_units_db", "ambient_gain_db")}, indent=1))
 
 
 if __name__ == "__main__":
