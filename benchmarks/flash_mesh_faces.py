@@ -1,7 +1,7 @@
 """How the photos-only flash capture's mesh loses accuracy: its surface, its normals, or its faces against the atlas's
 texels (issue 39; JSON). Run after ``benchmarks/flash_capture.py --out OUT`` (its truth and photos-only run).
 
-    python benchmarks/flash_mesh_faces.py --out OUT [--faces 20000,8000,4000,2000] [--json PATH]
+    python benchmarks/flash_mesh_faces.py --out OUT [--faces 20000,8000,4000,2000] [--true-faces 2000] [--json PATH]
 
 Every fit is flash_capture_stages.py's (Lafortune, the ambient term, 15 iterations, every 8th photo held out) on the
 true cameras and response, each mesh charted by the pipeline's atlas stage at the run's resolution:
@@ -10,7 +10,8 @@ true cameras and response, each mesh charted by the pipeline's atlas stage at th
   the cameras' similarity, decimated by quadric edge collapse (pymeshlab, as the mesh stage decimates) to each count;
 - ``recovered_on_sphere_true_normals``: the same with its vertices put on the true sphere and the sphere's normals:
   its triangulation alone differs from the truth;
-- ``true_mesh``: the truth's mesh welded and without its UVs (flash_capture.py ``true_mesh_without_uvs``).
+- ``true_mesh``: the truth's mesh welded and without its UVs (flash_capture.py ``true_mesh_without_uvs``), as it is
+  (9,216 faces) and decimated (``true_mesh_N``, its vertices put back on the sphere, the sphere's normals).
 
 Per fit: held-out flash views (pooled, worst), the albedo's median per-texel error, the atlas's size, covered texels
 and faces that own no texel.
@@ -86,6 +87,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", required=True, help="benchmarks/flash_capture.py's output folder")
     ap.add_argument("--faces", default="20000,8000,4000,2000", help="face counts of the decimated recovered mesh")
+    ap.add_argument("--true-faces", default="2000", help="face counts of the decimated true mesh (its vertices put "
+                                                           "back on the sphere, the sphere's normals)")
     ap.add_argument("--json", default="", help="where to write the results (default: OUT/flash_mesh_faces.json)")
     a = ap.parse_args()
     from texstream.capture.capture_json import read_capture
@@ -102,10 +105,14 @@ def main() -> None:
     recovered = work / "recovered_in_truth.ply"
     save_mesh(recovered, transform_mesh(load_mesh(run / "mesh" / "mesh.ply"), to_truth))
     resolution = int(json.loads((run / "atlas" / "atlas_config.json").read_text())["resolution"])
-    result = {"command": "python benchmarks/flash_mesh_faces.py --out OUT --faces " + a.faces, "commit": commit(),
+    result = {"command": f"python benchmarks/flash_mesh_faces.py --out OUT --faces {a.faces} --true-faces {a.true_faces}", "commit": commit(),
               "machine": f"{platform.node()} ({os.cpu_count()} cores)", "atlas_resolution": resolution, "fits": {}}
-    result["fits"]["true_mesh"] = _fit(out, true_mesh_without_uvs(out / "truth", out / "true_mesh_no_uvs.ply"), work,
-                                       "true_mesh", resolution)
+    true_mesh = true_mesh_without_uvs(out / "truth", out / "true_mesh_no_uvs.ply")
+    result["fits"]["true_mesh"] = _fit(out, true_mesh, work, "true_mesh", resolution)
+    for faces in (int(x) for x in a.true_faces.split(",") if x):
+        name = f"true_mesh_{faces}"
+        result["fits"][name] = _fit(out, _decimated(true_mesh, faces, work / f"{name}.ply", True), work, name,
+                                    resolution)
     for faces in (int(x) for x in a.faces.split(",")):
         for on_sphere in (False, True):
             name = f"recovered_{faces}" + ("_on_sphere_true_normals" if on_sphere else "")
