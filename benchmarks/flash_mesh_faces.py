@@ -10,6 +10,8 @@ true cameras and response, each mesh charted by the pipeline's atlas stage at th
   the cameras' similarity, decimated by quadric edge collapse (pymeshlab, as the mesh stage decimates) to each count;
 - ``recovered_on_sphere_true_normals``: the same with its vertices put on the true sphere and the sphere's normals:
   its triangulation alone differs from the truth;
+- ``recovered_normals_smoothed_R`` (``--smooth-rounds``): its surface as it is, its vertex normals averaged with
+  their neighbours' R times;
 - ``true_mesh``: the truth's mesh welded and without its UVs (flash_capture.py ``true_mesh_without_uvs``), as it is
   (9,216 faces) and decimated (``true_mesh_N``, its vertices put back on the sphere, the sphere's normals).
 
@@ -54,6 +56,26 @@ def _decimated(src: Path, faces: int, dst: Path, on_sphere: bool) -> Path:
     return dst
 
 
+def _smoothed_normals(src: Path, rounds: int, dst: Path) -> Path:
+    """``src`` with its vertex normals averaged with their 1-ring neighbours' ``rounds`` times (the refine stage's
+    smoothing), its surface kept; their angle to the true sphere's printed."""
+    import dataclasses
+
+    from texstream.geometry.mesh_io import load_mesh, save_mesh
+    from texstream.geometry.refine import smoothed_normals, vertex_neighbours
+
+    m = load_mesh(src)
+    key = m.weld_key()
+    offsets, neighbours = vertex_neighbours(key[m.faces], int(key.max()) + 1)
+    first = np.unique(key, return_index=True)[1]
+    normals = smoothed_normals(np.asarray(m.vertex_normals())[first], offsets, neighbours, rounds)[key]
+    save_mesh(dst, dataclasses.replace(m, normals=normals))
+    true = m.vertices / np.linalg.norm(m.vertices, axis=1, keepdims=True)
+    ang = np.degrees(np.arccos(np.clip(np.sum(normals * true, axis=1), -1.0, 1.0)))
+    print(f"{dst.stem}: normals off the sphere {np.median(ang):.2f} degrees median, {np.percentile(ang, 90):.2f} p90")
+    return dst
+
+
 def _fit(out: Path, mesh: Path, work: Path, name: str, resolution: int) -> dict:
     from texstream.capture.capture_json import flash_fired, read_capture, split_holdout
     from texstream.fit.optim.fitter import FitConfig
@@ -89,6 +111,8 @@ def main() -> None:
     ap.add_argument("--faces", default="20000,8000,4000,2000", help="face counts of the decimated recovered mesh")
     ap.add_argument("--true-faces", default="2000", help="face counts of the decimated true mesh (its vertices put "
                                                            "back on the sphere, the sphere's normals)")
+    ap.add_argument("--smooth-rounds", default="", help="the recovered mesh with its vertex normals averaged with "
+                                                         "their neighbours' this many times (comma-separated)")
     ap.add_argument("--json", default="", help="where to write the results (default: OUT/flash_mesh_faces.json)")
     a = ap.parse_args()
     from texstream.capture.capture_json import read_capture
@@ -105,7 +129,8 @@ def main() -> None:
     recovered = work / "recovered_in_truth.ply"
     save_mesh(recovered, transform_mesh(load_mesh(run / "mesh" / "mesh.ply"), to_truth))
     resolution = int(json.loads((run / "atlas" / "atlas_config.json").read_text())["resolution"])
-    result = {"command": f"python benchmarks/flash_mesh_faces.py --out OUT --faces {a.faces} --true-faces {a.true_faces}", "commit": commit(),
+    result = {"command": f"python benchmarks/flash_mesh_faces.py --out OUT --faces {a.faces} --true-faces {a.true_faces} "
+                         f"--smooth-rounds {a.smooth_rounds}", "commit": commit(),
               "machine": f"{platform.node()} ({os.cpu_count()} cores)", "atlas_resolution": resolution, "fits": {}}
     true_mesh = true_mesh_without_uvs(out / "truth", out / "true_mesh_no_uvs.ply")
     result["fits"]["true_mesh"] = _fit(out, true_mesh, work, "true_mesh", resolution)
@@ -113,7 +138,11 @@ def main() -> None:
         name = f"true_mesh_{faces}"
         result["fits"][name] = _fit(out, _decimated(true_mesh, faces, work / f"{name}.ply", True), work, name,
                                     resolution)
-    for faces in (int(x) for x in a.faces.split(",")):
+    for rounds in (int(x) for x in a.smooth_rounds.split(",") if x):
+        name = f"recovered_normals_smoothed_{rounds}"
+        result["fits"][name] = _fit(out, _smoothed_normals(recovered, rounds, work / f"{name}.ply"), work, name,
+                                    resolution)
+    for faces in (int(x) for x in a.faces.split(",") if x):
         for on_sphere in (False, True):
             name = f"recovered_{faces}" + ("_on_sphere_true_normals" if on_sphere else "")
             mesh = _decimated(recovered, faces, work / f"{name}.ply", on_sphere)
