@@ -56,9 +56,9 @@ def _decimated(src: Path, faces: int, dst: Path, on_sphere: bool) -> Path:
     return dst
 
 
-def _smoothed_normals(src: Path, rounds: int, dst: Path) -> Path:
-    """``src`` with its vertex normals averaged with their 1-ring neighbours' ``rounds`` times (the refine stage's
-    smoothing), its surface kept; their angle to the true sphere's printed."""
+def _smoothed_normals(src: Path, rounds: int, dst: Path) -> tuple[Path, dict]:
+    """(``src`` with its vertex normals averaged with their 1-ring neighbours' ``rounds`` times (the refine stage's
+    smoothing), its surface kept; their angle to the true sphere's, median and p90 in degrees)."""
     import dataclasses
 
     from texstream.geometry.mesh_io import load_mesh, save_mesh
@@ -72,8 +72,7 @@ def _smoothed_normals(src: Path, rounds: int, dst: Path) -> Path:
     save_mesh(dst, dataclasses.replace(m, normals=normals))
     true = m.vertices / np.linalg.norm(m.vertices, axis=1, keepdims=True)
     ang = np.degrees(np.arccos(np.clip(np.sum(normals * true, axis=1), -1.0, 1.0)))
-    print(f"{dst.stem}: normals off the sphere {np.median(ang):.2f} degrees median, {np.percentile(ang, 90):.2f} p90")
-    return dst
+    return dst, {"median": float(np.median(ang)), "p90": float(np.percentile(ang, 90))}
 
 
 def _fit(out: Path, mesh: Path, work: Path, name: str, resolution: int) -> dict:
@@ -129,8 +128,8 @@ def main() -> None:
     recovered = work / "recovered_in_truth.ply"
     save_mesh(recovered, transform_mesh(load_mesh(run / "mesh" / "mesh.ply"), to_truth))
     resolution = int(json.loads((run / "atlas" / "atlas_config.json").read_text())["resolution"])
-    result = {"command": f"python benchmarks/flash_mesh_faces.py --out OUT --faces {a.faces} --true-faces {a.true_faces} "
-                         f"--smooth-rounds {a.smooth_rounds}", "commit": commit(),
+    result = {"command": f"python benchmarks/flash_mesh_faces.py --out OUT --faces {a.faces} "
+                         f"--true-faces {a.true_faces} --smooth-rounds {a.smooth_rounds}", "commit": commit(),
               "machine": f"{platform.node()} ({os.cpu_count()} cores)", "atlas_resolution": resolution, "fits": {}}
     true_mesh = true_mesh_without_uvs(out / "truth", out / "true_mesh_no_uvs.ply")
     result["fits"]["true_mesh"] = _fit(out, true_mesh, work, "true_mesh", resolution)
@@ -140,8 +139,8 @@ def main() -> None:
                                     resolution)
     for rounds in (int(x) for x in a.smooth_rounds.split(",") if x):
         name = f"recovered_normals_smoothed_{rounds}"
-        result["fits"][name] = _fit(out, _smoothed_normals(recovered, rounds, work / f"{name}.ply"), work, name,
-                                    resolution)
+        mesh, angles = _smoothed_normals(recovered, rounds, work / f"{name}.ply")
+        result["fits"][name] = {**_fit(out, mesh, work, name, resolution), "normals_off_sphere_deg": angles}
     for faces in (int(x) for x in a.faces.split(",") if x):
         for on_sphere in (False, True):
             name = f"recovered_{faces}" + ("_on_sphere_true_normals" if on_sphere else "")

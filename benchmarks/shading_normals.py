@@ -3,7 +3,7 @@ help and where they hurt (issue 39; JSON). Run after ``benchmarks/flash_capture.
 atlas and photos-only run).
 
     python benchmarks/flash_capture.py --scene flash_sphere_resolved ... --out OUT
-    python benchmarks/shading_normals.py --out OUT [--json benchmarks/results/shading_normals_cpu/NAME.json]
+    python benchmarks/shading_normals.py --out OUT [--json benchmarks/results/flash_capture_cpu/NAME.json]
 
 The Lafortune fit as flash_capture_stages.py runs it (15 iterations, every 8th photo held out, the ambient term on),
 with the shading normals off and on, on the true cameras and response of the synthetic flash capture and on:
@@ -27,6 +27,7 @@ import argparse
 import dataclasses
 import json
 import math
+import os
 import platform
 import time
 from pathlib import Path
@@ -171,7 +172,7 @@ def main() -> None:
     work = out / "shading_normals"
     work.mkdir(exist_ok=True)
     result = {"command": "python benchmarks/shading_normals.py --out OUT", "commit": commit(),
-              "machine": platform.node(), "cpu_count": __import__("os").cpu_count(), "fits": {}}
+              "machine": platform.node(), "cpu_count": os.cpu_count(), "fits": {}}
     for name, geometry in _geometries(out, work).items():
         result["fits"][name] = {mode: _fit_flash(out, geometry, work / f"fit_{name}_{mode}", mode)
                                 for mode in ("off", "on")}

@@ -155,7 +155,6 @@ def _print_evaluation(s: dict) -> None:
 def _run_single_view(args: argparse.Namespace, fit_cfg) -> int:
     cfg = SingleViewConfig(fit=fit_cfg, materials=config_from_args(MaterialConfig, args, prefix="materials."),
                            choice=config_from_args(ModelChoiceConfig, args, prefix="choice."),
-                         shading_normals=config_from_args(NormalsConfig, args, prefix="shading_normals."),
                            **{k: getattr(args, k) for k in ("device", "holdout_every", "renders", "normal_space",
                                                             "depth")})
     with reporting(lambda line: print(line, flush=True)):

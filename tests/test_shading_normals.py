@@ -31,12 +31,13 @@ def test_parabola_tilt_is_capped_concave_steps_aside_invalid_stays():
     and a texel whose probes' samples changed take none."""
     step = 0.01
     f0 = np.array([1.0, 1.0, 1.0, 1.0])
-    plus = np.array([1.0 - 0.9 * step, 0.9, 1.0, 0.5])     # minimum at 0.5 (far) | concave, + lower | flat
+    plus = np.array([1.0 - 0.9 * step, 0.9, 1.0, 0.5])     # minimum at 0.05 (far) | concave, + lower | flat
     minus = np.array([1.0 + 1.1 * step, 0.95, 1.0, 0.5])
     valid = np.array([True, True, True, False])
     tilt, conf = parabola_tilts(f0, plus, minus, step, valid)
-    assert tilt[0] == pytest.approx(2 * step)
-    assert tilt[1] == pytest.approx(step) and conf[1] > 0
+    assert tilt[0] == pytest.approx(2 * step) and conf[0] == pytest.approx(0.2 * step / step ** 2)
+    # concave: the confidence of a parabola whose minimum is the lower side's step, |g| / step
+    assert tilt[1] == pytest.approx(step) and conf[1] == pytest.approx(abs(0.9 - 0.95) / (2 * step) / step)
     assert tilt[2] == 0.0 and conf[2] == 0.0
     assert tilt[3] == 0.0 and conf[3] == 0.0
 
@@ -61,11 +62,12 @@ def test_vertex_tilts_weight_texels_and_join_seam_copies():
 
 def test_vertex_moves_solve_the_least_squares_problem():
     """The conjugate-gradient moves against the dense least-squares solution of the same problem (each texel's two
-    parabolas, the ridge on each vertex's share of curvature), on a random 5-vertex, 3-face patch: equal to 1e-9
-    (float64; 200 iterations on 15 unknowns converge to rounding)."""
+    parabolas, the ridge on each welded vertex's share of curvature), on a random 5-vertex, 3-face patch whose vertex
+    5 is a seam copy of vertex 0: equal to 1e-9 (float64; 200 iterations on 15 unknowns converge to rounding), the
+    copy moved as its original; with a cap that binds, each move is the solution shortened to the cap."""
     rng = np.random.default_rng(3)
-    faces = np.array([[0, 1, 2], [1, 3, 2], [2, 3, 4]])
-    weld = np.arange(5)
+    faces = np.array([[0, 1, 2], [1, 3, 2], [2, 3, 5]])
+    weld = np.array([0, 1, 2, 3, 4, 0])
     face = rng.integers(0, 3, 12)
     bary = rng.dirichlet(np.ones(3), 12)
     normal = rng.normal(size=(12, 3))
@@ -83,7 +85,7 @@ def test_vertex_moves_solve_the_least_squares_problem():
         for a in range(2):
             row = np.zeros(15)
             for k in range(3):
-                v = faces[face[t], k]
+                v = weld[faces[face[t], k]]
                 row[3 * v:3 * v + 3] += bary[t, k] * axes[a][t]
                 d[v] += bary[t, k] ** 2 * curv[a][t]
             rows.append(np.sqrt(curv[a][t]) * row)
@@ -94,8 +96,12 @@ def test_vertex_moves_solve_the_least_squares_problem():
             row[3 * v + c] = np.sqrt(ridge * d[v])
             rows.append(row)
             rhs.append(0.0)
-    want = np.linalg.lstsq(np.array(rows), np.array(rhs), rcond=None)[0].reshape(5, 3)
+    want = np.linalg.lstsq(np.array(rows), np.array(rhs), rcond=None)[0].reshape(5, 3)[weld]
     np.testing.assert_allclose(got, want, atol=1e-9)
+    cap = 0.5 * float(np.median(np.linalg.norm(want, axis=1)))
+    capped = vertex_moves(tilts, curv, axes, faces, face, bary, weld, 200, cap, ridge)
+    length = np.linalg.norm(want, axis=1, keepdims=True)
+    np.testing.assert_allclose(capped, want * np.minimum(1.0, cap / np.maximum(length, 1e-300)), atol=1e-9)
 
 
 def test_limit_tilt_turns_back_to_the_cap_only_beyond_it():
@@ -141,14 +147,16 @@ def turned_sphere(tmp_path_factory):
     return cap, geometry, n, turned
 
 
-def _fit(cap, geometry, out, mode: str, device: str):
+def _fit(cap, geometry, out, mode, device: str):
+    """The Lafortune fit with the ambient term, every 4th photo held out; ``mode``: the shading normals' mode or a
+    NormalsConfig."""
     from texstream.fit.models.materials import MaterialConfig
     from texstream.fit.optim.fitter import FitConfig
     from texstream.fit.stages.stage import FitStageConfig, fit_stage
 
     cfg = FitStageConfig(device=device, holdout_every=4, renders=0, traced_polish=0,
                          materials=MaterialConfig(mode="off"), fit=FitConfig(model="lafortune", ambient="on"),
-                         shading_normals=NormalsConfig(mode=mode))
+                         shading_normals=mode if isinstance(mode, NormalsConfig) else NormalsConfig(mode=mode))
     return fit_stage(cap, geometry, out, cfg, progress=False)
 
 
@@ -181,14 +189,63 @@ def test_fitted_normals_approach_the_true_ones(turned_sphere, tmp_path, device):
 
 
 def test_true_normals_stay(turned_sphere, tmp_path):
-    """On the true mesh the rounds move the normals little (measured: the first round's proposal is undone or a
-    few tenths of a degree) and never cost held-out accuracy."""
+    """On the true mesh the rounds move the normals little (measured: 0.09 degrees median from the mesh's, 0.13 from
+    the truth's, against the probes' 0.5), and the held-out photos are predicted no worse (within the 0.05 dB two
+    fits that differ in their last iterations differ by)."""
     from texstream.fit.common.setup import load_model
 
     cap, _, true_normals, _ = turned_sphere
     off = _fit(cap, cap / "ground_truth", tmp_path / "off", "off", SCENE_DEVICE)
     on = _fit(cap, cap / "ground_truth", tmp_path / "on", "on", SCENE_DEVICE)
-    mesh = load_model(tmp_path / "on")[0]
-    # 1 degree: a quarter of the turned normals' error; the noise-free scene's own optimum sits within it
-    assert np.median(_angles(mesh.vertex_normals(), true_normals)) < 1.0
+    mesh, _, _, manifest = load_model(tmp_path / "on")
+    # 0.3 degrees: three times the move measured, under the probes' 0.5
+    assert manifest["shading_normals"]["from_mesh_degrees_median"] < 0.3
+    assert np.median(_angles(mesh.vertex_normals(), true_normals)) < 0.3
     assert on.summary["heldout"]["pooled_psnr_db"] >= off.summary["heldout"]["pooled_psnr_db"] - 0.05
+
+
+def test_no_round_kept_is_the_fit_without_them(turned_sphere, tmp_path):
+    """A round that cannot be kept (``min_gain`` 1: the objective would have to fall to nothing) is undone and the
+    problem gets its own arrays back, so the model is the one the option off gives, to the bit: maps, mesh and
+    bake."""
+    from texstream.capture.imageio import read_image
+
+    cap, geometry, _, _ = turned_sphere
+    off = tmp_path / "off"
+    _fit(cap, geometry, off, "off", SCENE_DEVICE)
+    on = tmp_path / "on"
+    _fit(cap, geometry, on, NormalsConfig(mode="on", min_gain=1.0), SCENE_DEVICE)
+    report = json.loads((on / "model.json").read_text())["shading_normals"]
+    assert report["rounds_kept"] == 0 and report["rounds"][0]["kept"] is False
+    for name in ("rho_d.exr", "lobe0_rho_s.exr", "lobe0_shape.exr", "ambient.exr"):
+        if (off / name).exists():
+            np.testing.assert_array_equal(read_image(on / name), read_image(off / name))
+    assert (on / "mesh.obj").read_bytes() == (off / "mesh.obj").read_bytes()
+    assert (on / "bake.npz").read_bytes() == (off / "bake.npz").read_bytes()
+
+
+def test_applies_only_where_it_can():
+    """Off unless asked; refused with a reason for a model without a light, an optimizer other than LM and photos
+    split over devices; the CLI spells it --shading-normals.mode."""
+    import argparse
+    from types import SimpleNamespace
+
+    from texstream.fit.common.shading_normals import applies
+    from texstream.fit.optim.fitter import FitConfig
+    from texstream.fit.stages.stage import FitStageConfig
+    from texstream.pipelines.cli import config_from_args
+    from texstream.pipelines.cmd_fit import add_arguments
+    from texstream.render.layout import ModelLayout
+
+    lit = SimpleNamespace(layout=ModelLayout(kind="lafortune"), peers=[])
+    on = FitStageConfig(shading_normals=NormalsConfig(mode="on"))
+    assert applies(on, lit, [object()]) == (True, "shading_normals.mode on")
+    assert not applies(FitStageConfig(), lit, [object()])[0]
+    assert "no light" in applies(on, SimpleNamespace(layout=ModelLayout(kind="radiance"), peers=[]), [object()])[1]
+    assert "Levenberg" in applies(dataclasses.replace(on, fit=FitConfig(optimizer="cg")), lit, [object()])[1]
+    assert "split" in applies(on, SimpleNamespace(layout=lit.layout, peers=[object()]), [object()])[1]
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    args = parser.parse_args(["cap", "--mesh", "m", "-o", "out", "--shading-normals.mode", "on",
+                              "--shading-normals.rounds", "2"])
+    assert config_from_args(NormalsConfig, args, prefix="shading_normals.") == NormalsConfig(mode="on", rounds=2)

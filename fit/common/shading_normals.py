@@ -1,14 +1,12 @@
-"""Shading normals fitted to the photos under known lights (``FitStageConfig.shading_normals``, ``--shading-normals.mode``).
+"""Shading normals fitted to the photos under known lights (``FitStageConfig.shading_normals``,
+``--shading-normals.mode on``; off by default).
 
 Why: under a light at the camera a texel's radiance is its BRDF times cos(theta_i), and the fit takes theta_i from
-the mesh's interpolated normal. A mesh made from the photos (dense stereo, then Poisson) has its shape within a few
-thousandths of the object and its normals a few degrees off (2.2 degrees median, 5.6 at the 90th percentile on the
-synthetic flash sphere, even from the true cameras: docs/real-data.md), and the fit turns that into albedo error
-(9% median where the true normals give 1.8%) and a lobe broadened to cover the misplaced highlight. The photos
-themselves say where the normal points: how a texel's brightness changes with the light's direction across its
-photos.
+the mesh's interpolated normal. A mesh whose normals are a few degrees off turns that into albedo error and a lobe
+broadened to cover the misplaced highlight. The photos themselves say where the normal points: how a texel's
+brightness changes with the light's direction across its photos.
 
-How (the fitted reflectance held, the normals moved, the reflectance fitted again; ``rounds`` times):
+How (the fitted reflectance held, the normals moved, the reflectance fitted again; ``rounds`` times at most):
 
 1. Per texel, the objective on the fitted photos (:func:`~texstream.fit.common.setup.per_texel_objective`) at its
    normal and at the normal turned by +-``step_degrees`` about its two tangent axes: five streaming passes, the
@@ -16,16 +14,20 @@ How (the fitted reflectance held, the normals moved, the reflectance fitted agai
    ``2 * step_degrees``; where the parabola opens downwards, the better side's step if it is lower) and its
    curvature, the tilt's confidence. A texel whose sample count changes between the passes (a grazing sample
    crossing the cosine limit) has no confidence on that axis: its objective jumped for another reason.
-2. The vertices take the texels' tilts: each vertex normal moves by the mean tilt of the texels on its faces,
-   weighted by barycentric weight times confidence (the copies of a vertex along the atlas's seams as one), and no
-   normal ends more than ``max_tilt_degrees`` from the mesh's own. The texels' normals are the renderer's
-   interpolation of the new vertex normals, so the fitted model and its renders (and the exported mesh) agree.
-3. The reflectance is fitted again from the held parameters (``refit_iterations`` Levenberg-Marquardt iterations
-   at most) and the round is kept only when the fit's objective on the fitted photos fell by more than
-   ``min_gain`` relative; otherwise its normals and parameters are undone and the rounds stop.
+2. The vertex normals move by the least-squares solution of giving every texel its tilt, weighted by the curvatures,
+   with a ridge on each vertex's share (:func:`vertex_moves`: conjugate gradients from the weighted mean of its texels'
+   tilts; the copies of a vertex along the atlas's seams as one), each move at most ``2 * step_degrees`` and no normal
+   farther than ``max_tilt_degrees`` from the mesh's own. The vertices of a texel whose objective the move would raise
+   by more than :data:`HARM_SHARE` of the whole keep their normals. The texels' normals are the renderer's
+   interpolation of the vertex normals, so the fitted model and its renders (and the exported mesh) agree.
+3. The round is kept when the objective, the reflectance still held, fell by more than ``min_gain`` relative; the
+   reflectance is then fitted again (``refit_iterations`` Levenberg-Marquardt iterations at most). Otherwise its
+   normals are undone (no parameter had changed) and the rounds stop; where no round is kept the problem gets its
+   own texel arrays back, bit for bit.
 
 The held-out photos play no part. The model folder's mesh.obj and bake.npz carry the fitted normals, and model.json's
-``shading_normals`` says what moved and by how much.
+``shading_normals`` says what moved and by how much. Where it helps and where it hurts: docs/real-data.md (a mesh
+made from the photos absorbs its surface's errors into the normals, so ``texstream run`` leaves it off).
 
 Imports only numpy and warp (the fit's rule); the streaming passes are the fit's own.
 """
@@ -59,8 +61,8 @@ class NormalsConfig:
     step_degrees: float = option(0.5, "the tilt probed about each tangent axis (the parabola's half width); a texel "
                                       "moves at most twice this a round. Small because a glossy texel's objective is "
                                       "stiff in its normal: on the sphere_room scene +-2 degrees raised it 20-25x and "
-                                      "the parabolas' steps made it worse, +-0.5 degrees 2.5x and they brought the "
-                                      "normals from 3.2 to 0.6 degrees off", min=0.05, max=20.0)
+                                      "the parabolas' steps made the normals worse, +-0.5 degrees 2.5x and they "
+                                      "brought the normals from 3.2 to 0.8 degrees off", min=0.05, max=20.0)
     max_tilt_degrees: float = option(15.0, "no vertex normal ends farther than this from the mesh's own",
                                      min=0.1, max=90.0)
     solver_iterations: int = option(30, "conjugate-gradient iterations of the vertex normals' least-squares moves "
@@ -83,11 +85,16 @@ class NormalsOutcome:
     traces: list
 
 
-def applies(cfg, layout, frames) -> tuple[bool, str]:
-    """(whether the shading normals are fitted, why): ``cfg`` the fit stage's config; the layout must be lit (its
-    light's cosine is what the normals change) and every fitted photo must have a light."""
+def applies(cfg, problem, frames) -> tuple[bool, str]:
+    """(whether the shading normals are fitted, why): ``cfg`` the fit stage's config, ``problem`` the fitted
+    StreamProblem. The layout must be lit (its light's cosine is what the normals change; a lit problem has already
+    refused photos without a light), the fit Levenberg-Marquardt (the refits), and the photos on one device (the
+    other devices' parts of split photos hold texel arrays of their own, which the probes do not move)."""
+    layout = problem.layout
     if cfg.shading_normals.mode != "on":
         return False, f"shading_normals.mode {cfg.shading_normals.mode}"
+    if getattr(problem, "peers", None):
+        return False, "the photos are split over devices (stream.device_split photos), whose parts the probes miss"
     if layout.is_radiance or layout.view_terms:
         return False, f"the {layout.kind} model has no light, so the normals change nothing it predicts"
     if cfg.fit.optimizer != "lm":
@@ -241,6 +248,27 @@ class TexelNormals:
         self.face, self.bary = texel_faces(problem, bake)
         self.tangent = np.asarray(problem.texels.tangent, np.float64)
 
+    def snapshot(self):
+        """A function that puts back the problem's texels and texel arrays and the traced taps' vertex normals as they
+        are now, bit for bit."""
+        pr, photos = self.problem, self.problem.photos
+        texels = pr.texels
+        arrays = [(a, a.numpy().copy()) for a in (pr.nrm, pr.tan, pr.bit, pr.tex.dn_dp)]
+        mesh_normals = getattr(photos, "mesh_normals", None)
+        saved_normals = None if mesh_normals is None else mesh_normals.numpy().copy()
+        mesh_arrays = getattr(photos, "mesh_arrays", None)
+
+        def restore() -> None:
+            pr.texels = texels
+            for a, values in arrays:
+                a.assign(values)
+            if saved_normals is not None:
+                photos.mesh_normals.assign(saved_normals)
+            if mesh_arrays is not None:
+                photos.mesh_arrays = mesh_arrays
+
+        return restore
+
     def texel_normals(self, vertex_normals: np.ndarray) -> np.ndarray:
         return interpolated_normals(vertex_normals, self.faces, self.face, self.bary)
 
@@ -291,28 +319,29 @@ def probe_objectives(normals: TexelNormals, params: np.ndarray, texel_normal: np
     return f0, pairs, same, (t1, t2)
 
 
-HARM = 0.01
+HARM_SHARE = 0.01
 """a texel whose objective a round's proposal raises (the parameters held) by more than this share of the whole
 objective keeps its vertices' normals: on the photos-only flash capture a few such texels raised the whole fit's
 objective 40-75x in one round. Smaller rises are the rule on glossy texels whose lobe has not yet followed its
-normal (4-5% of the sphere_room's texels rise tenfold in a round whose total falls 10-30%): held back, the rounds
-brought the turned normals to 1.7 degrees instead of 1.0"""
+normal (4-5% of the sphere_room's texels rise tenfold in a round whose total falls 10-30%): holding those back too
+(a first version of the rule, with vertex averaging) left the turned normals 1.7 degrees off instead of 0.8"""
 
 
 def _without_harmful_moves(normals: TexelNormals, proposed: np.ndarray, current: np.ndarray, weld: np.ndarray,
-                           params: np.ndarray, f0: np.ndarray) -> np.ndarray:
-    """``proposed`` vertex normals, set on the problem, less the moves of the vertices of texels they harm (:data:`HARM`);
-    one streaming pass, two where some harm."""
+                           params: np.ndarray, f0: np.ndarray) -> tuple[np.ndarray, float]:
+    """(``proposed`` vertex normals less the moves of the vertices of texels they harm (:data:`HARM_SHARE`), the
+    objective at them with ``params`` held), the normals set on the problem; one streaming pass, two where some
+    harm."""
     normals.set_vertex_normals(proposed)
     f = per_texel_objective_and_samples(normals.problem, params)[0]
-    harmed = f - f0 > HARM * float(np.sum(f0))
+    harmed = f - f0 > HARM_SHARE * float(np.sum(f0))
     if not harmed.any():
-        return proposed
-    held = np.zeros(int(weld.max()) + 1, bool)
-    held[weld[normals.faces[normals.face[harmed]]].reshape(-1)] = True
-    proposed = np.where(held[weld][:, None], current, proposed)
+        return proposed, float(np.sum(f))
+    kept_back = np.zeros(int(weld.max()) + 1, bool)
+    kept_back[weld[normals.faces[normals.face[harmed]]].reshape(-1)] = True
+    proposed = np.where(kept_back[weld][:, None], current, proposed)
     normals.set_vertex_normals(proposed)
-    return proposed
+    return proposed, float(np.sum(per_texel_objective_and_samples(normals.problem, params)[0]))
 
 
 def fit_shading_normals(problem, result, mesh, bake, cfg, refit, log=lambda m: None) -> NormalsOutcome:
@@ -322,6 +351,7 @@ def fit_shading_normals(problem, result, mesh, bake, cfg, refit, log=lambda m: N
     ncfg = cfg.shading_normals
     t0 = time.perf_counter()
     normals = TexelNormals(problem, mesh, bake)
+    restore = normals.snapshot()
     reference = np.asarray(mesh.vertex_normals(), np.float64)
     reference = reference / np.maximum(np.linalg.norm(reference, axis=1, keepdims=True), 1e-300)
     weld = np.asarray(mesh.weld_key(), np.int64)
@@ -341,14 +371,13 @@ def fit_shading_normals(problem, result, mesh, bake, cfg, refit, log=lambda m: N
         proposed = current + move
         proposed /= np.maximum(np.linalg.norm(proposed, axis=1, keepdims=True), 1e-300)
         proposed = limit_tilt(proposed, reference, math.radians(ncfg.max_tilt_degrees))
-        proposed = _without_harmful_moves(normals, proposed, current, weld, kept_result.params, f0)
         # the normals' own effect, the reflectance held: the refit after it gains whatever the normals do
-        held = float(np.sum(per_texel_objective_and_samples(problem, kept_result.params)[0]))
+        proposed, at_new_normals = _without_harmful_moves(normals, proposed, current, weld, kept_result.params, f0)
         before = float(np.sum(f0))
-        gain = (before - held) / max(abs(before), 1e-300)
+        gain = (before - at_new_normals) / max(abs(before), 1e-300)
         moved = np.degrees(np.arccos(np.clip(np.sum(normals.texel_normals(proposed) * texel_normal, axis=1),
                                              -1.0, 1.0)))[seen]
-        row = {"round": r + 1, "objective": before, "objective_new_normals": held, "relative_gain": gain,
+        row = {"round": r + 1, "objective": before, "objective_new_normals": at_new_normals, "relative_gain": gain,
                "texels_turned_degrees_median": float(np.median(moved)) if moved.size else 0.0,
                "texels_turned_degrees_p90": float(np.percentile(moved, 90)) if moved.size else 0.0}
         if not gain > ncfg.min_gain:
@@ -368,6 +397,8 @@ def fit_shading_normals(problem, result, mesh, bake, cfg, refit, log=lambda m: N
             f"({row['texels_turned_degrees_p90']:.2f} at p90), the objective {100 * gain:.2f}% lower with the "
             f"reflectance held, {row['objective_refitted'] / before:.4f}x after its refit")
     kept = sum(row["kept"] for row in rounds)
+    if not kept:
+        restore()  # the arrays the fit ran on, not their recomputation from the mesh's normals
     total = np.degrees(np.arccos(np.clip(np.sum(normals.texel_normals(current)
                                                 * normals.texel_normals(reference), axis=1), -1.0, 1.0)))[seen]
     report = {"mode": ncfg.mode, "rounds_kept": kept, "rounds": rounds,
@@ -385,5 +416,5 @@ def bake_with(bake, problem):
     for name in ("normal", "tangent", "bitangent"):
         grid = np.array(getattr(bake, name), np.float32).reshape(-1, 3)
         grid[index] = getattr(problem.texels, name)
-        grids[name] = grid.reshape(bake.height, bake.width, 3)
+        grids[name] = grid.reshape(bake.height, bake.width, 3)  # uncovered texels keep the bake's zeros
     return dataclasses.replace(bake, **grids)

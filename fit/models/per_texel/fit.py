@@ -168,20 +168,20 @@ def _choice_before_fit(inputs: FitInputs, problem, cfg, start, resume) -> tuple[
 
 
 def _shading_normals(inputs: FitInputs, problem, result, cfg, start):
-    """(result, inputs, report or None): the shading normals fitted to the fitted photos where ``cfg.shading_normals`` asks
-    and the model is lit (fit/common/shading_normals.py); the inputs' mesh and bake then carry them (the renders,
+    """(result, inputs, report or None): the shading normals fitted to the fitted photos where ``cfg.shading_normals``
+    asks and the model is lit (fit/common/shading_normals.py); the inputs' mesh and bake then carry them (the renders,
     the model folder and the materials' validation scores use them), and the refits' iterations are appended to
     the trace (stage "normals")."""
-    ok, why = shading_normals.applies(cfg, problem.layout, inputs.frames)
+    ncfg = cfg.shading_normals
+    ok, why = shading_normals.applies(cfg, problem, inputs.frames)
     if not ok:
-        return result, inputs, (None if cfg.shading_normals.mode != "on" else {"mode": "on", "applied": False,
-                                                                                "why": why})
-    refit_cfg = dataclasses.replace(cfg, fit=dataclasses.replace(cfg.fit, max_iterations=cfg.shading_normals.refit_iterations))
+        return result, inputs, {"mode": "on", "applied": False, "why": why} if ncfg.mode == "on" else None
+    refit_cfg = dataclasses.replace(cfg, fit=dataclasses.replace(cfg.fit, max_iterations=ncfg.refit_iterations))
 
     def refit(params):
         return _core_fit(problem, refit_cfg, start, False, None, None, params)[0]
 
-    with phase("fit", f"shading normals: up to {cfg.shading_normals.rounds} rounds of tilts from the photos, each refitted"):
+    with phase("fit", f"shading normals: up to {ncfg.rounds} rounds of tilts from the photos, each refitted"):
         out = shading_normals.fit_shading_normals(problem, result, inputs.mesh, inputs.bake, cfg, refit,
                                                   log=lambda m: say("fit", m))
     report = {"applied": True, **out.report}
