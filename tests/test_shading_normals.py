@@ -147,15 +147,15 @@ def turned_sphere(tmp_path_factory):
     return cap, geometry, n, turned
 
 
-def _fit(cap, geometry, out, mode, device: str):
-    """The Lafortune fit with the ambient term, every 4th photo held out; ``mode``: the shading normals' mode or a
-    NormalsConfig."""
+def _fit(cap, geometry, out, mode, device: str, model: str = "lafortune"):
+    """The Lafortune fit (or ``model``'s) with the ambient term, every 4th photo held out; ``mode``: the shading
+    normals' mode or a NormalsConfig."""
     from texstream.fit.models.materials import MaterialConfig
     from texstream.fit.optim.fitter import FitConfig
     from texstream.fit.stages.stage import FitStageConfig, fit_stage
 
     cfg = FitStageConfig(device=device, holdout_every=4, renders=0, traced_polish=0,
-                         materials=MaterialConfig(mode="off"), fit=FitConfig(model="lafortune", ambient="on"),
+                         materials=MaterialConfig(mode="off"), fit=FitConfig(model=model, ambient="on"),
                          shading_normals=mode if isinstance(mode, NormalsConfig) else NormalsConfig(mode=mode))
     return fit_stage(cap, geometry, out, cfg, progress=False)
 
@@ -222,6 +222,20 @@ def test_no_round_kept_is_the_fit_without_them(turned_sphere, tmp_path):
             np.testing.assert_array_equal(read_image(on / name), read_image(off / name))
     assert (on / "mesh.obj").read_bytes() == (off / "mesh.obj").read_bytes()
     assert (on / "bake.npz").read_bytes() == (off / "bake.npz").read_bytes()
+
+
+def test_a_model_without_light_says_why_and_is_unchanged(turned_sphere, tmp_path):
+    """Asked for on a radiance model (no light, so no cosine for a normal to change), the fit says why in model.json
+    and writes the model it writes with the option off."""
+    from texstream.capture.imageio import read_image
+
+    cap, geometry, _, _ = turned_sphere
+    _fit(cap, geometry, tmp_path / "off", "off", SCENE_DEVICE, model="radiance")
+    _fit(cap, geometry, tmp_path / "on", "on", SCENE_DEVICE, model="radiance")
+    report = json.loads((tmp_path / "on" / "model.json").read_text())["shading_normals"]
+    assert report["applied"] is False and "no light" in report["why"]
+    np.testing.assert_array_equal(read_image(tmp_path / "on" / "radiance.exr"),
+                                  read_image(tmp_path / "off" / "radiance.exr"))
 
 
 def test_applies_only_where_it_can():

@@ -103,7 +103,7 @@ def _fit_per_texel_model(capture_dir: str | Path, mesh_path: str | Path, out_dir
     with (atomic_output_dir(out_dir) as tmp, phase("fit", f"{cfg.fit.model}: held-out renders and the model folder"),
           contextlib.nullcontext() if scores_only else trace_plot(tmp, result.trace, title, plotter) as plot):
         evals = _write_geometry_and_renders(tmp, inputs, mesh_path, grid, result.layout, cfg, scores_only,
-                                            bake_changed=normals is not None and normals["rounds_kept"] > 0)
+                                            bake_changed=bool(normals and normals.get("rounds_kept")))
         seen = np.zeros(inputs.bake.height * inputs.bake.width, bool)
         seen[problem.texels.grid_index] = result.samples > 0
         if not scores_only:
