@@ -26,7 +26,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
 import os
 import platform
 import time
@@ -52,37 +51,21 @@ def _sphere_normal_error(mesh_path: Path) -> dict:
     return {"median": float(np.median(ang)), "p90": float(np.percentile(ang, 90))}
 
 
-def _turned_normals(mesh, degrees_median: float, seed: int = 0) -> np.ndarray:
-    """``mesh``'s vertex normals turned at random, welded vertex by welded vertex, ``degrees_median`` median."""
-    n = np.asarray(mesh.vertex_normals(), np.float64)
-    key = mesh.weld_key()
-    field = np.random.default_rng(seed).normal(size=(int(key.max()) + 1, 3))[key]
-    field -= n * np.sum(field * n, axis=1, keepdims=True)
-    field *= math.radians(degrees_median) / np.median(np.linalg.norm(field, axis=1))
-    turned = n + field
-    return turned / np.linalg.norm(turned, axis=1, keepdims=True)
-
-
 def _geometries(out: Path, work: Path) -> dict:
     """The three geometry folders (module doc), made once."""
     from texstream.capture.capture_json import read_capture
+    from texstream.capture.synthetic.turned_normals import geometry_with_normals, random_turn
     from texstream.geometry.align import transform_mesh
     from texstream.geometry.atlas import AtlasConfig, atlas_stage
-    from texstream.geometry.bake import TexelBake, bake_texels
     from texstream.geometry.mesh_io import load_mesh, save_mesh
 
     truth_dir, run = out / "truth", out / "run"
     geo = {name: work / name for name in ("true_mesh_turned_normals", "recovered_mesh_exact_positions",
                                           "recovered_mesh")}
     if not (geo["true_mesh_turned_normals"] / "bake.npz").is_file():
-        true_mesh = load_mesh(out / "fit_geometry" / "mesh.obj")
-        geo["true_mesh_turned_normals"].mkdir(parents=True, exist_ok=True)
         # about the recovered mesh's error (2.2 degrees median), the random field a little stronger: 2.75
-        save_mesh(geo["true_mesh_turned_normals"] / "mesh.obj",
-                  dataclasses.replace(true_mesh, normals=_turned_normals(true_mesh, 2.75)))
-        bake = TexelBake.load(out / "fit_geometry" / "bake.npz")
-        bake_texels(load_mesh(geo["true_mesh_turned_normals"] / "mesh.obj"), bake.width, bake.height).save(
-            geo["true_mesh_turned_normals"] / "bake.npz")
+        geometry_with_normals(out / "fit_geometry", random_turn(load_mesh(out / "fit_geometry" / "mesh.obj"), 2.75),
+                              geo["true_mesh_turned_normals"])
     truth = read_capture(truth_dir)
     _, sim = _camera_errors(run / "lights", truth)
     to_truth = np.eye(4)
@@ -125,28 +108,19 @@ def _fit_flash(out: Path, geometry: Path, model: Path, mode: str) -> dict:
 def _sphere_room(work: Path) -> dict:
     """tests/test_shading_normals.py's scene and fits, off and on."""
     from texstream.capture.synthetic.synth import SynthConfig, synthesize
+    from texstream.capture.synthetic.turned_normals import geometry_with_normals, smooth_turn
     from texstream.fit.common.shading_normals import NormalsConfig
     from texstream.fit.models.materials import MaterialConfig
     from texstream.fit.optim.fitter import FitConfig
     from texstream.fit.stages.stage import FitStageConfig, fit_stage
-    from texstream.geometry.bake import TexelBake, bake_texels
-    from texstream.geometry.mesh_io import load_mesh, save_mesh
+    from texstream.geometry.mesh_io import load_mesh
 
     cap, geometry = work / "sphere_room", work / "sphere_room_turned"
     if not (geometry / "bake.npz").is_file():
         synthesize("sphere_room", cap, SynthConfig(scale=0.5, photos=24, image_size=128, progress=False,
                                                    preview=False, device="cpu"))
-        truth = load_mesh(cap / "ground_truth" / "mesh.obj")
-        n = np.asarray(truth.vertex_normals(), np.float64)
-        p = np.asarray(truth.vertices, np.float64) / np.asarray(truth.vertices).std()
-        field = np.stack([np.sin(3 * p[:, 1] + 1), np.cos(2 * p[:, 2]), np.sin(2.5 * p[:, 0] + 2)], axis=1)
-        field -= n * np.sum(field * n, axis=1, keepdims=True)
-        field *= math.radians(5.0) / np.linalg.norm(field, axis=1).max()
-        geometry.mkdir(parents=True)
-        save_mesh(geometry / "mesh.obj", dataclasses.replace(truth, normals=(n + field) / np.linalg.norm(
-            n + field, axis=1, keepdims=True)))
-        bake = TexelBake.load(cap / "ground_truth" / "bake.npz")
-        bake_texels(load_mesh(geometry / "mesh.obj"), bake.width, bake.height).save(geometry / "bake.npz")
+        geometry_with_normals(cap / "ground_truth", smooth_turn(load_mesh(cap / "ground_truth" / "mesh.obj"), 5.0),
+                              geometry)
     true_normals = load_mesh(cap / "ground_truth" / "mesh.obj").vertex_normals()
     rows = {}
     for mode in ("off", "on"):

@@ -124,8 +124,8 @@ def turned_sphere(tmp_path_factory):
     128 px, and its true mesh with the vertex normals turned by a smooth field (median 3.2 degrees, at most 5): a
     mesh's normals as dense stereo gets them (2.2 degrees median on the synthetic flash sphere, docs/real-data.md)."""
     from texstream.capture.synthetic.synth import SynthConfig, synthesize
-    from texstream.geometry.bake import TexelBake, bake_texels
-    from texstream.geometry.mesh_io import load_mesh, save_mesh
+    from texstream.capture.synthetic.turned_normals import geometry_with_normals, smooth_turn
+    from texstream.geometry.mesh_io import load_mesh
 
     root = tmp_path_factory.mktemp("normals")
     cap = root / "cap"
@@ -133,17 +133,8 @@ def turned_sphere(tmp_path_factory):
                                                device=SCENE_DEVICE))
     truth = load_mesh(cap / "ground_truth" / "mesh.obj")
     n = np.asarray(truth.vertex_normals(), np.float64)
-    p = np.asarray(truth.vertices, np.float64) / np.asarray(truth.vertices).std()
-    field = np.stack([np.sin(3 * p[:, 1] + 1), np.cos(2 * p[:, 2]), np.sin(2.5 * p[:, 0] + 2)], axis=1)
-    field -= n * np.sum(field * n, axis=1, keepdims=True)
-    field *= math.radians(5.0) / np.linalg.norm(field, axis=1).max()
-    turned = (n + field) / np.linalg.norm(n + field, axis=1, keepdims=True)
-    geometry = root / "turned"
-    geometry.mkdir()
-    save_mesh(geometry / "mesh.obj", dataclasses.replace(truth, normals=turned))
-    bake = TexelBake.load(cap / "ground_truth" / "bake.npz")
-    bake_texels(load_mesh(geometry / "mesh.obj"), bake.width, bake.height, device=SCENE_DEVICE).save(
-        geometry / "bake.npz")
+    turned = smooth_turn(truth, 5.0)
+    geometry = geometry_with_normals(cap / "ground_truth", turned, root / "turned", SCENE_DEVICE)
     return cap, geometry, n, turned
 
 
